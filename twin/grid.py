@@ -1,0 +1,108 @@
+"""The monitoring grid (Def. 1, Ass. 1): cells, obstacles, field of view, feasible moves.
+
+Cell ``(i, j)``: row ``i`` counted from the top (the paper's x axis points down), column ``j``
+from the left. Every function here takes the positions of all drones as one ``(N, 2)`` integer
+array and answers for all of them with one numpy operation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Action order used everywhere: network output index = action.
+ACTIONS: tuple[str, ...] = ("stay", "up", "down", "left", "right")
+#: Row/column change of each action, in the order of :data:`ACTIONS`.
+ACTION_DELTAS = np.array([[0, 0], [-1, 0], [1, 0], [0, -1], [0, 1]], dtype=np.int64)
+N_ACTIONS = len(ACTIONS)
+
+
+@dataclass(frozen=True, eq=False)
+class Grid:
+    """An ``nx x ny`` grid with a boolean obstacle mask ``O`` (True = cannot be visited)."""
+
+    obstacles: np.ndarray
+
+    def __post_init__(self) -> None:
+        obstacles = np.asarray(self.obstacles, dtype=bool)
+        if obstacles.ndim != 2 or min(obstacles.shape) < 1:
+            raise ValueError(f"obstacle mask must be a non-empty 2-D array, got {obstacles.shape}")
+        obstacles = obstacles.copy()
+        obstacles.setflags(write=False)
+        object.__setattr__(self, "obstacles", obstacles)
+        free = ~obstacles
+        free.setflags(write=False)
+        object.__setattr__(self, "free", free)
+
+    @classmethod
+    def open(cls, nx: int, ny: int) -> Grid:
+        """A grid without obstacles."""
+        return cls(np.zeros((nx, ny), dtype=bool))
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.obstacles.shape  # type: ignore[return-value]
+
+    @property
+    def nx(self) -> int:
+        return self.obstacles.shape[0]
+
+    @property
+    def ny(self) -> int:
+        return self.obstacles.shape[1]
+
+    @property
+    def n_free(self) -> int:
+        return int(self.free.sum())
+
+    def free_cells(self) -> np.ndarray:
+        """``(n_free, 2)`` array of the free cells in row-major order."""
+        return np.argwhere(self.free)
+
+    def inside(self, cells: np.ndarray) -> np.ndarray:
+        """Whether each ``(..., 2)`` cell lies on the map."""
+        cells = np.asarray(cells)
+        return (
+            (cells[..., 0] >= 0)
+            & (cells[..., 0] < self.nx)
+            & (cells[..., 1] >= 0)
+            & (cells[..., 1] < self.ny)
+        )
+
+    def is_free(self, cells: np.ndarray) -> np.ndarray:
+        """Whether each ``(..., 2)`` cell is on the map and not an obstacle."""
+        cells = np.asarray(cells)
+        ok = self.inside(cells)
+        i = np.where(ok, cells[..., 0], 0)
+        j = np.where(ok, cells[..., 1], 0)
+        return ok & self.free[i, j]
+
+    def field_of_view(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Adj(p) of every drone: the cell and its 4 neighbours in action order.
+
+        Returns ``(cells, valid)``: ``cells`` is ``(N, 5, 2)``, clipped onto the map, and
+        ``valid`` ``(N, 5)`` says which of them really are on the map.
+        """
+        cells = np.asarray(positions)[:, None, :] + ACTION_DELTAS[None, :, :]
+        valid = self.inside(cells)
+        cells = np.clip(cells, 0, [self.nx - 1, self.ny - 1])
+        return cells, valid
+
+    def feasible_actions(self, positions: np.ndarray) -> np.ndarray:
+        """``U_d(p)``: ``(N, 5)`` mask of actions that stay on the map and off obstacles."""
+        cells = np.asarray(positions)[:, None, :] + ACTION_DELTAS[None, :, :]
+        return self.is_free(cells)
+
+    def move(self, positions: np.ndarray, actions: np.ndarray) -> np.ndarray:
+        """``p^{k+1} = p^k + u^k``; the caller guarantees the actions are feasible."""
+        return np.asarray(positions) + ACTION_DELTAS[np.asarray(actions)]
+
+    def values_in_view(self, values: np.ndarray, positions: np.ndarray) -> np.ndarray:
+        """``(N, 5)`` values of a map over each drone's field of view, 0 off the map."""
+        cells, valid = self.field_of_view(positions)
+        return np.where(valid, values[cells[..., 0], cells[..., 1]], 0.0)
+
+    def sum_in_view(self, values: np.ndarray, positions: np.ndarray) -> np.ndarray:
+        """``(N,)`` sum of a map over each drone's field of view Adj(p)."""
+        return self.values_in_view(values, positions).sum(axis=1)

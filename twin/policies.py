@@ -1,0 +1,265 @@
+"""Swarm policies: the interface every swarm implements and the baselines of Sec. IV-A.
+
+- random: a uniform feasible action per drone;
+- greedy: move to the cell of Adj(p) with the largest ``I^k T^k`` (ties broken at random);
+- sweeping: boustrophedon drones, greedy drones and random drones (see :func:`sweeping_roles`).
+
+A policy decides for all drones at once from a :class:`SwarmView`. Learning swarms live in
+``twin.learning`` and join the registry lazily, so this module imports no torch.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import connected_components, shortest_path
+
+from twin.errors import UserError
+from twin.grid import ACTION_DELTAS, Grid
+from twin.scores import ScoreParams
+
+
+@dataclass
+class SwarmView:
+    """What a swarm's policy sees at step ``k``."""
+
+    k: int
+    horizon: int
+    grid: Grid
+    positions: np.ndarray  # (N, 2) int: P_k
+    idleness: np.ndarray  # (nx, ny): the swarm's shared map I^k (after step k's reset)
+    importance: np.ndarray  # (nx, ny): T^k; policies read it only inside the field of view
+    feasible: np.ndarray  # (N, 5) bool: U_d(p)
+    params: ScoreParams
+
+
+@dataclass
+class Transition:
+    """One step of the swarm, handed to :meth:`Policy.learn` after the move."""
+
+    view: SwarmView
+    actions: np.ndarray
+    rewards: np.ndarray
+    next_view: SwarmView
+
+
+class Policy:
+    """Chooses the actions of every drone of a swarm."""
+
+    name = "policy"
+
+    def reset(self, grid: Grid, n_drones: int, rng: np.random.Generator) -> None:
+        self.grid = grid
+        self.n_drones = n_drones
+        self.rng = rng
+
+    def act(self, view: SwarmView) -> np.ndarray:
+        raise NotImplementedError
+
+    def learn(self, transition: Transition) -> None:
+        """Online learning hook; baselines do not learn."""
+
+
+def random_feasible(feasible: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """A uniform feasible action for every row of an ``(N, 5)`` mask."""
+    return np.argmax(np.where(feasible, rng.random(feasible.shape), -1.0), axis=1)
+
+
+def argmax_random_ties(scores: np.ndarray, feasible: np.ndarray, rng: np.random.Generator):
+    """Row-wise argmax over feasible actions, ties broken uniformly at random."""
+    scores = np.where(feasible, scores, -np.inf)
+    best = scores == scores.max(axis=1, keepdims=True)
+    return random_feasible(best & feasible, rng)
+
+
+class RandomPolicy(Policy):
+    """Each drone takes a uniform feasible action."""
+
+    name = "random"
+
+    def act(self, view: SwarmView) -> np.ndarray:
+        return random_feasible(view.feasible, self.rng)
+
+
+class GreedyPolicy(Policy):
+    """Each drone moves to the cell of its field of view with the largest ``I^k T^k``."""
+
+    name = "greedy"
+
+    def act(self, view: SwarmView) -> np.ndarray:
+        seen = view.grid.values_in_view(view.idleness * view.importance, view.positions)
+        return argmax_random_ties(seen, view.feasible, self.rng)
+
+
+def boustrophedon_tour(grid: Grid) -> np.ndarray:
+    """A walk of adjacent free cells that visits every free cell: rows zig-zag left-right.
+
+    Consecutive cells of the zig-zag order that are not neighbours (an obstacle or a cut in
+    between) are joined by a shortest path over free cells. Cells cut off from the largest
+    connected free area are left out. Returns ``(L, 2)`` cells.
+    """
+    reachable = largest_free_component(grid)
+    order = []
+    for i in range(grid.nx):
+        cols = np.flatnonzero(reachable[i])
+        order.extend((i, j) for j in (cols if i % 2 == 0 else cols[::-1]))
+    order = np.array(order, dtype=np.int64)
+    if len(order) <= 1:
+        return order
+    steps = np.abs(np.diff(order, axis=0)).sum(axis=1)
+    if np.all(steps == 1):
+        return order
+    predecessors = _free_cell_predecessors(grid, order[np.flatnonzero(steps != 1) + 1])
+    tour = [order[0]]
+    for a, b in itertools.pairwise(order):
+        if np.abs(a - b).sum() == 1:
+            tour.append(b)
+        else:
+            tour.extend(_path(grid, predecessors, a, b)[1:])
+    return np.array(tour, dtype=np.int64)
+
+
+def _free_cell_graph(grid: Grid) -> csr_matrix:
+    """The 4-neighbour graph of free cells, nodes numbered ``i * ny + j``."""
+    nx, ny = grid.shape
+    flat = np.arange(nx * ny).reshape(nx, ny)
+    rows, cols = [], []
+    for di, dj in ((1, 0), (0, 1)):
+        a = flat[: nx - di, : ny - dj]
+        b = flat[di:, dj:]
+        ok = grid.free[: nx - di, : ny - dj] & grid.free[di:, dj:]
+        rows += [a[ok], b[ok]]
+        cols += [b[ok], a[ok]]
+    r, c = np.concatenate(rows), np.concatenate(cols)
+    return csr_matrix((np.ones(len(r)), (r, c)), shape=(nx * ny, nx * ny))
+
+
+def largest_free_component(grid: Grid) -> np.ndarray:
+    """Mask of the largest 4-connected area of free cells."""
+    _, labels = connected_components(_free_cell_graph(grid), directed=False)
+    labels = labels.reshape(grid.shape)
+    counts = np.bincount(labels[grid.free])
+    return grid.free & (labels == counts.argmax())
+
+
+def _free_cell_predecessors(grid: Grid, targets: np.ndarray) -> dict[int, np.ndarray]:
+    """Shortest-path trees over the free cells, rooted at each target."""
+    graph = _free_cell_graph(grid)
+    flat = np.arange(grid.nx * grid.ny).reshape(grid.shape)
+    roots = np.unique(flat[targets[:, 0], targets[:, 1]])
+    _, pred = shortest_path(graph, unweighted=True, indices=roots, return_predecessors=True)
+    return {int(root): pred[n] for n, root in enumerate(roots)}
+
+
+def _path(grid: Grid, predecessors: dict[int, np.ndarray], a: np.ndarray, b: np.ndarray):
+    """Cells of a shortest free path from ``a`` to ``b`` (both in one connected area)."""
+    ny = grid.ny
+    target = int(b[0] * ny + b[1])
+    pred = predecessors[target]
+    node, path = int(a[0] * ny + a[1]), []
+    while node != target:
+        path.append((node // ny, node % ny))
+        node = int(pred[node])
+    path.append((int(b[0]), int(b[1])))
+    return path
+
+
+def sweeping_roles(n_drones: int) -> tuple[int, int, int]:
+    """How many sweeping, greedy and random drones a sweeping swarm of ``n_drones`` has.
+
+    The paper's swarm of 4 is 1 sweeper, 2 greedy, 1 random. For other sizes a quarter of the
+    drones sweep (at least one), a quarter move at random (rounded down), the rest are greedy:
+    N=1 -> (1, 0, 0), N=2 -> (1, 1, 0), N=4 -> (1, 2, 1), N=8 -> (2, 4, 2).
+    """
+    n_sweep = max(1, round(n_drones / 4))
+    n_random = n_drones // 4
+    return n_sweep, n_drones - n_sweep - n_random, n_random
+
+
+class SweepingPolicy(Policy):
+    """The paper's sweeping swarm: zig-zag sweepers plus greedy and random drones.
+
+    Drones ``0 .. n_sweep-1`` sweep, the next ``n_greedy`` are greedy, the rest random. A
+    sweeper walks a boustrophedon tour of all free cells back and forth, starting where the
+    tour passes its start cell (a sweeper that starts off the tour acts greedily).
+    """
+
+    name = "sweeping"
+
+    def reset(self, grid: Grid, n_drones: int, rng: np.random.Generator) -> None:
+        super().reset(grid, n_drones, rng)
+        self.n_sweep, self.n_greedy, self.n_random = sweeping_roles(n_drones)
+        tour = boustrophedon_tour(grid)
+        # back and forth: 0 .. L-1 .. 1, so every move is between neighbours
+        self.cycle = np.concatenate([tour, tour[-2:0:-1]]) if len(tour) > 1 else tour
+        self.phase: np.ndarray | None = None
+        self.greedy = GreedyPolicy()
+        self.greedy.reset(grid, n_drones, rng)
+
+    def _start_phase(self, starts: np.ndarray) -> np.ndarray:
+        key = self.cycle[:, 0] * self.grid.ny + self.cycle[:, 1]
+        phase = np.empty(len(starts), dtype=np.int64)
+        for n, (i, j) in enumerate(starts):  # once per run, not on the step path
+            hits = np.flatnonzero(key == i * self.grid.ny + j)
+            phase[n] = hits[0] if len(hits) else 0
+        return phase
+
+    def act(self, view: SwarmView) -> np.ndarray:
+        actions = self.greedy.act(view)
+        s, g = self.n_sweep, self.n_sweep + self.n_greedy
+        actions[g:] = random_feasible(view.feasible[g:], self.rng)
+        if s:
+            if self.phase is None:
+                self.phase = self._start_phase(view.positions[:s])
+            nxt = self.cycle[(self.phase + 1) % len(self.cycle)]
+            step = nxt - view.positions[:s]
+            # the action whose delta equals the step; a sweeper off the tour acts greedily
+            match = (ACTION_DELTAS[None, :, :] == step[:, None, :]).all(axis=2)
+            on_tour = match.any(axis=1) & (np.abs(step).sum(axis=1) <= 1)
+            actions[:s] = np.where(on_tour, match.argmax(axis=1), actions[:s])
+            self.phase = np.where(on_tour, self.phase + 1, self.phase) % len(self.cycle)
+        return actions
+
+
+PolicyFactory = Callable[..., Policy]
+_REGISTRY: dict[str, PolicyFactory] = {
+    "random": RandomPolicy,
+    "greedy": GreedyPolicy,
+    "sweeping": SweepingPolicy,
+}
+#: Swarms provided by optional modules, imported on first use (they need torch).
+_LAZY: dict[str, str] = {
+    "rl": "twin.learning.policies",
+    "rl-decentralized": "twin.learning.policies",
+    "rl-online": "twin.learning.policies",
+}
+
+
+def register_policy(name: str, factory: PolicyFactory) -> None:
+    """Make ``make_policy(name)`` build swarms with ``factory(**options)``."""
+    _REGISTRY[name] = factory
+
+
+def available_policies() -> list[str]:
+    return sorted(set(_REGISTRY) | set(_LAZY))
+
+
+def make_policy(name: str, **options) -> Policy:
+    """Build the swarm policy registered under ``name``."""
+    if name not in _REGISTRY and name in _LAZY:
+        import importlib
+
+        try:
+            importlib.import_module(_LAZY[name])
+        except ImportError as exc:
+            raise UserError(
+                f"swarm {name!r} needs {exc.name or 'an optional dependency'}: "
+                "install twin with its learning dependencies (pip install -e .)"
+            ) from exc
+    if name not in _REGISTRY:
+        raise UserError(f"unknown swarm {name!r}; choose from {', '.join(available_policies())}")
+    return _REGISTRY[name](**options)

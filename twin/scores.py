@@ -1,0 +1,156 @@
+"""Idleness (Def. 3), patrolling reward read on arrival (Def. 4), coverage (Def. 5), and the
+13-value drone state (eq. s), vectorised over drones.
+
+The reading of Def. 4 follows ``shared/notes/paper-notes.md``: a drone moving ``p -> p'`` earns
+what it finds in view on arrival (idleness after recovery, before its own visit resets it) minus
+what it leaves behind (idleness after the reset of the previous step).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from twin.grid import Grid
+
+STATE_SIZE = 13
+#: Names of the 13 state values, in order (eq. s as read in the project notes).
+STATE_LAYOUT: tuple[str, ...] = (
+    "i/nx", "j/ny",
+    "IT_centre", "IT_up", "IT_down", "IT_left", "IT_right",
+    "nu_down", "nu_up", "nu_left", "nu_right",
+    "i_cm/nx", "j_cm/ny",
+)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class ScoreParams:
+    """Forgetting ``eta`` and recovery ``delta`` of Def. 3, reward weights of Def. 4."""
+
+    eta: float = 0.1
+    delta: float = 0.025
+    alpha_T: float = 1.0
+    alpha_I: float = 0.5
+
+
+def initial_idleness(grid: Grid) -> np.ndarray:
+    """``I^0``: 1 on free cells (nothing observed yet), 0 on obstacles."""
+    return grid.free.astype(np.float64)
+
+
+def recovered_idleness(idleness: np.ndarray, grid: Grid, delta: float) -> np.ndarray:
+    """``Ibar = min(1, I + delta)`` on free cells, 0 on obstacles."""
+    return np.where(grid.free, np.minimum(1.0, idleness + delta), 0.0)
+
+
+def update_idleness(
+    idleness: np.ndarray, positions: np.ndarray, grid: Grid, eta: float, delta: float
+) -> np.ndarray:
+    """Def. 3: visited cells ``eta * I``, other free cells ``min(1, I + delta)``, obstacles 0.
+
+    A cell visited by several drones is reduced once.
+    """
+    new = recovered_idleness(idleness, grid, delta)
+    i, j = positions[:, 0], positions[:, 1]
+    new[i, j] = eta * idleness[i, j]
+    return new
+
+
+def visit(visited: np.ndarray, positions: np.ndarray) -> None:
+    """Mark the cells the drones stand on as visited (in place)."""
+    visited[positions[:, 0], positions[:, 1]] = True
+
+
+def rewards_on_arrival(
+    grid: Grid,
+    params: ScoreParams,
+    idleness: np.ndarray,
+    importance: np.ndarray,
+    next_importance: np.ndarray,
+    positions: np.ndarray,
+    next_positions: np.ndarray,
+) -> np.ndarray:
+    """Per-drone reward ``r_d^k`` of Def. 4, read on arrival.
+
+    ``idleness`` is ``I^k`` (after step k's reset), ``importance`` ``T^k``, ``next_importance``
+    ``T^{k+1}``. With ``Ibar = min(1, I^k + delta)``::
+
+        A_T = sum_{Adj(p')} Ibar T^{k+1}     B_T = sum_{Adj(p)} I^k T^k
+        A_I = sum_{Adj(p')} Ibar             B_I = sum_{Adj(p)} I^k
+        r_d = alpha_T (A_T - B_T) + alpha_I (A_I - B_I)
+    """
+    ibar = recovered_idleness(idleness, grid, params.delta)
+    arrive = grid.values_in_view(ibar, next_positions)
+    leave = grid.values_in_view(idleness, positions)
+    a_t = (arrive * grid.values_in_view(next_importance, next_positions)).sum(axis=1)
+    b_t = (leave * grid.values_in_view(importance, positions)).sum(axis=1)
+    return params.alpha_T * (a_t - b_t) + params.alpha_I * (arrive.sum(axis=1) - leave.sum(axis=1))
+
+
+def coverage(idleness: np.ndarray, grid: Grid) -> float:
+    """Def. 5: ``C^k = 1 - mean idleness over free cells``."""
+    return 1.0 - float(idleness[grid.free].sum()) / grid.n_free
+
+
+def directional_idleness(idleness: np.ndarray, grid: Grid, positions: np.ndarray) -> np.ndarray:
+    """``(N, 4)`` mean idleness of free cells strictly below, above, left, right of each drone.
+
+    Prefix sums along rows and columns: O(cells) once plus O(1) per drone. 0 where a direction
+    holds no free cell.
+    """
+    values = np.where(grid.free, idleness, 0.0)
+    counts = grid.free.astype(np.float64)
+    i, j = positions[:, 0], positions[:, 1]
+
+    col_cum_v, col_cum_n = values.cumsum(axis=0), counts.cumsum(axis=0)
+    row_cum_v, row_cum_n = values.cumsum(axis=1), counts.cumsum(axis=1)
+    own_v, own_n = values[i, j], counts[i, j]
+
+    above_v = col_cum_v[i, j] - own_v
+    above_n = col_cum_n[i, j] - own_n
+    below_v = col_cum_v[-1, j] - col_cum_v[i, j]
+    below_n = col_cum_n[-1, j] - col_cum_n[i, j]
+    left_v = row_cum_v[i, j] - own_v
+    left_n = row_cum_n[i, j] - own_n
+    right_v = row_cum_v[i, -1] - row_cum_v[i, j]
+    right_n = row_cum_n[i, -1] - row_cum_n[i, j]
+
+    sums = np.stack([below_v, above_v, left_v, right_v], axis=1)
+    ns = np.stack([below_n, above_n, left_n, right_n], axis=1)
+    return np.divide(sums, ns, out=np.zeros_like(sums), where=ns > 0)
+
+
+def others_centre_of_mass(positions: np.ndarray) -> np.ndarray:
+    """``(N, 2)`` mean cell of the other drones; a lone drone gets its own position."""
+    n = len(positions)
+    if n == 1:
+        return positions.astype(np.float64)
+    total = positions.sum(axis=0, dtype=np.float64)
+    return (total[None, :] - positions) / (n - 1)
+
+
+def drone_states(
+    grid: Grid,
+    idleness: np.ndarray,
+    importance: np.ndarray,
+    positions: np.ndarray,
+    others: np.ndarray | None = None,
+) -> np.ndarray:
+    """The ``(N, 13)`` state of eq. (s), laid out as :data:`STATE_LAYOUT`.
+
+    ``others`` optionally gives each drone's view of the others' centre of mass (``(N, 2)``,
+    in cells), as in the decentralized mode; by default the true one.
+    """
+    scale = np.array([grid.nx, grid.ny], dtype=np.float64)
+    seen = grid.values_in_view(idleness * importance, positions)
+    cm = others_centre_of_mass(positions) if others is None else others
+    return np.concatenate(
+        [
+            positions / scale,
+            seen,
+            directional_idleness(idleness, grid, positions),
+            cm / scale,
+        ],
+        axis=1,
+    )
