@@ -8,6 +8,7 @@ array and answers for all of them with one numpy operation.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -84,10 +85,45 @@ class Grid:
         Returns ``(cells, valid)``: ``cells`` is ``(N, 5, 2)``, clipped onto the map, and
         ``valid`` ``(N, 5)`` says which of them really are on the map.
         """
-        cells = np.asarray(positions)[:, None, :] + ACTION_DELTAS[None, :, :]
-        valid = self.inside(cells)
-        cells = np.clip(cells, 0, [self.nx - 1, self.ny - 1])
-        return cells, valid
+        flat, valid = self.view_index(positions)
+        return np.stack([flat // self.ny, flat % self.ny], axis=-1), valid
+
+    def view_index(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Adj(p) as flat indices: the fast form of :meth:`field_of_view`.
+
+        Returns ``(flat, valid)``: ``flat`` ``(N, 5)`` indices into the raveled map (a
+        neighbour off the map points at the drone's own cell) and ``valid`` ``(N, 5)``, which
+        of them really are on the map.
+        """
+        positions = np.asarray(positions)
+        i, j = positions[:, 0], positions[:, 1]
+        valid = np.ones((len(positions), 5), dtype=bool)
+        valid[:, 1] = i > 0
+        valid[:, 2] = i < self.nx - 1
+        valid[:, 3] = j > 0
+        valid[:, 4] = j < self.ny - 1
+        centre = (i * self.ny + j)[:, None]
+        flat = np.where(valid, centre + self._flat_offsets, centre)
+        return flat, valid
+
+    @cached_property
+    def _flat_offsets(self) -> np.ndarray:
+        return ACTION_DELTAS[:, 0] * self.ny + ACTION_DELTAS[:, 1]
+
+    @cached_property
+    def free_cumsum_down(self) -> np.ndarray:
+        """Free cells counted down each column (prefix sums, for directional means)."""
+        return self.free_float.cumsum(axis=0)
+
+    @cached_property
+    def free_cumsum_right(self) -> np.ndarray:
+        """Free cells counted along each row from the left."""
+        return self.free_float.cumsum(axis=1)
+
+    @cached_property
+    def free_float(self) -> np.ndarray:
+        """The free-cell mask as 0.0 / 1.0, for masking by multiplication."""
+        return self.free.astype(np.float64)
 
     def feasible_actions(self, positions: np.ndarray) -> np.ndarray:
         """``U_d(p)``: ``(N, 5)`` mask of actions that stay on the map and off obstacles."""
@@ -98,10 +134,15 @@ class Grid:
         """``p^{k+1} = p^k + u^k``; the caller guarantees the actions are feasible."""
         return np.asarray(positions) + ACTION_DELTAS[np.asarray(actions)]
 
-    def values_in_view(self, values: np.ndarray, positions: np.ndarray) -> np.ndarray:
-        """``(N, 5)`` values of a map over each drone's field of view, 0 off the map."""
-        cells, valid = self.field_of_view(positions)
-        return np.where(valid, values[cells[..., 0], cells[..., 1]], 0.0)
+    def values_in_view(
+        self, values: np.ndarray, positions: np.ndarray, view: tuple | None = None
+    ) -> np.ndarray:
+        """``(N, 5)`` values of a map over each drone's field of view, 0 off the map.
+
+        ``view`` is the :meth:`view_index` of ``positions`` when the caller has it already.
+        """
+        flat, valid = view if view is not None else self.view_index(positions)
+        return np.where(valid, values.ravel()[flat], 0.0)
 
     def sum_in_view(self, values: np.ndarray, positions: np.ndarray) -> np.ndarray:
         """``(N,)`` sum of a map over each drone's field of view Adj(p)."""

@@ -91,7 +91,10 @@ class GreedyPolicy(Policy):
     name = "greedy"
 
     def act(self, view: SwarmView) -> np.ndarray:
-        seen = view.grid.values_in_view(view.idleness * view.importance, view.positions)
+        grid, fov = view.grid, view.grid.view_index(view.positions)
+        seen = grid.values_in_view(view.idleness, None, fov) * grid.values_in_view(
+            view.importance, None, fov
+        )
         return argmax_random_ties(seen, view.feasible, self.rng)
 
 

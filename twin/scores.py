@@ -41,7 +41,10 @@ def initial_idleness(grid: Grid) -> np.ndarray:
 
 def recovered_idleness(idleness: np.ndarray, grid: Grid, delta: float) -> np.ndarray:
     """``Ibar = min(1, I + delta)`` on free cells, 0 on obstacles."""
-    return np.where(grid.free, np.minimum(1.0, idleness + delta), 0.0)
+    new = idleness + delta
+    np.minimum(new, 1.0, out=new)
+    new *= grid.free_float
+    return new
 
 
 def update_idleness(
@@ -80,17 +83,19 @@ def rewards_on_arrival(
         A_I = sum_{Adj(p')} Ibar             B_I = sum_{Adj(p)} I^k
         r_d = alpha_T (A_T - B_T) + alpha_I (A_I - B_I)
     """
-    ibar = recovered_idleness(idleness, grid, params.delta)
-    arrive = grid.values_in_view(ibar, next_positions)
-    leave = grid.values_in_view(idleness, positions)
-    a_t = (arrive * grid.values_in_view(next_importance, next_positions)).sum(axis=1)
-    b_t = (leave * grid.values_in_view(importance, positions)).sum(axis=1)
+    here, there = grid.view_index(positions), grid.view_index(next_positions)
+    # Ibar only where the drones arrive: min(1, I + delta) on free cells in view
+    arrive = np.minimum(1.0, grid.values_in_view(idleness, None, there) + params.delta)
+    arrive *= grid.values_in_view(grid.free_float, None, there)
+    leave = grid.values_in_view(idleness, None, here)
+    a_t = (arrive * grid.values_in_view(next_importance, None, there)).sum(axis=1)
+    b_t = (leave * grid.values_in_view(importance, None, here)).sum(axis=1)
     return params.alpha_T * (a_t - b_t) + params.alpha_I * (arrive.sum(axis=1) - leave.sum(axis=1))
 
 
 def coverage(idleness: np.ndarray, grid: Grid) -> float:
     """Def. 5: ``C^k = 1 - mean idleness over free cells``."""
-    return 1.0 - float(idleness[grid.free].sum()) / grid.n_free
+    return 1.0 - float(idleness.sum(where=grid.free)) / grid.n_free
 
 
 def directional_idleness(idleness: np.ndarray, grid: Grid, positions: np.ndarray) -> np.ndarray:
@@ -99,13 +104,12 @@ def directional_idleness(idleness: np.ndarray, grid: Grid, positions: np.ndarray
     Prefix sums along rows and columns: O(cells) once plus O(1) per drone. 0 where a direction
     holds no free cell.
     """
-    values = np.where(grid.free, idleness, 0.0)
-    counts = grid.free.astype(np.float64)
+    values = idleness * grid.free_float
     i, j = positions[:, 0], positions[:, 1]
 
-    col_cum_v, col_cum_n = values.cumsum(axis=0), counts.cumsum(axis=0)
-    row_cum_v, row_cum_n = values.cumsum(axis=1), counts.cumsum(axis=1)
-    own_v, own_n = values[i, j], counts[i, j]
+    col_cum_v, col_cum_n = values.cumsum(axis=0), grid.free_cumsum_down
+    row_cum_v, row_cum_n = values.cumsum(axis=1), grid.free_cumsum_right
+    own_v, own_n = values[i, j], grid.free_float[i, j]
 
     above_v = col_cum_v[i, j] - own_v
     above_n = col_cum_n[i, j] - own_n
@@ -143,7 +147,8 @@ def drone_states(
     in cells), as in the decentralized mode; by default the true one.
     """
     scale = np.array([grid.nx, grid.ny], dtype=np.float64)
-    seen = grid.values_in_view(idleness * importance, positions)
+    view = grid.view_index(positions)
+    seen = grid.values_in_view(idleness, None, view) * grid.values_in_view(importance, None, view)
     cm = others_centre_of_mass(positions) if others is None else others
     return np.concatenate(
         [

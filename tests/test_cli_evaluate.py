@@ -1,0 +1,129 @@
+"""`twin evaluate` on good and bad input: a run folder, or one line and exit code 2."""
+
+import subprocess
+import sys
+
+import pandas as pd
+import pytest
+
+from twin.cli import main
+
+SMALL = """
+[grid]
+nx = 6
+ny = 8
+obstacles = [[0, 0], [3, 4]]
+[swarm]
+n_drones = 3
+{starts}
+eta = {eta}
+[traffic]
+kind = "synthetic"
+horizon = 40
+disturbances = [{{ kind = "big", i = 2, j = 2, amplitude = 1.0, sigma = 2.0 }}]
+[evaluate]
+swarms = ["random", "greedy", "sweeping"]
+"""
+
+
+def write(tmp_path, name="c.toml", starts="", eta=0.1, extra=""):
+    path = tmp_path / name
+    path.write_text(SMALL.format(starts=starts, eta=eta) + extra)
+    return path
+
+
+def test_evaluate_writes_the_run_folder(tmp_path, capsys):
+    cfg = write(tmp_path)
+    out = tmp_path / "run"
+    assert main(["evaluate", "--config", str(cfg), "--seeds", "3", "--out", str(out), "--no-report", "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    assert "R_hat_T" in printed and "greedy" in printed
+    summary = pd.read_csv(out / "summary.csv")
+    per_seed = pd.read_csv(out / "per_seed.csv")
+    series = pd.read_parquet(out / "series.parquet")
+    assert list(summary.swarm) == ["random", "greedy", "sweeping"]
+    assert (summary.n_seeds == 3).all() and len(per_seed) == 9
+    assert len(series) == 3 * 3 * 40
+    # the summary is the mean of the per-seed rows, which are the means of the series
+    g = series[series.seed == 0].groupby("swarm", sort=False)["reward"].mean()
+    assert per_seed[per_seed.seed == 0].set_index("swarm").R_hat_T.to_dict() == pytest.approx(g.to_dict())
+    assert summary.set_index("swarm").R_hat_T.to_dict() == pytest.approx(
+        per_seed.groupby("swarm").R_hat_T.mean().to_dict()
+    )
+    for name in ("trajectories.parquet", "importance.npz", "run.json"):
+        assert (out / name).exists()
+
+
+def test_refuses_to_overwrite_a_run(tmp_path):
+    cfg = write(tmp_path)
+    out = tmp_path / "run"
+    args = ["evaluate", "--config", str(cfg), "--out", str(out), "--no-report", "--quiet"]
+    assert main(args) == 0
+    before = (out / "summary.csv").read_bytes()
+    assert main(args) == 2
+    assert (out / "summary.csv").read_bytes() == before
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "needle"),
+    [
+        ({"eta": 1.5}, "[swarm].eta"),
+        ({"eta": 0}, "[swarm].eta"),
+        ({"starts": "starts = [[0, 0], [1, 1], [2, 2]]"}, "obstacle"),
+        ({"starts": "starts = [[9, 0], [1, 1], [2, 2]]"}, "off the 6 x 8 map"),
+        ({"starts": "starts = [[1, 1], [1, 1], [2, 2]]"}, "two drones on one cell"),
+        ({"starts": "starts = [[1, 1]]"}, "1 cells for 3 drones"),
+        ({"starts": "colour = 1"}, "[swarm].colour"),
+        ({"extra": "[oops]\n"}, "[oops]"),
+    ],
+)
+def test_bad_config_gets_one_line(tmp_path, capsys, kwargs, needle):
+    cfg = write(tmp_path, **kwargs)
+    assert main(["evaluate", "--config", str(cfg), "--out", str(tmp_path / "o"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and needle in err and str(cfg) in err
+    assert not (tmp_path / "o" / "summary.csv").exists()
+
+
+def test_more_drones_than_free_cells(tmp_path, capsys):
+    cfg = tmp_path / "tiny.toml"
+    cfg.write_text("[grid]\nnx = 2\nny = 2\nobstacles = [[0, 0], [1, 1]]\n[swarm]\nn_drones = 3\n")
+    assert main(["evaluate", "--config", str(cfg), "--quiet"]) == 2
+    assert "exceeds the 2 free cells" in capsys.readouterr().err
+
+
+def test_grid_without_free_cells(tmp_path, capsys):
+    cfg = tmp_path / "full.toml"
+    cfg.write_text("[grid]\nnx = 1\nny = 2\nobstacles = [[0, 0], [0, 1]]\n")
+    assert main(["evaluate", "--config", str(cfg), "--quiet"]) == 2
+    assert "leave at least one free cell" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("kind", ["missing", "folder", "binary", "not-toml"])
+def test_unreadable_config(tmp_path, capsys, kind):
+    path = tmp_path / "x.toml"
+    if kind == "folder":
+        path.mkdir()
+    elif kind == "binary":
+        path.write_bytes(b"\xff\xfe\x00\x01")
+    elif kind == "not-toml":
+        path.write_text("this is = = not toml")
+    assert main(["evaluate", "--config", str(path), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert str(path) in err and err.count("\n") == 1
+
+
+def test_unknown_swarm(tmp_path, capsys):
+    assert main(["evaluate", "--config", str(write(tmp_path)), "--swarms", "greedy,bogus"]) == 2
+    assert "bogus" in capsys.readouterr().err
+
+
+def test_console_script_help_and_no_traceback(tmp_path):
+    out = subprocess.run([sys.executable, "-m", "twin", "evaluate", "--help"], capture_output=True, text=True)
+    assert out.returncode == 0 and "--seeds" in out.stdout
+    bad = subprocess.run(
+        [sys.executable, "-m", "twin", "evaluate", "--config", str(tmp_path / "none.toml")],
+        capture_output=True,
+        text=True,
+    )
+    assert bad.returncode == 2 and "Traceback" not in bad.stderr and "not found" in bad.stderr
