@@ -1,0 +1,315 @@
+"""`twin report`: every figure present, table values equal the run's files, HTML self-contained
+and every image loads in headless Chromium."""
+
+from __future__ import annotations
+
+import html.parser
+import json
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from twin.errors import UserError
+from twin.grid import Grid
+from twin.report import load_run, write_report
+from twin.report.document import TABLE_COLUMNS
+from twin.scores import ScoreParams, coverage, initial_idleness, update_idleness
+
+SWARMS = ("random", "greedy", "sweeping", "rl")
+
+NET_XML = """<?xml version="1.0" encoding="UTF-8"?>
+<net version="1.20">
+  <location netOffset="0.00,0.00" convBoundary="0.00,0.00,1500.00,1000.00"/>
+  <edge id=":j0_0" function="internal"><lane id=":j0_0_0" index="0" speed="13.9" length="5"
+    shape="100.00,100.00 105.00,100.00"/></edge>
+  <edge id="e0" from="a" to="b"><lane id="e0_0" index="0" speed="13.9" length="1400"
+    shape="50.00,500.00 1450.00,500.00"/><lane id="e0_1" index="1" speed="13.9" length="1400"
+    shape="50.00,503.00 1450.00,503.00"/></edge>
+  <edge id="e1" from="b" to="c"><lane id="e1_0" index="0" speed="13.9" length="900"
+    shape="750.00,50.00 750.00,950.00"/></edge>
+</net>
+"""
+
+
+def write_fixture_run(
+    root: Path, seeds=(0, 1), horizon: int = 40, nx: int = 6, ny: int = 9, sumo: bool = True
+) -> Path:
+    """A run folder in the documented format (twin/runs.py), from random walks on a toy map.
+
+    Independent of the core's writer: the idleness, coverage and visited share are computed here
+    with twin.scores, so the report's replay check has something real to agree with.
+    """
+    rng = np.random.default_rng(7)
+    obstacles = np.zeros((nx, ny), dtype=bool)
+    obstacles[0, 0] = obstacles[2, 4] = True
+    grid, params = Grid(obstacles), ScoreParams()
+    ii, jj = np.indices((nx, ny))
+    steps = np.arange(horizon + 1)[:, None, None]
+    bump = np.exp(-((ii - 3) ** 2 + (jj - 6) ** 2) / 4.0)[None]
+    importance = np.where(grid.free, np.clip(bump * steps / horizon, 0, 1), 0.0)
+    series, trajectories, per_seed = [], [], []
+    for seed in seeds:
+        covs = {}
+        for swarm in SWARMS:
+            pos = np.empty((horizon + 1, 3, 2), dtype=np.int64)
+            pos[0] = grid.free_cells()[rng.choice(grid.n_free, 3, replace=False)]
+            idle, visited = initial_idleness(grid), np.zeros_like(obstacles)
+            visited[pos[0, :, 0], pos[0, :, 1]] = True
+            rows = []
+            for k in range(horizon):
+                feasible = grid.feasible_actions(pos[k])
+                actions = np.array([rng.choice(np.flatnonzero(f)) for f in feasible])
+                pos[k + 1] = grid.move(pos[k], actions)
+                idle = update_idleness(idle, pos[k + 1], grid, params.eta, params.delta)
+                visited[pos[k + 1, :, 0], pos[k + 1, :, 1]] = True
+                rows.append(
+                    (k, rng.normal(1.0, 0.3), coverage(idle, grid), visited[grid.free].mean())
+                )
+            frame = pd.DataFrame(rows, columns=["step", "reward", "coverage", "visited_share"])
+            frame["cumulative_reward"] = frame["reward"].cumsum()
+            series.append(frame.assign(seed=seed, swarm=swarm))
+            covs[swarm] = frame["coverage"].to_numpy()
+            n = pos.shape[1]
+            trajectories.append(
+                pd.DataFrame(
+                    {
+                        "seed": seed,
+                        "swarm": swarm,
+                        "step": np.repeat(np.arange(horizon + 1), n),
+                        "drone": np.tile(np.arange(n), horizon + 1),
+                        "i": pos[..., 0].ravel(),
+                        "j": pos[..., 1].ravel(),
+                    }
+                )
+            )
+        best = np.max(list(covs.values()), axis=0)
+        for swarm in SWARMS:
+            f = series[-len(SWARMS) + SWARMS.index(swarm)]
+            per_seed.append(
+                {
+                    "seed": seed,
+                    "swarm": swarm,
+                    "R_hat_T": f["reward"].mean(),
+                    "C_hat_T": f["coverage"].mean(),
+                    "pct_time_max_C": 100.0 * np.mean(covs[swarm] >= best),
+                    "pct_map_covered": 100.0 * f["visited_share"].iloc[-1],
+                }
+            )
+    per_seed = pd.DataFrame(per_seed)
+    summary = per_seed.groupby("swarm", sort=False).agg(["mean", "std"])
+    out = pd.DataFrame({"swarm": list(SWARMS)})
+    for col, _, _ in TABLE_COLUMNS:
+        out[col] = summary[(col, "mean")].to_numpy()
+        if len(seeds) > 1:
+            out[f"{col}_ci95"] = 2.0 * summary[(col, "std")].to_numpy()  # any half-width will do
+    out["n_seeds"] = len(seeds)
+    run = root / "run"
+    run.mkdir(parents=True)
+    pd.concat(series).to_parquet(run / "series.parquet", index=False)
+    pd.concat(trajectories).to_parquet(run / "trajectories.parquet", index=False)
+    per_seed.to_csv(run / "per_seed.csv", index=False)
+    out.to_csv(run / "summary.csv", index=False)
+    np.savez_compressed(
+        run / "importance.npz", importance=importance.astype(np.float32), obstacles=obstacles
+    )
+    meta = {
+        "command": "twin run --config fixture.toml",
+        "seeds": list(seeds),
+        "swarms": list(SWARMS),
+        "horizon": horizon,
+        "params": {"eta": params.eta, "delta": params.delta, "alpha_T": 1.0, "alpha_I": 0.5},
+        "checkpoint": {"path": "data/qnet.pt", "sha256": "ab12cd34"},
+        "timings": {"patrol_seconds": [1.234, 2.345]},
+        "versions": {"python": "3.11.7", "numpy": "2.4.6"},
+    }
+    (run / "run.json").write_text(json.dumps(meta))
+    if sumo:
+        (run / "net.net.xml").write_text(NET_XML)
+        network = {"net_file": "net.net.xml", "origin": [0.0, 0.0], "cell_size": 1500.0 / ny}
+        network["bbox"] = [0.0, 0.0, 1500.0, nx * 1500.0 / ny]
+        (run / "network.json").write_text(json.dumps(network))
+        density = rng.uniform(0, 120, 500)
+        speed = 15.0 * np.exp(-density / 60.0) + rng.normal(0, 0.5, 500)
+        pd.DataFrame(
+            {"cell": rng.integers(0, nx * ny, 500), "step": np.arange(500) % horizon,
+             "density": density, "speed": speed}
+        ).to_parquet(run / "mfd_samples.parquet", index=False)  # fmt: skip
+        (run / "mfd.json").write_text(
+            json.dumps({"form": "underwood", "parameters": {"v_free": 15.0, "k_crit": 60.0},
+                        "R2": 0.913, "RMSE": 0.51})
+        )  # fmt: skip
+    return run
+
+
+@pytest.fixture(scope="module")
+def report(tmp_path_factory) -> Path:
+    run = write_fixture_run(tmp_path_factory.mktemp("report"))
+    return write_report(run)
+
+
+FIGURES = ("scores.png", "snapshots.png", "trajectories.png", "animation.gif", "traffic.png",
+           "network.png", "mfd.png")  # fmt: skip
+
+
+def test_every_figure_is_written_and_inlined(report: Path) -> None:
+    text = report.read_text()
+    for name in FIGURES:
+        assert (report.parent / name).stat().st_size > 1000, name
+    inlined = re.findall(r'<img src="data:image/(png|gif);base64,', text)
+    assert len(inlined) == len(FIGURES)
+    assert (report.parent / "animation.gif").stat().st_size < 3_000_000
+    # self-contained: no external resource at all
+    assert not re.search(r'(src|href)="(https?:)?//', text)
+    md = (report.parent / "report.md").read_text()
+    for name in FIGURES:
+        assert f"]({name})" in md
+
+
+def _parse_cell(text: str) -> tuple[float, float | None]:
+    parts = text.split("±")
+    return float(parts[0]), float(parts[1]) if len(parts) > 1 else None
+
+
+def _check_rows(rows: list[list[str]], summary: pd.DataFrame) -> None:
+    assert [r[0] for r in rows] == list(summary["swarm"])
+    for row, (_, expected) in zip(rows, summary.iterrows(), strict=True):
+        for cell, (col, _, decimals) in zip(row[1:], TABLE_COLUMNS, strict=False):
+            value, half = _parse_cell(cell)
+            tol = 0.5 * 10**-decimals + 1e-12
+            assert abs(value - expected[col]) <= tol, (col, cell, expected[col])
+            assert half is not None and abs(half - expected[f"{col}_ci95"]) <= tol
+        assert int(row[-1]) == expected["n_seeds"]
+
+
+def test_markdown_table_equals_summary_csv(report: Path) -> None:
+    summary = pd.read_csv(report.parent.parent / "summary.csv")
+    md = (report.parent / "report.md").read_text()
+    block = md.split("## Scores (paper's Table 2)")[1].split("\n\n")[1]
+    rows = [[c.strip() for c in line.strip("|").split("|")] for line in block.splitlines()[2:]]
+    _check_rows(rows, summary)
+
+
+class _TableParser(html.parser.HTMLParser):
+    def __init__(self) -> None:
+        super().__init__()
+        self.tables: dict[str, list[list[str]]] = {}
+        self._current: str | None = None
+        self._cell: list[str] | None = None
+
+    def handle_starttag(self, tag, attrs):
+        if tag == "table":
+            self._current = dict(attrs).get("class", "")
+            self.tables[self._current] = []
+        elif tag == "tr" and self._current is not None:
+            self.tables[self._current].append([])
+        elif tag in ("td", "th"):
+            self._cell = []
+
+    def handle_endtag(self, tag):
+        if tag in ("td", "th") and self._cell is not None and self._current is not None:
+            self.tables[self._current][-1].append("".join(self._cell).strip())
+            self._cell = None
+        elif tag == "table":
+            self._current = None
+
+    def handle_data(self, data):
+        if self._cell is not None:
+            self._cell.append(data)
+
+
+def test_html_table_and_metadata_equal_run_files(report: Path) -> None:
+    run_dir = report.parent.parent
+    parser = _TableParser()
+    parser.feed(report.read_text())
+    _check_rows(parser.tables["summary"][1:], pd.read_csv(run_dir / "summary.csv"))
+    meta = dict(parser.tables["meta"][1:])
+    run = json.loads((run_dir / "run.json").read_text())
+    assert meta["checkpoint.sha256"] == run["checkpoint"]["sha256"]
+    assert json.loads(meta["timings.patrol_seconds"]) == run["timings"]["patrol_seconds"]
+    assert json.loads(meta["seeds"]) == run["seeds"]
+    mfd = json.loads((run_dir / "mfd.json").read_text())
+    assert f"R2 = {mfd['R2']}" in report.read_text()
+
+
+def test_replayed_idleness_matches_stored_coverage(report: Path) -> None:
+    text = report.read_text()
+    assert "coverage matches series.parquet" in text
+    rf = load_run(report.parent.parent)
+    assert rf.idleness("greedy").shape == (rf.horizon + 1, *rf.obstacles.shape)
+
+
+def test_report_without_sumo_files_and_one_seed(tmp_path: Path) -> None:
+    run = write_fixture_run(tmp_path, seeds=(3,), sumo=False)
+    out = write_report(run, animation=False)
+    names = {p.name for p in out.parent.iterdir()}
+    assert {"scores.png", "snapshots.png", "trajectories.png", "network.png"} <= names
+    assert "mfd.png" not in names and "animation.gif" not in names
+    assert "one seed, so no interval" in out.read_text()
+
+
+def test_missing_files_are_one_line_errors(tmp_path: Path, capsys) -> None:
+    from twin.cli import main
+
+    with pytest.raises(UserError, match=r"missing series\.parquet"):
+        write_report(tmp_path)
+    assert main(["report", str(tmp_path / "nope")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("twin: error:") and err.count("\n") == 1
+
+
+def test_report_of_a_real_patrol_run(tmp_path: Path) -> None:
+    """The core's own run-folder writer, read back: the table equals its summary.csv."""
+    from twin.patrol import random_starts, run_patrol
+    from twin.policies import make_policy
+    from twin.runs import write_run
+    from twin.traffic.synthetic import Disturbance, SyntheticTraffic
+
+    grid = Grid.open(8, 12)
+    source = SyntheticTraffic(grid, [Disturbance("big", 3, 4, 1.0, 2.0)], horizon=30)
+    results = []
+    for seed in (0, 1):
+        starts = random_starts(grid, 3, np.random.default_rng(seed))
+        swarms = {name: make_policy(name) for name in ("random", "greedy", "sweeping")}
+        results.append(run_patrol(source, swarms, starts, ScoreParams(), seed))
+    write_run(tmp_path, results, {"params": vars(ScoreParams())})
+    out = write_report(tmp_path, animation=False)
+    md = (out.parent / "report.md").read_text()
+    block = md.split("## Scores (paper's Table 2)")[1].split("\n\n")[1]
+    rows = [[c.strip() for c in line.strip("|").split("|")] for line in block.splitlines()[2:]]
+    _check_rows(rows, pd.read_csv(tmp_path / "summary.csv"))
+    assert "coverage matches series.parquet" in out.read_text()
+
+
+CHECK_SCRIPT = """<script>
+window.addEventListener('load', function () {
+  var imgs = Array.prototype.slice.call(document.images);
+  var ok = imgs.filter(function (i) { return i.complete && i.naturalWidth > 0; }).length;
+  var p = document.createElement('pre');
+  p.id = 'image-check';
+  p.textContent = 'IMAGES ' + ok + '/' + imgs.length;
+  document.body.appendChild(p);
+});
+</script></body>"""
+
+
+def test_every_image_loads_in_headless_chromium(report: Path, tmp_path: Path) -> None:
+    browser = shutil.which("chromium") or shutil.which("chromium-browser")
+    if browser is None:
+        pytest.skip("chromium not installed (apt-get install -y chromium)")
+    page = tmp_path / "check.html"
+    page.write_text(report.read_text().replace("</body>", CHECK_SCRIPT))
+    cmd = [
+        browser, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+        "--disable-background-networking", "--disable-component-update", "--disable-sync",
+        f"--user-data-dir={tmp_path / 'profile'}", "--virtual-time-budget=10000", "--dump-dom",
+        page.as_uri(),
+    ]  # fmt: skip
+    dom = subprocess.run(cmd, capture_output=True, text=True, timeout=120).stdout
+    found = re.search(r"IMAGES (\d+)/(\d+)", dom)
+    assert found, "the check script did not run"
+    assert found.group(1) == found.group(2) == str(len(FIGURES))

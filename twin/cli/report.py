@@ -1,0 +1,32 @@
+"""``twin report RUN_DIR``: render a run folder into a self-contained HTML report."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser(
+        "report",
+        help="render a run folder into an HTML report (figures, Table 2, MFD, animation)",
+        description="Read a run folder written by `twin run` or `twin evaluate` and write "
+        "RUN_DIR/report/: report.html (self-contained: every image inlined, opens offline), "
+        "report.md and the PNG figures and GIF animation it shows. Every number comes from "
+        "the run folder's own files.",
+    )
+    p.add_argument("run_dir", type=Path, metavar="RUN_DIR", help="run folder to render")
+    p.add_argument(
+        "--no-animation", action="store_true", help="skip the GIF animation (the slowest part)"
+    )
+    p.set_defaults(func=main)
+
+
+def main(args: argparse.Namespace) -> int:
+    from twin.report import write_report
+
+    start = time.perf_counter()
+    path = write_report(args.run_dir, animation=not args.no_animation)
+    print(f"report: {path} ({time.perf_counter() - start:.1f} s)")
+    return 0

@@ -1,0 +1,323 @@
+"""Assemble the report: PNGs and a GIF next to one self-contained HTML file (every image inlined
+as base64, no external resource) and a Markdown summary that links the image files."""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from matplotlib.figure import Figure
+
+from twin.report import figures
+from twin.report.animation import MAX_FRAMES, write_animation
+from twin.report.load import RunFiles, load_run
+from twin.scores import coverage
+
+#: Table 2 columns of summary.csv: (column, header, decimals).
+TABLE_COLUMNS = (
+    ("R_hat_T", "R̂_T (mean score per step)", 4),
+    ("C_hat_T", "Ĉ_T (mean coverage)", 4),
+    ("pct_time_max_C", "% of time with max C^k", 2),
+    ("pct_map_covered", "% of map covered", 2),
+)
+REPORT_DIR = "report"
+
+
+@dataclass
+class Section:
+    title: str
+    image: str | None  # file name inside the report folder
+    caption: str
+
+
+def format_cell(row: pd.Series, column: str, decimals: int) -> str:
+    """``mean`` or ``mean ± half-width`` as printed in both tables."""
+    value = float(row[column])
+    text = f"{value:.{decimals}f}"
+    ci = row.get(f"{column}_ci95")
+    if ci is not None and not (isinstance(ci, float) and math.isnan(ci)):
+        text += f" ± {float(ci):.{decimals}f}"
+    return text
+
+
+def summary_table(summary: pd.DataFrame) -> tuple[list[str], list[list[str]]]:
+    """Header and rows of the Table 2 analog, straight from summary.csv."""
+    columns = [c for c in TABLE_COLUMNS if c[0] in summary.columns]
+    header = ["swarm"] + [h for _, h, _ in columns]
+    if "n_seeds" in summary.columns:
+        header.append("seeds")
+    rows = []
+    for _, row in summary.iterrows():
+        cells = [str(row["swarm"])] + [format_cell(row, c, d) for c, _, d in columns]
+        if "n_seeds" in summary.columns:
+            cells.append(str(int(row["n_seeds"])))
+        rows.append(cells)
+    return header, rows
+
+
+def markdown_table(header: list[str], rows: list[list[str]]) -> str:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    return "\n".join(lines)
+
+
+def html_table(header: list[str], rows: list[list[str]], css_class: str = "") -> str:
+    head = "".join(f"<th>{html.escape(h)}</th>" for h in header)
+    body = "".join(
+        "<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in r) + "</tr>" for r in rows
+    )
+    return f'<table class="{css_class}"><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>'
+
+
+def _flatten(node: Any, prefix: str = "") -> list[tuple[str, str]]:
+    """Dotted key/value pairs of a JSON tree (long lists abbreviated)."""
+    if isinstance(node, dict):
+        out = []
+        for key, value in node.items():
+            out += _flatten(value, f"{prefix}.{key}" if prefix else str(key))
+        return out
+    if isinstance(node, list) and (
+        len(node) > 12 or any(isinstance(v, (dict, list)) for v in node)
+    ):
+        return [(prefix, f"[{len(node)} items, see run.json]")]
+    return [(prefix, json.dumps(node) if not isinstance(node, str) else node)]
+
+
+def metadata_rows(run: dict[str, Any]) -> list[list[str]]:
+    return [[k, v] for k, v in _flatten(run)]
+
+
+def idleness_check(rf: RunFiles) -> str:
+    """Replay the first seed's idleness and compare its coverage with series.parquet's."""
+    worst = 0.0
+    series = rf.series[rf.series["seed"] == rf.first_seed]
+    grid = rf.grid
+    for swarm in rf.swarms:
+        maps = rf.idleness(swarm)
+        stored = series[series["swarm"] == swarm].sort_values("step")["coverage"].to_numpy()
+        replayed = np.array([coverage(maps[k + 1], grid) for k in range(len(stored))])
+        worst = max(worst, float(np.abs(replayed - stored).max(initial=0.0)))
+    params, origin = rf.score_params()
+    verdict = "matches" if worst < 1e-6 else "DOES NOT match"
+    return (
+        f"Idleness maps replayed from trajectories.parquet with eta = {params.eta}, "
+        f"delta = {params.delta} ({origin}); their coverage {verdict} series.parquet "
+        f"(largest difference {worst:.2g})."
+    )
+
+
+def _save(fig: Figure, path: Path) -> str:
+    fig.savefig(path, dpi=100)
+    return path.name
+
+
+def build_sections(
+    rf: RunFiles, out: Path, animation: bool
+) -> tuple[list[Section], dict[str, float]]:
+    timings: dict[str, float] = {}
+    sections: list[Section] = []
+
+    def timed(name: str, fn):
+        start = time.perf_counter()
+        result = fn()
+        timings[name] = time.perf_counter() - start
+        return result
+
+    n_seeds = len(rf.seeds)
+    sections.append(
+        Section(
+            "Patrolling scores over time (paper's Fig. 3)",
+            timed("scores", lambda: _save(figures.figure_scores(rf), out / "scores.png")),
+            "Cumulative patrolling score R^k, score per step R^k, share of free cells visited so "
+            "far and coverage C^k, all swarms on the same axes"
+            + (
+                f"; lines are means and bands 95% intervals over {n_seeds} seeds."
+                if n_seeds > 1
+                else "."
+            ),
+        )
+    )
+    sections.append(
+        Section(
+            "Drones over the importance map (paper's Fig. 4)",
+            timed("snapshots", lambda: _save(figures.figure_snapshots(rf), out / "snapshots.png")),
+            "Importance T^k (bright = congested, grey = obstacle) at the paper's snapshot steps, "
+            "with each swarm's drones (markers) and their last steps (lines).",
+        )
+    )
+    sections.append(
+        Section(
+            "Trajectories over unvisited importance (paper's Fig. 2)",
+            timed(
+                "trajectories",
+                lambda: _save(figures.figure_trajectories(rf), out / "trajectories.png"),
+            ),
+            "Cell colour I^T·T^T at the end of the horizon: bright cells are important and long "
+            "unvisited. " + idleness_check(rf),
+        )
+    )
+    if animation:
+        sections.append(
+            Section(
+                "Animation",
+                timed("animation", lambda: write_animation(rf, out / "animation.gif").name),
+                "Every swarm over the importance map T^k, frames subsampled to at most "
+                f"{MAX_FRAMES} steps.",
+            )
+        )
+    sections.append(
+        Section(
+            "Traffic over the horizon",
+            timed("traffic", lambda: _save(figures.figure_traffic(rf), out / "traffic.png")),
+            "How congestion forms and dissolves: statistics of T^k over the free cells"
+            + (", and the cells' simulated speed." if rf.mfd_samples is not None else "."),
+        )
+    )
+    fig, note = timed("network", lambda: figures.figure_network(rf))
+    sections.append(
+        Section(
+            "Network and monitoring grid",
+            _save(fig, out / "network.png"),
+            "Grid cells coloured by their peak importance over the horizon; obstacle cells "
+            "hatched. " + note,
+        )
+    )
+    if rf.mfd is not None:
+        fig, note = timed("mfd", lambda: figures.figure_mfd(rf))
+        quality = ", ".join(f"{k} = {rf.mfd[k]}" for k in ("R2", "RMSE") if k in rf.mfd)
+        sections.append(
+            Section(
+                "Macroscopic fundamental diagram",
+                _save(fig, out / "mfd.png"),
+                f"Form {rf.mfd.get('form', '?')}, parameters "
+                f"{json.dumps(rf.mfd.get('parameters') or rf.mfd.get('params') or {})}"
+                + (f"; fit quality {quality}" if quality else "")
+                + ". "
+                + note,
+            )
+        )
+    return sections, timings
+
+
+def _data_uri(path: Path) -> str:
+    mime = "image/gif" if path.suffix == ".gif" else "image/png"
+    return f"data:{mime};base64," + base64.b64encode(path.read_bytes()).decode("ascii")
+
+
+CSS = """
+body{font-family:system-ui,-apple-system,Segoe UI,Helvetica,Arial,sans-serif;max-width:1200px;
+margin:2em auto;padding:0 1em;color:#222}
+h1{font-size:1.6em}h2{font-size:1.25em;border-bottom:1px solid #ddd;padding-bottom:.2em;margin-top:2em}
+table{border-collapse:collapse;margin:1em 0;font-size:.92em}
+th,td{border:1px solid #ccc;padding:.3em .6em;text-align:right}
+th:first-child,td:first-child{text-align:left}
+table.meta td{text-align:left;font-family:ui-monospace,monospace;font-size:.85em}
+img{max-width:100%;height:auto;border:1px solid #eee}
+.caption{color:#555;font-size:.9em;margin:.3em 0 1em}
+pre{background:#f6f6f6;padding:1em;overflow:auto;font-size:.8em}
+"""
+
+
+def render_html(rf: RunFiles, out: Path, sections: list[Section]) -> str:
+    header, rows = summary_table(rf.summary)
+    parts = [
+        "<!DOCTYPE html>",
+        '<html lang="en"><head><meta charset="utf-8">',
+        f"<title>twin report: {html.escape(rf.run_dir.name)}</title>",
+        f"<style>{CSS}</style></head><body>",
+        f"<h1>Drone-swarm patrol report: {html.escape(rf.run_dir.name)}</h1>",
+        f"<p>{html.escape(_lede(rf))}</p>",
+        "<h2>Scores (paper's Table 2)</h2>",
+        html_table(header, rows, "summary"),
+        f'<p class="caption">{html.escape(_table_caption(rf))}</p>',
+    ]
+    if rf.per_seed is not None and len(rf.seeds) > 1:
+        parts.append("<details><summary>Per seed</summary>")
+        parts.append(
+            html_table(list(map(str, rf.per_seed.columns)), _rows(rf.per_seed), "per-seed")
+        )
+        parts.append("</details>")
+    for section in sections:
+        parts.append(f"<h2>{html.escape(section.title)}</h2>")
+        if section.image:
+            parts.append(
+                f'<img src="{_data_uri(out / section.image)}" alt="{html.escape(section.title)}">'
+            )
+        parts.append(f'<p class="caption">{html.escape(section.caption)}</p>')
+    parts.append("<h2>Run metadata (run.json)</h2>")
+    parts.append(html_table(["key", "value"], metadata_rows(rf.run), "meta"))
+    parts.append("<details><summary>run.json</summary><pre>")
+    parts.append(html.escape(json.dumps(rf.run, indent=2)))
+    parts.append("</pre></details></body></html>")
+    return "\n".join(parts)
+
+
+def _rows(frame: pd.DataFrame) -> list[list[str]]:
+    def fmt(v: Any) -> str:
+        return f"{v:.4f}" if isinstance(v, float) else str(v)
+
+    return [[fmt(v) for v in row] for row in frame.itertuples(index=False)]
+
+
+def _lede(rf: RunFiles) -> str:
+    nx, ny = rf.obstacles.shape
+    return (
+        f"{len(rf.swarms)} swarms ({', '.join(rf.swarms)}) patrolling a {nx} x {ny} grid over "
+        f"T = {rf.horizon} steps, seeds {', '.join(map(str, rf.seeds))}. Every number below is "
+        "read from this run folder's files."
+    )
+
+
+def _table_caption(rf: RunFiles) -> str:
+    if len(rf.seeds) > 1:
+        return "From summary.csv: mean ± 95% interval half-width over seeds."
+    return "From summary.csv (one seed, so no interval)."
+
+
+def render_markdown(rf: RunFiles, sections: list[Section]) -> str:
+    header, rows = summary_table(rf.summary)
+    lines = [
+        f"# Drone-swarm patrol report: {rf.run_dir.name}",
+        "",
+        _lede(rf),
+        "",
+        "## Scores (paper's Table 2)",
+        "",
+        markdown_table(header, rows),
+        "",
+        _table_caption(rf),
+        "",
+    ]
+    for section in sections:
+        lines += [f"## {section.title}", ""]
+        if section.image:
+            lines += [f"![{section.title}]({section.image})", ""]
+        lines += [section.caption, ""]
+    lines += [
+        "## Run metadata (run.json)",
+        "",
+        markdown_table(["key", "value"], metadata_rows(rf.run)),
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def write_report(run_dir: str | Path, animation: bool = True) -> Path:
+    """Write ``RUN_DIR/report/`` (report.html, report.md, PNGs, GIF); return the HTML's path."""
+    rf = load_run(run_dir)
+    out = rf.run_dir / REPORT_DIR
+    out.mkdir(exist_ok=True)
+    sections, _ = build_sections(rf, out, animation)
+    html_path = out / "report.html"
+    tmp = html_path.with_suffix(".html.tmp")
+    tmp.write_text(render_html(rf, out, sections), encoding="utf-8")
+    tmp.replace(html_path)
+    (out / "report.md").write_text(render_markdown(rf, sections), encoding="utf-8")
+    return html_path

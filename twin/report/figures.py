@@ -1,0 +1,406 @@
+"""The report's figures, each drawn from a :class:`~twin.report.load.RunFiles` onto a fresh
+matplotlib :class:`~matplotlib.figure.Figure` (Agg canvas; pyplot's global state is never used).
+
+Cell ``(i, j)`` is drawn at ``x = j``, ``y = i`` with row 0 at the top, as in the paper's maps.
+"""
+
+from __future__ import annotations
+
+import gzip
+import xml.etree.ElementTree as ET
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from matplotlib import colormaps
+from matplotlib.axes import Axes
+from matplotlib.collections import LineCollection
+from matplotlib.colors import ListedColormap
+from matplotlib.figure import Figure
+from matplotlib.patches import Rectangle
+from matplotlib.ticker import MaxNLocator
+
+from twin.report.load import RunFiles
+from twin.report.stats import mean_band
+
+#: Paper's Fig. 4 snapshot steps.
+SNAPSHOT_STEPS = (0, 40, 90, 140)
+#: Drone markers, after the paper's swarm D = {triangle, square, circle, star}.
+DRONE_MARKERS = ("^", "s", "o", "*", "D", "v", "P", "X")
+IMPORTANCE_CMAP = "inferno"
+OBSTACLE_COLOUR = "#b8b8b8"
+
+
+def swarm_colours(swarms: list[str]) -> dict[str, Any]:
+    cmap = colormaps["tab10"]
+    return {name: cmap(k % 10) for k, name in enumerate(swarms)}
+
+
+def drone_colours(n: int) -> list[Any]:
+    cmap = colormaps["Set2" if n <= 8 else "tab20"]
+    return [cmap(d % cmap.N) for d in range(n)]
+
+
+def _cmap_with_obstacles(name: str) -> ListedColormap:
+    return colormaps[name].with_extremes(bad=OBSTACLE_COLOUR)
+
+
+def snapshot_steps(horizon: int, wanted: tuple[int, ...] = SNAPSHOT_STEPS) -> list[int]:
+    """The paper's snapshot steps clipped to the horizon (duplicates dropped)."""
+    return sorted({min(k, horizon) for k in wanted})
+
+
+def panel_layout(n: int) -> tuple[int, int]:
+    """Rows, columns for ``n`` map panels (2 x 2 for four swarms)."""
+    if n <= 3:
+        return 1, n
+    cols = int(np.ceil(np.sqrt(n)))
+    return int(np.ceil(n / cols)), cols
+
+
+def draw_map(ax: Axes, values: np.ndarray, obstacles: np.ndarray, cmap: str, vmax: float = 1.0):
+    """A cell map with obstacles greyed out; returns the image for a colour bar."""
+    masked = np.ma.masked_array(values, mask=obstacles)
+    image = ax.imshow(
+        masked,
+        cmap=_cmap_with_obstacles(cmap),
+        vmin=0.0,
+        vmax=vmax,
+        origin="upper",
+        interpolation="nearest",
+        aspect="equal",
+    )
+    ax.set_xlim(-0.5, values.shape[1] - 0.5)
+    ax.set_ylim(values.shape[0] - 0.5, -0.5)
+    ax.set_xlabel("column j", fontsize=8)
+    ax.set_ylabel("row i", fontsize=8)
+    ax.tick_params(labelsize=7)
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+    ax.yaxis.set_major_locator(MaxNLocator(integer=True))
+    return image
+
+
+def draw_drones(ax: Axes, positions: np.ndarray, k: int, trail: int, colours: list[Any]) -> None:
+    """Each drone's path over steps ``max(0, k - trail) .. k`` and its marker at ``P_k``."""
+    start = max(0, k - trail)
+    path = positions[start : k + 1]  # (L, N, 2)
+    for d in range(positions.shape[1]):
+        ax.plot(path[:, d, 1], path[:, d, 0], "-", color=colours[d], lw=1.4, alpha=0.85)
+        ax.plot(
+            positions[k, d, 1],
+            positions[k, d, 0],
+            DRONE_MARKERS[d % len(DRONE_MARKERS)],
+            color=colours[d],
+            markeredgecolor="white",
+            markersize=8,
+            markeredgewidth=0.8,
+        )
+
+
+def figure_scores(rf: RunFiles) -> Figure:
+    """Fig. 3 analog: cumulative score, per-step score, share of map visited, coverage C^k."""
+    panels = (
+        ("cumulative_reward", "cumulative patrolling score $R^k$", 1.0),
+        ("reward", "patrolling score per step (rolling mean)", 1.0),
+        ("visited_share", "map visited (%)", 100.0),
+        ("coverage", "coverage $C^k$", 1.0),
+    )
+    colours = swarm_colours(rf.swarms)
+    n_seeds = len(rf.seeds)
+    horizon = int(rf.series["step"].max()) + 1
+    window = max(1, horizon // 40)
+    fig = Figure(figsize=(11, 7), layout="constrained")
+    axes = fig.subplots(2, 2, sharex=True).ravel()
+    for ax, (column, label, scale) in zip(axes, panels, strict=True):
+        for swarm, (steps, mean, half) in mean_band(rf.series, column).items():
+            x = steps + 1  # value after the move of step k
+            if column == "reward" and window > 1:
+                kernel = np.ones(window) / window
+                mean = np.convolve(mean, kernel, mode="same")
+                half = np.convolve(half, kernel, mode="same")
+            ax.plot(x, scale * mean, color=colours.get(swarm), lw=1.5, label=swarm)
+            if n_seeds > 1:
+                ax.fill_between(
+                    x,
+                    scale * (mean - half),
+                    scale * (mean + half),
+                    color=colours.get(swarm),
+                    alpha=0.2,
+                )
+        title = label if column != "reward" or window == 1 else f"{label}, window {window}"
+        ax.set_title(title, fontsize=10)
+        ax.set_ylabel(label.split(" (")[0], fontsize=9)
+        ax.grid(alpha=0.3)
+    for ax in axes[2:]:
+        ax.set_xlabel("step k", fontsize=9)
+    band = f"mean and 95% interval over {n_seeds} seeds" if n_seeds > 1 else f"seed {rf.seeds[0]}"
+    axes[0].legend(fontsize=8, loc="upper left")
+    fig.suptitle(f"Swarm performance over the horizon ({band})", fontsize=12)
+    return fig
+
+
+def figure_snapshots(rf: RunFiles, trail: int = 10) -> Figure:
+    """Fig. 4 analog: importance ``T^k`` with each swarm's drones at the paper's steps."""
+    steps = snapshot_steps(rf.horizon)
+    swarms = rf.swarms
+    fig = Figure(figsize=(3.0 * len(steps) + 1.0, 2.3 * len(swarms) + 0.8), layout="constrained")
+    axes = np.atleast_2d(fig.subplots(len(swarms), len(steps), squeeze=False))
+    image = None
+    for r, swarm in enumerate(swarms):
+        positions = rf.positions(swarm)
+        colours = drone_colours(positions.shape[1])
+        for c, k in enumerate(steps):
+            ax = axes[r, c]
+            image = draw_map(ax, rf.importance[k], rf.obstacles, IMPORTANCE_CMAP)
+            draw_drones(ax, positions, k, trail, colours)
+            ax.set_title(f"{swarm}, k = {k}", fontsize=9)
+    fig.colorbar(image, ax=axes, shrink=0.8, label="importance $T^k$ (1 = most congested)")
+    fig.suptitle(
+        f"Drones over the importance map at k = {', '.join(map(str, steps))} "
+        f"(seed {rf.first_seed}; lines: last {trail} steps)",
+        fontsize=11,
+    )
+    return fig
+
+
+def figure_trajectories(rf: RunFiles, trail: int = 40) -> Figure:
+    """Fig. 2 analog: each swarm's last ``trail`` steps over ``I^T T^T``."""
+    swarms = rf.swarms
+    rows, cols = panel_layout(len(swarms))
+    horizon = rf.horizon
+    fig = Figure(figsize=(4.2 * cols + 1.0, 3.1 * rows + 0.8), layout="constrained")
+    axes = fig.subplots(rows, cols, squeeze=False).ravel()
+    image = None
+    for ax, swarm in zip(axes, swarms, strict=False):
+        positions = rf.positions(swarm)
+        k = min(horizon, len(positions) - 1)
+        weighted = rf.idleness(swarm)[k] * rf.importance[k]
+        image = draw_map(ax, weighted, rf.obstacles, "magma")
+        draw_drones(ax, positions, k, trail, drone_colours(positions.shape[1]))
+        ax.set_title(swarm, fontsize=10)
+    for ax in axes[len(swarms) :]:
+        ax.set_visible(False)
+    fig.colorbar(
+        image, ax=axes.tolist(), shrink=0.8, label="$I^T \\cdot T^T$ (unvisited importance)"
+    )
+    fig.suptitle(
+        f"Trajectories of the last {min(trail, horizon)} steps over $I^T T^T$ at T = {horizon} "
+        f"(seed {rf.first_seed})",
+        fontsize=11,
+    )
+    return fig
+
+
+def figure_traffic(rf: RunFiles) -> Figure:
+    """How congestion forms: importance statistics over the horizon (and the MFD samples' speed)."""
+    free = ~rf.obstacles
+    values = rf.importance[:, free]  # (T+1, n_free)
+    steps = np.arange(len(values))
+    samples = rf.mfd_samples
+    has_speed = samples is not None and {"step", "speed"} <= set(samples.columns)
+    fig = Figure(figsize=(11, 3.4), layout="constrained")
+    axes = fig.subplots(1, 3 if has_speed else 2)
+    ax = axes[0]
+    ax.plot(steps, values.mean(axis=1), label="mean over free cells")
+    ax.plot(steps, np.percentile(values, 90, axis=1), label="90th percentile")
+    ax.plot(steps, values.max(axis=1), label="maximum", lw=0.8)
+    ax.set_title("importance $T^k$ over time", fontsize=10)
+    ax.set_ylabel("importance")
+    ax.legend(fontsize=8)
+    ax = axes[1]
+    for level in (0.25, 0.5, 0.75):
+        ax.plot(steps, 100.0 * (values >= level).mean(axis=1), label=f"$T^k \\geq$ {level}")
+    ax.set_title("share of free cells above a level", fontsize=10)
+    ax.set_ylabel("% of free cells")
+    ax.legend(fontsize=8)
+    if has_speed:
+        ax = axes[2]
+        per_step = samples.groupby("step")["speed"]
+        mean = per_step.mean()
+        ax.plot(mean.index, mean.to_numpy(), label="mean over cells")
+        ax.plot(mean.index, per_step.quantile(0.1).to_numpy(), label="10th percentile")
+        ax.set_title("cell speed from the simulation (MFD samples)", fontsize=10)
+        ax.set_ylabel("speed" + _unit(rf.mfd, "speed"))
+        ax.legend(fontsize=8)
+    for ax in axes:
+        ax.set_xlabel("step k")
+        ax.grid(alpha=0.3)
+    fig.suptitle(f"Traffic over the horizon (seed {rf.first_seed})", fontsize=11)
+    return fig
+
+
+def _unit(mfd: dict[str, Any] | None, quantity: str) -> str:
+    units = (mfd or {}).get("units", {})
+    unit = units.get(quantity) if isinstance(units, dict) else None
+    return f" ({unit})" if unit else ""
+
+
+def grid_geometry(network: dict[str, Any], nx: int, ny: int) -> tuple[float, float, float, float]:
+    """``(x_left, y_top, cell_width, cell_height)`` in network coordinates; row 0 is north."""
+    bbox = network.get("bbox") or network.get("boundary")
+    size = network.get("cell_size") or network.get("cell_size_m")
+    if isinstance(size, (int, float)):
+        cw = ch = float(size)
+    elif isinstance(size, (list, tuple)) and len(size) == 2:
+        cw, ch = float(size[0]), float(size[1])
+    elif bbox is not None:
+        cw, ch = (bbox[2] - bbox[0]) / ny, (bbox[3] - bbox[1]) / nx
+    else:
+        raise KeyError("network.json has neither cell_size nor bbox")
+    origin = network.get("origin") or network.get("grid_origin")
+    if origin is not None:
+        x_left = float(origin[0])
+        # The origin is the grid's north-west corner if told so, else its south-west corner.
+        if network.get("origin_corner", "south-west") in ("north-west", "nw", "top-left"):
+            y_top = float(origin[1])
+        else:
+            y_top = float(origin[1]) + nx * ch
+    elif bbox is not None:
+        x_left, y_top = float(bbox[0]), float(bbox[3])
+    else:
+        raise KeyError("network.json has neither origin nor bbox")
+    return x_left, y_top, cw, ch
+
+
+def read_lane_shapes(net_file: Path) -> list[np.ndarray]:
+    """Shapes of the non-internal lanes of a SUMO ``.net.xml`` (or ``.net.xml.gz``)."""
+    opener = gzip.open if net_file.suffix == ".gz" else open
+    shapes: list[np.ndarray] = []
+    internal = False
+    with opener(net_file, "rb") as handle:
+        for event, elem in ET.iterparse(handle, events=("start", "end")):
+            if elem.tag == "edge":
+                if event == "start":
+                    internal = elem.get("function") == "internal"
+                else:
+                    elem.clear()
+            elif elem.tag == "lane" and event == "end" and not internal:
+                shape = elem.get("shape")
+                if shape:
+                    points = [tuple(map(float, p.split(",")[:2])) for p in shape.split()]
+                    shapes.append(np.asarray(points))
+    return shapes
+
+
+def resolve_net_file(rf: RunFiles) -> Path | None:
+    network = rf.network or {}
+    name = network.get("net_file") or network.get("net")
+    if not name:
+        return None
+    for candidate in (Path(name), rf.run_dir / name, rf.run_dir / Path(name).name):
+        if candidate.exists():
+            return candidate
+    return None
+
+
+def figure_network(rf: RunFiles) -> tuple[Figure, str]:
+    """The network's lanes with the monitoring grid and obstacle cells; returns a caption note."""
+    nx, ny = rf.obstacles.shape
+    peak = rf.importance.max(axis=0)
+    fig = Figure(figsize=(10, 10 * nx / ny + 0.8), layout="constrained")
+    ax = fig.subplots()
+    note = ""
+    net_file = resolve_net_file(rf) if rf.network else None
+    geometry = None
+    if rf.network is not None:
+        try:
+            geometry = grid_geometry(rf.network, nx, ny)
+        except (KeyError, TypeError, IndexError) as exc:
+            note = f"network.json: grid geometry unreadable ({exc}); grid drawn in cell units."
+    if geometry is None:
+        geometry = (-0.5, -0.5, 1.0, -1.0)  # cell units: x = j, y = i growing downwards
+    x_left, y_top, cw, ch = geometry
+    extent = (x_left, x_left + ny * cw, y_top - nx * ch, y_top)
+    masked = np.ma.masked_array(peak, mask=rf.obstacles)
+    image = ax.imshow(
+        masked, cmap=IMPORTANCE_CMAP, vmin=0, vmax=1, alpha=0.55, extent=extent, origin="upper",
+        interpolation="nearest",
+    )  # fmt: skip
+    for i, j in np.argwhere(rf.obstacles):
+        ax.add_patch(
+            Rectangle(
+                (x_left + j * cw, y_top - (i + 1) * ch), cw, ch,
+                facecolor=OBSTACLE_COLOUR, edgecolor="none", alpha=0.8, hatch="//",
+            )
+        )  # fmt: skip
+    if net_file is not None:
+        shapes = read_lane_shapes(net_file)
+        ax.add_collection(LineCollection(shapes, colors="#1b3a5c", linewidths=0.5))
+        note = note or f"{len(shapes)} lanes from {net_file.name}."
+    elif rf.network is not None:
+        note = note or "network.json names no readable net file; lanes not drawn."
+    for r in range(nx + 1):
+        ax.axhline(y_top - r * ch, color="k", lw=0.3, alpha=0.5)
+    for c in range(ny + 1):
+        ax.axvline(x_left + c * cw, color="k", lw=0.3, alpha=0.5)
+    ax.set_xlim(extent[0], extent[1])
+    ax.set_ylim(min(extent[2], extent[3]), max(extent[2], extent[3]))
+    if rf.network is None or ch < 0:
+        ax.invert_yaxis()
+        ax.set_xlabel("column j")
+        ax.set_ylabel("row i")
+    else:
+        ax.set_xlabel("x (m)")
+        ax.set_ylabel("y (m)")
+    ax.set_aspect("equal")
+    fig.colorbar(image, ax=ax, shrink=0.7, label="peak importance over the horizon")
+    ax.set_title(
+        f"Monitoring grid {nx} x {ny} ({int(rf.obstacles.sum())} obstacle cells, hatched)"
+        + (" over the road network" if net_file is not None else ""),
+        fontsize=11,
+    )
+    return fig, note
+
+
+def mfd_speed(form: str, params: dict[str, float], density: np.ndarray) -> np.ndarray | None:
+    """Speed of a fitted MFD at ``density``; None for a form this report does not know."""
+    p = {k.lower(): float(v) for k, v in params.items()}
+    vf = p.get("v_free", p.get("vf", p.get("free_speed")))
+    form = form.lower()
+    if form == "greenshields" and vf is not None:
+        kj = p.get("k_jam", p.get("kj", p.get("jam_density")))
+        return None if kj is None else np.maximum(0.0, vf * (1.0 - density / kj))
+    if form in ("underwood", "exponential") and vf is not None:
+        kc = p.get("k_crit", p.get("kc", p.get("critical_density")))
+        return None if kc is None else vf * np.exp(-density / kc)
+    if form in ("drake", "northwestern", "gaussian") and vf is not None:
+        kc = p.get("k_crit", p.get("kc", p.get("critical_density")))
+        return None if kc is None else vf * np.exp(-0.5 * (density / kc) ** 2)
+    return None
+
+
+def figure_mfd(rf: RunFiles) -> tuple[Figure, str]:
+    """MFD samples (density, speed) with the fitted curve and its fit quality."""
+    mfd = rf.mfd or {}
+    samples = rf.mfd_samples
+    fig = Figure(figsize=(6.5, 4.5), layout="constrained")
+    ax = fig.subplots()
+    note = ""
+    if samples is not None and {"density", "speed"} <= set(samples.columns):
+        density = samples["density"].to_numpy(dtype=float)
+        speed = samples["speed"].to_numpy(dtype=float)
+        if len(density) > 5000:
+            hb = ax.hexbin(density, speed, gridsize=60, bins="log", cmap="Blues", mincnt=1)
+            fig.colorbar(hb, ax=ax, label="samples (log)")
+        else:
+            ax.scatter(density, speed, s=4, alpha=0.35, color="#3a6ea5", label="cell samples")
+        grid = np.linspace(0.0, float(np.nanmax(density)) if len(density) else 1.0, 200)
+    else:
+        grid = np.linspace(0.0, 1.0, 200)
+        note = "mfd_samples.parquet missing or without density/speed columns."
+    form = str(mfd.get("form", "?"))
+    params = mfd.get("parameters") or mfd.get("params") or {}
+    curve = mfd_speed(form, params, grid) if params else None
+    quality = ", ".join(f"{k} = {mfd[k]:.3g}" for k in ("R2", "RMSE") if k in mfd)
+    if curve is not None:
+        ax.plot(
+            grid, curve, "r-", lw=2, label=f"fitted {form}" + (f" ({quality})" if quality else "")
+        )
+    else:
+        note = (note + " " if note else "") + f"Fitted curve of form {form!r} not drawn."
+    ax.set_xlabel("density" + _unit(mfd, "density"))
+    ax.set_ylabel("speed" + _unit(mfd, "speed"))
+    ax.set_title(f"Macroscopic fundamental diagram ({form})", fontsize=11)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    return fig, note

@@ -1,0 +1,149 @@
+"""Read a run folder (the format documented in ``twin/runs.py``) into one object for the report.
+
+Only the run's own files are read; nothing is recomputed here except what the files determine
+exactly (the idleness maps, replayed from the trajectories with Def. 3).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from twin.errors import UserError
+from twin.grid import Grid
+from twin.scores import ScoreParams, initial_idleness, update_idleness
+
+REQUIRED_FILES = ("series.parquet", "trajectories.parquet", "summary.csv", "importance.npz")
+
+
+@dataclass
+class RunFiles:
+    """Everything a report shows, as read from one run folder."""
+
+    run_dir: Path
+    series: pd.DataFrame
+    trajectories: pd.DataFrame
+    summary: pd.DataFrame
+    per_seed: pd.DataFrame | None
+    importance: np.ndarray  # (T+1, nx, ny), first seed
+    obstacles: np.ndarray  # (nx, ny) bool
+    run: dict[str, Any]
+    network: dict[str, Any] | None = None
+    mfd: dict[str, Any] | None = None
+    mfd_samples: pd.DataFrame | None = None
+    _idleness: dict[tuple[int, str], np.ndarray] = field(default_factory=dict, repr=False)
+
+    @property
+    def grid(self) -> Grid:
+        return Grid(self.obstacles)
+
+    @property
+    def swarms(self) -> list[str]:
+        """Swarm names in the order of ``summary.csv``."""
+        return [str(s) for s in self.summary["swarm"]]
+
+    @property
+    def seeds(self) -> list[int]:
+        return sorted(int(s) for s in self.series["seed"].unique())
+
+    @property
+    def first_seed(self) -> int:
+        """The seed whose importance maps ``importance.npz`` holds."""
+        seed = self.run.get("importance_seed")
+        return int(seed) if seed is not None else self.seeds[0]
+
+    @property
+    def horizon(self) -> int:
+        return int(self.importance.shape[0]) - 1
+
+    def positions(self, swarm: str, seed: int | None = None) -> np.ndarray:
+        """``(T+1, N, 2)`` drone cells ``P_0 .. P_T`` of one swarm and seed."""
+        seed = self.first_seed if seed is None else seed
+        t = self.trajectories
+        rows = t[(t["seed"] == seed) & (t["swarm"] == swarm)]
+        if rows.empty:
+            raise UserError(
+                f"{self.run_dir / 'trajectories.parquet'}: no rows for swarm {swarm!r}, seed {seed}"
+            )
+        rows = rows.sort_values(["step", "drone"])
+        n_steps = int(rows["step"].max()) + 1
+        n_drones = int(rows["drone"].max()) + 1
+        return rows[["i", "j"]].to_numpy(dtype=np.int64).reshape(n_steps, n_drones, 2)
+
+    def score_params(self) -> tuple[ScoreParams, str]:
+        """The run's ``eta``/``delta`` and where they came from (run.json, or the defaults)."""
+        for where in (("params",), ("score_params",), ("config", "params"), ("config", "score")):
+            node: Any = self.run
+            for key in where:
+                node = node.get(key) if isinstance(node, dict) else None
+            if isinstance(node, dict) and "eta" in node and "delta" in node:
+                known = {
+                    k: float(node[k]) for k in ("eta", "delta", "alpha_T", "alpha_I") if k in node
+                }
+                return ScoreParams(**known), "run.json " + ".".join(where)
+        return ScoreParams(), "defaults (run.json records none)"
+
+    def idleness(self, swarm: str, seed: int | None = None) -> np.ndarray:
+        """``(T+1, nx, ny)`` idleness ``I^0 .. I^T`` replayed from the trajectories (Def. 3).
+
+        ``I^0 = 1`` on free cells; ``I^{k+1} = update(I^k, P_{k+1})``, the convention under which
+        ``series.parquet``'s ``coverage`` column is ``C^{k+1}``.
+        """
+        seed = self.first_seed if seed is None else seed
+        key = (seed, swarm)
+        if key not in self._idleness:
+            params, _ = self.score_params()
+            grid, pos = self.grid, self.positions(swarm, seed)
+            maps = np.empty((len(pos), *grid.shape))
+            maps[0] = initial_idleness(grid)
+            for k in range(1, len(pos)):
+                maps[k] = update_idleness(maps[k - 1], pos[k], grid, params.eta, params.delta)
+            self._idleness[key] = maps
+        return self._idleness[key]
+
+
+def _read_json(path: Path) -> dict[str, Any] | None:
+    if not path.exists():
+        return None
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise UserError(f"{path}: not valid JSON ({exc}); rerun the command that wrote it") from exc
+
+
+def load_run(run_dir: str | Path) -> RunFiles:
+    """Read a run folder; a missing required file is a one-line :class:`UserError`."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise UserError(
+            f"{run_dir}: no such run folder; pass the folder `twin run`/`evaluate` wrote"
+        )
+    missing = [name for name in REQUIRED_FILES if not (run_dir / name).exists()]
+    if missing:
+        raise UserError(
+            f"{run_dir}: missing {', '.join(missing)}; is this a run folder written by "
+            "`twin run` or `twin evaluate`?"
+        )
+    with np.load(run_dir / "importance.npz") as npz:
+        importance = np.asarray(npz["importance"], dtype=np.float64)
+        obstacles = np.asarray(npz["obstacles"], dtype=bool)
+    per_seed_path = run_dir / "per_seed.csv"
+    samples_path = run_dir / "mfd_samples.parquet"
+    return RunFiles(
+        run_dir=run_dir,
+        series=pd.read_parquet(run_dir / "series.parquet"),
+        trajectories=pd.read_parquet(run_dir / "trajectories.parquet"),
+        summary=pd.read_csv(run_dir / "summary.csv"),
+        per_seed=pd.read_csv(per_seed_path) if per_seed_path.exists() else None,
+        importance=importance,
+        obstacles=obstacles,
+        run=_read_json(run_dir / "run.json") or {},
+        network=_read_json(run_dir / "network.json"),
+        mfd=_read_json(run_dir / "mfd.json"),
+        mfd_samples=pd.read_parquet(samples_path) if samples_path.exists() else None,
+    )
