@@ -1,0 +1,148 @@
+"""Q-network, replay buffer, checkpoints and the random-swarm data."""
+
+import numpy as np
+import pytest
+import torch
+
+from twin.errors import UserError
+from twin.grid import Grid
+from twin.learning.checkpoint import load_qnet, model_metadata, save_model
+from twin.learning.data import random_swarm_episode
+from twin.learning.qnet import TABLE1_LAYERS, QNetwork, masked_argmax, n_parameters
+from twin.learning.replay import ReplayBuffer
+from twin.scores import ScoreParams
+from twin.traffic.synthetic import Disturbance, SyntheticTraffic
+
+SMALL = [13, 16, 8, 5]
+
+
+def test_table1_network_shape_and_size():
+    net = QNetwork(TABLE1_LAYERS)
+    linears = [m for m in net.net if isinstance(m, torch.nn.Linear)]
+    assert [(m.in_features, m.out_features) for m in linears] == [
+        (13, 2048), (2048, 1024), (1024, 256), (256, 64), (64, 5)
+    ]  # fmt: skip
+    assert isinstance(net.net[-1], torch.nn.Linear)  # linear output
+    assert sum(isinstance(m, torch.nn.ReLU) for m in net.net) == 4
+    assert 2_300_000 < n_parameters(net) < 2_500_000
+    assert net(torch.zeros(7, 13)).shape == (7, 5)
+
+
+def test_network_rejects_wrong_ends():
+    with pytest.raises(ValueError):
+        QNetwork([12, 8, 5])
+
+
+def test_masked_argmax_ignores_infeasible():
+    q = torch.tensor([[0.0, 5.0, 1.0, 2.0, 3.0]])
+    feasible = torch.tensor([[True, False, True, False, True]])
+    assert masked_argmax(q, feasible).item() == 4
+
+
+def _fill(buffer, steps, rng):
+    n = buffer.n_drones
+    for t in range(steps):
+        buffer.add(
+            np.full((n, 13), t, np.float32),
+            np.arange(n) % 5,
+            np.arange(n, dtype=np.float32) + 100 * t,
+            np.full((n, 13), t + 1, np.float32),
+            np.ones((n, 5), bool),
+        )
+
+
+def test_replay_buffer_ring_pooled_and_per_drone_views():
+    rng = np.random.default_rng(0)
+    buffer = ReplayBuffer(capacity=5, n_drones=3)
+    _fill(buffer, 7, rng)  # wraps: steps 2..6 kept
+    assert len(buffer) == 15
+    kept = set(buffer.states[:, 0, 0].astype(int))
+    assert kept == {2, 3, 4, 5, 6}
+    view = buffer.drone(1)
+    assert len(view) == 5 and np.all(view.rewards % 100 == 1)
+    batch = view.sample(64, rng)
+    assert np.all(batch.rewards % 100 == 1)  # only drone 1's transitions
+    pooled = buffer.sample(256, rng)
+    assert set((pooled.rewards % 100).astype(int)) == {0, 1, 2}  # every drone's
+    assert np.all(pooled.next_states[:, 0] == pooled.states[:, 0] + 1)  # rows stay together
+
+
+def test_replay_buffer_add_steps_equals_add():
+    rng = np.random.default_rng(1)
+    a, b = ReplayBuffer(10, 2), ReplayBuffer(10, 2)
+    s = rng.random((4, 2, 13), dtype=np.float32)
+    act = rng.integers(0, 5, (4, 2))
+    r = rng.random((4, 2), dtype=np.float32)
+    f = rng.random((4, 2, 5)) < 0.5
+    for t in range(4):
+        a.add(s[t], act[t], r[t], s[t], f[t])
+    b.add_steps(s, act, r, s, f)
+    assert np.array_equal(a.states, b.states) and np.array_equal(a.next_feasible, b.next_feasible)
+    assert a.cursor == b.cursor and a.steps == b.steps
+
+
+def test_random_swarm_episode_is_consistent():
+    grid = Grid.open(6, 7)
+    source = SyntheticTraffic(grid, [Disturbance("big", 2, 3, 1.0, 2.0)], horizon=30)
+    ep = random_swarm_episode(source, 3, ScoreParams(), np.random.default_rng(0))
+    assert ep.states.shape == (30, 3, 13) and ep.next_feasible.shape == (30, 3, 5)
+    # s' of step k is s of step k+1, and the actions were feasible moves
+    assert np.array_equal(ep.next_states[:-1], ep.states[1:])
+    pos = np.rint(ep.states[..., :2] * [6, 7]).astype(int)
+    nxt = np.rint(ep.next_states[..., :2] * [6, 7]).astype(int)
+    from twin.grid import ACTION_DELTAS
+
+    assert np.array_equal(nxt - pos, ACTION_DELTAS[ep.actions])
+
+
+def _checkpoint(tmp_path, layers=SMALL):
+    net = QNetwork(layers)
+    path = tmp_path / "q.pt"
+    save_model(path, net.state_dict(), model_metadata(layers, {"lr": 1e-4}, seed=3, epoch=7))
+    return net, path
+
+
+def test_checkpoint_round_trip_with_metadata(tmp_path):
+    net, path = _checkpoint(tmp_path)
+    loaded, meta = load_qnet(path)
+    x = torch.randn(4, 13)
+    assert torch.equal(net(x), loaded(x))
+    assert meta["layers"] == SMALL and meta["seed"] == 3 and meta["epoch"] == 7
+    assert meta["actions"] == ["stay", "up", "down", "left", "right"]
+    blob = torch.load(path, weights_only=True)  # plain types only
+    assert isinstance(blob["meta"]["torch_version"], str)
+
+
+def test_truncated_checkpoint_is_one_line_user_error(tmp_path):
+    _, path = _checkpoint(tmp_path)
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    with pytest.raises(UserError) as err:
+        load_qnet(path)
+    assert "\n" not in str(err.value) and str(path) in str(err.value)
+
+
+def test_garbage_and_missing_checkpoints_are_user_errors(tmp_path):
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a checkpoint at all")
+    with pytest.raises(UserError):
+        load_qnet(bad)
+    with pytest.raises(UserError, match="does not exist"):
+        load_qnet(tmp_path / "missing.pt")
+    torch.save({"weights": {}}, tmp_path / "nometa.pt")
+    with pytest.raises(UserError, match="not a twin"):
+        load_qnet(tmp_path / "nometa.pt")
+
+
+def test_mismatched_checkpoints_are_user_errors(tmp_path):
+    _, path = _checkpoint(tmp_path)
+    blob = torch.load(path, weights_only=True)
+    blob["meta"]["layers"] = [13, 32, 5]  # weights of another shape
+    torch.save(blob, tmp_path / "shape.pt")
+    with pytest.raises(UserError, match="do not match"):
+        load_qnet(tmp_path / "shape.pt")
+    blob = torch.load(path, weights_only=True)
+    blob["meta"]["actions"] = ["stay", "left", "right", "up", "down"]
+    torch.save(blob, tmp_path / "order.pt")
+    with pytest.raises(UserError, match="action order"):
+        load_qnet(tmp_path / "order.pt")

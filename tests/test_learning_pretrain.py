@@ -1,0 +1,135 @@
+"""Pretraining: config errors, Double DQN target, resumption after a kill."""
+
+import csv
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from twin.errors import UserError
+from twin.learning.pretrain import double_dqn_target, load_config, pretrain
+from twin.learning.qnet import QNetwork
+
+TINY = """
+layers = [13, 16, 5]
+horizon = 60
+episodes = 2
+epochs = {epochs}
+iters_per_epoch = 2
+target_update_epochs = 5
+log_every = 5
+checkpoint_every = {every}
+"""
+
+
+def _config(tmp_path, epochs=40, every=10, name="tiny.toml", out="out"):
+    path = tmp_path / name
+    path.write_text(TINY.format(epochs=epochs, every=every) + f'out = "{tmp_path / out}"\n')
+    return path
+
+
+def _logged_epochs(path):
+    with open(path, newline="") as f:
+        return [int(r["epoch"]) for r in csv.DictReader(f)]
+
+
+def _weights(path):
+    return torch.load(path, weights_only=True)["weights"]
+
+
+def test_resumed_run_equals_uninterrupted_run(tmp_path):
+    whole = load_config(_config(tmp_path, out="whole"))
+    pretrain(whole, progress=False)
+    # the same run stopped at epoch 20 (a checkpoint), then resumed to 40
+    split = _config(tmp_path, name="split.toml", out="split")
+    pretrain(load_config(split, epochs=20), progress=False)
+    pretrain(load_config(split), progress=False)
+    a, b = _weights(tmp_path / "whole/qnet.pt"), _weights(tmp_path / "split/qnet.pt")
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    epochs = _logged_epochs(tmp_path / "split/train_log.csv")
+    assert epochs == list(range(5, 41, 5))
+
+
+def test_kill_9_mid_run_resumes_with_the_same_command(tmp_path):
+    config = _config(tmp_path, epochs=1500, every=50)
+    cmd = [sys.executable, "-m", "twin", "pretrain", "--config", str(config), "--quiet"]
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    state = tmp_path / "out/state.pt"
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 60
+    while not state.exists() and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.05)
+    time.sleep(0.3)
+    if proc.poll() is not None:
+        pytest.skip("run finished before it could be killed; machine too fast for this test")
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    killed_at = torch.load(state, weights_only=True)["epoch"]
+    assert 0 < killed_at < 1500
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert torch.load(state, weights_only=True)["epoch"] == 1500
+    epochs = _logged_epochs(tmp_path / "out/train_log.csv")
+    assert epochs == sorted(set(epochs)) and epochs[-1] == 1500  # no duplicate rows
+
+
+def test_resuming_with_other_settings_is_refused(tmp_path):
+    config = _config(tmp_path, epochs=10)
+    pretrain(load_config(config), progress=False)
+    with pytest.raises(UserError, match="other settings"):
+        pretrain(_changed(config), progress=False)
+
+
+def _changed(config):
+    text = config.read_text().replace("iters_per_epoch = 2", "iters_per_epoch = 3")
+    config.write_text(text)
+    return load_config(config)
+
+
+@pytest.mark.parametrize(
+    ("text", "match"),
+    [
+        ("lr = -1.0", "lr"),
+        ("epochs = 'many'", "epochs"),
+        ("learning_rate = 0.1", "unknown key 'learning_rate'"),
+        ("layers = [12, 5]", "layer"),
+        ("gamma = 1.5", "gamma"),
+        ("epochs = [", "not valid TOML"),
+    ],
+)
+def test_bad_configs_are_one_line_user_errors(tmp_path, text, match):
+    path = tmp_path / "bad.toml"
+    path.write_text(text + "\n")
+    with pytest.raises(UserError, match=match) as err:
+        load_config(path)
+    assert "\n" not in str(err.value)
+
+
+def test_double_dqn_target_uses_feasible_argmax_of_online_net_and_target_value():
+    torch.manual_seed(0)
+    net, target = QNetwork([13, 8, 5]), QNetwork([13, 8, 5])
+    s1 = torch.randn(6, 13)
+    feasible = torch.rand(6, 5) < 0.6
+    feasible[:, 0] = True
+    r = torch.randn(6)
+    y = double_dqn_target(net, target, r, s1, feasible, 0.9)
+    with torch.no_grad():
+        q_online = net(s1).numpy()
+        q_target = target(s1).numpy()
+    best = np.where(feasible.numpy(), q_online, -np.inf).argmax(axis=1)
+    expected = r.numpy() + 0.9 * q_target[np.arange(6), best]
+    assert np.allclose(y.numpy(), expected, atol=1e-6)
+
+
+def test_cli_pretrain_bad_config_exits_2(tmp_path):
+    from twin.cli import main
+
+    path = tmp_path / "bad.toml"
+    path.write_text("batch_size = 0\n")
+    assert main(["pretrain", "--config", str(path), "--quiet"]) == 2

@@ -1,0 +1,47 @@
+"""``twin pretrain``: pretrain the universal Q-function on a random swarm's experience."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+from pathlib import Path
+
+DEFAULT_CONFIG = "configs/pretrain.toml"
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser(
+        "pretrain",
+        help="pretrain the Q-network (Double DQN on a random swarm's transitions)",
+        description="Collect transitions of a randomly moving swarm on the training map, then "
+        "train the Table 1 Q-network with Double DQN (Sec. III-A). Writes <out>/qnet.pt (the "
+        "model), <out>/train_log.csv (loss and mean Q) and <out>/state.pt (checkpoint every "
+        "checkpoint_every epochs). Running the same command again resumes from state.pt.",
+    )
+    p.add_argument("--config", type=Path, default=Path(DEFAULT_CONFIG),
+                   help=f"pretraining config (TOML); default {DEFAULT_CONFIG}")  # fmt: skip
+    p.add_argument("--out", default=None, help="output folder (overrides the config's `out`)")
+    p.add_argument("--epochs", type=int, default=None, help="overrides the config's `epochs`")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--help-config", action="store_true",
+                   help="list every config key with its default and meaning, then exit")  # fmt: skip
+    p.set_defaults(func=main)
+
+
+def main(args: argparse.Namespace) -> int:
+    from twin.learning.pretrain import PretrainConfig, load_config, pretrain
+
+    if args.help_config:
+        for f in dataclasses.fields(PretrainConfig):
+            default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+            if f.name == "disturbances":
+                default = f"{len(default)} disturbances (4 big, 3 small)"
+            print(f"{f.name:22s} {default!s:24s} {f.metadata.get('help', '')}")
+        return 0
+    config = load_config(args.config, out=args.out, epochs=args.epochs)
+    progress = not args.quiet and sys.stderr.isatty()
+    path = pretrain(config, progress=progress)
+    print(f"model: {path}")
+    print(f"log: {Path(config.out) / 'train_log.csv'}")
+    return 0

@@ -1,0 +1,138 @@
+"""Q-network checkpoints: weights plus plain-python metadata, loaded with ``weights_only=True``.
+
+Two kinds of file share one layout (a dict with ``meta`` and ``weights``):
+
+- a *model* checkpoint (``data/qnet.pt``, what the RL swarms load): weights and metadata only;
+- a *training state* (``<out>/state.pt``, what ``twin pretrain`` resumes from): the same plus
+  the target network, the optimizer, the RNG states, the epoch and the replay data's seed.
+
+Both are written atomically (temporary file in the same folder, fsync, ``os.replace``), so a
+run killed at any moment leaves either the previous file or the new one, never half of one.
+Anything wrong with a file reaches the user as one :class:`~twin.errors.UserError` line.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from twin import __version__
+from twin.errors import UserError
+from twin.grid import ACTIONS
+from twin.scores import STATE_LAYOUT
+
+FORMAT = "twin-qnet"
+FORMAT_VERSION = 1
+
+
+def model_metadata(layers, config: dict[str, Any], seed: int, epoch: int) -> dict[str, Any]:
+    """The metadata every checkpoint carries (plain python types only)."""
+    return {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "layers": [int(n) for n in layers],
+        "actions": list(ACTIONS),
+        "state_layout": list(STATE_LAYOUT),
+        "config": config,
+        "seed": int(seed),
+        "epoch": int(epoch),
+        "twin_version": __version__,
+        "torch_version": str(torch.__version__),
+    }
+
+
+def atomic_save(obj: Any, path: str | Path) -> None:
+    """``torch.save`` to a temporary file beside ``path``, then ``os.replace`` it into place."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            torch.save(obj, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def save_model(path: str | Path, weights: dict[str, torch.Tensor], meta: dict[str, Any]) -> None:
+    """Write a model checkpoint (weights + metadata)."""
+    atomic_save({"meta": meta, "weights": {k: v.detach().cpu() for k, v in weights.items()}}, path)
+
+
+def read_checkpoint(path: str | Path) -> dict[str, Any]:
+    """Load and check a checkpoint file; every failure is a one-line :class:`UserError`."""
+    path = Path(path)
+    hint = "re-create it with `twin pretrain` or point to another checkpoint"
+    if not path.is_file():
+        raise UserError(f"checkpoint {path} does not exist; {hint}")
+    try:
+        blob = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises many types for truncated/corrupt/unsafe files
+        first = str(exc).strip().splitlines()[0][:120] if str(exc).strip() else ""
+        raise UserError(
+            f"checkpoint {path} is corrupt or not a torch file ({type(exc).__name__}: {first}); "
+            f"{hint}"
+        ) from None
+    if (
+        not isinstance(blob, dict)
+        or not isinstance(blob.get("meta"), dict)
+        or not isinstance(blob.get("weights"), dict)
+    ):
+        raise UserError(f"checkpoint {path} is not a twin Q-network checkpoint; {hint}")
+    meta = blob["meta"]
+    if meta.get("format") != FORMAT or meta.get("format_version") != FORMAT_VERSION:
+        raise UserError(
+            f"checkpoint {path} has format {meta.get('format')!r} v{meta.get('format_version')}, "
+            f"expected {FORMAT!r} v{FORMAT_VERSION}; {hint}"
+        )
+    if list(meta.get("actions", [])) != list(ACTIONS):
+        raise UserError(
+            f"checkpoint {path} uses action order {meta.get('actions')}, this version "
+            f"{list(ACTIONS)}; {hint}"
+        )
+    if list(meta.get("state_layout", [])) != list(STATE_LAYOUT):
+        raise UserError(f"checkpoint {path} was trained on another state layout; {hint}")
+    return blob
+
+
+def load_qnet(path: str | Path):
+    """The :class:`~twin.learning.qnet.QNetwork` stored in ``path`` (eval mode) and its metadata."""
+    from twin.learning.qnet import QNetwork
+
+    blob = read_checkpoint(path)
+    meta = blob["meta"]
+    try:
+        net = QNetwork(meta["layers"])
+        net.load_state_dict(blob["weights"])
+    except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+        first = str(exc).strip().splitlines()[0][:120] if str(exc).strip() else ""
+        raise UserError(
+            f"checkpoint {path}: weights do not match layers {meta.get('layers')} "
+            f"({type(exc).__name__}: {first}); re-create it with `twin pretrain`"
+        ) from None
+    net.eval()
+    return net, meta
+
+
+def default_checkpoint() -> Path:
+    """The shipped, pretrained checkpoint ``twin/data/qnet.pt``... or the repo's ``data/``.
+
+    Looks inside the installed package first (``twin/data/qnet.pt``, where a wheel puts it),
+    then in the source checkout's ``data/qnet.pt`` beside the package (editable installs).
+    """
+    from importlib import resources
+
+    try:
+        packaged = resources.files("twin") / "data" / "qnet.pt"
+        if packaged.is_file():
+            return Path(str(packaged))
+    except (ModuleNotFoundError, FileNotFoundError, NotADirectoryError):
+        pass
+    return Path(__file__).resolve().parents[2] / "data" / "qnet.pt"

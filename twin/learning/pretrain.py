@@ -1,0 +1,385 @@
+"""Pretraining of the universal Q-function (Sec. III-A), one file read top to bottom.
+
+1. hyper-parameters: :class:`PretrainConfig`, every one named once with its default and help;
+2. data: episodes of a randomly moving swarm on the training map (:mod:`twin.learning.data`),
+   pooled into one replay buffer;
+3. network: the Table 1 MLP and its target copy;
+4. the loop: epoch ``m`` samples one batch from the pooled buffers and takes ``N_iter``
+   gradient steps on it towards the Double DQN target
+   ``Y = r + gamma Q(s', argmax_{u' feasible} Q(s', u'; theta^m); theta^m_-)``;
+   the target copy is hard-updated every ``target_update_epochs`` epochs;
+5. logging (CSV: loss and mean Q), atomic checkpoints every ``checkpoint_every`` epochs, and
+   resumption from the last one when the same command is run again.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import hashlib
+import time
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from twin.errors import UserError
+from twin.grid import Grid
+from twin.learning.checkpoint import atomic_save, model_metadata, read_checkpoint, save_model
+from twin.learning.data import random_swarm_episode
+from twin.learning.qnet import TABLE1_LAYERS, QNetwork, masked_argmax
+from twin.learning.replay import Batch, ReplayBuffer
+from twin.scores import ScoreParams
+from twin.traffic.synthetic import Disturbance, SyntheticTraffic
+
+# The training map: 4 big and 3 small disturbances (Sec. III-A), placed away from the
+# evaluation map's 2 big + 3 small of configs/synthetic.toml.
+TRAINING_DISTURBANCES: list[dict[str, Any]] = [
+    {"kind": "big", "i": 3, "j": 3, "amplitude": 1.0, "sigma": 3.0},
+    {"kind": "big", "i": 17, "j": 12, "amplitude": 1.0, "sigma": 3.0},
+    {"kind": "big", "i": 6, "j": 18, "amplitude": 1.0, "sigma": 3.0},
+    {"kind": "big", "i": 15, "j": 27, "amplitude": 1.0, "sigma": 3.0},
+    {"kind": "small", "i": 10, "j": 9, "amplitude": 0.5, "sigma": 1.0},
+    {"kind": "small", "i": 1, "j": 14, "amplitude": 0.5, "sigma": 1.0},
+    {"kind": "small", "i": 8, "j": 27, "amplitude": 0.5, "sigma": 1.0},
+]
+
+
+def _help(text: str) -> dict[str, str]:
+    return {"help": text}
+
+
+# ----------------------------------------------------------------------------- 1. parameters
+@dataclass
+class PretrainConfig:
+    """Every knob of pretraining; a TOML file sets any subset of them (same names)."""
+
+    seed: int = field(
+        default=0, metadata=_help("seed of the data, the network initialisation and the batches")
+    )
+    out: str = field(
+        default="runs/pretrain",
+        metadata=_help("folder for state.pt, qnet.pt, train_log.csv, snapshots/"),
+    )
+    # data: the training map and the random swarm
+    nx: int = field(default=20, metadata=_help("grid rows of the training map"))
+    ny: int = field(default=30, metadata=_help("grid columns of the training map"))
+    horizon: int = field(default=2000, metadata=_help("steps per random-swarm episode"))
+    beta1: float = field(
+        default=0.7, metadata=_help("decay of the big disturbances (fraction of the horizon)")
+    )
+    beta2: float = field(
+        default=5.0, metadata=_help("periods of the small disturbances over the horizon")
+    )
+    disturbances: list = field(
+        default_factory=lambda: list(TRAINING_DISTURBANCES),
+        metadata=_help("training map: kind, i, j, amplitude, sigma"),
+    )
+    n_drones: int = field(default=4, metadata=_help("drones in the random swarm"))
+    episodes: int = field(default=10, metadata=_help("random-swarm episodes in the replay buffer"))
+    eta: float = field(default=0.1, metadata=_help("idleness kept by a visited cell (Def. 3)"))
+    delta: float = field(default=0.025, metadata=_help("idleness recovery per step (Def. 3)"))
+    alpha_T: float = field(
+        default=1.0, metadata=_help("reward weight of importance-weighted idleness (Def. 4)")
+    )
+    alpha_I: float = field(default=0.5, metadata=_help("reward weight of idleness (Def. 4)"))
+    # network
+    layers: list = field(
+        default_factory=lambda: list(TABLE1_LAYERS),
+        metadata=_help("layer sizes, 13 in and 5 out (Table 1)"),
+    )
+    # learning
+    epochs: int = field(default=30000, metadata=_help("N_ep: epochs, each one sampled batch"))
+    iters_per_epoch: int = field(
+        default=30, metadata=_help("N_iter: gradient steps per epoch on its batch")
+    )
+    batch_size: int = field(default=32, metadata=_help("transitions per batch"))
+    gamma: float = field(default=0.9, metadata=_help("discount factor"))
+    lr: float = field(default=1e-4, metadata=_help("Adam learning rate"))
+    target_update_epochs: int = field(
+        default=100, metadata=_help("epochs between hard updates of the target network")
+    )
+    adam_fused: bool = field(
+        default=True, metadata=_help("fused Adam step (one kernel for all parameters)")
+    )
+    threads: int = field(default=1, metadata=_help("torch threads"))
+    # output
+    log_every: int = field(default=100, metadata=_help("epochs per CSV log row"))
+    checkpoint_every: int = field(
+        default=1000, metadata=_help("epochs between checkpoints (what a kill can lose)")
+    )
+    snapshot_every: int = field(
+        default=0, metadata=_help("epochs between kept weight snapshots (0: none)")
+    )
+
+    # Fields that may change between a run and its resumption without invalidating it.
+    RESUMABLE_CHANGES = ("epochs", "out", "log_every", "checkpoint_every", "snapshot_every")
+
+    def training_dict(self) -> dict[str, Any]:
+        """The config as plain python types (stored in every checkpoint)."""
+        return dataclasses.asdict(self)
+
+
+def load_config(path: str | Path, **overrides: Any) -> PretrainConfig:
+    """Read a pretraining TOML file; unknown keys and wrong types are one-line UserErrors."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as f:
+            raw = tomllib.load(f)
+    except FileNotFoundError:
+        raise UserError(f"config {path} does not exist") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise UserError(f"config {path} is not valid TOML: {exc}") from None
+    raw.update({k: v for k, v in overrides.items() if v is not None})
+    fields = {f.name: f for f in dataclasses.fields(PretrainConfig)}
+    values: dict[str, Any] = {}
+    for key, value in raw.items():
+        if key not in fields:
+            raise UserError(
+                f"config {path}: unknown key {key!r}; known keys: {', '.join(sorted(fields))}"
+            )
+        default = fields[key].default
+        if default is dataclasses.MISSING:
+            default = fields[key].default_factory()  # type: ignore[misc]
+        if isinstance(default, bool):
+            ok = isinstance(value, bool)
+        elif isinstance(default, int):
+            ok = isinstance(value, int) and not isinstance(value, bool)
+        elif isinstance(default, float):
+            ok = isinstance(value, int | float) and not isinstance(value, bool)
+            value = float(value) if ok else value
+        else:
+            ok = isinstance(value, type(default))
+        if not ok:
+            raise UserError(
+                f"config {path}: {key} = {value!r} should be a {type(default).__name__}"
+            )
+        values[key] = value
+    cfg = PretrainConfig(**values)
+    _validate(cfg, path)
+    return cfg
+
+
+def _validate(cfg: PretrainConfig, path: str | Path) -> None:
+    positive = ("nx", "ny", "horizon", "n_drones", "episodes", "epochs", "iters_per_epoch",
+                "batch_size", "target_update_epochs", "threads", "log_every", "checkpoint_every")  # fmt: skip
+    for name in positive:
+        if getattr(cfg, name) < 1:
+            raise UserError(f"config {path}: {name} must be at least 1, got {getattr(cfg, name)}")
+    if not 0.0 <= cfg.gamma < 1.0:
+        raise UserError(f"config {path}: gamma must lie in [0, 1), got {cfg.gamma}")
+    if cfg.lr <= 0:
+        raise UserError(f"config {path}: lr must be positive, got {cfg.lr}")
+    try:
+        QNetwork(cfg.layers)
+        training_source(cfg)
+    except (ValueError, TypeError, KeyError) as exc:
+        raise UserError(f"config {path}: {exc}") from None
+
+
+# ----------------------------------------------------------------------------- 2. data
+def training_source(cfg: PretrainConfig) -> SyntheticTraffic:
+    """The training map (open grid, 4 big + 3 small disturbances by default)."""
+    disturbances = []
+    for n, d in enumerate(cfg.disturbances):
+        if not isinstance(d, dict) or d.get("kind") not in ("big", "small"):
+            raise ValueError(f"disturbances[{n}] needs kind = 'big' or 'small', got {d!r}")
+        disturbances.append(Disturbance(d["kind"], float(d["i"]), float(d["j"]),
+                                        float(d["amplitude"]), float(d["sigma"])))  # fmt: skip
+    grid = Grid.open(cfg.nx, cfg.ny)
+    # z_hi = the largest z over the map and the horizon (Def. 2), computed here in one einsum
+    steps = np.arange(cfg.horizon + 1, dtype=np.float64)
+    amps = np.stack([d.amplitudes(steps, cfg.horizon, cfg.beta1, cfg.beta2) for d in disturbances])
+    ii, jj = np.indices(grid.shape, dtype=np.float64)
+    kernels = np.stack([np.exp(-((ii - d.i) ** 2 + (jj - d.j) ** 2) / (2 * d.sigma**2))
+                        for d in disturbances])  # fmt: skip
+    z_hi = float(np.einsum("sk,sxy->kxy", amps, kernels).max())
+    return SyntheticTraffic(grid, disturbances, cfg.horizon, beta1=cfg.beta1, beta2=cfg.beta2,
+                            z_hi=z_hi)  # fmt: skip
+
+
+def collect_buffer(cfg: PretrainConfig, progress: bool = False) -> ReplayBuffer:
+    """``episodes`` random-swarm episodes, pooled; a function of the config alone (seeded)."""
+    source = training_source(cfg)
+    params = ScoreParams(cfg.eta, cfg.delta, cfg.alpha_T, cfg.alpha_I)
+    buffer = ReplayBuffer(cfg.episodes * cfg.horizon, cfg.n_drones)
+    episodes = range(cfg.episodes)
+    if progress:
+        from tqdm.auto import tqdm
+
+        episodes = tqdm(episodes, desc="random swarm", unit="episode", leave=False)
+    for e in episodes:
+        rng = np.random.default_rng([cfg.seed, 1, e])
+        ep = random_swarm_episode(source, cfg.n_drones, params, rng)
+        buffer.add_steps(ep.states, ep.actions, ep.rewards, ep.next_states, ep.next_feasible)
+    return buffer
+
+
+def buffer_digest(buffer: ReplayBuffer) -> str:
+    """Short hash of the buffer's contents: a resumed run must train on the same data."""
+    h = hashlib.sha256()
+    for arr in (buffer.states, buffer.actions, buffer.rewards, buffer.next_feasible):
+        h.update(np.ascontiguousarray(arr[: buffer.steps]).tobytes())
+    return h.hexdigest()[:16]
+
+
+# ----------------------------------------------------------------------------- 3. network
+def make_optimizer(net: QNetwork, lr: float, fused: bool) -> torch.optim.Adam:
+    return torch.optim.Adam(net.parameters(), lr=lr, fused=fused or None)
+
+
+def to_tensors(batch: Batch) -> tuple[torch.Tensor, ...]:
+    return (torch.from_numpy(batch.states), torch.from_numpy(batch.actions),
+            torch.from_numpy(batch.rewards), torch.from_numpy(batch.next_states),
+            torch.from_numpy(batch.next_feasible))  # fmt: skip
+
+
+def double_dqn_target(net, target, rewards, next_states, next_feasible, gamma):
+    """``Y = r + gamma Q(s', argmax_{u' in U(s')} Q(s', u'; theta); theta_-)``."""
+    with torch.no_grad():
+        best = masked_argmax(net(next_states), next_feasible)
+        return rewards + gamma * target(next_states).gather(1, best[:, None]).squeeze(1)
+
+
+def train_epoch(net, target, optimizer, batch: Batch, gamma: float, iters: int):
+    """One epoch: the batch's Double DQN targets, then ``iters`` gradient steps on
+    ``L = mean (Y - Q(s, u; theta))^2``. Returns the last loss and mean Q (tensors)."""
+    s, a, r, s1, feasible1 = to_tensors(batch)
+    y = double_dqn_target(net, target, r, s1, feasible1, gamma)
+    a = a[:, None]
+    for _ in range(iters):
+        q = net(s).gather(1, a).squeeze(1)
+        loss = F.mse_loss(q, y)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+    return loss.detach(), q.detach().mean()
+
+
+# ----------------------------------------------------------------------------- 4. the loop
+LOG_COLUMNS = ("epoch", "updates", "loss", "mean_q", "wall_s", "updates_per_s")
+
+
+def pretrain(cfg: PretrainConfig, progress: bool = True) -> Path:
+    """Train (or resume) as configured; returns the path of the final model checkpoint."""
+    out = Path(cfg.out)
+    state_path, model_path, log_path = out / "state.pt", out / "qnet.pt", out / "train_log.csv"
+    torch.set_num_threads(cfg.threads)
+    torch.manual_seed(cfg.seed)
+
+    buffer = collect_buffer(cfg, progress=progress)
+    digest = buffer_digest(buffer)
+
+    net = QNetwork(cfg.layers)
+    target = QNetwork(cfg.layers)
+    target.load_state_dict(net.state_dict())
+    optimizer = make_optimizer(net, cfg.lr, cfg.adam_fused)
+    batch_rng = np.random.default_rng([cfg.seed, 2])
+    epoch, wall = 0, 0.0
+
+    if state_path.exists():
+        epoch, wall = _resume(state_path, cfg, digest, net, target, optimizer, batch_rng)
+        _truncate_log(log_path, epoch)
+    if epoch == 0:
+        log_path.parent.mkdir(parents=True, exist_ok=True)
+        with open(log_path, "w", newline="") as f:
+            csv.writer(f).writerow(LOG_COLUMNS)
+
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=cfg.epochs, initial=epoch, desc="pretrain", unit="epoch",
+                   dynamic_ncols=True)  # fmt: skip
+    t_start, logged_wall, logged_epoch = time.perf_counter() - wall, wall, epoch
+    losses, qs = [], []
+    while epoch < cfg.epochs:
+        batch = buffer.sample(cfg.batch_size, batch_rng)
+        loss, mean_q = train_epoch(net, target, optimizer, batch, cfg.gamma, cfg.iters_per_epoch)
+        losses.append(loss)
+        qs.append(mean_q)
+        epoch += 1
+        if epoch % cfg.target_update_epochs == 0:
+            target.load_state_dict(net.state_dict())
+        if epoch % cfg.log_every == 0 or epoch == cfg.epochs:
+            wall = time.perf_counter() - t_start
+            rate = (epoch - logged_epoch) * cfg.iters_per_epoch / max(wall - logged_wall, 1e-9)
+            row = (epoch, epoch * cfg.iters_per_epoch, float(torch.stack(losses).mean()),
+                   float(torch.stack(qs).mean()), round(wall, 2), round(rate, 2))  # fmt: skip
+            with open(log_path, "a", newline="") as f:
+                csv.writer(f).writerow(row)
+            if bar is not None:
+                bar.set_postfix(loss=f"{row[2]:.4g}", q=f"{row[3]:.3g}", ups=f"{rate:.0f}")
+            losses, qs, logged_wall, logged_epoch = [], [], wall, epoch
+        if epoch % cfg.checkpoint_every == 0 or epoch == cfg.epochs:
+            wall = time.perf_counter() - t_start
+            _save_state(state_path, cfg, digest, net, target, optimizer, batch_rng, epoch, wall)
+        if cfg.snapshot_every and epoch % cfg.snapshot_every == 0:
+            meta = model_metadata(cfg.layers, cfg.training_dict(), cfg.seed, epoch)
+            save_model(out / "snapshots" / f"qnet_e{epoch:07d}.pt", net.state_dict(), meta)
+        if bar is not None:
+            bar.update(1)
+    if bar is not None:
+        bar.close()
+    meta = model_metadata(cfg.layers, cfg.training_dict(), cfg.seed, epoch)
+    meta["wall_s"] = round(time.perf_counter() - t_start, 1)
+    meta["buffer_digest"] = digest
+    save_model(model_path, net.state_dict(), meta)
+    return model_path
+
+
+# ----------------------------------------------------------------------------- 5. checkpoints
+def _save_state(path, cfg, digest, net, target, optimizer, batch_rng, epoch, wall) -> None:
+    meta = model_metadata(cfg.layers, cfg.training_dict(), cfg.seed, epoch)
+    atomic_save(
+        {
+            "meta": meta,
+            "weights": net.state_dict(),
+            "target": target.state_dict(),
+            "optimizer": optimizer.state_dict(),
+            "batch_rng": batch_rng.bit_generator.state,
+            "torch_rng": torch.get_rng_state(),
+            "buffer": {"seed": cfg.seed, "digest": digest},
+            "epoch": epoch,
+            "wall_s": wall,
+        },
+        path,
+    )
+
+
+def _resume(path, cfg, digest, net, target, optimizer, batch_rng) -> tuple[int, float]:
+    blob = read_checkpoint(path)
+    saved = blob["meta"].get("config", {})
+    now = cfg.training_dict()
+    changed = [k for k in now if k not in cfg.RESUMABLE_CHANGES and saved.get(k) != now[k]]
+    if changed:
+        raise UserError(
+            f"{path} was written by a run with other settings ({', '.join(changed)}); "
+            f"delete {path.parent} or set another `out` to start afresh"
+        )
+    if blob.get("buffer", {}).get("digest") != digest:
+        raise UserError(f"{path}: the replay data differ from the saved run's; delete it")
+    try:
+        net.load_state_dict(blob["weights"])
+        target.load_state_dict(blob["target"])
+        optimizer.load_state_dict(blob["optimizer"])
+        batch_rng.bit_generator.state = blob["batch_rng"]
+        torch.set_rng_state(blob["torch_rng"])
+        return int(blob["epoch"]), float(blob["wall_s"])
+    except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+        raise UserError(f"{path} is incomplete ({type(exc).__name__}); delete it") from None
+
+
+def _truncate_log(path: Path, epoch: int) -> None:
+    """Drop log rows written after the checkpoint we resume from."""
+    if not path.exists():
+        return
+    with open(path, newline="") as f:
+        rows = list(csv.reader(f))
+    kept = [rows[0]] + [r for r in rows[1:] if r and int(r[0]) <= epoch] if rows else []
+    with open(path, "w", newline="") as f:
+        csv.writer(f).writerows(kept or [LOG_COLUMNS])

@@ -1,0 +1,144 @@
+"""Replay memory ``B_d`` of every drone (Sec. III-A), in preallocated numpy arrays.
+
+One ring buffer of swarm steps, shape ``(capacity, n_drones, ...)``: row ``t`` holds the
+transition ``(s_d, u_d, r_d, s'_d, U_d(s'))`` of every drone ``d`` at that step, so the union
+``U_d B_d`` (central coordination) is sampled over ``(step, drone)`` pairs, and the buffer of
+one drone (decentralized mode) is the view ``[:, d]`` (:meth:`ReplayBuffer.drone`). The
+feasible-action mask of the next state is stored because the Bellman target's argmax runs
+over feasible actions only.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from twin.grid import N_ACTIONS
+from twin.scores import STATE_SIZE
+
+
+@dataclass
+class Batch:
+    """A sample of transitions, numpy arrays with a leading batch axis."""
+
+    states: np.ndarray  # (B, 13) float32
+    actions: np.ndarray  # (B,) int64
+    rewards: np.ndarray  # (B,) float32
+    next_states: np.ndarray  # (B, 13) float32
+    next_feasible: np.ndarray  # (B, 5) bool
+
+
+class ReplayBuffer:
+    """Ring buffer of ``capacity`` swarm steps of ``n_drones`` transitions each."""
+
+    def __init__(self, capacity: int, n_drones: int, state_size: int = STATE_SIZE) -> None:
+        if capacity < 1 or n_drones < 1:
+            raise ValueError(f"capacity and n_drones must be positive, got {capacity}, {n_drones}")
+        self.capacity, self.n_drones = int(capacity), int(n_drones)
+        shape = (self.capacity, self.n_drones)
+        self.states = np.zeros((*shape, state_size), dtype=np.float32)
+        self.actions = np.zeros(shape, dtype=np.int64)
+        self.rewards = np.zeros(shape, dtype=np.float32)
+        self.next_states = np.zeros((*shape, state_size), dtype=np.float32)
+        self.next_feasible = np.zeros((*shape, N_ACTIONS), dtype=bool)
+        self.cursor = 0  # next row to write
+        self.steps = 0  # rows filled, <= capacity
+
+    def __len__(self) -> int:
+        """Number of stored transitions over all drones."""
+        return self.steps * self.n_drones
+
+    def add(
+        self,
+        states: np.ndarray,
+        actions: np.ndarray,
+        rewards: np.ndarray,
+        next_states: np.ndarray,
+        next_feasible: np.ndarray,
+    ) -> None:
+        """Store one swarm step: every argument has a leading ``n_drones`` axis."""
+        t = self.cursor
+        self.states[t] = states
+        self.actions[t] = actions
+        self.rewards[t] = rewards
+        self.next_states[t] = next_states
+        self.next_feasible[t] = next_feasible
+        self.cursor = (t + 1) % self.capacity
+        self.steps = min(self.steps + 1, self.capacity)
+
+    def add_steps(
+        self,
+        states: np.ndarray,
+        actions: np.ndarray,
+        rewards: np.ndarray,
+        next_states: np.ndarray,
+        next_feasible: np.ndarray,
+    ) -> None:
+        """Store many swarm steps at once (leading axes ``(steps, n_drones)``)."""
+        n = len(actions)
+        rows = (self.cursor + np.arange(n)) % self.capacity
+        self.states[rows] = states
+        self.actions[rows] = actions
+        self.rewards[rows] = rewards
+        self.next_states[rows] = next_states
+        self.next_feasible[rows] = next_feasible
+        self.cursor = int((self.cursor + n) % self.capacity)
+        self.steps = min(self.steps + n, self.capacity)
+
+    def sample(self, batch_size: int, rng: np.random.Generator, drone: int | None = None) -> Batch:
+        """Uniform sample from the pooled buffers, or from drone ``drone``'s own buffer."""
+        if self.steps == 0:
+            raise ValueError("cannot sample from an empty replay buffer")
+        rows = rng.integers(0, self.steps, size=batch_size)
+        cols = (
+            rng.integers(0, self.n_drones, size=batch_size)
+            if drone is None
+            else np.full(batch_size, drone)
+        )
+        return Batch(
+            self.states[rows, cols],
+            self.actions[rows, cols],
+            self.rewards[rows, cols],
+            self.next_states[rows, cols],
+            self.next_feasible[rows, cols],
+        )
+
+    def drone(self, d: int) -> DroneView:
+        """The buffer ``B_d`` of one drone, as views (no copy)."""
+        return DroneView(self, d)
+
+
+class DroneView:
+    """Read-only view of one drone's column of a :class:`ReplayBuffer`."""
+
+    def __init__(self, buffer: ReplayBuffer, d: int) -> None:
+        if not 0 <= d < buffer.n_drones:
+            raise IndexError(f"drone {d} not in 0..{buffer.n_drones - 1}")
+        self.buffer, self.d = buffer, d
+
+    def __len__(self) -> int:
+        return self.buffer.steps
+
+    @property
+    def states(self) -> np.ndarray:
+        return self.buffer.states[: self.buffer.steps, self.d]
+
+    @property
+    def actions(self) -> np.ndarray:
+        return self.buffer.actions[: self.buffer.steps, self.d]
+
+    @property
+    def rewards(self) -> np.ndarray:
+        return self.buffer.rewards[: self.buffer.steps, self.d]
+
+    @property
+    def next_states(self) -> np.ndarray:
+        return self.buffer.next_states[: self.buffer.steps, self.d]
+
+    @property
+    def next_feasible(self) -> np.ndarray:
+        return self.buffer.next_feasible[: self.buffer.steps, self.d]
+
+    def sample(self, batch_size: int, rng: np.random.Generator) -> Batch:
+        return self.buffer.sample(batch_size, rng, drone=self.d)
