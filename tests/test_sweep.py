@@ -1,0 +1,188 @@
+"""`twin sweep`: the cells equal `twin evaluate`, local pool and Ray agree, a sweep resumes."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from twin.cli import main as cli
+from twin.errors import UserError
+from twin.sweep import done_cells, expand_cells, load_sweep_config, run_sweep
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def scenario_file(tmp: Path, horizon: int = 30, n_drones: int = 3) -> Path:
+    """configs/synthetic.toml with a short horizon (a file `twin evaluate` can take as is)."""
+    text = (ROOT / "configs" / "synthetic.toml").read_text()
+    text = text.replace("horizon = 2000", f"horizon = {horizon}")
+    text = text.replace("n_drones = 4", f"n_drones = {n_drones}")
+    path = tmp / "scenario.toml"
+    path.write_text(text)
+    return path
+
+
+def sweep_file(tmp: Path, seeds: int = 2, parameters: str = "", horizon: int = 30) -> Path:
+    scenario = scenario_file(tmp, horizon)
+    path = tmp / "sweep.toml"
+    path.write_text(
+        f"""
+[sweep]
+name = "t"
+swarms = ["random", "greedy", "sweeping"]
+seeds = {seeds}
+
+[[scenario]]
+name = "syn"
+config = "{scenario.name}"
+
+[parameters]
+{parameters}
+"""
+    )
+    return path
+
+
+def numbers(sweep_dir: Path) -> pd.DataFrame:
+    frame = pd.read_csv(sweep_dir / "results.csv").drop(columns=["seconds"])
+    return frame.sort_values(["cell", "swarm"]).reset_index(drop=True)
+
+
+def test_cells_equal_twin_evaluate(tmp_path: Path) -> None:
+    config = load_sweep_config(sweep_file(tmp_path, seeds=2))
+    outcome = run_sweep(config, tmp_path / "sweep", workers=2)
+    assert len(outcome.ran) == 2 and not outcome.skipped
+    run = tmp_path / "eval"
+    args = ["evaluate", "--config", str(tmp_path / "scenario.toml"), "--seeds", "2"]
+    assert cli([*args, "--out", str(run), "--no-report", "--quiet"]) == 0
+    expected = (
+        pd.read_csv(run / "per_seed.csv").sort_values(["seed", "swarm"]).reset_index(drop=True)
+    )
+    got = numbers(tmp_path / "sweep").sort_values(["seed", "swarm"]).reset_index(drop=True)
+    for col in ("R_hat_T", "C_hat_T", "pct_time_max_C", "pct_map_covered"):
+        assert got[col].tolist() == pytest.approx(expected[col].tolist(), rel=1e-12, abs=1e-12)
+    # the merged summary is the mean over seeds of those rows, with intervals
+    summary = pd.read_csv(tmp_path / "sweep" / "summary.csv")
+    for swarm, rows in got.groupby("swarm"):
+        row = summary[summary["swarm"] == swarm].iloc[0]
+        assert row["R_hat_T"] == pytest.approx(rows["R_hat_T"].mean())
+        assert row["n_seeds"] == 2 and row["R_hat_T_ci95"] > 0
+
+
+def test_sweep_report_table_equals_summary(tmp_path: Path) -> None:
+    config = load_sweep_config(
+        sweep_file(tmp_path, seeds=2, parameters='"swarm.n_drones" = [2, 3]')
+    )
+    run_sweep(config, tmp_path / "s", workers=2)
+    summary = pd.read_csv(tmp_path / "s" / "summary.csv")
+    md = (tmp_path / "s" / "report" / "sweep.md").read_text()
+    lines = [ln for ln in md.splitlines() if ln.startswith("| syn |")]
+    assert len(lines) == len(summary) == 6
+    for line, (_, row) in zip(lines, summary.iterrows(), strict=True):
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        assert int(cells[1]) == row["swarm.n_drones"] and cells[2] == row["swarm"]
+        mean, half = (float(x) for x in cells[3].split("±"))
+        assert abs(mean - row["R_hat_T"]) <= 5e-5 and abs(half - row["R_hat_T_ci95"]) <= 5e-5
+    html = (tmp_path / "s" / "report" / "sweep.html").read_text()
+    assert html.count('<img src="data:image/png;base64,') == 2
+
+
+def test_local_pool_and_ray_give_identical_results(tmp_path: Path) -> None:
+    pytest.importorskip("ray", reason="Ray not installed (pip install 'twin[ray]')")
+    path = sweep_file(tmp_path, seeds=2, parameters='"swarm.eta" = [0.1, 0.2]')
+    config = load_sweep_config(path)
+    local = run_sweep(config, tmp_path / "local", executor="local", workers=2, report=False)
+    ray = run_sweep(config, tmp_path / "ray", executor="ray", workers=2, report=False)
+    assert sorted(local.ran) == sorted(ray.ran) and len(local.ran) == 4
+    pd.testing.assert_frame_equal(numbers(tmp_path / "local"), numbers(tmp_path / "ray"))
+
+
+def test_restart_runs_only_missing_cells(tmp_path: Path) -> None:
+    config = load_sweep_config(sweep_file(tmp_path, seeds=3))
+    first = run_sweep(config, tmp_path / "s", workers=2, report=False)
+    before = numbers(tmp_path / "s")
+    victim = sorted(first.ran)[1]
+    (tmp_path / "s" / "cells" / f"{victim}.json").unlink()
+    again = run_sweep(config, tmp_path / "s", workers=2, report=False)
+    assert again.ran == [victim]
+    assert sorted(again.skipped) == sorted(set(first.ran) - {victim})
+    pd.testing.assert_frame_equal(numbers(tmp_path / "s"), before)
+    nothing = run_sweep(config, tmp_path / "s", workers=2, report=False)
+    assert nothing.ran == [] and len(nothing.skipped) == 3
+
+
+def test_killed_sweep_resumes(tmp_path: Path) -> None:
+    path = sweep_file(tmp_path, seeds=6, horizon=400)
+    out = tmp_path / "s"
+    cmd = [sys.executable, "-m", "twin", "sweep", "--config", str(path), "--out", str(out)]
+    proc = subprocess.Popen(
+        [*cmd, "--workers", "1", "--quiet", "--no-report"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 90
+        while not done_cells(out) and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.2)
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)  # the sweep and its pool worker, nothing else
+        proc.wait()
+    finished = done_cells(out)
+    assert 1 <= len(finished) < 6, "kill the sweep while cells remain"
+    config = load_sweep_config(path)
+    resumed = run_sweep(config, out, workers=2, report=False)
+    assert set(resumed.skipped) == finished
+    assert len(resumed.ran) == 6 - len(finished)
+    ids = {c["id"] for c in expand_cells(config, out)}
+    assert done_cells(out) == ids
+    assert len(pd.read_csv(out / "results.csv")) == 6 * 3
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ('[sweep]\nname = "x"\nswarms = ["nope"]\n', "unknown swarm 'nope'"),
+        ('[sweep]\nswarms = ["greedy"]\nseeds = 0\n', "[sweep].seeds = 0 must be at least 1"),
+        ('[sweep]\nswarms = ["greedy"]\n', "[[scenario]] is missing"),
+        (
+            '[sweep]\nswarms = ["greedy"]\n[[scenario]]\nname = "a"\nconfig = "missing.toml"\n',
+            "does not exist",
+        ),
+        (
+            '[sweep]\nswarms = ["greedy"]\n[[scenario]]\nname = "a"\nconfig = "scenario.toml"\n'
+            '[parameters]\n"n_drones" = [1]\n',
+            "must be a dotted key",
+        ),
+    ],
+)
+def test_bad_sweep_configs_are_one_line_errors(tmp_path: Path, text: str, message: str, capsys):
+    scenario_file(tmp_path)
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    with pytest.raises(UserError, match=None) as info:
+        load_sweep_config(path)
+    assert message in str(info.value) and str(path) in str(info.value)
+    assert cli(["sweep", "--config", str(path), "--out", str(tmp_path / "o")]) == 2
+    assert capsys.readouterr().err.count("\n") == 1
+
+
+def test_missing_ray_is_a_one_line_error(tmp_path: Path, monkeypatch) -> None:
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray -> ImportError
+    config = load_sweep_config(sweep_file(tmp_path, seeds=1))
+    with pytest.raises(UserError, match=r"pip install 'twin\[ray\]'"):
+        run_sweep(config, tmp_path / "s", executor="ray", report=False)
+
+
+def test_demo_config_expands(tmp_path: Path) -> None:
+    config = load_sweep_config(ROOT / "configs" / "sweep-demo.toml")
+    cells = expand_cells(config, tmp_path)
+    assert len(cells) == len(config.seeds) * 2
+    assert len({c["id"] for c in cells}) == len(cells)
+    json.dumps(cells)  # plain data, shippable to any executor

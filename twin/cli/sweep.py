@@ -1,0 +1,83 @@
+"""``twin sweep --config FILE``: a grid of scenarios x parameters x seeds on a process pool or Ray."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser(
+        "sweep",
+        help="run a grid of scenarios x parameters x seeds (local process pool or Ray)",
+        description="Run every cell (scenario, parameter combination, seed) of a sweep config, "
+        "each one traffic pass with all swarms side by side, writing one result file per cell "
+        "into the sweep folder. Cells already done are skipped, so an interrupted sweep resumes "
+        "where it stopped. Results merge into results.csv, summary.csv (mean and 95%% interval "
+        "over seeds) and report/sweep.html.",
+    )
+    p.add_argument("--config", type=Path, required=True, help="sweep config (TOML)")
+    p.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="sweep folder (default runs/sweep-<name>; rerun with the same folder to resume)",
+    )
+    p.add_argument(
+        "--executor",
+        choices=("local", "ray"),
+        default="local",
+        help="local process pool (default) or Ray (pip install 'twin[ray]')",
+    )
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        help=f"parallel cells (default: CPU count, here {os.cpu_count()})",
+    )
+    p.add_argument(
+        "--address", default=None, help="Ray cluster address (default: start a local Ray)"
+    )
+    p.add_argument("--no-report", action="store_true", help="skip the HTML/Markdown report")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=main)
+
+
+def main(args: argparse.Namespace) -> int:
+    from twin.errors import UserError
+    from twin.metrics import format_table2
+    from twin.sweep import load_sweep_config, run_sweep
+
+    if args.workers is not None and args.workers < 1:
+        raise UserError(f"--workers {args.workers}: give at least 1")
+    if args.address and args.executor != "ray":
+        raise UserError("--address is for --executor ray")
+    config = load_sweep_config(args.config)
+    out = args.out or Path("runs") / f"sweep-{config.name}"
+    progress = not args.quiet and sys.stderr.isatty()
+    outcome = run_sweep(
+        config,
+        out,
+        executor=args.executor,
+        workers=args.workers,
+        address=args.address,
+        progress=progress,
+        report=not args.no_report,
+    )
+    print(
+        f"sweep {config.name!r} on {args.executor}: ran {len(outcome.ran)} cells, "
+        f"{len(outcome.skipped)} already done, {outcome.seconds:.1f} s"
+    )
+    summary = outcome.summary
+    if not summary.empty:
+        groups = [c for c in summary.columns if c == "scenario" or ("." in c and "_ci95" not in c)]
+        for key, table in summary.groupby(groups, sort=False):
+            key = key if isinstance(key, tuple) else (key,)
+            print("\n" + ", ".join(f"{g}={k}" for g, k in zip(groups, key, strict=True)))
+            print(format_table2(table))
+    if not args.no_report:
+        print(f"\nreport: {out / 'report' / 'sweep.html'}")
+    print(f"sweep folder: {out}")
+    return 0

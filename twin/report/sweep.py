@@ -1,0 +1,181 @@
+"""The sweep report: the merged Table 2 (mean and 95% interval over seeds per scenario,
+parameter combination and swarm), the same as a chart, and the cumulative-score curves of every
+scenario and combination; HTML (self-contained) and Markdown, from the sweep folder's files."""
+
+from __future__ import annotations
+
+import html
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from matplotlib.figure import Figure
+
+from twin.report.document import (
+    CSS,
+    TABLE_COLUMNS,
+    _data_uri,
+    format_cell,
+    html_table,
+    markdown_table,
+)
+from twin.report.figures import swarm_colours
+from twin.report.stats import ci95_half_width
+
+REPORT_DIR = "report"
+
+
+def group_columns(summary: pd.DataFrame) -> list[str]:
+    """Columns that identify a group of seeds: the scenario and the swept parameters."""
+    return ["scenario"] + [c for c in summary.columns if "." in c and not c.endswith("_ci95")]
+
+
+def group_label(row: pd.Series, columns: list[str]) -> str:
+    parts = [str(row["scenario"])] + [f"{c.split('.')[-1]}={row[c]}" for c in columns[1:]]
+    return ", ".join(parts)
+
+
+def sweep_table(summary: pd.DataFrame) -> tuple[list[str], list[list[str]]]:
+    groups = group_columns(summary)
+    header = [*groups, "swarm"] + [h for _, h, _ in TABLE_COLUMNS] + ["seeds"]
+    rows = []
+    for _, row in summary.iterrows():
+        rows.append(
+            [str(row[c]) for c in groups]
+            + [str(row["swarm"])]
+            + [format_cell(row, c, d) for c, _, d in TABLE_COLUMNS]
+            + [str(int(row["n_seeds"]))]
+        )
+    return header, rows
+
+
+def figure_table2(summary: pd.DataFrame) -> Figure:
+    """Each Table 2 column per group and swarm, with 95% error bars."""
+    groups = group_columns(summary)
+    labels = list(dict.fromkeys(group_label(r, groups) for _, r in summary.iterrows()))
+    swarms = list(dict.fromkeys(summary["swarm"]))
+    colours = swarm_colours(swarms)
+    fig = Figure(figsize=(max(8.0, 2.2 * len(labels) + 3), 6.5), layout="constrained")
+    axes = fig.subplots(2, 2).ravel()
+    width = 0.8 / len(swarms)
+    x = np.arange(len(labels))
+    for ax, (col, header, _) in zip(axes, TABLE_COLUMNS, strict=True):
+        for s, swarm in enumerate(swarms):
+            rows = summary[summary["swarm"] == swarm]
+            lookup = {group_label(r, groups): r for _, r in rows.iterrows()}
+            mean = np.array([lookup[lb][col] if lb in lookup else np.nan for lb in labels])
+            half = np.array([lookup[lb][f"{col}_ci95"] if lb in lookup else 0 for lb in labels])
+            ax.bar(
+                x + (s - (len(swarms) - 1) / 2) * width, mean, width, yerr=half,
+                color=colours[swarm], label=swarm, capsize=2, error_kw={"lw": 0.8},
+            )  # fmt: skip
+        ax.set_title(header, fontsize=10)
+        ax.set_xticks(x, labels, fontsize=8, rotation=15 if len(labels) > 2 else 0)
+        ax.grid(axis="y", alpha=0.3)
+    fig.legend(*axes[0].get_legend_handles_labels(), loc="outside lower center", ncols=len(swarms))
+    fig.suptitle("Table 2 columns per scenario (mean and 95% interval over seeds)", fontsize=11)
+    return fig
+
+
+def figure_curves(out_dir: Path, results: pd.DataFrame) -> Figure | None:
+    """Cumulative patrolling score R^k per group: mean and 95% band over the cells' seeds."""
+    groups = group_columns(results)
+    cells = results.drop_duplicates("cell")
+    keyed = list(cells.groupby(groups, sort=False))
+    if not keyed:
+        return None
+    swarms = list(dict.fromkeys(results["swarm"]))
+    colours = swarm_colours(swarms)
+    cols = min(3, len(keyed))
+    rows = int(np.ceil(len(keyed) / cols))
+    fig = Figure(figsize=(4.5 * cols, 3.3 * rows + 0.6), layout="constrained")
+    axes = fig.subplots(rows, cols, squeeze=False).ravel()
+    for ax, (_, group) in zip(axes, keyed, strict=False):
+        frames = [
+            pd.read_parquet(out_dir / "cells" / f"{cid}.parquet")
+            for cid in group["cell"]
+            if (out_dir / "cells" / f"{cid}.parquet").exists()
+        ]
+        if not frames:
+            continue
+        series = pd.concat(frames)
+        for swarm in swarms:
+            table = series[series["swarm"] == swarm].pivot_table(
+                index="step", columns="seed", values="cumulative_reward"
+            )
+            if table.empty:
+                continue
+            values = table.to_numpy()
+            mean, half = values.mean(axis=1), ci95_half_width(values, axis=1)
+            steps = table.index.to_numpy() + 1
+            ax.plot(steps, mean, color=colours[swarm], label=swarm)
+            ax.fill_between(steps, mean - half, mean + half, color=colours[swarm], alpha=0.2)
+        ax.set_title(f"{group_label(group.iloc[0], groups)} ({values.shape[1]} seeds)", fontsize=9)
+        ax.set_xlabel("step k", fontsize=8)
+        ax.set_ylabel("cumulative score $R^k$", fontsize=8)
+        ax.grid(alpha=0.3)
+    for ax in axes[len(keyed) :]:
+        ax.set_visible(False)
+    axes[0].legend(fontsize=8)
+    fig.suptitle("Cumulative patrolling score (mean and 95% band over seeds)", fontsize=11)
+    return fig
+
+
+def write_sweep_report(out_dir: Path) -> Path:
+    """Write ``out_dir/report/sweep.html``, ``sweep.md`` and the PNGs; return the HTML path."""
+    summary = pd.read_csv(out_dir / "summary.csv")
+    results = pd.read_csv(out_dir / "results.csv")
+    manifest = json.loads((out_dir / "sweep.json").read_text())
+    out = out_dir / REPORT_DIR
+    out.mkdir(exist_ok=True)
+    images = []
+    figure_table2(summary).savefig(out / "table2.png", dpi=100)
+    images.append(("Table 2 columns per scenario", "table2.png"))
+    curves = figure_curves(out_dir, results)
+    if curves is not None:
+        curves.savefig(out / "curves.png", dpi=100)
+        images.append(("Cumulative patrolling score", "curves.png"))
+    header, rows = sweep_table(summary)
+    n_cells, n_done = len(manifest["cells"]), results["cell"].nunique()
+    cell_seconds = results.drop_duplicates("cell")["seconds"]
+    lede = (
+        f"Sweep {manifest['name']!r}: {n_done} of {n_cells} cells done "
+        f"({len(manifest['scenarios'])} scenarios x {max(1, n_cells // max(1, len(manifest['scenarios']) * len(manifest['seeds'])))} "
+        f"parameter combinations x {len(manifest['seeds'])} seeds), swarms {', '.join(manifest['swarms'])}; "
+        f"cell time {cell_seconds.sum():.1f} s in total, {cell_seconds.mean():.1f} s on average. "
+        "Every number is read from summary.csv and results.csv."
+    )
+    parts = [
+        "<!DOCTYPE html>",
+        '<html lang="en"><head><meta charset="utf-8">',
+        f"<title>twin sweep: {html.escape(manifest['name'])}</title>",
+        f"<style>{CSS}</style></head><body>",
+        f"<h1>Sweep report: {html.escape(manifest['name'])}</h1>",
+        f"<p>{html.escape(lede)}</p>",
+        "<h2>Table 2 per scenario (mean ± 95% interval over seeds)</h2>",
+        html_table(header, rows, "summary"),
+    ]
+    md = [
+        f"# Sweep report: {manifest['name']}",
+        "",
+        lede,
+        "",
+        "## Table 2 per scenario (mean ± 95% interval over seeds)",
+        "",
+        markdown_table(header, rows),
+        "",
+    ]
+    for title, name in images:
+        parts += [
+            f"<h2>{html.escape(title)}</h2>",
+            f'<img src="{_data_uri(out / name)}" alt="{title}">',
+        ]
+        md += [f"## {title}", "", f"![{title}]({name})", ""]
+    parts.append("<h2>Sweep definition (sweep.json)</h2><pre>")
+    parts.append(html.escape(json.dumps(manifest, indent=2)))
+    parts.append("</pre></body></html>")
+    html_path = out / "sweep.html"
+    html_path.write_text("\n".join(parts), encoding="utf-8")
+    (out / "sweep.md").write_text("\n".join(md) + "\n", encoding="utf-8")
+    return html_path
