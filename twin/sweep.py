@@ -137,6 +137,12 @@ def load_sweep_config(path: str | Path) -> SweepConfig:
             )
         if "checkpoint" in table:
             table["checkpoint"] = str(_relative(path, table["checkpoint"]))
+            if not Path(table["checkpoint"]).is_file():
+                raise _fail(
+                    path,
+                    f"[swarm_options.{swarm}].checkpoint",
+                    f"= {table['checkpoint']} does not exist; run `twin pretrain` or fix the path",
+                )
     return SweepConfig(path, name, swarms, seeds, scenarios, parameters, options)
 
 
@@ -209,12 +215,24 @@ def parameter_combinations(parameters: dict[str, list[Any]]) -> list[dict[str, A
     ]
 
 
+#: What defines a cell's numbers; the cell id hashes these.
+DEFINING_KEYS = (
+    "scenario", "config", "overrides", "tape", "seed", "swarms", "swarm_options", "checkpoints",
+)  # fmt: skip
+
+
+def file_sha256(path: str | Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
 def cell_id(cell: dict[str, Any]) -> str:
-    """``<scenario>-s<seed>-<hash>``: the hash covers everything that defines the cell's numbers."""
-    defining = {
-        k: cell[k]
-        for k in ("scenario", "config", "overrides", "tape", "seed", "swarms", "swarm_options")
-    }
+    """``<scenario>-s<seed>-<hash>``: the hash covers everything that defines the cell's numbers
+    (a retrained checkpoint, a changed scenario file's path or overrides give new cells)."""
+    defining = {k: cell.get(k) for k in DEFINING_KEYS}
     digest = hashlib.sha1(json.dumps(defining, sort_keys=True, default=str).encode()).hexdigest()[
         :10
     ]
@@ -223,6 +241,11 @@ def cell_id(cell: dict[str, Any]) -> str:
 
 def expand_cells(config: SweepConfig, out_dir: Path) -> list[dict[str, Any]]:
     """The sweep's cells, scenario-major, then parameters, then seeds."""
+    checkpoints = {
+        swarm: file_sha256(options["checkpoint"])
+        for swarm, options in config.swarm_options.items()
+        if Path(options.get("checkpoint", "")).is_file()
+    }
     cells = []
     for scenario in config.scenarios:
         for params in parameter_combinations(config.parameters):
@@ -236,6 +259,7 @@ def expand_cells(config: SweepConfig, out_dir: Path) -> list[dict[str, Any]]:
                     "seed": int(seed),
                     "swarms": list(config.swarms),
                     "swarm_options": copy.deepcopy(config.swarm_options),
+                    "checkpoints": checkpoints,
                     "cells_dir": str(out_dir / CELLS_DIR),
                 }
                 cell["id"] = cell_id(cell)
@@ -344,12 +368,15 @@ def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
         result = run_patrol(
             source, policies, starts, config.params, seed, progress=False, keep_importance=False
         )
+        traffic = source.metadata()
     finally:
         source.close()
     rows = table2(result).to_dict(orient="records")
     record = {
         "id": cell["id"],
         "cell": {k: v for k, v in cell.items() if k != "cells_dir"},
+        "traffic": traffic,
+        "policies": {n: p.describe() for n, p in policies.items() if hasattr(p, "describe")},
         "rows": [{k: (None if _isnan(v) else v) for k, v in r.items()} for r in rows],
         "horizon": int(result.horizon),
         "error": result.error,
