@@ -94,3 +94,21 @@ def test_many_drones_on_a_large_grid_are_collision_free():
     feasible = grid.feasible_actions(positions)
     nxt = grid.move(positions, coordinate(q, positions, feasible, grid))
     assert len(np.unique(nxt, axis=0)) == 1024
+
+
+def test_large_component_sparse_solver_matches_dense_optimum(monkeypatch):
+    import twin.coordinator as coordinator
+
+    rng = np.random.default_rng(5)
+    grid = Grid.open(30, 30)
+    cells = np.array([(i, j) for i in range(0, 20, 2) for j in range(0, 20, 2)])  # 100 drones
+    positions = cells + rng.integers(0, 2, size=cells.shape)  # jitter: many collisions
+    positions = np.unique(positions, axis=0)
+    q = rng.normal(size=(len(positions), 5))
+    feasible = grid.feasible_actions(positions)
+    sparse = coordinator.coordinate(q, positions, feasible, grid)
+    monkeypatch.setattr(coordinator, "SPARSE_ABOVE", 10**9)
+    dense = coordinator.coordinate(q, positions, feasible, grid)
+    n = len(positions)
+    assert q[np.arange(n), sparse].sum() == pytest.approx(q[np.arange(n), dense].sum())
+    assert len(np.unique(grid.move(positions, sparse), axis=0)) == n

@@ -5,8 +5,9 @@ Drones are rows, candidate next cells are columns, the cost of putting drone ``d
 reached by its feasible action ``u`` is ``-Q_d(u)``. Two drones more than two cells apart
 share no candidate cell and never compete, so the "share a candidate cell" graph is split
 into connected components and only components whose unconstrained choices collide are solved,
-each with :func:`scipy.optimize.linear_sum_assignment`: polynomial in the component's size,
-never an enumeration of ``5^N`` joint actions.
+each with :func:`scipy.optimize.linear_sum_assignment` (large components with the sparse
+solver :func:`scipy.sparse.csgraph.min_weight_full_bipartite_matching`, same optimum):
+polynomial in the component's size, never an enumeration of ``5^N`` joint actions.
 
 Stay is always feasible, so when the drones stand on distinct cells a distinct assignment
 always exists. Drones that stand on one cell (after a communication outage) may have no
@@ -19,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import connected_components
+from scipy.sparse.csgraph import connected_components, min_weight_full_bipartite_matching
 
 from twin.grid import ACTION_DELTAS, Grid
 
@@ -83,6 +84,10 @@ def _components(flat: np.ndarray, feasible: np.ndarray, n: int) -> np.ndarray:
     return labels
 
 
+#: Components with more drones than this are solved with the sparse assignment solver.
+SPARSE_ABOVE = 48
+
+
 def _solve_component(q: np.ndarray, flat: np.ndarray, feasible: np.ndarray) -> np.ndarray:
     """Exact assignment for one component: rows drones, columns its candidate cells plus one
     private penalised "stay" column per drone (used only if no distinct assignment exists)."""
@@ -90,16 +95,28 @@ def _solve_component(q: np.ndarray, flat: np.ndarray, feasible: np.ndarray) -> n
     drone, action = np.nonzero(feasible)
     cells, col = np.unique(flat[drone, action], return_inverse=True)
     k = len(cells)
-    cost = np.full((m, k + m), np.inf)
-    cost[drone, col] = -q[drone, action]
     finite = q[feasible]
     penalty = (finite.max() - finite.min() + 1.0) * m
-    cost[np.arange(m), k + np.arange(m)] = penalty - q[:, 0]
-    action_of = np.zeros((m, k + m), dtype=np.int64)  # private columns mean "stay" (0)
-    action_of[drone, col] = action
-    rows, cols = linear_sum_assignment(cost)
+    # edges: (drone, its candidate cell) at cost -Q, (drone, its private column) at penalty
+    rows = np.concatenate([drone, np.arange(m)])
+    cols = np.concatenate([col, k + np.arange(m)])
+    costs = np.concatenate([-q[drone, action], penalty - q[:, 0]])
+    acts = np.concatenate([action, np.zeros(m, dtype=np.int64)])  # private column = stay
+    if m > SPARSE_ABOVE:
+        # every drone takes exactly one edge, so shifting all costs to >= 1 keeps the optimum
+        # (the sparse solver treats an explicit 0 as a missing edge)
+        shifted = costs - costs.min() + 1.0
+        graph = csr_matrix((shifted, (rows, cols)), shape=(m, k + m))
+        match = min_weight_full_bipartite_matching(graph)[1]
+        chosen = np.arange(m), match
+    else:
+        cost = np.full((m, k + m), np.inf)
+        cost[rows, cols] = costs
+        chosen = linear_sum_assignment(cost)
+    action_of = np.zeros((m, k + m), dtype=np.int64)
+    action_of[rows, cols] = acts
     out = np.empty(m, dtype=np.int64)
-    out[rows] = action_of[rows, cols]
+    out[chosen[0]] = action_of[chosen]
     return out
 
 
