@@ -95,14 +95,33 @@ def test_sweep_report_table_equals_summary(tmp_path: Path) -> None:
     assert html.count('<img src="data:image/png;base64,') == 2
 
 
+def tiny_checkpoint(path: Path) -> Path:
+    """A small Q-network checkpoint (13 -> 16 -> 5), so the learning swarm runs in seconds."""
+    import torch
+
+    from twin.learning.checkpoint import model_metadata, save_model
+    from twin.learning.qnet import QNetwork
+
+    torch.manual_seed(0)
+    layers = (13, 16, 5)
+    save_model(path, QNetwork(layers).state_dict(), model_metadata(layers, {}, seed=0, epoch=0))
+    return path
+
+
 def test_local_pool_and_ray_give_identical_results(tmp_path: Path) -> None:
+    """Baselines and an online-learning swarm (torch) give the same numbers on both executors."""
     pytest.importorskip("ray", reason="Ray not installed (pip install 'twin[ray]')")
-    path = sweep_file(tmp_path, seeds=2, parameters='"swarm.eta" = [0.1, 0.2]')
+    path = sweep_file(tmp_path, seeds=1, parameters='"swarm.eta" = [0.1, 0.2]')
+    tiny_checkpoint(tmp_path / "tiny.pt")
+    text = path.read_text().replace('"sweeping"]', '"sweeping", "rl-online"]')
+    path.write_text(text + '\n[swarm_options.rl-online]\ncheckpoint = "tiny.pt"\n')
     config = load_sweep_config(path)
     local = run_sweep(config, tmp_path / "local", executor="local", workers=2, report=False)
     ray = run_sweep(config, tmp_path / "ray", executor="ray", workers=2, report=False)
-    assert sorted(local.ran) == sorted(ray.ran) and len(local.ran) == 4
-    pd.testing.assert_frame_equal(numbers(tmp_path / "local"), numbers(tmp_path / "ray"))
+    assert sorted(local.ran) == sorted(ray.ran) and len(local.ran) == 2
+    got = numbers(tmp_path / "local")
+    assert set(got["swarm"]) == {"random", "greedy", "sweeping", "rl-online"}
+    pd.testing.assert_frame_equal(got, numbers(tmp_path / "ray"))
 
 
 def test_restart_runs_only_missing_cells(tmp_path: Path) -> None:
@@ -186,3 +205,26 @@ def test_demo_config_expands(tmp_path: Path) -> None:
     assert len(cells) == len(config.seeds) * 2
     assert len({c["id"] for c in cells}) == len(cells)
     json.dumps(cells)  # plain data, shippable to any executor
+
+
+def test_bad_parameter_value_fails_before_any_cell_runs(tmp_path: Path) -> None:
+    config = load_sweep_config(sweep_file(tmp_path, parameters='"swarm.n_drones" = [3, 700]'))
+    with pytest.raises(UserError, match=r"n_drones.*700"):
+        run_sweep(config, tmp_path / "s", workers=1)
+    assert not done_cells(tmp_path / "s")
+
+
+def test_failing_cells_are_reported_and_rerun(tmp_path: Path, capsys) -> None:
+    path = sweep_file(tmp_path, seeds=2)
+    (tmp_path / "broken.pt").write_bytes(b"not a checkpoint")
+    text = path.read_text().replace('"sweeping"]', '"sweeping", "rl"]')
+    path.write_text(text + '\n[swarm_options.rl]\ncheckpoint = "broken.pt"\n')
+    args = ["sweep", "--config", str(path), "--out", str(tmp_path / "s"), "--workers", "1"]
+    assert cli(args) == 2
+    err = capsys.readouterr().err
+    assert "2 of 2 cells failed" in err and "broken.pt" in err and err.count("\n") == 1
+    assert len(json.loads((tmp_path / "s" / "failed.json").read_text())) == 2
+    tiny_checkpoint(tmp_path / "broken.pt")  # fixed: a new file, so new cell ids
+    assert cli(args) == 0
+    assert not (tmp_path / "s" / "failed.json").exists()
+    assert set(pd.read_csv(tmp_path / "s" / "results.csv")["swarm"]) >= {"rl"}

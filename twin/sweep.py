@@ -39,6 +39,7 @@ import sys
 import time
 from collections.abc import Callable, Iterable
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -410,21 +411,40 @@ def _json_default(value: Any) -> Any:
 # --- executors ------------------------------------------------------------------------------
 
 
-def _local_executor(cells: list[dict], workers: int) -> Iterable[dict]:
+#: What an executor yields per cell: (cell id, result record or None, error message or None).
+Outcome = tuple[str, dict[str, Any] | None, str | None]
+
+
+def _error_line(exc: BaseException) -> str:
+    cause = getattr(exc, "cause", None) or exc  # Ray wraps the task's exception
+    text = str(cause).strip().splitlines()
+    return f"{type(cause).__name__}: {text[0] if text else ''}"
+
+
+def _local_executor(cells: list[dict], workers: int) -> Iterable[Outcome]:
     """Run cells on a process pool (spawn: one fresh interpreter, hence one SUMO, per worker)."""
     context = multiprocessing.get_context("spawn")
     pool = ProcessPoolExecutor(max_workers=workers, mp_context=context)
     try:
-        pending = {pool.submit(run_cell, cell) for cell in cells}
+        pending = {pool.submit(run_cell, cell): cell["id"] for cell in cells}
         while pending:
-            done, pending = wait(pending, return_when=FIRST_COMPLETED)
+            done, _ = wait(pending, return_when=FIRST_COMPLETED)
             for future in done:
-                yield future.result()
+                cid = pending.pop(future)
+                try:
+                    yield cid, future.result(), None
+                except BrokenProcessPool as exc:
+                    raise UserError(
+                        f"a sweep worker died while running cell {cid} ({exc}); finished cells "
+                        "are saved, rerun the same command to resume"
+                    ) from None
+                except Exception as exc:
+                    yield cid, None, _error_line(exc)
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
 
 
-def _ray_executor(cells: list[dict], workers: int, address: str | None) -> Iterable[dict]:
+def _ray_executor(cells: list[dict], workers: int, address: str | None) -> Iterable[Outcome]:
     """Run cells as Ray tasks, one CPU each, on a cluster at ``address`` or a local one."""
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # offline: never phone home
     try:
@@ -443,14 +463,18 @@ def _ray_executor(cells: list[dict], workers: int, address: str | None) -> Itera
                 configure_logging=False,
             )
         started = True
-    pending: list = []
+    pending: dict = {}
     try:
         task = ray.remote(num_cpus=1, max_retries=0)(run_cell)
-        pending = [task.remote(cell) for cell in cells]
+        pending = {task.remote(cell): cell["id"] for cell in cells}
         while pending:
-            done, pending = ray.wait(pending, num_returns=1)
+            done, _ = ray.wait(list(pending), num_returns=1)
             for ref in done:
-                yield ray.get(ref)
+                cid = pending.pop(ref)
+                try:
+                    yield cid, ray.get(ref), None
+                except Exception as exc:
+                    yield cid, None, _error_line(exc)
     finally:
         for ref in pending:
             ray.cancel(ref, force=True)
@@ -465,6 +489,7 @@ class SweepOutcome:
     skipped: list[str]
     seconds: float
     summary: pd.DataFrame
+    failed: dict[str, str] = field(default_factory=dict)
 
 
 def run_sweep(
@@ -476,7 +501,11 @@ def run_sweep(
     progress: bool = False,
     report: bool = True,
 ) -> SweepOutcome:
-    """Run every cell not yet done, then merge all cells and write the sweep report."""
+    """Run every cell not yet done, then merge all cells and write the sweep report.
+
+    A cell that fails does not stop the others; after merging what is done, the failures are
+    raised as one :class:`UserError` (and listed in ``failed.json``).
+    """
     if executor not in EXECUTORS:
         raise UserError(f"--executor {executor!r}: choose from {', '.join(EXECUTORS)}")
     out_dir = Path(out_dir)
@@ -486,29 +515,63 @@ def run_sweep(
     todo = [c for c in cells if c["id"] not in done]
     skipped = [c["id"] for c in cells if c["id"] in done]
     _write_manifest(out_dir, config, cells, executor)
+    check_cells(todo)
     workers = max(1, min(workers or os.cpu_count() or 1, len(todo) or 1))
     start = time.perf_counter()
-    ran = []
+    ran: list[str] = []
+    failed: dict[str, str] = {}
     if todo:
-        results = (
+        outcomes = (
             _local_executor(todo, workers)
             if executor == "local"
             else _ray_executor(todo, workers, address)
         )
         bar = _progress(len(todo), progress)
-        for record in results:
-            if not (out_dir / CELLS_DIR / f"{record['id']}.json").exists():
-                write_cell_record(out_dir / CELLS_DIR, record)  # a worker without our disk
-            ran.append(record["id"])
+        try:
+            for cid, record, error in outcomes:
+                if record is None:
+                    failed[cid] = error or "unknown error"
+                else:
+                    if not (out_dir / CELLS_DIR / f"{cid}.json").exists():
+                        write_cell_record(out_dir / CELLS_DIR, record)  # a worker without our disk
+                    ran.append(cid)
+                if bar is not None:
+                    bar.update(1)
+        finally:
             if bar is not None:
-                bar.update(1)
-        if bar is not None:
-            bar.close()
+                bar.close()
     seconds = time.perf_counter() - start
-    results, summary = merge(out_dir, [c["id"] for c in cells], config)
-    if report:
+    failed_path = out_dir / "failed.json"
+    if failed:
+        failed_path.write_text(json.dumps(failed, indent=2))
+    else:
+        failed_path.unlink(missing_ok=True)
+    _, summary = merge(out_dir, [c["id"] for c in cells], config)
+    if report and not summary.empty:
         write_sweep_report(out_dir)
-    return SweepOutcome(out_dir, ran, skipped, seconds, summary)
+    if failed:
+        cid, error = next(iter(failed.items()))
+        raise UserError(
+            f"{len(failed)} of {len(todo)} cells failed (first: {cid}: {error}); the other cells "
+            f"are saved in {out_dir}, fix the cause and rerun to run only the missing ones"
+        )
+    return SweepOutcome(out_dir, ran, skipped, seconds, summary, failed)
+
+
+def check_cells(cells: list[dict[str, Any]]) -> None:
+    """Validate every distinct scenario config and overrides before running anything."""
+    seen = set()
+    for cell in cells:
+        key = (cell["config"], json.dumps(cell["overrides"], sort_keys=True, default=str))
+        if key in seen:
+            continue
+        seen.add(key)
+        try:
+            scenario_config(Path(cell["config"]), cell["overrides"])
+        except UserError as exc:
+            raise UserError(
+                f"scenario {cell['scenario']!r} with {cell['overrides']}: {exc}"
+            ) from None
 
 
 def _progress(total: int, enabled: bool):

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pandas as pd
 from matplotlib import colormaps
 from matplotlib.axes import Axes
 from matplotlib.collections import LineCollection
@@ -115,9 +116,10 @@ def figure_scores(rf: RunFiles) -> Figure:
         for swarm, (steps, mean, half) in mean_band(rf.series, column).items():
             x = steps + 1  # value after the move of step k
             if column == "reward" and window > 1:
-                kernel = np.ones(window) / window
-                mean = np.convolve(mean, kernel, mode="same")
-                half = np.convolve(half, kernel, mode="same")
+                mean, half = (
+                    pd.Series(v).rolling(window, center=True, min_periods=1).mean().to_numpy()
+                    for v in (mean, half)
+                )
             ax.plot(x, scale * mean, color=colours.get(swarm), lw=1.5, label=swarm)
             if n_seeds > 1:
                 ax.fill_between(
