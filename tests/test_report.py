@@ -130,19 +130,31 @@ def write_fixture_run(
     (run / "run.json").write_text(json.dumps(meta))
     if sumo:
         (run / "net.net.xml").write_text(NET_XML)
-        network = {"net_file": "net.net.xml", "origin": [0.0, 0.0], "cell_size": 1500.0 / ny}
-        network["bbox"] = [0.0, 0.0, 1500.0, nx * 1500.0 / ny]
+        cell = 1500.0 / ny
+        network = {
+            "name": "toy",
+            "net_file": "net.net.xml",
+            "grid": {"x0": 0.0, "y_top": nx * cell, "cell_m": cell, "nx": nx, "ny": ny,
+                     "bbox": [50.0, 50.0, 1450.0, 950.0]},
+            "row_0": "north",
+        }  # fmt: skip
         (run / "network.json").write_text(json.dumps(network))
-        density = rng.uniform(0, 120, 500)
-        speed = 15.0 * np.exp(-density / 60.0) + rng.normal(0, 0.5, 500)
+        n = 600
+        count = rng.integers(1, 40, n)
+        density = count / 0.5
+        limit = np.full(n, 13.9)
+        speed = limit * 0.7 * np.exp(-density / 40.0) * rng.uniform(0.9, 1.1, n)
         pd.DataFrame(
-            {"cell": rng.integers(0, nx * ny, 500), "step": np.arange(500) % horizon,
-             "density": density, "speed": speed}
+            {"step": np.arange(n) % (horizon + 1), "i": rng.integers(0, nx, n),
+             "j": rng.integers(0, ny, n), "count": count, "lane_km": 0.5, "density": density,
+             "speed": speed, "speed_limit": limit}
         ).to_parquet(run / "mfd_samples.parquet", index=False)  # fmt: skip
-        (run / "mfd.json").write_text(
-            json.dumps({"form": "underwood", "parameters": {"v_free": 15.0, "k_crit": 60.0},
-                        "R2": 0.913, "RMSE": 0.51})
-        )  # fmt: skip
+        mfd = {"form": "underwood: v(k) = a * v_lim * exp(-k / k_c)", "a": 0.7013, "k_c": 39.87,
+               "fit": "online", "n_samples": n, "r2": 0.913, "rmse_kmh": 1.82,
+               "density_unit": "veh per lane-km", "speed_unit": "m/s"}  # fmt: skip
+        (run / "mfd.json").write_text(json.dumps(mfd))
+        meta["traffic"] = {"kind": "sumo", "begin": "07:00:00", "step_s": 75.0}
+        (run / "run.json").write_text(json.dumps(meta))
     return run
 
 
@@ -233,7 +245,8 @@ def test_html_table_and_metadata_equal_run_files(report: Path) -> None:
     assert json.loads(meta["timings.patrol_seconds"]) == run["timings"]["patrol_seconds"]
     assert json.loads(meta["seeds"]) == run["seeds"]
     mfd = json.loads((run_dir / "mfd.json").read_text())
-    assert f"R2 = {mfd['R2']}" in report.read_text()
+    for key in ("a", "k_c", "r2", "rmse_kmh", "n_samples"):
+        assert f"{key} = {json.dumps(mfd[key])}" in report.read_text()
 
 
 def test_replayed_idleness_matches_stored_coverage(report: Path) -> None:

@@ -119,7 +119,9 @@ def write_animation(rf: RunFiles, path: Path, max_frames: int = MAX_FRAMES, fps:
         draw.rectangle([0, 0, img.width, TITLE_HEIGHT], fill="white")
         draw.text(
             (img.width // 2, 4),
-            f"step k = {k} / {rf.horizon}   importance T^k (bright = congested)",
+            f"step k = {k} / {rf.horizon}"
+            + (f" ({rf.clock(int(k))})" if rf.clock(int(k)) else "")
+            + "   importance T^k (bright = congested)",
             fill="black",
             font=font,
             anchor="ma",

@@ -192,14 +192,13 @@ def build_sections(
     )
     if rf.mfd is not None:
         fig, note = timed("mfd", lambda: figures.figure_mfd(rf))
-        quality = ", ".join(f"{k} = {rf.mfd[k]}" for k in ("R2", "RMSE") if k in rf.mfd)
         sections.append(
             Section(
                 "Macroscopic fundamental diagram",
                 _save(fig, out / "mfd.png"),
-                f"Form {rf.mfd.get('form', '?')}, parameters "
-                f"{json.dumps(rf.mfd.get('parameters') or rf.mfd.get('params') or {})}"
-                + (f"; fit quality {quality}" if quality else "")
+                "Cell samples of the simulation (density, speed relative to the cell's limit) "
+                "and the fitted curve. mfd.json: "
+                + "; ".join(f"{k} = {v}" for k, v in _flatten(rf.mfd))
                 + ". "
                 + note,
             )

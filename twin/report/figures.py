@@ -155,7 +155,8 @@ def figure_snapshots(rf: RunFiles, trail: int = 10) -> Figure:
             ax = axes[r, c]
             image = draw_map(ax, rf.importance[k], rf.obstacles, IMPORTANCE_CMAP)
             draw_drones(ax, positions, k, trail, colours)
-            ax.set_title(f"{swarm}, k = {k}", fontsize=9)
+            clock = rf.clock(k)
+            ax.set_title(f"{swarm}, k = {k}" + (f" ({clock})" if clock else ""), fontsize=9)
     fig.colorbar(image, ax=axes, shrink=0.8, label="importance $T^k$ (1 = most congested)")
     fig.suptitle(
         f"Drones over the importance map at k = {', '.join(map(str, steps))} "
@@ -194,14 +195,15 @@ def figure_trajectories(rf: RunFiles, trail: int = 40) -> Figure:
 
 
 def figure_traffic(rf: RunFiles) -> Figure:
-    """How congestion forms: importance statistics over the horizon (and the MFD samples' speed)."""
+    """How congestion forms: importance over the horizon, and the simulated vehicles and speeds
+    (from mfd_samples.parquet) when the run has them."""
     free = ~rf.obstacles
     values = rf.importance[:, free]  # (T+1, n_free)
     steps = np.arange(len(values))
     samples = rf.mfd_samples
-    has_speed = samples is not None and {"step", "speed"} <= set(samples.columns)
-    fig = Figure(figsize=(11, 3.4), layout="constrained")
-    axes = fig.subplots(1, 3 if has_speed else 2)
+    has_sim = samples is not None and {"step", "speed", "count"} <= set(samples.columns)
+    fig = Figure(figsize=(11, 6.4 if has_sim else 3.4), layout="constrained")
+    axes = fig.subplots(2 if has_sim else 1, 2, squeeze=False).ravel()
     ax = axes[0]
     ax.plot(steps, values.mean(axis=1), label="mean over free cells")
     ax.plot(steps, np.percentile(values, 90, axis=1), label="90th percentile")
@@ -212,56 +214,42 @@ def figure_traffic(rf: RunFiles) -> Figure:
     ax = axes[1]
     for level in (0.25, 0.5, 0.75):
         ax.plot(steps, 100.0 * (values >= level).mean(axis=1), label=f"$T^k \\geq$ {level}")
-    ax.set_title("share of free cells above a level", fontsize=10)
+    ax.set_title("share of free cells above an importance level", fontsize=10)
     ax.set_ylabel("% of free cells")
     ax.legend(fontsize=8)
-    if has_speed:
+    if has_sim:
+        per_step = samples.assign(moving=samples["speed"].fillna(0.0) * samples["count"]).groupby(
+            "step"
+        )
+        vehicles = per_step["count"].sum()
         ax = axes[2]
-        per_step = samples.groupby("step")["speed"]
-        mean = per_step.mean()
-        ax.plot(mean.index, mean.to_numpy(), label="mean over cells")
-        ax.plot(mean.index, per_step.quantile(0.1).to_numpy(), label="10th percentile")
-        ax.set_title("cell speed from the simulation (MFD samples)", fontsize=10)
-        ax.set_ylabel("speed" + _unit(rf.mfd, "speed"))
-        ax.legend(fontsize=8)
+        ax.plot(vehicles.index, vehicles.to_numpy(), color="#444")
+        ax.set_title("vehicles on the grid (simulation)", fontsize=10)
+        ax.set_ylabel("vehicles")
+        ax = axes[3]
+        kmh = 3.6 if (rf.mfd or {}).get("speed_unit", "m/s") == "m/s" else 1.0
+        mean_speed = kmh * per_step["moving"].sum() / vehicles.clip(lower=1)
+        ax.plot(mean_speed.index, mean_speed.to_numpy(), color="#c0392b")
+        ax.set_title("mean vehicle speed (simulation)", fontsize=10)
+        ax.set_ylabel("km/h" if kmh != 1.0 else "speed")
     for ax in axes:
-        ax.set_xlabel("step k")
+        ax.set_xlabel("step k" + _clock_note(rf))
         ax.grid(alpha=0.3)
     fig.suptitle(f"Traffic over the horizon (seed {rf.first_seed})", fontsize=11)
     return fig
 
 
-def _unit(mfd: dict[str, Any] | None, quantity: str) -> str:
-    units = (mfd or {}).get("units", {})
-    unit = units.get(quantity) if isinstance(units, dict) else None
-    return f" ({unit})" if unit else ""
+def _clock_note(rf: RunFiles) -> str:
+    begin, step_s = rf.clock_start()
+    return f" ({step_s:g} s each from {begin})" if begin else ""
 
 
-def grid_geometry(network: dict[str, Any], nx: int, ny: int) -> tuple[float, float, float, float]:
-    """``(x_left, y_top, cell_width, cell_height)`` in network coordinates; row 0 is north."""
-    bbox = network.get("bbox") or network.get("boundary")
-    size = network.get("cell_size") or network.get("cell_size_m")
-    if isinstance(size, (int, float)):
-        cw = ch = float(size)
-    elif isinstance(size, (list, tuple)) and len(size) == 2:
-        cw, ch = float(size[0]), float(size[1])
-    elif bbox is not None:
-        cw, ch = (bbox[2] - bbox[0]) / ny, (bbox[3] - bbox[1]) / nx
-    else:
-        raise KeyError("network.json has neither cell_size nor bbox")
-    origin = network.get("origin") or network.get("grid_origin")
-    if origin is not None:
-        x_left = float(origin[0])
-        # The origin is the grid's north-west corner if told so, else its south-west corner.
-        if network.get("origin_corner", "south-west") in ("north-west", "nw", "top-left"):
-            y_top = float(origin[1])
-        else:
-            y_top = float(origin[1]) + nx * ch
-    elif bbox is not None:
-        x_left, y_top = float(bbox[0]), float(bbox[3])
-    else:
-        raise KeyError("network.json has neither origin nor bbox")
-    return x_left, y_top, cw, ch
+def grid_geometry(network: dict[str, Any]) -> tuple[float, float, float, float]:
+    """``(x_left, y_top, cell_width, cell_height)`` in network metres from network.json's
+    ``grid`` (``x0`` western edge of column 0, ``y_top`` northern edge of row 0, ``cell_m``)."""
+    grid = network["grid"]
+    cell = float(grid["cell_m"])
+    return float(grid["x0"]), float(grid["y_top"]), cell, cell
 
 
 def read_lane_shapes(net_file: Path) -> list[np.ndarray]:
@@ -286,7 +274,7 @@ def read_lane_shapes(net_file: Path) -> list[np.ndarray]:
 
 def resolve_net_file(rf: RunFiles) -> Path | None:
     network = rf.network or {}
-    name = network.get("net_file") or network.get("net")
+    name = network.get("net_file")
     if not name:
         return None
     for candidate in (Path(name), rf.run_dir / name, rf.run_dir / Path(name).name):
@@ -306,7 +294,7 @@ def figure_network(rf: RunFiles) -> tuple[Figure, str]:
     geometry = None
     if rf.network is not None:
         try:
-            geometry = grid_geometry(rf.network, nx, ny)
+            geometry = grid_geometry(rf.network)
         except (KeyError, TypeError, IndexError) as exc:
             note = f"network.json: grid geometry unreadable ({exc}); grid drawn in cell units."
     if geometry is None:
@@ -354,55 +342,58 @@ def figure_network(rf: RunFiles) -> tuple[Figure, str]:
     return fig, note
 
 
-def mfd_speed(form: str, params: dict[str, float], density: np.ndarray) -> np.ndarray | None:
-    """Speed of a fitted MFD at ``density``; None for a form this report does not know."""
-    p = {k.lower(): float(v) for k, v in params.items()}
-    vf = p.get("v_free", p.get("vf", p.get("free_speed")))
-    form = form.lower()
-    if form == "greenshields" and vf is not None:
-        kj = p.get("k_jam", p.get("kj", p.get("jam_density")))
-        return None if kj is None else np.maximum(0.0, vf * (1.0 - density / kj))
-    if form in ("underwood", "exponential") and vf is not None:
-        kc = p.get("k_crit", p.get("kc", p.get("critical_density")))
-        return None if kc is None else vf * np.exp(-density / kc)
-    if form in ("drake", "northwestern", "gaussian") and vf is not None:
-        kc = p.get("k_crit", p.get("kc", p.get("critical_density")))
-        return None if kc is None else vf * np.exp(-0.5 * (density / kc) ** 2)
-    return None
+MFD_QUALITY_KEYS = ("n_samples", "r2", "rmse_kmh", "online_r2", "online_rmse_kmh")
+
+
+def mfd_quality(mfd: dict[str, Any]) -> str:
+    """The fit-quality figures of mfd.json, as printed in the figure and the caption."""
+    return ", ".join(
+        f"{k} = {mfd[k]:.4g}" for k in MFD_QUALITY_KEYS if isinstance(mfd.get(k), (int, float))
+    )
 
 
 def figure_mfd(rf: RunFiles) -> tuple[Figure, str]:
-    """MFD samples (density, speed) with the fitted curve and its fit quality."""
+    """MFD samples (density, speed relative to the limit) with the fitted Underwood curve."""
+    from twin.mfd import MFD
+
     mfd = rf.mfd or {}
     samples = rf.mfd_samples
-    fig = Figure(figsize=(6.5, 4.5), layout="constrained")
+    fig = Figure(figsize=(7.0, 4.6), layout="constrained")
     ax = fig.subplots()
     note = ""
+    relative = samples is not None and "speed_limit" in samples.columns
+    top = 1.0
     if samples is not None and {"density", "speed"} <= set(samples.columns):
-        density = samples["density"].to_numpy(dtype=float)
-        speed = samples["speed"].to_numpy(dtype=float)
-        if len(density) > 5000:
-            hb = ax.hexbin(density, speed, gridsize=60, bins="log", cmap="Blues", mincnt=1)
-            fig.colorbar(hb, ax=ax, label="samples (log)")
+        ok = np.isfinite(samples["speed"]) & np.isfinite(samples["density"])
+        if relative:
+            ok &= samples["speed_limit"] > 0
+        rows = samples[ok]
+        density = rows["density"].to_numpy(dtype=float)
+        y = rows["speed"].to_numpy(dtype=float)
+        if relative:
+            y = y / rows["speed_limit"].to_numpy(dtype=float)
+        if len(density) > 4000:
+            hb = ax.hexbin(density, y, gridsize=70, bins="log", cmap="Blues", mincnt=1)
+            fig.colorbar(hb, ax=ax, label="cell samples (log scale)")
         else:
-            ax.scatter(density, speed, s=4, alpha=0.35, color="#3a6ea5", label="cell samples")
-        grid = np.linspace(0.0, float(np.nanmax(density)) if len(density) else 1.0, 200)
+            ax.scatter(density, y, s=5, alpha=0.35, color="#3a6ea5", label="cell samples")
+        top = float(np.nanpercentile(density, 99.5)) if len(density) else 1.0
     else:
-        grid = np.linspace(0.0, 1.0, 200)
         note = "mfd_samples.parquet missing or without density/speed columns."
-    form = str(mfd.get("form", "?"))
-    params = mfd.get("parameters") or mfd.get("params") or {}
-    curve = mfd_speed(form, params, grid) if params else None
-    quality = ", ".join(f"{k} = {mfd[k]:.3g}" for k in ("R2", "RMSE") if k in mfd)
-    if curve is not None:
-        ax.plot(
-            grid, curve, "r-", lw=2, label=f"fitted {form}" + (f" ({quality})" if quality else "")
-        )
+    grid = np.linspace(0.0, max(top, 1e-6), 200)
+    if "a" in mfd and "k_c" in mfd and relative:
+        curve = MFD(float(mfd["a"]), float(mfd["k_c"])).speed_ratio(grid)
+        ax.plot(grid, curve, "r-", lw=2.2,
+                label=f"fit: v/v_lim = {mfd['a']:.3f} exp(-k / {mfd['k_c']:.1f})")  # fmt: skip
     else:
-        note = (note + " " if note else "") + f"Fitted curve of form {form!r} not drawn."
-    ax.set_xlabel("density" + _unit(mfd, "density"))
-    ax.set_ylabel("speed" + _unit(mfd, "speed"))
-    ax.set_title(f"Macroscopic fundamental diagram ({form})", fontsize=11)
+        note = (note + " " if note else "") + "No fitted curve drawn (mfd.json has no a, k_c)."
+    ax.set_xlim(0, grid[-1])
+    ax.set_xlabel(f"density k ({mfd.get('density_unit', 'veh per lane-km')})")
+    ax.set_ylabel("speed / speed limit" if relative else "speed")
+    quality = mfd_quality(mfd)
+    ax.set_title(
+        "Macroscopic fundamental diagram" + (f"\n{quality}" if quality else ""), fontsize=10
+    )
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, loc="upper right")
     return fig, note

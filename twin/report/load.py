@@ -61,6 +61,23 @@ class RunFiles:
     def horizon(self) -> int:
         return int(self.importance.shape[0]) - 1
 
+    def clock_start(self) -> tuple[str | None, float]:
+        """Clock time of ``T^0`` and seconds per step of a simulated run (None, 0 otherwise)."""
+        traffic = self.run.get("traffic") or {}
+        begin, step_s = traffic.get("begin"), traffic.get("step_s")
+        if isinstance(begin, str) and isinstance(step_s, (int, float)):
+            return begin, float(step_s)
+        return None, 0.0
+
+    def clock(self, k: int) -> str | None:
+        """``HH:MM`` of step ``k`` of a simulated run, None for synthetic traffic."""
+        begin, step_s = self.clock_start()
+        if begin is None:
+            return None
+        h, m, *sec = (int(x) for x in begin.split(":"))
+        t = round(h * 3600 + m * 60 + (sec[0] if sec else 0) + k * step_s)
+        return f"{t // 3600 % 24:02d}:{t % 3600 // 60:02d}"
+
     def positions(self, swarm: str, seed: int | None = None) -> np.ndarray:
         """``(T+1, N, 2)`` drone cells ``P_0 .. P_T`` of one swarm and seed."""
         seed = self.first_seed if seed is None else seed
