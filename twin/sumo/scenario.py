@@ -1,0 +1,307 @@
+"""A SUMO scenario from a config's ``[traffic] kind = "sumo"`` table, or from swapped-in files.
+
+Keys of ``[traffic]`` (all optional except ``kind``; see configs/shenzhen.toml):
+
+- ``network``: a built-in network (``networks/<name>/spec.toml``), built on first use;
+  or ``net`` (+ ``routes``), ``sumocfg``, ``osm``: files, relative to the config file;
+- ``cell_m`` (500), ``drone_speed_kmh`` (24): one step = ``cell_m / speed`` of simulated time;
+- ``begin`` ("07:00", time of ``T^0``), ``horizon`` (144), ``warmup_min`` (30), ``seed`` (0);
+- ``mesoscopic`` (false), ``min_lane_km`` (0: a cell is an obstacle only without any lane),
+  ``demand_scale`` (1.0, demand generated for networks without routes);
+- ``[traffic.mfd]``: ``fit`` ("online" | "fixed"), ``a``, ``k_c`` (the fixed or prior MFD),
+  ``detection_p`` (1.0).
+
+Networks without demand get a rush-hour demand from SUMO's randomTrips.py (+ duarouter),
+scaled to the network's lane-km, cached beside the imported network.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import re
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+from twin.errors import UserError
+from twin.grid import Grid
+
+#: Peak demand of the built-in network per lane-km (trips/h), used to scale generated demand.
+SHENZHEN_LANE_KM = 1350.0
+CACHE_DIR = Path(__file__).resolve().parents[2] / "networks" / "imported" / "build"
+
+
+@dataclass
+class MFDSettings:
+    fit: str = "online"
+    a: float = 0.7
+    k_c: float = 40.0
+    detection_p: float = 1.0
+
+
+@dataclass
+class SumoSettings:
+    kind: str = "sumo"
+    network: str | None = "shenzhen_like"
+    net: str | None = None
+    routes: list = field(default_factory=list)
+    sumocfg: str | None = None
+    osm: str | None = None
+    cell_m: float = 500.0
+    drone_speed_kmh: float = 24.0
+    begin: str = "07:00"
+    horizon: int = 144
+    warmup_min: float = 30.0
+    seed: int = 0
+    mesoscopic: bool = False
+    min_lane_km: float = 0.0
+    demand_scale: float = 1.0
+    mfd: MFDSettings = field(default_factory=MFDSettings)
+
+    @property
+    def step_s(self) -> float:
+        return self.cell_m / (self.drone_speed_kmh / 3.6)
+
+
+def parse_clock(text: str, where: str) -> float:
+    """'07:00' or '07:00:30' -> seconds since midnight."""
+    m = re.fullmatch(r"(\d{1,2}):(\d{2})(?::(\d{2}))?", str(text).strip())
+    if not m:
+        raise UserError(f'{where} = {text!r} must be a clock time like "07:00"')
+    h, mi, s = int(m[1]), int(m[2]), int(m[3] or 0)
+    return float(h * 3600 + mi * 60 + s)
+
+
+def _check(where: str, table: dict[str, Any], cls: type) -> dict[str, Any]:
+    known = {f.name: f for f in fields(cls)}
+    for key in table:
+        if key not in known:
+            raise UserError(f"{where}.{key} is not a known key; use one of: {', '.join(known)}")
+    return table
+
+
+def sumo_settings(config) -> SumoSettings:
+    """Validated SUMO settings of a scenario config (paths resolved against its folder)."""
+    where = f"{config.path}: [traffic]"
+    table = dict(config.traffic)
+    mfd_table = table.pop("mfd", {})
+    if not isinstance(mfd_table, dict):
+        raise UserError(f"{where}.mfd must be a table")
+    _check(where, table, SumoSettings)
+    _check(f"{where}.mfd", mfd_table, MFDSettings)
+    s = SumoSettings(**table, mfd=MFDSettings(**mfd_table))
+    base = Path(config.path).resolve().parent
+    for key in ("net", "sumocfg", "osm"):
+        if getattr(s, key) is not None:
+            setattr(s, key, str(base / getattr(s, key)))
+    if isinstance(s.routes, str):
+        s.routes = [s.routes]
+    s.routes = [str(base / r) for r in s.routes]
+    if s.net or s.sumocfg or s.osm:
+        s.network = None
+    checks = [
+        ("cell_m", s.cell_m > 0, "must be > 0, e.g. 500"),
+        ("drone_speed_kmh", s.drone_speed_kmh > 0, "must be > 0, e.g. 24"),
+        ("horizon", isinstance(s.horizon, int) and s.horizon >= 1, "must be a whole number >= 1"),
+        ("warmup_min", s.warmup_min >= 0, "must be >= 0"),
+        ("min_lane_km", s.min_lane_km >= 0, "must be >= 0"),
+        ("demand_scale", s.demand_scale > 0, "must be > 0"),
+        ("mfd.fit", s.mfd.fit in ("online", "fixed"), 'must be "online" or "fixed"'),
+        ("mfd.detection_p", 0 < s.mfd.detection_p <= 1, "must lie in (0, 1]"),
+        ("mfd.k_c", s.mfd.k_c > 0, "must be > 0"),
+    ]
+    for key, ok, fix in checks:
+        if not ok:
+            raise UserError(f"{where}.{key} {fix}")
+    parse_clock(s.begin, f"{where}.begin")
+    return s
+
+
+def _digest(*parts: Any) -> str:
+    h = hashlib.sha256()
+    for p in parts:
+        if isinstance(p, Path) and p.exists():
+            h.update(p.read_bytes())
+        else:
+            h.update(repr(p).encode())
+    return h.hexdigest()[:12]
+
+
+def read_sumocfg(path: Path) -> tuple[Path, list[Path]]:
+    """Net file and route files named in a ``.sumocfg`` (relative to it)."""
+    from twin.sumo.network import check_net_file  # noqa: F401
+
+    if not path.exists():
+        raise UserError(f"{path}: no such SUMO config")
+    try:
+        root = ET.parse(path).getroot()
+    except ET.ParseError as exc:
+        raise UserError(f"{path}: not valid XML ({exc})") from exc
+    net = root.find(".//net-file")
+    if net is None or not net.get("value"):
+        raise UserError(f"{path}: names no <net-file value=...>; add one")
+    routes = root.find(".//route-files")
+    route_files = []
+    if routes is not None and routes.get("value"):
+        route_files = [path.parent / r.strip() for r in routes.get("value").split(",") if r.strip()]
+    return path.parent / net.get("value"), route_files
+
+
+def earliest_depart(route_files: list[Path]) -> float | None:
+    """The earliest numeric departure (``depart`` of vehicles/trips, ``begin`` of flows)."""
+    first = None
+    for path in route_files:
+        try:
+            for _, elem in ET.iterparse(path, events=("end",)):
+                value = elem.get("depart") if elem.tag in ("vehicle", "trip") else None
+                value = elem.get("begin") if elem.tag == "flow" else value
+                if value is not None:
+                    try:
+                        t = float(value)
+                    except ValueError:
+                        t = None
+                    if t is not None:
+                        first = t if first is None else min(first, t)
+                elem.clear()
+        except ET.ParseError as exc:
+            raise UserError(f"{path}: not valid XML ({exc})") from exc
+        except FileNotFoundError as exc:
+            raise UserError(f"{path}: no such route file") from exc
+    return first
+
+
+def _check_routes(route_files: list[Path]) -> None:
+    for path in route_files:
+        if not Path(path).exists():
+            raise UserError(f"{path}: no such route file")
+        try:
+            tag = next(ET.iterparse(path, events=("start",)))[1].tag
+        except ET.ParseError as exc:
+            raise UserError(f"{path}: not valid XML ({exc})") from exc
+        if tag not in ("routes", "additional"):
+            raise UserError(f"{path}: not a SUMO route file (root <{tag}>, want <routes>)")
+
+
+def sumo_source(
+    config,
+    seed: int | None = None,
+    net: Path | None = None,
+    routes: list[Path] | None = None,
+    sumocfg: Path | None = None,
+    osm: Path | None = None,
+    horizon: int | None = None,
+    mesoscopic: bool | None = None,
+    begin: str | None = None,
+):
+    """The live :class:`SumoTraffic` of a config; the file arguments swap the network in."""
+    from twin.sumo.cells import grid_over, read_lanes
+    from twin.sumo.demand import random_rush_hour_trips
+    from twin.sumo.network import build_named_network, check_net_file, import_osm, load_spec
+    from twin.sumo.source import SumoScenario, SumoTraffic
+
+    s = sumo_settings(config)
+    swapped = bool(net or sumocfg or osm or routes)
+    if net or sumocfg or osm:
+        s.network, s.net, s.sumocfg, s.osm = None, None, None, None
+        s.routes = []
+    s.net = str(net) if net else s.net
+    s.sumocfg = str(sumocfg) if sumocfg else s.sumocfg
+    s.osm = str(osm) if osm else s.osm
+    s.routes = [str(r) for r in routes] if routes else s.routes
+    if horizon is not None:
+        s.horizon = horizon
+    if mesoscopic is not None:
+        s.mesoscopic = mesoscopic
+    seed = s.seed if seed is None else seed
+    begin_given = begin is not None or (not swapped and "begin" in config.traffic)
+    begin = parse_clock(begin or s.begin, f"{config.path}: [traffic].begin")
+    warmup = s.warmup_min * 60.0
+    demand = load_spec(Path(__file__).resolve().parents[2] / "networks/shenzhen_like/spec.toml")[
+        "demand"
+    ]
+
+    sumocfg_path = Path(s.sumocfg) if s.sumocfg else None
+    if s.network and not (s.net or sumocfg_path or s.osm):
+        built = build_named_network(s.network)
+        net_file, route_files, name = built.net_file, [built.trips_file], s.network
+        if s.routes:
+            route_files = [Path(r) for r in s.routes]
+    else:
+        if sumocfg_path is not None:
+            net_file, route_files = read_sumocfg(sumocfg_path)
+            name = sumocfg_path.name
+        elif s.osm:
+            osm_path = Path(s.osm)
+            out = CACHE_DIR / f"{osm_path.stem}-{_digest(osm_path)}"
+            net_file = out / (osm_path.name.split(".")[0] + ".net.xml")
+            if not net_file.exists():
+                net_file = import_osm(osm_path, out)
+            route_files, name = [], osm_path.name
+        else:
+            net_file, route_files, name = Path(s.net), [], Path(s.net).name
+        if s.routes:
+            route_files = [Path(r) for r in s.routes]
+        check_net_file(net_file)
+        _check_routes(route_files)
+        if route_files:
+            first = earliest_depart(route_files)
+            if first is not None and not begin_given:
+                begin = first + warmup
+    check_net_file(net_file)
+    lanes = read_lanes(net_file)
+
+    # The grid: derived from the bounding box, or the config's [grid] nx, ny if it gives them
+    # (for the configured network only; a swapped-in network gets its own grid).
+    shape = None
+    explicit = _explicit_grid(config)
+    if explicit is not None and not (net or sumocfg or osm):
+        shape = explicit
+    geometry = grid_over(lanes, s.cell_m, shape, where=f"{config.path}: [grid]")
+    obstacles = geometry.obstacles(s.min_lane_km)
+    for i, j in getattr(config.grid, "obstacles", []) or []:
+        if 0 <= i < geometry.nx and 0 <= j < geometry.ny:
+            obstacles[i, j] = True
+    if obstacles.all():
+        raise UserError(f"{net_file}: no cell of the {geometry.nx} x {geometry.ny} grid has a lane")
+
+    if not route_files:
+        lane_km = float(geometry.lane_km.sum())
+        scale = s.demand_scale * lane_km / SHENZHEN_LANE_KM
+        window = {**demand, "begin_s": begin - warmup, "end_s": begin + s.horizon * s.step_s}
+        window["peak_s"] = window["begin_s"] + (demand["peak_s"] - demand["begin_s"])
+        out = CACHE_DIR / f"{Path(net_file).stem}-{_digest(Path(net_file), window, scale, seed)}"
+        out.mkdir(parents=True, exist_ok=True)
+        trips = out / "rush_hour.trips.xml"
+        if not trips.exists():
+            tmp = out / "rush_hour.tmp.trips.xml"
+            random_rush_hour_trips(Path(net_file), tmp, window, seed=seed, scale=scale)
+            tmp.replace(trips)
+        route_files = [trips]
+
+    scenario = SumoScenario(
+        net_file=Path(net_file),
+        route_files=[Path(r) for r in route_files],
+        begin_s=begin,
+        warmup_s=warmup,
+        step_s=s.step_s,
+        horizon=s.horizon,
+        seed=seed,
+        mesoscopic=s.mesoscopic,
+        mfd_fit=s.mfd.fit,
+        detection_p=s.mfd.detection_p,
+        name=name,
+        sumocfg=sumocfg_path,
+        mfd_prior=(s.mfd.a, s.mfd.k_c),
+    )
+    return SumoTraffic(scenario, geometry, Grid(obstacles))
+
+
+def _explicit_grid(config) -> tuple[int, int] | None:
+    """``[grid] nx, ny`` if the config file states them (not the dataclass defaults)."""
+    from twin.config import read_toml
+
+    grid = read_toml(config.path).get("grid", {})
+    if "nx" in grid and "ny" in grid:
+        return int(grid["nx"]), int(grid["ny"])
+    return None

@@ -1,0 +1,192 @@
+"""The lifecycle of one in-process SUMO simulation through libsumo: start, advance, read, close.
+
+libsumo runs at most one simulation per process, so a session is exclusive: starting a second
+one while the first is open is an error, and :meth:`SumoSession.close` (also called on leaving a
+``with`` block and at interpreter exit) frees the slot for the next one.
+
+Bulk reads happen only at sample times: :meth:`SumoSession.vehicles` asks every running vehicle
+for its position and speed. No subscriptions are set, because SUMO evaluates subscriptions at
+every simulation step even when they are read only every 75 s (see benchmarks/bench_sumo.py).
+"""
+
+from __future__ import annotations
+
+import atexit
+import contextlib
+import io
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import ClassVar
+
+import numpy as np
+
+from twin.errors import UserError
+
+#: SUMO options that keep a congested run moving (Sec. "Rush-hour demand" of issue 5):
+#: a vehicle blocked for 180 s jumps ahead (teleport), a vehicle that cannot enter the network
+#: for 15 min is dropped, a share of vehicles reroute around congestion every 5 min.
+ANTI_GRIDLOCK_OPTIONS = (
+    "--time-to-teleport", "180",
+    "--max-depart-delay", "900",
+    "--ignore-junction-blocker", "60",
+    "--device.rerouting.probability", "0.3",
+    "--device.rerouting.period", "300",
+    "--device.rerouting.adaptation-steps", "18",
+)  # fmt: skip
+
+
+class SumoRunError(RuntimeError):
+    """SUMO failed while running (not on start): what was recorded so far is still valid."""
+
+
+def _libsumo():
+    """Import libsumo, silencing its print about the pyarrow version on import."""
+    with contextlib.redirect_stdout(io.StringIO()):
+        import libsumo
+    return libsumo
+
+
+@dataclass
+class SumoSession:
+    """One SUMO run: network, demand files, time window, seed and options."""
+
+    net_file: Path
+    route_files: Sequence[Path] = ()
+    begin: float = 0.0
+    end: float = 3600.0
+    seed: int = 0
+    step_length: float = 1.0
+    mesoscopic: bool = False
+    extra_options: Sequence[str] = ANTI_GRIDLOCK_OPTIONS
+    additional_files: Sequence[Path] = ()
+    config_file: Path | None = None
+    started: bool = field(default=False, init=False)
+
+    _active: ClassVar[SumoSession | None] = None
+
+    def command(self) -> list[str]:
+        """The SUMO command line this session starts."""
+        cmd = ["sumo"]
+        if self.config_file is not None:
+            cmd += ["--configuration-file", str(self.config_file)]
+        cmd += [
+            "--net-file", str(self.net_file),
+            "--begin", f"{self.begin:g}",
+            "--end", f"{self.end:g}",
+            "--seed", str(self.seed),
+            "--step-length", f"{self.step_length:g}",
+            "--no-step-log", "true",
+            "--no-warnings", "true",
+            "--duration-log.disable", "true",
+            "--ignore-route-errors", "true",
+            "--threads", "1",
+        ]  # fmt: skip
+        if self.route_files:
+            cmd += ["--route-files", ",".join(str(p) for p in self.route_files)]
+        if self.additional_files:
+            cmd += ["--additional-files", ",".join(str(p) for p in self.additional_files)]
+        if self.mesoscopic:
+            cmd += ["--mesosim", "true", "--meso-junction-control", "true"]
+        return cmd + list(self.extra_options)
+
+    def start(self) -> SumoSession:
+        if SumoSession._active is not None:
+            raise RuntimeError(
+                "a SUMO session is already open in this process (libsumo allows one)"
+            )
+        files = (self.config_file, self.net_file, *self.route_files, *self.additional_files)
+        for path in [p for p in files if p is not None]:
+            if not Path(path).exists():
+                raise UserError(f"{path}: no such file")
+        libsumo = _libsumo()
+        stderr = _capture_fd2()
+        try:
+            libsumo.start(self.command())
+        except Exception as exc:  # libsumo raises its own TraCI exception types
+            message = stderr.text() or str(exc)
+            with contextlib.suppress(Exception):
+                libsumo.close()
+            where = self.config_file or self.net_file
+            raise UserError(f"SUMO could not start on {where}: {_first_line(message)}") from None
+        finally:
+            stderr.restore()
+        SumoSession._active = self
+        self.started = True
+        return self
+
+    @property
+    def time(self) -> float:
+        return float(_libsumo().simulation.getTime())
+
+    def advance_to(self, t: float) -> None:
+        """Run the simulation up to time ``t`` (s) in one call (no per-step Python work)."""
+        try:
+            _libsumo().simulationStep(t)
+        except Exception as exc:
+            raise SumoRunError(f"SUMO failed before t = {t:g} s: {_first_line(str(exc))}") from exc
+
+    def vehicles(self) -> tuple[np.ndarray, np.ndarray]:
+        """Positions ``(n, 2)`` (m, network coordinates) and speeds ``(n,)`` (m/s) of the
+        vehicles on the road now; vehicles in a teleport (off the road) are left out."""
+        veh = _libsumo().vehicle
+        ids = veh.getIDList()
+        xy = np.array([veh.getPosition(v) for v in ids], dtype=float).reshape(-1, 2)
+        speed = np.array([veh.getSpeed(v) for v in ids], dtype=float)
+        on_road = xy[:, 0] > -1e9  # libsumo's INVALID_DOUBLE_VALUE for teleporting vehicles
+        return xy[on_road], speed[on_road]
+
+    def n_running(self) -> int:
+        return int(_libsumo().vehicle.getIDCount())
+
+    def close(self) -> None:
+        if self.started:
+            with contextlib.suppress(Exception):
+                _libsumo().close()
+            self.started = False
+        if SumoSession._active is self:
+            SumoSession._active = None
+
+    def __enter__(self) -> SumoSession:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _first_line(text: str) -> str:
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    for line in lines:
+        if "error" in line.lower():
+            return line
+    return lines[0] if lines else "unknown error"
+
+
+class _capture_fd2:
+    """Capture what the C++ side of libsumo writes to file descriptor 2 (stderr)."""
+
+    def __init__(self) -> None:
+        import tempfile
+
+        self._file = tempfile.TemporaryFile(mode="w+b")  # noqa: SIM115 (closed in restore)
+        self._saved = os.dup(2)
+        os.dup2(self._file.fileno(), 2)
+        self._restored = False
+
+    def text(self) -> str:
+        self._file.seek(0)
+        return self._file.read().decode(errors="replace")
+
+    def restore(self) -> None:
+        if not self._restored:
+            os.dup2(self._saved, 2)
+            os.close(self._saved)
+            self._file.close()
+            self._restored = True
+
+
+@atexit.register
+def _close_open_session() -> None:
+    if SumoSession._active is not None:
+        SumoSession._active.close()

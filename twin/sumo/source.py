@@ -1,0 +1,173 @@
+"""The live SUMO traffic source: SUMO advances in lockstep with the swarms (Sec. IV-B).
+
+Each swarm step advances SUMO by ``cell size / drone speed`` (500 m at 24 km/h = 75 s). At each
+sample time the source reads every vehicle's position and speed once, bins them into cells
+(:mod:`twin.sumo.cells`), and turns the counts into ``T^k`` with the MFD observation model
+(:class:`twin.mfd.MFDImportance`). A warm-up before ``T^0`` fills the network and gives the
+online MFD fit its first samples. Everything read is kept: the traffic tape (counts and speeds
+of every cell at every sample time) and the MFD samples, also after a SUMO failure mid-run.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from twin.grid import Grid
+from twin.mfd import MFD, MFDImportance
+from twin.sumo.cells import CellGeometry
+from twin.sumo.session import SumoRunError, SumoSession
+from twin.traffic.base import TrafficSource
+
+
+@dataclass
+class SumoScenario:
+    """Everything a live SUMO run needs (built from a config by :mod:`twin.sumo.scenario`)."""
+
+    net_file: Path
+    route_files: list[Path]
+    begin_s: float = 25200.0  # time of T^0 (07:00)
+    warmup_s: float = 1800.0  # simulated before T^0
+    step_s: float = 75.0  # cell size / drone speed
+    horizon: int = 144
+    seed: int = 0
+    mesoscopic: bool = False
+    mfd_fit: str = "online"
+    detection_p: float = 1.0
+    name: str = "sumo"
+    sumocfg: Path | None = None
+    mfd_prior: tuple[float, float] = (0.7, 40.0)  # (a, k_c): the prior, or the fixed MFD
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def sim_begin(self) -> float:
+        return self.begin_s - self.warmup_s
+
+    @property
+    def sim_end(self) -> float:
+        return self.begin_s + self.horizon * self.step_s
+
+    def warmup_steps(self) -> int:
+        return int(self.warmup_s // self.step_s)
+
+
+def clock_label(t: float) -> str:
+    t = round(t)
+    return f"{t // 3600:02d}:{t % 3600 // 60:02d}:{t % 60:02d}"
+
+
+class SumoTraffic(TrafficSource):
+    """``T^0 .. T^horizon`` from a SUMO run advanced as the maps are pulled."""
+
+    keeps_partial_results = True
+
+    def __init__(self, scenario: SumoScenario, geometry: CellGeometry, grid: Grid):
+        self.scenario = scenario
+        self.geometry = geometry
+        self.grid = grid
+        self.horizon = scenario.horizon
+        self.model = self._model()
+        self.snapshots: list[tuple[int, float, np.ndarray, np.ndarray]] = []
+        self.error: str | None = None
+        self.vehicles_seen: list[int] = []
+        self.read_seconds = 0.0
+
+    def _model(self) -> MFDImportance:
+        g, s = self.geometry, self.scenario
+        return MFDImportance(
+            self.grid.free,
+            g.lane_km,
+            g.speed_limit,
+            s.mfd_fit,
+            MFD(*s.mfd_prior),
+            s.detection_p,
+            s.seed,
+        )
+
+    def session(self) -> SumoSession:
+        s = self.scenario
+        return SumoSession(
+            net_file=s.net_file,
+            route_files=s.route_files,
+            begin=s.sim_begin,
+            end=s.sim_end + 1.0,
+            seed=s.seed,
+            mesoscopic=s.mesoscopic,
+            config_file=s.sumocfg,
+        )
+
+    def sample_times(self) -> list[tuple[int, float]]:
+        """``(step, time)`` of every snapshot: warm-up steps are negative, ``T^k`` at step k."""
+        s = self.scenario
+        w = s.warmup_steps()
+        return [(k, s.begin_s + k * s.step_s) for k in range(-w, s.horizon + 1)]
+
+    def importance_maps(self) -> Iterator[np.ndarray]:
+        import time
+
+        self.model = self._model()
+        self.snapshots, self.error = [], None
+        session = self.session().start()
+        try:
+            for k, t in self.sample_times():
+                try:
+                    session.advance_to(t)
+                except SumoRunError as exc:
+                    self.error = str(exc)
+                    raise
+                t0 = time.perf_counter()
+                xy, speed = session.vehicles()
+                count, mean_speed = self.geometry.count_and_speed(xy, speed)
+                self.read_seconds += time.perf_counter() - t0
+                self.vehicles_seen.append(len(xy))
+                self.snapshots.append((k, t, count.astype(np.int32), mean_speed.astype(np.float32)))
+                importance = self.model.observe(k, count, mean_speed)
+                if k >= 0:
+                    yield importance
+        finally:
+            session.close()
+
+    def clock(self, k: int) -> str | None:
+        return clock_label(self.scenario.begin_s + k * self.scenario.step_s)
+
+    def metadata(self) -> dict[str, Any]:
+        s = self.scenario
+        return {
+            "kind": "sumo",
+            "name": s.name,
+            "horizon": self.horizon,
+            "net_file": str(s.net_file),
+            "route_files": [str(p) for p in s.route_files],
+            "sumocfg": str(s.sumocfg) if s.sumocfg else None,
+            "begin": clock_label(s.begin_s),
+            "warmup_s": s.warmup_s,
+            "step_s": s.step_s,
+            "seed": s.seed,
+            "mesoscopic": s.mesoscopic,
+            "mfd_fit": s.mfd_fit,
+            "mfd_prior": list(s.mfd_prior),
+            "detection_p": s.detection_p,
+            "error": self.error,
+        }
+
+    def network_info(self) -> dict[str, Any]:
+        """``network.json``: the net file, the grid's placement and cell size, the bbox."""
+        s = self.scenario
+        return {
+            "name": s.name,
+            "net_file": str(s.net_file),
+            "route_files": [str(p) for p in s.route_files],
+            "grid": self.geometry.to_json(),
+            "n_obstacles": int(self.grid.obstacles.sum()),
+            "row_0": "north",
+        }
+
+    def tape(self):
+        """The traffic tape of what was read so far (see :mod:`twin.traffic.tape`)."""
+        from twin.traffic.tape import Tape
+
+        return Tape.from_source(self)
