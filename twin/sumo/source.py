@@ -20,7 +20,7 @@ import numpy as np
 from twin.grid import Grid
 from twin.mfd import MFD, MFDImportance
 from twin.sumo.cells import CellGeometry
-from twin.sumo.session import SumoRunError, SumoSession
+from twin.sumo.session import ANTI_GRIDLOCK_OPTIONS, SumoRunError, SumoSession
 from twin.traffic.base import TrafficSource
 
 
@@ -41,6 +41,7 @@ class SumoScenario:
     name: str = "sumo"
     sumocfg: Path | None = None
     mfd_prior: tuple[float, float] = (0.7, 40.0)  # (a, k_c): the prior, or the fixed MFD
+    sumo_options: tuple[str, ...] = ()  # more SUMO options (e.g. --fcd-output in tests)
     extra: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -52,7 +53,7 @@ class SumoScenario:
         return self.begin_s + self.horizon * self.step_s
 
     def warmup_steps(self) -> int:
-        return int(self.warmup_s // self.step_s)
+        return int(self.warmup_s / self.step_s + 1e-9)
 
 
 def clock_label(t: float) -> str:
@@ -98,13 +99,15 @@ class SumoTraffic(TrafficSource):
             seed=s.seed,
             mesoscopic=s.mesoscopic,
             config_file=s.sumocfg,
+            extra_options=(*ANTI_GRIDLOCK_OPTIONS, *s.sumo_options),
         )
 
     def sample_times(self) -> list[tuple[int, float]]:
         """``(step, time)`` of every snapshot: warm-up steps are negative, ``T^k`` at step k."""
         s = self.scenario
         w = s.warmup_steps()
-        return [(k, s.begin_s + k * s.step_s) for k in range(-w, s.horizon + 1)]
+        times = [(k, round(s.begin_s + k * s.step_s, 3)) for k in range(-w, s.horizon + 1)]
+        return [(k, t) for k, t in times if t > s.sim_begin]  # nothing to read at the start
 
     def importance_maps(self) -> Iterator[np.ndarray]:
         import time
@@ -124,8 +127,10 @@ class SumoTraffic(TrafficSource):
                 count, mean_speed = self.geometry.count_and_speed(xy, speed)
                 self.read_seconds += time.perf_counter() - t0
                 self.vehicles_seen.append(len(xy))
-                self.snapshots.append((k, t, count.astype(np.int32), mean_speed.astype(np.float32)))
-                importance = self.model.observe(k, count, mean_speed)
+                # The model sees exactly what the tape keeps (float32 speeds), so replays match.
+                count, mean_speed = count.astype(np.int32), mean_speed.astype(np.float32)
+                self.snapshots.append((k, t, count, mean_speed))
+                importance = self.model.observe(k, count, mean_speed.astype(float))
                 if k >= 0:
                     yield importance
         finally:

@@ -84,8 +84,8 @@ class Tape:
             "ny": int(self.obstacles.shape[1]),
             "horizon": int(self.horizon),
             "obstacles": self.obstacles.astype(int).tolist(),
-            "lane_km": np.round(self.lane_km, 6).tolist(),
-            "speed_limit": np.round(self.speed_limit, 4).tolist(),
+            "lane_km": self.lane_km.tolist(),  # exact: JSON keeps float64
+            "speed_limit": self.speed_limit.tolist(),
             "settings": self.settings,
         }
         merged = {**(table.schema.metadata or {}), _META_KEY: json.dumps(meta).encode()}

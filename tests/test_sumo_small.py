@@ -1,0 +1,197 @@
+"""A small real SUMO scenario (netgenerate grid of about 2 km, 15 min simulated): per-cell
+counts against an independent count, tape replay against the live run, bad files."""
+
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("libsumo")
+
+from twin.cli import main as twin_main
+from twin.config import load_config
+from twin.errors import UserError
+from twin.patrol import run_patrol
+from twin.policies import make_policy
+from twin.scores import ScoreParams
+from twin.sumo.scenario import sumo_source
+from twin.sumo.session import SumoRunError, SumoSession
+from twin.sumo.tools import binary, run_sumo_program
+from twin.traffic.tape import Tape, TapeTraffic
+
+CONFIG = """
+[swarm]
+n_drones = 2
+[traffic]
+kind = "sumo"
+net = "small.net.xml"
+routes = ["small.trips.xml"]
+cell_m = 200.0
+drone_speed_kmh = 12.0   # one step = 60 s
+begin = "00:05"
+warmup_min = 5.0
+horizon = 10
+seed = 3
+[evaluate]
+swarms = ["random", "greedy", "sweeping"]
+"""
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory) -> Path:
+    """A 5 x 5 signalised grid of 300 m blocks with 15 min of random trips."""
+    d = tmp_path_factory.mktemp("small")
+    net = d / "small.net.xml"
+    run_sumo_program(
+        [binary("netgenerate"), "--grid", "--grid.number", "5", "--grid.length", "300",
+         "--default.lanenumber", "2", "--tls.guess", "true", "--no-internal-links", "true",
+         "-o", str(net)],
+        what="netgenerate",
+    )  # fmt: skip
+    from twin.sumo.tools import tool
+
+    run_sumo_program(
+        [tool("randomTrips.py"), "-n", str(net), "-o", str(d / "small.trips.xml"), "-b", "0",
+         "-e", "900", "-p", "1.5", "--seed", "5", "--validate"],
+        what="randomTrips",
+    )  # fmt: skip
+    (d / "small.toml").write_text(CONFIG)
+    return d
+
+
+def _fcd_counts(fcd: Path, source, times: list[float]) -> dict[float, np.ndarray]:
+    """Vehicles per cell from SUMO's own FCD output, binned with shapely boxes (independent of
+    the source's numpy binning)."""
+    from shapely.geometry import Point, box
+
+    g = source.geometry
+    boxes = {
+        (i, j): box(
+            g.x0 + j * g.cell_m,
+            g.y_top - (i + 1) * g.cell_m,
+            g.x0 + (j + 1) * g.cell_m,
+            g.y_top - i * g.cell_m,
+        )
+        for i in range(g.nx)
+        for j in range(g.ny)
+    }
+    wanted = {round(t, 1) for t in times}
+    out = {}
+    for _, elem in ET.iterparse(fcd, events=("end",)):
+        if elem.tag == "timestep" and round(float(elem.get("time")), 1) in wanted:
+            counts = np.zeros((g.nx, g.ny), dtype=int)
+            for veh in elem.iter("vehicle"):
+                p = Point(float(veh.get("x")), float(veh.get("y")))
+                hits = [c for c, b in boxes.items() if b.covers(p)]
+                i, j = min(hits)  # a point on a border: the cell the floor rule picks
+                counts[i, j] += 1
+            out[round(float(elem.get("time")), 1)] = counts
+            elem.clear()
+    return out
+
+
+def _patrol(source, seed=0):
+    swarms = {n: make_policy(n) for n in ("random", "greedy", "sweeping")}
+    starts = np.argwhere(source.grid.free)[[0, -1]]
+    return run_patrol(source, swarms, starts, ScoreParams(), seed=seed)
+
+
+def test_counts_equal_an_independent_count_and_replay_equals_live(small, tmp_path):
+    config = load_config(small / "small.toml")
+    source = sumo_source(config)
+    fcd = tmp_path / "fcd.xml"
+    source.scenario.sumo_options = ("--fcd-output", str(fcd))
+    live = _patrol(source)
+    assert live.error is None and live.completed_steps == 10
+    times = [t for _, t, _, _ in source.snapshots]
+    # SUMO labels an FCD timestep with the time at the start of the step that produced it:
+    # the state read after simulationStep(t) is the FCD timestep t - 1 s (step length 1 s).
+    independent = _fcd_counts(fcd, source, [t - 1.0 for t in times])
+    assert len(independent) == len(times)
+    total = 0
+    for _, t, counts, _ in source.snapshots:
+        np.testing.assert_array_equal(counts, independent[round(t - 1.0, 1)])
+        total += counts.sum()
+    assert total > 100  # the scenario has traffic to count
+
+    path = tmp_path / "tape.parquet"
+    source.tape().write(path)
+    replay = _patrol(TapeTraffic.from_file(path))
+    np.testing.assert_array_equal(replay.importance, live.importance)
+    np.testing.assert_array_equal(replay.positions, live.positions)
+    np.testing.assert_array_equal(replay.rewards, live.rewards)
+    assert live.importance[1:].max() > 0  # the MFD sees congestion somewhere
+
+
+def test_same_seed_same_traffic_and_sessions_run_one_after_another(small):
+    config = load_config(small / "small.toml")
+    a, b = sumo_source(config), sumo_source(config)
+    maps_a = np.stack(list(a.importance_maps()))
+    maps_b = np.stack(list(b.importance_maps()))
+    np.testing.assert_array_equal(maps_a, maps_b)
+    assert SumoSession._active is None
+
+
+def test_sumo_failure_mid_run_keeps_partial_results(small, tmp_path, monkeypatch):
+    calls = {"n": 0}
+    original = SumoSession.advance_to
+
+    def failing(self, t):
+        calls["n"] += 1
+        if calls["n"] > 7:  # 4 warm-up snapshots, T^0, then 2 steps
+            raise SumoRunError(f"SUMO failed before t = {t:g} s: simulated crash")
+        original(self, t)
+
+    monkeypatch.setattr(SumoSession, "advance_to", failing)
+    out = tmp_path / "run"
+    code = twin_main(["run", "--config", str(small / "small.toml"), "--out", str(out),
+                      "--no-report", "--quiet"])  # fmt: skip
+    assert code == 1
+    assert SumoSession._active is None
+    tape = Tape.read(out / "tape.parquet")
+    assert tape.steps.max() == 2
+    import pandas as pd
+
+    series = pd.read_parquet(out / "series.parquet")
+    assert series["step"].max() == 1
+
+
+def test_bad_files_give_one_line_errors(small, tmp_path, capsys):
+    cfg = str(small / "small.toml")
+    broken = tmp_path / "broken.net.xml"
+    broken.write_text("<net><edge")
+    not_net = tmp_path / "routes_as.net.xml"
+    not_net.write_text("<routes/>")
+    cases = [
+        (["--net", str(tmp_path / "missing.net.xml")], "missing.net.xml"),
+        (["--net", str(broken)], "broken.net.xml"),
+        (["--net", str(not_net)], "routes_as.net.xml"),
+        (["--net", str(small / "small.net.xml"), "--routes", str(broken)], "broken.net.xml"),
+        (["--sumocfg", str(tmp_path / "nope.sumocfg")], "nope.sumocfg"),
+    ]
+    for extra, name in cases:
+        code = twin_main(["run", "--config", cfg, "--quiet", "--out", str(tmp_path / "x"), *extra])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2
+        assert len(err) == 1 and err[0].startswith("twin: error:") and name in err[0]
+    with pytest.raises(UserError, match="not a parquet file"):
+        Tape.read(broken)
+
+
+def test_swapped_network_without_routes_gets_generated_demand(small, tmp_path):
+    """A network not written for twin (netgenerate --spider), demand from randomTrips."""
+    net = tmp_path / "spider.net.xml"
+    run_sumo_program(
+        [binary("netgenerate"), "--spider", "--spider.arm-number", "5",
+         "--spider.circle-number", "4", "--spider.space-radius", "250",
+         "--no-internal-links", "true", "-o", str(net)],
+        what="netgenerate",
+    )  # fmt: skip
+    config = load_config(small / "small.toml")
+    source = sumo_source(config, net=net, horizon=6)
+    result = _patrol(source)
+    assert result.completed_steps == 6
+    assert source.snapshots[-1][2].sum() > 0

@@ -1,0 +1,85 @@
+"""The traffic tape without SUMO: round trip, replay through the MFD model, bad files."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from twin.errors import UserError
+from twin.mfd import MFD, MFDImportance
+from twin.traffic.tape import Tape, TapeTraffic
+
+
+def _tape(seed=0, nx=3, ny=4, warmup=2, horizon=5) -> Tape:
+    rng = np.random.default_rng(seed)
+    steps = np.arange(-warmup, horizon + 1)
+    counts = rng.integers(0, 40, (len(steps), nx, ny)).astype(np.int32)
+    speeds = np.where(counts > 0, rng.uniform(0, 15, counts.shape), np.nan).astype(np.float32)
+    obstacles = np.zeros((nx, ny), bool)
+    obstacles[0, 0] = True
+    counts[:, 0, 0] = 0
+    speeds[:, 0, 0] = np.nan
+    return Tape(
+        steps=steps,
+        times=25200.0 + 75.0 * steps,
+        counts=counts,
+        speeds=speeds,
+        obstacles=obstacles,
+        lane_km=rng.uniform(0.5, 3.0, (nx, ny)) * ~obstacles,
+        speed_limit=np.where(obstacles, 0.0, 13.9),
+        horizon=horizon,
+        settings={"mfd_fit": "online", "detection_p": 1.0, "seed": 4, "mfd_prior": [0.7, 40.0]},
+    )
+
+
+def test_round_trip_keeps_every_value(tmp_path):
+    tape = _tape()
+    path = tmp_path / "tape.parquet"
+    tape.write(path)
+    back = Tape.read(path)
+    np.testing.assert_array_equal(back.steps, tape.steps)
+    np.testing.assert_array_equal(back.counts, tape.counts)
+    np.testing.assert_array_equal(back.speeds, tape.speeds)
+    np.testing.assert_array_equal(back.obstacles, tape.obstacles)
+    np.testing.assert_array_equal(back.lane_km, tape.lane_km)
+    assert back.horizon == tape.horizon and back.settings == tape.settings
+
+
+def test_replay_feeds_the_observation_model_in_order(tmp_path):
+    tape = _tape(seed=1)
+    path = tmp_path / "tape.parquet"
+    tape.write(path)
+    source = TapeTraffic.from_file(path)
+    maps = list(source.importance_maps())
+    assert len(maps) == source.horizon + 1 == 6
+    model = MFDImportance(~tape.obstacles, tape.lane_km, tape.speed_limit, "online", MFD(), 1.0, 4)
+    expected = [
+        model.observe(int(k), c, s.astype(float))
+        for k, c, s in zip(tape.steps, tape.counts, tape.speeds, strict=True)
+    ][2:]
+    for got, want in zip(maps, expected, strict=True):
+        np.testing.assert_array_equal(got, want)
+    assert (np.stack(maps)[:, 0, 0] == 0).all()
+    assert source.clock(0) == "07:00:00" and source.clock(4) == "07:05:00"
+
+
+def test_detection_override_changes_what_the_drones_see(tmp_path):
+    tape = _tape(seed=2)
+    exact = np.stack(list(TapeTraffic(tape).importance_maps()))
+    blurred = np.stack(list(TapeTraffic(tape, detection_p=0.5).importance_maps()))
+    assert not np.array_equal(exact, blurred)
+
+
+def test_bad_tapes_give_user_errors(tmp_path):
+    with pytest.raises(UserError, match="no such traffic tape"):
+        Tape.read(tmp_path / "missing.parquet")
+    junk = tmp_path / "junk.parquet"
+    junk.write_text("not parquet")
+    with pytest.raises(UserError, match="not a parquet file"):
+        Tape.read(junk)
+    import pandas as pd
+
+    plain = tmp_path / "plain.parquet"
+    pd.DataFrame({"a": [1]}).to_parquet(plain)
+    with pytest.raises(UserError, match="not a twin traffic tape"):
+        Tape.read(plain)
