@@ -21,6 +21,7 @@ from twin.report.figures import (
     OBSTACLE_COLOUR,
     draw_map,
     drone_colours,
+    importance_label,
     panel_layout,
 )
 from twin.report.load import RunFiles
@@ -68,13 +69,13 @@ def write_animation(rf: RunFiles, path: Path, max_frames: int = MAX_FRAMES, fps:
     axes = fig.subplots(rows, cols, squeeze=False).ravel()
     image = None
     for ax, swarm in zip(axes, swarms, strict=False):
-        image = draw_map(ax, rf.importance[0], rf.obstacles, IMPORTANCE_CMAP)
+        image = draw_map(ax, rf.importance[0], rf.obstacles, IMPORTANCE_CMAP, rf.importance_vmax)
         ax.set_title(swarm, fontsize=10)
         ax.set_xlabel("")
         ax.set_ylabel("")
     for ax in axes[len(swarms) :]:
         ax.set_visible(False)
-    fig.colorbar(image, ax=axes.tolist(), shrink=0.85, label="importance $T^k$")
+    fig.colorbar(image, ax=axes.tolist(), shrink=0.85, label=importance_label(rf))
     fig.suptitle(" ", fontsize=12)  # room for the per-frame title
     canvas.draw()
     background = np.asarray(canvas.buffer_rgba())[..., :3].copy()
@@ -97,7 +98,8 @@ def write_animation(rf: RunFiles, path: Path, max_frames: int = MAX_FRAMES, fps:
     font = ImageFont.load_default(size=14)
     frames = []
     for k in frame_steps(rf.horizon, max_frames):
-        cells = lut[np.clip((rf.importance[k] * 255).round(), 0, 255).astype(np.int64)]
+        scaled = rf.importance[k] / rf.importance_vmax
+        cells = lut[np.clip((scaled * 255).round(), 0, 255).astype(np.int64)]
         cells[rf.obstacles] = grey
         frame = background.copy()
         for left, top, w, h in boxes:

@@ -46,6 +46,14 @@ def _cmap_with_obstacles(name: str) -> ListedColormap:
     return colormaps[name].with_extremes(bad=OBSTACLE_COLOUR)
 
 
+def importance_label(rf: RunFiles) -> str:
+    """Colour-bar label of importance maps, saying where the scale stops."""
+    vmax = rf.importance_vmax
+    if vmax >= 1.0:
+        return "importance $T^k$ (1 = most congested)"
+    return f"importance $T^k$ (scale up to the run's peak, {vmax:g})"
+
+
 def snapshot_steps(horizon: int, wanted: tuple[int, ...] = SNAPSHOT_STEPS) -> list[int]:
     """The paper's snapshot steps clipped to the horizon (duplicates dropped)."""
     return sorted({min(k, horizon) for k in wanted})
@@ -153,11 +161,13 @@ def figure_snapshots(rf: RunFiles, trail: int = 10) -> Figure:
         colours = drone_colours(positions.shape[1])
         for c, k in enumerate(steps):
             ax = axes[r, c]
-            image = draw_map(ax, rf.importance[k], rf.obstacles, IMPORTANCE_CMAP)
+            image = draw_map(
+                ax, rf.importance[k], rf.obstacles, IMPORTANCE_CMAP, rf.importance_vmax
+            )
             draw_drones(ax, positions, k, trail, colours)
             clock = rf.clock(k)
             ax.set_title(f"{swarm}, k = {k}" + (f" ({clock})" if clock else ""), fontsize=9)
-    fig.colorbar(image, ax=axes, shrink=0.8, label="importance $T^k$ (1 = most congested)")
+    fig.colorbar(image, ax=axes, shrink=0.8, label=importance_label(rf))
     fig.suptitle(
         f"Drones over the importance map at k = {', '.join(map(str, steps))} "
         f"(seed {rf.first_seed}; lines: last {trail} steps)",
@@ -178,7 +188,7 @@ def figure_trajectories(rf: RunFiles, trail: int = 40) -> Figure:
         positions = rf.positions(swarm)
         k = min(horizon, len(positions) - 1)
         weighted = rf.idleness(swarm)[k] * rf.importance[k]
-        image = draw_map(ax, weighted, rf.obstacles, "magma")
+        image = draw_map(ax, weighted, rf.obstacles, "magma", rf.importance_vmax)
         draw_drones(ax, positions, k, trail, drone_colours(positions.shape[1]))
         ax.set_title(swarm, fontsize=10)
     for ax in axes[len(swarms) :]:
@@ -212,8 +222,9 @@ def figure_traffic(rf: RunFiles) -> Figure:
     ax.set_ylabel("importance")
     ax.legend(fontsize=8)
     ax = axes[1]
-    for level in (0.25, 0.5, 0.75):
-        ax.plot(steps, 100.0 * (values >= level).mean(axis=1), label=f"$T^k \\geq$ {level}")
+    for share in (0.25, 0.5, 0.75):
+        level = round(share * rf.importance_vmax, 3)
+        ax.plot(steps, 100.0 * (values >= level).mean(axis=1), label=f"$T^k \\geq$ {level:g}")
     ax.set_title("share of free cells above an importance level", fontsize=10)
     ax.set_ylabel("% of free cells")
     ax.legend(fontsize=8)
@@ -224,12 +235,18 @@ def figure_traffic(rf: RunFiles) -> Figure:
         vehicles = per_step["count"].sum()
         ax = axes[2]
         ax.plot(vehicles.index, vehicles.to_numpy(), color="#444")
-        ax.set_title("vehicles on the grid (simulation)", fontsize=10)
+        ax.set_title("vehicles on the grid (simulation; k < 0: warm-up)", fontsize=10)
         ax.set_ylabel("vehicles")
         ax = axes[3]
         kmh = 3.6 if (rf.mfd or {}).get("speed_unit", "m/s") == "m/s" else 1.0
         mean_speed = kmh * per_step["moving"].sum() / vehicles.clip(lower=1)
-        ax.plot(mean_speed.index, mean_speed.to_numpy(), color="#c0392b")
+        ax.plot(mean_speed.index, mean_speed.to_numpy(), color="#c0392b", lw=0.8, alpha=0.6,
+                label="at each sample")  # fmt: skip
+        smooth = mean_speed.rolling(8, center=True, min_periods=1).mean()
+        ax.plot(
+            smooth.index, smooth.to_numpy(), color="#7b241c", lw=2, label="rolling mean, 8 steps"
+        )
+        ax.legend(fontsize=8)
         ax.set_title("mean vehicle speed (simulation)", fontsize=10)
         ax.set_ylabel("km/h" if kmh != 1.0 else "speed")
     for ax in axes:
@@ -303,7 +320,7 @@ def figure_network(rf: RunFiles) -> tuple[Figure, str]:
     extent = (x_left, x_left + ny * cw, y_top - nx * ch, y_top)
     masked = np.ma.masked_array(peak, mask=rf.obstacles)
     image = ax.imshow(
-        masked, cmap=IMPORTANCE_CMAP, vmin=0, vmax=1, alpha=0.55, extent=extent, origin="upper",
+        masked, cmap=IMPORTANCE_CMAP, vmin=0, vmax=rf.importance_vmax, alpha=0.55, extent=extent, origin="upper",
         interpolation="nearest",
     )  # fmt: skip
     for i, j in np.argwhere(rf.obstacles):
@@ -346,10 +363,22 @@ MFD_QUALITY_KEYS = ("n_samples", "r2", "rmse_kmh", "online_r2", "online_rmse_kmh
 
 
 def mfd_quality(mfd: dict[str, Any]) -> str:
-    """The fit-quality figures of mfd.json, as printed in the figure and the caption."""
-    return ", ".join(
-        f"{k} = {mfd[k]:.4g}" for k in MFD_QUALITY_KEYS if isinstance(mfd.get(k), (int, float))
-    )
+    """mfd.json's fit-quality figures, in lines short enough for a figure title."""
+
+    def num(key: str, fmt: str) -> str | None:
+        value = mfd.get(key)
+        return format(value, fmt) if isinstance(value, (int, float)) else None
+
+    lines = []
+    n, r2, rmse = num("n_samples", "d"), num("r2", ".3f"), num("rmse_kmh", ".2f")
+    if r2 is not None:
+        lines.append(
+            f"final fit: R2 = {r2}, RMSE = {rmse} km/h" + (f" over {n} samples" if n else "")
+        )
+    r2, rmse = num("online_r2", ".3f"), num("online_rmse_kmh", ".2f")
+    if r2 is not None:
+        lines.append(f"online fit (as the drones used it): R2 = {r2}, RMSE = {rmse} km/h")
+    return "\n".join(lines)
 
 
 def figure_mfd(rf: RunFiles) -> tuple[Figure, str]:

@@ -61,6 +61,13 @@ class RunFiles:
     def horizon(self) -> int:
         return int(self.importance.shape[0]) - 1
 
+    @property
+    def importance_vmax(self) -> float:
+        """Top of the colour scale of importance maps: the run's peak ``T`` rounded up to 0.05
+        (1 for a run that reaches it), so that congestion stands out when it stays mild."""
+        peak = float(self.importance[:, ~self.obstacles].max(initial=0.0))
+        return 1.0 if peak <= 0 else min(1.0, float(np.ceil(peak * 20.0 - 1e-9) / 20.0))
+
     def clock_start(self) -> tuple[str | None, float]:
         """Clock time of ``T^0`` and seconds per step of a simulated run (None, 0 otherwise)."""
         traffic = self.run.get("traffic") or {}
