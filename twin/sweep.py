@@ -317,13 +317,9 @@ def scenario_source(config, tape: str | None, seed: int):
 
         return synthetic_source(config)
     if kind == "sumo":
-        try:
-            from twin.sumo.scenario import sumo_source
-        except ImportError as exc:
-            raise UserError(
-                f"{config.path}: SUMO scenarios need twin.sumo.scenario.sumo_source ({exc})"
-            ) from exc
-        return sumo_source(config, seed=seed)
+        from twin.sumo.scenario import sumo_source
+
+        return sumo_source(config, seed=seed)  # the cell's seed is SUMO's seed too
     raise UserError(f"{config.path}: [traffic].kind = {kind!r} is not one a sweep can run")
 
 
@@ -567,11 +563,24 @@ def check_cells(cells: list[dict[str, Any]]) -> None:
             continue
         seen.add(key)
         try:
-            scenario_config(Path(cell["config"]), cell["overrides"])
+            config = scenario_config(Path(cell["config"]), cell["overrides"])
+            if config.traffic["kind"] == "sumo" and cell.get("tape") is None:
+                prepare_sumo(config)
         except UserError as exc:
             raise UserError(
                 f"scenario {cell['scenario']!r} with {cell['overrides']}: {exc}"
             ) from None
+
+
+def prepare_sumo(config) -> None:
+    """Check a SUMO scenario's settings and build its built-in network once, here, so that
+    parallel cells never build the same network at the same time."""
+    from twin.sumo.network import build_named_network
+    from twin.sumo.scenario import sumo_settings
+
+    settings = sumo_settings(config)
+    if settings.network and not (settings.net or settings.sumocfg or settings.osm):
+        build_named_network(settings.network)
 
 
 def _progress(total: int, enabled: bool):
