@@ -39,11 +39,12 @@ class Section:
 
 
 def format_cell(row: pd.Series, column: str, decimals: int) -> str:
-    """``mean`` or ``mean ± half-width`` as printed in both tables."""
+    """``mean``, or ``mean ± half-width`` over several seeds, as printed in both tables."""
     value = float(row[column])
     text = f"{value:.{decimals}f}"
     ci = row.get(f"{column}_ci95")
-    if ci is not None and not (isinstance(ci, float) and math.isnan(ci)):
+    several = int(row.get("n_seeds", 2)) > 1
+    if several and ci is not None and not (isinstance(ci, float) and math.isnan(ci)):
         text += f" ± {float(ci):.{decimals}f}"
     return text
 
@@ -153,15 +154,13 @@ def build_sections(
             "with each swarm's drones (markers) and their last steps (lines).",
         )
     )
+    fig, peak = timed("trajectories", lambda: figures.figure_trajectories(rf))
     sections.append(
         Section(
             "Trajectories over unvisited importance (paper's Fig. 2)",
-            timed(
-                "trajectories",
-                lambda: _save(figures.figure_trajectories(rf), out / "trajectories.png"),
-            ),
-            "Cell colour I^T·T^T at the end of the horizon: bright cells are important and long "
-            "unvisited. " + idleness_check(rf),
+            _save(fig, out / "trajectories.png"),
+            f"Cell colour I^k·T^k at k = {peak}, the step with the highest mean importance: bright "
+            "cells are important and long unvisited. " + idleness_check(rf),
         )
     )
     if animation:

@@ -176,32 +176,40 @@ def figure_snapshots(rf: RunFiles, trail: int = 10) -> Figure:
     return fig
 
 
-def figure_trajectories(rf: RunFiles, trail: int = 40) -> Figure:
-    """Fig. 2 analog: each swarm's last ``trail`` steps over ``I^T T^T``."""
+def peak_step(rf: RunFiles, after: int) -> int:
+    """The step ``k >= after`` at which the mean importance over free cells is highest."""
+    mean = rf.importance[:, ~rf.obstacles].mean(axis=1)
+    start = min(after, rf.horizon)
+    return start + int(np.argmax(mean[start:]))
+
+
+def figure_trajectories(rf: RunFiles, trail: int = 40) -> tuple[Figure, int]:
+    """Fig. 2 analog: each swarm's last ``trail`` steps over ``I^k T^k`` at the step of peak
+    congestion (highest mean importance, at least ``trail`` steps in); returns that step."""
     swarms = rf.swarms
     rows, cols = panel_layout(len(swarms))
-    horizon = rf.horizon
+    k = peak_step(rf, trail)
     fig = Figure(figsize=(4.2 * cols + 1.0, 3.1 * rows + 0.8), layout="constrained")
     axes = fig.subplots(rows, cols, squeeze=False).ravel()
     image = None
     for ax, swarm in zip(axes, swarms, strict=False):
         positions = rf.positions(swarm)
-        k = min(horizon, len(positions) - 1)
-        weighted = rf.idleness(swarm)[k] * rf.importance[k]
+        kk = min(k, len(positions) - 1)
+        weighted = rf.idleness(swarm)[kk] * rf.importance[kk]
         image = draw_map(ax, weighted, rf.obstacles, "magma", rf.importance_vmax)
-        draw_drones(ax, positions, k, trail, drone_colours(positions.shape[1]))
+        draw_drones(ax, positions, kk, trail, drone_colours(positions.shape[1]))
         ax.set_title(swarm, fontsize=10)
     for ax in axes[len(swarms) :]:
         ax.set_visible(False)
-    fig.colorbar(
-        image, ax=axes.tolist(), shrink=0.8, label="$I^T \\cdot T^T$ (unvisited importance)"
-    )
+    fig.colorbar(image, ax=axes.tolist(), shrink=0.8, label="$I^k T^k$ (unvisited importance)")
+    clock = rf.clock(k)
     fig.suptitle(
-        f"Trajectories of the last {min(trail, horizon)} steps over $I^T T^T$ at T = {horizon} "
-        f"(seed {rf.first_seed})",
+        f"Trajectories of the last {min(trail, k)} steps over $I^k T^k$ at k = {k}"
+        + (f" ({clock})" if clock else "")
+        + f", the step of highest mean importance (seed {rf.first_seed})",
         fontsize=11,
     )
-    return fig
+    return fig, k
 
 
 def figure_traffic(rf: RunFiles) -> Figure:
