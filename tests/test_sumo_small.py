@@ -195,3 +195,33 @@ def test_swapped_network_without_routes_gets_generated_demand(small, tmp_path):
     result = _patrol(source)
     assert result.completed_steps == 6
     assert source.snapshots[-1][2].sum() > 0
+
+
+OSM = """<?xml version="1.0" encoding="UTF-8"?>
+<osm version="0.6" generator="hand">
+  <bounds minlat="22.540" minlon="114.050" maxlat="22.550" maxlon="114.060"/>
+  <node id="1" lat="22.541" lon="114.051"/><node id="2" lat="22.541" lon="114.055"/>
+  <node id="3" lat="22.541" lon="114.059"/><node id="4" lat="22.545" lon="114.055"/>
+  <node id="5" lat="22.537" lon="114.055"/><node id="6" lat="22.549" lon="114.055"/>
+  <way id="10"><nd ref="1"/><nd ref="2"/><nd ref="3"/><tag k="highway" v="primary"/></way>
+  <way id="11"><nd ref="5"/><nd ref="2"/><nd ref="4"/><nd ref="6"/>
+    <tag k="highway" v="secondary"/></way>
+</osm>
+"""
+
+
+def test_osm_import_and_sumocfg(small, tmp_path):
+    from twin.sumo.network import import_osm
+
+    osm = tmp_path / "tiny.osm"
+    osm.write_text(OSM)
+    net = import_osm(osm, tmp_path / "osm")
+    assert net.exists() and "<edge" in net.read_text()
+    cfg = tmp_path / "small.sumocfg"
+    cfg.write_text(
+        f'<configuration><input><net-file value="{small / "small.net.xml"}"/>'
+        f'<route-files value="{small / "small.trips.xml"}"/></input></configuration>'
+    )
+    config = load_config(small / "small.toml")
+    source = sumo_source(config, sumocfg=cfg, horizon=3)
+    assert _patrol(source).completed_steps == 3

@@ -224,6 +224,21 @@ class MFDImportance:
             self.mfd = self.online.fit()
         return importance
 
+    def binned_r2(self) -> float:
+        """R^2 of the fitted curve against the vehicle-weighted mean speed ratio of each
+        1 veh/lane-km density bin: how well the form captures the mean relation, apart from
+        the scatter of single cells (a car waiting at a red light has speed 0)."""
+        o = self.online
+        used = o.weight > 0
+        if used.sum() < 2:
+            return float("nan")
+        w = o.weight[used]
+        k, r = o.k_sum[used] / w, o.r_sum[used] / w
+        mean = float((w * r).sum() / w.sum())
+        ss_tot = float((w * (r - mean) ** 2).sum())
+        ss_res = float((w * (r - self.mfd.speed_ratio(k)) ** 2).sum())
+        return 1.0 - ss_res / ss_tot if ss_tot > 0 else float("nan")
+
     def samples(self) -> dict[str, np.ndarray]:
         """Every (cell, snapshot) sample with vehicles: the MFD's data (``mfd_samples``)."""
         keys = self._samples[0].keys() if self._samples else ()
@@ -248,6 +263,7 @@ class MFDImportance:
             **self.mfd.to_json(),
             "fit": self.fit_mode,
             "detection_p": self.detection_p,
+            "r2_binned": self.binned_r2(),
             "density_unit": "veh per lane-km",
             "speed_unit": "m/s",
             "n_samples": final["n"],
