@@ -510,7 +510,7 @@ def run_sweep(
     done = done_cells(out_dir)
     todo = [c for c in cells if c["id"] not in done]
     skipped = [c["id"] for c in cells if c["id"] in done]
-    _write_manifest(out_dir, config, cells, executor)
+    _write_manifest(out_dir, config, cells)
     check_cells(todo)
     workers = max(1, min(workers or os.cpu_count() or 1, len(todo) or 1))
     start = time.perf_counter()
@@ -537,6 +537,21 @@ def run_sweep(
             if bar is not None:
                 bar.close()
     seconds = time.perf_counter() - start
+    _write_manifest(
+        out_dir,
+        config,
+        cells,
+        {
+            "executor": executor,
+            "workers": workers,
+            "address": address,
+            "ran": len(ran),
+            "skipped": len(skipped),
+            "failed": len(failed),
+            "wall_seconds": round(seconds, 3),
+            "finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        },
+    )
     failed_path = out_dir / "failed.json"
     if failed:
         failed_path.write_text(json.dumps(failed, indent=2))
@@ -596,7 +611,17 @@ def done_cells(out_dir: Path) -> set[str]:
     return {p.stem for p in (out_dir / CELLS_DIR).glob("*.json") if not p.name.startswith(".")}
 
 
-def _write_manifest(out_dir: Path, config: SweepConfig, cells: list[dict], executor: str) -> None:
+def _write_manifest(
+    out_dir: Path, config: SweepConfig, cells: list[dict], invocation: dict[str, Any] | None = None
+) -> None:
+    """sweep.json: the sweep's definition, its cells and one entry per invocation (timings)."""
+    path = out_dir / "sweep.json"
+    history = []
+    if path.exists():
+        try:
+            history = json.loads(path.read_text()).get("invocations", [])
+        except json.JSONDecodeError:
+            history = []
     manifest = {
         "name": config.name,
         "config": str(config.path),
@@ -605,11 +630,10 @@ def _write_manifest(out_dir: Path, config: SweepConfig, cells: list[dict], execu
         "scenarios": [s.name for s in config.scenarios],
         "parameters": config.parameters,
         "cells": [c["id"] for c in cells],
-        "executor": executor,
+        "invocations": history + ([invocation] if invocation else []),
     }
-    _atomic_write(
-        out_dir / "sweep.json", lambda p: p.write_text(json.dumps(manifest, indent=2, default=str))
-    )
+    text = json.dumps(manifest, indent=2, default=str)
+    _atomic_write(path, lambda p: p.write_text(text))
 
 
 def merge(

@@ -144,8 +144,25 @@ def write_sweep_report(out_dir: Path) -> Path:
         f"({len(manifest['scenarios'])} scenarios x {max(1, n_cells // max(1, len(manifest['scenarios']) * len(manifest['seeds'])))} "
         f"parameter combinations x {len(manifest['seeds'])} seeds), swarms {', '.join(manifest['swarms'])}; "
         f"cell time {cell_seconds.sum():.1f} s in total, {cell_seconds.mean():.1f} s on average. "
-        "Every number is read from summary.csv and results.csv."
+        "Every number is read from summary.csv, results.csv and sweep.json."
     )
+    runs = manifest.get("invocations", [])
+    run_rows = [
+        [
+            str(r.get(k))
+            for k in ("finished", "executor", "workers", "ran", "skipped", "failed", "wall_seconds")
+        ]
+        for r in runs
+    ]
+    run_header = [
+        "finished",
+        "executor",
+        "workers",
+        "cells run",
+        "already done",
+        "failed",
+        "wall s",
+    ]
     parts = [
         "<!DOCTYPE html>",
         '<html lang="en"><head><meta charset="utf-8">',
@@ -172,6 +189,9 @@ def write_sweep_report(out_dir: Path) -> Path:
             f'<img src="{_data_uri(out / name)}" alt="{title}">',
         ]
         md += [f"## {title}", "", f"![{title}]({name})", ""]
+    if run_rows:
+        parts += ["<h2>Invocations</h2>", html_table(run_header, run_rows, "runs")]
+        md += ["## Invocations", "", markdown_table(run_header, run_rows), ""]
     parts.append("<h2>Sweep definition (sweep.json)</h2><pre>")
     parts.append(html.escape(json.dumps(manifest, indent=2)))
     parts.append("</pre></body></html>")
