@@ -36,7 +36,7 @@ def test_fit_recovers_underwood_parameters():
 def test_online_fit_on_binned_sums_matches_the_batch_fit():
     rng = np.random.default_rng(1)
     density, ratio = _samples(rng, n=6000)
-    online = OnlineMFD(bin_width=1.0)
+    online = OnlineMFD(bin_width=1.0, prior_weight=0.0)
     for part in np.array_split(np.arange(len(density)), 6):
         online.add(np.ones(len(part), int), density[part], ratio[part])
     fitted = online.fit()
@@ -93,3 +93,16 @@ def test_observation_uses_only_earlier_snapshots_and_obstacles_are_zero():
     assert fixed.mfd == MFD(0.7, 40.0)
     report = model.report()
     assert report["n_samples"] > 0 and "r2" in report and "rmse_kmh" in report
+
+
+def test_prior_pseudo_samples_hold_k_c_until_dense_data_arrives():
+    rng = np.random.default_rng(4)
+    low = rng.uniform(0.0, 3.0, 500)  # a morning's first snapshots: flat, uninformative
+    ratio = 0.75 + rng.normal(0, 0.05, 500)
+    bare, held = OnlineMFD(prior_weight=0.0), OnlineMFD()
+    for m in (bare, held):
+        m.add(np.ones(500, int), low, ratio)
+    assert abs(held.fit().k_c - 40.0) < abs(bare.fit().k_c - 40.0)
+    density, r = _samples(rng, n=20000, a=0.6, k_c=20.0, noise=0.02)
+    held.add(np.full(len(density), 5), density, r)
+    assert abs(held.fit().k_c - 20.0) < 1.0  # plenty of data outweighs the prior

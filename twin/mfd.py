@@ -20,7 +20,10 @@ streets and 90 km/h expressways.
 
 Fit. Weighted least squares of the speed ratio ``v / v_lim`` on density, on samples pooled into
 density bins (bin means weighted by the number of vehicles behind them), so the fit can be
-updated online at constant cost: :class:`OnlineMFD` keeps the bins' running sums.
+updated online at constant cost: :class:`OnlineMFD` keeps the bins' running sums. The bins start
+with pseudo-samples on a prior curve worth 1000 vehicles (a typical signalised grid, a = 0.7,
+k_c = 40), because the first snapshots of a morning hold only low densities, which leave k_c
+unidentified; by the end of a rush hour the data outweigh them a few hundred times.
 
 Importance. A drone's count ``N`` (optionally thinned by a detection model) gives ``k = N / L``,
 the expected speed ``v(k)``, and the speed drop below the limit ``z = 1 - v(k) / v_lim``;
@@ -38,6 +41,8 @@ from scipy.optimize import curve_fit
 FORM = "underwood: v(k) = a * v_lim * exp(-k / k_c)"
 #: Parameters used before any sample is in (a typical signalised city grid).
 PRIOR_A, PRIOR_K_C = 0.7, 40.0
+#: Weight (in vehicles) of the prior's pseudo-samples, spread over 0..PRIOR_MAX_DENSITY.
+PRIOR_WEIGHT, PRIOR_MAX_DENSITY = 1000.0, 80.0
 #: Bounds that keep an early, thin fit sane.
 A_BOUNDS, K_C_BOUNDS = (0.05, 1.5), (2.0, 1000.0)
 
@@ -101,7 +106,13 @@ class OnlineMFD:
     Cells without vehicles carry no speed and are left out.
     """
 
-    def __init__(self, bin_width: float = 1.0, max_density: float = 300.0, prior: MFD = MFD()):
+    def __init__(
+        self,
+        bin_width: float = 1.0,
+        max_density: float = 300.0,
+        prior: MFD = MFD(),
+        prior_weight: float = PRIOR_WEIGHT,
+    ):
         self.bin_width = bin_width
         self.n_bins = int(np.ceil(max_density / bin_width)) + 1
         self.prior = prior
@@ -109,17 +120,27 @@ class OnlineMFD:
         self.k_sum = np.zeros(self.n_bins)  # vehicle-weighted sums of density
         self.r_sum = np.zeros(self.n_bins)  # vehicle-weighted sums of speed ratio
         self.n_samples = 0
+        if prior_weight > 0:
+            # Pseudo-samples on the prior curve: early snapshots hold only low densities, which
+            # say nothing about k_c; the prior holds the curve there until data comes in.
+            k = np.arange(0.0, PRIOR_MAX_DENSITY + 1e-9, 2.0)
+            self.add_weighted(np.full(len(k), prior_weight / len(k)), k, prior.speed_ratio(k))
 
     def add(self, count: np.ndarray, density: np.ndarray, ratio: np.ndarray) -> None:
+        """One snapshot: cells with vehicles count, weighted by their number of vehicles."""
         ok = (count > 0) & np.isfinite(ratio) & np.isfinite(density)
-        w = count[ok].astype(float)
-        b = np.minimum((density[ok] / self.bin_width).astype(np.int64), self.n_bins - 1)
-        self.weight += np.bincount(b, weights=w, minlength=self.n_bins)
-        self.k_sum += np.bincount(b, weights=w * density[ok], minlength=self.n_bins)
-        self.r_sum += np.bincount(b, weights=w * ratio[ok], minlength=self.n_bins)
+        self.add_weighted(count[ok].astype(float), density[ok], ratio[ok])
         self.n_samples += int(ok.sum())
 
+    def add_weighted(self, w: np.ndarray, density: np.ndarray, ratio: np.ndarray) -> None:
+        b = np.minimum((density / self.bin_width).astype(np.int64), self.n_bins - 1)
+        self.weight += np.bincount(b, weights=w, minlength=self.n_bins)
+        self.k_sum += np.bincount(b, weights=w * density, minlength=self.n_bins)
+        self.r_sum += np.bincount(b, weights=w * ratio, minlength=self.n_bins)
+
     def fit(self) -> MFD:
+        if self.n_samples == 0:
+            return self.prior
         used = self.weight > 0
         w = self.weight[used]
         return fit_underwood(self.k_sum[used] / w, self.r_sum[used] / w, w, self.prior)

@@ -25,10 +25,10 @@ import numpy as np
 from twin.errors import UserError
 
 #: SUMO options that keep a congested run moving (Sec. "Rush-hour demand" of issue 5):
-#: a vehicle blocked for 180 s jumps ahead (teleport), a vehicle that cannot enter the network
+#: a vehicle blocked for 300 s jumps ahead (teleport), a vehicle that cannot enter the network
 #: for 15 min is dropped, a share of vehicles reroute around congestion every 5 min.
 ANTI_GRIDLOCK_OPTIONS = (
-    "--time-to-teleport", "180",
+    "--time-to-teleport", "300",
     "--max-depart-delay", "900",
     "--ignore-junction-blocker", "60",
     "--device.rerouting.probability", "0.3",
