@@ -15,7 +15,7 @@ def add_parser(subparsers) -> None:
         description="Run every cell (scenario, parameter combination, seed) of a sweep config, "
         "each one traffic pass with all swarms side by side, writing one result file per cell "
         "into the sweep folder. Cells already done are skipped, so an interrupted sweep resumes "
-        "where it stopped. Results merge into results.csv, summary.csv (mean and 95%% interval "
+        "where it stopped. Results merge into results.csv, summary.csv (mean and 95% interval "
         "over seeds) and report/sweep.html.",
     )
     p.add_argument("--config", type=Path, required=True, help="sweep config (TOML)")
