@@ -267,8 +267,17 @@ def _rows(frame: pd.DataFrame) -> list[list[str]]:
 
 def _lede(rf: RunFiles) -> str:
     nx, ny = rf.obstacles.shape
+    traffic = rf.run.get("traffic") or {}
+    where = f"a {nx} x {ny} grid"
+    if traffic.get("kind") == "sumo":
+        begin, step_s = rf.clock_start()
+        where += f" over the SUMO network {traffic.get('name', '?')}"
+        if begin:
+            where += f", from {begin} ({step_s:g} s per step, {rf.clock(rf.horizon)} at the end)"
+    elif traffic.get("kind"):
+        where += f" with {traffic['kind']} traffic"
     return (
-        f"{len(rf.swarms)} swarms ({', '.join(rf.swarms)}) patrolling a {nx} x {ny} grid over "
+        f"{len(rf.swarms)} swarms ({', '.join(rf.swarms)}) patrolling {where}, "
         f"T = {rf.horizon} steps, seeds {', '.join(map(str, rf.seeds))}. Every number below is "
         "read from this run folder's files."
     )
