@@ -138,3 +138,17 @@ def test_online_learning_changes_the_weights(checkpoint, decentralized):
         assert len(policy.nets) == 4
         a, b = policy.nets[0].state_dict(), policy.nets[1].state_dict()
         assert any(not torch.equal(a[k], b[k]) for k in a)
+
+
+def test_missing_checkpoint_is_a_user_error(tmp_path):
+    from twin.errors import UserError
+
+    with pytest.raises(UserError, match="does not exist"):
+        make_policy("rl", checkpoint=tmp_path / "nothing.pt")
+
+
+def test_default_checkpoint_is_found_inside_the_package_or_the_checkout():
+    from twin.learning.checkpoint import default_checkpoint
+
+    path = default_checkpoint()
+    assert path.name == "qnet.pt" and path.parent.name == "data"
