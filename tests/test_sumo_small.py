@@ -181,8 +181,11 @@ def test_bad_files_give_one_line_errors(small, tmp_path, capsys):
         Tape.read(broken)
 
 
-def test_swapped_network_without_routes_gets_generated_demand(small, tmp_path):
+def test_swapped_network_without_routes_gets_generated_demand(small, tmp_path, monkeypatch):
     """A network not written for twin (netgenerate --spider), demand from randomTrips."""
+    import twin.sumo.scenario
+
+    monkeypatch.setattr(twin.sumo.scenario, "CACHE_DIR", tmp_path / "cache")
     net = tmp_path / "spider.net.xml"
     run_sumo_program(
         [binary("netgenerate"), "--spider", "--spider.arm-number", "5",
@@ -210,7 +213,7 @@ OSM = """<?xml version="1.0" encoding="UTF-8"?>
 """
 
 
-def test_osm_import_and_sumocfg(small, tmp_path):
+def test_osm_import_and_sumocfg(small, tmp_path):  # writes only under tmp_path
     from twin.sumo.network import import_osm
 
     osm = tmp_path / "tiny.osm"
