@@ -130,8 +130,6 @@ def _digest(*parts: Any) -> str:
 
 def read_sumocfg(path: Path) -> tuple[Path, list[Path]]:
     """Net file and route files named in a ``.sumocfg`` (relative to it)."""
-    from twin.sumo.network import check_net_file  # noqa: F401
-
     if not path.exists():
         raise UserError(f"{path}: no such SUMO config")
     try:
@@ -242,7 +240,6 @@ def sumo_source(
             net_file, route_files, name = Path(s.net), [], Path(s.net).name
         if s.routes:
             route_files = [Path(r) for r in s.routes]
-        check_net_file(net_file)
         _check_routes(route_files)
         if route_files:
             first = earliest_depart(route_files)
