@@ -141,6 +141,9 @@ class RLPolicy(Policy):
     ) -> None:
         if not 0.0 <= eps <= 1.0:
             raise UserError(f"eps must lie in [0, 1], got {eps}")
+        # a swarm's states are a handful of rows: one thread is fastest and leaves the other
+        # cores to the simulation and to other work (several threads oversubscribe them)
+        torch.set_num_threads(1)
         self.net, self.meta = shared_qnet(checkpoint)
         self.checkpoint = checkpoint
         self.decentralized = bool(decentralized)
