@@ -135,3 +135,26 @@ def test_directional_means_match_a_plain_loop(scene):
         for d, key in enumerate(("down", "up", "left", "right")):
             vals = [idle[c] for c in cells[key] if grid.free[c]]
             assert got[n, d] == pytest.approx(np.mean(vals) if vals else 0.0)
+
+
+def test_drones_sharing_a_cell_share_its_reward():
+    """Two drones stacked on one cell earn together what one drone alone earns there."""
+    grid = Grid.open(5, 5)
+    rng = np.random.default_rng(3)
+    t, t1, idle = rng.random((5, 5)), rng.random((5, 5)), rng.random((5, 5))
+    one = rewards_on_arrival(grid, PARAMS, idle, t, t1, np.array([[2, 2]]), np.array([[2, 3]]))
+    pack = rewards_on_arrival(
+        grid, PARAMS, idle, t, t1, np.array([[2, 2], [2, 2]]), np.array([[2, 3], [2, 3]])
+    )
+    assert pack.sum() == pytest.approx(one[0])
+    # two drones that meet on a cell coming from different cells: each pays its own departure
+    met = rewards_on_arrival(
+        grid, PARAMS, idle, t, t1, np.array([[2, 2], [3, 3]]), np.array([[2, 3], [2, 3]])
+    )
+    alone_b = rewards_on_arrival(grid, PARAMS, idle, t, t1, np.array([[3, 3]]), np.array([[2, 3]]))
+    # met = A/2 - B(2,2) and A/2 - B(3,3); alone: A - B(2,2) and A - B(3,3)
+    assert met[0] - met[1] == pytest.approx(one[0] - alone_b[0])
+    ibar = np.minimum(1.0, grid.values_in_view(idle, np.array([[2, 3]])) + PARAMS.delta)
+    arrival = PARAMS.alpha_T * (ibar * grid.values_in_view(t1, np.array([[2, 3]]))).sum()
+    arrival += PARAMS.alpha_I * ibar.sum()
+    assert met.sum() == pytest.approx(one[0] + alone_b[0] - arrival)

@@ -81,16 +81,32 @@ def rewards_on_arrival(
 
         A_T = sum_{Adj(p')} Ibar T^{k+1}     B_T = sum_{Adj(p)} I^k T^k
         A_I = sum_{Adj(p')} Ibar             B_I = sum_{Adj(p)} I^k
-        r_d = alpha_T (A_T - B_T) + alpha_I (A_I - B_I)
+        r_d = alpha_T (A_T / m' - B_T / m) + alpha_I (A_I / m' - B_I / m)
+
+    ``m'`` is the number of drones arriving on ``p'`` and ``m`` the number leaving ``p``: drones
+    that share a cell share its terms, so the swarm's ``R^k`` counts each cell's view once, as
+    the idleness update reduces a shared cell once. (Departure from the project notes, which
+    pay every drone in full: that paid a pack of drones stacked on one cell several times for
+    one visit, and greedy drones do stack. With one drone per cell both readings agree.)
     """
     here, there = grid.view_index(positions), grid.view_index(next_positions)
+    m_here = _sharing(here[0][:, 0])
+    m_there = _sharing(there[0][:, 0])
     # Ibar only where the drones arrive: min(1, I + delta) on free cells in view
     arrive = np.minimum(1.0, grid.values_in_view(idleness, None, there) + params.delta)
     arrive *= grid.values_in_view(grid.free_float, None, there)
     leave = grid.values_in_view(idleness, None, here)
     a_t = (arrive * grid.values_in_view(next_importance, None, there)).sum(axis=1)
     b_t = (leave * grid.values_in_view(importance, None, here)).sum(axis=1)
-    return params.alpha_T * (a_t - b_t) + params.alpha_I * (arrive.sum(axis=1) - leave.sum(axis=1))
+    a = params.alpha_T * a_t + params.alpha_I * arrive.sum(axis=1)
+    b = params.alpha_T * b_t + params.alpha_I * leave.sum(axis=1)
+    return a / m_there - b / m_here
+
+
+def _sharing(cells: np.ndarray) -> np.ndarray:
+    """For every drone, how many drones stand on its cell (``cells``: flat cell indices)."""
+    _, inverse, counts = np.unique(cells, return_inverse=True, return_counts=True)
+    return counts[inverse].astype(np.float64)
 
 
 def coverage(idleness: np.ndarray, grid: Grid) -> float:
