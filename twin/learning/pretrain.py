@@ -191,15 +191,8 @@ def training_source(cfg: PretrainConfig) -> SyntheticTraffic:
         disturbances.append(Disturbance(d["kind"], float(d["i"]), float(d["j"]),
                                         float(d["amplitude"]), float(d["sigma"])))  # fmt: skip
     grid = Grid.open(cfg.nx, cfg.ny)
-    # z_hi = the largest z over the map and the horizon (Def. 2), computed here in one einsum
-    steps = np.arange(cfg.horizon + 1, dtype=np.float64)
-    amps = np.stack([d.amplitudes(steps, cfg.horizon, cfg.beta1, cfg.beta2) for d in disturbances])
-    ii, jj = np.indices(grid.shape, dtype=np.float64)
-    kernels = np.stack([np.exp(-((ii - d.i) ** 2 + (jj - d.j) ** 2) / (2 * d.sigma**2))
-                        for d in disturbances])  # fmt: skip
-    z_hi = float(np.einsum("sk,sxy->kxy", amps, kernels).max())
-    return SyntheticTraffic(grid, disturbances, cfg.horizon, beta1=cfg.beta1, beta2=cfg.beta2,
-                            z_hi=z_hi)  # fmt: skip
+    # z_hi defaults to the largest z over the map and the horizon (Def. 2)
+    return SyntheticTraffic(grid, disturbances, cfg.horizon, beta1=cfg.beta1, beta2=cfg.beta2)
 
 
 def collect_buffer(cfg: PretrainConfig, progress: bool = False) -> ReplayBuffer:
