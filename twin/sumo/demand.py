@@ -140,6 +140,9 @@ def random_rush_hour_trips(
     rates = np.maximum(departure_rate(pieces, demand) * 3600.0 * scale, 1.0)
     run_sumo_program(
         [tool("randomTrips.py"), "-n", str(net_file), "-o", str(out),
+         # --validate routes the trips with duarouter; keep its route file beside `out`
+         # instead of routes.rou.xml in the working directory
+         "-r", str(out.with_name(out.stem.removesuffix(".trips") + ".validated.rou.xml")),
          "-b", f"{begin:.0f}", "-e", f"{end:.0f}", "--seed", str(seed),
          "--insertion-rate", *[f"{r:.1f}" for r in rates],
          "--fringe-factor", "5", "--min-distance", "500", "--validate",
