@@ -3,6 +3,7 @@
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from twin.config import load_config, start_positions, synthetic_source
@@ -28,8 +29,10 @@ def run(config, source, seed, names=("random", "greedy", "sweeping")):
 
 
 def test_paper_pattern_on_the_evaluation_map(evaluation):
+    """Issue 3's pattern, on the mean over seeds 0-4 (single seeds vary: greedy packs)."""
     config, source = evaluation
-    table = table2(run(config, source, seed=3)).set_index("swarm")
+    tables = [table2(run(config, source, seed=s)) for s in range(5)]
+    table = pd.concat(tables).groupby("swarm").mean()
     assert table.loc["greedy", "R_hat_T"] >= 1.5 * table.loc["random", "R_hat_T"]
     assert table.loc["sweeping", "pct_map_covered"] == 100.0
     assert table.loc["greedy", "pct_map_covered"] <= 70.0
