@@ -379,6 +379,7 @@ def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
         "error": result.error,
         "seconds": round(time.perf_counter() - start, 3),
         "worker": f"{os.uname().nodename}:{os.getpid()}",
+        "code": code_fingerprint(),
     }
     cells_dir = Path(cell["cells_dir"])
     cells_dir.mkdir(parents=True, exist_ok=True)
@@ -386,6 +387,17 @@ def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
     _atomic_write(cells_dir / f"{cell['id']}.parquet", lambda p: series.to_parquet(p, index=False))
     write_cell_record(cells_dir, record)
     return record
+
+
+def code_fingerprint() -> str:
+    """sha256 (first 12 hex digits) of the twin package's Python sources: cells computed by
+    different code are told apart when results merge."""
+    root = Path(__file__).resolve().parent
+    digest = hashlib.sha256()
+    for path in sorted(root.rglob("*.py")):
+        digest.update(str(path.relative_to(root)).encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()[:12]
 
 
 def _isnan(value: Any) -> bool:
@@ -661,6 +673,7 @@ def merge(
                     "seed": cell["seed"],
                     **row,
                     "seconds": record["seconds"],
+                    "code": record.get("code"),
                 }
             )
     results = pd.DataFrame(rows)

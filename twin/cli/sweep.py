@@ -70,6 +70,15 @@ def main(args: argparse.Namespace) -> int:
         f"sweep {config.name!r} on {args.executor}: ran {len(outcome.ran)} cells, "
         f"{len(outcome.skipped)} already done, {outcome.seconds:.1f} s"
     )
+    import pandas as pd
+
+    results = pd.read_csv(out / "results.csv") if (out / "results.csv").exists() else None
+    if results is not None and "code" in results and results["code"].nunique() > 1:
+        print(
+            f"twin: warning: the cells in {out} were computed by {results['code'].nunique()} "
+            "versions of the code (column 'code' of results.csv)",
+            file=sys.stderr,
+        )
     summary = outcome.summary
     if not summary.empty:
         groups = [c for c in summary.columns if c == "scenario" or ("." in c and "_ci95" not in c)]

@@ -146,6 +146,13 @@ def write_sweep_report(out_dir: Path) -> Path:
         f"cell time {cell_seconds.sum():.1f} s in total, {cell_seconds.mean():.1f} s on average. "
         "Every number is read from summary.csv, results.csv and sweep.json."
     )
+    codes = sorted(str(c) for c in results.get("code", pd.Series(dtype=str)).dropna().unique())
+    if len(codes) > 1:
+        lede += (
+            f" WARNING: the cells were computed by {len(codes)} versions of the code "
+            f"({', '.join(codes)}, column 'code' of results.csv); delete the cells of the old "
+            "version and rerun to make the table consistent."
+        )
     runs = manifest.get("invocations", [])
     run_rows = [
         [
