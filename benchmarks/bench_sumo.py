@@ -57,7 +57,7 @@ def quick_config(folder: Path) -> Path:
         what="netgenerate",
     )  # fmt: skip
     run_sumo_program(
-        [tool("randomTrips.py"), "-n", str(net), "-o", str(folder / "small.trips.xml"),
+        [tool("randomTrips.py"), "-n", str(net), "-o", str(folder / "small.trips.xml"), "-r", str(folder / "small.rou.xml"),
          "-b", "0", "-e", "1800", "-p", "1.0", "--seed", "5", "--validate"],
         what="randomTrips",
     )  # fmt: skip

@@ -54,7 +54,7 @@ def small(tmp_path_factory) -> Path:
     from twin.sumo.tools import tool
 
     run_sumo_program(
-        [tool("randomTrips.py"), "-n", str(net), "-o", str(d / "small.trips.xml"), "-b", "0",
+        [tool("randomTrips.py"), "-n", str(net), "-o", str(d / "small.trips.xml"), "-r", str(d / "small.rou.xml"), "-b", "0",
          "-e", "900", "-p", "1.5", "--seed", "5", "--validate"],
         what="randomTrips",
     )  # fmt: skip
