@@ -140,6 +140,15 @@ def _cell_list(path: Path, key: str, value: Any) -> np.ndarray:
     return cells.astype(np.int64)
 
 
+def shipped_config(relative: str) -> Path:
+    """``configs/<name>.toml`` in the working directory, else the one in the source tree twin
+    was installed from (an editable install from a clone)."""
+    here = Path(relative)
+    if here.exists():
+        return here
+    return Path(__file__).resolve().parents[1] / relative
+
+
 def read_toml(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     try:

@@ -9,7 +9,13 @@ from pathlib import Path
 
 import numpy as np
 
-from twin.config import ScenarioConfig, check_swarm_fits, load_config, start_positions
+from twin.config import (
+    ScenarioConfig,
+    check_swarm_fits,
+    load_config,
+    shipped_config,
+    start_positions,
+)
 from twin.errors import UserError
 from twin.metrics import format_table2
 from twin.patrol import run_patrol
@@ -17,14 +23,6 @@ from twin.policies import available_policies, make_policy
 from twin.runs import new_run_dir, prepare_run_dir, write_run
 
 DEFAULT_CONFIG = "configs/synthetic.toml"
-
-
-def default_config_path() -> Path:
-    """``configs/synthetic.toml`` here, else the one in the source tree twin was installed from."""
-    here = Path(DEFAULT_CONFIG)
-    if here.exists():
-        return here
-    return Path(__file__).resolve().parents[2] / DEFAULT_CONFIG
 
 
 def add_parser(subparsers) -> None:
@@ -104,7 +102,7 @@ def load_source(config: ScenarioConfig, tape: Path | None):
 
 
 def main(args: argparse.Namespace) -> int:
-    config = load_config(args.config or default_config_path())
+    config = load_config(args.config or shipped_config(DEFAULT_CONFIG))
     seeds = args.seeds if args.seeds is not None else config.evaluate.seeds
     first = args.seed if args.seed is not None else config.evaluate.seed
     if seeds < 1:

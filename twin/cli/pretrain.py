@@ -19,7 +19,7 @@ def add_parser(subparsers) -> None:
         "model), <out>/train_log.csv (loss and mean Q) and <out>/state.pt (checkpoint every "
         "checkpoint_every epochs). Running the same command again resumes from state.pt.",
     )
-    p.add_argument("--config", type=Path, default=Path(DEFAULT_CONFIG),
+    p.add_argument("--config", type=Path, default=None,
                    help=f"pretraining config (TOML); default {DEFAULT_CONFIG}")  # fmt: skip
     p.add_argument("--out", default=None, help="output folder (overrides the config's `out`)")
     p.add_argument("--epochs", type=int, default=None, help="overrides the config's `epochs`")
@@ -30,6 +30,7 @@ def add_parser(subparsers) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
+    from twin.config import shipped_config
     from twin.learning.pretrain import PretrainConfig, load_config, pretrain
 
     if args.help_config:
@@ -39,7 +40,7 @@ def main(args: argparse.Namespace) -> int:
                 default = f"{len(default)} disturbances (4 big, 3 small)"
             print(f"{f.name:22s} {default!s:24s} {f.metadata.get('help', '')}")
         return 0
-    config = load_config(args.config, out=args.out, epochs=args.epochs)
+    config = load_config(args.config or shipped_config(DEFAULT_CONFIG), out=args.out, epochs=args.epochs)
     progress = not args.quiet and sys.stderr.isatty()
     path = pretrain(config, progress=progress)
     print(f"model: {path}")

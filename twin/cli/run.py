@@ -19,13 +19,6 @@ from twin.errors import UserError
 DEFAULT_CONFIG = "configs/shenzhen.toml"
 
 
-def default_config_path() -> Path:
-    here = Path(DEFAULT_CONFIG)
-    if here.exists():
-        return here
-    return Path(__file__).resolve().parents[2] / DEFAULT_CONFIG
-
-
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
         "run",
@@ -73,13 +66,13 @@ def make_swarms(names: list[str], explicit: bool) -> dict:
 
 
 def main(args: argparse.Namespace) -> int:
-    from twin.config import check_swarm_fits, load_config, start_positions
+    from twin.config import check_swarm_fits, load_config, shipped_config, start_positions
     from twin.metrics import format_table2
     from twin.patrol import run_patrol
     from twin.runs import new_run_dir, prepare_run_dir
     from twin.sumo.scenario import sumo_source
 
-    config = load_config(args.config or default_config_path())
+    config = load_config(args.config or shipped_config(DEFAULT_CONFIG))
     if config.traffic.get("kind") != "sumo":
         raise UserError(
             f"{config.path}: [traffic].kind = {config.traffic.get('kind')!r}; `twin run` needs "
