@@ -30,6 +30,7 @@ executor and in ``twin evaluate``.
 from __future__ import annotations
 
 import copy
+import functools
 import hashlib
 import itertools
 import json
@@ -352,6 +353,7 @@ def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
     from twin.runs import series_frame
 
     _limit_threads()
+    code = code_fingerprint()
     start = time.perf_counter()
     seed = int(cell["seed"])
     config = scenario_config(Path(cell["config"]), cell["overrides"])
@@ -379,7 +381,7 @@ def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
         "error": result.error,
         "seconds": round(time.perf_counter() - start, 3),
         "worker": f"{os.uname().nodename}:{os.getpid()}",
-        "code": code_fingerprint(),
+        "code": code,
     }
     cells_dir = Path(cell["cells_dir"])
     cells_dir.mkdir(parents=True, exist_ok=True)
@@ -389,9 +391,11 @@ def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
     return record
 
 
+@functools.lru_cache(maxsize=1)
 def code_fingerprint() -> str:
-    """sha256 (first 12 hex digits) of the twin package's Python sources: cells computed by
-    different code are told apart when results merge."""
+    """sha256 (first 12 hex digits) of the twin package's Python sources, taken once per
+    process when its first cell starts: cells computed by different code are told apart when
+    results merge."""
     root = Path(__file__).resolve().parent
     digest = hashlib.sha256()
     for path in sorted(root.rglob("*.py")):
