@@ -47,20 +47,9 @@ horizon = 25
 
 
 def quick_config(folder: Path) -> Path:
-    from twin.sumo.tools import binary, run_sumo_program, tool
+    from twin.sumo.network import generate_grid_scenario
 
-    net = folder / "small.net.xml"
-    run_sumo_program(
-        [binary("netgenerate"), "--grid", "--grid.number", "6", "--grid.length", "300",
-         "--default.lanenumber", "2", "--tls.guess", "true", "--no-internal-links", "true",
-         "-o", str(net)],
-        what="netgenerate",
-    )  # fmt: skip
-    run_sumo_program(
-        [tool("randomTrips.py"), "-n", str(net), "-o", str(folder / "small.trips.xml"), "-r", str(folder / "small.rou.xml"),
-         "-b", "0", "-e", "1800", "-p", "1.0", "--seed", "5", "--validate"],
-        what="randomTrips",
-    )  # fmt: skip
+    generate_grid_scenario(folder, blocks=6, block_m=300, end_s=1800, period_s=1.0, seed=5)
     path = folder / "quick.toml"
     path.write_text(QUICK_CONFIG)
     return path

@@ -17,6 +17,7 @@ from twin.errors import UserError
 from twin.patrol import run_patrol
 from twin.policies import make_policy
 from twin.scores import ScoreParams
+from twin.sumo.network import generate_grid_scenario
 from twin.sumo.scenario import sumo_source
 from twin.sumo.session import SumoRunError, SumoSession
 from twin.sumo.tools import binary, run_sumo_program
@@ -44,20 +45,7 @@ swarms = ["random", "greedy", "sweeping"]
 def small(tmp_path_factory) -> Path:
     """A 5 x 5 signalised grid of 300 m blocks with 15 min of random trips."""
     d = tmp_path_factory.mktemp("small")
-    net = d / "small.net.xml"
-    run_sumo_program(
-        [binary("netgenerate"), "--grid", "--grid.number", "5", "--grid.length", "300",
-         "--default.lanenumber", "2", "--tls.guess", "true", "--no-internal-links", "true",
-         "-o", str(net)],
-        what="netgenerate",
-    )  # fmt: skip
-    from twin.sumo.tools import tool
-
-    run_sumo_program(
-        [tool("randomTrips.py"), "-n", str(net), "-o", str(d / "small.trips.xml"), "-r", str(d / "small.rou.xml"), "-b", "0",
-         "-e", "900", "-p", "1.5", "--seed", "5", "--validate"],
-        what="randomTrips",
-    )  # fmt: skip
+    generate_grid_scenario(d, blocks=5, block_m=300, end_s=900, period_s=1.5, seed=5)
     (d / "small.toml").write_text(CONFIG)
     return d
 

@@ -258,3 +258,26 @@ def check_net_file(net_file: Path) -> None:
         raise UserError(f"{net_file}: not valid XML ({exc})") from exc
     if root_tag != "net":
         raise UserError(f"{net_file}: not a SUMO network (root element <{root_tag}>, want <net>)")
+
+
+def generate_grid_scenario(
+    out_dir: Path, blocks: int, block_m: float, end_s: float, period_s: float, seed: int
+) -> tuple[Path, Path]:
+    """A small signalised grid network (netgenerate) with uniform random trips (randomTrips),
+    for tests, benchmarks and quick tries. Returns ``(net_file, trips_file)`` in ``out_dir``."""
+    from twin.sumo.tools import tool
+
+    net, trips = out_dir / "small.net.xml", out_dir / "small.trips.xml"
+    run_sumo_program(
+        [binary("netgenerate"), "--grid", "--grid.number", str(blocks),
+         "--grid.length", str(block_m), "--default.lanenumber", "2", "--tls.guess", "true",
+         "--no-internal-links", "true", "-o", str(net)],
+        what="netgenerate",
+    )  # fmt: skip
+    run_sumo_program(
+        [tool("randomTrips.py"), "-n", str(net), "-o", str(trips),
+         "-r", str(out_dir / "small.rou.xml"), "-b", "0", "-e", str(end_s),
+         "-p", str(period_s), "--seed", str(seed), "--validate"],
+        what="randomTrips",
+    )  # fmt: skip
+    return net, trips
