@@ -35,7 +35,22 @@ def write(tmp_path, name="c.toml", starts="", eta=0.1, extra=""):
 def test_evaluate_writes_the_run_folder(tmp_path, capsys):
     cfg = write(tmp_path)
     out = tmp_path / "run"
-    assert main(["evaluate", "--config", str(cfg), "--seeds", "3", "--out", str(out), "--no-report", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "evaluate",
+                "--config",
+                str(cfg),
+                "--seeds",
+                "3",
+                "--out",
+                str(out),
+                "--no-report",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     printed = capsys.readouterr().out
     assert "R_hat_T" in printed and "greedy" in printed
     summary = pd.read_csv(out / "summary.csv")
@@ -46,7 +61,9 @@ def test_evaluate_writes_the_run_folder(tmp_path, capsys):
     assert len(series) == 3 * 3 * 40
     # the summary is the mean of the per-seed rows, which are the means of the series
     g = series[series.seed == 0].groupby("swarm", sort=False)["reward"].mean()
-    assert per_seed[per_seed.seed == 0].set_index("swarm").R_hat_T.to_dict() == pytest.approx(g.to_dict())
+    assert per_seed[per_seed.seed == 0].set_index("swarm").R_hat_T.to_dict() == pytest.approx(
+        g.to_dict()
+    )
     assert summary.set_index("swarm").R_hat_T.to_dict() == pytest.approx(
         per_seed.groupby("swarm").R_hat_T.mean().to_dict()
     )
@@ -119,7 +136,9 @@ def test_unknown_swarm(tmp_path, capsys):
 
 
 def test_console_script_help_and_no_traceback(tmp_path):
-    out = subprocess.run([sys.executable, "-m", "twin", "evaluate", "--help"], capture_output=True, text=True)
+    out = subprocess.run(
+        [sys.executable, "-m", "twin", "evaluate", "--help"], capture_output=True, text=True
+    )
     assert out.returncode == 0 and "--seeds" in out.stdout
     bad = subprocess.run(
         [sys.executable, "-m", "twin", "evaluate", "--config", str(tmp_path / "none.toml")],
@@ -127,3 +146,17 @@ def test_console_script_help_and_no_traceback(tmp_path):
         text=True,
     )
     assert bad.returncode == 2 and "Traceback" not in bad.stderr and "not found" in bad.stderr
+
+
+def test_swarm_options_reach_the_swarm_and_bad_ones_get_one_line(tmp_path, capsys):
+    cfg = write(tmp_path, extra="[swarm_options.rl-decentralized]\neps = 0.5\n")
+    out = tmp_path / "run"
+    args = ["evaluate", "--config", str(cfg), "--swarms", "rl-decentralized", "--out", str(out)]
+    assert main([*args, "--no-report", "--quiet"]) == 0
+    import json
+
+    described = json.loads((out / "run.json").read_text())["policies"]["rl-decentralized"]
+    assert described["eps"] == 0.5
+    bad = write(tmp_path, name="bad.toml", extra="[swarm_options.greedy]\nspeed = 3\n")
+    assert main(["evaluate", "--config", str(bad), "--quiet", "--out", str(tmp_path / "b")]) == 2
+    assert "[swarm_options.greedy]" in capsys.readouterr().err

@@ -72,6 +72,24 @@ class ScenarioConfig:
     swarm: SwarmConfig
     traffic: dict[str, Any]
     evaluate: EvaluateConfig
+    #: ``[swarm_options.<name>]``: keyword options of ``make_policy(name, ...)``
+    swarm_options: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+    def make_swarm(self, name: str):
+        """The swarm ``name`` with this config's options for it."""
+        from twin.policies import make_policy
+
+        options = dict(self.swarm_options.get(name, {}))
+        if isinstance(options.get("checkpoint"), str):  # relative to the config, as in sweeps
+            options["checkpoint"] = self.path.parent / options["checkpoint"]
+        try:
+            return make_policy(name, **options)
+        except TypeError as exc:
+            raise _fail(
+                self.path,
+                f"[swarm_options.{name}]",
+                f"has an option the swarm does not take ({exc})",
+            ) from None
 
     @property
     def params(self) -> ScoreParams:
@@ -170,7 +188,7 @@ def load_config(path: str | Path) -> ScenarioConfig:
     """Read and validate a scenario config."""
     path = Path(path)
     data = read_toml(path)
-    known = {"grid", "swarm", "traffic", "evaluate"}
+    known = {"grid", "swarm", "traffic", "evaluate", "swarm_options"}
     for key in data:
         if key not in known:
             raise _fail(
@@ -183,7 +201,12 @@ def load_config(path: str | Path) -> ScenarioConfig:
     if not isinstance(traffic, dict):
         raise _fail(path, "[traffic]", "must be a table")
     traffic.setdefault("kind", "synthetic")
-    config = ScenarioConfig(path, grid, swarm, traffic, evaluate)
+    options = data.get("swarm_options", {})
+    if not isinstance(options, dict) or not all(isinstance(v, dict) for v in options.values()):
+        raise _fail(
+            path, "[swarm_options]", "must hold one table per swarm, e.g. [swarm_options.rl]"
+        )
+    config = ScenarioConfig(path, grid, swarm, traffic, evaluate, options)
     validate(config)
     return config
 

@@ -19,7 +19,7 @@ from twin.config import (
 from twin.errors import UserError
 from twin.metrics import format_table2
 from twin.patrol import run_patrol
-from twin.policies import available_policies, make_policy
+from twin.policies import available_policies
 from twin.runs import new_run_dir, prepare_run_dir, write_run
 
 DEFAULT_CONFIG = "configs/synthetic.toml"
@@ -117,7 +117,7 @@ def main(args: argparse.Namespace) -> int:
     results = []
     for seed in range(first, first + seeds):
         starts = start_positions(config, source.grid, np.random.default_rng(seed))
-        policies = {name: make_policy(name) for name in names}
+        policies = {name: config.make_swarm(name) for name in names}
         results.append(run_patrol(source, policies, starts, config.params, seed, progress))
     meta = {
         "kind": "evaluate",

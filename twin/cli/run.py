@@ -48,14 +48,12 @@ def add_parser(subparsers) -> None:
     p.set_defaults(func=main)
 
 
-def make_swarms(names: list[str], explicit: bool) -> dict:
+def make_swarms(config, names: list[str], explicit: bool) -> dict:
     """Policies by name; an unavailable learned swarm is skipped with a notice unless asked for."""
-    from twin.policies import make_policy
-
     swarms = {}
     for name in names:
         try:
-            swarms[name] = make_policy(name)
+            swarms[name] = config.make_swarm(name)
         except Exception as exc:  # a missing checkpoint or torch: skip the learned swarm
             if explicit or not name.startswith("rl"):
                 raise
@@ -101,7 +99,7 @@ def main(args: argparse.Namespace) -> int:
     )
     setup_s = time.perf_counter() - t0
     check_swarm_fits(config, source.grid)
-    swarms = make_swarms(names or list(config.evaluate.swarms), explicit=names is not None)
+    swarms = make_swarms(config, names or list(config.evaluate.swarms), explicit=names is not None)
     run_dir = prepare_run_dir(args.out or new_run_dir("runs", "run"))
     s = source.scenario
     print(
