@@ -187,7 +187,11 @@ def read_toml(path: str | Path) -> dict[str, Any]:
 def load_config(path: str | Path) -> ScenarioConfig:
     """Read and validate a scenario config."""
     path = Path(path)
-    data = read_toml(path)
+    return config_from_data(path, read_toml(path))
+
+
+def config_from_data(path: Path, data: dict[str, Any]) -> ScenarioConfig:
+    """Validate the tables of a scenario config read from ``path`` (perhaps with overrides)."""
     known = {"grid", "swarm", "traffic", "evaluate", "swarm_options"}
     for key in data:
         if key not in known:

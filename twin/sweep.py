@@ -287,23 +287,7 @@ def scenario_config(path: Path, overrides: dict[str, Any]):
                     f"{path}: override {key!r} goes through {part!r}, which is not a table"
                 )
         node[last] = value
-    if hasattr(cfg, "config_from_data"):
-        return cfg.config_from_data(path, data)
-    # Same steps as twin.config.load_config, on the overridden data.
-    for key in data:
-        if key not in ("grid", "swarm", "traffic", "evaluate"):
-            raise UserError(f"{path}: [{key}] is not a known section")
-    traffic = data.get("traffic", {"kind": "synthetic"})
-    traffic.setdefault("kind", "synthetic")
-    config = cfg.ScenarioConfig(
-        path,
-        cfg.build_section(path, "grid", data.get("grid", {}), cfg.GridConfig),
-        cfg.build_section(path, "swarm", data.get("swarm", {}), cfg.SwarmConfig),
-        traffic,
-        cfg.build_section(path, "evaluate", data.get("evaluate", {}), cfg.EvaluateConfig),
-    )
-    cfg.validate(config)
-    return config
+    return cfg.config_from_data(path, data)
 
 
 def scenario_source(config, tape: str | None, seed: int):

@@ -30,7 +30,7 @@ def add_parser(subparsers) -> None:
         "evaluate",
         help="run swarms side by side on a scenario and print the Table 2 analog",
         description="Run several swarms side by side on the same traffic (each with its own "
-        "idleness map), print the paper's Table 2 columns (mean and 95%% interval over seeds) "
+        "idleness map), print the paper's Table 2 columns (mean and 95% interval over seeds) "
         "and write per-step series, trajectories and the summary into a run folder.",
     )
     p.add_argument(

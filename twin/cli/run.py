@@ -122,6 +122,11 @@ def main(args: argparse.Namespace) -> int:
         "setup_seconds": round(setup_s, 3),
         "sumo_read_seconds": round(source.read_seconds, 3),
         "partial": result.error is not None,
+        "policies": {
+            name: policy.describe()
+            for name, policy in swarms.items()
+            if hasattr(policy, "describe")
+        },
     }
     summary = write_sumo_run(run_dir, source, result, meta)
     if result.error:
