@@ -75,11 +75,11 @@ class ScenarioConfig:
     #: ``[swarm_options.<name>]``: keyword options of ``make_policy(name, ...)``
     swarm_options: dict[str, dict[str, Any]] = field(default_factory=dict)
 
-    def make_swarm(self, name: str):
-        """The swarm ``name`` with this config's options for it."""
+    def make_swarm(self, name: str, **overrides: Any):
+        """The swarm ``name`` with this config's options for it, ``overrides`` on top."""
         from twin.policies import make_policy
 
-        options = dict(self.swarm_options.get(name, {}))
+        options = {**self.swarm_options.get(name, {}), **overrides}
         if isinstance(options.get("checkpoint"), str):  # relative to the config, as in sweeps
             options["checkpoint"] = self.path.parent / options["checkpoint"]
         try:
@@ -90,6 +90,10 @@ class ScenarioConfig:
                 f"[swarm_options.{name}]",
                 f"has an option the swarm does not take ({exc})",
             ) from None
+
+    @property
+    def traffic_kind(self) -> str:
+        return self.traffic["kind"]
 
     @property
     def params(self) -> ScoreParams:

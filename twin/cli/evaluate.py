@@ -4,23 +4,14 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 from pathlib import Path
 
-import numpy as np
-
-from twin.config import (
-    ScenarioConfig,
-    check_swarm_fits,
-    load_config,
-    shipped_config,
-    start_positions,
-)
+from twin.config import load_config, shipped_config
 from twin.errors import UserError
+from twin.experiment import Experiment, parse_swarm_names, record, run_experiment, run_metadata
 from twin.metrics import format_table2
-from twin.patrol import run_patrol
 from twin.policies import available_policies
-from twin.runs import new_run_dir, prepare_run_dir, write_run
+from twin.runs import new_run_dir, prepare_run_dir
 
 DEFAULT_CONFIG = "configs/synthetic.toml"
 
@@ -68,71 +59,31 @@ def add_parser(subparsers) -> None:
     p.set_defaults(func=main)
 
 
-def parse_swarms(text: str | None, config: ScenarioConfig) -> list[str]:
-    names = (
-        [s.strip() for s in text.split(",") if s.strip()] if text else list(config.evaluate.swarms)
-    )
-    if not names:
-        raise UserError("--swarms: give at least one swarm name")
-    known = available_policies()
-    for name in names:
-        if name not in known:
-            raise UserError(f"--swarms: unknown swarm {name!r}; choose from {', '.join(known)}")
-    if len(set(names)) != len(names):
-        raise UserError("--swarms: a swarm is listed twice")
-    return names
-
-
-def load_source(config: ScenarioConfig, tape: Path | None):
-    """The traffic to evaluate on: a replayed tape, or the config's synthetic traffic."""
-    from twin.traffic.base import RecordedTraffic
-
-    if tape is not None:
-        from twin.traffic.tape import TapeTraffic
-
-        return TapeTraffic.from_file(tape, config)
-    if config.traffic["kind"] != "synthetic":
-        raise UserError(
-            f"{config.path}: [traffic].kind = {config.traffic['kind']!r} runs live with `twin run`; "
-            "`twin evaluate` takes synthetic configs or --traffic TAPE"
-        )
-    from twin.config import synthetic_source
-
-    return RecordedTraffic.from_source(synthetic_source(config))
-
-
 def main(args: argparse.Namespace) -> int:
     config = load_config(args.config or shipped_config(DEFAULT_CONFIG))
     seeds = args.seeds if args.seeds is not None else config.evaluate.seeds
     first = args.seed if args.seed is not None else config.evaluate.seed
     if seeds < 1:
         raise UserError(f"--seeds {seeds}: give at least 1")
-    names = parse_swarms(args.swarms, config)
-    source = load_source(config, args.traffic)
-    check_swarm_fits(config, source.grid)
+    if first < 0:
+        raise UserError(f"--seed {first}: seeds are whole numbers >= 0")
+    experiment = Experiment(
+        config=config,
+        swarms=parse_swarm_names(args.swarms, config.evaluate.swarms),
+        seeds=range(first, first + seeds),
+        tape=args.traffic,
+    )
+    if experiment.tape is None and config.traffic_kind != "synthetic":
+        raise UserError(
+            f"{config.path}: [traffic].kind = {config.traffic_kind!r} runs live with `twin run`; "
+            "`twin evaluate` takes synthetic configs or --traffic TAPE"
+        )
     run_dir = prepare_run_dir(args.out or new_run_dir("runs", "evaluate"))
-    progress = not args.quiet and sys.stderr.isatty()
-
-    t0 = time.perf_counter()
-    results = []
-    for seed in range(first, first + seeds):
-        starts = start_positions(config, source.grid, np.random.default_rng(seed))
-        policies = {name: config.make_swarm(name) for name in names}
-        results.append(run_patrol(source, policies, starts, config.params, seed, progress))
-    meta = {
-        "kind": "evaluate",
-        "config": str(config.path),
-        "traffic": source.metadata(),
-        "params": vars(config.params),
-        "n_drones": config.swarm.n_drones,
-        "wall_seconds": round(time.perf_counter() - t0, 3),
-    }
-    for name, policy in policies.items():
-        if hasattr(policy, "describe"):
-            meta.setdefault("policies", {})[name] = policy.describe()
-    summary = write_run(run_dir, results, meta)
+    outcome = run_experiment(experiment, progress=not args.quiet and sys.stderr.isatty())
+    summary = record(run_dir, outcome, run_metadata(outcome, "evaluate"))
+    horizon = outcome.results[0].horizon
     label = f"{seeds} seed{'s' if seeds > 1 else ''} from {first}"
-    print(f"Table 2 analog ({config.path.name}, {label}, T = {source.horizon}):")
+    print(f"Table 2 analog ({config.path.name}, {label}, T = {horizon}):")
     print(format_table2(summary))
     if not args.no_report:
         _report(run_dir)

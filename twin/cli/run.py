@@ -9,10 +9,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 from pathlib import Path
-
-import numpy as np
 
 from twin.errors import UserError
 
@@ -39,8 +36,16 @@ def add_parser(subparsers) -> None:
     p.add_argument("--horizon", type=int, help="number of steps T (default from the config)")
     p.add_argument("--begin", type=str, help='time of T^0, e.g. "07:00" (default from the config)')
     p.add_argument("--swarms", type=str, help="comma-separated swarms (default from the config)")
-    p.add_argument("--seed", type=int, help="seed of the drones' starts and swarms")
-    p.add_argument("--sumo-seed", type=int, help="SUMO's seed (default [traffic].seed)")
+    p.add_argument("--seed", type=int, help="first seed of the drones' starts and swarms")
+    p.add_argument(
+        "--seeds",
+        type=int,
+        default=1,
+        help="number of seeds: one SUMO simulation each, SUMO seeds sumo-seed, sumo-seed+1, ...",
+    )
+    p.add_argument(
+        "--sumo-seed", type=int, help="SUMO's seed of the first simulation (default [traffic].seed)"
+    )
     p.add_argument("--meso", action="store_true", help="SUMO's mesoscopic model (faster)")
     p.add_argument("--out", type=Path, help="run folder (default runs/run-<time>)")
     p.add_argument("--no-report", action="store_true", help="do not render the HTML report")
@@ -48,32 +53,23 @@ def add_parser(subparsers) -> None:
     p.set_defaults(func=main)
 
 
-def make_swarms(config, names: list[str], explicit: bool) -> dict:
-    """Policies by name; an unavailable learned swarm is skipped with a notice unless asked for."""
-    swarms = {}
-    for name in names:
-        try:
-            swarms[name] = config.make_swarm(name)
-        except Exception as exc:  # a missing checkpoint or torch: skip the learned swarm
-            if explicit or not name.startswith("rl"):
-                raise
-            print(f"twin: notice: swarm {name!r} skipped ({exc})", file=sys.stderr)
-    if not swarms:
-        raise UserError("no swarm to run; give --swarms random,greedy,sweeping")
-    return swarms
-
-
 def main(args: argparse.Namespace) -> int:
-    from twin.config import check_swarm_fits, load_config, shipped_config, start_positions
+    from twin.config import load_config, shipped_config
+    from twin.experiment import (
+        Experiment,
+        SumoInputs,
+        parse_swarm_names,
+        record,
+        run_experiment,
+        run_metadata,
+    )
     from twin.metrics import format_table2
-    from twin.patrol import run_patrol
     from twin.runs import new_run_dir, prepare_run_dir
-    from twin.sumo.scenario import sumo_source
 
     config = load_config(args.config or shipped_config(DEFAULT_CONFIG))
-    if config.traffic.get("kind") != "sumo":
+    if config.traffic_kind != "sumo":
         raise UserError(
-            f"{config.path}: [traffic].kind = {config.traffic.get('kind')!r}; `twin run` needs "
+            f"{config.path}: [traffic].kind = {config.traffic_kind!r}; `twin run` needs "
             '"sumo" (use `twin evaluate` for synthetic traffic)'
         )
     if args.routes and not args.net:
@@ -81,69 +77,65 @@ def main(args: argparse.Namespace) -> int:
     given = sum(x is not None for x in (args.net, args.sumocfg, args.osm))
     if given > 1:
         raise UserError("give one of --net, --sumocfg, --osm")
-    names = [s.strip() for s in args.swarms.split(",") if s.strip()] if args.swarms else None
-    seed = args.seed if args.seed is not None else config.evaluate.seed
-    progress = not args.quiet and sys.stderr.isatty()
-
-    t0 = time.perf_counter()
-    source = sumo_source(
-        config,
-        seed=args.sumo_seed,
-        net=args.net,
-        routes=args.routes,
-        sumocfg=args.sumocfg,
-        osm=args.osm,
-        horizon=args.horizon,
-        mesoscopic=True if args.meso else None,
-        begin=args.begin,
+    for flag, value in (("--seed", args.seed), ("--sumo-seed", args.sumo_seed)):
+        if value is not None and value < 0:
+            raise UserError(f"{flag} {value}: seeds are whole numbers >= 0")
+    if args.seeds < 1:
+        raise UserError(f"--seeds {args.seeds}: give at least 1")
+    if args.horizon is not None and args.horizon < 1:
+        raise UserError(f"--horizon {args.horizon}: give at least 1 step")
+    first = args.seed if args.seed is not None else config.evaluate.seed
+    experiment = Experiment(
+        config=config,
+        swarms=parse_swarm_names(args.swarms, config.evaluate.swarms),
+        seeds=range(first, first + args.seeds),
+        sumo=SumoInputs(
+            net=args.net,
+            routes=args.routes,
+            sumocfg=args.sumocfg,
+            osm=args.osm,
+            horizon=args.horizon,
+            begin=args.begin,
+            mesoscopic=True if args.meso else None,
+        ),
+        traffic_seed=args.sumo_seed,
+        skip_unavailable=args.swarms is None,
     )
-    setup_s = time.perf_counter() - t0
-    check_swarm_fits(config, source.grid)
-    swarms = make_swarms(config, names or list(config.evaluate.swarms), explicit=names is not None)
     run_dir = prepare_run_dir(args.out or new_run_dir("runs", "run"))
-    s = source.scenario
-    print(
-        f"SUMO: {s.name}, {source.grid.nx} x {source.grid.ny} cells of "
-        f"{source.geometry.cell_m:g} m ({source.grid.n_free} free), "
-        f"{source.clock(-s.warmup_steps())} warm-up, {source.clock(0)} - "
-        f"{source.clock(s.horizon)}, step {s.step_s:g} s, swarms: {', '.join(swarms)}",
-        file=sys.stderr,
+    outcome = run_experiment(
+        experiment,
+        progress=not args.quiet and sys.stderr.isatty(),
+        keep_sources=True,
+        on_source=_announce,
     )
-    starts = start_positions(config, source.grid, np.random.default_rng(seed))
-    result = run_patrol(source, swarms, starts, config.params, seed, progress)
-    wall = time.perf_counter() - t0
-    meta = {
-        "kind": "run",
-        "config": str(config.path),
-        "traffic": source.metadata(),
-        "params": vars(config.params),
-        "n_drones": config.swarm.n_drones,
-        "wall_seconds": round(wall, 3),
-        "setup_seconds": round(setup_s, 3),
-        "sumo_read_seconds": round(source.read_seconds, 3),
-        "partial": result.error is not None,
-        "policies": {
-            name: policy.describe()
-            for name, policy in swarms.items()
-            if hasattr(policy, "describe")
-        },
-    }
-    summary = write_sumo_run(run_dir, source, result, meta)
-    if result.error:
+    first_source = outcome.sources[0]
+    meta = run_metadata(
+        outcome,
+        "run",
+        sumo_read_seconds=round(sum(s.read_seconds for s in outcome.sources), 3),
+    )
+    summary = record(run_dir, outcome, meta)
+    done = outcome.results[-1]
+    if done.error:
         print(
-            f"twin: SUMO stopped early ({result.error}); partial results of "
-            f"{result.completed_steps} of {source.horizon} steps written to {run_dir}",
+            f"twin: SUMO stopped early ({done.error}); partial results of "
+            f"{done.completed_steps} of {first_source.horizon} steps written to {run_dir}",
             file=sys.stderr,
         )
-    mfd = source.model.report()
-    print(f"Table 2 analog ({s.name}, seed {seed}, T = {result.completed_steps}):")
+    seeds = [r.seed for r in outcome.results]
+    mfd = first_source.model.report()
+    label = f"seed {seeds[0]}" if len(seeds) == 1 else f"seeds {seeds[0]}-{seeds[-1]}"
+    print(
+        f"Table 2 analog ({first_source.scenario.name}, {label}, "
+        f"T = {outcome.results[0].completed_steps}):"
+    )
     print(format_table2(summary))
     print(
-        f"MFD ({mfd['form']}): a = {mfd['a']:.3f}, k_c = {mfd['k_c']:.1f} veh/lane-km, "
-        f"R2 = {mfd.get('r2', float('nan')):.3f}, RMSE = {mfd.get('rmse_kmh', float('nan')):.2f} km/h "
-        f"over {mfd['n_samples']} cell samples"
+        f"MFD ({mfd['form']}, SUMO seed {first_source.scenario.seed}): a = {mfd['a']:.3f}, "
+        f"k_c = {mfd['k_c']:.1f} veh/lane-km, R2 = {mfd.get('r2', float('nan')):.3f}, "
+        f"RMSE = {mfd.get('rmse_kmh', float('nan')):.2f} km/h over {mfd['n_samples']} cell samples"
     )
-    print(f"wall time {wall:.0f} s (SUMO + swarms)")
+    print(f"wall time {outcome.seconds:.0f} s (SUMO + swarms)")
     if not args.no_report:
         try:
             from twin.report import write_report
@@ -152,20 +144,15 @@ def main(args: argparse.Namespace) -> int:
         except ImportError:
             pass
     print(f"run folder: {run_dir}")
-    return 1 if result.error else 0
+    return 1 if outcome.partial else 0
 
 
-def write_sumo_run(run_dir: Path, source, result, meta: dict):
-    """The lead's run folder plus the SUMO extras (network, MFD fit and samples, tape)."""
-    import pandas as pd
-
-    from twin.runs import atomic_write, write_json, write_run
-
-    summary = write_run(run_dir, [result], meta)
-    write_json(run_dir / "network.json", source.network_info())
-    write_json(run_dir / "mfd.json", source.model.report())
-    samples = pd.DataFrame(source.model.samples())
-    atomic_write(run_dir / "mfd_samples.parquet", lambda p: samples.to_parquet(p, index=False))
-    tape = source.tape()
-    atomic_write(run_dir / "tape.parquet", tape.write)
-    return summary
+def _announce(source) -> None:
+    s = source.scenario
+    print(
+        f"SUMO: {s.name} (seed {s.seed}), {source.grid.nx} x {source.grid.ny} cells of "
+        f"{source.geometry.cell_m:g} m ({source.grid.n_free} free), "
+        f"{source.clock(-s.warmup_steps())} warm-up, {source.clock(0)} - "
+        f"{source.clock(s.horizon)}, step {s.step_s:g} s",
+        file=sys.stderr,
+    )

@@ -13,31 +13,30 @@ import argparse
 import sys
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 import torch
 
-from twin.config import load_config, start_positions, synthetic_source
+from twin.config import load_config
+from twin.experiment import Experiment, run_experiment
 from twin.metrics import aggregate, table2
-from twin.patrol import run_patrol
-from twin.policies import make_policy
-from twin.traffic.base import RecordedTraffic
 
 
 def evaluate_snapshots(snapshots, config_path, seeds, first_seed=0, others=("greedy",)):
     """One Table 2 row per (snapshot, seed, swarm)."""
     config = load_config(config_path)
-    source = RecordedTraffic.from_source(synthetic_source(config))
     rows = []
     for snap in snapshots:
         epoch = int(torch.load(snap, weights_only=True)["meta"]["epoch"])
-        for seed in range(first_seed, first_seed + seeds):
-            starts = start_positions(config, source.grid, np.random.default_rng(seed))
-            swarms = {"rl": make_policy("rl", checkpoint=snap)}
-            swarms.update({name: make_policy(name) for name in others})
-            result = run_patrol(source, swarms, starts, config.params, seed)
+        experiment = Experiment(
+            config,
+            swarms=["rl", *others],
+            seeds=range(first_seed, first_seed + seeds),
+            swarm_options={"rl": {"checkpoint": snap}},
+            keep_importance=False,
+        )
+        for result in run_experiment(experiment).results:
             table = table2(result)
-            table.insert(0, "seed", seed)
+            table.insert(0, "seed", result.seed)
             table.insert(0, "epoch", epoch)
             table.insert(0, "snapshot", str(snap))
             rows.append(table)

@@ -1,0 +1,238 @@
+"""The experiment runner: one place that turns a scenario into results.
+
+Every command that runs swarms goes through here: ``twin evaluate``, ``twin run``, a sweep
+cell, the learning-curve tool and the benchmarks. An :class:`Experiment` names a scenario
+config, the swarms (with options on top of the config's ``[swarm_options]``), the seeds and
+where the traffic comes from (the config's own traffic, a replayed tape, or a live SUMO run
+with swapped-in files); :func:`run_experiment` builds the traffic source and the swarms and
+runs one patrol pass per seed; :func:`record` writes the run folder.
+
+Seeds: seed ``s`` fixes the drones' starts (``default_rng(s)``) and the swarms' randomness
+(:func:`twin.patrol.swarm_rng`). Live SUMO traffic is simulated once per seed, the n-th seed
+with SUMO seed ``traffic_seed + n`` (``traffic_seed`` defaults to ``[traffic].seed``);
+synthetic and replayed traffic is the same for every seed.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from twin.config import ScenarioConfig, check_swarm_fits, start_positions
+from twin.errors import UserError
+from twin.patrol import PatrolResult, run_patrol
+from twin.policies import Policy, available_policies
+from twin.traffic.base import TrafficSource
+
+
+@dataclass
+class SumoInputs:
+    """Files and settings that replace the config's SUMO scenario (``twin run`` flags)."""
+
+    net: Path | None = None
+    routes: list[Path] | None = None
+    sumocfg: Path | None = None
+    osm: Path | None = None
+    horizon: int | None = None
+    begin: str | None = None
+    mesoscopic: bool | None = None
+
+    def as_kwargs(self) -> dict[str, Any]:
+        return {k: v for k, v in vars(self).items() if v is not None}
+
+
+@dataclass
+class Experiment:
+    """What to run: a scenario, swarms, seeds and the traffic's origin."""
+
+    config: ScenarioConfig
+    swarms: Sequence[str]
+    seeds: Sequence[int]
+    #: keyword options per swarm, applied over the config's ``[swarm_options.<swarm>]``
+    swarm_options: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    tape: Path | None = None  # replay a recorded traffic tape instead of the config's traffic
+    sumo: SumoInputs = field(default_factory=SumoInputs)
+    traffic_seed: int | None = None  # SUMO seed of the first seed (default [traffic].seed)
+    #: learned swarms that cannot be built (no torch, no checkpoint) are skipped with a notice
+    skip_unavailable: bool = False
+    keep_importance: bool = True
+
+
+@dataclass
+class ExperimentResult:
+    experiment: Experiment
+    results: list[PatrolResult]
+    traffic: list[dict[str, Any]]  # metadata of each seed's traffic source
+    policies: dict[str, dict[str, Any]]  # what each swarm says of itself (checkpoint, options)
+    seconds: float
+    #: the live sources of each seed, kept open only when ``keep_sources`` was asked for
+    sources: list[TrafficSource] = field(default_factory=list)
+
+    @property
+    def partial(self) -> bool:
+        return any(r.error for r in self.results)
+
+
+def parse_swarm_names(text: str | None, default: Sequence[str], flag: str = "--swarms"):
+    """Swarm names from a comma-separated flag (or ``default``), checked against the registry."""
+    names = [s.strip() for s in text.split(",") if s.strip()] if text else list(default)
+    if not names:
+        raise UserError(f"{flag}: give at least one swarm name")
+    known = available_policies()
+    for name in names:
+        if name not in known:
+            raise UserError(f"{flag}: unknown swarm {name!r}; choose from {', '.join(known)}")
+    if len(set(names)) != len(names):
+        raise UserError(f"{flag}: a swarm is listed twice")
+    return names
+
+
+def is_live_sumo(experiment: Experiment) -> bool:
+    return experiment.tape is None and experiment.config.traffic_kind == "sumo"
+
+
+def build_source(experiment: Experiment, index: int = 0) -> TrafficSource:
+    """The traffic of the ``index``-th seed: a replayed tape, the synthetic maps, or live SUMO."""
+    config = experiment.config
+    if experiment.tape is not None:
+        from twin.traffic.tape import TapeTraffic
+
+        return TapeTraffic.from_file(experiment.tape, config)
+    kind = config.traffic_kind
+    if kind == "synthetic":
+        from twin.config import synthetic_source
+        from twin.traffic.base import RecordedTraffic
+
+        return RecordedTraffic.from_source(synthetic_source(config))
+    if kind == "sumo":
+        from twin.sumo.scenario import sumo_settings, sumo_source
+
+        base = experiment.traffic_seed
+        if base is None:
+            base = sumo_settings(config).seed
+        return sumo_source(config, seed=base + index, **experiment.sumo.as_kwargs())
+    raise UserError(f"{config.path}: [traffic].kind = {kind!r} is not a traffic twin can run")
+
+
+def build_swarms(experiment: Experiment) -> dict[str, Policy]:
+    """The experiment's swarms, each with the config's options overlaid by the experiment's."""
+    config = experiment.config
+    swarms = {}
+    for name in experiment.swarms:
+        try:
+            swarms[name] = config.make_swarm(name, **experiment.swarm_options.get(name, {}))
+        except Exception as exc:  # a missing checkpoint or torch: skip a learned swarm if allowed
+            if not (experiment.skip_unavailable and name.startswith("rl")):
+                raise
+            print(f"twin: notice: swarm {name!r} skipped ({exc})", file=sys.stderr)
+    if not swarms:
+        raise UserError("no swarm to run; give --swarms random,greedy,sweeping")
+    return swarms
+
+
+def run_experiment(
+    experiment: Experiment,
+    progress: bool = False,
+    keep_sources: bool = False,
+    on_source=None,
+) -> ExperimentResult:
+    """Run every seed of ``experiment``: one patrol pass of all swarms per seed.
+
+    ``on_source(source)`` is called once per seed after the traffic source is built (the CLI
+    prints what it is about to simulate). With ``keep_sources`` live sources stay open for
+    :func:`record` (their MFD fit and tape); otherwise each is closed after its pass.
+    """
+    t0 = time.perf_counter()
+    results, traffic, sources = [], [], []
+    swarms: dict[str, Policy] = {}
+    shared_source = None if is_live_sumo(experiment) else build_source(experiment)
+    for n, seed in enumerate(experiment.seeds):
+        source = shared_source or build_source(experiment, n)
+        try:
+            check_swarm_fits(experiment.config, source.grid)
+            if on_source is not None:
+                on_source(source)
+            swarms = build_swarms(experiment)
+            starts = start_positions(experiment.config, source.grid, np.random.default_rng(seed))
+            result = run_patrol(
+                source,
+                swarms,
+                starts,
+                experiment.config.params,
+                seed,
+                progress=progress,
+                keep_importance=experiment.keep_importance,
+            )
+            results.append(result)
+            traffic.append(source.metadata())
+        finally:
+            if keep_sources:
+                sources.append(source)
+            elif source is not shared_source:
+                source.close()
+        if result.error:  # a live simulation failed: keep what was done, run no more seeds
+            break
+    if shared_source is not None and not keep_sources:
+        shared_source.close()
+    policies = {n: p.describe() for n, p in swarms.items() if hasattr(p, "describe")}
+    return ExperimentResult(
+        experiment, results, traffic, policies, time.perf_counter() - t0, sources
+    )
+
+
+def run_metadata(outcome: ExperimentResult, kind: str, **extra: Any) -> dict[str, Any]:
+    """What ``run.json`` records about an experiment beside the results."""
+    config = outcome.experiment.config
+    return {
+        "kind": kind,
+        "config": str(config.path),
+        "traffic": outcome.traffic[0] if outcome.traffic else None,
+        **({"traffic_by_seed": outcome.traffic} if len(outcome.traffic) > 1 else {}),
+        "params": vars(config.params),
+        "n_drones": config.swarm.n_drones,
+        "wall_seconds": round(outcome.seconds, 3),
+        "partial": outcome.partial,
+        "policies": outcome.policies,
+        **extra,
+    }
+
+
+def record(run_dir: Path, outcome: ExperimentResult, meta: dict[str, Any]):
+    """Write the run folder; live SUMO runs add ``network.json``, the MFD fit and samples and
+    the traffic tape of each seed (``tape.parquet`` for the first, ``tapes/`` for the rest).
+    Returns the summary table."""
+    from twin.runs import write_run
+
+    summary = write_run(run_dir, outcome.results, meta)
+    if outcome.sources and hasattr(outcome.sources[0], "tape"):
+        _write_sumo_extras(run_dir, outcome)
+    return summary
+
+
+def _write_sumo_extras(run_dir: Path, outcome: ExperimentResult) -> None:
+    import pandas as pd
+
+    from twin.runs import atomic_write, write_json
+
+    first = outcome.sources[0]
+    write_json(run_dir / "network.json", first.network_info())
+    write_json(run_dir / "mfd.json", first.model.report())
+    samples = pd.DataFrame(first.model.samples())
+    atomic_write(run_dir / "mfd_samples.parquet", lambda p: samples.to_parquet(p, index=False))
+    atomic_write(run_dir / "tape.parquet", first.tape().write)
+    if len(outcome.sources) > 1:
+        (run_dir / "tapes").mkdir(exist_ok=True)
+        for result, source in zip(outcome.results, outcome.sources, strict=False):
+            atomic_write(run_dir / "tapes" / f"seed-{result.seed}.parquet", source.tape().write)
+
+
+def close_sources(outcome: ExperimentResult) -> None:
+    for source in outcome.sources:
+        source.close()
+    outcome.sources.clear()
