@@ -86,13 +86,13 @@ def test_outage_runs_decentralized_then_merges_maps(checkpoint):
     for view in _views(source, walk, params):
         policy.act(view)
         if 3 <= view.k < 8:
-            assert policy.local_maps is not None
+            assert policy.maps.local is not None
             # each drone's map holds its own visits only
-            assert policy.local_maps[0][walk[view.k][1][0], walk[view.k][1][1]] > params.eta
+            assert policy.maps.local[0][walk[view.k][1][0], walk[view.k][1][1]] > params.eta
         else:
-            assert policy.local_maps is None
+            assert policy.maps.local is None
         if view.k == 8:  # back: each cell the smallest idleness any drone held
-            assert np.allclose(policy.swarm_map, view.idleness)  # rows disjoint: exact
+            assert np.allclose(policy.maps.shared, view.idleness)  # rows disjoint: exact
 
 
 def test_merged_map_after_overlapping_visits_is_the_cellwise_minimum(checkpoint):
@@ -104,14 +104,14 @@ def test_merged_map_after_overlapping_visits_is_the_cellwise_minimum(checkpoint)
     policy.reset(source.grid, 2, np.random.default_rng(0))
     for view in _views(source, walk, params):
         if view.k == 3:
-            local = policy.local_maps.copy()
+            local = policy.maps.local.copy()
         policy.act(view)
     expected = np.empty_like(local)
     for d in range(2):  # advance each drone's own map with its own visit, then take the min
         expected[d] = np.where(source.grid.free, np.minimum(1, local[d] + params.delta), 0)
         expected[d][tuple(walk[3][d])] = params.eta * local[d][tuple(walk[3][d])]
-    assert np.allclose(policy.swarm_map, expected.min(axis=0))
-    assert np.all(policy.swarm_map >= view.idleness - 1e-12)  # never below the true map
+    assert np.allclose(policy.maps.shared, expected.min(axis=0))
+    assert np.all(policy.maps.shared >= view.idleness - 1e-12)  # never below the true map
 
 
 def test_decentralized_swarm_uses_exploration(checkpoint):
@@ -128,8 +128,8 @@ def test_online_learning_changes_the_weights(checkpoint, decentralized):
     policy = make_policy("rl-online", checkpoint=checkpoint, decentralized=decentralized,
                          batch_size=8, lr=1e-2)  # fmt: skip
     run_patrol(_source(horizon=30), {"o": policy}, STARTS, ScoreParams(), seed=0)
-    assert policy.updates > 0
-    assert len(policy.buffer) == 30 * 4
+    assert policy.learner.updates > 0
+    assert len(policy.learner.buffer) == 30 * 4
     before = policy.net.state_dict()
     for net in policy.nets:
         after = net.state_dict()

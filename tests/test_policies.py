@@ -76,7 +76,9 @@ def test_sweeper_covers_an_open_map_in_one_pass():
     assert result.visited_share[0, -1] == 1.0
 
 
-@pytest.mark.parametrize(("n", "roles"), [(1, (1, 0, 0)), (2, (1, 1, 0)), (4, (1, 2, 1)), (8, (2, 4, 2))])
+@pytest.mark.parametrize(
+    ("n", "roles"), [(1, (1, 0, 0)), (2, (1, 1, 0)), (4, (1, 2, 1)), (8, (2, 4, 2))]
+)
 def test_sweeping_roles(n, roles):
     assert sweeping_roles(n) == roles
     assert sum(roles) == n

@@ -15,6 +15,7 @@ synthetic and replayed traffic is the same for every seed.
 
 from __future__ import annotations
 
+import os
 import sys
 import time
 from collections.abc import Mapping, Sequence
@@ -77,6 +78,19 @@ class ExperimentResult:
     @property
     def partial(self) -> bool:
         return any(r.error for r in self.results)
+
+
+def limit_threads(n: int = 1) -> None:
+    """Run the numeric libraries on ``n`` threads: the commands that run swarms call this.
+
+    A swarm's Q-network infers on a handful of rows, where one thread is fastest and leaves
+    the other core to SUMO (several threads oversubscribe a 2-core machine: 10x slower).
+    Set before torch is imported it is torch's default; set after, it is applied directly.
+    """
+    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ.setdefault(var, str(n))
+    if "torch" in sys.modules:
+        sys.modules["torch"].set_num_threads(n)
 
 
 def parse_swarm_names(text: str | None, default: Sequence[str], flag: str = "--swarms"):

@@ -8,7 +8,14 @@ from pathlib import Path
 
 from twin.config import load_config, shipped_config
 from twin.errors import UserError
-from twin.experiment import Experiment, parse_swarm_names, record, run_experiment, run_metadata
+from twin.experiment import (
+    Experiment,
+    limit_threads,
+    parse_swarm_names,
+    record,
+    run_experiment,
+    run_metadata,
+)
 from twin.metrics import format_table2
 from twin.policies import available_policies
 from twin.runs import new_run_dir, prepare_run_dir
@@ -60,6 +67,7 @@ def add_parser(subparsers) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
+    limit_threads()
     config = load_config(args.config or shipped_config(DEFAULT_CONFIG))
     seeds = args.seeds if args.seeds is not None else config.evaluate.seeds
     first = args.seed if args.seed is not None else config.evaluate.seed

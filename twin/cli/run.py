@@ -58,6 +58,7 @@ def main(args: argparse.Namespace) -> int:
     from twin.experiment import (
         Experiment,
         SumoInputs,
+        limit_threads,
         parse_swarm_names,
         record,
         run_experiment,
@@ -66,6 +67,7 @@ def main(args: argparse.Namespace) -> int:
     from twin.metrics import format_table2
     from twin.runs import new_run_dir, prepare_run_dir
 
+    limit_threads()
     config = load_config(args.config or shipped_config(DEFAULT_CONFIG))
     if config.traffic_kind != "sumo":
         raise UserError(

@@ -17,7 +17,7 @@ import pandas as pd
 import torch
 
 from twin.config import load_config
-from twin.experiment import Experiment, run_experiment
+from twin.experiment import Experiment, limit_threads, run_experiment
 from twin.metrics import aggregate, table2
 
 
@@ -52,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--others", default="greedy", help="comma-separated comparison swarms")
     p.add_argument("--out", type=Path, default=None, help="CSV of the per-seed rows")
     args = p.parse_args(argv)
-    torch.set_num_threads(1)
+    limit_threads()
     files = []
     for s in args.snapshots:
         files += sorted(s.glob("*.pt")) if s.is_dir() else [s]

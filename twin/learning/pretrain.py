@@ -4,7 +4,7 @@
 2. data: episodes of a randomly moving swarm on the training map (:mod:`twin.learning.data`),
    pooled into one replay buffer;
 3. network: the Table 1 MLP and its target copy;
-4. the loop: epoch ``m`` samples one batch from the pooled buffers and takes ``N_iter``
+4. the loop (the update itself: :mod:`twin.learning.dqn`): epoch ``m`` samples one batch from the pooled buffers and takes ``N_iter``
    gradient steps on it towards the Double DQN target
    ``Y = r + gamma Q(s', argmax_{u' feasible} Q(s', u'; theta^m); theta^m_-)``;
    the target copy is hard-updated every ``target_update_epochs`` epochs;
@@ -25,14 +25,19 @@ from typing import Any
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from twin.errors import UserError
 from twin.grid import Grid
 from twin.learning.checkpoint import atomic_save, model_metadata, read_checkpoint, save_model
 from twin.learning.data import random_swarm_episode
-from twin.learning.qnet import TABLE1_LAYERS, QNetwork, masked_argmax
-from twin.learning.replay import Batch, ReplayBuffer
+from twin.learning.dqn import (  # noqa: F401  (double_dqn_target re-exported for tests)
+    double_dqn_target,
+    make_optimizer,
+    sync_target,
+    train_epoch,
+)
+from twin.learning.qnet import TABLE1_LAYERS, QNetwork
+from twin.learning.replay import ReplayBuffer
 from twin.scores import ScoreParams
 from twin.traffic.synthetic import Disturbance, SyntheticTraffic
 
@@ -220,39 +225,6 @@ def buffer_digest(buffer: ReplayBuffer) -> str:
     return h.hexdigest()[:16]
 
 
-# ----------------------------------------------------------------------------- 3. network
-def make_optimizer(net: QNetwork, lr: float, fused: bool) -> torch.optim.Adam:
-    return torch.optim.Adam(net.parameters(), lr=lr, fused=fused or None)
-
-
-def to_tensors(batch: Batch) -> tuple[torch.Tensor, ...]:
-    return (torch.from_numpy(batch.states), torch.from_numpy(batch.actions),
-            torch.from_numpy(batch.rewards), torch.from_numpy(batch.next_states),
-            torch.from_numpy(batch.next_feasible))  # fmt: skip
-
-
-def double_dqn_target(net, target, rewards, next_states, next_feasible, gamma):
-    """``Y = r + gamma Q(s', argmax_{u' in U(s')} Q(s', u'; theta); theta_-)``."""
-    with torch.no_grad():
-        best = masked_argmax(net(next_states), next_feasible)
-        return rewards + gamma * target(next_states).gather(1, best[:, None]).squeeze(1)
-
-
-def train_epoch(net, target, optimizer, batch: Batch, gamma: float, iters: int):
-    """One epoch: the batch's Double DQN targets, then ``iters`` gradient steps on
-    ``L = mean (Y - Q(s, u; theta))^2``. Returns the last loss and mean Q (tensors)."""
-    s, a, r, s1, feasible1 = to_tensors(batch)
-    y = double_dqn_target(net, target, r, s1, feasible1, gamma)
-    a = a[:, None]
-    for _ in range(iters):
-        q = net(s).gather(1, a).squeeze(1)
-        loss = F.mse_loss(q, y)
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
-    return loss.detach(), q.detach().mean()
-
-
 # ----------------------------------------------------------------------------- 4. the loop
 LOG_COLUMNS = ("epoch", "updates", "loss", "mean_q", "wall_s", "updates_per_s")
 
@@ -269,7 +241,7 @@ def pretrain(cfg: PretrainConfig, progress: bool = True) -> Path:
 
     net = QNetwork(cfg.layers)
     target = QNetwork(cfg.layers)
-    target.load_state_dict(net.state_dict())
+    sync_target(net, target)
     optimizer = make_optimizer(net, cfg.lr, cfg.adam_fused)
     batch_rng = np.random.default_rng([cfg.seed, 2])
     epoch, wall = 0, 0.0
@@ -297,7 +269,7 @@ def pretrain(cfg: PretrainConfig, progress: bool = True) -> Path:
         qs.append(mean_q)
         epoch += 1
         if epoch % cfg.target_update_epochs == 0:
-            target.load_state_dict(net.state_dict())
+            sync_target(net, target)
         if epoch % cfg.log_every == 0 or epoch == cfg.epochs:
             wall = time.perf_counter() - t_start
             rate = (epoch - logged_epoch) * cfg.iters_per_epoch / max(wall - logged_wall, 1e-9)
