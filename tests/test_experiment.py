@@ -1,0 +1,84 @@
+"""The experiment runner: one path from a scenario to results for every command."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from twin.cli import main as twin_main
+from twin.config import load_config
+from twin.experiment import Experiment, run_experiment
+
+SYNTHETIC = """
+[grid]
+nx = 6
+ny = 8
+[swarm]
+n_drones = 3
+[traffic]
+kind = "synthetic"
+horizon = 40
+[[traffic.disturbances]]
+kind = "big"
+i = 2
+j = 3
+sigma = 2.0
+[evaluate]
+swarms = ["random", "greedy"]
+[swarm_options.rl-decentralized]
+eps = 0.5
+"""
+
+
+@pytest.fixture
+def synthetic(tmp_path):
+    path = tmp_path / "tiny.toml"
+    path.write_text(SYNTHETIC)
+    return path
+
+
+def test_runner_gives_evaluate_the_same_numbers(synthetic, tmp_path):
+    out = tmp_path / "run"
+    assert twin_main(["evaluate", "--config", str(synthetic), "--seeds", "2", "--seed", "4",
+                      "--no-report", "--quiet", "--out", str(out)]) == 0  # fmt: skip
+    per_seed = pd.read_csv(out / "per_seed.csv")
+    experiment = Experiment(load_config(synthetic), ["random", "greedy"], seeds=[4, 5])
+    for result in run_experiment(experiment).results:
+        rows = per_seed[per_seed.seed == result.seed].set_index("swarm")
+        for s, name in enumerate(result.swarms):
+            assert rows.loc[name, "R_hat_T"] == pytest.approx(result.rewards[s].mean())
+
+
+def test_config_swarm_options_reach_the_swarm(synthetic):
+    pytest.importorskip("torch")
+    experiment = Experiment(load_config(synthetic), ["rl-decentralized"], seeds=[0])
+    assert run_experiment(experiment).policies["rl-decentralized"]["eps"] == 0.5
+    experiment.swarm_options = {"rl-decentralized": {"eps": 0.2}}  # a sweep's options win
+    assert run_experiment(experiment).policies["rl-decentralized"]["eps"] == 0.2
+
+
+def test_run_with_several_sumo_seeds(tmp_path):
+    pytest.importorskip("libsumo")
+    from twin.sumo.network import generate_grid_scenario
+
+    generate_grid_scenario(tmp_path, blocks=4, block_m=300, end_s=900, period_s=2.0, seed=5)
+    config = tmp_path / "small.toml"
+    config.write_text(
+        "[swarm]\nn_drones = 2\n[traffic]\nkind = \"sumo\"\nnet = \"small.net.xml\"\n"
+        "routes = [\"small.trips.xml\"]\ncell_m = 200.0\ndrone_speed_kmh = 12.0\n"
+        "begin = \"00:05\"\nwarmup_min = 5.0\nhorizon = 4\nseed = 3\n"
+    )
+    out = tmp_path / "run"
+    code = twin_main(["run", "--config", str(config), "--seeds", "2", "--swarms", "random,greedy",
+                      "--no-report", "--quiet", "--out", str(out)])  # fmt: skip
+    assert code == 0
+    meta = json.loads((out / "run.json").read_text())
+    assert meta["seeds"] == [0, 1]
+    assert [t["seed"] for t in meta["traffic_by_seed"]] == [3, 4]  # SUMO seeds 3, 4
+    assert (out / "tape.parquet").exists()
+    tapes = [pd.read_parquet(out / "tapes" / f"seed-{s}.parquet") for s in (0, 1)]
+    assert not np.array_equal(tapes[0]["count"].to_numpy(), tapes[1]["count"].to_numpy())
+    assert set(pd.read_csv(out / "per_seed.csv").seed) == {0, 1}
