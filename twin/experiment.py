@@ -28,7 +28,7 @@ import numpy as np
 from twin.config import ScenarioConfig, check_swarm_fits, start_positions
 from twin.errors import UserError
 from twin.patrol import PatrolResult, run_patrol
-from twin.policies import Policy, available_policies
+from twin.policies import Policy, available_policies, is_learned
 from twin.traffic.base import TrafficSource
 
 
@@ -142,7 +142,7 @@ def build_swarms(experiment: Experiment) -> dict[str, Policy]:
         try:
             swarms[name] = config.make_swarm(name, **experiment.swarm_options.get(name, {}))
         except Exception as exc:  # a missing checkpoint or torch: skip a learned swarm if allowed
-            if not (experiment.skip_unavailable and name.startswith("rl")):
+            if not (experiment.skip_unavailable and is_learned(name)):
                 raise
             print(f"twin: notice: swarm {name!r} skipped ({exc})", file=sys.stderr)
     if not swarms:

@@ -228,41 +228,71 @@ class SweepingPolicy(Policy):
         return actions
 
 
-PolicyFactory = Callable[..., Policy]
-_REGISTRY: dict[str, PolicyFactory] = {
-    "random": RandomPolicy,
-    "greedy": GreedyPolicy,
-    "sweeping": SweepingPolicy,
-}
-#: Swarms provided by optional modules, imported on first use (they need torch).
-_LAZY: dict[str, str] = {
-    "rl": "twin.learning.policies",
-    "rl-decentralized": "twin.learning.policies",
-    "rl-online": "twin.learning.policies",
-}
+@dataclass(frozen=True)
+class SwarmKind:
+    """An entry of the swarm registry: how to build the swarm and what it is."""
+
+    name: str
+    build: Callable[..., Policy]  # keyword options -> a fresh policy
+    summary: str
+    learned: bool = False  # driven by a trained Q-network (needs torch and a checkpoint)
 
 
-def register_policy(name: str, factory: PolicyFactory) -> None:
-    """Make ``make_policy(name)`` build swarms with ``factory(**options)``."""
-    _REGISTRY[name] = factory
+def _learned(name: str) -> Callable[..., Policy]:
+    """Builder of a learned swarm; torch is imported only when one is built."""
 
-
-def available_policies() -> list[str]:
-    return sorted(set(_REGISTRY) | set(_LAZY))
-
-
-def make_policy(name: str, **options) -> Policy:
-    """Build the swarm policy registered under ``name``."""
-    if name not in _REGISTRY and name in _LAZY:
-        import importlib
-
+    def build(**options) -> Policy:
         try:
-            importlib.import_module(_LAZY[name])
+            from twin.learning.policies import build_learned_swarm
         except ImportError as exc:
             raise UserError(
                 f"swarm {name!r} needs {exc.name or 'an optional dependency'}: "
-                "install twin with its learning dependencies (pip install -e .)"
+                "install twin with its learning dependencies (pip install twin)"
             ) from exc
-    if name not in _REGISTRY:
+        return build_learned_swarm(name, **options)
+
+    return build
+
+
+#: Every swarm twin can run, by name.
+SWARMS: dict[str, SwarmKind] = {
+    kind.name: kind
+    for kind in (
+        SwarmKind("random", RandomPolicy, "a uniform feasible action per drone"),
+        SwarmKind("greedy", GreedyPolicy, "each drone to the cell of its view with the most I*T"),
+        SwarmKind("sweeping", SweepingPolicy, "zig-zag sweepers plus greedy and random drones"),
+        SwarmKind("rl", _learned("rl"), "the Q-network with the central coordinator", True),
+        SwarmKind(
+            "rl-decentralized",
+            _learned("rl-decentralized"),
+            "the Q-network, epsilon-greedy per drone on its own map",
+            True,
+        ),
+        SwarmKind(
+            "rl-online",
+            _learned("rl-online"),
+            "the coordinated Q-network that keeps learning every step",
+            True,
+        ),
+    )
+}
+
+
+def register_policy(name: str, build: Callable[..., Policy], summary: str = "") -> None:
+    """Add a swarm of your own: ``make_policy(name, **options)`` calls ``build(**options)``."""
+    SWARMS[name] = SwarmKind(name, build, summary or name)
+
+
+def available_policies() -> list[str]:
+    return sorted(SWARMS)
+
+
+def is_learned(name: str) -> bool:
+    return name in SWARMS and SWARMS[name].learned
+
+
+def make_policy(name: str, **options) -> Policy:
+    """Build the swarm registered under ``name``."""
+    if name not in SWARMS:
         raise UserError(f"unknown swarm {name!r}; choose from {', '.join(available_policies())}")
-    return _REGISTRY[name](**options)
+    return SWARMS[name].build(**options)

@@ -32,7 +32,7 @@ from twin.idleness_maps import SwarmMaps, parse_outages
 from twin.learning.checkpoint import default_checkpoint, load_qnet
 from twin.learning.online import OnlineLearner
 from twin.learning.qnet import QNetwork
-from twin.policies import Policy, SwarmView, Transition, random_feasible, register_policy
+from twin.policies import Policy, SwarmView, Transition, random_feasible
 from twin.scores import drone_states
 
 
@@ -212,24 +212,13 @@ class RLPolicy(Policy):
                           nv.feasible)  # fmt: skip
 
 
-def _rl(**options) -> RLPolicy:
-    return RLPolicy(**options)
-
-
-def _rl_decentralized(**options) -> RLPolicy:
-    options.setdefault("decentralized", True)
-    policy = RLPolicy(**options)
-    policy.name = "rl-decentralized"
+def build_learned_swarm(name: str, **options) -> RLPolicy:
+    """The learned swarms of :data:`twin.policies.SWARMS` by name."""
+    defaults = {
+        "rl": {},
+        "rl-decentralized": {"decentralized": True},
+        "rl-online": {"online": True},
+    }
+    policy = RLPolicy(**{**defaults[name], **options})
+    policy.name = name
     return policy
-
-
-def _rl_online(**options) -> RLPolicy:
-    options.setdefault("online", True)
-    policy = RLPolicy(**options)
-    policy.name = "rl-online"
-    return policy
-
-
-register_policy("rl", _rl)
-register_policy("rl-decentralized", _rl_decentralized)
-register_policy("rl-online", _rl_online)
