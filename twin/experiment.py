@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pandas as pd
 
 from twin.config import ScenarioConfig, check_swarm_fits, start_positions
 from twin.errors import UserError
@@ -218,20 +219,24 @@ def run_metadata(outcome: ExperimentResult, kind: str, **extra: Any) -> dict[str
 
 
 def record(run_dir: Path, outcome: ExperimentResult, meta: dict[str, Any]):
-    """Write the run folder; live SUMO runs add ``network.json``, the MFD fit and samples and
+    """Write the run folder (with ``comparison.csv``: each learned swarm against the best
+    classical one, paired over seeds); live SUMO runs add ``network.json``, the MFD fit and samples and
     the traffic tape of each seed (``tape.parquet`` for the first, ``tapes/`` for the rest).
-    Returns the summary table."""
-    from twin.runs import write_run
+    Returns the summary table and the comparison."""
+    from twin.metrics import learned_against_best_classical, table2
+    from twin.runs import atomic_write, write_run
 
     summary = write_run(run_dir, outcome.results, meta)
+    per_seed = pd.concat([table2(r).assign(seed=r.seed) for r in outcome.results])
+    comparison = learned_against_best_classical(per_seed)
+    if not comparison.empty:
+        atomic_write(run_dir / "comparison.csv", lambda p: comparison.to_csv(p, index=False))
     if outcome.sources and hasattr(outcome.sources[0], "tape"):
         _write_sumo_extras(run_dir, outcome)
-    return summary
+    return summary, comparison
 
 
 def _write_sumo_extras(run_dir: Path, outcome: ExperimentResult) -> None:
-    import pandas as pd
-
     from twin.runs import atomic_write, write_json
 
     first = outcome.sources[0]

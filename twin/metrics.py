@@ -94,3 +94,50 @@ def format_table2(summary: pd.DataFrame) -> str:
         if n == 0:
             out.append("  ".join("-" * w for w in widths))
     return "\n".join(out)
+
+
+def paired_difference(per_seed: pd.DataFrame, a: str, b: str, column: str = "R_hat_T") -> dict:
+    """``a - b`` of ``column`` paired over the seeds both swarms ran: mean, 95% half-width,
+    the ratio of the means and the number of seeds."""
+    rows = per_seed.pivot_table(index="seed", columns="swarm", values=column, aggfunc="first")
+    both = rows[[a, b]].dropna()
+    diff = (both[a] - both[b]).to_numpy()
+    return {
+        "swarm": a,
+        "against": b,
+        "column": column,
+        "difference": float(diff.mean()) if len(diff) else float("nan"),
+        "difference_ci95": ci95_halfwidth(diff),
+        "ratio": float(both[a].mean() / both[b].mean()) if len(diff) else float("nan"),
+        "n_seeds": len(diff),
+    }
+
+
+def learned_against_best_classical(per_seed: pd.DataFrame, column: str = "R_hat_T"):
+    """Each learned swarm against the classical swarm with the highest mean ``column``, paired
+    over seeds (empty when the run has no learned or no classical swarm)."""
+    from twin.policies import is_learned
+
+    means = per_seed.groupby("swarm", sort=False)[column].mean()
+    classical = [s for s in means.index if not is_learned(s)]
+    learned = [s for s in means.index if is_learned(s)]
+    if not classical or not learned:
+        return pd.DataFrame()
+    best = max(classical, key=lambda s: means[s])
+    return pd.DataFrame([paired_difference(per_seed, s, best, column) for s in learned])
+
+
+def format_comparison(comparison: pd.DataFrame) -> str:
+    """One line per learned swarm: its paired difference to the best classical swarm."""
+    lines = []
+    for _, row in comparison.iterrows():
+        ci = (
+            f" ± {row['difference_ci95']:.3f} (95% interval over {row['n_seeds']} seeds)"
+            if row["n_seeds"] > 1
+            else " (one seed: no interval)"
+        )
+        lines.append(
+            f"{row['swarm']} - {row['against']} (best classical): {row['column']} "
+            f"{row['difference']:+.3f}{ci}, ratio {row['ratio']:.3f}"
+        )
+    return "\n".join(lines)

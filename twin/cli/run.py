@@ -64,7 +64,7 @@ def main(args: argparse.Namespace) -> int:
         run_experiment,
         run_metadata,
     )
-    from twin.metrics import format_table2
+    from twin.metrics import format_comparison, format_table2
     from twin.runs import new_run_dir, prepare_run_dir
 
     limit_threads()
@@ -116,7 +116,7 @@ def main(args: argparse.Namespace) -> int:
         "run",
         sumo_read_seconds=round(sum(s.read_seconds for s in outcome.sources), 3),
     )
-    summary = record(run_dir, outcome, meta)
+    summary, comparison = record(run_dir, outcome, meta)
     done = outcome.results[-1]
     if done.error:
         print(
@@ -132,6 +132,8 @@ def main(args: argparse.Namespace) -> int:
         f"T = {outcome.results[0].completed_steps}):"
     )
     print(format_table2(summary))
+    if not comparison.empty:
+        print(format_comparison(comparison))
     print(
         f"MFD ({mfd['form']}, SUMO seed {first_source.scenario.seed}): a = {mfd['a']:.3f}, "
         f"k_c = {mfd['k_c']:.1f} veh/lane-km, R2 = {mfd.get('r2', float('nan')):.3f}, "
