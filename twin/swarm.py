@@ -72,7 +72,7 @@ def step(
 
     Raises :class:`InfeasibleActionError` when an action is not in ``U_d(p)``.
     """
-    actions = _check_actions(state, actions)
+    actions = check_actions(state, actions)
     nxt = grid.move(state.positions, actions)
     parts = reward_parts(
         grid, params, state.idleness, state.importance, next_importance, state.positions, nxt
@@ -87,7 +87,9 @@ def step(
     )
 
 
-def _check_actions(state: SwarmState, actions) -> np.ndarray:
+def check_actions(state: SwarmState, actions) -> np.ndarray:
+    """``actions`` as int64 if every drone's action is in ``U_d(p)``, else an
+    :class:`InfeasibleActionError` naming the first bad one."""
     actions = np.asarray(actions)
     n = len(state.positions)
     if actions.shape != (n,) or not np.issubdtype(actions.dtype, np.integer):
