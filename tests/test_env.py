@@ -185,3 +185,15 @@ def test_parallel_api_on_live_sumo(tmp_path: Path):
     assert [s.snapshots[-1][0] for s in built] == [0, 3, 3]
     np.testing.assert_array_equal(built[1].snapshots[-1][2], built[2].snapshots[-1][2])
     env.close()
+
+
+def test_without_the_extra_the_import_names_the_fix():
+    import subprocess
+    import sys
+
+    code = "import sys; sys.modules['pettingzoo'] = None; import twin.env"
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert run.returncode == 1
+    assert run.stderr.strip().splitlines()[-1] == (
+        "ImportError: twin.env needs gymnasium and pettingzoo: pip install 'twin[env]'"
+    )
