@@ -13,6 +13,7 @@ from twin.scores import (
     directional_idleness,
     drone_states,
     initial_idleness,
+    reward_parts,
     rewards_on_arrival,
     update_idleness,
 )
@@ -158,3 +159,40 @@ def test_drones_sharing_a_cell_share_its_reward():
     arrival = PARAMS.alpha_T * (ibar * grid.values_in_view(t1, np.array([[2, 3]]))).sum()
     arrival += PARAMS.alpha_I * ibar.sum()
     assert met.sum() == pytest.approx(one[0] + alone_b[0] - arrival)
+
+
+def test_reward_parts_on_the_hand_computed_step_and_a_stacked_pack():
+    grid = Grid.open(3, 3)
+    idle = np.array([[1.0, 0.5, 1.0], [1.0, 0.1, 1.0], [1.0, 1.0, 1.0]])
+    t = np.array([[0.0, 0.5, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.0]])
+    parts = reward_parts(grid, PARAMS, idle, t, t, np.array([[1, 1]]), np.array([[0, 1]]))
+    # the terms of test_hand_computed_step_on_3x3
+    a_t, a_i = 0.525 * 0.5 + 0.125 * 1.0, 0.525 + 0.125 + 1 + 1
+    b_t, b_i = 0.1 * 1.0 + 0.5 * 0.5, 0.1 + 0.5 + 1 + 1 + 1
+    assert parts.importance == pytest.approx([1.0 * (a_t - b_t)])
+    assert parts.idleness == pytest.approx([0.5 * (a_i - b_i)])
+    assert parts.plain == pytest.approx(parts.total)  # one drone: both readings agree
+    # two drones stacked on one cell: the shared reading splits, the plain one pays each in full
+    pack = reward_parts(
+        grid, PARAMS, idle, t, t, np.array([[1, 1], [1, 1]]), np.array([[0, 1], [0, 1]])
+    )
+    assert pack.total == pytest.approx([parts.total[0] / 2] * 2)
+    assert pack.plain == pytest.approx([parts.plain[0]] * 2)
+
+
+@settings(max_examples=100, deadline=None)
+@given(scenes())
+def test_reward_parts_sum_to_the_reward_and_plain_agrees_without_sharing(scene):
+    grid, pos, seed = scene
+    rng = np.random.default_rng(seed)
+    idle, t, t1 = (np.where(grid.free, rng.random(grid.shape), 0.0) for _ in range(3))
+    actions = np.array([rng.choice(np.flatnonzero(f)) for f in grid.feasible_actions(pos)])
+    nxt = grid.move(pos, actions)
+    parts = reward_parts(grid, PARAMS, idle, t, t1, pos, nxt)
+    r = rewards_on_arrival(grid, PARAMS, idle, t, t1, pos, nxt)
+    np.testing.assert_array_equal(parts.importance + parts.idleness, r)
+    alone = (
+        len({tuple(p) for p in pos.tolist()}) == len(pos) == len({tuple(p) for p in nxt.tolist()})
+    )
+    if alone:
+        np.testing.assert_allclose(parts.plain, r, rtol=1e-12, atol=1e-12)

@@ -1,8 +1,9 @@
 """The patrol loop: several swarms side by side on one pass over a traffic source.
 
-Each swarm keeps its own positions, idleness map and visited cells; all swarms see the same
-``T^k``. Per step and swarm the loop records ``R^k`` (Def. 4, read on arrival), ``C^{k+1}``
-(Def. 5) and the share of free cells visited so far.
+Each swarm keeps its own :class:`twin.swarm.SwarmState` (positions, idleness map, visited
+cells) and advances with :func:`twin.swarm.step`; all swarms see the same ``T^k``. Per step and
+swarm the loop records ``R^k`` (Def. 4, read on arrival) and its parts, ``C^{k+1}`` (Def. 5) and
+the share of free cells visited so far.
 """
 
 from __future__ import annotations
@@ -16,14 +17,11 @@ import numpy as np
 
 from twin.grid import Grid
 from twin.policies import Policy, SwarmView, Transition
-from twin.scores import (
-    ScoreParams,
-    coverage,
-    initial_idleness,
-    rewards_on_arrival,
-    update_idleness,
-)
+from twin.scores import ScoreParams, coverage
+from twin.swarm import InfeasibleActionError, SwarmState, initial_state, random_starts, step
 from twin.traffic.base import TrafficSource
+
+__all__ = ["PatrolResult", "random_starts", "run_patrol", "swarm_rng", "swarm_view"]
 
 
 @dataclass
@@ -34,10 +32,14 @@ class PatrolResult:
     grid: Grid
     seed: int
     rewards: np.ndarray  # (S, T): R^k, summed over drones
+    reward_importance: np.ndarray  # (S, T): the alpha_T part of R^k
+    reward_idleness: np.ndarray  # (S, T): the alpha_I part of R^k
+    reward_plain: np.ndarray  # (S, T): R^k with every drone paid in full (m = m' = 1)
     coverage: np.ndarray  # (S, T): C^{k+1}
     visited_share: np.ndarray  # (S, T): share of free cells stood on up to step k+1
     positions: np.ndarray  # (S, T+1, N, 2): P_0 .. P_T
     importance: np.ndarray | None  # (T+1, nx, ny) float32, T^0 .. T^T
+    truth: np.ndarray | None = None  # (T+1, nx, ny) float32 true T^k; None: same as importance
     seconds: float = 0.0
     completed_steps: int = 0
     error: str | None = None  # set when the source failed mid-run; arrays hold what was done
@@ -46,12 +48,6 @@ class PatrolResult:
     @property
     def horizon(self) -> int:
         return self.rewards.shape[1]
-
-
-def random_starts(grid: Grid, n_drones: int, rng: np.random.Generator) -> np.ndarray:
-    """``n_drones`` distinct free cells drawn uniformly."""
-    free = grid.free_cells()
-    return free[rng.choice(len(free), size=n_drones, replace=False)]
 
 
 def swarm_rng(seed: int, name: str) -> np.random.Generator:
@@ -77,50 +73,54 @@ def run_patrol(
     names = list(policies)
     n_swarms, n_drones = len(names), len(starts)
     starts = np.asarray(starts, dtype=np.int64)
-    rewards = np.zeros((n_swarms, horizon))
-    cover = np.zeros((n_swarms, horizon))
-    visited_share = np.zeros((n_swarms, horizon))
+    series = {
+        key: np.zeros((n_swarms, horizon))
+        for key in ("rewards", "importance", "idleness", "plain", "coverage", "visited")
+    }
     positions = np.zeros((n_swarms, horizon + 1, n_drones, 2), dtype=np.int64)
     importance = np.zeros((horizon + 1, *grid.shape), np.float32) if keep_importance else None
+    truth = None
 
+    states: list[SwarmState] = []
     views: list[SwarmView] = []
-    visited = np.zeros((n_swarms, *grid.shape), dtype=bool)
     maps = source.importance_maps()
     t0 = time.perf_counter()
     bar = _progress_bar(source, horizon, progress)
     done, error = 0, None
     try:
         t_now = next(maps)
+        truth = _record_truth(source, truth, 0, horizon, keep_importance)
         if importance is not None:
             importance[0] = t_now
         for s, name in enumerate(names):
             policies[name].reset(grid, n_drones, swarm_rng(seed, name))
-            views.append(
-                _view(0, horizon, grid, starts.copy(), initial_idleness(grid), t_now, params)
-            )
-            visited[s, starts[:, 0], starts[:, 1]] = True
+            states.append(initial_state(grid, starts.copy(), t_now))
+            views.append(swarm_view(states[s], horizon, grid, params))
             positions[s, 0] = starts
         for k in range(horizon):
             t_next = next(maps)
+            truth = _record_truth(source, truth, k + 1, horizon, keep_importance)
             if importance is not None:
                 importance[k + 1] = t_next
             for s, name in enumerate(names):
                 policy, view = policies[name], views[s]
                 actions = np.asarray(policy.act(view), dtype=np.int64)
-                if not view.feasible[np.arange(n_drones), actions].all():
-                    raise RuntimeError(f"swarm {name!r} chose an infeasible action at step {k}")
-                nxt = grid.move(view.positions, actions)
-                r = rewards_on_arrival(
-                    grid, params, view.idleness, view.importance, t_next, view.positions, nxt
-                )
-                idle = update_idleness(view.idleness, nxt, grid, params.eta, params.delta)
-                visited[s, nxt[:, 0], nxt[:, 1]] = True
-                rewards[s, k] = r.sum()
-                cover[s, k] = coverage(idle, grid)
-                visited_share[s, k] = visited[s][grid.free].mean()
-                positions[s, k + 1] = nxt
-                views[s] = _view(k + 1, horizon, grid, nxt, idle, t_next, params)
-                policy.learn(Transition(view, actions, r, views[s]))
+                try:
+                    states[s], out = step(states[s], actions, t_next, grid, params)
+                except InfeasibleActionError as exc:
+                    raise RuntimeError(f"swarm {name!r} chose an infeasible action: {exc}") from exc
+                for key, values in (
+                    ("rewards", out.rewards),
+                    ("importance", out.importance),
+                    ("idleness", out.idleness),
+                    ("plain", out.plain),
+                ):
+                    series[key][s, k] = values.sum()
+                series["coverage"][s, k] = coverage(states[s].idleness, grid)
+                series["visited"][s, k] = states[s].visited[grid.free].mean()
+                positions[s, k + 1] = states[s].positions
+                views[s] = swarm_view(states[s], horizon, grid, params)
+                policy.learn(Transition(view, actions, out.rewards, views[s]))
             done = k + 1
             if bar is not None:
                 bar.update(1)
@@ -136,33 +136,51 @@ def run_patrol(
     finally:
         if bar is not None:
             bar.close()
-    result = PatrolResult(
+    cut = {key: values[:, :done] for key, values in series.items()}
+    return PatrolResult(
         swarms=names,
         grid=grid,
         seed=seed,
-        rewards=rewards[:, :done],
-        coverage=cover[:, :done],
-        visited_share=visited_share[:, :done],
+        rewards=cut["rewards"],
+        reward_importance=cut["importance"],
+        reward_idleness=cut["idleness"],
+        reward_plain=cut["plain"],
+        coverage=cut["coverage"],
+        visited_share=cut["visited"],
         positions=positions[:, : done + 1],
         importance=None if importance is None else importance[: done + 1],
+        truth=None if truth is None else truth[: done + 1],
         seconds=time.perf_counter() - t0,
         completed_steps=done,
         error=error,
     )
-    return result
 
 
-def _view(k, horizon, grid, positions, idleness, importance, params) -> SwarmView:
+def swarm_view(state: SwarmState, horizon: int, grid: Grid, params: ScoreParams) -> SwarmView:
+    """What a policy sees of ``state``."""
     return SwarmView(
-        k=k,
+        k=state.k,
         horizon=horizon,
         grid=grid,
-        positions=positions,
-        idleness=idleness,
-        importance=importance,
-        feasible=grid.feasible_actions(positions),
+        positions=state.positions,
+        idleness=state.idleness,
+        importance=state.importance,
+        feasible=state.feasible,
         params=params,
     )
+
+
+def _record_truth(source, truth, k, horizon, keep):
+    """Store the source's true ``T^k`` when it knows one (:meth:`TrafficSource.truth_map`)."""
+    if not keep:
+        return None
+    t = source.truth_map() if hasattr(source, "truth_map") else None
+    if t is None:
+        return truth
+    if truth is None:
+        truth = np.zeros((horizon + 1, *t.shape), np.float32)
+    truth[k] = t
+    return truth
 
 
 def _progress_bar(source: TrafficSource, horizon: int, enabled: bool):

@@ -65,6 +65,52 @@ def visit(visited: np.ndarray, positions: np.ndarray) -> None:
     visited[positions[:, 0], positions[:, 1]] = True
 
 
+@dataclass(frozen=True)
+class RewardParts:
+    """Per-drone terms of Def. 4, each ``(N,)``.
+
+    ``importance`` is the ``alpha_T`` part and ``idleness`` the ``alpha_I`` part under the
+    shared-cell rule (their sum is :func:`rewards_on_arrival`); ``plain`` is the same reward with
+    ``m = m' = 1``, every drone paid in full (the project notes' plain sum).
+    """
+
+    importance: np.ndarray
+    idleness: np.ndarray
+    plain: np.ndarray
+
+    @property
+    def total(self) -> np.ndarray:
+        return self.importance + self.idleness
+
+
+def reward_parts(
+    grid: Grid,
+    params: ScoreParams,
+    idleness: np.ndarray,
+    importance: np.ndarray,
+    next_importance: np.ndarray,
+    positions: np.ndarray,
+    next_positions: np.ndarray,
+) -> RewardParts:
+    """The terms of Def. 4, computed once; see :func:`rewards_on_arrival` for the formulas."""
+    here, there = grid.view_index(positions), grid.view_index(next_positions)
+    m_here = _sharing(here[0][:, 0])
+    m_there = _sharing(there[0][:, 0])
+    # Ibar only where the drones arrive: min(1, I + delta) on free cells in view
+    arrive = np.minimum(1.0, grid.values_in_view(idleness, None, there) + params.delta)
+    arrive *= grid.values_in_view(grid.free_float, None, there)
+    leave = grid.values_in_view(idleness, None, here)
+    d_t = params.alpha_T * (arrive * grid.values_in_view(next_importance, None, there)).sum(axis=1)
+    c_t = params.alpha_T * (leave * grid.values_in_view(importance, None, here)).sum(axis=1)
+    d_i = params.alpha_I * arrive.sum(axis=1)
+    c_i = params.alpha_I * leave.sum(axis=1)
+    return RewardParts(
+        importance=d_t / m_there - c_t / m_here,
+        idleness=d_i / m_there - c_i / m_here,
+        plain=(d_t + d_i) - (c_t + c_i),
+    )
+
+
 def rewards_on_arrival(
     grid: Grid,
     params: ScoreParams,
@@ -87,20 +133,12 @@ def rewards_on_arrival(
     that share a cell share its terms, so the swarm's ``R^k`` counts each cell's view once, as
     the idleness update reduces a shared cell once. (Departure from the project notes, which
     pay every drone in full: that paid a pack of drones stacked on one cell several times for
-    one visit, and greedy drones do stack. With one drone per cell both readings agree.)
+    one visit, and greedy drones do stack. With one drone per cell both readings agree; the
+    plain reading is :attr:`RewardParts.plain`.)
     """
-    here, there = grid.view_index(positions), grid.view_index(next_positions)
-    m_here = _sharing(here[0][:, 0])
-    m_there = _sharing(there[0][:, 0])
-    # Ibar only where the drones arrive: min(1, I + delta) on free cells in view
-    arrive = np.minimum(1.0, grid.values_in_view(idleness, None, there) + params.delta)
-    arrive *= grid.values_in_view(grid.free_float, None, there)
-    leave = grid.values_in_view(idleness, None, here)
-    a_t = (arrive * grid.values_in_view(next_importance, None, there)).sum(axis=1)
-    b_t = (leave * grid.values_in_view(importance, None, here)).sum(axis=1)
-    a = params.alpha_T * a_t + params.alpha_I * arrive.sum(axis=1)
-    b = params.alpha_T * b_t + params.alpha_I * leave.sum(axis=1)
-    return a / m_there - b / m_here
+    return reward_parts(
+        grid, params, idleness, importance, next_importance, positions, next_positions
+    ).total
 
 
 def _sharing(cells: np.ndarray) -> np.ndarray:
@@ -117,23 +155,26 @@ def coverage(idleness: np.ndarray, grid: Grid) -> float:
 def directional_idleness(idleness: np.ndarray, grid: Grid, positions: np.ndarray) -> np.ndarray:
     """``(N, 4)`` mean idleness of free cells strictly below, above, left, right of each drone.
 
-    Prefix sums along rows and columns: O(cells) once plus O(1) per drone. 0 where a direction
-    holds no free cell.
+    ``idleness`` is one map ``(nx, ny)`` or one map per drone ``(N, nx, ny)`` (drone ``d`` reads
+    ``idleness[d]``). Prefix sums along rows and columns: O(cells) per map plus O(1) per drone.
+    0 where a direction holds no free cell.
     """
-    values = idleness * grid.free_float
+    maps = idleness[None] if idleness.ndim == 2 else idleness
+    values = maps * grid.free_float
     i, j = positions[:, 0], positions[:, 1]
+    d = np.zeros(len(positions), np.intp) if len(maps) == 1 else np.arange(len(positions))
 
-    col_cum_v, col_cum_n = values.cumsum(axis=0), grid.free_cumsum_down
-    row_cum_v, row_cum_n = values.cumsum(axis=1), grid.free_cumsum_right
-    own_v, own_n = values[i, j], grid.free_float[i, j]
+    col_cum_v, col_cum_n = values.cumsum(axis=1), grid.free_cumsum_down
+    row_cum_v, row_cum_n = values.cumsum(axis=2), grid.free_cumsum_right
+    own_v, own_n = values[d, i, j], grid.free_float[i, j]
 
-    above_v = col_cum_v[i, j] - own_v
+    above_v = col_cum_v[d, i, j] - own_v
     above_n = col_cum_n[i, j] - own_n
-    below_v = col_cum_v[-1, j] - col_cum_v[i, j]
+    below_v = col_cum_v[d, -1, j] - col_cum_v[d, i, j]
     below_n = col_cum_n[-1, j] - col_cum_n[i, j]
-    left_v = row_cum_v[i, j] - own_v
+    left_v = row_cum_v[d, i, j] - own_v
     left_n = row_cum_n[i, j] - own_n
-    right_v = row_cum_v[i, -1] - row_cum_v[i, j]
+    right_v = row_cum_v[d, i, -1] - row_cum_v[d, i, j]
     right_n = row_cum_n[i, -1] - row_cum_n[i, j]
 
     sums = np.stack([below_v, above_v, left_v, right_v], axis=1)
@@ -159,12 +200,19 @@ def drone_states(
 ) -> np.ndarray:
     """The ``(N, 13)`` state of eq. (s), laid out as :data:`STATE_LAYOUT`.
 
-    ``others`` optionally gives each drone's view of the others' centre of mass (``(N, 2)``,
-    in cells), as in the decentralized mode; by default the true one.
+    ``idleness`` is the swarm's map ``(nx, ny)`` or, in the decentralized mode, one map per
+    drone ``(N, nx, ny)``. ``others`` optionally gives each drone's view of the others' centre
+    of mass (``(N, 2)``, in cells), as in the decentralized mode; by default the true one.
     """
     scale = np.array([grid.nx, grid.ny], dtype=np.float64)
     view = grid.view_index(positions)
-    seen = grid.values_in_view(idleness, None, view) * grid.values_in_view(importance, None, view)
+    if idleness.ndim == 2:
+        idle_seen = grid.values_in_view(idleness, None, view)
+    else:
+        flat, valid = view
+        rows = np.arange(len(positions))[:, None]
+        idle_seen = np.where(valid, idleness.reshape(len(idleness), -1)[rows, flat], 0.0)
+    seen = idle_seen * grid.values_in_view(importance, None, view)
     cm = others_centre_of_mass(positions) if others is None else others
     return np.concatenate(
         [

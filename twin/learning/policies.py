@@ -62,42 +62,8 @@ def shared_qnet(checkpoint: str | Path | None) -> tuple[QNetwork, dict]:
 def local_drone_states(
     grid: Grid, maps: np.ndarray, importance: np.ndarray, positions: np.ndarray, others
 ) -> np.ndarray:
-    """:func:`twin.scores.drone_states` with one idleness map per drone (``(N, nx, ny)``).
-
-    Same layout and formulas, vectorised over drones: drone ``d`` reads only ``maps[d]``.
-    """
-    n = len(positions)
-    d = np.arange(n)
-    cells, valid = grid.field_of_view(positions)
-    seen = np.where(
-        valid,
-        maps[d[:, None], cells[..., 0], cells[..., 1]] * importance[cells[..., 0], cells[..., 1]],
-        0.0,
-    )
-    free = grid.free
-    values = np.where(free, maps, 0.0)
-    counts = np.broadcast_to(free.astype(np.float64), maps.shape)
-    i, j = positions[:, 0], positions[:, 1]
-    col_v, col_n = values.cumsum(axis=1), counts.cumsum(axis=1)
-    row_v, row_n = values.cumsum(axis=2), counts.cumsum(axis=2)
-    own_v, own_n = values[d, i, j], counts[d, i, j]
-    sums = np.stack(
-        [
-            col_v[d, -1, j] - col_v[d, i, j],  # below
-            col_v[d, i, j] - own_v,  # above
-            row_v[d, i, j] - own_v,  # left
-            row_v[d, i, -1] - row_v[d, i, j],  # right
-        ],
-        axis=1,
-    )
-    ns = np.stack(
-        [col_n[d, -1, j] - col_n[d, i, j], col_n[d, i, j] - own_n,
-         row_n[d, i, j] - own_n, row_n[d, i, -1] - row_n[d, i, j]],
-        axis=1,
-    )  # fmt: skip
-    directional = np.divide(sums, ns, out=np.zeros_like(sums), where=ns > 0)
-    scale = np.array([grid.nx, grid.ny], dtype=np.float64)
-    return np.concatenate([positions / scale, seen, directional, others / scale], axis=1)
+    """:func:`twin.scores.drone_states` with one idleness map per drone (``(N, nx, ny)``)."""
+    return drone_states(grid, maps, importance, positions, others)
 
 
 class RLPolicy(Policy):

@@ -39,6 +39,11 @@ class TrafficSource(ABC):
         """What a run folder should record about this source (JSON-serialisable)."""
         return {"kind": type(self).__name__, "horizon": self.horizon}
 
+    def truth_map(self) -> np.ndarray | None:
+        """The true ``T^k`` of the map last yielded, when the source observes traffic through a
+        model that may err and knows the truth; ``None`` (the default): no separate truth."""
+        return None
+
     def clock(self, k: int) -> str | None:
         """A label for step ``k`` in progress bars (a live simulation gives its clock time)."""
         return None

@@ -1,0 +1,199 @@
+"""twin.env: PettingZoo's and Gymnasium's API checks over synthetic, tape and live SUMO traffic,
+and the env scoring a policy exactly as the patrol loop does."""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("pettingzoo")
+pytest.importorskip("gymnasium")
+
+from gymnasium.utils.env_checker import check_env
+from pettingzoo.test import parallel_api_test
+
+from twin.env import SwarmGymEnv, SwarmParallelEnv, make_env
+from twin.grid import Grid
+from twin.patrol import random_starts, run_patrol, swarm_rng, swarm_view
+from twin.policies import make_policy
+from twin.scores import ScoreParams, drone_states
+from twin.swarm import InfeasibleActionError
+from twin.traffic.synthetic import Disturbance, SyntheticTraffic
+from twin.traffic.tape import Tape, TapeTraffic
+
+PARAMS = ScoreParams(alpha_T=1.0, alpha_I=0.5)
+
+
+def _synthetic(horizon: int = 12, grid: Grid | None = None) -> SyntheticTraffic:
+    if grid is None:
+        obstacles = np.zeros((6, 8), bool)
+        obstacles[2, 3:5] = True
+        grid = Grid(obstacles)
+    disturbances = [Disturbance("big", 1, 2, 1.0, 1.5), Disturbance("small", 4, 6, 0.7, 1.0)]
+    return SyntheticTraffic(grid, disturbances, horizon=horizon)
+
+
+def _tape(nx=4, ny=5, warmup=2, horizon=6) -> Tape:
+    """Random counts and speeds, as in tests/test_tape.py."""
+    rng = np.random.default_rng(2)
+    steps = np.arange(-warmup, horizon + 1)
+    counts = rng.integers(0, 40, (len(steps), nx, ny)).astype(np.int32)
+    speeds = np.where(counts > 0, rng.uniform(0, 15, counts.shape), np.nan).astype(np.float32)
+    obstacles = np.zeros((nx, ny), bool)
+    obstacles[1, 1] = True
+    counts[:, 1, 1] = 0
+    speeds[:, 1, 1] = np.nan
+    return Tape(
+        steps=steps,
+        times=25200.0 + 75.0 * steps,
+        counts=counts,
+        speeds=speeds,
+        obstacles=obstacles,
+        lane_km=rng.uniform(0.5, 3.0, (nx, ny)) * ~obstacles,
+        speed_limit=np.where(obstacles, 0.0, 13.9),
+        horizon=horizon,
+        settings={"mfd_fit": "online", "detection_p": 1.0, "seed": 4, "mfd_prior": [0.7, 40.0]},
+    )
+
+
+def _api_test(env) -> None:
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the test only warns about missing or extra keys
+        parallel_api_test(env, num_cycles=100)
+
+
+def test_parallel_api_on_synthetic_traffic():
+    _api_test(SwarmParallelEnv(_synthetic(), n_drones=3, params=PARAMS))
+
+
+def test_parallel_api_on_a_replayed_tape(tmp_path: Path):
+    _tape().write(tmp_path / "tape.parquet")
+    env = SwarmParallelEnv(lambda: TapeTraffic.from_file(tmp_path / "tape.parquet"), n_drones=2)
+    _api_test(env)
+    env.close()
+
+
+def test_env_scores_the_greedy_swarm_as_run_patrol():
+    source, seed, n = _synthetic(horizon=20), 3, 4
+    starts = random_starts(source.grid, n, np.random.default_rng(seed))
+    patrol = run_patrol(source, {"greedy": make_policy("greedy")}, starts, PARAMS, seed)
+
+    env = SwarmParallelEnv(source, n_drones=n, params=PARAMS)
+    obs, _ = env.reset(seed=seed)
+    greedy = make_policy("greedy")
+    greedy.reset(source.grid, n, swarm_rng(seed, "greedy"))
+    rewards, plain, truncated = [], [], {}
+    while env.agents:
+        s = env.swarm
+        states = drone_states(source.grid, s.idleness, s.importance, s.positions)
+        for d, agent in enumerate(env.agents):
+            np.testing.assert_array_equal(obs[agent]["observation"], states[d].astype(np.float32))
+            np.testing.assert_array_equal(obs[agent]["action_mask"], s.feasible[d])
+        actions = greedy.act(swarm_view(s, env.horizon, source.grid, PARAMS))
+        obs, rew, _, truncated, infos = env.step(dict(zip(env.agents, actions, strict=True)))
+        rewards.append(sum(rew.values()))
+        plain.append(sum(i["reward_plain"] for i in infos.values()))
+    assert all(truncated.values()) and len(rewards) == source.horizon
+    np.testing.assert_allclose(rewards, patrol.rewards[0], rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(plain, patrol.reward_plain[0], rtol=1e-12, atol=1e-12)
+    np.testing.assert_array_equal(env.swarm.positions, patrol.positions[0, -1])
+
+    joint = SwarmGymEnv(source, n_drones=n, params=PARAMS)
+    _, info = joint.reset(seed=seed)  # the same start cells from the same seed
+    greedy.reset(source.grid, n, swarm_rng(seed, "greedy"))
+    totals = []
+    for _ in range(source.horizon):
+        view = swarm_view(joint.swarm_env.swarm, source.horizon, source.grid, PARAMS)
+        np.testing.assert_array_equal(info["action_mask"], view.feasible)
+        _, r, _, truncated, info = joint.step(greedy.act(view))
+        totals.append(r)
+    assert truncated
+    np.testing.assert_allclose(totals, patrol.rewards[0], rtol=1e-12, atol=1e-12)
+
+
+def test_gymnasium_checks_pass():
+    # check_env steps unmasked random actions, which a drone at the border can't take: with the
+    # default (infeasible actions raise) the drones start one cell off every border on an open
+    # grid, where all 5 actions are feasible for the one step each check takes.
+    source = _synthetic(grid=Grid.open(6, 8))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_env(SwarmGymEnv(source, starts=[[1, 1], [3, 4], [4, 6]]), skip_render_check=True)
+        # infeasible = "stay": random starts, obstacles
+        check_env(SwarmGymEnv(_synthetic(), n_drones=3, infeasible="stay"), skip_render_check=True)
+
+
+def test_infeasible_actions_raise_before_the_source_moves_on():
+    env = SwarmParallelEnv(_synthetic(), starts=[[0, 0], [5, 7]])
+    env.reset(seed=0)
+    with pytest.raises(InfeasibleActionError, match=r"drone 0 at \(0, 0\): action 1 \(up\)"):
+        env.step({"drone_0": 1, "drone_1": 0})
+    _, rewards, *_ = env.step({"drone_0": 2, "drone_1": 0})  # still at step 0: goes on fine
+    assert env.swarm.k == 1 and set(rewards) == {"drone_0", "drone_1"}
+    with pytest.raises(ValueError, match="no action for drone_1"):
+        env.step({"drone_0": 0})
+    with pytest.raises(ValueError, match="two drones on one cell"):
+        SwarmParallelEnv(_synthetic(), starts=[[0, 0], [0, 0]])
+
+
+def test_make_env_from_the_shipped_synthetic_config():
+    env = make_env("synthetic", joint=True)
+    obs, info = env.reset(seed=1)
+    assert obs.shape == env.observation_space.shape and info["action_mask"].shape[1] == 5
+    env.close()
+
+
+SUMO_CONFIG = """
+[swarm]
+n_drones = 2
+[traffic]
+kind = "sumo"
+net = "small.net.xml"
+routes = ["small.trips.xml"]
+cell_m = 200.0
+drone_speed_kmh = 12.0   # one step = 60 s
+begin = "00:05"
+warmup_min = 5.0
+horizon = 3
+seed = 3
+"""
+
+
+def test_parallel_api_on_live_sumo(tmp_path: Path):
+    pytest.importorskip("libsumo")
+    from twin.config import load_config
+    from twin.sumo.network import generate_grid_scenario
+    from twin.sumo.scenario import sumo_source
+
+    # the small scenario of tests/test_sumo_small.py, shorter: a 5 x 5 grid, 3 steps of 60 s
+    generate_grid_scenario(tmp_path, blocks=5, block_m=300, end_s=900, period_s=1.5, seed=5)
+    (tmp_path / "small.toml").write_text(SUMO_CONFIG)
+    config = load_config(tmp_path / "small.toml")
+    built = []
+
+    def factory():
+        built.append(sumo_source(config))
+        return built[-1]
+
+    env = SwarmParallelEnv(factory, n_drones=2)
+    _api_test(env)  # three resets: one SUMO run each (libsumo holds one run at a time)
+    assert len(built) == 3
+    # the first run stopped at T^0 (reset again at once), the others ran the horizon alike
+    assert [s.snapshots[-1][0] for s in built] == [0, 3, 3]
+    np.testing.assert_array_equal(built[1].snapshots[-1][2], built[2].snapshots[-1][2])
+    env.close()
+
+
+def test_without_the_extra_the_import_names_the_fix():
+    import subprocess
+    import sys
+
+    code = "import sys; sys.modules['pettingzoo'] = None; import twin.env"
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert run.returncode == 1
+    assert run.stderr.strip().splitlines()[-1] == (
+        "ImportError: twin.env needs gymnasium and pettingzoo: pip install 'twin[env]'"
+    )

@@ -1,0 +1,112 @@
+"""The one swarm step (twin.swarm) and the patrol loop built on it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from twin.grid import Grid
+from twin.learning.data import random_swarm_episode
+from twin.patrol import random_starts, run_patrol
+from twin.policies import make_policy
+from twin.scores import ScoreParams, rewards_on_arrival
+from twin.swarm import InfeasibleActionError, initial_state, step
+from twin.traffic.base import RecordedTraffic
+from twin.traffic.synthetic import Disturbance, SyntheticTraffic
+
+PARAMS = ScoreParams(alpha_T=1.0, alpha_I=0.5)
+
+#: R_hat_T (mean R^k over the horizon) of each baseline on :func:`_source` with 4 drones from
+#: random_starts(seed 7) and run_patrol(seed=7), as computed by the patrol loop before it used
+#: twin.swarm.step (main at 8a31c98, printed with repr). The step must not change a number.
+R_HAT_T_BEFORE_THE_SHARED_STEP = {
+    "random": 0.9838400955575416,
+    "greedy": 1.6723573655600632,
+    "sweeping": 1.3565254775933433,
+}
+
+
+def _source(horizon: int = 40) -> SyntheticTraffic:
+    obstacles = np.zeros((8, 12), bool)
+    obstacles[3, 4:7] = True
+    obstacles[6, 9] = True
+    grid = Grid(obstacles)
+    disturbances = [Disturbance("big", 2, 3, 1.0, 2.0), Disturbance("small", 6, 8, 0.6, 1.5)]
+    return SyntheticTraffic(grid, disturbances, horizon=horizon)
+
+
+def _run(source, names=("random", "greedy", "sweeping"), seed=7):
+    starts = random_starts(source.grid, 4, np.random.default_rng(seed))
+    return run_patrol(source, {n: make_policy(n) for n in names}, starts, PARAMS, seed=seed)
+
+
+def test_baselines_score_as_before_the_step_was_shared():
+    result = _run(_source())
+    got = dict(zip(result.swarms, result.rewards.mean(axis=1).tolist(), strict=True))
+    assert got == pytest.approx(R_HAT_T_BEFORE_THE_SHARED_STEP, rel=1e-12, abs=0)
+
+
+def test_reward_parts_add_up_and_truth_defaults_to_none():
+    result = _run(_source(20))
+    shape = (3, 20)
+    for a in (result.reward_importance, result.reward_idleness, result.reward_plain):
+        assert a.shape == shape and np.isfinite(a).all()
+    np.testing.assert_allclose(
+        result.reward_importance + result.reward_idleness, result.rewards, rtol=1e-12
+    )
+    assert result.truth is None and result.importance.shape == (21, 8, 12)
+
+
+def test_one_drone_earns_the_same_in_both_readings():
+    source = _source(15)
+    starts = np.array([[0, 0]])
+    result = run_patrol(source, {"greedy": make_policy("greedy")}, starts, PARAMS, seed=1)
+    np.testing.assert_allclose(result.reward_plain, result.rewards, rtol=1e-12, atol=1e-12)
+
+
+def test_a_source_that_ends_early_keeps_the_steps_done():
+    full = _source(10)
+    maps = np.stack(list(full.importance_maps()))
+
+    class Short(RecordedTraffic):
+        def importance_maps(self):
+            yield from self.maps[:6]  # T^0 .. T^5 of a horizon of 10
+
+    result = _run(Short(full.grid, maps))
+    assert result.completed_steps == 5 and "ended after 5 of 10" in result.error
+    assert result.rewards.shape == result.reward_plain.shape == (3, 5)
+    assert result.positions.shape[1] == 6
+
+
+def test_step_matches_the_reward_and_rejects_infeasible_actions():
+    source = _source(3)
+    grid, maps = source.grid, list(source.importance_maps())
+    state = initial_state(grid, np.array([[0, 0], [2, 5]]), maps[0])
+    assert state.visited.sum() == 2 and state.feasible.tolist()[0] == [1, 0, 1, 0, 1]
+    nxt, out = step(state, np.array([4, 0]), maps[1], grid, PARAMS)
+    expected = rewards_on_arrival(
+        grid, PARAMS, state.idleness, maps[0], maps[1], state.positions, nxt.positions
+    )
+    np.testing.assert_array_equal(out.rewards, expected)
+    assert nxt.k == 1 and nxt.positions.tolist() == [[0, 1], [2, 5]]
+    assert nxt.visited.sum() == 3 and state.visited.sum() == 2  # the old state is untouched
+    np.testing.assert_array_equal(out.feasible, grid.feasible_actions(nxt.positions))
+    with pytest.raises(InfeasibleActionError, match=r"drone 1 at \(2, 5\): action 2 \(down\)"):
+        step(nxt, np.array([0, 2]), maps[2], grid, PARAMS)  # (3, 5) is an obstacle
+    with pytest.raises(InfeasibleActionError, match=r"not one of 0\.\.4"):
+        step(nxt, np.array([0, 7]), maps[2], grid, PARAMS)
+    with pytest.raises(InfeasibleActionError, match="one per drone"):
+        step(nxt, np.array([0]), maps[2], grid, PARAMS)
+
+
+def test_random_swarm_episode_follows_the_step():
+    source = _source(12)
+    ep = random_swarm_episode(source, 3, PARAMS, np.random.default_rng(4))
+    grid, maps = source.grid, list(source.importance_maps())
+    # replay the recorded actions through the step from the recorded start
+    start = np.rint(ep.states[0, :, :2] * [grid.nx, grid.ny]).astype(np.int64)
+    state = initial_state(grid, start, maps[0])
+    for k in range(source.horizon):
+        state, out = step(state, ep.actions[k], maps[k + 1], grid, PARAMS)
+        np.testing.assert_allclose(ep.rewards[k], out.rewards, rtol=1e-6)
+        np.testing.assert_array_equal(ep.next_feasible[k], out.feasible)

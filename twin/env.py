@@ -1,0 +1,300 @@
+"""The swarm as an RL environment: a PettingZoo parallel env and a Gymnasium joint-swarm env.
+
+Any :class:`twin.traffic.base.TrafficSource` drives it (synthetic, a replayed tape, live SUMO).
+The environment owns no dynamics of its own: it advances with :func:`twin.swarm.step`, the step
+of the patrol loop, so a policy scores the same here as in ``run_patrol``.
+
+- agents ``drone_0 .. drone_{N-1}``; per agent the observation is a dict with ``observation``,
+  the 13 values of eq. (s) (:data:`twin.scores.STATE_LAYOUT`), and ``action_mask``, the feasible
+  actions ``U_d(p)`` as 0/1 (PettingZoo's convention);
+- actions ``Discrete(5)`` in the order of :data:`twin.grid.ACTIONS`: 0 stay, 1 up, 2 down,
+  3 left, 4 right; an infeasible action raises :class:`twin.swarm.InfeasibleActionError`;
+- reward per drone: ``r_d^k`` of Def. 4 as implemented (shared-cell rule); the infos carry its
+  parts ``reward_importance`` (alpha_T), ``reward_idleness`` (alpha_I) and ``reward_plain``
+  (every drone paid in full);
+- no termination; truncation after ``horizon`` steps.
+
+``reset(seed=s)`` draws the start cells as ``twin.patrol.random_starts(grid, N,
+np.random.default_rng(s))``, unless fixed ``starts`` were given. A source built by a factory is
+rebuilt on every reset after the first (a live SUMO run restarts cleanly); ``close`` closes it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, ClassVar, Literal
+
+import numpy as np
+
+try:
+    import gymnasium
+    from gymnasium import spaces
+    from pettingzoo import ParallelEnv
+except ImportError:  # pragma: no cover - depends on the install
+    raise ImportError("twin.env needs gymnasium and pettingzoo: pip install 'twin[env]'") from None
+
+from twin.grid import N_ACTIONS
+from twin.scores import STATE_SIZE, ScoreParams, drone_states
+from twin.swarm import StepOutcome, SwarmState, check_actions, initial_state, random_starts, step
+from twin.traffic.base import TrafficSource
+
+SourceLike = TrafficSource | Callable[[], TrafficSource]
+
+
+class SwarmParallelEnv(ParallelEnv):
+    """PettingZoo ``ParallelEnv``: one agent per drone over a traffic source."""
+
+    metadata: ClassVar[dict] = {
+        "name": "twin_swarm_v0",
+        "render_modes": [],
+        "is_parallelizable": True,
+    }
+
+    def __init__(
+        self,
+        source: SourceLike,
+        n_drones: int | None = None,
+        params: ScoreParams | None = None,
+        starts: np.ndarray | None = None,
+    ) -> None:
+        """``source`` is a traffic source or a callable that builds one (``source_factory``).
+
+        Give ``n_drones`` (random starts drawn at each reset) or fixed ``starts`` ``(N, 2)``.
+        """
+        self._factory = None if isinstance(source, TrafficSource) else source
+        self.source: TrafficSource = source if self._factory is None else self._factory()
+        self.grid, self.horizon = self.source.grid, self.source.horizon
+        self.params = params or ScoreParams()
+        self._starts = None if starts is None else self._check_starts(starts)
+        if self._starts is not None:
+            n_drones = len(self._starts)
+        if n_drones is None or n_drones < 1 or n_drones > self.grid.n_free:
+            raise ValueError(
+                f"n_drones = {n_drones}: need 1 .. {self.grid.n_free} drones (the free cells)"
+            )
+        self.n_drones = int(n_drones)
+        self.possible_agents = [f"drone_{d}" for d in range(self.n_drones)]
+        self.agents: list[str] = []
+        self._observation_spaces = {
+            a: spaces.Dict(
+                {
+                    "observation": spaces.Box(0.0, 1.0, (STATE_SIZE,), np.float32),
+                    "action_mask": spaces.MultiBinary(N_ACTIONS),
+                }
+            )
+            for a in self.possible_agents
+        }
+        self._action_spaces = {a: spaces.Discrete(N_ACTIONS) for a in self.possible_agents}
+        self._rng = np.random.default_rng()
+        self._maps = None
+        self._used = False
+        self.swarm: SwarmState | None = None
+
+    def observation_space(self, agent: str) -> spaces.Space:
+        return self._observation_spaces[agent]
+
+    def action_space(self, agent: str) -> spaces.Space:
+        return self._action_spaces[agent]
+
+    def reset(self, seed: int | None = None, options: dict | None = None):
+        if seed is not None:
+            self._rng = np.random.default_rng(seed)
+        self._restart(self._rng)
+        obs = self._observations()
+        return obs, {a: {} for a in self.agents}
+
+    def step(self, actions: dict[str, int]):
+        missing = [a for a in self.agents if a not in actions]
+        if missing:
+            raise ValueError(f"no action for {', '.join(missing)}; give one per live agent")
+        out = self._advance(np.array([actions[a] for a in self.agents]))
+        agents = self.agents
+        done = self.swarm.k >= self.horizon
+        obs = self._observations()
+        rewards = {a: float(out.rewards[d]) for d, a in enumerate(agents)}
+        infos = {
+            a: {
+                "reward_importance": float(out.importance[d]),
+                "reward_idleness": float(out.idleness[d]),
+                "reward_plain": float(out.plain[d]),
+            }
+            for d, a in enumerate(agents)
+        }
+        if done:
+            self.agents = []
+        return (
+            obs,
+            rewards,
+            dict.fromkeys(agents, False),
+            dict.fromkeys(agents, done),
+            infos,
+        )
+
+    def close(self) -> None:
+        self._close_maps()
+        self.source.close()
+
+    # shared with SwarmGymEnv -------------------------------------------------------------
+
+    def _restart(self, rng: np.random.Generator) -> None:
+        """Start a new episode on a fresh pass of the source; the start cells from ``rng``."""
+        self._close_maps()
+        if self._used and self._factory is not None:
+            self.source.close()
+            self.source = self._factory()
+            if self.source.grid.shape != self.grid.shape or self.source.horizon != self.horizon:
+                raise ValueError("source_factory built a source with another grid or horizon")
+            self.grid = self.source.grid
+        self._used = True
+        self._maps = self.source.importance_maps()
+        first = self._next_map()
+        starts = self._starts
+        if starts is None:
+            starts = random_starts(self.grid, self.n_drones, rng)
+        self.swarm = initial_state(self.grid, starts, first)
+        self.agents = list(self.possible_agents)
+
+    def _advance(self, actions: np.ndarray) -> StepOutcome:
+        if self.swarm is None or self.swarm.k >= self.horizon:
+            raise RuntimeError("the episode is over (or not started): call reset()")
+        actions = check_actions(self.swarm, actions)  # before the source moves on
+        self.swarm, out = step(self.swarm, actions, self._next_map(), self.grid, self.params)
+        if self.swarm.k >= self.horizon:
+            self._close_maps()
+        return out
+
+    def _next_map(self) -> np.ndarray:
+        try:
+            return next(self._maps)
+        except StopIteration:
+            k = -1 if self.swarm is None else self.swarm.k
+            raise RuntimeError(
+                f"traffic source ended after {k + 1} of {self.horizon + 1} maps"
+            ) from None
+
+    def _close_maps(self) -> None:
+        if self._maps is not None:
+            self._maps.close()  # a live source closes its simulation here
+            self._maps = None
+
+    def _states(self) -> np.ndarray:
+        s = self.swarm
+        return drone_states(self.grid, s.idleness, s.importance, s.positions).astype(np.float32)
+
+    def _observations(self) -> dict[str, dict[str, np.ndarray]]:
+        if not self.agents:
+            return {}
+        states, masks = self._states(), self.swarm.feasible.astype(np.int8)
+        return {
+            a: {"observation": states[d], "action_mask": masks[d]}
+            for d, a in enumerate(self.agents)
+        }
+
+    def _check_starts(self, starts) -> np.ndarray:
+        starts = np.asarray(starts, dtype=np.int64)
+        if starts.ndim != 2 or starts.shape[1] != 2 or not len(starts):
+            raise ValueError(f"starts must be (N, 2) cells, got shape {starts.shape}")
+        if not self.grid.is_free(starts).all():
+            raise ValueError("starts: every start must be a free cell on the map")
+        if len({tuple(c) for c in starts.tolist()}) != len(starts):
+            raise ValueError("starts: two drones on one cell; give distinct cells")
+        return starts
+
+
+class SwarmGymEnv(gymnasium.Env):
+    """The joint swarm as one Gymnasium agent: ``MultiDiscrete([5] * N)`` actions, ``(N, 13)``
+    observations, reward ``R^k`` (Def. 4, summed over drones); ``info["action_mask"]`` is the
+    ``(N, 5)`` feasible mask.
+
+    ``infeasible="stay"`` turns an infeasible action into "stay" (for algorithms that cannot
+    mask actions); the default raises.
+    """
+
+    metadata: ClassVar[dict] = {"render_modes": []}
+
+    def __init__(
+        self,
+        source: SourceLike,
+        n_drones: int | None = None,
+        params: ScoreParams | None = None,
+        starts: np.ndarray | None = None,
+        infeasible: Literal["raise", "stay"] = "raise",
+    ) -> None:
+        if infeasible not in ("raise", "stay"):
+            raise ValueError(f'infeasible = {infeasible!r}: use "raise" or "stay"')
+        self.swarm_env = SwarmParallelEnv(source, n_drones, params, starts)
+        n = self.swarm_env.n_drones
+        self.infeasible = infeasible
+        self.action_space = spaces.MultiDiscrete([N_ACTIONS] * n)
+        self.observation_space = spaces.Box(0.0, 1.0, (n, STATE_SIZE), np.float32)
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)  # np_random from seed: the stream of default_rng(seed)
+        self.swarm_env._restart(self.np_random)
+        return self.swarm_env._states(), self._info()
+
+    def step(self, action):
+        env = self.swarm_env
+        action = np.asarray(action, dtype=np.int64)
+        if self.infeasible == "stay" and env.swarm is not None and action.shape == (env.n_drones,):
+            ok = (action >= 0) & (action < N_ACTIONS)
+            ok[ok] = env.swarm.feasible[np.flatnonzero(ok), action[ok]]
+            action = np.where(ok, action, 0)
+        out = env._advance(action)
+        info = self._info()
+        info.update(
+            rewards=out.rewards.copy(),
+            reward_importance=float(out.importance.sum()),
+            reward_idleness=float(out.idleness.sum()),
+            reward_plain=float(out.plain.sum()),
+        )
+        truncated = env.swarm.k >= env.horizon
+        return env._states(), float(out.rewards.sum()), False, truncated, info
+
+    def _info(self) -> dict[str, Any]:
+        return {"action_mask": self.swarm_env.swarm.feasible.astype(np.int8)}
+
+    def close(self) -> None:
+        self.swarm_env.close()
+
+
+def make_env(
+    config: str | Path,
+    *,
+    tape: str | Path | None = None,
+    joint: bool = False,
+    **options,
+) -> SwarmParallelEnv | SwarmGymEnv:
+    """The env of a scenario config (a path, or a shipped config's name such as ``"synthetic"``):
+    its traffic (synthetic, live SUMO, or ``tape`` replayed), drone count and reward weights.
+
+    ``joint=True`` gives the Gymnasium joint-swarm env; ``options`` go to the env's constructor.
+    """
+    from twin.config import load_config, shipped_config
+
+    path = Path(config)
+    if not path.exists() and path.suffix != ".toml":
+        path = shipped_config(f"configs/{config}.toml")
+    cfg = load_config(path)
+    if tape is not None:
+        from twin.traffic.tape import TapeTraffic
+
+        source: SourceLike = TapeTraffic.from_file(tape, cfg)
+    elif cfg.traffic["kind"] == "synthetic":
+        from twin.config import synthetic_source
+        from twin.traffic.base import RecordedTraffic
+
+        source = RecordedTraffic.from_source(synthetic_source(cfg))
+    else:
+        from twin.sumo.scenario import sumo_source
+
+        def source() -> TrafficSource:
+            return sumo_source(cfg)
+
+    options.setdefault("params", cfg.params)
+    if not isinstance(cfg.swarm.starts, str):
+        options.setdefault("starts", cfg.swarm.starts)
+    if "starts" not in options:
+        options.setdefault("n_drones", cfg.swarm.n_drones)
+    return (SwarmGymEnv if joint else SwarmParallelEnv)(source, **options)
