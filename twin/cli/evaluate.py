@@ -17,7 +17,7 @@ from twin.config import (
     start_positions,
 )
 from twin.errors import UserError
-from twin.metrics import format_table2
+from twin.metrics import format_results
 from twin.patrol import run_patrol
 from twin.policies import available_policies
 from twin.runs import new_run_dir, prepare_run_dir, write_run
@@ -132,8 +132,11 @@ def main(args: argparse.Namespace) -> int:
             meta.setdefault("policies", {})[name] = policy.describe()
     summary = write_run(run_dir, results, meta)
     label = f"{seeds} seed{'s' if seeds > 1 else ''} from {first}"
-    print(f"Table 2 analog ({config.path.name}, {label}, T = {source.horizon}):")
-    print(format_table2(summary))
+    print(
+        format_results(
+            summary, f"Table 2 analog ({config.path.name}, {label}, T = {source.horizon})"
+        )
+    )
     if not args.no_report:
         _report(run_dir)
     print(f"run folder: {run_dir}")

@@ -65,7 +65,7 @@ def make_swarms(config, names: list[str], explicit: bool) -> dict:
 
 def main(args: argparse.Namespace) -> int:
     from twin.config import check_swarm_fits, load_config, shipped_config, start_positions
-    from twin.metrics import format_table2
+    from twin.metrics import format_results
     from twin.patrol import run_patrol
     from twin.runs import new_run_dir, prepare_run_dir
     from twin.sumo.scenario import sumo_source
@@ -136,8 +136,11 @@ def main(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
     mfd = source.model.report()
-    print(f"Table 2 analog ({s.name}, seed {seed}, T = {result.completed_steps}):")
-    print(format_table2(summary))
+    print(
+        format_results(
+            summary, f"Table 2 analog ({s.name}, seed {seed}, T = {result.completed_steps})"
+        )
+    )
     print(
         f"MFD ({mfd['form']}): a = {mfd['a']:.3f}, k_c = {mfd['k_c']:.1f} veh/lane-km, "
         f"R2 = {mfd.get('r2', float('nan')):.3f}, RMSE = {mfd.get('rmse_kmh', float('nan')):.2f} km/h "
