@@ -33,6 +33,10 @@ TABLE_COLUMNS = (
     ("pct_time_max_C", "% of time with max C^k", 2),
     ("pct_map_covered", "% of map covered", 2),
 )
+#: The paper's four Table 2 columns.
+PAPER_TABLE_COLUMNS = tuple(
+    c for c in TABLE_COLUMNS if c[0] in ("R_hat_T", "C_hat_T", "pct_time_max_C", "pct_map_covered")
+)
 #: Monitoring columns of monitoring.csv: (column, header, decimals).
 MONITORING_TABLE_COLUMNS = (
     ("belief_error", "belief error", 4),
