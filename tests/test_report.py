@@ -17,7 +17,7 @@ import pytest
 from twin.errors import UserError
 from twin.grid import Grid
 from twin.report import load_run, write_report
-from twin.report.document import TABLE_COLUMNS
+from twin.report.document import MONITORING_TABLE_COLUMNS, TABLE_COLUMNS
 from twin.scores import ScoreParams, coverage, initial_idleness, update_idleness
 
 SWARMS = ("random", "greedy", "sweeping", "rl")
@@ -72,6 +72,7 @@ def write_fixture_run(
                 )
             frame = pd.DataFrame(rows, columns=["step", "reward", "coverage", "visited_share"])
             frame["cumulative_reward"] = frame["reward"].cumsum()
+            frame["belief_error"] = rng.uniform(0.0, 0.3, horizon)
             series.append(frame.assign(seed=seed, swarm=swarm))
             covs[swarm] = frame["coverage"].to_numpy()
             n = pos.shape[1]
@@ -95,7 +96,11 @@ def write_fixture_run(
                     "seed": seed,
                     "swarm": swarm,
                     "R_hat_T": f["reward"].mean(),
+                    "R_hat_T_importance": 0.4 * f["reward"].mean(),
+                    "R_hat_T_idleness": 0.6 * f["reward"].mean(),
+                    "R_hat_T_plain": 1.1 * f["reward"].mean(),
                     "C_hat_T": f["coverage"].mean(),
+                    "C_hat_T_ceiling": 0.2,
                     "pct_time_max_C": 100.0 * np.mean(covs[swarm] >= best),
                     "pct_map_covered": 100.0 * f["visited_share"].iloc[-1],
                 }
@@ -110,6 +115,28 @@ def write_fixture_run(
     out["n_seeds"] = len(seeds)
     run = root / "run"
     run.mkdir(parents=True)
+    # monitoring: any numbers in the documented format (twin/runs.py) will do
+    monitoring = pd.DataFrame({"swarm": list(SWARMS)})
+    for col, _, _ in MONITORING_TABLE_COLUMNS:
+        monitoring[col] = rng.uniform(0, 50, len(SWARMS))
+        monitoring[f"{col}_ci95"] = rng.uniform(0, 5, len(SWARMS))
+    monitoring.loc[1, "latency_p90_steps"] = np.nan  # a swarm that saw no event
+    monitoring["n_seeds"] = len(seeds)
+    monitoring.to_csv(run / "monitoring.csv", index=False)
+    events = []
+    for seed in seeds:
+        for e in range(5):
+            onset, duration = int(rng.integers(0, horizon - 5)), int(rng.integers(1, 6))
+            for swarm in SWARMS:
+                seen = bool(rng.random() < 0.5)
+                first = onset + int(rng.integers(0, duration)) if seen else -1
+                events.append(
+                    {"seed": seed, "event": e, "i": int(rng.integers(0, nx)),
+                     "j": int(rng.integers(0, ny)), "onset": onset, "duration": duration,
+                     "peak": float(rng.uniform(0.5, 1.0)), "swarm": swarm, "seen": seen,
+                     "first_seen": first, "latency_steps": first - onset if seen else -1}
+                )  # fmt: skip
+    pd.DataFrame(events).to_parquet(run / "events.parquet", index=False)
     pd.concat(series).to_parquet(run / "series.parquet", index=False)
     pd.concat(trajectories).to_parquet(run / "trajectories.parquet", index=False)
     per_seed.to_csv(run / "per_seed.csv", index=False)
@@ -126,6 +153,7 @@ def write_fixture_run(
         "checkpoint": {"path": "data/qnet.pt", "sha256": "ab12cd34"},
         "timings": {"patrol_seconds": [1.234, 2.345]},
         "versions": {"python": "3.11.7", "numpy": "2.4.6"},
+        "monitoring": {"threshold": 0.5, "min_duration": 1, "weight_floor": 0.05},
     }
     (run / "run.json").write_text(json.dumps(meta))
     if sumo:
@@ -165,7 +193,7 @@ def report(tmp_path_factory) -> Path:
 
 
 FIGURES = ("scores.png", "snapshots.png", "trajectories.png", "animation.gif", "traffic.png",
-           "network.png", "mfd.png")  # fmt: skip
+           "network.png", "events.png", "belief.png", "mfd.png")  # fmt: skip
 
 
 def test_every_figure_is_written_and_inlined(report: Path) -> None:
@@ -187,10 +215,21 @@ def _parse_cell(text: str) -> tuple[float, float | None]:
     return float(parts[0]), float(parts[1]) if len(parts) > 1 else None
 
 
-def _check_rows(rows: list[list[str]], summary: pd.DataFrame) -> None:
+def _check_rows(
+    rows: list[list[str]], summary: pd.DataFrame, spec=TABLE_COLUMNS, header=None
+) -> None:
+    """Every cell equals the CSV; with ``header``, the columns shown are exactly the CSV's
+    columns of ``spec`` that hold a value."""
+    expected_cols = [c for c in spec if c[0] in summary.columns and summary[c[0]].notna().any()]
+    if header is not None:
+        assert header[1 : 1 + len(expected_cols)] == [h for _, h, _ in expected_cols]
     assert [r[0] for r in rows] == list(summary["swarm"])
     for row, (_, expected) in zip(rows, summary.iterrows(), strict=True):
-        for cell, (col, _, decimals) in zip(row[1:], TABLE_COLUMNS, strict=False):
+        assert len(row) == len(expected_cols) + 2
+        for cell, (col, _, decimals) in zip(row[1:], expected_cols, strict=False):
+            if cell == "-":
+                assert np.isnan(expected[col]), (col, expected[col])
+                continue
             value, half = _parse_cell(cell)
             tol = 0.5 * 10**-decimals + 1e-12
             assert abs(value - expected[col]) <= tol, (col, cell, expected[col])
@@ -198,12 +237,22 @@ def _check_rows(rows: list[list[str]], summary: pd.DataFrame) -> None:
         assert int(row[-1]) == expected["n_seeds"]
 
 
-def test_markdown_table_equals_summary_csv(report: Path) -> None:
-    summary = pd.read_csv(report.parent.parent / "summary.csv")
+def _markdown_block(md: str, title: str) -> tuple[list[str], list[list[str]]]:
+    block = md.split(f"## {title}")[1].split("\n\n")[1]
+    lines = [[c.strip() for c in line.strip("|").split("|")] for line in block.splitlines()]
+    return lines[0], lines[2:]
+
+
+def test_markdown_tables_equal_summary_and_monitoring_csv(report: Path) -> None:
+    run_dir = report.parent.parent
     md = (report.parent / "report.md").read_text()
-    block = md.split("## Scores (paper's Table 2)")[1].split("\n\n")[1]
-    rows = [[c.strip() for c in line.strip("|").split("|")] for line in block.splitlines()[2:]]
-    _check_rows(rows, summary)
+    header, rows = _markdown_block(md, "Scores (paper's Table 2)")
+    summary = pd.read_csv(run_dir / "summary.csv")
+    _check_rows(rows, summary, header=header)
+    assert "plain sum over drones" in " ".join(header) and "ceiling" in " ".join(header)
+    header, rows = _markdown_block(md, "Monitoring against ground truth")
+    _check_rows(rows, pd.read_csv(run_dir / "monitoring.csv"), MONITORING_TABLE_COLUMNS, header)
+    assert "relative to the swarms compared here (random, greedy, sweeping, rl)" in md
 
 
 class _TableParser(html.parser.HTMLParser):
@@ -238,7 +287,15 @@ def test_html_table_and_metadata_equal_run_files(report: Path) -> None:
     run_dir = report.parent.parent
     parser = _TableParser()
     parser.feed(report.read_text())
-    _check_rows(parser.tables["summary"][1:], pd.read_csv(run_dir / "summary.csv"))
+    summary = parser.tables["summary"]
+    _check_rows(summary[1:], pd.read_csv(run_dir / "summary.csv"), header=summary[0])
+    monitoring = parser.tables["monitoring"]
+    _check_rows(
+        monitoring[1:],
+        pd.read_csv(run_dir / "monitoring.csv"),
+        MONITORING_TABLE_COLUMNS,
+        monitoring[0],
+    )
     meta = dict(parser.tables["meta"][1:])
     run = json.loads((run_dir / "run.json").read_text())
     assert meta["checkpoint.sha256"] == run["checkpoint"]["sha256"]
@@ -292,10 +349,17 @@ def test_report_of_a_real_patrol_run(tmp_path: Path) -> None:
     write_run(tmp_path, results, {"params": vars(ScoreParams())})
     out = write_report(tmp_path, animation=False)
     md = (out.parent / "report.md").read_text()
-    block = md.split("## Scores (paper's Table 2)")[1].split("\n\n")[1]
-    rows = [[c.strip() for c in line.strip("|").split("|")] for line in block.splitlines()[2:]]
-    _check_rows(rows, pd.read_csv(tmp_path / "summary.csv"))
+    header, rows = _markdown_block(md, "Scores (paper's Table 2)")
+    summary = pd.read_csv(tmp_path / "summary.csv")
+    _check_rows(rows, summary, header=header)
+    assert "Ĉ_T ceiling (jumping oracle)" in header
+    header, rows = _markdown_block(md, "Monitoring against ground truth")
+    _check_rows(rows, pd.read_csv(tmp_path / "monitoring.csv"), MONITORING_TABLE_COLUMNS, header)
     assert "coverage matches series.parquet" in out.read_text()
+    assert {"events.png", "belief.png"} <= {p.name for p in out.parent.iterdir()}
+    events = pd.read_parquet(tmp_path / "events.parquet")
+    n_first = events[events["seed"] == 0]["event"].nunique()
+    assert f"({n_first} events" in md
 
 
 CHECK_SCRIPT = """<script>

@@ -1,10 +1,23 @@
-"""Table 2 columns and their aggregation over seeds.
+"""Table 2 columns, the monitoring columns, and their aggregation over seeds.
 
-- ``R_hat_T``: mean of ``R^k`` over the horizon (Def. 4);
-- ``C_hat_T``: mean of ``C^k`` (Def. 5);
+Table 2 analog (one row per swarm and run):
+
+- ``R_hat_T``: mean of ``R^k`` over the horizon (Def. 4, the shared-cell rule: drones on one
+  cell share its terms); ``R_hat_T_importance`` and ``R_hat_T_idleness`` its alpha_T and alpha_I
+  parts (they add up to ``R_hat_T``); ``R_hat_T_plain`` the paper's plain sum over drones, every
+  drone paid in full. The two accountings agree when no two drones share a cell;
+- ``C_hat_T``: mean of ``C^k`` (Def. 5); ``C_hat_T_ceiling`` the same for an oracle whose drones
+  jump each step to the N freshest distinct cells (:func:`twin.monitoring.ceiling_coverage`):
+  an upper bound for a swarm's choice of cells, so a value near it shows the swarm neither
+  stacks nor hovers, not more;
 - ``pct_time_max_C``: share of steps at which a swarm has the highest ``C^k`` among the swarms
-  run side by side (ties count for each tied swarm), in percent;
+  run side by side (ties count for each tied swarm), in percent: relative to the swarms
+  compared, so it changes when a swarm is added or removed;
 - ``pct_map_covered``: share of free cells a drone stood on at least once, in percent.
+
+Monitoring (:mod:`twin.monitoring`): ``belief_error``, ``events``, ``pct_events_seen``,
+``latency_median_steps``, ``latency_p90_steps`` (and ``_min`` when a step's length is known),
+``pct_congested_observed``.
 """
 
 from __future__ import annotations
@@ -13,40 +26,126 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
+from twin.monitoring import MonitorSettings, ceiling_coverage, monitor_run
 from twin.patrol import PatrolResult
+from twin.scores import ScoreParams
 
 TABLE2_COLUMNS = ("R_hat_T", "C_hat_T", "pct_time_max_C", "pct_map_covered")
+#: Columns added to the paper's four: the reward split, the plain accounting, the ceiling.
+GAIN_COLUMNS = ("R_hat_T_importance", "R_hat_T_idleness", "R_hat_T_plain", "C_hat_T_ceiling")
+#: The Table 2 analog as printed and reported, in this order.
+SCORE_COLUMNS = (
+    "R_hat_T",
+    "R_hat_T_importance",
+    "R_hat_T_idleness",
+    "R_hat_T_plain",
+    "C_hat_T",
+    "C_hat_T_ceiling",
+    "pct_time_max_C",
+    "pct_map_covered",
+)
+MONITORING_COLUMNS = (
+    "belief_error",
+    "events",
+    "pct_events_seen",
+    "latency_median_steps",
+    "latency_p90_steps",
+    "latency_median_min",
+    "latency_p90_min",
+    "pct_congested_observed",
+)
 TABLE2_HEADERS = {
     "R_hat_T": "R_hat_T",
+    "R_hat_T_importance": "R importance",
+    "R_hat_T_idleness": "R idleness",
+    "R_hat_T_plain": "R plain sum",
     "C_hat_T": "C_hat_T",
+    "C_hat_T_ceiling": "C ceiling",
     "pct_time_max_C": "% time max C^k",
     "pct_map_covered": "% map covered",
 }
+MONITORING_HEADERS = {
+    "belief_error": "belief error",
+    "events": "events",
+    "pct_events_seen": "% events seen",
+    "latency_median_steps": "latency median",
+    "latency_p90_steps": "latency p90",
+    "latency_median_min": "median (min)",
+    "latency_p90_min": "p90 (min)",
+    "pct_congested_observed": "% congested observed",
+}
+DIGITS = {
+    "R_hat_T": 3,
+    "R_hat_T_importance": 3,
+    "R_hat_T_idleness": 3,
+    "R_hat_T_plain": 3,
+    "C_hat_T": 3,
+    "C_hat_T_ceiling": 3,
+    "pct_time_max_C": 2,
+    "pct_map_covered": 1,
+    "belief_error": 3,
+    "events": 1,
+    "pct_events_seen": 1,
+    "latency_median_steps": 1,
+    "latency_p90_steps": 1,
+    "latency_median_min": 1,
+    "latency_p90_min": 1,
+    "pct_congested_observed": 1,
+}
 
 
-def table2(result: PatrolResult) -> pd.DataFrame:
-    """One row per swarm with the Table 2 columns of one run."""
+def table2(result: PatrolResult, params: ScoreParams | None = None) -> pd.DataFrame:
+    """One row per swarm with the Table 2 columns of one run, and :data:`GAIN_COLUMNS`.
+
+    The reward split and the plain accounting come from the result's ``reward_importance``,
+    ``reward_idleness`` and ``reward_plain``; the ceiling
+    needs ``eta`` and ``delta``: ``params``, else ``result.params``, else NaN.
+    """
     cov = result.coverage
-    if cov.shape[1]:
+    n_swarms, horizon = cov.shape
+    if horizon:
         best = cov >= cov.max(axis=0, keepdims=True) - 1e-12
         pct_max = 100.0 * best.mean(axis=1)
         final_visit = 100.0 * result.visited_share[:, -1]
     else:
-        pct_max = final_visit = np.full(len(result.swarms), np.nan)
-    return pd.DataFrame(
+        pct_max = final_visit = np.full(n_swarms, np.nan)
+    frame = pd.DataFrame(
         {
             "swarm": result.swarms,
-            "R_hat_T": result.rewards.mean(axis=1) if cov.shape[1] else np.nan,
-            "C_hat_T": cov.mean(axis=1) if cov.shape[1] else np.nan,
+            "R_hat_T": result.rewards.mean(axis=1) if horizon else np.nan,
+            "C_hat_T": cov.mean(axis=1) if horizon else np.nan,
             "pct_time_max_C": pct_max,
             "pct_map_covered": final_visit,
         }
     )
+    for column, name in (
+        ("R_hat_T_importance", "reward_importance"),
+        ("R_hat_T_idleness", "reward_idleness"),
+        ("R_hat_T_plain", "reward_plain"),
+    ):
+        frame[column] = getattr(result, name).mean(axis=1) if horizon else np.nan
+    params = params or result.params
+    if params is not None and horizon:
+        n_drones = result.positions.shape[2]
+        ceiling = ceiling_coverage(result.grid, n_drones, params.eta, params.delta, horizon)
+        frame["C_hat_T_ceiling"] = float(ceiling.mean())
+    else:
+        frame["C_hat_T_ceiling"] = np.nan
+    return frame
+
+
+def monitoring_table(
+    result: PatrolResult, step_s: float | None = None, settings: MonitorSettings | None = None
+) -> pd.DataFrame:
+    """One row per swarm with the monitoring columns of one run (see :mod:`twin.monitoring`)."""
+    return monitor_run(result, settings).table(step_s)
 
 
 def ci95_halfwidth(values: np.ndarray) -> float:
-    """Half-width of the Student-t 95% interval of the mean (0 for a single value)."""
+    """Half-width of the Student-t 95% interval of the mean (0 for a single value; NaN values,
+    e.g. the latency of a seed in which no event was seen, are left out)."""
     values = np.asarray(values, dtype=float)
+    values = values[~np.isnan(values)]
     n = len(values)
     if n < 2:
         return 0.0
@@ -54,32 +153,43 @@ def ci95_halfwidth(values: np.ndarray) -> float:
 
 
 def aggregate(per_seed: pd.DataFrame, by: str | list[str] = "swarm") -> pd.DataFrame:
-    """Mean, 95% half-width and seed count of the Table 2 columns, grouped by ``by``."""
+    """Mean, 95% half-width and seed count of the Table 2, gain and monitoring columns present
+    in ``per_seed``, grouped by ``by``."""
     keys = [by] if isinstance(by, str) else list(by)
+    columns = [c for c in (*SCORE_COLUMNS, *MONITORING_COLUMNS) if c in per_seed.columns]
     rows = []
     for key, group in per_seed.groupby(keys, sort=False):
         key = key if isinstance(key, tuple) else (key,)
         row = dict(zip(keys, key, strict=True))
-        for col in TABLE2_COLUMNS:
-            row[col] = group[col].mean()
-            row[f"{col}_ci95"] = ci95_halfwidth(group[col].to_numpy())
+        for col in columns:
+            values = pd.to_numeric(group[col], errors="coerce").to_numpy(dtype=float)
+            row[col] = float(np.nanmean(values)) if (~np.isnan(values)).any() else np.nan
+            row[f"{col}_ci95"] = ci95_halfwidth(values)
         row["n_seeds"] = len(group)
         rows.append(row)
     return pd.DataFrame(rows)
 
 
-def format_table2(summary: pd.DataFrame) -> str:
-    """The Table 2 analog as aligned text, with ``± half-width`` when several seeds."""
+def _present(summary: pd.DataFrame, columns) -> list[str]:
+    """The columns of ``summary`` that hold at least one value."""
+    return [c for c in columns if c in summary.columns and summary[c].notna().any()]
+
+
+def _format(summary: pd.DataFrame, columns: list[str], headers: dict[str, str]) -> str:
     several = "n_seeds" in summary and (summary["n_seeds"] > 1).any()
-    digits = {"R_hat_T": 3, "C_hat_T": 3, "pct_time_max_C": 2, "pct_map_covered": 1}
-    header = ["swarm"] + [TABLE2_HEADERS[c] for c in TABLE2_COLUMNS]
+    header = ["swarm"] + [headers[c] for c in columns]
     lines = [header]
     for _, row in summary.iterrows():
         cells = [str(row["swarm"])]
-        for col in TABLE2_COLUMNS:
-            text = f"{row[col]:.{digits[col]}f}"
-            if several:
-                text += f" ± {row[f'{col}_ci95']:.{digits[col]}f}"
+        for col in columns:
+            d = DIGITS[col]
+            if pd.isna(row[col]):
+                text = "-"
+            else:
+                text = f"{row[col]:.{d}f}"
+                ci = row.get(f"{col}_ci95")
+                if several and ci is not None and not pd.isna(ci):
+                    text += f" ± {ci:.{d}f}"
             cells.append(text)
         lines.append(cells)
     widths = [max(len(line[c]) for line in lines) for c in range(len(header))]
@@ -94,6 +204,56 @@ def format_table2(summary: pd.DataFrame) -> str:
         if n == 0:
             out.append("  ".join("-" * w for w in widths))
     return "\n".join(out)
+
+
+def format_table2(summary: pd.DataFrame) -> str:
+    """The Table 2 analog as aligned text, with ``± half-width`` when several seeds; the gain
+    columns appear when the summary holds them."""
+    return _format(summary, _present(summary, SCORE_COLUMNS), TABLE2_HEADERS)
+
+
+def table2_footnote(summary: pd.DataFrame) -> str:
+    """What the printed Table 2 columns mean, naming the swarms compared."""
+    swarms = ", ".join(str(s) for s in summary["swarm"])
+    notes = [
+        f"% time max C^k: share of steps with the highest C^k among the swarms in this table "
+        f"({swarms}); it changes with the set of swarms compared.",
+    ]
+    present = _present(summary, GAIN_COLUMNS)
+    if "R_hat_T_importance" in present:
+        notes.append(
+            "R_hat_T = R importance (alpha_T part) + R idleness (alpha_I part), drones on one "
+            "cell sharing its terms."
+        )
+    if "R_hat_T_plain" in present:
+        notes.append("R plain sum: the paper's plain sum over drones, each paid in full.")
+    if "C_hat_T_ceiling" in present:
+        notes.append(
+            "C ceiling: C_hat_T of drones that jump each step to the freshest distinct cells; "
+            "an upper bound, so near it means no stacking or hovering, not more."
+        )
+    return "\n".join(notes)
+
+
+def format_monitoring(summary: pd.DataFrame) -> str:
+    """The monitoring table as aligned text (the columns of :data:`MONITORING_COLUMNS` that
+    the summary holds); latencies in steps, and in minutes when a step's length is known."""
+    return _format(summary, _present(summary, MONITORING_COLUMNS), MONITORING_HEADERS)
+
+
+def format_results(summary: pd.DataFrame, title: str) -> str:
+    """What ``twin evaluate`` and ``twin run`` print: the Table 2 analog under ``title``, its
+    footnote, and the monitoring table when the summary holds it."""
+    parts = [f"{title}:", format_table2(summary), table2_footnote(summary)]
+    if _present(summary, MONITORING_COLUMNS):
+        parts += [
+            "",
+            "Monitoring against ground truth (belief error: importance-weighted MAE of the "
+            "believed map; events: cells with true importance >= threshold; latency in steps "
+            "from onset to first sighting):",
+            format_monitoring(summary),
+        ]
+    return "\n".join(parts)
 
 
 def paired_difference(per_seed: pd.DataFrame, a: str, b: str, column: str = "R_hat_T") -> dict:

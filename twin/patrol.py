@@ -40,6 +40,7 @@ class PatrolResult:
     positions: np.ndarray  # (S, T+1, N, 2): P_0 .. P_T
     importance: np.ndarray | None  # (T+1, nx, ny) float32, T^0 .. T^T
     truth: np.ndarray | None = None  # (T+1, nx, ny) float32 true T^k; None: same as importance
+    params: ScoreParams | None = None  # eta, delta, alpha_T, alpha_I of the run
     seconds: float = 0.0
     completed_steps: int = 0
     error: str | None = None  # set when the source failed mid-run; arrays hold what was done
@@ -150,6 +151,7 @@ def run_patrol(
         positions=positions[:, : done + 1],
         importance=None if importance is None else importance[: done + 1],
         truth=None if truth is None else truth[: done + 1],
+        params=params,
         seconds=time.perf_counter() - t0,
         completed_steps=done,
         error=error,

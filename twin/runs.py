@@ -4,10 +4,16 @@ Files (every write goes to a temporary name first and is then renamed into place
 interrupted run never leaves a half-written file):
 
 - ``series.parquet``: seed, swarm, step (k = 0..T-1), reward (R^k), cumulative_reward,
-  coverage (C^{k+1}), visited_share;
+  coverage (C^{k+1}), visited_share, and belief_error (of the belief after the drones' view
+  from ``P_{k+1}``, against ``T_true^{k+1}``; see ``twin/monitoring.py``);
 - ``trajectories.parquet``: seed, swarm, step (0..T), drone, i, j;
-- ``per_seed.csv``: seed, swarm and the Table 2 columns; ``summary.csv``: their mean over seeds
-  with ``<column>_ci95`` half-widths and ``n_seeds``;
+- ``per_seed.csv``: seed, swarm, the Table 2 columns, the gain columns (reward split, plain
+  accounting, coverage ceiling) and the monitoring columns (``twin/metrics.py``);
+  ``summary.csv``: their mean over seeds with ``<column>_ci95`` half-widths and ``n_seeds``;
+- ``monitoring.csv``: the monitoring columns of ``summary.csv`` alone;
+- ``events.parquet``: the congestion events, one row per (seed, event, swarm): seed, event, i, j,
+  onset, duration, peak, swarm, seen, first_seen (step, -1 when not seen while the event
+  lasted), latency_steps (-1 likewise);
 - ``importance.npz``: ``importance`` (T+1, nx, ny) of the first seed, ``obstacles`` (nx, ny);
 - ``run.json``: metadata (command, configuration, seeds, traffic source, versions, timings).
 """
@@ -31,8 +37,10 @@ import pandas as pd
 
 from twin import __version__
 from twin.errors import UserError
-from twin.metrics import aggregate, table2
+from twin.metrics import MONITORING_COLUMNS, aggregate, table2
+from twin.monitoring import MonitorSettings, RunMonitoring, monitor_run
 from twin.patrol import PatrolResult
+from twin.scores import ScoreParams
 
 
 def new_run_dir(root: str | Path, prefix: str) -> Path:
@@ -126,19 +134,58 @@ def package_versions() -> dict[str, str]:
     return versions
 
 
+def score_params_of(metadata: dict[str, Any]) -> ScoreParams | None:
+    """The run's :class:`ScoreParams` from its metadata's ``params`` (None when absent)."""
+    node = metadata.get("params")
+    if not isinstance(node, dict) or "eta" not in node or "delta" not in node:
+        return None
+    known = {k: float(node[k]) for k in ("eta", "delta", "alpha_T", "alpha_I") if k in node}
+    return ScoreParams(**known)
+
+
+def step_seconds_of(metadata: dict[str, Any]) -> float | None:
+    """Seconds per step of a simulated run (``traffic.step_s`` or the tape's recorded one)."""
+    traffic = metadata.get("traffic") or {}
+    for node in (traffic, traffic.get("recorded") or {}):
+        value = node.get("step_s") if isinstance(node, dict) else None
+        if isinstance(value, (int, float)) and value > 0:
+            return float(value)
+    return None
+
+
 def write_run(
     run_dir: Path,
     results: Sequence[PatrolResult],
     metadata: dict[str, Any],
+    monitor: MonitorSettings | None = None,
 ) -> pd.DataFrame:
     """Write the run folder for one or several seeds; return the summary table."""
     run_dir.mkdir(parents=True, exist_ok=True)
-    series = pd.concat([series_frame(r) for r in results], ignore_index=True)
-    trajectories = pd.concat([trajectories_frame(r) for r in results], ignore_index=True)
-    per_seed = pd.concat([table2(r).assign(seed=r.seed) for r in results], ignore_index=True)[
-        ["seed", "swarm", "R_hat_T", "C_hat_T", "pct_time_max_C", "pct_map_covered"]
+    monitor = monitor or MonitorSettings()
+    params = score_params_of(metadata)
+    step_s = step_seconds_of(metadata)
+    monitored: list[RunMonitoring | None] = [
+        monitor_run(r, monitor) if r.importance is not None else None for r in results
     ]
+    series = pd.concat(
+        [_with_belief(series_frame(r), m) for r, m in zip(results, monitored, strict=True)],
+        ignore_index=True,
+    )
+    trajectories = pd.concat([trajectories_frame(r) for r in results], ignore_index=True)
+    tables = []
+    for r, m in zip(results, monitored, strict=True):
+        table = table2(r, params)
+        if m is not None:
+            table = table.merge(m.table(step_s), on="swarm", how="left")
+        tables.append(table.assign(seed=r.seed))
+    per_seed = pd.concat(tables, ignore_index=True)
+    per_seed = per_seed[["seed", *[c for c in per_seed.columns if c != "seed"]]]
     summary = aggregate(per_seed)
+    keep = [c for c in MONITORING_COLUMNS if c in summary.columns]
+    monitoring = summary[["swarm", *[x for c in keep for x in (c, f"{c}_ci95")], "n_seeds"]]
+    event_frames = [m.events_frame() for m in monitored if m is not None]
+    event_frames = [f for f in event_frames if len(f)] or event_frames[:1]
+    events = pd.concat(event_frames, ignore_index=True) if event_frames else None
 
     atomic_write(run_dir / "series.parquet", lambda p: series.to_parquet(p, index=False))
     atomic_write(
@@ -146,6 +193,9 @@ def write_run(
     )
     atomic_write(run_dir / "per_seed.csv", lambda p: per_seed.to_csv(p, index=False))
     atomic_write(run_dir / "summary.csv", lambda p: summary.to_csv(p, index=False))
+    if keep and events is not None:
+        atomic_write(run_dir / "monitoring.csv", lambda p: monitoring.to_csv(p, index=False))
+        atomic_write(run_dir / "events.parquet", lambda p: events.to_parquet(p, index=False))
     first = results[0]
     if first.importance is not None:
 
@@ -167,11 +217,29 @@ def write_run(
         "horizon": first.horizon,
         "timings": {"patrol_seconds": [round(r.seconds, 3) for r in results]},
         "errors": [r.error for r in results if r.error],
+        "monitoring": {
+            "threshold": monitor.threshold,
+            "min_duration": monitor.min_duration,
+            "weight_floor": monitor.weight_floor,
+            "step_s": step_s,
+            "truth": (
+                "recorded truth"
+                if any(r.truth is not None for r in results)
+                else "the observed importance"
+            ),
+        },
         "versions": package_versions(),
         **metadata,
     }
     write_json(run_dir / "run.json", meta)
     return summary
+
+
+def _with_belief(series: pd.DataFrame, monitoring: RunMonitoring | None) -> pd.DataFrame:
+    """Add ``belief_error`` at step k = the error after observing from ``P_{k+1}``."""
+    if monitoring is None:
+        return series
+    return series.assign(belief_error=monitoring.belief_error[:, 1:].ravel())
 
 
 def read_summary(run_dir: str | Path) -> pd.DataFrame:

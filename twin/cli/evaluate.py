@@ -16,7 +16,7 @@ from twin.experiment import (
     run_experiment,
     run_metadata,
 )
-from twin.metrics import format_comparison, format_table2
+from twin.metrics import format_comparison, format_results
 from twin.policies import available_policies
 from twin.runs import new_run_dir, prepare_run_dir
 
@@ -91,8 +91,7 @@ def main(args: argparse.Namespace) -> int:
     summary, comparison = record(run_dir, outcome, run_metadata(outcome, "evaluate"))
     horizon = outcome.results[0].horizon
     label = f"{seeds} seed{'s' if seeds > 1 else ''} from {first}"
-    print(f"Table 2 analog ({config.path.name}, {label}, T = {horizon}):")
-    print(format_table2(summary))
+    print(format_results(summary, f"Table 2 analog ({config.path.name}, {label}, T = {horizon})"))
     if not comparison.empty:
         print(format_comparison(comparison))
     if not args.no_report:

@@ -64,7 +64,7 @@ def main(args: argparse.Namespace) -> int:
         run_experiment,
         run_metadata,
     )
-    from twin.metrics import format_comparison, format_table2
+    from twin.metrics import format_comparison, format_results
     from twin.runs import new_run_dir, prepare_run_dir
 
     limit_threads()
@@ -127,11 +127,11 @@ def main(args: argparse.Namespace) -> int:
     seeds = [r.seed for r in outcome.results]
     mfd = first_source.model.report()
     label = f"seed {seeds[0]}" if len(seeds) == 1 else f"seeds {seeds[0]}-{seeds[-1]}"
-    print(
+    title = (
         f"Table 2 analog ({first_source.scenario.name}, {label}, "
-        f"T = {outcome.results[0].completed_steps}):"
+        f"T = {outcome.results[0].completed_steps})"
     )
-    print(format_table2(summary))
+    print(format_results(summary, title))
     if not comparison.empty:
         print(format_comparison(comparison))
     print(

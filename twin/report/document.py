@@ -21,12 +21,32 @@ from twin.report.animation import MAX_FRAMES, write_animation
 from twin.report.load import RunFiles, load_run
 from twin.scores import coverage
 
-#: Table 2 columns of summary.csv: (column, header, decimals).
+#: Table 2 columns of summary.csv: (column, header, decimals); a column absent from the run's
+#: summary (or empty) is left out.
 TABLE_COLUMNS = (
     ("R_hat_T", "R̂_T (mean score per step)", 4),
+    ("R_hat_T_importance", "of which importance (α_T)", 4),
+    ("R_hat_T_idleness", "of which idleness (α_I)", 4),
+    ("R_hat_T_plain", "R̂_T, plain sum over drones", 4),
     ("C_hat_T", "Ĉ_T (mean coverage)", 4),
+    ("C_hat_T_ceiling", "Ĉ_T ceiling (jumping oracle)", 4),
     ("pct_time_max_C", "% of time with max C^k", 2),
     ("pct_map_covered", "% of map covered", 2),
+)
+#: The paper's four Table 2 columns.
+PAPER_TABLE_COLUMNS = tuple(
+    c for c in TABLE_COLUMNS if c[0] in ("R_hat_T", "C_hat_T", "pct_time_max_C", "pct_map_covered")
+)
+#: Monitoring columns of monitoring.csv: (column, header, decimals).
+MONITORING_TABLE_COLUMNS = (
+    ("belief_error", "belief error", 4),
+    ("events", "events", 1),
+    ("pct_events_seen", "% events seen", 1),
+    ("latency_median_steps", "latency median (steps)", 1),
+    ("latency_p90_steps", "latency p90 (steps)", 1),
+    ("latency_median_min", "latency median (min)", 1),
+    ("latency_p90_min", "latency p90 (min)", 1),
+    ("pct_congested_observed", "% congested cell-steps observed", 1),
 )
 REPORT_DIR = "report"
 
@@ -39,8 +59,11 @@ class Section:
 
 
 def format_cell(row: pd.Series, column: str, decimals: int) -> str:
-    """``mean``, or ``mean ± half-width`` over several seeds, as printed in both tables."""
+    """``mean``, or ``mean ± half-width`` over several seeds, as printed in both tables; ``-``
+    when there is no value (e.g. no latency: no event was seen)."""
     value = float(row[column])
+    if math.isnan(value):
+        return "-"
     text = f"{value:.{decimals}f}"
     ci = row.get(f"{column}_ci95")
     several = int(row.get("n_seeds", 2)) > 1
@@ -49,9 +72,11 @@ def format_cell(row: pd.Series, column: str, decimals: int) -> str:
     return text
 
 
-def summary_table(summary: pd.DataFrame) -> tuple[list[str], list[list[str]]]:
-    """Header and rows of the Table 2 analog, straight from summary.csv."""
-    columns = [c for c in TABLE_COLUMNS if c[0] in summary.columns]
+def summary_table(
+    summary: pd.DataFrame, table_columns=TABLE_COLUMNS
+) -> tuple[list[str], list[list[str]]]:
+    """Header and rows of the Table 2 analog (or of ``table_columns``), straight from the CSV."""
+    columns = [c for c in table_columns if c[0] in summary.columns and summary[c[0]].notna().any()]
     header = ["swarm"] + [h for _, h, _ in columns]
     if "n_seeds" in summary.columns:
         header.append("seeds")
@@ -189,6 +214,32 @@ def build_sections(
             "hatched. " + note,
         )
     )
+    if rf.events is not None:
+        drawn, total = figures.events_drawn(rf)
+        sections.append(
+            Section(
+                "Congestion events and who saw them",
+                timed("events", lambda: _save(figures.figure_events(rf), out / "events.png")),
+                f"Each bar is a congestion event of seed {rf.first_seed} from events.parquet "
+                f"({total} events"
+                + (f", the {len(drawn)} earliest drawn" if total > len(drawn) else "")
+                + "): a cell whose true importance stays at or above the threshold, from onset "
+                "to end, darker for a higher peak. A dot marks the step at which a swarm's "
+                "drones first had the cell in view while the event lasted; a cross at the end "
+                "of the bar an event the swarm missed.",
+            )
+        )
+    if "belief_error" in rf.series.columns:
+        sections.append(
+            Section(
+                "Belief error over time",
+                timed("belief", lambda: _save(figures.figure_belief(rf), out / "belief.png")),
+                "Each swarm believes, for every cell, the last importance its drones observed "
+                "(0 before the first sighting). The curve is the importance-weighted mean "
+                "absolute error of that map against the true importance (series.parquet, "
+                "belief_error); lower is better.",
+            )
+        )
     if rf.mfd is not None:
         fig, note = timed("mfd", lambda: figures.figure_mfd(rf))
         sections.append(
@@ -237,6 +288,13 @@ def render_html(rf: RunFiles, out: Path, sections: list[Section]) -> str:
         html_table(header, rows, "summary"),
         f'<p class="caption">{html.escape(_table_caption(rf))}</p>',
     ]
+    if rf.monitoring is not None:
+        m_header, m_rows = summary_table(rf.monitoring, MONITORING_TABLE_COLUMNS)
+        parts += [
+            "<h2>Monitoring against ground truth</h2>",
+            html_table(m_header, m_rows, "monitoring"),
+            f'<p class="caption">{html.escape(_monitoring_caption(rf))}</p>',
+        ]
     if rf.per_seed is not None and len(rf.seeds) > 1:
         parts.append("<details><summary>Per seed</summary>")
         parts.append(
@@ -285,8 +343,49 @@ def _lede(rf: RunFiles) -> str:
 
 def _table_caption(rf: RunFiles) -> str:
     if len(rf.seeds) > 1:
-        return "From summary.csv: mean ± 95% interval half-width over seeds."
-    return "From summary.csv (one seed, so no interval)."
+        text = "From summary.csv: mean ± 95% interval half-width over seeds."
+    else:
+        text = "From summary.csv (one seed, so no interval)."
+    columns = set(rf.summary.columns)
+    text += (
+        " % of time with max C^k is relative to the swarms compared here "
+        f"({', '.join(rf.swarms)}): the share of steps at which a swarm has the highest C^k "
+        "among them (ties count for each), so it changes when a swarm is added or removed."
+    )
+    if "R_hat_T_importance" in columns:
+        text += (
+            " R̂_T counts a cell shared by several drones once (its terms split among them); it "
+            "is the sum of its importance (α_T) and idleness (α_I) parts."
+        )
+    if "R_hat_T_plain" in columns:
+        text += " The plain sum pays every drone in full, as the paper writes it."
+    if "C_hat_T_ceiling" in columns:
+        text += (
+            " The Ĉ_T ceiling is the coverage of drones that jump, each step, to the freshest "
+            "distinct cells: an upper bound, so a Ĉ_T near it shows a swarm that neither "
+            "stacks nor hovers, not more."
+        )
+    return text
+
+
+def _monitoring_caption(rf: RunFiles) -> str:
+    settings = rf.run.get("monitoring") or {}
+    threshold = settings.get("threshold")
+    level = f"{threshold:g}" if isinstance(threshold, (int, float)) else "the threshold"
+    truth = settings.get("truth", "the true importance")
+    text = (
+        "From monitoring.csv"
+        + (": mean ± 95% interval over seeds. " if len(rf.seeds) > 1 else " (one seed). ")
+        + f"Truth: {truth}. Belief error: importance-weighted mean absolute error of each "
+        "swarm's believed map (last observed value per cell, 0 before the first sighting) "
+        "against the truth, averaged over the run. Events: maximal runs of steps in which a "
+        f"cell's true importance stays >= {level}"
+        + (" (the MFD speed at half its free-flow value). " if threshold == 0.5 else ". ")
+        + "An event is seen when a drone's field of view covers its cell while it lasts; latency "
+        "runs from onset to the first sighting (median and 90th percentile over seen events). "
+        "% congested cell-steps observed: share of the events' cell-steps in some drone's view."
+    )
+    return text
 
 
 def render_markdown(rf: RunFiles, sections: list[Section]) -> str:
@@ -303,6 +402,16 @@ def render_markdown(rf: RunFiles, sections: list[Section]) -> str:
         _table_caption(rf),
         "",
     ]
+    if rf.monitoring is not None:
+        m_header, m_rows = summary_table(rf.monitoring, MONITORING_TABLE_COLUMNS)
+        lines += [
+            "## Monitoring against ground truth",
+            "",
+            markdown_table(m_header, m_rows),
+            "",
+            _monitoring_caption(rf),
+            "",
+        ]
     for section in sections:
         lines += [f"## {section.title}", ""]
         if section.image:

@@ -273,6 +273,82 @@ def figure_traffic(rf: RunFiles) -> Figure:
     return fig
 
 
+#: Most events drawn in the events figure (the earliest onsets; the caption gives the count).
+MAX_EVENTS_DRAWN = 60
+
+
+def events_drawn(rf: RunFiles) -> tuple[pd.DataFrame, int]:
+    """The first seed's events (one row per event) drawn in :func:`figure_events`, and how many
+    the seed has."""
+    ev = rf.events
+    if ev is None or ev.empty:
+        return pd.DataFrame(columns=["event", "i", "j", "onset", "duration", "peak"]), 0
+    ev = ev[ev["seed"] == rf.first_seed]
+    one = ev.drop_duplicates("event").sort_values(["onset", "i", "j"])
+    return one.head(MAX_EVENTS_DRAWN), len(one)
+
+
+def figure_events(rf: RunFiles) -> Figure:
+    """Congestion events of the first seed as horizontal bars (cell, onset to end, shade =
+    peak), with a marker where each swarm first saw each event; x for an event it missed."""
+    drawn, total = events_drawn(rf)
+    ev = rf.events[rf.events["seed"] == rf.first_seed] if rf.events is not None else None
+    colours = swarm_colours(rf.swarms)
+    n = max(len(drawn), 1)
+    fig = Figure(figsize=(11, min(2.5 + 0.18 * n, 14)), layout="constrained")
+    ax = fig.subplots()
+    cmap = colormaps["Reds"]
+    rows = {int(e): y for y, e in enumerate(drawn["event"])}
+    for y, e in enumerate(drawn.itertuples(index=False)):
+        ax.barh(y, e.duration, left=e.onset, height=0.7, color=cmap(0.3 + 0.7 * float(e.peak)),
+                edgecolor="#7b241c", lw=0.4)  # fmt: skip
+    n_swarms = max(len(rf.swarms), 1)
+    for s, swarm in enumerate(rf.swarms):
+        if ev is None or not rows:
+            break
+        mine = ev[(ev["swarm"] == swarm) & ev["event"].isin(rows)]
+        y = mine["event"].map(rows).to_numpy() + (s - (n_swarms - 1) / 2) * 0.6 / n_swarms
+        seen = mine["seen"].to_numpy(bool)
+        end = (mine["onset"] + mine["duration"]).to_numpy()
+        ax.plot(mine["first_seen"].to_numpy()[seen], y[seen], "o", color=colours[swarm], ms=4,
+                label=f"{swarm}: first seen")  # fmt: skip
+        ax.plot(end[~seen], y[~seen], "x", color=colours[swarm], ms=4, label=f"{swarm}: missed")
+    ax.set_yticks(range(len(drawn)))
+    ax.set_yticklabels([f"({e.i}, {e.j})" for e in drawn.itertuples(index=False)], fontsize=6)
+    ax.invert_yaxis()
+    ax.set_xlim(0, rf.horizon + 1)
+    ax.set_xlabel("step k" + _clock_note(rf))
+    ax.set_ylabel("cell (i, j) of the event")
+    ax.grid(alpha=0.3, axis="x")
+    if rows:
+        ax.legend(fontsize=7, ncol=min(4, 2 * n_swarms), loc="lower right")
+    shown = f"{len(drawn)} of {total}" if total > len(drawn) else f"{total}"
+    threshold = (rf.run.get("monitoring") or {}).get("threshold")
+    level = f", true importance >= {threshold:g}" if isinstance(threshold, (int, float)) else ""
+    fig.suptitle(f"Congestion events (seed {rf.first_seed}, {shown} events{level})", fontsize=11)
+    return fig
+
+
+def figure_belief(rf: RunFiles) -> Figure:
+    """Belief error of every swarm over the horizon (mean and 95% interval over seeds)."""
+    colours = swarm_colours(rf.swarms)
+    n_seeds = len(rf.seeds)
+    fig = Figure(figsize=(11, 3.6), layout="constrained")
+    ax = fig.subplots()
+    for swarm, (steps, mean, half) in mean_band(rf.series, "belief_error").items():
+        x = steps + 1  # after the drones' view from P_{k+1}
+        ax.plot(x, mean, color=colours.get(swarm), lw=1.3, label=swarm)
+        if n_seeds > 1:
+            ax.fill_between(x, mean - half, mean + half, color=colours.get(swarm), alpha=0.2)
+    ax.set_xlabel("step k" + _clock_note(rf))
+    ax.set_ylabel("belief error")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    band = f"mean and 95% interval over {n_seeds} seeds" if n_seeds > 1 else f"seed {rf.seeds[0]}"
+    fig.suptitle(f"Importance-weighted error of each swarm's believed map ({band})", fontsize=11)
+    return fig
+
+
 def _clock_note(rf: RunFiles) -> str:
     begin, step_s = rf.clock_start()
     return f" ({step_s:g} s each from {begin})" if begin else ""

@@ -36,6 +36,8 @@ class RunFiles:
     network: dict[str, Any] | None = None
     mfd: dict[str, Any] | None = None
     mfd_samples: pd.DataFrame | None = None
+    monitoring: pd.DataFrame | None = None  # monitoring.csv
+    events: pd.DataFrame | None = None  # events.parquet
     _idleness: dict[tuple[int, str], np.ndarray] = field(default_factory=dict, repr=False)
 
     @property
@@ -158,6 +160,7 @@ def load_run(run_dir: str | Path) -> RunFiles:
         obstacles = np.asarray(npz["obstacles"], dtype=bool)
     per_seed_path = run_dir / "per_seed.csv"
     samples_path = run_dir / "mfd_samples.parquet"
+    monitoring_path, events_path = run_dir / "monitoring.csv", run_dir / "events.parquet"
     return RunFiles(
         run_dir=run_dir,
         series=pd.read_parquet(run_dir / "series.parquet"),
@@ -170,4 +173,6 @@ def load_run(run_dir: str | Path) -> RunFiles:
         network=_read_json(run_dir / "network.json"),
         mfd=_read_json(run_dir / "mfd.json"),
         mfd_samples=pd.read_parquet(samples_path) if samples_path.exists() else None,
+        monitoring=pd.read_csv(monitoring_path) if monitoring_path.exists() else None,
+        events=pd.read_parquet(events_path) if events_path.exists() else None,
     )

@@ -14,6 +14,7 @@ from matplotlib.figure import Figure
 
 from twin.report.document import (
     CSS,
+    PAPER_TABLE_COLUMNS,
     TABLE_COLUMNS,
     _data_uri,
     format_cell,
@@ -38,13 +39,14 @@ def group_label(row: pd.Series, columns: list[str]) -> str:
 
 def sweep_table(summary: pd.DataFrame) -> tuple[list[str], list[list[str]]]:
     groups = group_columns(summary)
-    header = [*groups, "swarm"] + [h for _, h, _ in TABLE_COLUMNS] + ["seeds"]
+    columns = [c for c in TABLE_COLUMNS if c[0] in summary and summary[c[0]].notna().any()]
+    header = [*groups, "swarm"] + [h for _, h, _ in columns] + ["seeds"]
     rows = []
     for _, row in summary.iterrows():
         rows.append(
             [str(row[c]) for c in groups]
             + [str(row["swarm"])]
-            + [format_cell(row, c, d) for c, _, d in TABLE_COLUMNS]
+            + [format_cell(row, c, d) for c, _, d in columns]
             + [str(int(row["n_seeds"]))]
         )
     return header, rows
@@ -60,7 +62,7 @@ def figure_table2(summary: pd.DataFrame) -> Figure:
     axes = fig.subplots(2, 2).ravel()
     width = 0.8 / len(swarms)
     x = np.arange(len(labels))
-    for ax, (col, header, _) in zip(axes, TABLE_COLUMNS, strict=True):
+    for ax, (col, header, _) in zip(axes, PAPER_TABLE_COLUMNS, strict=True):
         for s, swarm in enumerate(swarms):
             rows = summary[summary["swarm"] == swarm]
             lookup = {group_label(r, groups): r for _, r in rows.iterrows()}
