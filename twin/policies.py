@@ -229,10 +229,26 @@ class SweepingPolicy(Policy):
 
 
 PolicyFactory = Callable[..., Policy]
+
+
+def _planner(name: str) -> PolicyFactory:
+    """Factory of a coordinated swarm of ``twin.planners`` (imported on use: it imports us)."""
+
+    def build(**options) -> Policy:
+        from twin.planners import PLANNERS
+
+        return PLANNERS[name](**options)
+
+    return build
+
+
 _REGISTRY: dict[str, PolicyFactory] = {
     "random": RandomPolicy,
     "greedy": GreedyPolicy,
     "sweeping": SweepingPolicy,
+    "greedy-coordinated": _planner("greedy-coordinated"),
+    "visit-gain": _planner("visit-gain"),
+    "lookahead": _planner("lookahead"),
 }
 #: Swarms provided by optional modules, imported on first use (they need torch).
 _LAZY: dict[str, str] = {
