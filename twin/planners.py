@@ -30,9 +30,9 @@ from twin.scores import ScoreParams
 #: Relative size of the tie-breaking jitter: scores closer than this count as tied.
 TIE_JITTER = 1e-9
 #: Default planning horizon of ``lookahead``, chosen on R_hat_T (see :class:`LookaheadPolicy`).
-DEFAULT_HORIZON = 2
-#: Largest horizon accepted: 5^H paths per drone.
-MAX_HORIZON = 6
+DEFAULT_HORIZON = 4
+#: Largest horizon accepted: 5^H paths per drone (H = 5: 1.7 s per step with 1000 drones).
+MAX_HORIZON = 5
 
 
 def visit_gain(weight: np.ndarray, idleness: np.ndarray, params: ScoreParams) -> np.ndarray:
@@ -136,8 +136,10 @@ class LookaheadPolicy(CoordinatedPolicy):
 
     Cost per step: ``N 5^H H`` numpy element operations (no loop over drones or paths).
     ``DEFAULT_HORIZON`` is the ``H`` with the largest mean R_hat_T on ``configs/synthetic.toml``,
-    seeds 0-9 (``H`` = 1 .. 5, README "Baselines"), among those taking well under a second
-    per step at 200 x 300 cells with 1000 drones.
+    seeds 0-9, among those taking well under a second per step at 200 x 300 cells with 1000
+    drones (``python benchmarks/bench_swarms.py --pick-horizon``; R_hat_T mean ± 95%, ms/step
+    at 200 x 300 with 1000 drones): H=1 2.719 ± 0.031, 2 ms; H=2 2.736 ± 0.032, 3 ms;
+    H=3 2.705 ± 0.040, 10 ms; H=4 2.784 ± 0.046, 135 ms; H=5 2.782 ± 0.046, 1665 ms.
     """
 
     name = "lookahead"
