@@ -238,6 +238,17 @@ class SwarmKind:
     learned: bool = False  # driven by a trained Q-network (needs torch and a checkpoint)
 
 
+def _planner(name: str) -> Callable[..., Policy]:
+    """Builder of a coordinated classical swarm (``twin.planners`` imports this module)."""
+
+    def build(**options) -> Policy:
+        from twin.planners import PLANNERS
+
+        return PLANNERS[name](**options)
+
+    return build
+
+
 def _learned(name: str) -> Callable[..., Policy]:
     """Builder of a learned swarm; torch is imported only when one is built."""
 
@@ -261,6 +272,21 @@ SWARMS: dict[str, SwarmKind] = {
         SwarmKind("random", RandomPolicy, "a uniform feasible action per drone"),
         SwarmKind("greedy", GreedyPolicy, "each drone to the cell of its view with the most I*T"),
         SwarmKind("sweeping", SweepingPolicy, "zig-zag sweepers plus greedy and random drones"),
+        SwarmKind(
+            "greedy-coordinated",
+            _planner("greedy-coordinated"),
+            "greedy's I*T of the cell reached, collisions resolved by the coordinator",
+        ),
+        SwarmKind(
+            "visit-gain",
+            _planner("visit-gain"),
+            "the one-step gain of the visit at the next cell, by the coordinator",
+        ),
+        SwarmKind(
+            "lookahead",
+            _planner("lookahead"),
+            "the best summed visit gain over paths of H steps, first moves by the coordinator",
+        ),
         SwarmKind("rl", _learned("rl"), "the Q-network with the central coordinator", True),
         SwarmKind(
             "rl-decentralized",

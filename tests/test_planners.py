@@ -1,0 +1,201 @@
+"""Coordinated classical swarms (twin.planners): collision-free, exact, reproducible."""
+
+import itertools
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from twin.errors import UserError
+from twin.grid import ACTION_DELTAS, Grid
+from twin.patrol import random_starts
+from twin.planners import LookaheadPolicy, VisitGainPolicy, action_paths, visit_gain
+from twin.policies import SwarmView, available_policies, make_policy
+from twin.scores import ScoreParams, update_idleness
+
+COORDINATED = ("greedy-coordinated", "visit-gain", "lookahead")
+PARAMS = ScoreParams()
+
+
+def make_view(grid, positions, idleness, importance, k=0, params=PARAMS) -> SwarmView:
+    return SwarmView(
+        k=k,
+        horizon=100,
+        grid=grid,
+        positions=positions,
+        idleness=idleness,
+        importance=importance,
+        feasible=grid.feasible_actions(positions),
+        params=params,
+    )
+
+
+def scene(seed, nx, ny, n, obstacle_share):
+    rng = np.random.default_rng(seed)
+    obstacles = rng.random((nx, ny)) < obstacle_share
+    if (~obstacles).sum() < n:
+        obstacles[:] = False
+    grid = Grid(obstacles)
+    positions = random_starts(grid, min(n, grid.n_free), rng)
+    idleness = rng.random(grid.shape) * grid.free
+    return rng, grid, positions, idleness
+
+
+def run(policy, rng, grid, positions, idleness, steps, params=PARAMS):
+    """Drive ``policy`` for ``steps`` steps on random importance maps; yield each step."""
+    policy.reset(grid, len(positions), np.random.default_rng(rng.integers(1 << 32)))
+    for k in range(steps):
+        importance = rng.random(grid.shape) ** 3 * grid.free
+        view = make_view(grid, positions, idleness, importance, k, params)
+        actions = policy.act(view)
+        yield view, actions
+        positions = grid.move(positions, actions)
+        idleness = update_idleness(idleness, positions, grid, params.eta, params.delta)
+
+
+def test_registered():
+    assert set(COORDINATED) <= set(available_policies())
+    assert make_policy("lookahead", horizon=3).horizon == 3
+
+
+@pytest.mark.parametrize("horizon", [0, 6, 2.5, True])
+def test_lookahead_rejects_bad_horizon(horizon):
+    with pytest.raises(UserError, match="horizon"):
+        make_policy("lookahead", horizon=horizon)
+
+
+@pytest.mark.parametrize("name", COORDINATED)
+@settings(max_examples=25, deadline=None)
+@given(
+    seed=st.integers(0, 2**31),
+    nx=st.integers(2, 8),
+    ny=st.integers(2, 8),
+    n=st.integers(2, 10),
+    obstacle_share=st.floats(0.0, 0.4),
+)
+def test_no_two_drones_ever_share_a_cell(name, seed, nx, ny, n, obstacle_share):
+    rng, grid, positions, idleness = scene(seed, nx, ny, n, obstacle_share)
+    n = len(positions)
+    for view, actions in run(make_policy(name), rng, grid, positions, idleness, steps=12):
+        assert view.feasible[np.arange(n), actions].all()
+        nxt = grid.move(view.positions, actions)
+        assert len(np.unique(nxt[:, 0] * grid.ny + nxt[:, 1])) == n
+
+
+def visit_gain_objective(view, joint) -> float:
+    """Sum of ``(alpha_T T + alpha_I)(min(1, I + delta) - eta I)`` over the cells reached,
+    computed cell by cell from the maps, independently of the policy's code."""
+    p, total = view.params, 0.0
+    for (i, j), u in zip(view.positions, joint, strict=True):
+        a, b = i + ACTION_DELTAS[u][0], j + ACTION_DELTAS[u][1]
+        idle, imp = view.idleness[a, b], view.importance[a, b]
+        total += (p.alpha_T * imp + p.alpha_I) * (min(1.0, idle + p.delta) - p.eta * idle)
+    return total
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    seed=st.integers(0, 2**31),
+    nx=st.integers(2, 5),
+    ny=st.integers(2, 5),
+    n=st.integers(1, 6),
+    obstacle_share=st.floats(0.0, 0.3),
+)
+def test_visit_gain_equals_brute_force_over_its_objective(seed, nx, ny, n, obstacle_share):
+    rng, grid, positions, idleness = scene(seed, nx, ny, n, obstacle_share)
+    n = len(positions)
+    # coarse values so that exact ties occur, as where T = 0 on a real map
+    importance = rng.integers(0, 3, grid.shape) / 2.0 * grid.free
+    idleness = np.round(idleness * 4) / 4
+    view = make_view(grid, positions, idleness, importance)
+    policy = VisitGainPolicy()
+    policy.reset(grid, n, np.random.default_rng(seed))
+    chosen = policy.act(view)
+
+    cells = positions[:, None, :] + ACTION_DELTAS[None]
+    best = -np.inf
+    for joint in itertools.product(*(np.flatnonzero(f) for f in view.feasible)):
+        reached = cells[np.arange(n), joint]
+        if len(np.unique(reached[:, 0] * grid.ny + reached[:, 1])) == n:
+            best = max(best, visit_gain_objective(view, joint))
+    assert view.feasible[np.arange(n), chosen].all()
+    # equal up to the tie-breaking jitter (1e-9 relative per drone)
+    assert visit_gain_objective(view, chosen) == pytest.approx(best, abs=1e-7)
+
+
+def test_lookahead_with_horizon_1_is_visit_gain():
+    """By construction: with H = 1 the paths are the 5 moves, the predicted idleness of the
+    cell reached is ``min(1, I^k + 0 delta) = I^k`` (no earlier step on the path), and the
+    cell lies in the field of view, where the importance belief was just set to ``T^k``. So the
+    scores are visit-gain's (same expression, :func:`visit_gain`), bit for bit, and with the
+    same generator the jitter and hence the actions are the same at every step."""
+    _, grid, positions, idleness = scene(3, 9, 11, 6, 0.2)
+    look, gain = LookaheadPolicy(horizon=1), VisitGainPolicy()
+    runs = [
+        list(run(policy, np.random.default_rng(5), grid, positions, idleness, steps=40))
+        for policy in (look, gain)
+    ]
+    for (view, a_look), (_, a_gain) in zip(*runs, strict=True):
+        np.testing.assert_array_equal(a_look, a_gain)
+        feasible = view.feasible
+        np.testing.assert_array_equal(look.scores(view)[feasible], gain.scores(view)[feasible])
+
+
+def test_lookahead_scores_match_a_step_by_step_simulation():
+    """Each move's score = best over its feasible paths of the summed visit gains, with the
+    idleness map advanced by Def. 3 (one drone) after each step, importance = the belief."""
+    rng, grid, positions, idleness = scene(11, 5, 6, 2, 0.2)
+    policy = LookaheadPolicy(horizon=3, discount=0.9)
+    policy.reset(grid, len(positions), np.random.default_rng(0))
+    importance = rng.random(grid.shape) * grid.free
+    view = make_view(grid, positions, idleness, importance)
+    scores = policy.scores(view)
+    weight = PARAMS.alpha_T * policy.belief + PARAMS.alpha_I
+    for d, start in enumerate(positions):
+        expect = np.full(5, -np.inf)
+        for seq in itertools.product(range(5), repeat=3):
+            idle, pos, value = idleness.copy(), start[None, :], 0.0
+            for h, u in enumerate(seq):
+                pos = grid.move(pos, [u])
+                if not grid.is_free(pos)[0]:
+                    break
+                i, j = pos[0]
+                value += 0.9**h * visit_gain(weight[i, j], idle[i, j], PARAMS)
+                idle = update_idleness(idle, pos, grid, PARAMS.eta, PARAMS.delta)
+            else:
+                expect[seq[0]] = max(expect[seq[0]], value)
+        ok = view.feasible[d]
+        np.testing.assert_allclose(scores[d][ok], expect[ok], rtol=1e-12)
+
+
+def test_lookahead_reads_importance_only_where_seen():
+    """The belief holds T only on cells some drone's field of view covered."""
+    grid = Grid.open(6, 6)
+    positions = np.array([[0, 0], [5, 5]])
+    policy = LookaheadPolicy(horizon=3)
+    policy.reset(grid, 2, np.random.default_rng(0))
+    importance = np.ones(grid.shape)
+    policy.scores(make_view(grid, positions, grid.free * 1.0, importance))
+    assert policy.belief.sum() == 6  # two corner cells with 2 neighbours each
+    assert policy.belief[0, 0] == policy.belief[0, 1] == policy.belief[1, 0] == 1
+
+
+def test_action_paths_first_action_blocks_and_revisits():
+    offsets, last, first = action_paths(3)
+    assert len(offsets) == 125
+    assert (first.reshape(5, 25) == np.arange(5)[:, None]).all()
+    stay = np.flatnonzero((offsets == 0).all(axis=(1, 2)))[0]
+    assert last[stay].tolist() == [-1, 0, 1]
+
+
+@pytest.mark.parametrize("name", COORDINATED)
+def test_deterministic_given_the_seed(name):
+    _, grid, positions, idleness = scene(2, 8, 9, 5, 0.1)
+
+    def actions(seed):
+        steps = run(make_policy(name), np.random.default_rng(seed), grid, positions, idleness, 30)
+        return np.array([a for _, a in steps])
+
+    np.testing.assert_array_equal(actions(4), actions(4))
+    assert not np.array_equal(actions(4), actions(5))
