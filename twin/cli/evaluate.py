@@ -91,9 +91,9 @@ def load_source(config: ScenarioConfig, tape: Path | None):
         from twin.traffic.tape import TapeTraffic
 
         return TapeTraffic.from_file(tape, config)
-    if config.traffic["kind"] != "synthetic":
+    if config.traffic.kind != "synthetic":
         raise UserError(
-            f"{config.path}: [traffic].kind = {config.traffic['kind']!r} runs live with `twin run`; "
+            f"{config.path}: [traffic].kind = {config.traffic.kind!r} runs live with `twin run`; "
             "`twin evaluate` takes synthetic configs or --traffic TAPE"
         )
     from twin.config import synthetic_source

@@ -71,9 +71,9 @@ def main(args: argparse.Namespace) -> int:
     from twin.sumo.scenario import sumo_source
 
     config = load_config(args.config or shipped_config(DEFAULT_CONFIG))
-    if config.traffic.get("kind") != "sumo":
+    if config.traffic.kind != "sumo":
         raise UserError(
-            f"{config.path}: [traffic].kind = {config.traffic.get('kind')!r}; `twin run` needs "
+            f"{config.path}: [traffic].kind = {config.traffic.kind!r}; `twin run` needs "
             '"sumo" (use `twin evaluate` for synthetic traffic)'
         )
     if args.routes and not args.net:
