@@ -378,9 +378,6 @@ def validation_error(
     tags = ("synthetic", "sumo")
     if err["type"] == "union_tag_invalid":
         loc = (*loc, "kind")
-    if flags and loc and loc[0] in flags:
-        flag = flags[loc[0]]
-        return ConfigError(f"{flag} {_short(err.get('input'))}: {_problem(err).split(' ', 2)[-1]}")
     kind = err["type"]
     field = _field(model, loc)
     if kind == "extra_forbidden":
@@ -411,6 +408,9 @@ def validation_error(
     if kind in ("dict_type", "model_type", "model_attributes_type"):
         dotted = ".".join(p for p in loc if isinstance(p, str))
         fix = f"write it as a table, [{dotted}] or {{ key = value }}"
+    if flags and loc and loc[0] in flags:  # set by a command-line flag, not by the file
+        value = problem.removeprefix("= ")
+        return ConfigError(f"{flags[loc[0]]} {value}; {fix}")
     return ConfigError(f"{source}: {where} {problem}; {fix}")
 
 
