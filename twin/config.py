@@ -293,6 +293,13 @@ def _inner(model: type[BaseModel], loc: tuple) -> list[type[BaseModel]]:
     return owners
 
 
+def _is_array(annotation: Any) -> bool:
+    """A list of tables (``[[name]]`` in TOML)."""
+    while typing.get_origin(annotation) is Annotated:
+        annotation = typing.get_args(annotation)[0]
+    return typing.get_origin(annotation) is list and bool(_models(annotation))
+
+
 def _field(model: type[BaseModel], loc: tuple) -> Any:
     if not loc or not isinstance(loc[-1], str):
         return None
@@ -300,7 +307,7 @@ def _field(model: type[BaseModel], loc: tuple) -> Any:
     return hits[0].model_fields[loc[-1]] if hits else None
 
 
-def key_name(loc: tuple, data: Any, sections: bool = True) -> str:
+def key_name(loc: tuple, data: Any, sections: bool = True, arrays: tuple = ()) -> str:
     """``[section.sub].key[n].leaf`` from an error location (tables in brackets)."""
     if not loc:
         return "the file"
@@ -309,6 +316,8 @@ def key_name(loc: tuple, data: Any, sections: bool = True) -> str:
         return str(rest.pop(0)) + "".join(_part(p) for p in rest)
     head = [rest.pop(0)]
     node = data.get(head[0]) if isinstance(data, dict) else None
+    if head[0] in arrays and not rest:
+        return f"[[{head[0]}]]"
     if isinstance(node, list) and rest and isinstance(rest[0], int):
         return f"[[{head[0]}]] #{rest.pop(0) + 1}" + "".join(_part(p) for p in rest)
     while len(rest) > 1 and isinstance(node, dict) and isinstance(node.get(rest[0]), dict):
@@ -318,7 +327,9 @@ def key_name(loc: tuple, data: Any, sections: bool = True) -> str:
 
 
 def _part(p: Any) -> str:
-    return f"[{p}]" if isinstance(p, int) else f".{p}"
+    if isinstance(p, int):
+        return f"[{p}]"
+    return f".{p!r}" if "." in p else f".{p}"  # a dotted key is one key
 
 
 def _short(value: Any) -> str:
@@ -380,24 +391,27 @@ def validation_error(
         loc = (*loc, "kind")
     kind = err["type"]
     field = _field(model, loc)
+    arrays = tuple(k for k, f in model.model_fields.items() if _is_array(f.annotation))
     if kind == "extra_forbidden":
         known = [k for m in _inner(model, loc[:-1]) for k in m.model_fields]
         # pydantic puts a union's tag in the location; the file has no such level
         loc = tuple(
             p for n, p in enumerate(loc) if not (n == 1 and loc[0] == "traffic" and p in tags)
         )
-        where = key_name(loc, data, sections)
+        where = key_name(loc, data, sections, arrays)
         what = "section" if sections and len(loc) == 1 else "key"
         return ConfigError(
             f"{source}: {where} is not a known {what}; use one of: {', '.join(dict.fromkeys(known))}"
         )
     loc = tuple(p for n, p in enumerate(loc) if not (n == 1 and loc[0] == "traffic" and p in tags))
-    where = key_name(loc, data, sections)
+    where = key_name(loc, data, sections, arrays)
     if kind == "missing":
         return ConfigError(f"{source}: {where} is missing; add it")
     problem = _problem(err)
     if problem.startswith("["):  # a check across keys names its keys itself
         return ConfigError(f"{source}: {problem}")
+    if kind == "value_error" and "; " in problem:  # the check gave its own fix
+        return ConfigError(f"{source}: {where} {problem}")
     fix = "fix the value"
     if field is not None and field.default is not None and not isinstance(field.default, BaseModel):
         default = field.default
