@@ -196,7 +196,7 @@ def test_bad_synthetic_scenario(tmp_path, capsys, section, key, value):
 
 
 SUMO_BAD = {
-    ("traffic", "network"): ["3", "true"],
+    ("traffic", "network"): ["3", "true", '"../../etc"', '"a/b"'],
     ("traffic", "net"): ["3"],
     ("traffic", "routes"): ["3", "[1]"],
     ("traffic", "sumocfg"): ["true"],

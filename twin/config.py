@@ -51,6 +51,19 @@ Count = Annotated[int, Field(ge=1)]
 Seed = Annotated[int, Field(ge=0)]
 Unit = Annotated[float, Field(gt=0, lt=1)]
 
+_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.+=-]*")
+
+
+def check_name(value: str) -> str:
+    """A name that is safe as (part of) a file name inside a folder: no ``/``, ``..``, spaces."""
+    if not _NAME.fullmatch(value) or ".." in value:
+        raise ValueError(
+            "must be a plain name of letters, digits, '-', '_', '.' (no '/', '..' or spaces); "
+            'e.g. "rush-hour"'
+        )
+    return value
+
+
 _CLOCK = re.compile(r"(\d{1,2}):(\d{2})(?::(\d{2}))?")
 
 
@@ -151,6 +164,11 @@ class SumoSettings(StrictModel):
     min_lane_km: Annotated[float, Field(ge=0)] = 0.0
     demand_scale: Annotated[float, Field(gt=0)] = 1.0
     mfd: MFDSettings = MFDSettings()
+
+    @field_validator("network")
+    @classmethod
+    def _network(cls, value: str | None) -> str | None:
+        return None if value is None else check_name(value)
 
     @field_validator("begin")
     @classmethod

@@ -8,7 +8,6 @@ sweep folder, so they are plain (no ``/``, no ``..``).
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -22,20 +21,9 @@ from pydantic import (
     model_validator,
 )
 
-from twin.config import StrictModel, read_toml, validation_error
+from twin.config import StrictModel, check_name, read_toml, validation_error
 
 SECTIONS = ("grid", "swarm", "traffic", "evaluate")
-_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.+=-]*")
-
-
-def check_name(value: str) -> str:
-    """A name that is safe as (part of) a file name inside the sweep folder."""
-    if not _NAME.fullmatch(value) or ".." in value:
-        raise ValueError(
-            "must be a plain name of letters, digits, '-', '_', '.' (no '/', '..' or spaces); "
-            'e.g. "rush-hour"'
-        )
-    return value
 
 
 def check_dotted(key: str) -> str:
