@@ -97,7 +97,7 @@ def _changed(config):
     [
         ("lr = -1.0", "lr"),
         ("epochs = 'many'", "epochs"),
-        ("learning_rate = 0.1", "unknown key 'learning_rate'"),
+        ("learning_rate = 0.1", "learning_rate is not a known key"),
         ("layers = [12, 5]", "layer"),
         ("gamma = 1.5", "gamma"),
         ("epochs = [", "not valid TOML"),

@@ -1,79 +1,248 @@
-"""Scenario configs: TOML files validated on load.
+"""Scenario configs: TOML files validated on load by pydantic models.
 
-A config has the sections ``[grid]``, ``[swarm]``, ``[traffic]`` and ``[evaluate]`` (see
-``configs/synthetic.toml``). Every problem is reported as one :class:`UserError` line that
-names the file, the key and the fix. Traffic kinds other than ``synthetic`` (``sumo``) keep
-their table as given; their own module validates it.
+A config has the sections ``[grid]``, ``[swarm]``, ``[traffic]``, ``[evaluate]`` and
+``[swarm_options.<swarm>]`` (see ``configs/synthetic.toml``). ``[traffic]`` is a tagged union on
+``kind``: ``"synthetic"`` (:class:`SyntheticConfig`) or ``"sumo"`` (:class:`SumoSettings`).
+Types are strict (no ``"500"`` for a number, no ``"false"`` for a bool), numbers finite, unknown
+keys refused. Every problem is reported as one :class:`ConfigError` line naming the file, the
+key, the value and the fix (:func:`validation_error` serves every config kind: scenario, sweep,
+pretraining).
 """
 
 from __future__ import annotations
 
-import dataclasses
+import math
+import re
 import tomllib
-from dataclasses import dataclass, field
+import types
+import typing
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, Literal
 
 import numpy as np
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    PrivateAttr,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from twin.errors import UserError
 from twin.grid import Grid
 from twin.scores import ScoreParams
 
 
-@dataclass
-class GridConfig:
-    nx: int = 20
-    ny: int = 30
-    obstacles: list = field(default_factory=list)  # [[i, j], ...]
+class ConfigError(UserError):
+    pass
 
 
-@dataclass
-class SwarmConfig:
-    n_drones: int = 4
+class StrictModel(BaseModel):
+    """Base of every config table: strict types, finite numbers, no unknown keys."""
+
+    model_config = ConfigDict(strict=True, extra="forbid", allow_inf_nan=False)
+
+
+#: A ``[row, column]`` cell of the grid.
+Cell = Annotated[list[int], Field(min_length=2, max_length=2)]
+Count = Annotated[int, Field(ge=1)]
+Seed = Annotated[int, Field(ge=0)]
+Unit = Annotated[float, Field(gt=0, lt=1)]
+
+_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.+=-]*")
+
+
+def check_name(value: str) -> str:
+    """A name that is safe as (part of) a file name inside a folder: no ``/``, ``..``, spaces."""
+    if not _NAME.fullmatch(value) or ".." in value:
+        raise ValueError(
+            "must be a plain name of letters, digits, '-', '_', '.' (no '/', '..' or spaces); "
+            'e.g. "rush-hour"'
+        )
+    return value
+
+
+_CLOCK = re.compile(r"(\d{1,2}):(\d{2})(?::(\d{2}))?")
+
+
+def check_clock(text: str) -> str:
+    """A clock time ``HH:MM`` or ``HH:MM:SS``."""
+    m = _CLOCK.fullmatch(text.strip())
+    if not m or int(m[2]) > 59 or int(m[3] or 0) > 59:
+        raise ValueError('must be a clock time like "07:00"')
+    return text
+
+
+def _cells(value: Any) -> Any:
+    ok = isinstance(value, list) and all(
+        isinstance(c, list)
+        and len(c) == 2
+        and all(isinstance(x, int) and not isinstance(x, bool) for x in c)
+        for c in value
+    )
+    if not ok:
+        raise ValueError("must be a list of [row, column] pairs of whole numbers")
+    return value
+
+
+# --------------------------------------------------------------------------------- sections
+class GridConfig(StrictModel):
+    nx: Count = 20
+    ny: Count = 30
+    obstacles: list[Cell] = []  # [[i, j], ...]
+
+
+class SwarmConfig(StrictModel):
+    n_drones: Count = 4
     starts: Any = "random"  # "random" or [[i, j], ...]
-    eta: float = 0.1
-    delta: float = 0.025
-    alpha_T: float = 1.0
-    alpha_I: float = 0.5
+    eta: Unit = 0.1
+    delta: Unit = 0.025
+    alpha_T: Annotated[float, Field(ge=0)] = 1.0
+    alpha_I: Annotated[float, Field(ge=0)] = 0.5
+
+    @field_validator("starts", mode="plain")
+    @classmethod
+    def _starts(cls, value: Any) -> Any:
+        if isinstance(value, str):
+            if value != "random":
+                raise ValueError('must be "random" or a list of [row, column] cells')
+            return value
+        return _cells(value)
 
 
-@dataclass
-class DisturbanceConfig:
-    kind: str = "big"
+class DisturbanceConfig(StrictModel):
+    kind: Literal["big", "small"] = "big"
     i: float = 0.0
     j: float = 0.0
     amplitude: float = 1.0
-    sigma: float = 1.0
+    sigma: Annotated[float, Field(gt=0)] = 1.0
 
 
-@dataclass
-class SyntheticConfig:
-    kind: str = "synthetic"
-    horizon: int = 2000
-    beta1: float = 0.7
-    beta2: float = 5.0
+class SyntheticConfig(StrictModel):
+    kind: Literal["synthetic"] = "synthetic"
+    horizon: Count = 2000
+    beta1: Annotated[float, Field(gt=0)] = 0.7
+    beta2: Annotated[float, Field(gt=0)] = 5.0
     z_lo: float = 0.0
     z_hi: float | None = None
-    disturbances: list = field(default_factory=list)
+    disturbances: list[DisturbanceConfig] = []
+
+    @field_validator("z_hi")
+    @classmethod
+    def _z_hi(cls, value: float | None, info) -> float | None:
+        z_lo = info.data.get("z_lo")
+        if value is not None and z_lo is not None and value <= z_lo:
+            raise ValueError(f"must exceed z_lo = {z_lo}")
+        return value
 
 
-@dataclass
-class EvaluateConfig:
-    swarms: list = field(default_factory=lambda: ["random", "greedy", "sweeping"])
-    seeds: int = 1
-    seed: int = 0
+class MFDSettings(StrictModel):
+    fit: Literal["online", "fixed"] = "online"
+    a: Annotated[float, Field(gt=0, le=1)] = 0.7
+    k_c: Annotated[float, Field(gt=0)] = 40.0
+    detection_p: Annotated[float, Field(gt=0, le=1)] = 1.0
 
 
-@dataclass
-class ScenarioConfig:
-    path: Path
-    grid: GridConfig
-    swarm: SwarmConfig
-    traffic: dict[str, Any]
-    evaluate: EvaluateConfig
+class SumoSettings(StrictModel):
+    """``[traffic] kind = "sumo"``; see :mod:`twin.sumo.scenario` for the meaning of each key."""
+
+    kind: Literal["sumo"] = "sumo"
+    network: str | None = "shenzhen_like"
+    net: str | None = None
+    routes: Any = []  # a route file or a list of them
+    sumocfg: str | None = None
+    osm: str | None = None
+    cell_m: Annotated[float, Field(gt=0)] = 500.0
+    drone_speed_kmh: Annotated[float, Field(gt=0)] = 24.0
+    begin: str = "07:00"
+    horizon: Count = 144
+    warmup_min: Annotated[float, Field(ge=0)] = 30.0
+    seed: Seed = 0
+    mesoscopic: bool = False
+    min_lane_km: Annotated[float, Field(ge=0)] = 0.0
+    demand_scale: Annotated[float, Field(gt=0)] = 1.0
+    mfd: MFDSettings = MFDSettings()
+
+    @field_validator("network")
+    @classmethod
+    def _network(cls, value: str | None) -> str | None:
+        return None if value is None else check_name(value)
+
+    @field_validator("begin")
+    @classmethod
+    def _begin(cls, value: str) -> str:
+        return check_clock(value)
+
+    @field_validator("routes", mode="plain")
+    @classmethod
+    def _routes(cls, value: Any) -> list[str]:
+        value = [value] if isinstance(value, str) else value
+        if not isinstance(value, list) or not all(isinstance(r, str) for r in value):
+            raise ValueError("must be a route file or a list of them")
+        return value
+
+    @property
+    def step_s(self) -> float:
+        return self.cell_m / (self.drone_speed_kmh / 3.6)
+
+
+class EvaluateConfig(StrictModel):
+    swarms: Annotated[list[str], Field(min_length=1)] = ["random", "greedy", "sweeping"]
+    seeds: Count = 1
+    seed: Seed = 0
+
+
+TrafficConfig = Annotated[SyntheticConfig | SumoSettings, Field(discriminator="kind")]
+
+
+def _finite_options(options: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    for name, table in options.items():
+        for key, value in table.items():
+            if isinstance(value, float) and not math.isfinite(value):
+                raise ValueError(
+                    f"[swarm_options.{name}].{key} = {value} must be finite; give a number"
+                )
+    return options
+
+
+class ScenarioConfig(StrictModel):
+    """A scenario config; ``path`` is the file it was read from (paths in it are relative)."""
+
+    grid: GridConfig = GridConfig()
+    swarm: SwarmConfig = SwarmConfig()
+    traffic: TrafficConfig = SyntheticConfig()
+    evaluate: EvaluateConfig = EvaluateConfig()
     #: ``[swarm_options.<name>]``: keyword options of ``make_policy(name, ...)``
-    swarm_options: dict[str, dict[str, Any]] = field(default_factory=dict)
+    swarm_options: dict[str, dict[str, Any]] = {}
+
+    _path: Path = PrivateAttr(default=Path("config.toml"))
+
+    @model_validator(mode="before")
+    @classmethod
+    def _default_kind(cls, data: Any) -> Any:
+        if isinstance(data, dict) and isinstance(data.get("traffic"), dict):
+            data = {**data, "traffic": {"kind": "synthetic", **data["traffic"]}}
+        return data
+
+    @model_validator(mode="after")
+    def _sumo_grid(self) -> ScenarioConfig:
+        given = {"nx", "ny"} & self.grid.model_fields_set
+        if self.traffic.kind == "sumo" and len(given) == 1:
+            raise ValueError("[grid] gives one of nx, ny; give both (or neither, to fit the map)")
+        _finite_options(self.swarm_options)
+        return self
+
+    @property
+    def path(self) -> Path:
+        return self._path
+
+    def explicit_shape(self) -> tuple[int, int] | None:
+        """``[grid] nx, ny`` if the config (or an override) sets them, else None."""
+        if {"nx", "ny"} <= self.grid.model_fields_set:
+            return self.grid.nx, self.grid.ny
+        return None
 
     def make_swarm(self, name: str, **overrides: Any):
         """The swarm ``name`` with this config's options for it, ``overrides`` on top."""
@@ -92,76 +261,202 @@ class ScenarioConfig:
             ) from None
 
     @property
-    def traffic_kind(self) -> str:
-        return self.traffic["kind"]
-
-    @property
     def params(self) -> ScoreParams:
         s = self.swarm
         return ScoreParams(eta=s.eta, delta=s.delta, alpha_T=s.alpha_T, alpha_I=s.alpha_I)
 
 
-class ConfigError(UserError):
-    pass
-
-
+# --------------------------------------------------------------------------- error messages
 def _fail(path: Path, key: str, problem: str) -> ConfigError:
     return ConfigError(f"{path}: {key} {problem}")
 
 
-def _typed(path: Path, key: str, value: Any, kind: Any) -> Any:
-    """Check ``value`` against a dataclass field type (int, float, str, list, optional)."""
-    if kind in ("float", float, "float | None"):
-        if kind == "float | None" and value is None:
-            return None
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise _fail(path, key, f"must be a number, got {value!r}")
-        return float(value)
-    if kind in ("int", int):
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise _fail(path, key, f"must be a whole number, got {value!r}")
-        return value
-    if kind in ("str", str):
-        if not isinstance(value, str):
-            raise _fail(path, key, f"must be a string, got {value!r}")
-        return value
-    if kind in ("list", list):
-        if not isinstance(value, list):
-            raise _fail(path, key, f"must be a list, got {value!r}")
-        return value
-    return value
+_TYPES = {
+    "int_type": "a whole number",
+    "float_type": "a number",
+    "bool_type": "true or false",
+    "string_type": "a string",
+    "list_type": "a list",
+    "dict_type": "a table",
+    "model_type": "a table",
+    "model_attributes_type": "a table",
+}
 
 
-def build_section(path: Path, section: str, table: Any, cls: type) -> Any:
-    """Build dataclass ``cls`` from a TOML table, rejecting unknown keys and wrong types."""
-    if not isinstance(table, dict):
-        raise _fail(path, f"[{section}]", "must be a table")
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    for key in table:
-        if key not in fields:
-            raise _fail(
-                path,
-                f"[{section}].{key}",
-                f"is not a known key; use one of: {', '.join(fields)}",
-            )
-    values = {k: _typed(path, f"[{section}].{k}", v, fields[k].type) for k, v in table.items()}
-    return cls(**values)
+def _models(annotation: Any) -> list[type[BaseModel]]:
+    """The model classes an annotation can hold (through Annotated, unions, lists, dicts)."""
+    origin = typing.get_origin(annotation)
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return [annotation]
+    if origin is Annotated:
+        return _models(typing.get_args(annotation)[0])
+    if origin in (typing.Union, types.UnionType, list, dict):
+        return [m for arg in typing.get_args(annotation) for m in _models(arg)]
+    return []
 
 
-def _cell_list(path: Path, key: str, value: Any) -> np.ndarray:
-    cells = np.asarray(value, dtype=object)
-    if len(value) == 0:
-        return np.zeros((0, 2), dtype=np.int64)
-    ok = (
-        cells.ndim == 2
-        and cells.shape[1] == 2
-        and all(isinstance(x, int) and not isinstance(x, bool) for x in cells.ravel())
-    )
-    if not ok:
-        raise _fail(path, key, "must be a list of [row, column] pairs of whole numbers")
-    return cells.astype(np.int64)
+def _inner(model: type[BaseModel], loc: tuple) -> list[type[BaseModel]]:
+    """The model classes that can hold the keys below ``loc``."""
+    owners = [model]
+    for part in loc:
+        if not isinstance(part, str):
+            continue
+        hits = [m for m in owners if part in m.model_fields]
+        if hits:
+            owners = _models(hits[0].model_fields[part].annotation)
+        else:  # a union's tag narrows to its member; a dict key keeps the owners
+            tagged = [m for m in owners if m.model_fields.get("kind") and
+                      m.model_fields["kind"].default == part]  # fmt: skip
+            owners = tagged or owners
+    return owners
 
 
+def _is_array(annotation: Any) -> bool:
+    """A list of tables (``[[name]]`` in TOML)."""
+    while typing.get_origin(annotation) is Annotated:
+        annotation = typing.get_args(annotation)[0]
+    return typing.get_origin(annotation) is list and bool(_models(annotation))
+
+
+def _field(model: type[BaseModel], loc: tuple) -> Any:
+    if not loc or not isinstance(loc[-1], str):
+        return None
+    hits = [m for m in _inner(model, loc[:-1]) if loc[-1] in m.model_fields]
+    return hits[0].model_fields[loc[-1]] if hits else None
+
+
+def key_name(loc: tuple, data: Any, sections: bool = True, arrays: tuple = ()) -> str:
+    """``[section.sub].key[n].leaf`` from an error location (tables in brackets)."""
+    if not loc:
+        return "the file"
+    rest = list(loc)
+    if not sections:
+        return str(rest.pop(0)) + "".join(_part(p) for p in rest)
+    head = [rest.pop(0)]
+    node = data.get(head[0]) if isinstance(data, dict) else None
+    if head[0] in arrays and not rest:
+        return f"[[{head[0]}]]"
+    if isinstance(node, list) and rest and isinstance(rest[0], int):
+        return f"[[{head[0]}]] #{rest.pop(0) + 1}" + "".join(_part(p) for p in rest)
+    while len(rest) > 1 and isinstance(node, dict) and isinstance(node.get(rest[0]), dict):
+        node = node[rest[0]]
+        head.append(rest.pop(0))
+    return f"[{'.'.join(map(str, head))}]" + "".join(_part(p) for p in rest)
+
+
+def _part(p: Any) -> str:
+    if isinstance(p, int):
+        return f"[{p}]"
+    return f".{p!r}" if "." in p else f".{p}"  # a dotted key is one key
+
+
+def _short(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _problem(err: dict[str, Any]) -> str:
+    kind, ctx, value = err["type"], err.get("ctx", {}), err.get("input")
+    if kind == "finite_number":
+        return f"= {_short(value)} must be a finite number"
+    if kind in _TYPES:
+        return f"= {_short(value)} must be {_TYPES[kind]}"
+    bounds = {"greater_than": ">", "greater_than_equal": ">=", "less_than": "<",
+              "less_than_equal": "<="}  # fmt: skip
+    if kind in bounds:
+        limit = next(iter(ctx.values()))
+        return f"= {_short(value)} must be {bounds[kind]} {limit}"
+    if kind == "literal_error":
+        return f"= {_short(value)} must be {ctx.get('expected')}"
+    if kind == "union_tag_invalid":
+        return f"= {_short(ctx.get('tag'))} must be one of {ctx.get('expected_tags')}"
+    if kind == "union_tag_not_found":
+        return "needs a kind"
+    if kind == "too_short" and ctx.get("min_length") == 1:
+        return f"= {_short(value)} must not be empty"
+    if kind in ("too_short", "too_long"):
+        return f"= {_short(value)} must have {_length(ctx)} items"
+    if kind == "value_error":
+        msg = str(ctx.get("error", err["msg"])).removeprefix("Value error, ")
+        return msg if msg.startswith("[") else f"= {_short(value)} {msg}"
+    return f"= {_short(value)}: {err['msg'][0].lower()}{err['msg'][1:]}"
+
+
+def _length(ctx: dict[str, Any]) -> str:
+    lo, hi = ctx.get("min_length"), ctx.get("max_length")
+    if lo is not None and hi is not None and lo == hi:
+        return f"exactly {lo}"
+    return f"at least {lo}" if lo is not None else f"at most {hi}"
+
+
+def validation_error(
+    source: Any,
+    exc: ValidationError,
+    data: Any,
+    model: type[BaseModel],
+    sections: bool = True,
+    flags: dict[str, str] | None = None,
+) -> ConfigError:
+    """The first error of ``exc`` as one line: ``<file>: <key> = <value> <problem>; <fix>``.
+
+    ``sections``: the file's top level holds tables (scenario, sweep) or plain keys (pretrain);
+    ``flags`` maps a top-level key to the command-line flag that set it.
+    """
+    err = exc.errors(include_url=False)[0]
+    loc = tuple(err["loc"])
+    tags = ("synthetic", "sumo")
+    if err["type"] == "union_tag_invalid":
+        loc = (*loc, "kind")
+    kind = err["type"]
+    field = _field(model, loc)
+    arrays = tuple(k for k, f in model.model_fields.items() if _is_array(f.annotation))
+    if kind == "extra_forbidden":
+        known = [k for m in _inner(model, loc[:-1]) for k in m.model_fields]
+        # pydantic puts a union's tag in the location; the file has no such level
+        loc = tuple(
+            p for n, p in enumerate(loc) if not (n == 1 and loc[0] == "traffic" and p in tags)
+        )
+        where = key_name(loc, data, sections, arrays)
+        what = "section" if sections and len(loc) == 1 else "key"
+        return ConfigError(
+            f"{source}: {where} is not a known {what}; use one of: {', '.join(dict.fromkeys(known))}"
+        )
+    loc = tuple(p for n, p in enumerate(loc) if not (n == 1 and loc[0] == "traffic" and p in tags))
+    where = key_name(loc, data, sections, arrays)
+    if kind == "missing":
+        return ConfigError(f"{source}: {where} is missing; add it")
+    problem = _problem(err)
+    if problem.startswith("["):  # a check across keys names its keys itself
+        return ConfigError(f"{source}: {problem}")
+    if kind == "value_error" and "; " in problem:  # the check gave its own fix
+        return ConfigError(f"{source}: {where} {problem}")
+    fix = "fix the value"
+    if field is not None and field.default is not None and not isinstance(field.default, BaseModel):
+        default = field.default
+        if isinstance(default, (bool, int, float, str)) or (
+            isinstance(default, list) and 0 < len(repr(default)) < 40 and default
+        ):
+            fix = f"e.g. {_toml(default)} (the default)"
+    if kind in ("dict_type", "model_type", "model_attributes_type"):
+        dotted = ".".join(p for p in loc if isinstance(p, str))
+        fix = f"write it as a table, [{dotted}] or {{ key = value }}"
+    if flags and loc and loc[0] in flags:  # set by a command-line flag, not by the file
+        value = problem.removeprefix("= ")
+        return ConfigError(f"{flags[loc[0]]} {value}; {fix}")
+    return ConfigError(f"{source}: {where} {problem}; {fix}")
+
+
+def _toml(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return f'"{value}"'
+    if isinstance(value, list):
+        return "[" + ", ".join(_toml(v) for v in value) + "]"
+    return repr(value)
+
+
+# ------------------------------------------------------------------------------- reading
 def shipped_config(relative: str) -> Path:
     """``configs/<name>.toml`` in the working directory, else the one in the source tree twin
     was installed from (an editable install from a clone)."""
@@ -196,59 +491,34 @@ def load_config(path: str | Path) -> ScenarioConfig:
 
 def config_from_data(path: Path, data: dict[str, Any]) -> ScenarioConfig:
     """Validate the tables of a scenario config read from ``path`` (perhaps with overrides)."""
-    known = {"grid", "swarm", "traffic", "evaluate", "swarm_options"}
-    for key in data:
-        if key not in known:
-            raise _fail(
-                path, f"[{key}]", f"is not a known section; use: {', '.join(sorted(known))}"
-            )
-    grid = build_section(path, "grid", data.get("grid", {}), GridConfig)
-    swarm = build_section(path, "swarm", data.get("swarm", {}), SwarmConfig)
-    evaluate = build_section(path, "evaluate", data.get("evaluate", {}), EvaluateConfig)
-    traffic = data.get("traffic", {"kind": "synthetic"})
-    if not isinstance(traffic, dict):
-        raise _fail(path, "[traffic]", "must be a table")
-    traffic.setdefault("kind", "synthetic")
-    options = data.get("swarm_options", {})
-    if not isinstance(options, dict) or not all(isinstance(v, dict) for v in options.values()):
-        raise _fail(
-            path, "[swarm_options]", "must hold one table per swarm, e.g. [swarm_options.rl]"
-        )
-    config = ScenarioConfig(path, grid, swarm, traffic, evaluate, options)
-    validate(config)
+    try:
+        config = ScenarioConfig.model_validate(data)
+    except ValidationError as exc:
+        raise validation_error(path, exc, data, ScenarioConfig) from None
+    config._path = Path(path)
+    if config.traffic.kind == "synthetic":
+        check_swarm_fits(config, make_grid(config))
     return config
 
 
 def validate(config: ScenarioConfig) -> None:
-    path, s, g, e = config.path, config.swarm, config.grid, config.evaluate
-    for key in ("eta", "delta"):
-        value = getattr(s, key)
-        if not 0.0 < value < 1.0:
-            raise _fail(path, f"[swarm].{key}", f"= {value} must lie in (0, 1), e.g. 0.1 or 0.025")
-    for key in ("alpha_T", "alpha_I"):
-        if getattr(s, key) < 0:
-            raise _fail(path, f"[swarm].{key}", "must be >= 0")
-    if s.n_drones < 1:
-        raise _fail(path, "[swarm].n_drones", f"= {s.n_drones} must be at least 1")
-    if e.seeds < 1:
-        raise _fail(path, "[evaluate].seeds", f"= {e.seeds} must be at least 1")
-    if not e.swarms or not all(isinstance(x, str) for x in e.swarms):
-        raise _fail(path, "[evaluate].swarms", "must be a non-empty list of swarm names")
-    if config.traffic["kind"] == "synthetic":
-        if g.nx < 1 or g.ny < 1:
-            raise _fail(path, "[grid].nx/ny", f"= {g.nx} x {g.ny} must both be at least 1")
-        traffic = synthetic_config(config)
-        if traffic.horizon < 1:
-            raise _fail(path, "[traffic].horizon", f"= {traffic.horizon} must be at least 1")
-        grid = make_grid(config)
-        check_swarm_fits(config, grid)
+    """The checks that need the grid (synthetic scenarios); the rest is in the models."""
+    if config.traffic.kind == "synthetic":
+        check_swarm_fits(config, make_grid(config))
+
+
+# ------------------------------------------------------------------------- grid and swarm
+def _cell_list(value: list) -> np.ndarray:
+    if len(value) == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    return np.asarray(value, dtype=np.int64).reshape(-1, 2)
 
 
 def make_grid(config: ScenarioConfig) -> Grid:
     """The grid of a config with explicit cells (synthetic scenarios)."""
     path, g = config.path, config.grid
     obstacles = np.zeros((g.nx, g.ny), dtype=bool)
-    cells = _cell_list(path, "[grid].obstacles", g.obstacles)
+    cells = _cell_list(g.obstacles)
     if len(cells):
         inside = (cells >= 0).all(axis=1) & (cells < [g.nx, g.ny]).all(axis=1)
         if not inside.all():
@@ -270,10 +540,8 @@ def check_swarm_fits(config: ScenarioConfig, grid: Grid) -> None:
             f"= {s.n_drones} exceeds the {grid.n_free} free cells; use fewer drones",
         )
     if isinstance(s.starts, str):
-        if s.starts != "random":
-            raise _fail(path, "[swarm].starts", 'must be "random" or a list of [row, column] cells')
         return
-    starts = _cell_list(path, "[swarm].starts", s.starts)
+    starts = _cell_list(s.starts)
     if len(starts) != s.n_drones:
         raise _fail(
             path,
@@ -300,25 +568,14 @@ def start_positions(config: ScenarioConfig, grid: Grid, rng: np.random.Generator
 
     if isinstance(config.swarm.starts, str):
         return random_starts(grid, config.swarm.n_drones, rng)
-    return _cell_list(config.path, "[swarm].starts", config.swarm.starts)
+    return _cell_list(config.swarm.starts)
 
 
+# ------------------------------------------------------------------------------- traffic
 def synthetic_config(config: ScenarioConfig) -> SyntheticConfig:
-    path = config.path
-    traffic = build_section(path, "traffic", config.traffic, SyntheticConfig)
-    for n, table in enumerate(traffic.disturbances):
-        d = build_section(path, f"traffic.disturbances[{n}]", table, DisturbanceConfig)
-        if d.kind not in ("big", "small"):
-            raise _fail(
-                path, f"[traffic.disturbances[{n}]].kind", f'= {d.kind!r} must be "big" or "small"'
-            )
-        if d.sigma <= 0:
-            raise _fail(path, f"[traffic.disturbances[{n}]].sigma", "must be > 0")
-    if traffic.beta1 <= 0 or traffic.beta2 <= 0:
-        raise _fail(path, "[traffic].beta1/beta2", "must be > 0")
-    if traffic.z_hi is not None and traffic.z_hi <= traffic.z_lo:
-        raise _fail(path, "[traffic].z_hi", f"= {traffic.z_hi} must exceed z_lo = {traffic.z_lo}")
-    return traffic
+    if not isinstance(config.traffic, SyntheticConfig):
+        raise _fail(config.path, "[traffic].kind", f"= {config.traffic.kind!r} is not synthetic")
+    return config.traffic
 
 
 def synthetic_source(config: ScenarioConfig, grid: Grid | None = None):
@@ -327,12 +584,5 @@ def synthetic_source(config: ScenarioConfig, grid: Grid | None = None):
 
     t = synthetic_config(config)
     grid = grid or make_grid(config)
-    disturbances = [
-        Disturbance(
-            **dataclasses.asdict(
-                build_section(config.path, "traffic.disturbances", d, DisturbanceConfig)
-            )
-        )
-        for d in t.disturbances
-    ]
+    disturbances = [Disturbance(**d.model_dump()) for d in t.disturbances]
     return SyntheticTraffic(grid, disturbances, t.horizon, t.beta1, t.beta2, t.z_lo, t.z_hi)

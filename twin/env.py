@@ -272,26 +272,20 @@ def make_env(
     ``joint=True`` gives the Gymnasium joint-swarm env; ``options`` go to the env's constructor.
     """
     from twin.config import load_config, shipped_config
+    from twin.experiment import Experiment, build_source, is_live_sumo
 
     path = Path(config)
     if not path.exists() and path.suffix != ".toml":
         path = shipped_config(f"configs/{config}.toml")
     cfg = load_config(path)
-    if tape is not None:
-        from twin.traffic.tape import TapeTraffic
+    experiment = Experiment(cfg, swarms=(), seeds=(0,), tape=Path(tape) if tape else None)
+    if is_live_sumo(experiment):
 
-        source: SourceLike = TapeTraffic.from_file(tape, cfg)
-    elif cfg.traffic["kind"] == "synthetic":
-        from twin.config import synthetic_source
-        from twin.traffic.base import RecordedTraffic
+        def source() -> TrafficSource:  # a fresh simulation at every reset
+            return build_source(experiment)
 
-        source = RecordedTraffic.from_source(synthetic_source(cfg))
     else:
-        from twin.sumo.scenario import sumo_source
-
-        def source() -> TrafficSource:
-            return sumo_source(cfg)
-
+        source = build_source(experiment)
     options.setdefault("params", cfg.params)
     if not isinstance(cfg.swarm.starts, str):
         options.setdefault("starts", cfg.swarm.starts)

@@ -109,7 +109,7 @@ def parse_swarm_names(text: str | None, default: Sequence[str], flag: str = "--s
 
 
 def is_live_sumo(experiment: Experiment) -> bool:
-    return experiment.tape is None and experiment.config.traffic_kind == "sumo"
+    return experiment.tape is None and experiment.config.traffic.kind == "sumo"
 
 
 def build_source(experiment: Experiment, index: int = 0) -> TrafficSource:
@@ -119,7 +119,7 @@ def build_source(experiment: Experiment, index: int = 0) -> TrafficSource:
         from twin.traffic.tape import TapeTraffic
 
         return TapeTraffic.from_file(experiment.tape, config)
-    kind = config.traffic_kind
+    kind = config.traffic.kind
     if kind == "synthetic":
         from twin.config import synthetic_source
         from twin.traffic.base import RecordedTraffic

@@ -81,9 +81,9 @@ def main(args: argparse.Namespace) -> int:
         seeds=range(first, first + seeds),
         tape=args.traffic,
     )
-    if experiment.tape is None and config.traffic_kind != "synthetic":
+    if experiment.tape is None and config.traffic.kind != "synthetic":
         raise UserError(
-            f"{config.path}: [traffic].kind = {config.traffic_kind!r} runs live with `twin run`; "
+            f"{config.path}: [traffic].kind = {config.traffic.kind!r} runs live with `twin run`; "
             "`twin evaluate` takes synthetic configs or --traffic TAPE"
         )
     run_dir = prepare_run_dir(args.out or new_run_dir("runs", "evaluate"))

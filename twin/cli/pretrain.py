@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 from pathlib import Path
 
@@ -34,11 +33,11 @@ def main(args: argparse.Namespace) -> int:
     from twin.learning.pretrain import PretrainConfig, load_config, pretrain
 
     if args.help_config:
-        for f in dataclasses.fields(PretrainConfig):
-            default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
-            if f.name == "disturbances":
+        for name, f in PretrainConfig.model_fields.items():
+            default = f.get_default(call_default_factory=True)
+            if name == "disturbances":
                 default = f"{len(default)} disturbances (4 big, 3 small)"
-            print(f"{f.name:22s} {default!s:24s} {f.metadata.get('help', '')}")
+            print(f"{name:22s} {default!s:24s} {f.description or ''}")
         return 0
     config = load_config(
         args.config or shipped_config(DEFAULT_CONFIG), out=args.out, epochs=args.epochs

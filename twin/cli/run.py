@@ -69,9 +69,9 @@ def main(args: argparse.Namespace) -> int:
 
     limit_threads()
     config = load_config(args.config or shipped_config(DEFAULT_CONFIG))
-    if config.traffic_kind != "sumo":
+    if config.traffic.kind != "sumo":
         raise UserError(
-            f"{config.path}: [traffic].kind = {config.traffic_kind!r}; `twin run` needs "
+            f"{config.path}: [traffic].kind = {config.traffic.kind!r}; `twin run` needs "
             '"sumo" (use `twin evaluate` for synthetic traffic)'
         )
     if args.routes and not args.net:

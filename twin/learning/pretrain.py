@@ -15,17 +15,16 @@
 from __future__ import annotations
 
 import csv
-import dataclasses
 import hashlib
 import time
-import tomllib
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, ClassVar
 
 import numpy as np
 import torch
+from pydantic import Field, ValidationError, field_validator
 
+from twin.config import DisturbanceConfig, StrictModel, read_toml, validation_error
 from twin.errors import UserError
 from twin.grid import Grid
 from twin.learning.checkpoint import atomic_save, model_metadata, read_checkpoint, save_model
@@ -54,147 +53,113 @@ TRAINING_DISTURBANCES: list[dict[str, Any]] = [
 ]
 
 
-def _help(text: str) -> dict[str, str]:
-    return {"help": text}
+PositiveInt = Annotated[int, Field(ge=1)]
+PositiveFloat = Annotated[float, Field(gt=0)]
+
+
+def _help(text: str, **bounds: Any) -> Any:
+    return Field(description=text, **bounds)
 
 
 # ----------------------------------------------------------------------------- 1. parameters
-@dataclass
-class PretrainConfig:
+class PretrainConfig(StrictModel):
     """Every knob of pretraining; a TOML file sets any subset of them (same names)."""
 
-    seed: int = field(
-        default=0, metadata=_help("seed of the data, the network initialisation and the batches")
+    seed: int = _help(
+        "seed of the data, the network initialisation and the batches", default=0, ge=0
     )
-    out: str = field(
+    out: str = _help(
+        "folder for state.pt, qnet.pt, train_log.csv, snapshots/",
         default="runs/pretrain",
-        metadata=_help("folder for state.pt, qnet.pt, train_log.csv, snapshots/"),
+        min_length=1,
     )
     # data: the training map and the random swarm
-    nx: int = field(default=20, metadata=_help("grid rows of the training map"))
-    ny: int = field(default=30, metadata=_help("grid columns of the training map"))
-    horizon: int = field(default=2000, metadata=_help("steps per random-swarm episode"))
-    beta1: float = field(
-        default=0.7, metadata=_help("decay of the big disturbances (fraction of the horizon)")
+    nx: PositiveInt = _help("grid rows of the training map", default=20)
+    ny: PositiveInt = _help("grid columns of the training map", default=30)
+    horizon: PositiveInt = _help("steps per random-swarm episode", default=2000)
+    beta1: PositiveFloat = _help(
+        "decay of the big disturbances (fraction of the horizon)", default=0.7
     )
-    beta2: float = field(
-        default=5.0, metadata=_help("periods of the small disturbances over the horizon")
+    beta2: PositiveFloat = _help("periods of the small disturbances over the horizon", default=5.0)
+    disturbances: list[DisturbanceConfig] = _help(
+        "training map: kind, i, j, amplitude, sigma",
+        default_factory=lambda: [DisturbanceConfig(**d) for d in TRAINING_DISTURBANCES],
     )
-    disturbances: list = field(
-        default_factory=lambda: list(TRAINING_DISTURBANCES),
-        metadata=_help("training map: kind, i, j, amplitude, sigma"),
+    n_drones: PositiveInt = _help("drones in the random swarm", default=4)
+    episodes: PositiveInt = _help("random-swarm episodes in the replay buffer", default=10)
+    eta: float = _help("idleness kept by a visited cell (Def. 3)", default=0.1, gt=0, lt=1)
+    delta: float = _help("idleness recovery per step (Def. 3)", default=0.025, gt=0, lt=1)
+    alpha_T: float = _help(
+        "reward weight of importance-weighted idleness (Def. 4)", default=1.0, ge=0
     )
-    n_drones: int = field(default=4, metadata=_help("drones in the random swarm"))
-    episodes: int = field(default=10, metadata=_help("random-swarm episodes in the replay buffer"))
-    eta: float = field(default=0.1, metadata=_help("idleness kept by a visited cell (Def. 3)"))
-    delta: float = field(default=0.025, metadata=_help("idleness recovery per step (Def. 3)"))
-    alpha_T: float = field(
-        default=1.0, metadata=_help("reward weight of importance-weighted idleness (Def. 4)")
-    )
-    alpha_I: float = field(default=0.5, metadata=_help("reward weight of idleness (Def. 4)"))
+    alpha_I: float = _help("reward weight of idleness (Def. 4)", default=0.5, ge=0)
     # network
-    layers: list = field(
-        default_factory=lambda: list(TABLE1_LAYERS),
-        metadata=_help("layer sizes, 13 in and 5 out (Table 1)"),
+    layers: list[PositiveInt] = _help(
+        "layer sizes, 13 in and 5 out (Table 1)", default_factory=lambda: list(TABLE1_LAYERS)
     )
     # learning
-    epochs: int = field(default=30000, metadata=_help("N_ep: epochs, each one sampled batch"))
-    iters_per_epoch: int = field(
-        default=30, metadata=_help("N_iter: gradient steps per epoch on its batch")
+    epochs: PositiveInt = _help("N_ep: epochs, each one sampled batch", default=30000)
+    iters_per_epoch: PositiveInt = _help(
+        "N_iter: gradient steps per epoch on its batch", default=30
     )
-    batch_size: int = field(default=32, metadata=_help("transitions per batch"))
-    gamma: float = field(default=0.9, metadata=_help("discount factor"))
-    lr: float = field(default=1e-4, metadata=_help("Adam learning rate"))
-    target_update_epochs: int = field(
-        default=100, metadata=_help("epochs between hard updates of the target network")
+    batch_size: PositiveInt = _help("transitions per batch", default=32)
+    gamma: float = _help("discount factor", default=0.9, ge=0, lt=1)
+    lr: float = _help("Adam learning rate", default=1e-4, gt=0, le=1)
+    target_update_epochs: PositiveInt = _help(
+        "epochs between hard updates of the target network", default=100
     )
-    adam_fused: bool = field(
-        default=True, metadata=_help("fused Adam step (one kernel for all parameters)")
-    )
-    threads: int = field(default=1, metadata=_help("torch threads"))
+    adam_fused: bool = _help("fused Adam step (one kernel for all parameters)", default=True)
+    threads: PositiveInt = _help("torch threads", default=1)
     # output
-    log_every: int = field(default=100, metadata=_help("epochs per CSV log row"))
-    checkpoint_every: int = field(
-        default=1000, metadata=_help("epochs between checkpoints (what a kill can lose)")
+    log_every: PositiveInt = _help("epochs per CSV log row", default=100)
+    checkpoint_every: PositiveInt = _help(
+        "epochs between checkpoints (what a kill can lose)", default=1000
     )
-    snapshot_every: int = field(
-        default=0, metadata=_help("epochs between kept weight snapshots (0: none)")
-    )
+    snapshot_every: int = _help("epochs between kept weight snapshots (0: none)", default=0, ge=0)
 
     # Fields that may change between a run and its resumption without invalidating it.
-    RESUMABLE_CHANGES = ("epochs", "out", "log_every", "checkpoint_every", "snapshot_every")
+    RESUMABLE_CHANGES: ClassVar[tuple[str, ...]] = (
+        "epochs", "out", "log_every", "checkpoint_every", "snapshot_every",
+    )  # fmt: skip
+
+    @field_validator("layers")
+    @classmethod
+    def _layers(cls, layers: list[int]) -> list[int]:
+        if len(layers) < 2 or layers[0] != TABLE1_LAYERS[0] or layers[-1] != TABLE1_LAYERS[-1]:
+            raise ValueError(
+                f"must run from {TABLE1_LAYERS[0]} to {TABLE1_LAYERS[-1]} (the state and actions)"
+            )
+        return layers
 
     def training_dict(self) -> dict[str, Any]:
         """The config as plain python types (stored in every checkpoint)."""
-        return dataclasses.asdict(self)
+        return self.model_dump()
+
+
+#: Command-line flags that override config keys.
+FLAGS = {"out": "--out", "epochs": "--epochs"}
 
 
 def load_config(path: str | Path, **overrides: Any) -> PretrainConfig:
-    """Read a pretraining TOML file; unknown keys and wrong types are one-line UserErrors."""
+    """Read and validate a pretraining TOML file; ``overrides`` (from flags) that are not None
+    replace its keys. Every problem is one :class:`UserError` line."""
     path = Path(path)
+    raw = read_toml(path)
     try:
-        with open(path, "rb") as f:
-            raw = tomllib.load(f)
-    except FileNotFoundError:
-        raise UserError(f"config {path} does not exist") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise UserError(f"config {path} is not valid TOML: {exc}") from None
+        PretrainConfig.model_validate(raw)
+    except ValidationError as exc:
+        raise validation_error(path, exc, raw, PretrainConfig, sections=False) from None
     raw.update({k: v for k, v in overrides.items() if v is not None})
-    fields = {f.name: f for f in dataclasses.fields(PretrainConfig)}
-    values: dict[str, Any] = {}
-    for key, value in raw.items():
-        if key not in fields:
-            raise UserError(
-                f"config {path}: unknown key {key!r}; known keys: {', '.join(sorted(fields))}"
-            )
-        default = fields[key].default
-        if default is dataclasses.MISSING:
-            default = fields[key].default_factory()  # type: ignore[misc]
-        if isinstance(default, bool):
-            ok = isinstance(value, bool)
-        elif isinstance(default, int):
-            ok = isinstance(value, int) and not isinstance(value, bool)
-        elif isinstance(default, float):
-            ok = isinstance(value, int | float) and not isinstance(value, bool)
-            value = float(value) if ok else value
-        else:
-            ok = isinstance(value, type(default))
-        if not ok:
-            raise UserError(
-                f"config {path}: {key} = {value!r} should be a {type(default).__name__}"
-            )
-        values[key] = value
-    cfg = PretrainConfig(**values)
-    _validate(cfg, path)
-    return cfg
-
-
-def _validate(cfg: PretrainConfig, path: str | Path) -> None:
-    positive = ("nx", "ny", "horizon", "n_drones", "episodes", "epochs", "iters_per_epoch",
-                "batch_size", "target_update_epochs", "threads", "log_every", "checkpoint_every")  # fmt: skip
-    for name in positive:
-        if getattr(cfg, name) < 1:
-            raise UserError(f"config {path}: {name} must be at least 1, got {getattr(cfg, name)}")
-    if not 0.0 <= cfg.gamma < 1.0:
-        raise UserError(f"config {path}: gamma must lie in [0, 1), got {cfg.gamma}")
-    if cfg.lr <= 0:
-        raise UserError(f"config {path}: lr must be positive, got {cfg.lr}")
     try:
-        QNetwork(cfg.layers)
-        training_source(cfg)
-    except (ValueError, TypeError, KeyError) as exc:
-        raise UserError(f"config {path}: {exc}") from None
+        return PretrainConfig.model_validate(raw)
+    except ValidationError as exc:
+        raise validation_error(path, exc, raw, PretrainConfig, False, FLAGS) from None
 
 
 # ----------------------------------------------------------------------------- 2. data
 def training_source(cfg: PretrainConfig) -> SyntheticTraffic:
     """The training map (open grid, 4 big + 3 small disturbances by default)."""
-    disturbances = []
-    for n, d in enumerate(cfg.disturbances):
-        if not isinstance(d, dict) or d.get("kind") not in ("big", "small"):
-            raise ValueError(f"disturbances[{n}] needs kind = 'big' or 'small', got {d!r}")
-        disturbances.append(Disturbance(d["kind"], float(d["i"]), float(d["j"]),
-                                        float(d["amplitude"]), float(d["sigma"])))  # fmt: skip
+    disturbances = [Disturbance(**d.model_dump()) for d in cfg.disturbances]
     grid = Grid.open(cfg.nx, cfg.ny)
     # z_hi defaults to the largest z over the map and the horizon (Def. 2)
     return SyntheticTraffic(grid, disturbances, cfg.horizon, beta1=cfg.beta1, beta2=cfg.beta2)

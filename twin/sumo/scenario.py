@@ -20,48 +20,16 @@ from __future__ import annotations
 import hashlib
 import re
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
+from twin.config import MFDSettings, SumoSettings
 from twin.errors import UserError
 from twin.grid import Grid
 
 #: Peak demand of the built-in network per lane-km (trips/h), used to scale generated demand.
 SHENZHEN_LANE_KM = 1350.0
 CACHE_DIR = Path(__file__).resolve().parents[2] / "networks" / "imported" / "build"
-
-
-@dataclass
-class MFDSettings:
-    fit: str = "online"
-    a: float = 0.7
-    k_c: float = 40.0
-    detection_p: float = 1.0
-
-
-@dataclass
-class SumoSettings:
-    kind: str = "sumo"
-    network: str | None = "shenzhen_like"
-    net: str | None = None
-    routes: list = field(default_factory=list)
-    sumocfg: str | None = None
-    osm: str | None = None
-    cell_m: float = 500.0
-    drone_speed_kmh: float = 24.0
-    begin: str = "07:00"
-    horizon: int = 144
-    warmup_min: float = 30.0
-    seed: int = 0
-    mesoscopic: bool = False
-    min_lane_km: float = 0.0
-    demand_scale: float = 1.0
-    mfd: MFDSettings = field(default_factory=MFDSettings)
-
-    @property
-    def step_s(self) -> float:
-        return self.cell_m / (self.drone_speed_kmh / 3.6)
 
 
 def parse_clock(text: str, where: str) -> float:
@@ -73,48 +41,19 @@ def parse_clock(text: str, where: str) -> float:
     return float(h * 3600 + mi * 60 + s)
 
 
-def _check(where: str, table: dict[str, Any], cls: type) -> dict[str, Any]:
-    known = {f.name: f for f in fields(cls)}
-    for key in table:
-        if key not in known:
-            raise UserError(f"{where}.{key} is not a known key; use one of: {', '.join(known)}")
-    return table
-
-
 def sumo_settings(config) -> SumoSettings:
-    """Validated SUMO settings of a scenario config (paths resolved against its folder)."""
-    where = f"{config.path}: [traffic]"
-    table = dict(config.traffic)
-    mfd_table = table.pop("mfd", {})
-    if not isinstance(mfd_table, dict):
-        raise UserError(f"{where}.mfd must be a table")
-    _check(where, table, SumoSettings)
-    _check(f"{where}.mfd", mfd_table, MFDSettings)
-    s = SumoSettings(**table, mfd=MFDSettings(**mfd_table))
+    """The SUMO settings of a scenario config (validated with it), file paths resolved against
+    the config's folder; a copy the caller may change."""
+    if not isinstance(config.traffic, SumoSettings):
+        raise UserError(f"{config.path}: [traffic].kind = {config.traffic.kind!r} is not sumo")
+    s = config.traffic.model_copy(deep=True)
     base = Path(config.path).resolve().parent
     for key in ("net", "sumocfg", "osm"):
         if getattr(s, key) is not None:
             setattr(s, key, str(base / getattr(s, key)))
-    if isinstance(s.routes, str):
-        s.routes = [s.routes]
     s.routes = [str(base / r) for r in s.routes]
     if s.net or s.sumocfg or s.osm:
         s.network = None
-    checks = [
-        ("cell_m", s.cell_m > 0, "must be > 0, e.g. 500"),
-        ("drone_speed_kmh", s.drone_speed_kmh > 0, "must be > 0, e.g. 24"),
-        ("horizon", isinstance(s.horizon, int) and s.horizon >= 1, "must be a whole number >= 1"),
-        ("warmup_min", s.warmup_min >= 0, "must be >= 0"),
-        ("min_lane_km", s.min_lane_km >= 0, "must be >= 0"),
-        ("demand_scale", s.demand_scale > 0, "must be > 0"),
-        ("mfd.fit", s.mfd.fit in ("online", "fixed"), 'must be "online" or "fixed"'),
-        ("mfd.detection_p", 0 < s.mfd.detection_p <= 1, "must lie in (0, 1]"),
-        ("mfd.k_c", s.mfd.k_c > 0, "must be > 0"),
-    ]
-    for key, ok, fix in checks:
-        if not ok:
-            raise UserError(f"{where}.{key} {fix}")
-    parse_clock(s.begin, f"{where}.begin")
     return s
 
 
@@ -212,7 +151,7 @@ def sumo_source(
     if mesoscopic is not None:
         s.mesoscopic = mesoscopic
     seed = s.seed if seed is None else seed
-    begin_given = begin is not None or (not swapped and "begin" in config.traffic)
+    begin_given = begin is not None or (not swapped and "begin" in config.traffic.model_fields_set)
     begin = parse_clock(begin or s.begin, f"{config.path}: [traffic].begin")
     warmup = s.warmup_min * 60.0
     demand = load_spec(Path(__file__).resolve().parents[2] / "networks/shenzhen_like/spec.toml")[
@@ -251,9 +190,8 @@ def sumo_source(
     # The grid: derived from the bounding box, or the config's [grid] nx, ny if it gives them
     # (for the configured network only; a swapped-in network gets its own grid).
     shape = None
-    explicit = _explicit_grid(config)
-    if explicit is not None and not (net or sumocfg or osm):
-        shape = explicit
+    if not (net or sumocfg or osm):
+        shape = config.explicit_shape()  # set in the file or by an override
     geometry = grid_over(lanes, s.cell_m, shape, where=f"{config.path}: [grid]")
     obstacles = geometry.obstacles(s.min_lane_km)
     for i, j in getattr(config.grid, "obstacles", []) or []:
@@ -294,11 +232,4 @@ def sumo_source(
     return SumoTraffic(scenario, geometry, Grid(obstacles))
 
 
-def _explicit_grid(config) -> tuple[int, int] | None:
-    """``[grid] nx, ny`` if the config file states them (not the dataclass defaults)."""
-    from twin.config import read_toml
-
-    grid = read_toml(config.path).get("grid", {})
-    if "nx" in grid and "ny" in grid:
-        return int(grid["nx"]), int(grid["ny"])
-    return None
+__all__ = ["MFDSettings", "SumoSettings", "parse_clock", "sumo_settings", "sumo_source"]

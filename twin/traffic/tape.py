@@ -148,8 +148,9 @@ class TapeTraffic(TrafficSource):
         """Read ``path``; ``config`` (a scenario config) is accepted for the CLI's sake and
         only its ``[traffic.mfd].detection_p``, if set, overrides the tape's."""
         p = None
-        if config is not None and config.traffic.get("kind") == "sumo":
-            p = config.traffic.get("mfd", {}).get("detection_p")
+        if config is not None and config.traffic.kind == "sumo":
+            mfd = config.traffic.mfd
+            p = mfd.detection_p if "detection_p" in mfd.model_fields_set else None
         return cls(Tape.read(Path(path)), p, source_name=str(path))
 
     def model(self) -> MFDImportance:

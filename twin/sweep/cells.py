@@ -1,0 +1,198 @@
+"""A sweep's cells: expansion of scenarios x parameters x seeds into plain dicts, their ids
+(a hash of everything that defines their numbers), and :func:`run_cell`, which runs one cell
+anywhere (a pool worker, a Ray task) and writes its result files atomically.
+
+The cell's seed fixes the drones' starts (``default_rng(seed)``, as ``twin evaluate``), the
+swarms' randomness (``run_patrol``) and the traffic's, so the same seeds give the same numbers on
+either executor and in ``twin evaluate``.
+"""
+
+from __future__ import annotations
+
+import copy
+import functools
+import hashlib
+import itertools
+import json
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from twin.errors import UserError
+from twin.sweep.config import SweepConfig
+from twin.sweep.store import CELLS_DIR, _atomic_write, write_cell_record
+
+
+def parameter_combinations(parameters: dict[str, list[Any]]) -> list[dict[str, Any]]:
+    """Every combination of the swept values (one empty combination when none is swept)."""
+    keys = list(parameters)
+    return [
+        dict(zip(keys, values, strict=True)) for values in itertools.product(*parameters.values())
+    ]
+
+
+#: What defines a cell's numbers; the cell id hashes these.
+DEFINING_KEYS = (
+    "scenario", "config", "overrides", "tape", "seed", "swarms", "swarm_options", "checkpoints",
+)  # fmt: skip
+
+
+def file_sha256(path: str | Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def cell_id(cell: dict[str, Any]) -> str:
+    """``<scenario>-s<seed>-<hash>``: the hash covers everything that defines the cell's numbers
+    (a retrained checkpoint, a changed scenario file's path or overrides give new cells)."""
+    defining = {k: cell.get(k) for k in DEFINING_KEYS}
+    digest = hashlib.sha1(json.dumps(defining, sort_keys=True, default=str).encode()).hexdigest()[
+        :10
+    ]
+    return f"{cell['scenario']}-s{cell['seed']}-{digest}"
+
+
+def expand_cells(config: SweepConfig, out_dir: Path) -> list[dict[str, Any]]:
+    """The sweep's cells, scenario-major, then parameters, then seeds."""
+    checkpoints = {
+        swarm: file_sha256(options["checkpoint"])
+        for swarm, options in config.swarm_options.items()
+        if Path(options.get("checkpoint", "")).is_file()
+    }
+    cells = []
+    for scenario in config.scenarios:
+        for params in parameter_combinations(config.parameters):
+            for seed in config.seeds:
+                cell = {
+                    "scenario": scenario.name,
+                    "config": str(scenario.config),
+                    "overrides": {**scenario.overrides, **params},
+                    "parameters": params,
+                    "tape": str(scenario.tape) if scenario.tape else None,
+                    "seed": int(seed),
+                    "swarms": list(config.swarms),
+                    "swarm_options": copy.deepcopy(config.swarm_options),
+                    "checkpoints": checkpoints,
+                    "cells_dir": str(out_dir / CELLS_DIR),
+                }
+                cell["id"] = cell_id(cell)
+                cells.append(cell)
+    return cells
+
+
+def scenario_config(path: Path, overrides: dict[str, Any]):
+    """The scenario config at ``path`` with dotted-key ``overrides`` applied, validated."""
+    from twin import config as cfg
+
+    data = cfg.read_toml(path)
+    for key, value in overrides.items():
+        node = data
+        *parents, last = key.split(".")
+        for part in parents:
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                raise UserError(
+                    f"{path}: override {key!r} goes through {part!r}, which is not a table"
+                )
+        node[last] = value
+    return cfg.config_from_data(path, data)
+
+
+def scenario_source(config, tape: str | None, seed: int):
+    """The traffic of one cell: a replayed tape, the synthetic maps, or a live SUMO run."""
+    if tape is not None:
+        from twin.traffic.tape import TapeTraffic
+
+        return TapeTraffic.from_file(Path(tape), config)
+    kind = config.traffic.kind
+    if kind == "synthetic":
+        from twin.config import synthetic_source
+
+        return synthetic_source(config)
+    if kind == "sumo":
+        from twin.sumo.scenario import sumo_source
+
+        return sumo_source(config, seed=seed)  # the cell's seed is SUMO's seed too
+    raise UserError(f"{config.path}: [traffic].kind = {kind!r} is not one a sweep can run")
+
+
+def _limit_threads() -> None:
+    """One core per cell: the pool provides the parallelism."""
+    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
+    if "torch" in sys.modules:
+        sys.modules["torch"].set_num_threads(1)
+
+
+def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
+    """Run one cell (plain dict in, plain dict out) and write its result files atomically.
+
+    Returns ``{"id", "seconds", "rows": [one dict per swarm: Table 2 columns], "error"}``.
+    """
+    from twin.config import check_swarm_fits, start_positions
+    from twin.metrics import table2
+    from twin.patrol import run_patrol
+    from twin.policies import make_policy
+    from twin.runs import series_frame
+
+    _limit_threads()
+    code = code_fingerprint()
+    start = time.perf_counter()
+    seed = int(cell["seed"])
+    config = scenario_config(Path(cell["config"]), cell["overrides"])
+    source = scenario_source(config, cell.get("tape"), seed)
+    try:
+        check_swarm_fits(config, source.grid)
+        starts = start_positions(config, source.grid, np.random.default_rng(seed))
+        options = cell.get("swarm_options", {})
+        policies = {name: make_policy(name, **options.get(name, {})) for name in cell["swarms"]}
+        _limit_threads()  # an RL swarm may just have imported torch
+        result = run_patrol(
+            source, policies, starts, config.params, seed, progress=False, keep_importance=False
+        )
+        traffic = source.metadata()
+    finally:
+        source.close()
+    rows = table2(result).to_dict(orient="records")
+    record = {
+        "id": cell["id"],
+        "cell": {k: v for k, v in cell.items() if k != "cells_dir"},
+        "traffic": traffic,
+        "policies": {n: p.describe() for n, p in policies.items() if hasattr(p, "describe")},
+        "rows": [{k: (None if _isnan(v) else v) for k, v in r.items()} for r in rows],
+        "horizon": int(result.horizon),
+        "error": result.error,
+        "seconds": round(time.perf_counter() - start, 3),
+        "worker": f"{os.uname().nodename}:{os.getpid()}",
+        "code": code,
+    }
+    cells_dir = Path(cell["cells_dir"])
+    cells_dir.mkdir(parents=True, exist_ok=True)
+    series = series_frame(result)
+    _atomic_write(cells_dir / f"{cell['id']}.parquet", lambda p: series.to_parquet(p, index=False))
+    write_cell_record(cells_dir, record)
+    return record
+
+
+@functools.lru_cache(maxsize=1)
+def code_fingerprint() -> str:
+    """sha256 (first 12 hex digits) of the twin package's Python sources, taken once per
+    process when its first cell starts: cells computed by different code are told apart when
+    results merge."""
+    root = Path(__file__).resolve().parents[1]  # the twin package
+    digest = hashlib.sha256()
+    for path in sorted(root.rglob("*.py")):
+        digest.update(str(path.relative_to(root)).encode())
+        digest.update(path.read_bytes())
+    return digest.hexdigest()[:12]
+
+
+def _isnan(value: Any) -> bool:
+    return isinstance(value, float) and value != value

@@ -1,0 +1,202 @@
+"""The sweep config (TOML, e.g. ``configs/sweep-demo.toml``) as a pydantic model.
+
+Sections: ``[sweep]`` (name, swarms, seeds, seed), ``[[scenario]]`` (name, config, overrides,
+tape; paths relative to the sweep config), ``[parameters]`` (dotted keys into a scenario config
+to non-empty lists of values) and ``[swarm_options.<swarm>]``. Names become file names in the
+sweep folder, so they are plain (no ``/``, no ``..``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Any
+
+from pydantic import (
+    BeforeValidator,
+    Field,
+    PrivateAttr,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
+
+from twin.config import StrictModel, check_name, read_toml, validation_error
+
+SECTIONS = ("grid", "swarm", "traffic", "evaluate")
+
+
+def check_dotted(key: str) -> str:
+    parts = key.split(".")
+    if len(parts) < 2 or parts[0] not in SECTIONS or "" in parts:
+        raise ValueError(
+            f"key {key!r} must be a dotted key into a scenario config; e.g. 'swarm.n_drones'"
+        )
+    return key
+
+
+def _relative(value: Any, info: ValidationInfo) -> Any:
+    """A path relative to the sweep config's folder (``context["path"]``)."""
+    if not isinstance(value, str):
+        raise ValueError("must be a file name (a string)")
+    p = Path(value)
+    base = Path((info.context or {}).get("path", "sweep.toml")).parent
+    return p if p.is_absolute() else (base / p).resolve()
+
+
+RelPath = Annotated[Path, BeforeValidator(_relative)]
+
+
+class SweepSection(StrictModel):
+    name: str | None = None  # default: the config file's stem
+    swarms: Annotated[list[str], Field(min_length=1)]
+    seeds: Any = 1  # a count (seeds seed, seed + 1, ...) or a list of seeds
+    seed: Annotated[int, Field(ge=0)] = 0
+
+    @field_validator("name")
+    @classmethod
+    def _name(cls, value: str | None) -> str | None:
+        return None if value is None else check_name(value)
+
+    @field_validator("swarms")
+    @classmethod
+    def _swarms(cls, swarms: list[str]) -> list[str]:
+        from twin.policies import available_policies
+
+        if len(set(swarms)) != len(swarms):
+            raise ValueError("lists a swarm twice; list each once")
+        known = available_policies()
+        for swarm in swarms:
+            if swarm not in known:
+                raise ValueError(f"has unknown swarm {swarm!r}; use {', '.join(known)}")
+        return swarms
+
+    @field_validator("seeds", mode="plain")
+    @classmethod
+    def _seeds(cls, seeds: Any) -> Any:
+        def whole(x: Any) -> bool:
+            return isinstance(x, int) and not isinstance(x, bool)
+
+        if whole(seeds):
+            if seeds < 1:
+                raise ValueError("must be at least 1; give a count or a list of seeds")
+            return seeds
+        if not isinstance(seeds, list) or not seeds or not all(whole(s) for s in seeds):
+            raise ValueError("must be a count or a non-empty list of whole numbers; e.g. 3")
+        if any(s < 0 for s in seeds):
+            raise ValueError("must not hold negative seeds; seeds are >= 0")
+        if len(set(seeds)) != len(seeds):
+            raise ValueError("lists a seed twice; list each once")
+        return seeds
+
+
+class ScenarioSpec(StrictModel):
+    """One scenario of a sweep: a scenario config file and overrides of its keys."""
+
+    name: str
+    config: RelPath
+    overrides: dict[str, Any] = Field(default_factory=dict)
+    tape: RelPath | None = None  # replay a recorded traffic tape instead of the config's traffic
+
+    @field_validator("name")
+    @classmethod
+    def _name(cls, value: str) -> str:
+        return check_name(value)
+
+    @field_validator("config")
+    @classmethod
+    def _config(cls, path: Path) -> Path:
+        if not path.is_file():
+            raise ValueError(f"names {path}, which does not exist; fix the path")
+        return path
+
+    @field_validator("overrides")
+    @classmethod
+    def _overrides(cls, overrides: dict[str, Any]) -> dict[str, Any]:
+        for key in overrides:
+            check_dotted(key)
+        return overrides
+
+
+class SweepConfig(StrictModel):
+    """A validated sweep config; ``path`` is the file it was read from."""
+
+    sweep: SweepSection
+    scenario: Annotated[list[ScenarioSpec], Field(min_length=1)]
+    parameters: dict[str, Annotated[list[Any], Field(min_length=1)]] = Field(default_factory=dict)
+    swarm_options: dict[str, dict[str, Any]] = Field(default_factory=dict)
+
+    _path: Path = PrivateAttr(default=Path("sweep.toml"))
+
+    @field_validator("parameters")
+    @classmethod
+    def _parameters(cls, parameters: dict[str, list[Any]]) -> dict[str, list[Any]]:
+        for key in parameters:
+            try:
+                check_dotted(key)
+            except ValueError as exc:
+                raise ValueError(
+                    f"[parameters].{key!r} {exc}".replace(f"key {key!r} ", "")
+                ) from None
+        return parameters
+
+    @model_validator(mode="after")
+    def _across(self, info: ValidationInfo) -> SweepConfig:
+        names = [s.name for s in self.scenario]
+        for n, name in enumerate(names):
+            if name in names[:n]:
+                raise ValueError(
+                    f"[[scenario]] #{n + 1}.name = {name!r} is taken; give distinct names"
+                )
+        base = Path((info.context or {}).get("path", "sweep.toml")).parent
+        for swarm, table in self.swarm_options.items():
+            if swarm not in self.sweep.swarms:
+                raise ValueError(
+                    f"[swarm_options.{swarm}] names a swarm not in [sweep].swarms "
+                    f"{self.sweep.swarms}; add it there or drop the table"
+                )
+            if "checkpoint" in table:
+                where = f"[swarm_options.{swarm}].checkpoint"
+                if not isinstance(table["checkpoint"], str):
+                    raise ValueError(f"{where} = {table['checkpoint']!r} must be a file name")
+                path = Path(table["checkpoint"])
+                table["checkpoint"] = str(path if path.is_absolute() else (base / path).resolve())
+                if not Path(table["checkpoint"]).is_file():
+                    raise ValueError(
+                        f"{where} = {table['checkpoint']} does not exist; run `twin pretrain` "
+                        "or fix the path"
+                    )
+        return self
+
+    @property
+    def path(self) -> Path:
+        return self._path
+
+    @property
+    def name(self) -> str:
+        return self.sweep.name or self.path.stem
+
+    @property
+    def swarms(self) -> list[str]:
+        return self.sweep.swarms
+
+    @property
+    def seeds(self) -> list[int]:
+        s = self.sweep
+        return list(range(s.seed, s.seed + s.seeds)) if isinstance(s.seeds, int) else s.seeds
+
+    @property
+    def scenarios(self) -> list[ScenarioSpec]:
+        return self.scenario
+
+
+def load_sweep_config(path: str | Path) -> SweepConfig:
+    """Read and validate a sweep config; every problem is one line naming the key."""
+    path = Path(path)
+    data = read_toml(path)
+    try:
+        config = SweepConfig.model_validate(data, context={"path": path})
+    except ValidationError as exc:
+        raise validation_error(path, exc, data, SweepConfig) from None
+    config._path = path
+    return config

@@ -1,0 +1,87 @@
+"""Executors: run a list of cells on a local process pool or on Ray, yielding each cell's
+outcome as it finishes."""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+from collections.abc import Iterable
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
+from typing import Any
+
+from twin.errors import UserError
+from twin.sweep.cells import run_cell
+
+EXECUTORS = ("local", "ray")
+
+
+#: What an executor yields per cell: (cell id, result record or None, error message or None).
+Outcome = tuple[str, dict[str, Any] | None, str | None]
+
+
+def _error_line(exc: BaseException) -> str:
+    cause = getattr(exc, "cause", None) or exc  # Ray wraps the task's exception
+    text = str(cause).strip().splitlines()
+    return f"{type(cause).__name__}: {text[0] if text else ''}"
+
+
+def _local_executor(cells: list[dict], workers: int) -> Iterable[Outcome]:
+    """Run cells on a process pool (spawn: one fresh interpreter, hence one SUMO, per worker)."""
+    context = multiprocessing.get_context("spawn")
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=context)
+    try:
+        pending = {pool.submit(run_cell, cell): cell["id"] for cell in cells}
+        while pending:
+            done, _ = wait(pending, return_when=FIRST_COMPLETED)
+            for future in done:
+                cid = pending.pop(future)
+                try:
+                    yield cid, future.result(), None
+                except BrokenProcessPool as exc:
+                    raise UserError(
+                        f"a sweep worker died while running cell {cid} ({exc}); finished cells "
+                        "are saved, rerun the same command to resume"
+                    ) from None
+                except Exception as exc:
+                    yield cid, None, _error_line(exc)
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _ray_executor(cells: list[dict], workers: int, address: str | None) -> Iterable[Outcome]:
+    """Run cells as Ray tasks, one CPU each, on a cluster at ``address`` or a local one."""
+    os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # offline: never phone home
+    try:
+        import ray
+    except ImportError:
+        raise UserError("--executor ray needs Ray: pip install 'twin[ray]'") from None
+    started = False
+    if not ray.is_initialized():
+        if address:
+            ray.init(address=address, log_to_driver=False)
+        else:
+            ray.init(
+                num_cpus=workers,
+                include_dashboard=False,
+                log_to_driver=False,
+                configure_logging=False,
+            )
+        started = True
+    pending: dict = {}
+    try:
+        task = ray.remote(num_cpus=1, max_retries=0)(run_cell)
+        pending = {task.remote(cell): cell["id"] for cell in cells}
+        while pending:
+            done, _ = ray.wait(list(pending), num_returns=1)
+            for ref in done:
+                cid = pending.pop(ref)
+                try:
+                    yield cid, ray.get(ref), None
+                except Exception as exc:
+                    yield cid, None, _error_line(exc)
+    finally:
+        for ref in pending:
+            ray.cancel(ref, force=True)
+        if started:
+            ray.shutdown()

@@ -1,0 +1,155 @@
+"""Running a sweep: expand its cells, skip those done, validate the rest, run them on an
+executor, then merge the results and write the report."""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from twin.errors import UserError
+from twin.sweep.cells import expand_cells, scenario_config
+from twin.sweep.config import SweepConfig
+from twin.sweep.executors import EXECUTORS, _local_executor, _ray_executor
+from twin.sweep.store import (
+    CELLS_DIR,
+    _write_manifest,
+    done_cells,
+    merge,
+    write_cell_record,
+    write_sweep_report,
+)
+
+
+@dataclass
+class SweepOutcome:
+    out_dir: Path
+    ran: list[str]
+    skipped: list[str]
+    seconds: float
+    summary: pd.DataFrame
+    failed: dict[str, str] = field(default_factory=dict)
+
+
+def run_sweep(
+    config: SweepConfig,
+    out_dir: str | Path,
+    executor: str = "local",
+    workers: int | None = None,
+    address: str | None = None,
+    progress: bool = False,
+    report: bool = True,
+) -> SweepOutcome:
+    """Run every cell not yet done, then merge all cells and write the sweep report.
+
+    A cell that fails does not stop the others; after merging what is done, the failures are
+    raised as one :class:`UserError` (and listed in ``failed.json``).
+    """
+    if executor not in EXECUTORS:
+        raise UserError(f"--executor {executor!r}: choose from {', '.join(EXECUTORS)}")
+    out_dir = Path(out_dir)
+    (out_dir / CELLS_DIR).mkdir(parents=True, exist_ok=True)
+    cells = expand_cells(config, out_dir)
+    done = done_cells(out_dir)
+    todo = [c for c in cells if c["id"] not in done]
+    skipped = [c["id"] for c in cells if c["id"] in done]
+    _write_manifest(out_dir, config, cells)
+    check_cells(todo)
+    workers = max(1, min(workers or os.cpu_count() or 1, len(todo) or 1))
+    start = time.perf_counter()
+    ran: list[str] = []
+    failed: dict[str, str] = {}
+    if todo:
+        outcomes = (
+            _local_executor(todo, workers)
+            if executor == "local"
+            else _ray_executor(todo, workers, address)
+        )
+        bar = _progress(len(todo), progress)
+        try:
+            for cid, record, error in outcomes:
+                if record is None:
+                    failed[cid] = error or "unknown error"
+                else:
+                    if not (out_dir / CELLS_DIR / f"{cid}.json").exists():
+                        write_cell_record(out_dir / CELLS_DIR, record)  # a worker without our disk
+                    ran.append(cid)
+                if bar is not None:
+                    bar.update(1)
+        finally:
+            if bar is not None:
+                bar.close()
+    seconds = time.perf_counter() - start
+    _write_manifest(
+        out_dir,
+        config,
+        cells,
+        {
+            "executor": executor,
+            "workers": workers,
+            "address": address,
+            "ran": len(ran),
+            "skipped": len(skipped),
+            "failed": len(failed),
+            "wall_seconds": round(seconds, 3),
+            "finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        },
+    )
+    failed_path = out_dir / "failed.json"
+    if failed:
+        failed_path.write_text(json.dumps(failed, indent=2))
+    else:
+        failed_path.unlink(missing_ok=True)
+    _, summary = merge(out_dir, [c["id"] for c in cells], config)
+    if report and not summary.empty:
+        write_sweep_report(out_dir)
+    if failed:
+        cid, error = next(iter(failed.items()))
+        raise UserError(
+            f"{len(failed)} of {len(todo)} cells failed (first: {cid}: {error}); the other cells "
+            f"are saved in {out_dir}, fix the cause and rerun to run only the missing ones"
+        )
+    return SweepOutcome(out_dir, ran, skipped, seconds, summary, failed)
+
+
+def check_cells(cells: list[dict[str, Any]]) -> None:
+    """Validate every distinct scenario config and overrides before running anything."""
+    seen = set()
+    for cell in cells:
+        key = (cell["config"], json.dumps(cell["overrides"], sort_keys=True, default=str))
+        if key in seen:
+            continue
+        seen.add(key)
+        try:
+            config = scenario_config(Path(cell["config"]), cell["overrides"])
+            if config.traffic.kind == "sumo" and cell.get("tape") is None:
+                prepare_sumo(config)
+        except UserError as exc:
+            raise UserError(
+                f"scenario {cell['scenario']!r} with {cell['overrides']}: {exc}"
+            ) from None
+
+
+def prepare_sumo(config) -> None:
+    """Check a SUMO scenario's settings and build its built-in network once, here, so that
+    parallel cells never build the same network at the same time."""
+    from twin.sumo.network import build_named_network
+    from twin.sumo.scenario import sumo_settings
+
+    settings = sumo_settings(config)
+    if settings.network and not (settings.net or settings.sumocfg or settings.osm):
+        build_named_network(settings.network)
+
+
+def _progress(total: int, enabled: bool):
+    if not enabled:
+        return None
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, desc="sweep", unit="cell", dynamic_ncols=True, file=sys.stderr)

@@ -1,0 +1,120 @@
+"""A sweep folder's files: one ``cells/<id>.json`` (+ ``.parquet`` series) per finished cell,
+``sweep.json`` (definition, cells, invocations), and the merged ``results.csv`` and
+``summary.csv``. Every file is written atomically; a cell's JSON, written last, marks it done.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import pandas as pd
+
+if TYPE_CHECKING:
+    from twin.sweep.config import SweepConfig
+
+CELLS_DIR = "cells"
+#: Columns of results.csv that identify a cell (plus one column per swept parameter).
+KEY_COLUMNS = ("cell", "scenario", "seed", "swarm")
+
+
+def _atomic_write(path: Path, write: Callable[[Path], None]) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def write_cell_record(cells_dir: Path, record: dict[str, Any]) -> None:
+    """The cell's JSON: written last, it marks the cell as done."""
+    text = json.dumps(record, indent=1, default=_json_default)
+    _atomic_write(cells_dir / f"{record['id']}.json", lambda p: p.write_text(text))
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        return value.item()
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+def done_cells(out_dir: Path) -> set[str]:
+    """Ids of the cells whose result JSON exists (the JSON is written last)."""
+    return {p.stem for p in (out_dir / CELLS_DIR).glob("*.json") if not p.name.startswith(".")}
+
+
+def _write_manifest(
+    out_dir: Path, config: SweepConfig, cells: list[dict], invocation: dict[str, Any] | None = None
+) -> None:
+    """sweep.json: the sweep's definition, its cells and one entry per invocation (timings)."""
+    path = out_dir / "sweep.json"
+    history = []
+    if path.exists():
+        try:
+            history = json.loads(path.read_text()).get("invocations", [])
+        except json.JSONDecodeError:
+            history = []
+    manifest = {
+        "name": config.name,
+        "config": str(config.path),
+        "swarms": config.swarms,
+        "seeds": config.seeds,
+        "scenarios": [s.name for s in config.scenarios],
+        "parameters": config.parameters,
+        "cells": [c["id"] for c in cells],
+        "invocations": history + ([invocation] if invocation else []),
+    }
+    text = json.dumps(manifest, indent=2, default=str)
+    _atomic_write(path, lambda p: p.write_text(text))
+
+
+def merge(
+    out_dir: Path, ids: list[str] | None = None, config: SweepConfig | None = None
+) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """results.csv (one row per cell and swarm) and summary.csv (mean, 95% interval over seeds)."""
+    from twin.metrics import aggregate
+
+    if ids is None:
+        ids = json.loads((out_dir / "sweep.json").read_text())["cells"]
+    parameters = list(config.parameters) if config else None
+    rows = []
+    for cid in ids:
+        path = out_dir / CELLS_DIR / f"{cid}.json"
+        if not path.exists():
+            continue
+        record = json.loads(path.read_text())
+        cell = record["cell"]
+        for row in record["rows"]:
+            rows.append(
+                {
+                    "cell": cid,
+                    "scenario": cell["scenario"],
+                    **cell["parameters"],
+                    "seed": cell["seed"],
+                    **row,
+                    "seconds": record["seconds"],
+                    "code": record.get("code"),
+                }
+            )
+    results = pd.DataFrame(rows)
+    if results.empty:
+        return results, results
+    if parameters is None:
+        parameters = [c for c in results.columns if "." in c]
+    by = ["scenario", *parameters, "swarm"]
+    summary = aggregate(results, by=by)
+    _atomic_write(out_dir / "results.csv", lambda p: results.to_csv(p, index=False))
+    _atomic_write(out_dir / "summary.csv", lambda p: summary.to_csv(p, index=False))
+    return results, summary
+
+
+def write_sweep_report(out_dir: str | Path) -> Path:
+    """The sweep report (HTML + Markdown) from summary.csv, results.csv and the cells' series."""
+    from twin.report.sweep import write_sweep_report as write
+
+    return write(Path(out_dir))
