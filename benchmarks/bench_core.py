@@ -4,7 +4,9 @@ One step = every drone's 13-value state (eq. s), a greedy action over its field 
 move, the on-arrival rewards (Def. 4), the idleness update (Def. 3) and the coverage (Def. 5).
 The loop version below is what a straightforward implementation writes: a Python loop over
 drones, slicing the drone's row and column for the directional means. Both run in this process
-on the same inputs and must agree; the figure that matters is the ratio.
+on the same inputs and must agree along a trajectory (exit 1 otherwise); the figure that
+matters is the ratio, in steps per CPU second
+(process time: robust to other load on the machine).
 
     python benchmarks/bench_core.py            # paper scale and city scale
     python benchmarks/bench_core.py --quick    # small sizes, seconds
@@ -129,11 +131,11 @@ def first_disagreement(grid, idle, maps, pos, steps) -> str:
 
 
 def steps_per_second(step, grid, idle, maps, pos, min_seconds):
-    n, start = 0, time.perf_counter()
+    n, start = 0, time.process_time()
     while True:
         idle, pos, *_ = step(grid, idle, maps[n % 2], maps[(n + 1) % 2], pos)
         n += 1
-        elapsed = time.perf_counter() - start
+        elapsed = time.process_time() - start
         if elapsed >= min_seconds and n >= 3:
             return n / elapsed
 
