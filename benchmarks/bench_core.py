@@ -5,8 +5,7 @@ move, the on-arrival rewards (Def. 4), the idleness update (Def. 3) and the cove
 The loop version below is what a straightforward implementation writes: a Python loop over
 drones, slicing the drone's row and column for the directional means. Both run in this process
 on the same inputs and must agree along a trajectory (exit 1 otherwise); the figure that
-matters is the ratio, in steps per CPU second
-(process time: robust to other load on the machine).
+matters is the ratio, in steps per CPU second (process time: robust to other load).
 
     python benchmarks/bench_core.py            # paper scale and city scale
     python benchmarks/bench_core.py --quick    # small sizes, seconds
