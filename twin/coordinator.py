@@ -11,10 +11,10 @@ reached by its feasible action ``u`` is ``-Q_d(u)``. Polynomial, never an enumer
   action: no solved drone can reach their cells, so each already holds its row optimum and the
   two parts are independent; the joint optimum is exact;
 - the solved drones go to one call of the sparse solver
-  :func:`scipy.optimize.linear_sum_assignment`'s sparse sibling
-  :func:`scipy.sparse.csgraph.min_weight_full_bipartite_matching` as a *square* problem (one
-  slack row per cell, one slack column per drone; see :func:`_square_problem`), which lets its
-  initial reductions settle most rows before any augmenting path is searched.
+  :func:`scipy.sparse.csgraph.min_weight_full_bipartite_matching` (LAPJVsp), posed as a
+  *square* problem (one slack row per cell, one slack column per drone; see
+  :func:`_square_problem`): on square problems its initial reductions settle most rows before
+  any augmenting path is searched, on rectangular ones every row needs one.
 
 Stay is always feasible, so when the drones stand on distinct cells a distinct assignment
 always exists. Drones that stand on one cell (after a communication outage) may have no
@@ -50,9 +50,9 @@ def coordinate(q: np.ndarray, positions: np.ndarray, feasible: np.ndarray, grid:
     if not collide.any():
         return actions  # the unconstrained maximum already uses distinct cells
 
-    solved = _pushed(flat, feasible, chosen, collide, grid.nx * grid.ny)
-    stacked = _duplicated(flat[solved, 0]).any()
     n_cells = grid.nx * grid.ny
+    solved = _pushed(flat, feasible, chosen, collide, n_cells)
+    stacked = _duplicated(flat[solved, 0]).any()  # drones sharing a start cell
     actions[solved] = _solve(
         q[solved], masked[solved], flat[solved], feasible[solved], stacked, n_cells
     )
