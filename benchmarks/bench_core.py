@@ -4,7 +4,8 @@ One step = every drone's 13-value state (eq. s), a greedy action over its field 
 move, the on-arrival rewards (Def. 4), the idleness update (Def. 3) and the coverage (Def. 5).
 The loop version below is what a straightforward implementation writes: a Python loop over
 drones, slicing the drone's row and column for the directional means. Both run in this process
-on the same inputs and must agree; the figure that matters is the ratio.
+on the same inputs and must agree along a trajectory (exit 1 otherwise); the figure that
+matters is the ratio, in steps per CPU second (process time: robust to other load).
 
     python benchmarks/bench_core.py            # paper scale and city scale
     python benchmarks/bench_core.py --quick    # small sizes, seconds
@@ -13,6 +14,7 @@ on the same inputs and must agree; the figure that matters is the ratio.
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 
 import numpy as np
@@ -77,13 +79,20 @@ def loop_step(grid, idle, t, t1, pos):
         actions[d] = best_a
     nxt = pos + ACTION_DELTAS[actions]
     ibar = np.where(free, np.minimum(1.0, idle + P.delta), 0.0)
+    # drones sharing a cell share its arrival (departure) terms: count them per cell
+    arriving, leaving = {}, {}
+    for d in range(n):
+        arriving[tuple(nxt[d])] = arriving.get(tuple(nxt[d]), 0) + 1
+        leaving[tuple(pos[d])] = leaving.get(tuple(pos[d]), 0) + 1
     rewards = np.zeros(n)
     for d in range(n):
         arrive_i = view(ibar, *nxt[d])
         leave_i = view(idle, *pos[d])
         a_t = sum(x * y for x, y in zip(arrive_i, view(t1, *nxt[d]), strict=True))
         b_t = sum(x * y for x, y in zip(leave_i, view(t, *pos[d]), strict=True))
-        rewards[d] = P.alpha_T * (a_t - b_t) + P.alpha_I * (sum(arrive_i) - sum(leave_i))
+        a = P.alpha_T * a_t + P.alpha_I * sum(arrive_i)
+        b = P.alpha_T * b_t + P.alpha_I * sum(leave_i)
+        rewards[d] = a / arriving[tuple(nxt[d])] - b / leaving[tuple(pos[d])]
     new = ibar.copy()
     for d in range(n):
         new[nxt[d, 0], nxt[d, 1]] = P.eta * idle[nxt[d, 0], nxt[d, 1]]
@@ -100,12 +109,32 @@ def scene(nx, ny, n_drones, seed=0):
     return grid, idle, maps, pos
 
 
+#: Steps of a trajectory on which both implementations must agree (greedy drones soon stack
+#: on shared cells, which exercises the shared-cell reward).
+AGREE_STEPS = 8
+FIELDS = ("idleness", "positions", "rewards", "coverage", "states")
+
+
+def first_disagreement(grid, idle, maps, pos, steps) -> str:
+    """Run both steps side by side along one trajectory; describe the first difference."""
+    for k in range(steps):
+        t, t1 = maps[k % 2], maps[(k + 1) % 2]
+        a = vectorised_step(grid, idle, t, t1, pos)
+        b = loop_step(grid, idle, t, t1, pos)
+        for field, x, y in zip(FIELDS, a, b, strict=True):
+            close = np.isclose(x, y, rtol=1e-9, atol=1e-12)
+            if not np.all(close):
+                return f"step {k}, {field}: {np.size(close) - np.count_nonzero(close)} of {np.size(close)} values"
+        idle, pos = a[0], a[1]
+    return ""
+
+
 def steps_per_second(step, grid, idle, maps, pos, min_seconds):
-    n, start = 0, time.perf_counter()
+    n, start = 0, time.process_time()
     while True:
         idle, pos, *_ = step(grid, idle, maps[n % 2], maps[(n + 1) % 2], pos)
         n += 1
-        elapsed = time.perf_counter() - start
+        elapsed = time.process_time() - start
         if elapsed >= min_seconds and n >= 3:
             return n / elapsed
 
@@ -118,14 +147,14 @@ def main() -> None:
     if args.quick:
         cases = [("paper", 20, 30, 4), ("city (small)", 60, 90, 100)]
     seconds = 0.5 if args.quick else 3.0
-    print(f"{'scale':<14}{'grid':>10}{'drones':>8}{'loop steps/s':>15}{'core steps/s':>15}{'ratio':>9}")
+    print(
+        f"{'scale':<14}{'grid':>10}{'drones':>8}{'loop steps/s':>15}{'core steps/s':>15}{'ratio':>9}"
+    )
     for name, nx, ny, n in cases:
         grid, idle, maps, pos = scene(nx, ny, n)
-        # both implementations agree on the same step
-        a = vectorised_step(grid, idle, maps[0], maps[1], pos)
-        b = loop_step(grid, idle, maps[0], maps[1], pos)
-        for x, y in zip(a, b, strict=True):
-            np.testing.assert_allclose(x, y, rtol=1e-9, atol=1e-12)
+        disagree = first_disagreement(grid, idle, maps, pos, AGREE_STEPS)
+        if disagree:
+            sys.exit(f"bench_core: {name}: vectorised and loop steps disagree: {disagree}")
         loop = steps_per_second(loop_step, grid, idle, maps, pos, seconds)
         core = steps_per_second(vectorised_step, grid, idle, maps, pos, seconds)
         print(f"{name:<14}{f'{nx}x{ny}':>10}{n:>8}{loop:>15.1f}{core:>15.1f}{core / loop:>8.1f}x")

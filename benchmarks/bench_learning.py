@@ -9,7 +9,9 @@ Measured in one process, on the same thread count:
   in GFLOP/s; the fraction of the ceiling is the update's FLOP rate over the large matmul's.
 
 Prints updates/s, the ratio ours / plain, GFLOP/s and the projected wall time of the paper's
-schedule (30000 epochs x 30 updates, batch 32). ``--quick`` uses a small network.
+schedule (30000 epochs x 30 updates, batch 32). First checks that ours with one update per
+epoch and the plain loop reach the same weights from the same start (exit 1 otherwise).
+``--quick`` uses a small network and short timings.
 
     python benchmarks/bench_learning.py [--quick] [--threads 1] [--seconds 10]
 """
@@ -18,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import sys
 import time
 
 import numpy as np
@@ -59,6 +62,27 @@ def plain_update(net, target, optimizer, batch, gamma=0.9):
     optimizer.step()
 
 
+def updates_disagree(layers, buffer: ReplayBuffer, epochs: int = 5) -> str:
+    """With one update per epoch, ours (fused Adam, target per epoch) and the plain loop are
+    the same algorithm: from the same weights and batches they must reach the same weights."""
+    torch.manual_seed(1)
+    start, start_target = QNetwork(layers), QNetwork(layers)
+    nets = []
+    for fused in (False, True):
+        net, target = QNetwork(layers), QNetwork(layers)
+        net.load_state_dict(start.state_dict())
+        target.load_state_dict(start_target.state_dict())
+        nets.append((net, target, make_optimizer(net, 1e-3, fused)))
+    batches = [buffer.sample(BATCH, np.random.default_rng([7, e])) for e in range(epochs)]
+    for batch in batches:
+        plain_update(*nets[0], batch)
+        train_epoch(*nets[1], batch, 0.9, 1)
+    for (name, a), b in zip(nets[0][0].named_parameters(), nets[1][0].parameters(), strict=True):
+        if not torch.allclose(a, b, rtol=1e-4, atol=1e-6):
+            return f"{name} after {epochs} updates (max difference {(a - b).abs().max():.2e})"
+    return ""
+
+
 def updates_per_second(step, updates_per_call: int, seconds: float) -> float:
     step()  # warm-up
     n, t0 = 0, time.perf_counter()
@@ -93,10 +117,13 @@ def main() -> None:
     args = p.parse_args()
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
-    seconds = args.seconds or (1.0 if args.quick else 10.0)
+    seconds = args.seconds or (0.5 if args.quick else 10.0)
     layers = [13, 256, 128, 5] if args.quick else list(TABLE1_LAYERS)
     rng = np.random.default_rng(0)
     buffer = synthetic_buffer(rng)
+    disagree = updates_disagree(layers, buffer)
+    if disagree:
+        sys.exit(f"bench_learning: ours and the plain loop disagree: {disagree}")
 
     def fresh(fused: bool):
         net, target = QNetwork(layers), QNetwork(layers)

@@ -10,6 +10,9 @@ wall seconds of:
 - ``coupled, K swarms``: the same with K swarms side by side on the same SUMO run;
 - ``bare, mesoscopic``: SUMO's mesoscopic model, against the microscopic ``bare``.
 
+The 1-swarm and K-swarm runs must read the same vehicles and importance maps and move the
+greedy swarm alike (exit 1 otherwise).
+
 Usage: ``python benchmarks/bench_sumo.py [--horizon 144] [--swarms 6]``; ``--quick`` uses a small
 generated grid (seconds).
 """
@@ -90,6 +93,21 @@ def coupled(config, horizon: int, names: list[str]):
     return timed(run)
 
 
+def coupled_runs_disagree(res1, src1, res_k, src_k) -> str:
+    """The 1-swarm and the K-swarm run step the same SUMO run: they must read the same
+    vehicles and importance maps, and the greedy swarm (deterministic) must patrol alike."""
+    if src1.vehicles_seen != src_k.vehicles_seen:
+        return "vehicles read at the sample times"
+    if not np.array_equal(res1.importance, res_k.importance):
+        return "importance maps"
+    if "greedy-1" in res_k.swarms:
+        a, b = res1.swarms.index("greedy-0"), res_k.swarms.index("greedy-1")
+        for field in ("rewards", "coverage", "positions"):
+            if not np.array_equal(getattr(res1, field)[a], getattr(res_k, field)[b]):
+                return f"greedy swarm's {field}"
+    return ""
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--config", type=Path, default=ROOT / "configs/shenzhen.toml")
@@ -106,7 +124,7 @@ def main() -> None:
     base = ["random", "greedy", "sweeping"]
     k_names = (base * args.swarms)[: args.swarms]
 
-    repeat = max(args.repeat, 3 if args.quick else 1)
+    repeat = args.repeat
     # Interleaved rounds (bare, 1 swarm, K swarms, meso), the fastest of each kind counts: load
     # from other processes then hits every kind alike.
     kinds = {
@@ -123,8 +141,9 @@ def main() -> None:
             if kind not in best or run[0] < best[kind][0]:
                 best[kind] = run
     cpu_b, wall_b, _ = best["bare"]
-    cpu_1, wall_1, (_, src1) = best["one"]
-    cpu_k, wall_k, _ = best["k"]
+    cpu_1, wall_1, (res1, src1) = best["one"]
+    cpu_k, wall_k, (res_k, src_k) = best["k"]
+    disagree = coupled_runs_disagree(res1, src1, res_k, src_k)
     rows = [
         ("bare SUMO stepping (micro)", cpu_b, wall_b, 1.0),
         ("coupled, 1 swarm", cpu_1, wall_1, cpu_1 / cpu_b),
@@ -145,6 +164,8 @@ def main() -> None:
     if not args.no_meso:
         print(f"mesoscopic speed-up over microscopic: x{cpu_b / cpu_m:.2f}")
     tmp.cleanup()
+    if disagree:
+        sys.exit(f"bench_sumo: the 1-swarm and {args.swarms}-swarm runs disagree: {disagree}")
 
 
 if __name__ == "__main__":

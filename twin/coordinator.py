@@ -2,25 +2,32 @@
 drones' Q values with all next cells distinct, solved exactly as an assignment problem.
 
 Drones are rows, candidate next cells are columns, the cost of putting drone ``d`` on the cell
-reached by its feasible action ``u`` is ``-Q_d(u)``. Two drones more than two cells apart
-share no candidate cell and never compete, so the "share a candidate cell" graph is split
-into connected components and only components whose unconstrained choices collide are solved,
-each with :func:`scipy.optimize.linear_sum_assignment` (large components with the sparse
-solver :func:`scipy.sparse.csgraph.min_weight_full_bipartite_matching`, same optimum):
-polynomial in the component's size, never an enumeration of ``5^N`` joint actions.
+reached by its feasible action ``u`` is ``-Q_d(u)``. Polynomial, never an enumeration of
+``5^N`` joint actions, and only the drones that matter enter the solver:
+
+- every drone first takes its own best action; if the chosen cells are distinct, done;
+- otherwise the drones that collide, and every drone whose chosen cell one of them could take
+  (recursively: the ones they can push), are solved together. The others keep their best
+  action: no solved drone can reach their cells, so each already holds its row optimum and the
+  two parts are independent; the joint optimum is exact;
+- the solved drones go to one call of the sparse solver
+  :func:`scipy.sparse.csgraph.min_weight_full_bipartite_matching` (LAPJVsp), posed as a
+  *square* problem (one slack row per cell, one slack column per drone; see
+  :func:`_square_problem`): on square problems its initial reductions settle most rows before
+  any augmenting path is searched, on rectangular ones every row needs one.
 
 Stay is always feasible, so when the drones stand on distinct cells a distinct assignment
 always exists. Drones that stand on one cell (after a communication outage) may have no
-distinct assignment; each drone then also owns a private "stay anyway" column with a penalty
-larger than any difference of Q sums, so the solution keeps as few shared cells as possible.
+distinct assignment; each solved drone then also owns a private "stay anyway" column with a
+penalty larger than any difference of Q sums, so the solution keeps as few shared cells as
+possible.
 """
 
 from __future__ import annotations
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import connected_components, min_weight_full_bipartite_matching
+from scipy.sparse.csgraph import breadth_first_order, min_weight_full_bipartite_matching
 
 from twin.grid import ACTION_DELTAS, Grid
 
@@ -37,87 +44,131 @@ def coordinate(q: np.ndarray, positions: np.ndarray, feasible: np.ndarray, grid:
     if n <= 1:
         return actions
     # flat ids of every drone's candidate cells (off-map ones are masked by `feasible`)
-    cells = positions[:, None, :] + ACTION_DELTAS[None, :, :]
-    flat = cells[..., 0] * grid.ny + cells[..., 1]
+    flat = (positions[:, 0] * grid.ny + positions[:, 1])[:, None] + _flat_steps(grid.ny)
     chosen = flat[np.arange(n), actions]
     collide = _duplicated(chosen)
     if not collide.any():
         return actions  # the unconstrained maximum already uses distinct cells
 
-    labels = _components(flat, feasible, n)
-    todo = np.unique(labels[collide])
-    members_of = np.argsort(labels, kind="stable")
-    bounds = np.searchsorted(labels[members_of], np.concatenate([todo, todo + 1]))
-    for start, stop in zip(bounds[: len(todo)], bounds[len(todo) :], strict=True):
-        members = members_of[start:stop]
-        actions[members] = _solve_component(q[members], flat[members], feasible[members])
+    n_cells = grid.nx * grid.ny
+    solved = _pushed(flat, feasible, chosen, collide, n_cells)
+    stacked = _duplicated(flat[solved, 0]).any()  # drones sharing a start cell
+    actions[solved] = _solve(
+        q[solved], masked[solved], flat[solved], feasible[solved], stacked, n_cells
+    )
     return actions
+
+
+def _flat_steps(ny: int) -> np.ndarray:
+    """Flat-index offset of each action on a grid ``ny`` cells wide."""
+    return ACTION_DELTAS[:, 0] * ny + ACTION_DELTAS[:, 1]
 
 
 def _duplicated(values: np.ndarray) -> np.ndarray:
     """Mask of entries whose value occurs more than once."""
-    _, inverse, counts = np.unique(values, return_inverse=True, return_counts=True)
-    return counts[inverse] > 1
+    order = np.argsort(values, kind="stable")
+    ordered = values[order]
+    same = ordered[1:] == ordered[:-1]
+    dup = np.zeros(len(values), dtype=bool)
+    dup[order[1:][same]] = True
+    dup[order[:-1][same]] = True
+    return dup
 
 
-def _components(flat: np.ndarray, feasible: np.ndarray, n: int) -> np.ndarray:
-    """Component label of every drone in the graph "shares a candidate cell".
+def _pushed(flat, feasible, chosen, collide, n_cells: int) -> np.ndarray:
+    """Indices of the colliding drones and of every drone they can push, recursively.
 
-    Drones that share no cell with anyone are singletons; only the others enter the graph.
+    Graph: ``x -> y`` when ``y``'s chosen cell is a candidate cell of ``x``; the answer is
+    everything reachable from the colliding drones (one breadth-first search from a virtual
+    root ``n`` linked to them).
     """
-    drone, action = np.nonzero(feasible)
-    cell = flat[drone, action]
-    order = np.argsort(cell, kind="stable")
-    cell, drone = cell[order], drone[order]
-    same = cell[1:] == cell[:-1]  # chain the drones listed under one cell
-    rows, cols = drone[:-1][same], drone[1:][same]
-    labels = np.arange(n)  # singletons keep their own index as label
-    nodes = np.unique(np.concatenate([rows, cols]))
-    r, c = np.searchsorted(nodes, rows), np.searchsorted(nodes, cols)
-    by_row = np.argsort(r, kind="stable")
-    indptr = np.searchsorted(r[by_row], np.arange(len(nodes) + 1))
-    graph = csr_matrix(
-        (np.ones(len(r), dtype=np.int8), c[by_row], indptr), shape=(len(nodes), len(nodes))
-    )
-    sub = connected_components(graph, directed=False)[1]
-    labels[nodes] = n + sub  # component labels after every drone index
-    return labels
+    n = len(chosen)
+    keep = np.flatnonzero(~collide)  # their chosen cells are distinct
+    owner = np.full(n_cells, -1, dtype=np.int32)
+    owner[chosen[keep]] = keep
+    drone, action = np.nonzero(feasible)  # drone-major: the graph's rows in order
+    pushes = owner[flat[drone, action]]
+    hit = (pushes >= 0) & (pushes != drone)
+    roots = np.flatnonzero(collide)
+    indices = np.concatenate([pushes[hit], roots], dtype=np.int32)
+    indptr = np.zeros(n + 2, dtype=np.int32)
+    np.cumsum(np.bincount(drone[hit], minlength=n), out=indptr[1 : n + 1])
+    indptr[n + 1] = len(indices)
+    graph = csr_matrix((np.ones(len(indices)), indices, indptr), (n + 1, n + 1))
+    reached = breadth_first_order(graph, n, directed=True, return_predecessors=False)
+    return np.sort(reached[1:])
 
 
-#: Components with more drones than this are solved with the sparse assignment solver.
-SPARSE_ABOVE = 48
+def _solve(q, masked, flat, feasible, stacked: bool, n_cells: int) -> np.ndarray:
+    """Exact assignment of the given drones to their candidate cells (with private "stay
+    anyway" columns when some of them stand on one cell)."""
+    graph, cells = _square_problem(q, masked, flat, feasible, stacked, n_cells)
+    column = min_weight_full_bipartite_matching(graph)[1][: len(q)]
+    # the action reaching the matched cell; a private column (past the cells) means stay
+    on_cell = column < len(cells)
+    target = cells[np.minimum(column, len(cells) - 1)]
+    action = ((flat == target[:, None]) & feasible).argmax(axis=1)
+    return np.where(on_cell, action, 0)
 
 
-def _solve_component(q: np.ndarray, flat: np.ndarray, feasible: np.ndarray) -> np.ndarray:
-    """Exact assignment for one component: rows drones, columns its candidate cells plus one
-    private penalised "stay" column per drone (used only if no distinct assignment exists)."""
+def _square_problem(q, masked, flat, feasible, stacked: bool, n_cells: int):
+    """The assignment as a square sparse matrix, and the cell behind each of its first columns.
+
+    Rows: the ``m`` drones, then one slack row per candidate cell; columns: the ``k`` cells,
+    then one slack column per drone. A cell's slack row takes the cell when no drone does, or
+    else the slack column of a drone that could reach the cell. Every perfect matching is an
+    assignment of drones to distinct cells and back, and all slack edges cost the same, so
+    the optimum is the drones' optimum. A drone's own slack column is its private "stay
+    anyway" column (only when ``stacked``). Costs are regrets ``max_u Q - Q + 1 >= 1``: the
+    solver drops explicit zeros.
+    """
     m = len(q)
-    drone, action = np.nonzero(feasible)
-    cells, col = np.unique(flat[drone, action], return_inverse=True)
+    drone, action = np.nonzero(feasible)  # drone-major
+    cell = flat[drone, action]
+    used = np.zeros(n_cells, dtype=bool)
+    used[cell] = True
+    cells = np.flatnonzero(used)
     k = len(cells)
-    finite = q[feasible]
-    penalty = (finite.max() - finite.min() + 1.0) * m
-    # edges: (drone, its candidate cell) at cost -Q, (drone, its private column) at penalty
-    rows = np.concatenate([drone, np.arange(m)])
-    cols = np.concatenate([col, k + np.arange(m)])
-    costs = np.concatenate([-q[drone, action], penalty - q[:, 0]])
-    acts = np.concatenate([action, np.zeros(m, dtype=np.int64)])  # private column = stay
-    if m > SPARSE_ABOVE:
-        # every drone takes exactly one edge, so shifting all costs to >= 1 keeps the optimum
-        # (the sparse solver treats an explicit 0 as a missing edge)
-        shifted = costs - costs.min() + 1.0
-        graph = csr_matrix((shifted, (rows, cols)), shape=(m, k + m))
-        match = min_weight_full_bipartite_matching(graph)[1]
-        chosen = np.arange(m), match
-    else:
-        cost = np.full((m, k + m), np.inf)
-        cost[rows, cols] = costs
-        chosen = linear_sum_assignment(cost)
-    action_of = np.zeros((m, k + m), dtype=np.int64)
-    action_of[rows, cols] = acts
-    out = np.empty(m, dtype=np.int64)
-    out[chosen[0]] = action_of[chosen]
-    return out
+    column_of = np.empty(n_cells, dtype=np.int32)
+    column_of[cells] = np.arange(k, dtype=np.int32)
+    col = column_of[cell]
+    best = masked.max(axis=1)
+    regret = best[drone] - q[drone, action] + 1.0
+    private = int(stacked)
+    # drone rows: their cells (then their private column)
+    per_drone = np.bincount(drone, minlength=m) + private
+    d_ptr = np.zeros(m + 1, dtype=np.int32)
+    np.cumsum(per_drone, out=d_ptr[1:])
+    d_idx = np.empty(d_ptr[-1], dtype=np.int32)
+    d_val = np.empty(d_ptr[-1])
+    slot = np.arange(len(drone)) + private * drone  # entries shift by one per earlier drone
+    d_idx[slot], d_val[slot] = col, regret
+    if stacked:
+        finite = q[feasible]
+        penalty = (finite.max() - finite.min() + 1.0) * m
+        last = d_ptr[1:] - 1
+        d_idx[last], d_val[last] = k + np.arange(m), best - q[:, 0] + 1.0 + penalty
+    # slack rows (one per cell, in cell order): the cell itself, then the drones reaching it
+    s_ptr = np.zeros(k + 1, dtype=np.int32)
+    np.cumsum(np.bincount(col, minlength=k) + 1, out=s_ptr[1:])
+    if stacked:  # rank the drones reaching each cell by a stable sort
+        by_cell = np.argsort(col, kind="stable")
+        rank = np.empty(len(col), dtype=np.int64)
+        rank[by_cell] = np.arange(1, len(col) + 1) - (s_ptr[col[by_cell]] - col[by_cell])
+    else:  # distinct positions: at most one drone reaches a cell by each action
+        reaches = np.zeros((k, 5), dtype=np.int32)
+        reaches[col, action] = 1
+        for u in range(1, 5):  # running count along the actions
+            reaches[:, u] += reaches[:, u - 1]
+        rank = reaches[col, action]
+    # rank is 1-based: slot 0 of a slack row is the cell itself
+    s_idx = np.empty(s_ptr[-1], dtype=np.int32)
+    s_idx[s_ptr[:-1]] = np.arange(k)
+    s_idx[s_ptr[col] + rank] = k + drone
+    indptr = np.concatenate([d_ptr, d_ptr[-1] + s_ptr[1:]])
+    data = np.concatenate([d_val, np.ones(len(s_idx))])
+    graph = csr_matrix((data, np.concatenate([d_idx, s_idx]), indptr), shape=(m + k, m + k))
+    return graph, cells
 
 
 def brute_force(q: np.ndarray, positions: np.ndarray, feasible: np.ndarray, grid: Grid):
