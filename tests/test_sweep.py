@@ -244,3 +244,94 @@ def test_transfer_config(tmp_path: Path) -> None:
     assert {c["scenario"] for c in cells} == {"synthetic", "shenzhen-rush"}
     assert len(cells) == 2 * len(config.seeds)
     assert all(c["checkpoints"]["rl"] == file_sha256(checkpoint) for c in cells)
+
+
+#: (dotted key, the line of configs/synthetic.toml it replaces, the new line) for every key a
+#: sweep override can reach in a synthetic scenario.
+OVERRIDES = [
+    ("grid.nx", "nx = 20", "nx = 12"),
+    ("grid.ny", "ny = 30", "ny = 25"),
+    ("grid.obstacles", "obstacles = []", "obstacles = [[1, 1], [2, 2]]"),
+    ("swarm.n_drones", "n_drones = 3", "n_drones = 2"),
+    ("swarm.starts", 'starts = "random"', "starts = [[0, 0], [5, 5], [9, 9]]"),
+    ("swarm.eta", "eta = 0.1 ", "eta = 0.3 "),
+    ("swarm.delta", "delta = 0.025", "delta = 0.05"),
+    ("swarm.alpha_T", "alpha_T = 1.0", "alpha_T = 2.0"),
+    ("swarm.alpha_I", "alpha_I = 0.5", "alpha_I = 0.0"),
+    ("traffic.horizon", "horizon = 30", "horizon = 25"),
+    ("traffic.beta1", "beta1 = 0.7", "beta1 = 0.3"),
+    ("traffic.beta2", "beta2 = 5.0", "beta2 = 2.0"),
+    ("traffic.z_lo", "z_lo = 0.0", "z_lo = 0.1"),
+]
+#: swarm options given in the scenario config ([swarm_options]) or by the sweep (the sweep's win)
+OPTIONS = [
+    ("rl-decentralized", "eps = 0.5", None),
+    ("rl-decentralized", "eps = 0.5", {"eps": 0.2}),
+    ("rl", "outages = [[5, 12]]", None),
+    ("rl-online", "online_iters = 2", {"batch_size": 8}),
+    ("lookahead", "horizon = 2", None),
+    ("lookahead", "horizon = 2", {"horizon": 3}),
+]
+
+
+def _value(line: str):
+    import tomllib
+
+    return next(iter(tomllib.loads(line).values()))
+
+
+def _cell_rows(tmp: Path, scenario_text: str, overrides: dict, swarms: list[str],
+               options: dict) -> pd.DataFrame:  # fmt: skip
+    from twin.sweep import run_cell
+
+    scenario = tmp / "scenario.toml"
+    scenario.write_text(scenario_text)
+    lines = [f"[sweep]\nname = 't'\nswarms = {json.dumps(swarms)}\nseeds = [3]\n"]
+    for swarm, table in options.items():
+        lines.append(f"[swarm_options.{swarm}]\n" + "".join(
+            f"{k} = {json.dumps(v)}\n" for k, v in table.items()))  # fmt: skip
+    lines.append(f"[[scenario]]\nname = 'syn'\nconfig = '{scenario.name}'\n")
+    lines.append("overrides = {" + ", ".join(
+        f'"{k}" = {json.dumps(v)}' for k, v in overrides.items()) + "}\n")  # fmt: skip
+    path = tmp / "sweep.toml"
+    path.write_text("\n".join(lines))
+    cell = expand_cells(load_sweep_config(path), tmp / "sweep")[0]
+    return pd.DataFrame(run_cell(cell)["rows"]).set_index("swarm")
+
+
+def _evaluate_rows(tmp: Path, scenario_text: str, swarms: list[str]) -> pd.DataFrame:
+    path = tmp / "equivalent.toml"
+    path.write_text(scenario_text)
+    out = tmp / "eval"
+    args = ["evaluate", "--config", str(path), "--seed", "3", "--swarms", ",".join(swarms)]
+    assert cli([*args, "--out", str(out), "--no-report", "--quiet"]) == 0
+    return pd.read_csv(out / "per_seed.csv").set_index("swarm")
+
+
+@pytest.mark.parametrize(("key", "old", "new"), OVERRIDES, ids=[o[0] for o in OVERRIDES])
+def test_every_override_gives_a_cell_equal_to_evaluate(tmp_path, key, old, new):
+    text = scenario_file(tmp_path, horizon=30).read_text()
+    assert old in text, old
+    swarms = ["random", "greedy", "visit-gain"]
+    got = _cell_rows(tmp_path, text, {key: _value(new)}, swarms, {})
+    expected = _evaluate_rows(tmp_path, text.replace(old, new, 1), swarms)
+    for col in ("R_hat_T", "C_hat_T", "pct_map_covered", "belief_error"):
+        assert got.loc[swarms, col].tolist() == pytest.approx(expected.loc[swarms, col].tolist())
+
+
+@pytest.mark.parametrize(("swarm", "in_config", "in_sweep"), OPTIONS)
+def test_every_swarm_option_gives_a_cell_equal_to_evaluate(tmp_path, swarm, in_config, in_sweep):
+    if swarm.startswith("rl"):
+        pytest.importorskip("torch")
+    text = scenario_file(tmp_path, horizon=30).read_text()
+    text += f"\n[swarm_options.{swarm}]\n{in_config}\n"
+    got = _cell_rows(tmp_path, text, {}, [swarm], {swarm: in_sweep} if in_sweep else {})
+    scenario = text
+    if in_sweep:  # the equivalent config states the sweep's value, which wins over the file's
+        scenario += "".join(f"{k} = {json.dumps(v)}\n" for k, v in in_sweep.items()
+                            if f"{k} =" not in in_config)  # fmt: skip
+        for k, v in in_sweep.items():
+            scenario = scenario.replace(in_config, f"{k} = {json.dumps(v)}") if (
+                in_config.startswith(f"{k} =")) else scenario  # fmt: skip
+    expected = _evaluate_rows(tmp_path, scenario, [swarm])
+    assert got.loc[swarm, "R_hat_T"] == pytest.approx(expected.loc[swarm, "R_hat_T"], rel=1e-12)

@@ -223,14 +223,9 @@ def record(run_dir: Path, outcome: ExperimentResult, meta: dict[str, Any]):
     classical one, paired over seeds); live SUMO runs add ``network.json``, the MFD fit and samples and
     the traffic tape of each seed (``tape.parquet`` for the first, ``tapes/`` for the rest).
     Returns the summary table and the comparison."""
-    from twin.metrics import learned_against_best_classical, table2
-    from twin.runs import atomic_write, write_run
+    from twin.runs import write_run
 
-    summary = write_run(run_dir, outcome.results, meta)
-    per_seed = pd.concat([table2(r).assign(seed=r.seed) for r in outcome.results])
-    comparison = learned_against_best_classical(per_seed)
-    if not comparison.empty:
-        atomic_write(run_dir / "comparison.csv", lambda p: comparison.to_csv(p, index=False))
+    summary, comparison = write_run(run_dir, outcome.results, meta)
     if outcome.sources and hasattr(outcome.sources[0], "tape"):
         _write_sumo_extras(run_dir, outcome)
     return summary, comparison

@@ -21,12 +21,9 @@ interrupted run never leaves a half-written file):
 from __future__ import annotations
 
 import contextlib
-import json
-import os
 import platform
 import sys
-import tempfile
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from datetime import UTC, datetime
 from importlib import metadata as importlib_metadata
 from pathlib import Path
@@ -37,7 +34,8 @@ import pandas as pd
 
 from twin import __version__
 from twin.errors import UserError
-from twin.metrics import MONITORING_COLUMNS, aggregate, table2
+from twin.files import atomic_write, write_json
+from twin.metrics import MONITORING_COLUMNS, aggregate, learned_against_best_classical, table2
 from twin.monitoring import MonitorSettings, RunMonitoring, monitor_run
 from twin.patrol import PatrolResult
 from twin.scores import ScoreParams
@@ -64,32 +62,6 @@ def prepare_run_dir(path: str | Path) -> Path:
     except OSError as exc:
         raise UserError(f"cannot create output folder {path}: {exc.strerror}") from exc
     return path
-
-
-def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
-    """Call ``write(tmp)`` on a temporary file beside ``path``, then rename it to ``path``."""
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=path.suffix)
-    os.close(fd)
-    try:
-        write(Path(tmp))
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-def write_json(path: Path, data: dict[str, Any]) -> None:
-    atomic_write(path, lambda p: p.write_text(json.dumps(data, indent=2, default=_jsonable) + "\n"))
-
-
-def _jsonable(value: Any) -> Any:
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, Path):
-        return str(value)
-    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
 
 
 def series_frame(result: PatrolResult) -> pd.DataFrame:
@@ -153,13 +125,29 @@ def step_seconds_of(metadata: dict[str, Any]) -> float | None:
     return None
 
 
+def seed_table(
+    result: PatrolResult,
+    params: ScoreParams | None = None,
+    step_s: float | None = None,
+    monitoring: RunMonitoring | None = None,
+) -> pd.DataFrame:
+    """One row per swarm of one seed: the Table 2 columns and, when monitored, the monitoring
+    columns."""
+    table = table2(result, params)
+    if monitoring is not None:
+        table = table.merge(monitoring.table(step_s), on="swarm", how="left")
+    table.insert(0, "seed", result.seed)
+    return table
+
+
 def write_run(
     run_dir: Path,
     results: Sequence[PatrolResult],
     metadata: dict[str, Any],
     monitor: MonitorSettings | None = None,
 ) -> pd.DataFrame:
-    """Write the run folder for one or several seeds; return the summary table."""
+    """Write the run folder for one or several seeds; return the summary table and the
+    comparison of each learned swarm with the best classical one (``comparison.csv``)."""
     run_dir.mkdir(parents=True, exist_ok=True)
     monitor = monitor or MonitorSettings()
     params = score_params_of(metadata)
@@ -172,15 +160,12 @@ def write_run(
         ignore_index=True,
     )
     trajectories = pd.concat([trajectories_frame(r) for r in results], ignore_index=True)
-    tables = []
-    for r, m in zip(results, monitored, strict=True):
-        table = table2(r, params)
-        if m is not None:
-            table = table.merge(m.table(step_s), on="swarm", how="left")
-        tables.append(table.assign(seed=r.seed))
-    per_seed = pd.concat(tables, ignore_index=True)
-    per_seed = per_seed[["seed", *[c for c in per_seed.columns if c != "seed"]]]
+    per_seed = pd.concat(
+        [seed_table(r, params, step_s, m) for r, m in zip(results, monitored, strict=True)],
+        ignore_index=True,
+    )
     summary = aggregate(per_seed)
+    comparison = learned_against_best_classical(per_seed)
     keep = [c for c in MONITORING_COLUMNS if c in summary.columns]
     monitoring = summary[["swarm", *[x for c in keep for x in (c, f"{c}_ci95")], "n_seeds"]]
     event_frames = [m.events_frame() for m in monitored if m is not None]
@@ -193,6 +178,8 @@ def write_run(
     )
     atomic_write(run_dir / "per_seed.csv", lambda p: per_seed.to_csv(p, index=False))
     atomic_write(run_dir / "summary.csv", lambda p: summary.to_csv(p, index=False))
+    if not comparison.empty:
+        atomic_write(run_dir / "comparison.csv", lambda p: comparison.to_csv(p, index=False))
     if keep and events is not None:
         atomic_write(run_dir / "monitoring.csv", lambda p: monitoring.to_csv(p, index=False))
         atomic_write(run_dir / "events.parquet", lambda p: events.to_parquet(p, index=False))
@@ -232,7 +219,7 @@ def write_run(
         **metadata,
     }
     write_json(run_dir / "run.json", meta)
-    return summary
+    return summary, comparison
 
 
 def _with_belief(series: pd.DataFrame, monitoring: RunMonitoring | None) -> pd.DataFrame:

@@ -13,8 +13,6 @@ Anything wrong with a file reaches the user as one :class:`~twin.errors.UserErro
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +20,7 @@ import torch
 
 from twin import __version__
 from twin.errors import UserError
+from twin.files import atomic_write
 from twin.grid import ACTIONS
 from twin.scores import STATE_LAYOUT
 
@@ -46,22 +45,10 @@ def model_metadata(layers, config: dict[str, Any], seed: int, epoch: int) -> dic
 
 
 def atomic_save(obj: Any, path: str | Path) -> None:
-    """``torch.save`` to a temporary file beside ``path``, then ``os.replace`` it into place."""
+    """``torch.save`` to a temporary file beside ``path``, then renamed into place."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save(obj, f)
-            f.flush()
-            os.fsync(f.fileno())
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp creates 0600; make it an ordinary file
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write(path, lambda tmp: torch.save(obj, tmp))
 
 
 def save_model(path: str | Path, weights: dict[str, torch.Tensor], meta: dict[str, Any]) -> None:

@@ -41,7 +41,6 @@ from twin.sweep.cells import (
     parameter_combinations,
     run_cell,
     scenario_config,
-    scenario_source,
 )
 from twin.sweep.config import ScenarioSpec, SweepConfig, load_sweep_config
 from twin.sweep.executors import EXECUTORS, Outcome
@@ -77,7 +76,6 @@ __all__ = [
     "run_cell",
     "run_sweep",
     "scenario_config",
-    "scenario_source",
     "write_cell_record",
     "write_sweep_report",
 ]

@@ -15,16 +15,14 @@ import hashlib
 import itertools
 import json
 import os
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from twin.errors import UserError
+from twin.files import atomic_write
 from twin.sweep.config import SweepConfig
-from twin.sweep.store import CELLS_DIR, _atomic_write, write_cell_record
+from twin.sweep.store import CELLS_DIR, write_cell_record
 
 
 def parameter_combinations(parameters: dict[str, list[Any]]) -> list[dict[str, Any]]:
@@ -105,67 +103,40 @@ def scenario_config(path: Path, overrides: dict[str, Any]):
     return cfg.config_from_data(path, data)
 
 
-def scenario_source(config, tape: str | None, seed: int):
-    """The traffic of one cell: a replayed tape, the synthetic maps, or a live SUMO run."""
-    if tape is not None:
-        from twin.traffic.tape import TapeTraffic
-
-        return TapeTraffic.from_file(Path(tape), config)
-    kind = config.traffic.kind
-    if kind == "synthetic":
-        from twin.config import synthetic_source
-
-        return synthetic_source(config)
-    if kind == "sumo":
-        from twin.sumo.scenario import sumo_source
-
-        return sumo_source(config, seed=seed)  # the cell's seed is SUMO's seed too
-    raise UserError(f"{config.path}: [traffic].kind = {kind!r} is not one a sweep can run")
-
-
-def _limit_threads() -> None:
-    """One core per cell: the pool provides the parallelism."""
-    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
-        os.environ.setdefault(var, "1")
-    if "torch" in sys.modules:
-        sys.modules["torch"].set_num_threads(1)
-
-
 def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
-    """Run one cell (plain dict in, plain dict out) and write its result files atomically.
+    """Run one cell (plain dict in, plain dict out) through the experiment runner and write its
+    result files atomically. The cell's seed is the drones' seed and, live, SUMO's seed.
 
-    Returns ``{"id", "seconds", "rows": [one dict per swarm: Table 2 columns], "error"}``.
+    Returns ``{"id", "seconds", "rows": [one dict per swarm: Table 2 and monitoring columns],
+    "error", ...}``.
     """
-    from twin.config import check_swarm_fits, start_positions
-    from twin.metrics import table2
-    from twin.patrol import run_patrol
-    from twin.policies import make_policy
-    from twin.runs import series_frame
+    from twin.experiment import Experiment, limit_threads, run_experiment, run_metadata
+    from twin.monitoring import monitor_run
+    from twin.runs import seed_table, series_frame, step_seconds_of
 
-    _limit_threads()
+    limit_threads()  # one core per cell: the pool provides the parallelism
     code = code_fingerprint()
     start = time.perf_counter()
     seed = int(cell["seed"])
     config = scenario_config(Path(cell["config"]), cell["overrides"])
-    source = scenario_source(config, cell.get("tape"), seed)
-    try:
-        check_swarm_fits(config, source.grid)
-        starts = start_positions(config, source.grid, np.random.default_rng(seed))
-        options = cell.get("swarm_options", {})
-        policies = {name: make_policy(name, **options.get(name, {})) for name in cell["swarms"]}
-        _limit_threads()  # an RL swarm may just have imported torch
-        result = run_patrol(
-            source, policies, starts, config.params, seed, progress=False, keep_importance=False
-        )
-        traffic = source.metadata()
-    finally:
-        source.close()
-    rows = table2(result).to_dict(orient="records")
+    experiment = Experiment(
+        config,
+        swarms=cell["swarms"],
+        seeds=[seed],
+        swarm_options=cell.get("swarm_options", {}),
+        tape=Path(cell["tape"]) if cell.get("tape") else None,
+        traffic_seed=seed,
+    )
+    outcome = run_experiment(experiment)
+    result = outcome.results[0]
+    meta = run_metadata(outcome, "sweep-cell")
+    rows = seed_table(result, config.params, step_seconds_of(meta), monitor_run(result))
+    rows = rows.drop(columns="seed").to_dict(orient="records")
     record = {
         "id": cell["id"],
         "cell": {k: v for k, v in cell.items() if k != "cells_dir"},
-        "traffic": traffic,
-        "policies": {n: p.describe() for n, p in policies.items() if hasattr(p, "describe")},
+        "traffic": outcome.traffic[0],
+        "policies": outcome.policies,
         "rows": [{k: (None if _isnan(v) else v) for k, v in r.items()} for r in rows],
         "horizon": int(result.horizon),
         "error": result.error,
@@ -176,7 +147,7 @@ def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
     cells_dir = Path(cell["cells_dir"])
     cells_dir.mkdir(parents=True, exist_ok=True)
     series = series_frame(result)
-    _atomic_write(cells_dir / f"{cell['id']}.parquet", lambda p: series.to_parquet(p, index=False))
+    atomic_write(cells_dir / f"{cell['id']}.parquet", lambda p: series.to_parquet(p, index=False))
     write_cell_record(cells_dir, record)
     return record
 

@@ -6,13 +6,13 @@
 from __future__ import annotations
 
 import json
-import os
-from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
+
+from twin.files import atomic_write
 
 if TYPE_CHECKING:
     from twin.sweep.config import SweepConfig
@@ -22,19 +22,10 @@ CELLS_DIR = "cells"
 KEY_COLUMNS = ("cell", "scenario", "seed", "swarm")
 
 
-def _atomic_write(path: Path, write: Callable[[Path], None]) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
 def write_cell_record(cells_dir: Path, record: dict[str, Any]) -> None:
     """The cell's JSON: written last, it marks the cell as done."""
     text = json.dumps(record, indent=1, default=_json_default)
-    _atomic_write(cells_dir / f"{record['id']}.json", lambda p: p.write_text(text))
+    atomic_write(cells_dir / f"{record['id']}.json", lambda p: p.write_text(text))
 
 
 def _json_default(value: Any) -> Any:
@@ -70,7 +61,7 @@ def _write_manifest(
         "invocations": history + ([invocation] if invocation else []),
     }
     text = json.dumps(manifest, indent=2, default=str)
-    _atomic_write(path, lambda p: p.write_text(text))
+    atomic_write(path, lambda p: p.write_text(text))
 
 
 def merge(
@@ -108,8 +99,8 @@ def merge(
         parameters = [c for c in results.columns if "." in c]
     by = ["scenario", *parameters, "swarm"]
     summary = aggregate(results, by=by)
-    _atomic_write(out_dir / "results.csv", lambda p: results.to_csv(p, index=False))
-    _atomic_write(out_dir / "summary.csv", lambda p: summary.to_csv(p, index=False))
+    atomic_write(out_dir / "results.csv", lambda p: results.to_csv(p, index=False))
+    atomic_write(out_dir / "summary.csv", lambda p: summary.to_csv(p, index=False))
     return results, summary
 
 

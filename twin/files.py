@@ -1,0 +1,56 @@
+"""Writing files so that a kill at any instant leaves the old file or the new one, never half.
+
+One helper for every writer of twin (run folders, sweep cells, checkpoints, caches).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+def atomic_write(path: str | Path, write: Callable[[Path], None]) -> None:
+    """Call ``write(tmp)`` on a fresh temporary file beside ``path``, flush it to disk, then
+    rename it to ``path``. The file gets the usual permissions (``0666`` less the umask), not
+    the ``0600`` of a temporary file; the temporary name is unique, so concurrent writers of
+    one path never share it."""
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    try:
+        write(Path(tmp))
+        with open(tmp, "rb") as fh:
+            os.fsync(fh.fileno())
+        os.chmod(tmp, 0o666 & ~_umask())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def write_json(path: str | Path, data: Any) -> None:
+    """JSON (numpy scalars and arrays, paths as plain values), written atomically."""
+    text = json.dumps(data, indent=2, default=jsonable) + "\n"
+    atomic_write(path, lambda p: p.write_text(text))
+
+
+def jsonable(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
