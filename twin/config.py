@@ -18,6 +18,7 @@ import numpy as np
 
 from twin.errors import UserError
 from twin.grid import Grid
+from twin.resources import shipped_config as shipped_config  # re-export (moved there)
 from twin.scores import ScoreParams
 
 
@@ -156,15 +157,6 @@ def _cell_list(path: Path, key: str, value: Any) -> np.ndarray:
     if not ok:
         raise _fail(path, key, "must be a list of [row, column] pairs of whole numbers")
     return cells.astype(np.int64)
-
-
-def shipped_config(relative: str) -> Path:
-    """``configs/<name>.toml`` in the working directory, else the one in the source tree twin
-    was installed from (an editable install from a clone)."""
-    here = Path(relative)
-    if here.exists():
-        return here
-    return Path(__file__).resolve().parents[1] / relative
 
 
 def read_toml(path: str | Path) -> dict[str, Any]:

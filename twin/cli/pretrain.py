@@ -40,7 +40,9 @@ def main(args: argparse.Namespace) -> int:
                 default = f"{len(default)} disturbances (4 big, 3 small)"
             print(f"{f.name:22s} {default!s:24s} {f.metadata.get('help', '')}")
         return 0
-    config = load_config(args.config or shipped_config(DEFAULT_CONFIG), out=args.out, epochs=args.epochs)
+    config = load_config(
+        shipped_config(args.config or DEFAULT_CONFIG), out=args.out, epochs=args.epochs
+    )
     progress = not args.quiet and sys.stderr.isatty()
     path = pretrain(config, progress=progress)
     print(f"model: {path}")
