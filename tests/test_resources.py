@@ -42,7 +42,7 @@ def test_network_specs_and_checkpoint_are_shipped():
     assert "shenzhen_like" in resources.network_names()
     assert tomllib.loads(resources.network_spec("shenzhen_like").read_text())["lattice"]
     assert resources.shipped_checkpoint().is_file()
-    with pytest.raises(UserError, match="unknown network 'atlantis'.*shenzhen_like"):
+    with pytest.raises(UserError, match=r"unknown network 'atlantis'.*shenzhen_like"):
         resources.network_spec("atlantis")
 
 

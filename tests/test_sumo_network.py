@@ -8,8 +8,8 @@ import pytest
 pytest.importorskip("sumolib")
 
 from twin.errors import UserError
-from twin.sumo.cells import grid_over, read_lanes
 from twin.resources import network_spec
+from twin.sumo.cells import grid_over, read_lanes
 from twin.sumo.network import build_named_network, load_spec, write_plain_xml
 from twin.sumo.tools import binary, run_sumo_program
 
