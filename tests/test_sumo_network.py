@@ -8,15 +8,16 @@ import pytest
 pytest.importorskip("sumolib")
 
 from twin.errors import UserError
+from twin.resources import network_spec
 from twin.sumo.cells import grid_over, read_lanes
-from twin.sumo.network import NETWORKS_DIR, build_named_network, load_spec, write_plain_xml
+from twin.sumo.network import build_named_network, load_spec, write_plain_xml
 from twin.sumo.tools import binary, run_sumo_program
 
 
 @pytest.fixture(scope="module")
 def shenzhen(tmp_path_factory):
     d = tmp_path_factory.mktemp("shenzhen")
-    spec = load_spec(NETWORKS_DIR / "shenzhen_like" / "spec.toml")
+    spec = load_spec(network_spec("shenzhen_like"))
     nod, edg = write_plain_xml(spec, d / "sz")
     net = d / "sz.net.xml"
     run_sumo_program(

@@ -170,10 +170,9 @@ def test_bad_files_give_one_line_errors(small, tmp_path, capsys):
 
 
 def test_swapped_network_without_routes_gets_generated_demand(small, tmp_path, monkeypatch):
-    """A network not written for twin (netgenerate --spider), demand from randomTrips."""
-    import twin.sumo.scenario
-
-    monkeypatch.setattr(twin.sumo.scenario, "CACHE_DIR", tmp_path / "cache")
+    """A network not written for twin (netgenerate --spider), demand from randomTrips, generated
+    into the cache once and reused."""
+    monkeypatch.setenv("TWIN_CACHE_DIR", str(tmp_path / "cache"))
     net = tmp_path / "spider.net.xml"
     run_sumo_program(
         [binary("netgenerate"), "--spider", "--spider.arm-number", "5",
@@ -186,6 +185,10 @@ def test_swapped_network_without_routes_gets_generated_demand(small, tmp_path, m
     result = _patrol(source)
     assert result.completed_steps == 6
     assert source.snapshots[-1][2].sum() > 0
+    (demand,) = (tmp_path / "cache" / "imported").glob("spider*/rush_hour.trips.xml")
+    stamp = demand.stat().st_mtime_ns
+    sumo_source(config, net=net, horizon=6)
+    assert demand.stat().st_mtime_ns == stamp  # reused, not regenerated
 
 
 OSM = """<?xml version="1.0" encoding="UTF-8"?>
@@ -201,13 +204,19 @@ OSM = """<?xml version="1.0" encoding="UTF-8"?>
 """
 
 
-def test_osm_import_and_sumocfg(small, tmp_path):  # writes only under tmp_path
+def test_osm_import_and_sumocfg(small, tmp_path, monkeypatch):  # writes only under tmp_path
     from twin.sumo.network import import_osm
 
+    monkeypatch.setenv("TWIN_CACHE_DIR", str(tmp_path / "cache"))
     osm = tmp_path / "tiny.osm"
     osm.write_text(OSM)
     net = import_osm(osm, tmp_path / "osm")
     assert net.exists() and "<edge" in net.read_text()
+    cached = import_osm(osm)  # by default into the cache, converted once
+    assert cached.parent.parent == tmp_path / "cache" / "imported"
+    stamp = cached.stat().st_mtime_ns
+    assert "<edge" in cached.read_text() and import_osm(osm) == cached
+    assert cached.stat().st_mtime_ns == stamp
     cfg = tmp_path / "small.sumocfg"
     cfg.write_text(
         f'<configuration><input><net-file value="{small / "small.net.xml"}"/>'

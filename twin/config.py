@@ -32,6 +32,7 @@ from pydantic import (
 
 from twin.errors import UserError
 from twin.grid import Grid
+from twin.resources import shipped_config as shipped_config  # re-export (moved there)
 from twin.scores import ScoreParams
 
 
@@ -457,15 +458,6 @@ def _toml(value: Any) -> str:
 
 
 # ------------------------------------------------------------------------------- reading
-def shipped_config(relative: str) -> Path:
-    """``configs/<name>.toml`` in the working directory, else the one in the source tree twin
-    was installed from (an editable install from a clone)."""
-    here = Path(relative)
-    if here.exists():
-        return here
-    return Path(__file__).resolve().parents[1] / relative
-
-
 def read_toml(path: str | Path) -> dict[str, Any]:
     path = Path(path)
     try:

@@ -68,7 +68,7 @@ def add_parser(subparsers) -> None:
 
 def main(args: argparse.Namespace) -> int:
     limit_threads()
-    config = load_config(args.config or shipped_config(DEFAULT_CONFIG))
+    config = load_config(shipped_config(args.config or DEFAULT_CONFIG))
     seeds = args.seeds if args.seeds is not None else config.evaluate.seeds
     first = args.seed if args.seed is not None else config.evaluate.seed
     if seeds < 1:

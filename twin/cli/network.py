@@ -13,9 +13,10 @@ def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
         "network",
         help="build a built-in SUMO network and its demand, or import an OSM extract",
-        description="Build a network from networks/<name>/spec.toml with netconvert (from the "
-        "eclipse-sumo wheel) into networks/<name>/build/, with its rush-hour demand; or "
-        "convert an OpenStreetMap extract with options suited to city networks.",
+        description="Build a built-in network (a shipped networks/<name>/spec.toml) with "
+        "netconvert (from the eclipse-sumo wheel), with its rush-hour demand, into the user "
+        "cache (TWIN_CACHE_DIR to move it); or convert an OpenStreetMap extract with options "
+        "suited to city networks.",
     )
     sub = p.add_subparsers(title="actions", metavar="ACTION")
     b = sub.add_parser("build", help="build a built-in network (e.g. shenzhen_like)")
@@ -24,7 +25,7 @@ def add_parser(subparsers) -> None:
     b.set_defaults(func=main_build)
     o = sub.add_parser("import-osm", help="convert an OSM extract into a SUMO network")
     o.add_argument("osm", type=Path, help="the .osm file")
-    o.add_argument("--out", type=Path, default=Path("networks/imported/build"), help="folder")
+    o.add_argument("--out", type=Path, default=None, help="folder (default: the user cache)")
     o.set_defaults(func=main_osm)
     p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
 

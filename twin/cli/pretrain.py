@@ -40,7 +40,7 @@ def main(args: argparse.Namespace) -> int:
             print(f"{name:22s} {default!s:24s} {f.description or ''}")
         return 0
     config = load_config(
-        args.config or shipped_config(DEFAULT_CONFIG), out=args.out, epochs=args.epochs
+        shipped_config(args.config or DEFAULT_CONFIG), out=args.out, epochs=args.epochs
     )
     progress = not args.quiet and sys.stderr.isatty()
     path = pretrain(config, progress=progress)

@@ -68,7 +68,7 @@ def main(args: argparse.Namespace) -> int:
     from twin.runs import new_run_dir, prepare_run_dir
 
     limit_threads()
-    config = load_config(args.config or shipped_config(DEFAULT_CONFIG))
+    config = load_config(shipped_config(args.config or DEFAULT_CONFIG))
     if config.traffic.kind != "sumo":
         raise UserError(
             f"{config.path}: [traffic].kind = {config.traffic.kind!r}; `twin run` needs "

@@ -112,17 +112,7 @@ def load_qnet(path: str | Path):
 
 
 def default_checkpoint() -> Path:
-    """The shipped, pretrained checkpoint ``twin/data/qnet.pt``... or the repo's ``data/``.
+    """The shipped, pretrained checkpoint ``data/qnet.pt`` (:mod:`twin.resources`)."""
+    from twin.resources import shipped_checkpoint
 
-    Looks inside the installed package first (``twin/data/qnet.pt``, where a wheel puts it),
-    then in the source checkout's ``data/qnet.pt`` beside the package (editable installs).
-    """
-    from importlib import resources
-
-    try:
-        packaged = resources.files("twin") / "data" / "qnet.pt"
-        if packaged.is_file():
-            return Path(str(packaged))
-    except (ModuleNotFoundError, FileNotFoundError, NotADirectoryError):
-        pass
-    return Path(__file__).resolve().parents[2] / "data" / "qnet.pt"
+    return shipped_checkpoint()

@@ -16,14 +16,14 @@ from pathlib import Path
 import pandas as pd
 import torch
 
-from twin.config import load_config
+from twin.config import load_config, shipped_config
 from twin.experiment import Experiment, limit_threads, run_experiment
 from twin.metrics import aggregate, table2
 
 
 def evaluate_snapshots(snapshots, config_path, seeds, first_seed=0, others=("greedy",)):
     """One Table 2 row per (snapshot, seed, swarm)."""
-    config = load_config(config_path)
+    config = load_config(shipped_config(config_path))
     rows = []
     for snap in snapshots:
         epoch = int(torch.load(snap, weights_only=True)["meta"]["epoch"])
@@ -46,7 +46,7 @@ def evaluate_snapshots(snapshots, config_path, seeds, first_seed=0, others=("gre
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m twin.learning.curve", description=__doc__)
     p.add_argument("snapshots", type=Path, nargs="+", help="snapshot files or folders of them")
-    p.add_argument("--config", type=Path, default=Path("configs/synthetic.toml"))
+    p.add_argument("--config", default="synthetic", help="scenario config (default: shipped synthetic)")
     p.add_argument("--seeds", type=int, default=10)
     p.add_argument("--seed", type=int, default=0, help="first seed")
     p.add_argument("--others", default="greedy", help="comma-separated comparison swarms")

@@ -1,9 +1,10 @@
 """Road networks: the built-in ``shenzhen_like`` layout, OSM import, and checks on given files.
 
-A built-in network is a spec file ``networks/<name>/spec.toml`` (checked in). Building it writes
-plain XML nodes and edges, runs netconvert from the eclipse-sumo wheel and writes the rush-hour
-demand, all under ``networks/<name>/build/`` (not committed); a build is reused while the spec
-and the generator version are unchanged.
+A built-in network is a spec file ``networks/<name>/spec.toml``, shipped with the package.
+Building it writes plain XML nodes and edges, runs netconvert from the eclipse-sumo wheel and
+writes the rush-hour demand, all in the user cache under
+``networks/<name>/<hash of spec, generator and SUMO version>/`` (:mod:`twin.resources`); a build
+is reused while that hash is unchanged.
 """
 
 from __future__ import annotations
@@ -16,13 +17,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from twin import resources
 from twin.errors import UserError
 from twin.sumo.tools import binary, run_sumo_program
 
 #: Bump when the generator's output changes for the same spec (forces a rebuild).
 GENERATOR_VERSION = 4
-
-NETWORKS_DIR = Path(__file__).resolve().parents[2] / "networks"
 
 #: netconvert options for city networks imported from OpenStreetMap.
 OSM_OPTIONS = [
@@ -57,8 +57,8 @@ class BuiltNetwork:
 
 
 def network_names() -> list[str]:
-    """Built-in networks: the directories under ``networks/`` that hold a ``spec.toml``."""
-    return sorted(p.parent.name for p in NETWORKS_DIR.glob("*/spec.toml"))
+    """Built-in networks: the shipped folders ``networks/<name>/`` that hold a ``spec.toml``."""
+    return resources.network_names()
 
 
 def load_spec(path: Path) -> dict[str, Any]:
@@ -81,48 +81,62 @@ def load_spec(path: Path) -> dict[str, Any]:
     return spec
 
 
+def sumo_version() -> str:
+    """The installed eclipse-sumo version (a new SUMO may convert the same spec differently)."""
+    from importlib import metadata
+
+    try:
+        return metadata.version("eclipse-sumo")
+    except metadata.PackageNotFoundError:  # pragma: no cover - depends on the install
+        return "unknown"
+
+
 def _spec_hash(spec_path: Path) -> str:
-    data = spec_path.read_bytes() + f"generator={GENERATOR_VERSION}".encode()
+    data = spec_path.read_bytes() + f"generator={GENERATOR_VERSION};sumo={sumo_version()}".encode()
     return hashlib.sha256(data).hexdigest()[:16]
 
 
+def build_dir(name: str) -> Path:
+    """Where the built-in network ``name`` is (or will be) built in the cache."""
+    return resources.cache_dir() / "networks" / name / _spec_hash(resources.network_spec(name))
+
+
 def build_named_network(name: str, force: bool = False, progress: bool = False) -> BuiltNetwork:
-    """Build (or reuse) the built-in network ``name``: plain XML -> netconvert -> demand."""
+    """Build (or reuse) the built-in network ``name``: plain XML -> netconvert -> demand.
+
+    Safe when several processes build it at once (:func:`twin.resources.build_once`).
+    """
     from twin.sumo.demand import write_spec_demand
 
-    spec_path = NETWORKS_DIR / name / "spec.toml"
-    if not spec_path.exists():
-        known = ", ".join(network_names()) or "none"
-        raise UserError(f"unknown network {name!r} (no {spec_path}); built-in networks: {known}")
+    spec_path = resources.network_spec(name)
     spec = load_spec(spec_path)
-    out = NETWORKS_DIR / name / "build"
-    net_file = out / f"{name}.net.xml"
-    trips_file = out / f"{name}.trips.xml"
-    stamp = out / "build.json"
     digest = _spec_hash(spec_path)
-    ready = not force and stamp.exists() and net_file.exists() and trips_file.exists()
-    if ready and json.loads(stamp.read_text()).get("spec_hash") == digest:
-        return BuiltNetwork(name, net_file, trips_file, spec)
-    out.mkdir(parents=True, exist_ok=True)
-    nod, edg = write_plain_xml(spec, out / name)
-    run_sumo_program(
-        [
-            binary("netconvert"),
-            "--node-files", str(nod),
-            "--edge-files", str(edg),
-            "--output-file", str(net_file),
-            "--offset.disable-normalization", "true",
-            "--remove-edges.isolated", "true",
-            "--tls.default-type", "static",
-            "--junctions.corner-detail", "0",
-            "--no-internal-links", "true",  # a third faster in SUMO; cells are 500 m anyway
-            "--no-warnings", "true",
-        ],
-        what=f"netconvert on {edg}",
-    )  # fmt: skip
-    write_spec_demand(net_file, spec, trips_file, seed=int(spec.get("seed", 0)))
-    stamp.write_text(json.dumps({"spec_hash": digest, "generator": GENERATOR_VERSION}))
-    return BuiltNetwork(name, net_file, trips_file, spec)
+
+    def make(out: Path) -> None:
+        nod, edg = write_plain_xml(spec, out / name)
+        run_sumo_program(
+            [
+                binary("netconvert"),
+                "--node-files", str(nod),
+                "--edge-files", str(edg),
+                "--output-file", str(out / f"{name}.net.xml"),
+                "--offset.disable-normalization", "true",
+                "--remove-edges.isolated", "true",
+                "--tls.default-type", "static",
+                "--junctions.corner-detail", "0",
+                "--no-internal-links", "true",  # a third faster in SUMO; cells are 500 m anyway
+                "--no-warnings", "true",
+            ],
+            what=f"netconvert on {edg}",
+        )  # fmt: skip
+        write_spec_demand(
+            out / f"{name}.net.xml", spec, out / f"{name}.trips.xml", seed=int(spec.get("seed", 0))
+        )
+        stamp = {"spec_hash": digest, "generator": GENERATOR_VERSION, "sumo": sumo_version()}
+        (out / "build.json").write_text(json.dumps(stamp))
+
+    out = resources.build_once(build_dir(name), make, force=force)
+    return BuiltNetwork(name, out / f"{name}.net.xml", out / f"{name}.trips.xml", spec)
 
 
 def write_plain_xml(spec: dict[str, Any], stem: Path) -> tuple[Path, Path]:
@@ -232,19 +246,33 @@ def write_plain_xml(spec: dict[str, Any], stem: Path) -> tuple[Path, Path]:
     return nod_path, edg_path
 
 
-def import_osm(osm_file: Path, out_dir: Path) -> Path:
-    """Convert an OpenStreetMap extract into a SUMO network with city-network options."""
+def imported_dir(osm_file: Path) -> Path:
+    """Where an OSM extract's converted network is cached: ``imported/<stem>-<hash>/``."""
+    digest = hashlib.sha256(Path(osm_file).read_bytes() + sumo_version().encode()).hexdigest()
+    return resources.cache_dir() / "imported" / f"{Path(osm_file).stem}-{digest[:16]}"
+
+
+def import_osm(osm_file: Path, out_dir: Path | None = None) -> Path:
+    """Convert an OpenStreetMap extract into a SUMO network with city-network options, into
+    ``out_dir`` or (by default) the cache, reusing a cached conversion."""
     osm_file = Path(osm_file)
     if not osm_file.exists():
         raise UserError(f"{osm_file}: no such OSM file")
+    name = osm_file.name.split(".")[0] + ".net.xml"
+
+    def make(out: Path) -> None:
+        run_sumo_program(
+            [binary("netconvert"), "--osm-files", str(osm_file), "--output-file", str(out / name),
+             *OSM_OPTIONS, "--no-warnings", "true"],
+            what=f"netconvert on {osm_file}",
+        )  # fmt: skip
+
+    if out_dir is None:
+        return resources.build_once(imported_dir(osm_file), make) / name
+    out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    net_file = out_dir / (osm_file.name.split(".")[0] + ".net.xml")
-    run_sumo_program(
-        [binary("netconvert"), "--osm-files", str(osm_file), "--output-file", str(net_file),
-         *OSM_OPTIONS, "--no-warnings", "true"],
-        what=f"netconvert on {osm_file}",
-    )  # fmt: skip
-    return net_file
+    make(out_dir)
+    return out_dir / name
 
 
 def check_net_file(net_file: Path) -> None:

@@ -12,7 +12,7 @@ Keys of ``[traffic]`` (all optional except ``kind``; see configs/shenzhen.toml):
   ``detection_p`` (1.0).
 
 Networks without demand get a rush-hour demand from SUMO's randomTrips.py (+ duarouter),
-scaled to the network's lane-km, cached beside the imported network.
+scaled to the network's lane-km, cached in the user cache (``imported/``, :mod:`twin.resources`).
 """
 
 from __future__ import annotations
@@ -29,7 +29,6 @@ from twin.grid import Grid
 
 #: Peak demand of the built-in network per lane-km (trips/h), used to scale generated demand.
 SHENZHEN_LANE_KM = 1350.0
-CACHE_DIR = Path(__file__).resolve().parents[2] / "networks" / "imported" / "build"
 
 
 def parse_clock(text: str, where: str) -> float:
@@ -132,9 +131,16 @@ def sumo_source(
     begin: str | None = None,
 ):
     """The live :class:`SumoTraffic` of a config; the file arguments swap the network in."""
+    from twin import resources
     from twin.sumo.cells import grid_over, read_lanes
     from twin.sumo.demand import random_rush_hour_trips
-    from twin.sumo.network import build_named_network, check_net_file, import_osm, load_spec
+    from twin.sumo.network import (
+        build_named_network,
+        check_net_file,
+        import_osm,
+        load_spec,
+        sumo_version,
+    )
     from twin.sumo.source import SumoScenario, SumoTraffic
 
     s = sumo_settings(config)
@@ -154,9 +160,7 @@ def sumo_source(
     begin_given = begin is not None or (not swapped and "begin" in config.traffic.model_fields_set)
     begin = parse_clock(begin or s.begin, f"{config.path}: [traffic].begin")
     warmup = s.warmup_min * 60.0
-    demand = load_spec(Path(__file__).resolve().parents[2] / "networks/shenzhen_like/spec.toml")[
-        "demand"
-    ]
+    demand = load_spec(resources.network_spec("shenzhen_like"))["demand"]
 
     sumocfg_path = Path(s.sumocfg) if s.sumocfg else None
     if s.network and not (s.net or sumocfg_path or s.osm):
@@ -170,10 +174,7 @@ def sumo_source(
             name = sumocfg_path.name
         elif s.osm:
             osm_path = Path(s.osm)
-            out = CACHE_DIR / f"{osm_path.stem}-{_digest(osm_path)}"
-            net_file = out / (osm_path.name.split(".")[0] + ".net.xml")
-            if not net_file.exists():
-                net_file = import_osm(osm_path, out)
+            net_file = import_osm(osm_path)  # cached
             route_files, name = [], osm_path.name
         else:
             net_file, route_files, name = Path(s.net), [], Path(s.net).name
@@ -205,14 +206,16 @@ def sumo_source(
         scale = s.demand_scale * lane_km / SHENZHEN_LANE_KM
         window = {**demand, "begin_s": begin - warmup, "end_s": begin + s.horizon * s.step_s}
         window["peak_s"] = window["begin_s"] + (demand["peak_s"] - demand["begin_s"])
-        out = CACHE_DIR / f"{Path(net_file).stem}-{_digest(Path(net_file), window, scale, seed)}"
-        out.mkdir(parents=True, exist_ok=True)
-        trips = out / "rush_hour.trips.xml"
-        if not trips.exists():
-            tmp = out / "rush_hour.tmp.trips.xml"
-            random_rush_hour_trips(Path(net_file), tmp, window, seed=seed, scale=scale)
-            tmp.replace(trips)
-        route_files = [trips]
+        key = (
+            f"{Path(net_file).stem}-{_digest(Path(net_file), window, scale, seed, sumo_version())}"
+        )
+        out = resources.build_once(
+            resources.cache_dir() / "imported" / key,
+            lambda d: random_rush_hour_trips(
+                Path(net_file), d / "rush_hour.trips.xml", window, seed=seed, scale=scale
+            ),
+        )
+        route_files = [out / "rush_hour.trips.xml"]
 
     scenario = SumoScenario(
         net_file=Path(net_file),

@@ -1,0 +1,127 @@
+"""Shipped files found through the package, the user cache, and folders built once."""
+
+from __future__ import annotations
+
+import tomllib
+from fnmatch import fnmatch
+from pathlib import Path
+
+import pytest
+
+from twin import resources
+from twin.errors import UserError
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_shipped_names_resolve_from_an_empty_folder(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    for given in ("synthetic", "synthetic.toml", "configs/synthetic.toml"):
+        path = resources.shipped_config(given)
+        assert path == resources.shipped("configs", "synthetic.toml") and path.is_file()
+    assert "shenzhen" in resources.shipped_config_names()
+
+
+def test_a_users_file_wins_over_a_shipped_name(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "configs").mkdir()
+    for given in ("synthetic", "synthetic.toml", "configs/synthetic.toml"):
+        Path(given).write_text("# mine\n")
+        assert resources.shipped_config(given) == Path(given)
+
+
+def test_unknown_config_is_one_line_naming_the_shipped_ones(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    for given in ("atlantis", "elsewhere/synthetic.toml"):
+        with pytest.raises(UserError, match=r"config file not found; .*synthetic") as err:
+            resources.shipped_config(given)
+        assert str(err.value).startswith(given) and "\n" not in str(err.value)
+
+
+def test_network_specs_and_checkpoint_are_shipped():
+    assert "shenzhen_like" in resources.network_names()
+    assert tomllib.loads(resources.network_spec("shenzhen_like").read_text())["lattice"]
+    assert resources.shipped_checkpoint().is_file()
+    with pytest.raises(UserError, match=r"unknown network 'atlantis'.*shenzhen_like"):
+        resources.network_spec("atlantis")
+
+
+def test_every_shipped_file_is_package_data_of_the_wheel():
+    """What resources hands out lies under twin/ and matches pyproject's package-data globs,
+    so a wheel (non-editable install) carries it."""
+    globs = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"][
+        "package-data"
+    ]["twin"]
+    root = resources.package_root()
+    files = [
+        *(resources.shipped_config(n) for n in resources.shipped_config_names()),
+        *(resources.network_spec(n) for n in resources.network_names()),
+        resources.shipped_checkpoint(),
+    ]
+    for path in files:
+        rel = path.relative_to(root).as_posix()
+        assert any(fnmatch(rel, g) for g in globs), rel
+    # the repository keeps its top-level folders; twin/ links to them
+    for name in ("configs", "networks", "data"):
+        assert (root / name).resolve() == (ROOT / name).resolve()
+
+
+def test_cache_dir_follows_the_environment(tmp_path, monkeypatch):
+    monkeypatch.setenv(resources.CACHE_ENV, str(tmp_path / "c"))
+    assert resources.cache_dir() == tmp_path / "c"
+    monkeypatch.delenv(resources.CACHE_ENV)
+    import platformdirs
+
+    assert resources.cache_dir() == Path(platformdirs.user_cache_dir("twin", appauthor=False))
+
+
+def test_build_once_builds_then_reuses(tmp_path):
+    calls = []
+
+    def make(d: Path) -> None:
+        calls.append(d)
+        (d / "f.txt").write_text(str(len(calls)))
+
+    target = tmp_path / "a" / "b"
+    assert resources.build_once(target, make) == target
+    assert resources.build_once(target, make) == target
+    assert len(calls) == 1 and (target / "f.txt").read_text() == "1"
+    resources.build_once(target, make, force=True)
+    assert len(calls) == 2 and (target / "f.txt").read_text() == "2"
+    assert sorted(p.name for p in target.parent.iterdir()) == ["b"]  # no temporary left
+
+
+def test_a_concurrent_build_that_finishes_first_is_used(tmp_path):
+    """Another process completes the same target while this one builds: its copy stays."""
+    target = tmp_path / "t"
+
+    def other(d: Path) -> None:
+        (d / "who").write_text("other")
+
+    def mine(d: Path) -> None:
+        (d / "who").write_text("mine")
+        resources.build_once(target, other)  # the other process, finishing first
+
+    assert resources.build_once(target, mine) == target
+    assert (target / "who").read_text() == "other"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["t"]
+
+
+def test_a_failed_build_leaves_nothing(tmp_path):
+    def broken(d: Path) -> None:
+        (d / "half").write_text("x")
+        raise UserError("netconvert failed")
+
+    with pytest.raises(UserError, match="netconvert failed"):
+        resources.build_once(tmp_path / "t", broken)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_network_builds_go_to_the_cache_keyed_by_spec_and_sumo(tmp_path, monkeypatch):
+    pytest.importorskip("sumo")
+    from twin.sumo.network import build_dir, sumo_version
+
+    monkeypatch.setenv(resources.CACHE_ENV, str(tmp_path))
+    where = build_dir("shenzhen_like")
+    assert where.parent == tmp_path / "networks" / "shenzhen_like"
+    assert sumo_version() != "unknown"
