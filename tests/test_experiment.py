@@ -82,3 +82,20 @@ def test_run_with_several_sumo_seeds(tmp_path):
     tapes = [pd.read_parquet(out / "tapes" / f"seed-{s}.parquet") for s in (0, 1)]
     assert not np.array_equal(tapes[0]["count"].to_numpy(), tapes[1]["count"].to_numpy())
     assert set(pd.read_csv(out / "per_seed.csv").seed) == {0, 1}
+
+
+def test_the_core_imports_neither_sumo_nor_torch():
+    import subprocess
+    import sys
+
+    core = ["grid", "scores", "swarm", "policies", "planners", "coordinator", "idleness_maps",
+            "patrol", "experiment", "metrics", "monitoring", "mfd", "runs", "files", "config",
+            "resources", "sweep", "traffic.synthetic", "traffic.tape"]  # fmt: skip
+    code = (
+        "import sys\n"
+        + "".join(f"import twin.{m}\n" for m in core)
+        + "print(sorted({m.split('.')[0] for m in sys.modules} & "
+        "{'torch', 'libsumo', 'sumolib', 'traci'}))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
