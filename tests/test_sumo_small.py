@@ -92,6 +92,7 @@ def test_counts_equal_an_independent_count_and_replay_equals_live(small, tmp_pat
     source = sumo_source(config)
     fcd = tmp_path / "fcd.xml"
     source.scenario.sumo_options = ("--fcd-output", str(fcd))
+    source.scenario.reads_per_step = 1  # one instant per step (more: tests/test_sumo_observe.py)
     live = _patrol(source)
     assert live.error is None and live.completed_steps == 10
     times = [t for _, t, _, _ in source.snapshots]
