@@ -47,6 +47,10 @@ MONITORING_TABLE_COLUMNS = (
     ("latency_median_min", "latency median (min)", 1),
     ("latency_p90_min", "latency p90 (min)", 1),
     ("pct_congested_observed", "% congested cell-steps observed", 1),
+    ("incidents", "incidents", 1),
+    ("pct_incidents_seen", "% incidents seen", 1),
+    ("incident_latency_steps", "incident latency (steps)", 1),
+    ("incident_latency_min", "incident latency (min)", 1),
 )
 REPORT_DIR = "report"
 
