@@ -132,3 +132,15 @@ def test_run_writes_incidents_json_and_scores_them(tmp_path):
     summary = pd.read_csv(out / "summary.csv")
     assert (summary["incidents"] == 2).all()
     assert summary["pct_incidents_seen"].between(0, 100).all()
+
+    from twin.report import write_report
+    from twin.report.document import incident_rows
+    from twin.report.load import load_run
+
+    write_report(out, animation=False)
+    rf = load_run(out)
+    rows = incident_rows(rf)
+    assert [r[1] for r in rows] == ["edge_closed", "vehicle_stopped"]
+    assert rows[0][3] == "(2, 2)" and rows[0][6] == "3-6"
+    markdown = next(out.rglob("*.md")).read_text()
+    assert "## Incidents" in markdown and "% incidents seen" in markdown
