@@ -125,12 +125,15 @@ def test_same_seed_same_traffic_and_sessions_run_one_after_another(small):
 
 
 def test_sumo_failure_mid_run_keeps_partial_results(small, tmp_path, monkeypatch):
+    from twin.config import SumoSettings
+
     calls = {"n": 0}
     original = SumoSession.advance_to
+    reads = SumoSettings().reads_per_step  # one advance per read instant
 
     def failing(self, t):
         calls["n"] += 1
-        if calls["n"] > 7:  # 4 warm-up snapshots, T^0, then 2 steps
+        if calls["n"] > 7 * reads:  # 4 warm-up snapshots, T^0, then 2 steps
             raise SumoRunError(f"SUMO failed before t = {t:g} s: simulated crash")
         original(self, t)
 
