@@ -13,8 +13,17 @@ wall seconds of:
 The 1-swarm and K-swarm runs must read the same vehicles and importance maps and move the
 greedy swarm alike (exit 1 otherwise).
 
-Usage: ``python benchmarks/bench_sumo.py [--horizon 144] [--swarms 6]``; ``--quick`` uses a small
-generated grid (seconds).
+``--aliasing 1,2,3,5``: observations over the step. One SUMO run read at every instant any of
+the given reads-per-step needs gives, for each R, the network-mean importance ``T^k`` the twin
+would see; signal cycles aliased by one read every 75 s show as a swing of about 4 steps. Swing
+measures of the detrended series (minus its centred 9-step mean): its standard deviation, the
+share of its power at periods of 3-5 steps, and the autocorrelation at lags 2 and 4 (a 4-step
+swing: lag 2 negative, lag 4 positive). Then the cost of each R: the live source alone (reads,
+binning, MFD) against bare stepping, CPU ratio. The per-R counts of the shared run must equal
+the live source's (exit 1 otherwise).
+
+Usage: ``python benchmarks/bench_sumo.py [--horizon 144] [--swarms 6] [--aliasing 1,2,3,5]``;
+``--quick`` uses a small generated grid (seconds).
 """
 
 from __future__ import annotations
@@ -79,11 +88,11 @@ def bare(config, horizon: int, mesoscopic: bool = False):
     return timed(run)
 
 
-def coupled(config, horizon: int, names: list[str]):
+def coupled(config, horizon: int, names: list[str], first: int = 0):
     source = sumo_source(config, horizon=horizon)
     swarms = {}
-    for n, name in enumerate(names):
-        swarms[f"{name}-{n}"] = make_policy(name)
+    for n, name in enumerate(names):  # a swarm's name seeds its randomness (ties of greedy)
+        swarms[f"{name}-{n + first}"] = make_policy(name)
     starts = np.argwhere(source.grid.free)[:: max(1, source.grid.n_free // 4)][:4]
 
     def run():
@@ -101,11 +110,115 @@ def coupled_runs_disagree(res1, src1, res_k, src_k) -> str:
     if not np.array_equal(res1.importance, res_k.importance):
         return "importance maps"
     if "greedy-1" in res_k.swarms:
-        a, b = res1.swarms.index("greedy-0"), res_k.swarms.index("greedy-1")
+        a, b = res1.swarms.index("greedy-1"), res_k.swarms.index("greedy-1")
         for field in ("rewards", "coverage", "positions"):
             if not np.array_equal(getattr(res1, field)[a], getattr(res_k, field)[b]):
                 return f"greedy swarm's {field}"
     return ""
+
+
+def shared_reads(config, horizon: int, reads: list[int]):
+    """One SUMO run read at the union of the instants of every R: per R, the per-snapshot
+    vehicle-instants (summed here, apart from the source's code) and network-mean T^k."""
+    from twin.mfd import MFDImportance
+
+    source = sumo_source(config, horizon=horizon)
+    s = source.scenario
+    offsets = {}
+    for r in reads:
+        s.reads_per_step = r
+        offsets[r] = s.read_offsets()
+    union = sorted({o for offs in offsets.values() for o in offs}, reverse=True)
+    models = {
+        r: MFDImportance(
+            source.grid.free, source.geometry.lane_km, source.geometry.speed_limit,
+            s.mfd_fit, source.model.mfd, s.detection_p, s.seed, r,
+        )
+        for r in reads
+    }  # fmt: skip
+    counts: dict[int, list[np.ndarray]] = {r: [] for r in reads}
+    mean_t: dict[int, list[float]] = {r: [] for r in reads}
+    speed_kmh: dict[int, list[float]] = {r: [] for r in reads}
+    session = source.session().start()
+    try:
+        for k, t in source.sample_times():
+            read = {}
+            for o in union:
+                session.advance_to(max(t - o, min(s.sim_begin + 1.0, t)))
+                n, v = source.geometry.count_and_speed(*session.vehicles())
+                read[o] = (n, np.nan_to_num(v) * n)
+            for r in reads:
+                n = sum(read[o][0] for o in offsets[r])
+                dist = sum(read[o][1] for o in offsets[r])
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    v = np.where(n > 0, dist / np.maximum(n, 1), np.nan)
+                if r == 1:
+                    v = source.geometry.count_and_speed(*session.vehicles())[1]
+                v = v.astype(np.float32).astype(float)
+                importance = models[r].observe(k, n, v)
+                counts[r].append(n.astype(np.int32))
+                if k >= 0:
+                    mean_t[r].append(float(importance[source.grid.free].mean()))
+                    speed_kmh[r].append(3.6 * float(dist.sum() / max(n.sum(), 1)))
+    finally:
+        session.close()
+    return counts, {r: np.array(v) for r, v in mean_t.items()}, speed_kmh
+
+
+def swing(series: np.ndarray) -> dict[str, float]:
+    """Swing measures of a per-step series, detrended by its centred 9-step mean."""
+    x = np.asarray(series, dtype=float)
+    trend = np.convolve(np.pad(x, 4, mode="edge"), np.ones(9) / 9, mode="valid")
+    d = x - trend
+    d = d - d.mean()
+    power = np.abs(np.fft.rfft(d)) ** 2
+    freq = np.fft.rfftfreq(len(d))
+    band = (freq >= 1 / 5) & (freq <= 1 / 3)
+    var = float((d * d).sum())
+
+    def acf(lag: int) -> float:
+        return float((d[:-lag] * d[lag:]).sum() / var) if var > 0 else float("nan")
+
+    return {
+        "std": float(d.std()),
+        "band": float(power[band].sum() / power[1:].sum()) if power[1:].sum() > 0 else 0.0,
+        "acf2": acf(2),
+        "acf4": acf(4),
+    }
+
+
+def source_only(config, horizon: int, reads: int):
+    source = sumo_source(config, horizon=horizon)
+    source.scenario.reads_per_step = reads
+    return timed(lambda: (sum(1 for _ in source.importance_maps()), source))
+
+
+def aliasing(config, horizon: int, reads: list[int], repeat: int) -> str:
+    """Print the aliasing table; return what disagrees ("" when all agree)."""
+    counts, mean_t, speed = shared_reads(config, horizon, reads)
+    best: dict[object, tuple] = {}
+    for _ in range(repeat):  # interleaved rounds, the fastest of each kind counts
+        for kind in ["bare", *reads]:
+            run = bare(config, horizon) if kind == "bare" else source_only(config, horizon, kind)
+            if kind not in best or run[0] < best[kind][0]:
+                best[kind] = run
+    cpu_b = best["bare"][0]
+    print(f"\naliasing of the network-mean importance T^k ({horizon} steps), one shared SUMO run:")
+    print(f"{'reads/step':>10s} {'swing std':>10s} {'power 3-5 steps':>16s} {'acf lag 2':>10s} "
+          f"{'acf lag 4':>10s} {'speed swing km/h':>17s} {'cpu / bare':>11s}")  # fmt: skip
+    disagree = ""
+    for r in reads:
+        m, v = swing(mean_t[r]), swing(np.array(speed[r]))
+        cpu, _, (_, src) = best[r]
+        print(f"{r:10d} {m['std']:10.4f} {100 * m['band']:15.1f}% {m['acf2']:10.3f} "
+              f"{m['acf4']:10.3f} {v['std']:17.2f} {cpu / cpu_b:11.3f}")  # fmt: skip
+        live = [c for _, _, c, _ in src.snapshots]
+        if len(live) != len(counts[r]) or any(
+            not np.array_equal(a, b) for a, b in zip(live, counts[r], strict=False)
+        ):
+            disagree = disagree or f"the counts of {r} reads per step"
+    print(f"bare SUMO stepping: {cpu_b:.2f} s CPU; a swing of 4 steps: acf lag 2 < 0 < lag 4")
+    return disagree
 
 
 def main() -> None:
@@ -116,6 +229,8 @@ def main() -> None:
     p.add_argument("--quick", action="store_true", help="small generated grid, seconds")
     p.add_argument("--no-meso", action="store_true", help="skip the mesoscopic run")
     p.add_argument("--repeat", type=int, default=1, help="runs of each kind; the fastest counts")
+    p.add_argument("--aliasing", default="", help="reads per step to compare, e.g. 1,2,3,5")
+    p.add_argument("--only-aliasing", action="store_true", help="skip the swarm runs")
     args = p.parse_args()
     tmp = tempfile.TemporaryDirectory()
     config_path = quick_config(Path(tmp.name)) if args.quick else args.config
@@ -125,11 +240,18 @@ def main() -> None:
     k_names = (base * args.swarms)[: args.swarms]
 
     repeat = args.repeat
+    reads = [int(r) for r in args.aliasing.split(",") if r] or ([1, 3] if args.quick else [])
+    if args.only_aliasing:
+        disagree = aliasing(config, horizon, reads, repeat)
+        tmp.cleanup()
+        if disagree:
+            sys.exit(f"bench_sumo: the shared-run and live counts disagree: {disagree}")
+        return
     # Interleaved rounds (bare, 1 swarm, K swarms, meso), the fastest of each kind counts: load
     # from other processes then hits every kind alike.
     kinds = {
         "bare": lambda: bare(config, horizon),
-        "one": lambda: coupled(config, horizon, ["greedy"]),
+        "one": lambda: coupled(config, horizon, ["greedy"], first=1),
         "k": lambda: coupled(config, horizon, k_names),
     }
     if not args.no_meso:
@@ -163,9 +285,12 @@ def main() -> None:
     print(f"vehicle reads and binning inside the coupled run: {src1.read_seconds:.2f} s wall")
     if not args.no_meso:
         print(f"mesoscopic speed-up over microscopic: x{cpu_b / cpu_m:.2f}")
+    if reads:
+        bad = aliasing(config, horizon, reads, repeat)
+        disagree = disagree or (bad and f"shared-run and live source: {bad}")
     tmp.cleanup()
     if disagree:
-        sys.exit(f"bench_sumo: the 1-swarm and {args.swarms}-swarm runs disagree: {disagree}")
+        sys.exit(f"bench_sumo: the implementations disagree: {disagree}")
 
 
 if __name__ == "__main__":

@@ -87,7 +87,11 @@ def test_observation_uses_only_earlier_snapshots_and_obstacles_are_zero():
     # the first snapshot is seen through the prior
     expected = np.where(free, MFD(0.7, 40.0).importance(np.zeros((4, 5))), 0)
     assert first[0, 0] == 0.0 and expected[0, 0] == 0.0
-    assert model.mfd != MFD(0.7, 40.0)  # ... and then learnt from
+    assert model.mfd == MFD(0.7, 40.0) and model.used == "prior"  # 19 samples: too thin
+    for k in range(1, 30):  # enough snapshots on a curve of its own: the fit takes over
+        count = rng.integers(0, 60, (4, 5))
+        model.observe(k, count, limit * MFD(0.5, 20.0).speed_ratio(count / lane_km))
+    assert model.used == "fit" and model.mfd != MFD(0.7, 40.0)
     fixed = MFDImportance(free, lane_km, limit, fit="fixed", mfd=MFD(0.7, 40.0))
     fixed.observe(0, rng.integers(0, 30, (4, 5)), np.full((4, 5), 5.0))
     assert fixed.mfd == MFD(0.7, 40.0)

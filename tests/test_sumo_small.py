@@ -92,6 +92,7 @@ def test_counts_equal_an_independent_count_and_replay_equals_live(small, tmp_pat
     source = sumo_source(config)
     fcd = tmp_path / "fcd.xml"
     source.scenario.sumo_options = ("--fcd-output", str(fcd))
+    source.scenario.reads_per_step = 1  # one instant per step (more: tests/test_sumo_observe.py)
     live = _patrol(source)
     assert live.error is None and live.completed_steps == 10
     times = [t for _, t, _, _ in source.snapshots]
@@ -124,12 +125,15 @@ def test_same_seed_same_traffic_and_sessions_run_one_after_another(small):
 
 
 def test_sumo_failure_mid_run_keeps_partial_results(small, tmp_path, monkeypatch):
+    from twin.config import SumoSettings
+
     calls = {"n": 0}
     original = SumoSession.advance_to
+    reads = SumoSettings().reads_per_step  # one advance per read instant
 
     def failing(self, t):
         calls["n"] += 1
-        if calls["n"] > 7:  # 4 warm-up snapshots, T^0, then 2 steps
+        if calls["n"] > 7 * reads:  # 4 warm-up snapshots, T^0, then 2 steps
             raise SumoRunError(f"SUMO failed before t = {t:g} s: simulated crash")
         original(self, t)
 

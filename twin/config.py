@@ -146,6 +146,36 @@ class MFDSettings(StrictModel):
     detection_p: Annotated[float, Field(gt=0, le=1)] = 1.0
 
 
+class IncidentSettings(StrictModel):
+    """``[[traffic.incidents]]``: a lane or edge closed, or a vehicle stopped, for a while.
+
+    Where: ``edge`` (a SUMO edge id, with ``lane`` its lane index for "lane_closed") or ``cell``
+    ([i, j]): twin takes the edge of that cell with the most vehicles at the onset. When:
+    ``begin`` (clock time) or ``step`` (k of ``T^k``), for ``duration_min`` minutes.
+    """
+
+    kind: Literal["lane_closed", "edge_closed", "vehicle_stopped"]
+    edge: str | None = None
+    lane: Annotated[int, Field(ge=0)] = 0
+    cell: Cell | None = None
+    begin: str | None = None
+    step: Annotated[int, Field(ge=0)] | None = None
+    duration_min: Annotated[float, Field(gt=0)]
+
+    @field_validator("begin")
+    @classmethod
+    def _begin(cls, value: str | None) -> str | None:
+        return None if value is None else check_clock(value)
+
+    @model_validator(mode="after")
+    def _one_place_one_time(self) -> IncidentSettings:
+        if (self.edge is None) == (self.cell is None):
+            raise ValueError('needs either edge = "<edge id>" or cell = [i, j], not both')
+        if (self.begin is None) == (self.step is None):
+            raise ValueError('needs either begin = "HH:MM" or step = <k>, not both')
+        return self
+
+
 class SumoSettings(StrictModel):
     """``[traffic] kind = "sumo"``; see :mod:`twin.sumo.scenario` for the meaning of each key."""
 
@@ -164,7 +194,9 @@ class SumoSettings(StrictModel):
     mesoscopic: bool = False
     min_lane_km: Annotated[float, Field(ge=0)] = 0.0
     demand_scale: Annotated[float, Field(gt=0)] = 1.0
+    reads_per_step: Annotated[int, Field(ge=1, le=75)] = 3
     mfd: MFDSettings = MFDSettings()
+    incidents: list[IncidentSettings] = []
 
     @field_validator("network")
     @classmethod

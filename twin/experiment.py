@@ -186,6 +186,8 @@ def run_experiment(
             )
             results.append(result)
             traffic.append(source.metadata())
+            if getattr(source, "incidents_info", None) and source.incidents_info():
+                result.extra["incidents"] = source.incidents_info()  # scored by monitoring
         finally:
             if keep_sources:
                 sources.append(source)
@@ -237,6 +239,8 @@ def _write_sumo_extras(run_dir: Path, outcome: ExperimentResult) -> None:
     first = outcome.sources[0]
     write_json(run_dir / "network.json", first.network_info())
     write_json(run_dir / "mfd.json", first.model.report())
+    if first.incidents_info():
+        write_json(run_dir / "incidents.json", first.incidents_info())
     samples = pd.DataFrame(first.model.samples())
     atomic_write(run_dir / "mfd_samples.parquet", lambda p: samples.to_parquet(p, index=False))
     atomic_write(run_dir / "tape.parquet", first.tape().write)

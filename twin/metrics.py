@@ -53,6 +53,10 @@ MONITORING_COLUMNS = (
     "latency_median_min",
     "latency_p90_min",
     "pct_congested_observed",
+    "incidents",  # scheduled SUMO incidents (twin.sumo.incidents), when the run has some
+    "pct_incidents_seen",
+    "incident_latency_steps",
+    "incident_latency_min",
 )
 TABLE2_HEADERS = {
     "R_hat_T": "R_hat_T",
@@ -73,6 +77,10 @@ MONITORING_HEADERS = {
     "latency_median_min": "median (min)",
     "latency_p90_min": "p90 (min)",
     "pct_congested_observed": "% congested observed",
+    "incidents": "incidents",
+    "pct_incidents_seen": "% incidents seen",
+    "incident_latency_steps": "incident latency",
+    "incident_latency_min": "incident (min)",
 }
 DIGITS = {
     "R_hat_T": 3,
@@ -91,6 +99,10 @@ DIGITS = {
     "latency_median_min": 1,
     "latency_p90_min": 1,
     "pct_congested_observed": 1,
+    "incidents": 1,
+    "pct_incidents_seen": 1,
+    "incident_latency_steps": 1,
+    "incident_latency_min": 1,
 }
 
 

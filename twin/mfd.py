@@ -25,6 +25,14 @@ with pseudo-samples on a prior curve worth 1000 vehicles (a typical signalised g
 k_c = 40), because the first snapshots of a morning hold only low densities, which leave k_c
 unidentified; by the end of a rush hour the data outweigh them a few hundred times.
 
+Reads over the step. With ``reads`` instants per step, a cell's count is the total of
+vehicle-instants over them and its speed their mean: Edie's definitions over the interval
+(time spent ``sum N dt``, distance ``sum v_i dt``), so ``k = count / (reads L)``.
+
+Thin data. A fit with fewer than ``MIN_FIT_SAMPLES`` cell samples, fewer than
+``MIN_FIT_BINS`` occupied density bins, or a vehicle-weighted R^2 of the speed ratio below zero
+on the data so far is not used: the model keeps the prior and says so (``used``, ``why``).
+
 Importance. A drone's count ``N`` (optionally thinned by a detection model) gives ``k = N / L``,
 the expected speed ``v(k)``, and the speed drop below the limit ``z = 1 - v(k) / v_lim``;
 Def. 2 normalises it between an empty cell (``z_lo = 1 - a``) and standstill (``z_hi = 1``),
@@ -45,6 +53,12 @@ PRIOR_A, PRIOR_K_C = 0.7, 40.0
 PRIOR_WEIGHT, PRIOR_MAX_DENSITY = 1000.0, 80.0
 #: Bounds that keep an early, thin fit sane.
 A_BOUNDS, K_C_BOUNDS = (0.05, 1.5), (2.0, 1000.0)
+#: A fit is used only on at least this many (cell, snapshot) samples with vehicles ...
+MIN_FIT_SAMPLES = 200
+#: ... spread over at least this many 1 veh/lane-km density bins ...
+MIN_FIT_BINS = 10
+#: ... and with a vehicle-weighted R^2 of the speed ratio on the data of at least this.
+MIN_FIT_R2 = 0.0
 
 
 @dataclass(frozen=True)
@@ -119,6 +133,11 @@ class OnlineMFD:
         self.weight = np.zeros(self.n_bins)  # vehicles behind each bin
         self.k_sum = np.zeros(self.n_bins)  # vehicle-weighted sums of density
         self.r_sum = np.zeros(self.n_bins)  # vehicle-weighted sums of speed ratio
+        # The data alone (no pseudo-samples): weights, sums of ratio and of squared ratio.
+        self.data_w = np.zeros(self.n_bins)
+        self.data_k = np.zeros(self.n_bins)
+        self.data_r = np.zeros(self.n_bins)
+        self.data_rr = np.zeros(self.n_bins)
         self.n_samples = 0
         if prior_weight > 0:
             # Pseudo-samples on the prior curve: early snapshots hold only low densities, which
@@ -129,11 +148,19 @@ class OnlineMFD:
     def add(self, count: np.ndarray, density: np.ndarray, ratio: np.ndarray) -> None:
         """One snapshot: cells with vehicles count, weighted by their number of vehicles."""
         ok = (count > 0) & np.isfinite(ratio) & np.isfinite(density)
-        self.add_weighted(count[ok].astype(float), density[ok], ratio[ok])
+        w, k, r = count[ok].astype(float), density[ok], ratio[ok]
+        self.add_weighted(w, k, r)
+        b = self._bins(k)
+        for total, x in ((self.data_w, w), (self.data_k, w * k), (self.data_r, w * r)):
+            total += np.bincount(b, weights=x, minlength=self.n_bins)
+        self.data_rr += np.bincount(b, weights=w * r * r, minlength=self.n_bins)
         self.n_samples += int(ok.sum())
 
+    def _bins(self, density: np.ndarray) -> np.ndarray:
+        return np.minimum((density / self.bin_width).astype(np.int64), self.n_bins - 1)
+
     def add_weighted(self, w: np.ndarray, density: np.ndarray, ratio: np.ndarray) -> None:
-        b = np.minimum((density / self.bin_width).astype(np.int64), self.n_bins - 1)
+        b = self._bins(density)
         self.weight += np.bincount(b, weights=w, minlength=self.n_bins)
         self.k_sum += np.bincount(b, weights=w * density, minlength=self.n_bins)
         self.r_sum += np.bincount(b, weights=w * ratio, minlength=self.n_bins)
@@ -144,6 +171,34 @@ class OnlineMFD:
         used = self.weight > 0
         w = self.weight[used]
         return fit_underwood(self.k_sum[used] / w, self.r_sum[used] / w, w, self.prior)
+
+    def data_r2(self, mfd: MFD) -> float:
+        """Vehicle-weighted R^2 of ``mfd``'s speed ratio on the data added so far (no prior),
+        from the bin sums: each sample is compared with the curve at its bin's mean density."""
+        used = self.data_w > 0
+        if not used.any():
+            return float("nan")
+        w, r, r2 = self.data_w[used], self.data_r[used], self.data_rr[used]
+        f = mfd.speed_ratio(self.data_k[used] / w)
+        ss_tot = float(r2.sum() - r.sum() ** 2 / w.sum())
+        ss_res = float((r2 - 2 * f * r + f * f * w).sum())
+        return 1.0 - ss_res / ss_tot if ss_tot > 1e-12 else float("nan")
+
+    def choose(self) -> tuple[MFD, str, str]:
+        """The MFD to use now: the fit, or the prior when the data are too thin or the fit
+        explains them worse than their mean (``(mfd, "fit" | "prior", why)``)."""
+        bins = int((self.data_w > 0).sum())
+        if self.n_samples < MIN_FIT_SAMPLES or bins < MIN_FIT_BINS:
+            why = (
+                f"{self.n_samples} samples over {bins} density bins "
+                f"(a fit needs {MIN_FIT_SAMPLES} over {MIN_FIT_BINS})"
+            )
+            return self.prior, "prior", why
+        fit = self.fit()
+        r2 = self.data_r2(fit)
+        if not r2 >= MIN_FIT_R2:  # also NaN: data without spread
+            return self.prior, "prior", f"fit R2 = {r2:.3f} on the data, below {MIN_FIT_R2:g}"
+        return fit, "fit", f"{self.n_samples} samples, fit R2 = {r2:.3f} on the data"
 
 
 def fit_quality(mfd: MFD, density, speed, speed_limit) -> dict[str, float]:
@@ -195,7 +250,10 @@ class MFDImportance:
         mfd: MFD = MFD(),
         detection_p: float = 1.0,
         seed: int = 0,
+        reads: int = 1,
     ):
+        if reads < 1:
+            raise ValueError(f"reads per step must be >= 1, got {reads}")
         if fit not in ("online", "fixed"):
             raise ValueError(f"fit must be 'online' or 'fixed', got {fit!r}")
         if not 0.0 < detection_p <= 1.0:
@@ -208,19 +266,29 @@ class MFDImportance:
         self.detection_p = detection_p
         self.seed = seed
         self.rng = np.random.default_rng([seed, 0x6D6664])
+        self.reads = int(reads)
         self.online = OnlineMFD(prior=mfd)
+        self.used, self.why = (
+            "prior",
+            ('fit = "fixed": the given MFD' if fit == "fixed" else "no data yet"),
+        )
         self._samples: list[dict[str, np.ndarray]] = []
 
     def observe(self, step: int, count: np.ndarray, speed: np.ndarray) -> np.ndarray:
-        """``T`` of one snapshot (Def. 2), then learn from the snapshot's ground truth."""
-        count = np.asarray(count)
-        seen = detected_counts(count, self.detection_p, self.rng)
+        """``T`` of one snapshot (Def. 2), then learn from the snapshot's ground truth.
+
+        ``count`` is the vehicle-instants of each cell over the step's ``reads`` instants and
+        ``speed`` their mean (the count itself with one read)."""
+        total = np.asarray(count)
+        seen = detected_counts(total, self.detection_p, self.rng)
+        r = self.reads
         importance = np.where(
             self.free,
-            self.mfd.importance(density_from_counts(seen, self.lane_km, self.detection_p)),
+            self.mfd.importance(density_from_counts(seen, self.lane_km, self.detection_p * r)),
             0.0,
         )
-        density = density_from_counts(count, self.lane_km)
+        count = total / r if r > 1 else total  # mean vehicles in the cell over the step
+        density = density_from_counts(total, self.lane_km, float(r))
         with np.errstate(invalid="ignore", divide="ignore"):
             ratio = np.where(
                 self.speed_limit > 0, speed / np.maximum(self.speed_limit, 1e-9), np.nan
@@ -232,7 +300,7 @@ class MFDImportance:
                 "step": np.full(len(i), step, dtype=np.int64),
                 "i": i,
                 "j": j,
-                "count": count[sampled].astype(np.int64),
+                "count": count[sampled] if r > 1 else count[sampled].astype(np.int64),
                 "lane_km": self.lane_km[sampled],
                 "density": density[sampled],
                 "speed": speed[sampled],
@@ -242,7 +310,7 @@ class MFDImportance:
         )
         self.online.add(np.where(self.free, count, 0), density, ratio)
         if self.fit_mode == "online":
-            self.mfd = self.online.fit()
+            self.mfd, self.used, self.why = self.online.choose()
         return importance
 
     def binned_r2(self) -> float:
@@ -268,8 +336,12 @@ class MFDImportance:
     def report(self) -> dict:
         """The final fit and its quality against SUMO's ground truth (``mfd.json``)."""
         s = self.samples()
+        used = {"used": self.used, "why": self.why, "reads_per_step": self.reads}
+        if self.fit_mode == "online" and self.used == "prior" and self.online.n_samples:
+            fit = self.online.fit()
+            used["rejected_fit"] = {"a": fit.a, "k_c": fit.k_c}
         if not s:
-            return {**self.mfd.to_json(), "fit": self.fit_mode, "n_samples": 0}
+            return {**self.mfd.to_json(), "fit": self.fit_mode, **used, "n_samples": 0}
         final = fit_quality(self.mfd, s["density"], s["speed"], s["speed_limit"])
         online = {"r2": float("nan"), "rmse_kmh": float("nan")}
         ok = np.isfinite(s["speed"])
@@ -283,6 +355,7 @@ class MFDImportance:
         return {
             **self.mfd.to_json(),
             "fit": self.fit_mode,
+            **used,
             "detection_p": self.detection_p,
             "r2_binned": self.binned_r2(),
             "density_unit": "veh per lane-km",

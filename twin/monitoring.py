@@ -16,6 +16,9 @@ A twin knows the truth, so it can score what a traffic monitor is for (project n
   cell's MFD speed has fallen to half its free-flow value ``a v_lim``. A swarm *sees* an event
   when a drone's field of view covers the cell at a step while the event lasts; its latency is
   the first such step minus the onset.
+- **Incidents** (scheduled in SUMO, :mod:`twin.sumo.incidents`): ground-truth events with a
+  cell and the steps ``onset .. end`` they last; scored like congestion events
+  (:func:`incident_sightings`): share seen while they last, latency from onset to first sighting.
 - **Coverage ceiling** ``C_hat_T`` of an oracle whose drones jump, each step, to the N freshest
   distinct free cells (Def. 3 and Def. 5 rules): an upper bound for the swarm's choice of
   cells, not reachable by drones that move one cell per step.
@@ -70,6 +73,45 @@ def sightings(grid: Grid, positions: np.ndarray) -> np.ndarray:
     keys = flat * steps + k
     keep = valid & grid.free.ravel()[flat]
     return np.unique(keys[keep])
+
+
+def incident_sightings(
+    grid: Grid, positions: np.ndarray, incidents: list[dict]
+) -> tuple[np.ndarray, np.ndarray]:
+    """First step at which a drone's field of view covers each incident's cell while it lasts
+    (-1 when never) and the latency from onset (-1 when not seen), per incident.
+
+    ``incidents``: dicts with ``cell`` [i, j], ``onset_step`` and ``end_step`` (inclusive);
+    ``positions``: one swarm's ``(T+1, N, 2)``.
+    """
+    steps = positions.shape[0]
+    keys = sightings(grid, positions)
+    first = np.full(len(incidents), -1, dtype=np.int64)
+    for n, inc in enumerate(incidents):
+        i, j = inc["cell"]
+        lo, hi = int(inc["onset_step"]), min(int(inc["end_step"]), steps - 1)
+        if not (0 <= i < grid.nx and 0 <= j < grid.ny) or lo > hi:
+            continue
+        base = (i * grid.ny + j) * steps
+        at = np.searchsorted(keys, base + lo)
+        if at < len(keys) and keys[at] <= base + hi:
+            first[n] = keys[at] - base
+    onset = np.array([int(inc["onset_step"]) for inc in incidents], dtype=np.int64)
+    return first, np.where(first >= 0, first - onset, -1)
+
+
+def incident_scores(first_seen: np.ndarray, latency: np.ndarray, step_s: float | None) -> dict:
+    """The incident columns of one swarm: count, % seen, mean latency (steps, minutes)."""
+    seen = first_seen >= 0
+    lat = latency[seen]
+    row = {
+        "incidents": len(first_seen),
+        "pct_incidents_seen": 100.0 * seen.mean() if len(seen) else np.nan,
+        "incident_latency_steps": float(lat.mean()) if len(lat) else np.nan,
+    }
+    if step_s:
+        row["incident_latency_min"] = row["incident_latency_steps"] * step_s / 60.0
+    return row
 
 
 def belief_error_curve(
@@ -188,6 +230,9 @@ class RunMonitoring:
     belief_error: np.ndarray  # (S, T+1)
     first_seen: np.ndarray  # (S, E) step, -1 when not seen while the event lasted
     steps_seen: np.ndarray  # (S, E) steps of the event with its cell in view
+    incidents: list[dict] | None = None  # scheduled incidents (ground truth), if any
+    incident_first_seen: np.ndarray | None = None  # (S, I) step, -1 when not seen
+    incident_latency: np.ndarray | None = None  # (S, I) steps, -1 when not seen
 
     def table(self, step_s: float | None = None) -> pd.DataFrame:
         """One row per swarm: the monitoring columns (latency in minutes when ``step_s``)."""
@@ -211,6 +256,10 @@ class RunMonitoring:
             if step_s:
                 row["latency_median_min"] = row["latency_median_steps"] * step_s / 60.0
                 row["latency_p90_min"] = row["latency_p90_steps"] * step_s / 60.0
+            if self.incidents:
+                row |= incident_scores(
+                    self.incident_first_seen[s], self.incident_latency[s], step_s
+                )
             rows.append(row)
         return pd.DataFrame(rows)
 
@@ -263,4 +312,20 @@ def monitor_run(result, settings: MonitorSettings | None = None) -> RunMonitorin
         belief[s] = belief_error_curve(grid, positions[s], observed, truth, settings.weight_floor)
         keys = sightings(grid, positions[s])
         first[s], seen_steps[s] = event_sightings(events, keys, steps, grid.ny)
-    return RunMonitoring(list(result.swarms), result.seed, events, belief, first, seen_steps)
+    incidents = (getattr(result, "extra", None) or {}).get("incidents") or None
+    inc_first = inc_latency = None
+    if incidents:
+        pairs = [incident_sightings(grid, positions[s], incidents) for s in range(n_swarms)]
+        inc_first = np.array([p[0] for p in pairs]).reshape(n_swarms, len(incidents))
+        inc_latency = np.array([p[1] for p in pairs]).reshape(n_swarms, len(incidents))
+    return RunMonitoring(
+        list(result.swarms),
+        result.seed,
+        events,
+        belief,
+        first,
+        seen_steps,
+        incidents,
+        inc_first,
+        inc_latency,
+    )

@@ -138,6 +138,7 @@ def main(args: argparse.Namespace) -> int:
         f"MFD ({mfd['form']}, SUMO seed {first_source.scenario.seed}): a = {mfd['a']:.3f}, "
         f"k_c = {mfd['k_c']:.1f} veh/lane-km, R2 = {mfd.get('r2', float('nan')):.3f}, "
         f"RMSE = {mfd.get('rmse_kmh', float('nan')):.2f} km/h over {mfd['n_samples']} cell samples"
+        f"; used: {mfd.get('used', 'fit')} ({mfd.get('why', '')})"
     )
     print(f"wall time {outcome.seconds:.0f} s (SUMO + swarms)")
     if not args.no_report:

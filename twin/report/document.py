@@ -47,6 +47,10 @@ MONITORING_TABLE_COLUMNS = (
     ("latency_median_min", "latency median (min)", 1),
     ("latency_p90_min", "latency p90 (min)", 1),
     ("pct_congested_observed", "% congested cell-steps observed", 1),
+    ("incidents", "incidents", 1),
+    ("pct_incidents_seen", "% incidents seen", 1),
+    ("incident_latency_steps", "incident latency (steps)", 1),
+    ("incident_latency_min", "incident latency (min)", 1),
 )
 REPORT_DIR = "report"
 
@@ -295,6 +299,12 @@ def render_html(rf: RunFiles, out: Path, sections: list[Section]) -> str:
             html_table(m_header, m_rows, "monitoring"),
             f'<p class="caption">{html.escape(_monitoring_caption(rf))}</p>',
         ]
+    if rf.incidents:
+        parts += [
+            "<h2>Incidents</h2>",
+            html_table(INCIDENT_HEADER, incident_rows(rf), "incidents"),
+            f'<p class="caption">{html.escape(INCIDENT_CAPTION)}</p>',
+        ]
     if rf.per_seed is not None and len(rf.seeds) > 1:
         parts.append("<details><summary>Per seed</summary>")
         parts.append(
@@ -368,6 +378,33 @@ def _table_caption(rf: RunFiles) -> str:
     return text
 
 
+INCIDENT_HEADER = ["#", "kind", "edge", "cell (i, j)", "begin", "minutes", "steps"]
+
+
+def incident_rows(rf: RunFiles) -> list[list[str]]:
+    """One row per scheduled incident of incidents.json (the numbers of the map's markers)."""
+    rows = []
+    for n, inc in enumerate(rf.incidents or [], start=1):
+        edge = str(inc.get("edge"))
+        if inc.get("lane") is not None:
+            edge += f" lane {inc['lane']}"
+        if inc.get("vehicle"):
+            edge += f" ({inc['vehicle']})"
+        cell = inc.get("cell") or ["?", "?"]
+        rows.append(
+            [str(n), str(inc.get("kind")), edge, f"({cell[0]}, {cell[1]})", str(inc.get("begin")),
+             f"{inc.get('duration_min', 0):g}", f"{inc.get('onset_step')}-{inc.get('end_step')}"]
+        )  # fmt: skip
+    return rows
+
+
+INCIDENT_CAPTION = (
+    "Scheduled incidents (incidents.json), the red numbered markers of the network map. A swarm "
+    "sees an incident when a drone's field of view covers its cell at one of its steps; the "
+    "monitoring table gives the share seen and the mean latency from onset to first sighting."
+)
+
+
 def _monitoring_caption(rf: RunFiles) -> str:
     settings = rf.run.get("monitoring") or {}
     threshold = settings.get("threshold")
@@ -410,6 +447,15 @@ def render_markdown(rf: RunFiles, sections: list[Section]) -> str:
             markdown_table(m_header, m_rows),
             "",
             _monitoring_caption(rf),
+            "",
+        ]
+    if rf.incidents:
+        lines += [
+            "## Incidents",
+            "",
+            markdown_table(INCIDENT_HEADER, incident_rows(rf)),
+            "",
+            INCIDENT_CAPTION,
             "",
         ]
     for section in sections:

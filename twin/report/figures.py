@@ -442,6 +442,13 @@ def figure_network(rf: RunFiles) -> tuple[Figure, str]:
     else:
         ax.set_xlabel("x (m)")
         ax.set_ylabel("y (m)")
+    for n, inc in enumerate(rf.incidents or [], start=1):  # scheduled incidents: numbered markers
+        i, j = inc.get("cell") or (-1, -1)
+        if 0 <= i < nx and 0 <= j < ny:
+            x, y = x_left + (j + 0.5) * cw, y_top - (i + 0.5) * ch
+            ax.plot(x, y, marker="X", ms=14, color="#d62728", mec="white", mew=1.5, zorder=5)
+            ax.annotate(str(n), (x, y), xytext=(8, 8), textcoords="offset points",
+                        color="#d62728", fontsize=11, fontweight="bold", zorder=5)  # fmt: skip
     ax.set_aspect("equal")
     fig.colorbar(image, ax=ax, shrink=0.7, label="peak importance over the horizon")
     ax.set_title(

@@ -38,6 +38,7 @@ class RunFiles:
     mfd_samples: pd.DataFrame | None = None
     monitoring: pd.DataFrame | None = None  # monitoring.csv
     events: pd.DataFrame | None = None  # events.parquet
+    incidents: list[dict[str, Any]] | None = None  # incidents.json (scheduled SUMO incidents)
     _idleness: dict[tuple[int, str], np.ndarray] = field(default_factory=dict, repr=False)
 
     @property
@@ -175,4 +176,5 @@ def load_run(run_dir: str | Path) -> RunFiles:
         mfd_samples=pd.read_parquet(samples_path) if samples_path.exists() else None,
         monitoring=pd.read_csv(monitoring_path) if monitoring_path.exists() else None,
         events=pd.read_parquet(events_path) if events_path.exists() else None,
+        incidents=_read_json(run_dir / "incidents.json"),
     )

@@ -231,6 +231,8 @@ def sumo_source(
         name=name,
         sumocfg=sumocfg_path,
         mfd_prior=(s.mfd.a, s.mfd.k_c),
+        reads_per_step=s.reads_per_step,
+        incidents=list(s.incidents),
     )
     return SumoTraffic(scenario, geometry, Grid(obstacles))
 

@@ -1,9 +1,14 @@
 """The live SUMO traffic source: SUMO advances in lockstep with the swarms (Sec. IV-B).
 
-Each swarm step advances SUMO by ``cell size / drone speed`` (500 m at 24 km/h = 75 s). At each
-sample time the source reads every vehicle's position and speed once, bins them into cells
-(:mod:`twin.sumo.cells`), and turns the counts into ``T^k`` with the MFD observation model
-(:class:`twin.mfd.MFDImportance`). A warm-up before ``T^0`` fills the network and gives the
+Each swarm step advances SUMO by ``cell size / drone speed`` (500 m at 24 km/h = 75 s). A drone
+that spends a step over a cell sees the whole interval, so the source reads every vehicle's
+position and speed at ``reads_per_step`` instants evenly spread over the step, the last at the
+sample time (one bulk read each, no subscriptions), bins them into cells
+(:mod:`twin.sumo.cells`) and keeps per cell the vehicle-instants and their mean speed: Edie's
+definitions over the step instead of one instant, which removes the aliasing of signal cycles
+by a 75 s sampling (benchmarks/bench_sumo.py --aliasing). The MFD observation model
+(:class:`twin.mfd.MFDImportance`) turns them into ``T^k``. Scheduled incidents
+(:mod:`twin.sumo.incidents`) are applied at their times. A warm-up before ``T^0`` fills the network and gives the
 online MFD fit its first samples. Everything read is kept: the traffic tape (counts and speeds
 of every cell at every sample time) and the MFD samples, also after a SUMO failure mid-run.
 """
@@ -42,6 +47,8 @@ class SumoScenario:
     sumocfg: Path | None = None
     mfd_prior: tuple[float, float] = (0.7, 40.0)  # (a, k_c): the prior, or the fixed MFD
     sumo_options: tuple[str, ...] = ()  # more SUMO options (e.g. --fcd-output in tests)
+    reads_per_step: int = 1  # read instants per step, the last at the sample time
+    incidents: list[Any] = field(default_factory=list)  # IncidentSettings (twin.config)
     extra: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -54,6 +61,11 @@ class SumoScenario:
 
     def warmup_steps(self) -> int:
         return int(self.warmup_s / self.step_s + 1e-9)
+
+    def read_offsets(self) -> list[float]:
+        """Seconds before each sample time of its read instants, whole SUMO steps, last 0."""
+        r = self.reads_per_step
+        return [float(round(self.step_s * (r - 1 - m) / r)) for m in range(r)]
 
 
 def clock_label(t: float) -> str:
@@ -76,6 +88,7 @@ class SumoTraffic(TrafficSource):
         self.error: str | None = None
         self.vehicles_seen: list[int] = []
         self.read_seconds = 0.0
+        self.incident_schedule = None
 
     def _model(self) -> MFDImportance:
         g, s = self.geometry, self.scenario
@@ -87,6 +100,7 @@ class SumoTraffic(TrafficSource):
             MFD(*s.mfd_prior),
             s.detection_p,
             s.seed,
+            s.reads_per_step,
         )
 
     def session(self) -> SumoSession:
@@ -112,21 +126,38 @@ class SumoTraffic(TrafficSource):
     def importance_maps(self) -> Iterator[np.ndarray]:
         import time
 
+        from twin.sumo.incidents import IncidentSchedule
+
+        s = self.scenario
         self.model = self._model()
         self.snapshots, self.error = [], None
+        self.incident_schedule = IncidentSchedule(s.incidents, self.geometry, s, self.grid)
+        offsets = s.read_offsets()
+        first_read = s.sim_begin + 1.0  # the earliest instant with a state to read
         session = self.session().start()
         try:
             for k, t in self.sample_times():
-                try:
-                    session.advance_to(t)
-                except SumoRunError as exc:
-                    self.error = str(exc)
-                    raise
-                t0 = time.perf_counter()
-                xy, speed = session.vehicles()
-                count, mean_speed = self.geometry.count_and_speed(xy, speed)
-                self.read_seconds += time.perf_counter() - t0
-                self.vehicles_seen.append(len(xy))
+                count = np.zeros(self.grid.shape, dtype=np.int64)
+                distance = np.zeros(self.grid.shape)
+                for offset in offsets:
+                    instant = max(t - offset, min(first_read, t))
+                    try:
+                        self.incident_schedule.advance_to(session, instant)
+                    except SumoRunError as exc:
+                        self.error = str(exc)
+                        raise
+                    t0 = time.perf_counter()
+                    xy, speed = session.vehicles()
+                    n, v = self.geometry.count_and_speed(xy, speed)
+                    count += n
+                    distance += np.nan_to_num(v) * n
+                    self.read_seconds += time.perf_counter() - t0
+                self.vehicles_seen.append(len(xy))  # at the sample time
+                if len(offsets) == 1:
+                    mean_speed = v  # one read: as read, bit for bit
+                else:
+                    with np.errstate(invalid="ignore", divide="ignore"):
+                        mean_speed = np.where(count > 0, distance / np.maximum(count, 1), np.nan)
                 # The model sees exactly what the tape keeps (float32 speeds), so replays match.
                 count, mean_speed = count.astype(np.int32), mean_speed.astype(np.float32)
                 self.snapshots.append((k, t, count, mean_speed))
@@ -135,6 +166,12 @@ class SumoTraffic(TrafficSource):
                     yield importance
         finally:
             session.close()
+
+    def incidents_info(self) -> list[dict[str, Any]]:
+        """The scheduled incidents as applied so far (``incidents.json``)."""
+        if self.incident_schedule is None:
+            return []
+        return self.incident_schedule.to_json()
 
     def clock(self, k: int) -> str | None:
         return clock_label(self.scenario.begin_s + k * self.scenario.step_s)
@@ -156,6 +193,8 @@ class SumoTraffic(TrafficSource):
             "mfd_fit": s.mfd_fit,
             "mfd_prior": list(s.mfd_prior),
             "detection_p": s.detection_p,
+            "reads_per_step": s.reads_per_step,
+            "read_offsets_s": s.read_offsets(),
             "error": self.error,
         }
 

@@ -163,6 +163,7 @@ class TapeTraffic(TrafficSource):
             MFD(*s.get("mfd_prior", (MFD().a, MFD().k_c))),
             self.detection_p,
             int(s.get("seed", 0)),
+            int(s.get("reads_per_step", 1)),  # counts are vehicle-instants over the reads
         )
 
     def importance_maps(self) -> Iterator[np.ndarray]:

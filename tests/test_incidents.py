@@ -1,0 +1,146 @@
+"""Scheduled incidents: config, scoring by hand, and applied in a small SUMO run."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from twin.config import load_config
+from twin.errors import UserError
+from twin.grid import Grid
+from twin.monitoring import incident_scores, incident_sightings
+from twin.sumo.incidents import onset_and_end_steps
+
+
+def test_incident_sightings_by_hand():
+    grid = Grid(np.zeros((3, 4), bool))
+    # one drone, steps 0..4: (0,0) (0,1) (1,1) (2,1) (2,2); view = the cell and its 4 neighbours
+    positions = np.array([[[0, 0]], [[0, 1]], [[1, 1]], [[2, 1]], [[2, 2]]])
+    incidents = [
+        {"cell": [2, 3], "onset_step": 1, "end_step": 4},  # (2,3) next to (2,2) at step 4
+        {"cell": [0, 3], "onset_step": 0, "end_step": 4},  # never in view
+        {"cell": [1, 1], "onset_step": 3, "end_step": 3},  # (2,1) sees (1,1) at step 3
+        {"cell": [0, 0], "onset_step": 2, "end_step": 9},  # seen at 0 and 1: before its onset
+    ]
+    first, latency = incident_sightings(grid, positions, incidents)
+    np.testing.assert_array_equal(first, [4, -1, 3, -1])
+    np.testing.assert_array_equal(latency, [3, -1, 0, -1])
+    row = incident_scores(first, latency, step_s=75.0)
+    assert row["incidents"] == 4 and row["pct_incidents_seen"] == 50.0
+    assert row["incident_latency_steps"] == 1.5 and row["incident_latency_min"] == 1.875
+
+
+def test_onset_and_end_steps():
+    # step k observes (t0 + (k-1) 75, t0 + k 75]: 07:45 -> step 37, 08:15 -> step 60
+    assert onset_and_end_steps(2700.0, 4500.0, 0.0, 75.0) == (37, 60)
+    assert onset_and_end_steps(10.0, 20.0, 0.0, 75.0) == (1, 1)
+
+
+def test_incident_config_is_checked(tmp_path):
+    path = tmp_path / "c.toml"
+    path.write_text(
+        '[traffic]\nkind = "sumo"\n[[traffic.incidents]]\nkind = "road_works"\n'
+        'edge = "e1"\nbegin = "07:45"\nduration_min = 30\n'
+    )
+    with pytest.raises(UserError, match="kind"):
+        load_config(path)
+    path.write_text(
+        '[traffic]\nkind = "sumo"\n[[traffic.incidents]]\nkind = "edge_closed"\n'
+        'edge = "e1"\ncell = [1, 2]\nbegin = "07:45"\nduration_min = 30\n'
+    )
+    with pytest.raises(UserError, match="either edge"):
+        load_config(path)
+
+
+# ------------------------------------------------------------------------ on a small SUMO run
+INCIDENTS = """
+[[traffic.incidents]]
+kind = "edge_closed"
+cell = [2, 2]
+step = 2
+duration_min = 4.0
+[[traffic.incidents]]
+kind = "vehicle_stopped"
+cell = [1, 2]
+begin = "00:09"
+duration_min = 2.0
+"""
+
+
+def test_closure_is_active_in_its_window_and_lifted_after(tmp_path):
+    libsumo = pytest.importorskip("libsumo")
+    from test_sumo_small import CONFIG, _patrol
+
+    from twin.sumo.network import generate_grid_scenario
+    from twin.sumo.scenario import sumo_source
+
+    generate_grid_scenario(tmp_path, blocks=5, block_m=300, end_s=900, period_s=1.5, seed=5)
+    (tmp_path / "small.toml").write_text(CONFIG + INCIDENTS)
+    source = sumo_source(load_config(tmp_path / "small.toml"))
+    maps = source.importance_maps()
+    allowed = {}
+    schedule = None
+    for k, _ in enumerate(maps):  # T^0 at 00:05, one step = 60 s: the closure holds 00:07-00:11
+        schedule = source.incident_schedule
+        closed = schedule.records[0]
+        if closed["edge"] is not None:
+            lane = f"{closed['edge']}_0"
+            allowed[k] = list(libsumo.lane.getAllowed(lane))
+    maps.close()
+    assert [k for k, a in allowed.items() if a == ["authority"]] == [2, 3, 4, 5]
+    assert allowed[6] != ["authority"] and allowed[10] == allowed[6]
+    closed, stopped = schedule.to_json()
+    # on at 00:07 = T^2's instant: steps 3..6 observe intervals that meet [00:07, 00:11)
+    assert closed["cell"] == [2, 2] and (closed["onset_step"], closed["end_step"]) == (3, 6)
+    assert closed["applied_s"] == 420.0 and closed["lifted_s"] == 660.0
+    assert stopped["vehicle"] is not None and stopped["lifted_s"] == 660.0
+    assert (stopped["onset_step"], stopped["end_step"]) == (5, 6)
+
+    _patrol(source)  # a second run of the same seed resolves the same edge
+    assert source.incidents_info()[0]["edge"] == closed["edge"]
+
+
+def test_run_writes_incidents_json_and_scores_them(tmp_path):
+    pytest.importorskip("libsumo")
+    from test_sumo_small import CONFIG
+
+    from twin.cli import main as twin_main
+    from twin.sumo.network import generate_grid_scenario
+
+    generate_grid_scenario(tmp_path, blocks=5, block_m=300, end_s=900, period_s=1.5, seed=5)
+    (tmp_path / "small.toml").write_text(CONFIG + INCIDENTS)
+    out = tmp_path / "run"
+    code = twin_main(
+        [
+            "run",
+            "--config",
+            str(tmp_path / "small.toml"),
+            "--out",
+            str(out),
+            "--no-report",
+            "--quiet",
+        ]
+    )
+    assert code == 0
+    truth = json.loads((out / "incidents.json").read_text())
+    assert [r["kind"] for r in truth] == ["edge_closed", "vehicle_stopped"]
+    assert all(len(r["cell"]) == 2 and r["duration_min"] > 0 for r in truth)
+    import pandas as pd
+
+    summary = pd.read_csv(out / "summary.csv")
+    assert (summary["incidents"] == 2).all()
+    assert summary["pct_incidents_seen"].between(0, 100).all()
+
+    from twin.report import write_report
+    from twin.report.document import incident_rows
+    from twin.report.load import load_run
+
+    write_report(out, animation=False)
+    rf = load_run(out)
+    rows = incident_rows(rf)
+    assert [r[1] for r in rows] == ["edge_closed", "vehicle_stopped"]
+    assert rows[0][3] == "(2, 2)" and rows[0][6] == "3-6"
+    markdown = next(out.rglob("*.md")).read_text()
+    assert "## Incidents" in markdown and "% incidents seen" in markdown

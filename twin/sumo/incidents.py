@@ -1,0 +1,212 @@
+"""Scheduled incidents applied to a live SUMO run through libsumo, kept as ground truth.
+
+``[[traffic.incidents]]`` (:class:`twin.config.IncidentSettings`) names a kind, a place and a
+time. Where: an ``edge`` id, or a ``cell`` (i, j) from which twin takes, at the onset, the edge
+with the most vehicles among the edges whose middle lies in the cell (ties: the smallest id).
+How, at the onset and lifted at the end:
+
+- ``lane_closed``: lane ``lane`` of the edge allows only the "authority" class
+  (``lane.setAllowed``); the lane's permissions are restored after;
+- ``edge_closed``: every lane of the edge, alike;
+- ``vehicle_stopped``: the vehicle on the edge with the smallest id is held at speed 0
+  (``vehicle.setSpeed``), released after (waits until a vehicle is on the edge).
+
+A swarm's drones see an incident at step k when one's field of view covers its cell while it
+lasts (:func:`twin.monitoring.incident_sightings`). Step k observes ``(t_{k-1}, t_k]``, so the
+incident is on at the steps whose interval meets ``[begin, end)``.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from twin.errors import UserError
+
+#: The one vehicle class a closed lane still allows.
+CLOSED_TO = ["authority"]
+
+
+def _libsumo():
+    from twin.sumo.session import _libsumo
+
+    return _libsumo()
+
+
+def onset_and_end_steps(begin: float, end: float, t0: float, step_s: float) -> tuple[int, int]:
+    """First and last step k whose interval ``(t0 + (k-1) step, t0 + k step]`` meets
+    ``[begin, end)``."""
+    first = math.floor((begin - t0) / step_s + 1e-9) + 1
+    last = math.ceil((end - t0) / step_s - 1e-9)
+    return max(first, 0), max(last, first)
+
+
+class IncidentSchedule:
+    """The incidents of one run: applied as SUMO is advanced, recorded for ``incidents.json``."""
+
+    def __init__(self, incidents: list[Any], geometry, scenario, grid=None):
+        from twin.sumo.scenario import parse_clock
+
+        self.geometry = geometry
+        self.records: list[dict[str, Any]] = []
+        self.events: list[tuple[float, int, str]] = []  # (time, incident, "on" | "off")
+        self._settings = list(incidents)
+        self._edges: dict[str, tuple[int, int]] | None = None
+        self._saved: dict[int, Any] = {}
+        for n, inc in enumerate(self._settings):
+            where = f"[traffic].incidents[{n}]"
+            if inc.begin is not None:
+                begin = parse_clock(inc.begin, f"{where}.begin")
+            else:
+                begin = scenario.begin_s + inc.step * scenario.step_s
+            end = begin + 60.0 * inc.duration_min
+            onset, last = onset_and_end_steps(begin, end, scenario.begin_s, scenario.step_s)
+            self.records.append(
+                {
+                    "kind": inc.kind,
+                    "edge": inc.edge,
+                    "lane": inc.lane if inc.kind == "lane_closed" else None,
+                    "cell": list(inc.cell) if inc.cell is not None else None,
+                    "begin": _clock(begin),
+                    "begin_s": begin,
+                    "end_s": end,
+                    "duration_min": inc.duration_min,
+                    "onset_step": onset,
+                    "end_step": min(last, scenario.horizon),
+                    "vehicle": None,
+                    "applied_s": None,
+                    "lifted_s": None,
+                }
+            )
+            self.events += [(begin, n, "on"), (end, n, "off")]
+        self.events.sort()
+
+    def advance_to(self, session, t: float) -> None:
+        """Advance ``session`` to ``t``, applying the incident events due on the way."""
+        while self.events and self.events[0][0] <= t:
+            when, n, what = self.events.pop(0)
+            if when > session.time:
+                session.advance_to(when)
+            if what == "on":
+                self._start(n, session)
+            else:
+                self._stop(n, session)
+        if t > session.time:
+            session.advance_to(t)
+
+    # ------------------------------------------------------------------------------ libsumo
+    def _edge_cells(self) -> dict[str, tuple[int, int]]:
+        """The cell of each (non-internal) edge's middle: the midpoint of its first lane."""
+        if self._edges is None:
+            ls = _libsumo()
+            ids = [e for e in ls.edge.getIDList() if not e.startswith(":")]
+            mids = np.array([_midpoint(ls.lane.getShape(f"{e}_0")) for e in ids]).reshape(-1, 2)
+            row, col, inside = self.geometry.cell_index(mids)
+            self._edges = {
+                e: (int(r), int(c)) for e, r, c, ok in zip(ids, row, col, inside, strict=True) if ok
+            }
+        return self._edges
+
+    def _place(self, n: int) -> str | None:
+        """The incident's edge (resolved now for a cell), or None while no vehicle to stop."""
+        ls, inc, rec = _libsumo(), self._settings[n], self.records[n]
+        where = f"[traffic].incidents[{n}]"
+        cells = self._edge_cells()
+        if inc.edge is not None:
+            if inc.edge not in cells and inc.edge not in ls.edge.getIDList():
+                raise UserError(
+                    f"{where}.edge = {inc.edge!r} is not an edge of the network; "
+                    "give an edge id of the net file, or a cell = [i, j]"
+                )
+            candidates = [inc.edge]
+        else:
+            cell = tuple(inc.cell)
+            candidates = sorted(e for e, c in cells.items() if c == cell)
+            if inc.kind == "lane_closed":
+                candidates = [e for e in candidates if ls.edge.getLaneNumber(e) > inc.lane]
+            if not candidates:
+                raise UserError(
+                    f"{where}.cell = {list(cell)} has no edge"
+                    + (f" with a lane {inc.lane}" if inc.kind == "lane_closed" else "")
+                    + "; pick a cell on a road (see the report's map)"
+                )
+        if inc.kind == "lane_closed" and ls.edge.getLaneNumber(candidates[0]) <= inc.lane:
+            raise UserError(
+                f"{where}.lane = {inc.lane}: edge {candidates[0]!r} has "
+                f"{ls.edge.getLaneNumber(candidates[0])} lanes (0 is the rightmost)"
+            )
+        busy = [(ls.edge.getLastStepVehicleNumber(e), e) for e in candidates]
+        if inc.kind == "vehicle_stopped":
+            busy = [b for b in busy if b[0] > 0]
+            if not busy:
+                return None
+        edge = max(busy, key=lambda b: b[0])[1]  # the first, smallest id, among equals
+        rec["edge"] = edge
+        if rec["cell"] is None:
+            rec["cell"] = list(cells.get(edge, (-1, -1)))
+        return edge
+
+    def _lanes(self, n: int, edge: str) -> list[str]:
+        inc = self._settings[n]
+        if inc.kind == "lane_closed":
+            return [f"{edge}_{inc.lane}"]
+        return [f"{edge}_{i}" for i in range(_libsumo().edge.getLaneNumber(edge))]
+
+    def _start(self, n: int, session) -> None:
+        ls, rec = _libsumo(), self.records[n]
+        edge = self._place(n)
+        if edge is None:  # no vehicle to stop yet: try again in 10 s while the incident lasts
+            if session.time + 10.0 < rec["end_s"]:
+                self.events.append((session.time + 10.0, n, "on"))
+                self.events.sort()
+            return
+        if rec["kind"] == "vehicle_stopped":
+            vehicle = sorted(ls.edge.getLastStepVehicleIDs(edge))[0]
+            ls.vehicle.setSpeed(vehicle, 0.0)
+            rec["vehicle"] = vehicle
+        else:
+            saved = {}
+            for lane in self._lanes(n, edge):
+                saved[lane] = (list(ls.lane.getAllowed(lane)), list(ls.lane.getDisallowed(lane)))
+                ls.lane.setAllowed(lane, CLOSED_TO)
+            self._saved[n] = saved
+        rec["applied_s"] = session.time
+
+    def _stop(self, n: int, session) -> None:
+        ls, rec = _libsumo(), self.records[n]
+        if rec["applied_s"] is None:
+            return
+        if rec["kind"] == "vehicle_stopped":
+            if rec["vehicle"] in ls.vehicle.getIDList():
+                ls.vehicle.setSpeed(rec["vehicle"], -1.0)  # back to its own driving
+        else:
+            for lane, (allowed, disallowed) in self._saved.pop(n).items():
+                if allowed:
+                    ls.lane.setAllowed(lane, allowed)
+                else:
+                    ls.lane.setDisallowed(lane, disallowed)
+        rec["lifted_s"] = session.time
+
+    def to_json(self) -> list[dict[str, Any]]:
+        """Ground truth for ``incidents.json``: what, where (edge, cell i, j), when, how long."""
+        return [dict(r) for r in self.records]
+
+
+def _midpoint(shape) -> tuple[float, float]:
+    xy = np.asarray(shape, dtype=float).reshape(-1, 2)
+    if len(xy) == 1:
+        return float(xy[0, 0]), float(xy[0, 1])
+    seg = np.hypot(*np.diff(xy, axis=0).T)
+    cum = np.concatenate([[0.0], np.cumsum(seg)])
+    half = cum[-1] / 2
+    i = min(int(np.searchsorted(cum, half, side="right")) - 1, len(seg) - 1)
+    f = (half - cum[i]) / seg[i] if seg[i] > 0 else 0.0
+    p = xy[i] + f * (xy[i + 1] - xy[i])
+    return float(p[0]), float(p[1])
+
+
+def _clock(t: float) -> str:
+    t = round(t)
+    return f"{t // 3600:02d}:{t % 3600 // 60:02d}:{t % 60:02d}"
