@@ -13,6 +13,7 @@ pytest.importorskip("pettingzoo")
 pytest.importorskip("gymnasium")
 
 from gymnasium.utils.env_checker import check_env
+from helpers import random_tape
 from pettingzoo.test import parallel_api_test
 
 from twin.env import SwarmGymEnv, SwarmParallelEnv, make_env
@@ -36,27 +37,8 @@ def _synthetic(horizon: int = 12, grid: Grid | None = None) -> SyntheticTraffic:
     return SyntheticTraffic(grid, disturbances, horizon=horizon)
 
 
-def _tape(nx=4, ny=5, warmup=2, horizon=6) -> Tape:
-    """Random counts and speeds, as in tests/test_tape.py."""
-    rng = np.random.default_rng(2)
-    steps = np.arange(-warmup, horizon + 1)
-    counts = rng.integers(0, 40, (len(steps), nx, ny)).astype(np.int32)
-    speeds = np.where(counts > 0, rng.uniform(0, 15, counts.shape), np.nan).astype(np.float32)
-    obstacles = np.zeros((nx, ny), bool)
-    obstacles[1, 1] = True
-    counts[:, 1, 1] = 0
-    speeds[:, 1, 1] = np.nan
-    return Tape(
-        steps=steps,
-        times=25200.0 + 75.0 * steps,
-        counts=counts,
-        speeds=speeds,
-        obstacles=obstacles,
-        lane_km=rng.uniform(0.5, 3.0, (nx, ny)) * ~obstacles,
-        speed_limit=np.where(obstacles, 0.0, 13.9),
-        horizon=horizon,
-        settings={"mfd_fit": "online", "detection_p": 1.0, "seed": 4, "mfd_prior": [0.7, 40.0]},
-    )
+def _tape() -> Tape:
+    return random_tape(seed=2, nx=4, ny=5, warmup=2, horizon=6, obstacle=(1, 1))
 
 
 def _api_test(env) -> None:

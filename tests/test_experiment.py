@@ -11,6 +11,7 @@ import pytest
 from twin.cli import main as twin_main
 from twin.config import load_config
 from twin.experiment import Experiment, run_experiment
+from twin.policies import make_policy
 
 SYNTHETIC = """
 [grid]
@@ -99,3 +100,19 @@ def test_the_core_imports_neither_sumo_nor_torch():
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "[]"
+
+
+def test_with_missed_vehicles_the_run_keeps_the_truth_apart():
+    from helpers import random_tape
+
+    from twin.patrol import run_patrol
+    from twin.scores import ScoreParams
+    from twin.traffic.tape import TapeTraffic
+
+    tape = random_tape(seed=2, nx=4, ny=5, horizon=8)
+    exact = run_patrol(TapeTraffic(tape), {"g": make_policy("greedy")}, [[0, 1]], ScoreParams())
+    assert exact.truth is None  # every vehicle seen: truth = what the drones see
+    blurred = TapeTraffic(tape, detection_p=0.5)
+    result = run_patrol(blurred, {"g": make_policy("greedy")}, [[0, 1]], ScoreParams())
+    np.testing.assert_allclose(result.truth, exact.importance, atol=1e-6)
+    assert not np.allclose(result.importance, exact.importance)

@@ -289,6 +289,11 @@ class MFDImportance:
         )
         count = total / r if r > 1 else total  # mean vehicles in the cell over the step
         density = density_from_counts(total, self.lane_km, float(r))
+        # the truth: the same model on every vehicle (what drones see, unless some are missed)
+        self.truth = (
+            importance if self.detection_p >= 1.0
+            else np.where(self.free, self.mfd.importance(density), 0.0)
+        )  # fmt: skip
         with np.errstate(invalid="ignore", divide="ignore"):
             ratio = np.where(
                 self.speed_limit > 0, speed / np.maximum(self.speed_limit, 1e-9), np.nan

@@ -123,6 +123,11 @@ class SumoTraffic(TrafficSource):
         times = [(k, round(s.begin_s + k * s.step_s, 3)) for k in range(-w, s.horizon + 1)]
         return [(k, t) for k, t in times if t > s.sim_begin]  # nothing to read at the start
 
+    def truth_map(self):
+        """The true ``T^k`` of the map last yielded, when vehicles may be missed (detection
+        probability below 1): the same MFD on every vehicle."""
+        return self.model.truth if self.model.detection_p < 1.0 else None
+
     def importance_maps(self) -> Iterator[np.ndarray]:
         import time
 

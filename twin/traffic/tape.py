@@ -166,8 +166,14 @@ class TapeTraffic(TrafficSource):
             int(s.get("reads_per_step", 1)),  # counts are vehicle-instants over the reads
         )
 
+    def truth_map(self):
+        """The true ``T^k`` of the map last yielded, when vehicles may be missed (detection
+        probability below 1): the same MFD on every vehicle."""
+        observer = getattr(self, "_observer", None)
+        return observer.truth if observer is not None and self.detection_p < 1.0 else None
+
     def importance_maps(self) -> Iterator[np.ndarray]:
-        model = self.model()
+        model = self._observer = self.model()
         for step, count, speed in zip(
             self.tape.steps, self.tape.counts, self.tape.speeds, strict=True
         ):

@@ -1,0 +1,30 @@
+"""Small builders shared by several test modules."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from twin.traffic.tape import Tape
+
+
+def random_tape(seed=0, nx=3, ny=4, warmup=2, horizon=5, obstacle=(0, 0)) -> Tape:
+    """A tape of random counts and speeds on an ``nx x ny`` grid with one obstacle cell."""
+    rng = np.random.default_rng(seed)
+    steps = np.arange(-warmup, horizon + 1)
+    counts = rng.integers(0, 40, (len(steps), nx, ny)).astype(np.int32)
+    speeds = np.where(counts > 0, rng.uniform(0, 15, counts.shape), np.nan).astype(np.float32)
+    obstacles = np.zeros((nx, ny), bool)
+    obstacles[obstacle] = True
+    counts[:, obstacle[0], obstacle[1]] = 0
+    speeds[:, obstacle[0], obstacle[1]] = np.nan
+    return Tape(
+        steps=steps,
+        times=25200.0 + 75.0 * steps,
+        counts=counts,
+        speeds=speeds,
+        obstacles=obstacles,
+        lane_km=rng.uniform(0.5, 3.0, (nx, ny)) * ~obstacles,
+        speed_limit=np.where(obstacles, 0.0, 13.9),
+        horizon=horizon,
+        settings={"mfd_fit": "online", "detection_p": 1.0, "seed": 4, "mfd_prior": [0.7, 40.0]},
+    )
