@@ -235,6 +235,11 @@ def test_a_horizon_past_the_demand_gets_a_notice(city, capsys):
     assert line.startswith("twin: notice:") and f"(00:{last // 60:02d}:{last % 60:02d})" in line
     per_step = _vehicles_per_step(city / "long").reindex(range(61), fill_value=0)
     assert (per_step == 0).any()  # the notice was right: the tail is empty
+    from twin.report.document import _empty_steps
+    from twin.report.load import load_run
+
+    marked = re.search(r"(\d+) of 61 steps had no vehicle", _empty_steps(load_run(city / "long")))
+    assert marked and int(marked[1]) == int((per_step == 0).sum())  # the report marks them
     code, err = _run(city, "short", "--sumocfg", str(city / "scenario" / "plain.sumocfg"),
                      "--horizon", "5", capsys=capsys)  # fmt: skip
     assert code == 0 and "last departure" not in err
