@@ -282,3 +282,31 @@ def test_hand_written_osm_extract_with_several_road_types(city, tmp_path, capsys
     assert "highway.footway" not in types  # removed by the import options
     assert _vehicles_per_step(city / "osm").sum() > 0
     shutil.rmtree(city / "osm")
+
+
+def test_the_sumocfgs_time_window(city, capsys):
+    """``<time>`` of the sumocfg sets the window: T^0 = its begin + warm-up; the horizon fits."""
+    cfg = city / "scenario" / "timed.sumocfg"
+    text = (city / "scenario" / "plain.sumocfg").read_text()
+    cfg.write_text(
+        text.replace("</input>", '</input><time><begin value="600"/><end value="0:15:00"/></time>')
+    )
+    assert (read_sumocfg(cfg).begin, read_sumocfg(cfg).end) == (600.0, 900.0)
+    code, err = _run(city, "timed", "--sumocfg", str(cfg), capsys=capsys)
+    assert code == 0, err
+    run = json.loads((city / "timed" / "run.json").read_text())
+    assert run["traffic"]["begin"] == "00:12:00" and run["horizon"] == 3  # (900 - 720) / 60
+
+
+def test_departure_span_of_flows_and_clock_times(tmp_path):
+    routes = tmp_path / "flows.rou.xml.gz"
+    routes.write_bytes(
+        gzip.compress(
+            b'<routes><vType id="t"/><route id="r" edges="a"/>'
+            b'<flow id="f" route="r" begin="100" end="700" period="5"/>'
+            b'<flow id="g" route="r" begin="50" number="10" period="10"/>'
+            b'<vehicle id="v" route="r" depart="0:13:20"/>'
+            b'<vehicle id="w" route="r" depart="triggered"/></routes>'
+        )
+    )
+    assert departure_span([routes]) == (50.0, 800.0)
