@@ -72,6 +72,7 @@ def _scenario(d: Path, kind: str) -> dict[str, Path]:
     run_sumo_program(
         [tool("randomTrips.py"), "-n", str(net), "-o", str(trips), "-b", str(FIRST_DEPART),
          "-e", str(LAST_DEPART), "-p", "3", "--seed", "1", "--validate",
+         "-r", str(d / f"{kind}.routes.xml"),
          "--trip-attributes", 'type="car"', "--additional-files", str(d / "vtypes.add.xml")],
         what="randomTrips",
     )  # fmt: skip
