@@ -183,11 +183,13 @@ class SumoSettings(StrictModel):
     network: str | None = "shenzhen_like"
     net: str | None = None
     routes: Any = []  # a route file or a list of them
+    additional: Any = []  # additional file(s) for SUMO: vehicle types, signals, detectors, ...
     sumocfg: str | None = None
     osm: str | None = None
     cell_m: Annotated[float, Field(gt=0)] = 500.0
     drone_speed_kmh: Annotated[float, Field(gt=0)] = 24.0
     begin: str = "07:00"
+    end: str | None = None  # end of the scenario's window (clock); default: its demand's
     horizon: Count = 144
     warmup_min: Annotated[float, Field(ge=0)] = 30.0
     seed: Seed = 0
@@ -208,12 +210,17 @@ class SumoSettings(StrictModel):
     def _begin(cls, value: str) -> str:
         return check_clock(value)
 
-    @field_validator("routes", mode="plain")
+    @field_validator("end")
+    @classmethod
+    def _end(cls, value: str | None) -> str | None:
+        return None if value is None else check_clock(value)
+
+    @field_validator("routes", "additional", mode="plain")
     @classmethod
     def _routes(cls, value: Any) -> list[str]:
         value = [value] if isinstance(value, str) else value
         if not isinstance(value, list) or not all(isinstance(r, str) for r in value):
-            raise ValueError("must be a route file or a list of them")
+            raise ValueError("must be a file or a list of them")
         return value
 
     @property

@@ -44,6 +44,9 @@ class SumoInputs:
     horizon: int | None = None
     begin: str | None = None
     mesoscopic: bool | None = None
+    additional: list[Path] | None = None
+    cell_m: float | None = None
+    drone_speed_kmh: float | None = None
 
     def as_kwargs(self) -> dict[str, Any]:
         return {k: v for k, v in vars(self).items() if v is not None}

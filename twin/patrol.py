@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from twin.errors import UserError
 from twin.grid import Grid
 from twin.policies import Policy, SwarmView, Transition
 from twin.scores import ScoreParams, coverage
@@ -131,8 +132,8 @@ def run_patrol(
     except StopIteration:
         error = f"traffic source ended after {done} of {horizon} steps"
     except Exception as exc:
-        if not getattr(source, "keeps_partial_results", False):
-            raise
+        if isinstance(exc, UserError) or not getattr(source, "keeps_partial_results", False):
+            raise  # bad input (e.g. a file SUMO refuses to start on) is no partial result
         error = f"{type(exc).__name__}: {exc}"
     finally:
         if bar is not None:

@@ -8,6 +8,7 @@ with the SUMO extras: ``network.json``, ``mfd.json``, ``mfd_samples.parquet``, `
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -33,8 +34,32 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument("--sumocfg", type=Path, help="a SUMO configuration (.sumocfg): network + demand")
     p.add_argument("--osm", type=Path, help="an OpenStreetMap extract, converted with netconvert")
-    p.add_argument("--horizon", type=int, help="number of steps T (default from the config)")
-    p.add_argument("--begin", type=str, help='time of T^0, e.g. "07:00" (default from the config)')
+    p.add_argument(
+        "--additional",
+        type=Path,
+        action="append",
+        help="a SUMO additional file (vehicle types, signal programs, detectors, polygons; "
+        "repeatable), besides those of the sumocfg",
+    )
+    p.add_argument(
+        "--horizon",
+        type=int,
+        help="number of steps T (default: the config's, or what fits the window of a network "
+        "given as files)",
+    )
+    p.add_argument(
+        "--begin",
+        type=str,
+        help='time of T^0, e.g. "07:00" (default: the config\'s, or the begin of the window of '
+        "a network given as files plus the warm-up)",
+    )
+    p.add_argument("--cell-m", type=float, help="cell size in m (default from the config)")
+    p.add_argument("--drones", type=int, help="number of drones (default from the config)")
+    p.add_argument(
+        "--drone-speed",
+        type=float,
+        help="drone speed in km/h (default from the config); one step = cell size / speed",
+    )
     p.add_argument("--swarms", type=str, help="comma-separated swarms (default from the config)")
     p.add_argument("--seed", type=int, help="first seed of the drones' starts and swarms")
     p.add_argument(
@@ -68,7 +93,18 @@ def main(args: argparse.Namespace) -> int:
     from twin.runs import new_run_dir, prepare_run_dir
 
     limit_threads()
+    for flag, value in (
+        ("--cell-m", args.cell_m),
+        ("--drones", args.drones),
+        ("--drone-speed", args.drone_speed),
+    ):
+        if value is not None and not (value > 0 and math.isfinite(value)):
+            raise UserError(f"{flag} {value}: give a positive number")
     config = load_config(shipped_config(args.config or DEFAULT_CONFIG))
+    if args.drones is not None:
+        config = config.model_copy(
+            update={"swarm": config.swarm.model_copy(update={"n_drones": args.drones})}
+        )
     if config.traffic.kind != "sumo":
         raise UserError(
             f"{config.path}: [traffic].kind = {config.traffic.kind!r}; `twin run` needs "
@@ -99,6 +135,9 @@ def main(args: argparse.Namespace) -> int:
             horizon=args.horizon,
             begin=args.begin,
             mesoscopic=True if args.meso else None,
+            additional=args.additional,
+            cell_m=args.cell_m,
+            drone_speed_kmh=args.drone_speed,
         ),
         traffic_seed=args.sumo_seed,
         skip_unavailable=args.swarms is None,
@@ -156,7 +195,8 @@ def _announce(source) -> None:
     s = source.scenario
     print(
         f"SUMO: {s.name} (seed {s.seed}), {source.grid.nx} x {source.grid.ny} cells of "
-        f"{source.geometry.cell_m:g} m ({source.grid.n_free} free), "
+        f"{source.geometry.cell_m:g} m ({source.grid.n_free} free, "
+        f"{s.extra.get('n_drones', '?')} drones), "
         f"{source.clock(-s.warmup_steps())} warm-up, {source.clock(0)} - "
         f"{source.clock(s.horizon)}, step {s.step_s:g} s",
         file=sys.stderr,

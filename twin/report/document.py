@@ -336,18 +336,38 @@ def _rows(frame: pd.DataFrame) -> list[list[str]]:
 def _lede(rf: RunFiles) -> str:
     nx, ny = rf.obstacles.shape
     traffic = rf.run.get("traffic") or {}
-    where = f"a {nx} x {ny} grid"
+    where = (
+        f"a {nx} x {ny} grid ({rf.grid.n_free} free cells, {rf.run.get('n_drones', '?')} drones)"
+    )
     if traffic.get("kind") == "sumo":
         begin, step_s = rf.clock_start()
         where += f" over the SUMO network {traffic.get('name', '?')}"
         if begin:
             where += f", from {begin} ({step_s:g} s per step, {rf.clock(rf.horizon)} at the end)"
+        where += _empty_steps(rf)
     elif traffic.get("kind"):
         where += f" with {traffic['kind']} traffic"
     return (
         f"{len(rf.swarms)} swarms ({', '.join(rf.swarms)}) patrolling {where}, "
         f"T = {rf.horizon} steps, seeds {', '.join(map(str, rf.seeds))}. Every number below is "
         "read from this run folder's files."
+    )
+
+
+def _empty_steps(rf: RunFiles) -> str:
+    """Steps of the traffic tape with no vehicle on the grid, e.g. after the demand ended."""
+    tape = rf.run_dir / "tape.parquet"
+    if not tape.exists():
+        return ""
+    counts = pd.read_parquet(tape, columns=["step", "count"])
+    per_step = counts[counts["step"] >= 0].groupby("step")["count"].sum()
+    empty = [k for k in range(rf.horizon + 1) if per_step.get(k, 0) == 0]
+    if not empty:
+        return ""
+    shown = ", ".join(map(str, empty[:12])) + (" ..." if len(empty) > 12 else "")
+    return (
+        f"; {len(empty)} of {rf.horizon + 1} steps had no vehicle on the network "
+        f"(steps {shown}): there is nothing to monitor then"
     )
 
 

@@ -276,16 +276,13 @@ def import_osm(osm_file: Path, out_dir: Path | None = None) -> Path:
 
 
 def check_net_file(net_file: Path) -> None:
-    """One-line error unless ``net_file`` is a readable SUMO network with passenger lanes."""
+    """One-line error unless ``net_file`` is a readable SUMO network (gzip-compressed or not)."""
+    from twin.sumo.scenario import root_tag
+
     net_file = Path(net_file)
-    if not net_file.exists():
-        raise UserError(f"{net_file}: no such network file")
-    try:
-        root_tag = next(ET.iterparse(net_file, events=("start",)))[1].tag
-    except ET.ParseError as exc:
-        raise UserError(f"{net_file}: not valid XML ({exc})") from exc
-    if root_tag != "net":
-        raise UserError(f"{net_file}: not a SUMO network (root element <{root_tag}>, want <net>)")
+    tag = root_tag(net_file, "network file")
+    if tag != "net":
+        raise UserError(f"{net_file}: not a SUMO network (root element <{tag}>, want <net>)")
 
 
 def generate_grid_scenario(

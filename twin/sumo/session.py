@@ -14,7 +14,9 @@ from __future__ import annotations
 import atexit
 import contextlib
 import io
+import itertools
 import os
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -91,13 +93,26 @@ class SumoSession:
             cmd += ["--mesosim", "true", "--meso-junction-control", "true"]
         return cmd + list(self.extra_options)
 
+    def additionals(self) -> list[Path]:
+        """The additional files SUMO loads, from the field and from ``extra_options``."""
+        files = [Path(p) for p in self.additional_files]
+        options = list(self.extra_options)
+        for flag, value in itertools.pairwise(options):
+            if flag in ("--additional-files", "-a"):
+                files += [Path(v) for v in value.split(",") if v]
+        return files
+
     def start(self) -> SumoSession:
         if SumoSession._active is not None:
             raise RuntimeError(
                 "a SUMO session is already open in this process (libsumo allows one)"
             )
-        files = (self.config_file, self.net_file, *self.route_files, *self.additional_files)
-        for path in [p for p in files if p is not None]:
+        files = [
+            Path(p)
+            for p in (self.config_file, self.net_file, *self.route_files, *self.additionals())
+            if p is not None
+        ]
+        for path in files:
             if not Path(path).exists():
                 raise UserError(f"{path}: no such file")
         libsumo = _libsumo()
@@ -108,8 +123,8 @@ class SumoSession:
             message = stderr.text() or str(exc)
             with contextlib.suppress(Exception):
                 libsumo.close()
-            where = self.config_file or self.net_file
-            raise UserError(f"SUMO could not start on {where}: {_first_line(message)}") from None
+            where, reason = sumo_refusal(message, files)
+            raise UserError(f"{where}: SUMO refuses it: {reason}") from None
         finally:
             stderr.restore()
         SumoSession._active = self
@@ -153,6 +168,47 @@ class SumoSession:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def sumo_refusal(text: str, files: list[Path]) -> tuple[Path | str, str]:
+    """The file SUMO refused and its reason, from what SUMO wrote on failing to start.
+
+    SUMO names the file of an XML error (``In file '...'``, ``At line/column``); for other
+    errors (an unknown vehicle class, edge, type ...) the file is the first one that names the
+    quoted object, else the sumocfg or network.
+    """
+    reason = re.sub(r"^Error:\s*", "", _first_line(text))
+    lines = [line.strip() for line in text.splitlines()]
+    named = [m for line in lines if (m := re.match(r"In file '(.+)'", line))]
+    place = [m for line in lines if (m := re.match(r"At line/column (\d+)/(\d+)", line))]
+    if named:
+        where: Path | str = Path(named[0][1])
+        if place:
+            reason += f" (line {place[0][1]}, column {place[0][2]})"
+        return where, reason
+    quoted = re.findall(r"'([^']+)'", reason)
+    for path in files:
+        if any(Path(token).name == Path(path).name for token in quoted):
+            return path, reason
+    for path in reversed(files):  # additionals and routes before the network
+        if quoted and path.suffix != ".sumocfg" and _mentions(path, quoted):
+            return path, reason
+    return (files[0] if files else "SUMO"), reason
+
+
+def _mentions(path: Path, tokens: list[str]) -> bool:
+    """Whether a (perhaps gzip-compressed) XML file gives one of ``tokens`` as a value."""
+    import gzip
+
+    try:
+        with open(path, "rb") as fh:
+            gz = fh.read(2) == b"\x1f\x8b"
+        opener = gzip.open if gz else open
+        with opener(path, "rb") as fh:
+            data = fh.read(64 << 20).decode(errors="replace")
+    except OSError:
+        return False
+    return any(f'"{t}"' in data for t in tokens)
 
 
 def _first_line(text: str) -> str:
