@@ -87,7 +87,9 @@ def main(args: argparse.Namespace) -> int:
             "`twin evaluate` takes synthetic configs or --traffic TAPE"
         )
     run_dir = prepare_run_dir(args.out or new_run_dir("runs", "evaluate"))
-    outcome = run_experiment(experiment, progress=not args.quiet and sys.stderr.isatty())
+    outcome = run_experiment(
+        experiment, progress=not args.quiet and sys.stderr.isatty(), interruptible=True
+    )
     summary, comparison = record(run_dir, outcome, run_metadata(outcome, "evaluate"))
     horizon = outcome.results[0].horizon
     label = f"{seeds} seed{'s' if seeds > 1 else ''} from {first}"
@@ -97,6 +99,9 @@ def main(args: argparse.Namespace) -> int:
     if not args.no_report:
         _report(run_dir)
     print(f"run folder: {run_dir}")
+    if outcome.interrupted:
+        print(f"twin: interrupted; partial run written to {run_dir}", file=sys.stderr)
+        return 130
     return 0
 
 

@@ -109,6 +109,7 @@ def main(args: argparse.Namespace) -> int:
         progress=not args.quiet and sys.stderr.isatty(),
         keep_sources=True,
         on_source=_announce,
+        interruptible=True,
     )
     first_source = outcome.sources[0]
     meta = run_metadata(
@@ -118,7 +119,7 @@ def main(args: argparse.Namespace) -> int:
     )
     summary, comparison = record(run_dir, outcome, meta)
     done = outcome.results[-1]
-    if done.error:
+    if done.error and not outcome.interrupted:
         print(
             f"twin: SUMO stopped early ({done.error}); partial results of "
             f"{done.completed_steps} of {first_source.horizon} steps written to {run_dir}",
@@ -148,6 +149,13 @@ def main(args: argparse.Namespace) -> int:
         except ImportError:
             pass
     print(f"run folder: {run_dir}")
+    if outcome.interrupted:
+        print(
+            f"twin: interrupted; partial run of {done.completed_steps} steps (seed {done.seed}) "
+            f"written to {run_dir}",
+            file=sys.stderr,
+        )
+        return 130
     return 1 if outcome.partial else 0
 
 
