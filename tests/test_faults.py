@@ -106,3 +106,85 @@ def test_sweep_workers_exit_when_the_sweep_is_killed(tmp_path: Path) -> None:
         assert not [p for p in workers if alive(p)], "pool workers outlived the sweep"
     finally:
         kill_group(proc)
+
+
+# ----------------------------------------------------------------------------- pretraining
+TINY_PRETRAIN = """
+layers = [13, 16, 5]
+nx = 6
+ny = 6
+horizon = 50
+episodes = 2
+epochs = {epochs}
+iters_per_epoch = 2
+batch_size = 16
+log_every = 5
+checkpoint_every = 5
+disturbances = [{{kind = "big", i = 2, j = 2, amplitude = 1.0, sigma = 2.0}}]
+"""
+
+
+def test_diverging_pretraining_stops_with_one_line_and_writes_no_model(tmp_path: Path) -> None:
+    # rewards of 1e30 square to inf in float32: the first loss is not finite
+    path = tmp_path / "diverge.toml"
+    path.write_text(TINY_PRETRAIN.format(epochs=40) + "alpha_T = 1e30\n")
+    out = tmp_path / "out"
+    proc = subprocess.run(
+        [sys.executable, "-m", "twin", "pretrain", "--config", str(path), "--out", str(out),
+         "--quiet"],
+        cwd=tmp_path, env=ENV, capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and "diverged" in lines[0] and "Traceback" not in proc.stderr
+    assert not (out / "qnet.pt").exists() and not (out / "state.pt").exists()
+
+
+def test_divergence_keeps_the_last_good_checkpoint(tmp_path: Path, monkeypatch) -> None:
+    torch = pytest.importorskip("torch")
+    from twin.errors import UserError
+    from twin.learning import pretrain as pt
+    from twin.learning.checkpoint import read_checkpoint
+
+    path = tmp_path / "tiny.toml"
+    path.write_text(TINY_PRETRAIN.format(epochs=10))
+    out = tmp_path / "out"
+    pt.pretrain(pt.load_config(path, out=str(out)), progress=False)
+    before = {name: (out / name).read_bytes() for name in ("state.pt", "qnet.pt")}
+
+    # resumed to 30 epochs, the weights blow up at epoch 13 (between two checkpoints)
+    calls = {"n": 0}
+    real = pt.train_epoch
+
+    def exploding(net, *args):
+        calls["n"] += 1
+        loss, q = real(net, *args)
+        if calls["n"] >= 3:
+            with torch.no_grad():
+                next(net.parameters()).mul_(torch.inf)
+        return loss, q
+
+    monkeypatch.setattr(pt, "train_epoch", exploding)
+    cfg = pt.load_config(path, out=str(out), epochs=30)
+    with pytest.raises(UserError, match=r"diverged by epoch 15 .*state.pt \(epoch 10\) is kept"):
+        pt.pretrain(cfg, progress=False)
+    assert {name: (out / name).read_bytes() for name in before} == before
+    assert all(
+        torch.isfinite(w).all() for w in read_checkpoint(out / "qnet.pt")["weights"].values()
+    )
+
+
+def test_a_checkpoint_with_nan_weights_is_refused_on_load(tmp_path: Path) -> None:
+    torch = pytest.importorskip("torch")
+    from twin.errors import UserError
+    from twin.learning.checkpoint import load_qnet, model_metadata, save_model
+    from twin.learning.qnet import QNetwork
+
+    net = QNetwork([13, 16, 5])
+    weights = net.state_dict()
+    weights["net.0.weight" if "net.0.weight" in weights else next(iter(weights))][0, 0] = torch.nan
+    path = tmp_path / "nan.pt"
+    save_model(path, weights, model_metadata([13, 16, 5], {}, 0, 1))
+    with pytest.raises(UserError, match=r"nan\.pt.*non-finite") as info:
+        load_qnet(path)
+    assert "\n" not in str(info.value)
