@@ -188,3 +188,41 @@ def test_a_checkpoint_with_nan_weights_is_refused_on_load(tmp_path: Path) -> Non
     with pytest.raises(UserError, match=r"nan\.pt.*non-finite") as info:
         load_qnet(path)
     assert "\n" not in str(info.value)
+
+
+# ----------------------------------------------------------------------------- bad numbers
+BIG = str(2**63)
+
+
+@pytest.mark.parametrize(
+    ("argv", "flag"),
+    [
+        (["evaluate", "--seed", "-1"], "--seed = -1"),
+        (["evaluate", "--seed", BIG], f"--seed = {BIG}"),
+        (["evaluate", "--seed", "2147483647", "--seeds", "2"], "--seed = 2147483647"),
+        (["evaluate", "--seeds", "0"], "--seeds = 0"),
+        (["evaluate", "--seeds", "-3"], "--seeds = -3"),
+        (["run", "--seed", "-1"], "--seed = -1"),
+        (["run", "--seed", BIG], f"--seed = {BIG}"),
+        (["run", "--sumo-seed", "-5"], "--sumo-seed = -5"),
+        (["run", "--sumo-seed", "2147483648"], "--sumo-seed = 2147483648"),
+        (["run", "--seeds", "0"], "--seeds = 0"),
+        (["run", "--horizon", "0"], "--horizon = 0"),
+        (["run", "--horizon", "-10"], "--horizon = -10"),
+        (["sweep", "--config", "configs/sweep-demo.toml", "--workers", "0"], "--workers = 0"),
+        (["sweep", "--config", "configs/sweep-demo.toml", "--workers", "-2"], "--workers = -2"),
+        (["pretrain", "--epochs", "0"], "--epochs = 0"),
+        (["pretrain", "--epochs", "-1"], "--epochs = -1"),
+    ],
+)
+def test_bad_numbers_on_the_command_line_are_one_line_errors(
+    argv: list[str], flag: str, tmp_path: Path, capsys
+) -> None:
+    from twin.cli import main
+
+    before = sorted(tmp_path.rglob("*"))
+    code = main([*argv, "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err.strip()
+    assert code == 2
+    assert len(err.splitlines()) == 1 and flag in err, err
+    assert sorted(tmp_path.rglob("*")) == before  # nothing written

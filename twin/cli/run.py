@@ -11,6 +11,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from twin.cli import check_count, check_seeds
 from twin.errors import UserError
 
 DEFAULT_CONFIG = "configs/shenzhen.toml"
@@ -79,14 +80,12 @@ def main(args: argparse.Namespace) -> int:
     given = sum(x is not None for x in (args.net, args.sumocfg, args.osm))
     if given > 1:
         raise UserError("give one of --net, --sumocfg, --osm")
-    for flag, value in (("--seed", args.seed), ("--sumo-seed", args.sumo_seed)):
-        if value is not None and value < 0:
-            raise UserError(f"{flag} {value}: seeds are whole numbers >= 0")
-    if args.seeds < 1:
-        raise UserError(f"--seeds {args.seeds}: give at least 1")
-    if args.horizon is not None and args.horizon < 1:
-        raise UserError(f"--horizon {args.horizon}: give at least 1 step")
+    check_count("--seeds", args.seeds)
+    check_count("--horizon", args.horizon)
+    check_seeds("--seed", args.seed, args.seeds)
+    check_seeds("--sumo-seed", args.sumo_seed, args.seeds)
     first = args.seed if args.seed is not None else config.evaluate.seed
+    check_seeds(f"{config.path}: [evaluate].seed", first, args.seeds)
     experiment = Experiment(
         config=config,
         swarms=parse_swarm_names(args.swarms, config.evaluate.swarms),
