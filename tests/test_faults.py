@@ -226,3 +226,143 @@ def test_bad_numbers_on_the_command_line_are_one_line_errors(
     assert code == 2
     assert len(err.splitlines()) == 1 and flag in err, err
     assert sorted(tmp_path.rglob("*")) == before  # nothing written
+
+
+# ----------------------------------------------------------------------------- kill -9
+RUN_FILES = ("series.parquet", "trajectories.parquet", "per_seed.csv", "summary.csv",
+             "importance.npz", "network.json", "mfd.json", "mfd_samples.parquet",
+             "tape.parquet")  # fmt: skip
+
+SUMO_CONFIG = """
+[swarm]
+n_drones = 2
+[traffic]
+kind = "sumo"
+net = "small.net.xml"
+routes = ["small.trips.xml"]
+cell_m = 200.0
+drone_speed_kmh = 12.0   # one step = 60 s
+begin = "00:05"
+warmup_min = 5.0
+horizon = 20
+seed = 3
+[evaluate]
+swarms = ["random", "greedy", "sweeping"]
+"""
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory) -> Path:
+    """The small grid scenario of tests/test_sumo_small.py."""
+    pytest.importorskip("libsumo")
+    from twin.sumo.network import generate_grid_scenario
+
+    d = tmp_path_factory.mktemp("small")
+    generate_grid_scenario(d, blocks=5, block_m=300, end_s=900, period_s=1.5, seed=5)
+    (d / "small.toml").write_text(SUMO_CONFIG)
+    return d
+
+
+def claims_complete(run_dir: Path) -> bool:
+    if not (run_dir / "run.json").exists() or not (run_dir / "summary.csv").exists():
+        return False
+    import json
+
+    return json.loads((run_dir / "run.json").read_text()).get("partial") is False
+
+
+def _kill_run_when(small: Path, out: Path, when) -> None:
+    err = out.parent / f"{out.name}.stderr"
+    with open(err, "w") as fh:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "twin", "run", "--config", str(small / "small.toml"),
+             "--out", str(out), "--no-report", "--quiet"],
+            cwd=out.parent, env=ENV, stdout=subprocess.DEVNULL, stderr=fh,
+            start_new_session=True,
+        )  # fmt: skip
+    try:
+        deadline = time.monotonic() + 120
+        while not when(err.read_text(), out) and proc.poll() is None:
+            assert time.monotonic() < deadline, "timed out"
+            time.sleep(0.005)
+    finally:
+        kill_group(proc)
+
+
+@pytest.mark.parametrize(
+    "phase",
+    [
+        "warm-up",  # the simulation is built: the announcement is printed before the warm-up
+        "mid-run",
+        "writing",  # the first file of the run folder appears
+    ],
+)
+def test_kill_9_of_twin_run_leaves_no_folder_claiming_completeness(small, tmp_path, phase):
+    out = tmp_path / "run"
+    t = {"announced": None}
+
+    def when(stderr: str, out: Path) -> bool:
+        if "SUMO:" in stderr and t["announced"] is None:
+            t["announced"] = time.monotonic()
+        if phase == "warm-up":
+            return t["announced"] is not None
+        if phase == "mid-run":
+            return t["announced"] is not None and time.monotonic() > t["announced"] + 1.0
+        return out.exists() and any(out.iterdir())
+
+    _kill_run_when(small, out, when)
+    if claims_complete(out):  # finished before the kill, or a folder claiming too much
+        missing = [name for name in RUN_FILES if not (out / name).exists()]
+        assert not missing, f"run.json says complete but {missing} are missing"
+    rerun = subprocess.run(
+        [sys.executable, "-m", "twin", "run", "--config", str(small / "small.toml"),
+         "--out", str(tmp_path / "again"), "--no-report", "--quiet"],
+        cwd=tmp_path, env=ENV, capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert rerun.returncode == 0, rerun.stderr
+    assert claims_complete(tmp_path / "again")
+    assert all((tmp_path / "again" / name).exists() for name in RUN_FILES)
+
+
+def _results(sweep_dir: Path):
+    import pandas as pd
+
+    frame = pd.read_csv(sweep_dir / "results.csv")
+    frame = frame.drop(columns=[c for c in ("seconds", "worker") if c in frame])
+    return frame.sort_values(["cell", "swarm"]).reset_index(drop=True)
+
+
+@pytest.mark.parametrize("kill_after_cells", [1])
+def test_kill_9_of_twin_sweep_mid_cell_resumes_to_the_same_results(tmp_path, kill_after_cells):
+    from twin.sweep import done_cells
+
+    path = sweep_file(tmp_path, seeds=3, horizon=2000)
+    out = tmp_path / "s"
+    cmd = ["sweep", "--config", str(path), "--workers", "1", "--quiet", "--no-report"]
+    proc = twin([*cmd, "--out", str(out)], tmp_path)
+    try:
+        deadline = time.monotonic() + 120
+        while len(done_cells(out)) < kill_after_cells and proc.poll() is None:
+            assert time.monotonic() < deadline, "timed out"
+            time.sleep(0.05)
+        time.sleep(0.5)  # into the next cell
+        os.kill(proc.pid, signal.SIGKILL)  # the sweep alone: its worker must follow
+        proc.wait()
+    finally:
+        kill_group(proc)
+    assert len(done_cells(out)) < 3, "kill the sweep while cells remain"
+    resumed = subprocess.run(
+        [sys.executable, "-m", "twin", *cmd, "--out", str(out)],
+        cwd=tmp_path, env=ENV, capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert resumed.returncode == 0, resumed.stderr
+    whole = subprocess.run(
+        [sys.executable, "-m", "twin", *cmd, "--out", str(tmp_path / "whole")],
+        cwd=tmp_path, env=ENV, capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert whole.returncode == 0, whole.stderr
+    a, b = _results(out), _results(tmp_path / "whole")
+    assert len(a) == 3 * 3
+    pd_testing = pytest.importorskip("pandas.testing")
+    pd_testing.assert_frame_equal(a.drop(columns=["code"], errors="ignore"),
+                                  b.drop(columns=["code"], errors="ignore"))  # fmt: skip
