@@ -15,10 +15,13 @@ synthetic and replayed traffic is the same for every seed.
 
 from __future__ import annotations
 
+import contextlib
 import os
+import signal
 import sys
+import threading
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -28,7 +31,7 @@ import pandas as pd
 
 from twin.config import ScenarioConfig, check_swarm_fits, start_positions
 from twin.errors import UserError
-from twin.patrol import PatrolResult, run_patrol
+from twin.patrol import INTERRUPTED, PatrolResult, run_patrol
 from twin.policies import Policy, available_policies, is_learned
 from twin.traffic.base import TrafficSource
 
@@ -78,10 +81,12 @@ class ExperimentResult:
     seconds: float
     #: the live sources of each seed, kept open only when ``keep_sources`` was asked for
     sources: list[TrafficSource] = field(default_factory=list)
+    #: stopped by Ctrl-C (:func:`stop_on_interrupt`): the results hold the steps done so far
+    interrupted: bool = False
 
     @property
     def partial(self) -> bool:
-        return any(r.error for r in self.results)
+        return self.interrupted or any(r.error for r in self.results)
 
 
 def limit_threads(n: int = 1) -> None:
@@ -154,18 +159,65 @@ def build_swarms(experiment: Experiment) -> dict[str, Policy]:
     return swarms
 
 
+@contextlib.contextmanager
+def stop_on_interrupt(enabled: bool = True) -> Iterator[Callable[[], bool]]:
+    """Within the block, a first Ctrl-C (SIGINT) only sets a flag (the yielded callable turns
+    true) so the run can stop after its current step and keep what it did; a second Ctrl-C
+    raises :class:`KeyboardInterrupt` at once. The previous handler is restored on exit.
+
+    Nothing is installed off the main thread, or when SIGINT is not Python's default handler
+    (ignored, as in a background job, or handled by the caller): the flag then stays false.
+    """
+    flag = threading.Event()
+    usable = (
+        enabled
+        and threading.current_thread() is threading.main_thread()
+        and signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    )
+    if not usable:
+        yield flag.is_set
+        return
+
+    def first(signum, frame) -> None:
+        flag.set()
+        signal.signal(signal.SIGINT, signal.default_int_handler)  # the next one stops at once
+        print(
+            "\ntwin: interrupted; stopping after the current step and writing a partial run "
+            "(Ctrl-C again to stop at once)",
+            file=sys.stderr,
+        )
+
+    previous = signal.signal(signal.SIGINT, first)
+    try:
+        yield flag.is_set
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def run_experiment(
     experiment: Experiment,
     progress: bool = False,
     keep_sources: bool = False,
     on_source=None,
+    interruptible: bool = False,
 ) -> ExperimentResult:
     """Run every seed of ``experiment``: one patrol pass of all swarms per seed.
 
     ``on_source(source)`` is called once per seed after the traffic source is built (the CLI
     prints what it is about to simulate). With ``keep_sources`` live sources stay open for
-    :func:`record` (their MFD fit and tape); otherwise each is closed after its pass.
+    :func:`record` (their MFD fit and tape); otherwise each is closed after its pass. With
+    ``interruptible`` a Ctrl-C stops the run after its current step (:func:`stop_on_interrupt`):
+    the result keeps the steps done, runs no more seeds and says ``interrupted``.
     """
+    with stop_on_interrupt(interruptible) as stop:
+        outcome = _run_seeds(experiment, progress, keep_sources, on_source, stop)
+    outcome.interrupted = stop() or any(
+        (r.error or "").startswith(INTERRUPTED) for r in outcome.results
+    )
+    return outcome
+
+
+def _run_seeds(experiment, progress, keep_sources, on_source, stop) -> ExperimentResult:
     t0 = time.perf_counter()
     results, traffic, sources = [], [], []
     swarms: dict[str, Policy] = {}
@@ -186,6 +238,7 @@ def run_experiment(
                 seed,
                 progress=progress,
                 keep_importance=experiment.keep_importance,
+                stop=stop,
             )
             results.append(result)
             traffic.append(source.metadata())
@@ -196,7 +249,7 @@ def run_experiment(
                 sources.append(source)
             elif source is not shared_source:
                 source.close()
-        if result.error:  # a live simulation failed: keep what was done, run no more seeds
+        if result.error or stop():  # a live run failed or Ctrl-C: keep what was done, stop
             break
     if shared_source is not None and not keep_sources:
         shared_source.close()

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import time
 import zlib
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -23,6 +23,9 @@ from twin.swarm import InfeasibleActionError, SwarmState, initial_state, random_
 from twin.traffic.base import TrafficSource
 
 __all__ = ["PatrolResult", "random_starts", "run_patrol", "swarm_rng", "swarm_view"]
+
+#: How ``PatrolResult.error`` begins when the run was stopped on request (Ctrl-C).
+INTERRUPTED = "interrupted"
 
 
 @dataclass
@@ -65,11 +68,13 @@ def run_patrol(
     seed: int = 0,
     progress: bool = False,
     keep_importance: bool = True,
+    stop: Callable[[], bool] | None = None,
 ) -> PatrolResult:
     """Run every swarm in ``policies`` from ``starts`` over the whole horizon of ``source``.
 
-    If the source fails mid-run (a simulation crash), the result keeps the steps completed so
-    far, truncated to them, and says why in ``error``.
+    If the source fails mid-run (a simulation crash), or ``stop()`` turns true between two steps
+    (Ctrl-C, see :func:`twin.experiment.stop_on_interrupt`), the result keeps the steps completed
+    so far, truncated to them, and says why in ``error``.
     """
     grid, horizon = source.grid, source.horizon
     names = list(policies)
@@ -129,6 +134,9 @@ def run_patrol(
                 clock = source.clock(k + 1)
                 if clock:
                     bar.set_postfix_str(clock, refresh=False)
+            if stop is not None and stop() and done < horizon:
+                error = f"{INTERRUPTED} after {done} of {horizon} steps"
+                break
     except StopIteration:
         error = f"traffic source ended after {done} of {horizon} steps"
     except Exception as exc:

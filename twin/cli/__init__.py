@@ -16,6 +16,26 @@ from twin.errors import UserError
 
 COMMANDS = ["evaluate", "pretrain", "network", "run", "report", "sweep"]
 
+#: The largest seed a command takes (SUMO's seeds are 32-bit signed integers).
+MAX_SEED = 2**31 - 1
+
+
+def check_count(flag: str, value: int | None) -> None:
+    """A count flag (``--seeds``, ``--horizon``, ``--epochs``, ...) must be at least 1."""
+    if value is not None and value < 1:
+        raise UserError(f"{flag} = {value} is below 1; give a whole number of at least 1")
+
+
+def check_seeds(flag: str, first: int | None, count: int = 1) -> None:
+    """Seeds ``first .. first + count - 1`` must lie in ``0 .. MAX_SEED``."""
+    if first is None:
+        return
+    if first < 0 or first + count - 1 > MAX_SEED:
+        last = f" (with {count} seeds: up to {first + count - 1})" if count > 1 else ""
+        raise UserError(
+            f"{flag} = {first} is out of range{last}; seeds are whole numbers from 0 to {MAX_SEED}"
+        )
+
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(

@@ -6,6 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from twin.cli import check_count, check_seeds
 from twin.config import load_config, shipped_config
 from twin.errors import UserError
 from twin.experiment import (
@@ -69,12 +70,12 @@ def add_parser(subparsers) -> None:
 def main(args: argparse.Namespace) -> int:
     limit_threads()
     config = load_config(shipped_config(args.config or DEFAULT_CONFIG))
+    check_count("--seeds", args.seeds)
     seeds = args.seeds if args.seeds is not None else config.evaluate.seeds
     first = args.seed if args.seed is not None else config.evaluate.seed
-    if seeds < 1:
-        raise UserError(f"--seeds {seeds}: give at least 1")
-    if first < 0:
-        raise UserError(f"--seed {first}: seeds are whole numbers >= 0")
+    check_seeds(
+        "--seed" if args.seed is not None else f"{config.path}: [evaluate].seed", first, seeds
+    )
     experiment = Experiment(
         config=config,
         swarms=parse_swarm_names(args.swarms, config.evaluate.swarms),
@@ -87,7 +88,9 @@ def main(args: argparse.Namespace) -> int:
             "`twin evaluate` takes synthetic configs or --traffic TAPE"
         )
     run_dir = prepare_run_dir(args.out or new_run_dir("runs", "evaluate"))
-    outcome = run_experiment(experiment, progress=not args.quiet and sys.stderr.isatty())
+    outcome = run_experiment(
+        experiment, progress=not args.quiet and sys.stderr.isatty(), interruptible=True
+    )
     summary, comparison = record(run_dir, outcome, run_metadata(outcome, "evaluate"))
     horizon = outcome.results[0].horizon
     label = f"{seeds} seed{'s' if seeds > 1 else ''} from {first}"
@@ -97,6 +100,9 @@ def main(args: argparse.Namespace) -> int:
     if not args.no_report:
         _report(run_dir)
     print(f"run folder: {run_dir}")
+    if outcome.interrupted:
+        print(f"twin: interrupted; partial run written to {run_dir}", file=sys.stderr)
+        return 130
     return 0
 
 

@@ -29,6 +29,7 @@ def add_parser(subparsers) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
+    from twin.cli import check_count
     from twin.config import shipped_config
     from twin.learning.pretrain import PretrainConfig, load_config, pretrain
 
@@ -39,6 +40,7 @@ def main(args: argparse.Namespace) -> int:
                 default = f"{len(default)} disturbances (4 big, 3 small)"
             print(f"{name:22s} {default!s:24s} {f.description or ''}")
         return 0
+    check_count("--epochs", args.epochs)
     config = load_config(
         shipped_config(args.config or DEFAULT_CONFIG), out=args.out, epochs=args.epochs
     )

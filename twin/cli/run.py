@@ -12,6 +12,7 @@ import math
 import sys
 from pathlib import Path
 
+from twin.cli import check_count, check_seeds
 from twin.errors import UserError
 
 DEFAULT_CONFIG = "configs/shenzhen.toml"
@@ -115,14 +116,12 @@ def main(args: argparse.Namespace) -> int:
     given = sum(x is not None for x in (args.net, args.sumocfg, args.osm))
     if given > 1:
         raise UserError("give one of --net, --sumocfg, --osm")
-    for flag, value in (("--seed", args.seed), ("--sumo-seed", args.sumo_seed)):
-        if value is not None and value < 0:
-            raise UserError(f"{flag} {value}: seeds are whole numbers >= 0")
-    if args.seeds < 1:
-        raise UserError(f"--seeds {args.seeds}: give at least 1")
-    if args.horizon is not None and args.horizon < 1:
-        raise UserError(f"--horizon {args.horizon}: give at least 1 step")
+    check_count("--seeds", args.seeds)
+    check_count("--horizon", args.horizon)
+    check_seeds("--seed", args.seed, args.seeds)
+    check_seeds("--sumo-seed", args.sumo_seed, args.seeds)
     first = args.seed if args.seed is not None else config.evaluate.seed
+    check_seeds(f"{config.path}: [evaluate].seed", first, args.seeds)
     experiment = Experiment(
         config=config,
         swarms=parse_swarm_names(args.swarms, config.evaluate.swarms),
@@ -148,6 +147,7 @@ def main(args: argparse.Namespace) -> int:
         progress=not args.quiet and sys.stderr.isatty(),
         keep_sources=True,
         on_source=_announce,
+        interruptible=True,
     )
     first_source = outcome.sources[0]
     meta = run_metadata(
@@ -157,7 +157,7 @@ def main(args: argparse.Namespace) -> int:
     )
     summary, comparison = record(run_dir, outcome, meta)
     done = outcome.results[-1]
-    if done.error:
+    if done.error and not outcome.interrupted:
         print(
             f"twin: SUMO stopped early ({done.error}); partial results of "
             f"{done.completed_steps} of {first_source.horizon} steps written to {run_dir}",
@@ -188,6 +188,13 @@ def main(args: argparse.Namespace) -> int:
         except ImportError:
             pass
     print(f"run folder: {run_dir}")
+    if outcome.interrupted:
+        print(
+            f"twin: interrupted; partial run of {done.completed_steps} steps (seed {done.seed}) "
+            f"written to {run_dir}",
+            file=sys.stderr,
+        )
+        return 130
     return 1 if outcome.partial else 0
 
 

@@ -46,13 +46,13 @@ def add_parser(subparsers) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
+    from twin.cli import check_count
     from twin.errors import UserError
     from twin.metrics import format_table2
     from twin.resources import shipped_config
     from twin.sweep import load_sweep_config, run_sweep
 
-    if args.workers is not None and args.workers < 1:
-        raise UserError(f"--workers {args.workers}: give at least 1")
+    check_count("--workers", args.workers)
     if args.address and args.executor != "ray":
         raise UserError("--address is for --executor ray")
     config = load_sweep_config(shipped_config(args.config))

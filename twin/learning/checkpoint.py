@@ -89,6 +89,13 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
         )
     if list(meta.get("state_layout", [])) != list(STATE_LAYOUT):
         raise UserError(f"checkpoint {path} was trained on another state layout; {hint}")
+    for part in ("weights", "target"):
+        for name, value in (blob.get(part) or {}).items():
+            if isinstance(value, torch.Tensor) and not bool(torch.isfinite(value).all()):
+                raise UserError(
+                    f"checkpoint {path}: {part} {name!r} holds non-finite values (NaN or inf: "
+                    f"a diverged training); {hint}"
+                )
     return blob
 
 

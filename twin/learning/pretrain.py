@@ -226,40 +226,69 @@ def pretrain(cfg: PretrainConfig, progress: bool = True) -> Path:
         bar = tqdm(total=cfg.epochs, initial=epoch, desc="pretrain", unit="epoch",
                    dynamic_ncols=True)  # fmt: skip
     t_start, logged_wall, logged_epoch = time.perf_counter() - wall, wall, epoch
+    saved = epoch if state_path.exists() else None  # the last good checkpoint's epoch
     losses, qs = [], []
-    while epoch < cfg.epochs:
-        batch = buffer.sample(cfg.batch_size, batch_rng)
-        loss, mean_q = train_epoch(net, target, optimizer, batch, cfg.gamma, cfg.iters_per_epoch)
-        losses.append(loss)
-        qs.append(mean_q)
-        epoch += 1
-        if epoch % cfg.target_update_epochs == 0:
-            sync_target(net, target)
-        if epoch % cfg.log_every == 0 or epoch == cfg.epochs:
-            wall = time.perf_counter() - t_start
-            rate = (epoch - logged_epoch) * cfg.iters_per_epoch / max(wall - logged_wall, 1e-9)
-            row = (epoch, epoch * cfg.iters_per_epoch, float(torch.stack(losses).mean()),
-                   float(torch.stack(qs).mean()), round(wall, 2), round(rate, 2))  # fmt: skip
-            with open(log_path, "a", newline="") as f:
-                csv.writer(f).writerow(row)
+    try:
+        while epoch < cfg.epochs:
+            batch = buffer.sample(cfg.batch_size, batch_rng)
+            loss, mean_q = train_epoch(
+                net, target, optimizer, batch, cfg.gamma, cfg.iters_per_epoch
+            )
+            losses.append(loss)
+            qs.append(mean_q)
+            epoch += 1
+            if epoch % cfg.target_update_epochs == 0:
+                sync_target(net, target)
+            log = epoch % cfg.log_every == 0 or epoch == cfg.epochs
+            save = epoch % cfg.checkpoint_every == 0 or epoch == cfg.epochs
+            snapshot = cfg.snapshot_every and epoch % cfg.snapshot_every == 0
+            if log or save or snapshot:  # never log or write a diverged network
+                _check_finite(cfg, net, losses, epoch, state_path, saved)
+            if log:
+                wall = time.perf_counter() - t_start
+                rate = (epoch - logged_epoch) * cfg.iters_per_epoch / max(wall - logged_wall, 1e-9)
+                row = (epoch, epoch * cfg.iters_per_epoch, float(torch.stack(losses).mean()),
+                       float(torch.stack(qs).mean()), round(wall, 2), round(rate, 2))  # fmt: skip
+                with open(log_path, "a", newline="") as f:
+                    csv.writer(f).writerow(row)
+                if bar is not None:
+                    bar.set_postfix(loss=f"{row[2]:.4g}", q=f"{row[3]:.3g}", ups=f"{rate:.0f}")
+                losses, qs, logged_wall, logged_epoch = [], [], wall, epoch
+            if save:
+                wall = time.perf_counter() - t_start
+                _save_state(state_path, cfg, digest, net, target, optimizer, batch_rng, epoch, wall)
+                saved = epoch
+            if snapshot:
+                meta = model_metadata(cfg.layers, cfg.training_dict(), cfg.seed, epoch)
+                save_model(out / "snapshots" / f"qnet_e{epoch:07d}.pt", net.state_dict(), meta)
             if bar is not None:
-                bar.set_postfix(loss=f"{row[2]:.4g}", q=f"{row[3]:.3g}", ups=f"{rate:.0f}")
-            losses, qs, logged_wall, logged_epoch = [], [], wall, epoch
-        if epoch % cfg.checkpoint_every == 0 or epoch == cfg.epochs:
-            wall = time.perf_counter() - t_start
-            _save_state(state_path, cfg, digest, net, target, optimizer, batch_rng, epoch, wall)
-        if cfg.snapshot_every and epoch % cfg.snapshot_every == 0:
-            meta = model_metadata(cfg.layers, cfg.training_dict(), cfg.seed, epoch)
-            save_model(out / "snapshots" / f"qnet_e{epoch:07d}.pt", net.state_dict(), meta)
+                bar.update(1)
+    finally:
         if bar is not None:
-            bar.update(1)
-    if bar is not None:
-        bar.close()
+            bar.close()
     meta = model_metadata(cfg.layers, cfg.training_dict(), cfg.seed, epoch)
     meta["wall_s"] = round(time.perf_counter() - t_start, 1)
     meta["buffer_digest"] = digest
     save_model(model_path, net.state_dict(), meta)
     return model_path
+
+
+def _check_finite(cfg, net, losses, epoch, state_path, saved) -> None:
+    """Stop with one line when the loss since the last check or a weight is not finite; the
+    last checkpoint (``saved``: its epoch, None if none) is left as it is."""
+    loss_ok = bool(torch.isfinite(torch.stack(losses)).all()) if losses else True
+    if loss_ok and all(bool(torch.isfinite(p).all()) for p in net.parameters()):
+        return
+    what = "loss" if not loss_ok else "weights"
+    kept = (
+        f"the last good checkpoint {state_path} (epoch {saved}) is kept"
+        if saved is not None
+        else "no checkpoint was written"
+    )
+    raise UserError(
+        f"{Path(cfg.out)}: lr = {cfg.lr:g}: training diverged by epoch {epoch} (non-finite "
+        f"{what}); {kept}; lower `lr` or the reward weights and start afresh in another `out`"
+    )
 
 
 # ----------------------------------------------------------------------------- 5. checkpoints

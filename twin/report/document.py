@@ -286,7 +286,7 @@ def render_html(rf: RunFiles, out: Path, sections: list[Section]) -> str:
         '<html lang="en"><head><meta charset="utf-8">',
         f"<title>twin report: {html.escape(rf.run_dir.name)}</title>",
         f"<style>{CSS}</style></head><body>",
-        f"<h1>Drone-swarm patrol report: {html.escape(rf.run_dir.name)}</h1>",
+        f"<h1>Drone-swarm patrol report: {html.escape(rf.run_dir.name + _partial(rf))}</h1>",
         f"<p>{html.escape(_lede(rf))}</p>",
         "<h2>Scores (paper's Table 2)</h2>",
         html_table(header, rows, "summary"),
@@ -331,6 +331,14 @@ def _rows(frame: pd.DataFrame) -> list[list[str]]:
         return f"{v:.4f}" if isinstance(v, float) else str(v)
 
     return [[fmt(v) for v in row] for row in frame.itertuples(index=False)]
+
+
+def _partial(rf: RunFiles) -> str:
+    """A title suffix for a run that stopped early (``run.json``: ``partial``, ``errors``)."""
+    if not rf.run.get("partial"):
+        return ""
+    errors = [str(e) for e in rf.run.get("errors") or [] if e]
+    return f" (PARTIAL run: {errors[-1]})" if errors else " (PARTIAL run)"
 
 
 def _lede(rf: RunFiles) -> str:
@@ -448,7 +456,7 @@ def _monitoring_caption(rf: RunFiles) -> str:
 def render_markdown(rf: RunFiles, sections: list[Section]) -> str:
     header, rows = summary_table(rf.summary)
     lines = [
-        f"# Drone-swarm patrol report: {rf.run_dir.name}",
+        f"# Drone-swarm patrol report: {rf.run_dir.name}{_partial(rf)}",
         "",
         _lede(rf),
         "",

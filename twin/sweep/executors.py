@@ -5,6 +5,10 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import signal
+import sys
+import threading
+import time
 from collections.abc import Iterable
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
@@ -26,10 +30,43 @@ def _error_line(exc: BaseException) -> str:
     return f"{type(cause).__name__}: {text[0] if text else ''}"
 
 
+#: Seconds between two checks of a pool worker that its parent (the sweep) is alive.
+PARENT_POLL_S = 0.5
+
+
+def exit_with_parent(parent: int) -> None:
+    """Pool-worker initializer: end this worker when the sweep that started it dies, even by
+    ``kill -9`` (no cleanup runs there). On Linux the kernel sends SIGKILL on the parent's death
+    (``PR_SET_PDEATHSIG``); everywhere a daemon thread checks ``os.getppid()`` twice a second."""
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+
+            libc = ctypes.CDLL(None, use_errno=True)
+            libc.prctl(1, signal.SIGKILL, 0, 0, 0)  # PR_SET_PDEATHSIG = 1
+        except (OSError, AttributeError):
+            pass
+    if os.getppid() != parent:  # the parent died before the line above took effect
+        os._exit(1)
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(PARENT_POLL_S)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="twin-parent-watch", daemon=True).start()
+
+
 def _local_executor(cells: list[dict], workers: int) -> Iterable[Outcome]:
-    """Run cells on a process pool (spawn: one fresh interpreter, hence one SUMO, per worker)."""
+    """Run cells on a process pool (spawn: one fresh interpreter, hence one SUMO, per worker).
+    Workers exit when the sweep dies (:func:`exit_with_parent`)."""
     context = multiprocessing.get_context("spawn")
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=context)
+    pool = ProcessPoolExecutor(
+        max_workers=workers,
+        mp_context=context,
+        initializer=exit_with_parent,
+        initargs=(os.getpid(),),
+    )
     try:
         pending = {pool.submit(run_cell, cell): cell["id"] for cell in cells}
         while pending:

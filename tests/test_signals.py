@@ -1,0 +1,195 @@
+"""Ctrl-C on `twin evaluate` and `twin run`: the steps done so far are written as a partial run
+(exit 130); a second Ctrl-C stops at once. The commands run for real in a subprocess."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from twin.experiment import stop_on_interrupt
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def scenario_file(tmp: Path, horizon: int) -> Path:
+    """configs/synthetic.toml with another horizon."""
+    text = (ROOT / "configs" / "synthetic.toml").read_text()
+    assert "horizon = 2000" in text
+    path = tmp / "scenario.toml"
+    path.write_text(text.replace("horizon = 2000", f"horizon = {horizon}"))
+    return path
+
+
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)  # background jobs start with SIGINT ignored
+
+
+class Command:
+    """``python -m twin ARGS`` in a subprocess of its own session, output into files."""
+
+    def __init__(self, args: list[str], cwd: Path) -> None:
+        self.out, self.err = cwd / "stdout.txt", cwd / "stderr.txt"
+        env = {**os.environ, "PYTHONPATH": str(ROOT)}
+        with open(self.out, "w") as out, open(self.err, "w") as err:
+            self.proc = subprocess.Popen(
+                [sys.executable, "-m", "twin", *args],
+                cwd=cwd,
+                env=env,
+                stdout=out,
+                stderr=err,
+                preexec_fn=_default_sigint,
+                start_new_session=True,
+            )
+
+    def stderr(self) -> str:
+        return self.err.read_text()
+
+    def wait_for(self, predicate, seconds: float = 120.0) -> None:
+        deadline = time.monotonic() + seconds
+        while not predicate():
+            if self.proc.poll() is not None:
+                pytest.fail(f"ended early ({self.proc.returncode}): {self.stderr()[-2000:]}")
+            if time.monotonic() > deadline:
+                self.proc.kill()
+                pytest.fail("timed out")
+            time.sleep(0.05)
+
+    def interrupt(self, times: int = 1, gap: float = 0.0) -> int:
+        for n in range(times):
+            if n:
+                time.sleep(gap)
+            self.proc.send_signal(signal.SIGINT)
+        try:
+            return self.proc.wait(timeout=120)
+        finally:
+            if self.proc.poll() is None:
+                self.proc.kill()
+
+
+def test_stop_flag_is_set_by_sigint_and_the_handler_restored() -> None:
+    before = signal.getsignal(signal.SIGINT)
+    with stop_on_interrupt() as stop:
+        if signal.getsignal(signal.SIGINT) is before:
+            pytest.skip("SIGINT is not Python's default handler here")
+        assert not stop()
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.05)
+        assert stop()
+        with pytest.raises(KeyboardInterrupt):  # a second Ctrl-C stops at once
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.5)
+    assert signal.getsignal(signal.SIGINT) is before
+
+
+def test_stop_flag_is_off_when_not_asked_for() -> None:
+    before = signal.getsignal(signal.SIGINT)
+    with stop_on_interrupt(enabled=False) as stop:
+        assert signal.getsignal(signal.SIGINT) is before
+        assert not stop()
+
+
+def test_ctrl_c_on_evaluate_writes_a_partial_run(tmp_path: Path) -> None:
+    config = scenario_file(tmp_path, horizon=200_000)
+    out = tmp_path / "run"
+    cmd = Command(
+        ["evaluate", "--config", str(config), "--seeds", "3", "--swarms", "random,greedy",
+         "--out", str(out), "--no-report", "--quiet"],
+        tmp_path,
+    )  # fmt: skip
+    time.sleep(6)  # imports, the synthetic maps, then some steps
+    assert cmd.interrupt() == 130, cmd.stderr()
+    stderr = cmd.stderr()
+    assert "Traceback" not in stderr
+    assert "partial run written" in stderr
+    meta = json.loads((out / "run.json").read_text())
+    assert meta["partial"] is True
+    assert any("interrupted" in e for e in meta["errors"])
+    per_seed = pd.read_csv(out / "per_seed.csv")
+    assert set(per_seed["swarm"]) == {"random", "greedy"}
+    series = pd.read_parquet(out / "series.parquet")
+    steps = series.groupby(["seed", "swarm"])["step"].max() + 1
+    assert 1 <= steps.max() < 200_000
+    assert meta["seeds"] == [0]  # stopped within the first seed: no other seed was run
+
+
+def test_second_ctrl_c_stops_at_once(tmp_path: Path) -> None:
+    config = scenario_file(tmp_path, horizon=200_000)
+    out = tmp_path / "run"
+    cmd = Command(
+        ["evaluate", "--config", str(config), "--seeds", "1", "--swarms", "random",
+         "--out", str(out), "--no-report", "--quiet"],
+        tmp_path,
+    )  # fmt: skip
+    time.sleep(6)
+    assert cmd.interrupt(times=2, gap=0.3) == 130
+    assert "Traceback" not in cmd.stderr()
+    # whatever was written is whole: no temporary file is left behind
+    assert not [p for p in out.rglob("*") if p.name.endswith(".tmp")]
+
+
+SUMO_CONFIG = """
+[swarm]
+n_drones = 2
+[traffic]
+kind = "sumo"
+net = "small.net.xml"
+routes = ["small.trips.xml"]
+cell_m = 200.0
+drone_speed_kmh = 12.0   # one step = 60 s
+begin = "00:05"
+warmup_min = 5.0
+horizon = 5000
+seed = 3
+[evaluate]
+swarms = ["random", "greedy", "sweeping"]
+"""
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory) -> Path:
+    """The small grid scenario of tests/test_sumo_small.py, with a long horizon."""
+    pytest.importorskip("libsumo")
+    from twin.sumo.network import generate_grid_scenario
+
+    d = tmp_path_factory.mktemp("small")
+    generate_grid_scenario(d, blocks=5, block_m=300, end_s=900, period_s=1.5, seed=5)
+    (d / "small.toml").write_text(SUMO_CONFIG)
+    return d
+
+
+def test_ctrl_c_on_run_writes_a_partial_run_with_its_tape(small: Path, tmp_path: Path) -> None:
+    from twin.traffic.tape import Tape
+
+    out = tmp_path / "run"
+    cmd = Command(
+        ["run", "--config", str(small / "small.toml"), "--out", str(out), "--no-report"],
+        tmp_path,
+    )  # fmt: skip
+    cmd.wait_for(lambda: "SUMO:" in cmd.stderr())  # the simulation is built and warming up
+    time.sleep(2.0)
+    assert cmd.interrupt() == 130, cmd.stderr()
+    stderr = cmd.stderr()
+    assert "Traceback" not in stderr
+    done = int(re.search(r"partial run of (\d+) steps", stderr).group(1))
+    assert 1 <= done < 5000
+    meta = json.loads((out / "run.json").read_text())
+    assert meta["partial"] is True
+    series = pd.read_parquet(out / "series.parquet")
+    assert series["step"].max() + 1 == done
+    tape = Tape.read(out / "tape.parquet")
+    assert tape.steps.max() == done  # T^0 .. T^done
+    assert (out / "per_seed.csv").exists()
+    from twin.report import write_report
+
+    html = write_report(out, animation=False)
+    assert "PARTIAL" in (html.parent / "report.md").read_text().splitlines()[0]
+    assert "PARTIAL" in re.search(r"<h1>(.*?)</h1>", html.read_text()).group(1)
