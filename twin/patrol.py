@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from twin.errors import UserError
 from twin.grid import Grid
 from twin.policies import Policy, SwarmView, Transition
 from twin.scores import ScoreParams, coverage
@@ -131,7 +132,9 @@ def run_patrol(
     except StopIteration:
         error = f"traffic source ended after {done} of {horizon} steps"
     except Exception as exc:
-        if not getattr(source, "keeps_partial_results", False):
+        # bad input (e.g. routes naming edges the network lacks) is the user's to fix, not a
+        # partial run: it reaches the CLI as one line
+        if not getattr(source, "keeps_partial_results", False) or isinstance(exc, UserError):
             raise
         error = f"{type(exc).__name__}: {exc}"
     finally:
