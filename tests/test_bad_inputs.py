@@ -535,3 +535,41 @@ def test_kill_9_never_leaves_a_folder_claiming_completeness(tmp_path, trigger):
     rerun = subprocess.run([*cmd, "--quiet", "--no-report"], env=env, capture_output=True)
     assert rerun.returncode == 0, rerun.stderr
     check_run_folder(out)
+
+
+def test_a_zero_step_run_is_partial_and_has_nothing_to_report(tmp_path, capsys, cfg):
+    tape = tmp_path / "tape.parquet"
+    good_tape(last=0).write(tape)  # T^0 only: not one step can run
+    out = tmp_path / "out"
+    argv = ["evaluate", "--config", str(cfg), "--traffic", str(tape), "--out", str(out)]
+    run_case(capsys, tmp_path, [*argv, "--quiet"], out, 1, "0 of 6 steps")
+    assert check_run_folder(out)["partial"]
+    run_case(capsys, tmp_path, ["report", str(out)], out, 2, "no step ran")
+
+
+@pytest.fixture(scope="module")
+def grid_net(tmp_path_factory) -> Path:
+    from twin.sumo.network import generate_grid_scenario
+
+    d = tmp_path_factory.mktemp("net")
+    generate_grid_scenario(d, blocks=3, block_m=300, end_s=300, period_s=5.0, seed=1)
+    (d / "c.toml").write_text(
+        '[swarm]\nn_drones = 2\n[traffic]\nkind = "sumo"\nnet = "small.net.xml"\n'
+        'cell_m = 200.0\ndrone_speed_kmh = 12.0\nbegin = "00:01"\nwarmup_min = 1.0\n'
+        "horizon = 3\n"
+    )
+    return d
+
+
+def test_routes_naming_unknown_edges_are_refused(tmp_path, capsys, grid_net):
+    """SUMO refuses to start: one line naming the bad edge, exit 2, no run folder (not a
+    zero-step folder claiming success)."""
+    routes = tmp_path / "bad.rou.xml"
+    routes.write_text('<routes>\n  <trip id="t0" depart="0" from="nowhere" to="x"/>\n</routes>\n')
+    out = tmp_path / "out"
+    argv = ["run", "--config", str(grid_net / "c.toml"), "--net", str(grid_net / "small.net.xml"),
+            "--routes", str(routes), "--out", str(out), "--quiet", "--no-report"]  # fmt: skip
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("twin: error:") and "'nowhere'" in err[-1]
+    assert not out.exists()

@@ -104,22 +104,24 @@ def main(args: argparse.Namespace) -> int:
         discard_run_dir(run_dir)
         raise
     summary, comparison = record(run_dir, outcome, run_metadata(outcome, "evaluate"))
-    horizon = outcome.results[0].horizon
     done = outcome.results[-1]
-    if outcome.partial or done.completed_steps < horizon:
+    planned = (outcome.traffic[-1] or {}).get("horizon", done.horizon)
+    partial = outcome.partial or done.completed_steps < planned
+    if partial:
         print(
             f"twin: partial run: {done.error or 'the traffic ended early'}; "
-            f"{done.completed_steps} of {horizon} steps written to {run_dir}",
+            f"{done.completed_steps} of {planned} steps written to {run_dir}",
             file=sys.stderr,
         )
+    horizon = done.completed_steps
     label = f"{seeds} seed{'s' if seeds > 1 else ''} from {first}"
     print(format_results(summary, f"Table 2 analog ({config.path.name}, {label}, T = {horizon})"))
     if not comparison.empty:
         print(format_comparison(comparison))
-    if not args.no_report:
+    if not args.no_report and done.completed_steps > 0:
         _report(run_dir)
     print(f"run folder: {run_dir}")
-    return 1 if outcome.partial or done.completed_steps < horizon else 0
+    return 1 if partial else 0
 
 
 def _report(run_dir: Path) -> None:
