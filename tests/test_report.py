@@ -18,6 +18,7 @@ from twin.errors import UserError
 from twin.grid import Grid
 from twin.report import load_run, write_report
 from twin.report.document import MONITORING_TABLE_COLUMNS, TABLE_COLUMNS
+from twin.runs import write_manifest
 from twin.scores import ScoreParams, coverage, initial_idleness, update_idleness
 
 SWARMS = ("random", "greedy", "sweeping", "rl")
@@ -183,6 +184,7 @@ def write_fixture_run(
         (run / "mfd.json").write_text(json.dumps(mfd))
         meta["traffic"] = {"kind": "sumo", "begin": "07:00:00", "step_s": 75.0}
         (run / "run.json").write_text(json.dumps(meta))
+    write_manifest(run)  # the last file of a finished run folder
     return run
 
 

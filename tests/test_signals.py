@@ -105,7 +105,8 @@ def test_ctrl_c_on_evaluate_writes_a_partial_run(tmp_path: Path) -> None:
          "--out", str(out), "--no-report", "--quiet"],
         tmp_path,
     )  # fmt: skip
-    time.sleep(6)  # imports, the synthetic maps, then some steps
+    cmd.wait_for((out / "run.json").exists)  # past the imports: the run is starting
+    time.sleep(2)  # the synthetic maps, then some steps
     assert cmd.interrupt() == 130, cmd.stderr()
     stderr = cmd.stderr()
     assert "Traceback" not in stderr
@@ -129,7 +130,8 @@ def test_second_ctrl_c_stops_at_once(tmp_path: Path) -> None:
          "--out", str(out), "--no-report", "--quiet"],
         tmp_path,
     )  # fmt: skip
-    time.sleep(6)
+    cmd.wait_for((out / "run.json").exists)  # past the imports: the run is starting
+    time.sleep(2)
     assert cmd.interrupt(times=2, gap=0.3) == 130
     assert "Traceback" not in cmd.stderr()
     # whatever was written is whole: no temporary file is left behind

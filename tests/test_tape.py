@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from twin.errors import UserError
 from twin.mfd import MFD, MFDImportance
@@ -83,3 +85,34 @@ def test_bad_tapes_give_user_errors(tmp_path):
     pd.DataFrame({"a": [1]}).to_parquet(plain)
     with pytest.raises(UserError, match="not a twin traffic tape"):
         Tape.read(plain)
+
+
+@settings(max_examples=15, deadline=None)
+@given(
+    nx=st.integers(1, 4),
+    ny=st.integers(1, 4),
+    warmup=st.integers(0, 3),
+    horizon=st.integers(1, 5),
+    seed=st.integers(0, 2**16),
+)
+def test_every_valid_tape_passes_its_checks(tmp_path_factory, nx, ny, warmup, horizon, seed):
+    """The checks on read refuse nothing a tape's own writer produces."""
+    tape = _tape(seed, nx, ny, warmup, horizon)
+    path = tmp_path_factory.mktemp("t") / "tape.parquet"
+    tape.write(path)
+    back = Tape.read(path, shape=(nx, ny))
+    np.testing.assert_array_equal(back.counts, tape.counts)
+    assert TapeTraffic(back).horizon == horizon
+
+
+def test_a_short_tape_replays_partially(tmp_path):
+    """A tape cut before its horizon (a SUMO run that stopped) yields fewer maps than
+    ``horizon + 1``: the patrol sees the source end and reports a partial run."""
+    tape = _tape(horizon=5)
+    keep = tape.steps <= 2
+    tape.steps, tape.times = tape.steps[keep], tape.times[keep]
+    tape.counts, tape.speeds = tape.counts[keep], tape.speeds[keep]
+    path = tmp_path / "tape.parquet"
+    tape.write(path)
+    source = TapeTraffic.from_file(path)
+    assert source.horizon == 5 and len(list(source.importance_maps())) == 3

@@ -70,6 +70,8 @@ class Experiment:
     #: learned swarms that cannot be built (no torch, no checkpoint) are skipped with a notice
     skip_unavailable: bool = False
     keep_importance: bool = True
+    #: refuse a run whose estimated memory exceeds this (GB); None: $TWIN_MAX_MEMORY_GB or 8
+    max_memory_gb: float | None = None
 
 
 @dataclass
@@ -221,10 +223,15 @@ def _run_seeds(experiment, progress, keep_sources, on_source, stop) -> Experimen
     t0 = time.perf_counter()
     results, traffic, sources = [], [], []
     swarms: dict[str, Policy] = {}
-    shared_source = None if is_live_sumo(experiment) else build_source(experiment)
+    live = is_live_sumo(experiment)
+    if not live:
+        check_memory(experiment, *planned_shape(experiment))
+    shared_source = None if live else build_source(experiment)
     for n, seed in enumerate(experiment.seeds):
         source = shared_source or build_source(experiment, n)
         try:
+            if live and n == 0:
+                check_memory(experiment, source.grid.shape, source.horizon, source)
             check_swarm_fits(experiment.config, source.grid)
             if on_source is not None:
                 on_source(source)
@@ -259,6 +266,110 @@ def _run_seeds(experiment, progress, keep_sources, on_source, stop) -> Experimen
     )
 
 
+DEFAULT_MAX_MEMORY_GB = 8.0
+MEMORY_ENV = "TWIN_MAX_MEMORY_GB"
+
+
+def max_memory_gb(experiment: Experiment) -> float:
+    """The memory limit: the experiment's (``--max-memory-gb``), else ``$TWIN_MAX_MEMORY_GB``,
+    else 8 GB."""
+    value, where = experiment.max_memory_gb, "--max-memory-gb"
+    if value is None:
+        where = MEMORY_ENV
+        text = os.environ.get(MEMORY_ENV, "").strip()
+        if not text:
+            return DEFAULT_MAX_MEMORY_GB
+        try:
+            value = float(text)
+        except ValueError:
+            value = float("nan")
+    if not np.isfinite(value) or value <= 0:
+        raise UserError(f"{where} = {value}: not a number > 0; give the limit in GB, e.g. 8")
+    return float(value)
+
+
+def planned_shape(experiment: Experiment) -> tuple[tuple[int, int] | None, int | None]:
+    """Grid shape and horizon of a synthetic or replayed run, read cheaply (the config, or the
+    tape's footer); ``(None, None)`` when unknown (a broken tape: its reader will say why)."""
+    if experiment.tape is not None:
+        try:
+            import json
+
+            import pyarrow.parquet as pq
+
+            meta = json.loads(pq.read_schema(experiment.tape).metadata[b"twin_tape"])
+            return (int(meta["nx"]), int(meta["ny"])), int(meta["horizon"])
+        except Exception:  # the tape reader gives the one-line error
+            return None, None
+    config = experiment.config
+    return (config.grid.nx, config.grid.ny), int(config.traffic.horizon)
+
+
+def estimate_memory(
+    experiment: Experiment,
+    shape: tuple[int, int],
+    horizon: int,
+    warmup_steps: int = 0,
+    live: bool = False,
+) -> float:
+    """Bytes a run needs, roughly and from above, before anything heavy is allocated.
+
+    Per cell and step: every seed's result keeps its importance maps and recorded truth
+    (float32, ``(T+1) x nx x ny`` each: 8 B); monitoring's event search ~12 B while one seed is
+    scored; synthetic traffic precomputes its maps (float64, stacked: 16 B); live SUMO keeps each
+    seed's tape (int32 counts + float32 speeds, warm-up included: 8 B) and writes the first as
+    a long table (~48 B). Per cell and swarm: its state, view and belief map (~64 B). Per
+    swarm, drone and step: positions (16 B per seed).
+    """
+    cells = shape[0] * shape[1]
+    steps = horizon + 1
+    n_seeds, n_swarms = len(experiment.seeds), len(experiment.swarms)
+    per_cell_step = 8 * n_seeds + 12
+    if live:
+        per_cell_step += 8 * n_seeds * (steps + warmup_steps) / steps + 48
+    elif experiment.tape is None and experiment.config.traffic.kind == "synthetic":
+        per_cell_step += 16
+    else:  # a tape: its counts, speeds (and the table they are read from, ~40 B)
+        per_cell_step += 48
+    n_drones = experiment.config.swarm.n_drones
+    return float(
+        cells * steps * per_cell_step
+        + cells * n_swarms * 64
+        + n_swarms * n_seeds * steps * n_drones * 16
+    )
+
+
+def check_memory(
+    experiment: Experiment,
+    shape: tuple[int, int] | None,
+    horizon: int | None,
+    source: TrafficSource | None = None,
+) -> None:
+    """Refuse (one line, with the estimate and a hint) a run past the memory limit."""
+    if shape is None or horizon is None:
+        return
+    limit = max_memory_gb(experiment)
+    warmup = 0
+    scenario = getattr(source, "scenario", None)
+    if scenario is not None:
+        warmup = int(scenario.warmup_steps())
+    need = estimate_memory(experiment, shape, horizon, warmup, live=scenario is not None)
+    if need <= limit * 1e9:
+        return
+    ratio = (need / (limit * 1e9)) ** 0.5
+    geometry = getattr(source, "geometry", None)
+    if geometry is not None:
+        cell = float(np.ceil(geometry.cell_m * ratio / 50.0) * 50.0)
+        hint = f"cells of {cell:g} m ([traffic].cell_m) or fewer steps (--horizon)"
+    else:
+        hint = f"a grid about {ratio:.1f} times coarser per side, fewer steps or fewer seeds"
+    raise UserError(
+        f"{shape[0]} x {shape[1]} cells x {horizon} steps x {len(experiment.swarms)} swarms x "
+        f"{len(experiment.seeds)} seeds need about {need / 1e9:.1f} GB, over the "
+        f"{limit:g} GB limit; use {hint}, or raise --max-memory-gb / ${MEMORY_ENV}"
+    )
+
+
 def run_metadata(outcome: ExperimentResult, kind: str, **extra: Any) -> dict[str, Any]:
     """What ``run.json`` records about an experiment beside the results."""
     config = outcome.experiment.config
@@ -280,13 +391,18 @@ def record(run_dir: Path, outcome: ExperimentResult, meta: dict[str, Any]):
     """Write the run folder (with ``comparison.csv``: each learned swarm against the best
     classical one, paired over seeds); live SUMO runs add ``network.json``, the MFD fit and samples and
     the traffic tape of each seed (``tape.parquet`` for the first, ``tapes/`` for the rest).
-    Returns the summary table and the comparison."""
+    ``manifest.json`` is written last (see ``twin/runs.py``). Returns the summary table and
+    the comparison."""
     from twin.runs import write_run
 
-    summary, comparison = write_run(run_dir, outcome.results, meta)
+    extras = None
     if outcome.sources and hasattr(outcome.sources[0], "tape"):
-        _write_sumo_extras(run_dir, outcome)
-    return summary, comparison
+
+        def extras(folder: Path) -> None:
+            _write_sumo_extras(folder, outcome)
+
+    # the SUMO files go before run.json and manifest.json: a kill in between leaves no manifest
+    return write_run(run_dir, outcome.results, meta, extras=extras)
 
 
 def _write_sumo_extras(run_dir: Path, outcome: ExperimentResult) -> None:

@@ -15,15 +15,26 @@ interrupted run never leaves a half-written file):
   onset, duration, peak, swarm, seen, first_seen (step, -1 when not seen while the event
   lasted), latency_steps (-1 likewise);
 - ``importance.npz``: ``importance`` (T+1, nx, ny) of the first seed, ``obstacles`` (nx, ny);
-- ``run.json``: metadata (command, configuration, seeds, traffic source, versions, timings).
+- ``run.json``: metadata (command, configuration, seeds, traffic source, versions, timings),
+  ``partial`` and, when partial, ``partial_reason``; written first as a marker when the run
+  starts (``partial: true``, reason: not finished) and rewritten when it ends;
+- live SUMO runs add ``network.json``, ``mfd.json``, ``mfd_samples.parquet``, ``tape.parquet``
+  (and ``tapes/seed-<s>.parquet`` for further seeds);
+- ``manifest.json``, written LAST: ``{"partial", "partial_reason", "files": {name: bytes}}``.
+  A folder is complete only when it has a manifest whose files all exist with those sizes; a
+  kill at any instant leaves no manifest, and every reader (``twin report``, a rerun with the
+  same ``--out``) calls :func:`check_run_folder`. ``report/`` (written later by ``twin
+  report``) is not listed.
 """
 
 from __future__ import annotations
 
 import contextlib
+import json
 import platform
+import shutil
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from datetime import UTC, datetime
 from importlib import metadata as importlib_metadata
 from pathlib import Path
@@ -40,28 +51,183 @@ from twin.monitoring import MonitorSettings, RunMonitoring, monitor_run
 from twin.patrol import PatrolResult
 from twin.scores import ScoreParams
 
+MANIFEST = "manifest.json"
+#: Names twin writes into a run folder: a partial run made of these alone may be replaced.
+RUN_FILE_NAMES = frozenset(
+    {
+        "series.parquet", "trajectories.parquet", "per_seed.csv", "summary.csv",
+        "comparison.csv", "monitoring.csv", "events.parquet", "importance.npz", "run.json",
+        "network.json", "mfd.json", "mfd_samples.parquet", "tape.parquet", "tapes", "report",
+        MANIFEST,
+    }
+)  # fmt: skip
+#: Options that change only what is printed: a rerun differing in these is the same command.
+DISPLAY_OPTIONS = frozenset({"quiet", "no_report", "func"})
+
 
 def new_run_dir(root: str | Path, prefix: str) -> Path:
-    """A fresh folder ``root/prefix-YYYYmmdd-HHMMSS`` (suffixed if it exists)."""
+    """Create and return a fresh folder ``root/prefix-YYYYmmdd-HHMMSS`` (``-2``, ``-3``, ...
+    when taken): ``mkdir`` without ``exist_ok`` claims the name atomically, so two runs
+    started in the same second never share a folder."""
     stamp = datetime.now().strftime("%Y%m%d-%H%M%S")
-    base = Path(root) / f"{prefix}-{stamp}"
-    path, n = base, 1
-    while path.exists():
-        n += 1
-        path = Path(f"{base}-{n}")
-    return path
+    root = Path(root)
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(
+            f"{root}: cannot create the runs folder ({exc.strerror}); pass --out"
+        ) from exc
+    base = root / f"{prefix}-{stamp}"
+    for n in range(1, 10_000):
+        path = base if n == 1 else Path(f"{base}-{n}")
+        try:
+            path.mkdir()
+        except FileExistsError:
+            continue
+        except OSError as exc:
+            raise UserError(
+                f"{path}: cannot create the run folder ({exc.strerror}); pass --out"
+            ) from exc
+        return path
+    raise UserError(f"{base}: 10000 run folders in one second; pass --out")
 
 
-def prepare_run_dir(path: str | Path) -> Path:
-    """Create ``path``; refuse a folder that already holds a run, so nothing is overwritten."""
+def invocation(command: str, args: Any = None) -> dict[str, Any]:
+    """What identifies a command for ``--out``: its name and options (display options left
+    out); a rerun with the same invocation may replace its partial run folder."""
+    options = {
+        k: (str(v) if isinstance(v, Path) else [str(x) for x in v] if isinstance(v, list) else v)
+        for k, v in sorted(vars(args).items() if args is not None else [])
+        if k not in DISPLAY_OPTIONS
+    }
+    return {"command": command, "options": options}
+
+
+def prepare_run_dir(path: str | Path, started: dict[str, Any] | None = None) -> Path:
+    """Create ``path`` for a run and mark it started (``run.json`` with ``partial: true``).
+
+    A non-empty folder is refused, untouched, unless it is a partial or interrupted run of the
+    same invocation (``started``) holding only files twin writes: those are then deleted
+    (never anything else) and the run starts afresh in the same folder.
+    """
     path = Path(path)
-    if (path / "run.json").exists() or (path / "summary.csv").exists():
-        raise UserError(f"{path} already holds a run; pass another --out folder")
+    if path.exists() and not path.is_dir():
+        raise UserError(f"--out {path}: is a file, not a folder; pass a new or empty folder")
+    if path.is_dir() and any(path.iterdir()):
+        _replaceable(path, started)
+        for entry in path.iterdir():
+            if entry.is_dir() and not entry.is_symlink():
+                shutil.rmtree(entry)
+            else:
+                entry.unlink()
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise UserError(f"cannot create output folder {path}: {exc.strerror}") from exc
+        raise UserError(f"--out {path}: cannot create the folder ({exc.strerror})") from exc
+    marker = {
+        "created": datetime.now(UTC).isoformat(timespec="seconds"),
+        "invocation": started,
+        "partial": True,
+        "partial_reason": "interrupted: the run did not finish writing its folder",
+    }
+    write_json(path / "run.json", marker)
     return path
+
+
+def discard_run_dir(path: Path) -> None:
+    """Undo :func:`prepare_run_dir` for a run refused before it wrote anything: remove the
+    start marker and the folder if nothing else is in it."""
+    run = _read_json(path / "run.json")
+    if isinstance(run, dict) and set(run) == {"created", "invocation", "partial", "partial_reason"}:
+        (path / "run.json").unlink(missing_ok=True)
+    with contextlib.suppress(OSError):
+        path.rmdir()  # only if empty
+
+
+def _replaceable(path: Path, started: dict[str, Any] | None) -> None:
+    """Refuse (UserError) to reuse the non-empty folder ``path`` unless it holds a partial run
+    of the invocation ``started`` and nothing else."""
+    fix = "pass a new or empty --out folder"
+    run = _read_json(path / "run.json")
+    if not isinstance(run, dict):
+        raise UserError(f"--out {path}: not empty and holds no twin run; {fix}")
+    manifest = _read_json(path / MANIFEST)
+    if isinstance(manifest, dict) and not manifest.get("partial"):
+        raise UserError(f"--out {path}: already holds a complete run; {fix}")
+    theirs = run.get("invocation")
+    if started is None or theirs != json.loads(json.dumps(started)):
+        what = (
+            (theirs or {}).get("command", "another command")
+            if isinstance(theirs, dict)
+            else "another command"
+        )
+        raise UserError(
+            f"--out {path}: holds a partial run of {what} with other options; {fix} "
+            "(only a rerun of the same command replaces it)"
+        )
+    foreign = sorted(
+        e.name for e in path.iterdir() if e.name not in RUN_FILE_NAMES and not _is_temp(e.name)
+    )
+    if foreign:
+        raise UserError(
+            f"--out {path}: holds {foreign[0]!r}, which twin did not write; {fix} "
+            "(a partial run is replaced only when it holds twin's files alone)"
+        )
+
+
+def _is_temp(name: str) -> bool:
+    return name.startswith(".") and name.endswith(".tmp")
+
+
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def write_manifest(run_dir: Path, partial: bool = False, reason: str | None = None) -> None:
+    """``manifest.json``, the last file of a run folder: every other file with its size."""
+    files = {}
+    for p in sorted(run_dir.rglob("*")):
+        rel = p.relative_to(run_dir)
+        if p.is_dir() or rel.parts[0] in ("report", MANIFEST) or _is_temp(p.name):
+            continue
+        files[rel.as_posix()] = p.stat().st_size
+    write_json(
+        run_dir / MANIFEST,
+        {"partial": bool(partial), "partial_reason": reason if partial else None, "files": files},
+    )
+
+
+def check_run_folder(run_dir: str | Path) -> dict[str, Any]:
+    """The manifest of a finished run folder; a folder without one (interrupted, still
+    running, or written before manifests) or whose files disagree with it is a one-line
+    :class:`UserError`."""
+    run_dir = Path(run_dir)
+    rerun = "rerun the command that wrote it (same --out replaces it)"
+    manifest_path = run_dir / MANIFEST
+    if not manifest_path.exists():
+        run = _read_json(run_dir / "run.json")
+        why = run.get("partial_reason") if isinstance(run, dict) else None
+        raise UserError(
+            f"{run_dir}: incomplete run folder, partial: no {MANIFEST} "
+            f"({why or 'the run was interrupted or is still running'}); {rerun}"
+        )
+    manifest = _read_json(manifest_path)
+    if not isinstance(manifest, dict) or not isinstance(manifest.get("files"), dict):
+        raise UserError(f"{manifest_path}: not a run manifest (unreadable JSON); {rerun}")
+    for name, size in manifest["files"].items():
+        p = run_dir / name
+        if not p.is_file():
+            raise UserError(f"{run_dir}: {name} listed in {MANIFEST} is missing; {rerun}")
+        actual = p.stat().st_size
+        if actual != size:
+            raise UserError(
+                f"{run_dir}: {name} has {actual} bytes, {MANIFEST} says {size}; the file "
+                f"changed after the run, {rerun}"
+            )
+    return manifest
 
 
 def series_frame(result: PatrolResult) -> pd.DataFrame:
@@ -145,9 +311,13 @@ def write_run(
     results: Sequence[PatrolResult],
     metadata: dict[str, Any],
     monitor: MonitorSettings | None = None,
+    extras: Callable[[Path], None] | None = None,
 ) -> pd.DataFrame:
     """Write the run folder for one or several seeds; return the summary table and the
-    comparison of each learned swarm with the best classical one (``comparison.csv``)."""
+    comparison of each learned swarm with the best classical one (``comparison.csv``).
+
+    Order: the result files, then ``extras(run_dir)`` (the SUMO files), then ``run.json``, then
+    ``manifest.json`` last, so a kill at any instant leaves no manifest."""
     run_dir.mkdir(parents=True, exist_ok=True)
     monitor = monitor or MonitorSettings()
     params = score_params_of(metadata)
@@ -195,6 +365,13 @@ def write_run(
                 )
 
         atomic_write(run_dir / "importance.npz", save_maps)
+    if extras is not None:
+        extras(run_dir)
+    errors = [r.error for r in results if r.error]
+    no_step = min(r.rewards.shape[1] for r in results) == 0
+    partial = bool(metadata.get("partial")) or bool(errors) or no_step
+    reason = "; ".join(errors) or ("no step ran" if no_step else metadata.get("partial_reason"))
+    started = _read_json(run_dir / "run.json")  # the marker of prepare_run_dir, if any
     meta = {
         "created": datetime.now(UTC).isoformat(timespec="seconds"),
         "command": " ".join(["twin", *sys.argv[1:]]),
@@ -216,9 +393,13 @@ def write_run(
             ),
         },
         "versions": package_versions(),
+        "invocation": started.get("invocation") if isinstance(started, dict) else None,
         **metadata,
+        "partial": partial,
+        "partial_reason": reason if partial else None,
     }
     write_json(run_dir / "run.json", meta)
+    write_manifest(run_dir, partial, reason)
     return summary, comparison
 
 

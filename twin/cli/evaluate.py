@@ -12,6 +12,7 @@ from twin.errors import UserError
 from twin.experiment import (
     Experiment,
     limit_threads,
+    max_memory_gb,
     parse_swarm_names,
     record,
     run_experiment,
@@ -19,7 +20,7 @@ from twin.experiment import (
 )
 from twin.metrics import format_comparison, format_results
 from twin.policies import available_policies
-from twin.runs import new_run_dir, prepare_run_dir
+from twin.runs import discard_run_dir, invocation, new_run_dir, prepare_run_dir
 
 DEFAULT_CONFIG = "configs/synthetic.toml"
 
@@ -62,6 +63,12 @@ def add_parser(subparsers) -> None:
     p.add_argument(
         "--out", type=Path, default=None, help="run folder to write (default runs/evaluate-<time>)"
     )
+    p.add_argument(
+        "--max-memory-gb",
+        type=float,
+        default=None,
+        help="refuse a run whose estimated memory exceeds this (default $TWIN_MAX_MEMORY_GB or 8)",
+    )
     p.add_argument("--no-report", action="store_true", help="do not render the HTML report")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=main)
@@ -81,29 +88,46 @@ def main(args: argparse.Namespace) -> int:
         swarms=parse_swarm_names(args.swarms, config.evaluate.swarms),
         seeds=range(first, first + seeds),
         tape=args.traffic,
+        max_memory_gb=args.max_memory_gb,
     )
     if experiment.tape is None and config.traffic.kind != "synthetic":
         raise UserError(
             f"{config.path}: [traffic].kind = {config.traffic.kind!r} runs live with `twin run`; "
             "`twin evaluate` takes synthetic configs or --traffic TAPE"
         )
-    run_dir = prepare_run_dir(args.out or new_run_dir("runs", "evaluate"))
-    outcome = run_experiment(
-        experiment, progress=not args.quiet and sys.stderr.isatty(), interruptible=True
+    max_memory_gb(experiment)  # a bad limit is refused before any folder is made
+    run_dir = prepare_run_dir(
+        args.out or new_run_dir("runs", "evaluate"), invocation("evaluate", args)
     )
+    try:
+        outcome = run_experiment(
+            experiment, progress=not args.quiet and sys.stderr.isatty(), interruptible=True
+        )
+    except UserError:
+        discard_run_dir(run_dir)
+        raise
     summary, comparison = record(run_dir, outcome, run_metadata(outcome, "evaluate"))
-    horizon = outcome.results[0].horizon
+    done = outcome.results[-1]
+    planned = (outcome.traffic[-1] or {}).get("horizon", done.horizon)
+    partial = outcome.partial or done.completed_steps < planned
+    if partial:
+        print(
+            f"twin: partial run: {done.error or 'the traffic ended early'}; "
+            f"{done.completed_steps} of {planned} steps written to {run_dir}",
+            file=sys.stderr,
+        )
+    horizon = done.completed_steps
     label = f"{seeds} seed{'s' if seeds > 1 else ''} from {first}"
     print(format_results(summary, f"Table 2 analog ({config.path.name}, {label}, T = {horizon})"))
     if not comparison.empty:
         print(format_comparison(comparison))
-    if not args.no_report:
+    if not args.no_report and done.completed_steps > 0:
         _report(run_dir)
     print(f"run folder: {run_dir}")
     if outcome.interrupted:
         print(f"twin: interrupted; partial run written to {run_dir}", file=sys.stderr)
         return 130
-    return 0
+    return 1 if partial else 0
 
 
 def _report(run_dir: Path) -> None:

@@ -74,6 +74,12 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument("--meso", action="store_true", help="SUMO's mesoscopic model (faster)")
     p.add_argument("--out", type=Path, help="run folder (default runs/run-<time>)")
+    p.add_argument(
+        "--max-memory-gb",
+        type=float,
+        default=None,
+        help="refuse a run whose estimated memory exceeds this (default $TWIN_MAX_MEMORY_GB or 8)",
+    )
     p.add_argument("--no-report", action="store_true", help="do not render the HTML report")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=main)
@@ -85,13 +91,14 @@ def main(args: argparse.Namespace) -> int:
         Experiment,
         SumoInputs,
         limit_threads,
+        max_memory_gb,
         parse_swarm_names,
         record,
         run_experiment,
         run_metadata,
     )
     from twin.metrics import format_comparison, format_results
-    from twin.runs import new_run_dir, prepare_run_dir
+    from twin.runs import discard_run_dir, invocation, new_run_dir, prepare_run_dir
 
     limit_threads()
     for flag, value in (
@@ -140,15 +147,21 @@ def main(args: argparse.Namespace) -> int:
         ),
         traffic_seed=args.sumo_seed,
         skip_unavailable=args.swarms is None,
+        max_memory_gb=args.max_memory_gb,
     )
-    run_dir = prepare_run_dir(args.out or new_run_dir("runs", "run"))
-    outcome = run_experiment(
-        experiment,
-        progress=not args.quiet and sys.stderr.isatty(),
-        keep_sources=True,
-        on_source=_announce,
-        interruptible=True,
-    )
+    max_memory_gb(experiment)  # a bad limit is refused before any folder is made
+    run_dir = prepare_run_dir(args.out or new_run_dir("runs", "run"), invocation("run", args))
+    try:
+        outcome = run_experiment(
+            experiment,
+            progress=not args.quiet and sys.stderr.isatty(),
+            keep_sources=True,
+            on_source=_announce,
+            interruptible=True,
+        )
+    except UserError:
+        discard_run_dir(run_dir)
+        raise
     first_source = outcome.sources[0]
     meta = run_metadata(
         outcome,
@@ -157,9 +170,9 @@ def main(args: argparse.Namespace) -> int:
     )
     summary, comparison = record(run_dir, outcome, meta)
     done = outcome.results[-1]
-    if done.error and not outcome.interrupted:
+    if (done.error or done.completed_steps == 0) and not outcome.interrupted:
         print(
-            f"twin: SUMO stopped early ({done.error}); partial results of "
+            f"twin: partial run: SUMO stopped early ({done.error or 'no step ran'}); results of "
             f"{done.completed_steps} of {first_source.horizon} steps written to {run_dir}",
             file=sys.stderr,
         )
@@ -195,7 +208,7 @@ def main(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 130
-    return 1 if outcome.partial else 0
+    return 1 if outcome.partial or done.completed_steps == 0 else 0
 
 
 def _announce(source) -> None:

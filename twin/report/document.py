@@ -16,6 +16,7 @@ import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 
+from twin.files import atomic_write
 from twin.report import figures
 from twin.report.animation import MAX_FRAMES, write_animation
 from twin.report.load import RunFiles, load_run
@@ -93,9 +94,27 @@ def summary_table(
     return header, rows
 
 
+_MD_ESCAPES = str.maketrans(
+    {
+        "&": "&amp;", "<": "&lt;", ">": "&gt;", "|": "\\|", "[": "\\[", "]": "\\]",
+        "`": "\\`", "\\": "\\\\", "\n": " ", "\r": " ",
+    }
+)  # fmt: skip
+
+
+def md_escape(text: Any) -> str:
+    """``text`` safe to embed in Markdown: no raw HTML (``<``, ``>``, ``&`` as entities), no
+    link, code span or table cell break (``[ ] ` |`` backslash-escaped), on one line."""
+    return str(text).translate(_MD_ESCAPES)
+
+
 def markdown_table(header: list[str], rows: list[list[str]]) -> str:
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    lines += ["| " + " | ".join(r) + " |" for r in rows]
+    """A Markdown table; every cell is escaped with :func:`md_escape`."""
+    lines = [
+        "| " + " | ".join(map(md_escape, header)) + " |",
+        "|" + "---|" * len(header),
+    ]
+    lines += ["| " + " | ".join(map(md_escape, r)) + " |" for r in rows]
     return "\n".join(lines)
 
 
@@ -334,11 +353,8 @@ def _rows(frame: pd.DataFrame) -> list[list[str]]:
 
 
 def _partial(rf: RunFiles) -> str:
-    """A title suffix for a run that stopped early (``run.json``: ``partial``, ``errors``)."""
-    if not rf.run.get("partial"):
-        return ""
-    errors = [str(e) for e in rf.run.get("errors") or [] if e]
-    return f" (PARTIAL run: {errors[-1]})" if errors else " (PARTIAL run)"
+    """A title suffix for a run that stopped early (the lede says why)."""
+    return " (PARTIAL run)" if rf.partial else ""
 
 
 def _lede(rf: RunFiles) -> str:
@@ -355,11 +371,17 @@ def _lede(rf: RunFiles) -> str:
         where += _empty_steps(rf)
     elif traffic.get("kind"):
         where += f" with {traffic['kind']} traffic"
-    return (
+    text = (
         f"{len(rf.swarms)} swarms ({', '.join(rf.swarms)}) patrolling {where}, "
         f"T = {rf.horizon} steps, seeds {', '.join(map(str, rf.seeds))}. Every number below is "
         "read from this run folder's files."
     )
+    if rf.partial:  # said first, so that no reader takes a partial run for a whole one
+        planned = rf.run.get("traffic", {}) or {}
+        of = planned.get("horizon") if isinstance(planned, dict) else None
+        steps = f"{rf.horizon} of {of}" if isinstance(of, int) else f"{rf.horizon}"
+        text = f"PARTIAL RUN ({steps} steps): {rf.partial_reason}. " + text
+    return text
 
 
 def _empty_steps(rf: RunFiles) -> str:
@@ -456,15 +478,15 @@ def _monitoring_caption(rf: RunFiles) -> str:
 def render_markdown(rf: RunFiles, sections: list[Section]) -> str:
     header, rows = summary_table(rf.summary)
     lines = [
-        f"# Drone-swarm patrol report: {rf.run_dir.name}{_partial(rf)}",
+        f"# Drone-swarm patrol report: {md_escape(rf.run_dir.name + _partial(rf))}",
         "",
-        _lede(rf),
+        md_escape(_lede(rf)),
         "",
         "## Scores (paper's Table 2)",
         "",
         markdown_table(header, rows),
         "",
-        _table_caption(rf),
+        md_escape(_table_caption(rf)),
         "",
     ]
     if rf.monitoring is not None:
@@ -474,7 +496,7 @@ def render_markdown(rf: RunFiles, sections: list[Section]) -> str:
             "",
             markdown_table(m_header, m_rows),
             "",
-            _monitoring_caption(rf),
+            md_escape(_monitoring_caption(rf)),
             "",
         ]
     if rf.incidents:
@@ -487,10 +509,10 @@ def render_markdown(rf: RunFiles, sections: list[Section]) -> str:
             "",
         ]
     for section in sections:
-        lines += [f"## {section.title}", ""]
+        lines += [f"## {md_escape(section.title)}", ""]
         if section.image:
-            lines += [f"![{section.title}]({section.image})", ""]
-        lines += [section.caption, ""]
+            lines += [f"![{md_escape(section.title)}]({section.image})", ""]
+        lines += [md_escape(section.caption), ""]
     lines += [
         "## Run metadata (run.json)",
         "",
@@ -506,8 +528,7 @@ def write_report(run_dir: str | Path, animation: bool = True) -> Path:
     out.mkdir(exist_ok=True)
     sections, _ = build_sections(rf, out, animation)
     html_path = out / "report.html"
-    tmp = html_path.with_suffix(".html.tmp")
-    tmp.write_text(render_html(rf, out, sections), encoding="utf-8")
-    tmp.replace(html_path)
-    (out / "report.md").write_text(render_markdown(rf, sections), encoding="utf-8")
+    page, md = render_html(rf, out, sections), render_markdown(rf, sections)
+    atomic_write(html_path, lambda p: p.write_text(page, encoding="utf-8"))
+    atomic_write(out / "report.md", lambda p: p.write_text(md, encoding="utf-8"))
     return html_path

@@ -39,7 +39,18 @@ class RunFiles:
     monitoring: pd.DataFrame | None = None  # monitoring.csv
     events: pd.DataFrame | None = None  # events.parquet
     incidents: list[dict[str, Any]] | None = None  # incidents.json (scheduled SUMO incidents)
+    manifest: dict[str, Any] = field(default_factory=dict)  # manifest.json
     _idleness: dict[tuple[int, str], np.ndarray] = field(default_factory=dict, repr=False)
+
+    @property
+    def partial(self) -> bool:
+        return bool(self.manifest.get("partial") or self.run.get("partial"))
+
+    @property
+    def partial_reason(self) -> str:
+        return str(
+            self.manifest.get("partial_reason") or self.run.get("partial_reason") or "unknown"
+        )
 
     @property
     def grid(self) -> Grid:
@@ -144,21 +155,35 @@ def _read_json(path: Path) -> dict[str, Any] | None:
 
 
 def load_run(run_dir: str | Path) -> RunFiles:
-    """Read a run folder; a missing required file is a one-line :class:`UserError`."""
+    """Read a finished run folder: its ``manifest.json`` must be there and agree with the files
+    (:func:`twin.runs.check_run_folder`); a missing required file, an incomplete folder or a run
+    in which no step ran is a one-line :class:`UserError`."""
+    from twin.runs import check_run_folder
+
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise UserError(
             f"{run_dir}: no such run folder; pass the folder `twin run`/`evaluate` wrote"
         )
+    if (run_dir / "run.json").exists():  # a run folder: interrupted ones say so first
+        check_run_folder(run_dir)
     missing = [name for name in REQUIRED_FILES if not (run_dir / name).exists()]
     if missing:
         raise UserError(
             f"{run_dir}: missing {', '.join(missing)}; is this a run folder written by "
             "`twin run` or `twin evaluate`?"
         )
+    manifest = check_run_folder(run_dir)
     with np.load(run_dir / "importance.npz") as npz:
         importance = np.asarray(npz["importance"], dtype=np.float64)
         obstacles = np.asarray(npz["obstacles"], dtype=bool)
+    if importance.shape[0] < 2:
+        run = _read_json(run_dir / "run.json") or {}
+        raise UserError(
+            f"{run_dir}: partial run in which no step ran "
+            f"({run.get('partial_reason') or 'no reason recorded'}); nothing to report, "
+            "fix the inputs and rerun"
+        )
     per_seed_path = run_dir / "per_seed.csv"
     samples_path = run_dir / "mfd_samples.parquet"
     monitoring_path, events_path = run_dir / "monitoring.csv", run_dir / "events.parquet"
@@ -177,4 +202,5 @@ def load_run(run_dir: str | Path) -> RunFiles:
         monitoring=pd.read_csv(monitoring_path) if monitoring_path.exists() else None,
         events=pd.read_parquet(events_path) if events_path.exists() else None,
         incidents=_read_json(run_dir / "incidents.json"),
+        manifest=manifest,
     )

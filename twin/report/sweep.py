@@ -12,6 +12,7 @@ import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 
+from twin.files import atomic_write
 from twin.report.document import (
     CSS,
     PAPER_TABLE_COLUMNS,
@@ -20,6 +21,7 @@ from twin.report.document import (
     format_cell,
     html_table,
     markdown_table,
+    md_escape,
 )
 from twin.report.figures import swarm_colours
 from twin.report.stats import ci95_half_width
@@ -183,9 +185,9 @@ def write_sweep_report(out_dir: Path) -> Path:
         html_table(header, rows, "summary"),
     ]
     md = [
-        f"# Sweep report: {manifest['name']}",
+        f"# Sweep report: {md_escape(manifest['name'])}",
         "",
-        lede,
+        md_escape(lede),
         "",
         "## Table 2 per scenario (mean ± 95% interval over seeds)",
         "",
@@ -195,9 +197,9 @@ def write_sweep_report(out_dir: Path) -> Path:
     for title, name in images:
         parts += [
             f"<h2>{html.escape(title)}</h2>",
-            f'<img src="{_data_uri(out / name)}" alt="{title}">',
+            f'<img src="{_data_uri(out / name)}" alt="{html.escape(title)}">',
         ]
-        md += [f"## {title}", "", f"![{title}]({name})", ""]
+        md += [f"## {md_escape(title)}", "", f"![{md_escape(title)}]({name})", ""]
     if run_rows:
         parts += ["<h2>Invocations</h2>", html_table(run_header, run_rows, "runs")]
         md += ["## Invocations", "", markdown_table(run_header, run_rows), ""]
@@ -205,6 +207,7 @@ def write_sweep_report(out_dir: Path) -> Path:
     parts.append(html.escape(json.dumps(manifest, indent=2)))
     parts.append("</pre></body></html>")
     html_path = out / "sweep.html"
-    html_path.write_text("\n".join(parts), encoding="utf-8")
-    (out / "sweep.md").write_text("\n".join(md) + "\n", encoding="utf-8")
+    page, text = "\n".join(parts), "\n".join(md) + "\n"
+    atomic_write(html_path, lambda p: p.write_text(page, encoding="utf-8"))
+    atomic_write(out / "sweep.md", lambda p: p.write_text(text, encoding="utf-8"))
     return html_path

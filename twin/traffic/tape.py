@@ -92,39 +92,180 @@ class Tape:
         pq.write_table(table.replace_schema_metadata(merged), path)
 
     @classmethod
-    def read(cls, path: Path) -> Tape:
+    def read(cls, path: Path, shape: tuple[int, int] | None = None) -> Tape:
+        """Read and check a tape; every problem is a one-line :class:`UserError` naming the
+        file, the column or step, the bad value and the fix. ``shape`` (a config's explicit
+        ``[grid] nx, ny``) must match the tape's grid when given."""
         import pyarrow.parquet as pq
 
         path = Path(path)
-        if not path.exists():
-            raise UserError(f"{path}: no such traffic tape")
+        if not path.is_file():
+            raise UserError(f"{path}: no such traffic tape; pass the tape.parquet of a `twin run`")
         try:
             table = pq.read_table(path)
+            df = table.to_pandas()
         except Exception as exc:  # pyarrow raises several types on a broken file
-            raise UserError(f"{path}: not a parquet file ({type(exc).__name__})") from exc
-        raw = (table.schema.metadata or {}).get(_META_KEY)
-        if raw is None:
-            raise UserError(f"{path}: not a twin traffic tape (no {_META_KEY.decode()} metadata)")
-        meta = json.loads(raw)
-        if meta.get("version") != TAPE_VERSION:
-            raise UserError(f"{path}: tape version {meta.get('version')}, expected {TAPE_VERSION}")
-        nx, ny = int(meta["nx"]), int(meta["ny"])
-        df = table.to_pandas()
+            raise UserError(
+                f"{path}: not a parquet file or truncated ({type(exc).__name__}); "
+                "pass the tape.parquet of a finished `twin run`"
+            ) from exc
+        meta = _tape_meta(path, table.schema.metadata or {})
+        nx, ny = meta["nx"], meta["ny"]
+        if shape is not None and tuple(shape) != (nx, ny):
+            raise UserError(
+                f"{path}: grid {nx} x {ny} differs from the config's [grid] nx, ny = "
+                f"{shape[0]} x {shape[1]}; record the tape with this config or drop [grid] nx, ny"
+            )
+        _check_columns(path, df)
+        if df.empty:
+            raise UserError(f"{path}: no rows; the run that wrote it recorded no step")
+        for col, hi in (("i", nx), ("j", ny)):
+            values = df[col].to_numpy()
+            bad = (values < 0) | (values >= hi)
+            if bad.any():
+                raise UserError(
+                    f"{path}: column {col} = {int(values[bad][0])} is off the {nx} x {ny} grid "
+                    "of the tape's metadata; the tape is corrupt, record it again"
+                )
         steps = np.unique(df["step"].to_numpy())
+        gaps = np.flatnonzero(np.diff(steps) != 1)
+        if len(gaps):
+            raise UserError(
+                f"{path}: step {int(steps[gaps[0]]) + 1} missing (steps {int(steps[0])}.."
+                f"{int(steps[-1])} must be contiguous); the tape is incomplete, record it again"
+            )
+        if int(steps.max()) < 0:
+            raise UserError(f"{path}: only warm-up steps (< 0); no step k >= 0 to replay")
+        dup = df.duplicated(["step", "i", "j"])
+        if dup.any():
+            row = df[dup].iloc[0]
+            raise UserError(
+                f"{path}: step {int(row['step'])} has cell ({int(row['i'])}, {int(row['j'])}) "
+                "twice; the tape is corrupt, record it again"
+            )
         if len(df) != len(steps) * nx * ny:
-            raise UserError(f"{path}: {len(df)} rows do not make {len(steps)} full {nx}x{ny} maps")
+            counts = df.groupby("step").size()
+            short = counts[counts != nx * ny]
+            raise UserError(
+                f"{path}: step {int(short.index[0])} has {int(short.iloc[0])} rows, not the "
+                f"{nx * ny} cells of the {nx} x {ny} grid; the tape is corrupt, record it again"
+            )
         df = df.sort_values(["step", "i", "j"])
+        times = df["time_s"].to_numpy(dtype=float)[:: nx * ny]
+        counts = df["count"].to_numpy().reshape(-1, nx, ny)
+        speeds = df["speed"].to_numpy(dtype=float).reshape(-1, nx, ny)
+        _check_values(path, steps, times, counts, speeds)
         return cls(
-            steps=steps,
-            times=df["time_s"].to_numpy()[:: nx * ny],
-            counts=df["count"].to_numpy().reshape(-1, nx, ny),
-            speeds=df["speed"].to_numpy().reshape(-1, nx, ny),
-            obstacles=np.asarray(meta["obstacles"], dtype=bool),
-            lane_km=np.asarray(meta["lane_km"], dtype=float),
-            speed_limit=np.asarray(meta["speed_limit"], dtype=float),
-            horizon=int(meta["horizon"]),
-            settings=meta.get("settings", {}),
+            steps=steps.astype(np.int64),
+            times=times,
+            counts=counts,
+            speeds=speeds,
+            obstacles=meta["obstacles"],
+            lane_km=meta["lane_km"],
+            speed_limit=meta["speed_limit"],
+            horizon=meta["horizon"],
+            settings=meta["settings"],
         )
+
+
+#: Columns of tape.parquet and the kind of number each holds ("i": integer, "f": real).
+TAPE_COLUMNS = {"step": "i", "time_s": "f", "i": "i", "j": "i", "count": "i", "speed": "f"}
+
+
+def _check_columns(path: Path, df) -> None:
+    missing = [c for c in TAPE_COLUMNS if c not in df.columns]
+    if missing:
+        raise UserError(
+            f"{path}: column {missing[0]} missing (has {', '.join(map(str, df.columns))}); "
+            f"a tape has {', '.join(TAPE_COLUMNS)}"
+        )
+    for col, kind in TAPE_COLUMNS.items():
+        dtype = df[col].dtype
+        ok = dtype.kind in "iu" if kind == "i" else dtype.kind in "iuf"
+        if not ok:
+            what = "whole numbers" if kind == "i" else "numbers"
+            raise UserError(
+                f"{path}: column {col} has type {dtype}, not {what}; the tape is corrupt, "
+                "record it again"
+            )
+
+
+def _check_values(path: Path, steps, times, counts, speeds) -> None:
+    """Finite non-negative counts, finite times, speeds finite and >= 0 where vehicles are."""
+
+    def fail(col: str, idx: tuple, value, problem: str) -> None:
+        s, *cell = idx
+        where = f"step {int(steps[s])}" + (f", cell ({cell[0]}, {cell[1]})" if cell else "")
+        raise UserError(
+            f"{path}: column {col} = {value} at {where} {problem}; the tape is corrupt, "
+            "record it again"
+        )
+
+    bad = ~np.isfinite(times)
+    if bad.any():
+        fail("time_s", (int(np.flatnonzero(bad)[0]),), times[bad][0], "is not finite")
+    bad = counts < 0
+    if bad.any():
+        idx = tuple(int(x) for x in np.argwhere(bad)[0])
+        fail("count", idx, int(counts[idx]), "is negative")
+    occupied = counts > 0
+    bad = (occupied & ~np.isfinite(speeds)) | np.isinf(speeds) | (speeds < 0)
+    if bad.any():
+        idx = tuple(int(x) for x in np.argwhere(bad)[0])
+        problem = "is negative" if speeds[idx] < 0 else "is not finite where vehicles are"
+        fail("speed", idx, speeds[idx], problem)
+
+
+def _tape_meta(path: Path, schema_meta: dict) -> dict[str, Any]:
+    """The tape's metadata, checked: version, grid, per-cell maps and horizon."""
+    raw = schema_meta.get(_META_KEY)
+    if raw is None:
+        raise UserError(
+            f"{path}: not a twin traffic tape (no {_META_KEY.decode()} metadata); "
+            "pass the tape.parquet of a `twin run`"
+        )
+    try:
+        meta = json.loads(raw)
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise UserError(f"{path}: tape metadata is not valid JSON; record the tape again") from exc
+    if not isinstance(meta, dict):
+        raise UserError(f"{path}: tape metadata is not a table; record the tape again")
+    if meta.get("version") != TAPE_VERSION:
+        raise UserError(
+            f"{path}: tape version = {meta.get('version')!r}, expected {TAPE_VERSION}; "
+            "record the tape again with this twin"
+        )
+    out: dict[str, Any] = {}
+    for key, low in (("nx", 1), ("ny", 1), ("horizon", 1)):
+        value = meta.get(key)
+        if not isinstance(value, int) or isinstance(value, bool) or value < low:
+            raise UserError(
+                f"{path}: tape metadata {key} = {value!r} is not a whole number >= {low}; "
+                "the tape is corrupt, record it again"
+            )
+        out[key] = value
+    shape = (out["nx"], out["ny"])
+    for key, dtype in (("obstacles", bool), ("lane_km", float), ("speed_limit", float)):
+        try:
+            arr = np.asarray(meta.get(key), dtype=float)
+        except (TypeError, ValueError):
+            arr = np.empty(0)
+        if arr.shape != shape:
+            raise UserError(
+                f"{path}: tape metadata {key} has shape {arr.shape}, not the grid's "
+                f"{shape[0]} x {shape[1]}; the tape is corrupt, record it again"
+            )
+        bad = ~np.isfinite(arr) | (arr < 0)
+        if bad.any():
+            i, j = (int(x) for x in np.argwhere(bad)[0])
+            raise UserError(
+                f"{path}: tape metadata {key} = {arr[i, j]} at cell ({i}, {j}) is not a finite "
+                "number >= 0; the tape is corrupt, record it again"
+            )
+        out[key] = arr.astype(dtype)
+    settings = meta.get("settings", {})
+    out["settings"] = settings if isinstance(settings, dict) else {}
+    return out
 
 
 class TapeTraffic(TrafficSource):
@@ -137,7 +278,9 @@ class TapeTraffic(TrafficSource):
     def __init__(self, tape: Tape, detection_p: float | None = None, source_name: str = "tape"):
         self.tape = tape
         self.grid = Grid(tape.obstacles)
-        self.horizon = min(tape.horizon, int(tape.steps.max()))
+        # the recorded horizon: a tape that stops short of it (a SUMO run that stopped early)
+        # ends the replay early, and the evaluation says it is partial
+        self.horizon = tape.horizon
         self.detection_p = (
             float(tape.settings.get("detection_p", 1.0)) if detection_p is None else detection_p
         )
@@ -146,12 +289,14 @@ class TapeTraffic(TrafficSource):
     @classmethod
     def from_file(cls, path: str | Path, config=None) -> TapeTraffic:
         """Read ``path``; ``config`` (a scenario config) is accepted for the CLI's sake and
-        only its ``[traffic.mfd].detection_p``, if set, overrides the tape's."""
-        p = None
+        only its ``[traffic.mfd].detection_p``, if set, overrides the tape's, and its explicit
+        ``[grid] nx, ny``, if set, must match the tape's grid."""
+        p, shape = None, None
         if config is not None and config.traffic.kind == "sumo":
             mfd = config.traffic.mfd
             p = mfd.detection_p if "detection_p" in mfd.model_fields_set else None
-        return cls(Tape.read(Path(path)), p, source_name=str(path))
+            shape = config.explicit_shape()
+        return cls(Tape.read(Path(path), shape), p, source_name=str(path))
 
     def model(self) -> MFDImportance:
         s = self.tape.settings
