@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from twin.clock import clock_label, parse_clock
 from twin.errors import UserError
 from twin.grid import Grid
 from twin.scores import ScoreParams, initial_idleness, update_idleness
@@ -95,9 +96,7 @@ class RunFiles:
         begin, step_s = self.clock_start()
         if begin is None:
             return None
-        h, m, *sec = (int(x) for x in begin.split(":"))
-        t = round(h * 3600 + m * 60 + (sec[0] if sec else 0) + k * step_s)
-        return f"{t // 3600 % 24:02d}:{t % 3600 // 60:02d}"
+        return clock_label(parse_clock(begin, "run.json: traffic.begin") + k * step_s, False)
 
     def positions(self, swarm: str, seed: int | None = None) -> np.ndarray:
         """``(T+1, N, 2)`` drone cells ``P_0 .. P_T`` of one swarm and seed."""

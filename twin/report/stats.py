@@ -4,17 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 import pandas as pd
-from scipy import stats
+
+from twin.metrics import ci95_halfwidth
 
 
 def ci95_half_width(values: np.ndarray, axis: int = 0) -> np.ndarray:
-    """Student-t 95% half-width of the mean along ``axis``; 0 with fewer than 2 values."""
-    values = np.asarray(values, dtype=np.float64)
-    n = values.shape[axis]
-    if n < 2:
-        return np.zeros(np.delete(values.shape, axis))
-    sem = values.std(axis=axis, ddof=1) / np.sqrt(n)
-    return stats.t.ppf(0.975, n - 1) * sem
+    """:func:`twin.metrics.ci95_halfwidth` along ``axis`` (the report's bands over seeds)."""
+    return np.apply_along_axis(ci95_halfwidth, axis, np.asarray(values, dtype=np.float64))
 
 
 def mean_band(

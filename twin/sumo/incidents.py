@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from twin.clock import clock_label, parse_clock
 from twin.errors import UserError
 
 #: The one vehicle class a closed lane still allows.
@@ -47,7 +48,6 @@ class IncidentSchedule:
     """The incidents of one run: applied as SUMO is advanced, recorded for ``incidents.json``."""
 
     def __init__(self, incidents: list[Any], geometry, scenario, grid=None):
-        from twin.sumo.scenario import parse_clock
 
         self.geometry = geometry
         self.records: list[dict[str, Any]] = []
@@ -69,7 +69,7 @@ class IncidentSchedule:
                     "edge": inc.edge,
                     "lane": inc.lane if inc.kind == "lane_closed" else None,
                     "cell": list(inc.cell) if inc.cell is not None else None,
-                    "begin": _clock(begin),
+                    "begin": clock_label(begin),
                     "begin_s": begin,
                     "end_s": end,
                     "duration_min": inc.duration_min,
@@ -207,6 +207,3 @@ def _midpoint(shape) -> tuple[float, float]:
     return float(p[0]), float(p[1])
 
 
-def _clock(t: float) -> str:
-    t = round(t)
-    return f"{t // 3600:02d}:{t % 3600 // 60:02d}:{t % 60:02d}"

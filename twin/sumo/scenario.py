@@ -24,28 +24,19 @@ from __future__ import annotations
 import gzip
 import hashlib
 import math
-import re
 import sys
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
+from twin.clock import clock_label, parse_clock
 from twin.config import MFDSettings, SumoSettings
 from twin.errors import UserError
 from twin.grid import Grid
 
 #: Peak demand of the built-in network per lane-km (trips/h), used to scale generated demand.
 SHENZHEN_LANE_KM = 1350.0
-
-
-def parse_clock(text: str, where: str) -> float:
-    """'07:00' or '07:00:30' -> seconds since midnight."""
-    m = re.fullmatch(r"(\d{1,2}):(\d{2})(?::(\d{2}))?", str(text).strip())
-    if not m:
-        raise UserError(f'{where} = {text!r} must be a clock time like "07:00"')
-    h, mi, s = int(m[1]), int(m[2]), int(m[3] or 0)
-    return float(h * 3600 + mi * 60 + s)
 
 
 def sumo_settings(config) -> SumoSettings:
@@ -261,11 +252,6 @@ def notice(text: str) -> None:
     print(f"twin: notice: {text}", file=sys.stderr)
 
 
-def _clock(t: float) -> str:
-    t = round(t)
-    return f"{t // 3600:02d}:{t % 3600 // 60:02d}:{t % 60:02d}"
-
-
 def sumo_source(
     config,
     seed: int | None = None,
@@ -372,7 +358,7 @@ def sumo_source(
             if w1 - w0 < warmup + step_s:  # too short for the warm-up: half of it warms up
                 short = max(0.0, (w1 - w0) / 2)
                 notice(
-                    f"{name}: the scenario's window {_clock(w0)} - {_clock(w1)} is shorter than "
+                    f"{name}: the scenario's window {clock_label(w0)} - {clock_label(w1)} is shorter than "
                     f"the {warmup / 60:g} min warm-up plus a step; warm-up cut to "
                     f"{short / 60:.1f} min"
                 )
@@ -412,8 +398,8 @@ def sumo_source(
         end = begin + s.horizon * step_s
         if end > span[1] + clear:
             notices.append(
-                f"{name}: the run ends at {_clock(end)}, past the last departure "
-                f"({_clock(span[1])}) plus {clear / 60:.0f} min to clear the network; the last "
+                f"{name}: the run ends at {clock_label(end)}, past the last departure "
+                f"({clock_label(span[1])}) plus {clear / 60:.0f} min to clear the network; the last "
                 f"{int((end - span[1] - clear) / step_s)} steps may have no vehicle"
             )
     for text in notices:

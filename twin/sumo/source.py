@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from twin.clock import clock_label
 from twin.grid import Grid
 from twin.mfd import MFD, MFDImportance
 from twin.sumo.cells import CellGeometry
@@ -66,11 +67,6 @@ class SumoScenario:
         """Seconds before each sample time of its read instants, whole SUMO steps, last 0."""
         r = self.reads_per_step
         return [float(round(self.step_s * (r - 1 - m) / r)) for m in range(r)]
-
-
-def clock_label(t: float) -> str:
-    t = round(t)
-    return f"{t // 3600:02d}:{t % 3600 // 60:02d}:{t % 60:02d}"
 
 
 class SumoTraffic(TrafficSource):

@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from twin.clock import clock_label
 from twin.errors import UserError
 from twin.grid import Grid
 from twin.mfd import MFD, MFDImportance
@@ -330,8 +331,7 @@ class TapeTraffic(TrafficSource):
         t = self.tape.times[self.tape.steps == k]
         if not len(t):
             return None
-        s = round(float(t[0]))
-        return f"{s // 3600:02d}:{s % 3600 // 60:02d}:{s % 60:02d}"
+        return clock_label(float(t[0]))
 
     def metadata(self) -> dict[str, Any]:
         return {
