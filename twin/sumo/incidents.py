@@ -18,6 +18,7 @@ incident is on at the steps whose interval meets ``[begin, end)``.
 
 from __future__ import annotations
 
+import itertools
 import math
 from typing import Any
 
@@ -53,7 +54,7 @@ class IncidentSchedule:
         self.records: list[dict[str, Any]] = []
         self.events: list[tuple[float, int, str]] = []  # (time, incident, "on" | "off")
         self._settings = list(incidents)
-        self._edges: dict[str, tuple[int, int]] | None = None
+        self._edges: dict[str, tuple[tuple[int, int], set[tuple[int, int]]]] | None = None
         self._saved: dict[int, Any] = {}
         for n, inc in enumerate(self._settings):
             where = f"[traffic].incidents[{n}]"
@@ -97,16 +98,20 @@ class IncidentSchedule:
             session.advance_to(t)
 
     # ------------------------------------------------------------------------------ libsumo
-    def _edge_cells(self) -> dict[str, tuple[int, int]]:
-        """The cell of each (non-internal) edge's middle: the midpoint of its first lane."""
+    def _edge_cells(self) -> dict[str, tuple[tuple[int, int], set[tuple[int, int]]]]:
+        """Per (non-internal) edge: the cell of its middle and every cell its first lane
+        passes through (points every 10 m along the lane's shape)."""
         if self._edges is None:
             ls = _libsumo()
-            ids = [e for e in ls.edge.getIDList() if not e.startswith(":")]
-            mids = np.array([_midpoint(ls.lane.getShape(f"{e}_0")) for e in ids]).reshape(-1, 2)
-            row, col, inside = self.geometry.cell_index(mids)
-            self._edges = {
-                e: (int(r), int(c)) for e, r, c, ok in zip(ids, row, col, inside, strict=True) if ok
-            }
+            self._edges = {}
+            for e in (e for e in ls.edge.getIDList() if not e.startswith(":")):
+                shape = ls.lane.getShape(f"{e}_0")
+                points = np.vstack([_midpoint(shape), _along(shape, 10.0)])
+                row, col, inside = self.geometry.cell_index(points)
+                if not inside[0]:
+                    continue
+                cells = {(int(r), int(c)) for r, c, ok in zip(row, col, inside, strict=True) if ok}
+                self._edges[e] = ((int(row[0]), int(col[0])), cells)
         return self._edges
 
     def _place(self, n: int) -> str | None:
@@ -123,7 +128,7 @@ class IncidentSchedule:
             candidates = [inc.edge]
         else:
             cell = tuple(inc.cell)
-            candidates = sorted(e for e, c in cells.items() if c == cell)
+            candidates = sorted(e for e, (_, through) in cells.items() if cell in through)
             if inc.kind == "lane_closed":
                 candidates = [e for e in candidates if ls.edge.getLaneNumber(e) > inc.lane]
             if not candidates:
@@ -145,7 +150,7 @@ class IncidentSchedule:
         edge = max(busy, key=lambda b: b[0])[1]  # the first, smallest id, among equals
         rec["edge"] = edge
         if rec["cell"] is None:
-            rec["cell"] = list(cells.get(edge, (-1, -1)))
+            rec["cell"] = list(cells[edge][0]) if edge in cells else [-1, -1]
         return edge
 
     def _lanes(self, n: int, edge: str) -> list[str]:
@@ -192,6 +197,18 @@ class IncidentSchedule:
     def to_json(self) -> list[dict[str, Any]]:
         """Ground truth for ``incidents.json``: what, where (edge, cell i, j), when, how long."""
         return [dict(r) for r in self.records]
+
+
+def _along(shape, every_m: float) -> np.ndarray:
+    """Points every ``every_m`` metres along a polyline (its vertices included)."""
+    xy = np.asarray(shape, dtype=float).reshape(-1, 2)
+    out = [xy]
+    for a, b in itertools.pairwise(xy):
+        n = int(np.hypot(*(b - a)) // every_m)
+        if n:
+            t = np.arange(1, n + 1)[:, None] / (n + 1)
+            out.append(a + t * (b - a))
+    return np.vstack(out)
 
 
 def _midpoint(shape) -> tuple[float, float]:
