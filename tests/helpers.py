@@ -28,3 +28,31 @@ def random_tape(seed=0, nx=3, ny=4, warmup=2, horizon=5, obstacle=(0, 0)) -> Tap
         horizon=horizon,
         settings={"mfd_fit": "online", "detection_p": 1.0, "seed": 4, "mfd_prior": [0.7, 40.0]},
     )
+
+
+SMALL_SUMO_CONFIG = """
+[swarm]
+n_drones = 2
+[traffic]
+kind = "sumo"
+net = "small.net.xml"
+routes = ["small.trips.xml"]
+cell_m = 200.0
+drone_speed_kmh = 12.0   # one step = 60 s
+begin = "00:05"
+warmup_min = 5.0
+horizon = {horizon}
+seed = 3
+[evaluate]
+swarms = ["random", "greedy", "sweeping"]
+"""
+
+
+def small_sumo_scenario(folder, horizon: int = 10):
+    """A 5 x 5 signalised grid of 300 m blocks with 15 min of random trips, and its scenario
+    config ``small.toml`` (2 drones, 200 m cells, one step = 60 s from 00:05)."""
+    from twin.sumo.network import generate_grid_scenario
+
+    generate_grid_scenario(folder, blocks=5, block_m=300, end_s=900, period_s=1.5, seed=5)
+    (folder / "small.toml").write_text(SMALL_SUMO_CONFIG.format(horizon=horizon))
+    return folder

@@ -13,7 +13,7 @@ pytest.importorskip("pettingzoo")
 pytest.importorskip("gymnasium")
 
 from gymnasium.utils.env_checker import check_env
-from helpers import random_tape
+from helpers import random_tape, small_sumo_scenario
 from pettingzoo.test import parallel_api_test
 
 from twin.env import SwarmGymEnv, SwarmParallelEnv, make_env
@@ -128,31 +128,12 @@ def test_make_env_from_the_shipped_synthetic_config():
     env.close()
 
 
-SUMO_CONFIG = """
-[swarm]
-n_drones = 2
-[traffic]
-kind = "sumo"
-net = "small.net.xml"
-routes = ["small.trips.xml"]
-cell_m = 200.0
-drone_speed_kmh = 12.0   # one step = 60 s
-begin = "00:05"
-warmup_min = 5.0
-horizon = 3
-seed = 3
-"""
-
-
 def test_parallel_api_on_live_sumo(tmp_path: Path):
     pytest.importorskip("libsumo")
     from twin.config import load_config
-    from twin.sumo.network import generate_grid_scenario
     from twin.sumo.scenario import sumo_source
 
-    # the small scenario of tests/test_sumo_small.py, shorter: a 5 x 5 grid, 3 steps of 60 s
-    generate_grid_scenario(tmp_path, blocks=5, block_m=300, end_s=900, period_s=1.5, seed=5)
-    (tmp_path / "small.toml").write_text(SUMO_CONFIG)
+    small_sumo_scenario(tmp_path, horizon=3)  # a 5 x 5 grid, 3 steps of 60 s
     config = load_config(tmp_path / "small.toml")
     built = []
 

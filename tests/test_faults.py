@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 import pytest
+from helpers import small_sumo_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 ENV = {**os.environ, "PYTHONPATH": str(ROOT)}
@@ -233,34 +234,12 @@ RUN_FILES = ("series.parquet", "trajectories.parquet", "per_seed.csv", "summary.
              "importance.npz", "network.json", "mfd.json", "mfd_samples.parquet",
              "tape.parquet")  # fmt: skip
 
-SUMO_CONFIG = """
-[swarm]
-n_drones = 2
-[traffic]
-kind = "sumo"
-net = "small.net.xml"
-routes = ["small.trips.xml"]
-cell_m = 200.0
-drone_speed_kmh = 12.0   # one step = 60 s
-begin = "00:05"
-warmup_min = 5.0
-horizon = 20
-seed = 3
-[evaluate]
-swarms = ["random", "greedy", "sweeping"]
-"""
-
 
 @pytest.fixture(scope="module")
 def small(tmp_path_factory) -> Path:
-    """The small grid scenario of tests/test_sumo_small.py."""
+    """The small grid scenario of tests/helpers.py (horizon 20)."""
     pytest.importorskip("libsumo")
-    from twin.sumo.network import generate_grid_scenario
-
-    d = tmp_path_factory.mktemp("small")
-    generate_grid_scenario(d, blocks=5, block_m=300, end_s=900, period_s=1.5, seed=5)
-    (d / "small.toml").write_text(SUMO_CONFIG)
-    return d
+    return small_sumo_scenario(tmp_path_factory.mktemp("small"), horizon=20)
 
 
 def claims_complete(run_dir: Path) -> bool:

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
+from helpers import small_sumo_scenario
 
 from twin.experiment import stop_on_interrupt
 
@@ -138,34 +139,11 @@ def test_second_ctrl_c_stops_at_once(tmp_path: Path) -> None:
     assert not [p for p in out.rglob("*") if p.name.endswith(".tmp")]
 
 
-SUMO_CONFIG = """
-[swarm]
-n_drones = 2
-[traffic]
-kind = "sumo"
-net = "small.net.xml"
-routes = ["small.trips.xml"]
-cell_m = 200.0
-drone_speed_kmh = 12.0   # one step = 60 s
-begin = "00:05"
-warmup_min = 5.0
-horizon = 5000
-seed = 3
-[evaluate]
-swarms = ["random", "greedy", "sweeping"]
-"""
-
-
 @pytest.fixture(scope="module")
 def small(tmp_path_factory) -> Path:
-    """The small grid scenario of tests/test_sumo_small.py, with a long horizon."""
+    """The small grid scenario of tests/helpers.py (horizon 5000)."""
     pytest.importorskip("libsumo")
-    from twin.sumo.network import generate_grid_scenario
-
-    d = tmp_path_factory.mktemp("small")
-    generate_grid_scenario(d, blocks=5, block_m=300, end_s=900, period_s=1.5, seed=5)
-    (d / "small.toml").write_text(SUMO_CONFIG)
-    return d
+    return small_sumo_scenario(tmp_path_factory.mktemp("small"), horizon=5000)
 
 
 def test_ctrl_c_on_run_writes_a_partial_run_with_its_tape(small: Path, tmp_path: Path) -> None:

@@ -11,43 +11,24 @@ import pytest
 
 pytest.importorskip("libsumo")
 
+from helpers import small_sumo_scenario
+
 from twin.cli import main as twin_main
 from twin.config import load_config
 from twin.errors import UserError
 from twin.patrol import run_patrol
 from twin.policies import make_policy
 from twin.scores import ScoreParams
-from twin.sumo.network import generate_grid_scenario
 from twin.sumo.scenario import sumo_source
 from twin.sumo.session import SumoRunError, SumoSession
 from twin.sumo.tools import binary, run_sumo_program
 from twin.traffic.tape import Tape, TapeTraffic
 
-CONFIG = """
-[swarm]
-n_drones = 2
-[traffic]
-kind = "sumo"
-net = "small.net.xml"
-routes = ["small.trips.xml"]
-cell_m = 200.0
-drone_speed_kmh = 12.0   # one step = 60 s
-begin = "00:05"
-warmup_min = 5.0
-horizon = 10
-seed = 3
-[evaluate]
-swarms = ["random", "greedy", "sweeping"]
-"""
-
 
 @pytest.fixture(scope="module")
 def small(tmp_path_factory) -> Path:
     """A 5 x 5 signalised grid of 300 m blocks with 15 min of random trips."""
-    d = tmp_path_factory.mktemp("small")
-    generate_grid_scenario(d, blocks=5, block_m=300, end_s=900, period_s=1.5, seed=5)
-    (d / "small.toml").write_text(CONFIG)
-    return d
+    return small_sumo_scenario(tmp_path_factory.mktemp("small"), horizon=10)
 
 
 def _fcd_counts(fcd: Path, source, times: list[float]) -> dict[float, np.ndarray]:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import random_tape
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -11,27 +12,7 @@ from twin.errors import UserError
 from twin.mfd import MFD, MFDImportance
 from twin.traffic.tape import Tape, TapeTraffic
 
-
-def _tape(seed=0, nx=3, ny=4, warmup=2, horizon=5) -> Tape:
-    rng = np.random.default_rng(seed)
-    steps = np.arange(-warmup, horizon + 1)
-    counts = rng.integers(0, 40, (len(steps), nx, ny)).astype(np.int32)
-    speeds = np.where(counts > 0, rng.uniform(0, 15, counts.shape), np.nan).astype(np.float32)
-    obstacles = np.zeros((nx, ny), bool)
-    obstacles[0, 0] = True
-    counts[:, 0, 0] = 0
-    speeds[:, 0, 0] = np.nan
-    return Tape(
-        steps=steps,
-        times=25200.0 + 75.0 * steps,
-        counts=counts,
-        speeds=speeds,
-        obstacles=obstacles,
-        lane_km=rng.uniform(0.5, 3.0, (nx, ny)) * ~obstacles,
-        speed_limit=np.where(obstacles, 0.0, 13.9),
-        horizon=horizon,
-        settings={"mfd_fit": "online", "detection_p": 1.0, "seed": 4, "mfd_prior": [0.7, 40.0]},
-    )
+_tape = random_tape  # a 3 x 4 grid, cell (0, 0) an obstacle, 2 warm-up steps, T = 5
 
 
 def test_round_trip_keeps_every_value(tmp_path):
