@@ -71,13 +71,14 @@ duration_min = 2.0
 
 def test_closure_is_active_in_its_window_and_lifted_after(tmp_path):
     libsumo = pytest.importorskip("libsumo")
-    from test_sumo_small import CONFIG, _patrol
+    from helpers import small_sumo_scenario
+    from test_sumo_small import _patrol
 
-    from twin.sumo.network import generate_grid_scenario
     from twin.sumo.scenario import sumo_source
 
-    generate_grid_scenario(tmp_path, blocks=5, block_m=300, end_s=900, period_s=1.5, seed=5)
-    (tmp_path / "small.toml").write_text(CONFIG + INCIDENTS)
+    small_sumo_scenario(tmp_path, horizon=10)
+    with open(tmp_path / "small.toml", "a") as fh:
+        fh.write(INCIDENTS)
     source = sumo_source(load_config(tmp_path / "small.toml"))
     maps = source.importance_maps()
     allowed = {}
@@ -104,13 +105,13 @@ def test_closure_is_active_in_its_window_and_lifted_after(tmp_path):
 
 def test_run_writes_incidents_json_and_scores_them(tmp_path):
     pytest.importorskip("libsumo")
-    from test_sumo_small import CONFIG
+    from helpers import small_sumo_scenario
 
     from twin.cli import main as twin_main
-    from twin.sumo.network import generate_grid_scenario
 
-    generate_grid_scenario(tmp_path, blocks=5, block_m=300, end_s=900, period_s=1.5, seed=5)
-    (tmp_path / "small.toml").write_text(CONFIG + INCIDENTS)
+    small_sumo_scenario(tmp_path, horizon=10)
+    with open(tmp_path / "small.toml", "a") as fh:
+        fh.write(INCIDENTS)
     out = tmp_path / "run"
     code = twin_main(
         [

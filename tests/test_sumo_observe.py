@@ -61,15 +61,14 @@ def test_reads_divide_the_count_into_a_mean_density():
 # ------------------------------------------------------------------------ on a small SUMO run
 def test_averaged_count_equals_an_average_of_fcd_and_replay_equals_live(tmp_path):
     pytest.importorskip("libsumo")
-    from test_sumo_small import CONFIG, _fcd_counts, _patrol
+    from helpers import small_sumo_scenario
+    from test_sumo_small import _fcd_counts, _patrol
 
     from twin.config import load_config
-    from twin.sumo.network import generate_grid_scenario
     from twin.sumo.scenario import sumo_source
     from twin.traffic.tape import TapeTraffic
 
-    generate_grid_scenario(tmp_path, blocks=5, block_m=300, end_s=900, period_s=1.5, seed=5)
-    (tmp_path / "small.toml").write_text(CONFIG)
+    small_sumo_scenario(tmp_path, horizon=10)
     source = sumo_source(load_config(tmp_path / "small.toml"))
     s = source.scenario
     s.reads_per_step = 3
