@@ -20,6 +20,7 @@ from twin.grid import Grid
 from twin.policies import Policy, SwarmView, Transition
 from twin.scores import ScoreParams, coverage
 from twin.swarm import InfeasibleActionError, SwarmState, initial_state, random_starts, step
+from twin.timing import RECORDING, SCORING, TRAFFIC, TRAFFIC_OTHER, StageTimer, swarm_stage
 from twin.traffic.base import TrafficSource
 
 __all__ = ["PatrolResult", "random_starts", "run_patrol", "swarm_rng", "swarm_view"]
@@ -49,6 +50,8 @@ class PatrolResult:
     completed_steps: int = 0
     error: str | None = None  # set when the source failed mid-run; arrays hold what was done
     extra: dict = field(default_factory=dict)
+    #: wall seconds per stage of the loop (:mod:`twin.timing`), in the order of the step
+    stage_seconds: dict[str, float] = field(default_factory=dict)
 
     @property
     def horizon(self) -> int:
@@ -87,6 +90,7 @@ def run_patrol(
     positions = np.zeros((n_swarms, horizon + 1, n_drones, 2), dtype=np.int64)
     importance = np.zeros((horizon + 1, *grid.shape), np.float32) if keep_importance else None
     truth = None
+    timer = StageTimer()
 
     states: list[SwarmState] = []
     views: list[SwarmView] = []
@@ -95,23 +99,31 @@ def run_patrol(
     bar = _progress_bar(source, horizon, progress)
     done, error = 0, None
     try:
-        t_now = next(maps)
+        with timer.stage(TRAFFIC):
+            t_now = next(maps)
         truth = _record_truth(source, truth, 0, horizon, keep_importance)
         if importance is not None:
             importance[0] = t_now
         for s, name in enumerate(names):
+            t_reset = time.perf_counter()
             policies[name].reset(grid, n_drones, swarm_rng(seed, name))
+            timer.add(swarm_stage(name), time.perf_counter() - t_reset, calls=0)
             states.append(initial_state(grid, starts.copy(), t_now))
             views.append(swarm_view(states[s], horizon, grid, params))
             positions[s, 0] = starts
         for k in range(horizon):
-            t_next = next(maps)
-            truth = _record_truth(source, truth, k + 1, horizon, keep_importance)
-            if importance is not None:
-                importance[k + 1] = t_next
+            with timer.stage(TRAFFIC):
+                t_next = next(maps)
+            with timer.stage(RECORDING):
+                truth = _record_truth(source, truth, k + 1, horizon, keep_importance)
+                if importance is not None:
+                    importance[k + 1] = t_next
             for s, name in enumerate(names):
                 policy, view = policies[name], views[s]
-                actions = np.asarray(policy.act(view), dtype=np.int64)
+                stage = swarm_stage(name)
+                with timer.stage(stage):
+                    actions = np.asarray(policy.act(view), dtype=np.int64)
+                t_score = time.perf_counter()
                 try:
                     states[s], out = step(states[s], actions, t_next, grid, params)
                 except InfeasibleActionError as exc:
@@ -127,7 +139,10 @@ def run_patrol(
                 series["visited"][s, k] = states[s].visited[grid.free].mean()
                 positions[s, k + 1] = states[s].positions
                 views[s] = swarm_view(states[s], horizon, grid, params)
+                t1 = time.perf_counter()
+                timer.add(SCORING, t1 - t_score)
                 policy.learn(Transition(view, actions, out.rewards, views[s]))
+                timer.add(stage, time.perf_counter() - t1, calls=0)
             done = k + 1
             if bar is not None:
                 bar.update(1)
@@ -164,7 +179,21 @@ def run_patrol(
         seconds=time.perf_counter() - t0,
         completed_steps=done,
         error=error,
+        stage_seconds=_stage_seconds(timer, source),
     )
+
+
+def _stage_seconds(timer: StageTimer, source: TrafficSource) -> dict[str, float]:
+    """The loop's stages, the traffic source's time split into the source's own stages (a live
+    SUMO source times its stepping, reads and observation model) and the rest."""
+    seconds = timer.as_dict()
+    own = getattr(source, "timer", None)
+    traffic = seconds.pop(TRAFFIC, 0.0)
+    if not isinstance(own, StageTimer) or not own.seconds:
+        return {TRAFFIC: traffic, **seconds}
+    split = own.as_dict()
+    split[TRAFFIC_OTHER] = max(traffic - sum(split.values()), 0.0)
+    return {**split, **seconds}
 
 
 def swarm_view(state: SwarmState, horizon: int, grid: Grid, params: ScoreParams) -> SwarmView:

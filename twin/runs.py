@@ -15,6 +15,9 @@ interrupted run never leaves a half-written file):
   onset, duration, peak, swarm, seen, first_seen (step, -1 when not seen while the event
   lasted), latency_steps (-1 likewise);
 - ``importance.npz``: ``importance`` (T+1, nx, ny) of the first seed, ``obstacles`` (nx, ny);
+- ``timing.csv``: wall time per stage of each seed's run (``twin/timing.py``): seed, stage,
+  seconds, ms_per_step, share of the seed's total; the monitoring and the writing of
+  the files above are the last stage;
 - ``run.json``: metadata (command, configuration, seeds, traffic source, versions, timings),
   ``partial`` and, when partial, ``partial_reason``; written first as a marker when the run
   starts (``partial: true``, reason: not finished) and rewritten when it ends;
@@ -34,6 +37,7 @@ import json
 import platform
 import shutil
 import sys
+import time
 from collections.abc import Callable, Sequence
 from datetime import UTC, datetime
 from importlib import metadata as importlib_metadata
@@ -50,6 +54,7 @@ from twin.metrics import MONITORING_COLUMNS, aggregate, learned_against_best_cla
 from twin.monitoring import MonitorSettings, RunMonitoring, monitor_run
 from twin.patrol import PatrolResult
 from twin.scores import ScoreParams
+from twin.timing import WRITING
 
 MANIFEST = "manifest.json"
 #: Names twin writes into a run folder: a partial run made of these alone may be replaced.
@@ -318,6 +323,7 @@ def write_run(
 
     Order: the result files, then ``extras(run_dir)`` (the SUMO files), then ``run.json``, then
     ``manifest.json`` last, so a kill at any instant leaves no manifest."""
+    t_start = time.perf_counter()
     run_dir.mkdir(parents=True, exist_ok=True)
     monitor = monitor or MonitorSettings()
     params = score_params_of(metadata)
@@ -367,6 +373,8 @@ def write_run(
         atomic_write(run_dir / "importance.npz", save_maps)
     if extras is not None:
         extras(run_dir)
+    timing = timing_frame(results, time.perf_counter() - t_start)
+    atomic_write(run_dir / "timing.csv", lambda p: timing.to_csv(p, index=False))
     errors = [r.error for r in results if r.error]
     no_step = min(r.rewards.shape[1] for r in results) == 0
     partial = bool(metadata.get("partial")) or bool(errors) or no_step
@@ -379,7 +387,10 @@ def write_run(
         "swarms": list(first.swarms),
         "grid": {"nx": first.grid.nx, "ny": first.grid.ny, "n_free": first.grid.n_free},
         "horizon": first.horizon,
-        "timings": {"patrol_seconds": [round(r.seconds, 3) for r in results]},
+        "timings": {
+            "patrol_seconds": [round(r.seconds, 3) for r in results],
+            "peak_memory_mb": peak_memory_mb(),
+        },
         "errors": [r.error for r in results if r.error],
         "monitoring": {
             "threshold": monitor.threshold,
@@ -401,6 +412,40 @@ def write_run(
     write_json(run_dir / "run.json", meta)
     write_manifest(run_dir, partial, reason)
     return summary, comparison
+
+
+def peak_memory_mb() -> float | None:
+    """The process's peak resident memory so far (MB), where the OS tells it."""
+    try:
+        import resource
+    except ImportError:  # not on Windows
+        return None
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return round(peak / (1024.0 * 1024.0 if sys.platform == "darwin" else 1024.0), 1)
+
+
+def timing_frame(results: Sequence[PatrolResult], writing_seconds: float = 0.0) -> pd.DataFrame:
+    """``timing.csv``: each seed's stages (:attr:`PatrolResult.stage_seconds`), then the
+    monitoring and writing of the run folder (once, on the first seed's rows)."""
+    rows = []
+    for n, r in enumerate(results):
+        stages = dict(r.stage_seconds)
+        if n == 0 and writing_seconds > 0:
+            stages[WRITING] = writing_seconds
+        total = sum(stages.values()) or 1.0
+        steps = max(r.completed_steps, 1)
+        for stage, seconds in stages.items():
+            rows.append(
+                {
+                    "seed": r.seed,
+                    "stage": stage,
+                    "seconds": round(seconds, 6),
+                    "ms_per_step": round(1000.0 * seconds / steps, 4),
+                    "share": round(seconds / total, 4),
+                }
+            )
+    columns = ["seed", "stage", "seconds", "ms_per_step", "share"]
+    return pd.DataFrame(rows, columns=columns)
 
 
 def _with_belief(series: pd.DataFrame, monitoring: RunMonitoring | None) -> pd.DataFrame:

@@ -15,6 +15,7 @@ of every cell at every sample time) and the MFD samples, also after a SUMO failu
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,6 +28,7 @@ from twin.grid import Grid
 from twin.mfd import MFD, MFDImportance
 from twin.sumo.cells import CellGeometry
 from twin.sumo.session import ANTI_GRIDLOCK_OPTIONS, SumoRunError, SumoSession
+from twin.timing import OBSERVATION, READS, SUMO_STEPPING, SUMO_WARMUP, StageTimer
 from twin.traffic.base import TrafficSource
 
 
@@ -85,6 +87,8 @@ class SumoTraffic(TrafficSource):
         self.vehicles_seen: list[int] = []
         self.read_seconds = 0.0
         self.incident_schedule = None
+        #: wall time of SUMO stepping, reads and binning, the observation model (per run)
+        self.timer = StageTimer()
 
     def _model(self) -> MFDImportance:
         g, s = self.geometry, self.scenario
@@ -125,34 +129,42 @@ class SumoTraffic(TrafficSource):
         return self.model.truth if self.model.detection_p < 1.0 else None
 
     def importance_maps(self) -> Iterator[np.ndarray]:
-        import time
-
         from twin.sumo.incidents import IncidentSchedule
 
         s = self.scenario
         self.model = self._model()
         self.snapshots, self.error = [], None
+        self.timer = timer = StageTimer()
         self.incident_schedule = IncidentSchedule(s.incidents, self.geometry, s, self.grid)
         offsets = s.read_offsets()
         first_read = s.sim_begin + 1.0  # the earliest instant with a state to read
+        clock = time.perf_counter
+        t_start = clock()
         session = self.session().start()
+        timer.add(SUMO_WARMUP, clock() - t_start)
         try:
             for k, t in self.sample_times():
+                t_snapshot = clock()
+                stepping = reading = 0.0
                 count = np.zeros(self.grid.shape, dtype=np.int64)
                 distance = np.zeros(self.grid.shape)
                 for offset in offsets:
                     instant = max(t - offset, min(first_read, t))
+                    t0 = clock()
                     try:
                         self.incident_schedule.advance_to(session, instant)
                     except SumoRunError as exc:
                         self.error = str(exc)
                         raise
-                    t0 = time.perf_counter()
+                    t1 = clock()
                     xy, speed = session.vehicles()
                     n, v = self.geometry.count_and_speed(xy, speed)
                     count += n
                     distance += np.nan_to_num(v) * n
-                    self.read_seconds += time.perf_counter() - t0
+                    t2 = clock()
+                    stepping += t1 - t0
+                    reading += t2 - t1
+                self.read_seconds += reading
                 self.vehicles_seen.append(len(xy))  # at the sample time
                 if len(offsets) == 1:
                     mean_speed = v  # one read: as read, bit for bit
@@ -162,8 +174,14 @@ class SumoTraffic(TrafficSource):
                 # The model sees exactly what the tape keeps (float32 speeds), so replays match.
                 count, mean_speed = count.astype(np.int32), mean_speed.astype(np.float32)
                 self.snapshots.append((k, t, count, mean_speed))
+                t3 = clock()
                 importance = self.model.observe(k, count, mean_speed.astype(float))
-                if k >= 0:
+                if k < 0:
+                    timer.add(SUMO_WARMUP, clock() - t_snapshot, calls=0)
+                else:
+                    timer.add(SUMO_STEPPING, stepping)
+                    timer.add(READS, reading + (t3 - t2))
+                    timer.add(OBSERVATION, clock() - t3)
                     yield importance
         finally:
             session.close()
