@@ -28,6 +28,7 @@ from twin.report.load import RunFiles
 
 MAX_FRAMES = 72
 TRAIL = 6
+MANY_DRONES = 16  # above this, each drone is a dot without its trail (the GIF stays readable)
 TITLE_HEIGHT = 22  # pixels reserved at the top for the per-frame title
 
 
@@ -113,8 +114,13 @@ def write_animation(rf: RunFiles, path: Path, max_frames: int = MAX_FRAMES, fps:
             kk = min(int(k), len(pos) - 1)
             px = left + (pos[max(0, kk - TRAIL) : kk + 1, :, 1] + 0.5) * w / ny
             py = top + (pos[max(0, kk - TRAIL) : kk + 1, :, 0] + 0.5) * h / nx
-            r = max(3.0, 0.45 * w / ny)
+            many = pos.shape[1] > MANY_DRONES  # hundreds of drones: a dot each, no trail
+            r = max(1.5 if many else 3.0, 0.45 * w / ny)
             for d in range(pos.shape[1]):
+                if many:
+                    x, y = px[-1, d], py[-1, d]
+                    draw.rectangle([x - r, y - r, x + r, y + r], fill=colours[d])
+                    continue
                 if len(px) > 1:
                     draw.line(list(zip(px[:, d], py[:, d], strict=True)), fill=colours[d], width=2)
                 _marker(draw, d, px[-1, d], py[-1, d], r, colours[d])
@@ -129,7 +135,7 @@ def write_animation(rf: RunFiles, path: Path, max_frames: int = MAX_FRAMES, fps:
             anchor="ma",
         )
         frames.append(
-            img.quantize(colors=128, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE)
+            img.quantize(colors=128, method=Image.Quantize.FASTOCTREE, dither=Image.Dither.NONE)
         )
     path.parent.mkdir(parents=True, exist_ok=True)
     frames[0].save(

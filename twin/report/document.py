@@ -298,7 +298,9 @@ pre{background:#f6f6f6;padding:1em;overflow:auto;font-size:.8em}
 """
 
 
-def render_html(rf: RunFiles, out: Path, sections: list[Section]) -> str:
+def render_html(
+    rf: RunFiles, out: Path, sections: list[Section], report_seconds: float = 0.0
+) -> str:
     header, rows = summary_table(rf.summary)
     parts = [
         "<!DOCTYPE html>",
@@ -337,6 +339,13 @@ def render_html(rf: RunFiles, out: Path, sections: list[Section]) -> str:
                 f'<img src="{_data_uri(out / section.image)}" alt="{html.escape(section.title)}">'
             )
         parts.append(f'<p class="caption">{html.escape(section.caption)}</p>')
+    timing = timing_rows(rf, report_seconds)
+    if timing:
+        parts += [
+            "<h2>Where the time went</h2>",
+            html_table(TIMING_HEADER, timing, "timing"),
+            f'<p class="caption">{html.escape(_timing_caption(rf, timing))}</p>',
+        ]
     parts.append("<h2>Run metadata (run.json)</h2>")
     parts.append(html_table(["key", "value"], metadata_rows(rf.run), "meta"))
     parts.append("<details><summary>run.json</summary><pre>")
@@ -455,6 +464,50 @@ INCIDENT_CAPTION = (
 )
 
 
+TIMING_HEADER = ["stage", "seconds", "ms per step", "share"]
+
+
+def timing_rows(rf: RunFiles, report_seconds: float = 0.0) -> list[list[str]]:
+    """The first seed's stages (``timing.csv``), then the time to draw this report."""
+    t = rf.timing
+    if t is None or t.empty:
+        return []
+    first = t[t["seed"] == t["seed"].iloc[0]]
+    steps = max(len(rf.series.query(f"seed == {rf.first_seed}")["step"].unique()), 1)
+    total = float(first["seconds"].sum()) + report_seconds
+    rows = [
+        [
+            str(r.stage),
+            f"{r.seconds:.2f}",
+            f"{r.ms_per_step:.2f}",
+            f"{100 * r.seconds / total:.1f}%",
+        ]
+        for r in first.itertuples()
+    ]
+    if report_seconds > 0:
+        rows.append(
+            [
+                "report figures",
+                f"{report_seconds:.2f}",
+                f"{1000 * report_seconds / steps:.2f}",
+                f"{100 * report_seconds / total:.1f}%",
+            ]
+        )
+    return rows
+
+
+def _timing_caption(rf: RunFiles, rows: list[list[str]]) -> str:
+    largest = max(rows, key=lambda r: float(r[1]))
+    peak = (rf.run.get("timings") or {}).get("peak_memory_mb")
+    memory = f" Peak memory of the process: {peak:.0f} MB." if peak else ""
+    return (
+        f"Wall time per stage of seed {rf.first_seed}'s run (timing.csv; twin/timing.py): SUMO "
+        "stepping, reads and binning, the observation model, each swarm's decisions, the "
+        "step and scoring of all swarms, recording, then the monitoring and writing of the "
+        f"run folder and the figures of this report. Largest: {largest[0]} ({largest[3]})." + memory
+    )
+
+
 def _monitoring_caption(rf: RunFiles) -> str:
     settings = rf.run.get("monitoring") or {}
     threshold = settings.get("threshold")
@@ -475,7 +528,7 @@ def _monitoring_caption(rf: RunFiles) -> str:
     return text
 
 
-def render_markdown(rf: RunFiles, sections: list[Section]) -> str:
+def render_markdown(rf: RunFiles, sections: list[Section], report_seconds: float = 0.0) -> str:
     header, rows = summary_table(rf.summary)
     lines = [
         f"# Drone-swarm patrol report: {md_escape(rf.run_dir.name + _partial(rf))}",
@@ -513,6 +566,16 @@ def render_markdown(rf: RunFiles, sections: list[Section]) -> str:
         if section.image:
             lines += [f"![{md_escape(section.title)}]({section.image})", ""]
         lines += [md_escape(section.caption), ""]
+    timing = timing_rows(rf, report_seconds)
+    if timing:
+        lines += [
+            "## Where the time went",
+            "",
+            markdown_table(TIMING_HEADER, timing),
+            "",
+            md_escape(_timing_caption(rf, timing)),
+            "",
+        ]
     lines += [
         "## Run metadata (run.json)",
         "",
@@ -526,9 +589,11 @@ def write_report(run_dir: str | Path, animation: bool = True) -> Path:
     rf = load_run(run_dir)
     out = rf.run_dir / REPORT_DIR
     out.mkdir(exist_ok=True)
-    sections, _ = build_sections(rf, out, animation)
+    sections, drawing = build_sections(rf, out, animation)
     html_path = out / "report.html"
-    page, md = render_html(rf, out, sections), render_markdown(rf, sections)
+    seconds = sum(drawing.values())
+    page = render_html(rf, out, sections, seconds)
+    md = render_markdown(rf, sections, seconds)
     atomic_write(html_path, lambda p: p.write_text(page, encoding="utf-8"))
     atomic_write(out / "report.md", lambda p: p.write_text(md, encoding="utf-8"))
     return html_path

@@ -16,9 +16,8 @@ import pandas as pd
 from matplotlib import colormaps
 from matplotlib.axes import Axes
 from matplotlib.collections import LineCollection
-from matplotlib.colors import ListedColormap
+from matplotlib.colors import ListedColormap, to_rgb
 from matplotlib.figure import Figure
-from matplotlib.patches import Rectangle
 from matplotlib.ticker import MaxNLocator
 
 from twin.report.load import RunFiles
@@ -90,19 +89,33 @@ def draw_map(ax: Axes, values: np.ndarray, obstacles: np.ndarray, cmap: str, vma
 
 
 def draw_drones(ax: Axes, positions: np.ndarray, k: int, trail: int, colours: list[Any]) -> None:
-    """Each drone's path over steps ``max(0, k - trail) .. k`` and its marker at ``P_k``."""
+    """Each drone's path over steps ``max(0, k - trail) .. k`` and its marker at ``P_k``.
+
+    One line collection for the paths and one scatter per marker shape, so that 200 drones
+    cost a handful of artists, not 400."""
     start = max(0, k - trail)
     path = positions[start : k + 1]  # (L, N, 2)
-    for d in range(positions.shape[1]):
-        ax.plot(path[:, d, 1], path[:, d, 0], "-", color=colours[d], lw=1.4, alpha=0.85)
-        ax.plot(
-            positions[k, d, 1],
-            positions[k, d, 0],
-            DRONE_MARKERS[d % len(DRONE_MARKERS)],
-            color=colours[d],
-            markeredgecolor="white",
-            markersize=8,
-            markeredgewidth=0.8,
+    n = positions.shape[1]
+    segments = np.transpose(path[:, :, ::-1], (1, 0, 2)).astype(float)  # (N, L, 2) as (x, y)
+    ax.add_collection(
+        LineCollection(segments, colors=colours, linewidths=1.4, alpha=0.85), autolim=False
+    )
+    at = positions[k]
+    rgba = np.asarray(colours, dtype=float).reshape(n, -1)
+    size = 64.0 if n <= 16 else max(6.0, 64.0 * 16 / n)  # hundreds of drones: small marks
+    for m, marker in enumerate(DRONE_MARKERS):
+        d = np.arange(m, n, len(DRONE_MARKERS))
+        if len(d) == 0:
+            continue
+        ax.scatter(
+            at[d, 1],
+            at[d, 0],
+            marker=marker,
+            c=rgba[d],
+            edgecolors="white",
+            s=size,
+            linewidths=0.8 if n <= 16 else 0.3,
+            zorder=3,
         )
 
 
@@ -416,23 +429,26 @@ def figure_network(rf: RunFiles) -> tuple[Figure, str]:
         masked, cmap=IMPORTANCE_CMAP, vmin=0, vmax=rf.importance_vmax, alpha=0.55, extent=extent, origin="upper",
         interpolation="nearest",
     )  # fmt: skip
-    for i, j in np.argwhere(rf.obstacles):
-        ax.add_patch(
-            Rectangle(
-                (x_left + j * cw, y_top - (i + 1) * ch), cw, ch,
-                facecolor=OBSTACLE_COLOUR, edgecolor="none", alpha=0.8, hatch="//",
-            )
-        )  # fmt: skip
+    # obstacle cells: one grey overlay and one hatched contour (not a patch per cell)
+    grey = np.zeros((nx, ny, 4))
+    grey[rf.obstacles] = (*to_rgb(OBSTACLE_COLOUR), 0.8)
+    ax.imshow(grey, extent=extent, origin="upper", interpolation="nearest")
+    if rf.obstacles.any():
+        xs = x_left + (np.arange(ny) + 0.5) * cw
+        ys = y_top - (np.arange(nx) + 0.5) * ch
+        ax.contourf(
+            xs, ys, rf.obstacles.astype(float), levels=[0.5, 1.5], colors="none", hatches=["//"]
+        )
     if net_file is not None:
         shapes = read_lane_shapes(net_file)
         ax.add_collection(LineCollection(shapes, colors="#1b3a5c", linewidths=0.5))
         note = note or f"{len(shapes)} lanes from {net_file.name}."
     elif rf.network is not None:
         note = note or "network.json names no readable net file; lanes not drawn."
-    for r in range(nx + 1):
-        ax.axhline(y_top - r * ch, color="k", lw=0.3, alpha=0.5)
-    for c in range(ny + 1):
-        ax.axvline(x_left + c * cw, color="k", lw=0.3, alpha=0.5)
+    if max(nx, ny) <= 60:  # cell borders (finer grids: they would hide the map)
+        rows = [[(extent[0], y_top - r * ch), (extent[1], y_top - r * ch)] for r in range(nx + 1)]
+        cols = [[(x_left + c * cw, extent[2]), (x_left + c * cw, extent[3])] for c in range(ny + 1)]
+        ax.add_collection(LineCollection(rows + cols, colors="k", linewidths=0.3, alpha=0.5))
     ax.set_xlim(extent[0], extent[1])
     ax.set_ylim(min(extent[2], extent[3]), max(extent[2], extent[3]))
     if rf.network is None or ch < 0:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -40,6 +41,7 @@ class RunFiles:
     monitoring: pd.DataFrame | None = None  # monitoring.csv
     events: pd.DataFrame | None = None  # events.parquet
     incidents: list[dict[str, Any]] | None = None  # incidents.json (scheduled SUMO incidents)
+    timing: pd.DataFrame | None = None  # timing.csv (wall time per stage)
     manifest: dict[str, Any] = field(default_factory=dict)  # manifest.json
     _idleness: dict[tuple[int, str], np.ndarray] = field(default_factory=dict, repr=False)
 
@@ -76,7 +78,7 @@ class RunFiles:
     def horizon(self) -> int:
         return int(self.importance.shape[0]) - 1
 
-    @property
+    @cached_property
     def importance_vmax(self) -> float:
         """Top of the colour scale of importance maps: the run's peak ``T`` rounded up to 0.05
         (1 for a run that reaches it), so that congestion stands out when it stays mild."""
@@ -186,6 +188,7 @@ def load_run(run_dir: str | Path) -> RunFiles:
     per_seed_path = run_dir / "per_seed.csv"
     samples_path = run_dir / "mfd_samples.parquet"
     monitoring_path, events_path = run_dir / "monitoring.csv", run_dir / "events.parquet"
+    timing_path = run_dir / "timing.csv"
     return RunFiles(
         run_dir=run_dir,
         series=pd.read_parquet(run_dir / "series.parquet"),
@@ -201,5 +204,6 @@ def load_run(run_dir: str | Path) -> RunFiles:
         monitoring=pd.read_csv(monitoring_path) if monitoring_path.exists() else None,
         events=pd.read_parquet(events_path) if events_path.exists() else None,
         incidents=_read_json(run_dir / "incidents.json"),
+        timing=pd.read_csv(timing_path) if timing_path.exists() else None,
         manifest=manifest,
     )
