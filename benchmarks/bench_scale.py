@@ -1,0 +1,264 @@
+"""City scale: the whole run against bare SUMO stepping of the same scenario, and how the cost
+per step grows with cells and drones.
+
+``python benchmarks/bench_scale.py`` (default ``configs/shenzhen-city-scale.toml``: 200 drones on
+100 m cells, 720 steps of 15 s, every swarm of the config). In ONE process, one after the other:
+
+- ``bare``: the scenario's SUMO run advanced to every sample time, nothing read (the floor);
+- ``twin``: the same SUMO run through the one experiment runner (:func:`twin.experiment.
+  run_experiment`): three reads per step, binning, the online MFD, every swarm side by side,
+  scoring and recording; then the run folder's monitoring and files.
+
+It prints wall and CPU seconds of each, their ratio (the target is at most 1.3), the peak
+memory of the process, and the per-stage table of the ``twin`` run (``twin/timing.py``).
+
+``--sweep`` measures the growth: for every cell size x drone count (default 500,250,100 m x
+4,50,200 drones) one ``twin run`` of ``--hours`` of the rush hour in a fresh process (its wall
+time, peak memory from ``run.json`` and its ``timing.csv``), and prints the table: wall time,
+peak memory and milliseconds per step of SUMO, of the coupling (reads, binning, MFD) and of the
+swarms together.
+
+Checks (exit 1 when they fail): the coupled run leaves SUMO in the same state as the bare run
+(same vehicles running at the end), and the per-stage times add up to the patrol loop's wall
+time within 2%. ``--quick``: a small generated grid with 50 drones on 100 m cells (seconds).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import pandas as pd
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from twin.config import load_config
+from twin.experiment import Experiment, SumoInputs, build_source, limit_threads, run_experiment
+from twin.runs import peak_memory_mb, timing_frame
+from twin.timing import OBSERVATION, READS, SUMO_STEPPING, SUMO_WARMUP, TRAFFIC_OTHER
+
+ROOT = Path(__file__).resolve().parents[1]
+SCALE_CONFIG = ROOT / "configs/shenzhen-city-scale.toml"
+QUICK_CONFIG = """
+[swarm]
+n_drones = 50
+
+[traffic]
+kind = "sumo"
+net = "small.net.xml"
+routes = ["small.trips.xml"]
+cell_m = 100.0
+drone_speed_kmh = 24.0
+begin = "00:05"
+warmup_min = 5.0
+horizon = 40
+
+[evaluate]
+swarms = ["random", "greedy", "sweeping", "greedy-coordinated", "visit-gain", "lookahead",
+          "rl", "rl-decentralized"]
+"""
+COUPLING = (READS, OBSERVATION, TRAFFIC_OTHER)
+
+
+def quick_config(folder: Path) -> Path:
+    from twin.sumo.network import generate_grid_scenario
+
+    generate_grid_scenario(folder, blocks=6, block_m=300, end_s=1800, period_s=1.0, seed=5)
+    path = folder / "quick.toml"
+    path.write_text(QUICK_CONFIG)
+    return path
+
+
+def timed(fn):
+    c0, w0 = time.process_time(), time.perf_counter()
+    out = fn()
+    return time.process_time() - c0, time.perf_counter() - w0, out
+
+
+def experiment_of(config_path: Path, horizon: int | None) -> Experiment:
+    config = load_config(config_path)
+    return Experiment(
+        config=config,
+        swarms=config.evaluate.swarms,
+        seeds=[config.evaluate.seed],
+        sumo=SumoInputs(horizon=horizon),
+        skip_unavailable=True,
+    )
+
+
+def bare(experiment: Experiment):
+    """SUMO alone over the run's sample times (warm-up included): the floor."""
+    source = build_source(experiment)
+
+    def run():
+        session = source.session().start()
+        try:
+            for _, t in source.sample_times():
+                session.advance_to(t)
+            return len(session.vehicles()[0])  # one read at the very end: on the road
+        finally:
+            session.close()
+
+    return timed(run)
+
+
+def coupled(experiment: Experiment):
+    def run():
+        outcome = run_experiment(experiment, keep_sources=True)
+        source = outcome.sources[0]
+        running = source.vehicles_seen[-1] if source.vehicles_seen else 0  # at the last sample
+        return outcome, running
+
+    return timed(run)
+
+
+def write_folder(outcome, folder: Path) -> float:
+    """The run folder as ``twin run`` writes it (monitoring, tape, MFD samples); seconds."""
+    from twin.experiment import close_sources, record, run_metadata
+
+    t0 = time.perf_counter()
+    record(folder, outcome, run_metadata(outcome, "run"))
+    close_sources(outcome)
+    return time.perf_counter() - t0
+
+
+def stage_table(stages: dict[str, float], steps: int) -> str:
+    total = sum(stages.values()) or 1.0
+    lines = [f"{'stage':40s} {'s':>8s} {'ms/step':>9s} {'share':>7s}"]
+    for name, s in stages.items():
+        lines.append(f"{name:40s} {s:8.2f} {1000 * s / max(steps, 1):9.2f} {100 * s / total:6.1f}%")
+    return "\n".join(lines)
+
+
+def scale_run(config_path: Path, horizon: int | None, out: Path) -> str:
+    """Bare against coupled in one process; returns a disagreement, or ''."""
+    experiment = experiment_of(config_path, horizon)
+    cpu_b, wall_b, running_b = bare(experiment)
+    cpu_t, wall_t, (outcome, running_t) = coupled(experiment)
+    result = outcome.results[0]
+    writing = write_folder(outcome, out)
+    steps = result.completed_steps
+    stages = dict(result.stage_seconds)
+    swarms = sum(s for k, s in stages.items() if k.startswith("swarm "))
+    print(
+        f"scenario: {config_path.name}, {result.grid.nx} x {result.grid.ny} cells "
+        f"({result.grid.n_free} free), {result.positions.shape[2]} drones, T = {steps}, "
+        f"{len(result.swarms)} swarms ({', '.join(result.swarms)})"
+    )
+    print(f"{'run':30s} {'cpu s':>8s} {'wall s':>8s} {'wall / bare':>12s} {'cpu / bare':>11s}")
+    print(f"{'bare SUMO stepping':30s} {cpu_b:8.2f} {wall_b:8.2f} {1.0:12.3f} {1.0:11.3f}")
+    print(
+        f"{'twin run (all swarms)':30s} {cpu_t:8.2f} {wall_t:8.2f} {wall_t / wall_b:12.3f} "
+        f"{cpu_t / cpu_b:11.3f}"
+    )
+    sumo = stages.get(SUMO_STEPPING, 0.0) + stages.get(SUMO_WARMUP, 0.0)
+    coupling = sum(stages.get(k, 0.0) for k in COUPLING)
+    print(
+        f"inside the twin run: SUMO {sumo:.1f} s, coupling {coupling:.1f} s, swarms {swarms:.1f} s;"
+        f" then monitoring and the run folder {writing:.1f} s (not in the ratio)"
+    )
+    print(f"peak memory of the process: {peak_memory_mb()} MB")
+    print(stage_table(stages, steps))
+    problems = []
+    if running_b != running_t:
+        problems.append(f"vehicles running at the end: bare {running_b}, coupled {running_t}")
+    covered = sum(stages.values())
+    if abs(covered - result.seconds) > 0.02 * result.seconds + 0.05:
+        problems.append(f"stages add up to {covered:.2f} s of the loop's {result.seconds:.2f} s")
+    timing_frame([result], writing).to_csv(out / "bench_timing.csv", index=False)
+    return "; ".join(problems)
+
+
+def sweep(config_path: Path, cells: list[float], drones: list[int], hours: float, out: Path):
+    """One ``twin run`` per (cell size, drones) in a fresh process; the table of their costs."""
+    config = load_config(config_path)
+    speed = config.traffic.drone_speed_kmh
+    rows = []
+    for cell in cells:
+        step_s = cell / (speed / 3.6)
+        horizon = max(1, round(hours * 3600 / step_s))
+        for n in drones:
+            folder = out / f"cell{cell:g}-drones{n}"
+            cmd = [
+                sys.executable, "-m", "twin", "run", "--config", str(config_path),
+                "--cell-m", f"{cell:g}", "--drones", str(n), "--horizon", str(horizon),
+                "--out", str(folder), "--no-report", "--quiet",
+            ]  # fmt: skip
+            t0 = time.perf_counter()
+            done = subprocess.run(cmd, capture_output=True, text=True, env=os.environ.copy())
+            wall = time.perf_counter() - t0
+            if done.returncode != 0:
+                tail = (done.stderr.strip().splitlines() or ["?"])[-1]
+                sys.exit(f"bench_scale: {cell:g} m x {n} drones failed: {tail}")
+            meta = json.loads((folder / "run.json").read_text())
+            timing = pd.read_csv(folder / "timing.csv").set_index("stage")["ms_per_step"]
+            grid = meta["grid"]
+            rows.append(
+                {
+                    "cell_m": cell,
+                    "drones": n,
+                    "cells": grid["nx"] * grid["ny"],
+                    "free": grid["n_free"],
+                    "steps": horizon,
+                    "wall_s": round(wall, 1),
+                    "peak_mb": meta["timings"].get("peak_memory_mb"),
+                    "sumo_ms": round(timing.get(SUMO_STEPPING, 0.0), 2),
+                    "coupling_ms": round(sum(timing.get(k, 0.0) for k in COUPLING), 2),
+                    "swarms_ms": round(timing[timing.index.str.startswith("swarm ")].sum(), 2),
+                    "scoring_ms": round(timing.get("step and scoring", 0.0), 2),
+                }
+            )
+            print(pd.DataFrame(rows[-1:]).to_string(index=False, header=len(rows) == 1))
+    table = pd.DataFrame(rows)
+    table.to_csv(out / "scale_sweep.csv", index=False)
+    print(
+        f"\nms per step (SUMO stepping excludes the warm-up); written to {out / 'scale_sweep.csv'}"
+    )
+    print(table.to_markdown(index=False) if _has_tabulate() else table.to_string(index=False))
+
+
+def _has_tabulate() -> bool:
+    try:
+        import tabulate  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--config", type=Path, default=SCALE_CONFIG)
+    p.add_argument("--horizon", type=int, default=None, help="steps (default: the config's)")
+    p.add_argument("--quick", action="store_true", help="small generated grid, seconds")
+    p.add_argument("--sweep", action="store_true", help="cell size x drones, fresh processes")
+    p.add_argument("--cells", default="500,250,100", help="cell sizes (m) of the sweep")
+    p.add_argument("--drones", default="4,50,200", help="drone counts of the sweep")
+    p.add_argument("--hours", type=float, default=1.0, help="rush hour simulated per sweep run")
+    p.add_argument("--out", type=Path, default=None, help="folder for the runs (default: temp)")
+    args = p.parse_args()
+    limit_threads()
+    tmp = tempfile.TemporaryDirectory()
+    out = args.out or Path(tmp.name)
+    out.mkdir(parents=True, exist_ok=True)
+    config_path = quick_config(Path(tmp.name)) if args.quick else args.config
+    if args.sweep:
+        cells = [float(c) for c in args.cells.split(",")]
+        drones = [int(d) for d in args.drones.split(",")]
+        hours = 0.1 if args.quick else args.hours
+        sweep(config_path, cells if not args.quick else [200.0, 100.0], drones, hours, out)
+        tmp.cleanup()
+        return
+    problem = scale_run(config_path, args.horizon, out / "scale-run")
+    tmp.cleanup()
+    if problem:
+        sys.exit(f"bench_scale: the implementations disagree: {problem}")
+
+
+if __name__ == "__main__":
+    main()
