@@ -20,7 +20,9 @@ swarms together.
 
 Checks (exit 1 when they fail): the coupled run leaves SUMO in the same state as the bare run
 (same vehicles running at the end), and the per-stage times add up to the patrol loop's wall
-time within 2%. ``--quick``: a small generated grid with 50 drones on 100 m cells (seconds).
+time within 2%. ``--meso`` runs the same with SUMO's mesoscopic model and compares speed and
+monitoring results (R_hat_T, events, share seen, latency, belief error) swarm by swarm.
+``--quick``: a small generated grid with 50 drones on 100 m cells (seconds).
 """
 
 from __future__ import annotations
@@ -81,13 +83,13 @@ def timed(fn):
     return time.process_time() - c0, time.perf_counter() - w0, out
 
 
-def experiment_of(config_path: Path, horizon: int | None) -> Experiment:
+def experiment_of(config_path: Path, horizon: int | None, meso: bool = False) -> Experiment:
     config = load_config(config_path)
     return Experiment(
         config=config,
         swarms=config.evaluate.swarms,
         seeds=[config.evaluate.seed],
-        sumo=SumoInputs(horizon=horizon),
+        sumo=SumoInputs(horizon=horizon, mesoscopic=True if meso else None),
         skip_unavailable=True,
     )
 
@@ -136,9 +138,9 @@ def stage_table(stages: dict[str, float], steps: int) -> str:
     return "\n".join(lines)
 
 
-def scale_run(config_path: Path, horizon: int | None, out: Path) -> str:
+def scale_run(config_path: Path, horizon: int | None, out: Path, meso: bool = False) -> str:
     """Bare against coupled in one process; returns a disagreement, or ''."""
-    experiment = experiment_of(config_path, horizon)
+    experiment = experiment_of(config_path, horizon, meso)
     cpu_b, wall_b, running_b = bare(experiment)
     cpu_t, wall_t, (outcome, running_t) = coupled(experiment)
     result = outcome.results[0]
@@ -149,7 +151,8 @@ def scale_run(config_path: Path, horizon: int | None, out: Path) -> str:
     print(
         f"scenario: {config_path.name}, {result.grid.nx} x {result.grid.ny} cells "
         f"({result.grid.n_free} free), {result.positions.shape[2]} drones, T = {steps}, "
-        f"{len(result.swarms)} swarms ({', '.join(result.swarms)})"
+        f"{len(result.swarms)} swarms ({', '.join(result.swarms)}), "
+        f"SUMO {'mesoscopic' if meso else 'microscopic'}"
     )
     print(f"{'run':30s} {'cpu s':>8s} {'wall s':>8s} {'wall / bare':>12s} {'cpu / bare':>11s}")
     print(f"{'bare SUMO stepping':30s} {cpu_b:8.2f} {wall_b:8.2f} {1.0:12.3f} {1.0:11.3f}")
@@ -172,7 +175,39 @@ def scale_run(config_path: Path, horizon: int | None, out: Path) -> str:
     if abs(covered - result.seconds) > 0.02 * result.seconds + 0.05:
         problems.append(f"stages add up to {covered:.2f} s of the loop's {result.seconds:.2f} s")
     timing_frame([result], writing).to_csv(out / "bench_timing.csv", index=False)
+    (out / "bench_walls.json").write_text(json.dumps({"bare": wall_b, "twin": wall_t}))
     return "; ".join(problems)
+
+
+MESO_COLUMNS = {
+    "R_hat_T": "R_hat_T",
+    "events": "events",
+    "pct_events_seen": "% seen",
+    "latency_median_min": "latency (min)",
+    "belief_error": "belief error",
+}
+
+
+def compare_meso(micro: Path, meso: Path) -> None:
+    """Mesoscopic against microscopic SUMO: speed, and how the monitoring results differ."""
+    walls = {k: json.loads((f / "bench_walls.json").read_text()) for k, f in (("micro", micro), ("meso", meso))}  # fmt: skip
+    a = pd.read_csv(micro / "summary.csv").set_index("swarm")
+    b = pd.read_csv(meso / "summary.csv").set_index("swarm")
+    print(
+        f"\nmesoscopic against microscopic: bare SUMO {walls['micro']['bare']:.1f} s -> "
+        f"{walls['meso']['bare']:.1f} s (x{walls['micro']['bare'] / walls['meso']['bare']:.2f}), "
+        f"whole twin run {walls['micro']['twin']:.1f} s -> {walls['meso']['twin']:.1f} s "
+        f"(x{walls['micro']['twin'] / walls['meso']['twin']:.2f})"
+    )
+    columns = [c for c in MESO_COLUMNS if c in a.columns and c in b.columns]
+    table = pd.DataFrame(
+        {
+            f"{MESO_COLUMNS[c]} {mode}": f[c]
+            for c in columns
+            for mode, f in (("micro", a), ("meso", b))
+        }
+    )
+    print(table.round(3).to_string())
 
 
 def sweep(config_path: Path, cells: list[float], drones: list[int], hours: float, out: Path):
@@ -241,6 +276,9 @@ def main() -> None:
     p.add_argument("--drones", default="4,50,200", help="drone counts of the sweep")
     p.add_argument("--hours", type=float, default=1.0, help="rush hour simulated per sweep run")
     p.add_argument("--out", type=Path, default=None, help="folder for the runs (default: temp)")
+    p.add_argument(
+        "--meso", action="store_true", help="also run mesoscopic SUMO and compare the results"
+    )
     args = p.parse_args()
     limit_threads()
     tmp = tempfile.TemporaryDirectory()
@@ -255,6 +293,10 @@ def main() -> None:
         tmp.cleanup()
         return
     problem = scale_run(config_path, args.horizon, out / "scale-run")
+    if args.meso:
+        print()
+        problem = problem or scale_run(config_path, args.horizon, out / "scale-meso", meso=True)
+        compare_meso(out / "scale-run", out / "scale-meso")
     tmp.cleanup()
     if problem:
         sys.exit(f"bench_scale: the implementations disagree: {problem}")
