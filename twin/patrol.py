@@ -69,12 +69,17 @@ def run_patrol(
     progress: bool = False,
     keep_importance: bool = True,
     stop: Callable[[], bool] | None = None,
+    on_step: Callable[[int, dict[str, np.ndarray], np.ndarray], None] | None = None,
 ) -> PatrolResult:
     """Run every swarm in ``policies`` from ``starts`` over the whole horizon of ``source``.
 
     If the source fails mid-run (a simulation crash), or ``stop()`` turns true between two steps
     (Ctrl-C, see :func:`twin.experiment.stop_on_interrupt`), the result keeps the steps completed
     so far, truncated to them, and says why in ``error``.
+
+    ``on_step(k, positions, importance)``, if given, is called at ``k = 0 .. T`` once every
+    swarm stands at ``P_k`` (``{swarm: (N, 2)}``) under ``T^k``, before ``T^{k+1}`` is pulled
+    (a live source is still at step k's time): the GUI draws there.
     """
     grid, horizon = source.grid, source.horizon
     names = list(policies)
@@ -104,6 +109,8 @@ def run_patrol(
             states.append(initial_state(grid, starts.copy(), t_now))
             views.append(swarm_view(states[s], horizon, grid, params))
             positions[s, 0] = starts
+        if on_step is not None:
+            on_step(0, {name: states[s].positions for s, name in enumerate(names)}, t_now)
         for k in range(horizon):
             t_next = next(maps)
             truth = _record_truth(source, truth, k + 1, horizon, keep_importance)
@@ -129,6 +136,8 @@ def run_patrol(
                 views[s] = swarm_view(states[s], horizon, grid, params)
                 policy.learn(Transition(view, actions, out.rewards, views[s]))
             done = k + 1
+            if on_step is not None:
+                on_step(done, {name: states[s].positions for s, name in enumerate(names)}, t_next)
             if bar is not None:
                 bar.update(1)
                 clock = source.clock(k + 1)

@@ -85,6 +85,8 @@ class SumoTraffic(TrafficSource):
         self.vehicles_seen: list[int] = []
         self.read_seconds = 0.0
         self.incident_schedule = None
+        #: a :class:`twin.sumo.gui.GuiSettings` to run under sumo-gui (``--gui``); None: libsumo
+        self.gui = None
 
     def _model(self) -> MFDImportance:
         g, s = self.geometry, self.scenario
@@ -110,6 +112,7 @@ class SumoTraffic(TrafficSource):
             mesoscopic=s.mesoscopic,
             config_file=s.sumocfg,
             extra_options=(*ANTI_GRIDLOCK_OPTIONS, *s.sumo_options),
+            gui=self.gui,
         )
 
     def sample_times(self) -> list[tuple[int, float]]:
