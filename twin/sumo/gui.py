@@ -259,9 +259,17 @@ class GuiDrawer:
             frame = Path(self._tmp.name) / f"frame-{len(self.frames):05d}.png"
             traci.gui.screenshot(traci.gui.DEFAULT_VIEW, str(frame))
             self.frames.append(frame)
-            if k == self.source.horizon:  # a screenshot is taken at the next simulation step
-                with contextlib.suppress(Exception):
-                    traci.simulationStep()
+            self._pending = True
+            if k == self.source.horizon:
+                self.flush()
+
+    def flush(self) -> None:
+        """Take the last requested screenshot: sumo-gui takes it at the next simulation step,
+        so advance SUMO by one step once every read is done (the results are unchanged)."""
+        if getattr(self, "_pending", False):
+            self._pending = False
+            with contextlib.suppress(Exception):
+                self._traci().simulationStep()
 
     def _shade(self, positions: Mapping[str, np.ndarray], importance: np.ndarray) -> None:
         grid = self.source.grid

@@ -150,7 +150,8 @@ class SumoSession:
 
         cmd = [self.gui.binary(), *self.command()[1:], *self.gui.sumo_options()]
         try:
-            traci.start(cmd, stdout=subprocess.DEVNULL)
+            with contextlib.redirect_stdout(io.StringIO()):  # traci's "Retrying in 1 seconds"
+                traci.start(cmd, stdout=subprocess.DEVNULL)
         except Exception as exc:  # traci raises FatalTraCIError or OSError
             with contextlib.suppress(Exception):
                 traci.close()
