@@ -68,6 +68,7 @@ class GuiSettings:
     shade: str = "belief"
     record: Path | None = None
     window: tuple[int, int] = (1280, 800)
+    #: keep every step's screenshot here (``frame-00000.png`` ...), with or without ``record``
     frames_dir: Path | None = field(default=None, repr=False)
 
     def binary(self) -> str:
@@ -188,8 +189,12 @@ class GuiDrawer:
         self.source = None
         self.frames: list[Path] = []
         self._tmp = None
-        if settings.record is not None:
+        self._frames_dir = settings.frames_dir
+        if settings.record is not None and self._frames_dir is None:
             self._tmp = tempfile.TemporaryDirectory(prefix="twin-frames-")
+            self._frames_dir = Path(self._tmp.name)
+        #: the view's ``((xmin, ymin), (xmax, ymax))`` in network metres (to place pixels)
+        self.view_boundary = None
         self._fills: dict[str, tuple] = {}
         self._belief: np.ndarray | None = None
         self._ready = False
@@ -223,6 +228,7 @@ class GuiDrawer:
                 traci.polygon.add(f"cell_{i}_{j}", shape, colour, fill=True, layer=-1)
         view = traci.gui.DEFAULT_VIEW
         traci.gui.setBoundary(view, g.x0, g.y_top - grid.nx * c, g.x0 + grid.ny * c, g.y_top)
+        self.view_boundary = traci.gui.getBoundary(view)
         self._fills = {}
         self._belief = np.zeros(grid.shape)
         self._drones: set[str] = set()
@@ -255,8 +261,8 @@ class GuiDrawer:
                     traci.poi.setPosition(pid, float(x), float(y))
                     traci.polygon.setShape(f"fov_{pid}", fov)
         self._mark_incidents()
-        if self._tmp is not None:
-            frame = Path(self._tmp.name) / f"frame-{len(self.frames):05d}.png"
+        if self._frames_dir is not None:
+            frame = Path(self._frames_dir) / f"frame-{len(self.frames):05d}.png"
             traci.gui.screenshot(traci.gui.DEFAULT_VIEW, str(frame))
             self.frames.append(frame)
             self._pending = True
@@ -314,7 +320,7 @@ class GuiDrawer:
 
     def finish(self) -> Path | None:
         """Assemble the recorded frames into ``--record``'s file; returns it (None: no record)."""
-        if self._tmp is None:
+        if self.settings.record is None:
             return None
         try:
             frames = [f for f in self.frames if _wait_for(f)]
@@ -323,8 +329,9 @@ class GuiDrawer:
             write_video(self.settings.record, frames)
             return self.settings.record
         finally:
-            self._tmp.cleanup()
-            self._tmp = None
+            if self._tmp is not None:
+                self._tmp.cleanup()
+                self._tmp = None
 
 
 def _wait_for(path: Path, seconds: float = 5.0) -> bool:
