@@ -202,6 +202,7 @@ def run_experiment(
     keep_sources: bool = False,
     on_source=None,
     interruptible: bool = False,
+    on_step=None,
 ) -> ExperimentResult:
     """Run every seed of ``experiment``: one patrol pass of all swarms per seed.
 
@@ -210,16 +211,19 @@ def run_experiment(
     :func:`record` (their MFD fit and tape); otherwise each is closed after its pass. With
     ``interruptible`` a Ctrl-C stops the run after its current step (:func:`stop_on_interrupt`):
     the result keeps the steps done, runs no more seeds and says ``interrupted``.
+    ``on_step`` is handed to :func:`twin.patrol.run_patrol` (the GUI's per-step drawer).
     """
     with stop_on_interrupt(interruptible) as stop:
-        outcome = _run_seeds(experiment, progress, keep_sources, on_source, stop)
+        outcome = _run_seeds(experiment, progress, keep_sources, on_source, stop, on_step)
     outcome.interrupted = stop() or any(
         (r.error or "").startswith(INTERRUPTED) for r in outcome.results
     )
     return outcome
 
 
-def _run_seeds(experiment, progress, keep_sources, on_source, stop) -> ExperimentResult:
+def _run_seeds(
+    experiment, progress, keep_sources, on_source, stop, on_step=None
+) -> ExperimentResult:
     t0 = time.perf_counter()
     results, traffic, sources = [], [], []
     swarms: dict[str, Policy] = {}
@@ -246,6 +250,7 @@ def _run_seeds(experiment, progress, keep_sources, on_source, stop) -> Experimen
                 progress=progress,
                 keep_importance=experiment.keep_importance,
                 stop=stop,
+                on_step=on_step,
             )
             results.append(result)
             traffic.append(source.metadata())

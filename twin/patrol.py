@@ -20,7 +20,15 @@ from twin.grid import Grid
 from twin.policies import Policy, SwarmView, Transition
 from twin.scores import ScoreParams, coverage
 from twin.swarm import InfeasibleActionError, SwarmState, initial_state, random_starts, step
-from twin.timing import RECORDING, SCORING, TRAFFIC, TRAFFIC_OTHER, StageTimer, swarm_stage
+from twin.timing import (
+    LIVE_VIEW,
+    RECORDING,
+    SCORING,
+    TRAFFIC,
+    TRAFFIC_OTHER,
+    StageTimer,
+    swarm_stage,
+)
 from twin.traffic.base import TrafficSource
 
 __all__ = ["PatrolResult", "random_starts", "run_patrol", "swarm_rng", "swarm_view"]
@@ -72,12 +80,17 @@ def run_patrol(
     progress: bool = False,
     keep_importance: bool = True,
     stop: Callable[[], bool] | None = None,
+    on_step: Callable[[int, dict[str, np.ndarray], np.ndarray], None] | None = None,
 ) -> PatrolResult:
     """Run every swarm in ``policies`` from ``starts`` over the whole horizon of ``source``.
 
     If the source fails mid-run (a simulation crash), or ``stop()`` turns true between two steps
     (Ctrl-C, see :func:`twin.experiment.stop_on_interrupt`), the result keeps the steps completed
     so far, truncated to them, and says why in ``error``.
+
+    ``on_step(k, positions, importance)``, if given, is called at ``k = 0 .. T`` once every
+    swarm stands at ``P_k`` (``{swarm: (N, 2)}``) under ``T^k``, before ``T^{k+1}`` is pulled
+    (a live source is still at step k's time): the GUI draws there.
     """
     grid, horizon = source.grid, source.horizon
     names = list(policies)
@@ -111,6 +124,9 @@ def run_patrol(
             states.append(initial_state(grid, starts.copy(), t_now))
             views.append(swarm_view(states[s], horizon, grid, params))
             positions[s, 0] = starts
+        if on_step is not None:
+            with timer.stage(LIVE_VIEW):
+                on_step(0, {name: states[s].positions for s, name in enumerate(names)}, t_now)
         for k in range(horizon):
             with timer.stage(TRAFFIC):
                 t_next = next(maps)
@@ -144,6 +160,10 @@ def run_patrol(
                 policy.learn(Transition(view, actions, out.rewards, views[s]))
                 timer.add(stage, time.perf_counter() - t1, calls=0)
             done = k + 1
+            if on_step is not None:
+                with timer.stage(LIVE_VIEW):
+                    positions_now = {name: states[s].positions for s, name in enumerate(names)}
+                    on_step(done, positions_now, t_next)
             if bar is not None:
                 bar.update(1)
                 clock = source.clock(k + 1)

@@ -67,7 +67,9 @@ RUN_FILE_NAMES = frozenset(
     }
 )  # fmt: skip
 #: Options that change only what is printed: a rerun differing in these is the same command.
-DISPLAY_OPTIONS = frozenset({"quiet", "no_report", "func"})
+DISPLAY_OPTIONS = frozenset(
+    {"quiet", "no_report", "func", "gui", "gui_swarms", "gui_shade", "record"}
+)
 
 
 def new_run_dir(root: str | Path, prefix: str) -> Path:

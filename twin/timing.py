@@ -22,6 +22,7 @@ TRAFFIC_OTHER = "traffic source (other)"
 SCORING = "step and scoring"
 RECORDING = "recording"
 WRITING = "monitoring and writing"
+LIVE_VIEW = "live view (sumo-gui drawing, screenshots)"
 
 
 def swarm_stage(name: str) -> str:

@@ -15,7 +15,7 @@ import sys
 from twin import __version__
 from twin.errors import UserError
 
-COMMANDS = ["evaluate", "pretrain", "network", "run", "report", "sweep"]
+COMMANDS = ["evaluate", "pretrain", "network", "run", "report", "sweep", "replay"]
 
 #: The largest seed a command takes (SUMO's seeds are 32-bit signed integers).
 MAX_SEED = 2**31 - 1

@@ -82,25 +82,54 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument("--no-report", action="store_true", help="do not render the HTML report")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_gui_arguments(p)
     p.set_defaults(func=main)
 
 
-def main(args: argparse.Namespace) -> int:
-    from twin.config import load_config, shipped_config
-    from twin.experiment import (
-        Experiment,
-        SumoInputs,
-        limit_threads,
-        max_memory_gb,
-        parse_swarm_names,
-        record,
-        run_experiment,
-        run_metadata,
+def add_gui_arguments(p) -> None:
+    """``--gui``, ``--gui-swarms``, ``--gui-shade``, ``--record`` (``twin run``, ``twin replay``)."""
+    p.add_argument(
+        "--gui",
+        action="store_true",
+        help="watch it in sumo-gui (through traci; same simulation, same results); without a "
+        "display twin starts Xvfb (apt-get install xvfb)",
     )
-    from twin.metrics import format_comparison, format_results
-    from twin.runs import discard_run_dir, invocation, new_run_dir, prepare_run_dir
+    p.add_argument(
+        "--gui-swarms", type=str, help="comma-separated swarms drawn in the GUI (default all)"
+    )
+    p.add_argument(
+        "--gui-shade",
+        choices=["belief", "truth"],
+        default="belief",
+        help="shade cells by the importance the first shown swarm believes, or the true one",
+    )
+    p.add_argument(
+        "--record",
+        type=Path,
+        help="save the GUI's view at every step as a video (FILE.mp4 or FILE.gif); implies --gui",
+    )
 
-    limit_threads()
+
+def gui_drawer(args: argparse.Namespace, swarms):
+    """The per-step drawer of ``--gui`` (None without it), its settings checked."""
+    if not (args.gui or args.record):
+        return None
+    from twin.sumo.gui import GuiDrawer, GuiSettings, check_settings
+
+    shown = (
+        [s.strip() for s in args.gui_swarms.split(",") if s.strip()] if args.gui_swarms else None
+    )
+    settings = GuiSettings(swarms=shown, shade=args.gui_shade, record=args.record)
+    check_settings(settings, list(swarms))
+    return GuiDrawer(settings, list(swarms))
+
+
+def build_experiment(args: argparse.Namespace):
+    """The :class:`twin.experiment.Experiment` of ``twin run``'s flags (``twin replay`` rebuilds
+    a run's from the flags recorded in its ``run.json``)."""
+    from twin.config import load_config, shipped_config
+    from twin.experiment import Experiment, SumoInputs, parse_swarm_names
+
     for flag, value in (
         ("--cell-m", args.cell_m),
         ("--drones", args.drones),
@@ -149,16 +178,44 @@ def main(args: argparse.Namespace) -> int:
         skip_unavailable=args.swarms is None,
         max_memory_gb=args.max_memory_gb,
     )
+    return experiment
+
+
+def main(args: argparse.Namespace) -> int:
+    import contextlib
+
+    from twin.experiment import limit_threads, max_memory_gb, record, run_experiment, run_metadata
+    from twin.metrics import format_comparison, format_results
+    from twin.runs import discard_run_dir, invocation, new_run_dir, prepare_run_dir
+
+    limit_threads()
+    experiment = build_experiment(args)
+    drawer = gui_drawer(args, experiment.swarms)
     max_memory_gb(experiment)  # a bad limit is refused before any folder is made
     run_dir = prepare_run_dir(args.out or new_run_dir("runs", "run"), invocation("run", args))
+
+    def on_source(source) -> None:
+        _announce(source)
+        if drawer is not None:
+            drawer.attach(source)
+            print(drawer.legend(), file=sys.stderr)
+
     try:
-        outcome = run_experiment(
-            experiment,
-            progress=not args.quiet and sys.stderr.isatty(),
-            keep_sources=True,
-            on_source=_announce,
-            interruptible=True,
-        )
+        with contextlib.ExitStack() as stack:
+            if drawer is not None:
+                from twin.sumo.gui import display
+
+                stack.enter_context(display())
+            outcome = run_experiment(
+                experiment,
+                progress=not args.quiet and sys.stderr.isatty(),
+                keep_sources=True,
+                on_source=on_source,
+                interruptible=True,
+                on_step=drawer,
+            )
+            if drawer is not None and args.record:  # sumo-gui has closed; Xvfb still runs
+                print(f"video: {drawer.finish()}", file=sys.stderr)
     except UserError:
         discard_run_dir(run_dir)
         raise

@@ -17,10 +17,11 @@ import io
 import itertools
 import os
 import re
+import subprocess
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -44,7 +45,13 @@ class SumoRunError(RuntimeError):
 
 
 def _libsumo():
-    """Import libsumo, silencing its print about the pyarrow version on import."""
+    """The API of the open session: traci when it runs under sumo-gui (``gui`` set), else
+    libsumo (imported silencing its print about the pyarrow version). Both have the same calls."""
+    active = SumoSession._active
+    if active is not None and active.gui is not None:
+        import traci
+
+        return traci
     with contextlib.redirect_stdout(io.StringIO()):
         import libsumo
     return libsumo
@@ -64,6 +71,9 @@ class SumoSession:
     extra_options: Sequence[str] = ANTI_GRIDLOCK_OPTIONS
     additional_files: Sequence[Path] = ()
     config_file: Path | None = None
+    #: run under sumo-gui through traci (a :class:`twin.sumo.gui.GuiSettings`); None: libsumo.
+    #: The simulation is the same, so are the results.
+    gui: Any = None
     started: bool = field(default=False, init=False)
 
     _active: ClassVar[SumoSession | None] = None
@@ -115,6 +125,9 @@ class SumoSession:
         for path in files:
             if not Path(path).exists():
                 raise UserError(f"{path}: no such file")
+        if self.gui is not None:
+            self._start_gui()
+            return self
         libsumo = _libsumo()
         stderr = _capture_fd2()
         try:
@@ -130,6 +143,21 @@ class SumoSession:
         SumoSession._active = self
         self.started = True
         return self
+
+    def _start_gui(self) -> None:
+        """Start sumo-gui through traci with the same options (see :mod:`twin.sumo.gui`)."""
+        import traci
+
+        cmd = [self.gui.binary(), *self.command()[1:], *self.gui.sumo_options()]
+        try:
+            with contextlib.redirect_stdout(io.StringIO()):  # traci's "Retrying in 1 seconds"
+                traci.start(cmd, stdout=subprocess.DEVNULL)
+        except Exception as exc:  # traci raises FatalTraCIError or OSError
+            with contextlib.suppress(Exception):
+                traci.close()
+            raise UserError(f"--gui: sumo-gui did not start ({_first_line(str(exc))})") from None
+        SumoSession._active = self
+        self.started = True
 
     @property
     def time(self) -> float:

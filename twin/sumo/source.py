@@ -89,6 +89,8 @@ class SumoTraffic(TrafficSource):
         self.incident_schedule = None
         #: wall time of SUMO stepping, reads and binning, the observation model (per run)
         self.timer = StageTimer()
+        #: a :class:`twin.sumo.gui.GuiSettings` to run under sumo-gui (``--gui``); None: libsumo
+        self.gui = None
 
     def _model(self) -> MFDImportance:
         g, s = self.geometry, self.scenario
@@ -114,6 +116,7 @@ class SumoTraffic(TrafficSource):
             mesoscopic=s.mesoscopic,
             config_file=s.sumocfg,
             extra_options=(*ANTI_GRIDLOCK_OPTIONS, *s.sumo_options),
+            gui=self.gui,
         )
 
     def sample_times(self) -> list[tuple[int, float]]:

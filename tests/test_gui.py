@@ -1,0 +1,162 @@
+"""``--gui``: sumo-gui under Xvfb draws the drones where they are, changes no result, records.
+
+Needs Xvfb (``apt-get install xvfb``, as ``.ci/run`` does) or a display; skipped otherwise.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.helpers import small_sumo_scenario
+from twin.errors import UserError
+
+HORIZON = 3
+needs_display = pytest.mark.skipif(
+    shutil.which("Xvfb") is None and not os.environ.get("DISPLAY"),
+    reason="sumo-gui needs a display: install Xvfb (apt-get install xvfb) or set DISPLAY",
+)
+
+
+@pytest.fixture(scope="module")
+def scenario(tmp_path_factory):
+    return small_sumo_scenario(tmp_path_factory.mktemp("gui"), horizon=HORIZON)
+
+
+def _experiment(scenario):
+    from twin.config import load_config
+    from twin.experiment import Experiment
+
+    return Experiment(
+        config=load_config(scenario / "small.toml"),
+        swarms=["random", "greedy", "sweeping"],
+        seeds=[0],
+    )
+
+
+@pytest.fixture(scope="module")
+def gui_run(scenario, tmp_path_factory):
+    """The small run under sumo-gui (random and greedy shown) with every frame kept."""
+    from twin.experiment import run_experiment
+    from twin.sumo.gui import GuiDrawer, GuiSettings, display
+
+    frames = tmp_path_factory.mktemp("frames")
+    drawer = GuiDrawer(
+        GuiSettings(swarms=["random", "greedy"], frames_dir=frames),
+        ["random", "greedy", "sweeping"],
+    )
+    with display():
+        outcome = run_experiment(
+            _experiment(scenario), keep_sources=True, on_source=drawer.attach, on_step=drawer
+        )
+    return outcome, drawer
+
+
+def _pixel(drawer, x: float, y: float, shape) -> tuple[int, int]:
+    (xmin, ymin), (xmax, ymax) = drawer.view_boundary
+    h, w = shape[:2]
+    return int((ymax - y) / (ymax - ymin) * h), int((x - xmin) / (xmax - xmin) * w)
+
+
+def _near(image, row, col, colour, radius=6, tol=40) -> int:
+    patch = image[max(row - radius, 0) : row + radius + 1, max(col - radius, 0) : col + radius + 1]
+    return int((np.abs(patch[..., :3].astype(int) - colour[:3]).max(axis=-1) <= tol).sum())
+
+
+@needs_display
+def test_screenshots_show_the_shown_swarms_drones_where_they_are(gui_run):
+    from PIL import Image
+
+    outcome, drawer = gui_run
+    result = outcome.results[0]
+    geometry = outcome.sources[0].geometry
+    assert len(drawer.frames) == HORIZON + 1
+    shown = [s for s, name in enumerate(result.swarms) if name in drawer.shown]
+    hidden = drawer.colours["sweeping"]  # not in --gui-swarms: its colour is nowhere
+    for k in (0, HORIZON):
+        image = np.asarray(Image.open(drawer.frames[k]).convert("RGB"))
+        assert not (np.abs(image.astype(int) - hidden[:3]).max(axis=-1) <= 40).any()
+        for s in shown:
+            for i, j in result.positions[s, k]:
+                row, col = _pixel(drawer, *geometry.cell_center(i, j), image.shape)
+                # swarms on one cell overlap: one of their colours is on top
+                there = [
+                    result.swarms[t]
+                    for t in shown
+                    if ((result.positions[t, k] == (i, j)).all(axis=1)).any()
+                ]
+                found = max(_near(image, row, col, drawer.colours[n]) for n in there)
+                assert found > 20, (k, result.swarms[s], i, j)
+        assert (image == 255).all(axis=-1).any()  # the frame is not one colour
+
+
+@needs_display
+def test_cells_are_shaded(gui_run):
+    from PIL import Image
+
+    outcome, drawer = gui_run
+    image = np.asarray(Image.open(drawer.frames[-1]).convert("RGB")).astype(int)
+    geometry, grid = outcome.sources[0].geometry, outcome.sources[0].grid
+    top, left = _pixel(drawer, geometry.x0, geometry.y_top, image.shape)
+    # outside the grid the background is white; inside, the cell fills tint it yellow/red
+    bottom, right = _pixel(
+        drawer, geometry.x0 + grid.ny * geometry.cell_m, geometry.y_top - grid.nx * geometry.cell_m,
+        image.shape,
+    )  # fmt: skip
+    inside = image[max(top, 0) + 2 : bottom - 2, left + 2 : right - 2]
+    assert (inside[..., 2] < 240).mean() > 0.5  # blue channel lowered by the fill
+    if left > 5:
+        assert (image[:, : left - 3, :3] == 255).all(axis=-1).mean() > 0.9
+
+
+@needs_display
+def test_gui_results_equal_libsumo_results(gui_run, scenario):
+    from twin.experiment import run_experiment
+
+    gui = gui_run[0].results[0]
+    plain = run_experiment(_experiment(scenario)).results[0]
+    assert gui.completed_steps == plain.completed_steps == HORIZON
+    np.testing.assert_array_equal(gui.positions, plain.positions)
+    np.testing.assert_array_equal(gui.rewards, plain.rewards)
+    np.testing.assert_array_equal(gui.importance, plain.importance)
+
+
+@needs_display
+def test_record_and_replay_write_videos_of_every_step(scenario, tmp_path, monkeypatch):
+    pytest.importorskip("imageio_ffmpeg")
+    iio = pytest.importorskip("imageio.v3")
+    from twin.cli import main
+
+    monkeypatch.chdir(scenario)
+    out, video, gif = tmp_path / "run", tmp_path / "run.mp4", tmp_path / "replay.gif"
+    args = ["--config", "small.toml", "--swarms", "random,greedy", "--no-report", "--quiet"]
+    assert main(["run", *args, "--out", str(out), "--record", str(video)]) == 0
+    assert iio.imread(video).shape[0] == HORIZON + 1
+    assert main(["replay", str(out), "--record", str(gif), "--gui-shade", "truth"]) == 0
+    assert iio.imread(gif, index=None).shape[0] == HORIZON + 1
+
+
+def test_no_display_and_no_xvfb_is_one_line_naming_the_fix(monkeypatch, tmp_path):
+    from twin.sumo.gui import display
+
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.setenv("PATH", str(tmp_path))
+    with (
+        pytest.raises(UserError, match=r"--gui: .*apt-get install xvfb.*DISPLAY") as info,
+        display(),
+    ):
+        pass
+    assert "\n" not in str(info.value)
+
+
+def test_bad_record_name_is_refused_before_the_run():
+    from twin.sumo.gui import GuiSettings, check_settings
+
+    with pytest.raises(UserError, match="--record"):
+        check_settings(GuiSettings(record=Path("x.avi")), ["greedy"])
+    with pytest.raises(UserError, match="--gui-swarms"):
+        check_settings(GuiSettings(swarms=["nope"]), ["greedy"])

@@ -1,0 +1,112 @@
+"""``twin replay RUN_DIR --gui``: watch a finished ``twin run`` in sumo-gui, swarms as recorded.
+
+The run's SUMO scenario is rebuilt from the flags in its ``run.json`` (config, files, seeds) and
+simulated again under sumo-gui (the same simulation: same options and seed); the drones are
+drawn where ``trajectories.parquet`` says they were, no swarm is recomputed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from twin.errors import UserError
+
+
+def add_parser(subparsers) -> None:
+    from twin.cli.run import add_gui_arguments
+
+    p = subparsers.add_parser(
+        "replay",
+        help="watch a finished `twin run` in sumo-gui (recorded trajectories, same traffic)",
+        description="Re-run a `twin run` folder's SUMO simulation under sumo-gui and draw the "
+        "drones along their recorded trajectories (no swarm is recomputed); --record saves it "
+        "as a video. Relative paths in the run's flags are read from the current folder.",
+    )
+    p.add_argument("run_dir", type=Path, help="a run folder written by `twin run`")
+    p.add_argument("--seed", type=int, help="which of the run's seeds to replay (default: first)")
+    add_gui_arguments(p)
+    p.set_defaults(func=main)
+
+
+def run_arguments(run_dir: Path) -> argparse.Namespace:
+    """``twin run``'s flags of a run folder, from the invocation its ``run.json`` records."""
+    from twin.cli import build_parser
+    from twin.report.load import _read_json
+
+    run = _read_json(run_dir / "run.json") or {}
+    invocation = run.get("invocation") or {}
+    if invocation.get("command") != "run":
+        raise UserError(
+            f"{run_dir / 'run.json'}: invocation = {invocation.get('command')!r} is not a "
+            "`twin run`; only live SUMO runs can be replayed"
+        )
+    args = build_parser().parse_args(["run"])
+    args.quiet = True
+    for key, value in invocation.get("options", {}).items():
+        default = getattr(args, key, None)
+        if key in ("net", "sumocfg", "osm", "config", "out") and value is not None:
+            value = Path(value)
+        elif key in ("routes", "additional") and value is not None:
+            value = [Path(v) for v in value]
+        elif default is not None and isinstance(default, Path):
+            value = Path(value)
+        setattr(args, key, value)
+    return args
+
+
+def main(args: argparse.Namespace) -> int:
+    import pandas as pd
+
+    from twin.cli.run import build_experiment, gui_drawer
+    from twin.experiment import build_source, limit_threads
+    from twin.runs import check_run_folder
+    from twin.sumo.gui import display
+
+    limit_threads()
+    run_dir = args.run_dir
+    if not run_dir.is_dir():
+        raise UserError(f"{run_dir}: no such run folder")
+    check_run_folder(run_dir)
+    experiment = build_experiment(run_arguments(run_dir))
+    path = run_dir / "trajectories.parquet"
+    trajectories = pd.read_parquet(path)
+    seeds = list(experiment.seeds)
+    seed = seeds[0] if args.seed is None else args.seed
+    if seed not in seeds:
+        raise UserError(f"--seed {seed}: not among the run's seeds {seeds}")
+    rows = trajectories[trajectories["seed"] == seed]
+    swarms = [s for s in experiment.swarms if s in set(rows["swarm"])]
+    if not swarms:
+        raise UserError(f"{path}: no trajectory of seed {seed}")
+    args.gui = True
+    drawer = gui_drawer(args, swarms)
+    positions = {s: _positions(rows[rows["swarm"] == s]) for s in swarms}
+    steps = min(len(p) for p in positions.values())
+    source = build_source(experiment, seeds.index(seed))
+    drawer.attach(source)
+    print(drawer.legend(), file=sys.stderr)
+    with display():
+        maps = source.importance_maps()
+        try:
+            for k, importance in enumerate(maps):
+                if k >= steps:
+                    break
+                drawer(k, {s: p[k] for s, p in positions.items()}, importance)
+            drawer.flush()  # a partial run ends before the source's horizon
+        finally:
+            maps.close()
+        if args.record:
+            print(f"video: {drawer.finish()}", file=sys.stderr)
+    print(f"replayed {steps - 1} steps of seed {seed} from {run_dir}")
+    return 0
+
+
+def _positions(rows) -> np.ndarray:
+    """``(T+1, N, 2)`` cells of one swarm from its trajectory rows."""
+    rows = rows.sort_values(["step", "drone"])
+    steps, drones = rows["step"].nunique(), rows["drone"].nunique()
+    return rows[["i", "j"]].to_numpy().reshape(steps, drones, 2)
