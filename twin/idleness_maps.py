@@ -104,11 +104,16 @@ class OwnMaps:
 
     def rows_and_columns(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Drone ``d``'s map along its row ``(N, ny)`` and its column ``(N, nx)``."""
-        nx, ny = self.shape
+        d = np.arange(self.n_drones)
         i, j = positions[:, 0], positions[:, 1]
-        rows = (i * ny)[:, None] + np.arange(ny)
-        cols = np.arange(nx) * ny + j[:, None]
-        return self.at(rows), self.at(cols)
+        index = self.index.reshape((self.n_drones, *self.shape))
+        out = []
+        for k, line in ((index[d, i, :], self.base[i, :]), (index[d, :, j], self.base[:, j].T)):
+            own = k >= 0
+            line = np.ascontiguousarray(line)
+            line[own] = self.value[k[own]]
+            out.append(line)
+        return out[0], out[1]
 
     def merged(self) -> np.ndarray:
         """Each cell's smallest idleness over the drones' maps."""
