@@ -156,14 +156,17 @@ def directional_idleness(idleness: np.ndarray, grid: Grid, positions: np.ndarray
     """``(N, 4)`` mean idleness of free cells strictly below, above, left, right of each drone.
 
     ``idleness`` is one map ``(nx, ny)`` or one map per drone ``(N, nx, ny)`` (drone ``d`` reads
-    ``idleness[d]``). Only each drone's row and column are read: O(N (nx + ny)).
-    0 where a direction holds no free cell.
+    ``idleness[d]``). Prefix sums over the one map, O(cells); over each drone's own row and
+    column only, O(N (nx + ny)), with a map per drone. 0 where a direction holds no free cell.
     """
     i, j = positions[:, 0], positions[:, 1]
-    if idleness.ndim == 2:
-        return directional_means(idleness[i, :], idleness[:, j].T, grid, positions)
-    d = np.arange(len(positions))
-    return directional_means(idleness[d, i, :], idleness[d, :, j], grid, positions)
+    if idleness.ndim == 3:
+        d = np.arange(len(positions))
+        return directional_means(idleness[d, i, :], idleness[d, :, j], grid, positions)
+    values = idleness * grid.free_float
+    col_cum, row_cum = values.cumsum(axis=0), values.cumsum(axis=1)
+    return _means(grid, positions, values[i, j], col_cum[i, j], col_cum[-1, j],
+                  row_cum[i, j], row_cum[i, -1])  # fmt: skip
 
 
 def directional_means(
@@ -172,27 +175,29 @@ def directional_means(
     """:func:`directional_idleness` from each drone's own row ``(N, ny)`` and column ``(N, nx)``
     of its map (a drone at ``(i, j)`` reads row ``i`` and column ``j``).
 
-    Prefix sums along the row and the column (the same sequential sums as prefix sums over the
-    whole map, so the same bits).
+    Prefix sums along the row and the column: the same sequential sums as prefix sums over the
+    whole map, so the same bits.
     """
     i, j = positions[:, 0], positions[:, 1]
     n = np.arange(len(positions))
-    col_v = cols * grid.free_float[:, j].T
-    row_v = rows * grid.free_float[i, :]
-    col_cum_v, col_cum_n = col_v.cumsum(axis=1), grid.free_cumsum_down
-    row_cum_v, row_cum_n = row_v.cumsum(axis=1), grid.free_cumsum_right
-    own_v, own_n = col_v[n, i], grid.free_float[i, j]
+    col_cum = (cols * grid.free_float[:, j].T).cumsum(axis=1)
+    row_cum = (rows * grid.free_float[i, :]).cumsum(axis=1)
+    own = rows[n, j] * grid.free_float[i, j]
+    return _means(grid, positions, own, col_cum[n, i], col_cum[:, -1],
+                  row_cum[n, j], row_cum[:, -1])  # fmt: skip
 
+
+def _means(grid, positions, own_v, col_i, col_end, row_j, row_end) -> np.ndarray:
+    """The four means from the prefix sums of each drone's column and row at its cell and at
+    their ends (``own_v``: the value at its cell)."""
+    i, j = positions[:, 0], positions[:, 1]
+    col_n, row_n, own_n = grid.free_cumsum_down, grid.free_cumsum_right, grid.free_float[i, j]
     sums = np.empty((len(positions), 4))
     ns = np.empty((len(positions), 4))
-    sums[:, 0] = col_cum_v[:, -1] - col_cum_v[n, i]  # below
-    ns[:, 0] = col_cum_n[-1, j] - col_cum_n[i, j]
-    sums[:, 1] = col_cum_v[n, i] - own_v  # above
-    ns[:, 1] = col_cum_n[i, j] - own_n
-    sums[:, 2] = row_cum_v[n, j] - own_v  # left
-    ns[:, 2] = row_cum_n[i, j] - own_n
-    sums[:, 3] = row_cum_v[:, -1] - row_cum_v[n, j]  # right
-    ns[:, 3] = row_cum_n[i, -1] - row_cum_n[i, j]
+    sums[:, 0], ns[:, 0] = col_end - col_i, col_n[-1, j] - col_n[i, j]  # below
+    sums[:, 1], ns[:, 1] = col_i - own_v, col_n[i, j] - own_n  # above
+    sums[:, 2], ns[:, 2] = row_j - own_v, row_n[i, j] - own_n  # left
+    sums[:, 3], ns[:, 3] = row_end - row_j, row_n[i, -1] - row_n[i, j]  # right
     return np.divide(sums, ns, out=np.zeros_like(sums), where=ns > 0)
 
 
