@@ -138,6 +138,35 @@ def test_directional_means_match_a_plain_loop(scene):
             assert got[n, d] == pytest.approx(np.mean(vals) if vals else 0.0)
 
 
+def _directional_by_full_prefix_sums(idleness, grid, positions):
+    """The former implementation: prefix sums over every whole map (the bits to keep)."""
+    maps = idleness[None] if idleness.ndim == 2 else idleness
+    values = maps * grid.free_float
+    i, j = positions[:, 0], positions[:, 1]
+    d = np.zeros(len(positions), np.intp) if len(maps) == 1 else np.arange(len(positions))
+    col_v, col_n = values.cumsum(axis=1), grid.free_cumsum_down
+    row_v, row_n = values.cumsum(axis=2), grid.free_cumsum_right
+    own_v, own_n = values[d, i, j], grid.free_float[i, j]
+    sums = np.stack([col_v[d, -1, j] - col_v[d, i, j], col_v[d, i, j] - own_v,
+                     row_v[d, i, j] - own_v, row_v[d, i, -1] - row_v[d, i, j]], axis=1)  # fmt: skip
+    ns = np.stack([col_n[-1, j] - col_n[i, j], col_n[i, j] - own_n,
+                   row_n[i, j] - own_n, row_n[i, -1] - row_n[i, j]], axis=1)  # fmt: skip
+    return np.divide(sums, ns, out=np.zeros_like(sums), where=ns > 0)
+
+
+@settings(max_examples=100, deadline=None)
+@given(scenes())
+def test_directional_means_from_row_and_column_keep_the_bits(scene):
+    """Reading only each drone's row and column gives the full-map prefix sums' very bits."""
+    grid, pos, seed = scene
+    rng = np.random.default_rng(seed)
+    one = rng.random(grid.shape) * 1e3
+    per_drone = rng.random((len(pos), *grid.shape))
+    for idle in (one, per_drone):
+        expected = _directional_by_full_prefix_sums(idle, grid, pos)
+        assert np.array_equal(directional_idleness(idle, grid, pos), expected)
+
+
 def test_drones_sharing_a_cell_share_its_reward():
     """Two drones stacked on one cell earn together what one drone alone earns there."""
     grid = Grid.open(5, 5)

@@ -156,29 +156,48 @@ def directional_idleness(idleness: np.ndarray, grid: Grid, positions: np.ndarray
     """``(N, 4)`` mean idleness of free cells strictly below, above, left, right of each drone.
 
     ``idleness`` is one map ``(nx, ny)`` or one map per drone ``(N, nx, ny)`` (drone ``d`` reads
-    ``idleness[d]``). Prefix sums along rows and columns: O(cells) per map plus O(1) per drone.
-    0 where a direction holds no free cell.
+    ``idleness[d]``). Prefix sums over the one map, O(cells); over each drone's own row and
+    column only, O(N (nx + ny)), with a map per drone. 0 where a direction holds no free cell.
     """
-    maps = idleness[None] if idleness.ndim == 2 else idleness
-    values = maps * grid.free_float
     i, j = positions[:, 0], positions[:, 1]
-    d = np.zeros(len(positions), np.intp) if len(maps) == 1 else np.arange(len(positions))
+    if idleness.ndim == 3:
+        d = np.arange(len(positions))
+        return directional_means(idleness[d, i, :], idleness[d, :, j], grid, positions)
+    values = idleness * grid.free_float
+    col_cum, row_cum = values.cumsum(axis=0), values.cumsum(axis=1)
+    return _means(grid, positions, values[i, j], col_cum[i, j], col_cum[-1, j],
+                  row_cum[i, j], row_cum[i, -1])  # fmt: skip
 
-    col_cum_v, col_cum_n = values.cumsum(axis=1), grid.free_cumsum_down
-    row_cum_v, row_cum_n = values.cumsum(axis=2), grid.free_cumsum_right
-    own_v, own_n = values[d, i, j], grid.free_float[i, j]
 
-    above_v = col_cum_v[d, i, j] - own_v
-    above_n = col_cum_n[i, j] - own_n
-    below_v = col_cum_v[d, -1, j] - col_cum_v[d, i, j]
-    below_n = col_cum_n[-1, j] - col_cum_n[i, j]
-    left_v = row_cum_v[d, i, j] - own_v
-    left_n = row_cum_n[i, j] - own_n
-    right_v = row_cum_v[d, i, -1] - row_cum_v[d, i, j]
-    right_n = row_cum_n[i, -1] - row_cum_n[i, j]
+def directional_means(
+    rows: np.ndarray, cols: np.ndarray, grid: Grid, positions: np.ndarray
+) -> np.ndarray:
+    """:func:`directional_idleness` from each drone's own row ``(N, ny)`` and column ``(N, nx)``
+    of its map (a drone at ``(i, j)`` reads row ``i`` and column ``j``).
 
-    sums = np.stack([below_v, above_v, left_v, right_v], axis=1)
-    ns = np.stack([below_n, above_n, left_n, right_n], axis=1)
+    Prefix sums along the row and the column: the same sequential sums as prefix sums over the
+    whole map, so the same bits.
+    """
+    i, j = positions[:, 0], positions[:, 1]
+    n = np.arange(len(positions))
+    col_cum = (cols * grid.free_float[:, j].T).cumsum(axis=1)
+    row_cum = (rows * grid.free_float[i, :]).cumsum(axis=1)
+    own = rows[n, j] * grid.free_float[i, j]
+    return _means(grid, positions, own, col_cum[n, i], col_cum[:, -1],
+                  row_cum[n, j], row_cum[:, -1])  # fmt: skip
+
+
+def _means(grid, positions, own_v, col_i, col_end, row_j, row_end) -> np.ndarray:
+    """The four means from the prefix sums of each drone's column and row at its cell and at
+    their ends (``own_v``: the value at its cell)."""
+    i, j = positions[:, 0], positions[:, 1]
+    col_n, row_n, own_n = grid.free_cumsum_down, grid.free_cumsum_right, grid.free_float[i, j]
+    sums = np.empty((len(positions), 4))
+    ns = np.empty((len(positions), 4))
+    sums[:, 0], ns[:, 0] = col_end - col_i, col_n[-1, j] - col_n[i, j]  # below
+    sums[:, 1], ns[:, 1] = col_i - own_v, col_n[i, j] - own_n  # above
+    sums[:, 2], ns[:, 2] = row_j - own_v, row_n[i, j] - own_n  # left
+    sums[:, 3], ns[:, 3] = row_end - row_j, row_n[i, -1] - row_n[i, j]  # right
     return np.divide(sums, ns, out=np.zeros_like(sums), where=ns > 0)
 
 
@@ -204,7 +223,6 @@ def drone_states(
     drone ``(N, nx, ny)``. ``others`` optionally gives each drone's view of the others' centre
     of mass (``(N, 2)``, in cells), as in the decentralized mode; by default the true one.
     """
-    scale = np.array([grid.nx, grid.ny], dtype=np.float64)
     view = grid.view_index(positions)
     if idleness.ndim == 2:
         idle_seen = grid.values_in_view(idleness, None, view)
@@ -212,14 +230,23 @@ def drone_states(
         flat, valid = view
         rows = np.arange(len(positions))[:, None]
         idle_seen = np.where(valid, idleness.reshape(len(idleness), -1)[rows, flat], 0.0)
+    directional = directional_idleness(idleness, grid, positions)
+    return assemble_states(grid, importance, positions, view, idle_seen, directional, others)
+
+
+def assemble_states(
+    grid: Grid,
+    importance: np.ndarray,
+    positions: np.ndarray,
+    view: tuple[np.ndarray, np.ndarray],
+    idle_seen: np.ndarray,
+    directional: np.ndarray,
+    others: np.ndarray | None = None,
+) -> np.ndarray:
+    """:func:`drone_states` from what each drone read of its idleness map: ``idle_seen``
+    ``(N, 5)`` over its field of view ``view`` (:meth:`Grid.view_index`) and ``directional``
+    ``(N, 4)`` (:func:`directional_means`)."""
+    scale = np.array([grid.nx, grid.ny], dtype=np.float64)
     seen = idle_seen * grid.values_in_view(importance, None, view)
     cm = others_centre_of_mass(positions) if others is None else others
-    return np.concatenate(
-        [
-            positions / scale,
-            seen,
-            directional_idleness(idleness, grid, positions),
-            cm / scale,
-        ],
-        axis=1,
-    )
+    return np.concatenate([positions / scale, seen, directional, cm / scale], axis=1)

@@ -28,12 +28,12 @@ import torch
 from twin.coordinator import coordinate
 from twin.errors import UserError
 from twin.grid import Grid
-from twin.idleness_maps import SwarmMaps, parse_outages
+from twin.idleness_maps import OwnMaps, SwarmMaps, parse_outages
 from twin.learning.checkpoint import default_checkpoint, load_qnet
 from twin.learning.online import OnlineLearner
 from twin.learning.qnet import QNetwork
 from twin.policies import Policy, SwarmView, Transition, random_feasible
-from twin.scores import drone_states
+from twin.scores import assemble_states, directional_means, drone_states
 
 
 @lru_cache(maxsize=4)
@@ -60,10 +60,18 @@ def shared_qnet(checkpoint: str | Path | None) -> tuple[QNetwork, dict]:
 
 
 def local_drone_states(
-    grid: Grid, maps: np.ndarray, importance: np.ndarray, positions: np.ndarray, others
+    grid: Grid, maps: OwnMaps | np.ndarray, importance: np.ndarray, positions: np.ndarray, others
 ) -> np.ndarray:
-    """:func:`twin.scores.drone_states` with one idleness map per drone (``(N, nx, ny)``)."""
-    return drone_states(grid, maps, importance, positions, others)
+    """:func:`twin.scores.drone_states` with one idleness map per drone: :class:`OwnMaps`
+    (read at each drone's view, row and column only) or dense ``(N, nx, ny)``."""
+    if isinstance(maps, np.ndarray):
+        return drone_states(grid, maps, importance, positions, others)
+    view = grid.view_index(positions)
+    flat, valid = view
+    idle_seen = np.where(valid, maps.at(flat), 0.0)
+    rows, cols = maps.rows_and_columns(positions)
+    directional = directional_means(rows, cols, grid, positions)
+    return assemble_states(grid, importance, positions, view, idle_seen, directional, others)
 
 
 class RLPolicy(Policy):
@@ -139,10 +147,10 @@ class RLPolicy(Policy):
         """The ``(N, 13)`` states of the drones at ``view.k`` (advances the maps)."""
         maps = self.maps
         maps.advance(view.k, view.positions, view.idleness, view.grid, view.params)
-        if maps.local is None:
+        if maps.own is None:
             return drone_states(view.grid, maps.shared, view.importance, view.positions)
         return local_drone_states(
-            view.grid, maps.local, view.importance, view.positions,
+            view.grid, maps.own, view.importance, view.positions,
             maps.others_centre_of_mass(view.positions),
         )  # fmt: skip
 
@@ -162,7 +170,7 @@ class RLPolicy(Policy):
                 raise RuntimeError(f"swarm {self.name} saw step {view.k} after step {self.maps.k}")
             self.states = self.observe(view)
         q = self.q_values(self.states)
-        if self.maps.local is None:
+        if self.maps.own is None:
             return coordinate(q, view.positions, view.feasible, view.grid)
         best = np.argmax(np.where(view.feasible, q, -np.inf), axis=1)
         explore = self.rng.random(self.n_drones) < self.eps
