@@ -74,11 +74,12 @@ class Tape:
             }
         )
 
-    def write(self, path: Path) -> None:
+    def write(self, path: Path, chunk: int = 64) -> None:
+        """Write the long table ``chunk`` snapshots at a time (one row group each), so that a
+        city-scale tape never sits in memory as one table."""
         import pyarrow as pa
         import pyarrow.parquet as pq
 
-        table = pa.Table.from_pandas(self.frame(), preserve_index=False)
         meta = {
             "version": TAPE_VERSION,
             "nx": int(self.obstacles.shape[0]),
@@ -89,8 +90,32 @@ class Tape:
             "speed_limit": self.speed_limit.tolist(),
             "settings": self.settings,
         }
-        merged = {**(table.schema.metadata or {}), _META_KEY: json.dumps(meta).encode()}
-        pq.write_table(table.replace_schema_metadata(merged), path)
+        schema = pa.schema(
+            [
+                ("step", pa.int64()),
+                ("time_s", pa.float64()),
+                ("i", pa.int64()),
+                ("j", pa.int64()),
+                ("count", pa.int32()),
+                ("speed", pa.float32()),
+            ],
+            metadata={_META_KEY: json.dumps(meta).encode()},
+        )
+        s, nx, ny = self.counts.shape
+        i, j = np.indices((nx, ny)).reshape(2, -1)
+        with pq.ParquetWriter(path, schema) as writer:
+            for a in range(0, max(s, 1), chunk):
+                b = min(a + chunk, s)
+                n = b - a
+                columns = [
+                    np.repeat(self.steps[a:b].astype(np.int64), nx * ny),
+                    np.repeat(self.times[a:b].astype(np.float64), nx * ny),
+                    np.tile(i, n),
+                    np.tile(j, n),
+                    self.counts[a:b].reshape(-1).astype(np.int32, copy=False),
+                    self.speeds[a:b].reshape(-1).astype(np.float32, copy=False),
+                ]
+                writer.write_table(pa.Table.from_arrays(columns, schema=schema))
 
     @classmethod
     def read(cls, path: Path, shape: tuple[int, int] | None = None) -> Tape:
