@@ -60,3 +60,10 @@ class StageTimer:
 
     def as_dict(self) -> dict[str, float]:
         return dict(self.seconds)
+
+
+def largest_stages(stages: Mapping[str, float], n: int = 4) -> str:
+    """``"SUMO stepping 80.1 s (71%), swarm lookahead 9.0 s (8%), ..."``: the ``n`` largest."""
+    total = sum(stages.values()) or 1.0
+    top = sorted(stages.items(), key=lambda kv: -kv[1])[:n]
+    return ", ".join(f"{name} {s:.1f} s ({100 * s / total:.0f}%)" for name, s in top)

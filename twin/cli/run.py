@@ -250,6 +250,13 @@ def main(args: argparse.Namespace) -> int:
         f"; used: {mfd.get('used', 'fit')} ({mfd.get('why', '')})"
     )
     print(f"wall time {outcome.seconds:.0f} s (SUMO + swarms)")
+    if outcome.results and outcome.results[0].stage_seconds:
+        from twin.timing import largest_stages
+
+        print(
+            f"largest stages of the loop (seed {outcome.results[0].seed}; all in timing.csv): "
+            f"{largest_stages(outcome.results[0].stage_seconds)}"
+        )
     if not args.no_report:
         try:
             from twin.report import write_report
