@@ -1,6 +1,7 @@
 """Decision time of the central coordinator (eq. maxi:op2), against the previous algorithm.
 
-- swarms of 4, 64, 256 and 1024 drones on a 200 x 300 grid, positions drawn uniformly
+- swarms of 4, 64, 256 and 1024 drones on a 200 x 300 grid, and of 200 drones on a 100 x 150
+  grid (the city scale of configs/shenzhen-city-scale.toml), positions drawn uniformly
   ("spread") and packed into a square block one cell apart ("packed-1": every cell of the
   block holds a drone) or two cells apart ("packed-2": neighbours share the cell between);
 - the baseline is the previous algorithm (every colliding component solved on its own), kept
@@ -74,15 +75,20 @@ def main() -> None:
     args = p.parse_args()
     rng = np.random.default_rng(0)
     repeats = 10 if args.quick else 100
-    grid = Grid.open(200, 300)
-    cases = [(spread, n) for n in (4, 64, 256, 1024)]
-    cases += [(packed(1), 1024), (packed(2), 1024)]
+    grid, city = Grid.open(200, 300), Grid.open(100, 150)
+    cases = [(grid, spread, n) for n in (4, 64, 256, 1024)]
+    cases += [(grid, packed(1), 1024), (grid, packed(2), 1024)]
+    cases += [(city, layout, 200) for layout in (spread, packed(1), packed(2))]
     if args.quick:
-        cases = [(spread, 64), (spread, 1024), (packed(1), 256), (packed(2), 256)]
+        cases = [(grid, spread, 64), (grid, spread, 1024), (grid, packed(1), 256)]
+        cases += [(grid, packed(2), 256), (city, spread, 200)]
     failed = []
-    print(f"coordinator on a {grid.nx} x {grid.ny} grid (median of {repeats} interleaved calls)")
-    print(f"{'drones':>7s} {'layout':>9s} {'ms':>8s} {'previous ms':>12s} {'speed-up':>9s} same")
-    for layout, n in cases:
+    print(f"coordinator (median of {repeats} interleaved calls)")
+    print(
+        f"{'cells':>10s} {'drones':>7s} {'layout':>9s} {'ms':>8s} {'previous ms':>12s} "
+        f"{'speed-up':>9s} same"
+    )
+    for grid, layout, n in cases:
         pos = layout(grid, n, rng)
         q = rng.normal(size=(n, 5))
         feasible = grid.feasible_actions(pos)
@@ -99,7 +105,8 @@ def main() -> None:
         if not ok:
             failed.append(f"{n} {layout.__name__}: {a} against previous {b}")
         print(
-            f"{n:7d} {layout.__name__:>9s} {1e3 * ours:8.3f} {1e3 * before:12.3f} "
+            f"{f'{grid.nx} x {grid.ny}':>10s} {n:7d} {layout.__name__:>9s} {1e3 * ours:8.3f} "
+            f"{1e3 * before:12.3f} "
             f"{before / ours:8.1f}x {ok}"
         )
 

@@ -1,10 +1,14 @@
 """Decision time of each swarm, and the choice of lookahead's default horizon.
 
-- default: wall time of one decision (``act``) of random, greedy, greedy-coordinated,
-  visit-gain and lookahead at paper scale (20 x 30 cells, 4 drones) and at 200 x 300 cells
-  with 1000 drones, in ms and as a ratio against greedy in the same process;
+- default: wall time of one decision (``act``) of random, greedy, sweeping,
+  greedy-coordinated, visit-gain and lookahead at paper scale (20 x 30 cells, 4 drones), at
+  city scale (100 x 150 cells, 200 drones: configs/shenzhen-city-scale.toml) and at 200 x 300
+  cells with 1000 drones, in ms and as a ratio against greedy in the same process; lookahead
+  and the sweep's tour (``reset``) also against their previous implementations, kept below
+  (``ReferenceLookahead``, ``reference_boustrophedon_tour``), as a speed-up;
 - ``--quick``: small sizes; checks that every swarm's actions are feasible and lead to
-  distinct cells over a short run (exit 1 otherwise);
+  distinct cells over a short run, and that lookahead's scores and the sweep's tour equal the
+  previous implementations' bit for bit (exit 1 otherwise);
 - ``--pick-horizon``: R_hat_T of lookahead for H = 1 .. 5 on ``configs/synthetic.toml``,
   seeds 0-9 (mean and 95% interval), with ms per step at both scales: how
   ``twin.planners.DEFAULT_HORIZON`` was chosen (largest mean R_hat_T among the H whose step at
@@ -16,6 +20,7 @@
 from __future__ import annotations
 
 import argparse
+import itertools
 import sys
 import time
 from pathlib import Path
@@ -24,10 +29,12 @@ import numpy as np
 
 from twin.grid import Grid
 from twin.patrol import random_starts, swarm_rng
-from twin.policies import SwarmView, make_policy
+from twin.planners import LookaheadPolicy, visit_gain
+from twin.policies import SwarmView, boustrophedon_tour, make_policy
 from twin.scores import ScoreParams, update_idleness
 
-SWARMS = ("random", "greedy", "greedy-coordinated", "visit-gain", "lookahead")
+SWARMS = ("random", "greedy", "sweeping", "greedy-coordinated", "visit-gain", "lookahead")
+UNCOORDINATED = ("random", "greedy", "sweeping")  # may put two drones on one cell
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "synthetic.toml"
 
 
@@ -56,7 +63,7 @@ def view_of(grid, positions, idleness, importance, k=0) -> SwarmView:
 
 def ms_per_decision(name: str, grid, positions, idleness, importance, repeats: int, **options):
     """Median ms of one ``act`` on a fixed view (after one warm-up call)."""
-    policy = make_policy(name, **options)
+    policy = ReferenceLookahead(**options) if name == REFERENCE else make_policy(name, **options)
     policy.reset(grid, len(positions), swarm_rng(0, name))
     view = view_of(grid, positions, idleness, importance)
     policy.act(view)
@@ -70,13 +77,34 @@ def ms_per_decision(name: str, grid, positions, idleness, importance, repeats: i
 
 def timing(sizes, repeats: int) -> None:
     print(f"one decision per swarm (median of {repeats} calls; ratio = ms / greedy's ms)")
-    print(f"{'cells':>10s} {'drones':>7s} {'swarm':>19s} {'ms':>10s} {'x greedy':>9s}")
+    print(f"{'cells':>10s} {'drones':>7s} {'swarm':>22s} {'ms':>10s} {'x greedy':>9s}")
     for nx, ny, n in sizes:
-        maps = scene(nx, ny, n)
-        ms = {name: ms_per_decision(name, *maps, repeats) for name in SWARMS}
-        for name in SWARMS:
+        maps = scene(nx, ny, n, obstacles=0.3)
+        names = (*SWARMS, REFERENCE)
+        ms = {name: ms_per_decision(name, *maps, repeats) for name in names}
+        for name in names:
             ratio = ms[name] / ms["greedy"]
-            print(f"{f'{nx} x {ny}':>10s} {n:7d} {name:>19s} {ms[name]:10.3f} {ratio:9.1f}")
+            print(f"{f'{nx} x {ny}':>10s} {n:7d} {name:>22s} {ms[name]:10.3f} {ratio:9.1f}")
+        print(
+            f"{'':>10s} {'':>7s} {'lookahead speed-up':>22s} {ms[REFERENCE] / ms['lookahead']:9.1f}x"
+        )
+        new, old = (
+            _seconds(lambda f=f, grid=maps[0]: f(grid))
+            for f in (boustrophedon_tour, reference_boustrophedon_tour)
+        )
+        print(
+            f"{'':>10s} {'':>7s} {'sweep tour (reset) ms':>22s} {1e3 * new:10.1f} "
+            f"(previous {1e3 * old:.1f}, {old / new:.1f}x)"
+        )
+
+
+def _seconds(fn, repeats: int = 3) -> float:
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return min(times)
 
 
 def check_collision_free(steps: int = 30) -> bool:
@@ -95,13 +123,41 @@ def check_collision_free(steps: int = 30) -> bool:
                 feasible = view.feasible[np.arange(n), actions].all()
                 pos = grid.move(pos, actions)
                 distinct = len(np.unique(pos[:, 0] * ny + pos[:, 1])) == n
-                if not feasible or (name != "random" and name != "greedy" and not distinct):
+                if not feasible or (name not in UNCOORDINATED and not distinct):
                     print(f"FAIL {name} on {nx} x {ny}, {n} drones, step {k}")
                     ok = False
                     break
                 idle = update_idleness(idle, pos, grid, params.eta, params.delta)
                 imp = rng.random(grid.shape) ** 4
     print("feasible and collision-free (coordinated swarms):", "yes" if ok else "NO")
+    return ok
+
+
+def check_same_as_previous(steps: int = 15) -> bool:
+    """Lookahead's scores and the sweep's tour against the previous implementations: equal
+    bit for bit on random grids with obstacles, horizons 1-4 and discounts 1 and 0.9."""
+    ok = True
+    for seed in range(12):
+        rng = np.random.default_rng(seed)
+        nx, ny = (int(v) for v in rng.integers(3, 25, 2))
+        grid, pos, idle, _ = scene(nx, ny, int(rng.integers(2, 12)), seed, obstacles=0.25)
+        if not np.array_equal(boustrophedon_tour(grid), reference_boustrophedon_tour(grid)):
+            print(f"FAIL sweep tour on {nx} x {ny}, seed {seed}")
+            ok = False
+        horizon, discount = 1 + seed % 4, (1.0, 0.9)[seed % 2]
+        new, old = LookaheadPolicy(horizon, discount), ReferenceLookahead(horizon, discount)
+        for policy in (new, old):
+            policy.reset(grid, len(pos), np.random.default_rng(seed))
+        params = ScoreParams()
+        for k in range(steps):
+            view = view_of(grid, pos, idle, rng.random(grid.shape) ** 4, k)
+            if not np.array_equal(new.scores(view), old.scores(view)):
+                print(f"FAIL lookahead H={horizon} on {nx} x {ny}, seed {seed}, step {k}")
+                ok = False
+                break
+            pos = grid.move(pos, old.act(view))
+            idle = update_idleness(idle, pos, grid, params.eta, params.delta)
+    print("same as the previous lookahead and sweep tour:", "yes" if ok else "NO")
     return ok
 
 
@@ -147,9 +203,92 @@ def main() -> int:
         return 0
     if args.quick:
         timing([(20, 30, 4), (50, 60, 50)], repeats=5)
-        return 0 if check_collision_free() else 1
-    timing([(20, 30, 4), (200, 300, 1000)], repeats=20)
+        return 0 if check_collision_free() & check_same_as_previous() else 1
+    timing([(20, 30, 4), (100, 150, 200), (200, 300, 1000)], repeats=20)
     return 0
+
+
+# --- the previous implementations (main 7d5d5fb), the in-process baselines ------------------
+
+#: Name of the previous lookahead in the timing table.
+REFERENCE = "lookahead (previous)"
+
+
+class ReferenceLookahead(LookaheadPolicy):
+    """Lookahead as it was before (main 7d5d5fb): every one of the ``5^H`` paths of every
+    drone summed step by step. Kept here only as the baseline and the reference."""
+
+    def reset(self, grid, n_drones, rng) -> None:
+        super().reset(grid, n_drones, rng)
+        self.step_flat = self.offsets[..., 0] * self.width + self.offsets[..., 1]  # (P, H)
+        self.belief = np.zeros(grid.shape)
+
+    def scores(self, view: SwarmView) -> np.ndarray:
+        grid, p, h_max = view.grid, view.params, self.horizon
+        flat, valid = grid.view_index(view.positions)
+        seen = flat[valid]
+        self.belief.ravel()[seen] = view.importance.ravel()[seen]
+        weight = np.pad(p.alpha_T * self.belief + p.alpha_I, h_max).ravel()
+        idle = np.pad(view.idleness, h_max).ravel()
+        pos = np.asarray(view.positions, dtype=np.int64)
+        base = (pos[:, 0] + h_max) * self.width + pos[:, 1] + h_max
+        cells = base[:, None, None] + self.step_flat[None]  # (N, P, H) padded flat ids
+        ok = self.free_padded[cells].all(axis=2)
+        n_paths = cells.shape[1]
+        pre = np.zeros(cells.shape)  # predicted idleness of the cell just before step h
+        value = np.zeros(cells.shape[:2])
+        for h in range(h_max):
+            pre_h = np.minimum(1.0, idle[cells[:, :, h]] + h * p.delta)
+            s = self.last[:, h]
+            again = s >= 0
+            if again.any():
+                revisit = np.minimum(
+                    1.0,
+                    p.eta * pre[:, np.arange(n_paths), np.maximum(s, 0)] + (h - 1 - s) * p.delta,
+                )
+                pre_h = np.where(again[None, :], revisit, pre_h)
+            pre[:, :, h] = pre_h
+            value += self.discount**h * visit_gain(weight[cells[:, :, h]], pre_h, p)
+        value = np.where(ok, value, -np.inf)
+        return value.reshape(len(pos), 5, -1).max(axis=2)
+
+
+def reference_boustrophedon_tour(grid: Grid) -> np.ndarray:
+    """The sweep's tour as it was before (main 7d5d5fb): one unlimited shortest-path search
+    per detour target over the whole grid."""
+    from scipy.sparse.csgraph import shortest_path
+
+    from twin.policies import _free_cell_graph, largest_free_component
+
+    reachable = largest_free_component(grid)
+    order = []
+    for i in range(grid.nx):
+        cols = np.flatnonzero(reachable[i])
+        order.extend((i, j) for j in (cols if i % 2 == 0 else cols[::-1]))
+    order = np.array(order, dtype=np.int64)
+    if len(order) <= 1:
+        return order
+    steps = np.abs(np.diff(order, axis=0)).sum(axis=1)
+    if np.all(steps == 1):
+        return order
+    ny = grid.ny
+    targets = order[np.flatnonzero(steps != 1) + 1]
+    roots = np.unique(targets[:, 0] * ny + targets[:, 1])
+    _, pred = shortest_path(
+        _free_cell_graph(grid), unweighted=True, indices=roots, return_predecessors=True
+    )
+    row = {int(root): n for n, root in enumerate(roots)}
+    tour = [order[0]]
+    for a, b in itertools.pairwise(order):
+        if np.abs(a - b).sum() == 1:
+            tour.append(b)
+            continue
+        target, node, path = int(b[0] * ny + b[1]), int(a[0] * ny + a[1]), []
+        while node != target:
+            path.append((node // ny, node % ny))
+            node = int(pred[row[target]][node])
+        tour.extend([*path[1:], (int(b[0]), int(b[1]))])
+    return np.array(tour, dtype=np.int64)
 
 
 if __name__ == "__main__":

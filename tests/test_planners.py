@@ -169,6 +169,35 @@ def test_lookahead_scores_match_a_step_by_step_simulation():
         np.testing.assert_allclose(scores[d][ok], expect[ok], rtol=1e-12)
 
 
+@pytest.mark.parametrize("horizon, discount", [(1, 1.0), (2, 0.9), (3, 1.0), (4, 0.5)])
+def test_lookahead_scores_equal_path_by_path_sums_bit_for_bit(horizon, discount):
+    """The tree of prefixes sums each path's gains in path order, so its scores are the
+    path-by-path sums exactly (same float operations in the same order), not just close."""
+    rng, grid, positions, idleness = scene(7 + horizon, 7, 8, 4, 0.25)
+    p = ScoreParams(eta=0.3, delta=0.4)  # large steps: idleness saturates and recovers
+    policy = LookaheadPolicy(horizon=horizon, discount=discount)
+    policy.reset(grid, len(positions), np.random.default_rng(0))
+    view = make_view(grid, positions, idleness, rng.random(grid.shape) * grid.free, params=p)
+    scores = policy.scores(view)
+    weight = p.alpha_T * policy.belief + p.alpha_I
+    offsets, last, first = action_paths(horizon)
+    for d, start in enumerate(positions):
+        expect = np.full(5, -np.inf)
+        for path, steps in enumerate(start + offsets):
+            if not grid.is_free(steps).all():
+                continue
+            value, pre = 0.0, []
+            for h, (i, j) in enumerate(steps):
+                s = last[path, h]
+                if s < 0:
+                    pre.append(np.minimum(1.0, idleness[i, j] + h * p.delta))
+                else:
+                    pre.append(np.minimum(1.0, p.eta * pre[s] + (h - 1 - s) * p.delta))
+                value += discount**h * visit_gain(weight[i, j], pre[h], p)
+            expect[first[path]] = max(expect[first[path]], value)
+        np.testing.assert_array_equal(scores[d], expect)
+
+
 def test_lookahead_reads_importance_only_where_seen():
     """The belief holds T only on cells some drone's field of view covered."""
     grid = Grid.open(6, 6)

@@ -5,12 +5,23 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.sparse.csgraph import shortest_path
 
 from twin.config import load_config, start_positions, synthetic_source
 from twin.grid import Grid
 from twin.metrics import table2
 from twin.patrol import run_patrol
-from twin.policies import SweepingPolicy, boustrophedon_tour, make_policy, sweeping_roles
+from twin.policies import (
+    SweepingPolicy,
+    _free_cell_graph,
+    _free_paths,
+    boustrophedon_tour,
+    largest_free_component,
+    make_policy,
+    sweeping_roles,
+)
 from twin.traffic.base import RecordedTraffic
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "synthetic.toml"
@@ -65,6 +76,31 @@ def test_boustrophedon_tour_is_a_walk_over_every_free_cell():
 
     reachable = {tuple(c) for c in np.argwhere(largest_free_component(grid))}
     assert {tuple(c) for c in tour} == reachable
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**31), nx=st.integers(2, 30), ny=st.integers(2, 30))
+def test_limited_searches_find_the_paths_of_full_searches(seed, nx, ny):
+    """The sweep's detours (distance-limited Dijkstra, limits growing x4) are the paths
+    walked along one unlimited search per target, as before: exact, not just as short."""
+    rng = np.random.default_rng(seed)
+    obstacles = rng.random((nx, ny)) < rng.uniform(0.0, 0.4)
+    obstacles[:, rng.integers(ny)] |= rng.random(nx) < 0.9  # walls with gaps: long detours
+    if obstacles.all():
+        return
+    grid = Grid(obstacles)
+    cells = np.argwhere(largest_free_component(grid))
+    pairs = cells[rng.integers(len(cells), size=(12, 2))]
+    paths = _free_paths(grid, pairs[:, 0], pairs[:, 1])
+    flat = pairs[..., 0] * ny + pairs[..., 1]
+    _, pred = shortest_path(
+        _free_cell_graph(grid), unweighted=True, indices=flat[:, 1], return_predecessors=True
+    )
+    for n, (a, b) in enumerate(flat):
+        walk = [a]
+        while walk[-1] != b:
+            walk.append(pred[n, walk[-1]])
+        assert paths[n] == [(int(c) // ny, int(c) % ny) for c in walk]
 
 
 def test_sweeper_covers_an_open_map_in_one_pass():

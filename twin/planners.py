@@ -18,6 +18,7 @@ step: deterministic given the seed, uniform among tied joint actions, never bias
 from __future__ import annotations
 
 import itertools
+from typing import NamedTuple
 
 import numpy as np
 
@@ -134,12 +135,20 @@ class LookaheadPolicy(CoordinatedPolicy):
     current ``T^k`` there), 0 for cells never seen, held constant along the path. With
     ``H = 1`` the only cells scored are in view, so the scores are exactly ``visit-gain``'s.
 
-    Cost per step: ``N 5^H H`` numpy element operations (no loop over drones or paths).
+    How: the paths form a tree (level ``h`` holds the ``5^(h+1)`` prefixes of ``h + 1``
+    steps); each node adds its step's gain to its parent's sum, so a shared prefix is summed
+    once, in the same order as path by path (bit for bit the same sums). The gain of a first
+    visit is looked up in a table over the ``2H(H+1)+1`` cells within ``H`` steps; only
+    revisits are computed per node. The last level needs no sums: rounding is monotone, so
+    ``max_c (v + g_c) = v + max_c g_c``. Cost per step: about ``N 5^H`` lookups, all drones
+    at once (no loop over drones or paths).
+
     ``DEFAULT_HORIZON`` is the ``H`` with the largest mean R_hat_T on ``configs/synthetic.toml``,
     seeds 0-9, among those taking well under a second per step at 200 x 300 cells with 1000
     drones (``python benchmarks/bench_swarms.py --pick-horizon``; R_hat_T mean ± 95%, ms/step
-    at 200 x 300 with 1000 drones): H=1 2.719 ± 0.031, 2 ms; H=2 2.736 ± 0.032, 3 ms;
-    H=3 2.705 ± 0.040, 10 ms; H=4 2.784 ± 0.046, 135 ms; H=5 2.782 ± 0.046, 1665 ms.
+    at 200 x 300 with 1000 drones, measured path by path before the tree): H=1 2.719 ± 0.031,
+    2 ms; H=2 2.736 ± 0.032, 3 ms; H=3 2.705 ± 0.040, 10 ms; H=4 2.784 ± 0.046, 135 ms;
+    H=5 2.782 ± 0.046, 1665 ms.
     """
 
     name = "lookahead"
@@ -157,47 +166,91 @@ class LookaheadPolicy(CoordinatedPolicy):
         self.horizon = int(horizon)
         self.discount = float(discount)
         self.offsets, self.last, self.first = action_paths(self.horizon)
+        self.cells, self.levels = path_tree(self.offsets, self.last)
 
     def reset(self, grid: Grid, n_drones: int, rng: np.random.Generator) -> None:
         super().reset(grid, n_drones, rng)
         h = self.horizon
         self.width = grid.ny + 2 * h  # maps padded by H: every path stays inside
-        self.step_flat = self.offsets[..., 0] * self.width + self.offsets[..., 1]  # (P, H)
+        self.cell_flat = self.cells[:, 0] * self.width + self.cells[:, 1]  # (C,) rel. flat ids
         self.free_padded = np.pad(grid.free, h, constant_values=False).ravel()
-        self.belief = np.zeros(grid.shape)  # last seen T per cell, 0 if never seen
-
-    def _padded(self, values: np.ndarray) -> np.ndarray:
-        return np.pad(values, self.horizon).ravel()
+        self.belief_padded = np.zeros((grid.nx + 2 * h, grid.ny + 2 * h))
+        self.belief = self.belief_padded[h:-h, h:-h]  # last seen T per cell, 0 if never seen
+        self.idle_padded = np.zeros_like(self.belief_padded)
 
     def scores(self, view: SwarmView) -> np.ndarray:
         grid, p, h_max = view.grid, view.params, self.horizon
         flat, valid = grid.view_index(view.positions)
-        seen = flat[valid]
-        self.belief.ravel()[seen] = view.importance.ravel()[seen]
-        weight = self._padded(p.alpha_T * self.belief + p.alpha_I)
-        idle = self._padded(view.idleness)
+        i, j = np.divmod(flat[valid], grid.ny)
+        self.belief[i, j] = view.importance[i, j]
+        self.idle_padded[h_max:-h_max, h_max:-h_max] = view.idleness
 
         pos = np.asarray(view.positions, dtype=np.int64)
         base = (pos[:, 0] + h_max) * self.width + pos[:, 1] + h_max
-        cells = base[:, None, None] + self.step_flat[None]  # (N, P, H) padded flat ids
-        ok = self.free_padded[cells].all(axis=2)
-        n_paths = cells.shape[1]
-        pre = np.zeros(cells.shape)  # predicted idleness of the cell just before step h
-        value = np.zeros(cells.shape[:2])
-        for h in range(h_max):  # loop over the few steps only
-            pre_h = np.minimum(1.0, idle[cells[:, :, h]] + h * p.delta)
-            s = self.last[:, h]
-            again = s >= 0
-            if again.any():
-                revisit = np.minimum(
-                    1.0,
-                    p.eta * pre[:, np.arange(n_paths), np.maximum(s, 0)] + (h - 1 - s) * p.delta,
-                )
-                pre_h = np.where(again[None, :], revisit, pre_h)
-            pre[:, :, h] = pre_h
-            value += self.discount**h * visit_gain(weight[cells[:, :, h]], pre_h, p)
-        value = np.where(ok, value, -np.inf)
-        return value.reshape(len(pos), len(ACTION_DELTAS), -1).max(axis=2)
+        near = self.cell_flat[:, None] + base[None, :]  # (C, N) padded flat ids
+        weight = p.alpha_T * self.belief_padded.ravel()[near] + p.alpha_I
+        idle = self.idle_padded.ravel()[near]
+        blocked = ~self.free_padded[near]
+        pre, value = [], None  # pre[s]: predicted idleness before the step, per visit class
+        for h, level in enumerate(self.levels):
+            pre_h = np.minimum(1.0, idle[level.cell] + h * p.delta)  # first visits
+            for s, classes, earlier in level.revisits:  # the cell's previous visit at level s
+                pre_h[classes] = np.minimum(1.0, p.eta * pre[s][earlier] + (h - 1 - s) * p.delta)
+            gain = self.discount**h * visit_gain(weight[level.cell], pre_h, p)
+            gain[blocked[level.cell]] = -np.inf
+            pre.append(pre_h)
+            gain = gain[level.klass]  # (5^(h+1), N): every prefix of h + 1 steps
+            if h == 0:
+                value = 0.0 + gain
+            elif h < h_max - 1:
+                value = np.repeat(value, 5, axis=0) + gain
+            else:  # last level: best child per parent, then the parent's sum
+                value = value + gain.reshape(len(value), 5, -1).max(axis=1)
+        n_first = len(ACTION_DELTAS)
+        return value.reshape(n_first, -1, len(pos)).max(axis=1).T
+
+
+class _Level(NamedTuple):
+    """Level ``h`` of the path tree. A prefix's gain depends only on its last cell and the
+    steps at which the prefix stood there before (its *visit class*), so gains are computed
+    per class: ``cell`` ``(K,)`` index of each class's cell among the near cells, ``klass``
+    ``(5^(h+1),)`` the class of each prefix, and ``revisits``: ``(s, classes, earlier)`` for
+    the classes whose cell was last visited at level ``s``, with their class at level ``s``."""
+
+    cell: np.ndarray
+    klass: np.ndarray
+    revisits: list[tuple[int, np.ndarray, np.ndarray]]
+
+
+def path_tree(offsets: np.ndarray, last: np.ndarray) -> tuple[np.ndarray, list[_Level]]:
+    """The paths of :func:`action_paths` as a tree of prefixes, grouped in visit classes.
+
+    Returns ``(cells, levels)``: ``cells`` ``(C, 2)`` the offsets within ``H`` steps that
+    some prefix ends on, and one :class:`_Level` per step.
+    """
+    n_paths, horizon = last.shape
+    cells, index = np.unique(offsets.reshape(-1, 2), axis=0, return_inverse=True)
+    index = index.reshape(n_paths, horizon)
+    levels, class_of = [], []  # class_of[h]: {(cell, visit steps): class index}
+    for h in range(horizon):
+        keys, klass = {}, []
+        for path in np.arange(5 ** (h + 1)) * 5 ** (horizon - 1 - h):  # first path per prefix
+            cell = int(index[path, h])
+            steps = tuple(int(t) for t in np.flatnonzero(index[path, : h + 1] == cell))
+            klass.append(keys.setdefault((cell, steps), len(keys)))
+        revisits = {}
+        for (cell, steps), k in keys.items():
+            if len(steps) > 1:
+                s = steps[-2]
+                revisits.setdefault(s, []).append((k, class_of[s][(cell, steps[:-1])]))
+        groups = [
+            (s, *(np.array(v) for v in zip(*pairs, strict=True)))
+            for s, pairs in sorted(revisits.items())
+        ]
+        cell_of = np.array([cell for cell, _ in keys], dtype=np.int64)
+        levels.append(_Level(cell_of, np.array(klass, dtype=np.int64), groups))
+        class_of.append(keys)
+    return cells, levels
 
 
 #: The swarms of this module by registry name (see ``twin.policies._REGISTRY``).
