@@ -151,3 +151,27 @@ def test_dense_packs_reach_the_whole_swarm_optimum(case):
     best_shared, best_sum = _whole_swarm_optimum(q, positions, feasible, grid)
     assert shared == best_shared
     assert q[np.arange(n), actions].sum() == pytest.approx(best_sum)
+
+
+def test_an_input_on_which_lapjvsp_looped_forever_is_solved_to_the_brute_force_optimum():
+    """8 drones whose float regrets made scipy's LAPJVsp loop forever (found by the hypothesis
+    test of the coordinated swarms); whole-number costs make it terminate, at the optimum."""
+    from pathlib import Path
+
+    from twin.coordinator import _solve
+
+    d = np.load(Path(__file__).parent / "data" / "coordinator_lapjvsp_loop.npz")
+    q, masked, flat, feasible = d["q"], d["masked"], d["flat"], d["feasible"]
+    actions = _solve(q, masked, flat, feasible, bool(d["stacked"]), int(d["n_cells"]))
+    targets = flat[np.arange(len(q)), actions]
+    assert feasible[np.arange(len(q)), actions].all()
+    assert len(np.unique(targets)) == len(q)
+    # the optimum over all joint actions with distinct targets
+    import itertools
+
+    best = -np.inf
+    for joint in itertools.product(*[np.flatnonzero(f) for f in feasible]):
+        cells = flat[np.arange(len(q)), joint]
+        if len(np.unique(cells)) == len(q):
+            best = max(best, q[np.arange(len(q)), joint].sum())
+    assert q[np.arange(len(q)), actions].sum() == pytest.approx(best, abs=1e-6)

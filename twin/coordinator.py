@@ -103,12 +103,24 @@ def _solve(q, masked, flat, feasible, stacked: bool, n_cells: int) -> np.ndarray
     """Exact assignment of the given drones to their candidate cells (with private "stay
     anyway" columns when some of them stand on one cell)."""
     graph, cells = _square_problem(q, masked, flat, feasible, stacked, n_cells)
+    graph.data = _whole_costs(graph.data, graph.shape[0])
     column = min_weight_full_bipartite_matching(graph)[1][: len(q)]
     # the action reaching the matched cell; a private column (past the cells) means stay
     on_cell = column < len(cells)
     target = cells[np.minimum(column, len(cells) - 1)]
     action = ((flat == target[:, None]) & feasible).argmax(axis=1)
     return np.where(on_cell, action, 0)
+
+
+def _whole_costs(costs: np.ndarray, rows: int) -> np.ndarray:
+    """Costs as whole numbers (scaled by a power of two, at most 2^30, so that any sum over a
+    matching stays below 2^52 and is exact): LAPJVsp can loop forever on some float inputs
+    whose sums round differently along different paths (as scipy gh-17269); in exact
+    arithmetic it terminates. Assignments whose float sums differ by less than about
+    ``rows * 2^-30`` are ties at this resolution."""
+    top = float(costs.max(initial=1.0)) * rows
+    scale = min(2.0**30, 2.0 ** np.floor(np.log2(2.0**52 / top)))
+    return np.maximum(np.round(costs * scale), 1.0)  # >= 1: the solver drops explicit zeros
 
 
 def _square_problem(q, masked, flat, feasible, stacked: bool, n_cells: int):
