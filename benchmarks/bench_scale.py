@@ -120,6 +120,12 @@ def coupled(experiment: Experiment):
     return timed(run)
 
 
+def close_outcome(outcome) -> None:
+    from twin.experiment import close_sources
+
+    close_sources(outcome)
+
+
 def write_folder(outcome, folder: Path) -> float:
     """The run folder as ``twin run`` writes it (monitoring, tape, MFD samples); seconds."""
     from twin.experiment import close_sources, record, run_metadata
@@ -138,12 +144,34 @@ def stage_table(stages: dict[str, float], steps: int) -> str:
     return "\n".join(lines)
 
 
-def scale_run(config_path: Path, horizon: int | None, out: Path, meso: bool = False) -> str:
-    """Bare against coupled in one process; returns a disagreement, or ''."""
+def scale_run(
+    config_path: Path, horizon: int | None, out: Path, meso: bool = False, rounds: int = 1
+) -> str:
+    """Bare against coupled in one process; returns a disagreement, or ''.
+
+    libsumo gets slower with every simulation started in one process (about 5% per run of this
+    scenario, measured), so with ``rounds`` > 1 the runs go bare, twin, twin, bare, ... (ABBA):
+    a linear drift then weighs on both kinds alike; each kind's mean counts."""
     experiment = experiment_of(config_path, horizon, meso)
-    cpu_b, wall_b, running_b = bare(experiment)
-    cpu_t, wall_t, (outcome, running_t) = coupled(experiment)
+    runs: dict[str, list] = {"bare": [], "twin": []}
+    for r in range(rounds):
+        for kind in ("bare", "twin") if r % 2 == 0 else ("twin", "bare"):
+            if kind == "bare":
+                runs[kind].append(bare(experiment))
+            else:
+                if runs["twin"]:
+                    close_outcome(runs["twin"][-1][2][0])
+                runs[kind].append(coupled(experiment))
+    cpu_b = sum(r[0] for r in runs["bare"]) / rounds
+    wall_b = sum(r[1] for r in runs["bare"]) / rounds
+    cpu_t = sum(r[0] for r in runs["twin"]) / rounds
+    wall_t = sum(r[1] for r in runs["twin"]) / rounds
+    running_b = runs["bare"][-1][2]
+    outcome, running_t = runs["twin"][-1][2]
     result = outcome.results[0]
+    if rounds > 1:
+        walls = lambda kind: ", ".join(f"{r[1]:.1f}" for r in runs[kind])  # noqa: E731
+        print(f"wall s per run, bare: {walls('bare')}; twin: {walls('twin')} (ABBA order)")
     writing = write_folder(outcome, out)
     steps = result.completed_steps
     stages = dict(result.stage_seconds)
@@ -154,7 +182,10 @@ def scale_run(config_path: Path, horizon: int | None, out: Path, meso: bool = Fa
         f"{len(result.swarms)} swarms ({', '.join(result.swarms)}), "
         f"SUMO {'mesoscopic' if meso else 'microscopic'}"
     )
-    print(f"{'run':30s} {'cpu s':>8s} {'wall s':>8s} {'wall / bare':>12s} {'cpu / bare':>11s}")
+    label = f"mean of {rounds}" if rounds > 1 else "one run each"
+    print(
+        f"{'run (' + label + ')':30s} {'cpu s':>8s} {'wall s':>8s} {'wall / bare':>12s} {'cpu / bare':>11s}"
+    )
     print(f"{'bare SUMO stepping':30s} {cpu_b:8.2f} {wall_b:8.2f} {1.0:12.3f} {1.0:11.3f}")
     print(
         f"{'twin run (all swarms)':30s} {cpu_t:8.2f} {wall_t:8.2f} {wall_t / wall_b:12.3f} "
@@ -272,6 +303,9 @@ def main() -> None:
     p.add_argument("--horizon", type=int, default=None, help="steps (default: the config's)")
     p.add_argument("--quick", action="store_true", help="small generated grid, seconds")
     p.add_argument("--sweep", action="store_true", help="cell size x drones, fresh processes")
+    p.add_argument(
+        "--rounds", type=int, default=None, help="ABBA rounds of bare and twin (default 2, quick 1)"
+    )
     p.add_argument("--cells", default="500,250,100", help="cell sizes (m) of the sweep")
     p.add_argument("--drones", default="4,50,200", help="drone counts of the sweep")
     p.add_argument("--hours", type=float, default=1.0, help="rush hour simulated per sweep run")
@@ -292,10 +326,12 @@ def main() -> None:
         sweep(config_path, cells if not args.quick else [200.0, 100.0], drones, hours, out)
         tmp.cleanup()
         return
-    problem = scale_run(config_path, args.horizon, out / "scale-run")
+    rounds = args.rounds if args.rounds is not None else (1 if args.quick else 2)
+    problem = scale_run(config_path, args.horizon, out / "scale-run", rounds=rounds)
     if args.meso:
         print()
-        problem = problem or scale_run(config_path, args.horizon, out / "scale-meso", meso=True)
+        meso_run = scale_run(config_path, args.horizon, out / "scale-meso", True, rounds)
+        problem = problem or meso_run
         compare_meso(out / "scale-run", out / "scale-meso")
     tmp.cleanup()
     if problem:
