@@ -2,7 +2,9 @@
 per step grows with cells and drones.
 
 ``python benchmarks/bench_scale.py`` (default ``configs/shenzhen-city-scale.toml``: 200 drones on
-100 m cells, 720 steps of 15 s, every swarm of the config). In ONE process, one after the other:
+100 m cells, 720 steps of 15 s, every swarm of the config). Each run in a fresh process (libsumo
+slows down with every simulation started in one process), ``--rounds`` x (bare, twin) in ABBA
+order (default 2), each kind's mean counting:
 
 - ``bare``: the scenario's SUMO run advanced to every sample time, nothing read (the floor);
 - ``twin``: the same SUMO run through the one experiment runner (:func:`twin.experiment.
@@ -18,8 +20,8 @@ time, peak memory from ``run.json`` and its ``timing.csv``), and prints the tabl
 peak memory and milliseconds per step of SUMO, of the coupling (reads, binning, MFD) and of the
 swarms together.
 
-Checks (exit 1 when they fail): the coupled run leaves SUMO in the same state as the bare run
-(same vehicles running at the end), and the per-stage times add up to the patrol loop's wall
+Checks (exit 1 when they fail): every run ends with the same vehicles on the road (the coupling
+does not change the simulation), and the per-stage times add up to the patrol loop's wall
 time within 2%. ``--meso`` runs the same with SUMO's mesoscopic model and compares speed and
 monitoring results (R_hat_T, events, share seen, latency, belief error) swarm by swarm.
 ``--quick``: a small generated grid with 50 drones on 100 m cells (seconds).
@@ -120,12 +122,6 @@ def coupled(experiment: Experiment):
     return timed(run)
 
 
-def close_outcome(outcome) -> None:
-    from twin.experiment import close_sources
-
-    close_sources(outcome)
-
-
 def write_folder(outcome, folder: Path) -> float:
     """The run folder as ``twin run`` writes it (monitoring, tape, MFD samples); seconds."""
     from twin.experiment import close_sources, record, run_metadata
@@ -144,48 +140,74 @@ def stage_table(stages: dict[str, float], steps: int) -> str:
     return "\n".join(lines)
 
 
+def one_run(kind: str, config_path: Path, horizon: int | None, meso: bool, out: Path) -> dict:
+    """One bare or twin run in this process (a child of :func:`scale_run`); its figures."""
+    experiment = experiment_of(config_path, horizon, meso)
+    if kind == "bare":
+        cpu, wall, running = bare(experiment)
+        return {"cpu": cpu, "wall": wall, "running": running, "peak_mb": peak_memory_mb()}
+    cpu, wall, (outcome, running) = coupled(experiment)
+    result = outcome.results[0]
+    writing = write_folder(outcome, out)
+    timing_frame([result], writing).to_csv(out / "bench_timing.csv", index=False)
+    return {
+        "cpu": cpu,
+        "wall": wall,
+        "running": running,
+        "peak_mb": peak_memory_mb(),
+        "stages": result.stage_seconds,
+        "loop_seconds": result.seconds,
+        "steps": result.completed_steps,
+        "writing": writing,
+        "grid": [result.grid.nx, result.grid.ny, result.grid.n_free],
+        "drones": int(result.positions.shape[2]),
+        "swarms": list(result.swarms),
+    }
+
+
 def scale_run(
     config_path: Path, horizon: int | None, out: Path, meso: bool = False, rounds: int = 1
 ) -> str:
-    """Bare against coupled in one process; returns a disagreement, or ''.
+    """Bare against twin, each run in a fresh process, ``rounds`` x (bare, twin) in ABBA order;
+    returns a disagreement, or ''.
 
-    libsumo gets slower with every simulation started in one process (about 5% per run of this
-    scenario, measured), so with ``rounds`` > 1 the runs go bare, twin, twin, bare, ... (ABBA):
-    a linear drift then weighs on both kinds alike; each kind's mean counts."""
-    experiment = experiment_of(config_path, horizon, meso)
-    runs: dict[str, list] = {"bare": [], "twin": []}
+    Fresh processes: libsumo gets slower with every simulation started in one process (this
+    scenario: 84 s for the first bare run, 107 s for the same run two simulations later), which
+    would favour whichever kind runs first. ABBA order spreads the machine's drift over both."""
+    out.mkdir(parents=True, exist_ok=True)
+    runs: dict[str, list[dict]] = {"bare": [], "twin": []}
     for r in range(rounds):
         for kind in ("bare", "twin") if r % 2 == 0 else ("twin", "bare"):
-            if kind == "bare":
-                runs[kind].append(bare(experiment))
-            else:
-                if runs["twin"]:
-                    close_outcome(runs["twin"][-1][2][0])
-                runs[kind].append(coupled(experiment))
-    cpu_b = sum(r[0] for r in runs["bare"]) / rounds
-    wall_b = sum(r[1] for r in runs["bare"]) / rounds
-    cpu_t = sum(r[0] for r in runs["twin"]) / rounds
-    wall_t = sum(r[1] for r in runs["twin"]) / rounds
-    running_b = runs["bare"][-1][2]
-    outcome, running_t = runs["twin"][-1][2]
-    result = outcome.results[0]
-    if rounds > 1:
-        walls = lambda kind: ", ".join(f"{r[1]:.1f}" for r in runs[kind])  # noqa: E731
-        print(f"wall s per run, bare: {walls('bare')}; twin: {walls('twin')} (ABBA order)")
-    writing = write_folder(outcome, out)
-    steps = result.completed_steps
-    stages = dict(result.stage_seconds)
+            cmd = [sys.executable, __file__, "--child", kind, "--config", str(config_path),
+                   "--out", str(out)]  # fmt: skip
+            if horizon is not None:
+                cmd += ["--horizon", str(horizon)]
+            if meso:
+                cmd.append("--meso")
+            done = subprocess.run(cmd, capture_output=True, text=True, env=os.environ.copy())
+            if done.returncode != 0:
+                sys.exit(f"bench_scale: the {kind} run failed: {done.stderr.strip()[-500:]}")
+            runs[kind].append(json.loads(done.stdout.strip().splitlines()[-1]))
+
+    def mean(kind: str, key: str) -> float:
+        return sum(r[key] for r in runs[kind]) / len(runs[kind])
+
+    cpu_b, wall_b, cpu_t, wall_t = (mean(k, x) for k in ("bare", "twin") for x in ("cpu", "wall"))
+    twin = runs["twin"][-1]
+    steps, stages, writing = twin["steps"], twin["stages"], twin["writing"]
+    nx, ny, n_free = twin["grid"]
     swarms = sum(s for k, s in stages.items() if k.startswith("swarm "))
     print(
-        f"scenario: {config_path.name}, {result.grid.nx} x {result.grid.ny} cells "
-        f"({result.grid.n_free} free), {result.positions.shape[2]} drones, T = {steps}, "
-        f"{len(result.swarms)} swarms ({', '.join(result.swarms)}), "
-        f"SUMO {'mesoscopic' if meso else 'microscopic'}"
+        f"scenario: {config_path.name}, {nx} x {ny} cells ({n_free} free), {twin['drones']} "
+        f"drones, T = {steps}, {len(twin['swarms'])} swarms ({', '.join(twin['swarms'])}), "
+        f"SUMO {'mesoscopic' if meso else 'microscopic'}; each run in a fresh process"
     )
+    if rounds > 1:
+        walls = lambda kind: ", ".join(f"{r['wall']:.1f}" for r in runs[kind])  # noqa: E731
+        print(f"wall s per run, bare: {walls('bare')}; twin: {walls('twin')} (ABBA order)")
     label = f"mean of {rounds}" if rounds > 1 else "one run each"
-    print(
-        f"{'run (' + label + ')':30s} {'cpu s':>8s} {'wall s':>8s} {'wall / bare':>12s} {'cpu / bare':>11s}"
-    )
+    print(f"{'run (' + label + ')':30s} {'cpu s':>8s} {'wall s':>8s} {'wall / bare':>12s} "
+          f"{'cpu / bare':>11s}")  # fmt: skip
     print(f"{'bare SUMO stepping':30s} {cpu_b:8.2f} {wall_b:8.2f} {1.0:12.3f} {1.0:11.3f}")
     print(
         f"{'twin run (all swarms)':30s} {cpu_t:8.2f} {wall_t:8.2f} {wall_t / wall_b:12.3f} "
@@ -194,18 +216,19 @@ def scale_run(
     sumo = stages.get(SUMO_STEPPING, 0.0) + stages.get(SUMO_WARMUP, 0.0)
     coupling = sum(stages.get(k, 0.0) for k in COUPLING)
     print(
-        f"inside the twin run: SUMO {sumo:.1f} s, coupling {coupling:.1f} s, swarms {swarms:.1f} s;"
-        f" then monitoring and the run folder {writing:.1f} s (not in the ratio)"
+        f"inside the last twin run: SUMO {sumo:.1f} s, coupling {coupling:.1f} s, swarms "
+        f"{swarms:.1f} s; then monitoring and the run folder {writing:.1f} s (not in the ratio)"
     )
-    print(f"peak memory of the process: {peak_memory_mb()} MB")
+    print(f"peak memory: twin run {twin['peak_mb']} MB, bare run {runs['bare'][-1]['peak_mb']} MB")
     print(stage_table(stages, steps))
     problems = []
-    if running_b != running_t:
-        problems.append(f"vehicles running at the end: bare {running_b}, coupled {running_t}")
+    running = {r["running"] for r in runs["bare"] + runs["twin"]}
+    if len(running) > 1:
+        problems.append(f"vehicles on the road at the end differ between runs: {sorted(running)}")
     covered = sum(stages.values())
-    if abs(covered - result.seconds) > 0.02 * result.seconds + 0.05:
-        problems.append(f"stages add up to {covered:.2f} s of the loop's {result.seconds:.2f} s")
-    timing_frame([result], writing).to_csv(out / "bench_timing.csv", index=False)
+    loop = twin["loop_seconds"]
+    if abs(covered - loop) > 0.02 * loop + 0.05:
+        problems.append(f"stages add up to {covered:.2f} s of the loop's {loop:.2f} s")
     (out / "bench_walls.json").write_text(json.dumps({"bare": wall_b, "twin": wall_t}))
     return "; ".join(problems)
 
@@ -306,6 +329,7 @@ def main() -> None:
     p.add_argument(
         "--rounds", type=int, default=None, help="ABBA rounds of bare and twin (default 2, quick 1)"
     )
+    p.add_argument("--child", choices=["bare", "twin"], help=argparse.SUPPRESS)
     p.add_argument("--cells", default="500,250,100", help="cell sizes (m) of the sweep")
     p.add_argument("--drones", default="4,50,200", help="drone counts of the sweep")
     p.add_argument("--hours", type=float, default=1.0, help="rush hour simulated per sweep run")
@@ -315,6 +339,11 @@ def main() -> None:
     )
     args = p.parse_args()
     limit_threads()
+    if args.child:  # one run for the parent: its figures as one JSON line
+        args.out.mkdir(parents=True, exist_ok=True)
+        figures = one_run(args.child, args.config, args.horizon, args.meso, args.out)
+        print(json.dumps(figures))
+        return
     tmp = tempfile.TemporaryDirectory()
     out = args.out or Path(tmp.name)
     out.mkdir(parents=True, exist_ok=True)
