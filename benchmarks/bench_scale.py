@@ -8,7 +8,7 @@ order (default 2), each kind's mean counting:
 
 - ``bare``: the scenario's SUMO run advanced to every sample time, nothing read (the floor);
 - ``twin``: the same SUMO run through the one experiment runner (:func:`twin.experiment.
-  run_experiment`): three reads per step, binning, the online MFD, every swarm side by side,
+  run_experiment`): the config's reads per step, binning, the online MFD, every swarm side by side,
   scoring and recording; then the run folder's monitoring and files.
 
 It prints wall and CPU seconds of each, their ratio (the target is at most 1.3), the peak
