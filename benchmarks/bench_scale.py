@@ -11,6 +11,10 @@ order (default 2), each kind's mean counting:
   run_experiment`): the config's reads per step, binning, the online MFD, every swarm side by side,
   scoring and recording; then the run folder's monitoring and files.
 
+SUMO runs in its own process ahead of the swarms (``twin/sumo/worker.py``), so the twin run
+uses both cores: its CPU seconds (both processes) exceed its wall seconds. ``--same-process``
+runs SUMO inside the runner's process instead, as with ``Experiment(sumo_process=False)``.
+
 It prints wall and CPU seconds of each, their ratio (the target is at most 1.3), the peak
 memory of the process, and the per-stage table of the ``twin`` run (``twin/timing.py``).
 
@@ -79,15 +83,24 @@ def quick_config(folder: Path) -> Path:
     return path
 
 
+def cpu_seconds() -> float:
+    """CPU seconds of this process and of its ended children (SUMO's own process)."""
+    t = os.times()
+    return t.user + t.system + t.children_user + t.children_system
+
+
 def timed(fn):
-    c0, w0 = time.process_time(), time.perf_counter()
+    c0, w0 = cpu_seconds(), time.perf_counter()
     out = fn()
-    return time.process_time() - c0, time.perf_counter() - w0, out
+    return cpu_seconds() - c0, time.perf_counter() - w0, out
 
 
-def experiment_of(config_path: Path, horizon: int | None, meso: bool = False) -> Experiment:
+def experiment_of(
+    config_path: Path, horizon: int | None, meso: bool = False, same_process: bool = False
+) -> Experiment:
     config = load_config(config_path)
     return Experiment(
+        sumo_process=not same_process,
         config=config,
         swarms=config.evaluate.swarms,
         seeds=[config.evaluate.seed],
@@ -140,9 +153,11 @@ def stage_table(stages: dict[str, float], steps: int) -> str:
     return "\n".join(lines)
 
 
-def one_run(kind: str, config_path: Path, horizon: int | None, meso: bool, out: Path) -> dict:
+def one_run(
+    kind: str, config_path: Path, horizon: int | None, meso: bool, out: Path, same: bool = False
+) -> dict:
     """One bare or twin run in this process (a child of :func:`scale_run`); its figures."""
-    experiment = experiment_of(config_path, horizon, meso)
+    experiment = experiment_of(config_path, horizon, meso, same)
     if kind == "bare":
         cpu, wall, running = bare(experiment)
         return {"cpu": cpu, "wall": wall, "running": running, "peak_mb": peak_memory_mb()}
@@ -156,6 +171,7 @@ def one_run(kind: str, config_path: Path, horizon: int | None, meso: bool, out: 
         "running": running,
         "peak_mb": peak_memory_mb(),
         "stages": result.stage_seconds,
+        "sumo_stages": result.extra.get("sumo_process_stages", {}),
         "loop_seconds": result.seconds,
         "steps": result.completed_steps,
         "writing": writing,
@@ -166,7 +182,12 @@ def one_run(kind: str, config_path: Path, horizon: int | None, meso: bool, out: 
 
 
 def scale_run(
-    config_path: Path, horizon: int | None, out: Path, meso: bool = False, rounds: int = 1
+    config_path: Path,
+    horizon: int | None,
+    out: Path,
+    meso: bool = False,
+    rounds: int = 1,
+    same_process: bool = False,
 ) -> str:
     """Bare against twin, each run in a fresh process, ``rounds`` x (bare, twin) in ABBA order;
     returns a disagreement, or ''.
@@ -184,6 +205,8 @@ def scale_run(
                 cmd += ["--horizon", str(horizon)]
             if meso:
                 cmd.append("--meso")
+            if same_process:
+                cmd.append("--same-process")
             done = subprocess.run(cmd, capture_output=True, text=True, env=os.environ.copy())
             if done.returncode != 0:
                 sys.exit(f"bench_scale: the {kind} run failed: {done.stderr.strip()[-500:]}")
@@ -200,7 +223,8 @@ def scale_run(
     print(
         f"scenario: {config_path.name}, {nx} x {ny} cells ({n_free} free), {twin['drones']} "
         f"drones, T = {steps}, {len(twin['swarms'])} swarms ({', '.join(twin['swarms'])}), "
-        f"SUMO {'mesoscopic' if meso else 'microscopic'}; each run in a fresh process"
+        f"SUMO {'mesoscopic' if meso else 'microscopic'} "
+        f"{'in the runner' if same_process else 'in its own process'}; each run in a fresh process"
     )
     if rounds > 1:
         walls = lambda kind: ", ".join(f"{r['wall']:.1f}" for r in runs[kind])  # noqa: E731
@@ -213,14 +237,18 @@ def scale_run(
         f"{'twin run (all swarms)':30s} {cpu_t:8.2f} {wall_t:8.2f} {wall_t / wall_b:12.3f} "
         f"{cpu_t / cpu_b:11.3f}"
     )
-    sumo = stages.get(SUMO_STEPPING, 0.0) + stages.get(SUMO_WARMUP, 0.0)
-    coupling = sum(stages.get(k, 0.0) for k in COUPLING)
+    where = twin.get("sumo_stages") or stages
+    sumo = where.get(SUMO_STEPPING, 0.0) + where.get(SUMO_WARMUP, 0.0)
+    coupling = sum(where.get(k, 0.0) for k in COUPLING)
     print(
         f"inside the last twin run: SUMO {sumo:.1f} s, coupling {coupling:.1f} s, swarms "
         f"{swarms:.1f} s; then monitoring and the run folder {writing:.1f} s (not in the ratio)"
     )
     print(f"peak memory: twin run {twin['peak_mb']} MB, bare run {runs['bare'][-1]['peak_mb']} MB")
     print(stage_table(stages, steps))
+    if twin.get("sumo_stages"):
+        print("SUMO's own process, beside the runner:")
+        print(stage_table(twin["sumo_stages"], steps))
     problems = []
     running = {r["running"] for r in runs["bare"] + runs["twin"]}
     if len(running) > 1:
@@ -330,6 +358,7 @@ def main() -> None:
         "--rounds", type=int, default=None, help="ABBA rounds of bare and twin (default 2, quick 1)"
     )
     p.add_argument("--child", choices=["bare", "twin"], help=argparse.SUPPRESS)
+    p.add_argument("--same-process", action="store_true", help="SUMO inside the runner's process")
     p.add_argument("--cells", default="500,250,100", help="cell sizes (m) of the sweep")
     p.add_argument("--drones", default="4,50,200", help="drone counts of the sweep")
     p.add_argument("--hours", type=float, default=1.0, help="rush hour simulated per sweep run")
@@ -341,7 +370,9 @@ def main() -> None:
     limit_threads()
     if args.child:  # one run for the parent: its figures as one JSON line
         args.out.mkdir(parents=True, exist_ok=True)
-        figures = one_run(args.child, args.config, args.horizon, args.meso, args.out)
+        figures = one_run(
+            args.child, args.config, args.horizon, args.meso, args.out, args.same_process
+        )
         print(json.dumps(figures))
         return
     tmp = tempfile.TemporaryDirectory()
@@ -356,10 +387,11 @@ def main() -> None:
         tmp.cleanup()
         return
     rounds = args.rounds if args.rounds is not None else (1 if args.quick else 2)
-    problem = scale_run(config_path, args.horizon, out / "scale-run", rounds=rounds)
+    same = args.same_process
+    problem = scale_run(config_path, args.horizon, out / "scale-run", False, rounds, same)
     if args.meso:
         print()
-        meso_run = scale_run(config_path, args.horizon, out / "scale-meso", True, rounds)
+        meso_run = scale_run(config_path, args.horizon, out / "scale-meso", True, rounds, same)
         problem = problem or meso_run
         compare_meso(out / "scale-run", out / "scale-meso")
     tmp.cleanup()

@@ -81,7 +81,8 @@ def test_timing_csv_is_written_with_the_run(tmp_path):
     )
     write_run(tmp_path, [result], {"config": "x"})
     timing = pd.read_csv(tmp_path / "timing.csv")
-    assert list(timing.columns) == ["seed", "stage", "seconds", "ms_per_step", "share"]
+    assert list(timing.columns) == ["seed", "process", "stage", "seconds", "ms_per_step", "share"]
+    assert set(timing["process"]) == {"main"}
     assert set(timing["stage"]) >= {TRAFFIC, swarm_stage("greedy"), SCORING, WRITING}
     assert timing["share"].sum() == pytest.approx(1.0, abs=0.01)
     row = timing.set_index("stage").loc[SCORING]
@@ -120,3 +121,72 @@ def test_live_sumo_splits_its_time_into_stepping_reads_and_model(tmp_path):
     assert TRAFFIC not in stages  # split into the source's own stages
     assert source.timer.calls[SUMO_STEPPING] == 5  # T^0 .. T^4, the warm-up apart
     assert sum(stages.values()) <= result.seconds + 1e-6
+
+
+def test_sumo_in_its_own_process_gives_the_same_run_and_reports_its_stages(tmp_path):
+    """SUMO ahead of the swarms in a child process (twin/sumo/worker.py): the same maps, tape,
+    MFD and swarm results as in one process; the loop's traffic stage is the wait for it, and
+    the child's own stages come back."""
+    pytest.importorskip("libsumo")
+    from helpers import small_sumo_scenario
+
+    from twin.config import load_config
+    from twin.sumo.scenario import sumo_source
+    from twin.timing import WAITING_FOR_SUMO
+
+    folder = small_sumo_scenario(tmp_path, horizon=6)
+    config = load_config(folder / "small.toml")
+    runs = []
+    for separate in (False, True):
+        source = sumo_source(config)
+        source.separate_process = separate
+        starts = np.argwhere(source.grid.free)[[0, -1]]
+        swarms = {n: make_policy(n) for n in ("random", "greedy")}
+        runs.append((source, run_patrol(source, swarms, starts, ScoreParams(), seed=1)))
+    (here, a), (there, b) = runs
+    assert np.array_equal(a.importance, b.importance)
+    assert np.array_equal(a.positions, b.positions) and np.array_equal(a.rewards, b.rewards)
+    assert len(here.snapshots) == len(there.snapshots)
+    for x, y in zip(here.snapshots, there.snapshots, strict=True):
+        assert x[:2] == y[:2] and np.array_equal(x[2], y[2])
+        assert np.array_equal(x[3], y[3], equal_nan=True)
+    assert here.vehicles_seen == there.vehicles_seen
+    assert here.model.report() == there.model.report()
+    assert WAITING_FOR_SUMO in b.stage_seconds and SUMO_STEPPING not in b.stage_seconds
+    assert b.extra["sumo_process_stages"][SUMO_STEPPING] > 0
+    assert a.extra["sumo_process_stages"] == {}
+    frame = timing_frame([b])
+    assert set(frame["process"]) == {"main", "sumo"}
+
+
+def test_sumo_process_stopped_early_keeps_the_maps_used(tmp_path):
+    """A loop stopped after 2 steps (Ctrl-C) keeps exactly the snapshots of the maps it used,
+    as SUMO in one process does, and the child process is gone."""
+    pytest.importorskip("libsumo")
+    import multiprocessing
+
+    from helpers import small_sumo_scenario
+
+    from twin.config import load_config
+    from twin.sumo.scenario import sumo_source
+
+    folder = small_sumo_scenario(tmp_path, horizon=8)
+    config = load_config(folder / "small.toml")
+    kept = []
+    for separate in (False, True):
+        source = sumo_source(config)
+        source.separate_process = separate
+        starts = np.argwhere(source.grid.free)[[0, -1]]
+        calls = {"n": 0}
+
+        def stop(calls=calls):
+            calls["n"] += 1
+            return calls["n"] >= 2
+
+        result = run_patrol(
+            source, {"greedy": make_policy("greedy")}, starts, ScoreParams(), stop=stop
+        )
+        assert result.completed_steps == 2 and result.error.startswith("interrupted")
+        kept.append([k for k, *_ in source.snapshots])
+    assert kept[0] == kept[1]
+    assert not multiprocessing.active_children()

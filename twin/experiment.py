@@ -72,6 +72,8 @@ class Experiment:
     keep_importance: bool = True
     #: refuse a run whose estimated memory exceeds this (GB); None: $TWIN_MAX_MEMORY_GB or 8
     max_memory_gb: float | None = None
+    #: live SUMO in its own process, ahead of the swarms (:mod:`twin.sumo.worker`); same results
+    sumo_process: bool = True
 
 
 @dataclass
@@ -141,7 +143,9 @@ def build_source(experiment: Experiment, index: int = 0) -> TrafficSource:
         base = experiment.traffic_seed
         if base is None:
             base = sumo_settings(config).seed
-        return sumo_source(config, seed=base + index, **experiment.sumo.as_kwargs())
+        source = sumo_source(config, seed=base + index, **experiment.sumo.as_kwargs())
+        source.separate_process = experiment.sumo_process  # SUMO works ahead on the other core
+        return source
     raise UserError(f"{config.path}: [traffic].kind = {kind!r} is not a traffic twin can run")
 
 

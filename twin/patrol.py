@@ -26,6 +26,7 @@ from twin.timing import (
     SCORING,
     TRAFFIC,
     TRAFFIC_OTHER,
+    WAITING_FOR_SUMO,
     StageTimer,
     swarm_stage,
 )
@@ -181,6 +182,9 @@ def run_patrol(
     finally:
         if bar is not None:
             bar.close()
+        close = getattr(maps, "close", None)
+        if close is not None:
+            close()  # ends the simulation now (a live source in its own process reports back)
     cut = {key: values[:, :done] for key, values in series.items()}
     return PatrolResult(
         swarms=names,
@@ -200,20 +204,33 @@ def run_patrol(
         completed_steps=done,
         error=error,
         stage_seconds=_stage_seconds(timer, source),
+        extra={"sumo_process_stages": sumo_process_stages(source)},
     )
 
 
 def _stage_seconds(timer: StageTimer, source: TrafficSource) -> dict[str, float]:
     """The loop's stages, the traffic source's time split into the source's own stages (a live
-    SUMO source times its stepping, reads and observation model) and the rest."""
+    SUMO source times its stepping, reads and observation model) and the rest. When SUMO runs
+    in its own process (:mod:`twin.sumo.worker`), the loop only waits for it: that wait is the
+    traffic stage, and the SUMO process's stages are kept apart (:func:`sumo_process_stages`)."""
     seconds = timer.as_dict()
     own = getattr(source, "timer", None)
     traffic = seconds.pop(TRAFFIC, 0.0)
+    if getattr(source, "separate_process", False):
+        return {WAITING_FOR_SUMO: traffic, **seconds}
     if not isinstance(own, StageTimer) or not own.seconds:
         return {TRAFFIC: traffic, **seconds}
     split = own.as_dict()
     split[TRAFFIC_OTHER] = max(traffic - sum(split.values()), 0.0)
     return {**split, **seconds}
+
+
+def sumo_process_stages(source: TrafficSource) -> dict[str, float]:
+    """The stages of SUMO's own process, run beside the loop (empty when SUMO ran in it)."""
+    own = getattr(source, "timer", None)
+    if getattr(source, "separate_process", False) and isinstance(own, StageTimer):
+        return own.as_dict()
+    return {}
 
 
 def swarm_view(state: SwarmState, horizon: int, grid: Grid, params: ScoreParams) -> SwarmView:

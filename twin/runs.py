@@ -15,9 +15,10 @@ interrupted run never leaves a half-written file):
   onset, duration, peak, swarm, seen, first_seen (step, -1 when not seen while the event
   lasted), latency_steps (-1 likewise);
 - ``importance.npz``: ``importance`` (T+1, nx, ny) of the first seed, ``obstacles`` (nx, ny);
-- ``timing.csv``: wall time per stage of each seed's run (``twin/timing.py``): seed, stage,
-  seconds, ms_per_step, share of the seed's total; the monitoring and the writing of
-  the files above are the last stage;
+- ``timing.csv``: wall time per stage of each seed's run (``twin/timing.py``): seed, process
+  (``main``, or ``sumo`` when SUMO ran in its own process beside it), stage, seconds,
+  ms_per_step, share of the process's total; the monitoring and the writing of the files
+  above are the main process's last stage;
 - ``run.json``: metadata (command, configuration, seeds, traffic source, versions, timings),
   ``partial`` and, when partial, ``partial_reason``; written first as a marker when the run
   starts (``partial: true``, reason: not finished) and rewritten when it ends;
@@ -392,6 +393,7 @@ def write_run(
         "timings": {
             "patrol_seconds": [round(r.seconds, 3) for r in results],
             "peak_memory_mb": peak_memory_mb(),
+            "peak_memory_sumo_process_mb": peak_memory_mb(children=True),
         },
         "errors": [r.error for r in results if r.error],
         "monitoring": {
@@ -416,37 +418,43 @@ def write_run(
     return summary, comparison
 
 
-def peak_memory_mb() -> float | None:
-    """The process's peak resident memory so far (MB), where the OS tells it."""
+def peak_memory_mb(children: bool = False) -> float | None:
+    """The process's peak resident memory so far (MB), where the OS tells it; with
+    ``children``: the largest of its ended child processes (SUMO's own process)."""
     try:
         import resource
     except ImportError:  # not on Windows
         return None
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    who = resource.RUSAGE_CHILDREN if children else resource.RUSAGE_SELF
+    peak = resource.getrusage(who).ru_maxrss
     return round(peak / (1024.0 * 1024.0 if sys.platform == "darwin" else 1024.0), 1)
 
 
 def timing_frame(results: Sequence[PatrolResult], writing_seconds: float = 0.0) -> pd.DataFrame:
     """``timing.csv``: each seed's stages (:attr:`PatrolResult.stage_seconds`), then the
-    monitoring and writing of the run folder (once, on the first seed's rows)."""
+    monitoring and writing of the run folder (once, on the first seed's rows); ``process`` is
+    ``main``, or ``sumo`` for the stages of SUMO's own process, which ran beside the main one
+    (their shares are of that process)."""
     rows = []
     for n, r in enumerate(results):
         stages = dict(r.stage_seconds)
         if n == 0 and writing_seconds > 0:
             stages[WRITING] = writing_seconds
-        total = sum(stages.values()) or 1.0
         steps = max(r.completed_steps, 1)
-        for stage, seconds in stages.items():
-            rows.append(
-                {
-                    "seed": r.seed,
-                    "stage": stage,
-                    "seconds": round(seconds, 6),
-                    "ms_per_step": round(1000.0 * seconds / steps, 4),
-                    "share": round(seconds / total, 4),
-                }
-            )
-    columns = ["seed", "stage", "seconds", "ms_per_step", "share"]
+        for process, part in (("main", stages), ("sumo", r.extra.get("sumo_process_stages", {}))):
+            total = sum(part.values()) or 1.0
+            for stage, seconds in part.items():
+                rows.append(
+                    {
+                        "seed": r.seed,
+                        "process": process,
+                        "stage": stage,
+                        "seconds": round(seconds, 6),
+                        "ms_per_step": round(1000.0 * seconds / steps, 4),
+                        "share": round(seconds / total, 4),
+                    }
+                )
+    columns = ["seed", "process", "stage", "seconds", "ms_per_step", "share"]
     return pd.DataFrame(rows, columns=columns)
 
 

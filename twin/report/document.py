@@ -464,7 +464,7 @@ INCIDENT_CAPTION = (
 )
 
 
-TIMING_HEADER = ["stage", "seconds", "ms per step", "share"]
+TIMING_HEADER = ["process", "stage", "seconds", "ms per step", "share of its process"]
 
 
 def timing_rows(rf: RunFiles, report_seconds: float = 0.0) -> list[list[str]]:
@@ -472,39 +472,55 @@ def timing_rows(rf: RunFiles, report_seconds: float = 0.0) -> list[list[str]]:
     t = rf.timing
     if t is None or t.empty:
         return []
+    if "process" not in t.columns:
+        t = t.assign(process="main")
     first = t[t["seed"] == t["seed"].iloc[0]]
     steps = max(len(rf.series.query(f"seed == {rf.first_seed}")["step"].unique()), 1)
-    total = float(first["seconds"].sum()) + report_seconds
+    totals = first.groupby("process")["seconds"].sum().to_dict()
+    totals["main"] = totals.get("main", 0.0) + report_seconds
     rows = [
         [
+            str(r.process),
             str(r.stage),
             f"{r.seconds:.2f}",
             f"{r.ms_per_step:.2f}",
-            f"{100 * r.seconds / total:.1f}%",
+            f"{100 * r.seconds / (totals[r.process] or 1.0):.1f}%",
         ]
         for r in first.itertuples()
     ]
     if report_seconds > 0:
         rows.append(
             [
+                "main",
                 "report figures",
                 f"{report_seconds:.2f}",
                 f"{1000 * report_seconds / steps:.2f}",
-                f"{100 * report_seconds / total:.1f}%",
+                f"{100 * report_seconds / (totals['main'] or 1.0):.1f}%",
             ]
         )
     return rows
 
 
 def _timing_caption(rf: RunFiles, rows: list[list[str]]) -> str:
-    largest = max(rows, key=lambda r: float(r[1]))
-    peak = (rf.run.get("timings") or {}).get("peak_memory_mb")
-    memory = f" Peak memory of the process: {peak:.0f} MB." if peak else ""
+    main = [r for r in rows if r[0] == "main"]
+    largest = max(main or rows, key=lambda r: float(r[2]))
+    timings = rf.run.get("timings") or {}
+    peak, peak_sumo = timings.get("peak_memory_mb"), timings.get("peak_memory_sumo_process_mb")
+    memory = f" Peak memory: {peak:.0f} MB" if peak else ""
+    if memory and peak_sumo and any(r[0] == "sumo" for r in rows):
+        memory += f", SUMO's process {peak_sumo:.0f} MB"
+    separate = (
+        " SUMO ran in its own process beside the main one (twin/sumo/worker.py): the main "
+        "process waited for it only as long as 'waiting for SUMO' says."
+        if any(r[0] == "sumo" for r in rows)
+        else ""
+    )
     return (
         f"Wall time per stage of seed {rf.first_seed}'s run (timing.csv; twin/timing.py): SUMO "
         "stepping, reads and binning, the observation model, each swarm's decisions, the "
         "step and scoring of all swarms, recording, then the monitoring and writing of the "
-        f"run folder and the figures of this report. Largest: {largest[0]} ({largest[3]})." + memory
+        f"run folder and the figures of this report. Largest in the main process: "
+        f"{largest[1]} ({largest[4]})." + separate + (memory + "." if memory else "")
     )
 
 

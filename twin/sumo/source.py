@@ -91,6 +91,11 @@ class SumoTraffic(TrafficSource):
         self.timer = StageTimer()
         #: a :class:`twin.sumo.gui.GuiSettings` to run under sumo-gui (``--gui``); None: libsumo
         self.gui = None
+        #: run SUMO (and the observation model) in a child process that works ahead while the
+        #: swarms decide, on the other core (set by the experiment runner for live runs)
+        self.separate_process = False
+        self._truth: np.ndarray | None = None
+        self._incidents: list[dict[str, Any]] | None = None
 
     def _model(self) -> MFDImportance:
         g, s = self.geometry, self.scenario
@@ -129,9 +134,28 @@ class SumoTraffic(TrafficSource):
     def truth_map(self):
         """The true ``T^k`` of the map last yielded, when vehicles may be missed (detection
         probability below 1): the same MFD on every vehicle."""
+        if self.separate_process:
+            return self._truth
         return self.model.truth if self.model.detection_p < 1.0 else None
 
     def importance_maps(self) -> Iterator[np.ndarray]:
+        """``T^0 .. T^horizon``; in a child process when :attr:`separate_process` (not under
+        sumo-gui, nor inside a daemonic process, which may not have children)."""
+        import multiprocessing
+
+        if (
+            self.separate_process
+            and self.gui is None
+            and not multiprocessing.current_process().daemon
+        ):
+            from twin.sumo.worker import maps_from_child
+
+            return maps_from_child(self)
+        self.separate_process = False
+        return self.maps_here()
+
+    def maps_here(self) -> Iterator[np.ndarray]:
+        """The maps, SUMO running in this process."""
         from twin.sumo.incidents import IncidentSchedule
 
         s = self.scenario
@@ -191,6 +215,8 @@ class SumoTraffic(TrafficSource):
 
     def incidents_info(self) -> list[dict[str, Any]]:
         """The scheduled incidents as applied so far (``incidents.json``)."""
+        if self._incidents is not None:  # as the SUMO process applied them
+            return self._incidents
         if self.incident_schedule is None:
             return []
         return self.incident_schedule.to_json()

@@ -1,0 +1,148 @@
+"""SUMO in its own process, working ahead of the swarms: the two cores used at once.
+
+libsumo holds Python's global interpreter lock while it steps, so SUMO and the swarms cannot
+overlap in one process; and the swarms' work between two SUMO steps evicts SUMO's data from the
+CPU caches (at city scale SUMO stepped 20% slower beside eight swarms). Here a forked child runs
+:meth:`SumoTraffic.maps_here` (SUMO, reads, the observation model, incidents) and sends each map
+with the snapshots behind it through a pipe; while the swarms decide on ``T^k`` the child already
+simulates the next step. The maps are the very arrays the same source computes in one process,
+so results are identical.
+
+Ending: the child sends ``end`` with the observation model, the stage timer, the applied
+incidents and the error that stopped it (a :class:`UserError` on bad input, a
+:class:`SumoRunError` mid-run), which the parent raises where the in-process source would. When
+the parent stops early (Ctrl-C, a failed swarm), it asks the child to stop, keeps only the
+snapshots of the maps it used, and takes the model of the child's last snapshot. The child
+ignores Ctrl-C (the parent decides) and dies with the parent, even by ``kill -9``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import multiprocessing
+import os
+import pickle
+import signal
+from collections.abc import Iterator
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from twin.timing import StageTimer
+
+if TYPE_CHECKING:
+    from twin.sumo.source import SumoTraffic
+
+
+def maps_from_child(source: SumoTraffic) -> Iterator[np.ndarray]:
+    """The source's maps computed in a forked child process (see the module docstring)."""
+    context = multiprocessing.get_context("fork")
+    here, there = context.Pipe(duplex=True)
+    child = context.Process(
+        target=_produce, args=(source, there, os.getpid()), name="twin-sumo", daemon=True
+    )
+    source.snapshots, source.vehicles_seen, source.error = [], [], None
+    source.timer, source._truth, source._incidents = StageTimer(), None, None
+    child.start()
+    there.close()
+    ended = False
+    try:
+        while True:
+            message = here.recv()
+            if message[0] == "map":
+                _, importance, truth, snapshots, seen = message
+                source.snapshots.extend(snapshots)
+                source.vehicles_seen.extend(seen)
+                source._truth = truth
+                yield importance
+            else:
+                ended = True
+                _take_end(source, message)
+                if message[1] is not None:
+                    raise message[1]
+                return
+    except EOFError:  # the child died without a word (killed)
+        source.error = "the SUMO process ended unexpectedly"
+        raise RuntimeError(source.error) from None
+    finally:
+        if not ended:
+            _stop(source, here, child)
+        here.close()
+        child.join(timeout=30)
+        if child.is_alive():
+            child.kill()
+            child.join()
+
+
+def _stop(source: SumoTraffic, here, child) -> None:
+    """Ask the child to stop after its current snapshot (it may have ended already) and take
+    its end state; the snapshots of maps the parent never used are dropped."""
+    used = len(source.snapshots)
+    with contextlib.suppress(OSError):
+        here.send("stop")
+    try:
+        while True:
+            message = here.recv()
+            if message[0] == "end":
+                _take_end(source, message)
+                break
+    except (EOFError, OSError):
+        child.kill()
+    del source.snapshots[used:]  # one vehicle count per snapshot
+    del source.vehicles_seen[used:]
+
+
+def _take_end(source: SumoTraffic, message) -> None:
+    _, _, snapshots, seen, model, timer, read_seconds, error, incidents = message
+    source.snapshots.extend(snapshots)
+    source.vehicles_seen.extend(seen)
+    source.model, source.timer, source.read_seconds = model, timer, read_seconds
+    source.error, source._incidents = error, incidents
+
+
+def _produce(source: SumoTraffic, conn, parent: int) -> None:
+    """The child: every map with the snapshots behind it, then ``end``."""
+    from twin.sweep.executors import exit_with_parent
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    exit_with_parent(parent)
+    source.separate_process = False
+    sent_snapshots = sent_seen = 0
+    failure: BaseException | None = None
+    try:
+        for importance in source.maps_here():
+            snapshots = source.snapshots[sent_snapshots:]
+            seen = source.vehicles_seen[sent_seen:]
+            sent_snapshots, sent_seen = len(source.snapshots), len(source.vehicles_seen)
+            conn.send(("map", importance, source.truth_map(), snapshots, seen))
+            if conn.poll() and conn.recv() == "stop":
+                break
+    except BaseException as exc:  # sent to the parent, which raises it
+        failure = exc if _picklable(exc) else RuntimeError(f"{type(exc).__name__}: {exc}")
+    try:
+        conn.send(
+            (
+                "end",
+                failure,
+                source.snapshots[sent_snapshots:],
+                source.vehicles_seen[sent_seen:],
+                source.model,
+                source.timer,
+                source.read_seconds,
+                source.error,
+                source.incidents_info(),
+            )
+        )
+    except (BrokenPipeError, OSError):
+        pass
+    finally:
+        conn.close()
+        os._exit(0)  # no atexit handlers of the parent's modules in the child
+
+
+def _picklable(exc: BaseException) -> bool:
+    try:
+        pickle.loads(pickle.dumps(exc))
+    except Exception:
+        return False
+    return True
