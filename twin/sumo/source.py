@@ -139,13 +139,15 @@ class SumoTraffic(TrafficSource):
         return self.model.truth if self.model.detection_p < 1.0 else None
 
     def importance_maps(self) -> Iterator[np.ndarray]:
-        """``T^0 .. T^horizon``; in a child process when :attr:`separate_process` (not under
-        sumo-gui, nor inside a daemonic process, which may not have children)."""
+        """``T^0 .. T^horizon``; in a forked child process when :attr:`separate_process` (on
+        Linux, not under sumo-gui, nor inside a daemonic process, which may have no children)."""
         import multiprocessing
+        import sys
 
         if (
             self.separate_process
             and self.gui is None
+            and sys.platform.startswith("linux")
             and not multiprocessing.current_process().daemon
         ):
             from twin.sumo.worker import maps_from_child
