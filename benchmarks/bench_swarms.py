@@ -29,9 +29,9 @@ import numpy as np
 
 from twin.grid import Grid
 from twin.patrol import random_starts, swarm_rng
-from twin.planners import LookaheadPolicy, visit_gain
+from twin.planners import LookaheadPolicy
 from twin.policies import SwarmView, boustrophedon_tour, make_policy
-from twin.scores import ScoreParams, update_idleness
+from twin.scores import ScoreParams, update_idleness, visit_gain
 
 SWARMS = ("random", "greedy", "sweeping", "greedy-coordinated", "visit-gain", "lookahead")
 UNCOORDINATED = ("random", "greedy", "sweeping")  # may put two drones on one cell

@@ -67,7 +67,7 @@ def test_env_scores_the_greedy_swarm_as_run_patrol():
     obs, _ = env.reset(seed=seed)
     greedy = make_policy("greedy")
     greedy.reset(source.grid, n, swarm_rng(seed, "greedy"))
-    rewards, plain, truncated = [], [], {}
+    rewards, paper, truncated = [], [], {}
     while env.agents:
         s = env.swarm
         states = drone_states(source.grid, s.idleness, s.importance, s.positions)
@@ -77,10 +77,10 @@ def test_env_scores_the_greedy_swarm_as_run_patrol():
         actions = greedy.act(swarm_view(s, env.horizon, source.grid, PARAMS))
         obs, rew, _, truncated, infos = env.step(dict(zip(env.agents, actions, strict=True)))
         rewards.append(sum(rew.values()))
-        plain.append(sum(i["reward_plain"] for i in infos.values()))
+        paper.append(sum(i["reward_paper"] for i in infos.values()))
     assert all(truncated.values()) and len(rewards) == source.horizon
     np.testing.assert_allclose(rewards, patrol.rewards[0], rtol=1e-12, atol=1e-12)
-    np.testing.assert_allclose(plain, patrol.reward_plain[0], rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(paper, patrol.reward_paper[0], rtol=1e-12, atol=1e-12)
     np.testing.assert_array_equal(env.swarm.positions, patrol.positions[0, -1])
 
     joint = SwarmGymEnv(source, n_drones=n, params=PARAMS)

@@ -20,7 +20,7 @@ from twin.monitoring import (
 )
 from twin.patrol import PatrolResult, random_starts, run_patrol
 from twin.policies import Policy, make_policy
-from twin.scores import ScoreParams, rewards_on_arrival, update_idleness
+from twin.scores import ScoreParams, paper_rewards, rewards_on_arrival, update_idleness
 from twin.traffic.synthetic import Disturbance, SyntheticTraffic
 
 PARAMS = ScoreParams()
@@ -36,7 +36,7 @@ def make_result(grid, positions, importance, swarms, truth=None, seed=0) -> Patr
         rewards=np.zeros((n_swarms, steps - 1)),
         reward_importance=np.zeros((n_swarms, steps - 1)),
         reward_idleness=np.zeros((n_swarms, steps - 1)),
-        reward_plain=np.zeros((n_swarms, steps - 1)),
+        reward_paper=np.zeros((n_swarms, steps - 1)),
         coverage=np.zeros((n_swarms, steps - 1)),
         visited_share=np.zeros((n_swarms, steps - 1)),
         positions=np.asarray(positions, dtype=np.int64),
@@ -203,13 +203,13 @@ def test_ceiling_needs_params():
 
 def replay_rewards(result: PatrolResult, params: ScoreParams) -> dict[str, np.ndarray]:
     """The reward fields the patrol loop records, recomputed from positions and importance:
-    the shared-cell rule split into its alpha_T and alpha_I parts, and the plain sum (each
-    drone scored alone, so m = m' = 1)."""
+    the headline split into its alpha_T and alpha_I parts, and Def. 4 as printed (each drone
+    scored alone)."""
     imp_only = ScoreParams(params.eta, params.delta, params.alpha_T, 0.0)
     idle_only = ScoreParams(params.eta, params.delta, 0.0, params.alpha_I)
     grid, imp = result.grid, result.importance
     n_swarms, steps, n_drones, _ = result.positions.shape
-    out = {k: np.zeros((n_swarms, steps - 1)) for k in ("importance", "idleness", "plain")}
+    out = {k: np.zeros((n_swarms, steps - 1)) for k in ("importance", "idleness", "paper")}
     for s in range(n_swarms):
         idle = grid.free.astype(float)
         for k in range(steps - 1):
@@ -217,10 +217,8 @@ def replay_rewards(result: PatrolResult, params: ScoreParams) -> dict[str, np.nd
             args = (idle, imp[k], imp[k + 1], p, q)
             out["importance"][s, k] = rewards_on_arrival(grid, imp_only, *args).sum()
             out["idleness"][s, k] = rewards_on_arrival(grid, idle_only, *args).sum()
-            out["plain"][s, k] = sum(
-                rewards_on_arrival(
-                    grid, params, idle, imp[k], imp[k + 1], p[d : d + 1], q[d : d + 1]
-                )
+            out["paper"][s, k] = sum(
+                paper_rewards(grid, params, idle, imp[k], imp[k + 1], p[d : d + 1], q[d : d + 1])
                 for d in range(n_drones)
             ).item()
             idle = update_idleness(idle, q, grid, params.eta, params.delta)
@@ -236,7 +234,7 @@ class Lanes(Policy):
         return np.where(right, np.where(j < view.grid.ny - 1, 4, 3), np.where(j > 0, 3, 4))
 
 
-def test_accountings_agree_without_shared_cells_and_split_adds_up():
+def test_the_loop_records_both_accountings_and_the_split_adds_up():
     grid = Grid.open(6, 7)
     source = SyntheticTraffic(grid, [Disturbance("big", 2, 3, 1.0, 2.0)], horizon=30)
     starts = np.array([[0, 0], [2, 0], [4, 0]])
@@ -247,7 +245,7 @@ def test_accountings_agree_without_shared_cells_and_split_adds_up():
         np.testing.assert_allclose(
             fields["importance"] + fields["idleness"], result.rewards, atol=1e-6
         )  # importance is stored as float32
-        for name in ("importance", "idleness", "plain"):  # the loop's records, independently
+        for name in ("importance", "idleness", "paper"):  # the loop's records, independently
             np.testing.assert_allclose(getattr(result, f"reward_{name}"), fields[name], atol=1e-6)
         row = table2(result, PARAMS).iloc[0]
         assert row["R_hat_T_importance"] + row["R_hat_T_idleness"] == pytest.approx(row["R_hat_T"])
@@ -257,12 +255,8 @@ def test_accountings_agree_without_shared_cells_and_split_adds_up():
             )
             == 0
         ).any()
-        if isinstance(swarm, Lanes):
-            assert not shared
-            assert row["R_hat_T_plain"] == pytest.approx(row["R_hat_T"])
-        else:
-            assert shared
-            assert row["R_hat_T_plain"] != pytest.approx(row["R_hat_T"])
+        assert shared != isinstance(swarm, Lanes)
+        assert row["R_hat_T_paper"] != pytest.approx(row["R_hat_T"])
 
 
 def test_aggregate_skips_missing_latencies_and_formats():

@@ -9,21 +9,12 @@ from twin.grid import Grid
 from twin.learning.data import random_swarm_episode
 from twin.patrol import random_starts, run_patrol
 from twin.policies import make_policy
-from twin.scores import ScoreParams, rewards_on_arrival
+from twin.scores import ScoreParams, rewards_on_arrival, update_idleness, visit_gain
 from twin.swarm import InfeasibleActionError, initial_state, step
 from twin.traffic.base import RecordedTraffic
 from twin.traffic.synthetic import Disturbance, SyntheticTraffic
 
 PARAMS = ScoreParams(alpha_T=1.0, alpha_I=0.5)
-
-#: R_hat_T (mean R^k over the horizon) of each baseline on :func:`_source` with 4 drones from
-#: random_starts(seed 7) and run_patrol(seed=7), as computed by the patrol loop before it used
-#: twin.swarm.step (main at 8a31c98, printed with repr). The step must not change a number.
-R_HAT_T_BEFORE_THE_SHARED_STEP = {
-    "random": 0.9838400955575416,
-    "greedy": 1.6723573655600632,
-    "sweeping": 1.3565254775933433,
-}
 
 
 def _source(horizon: int = 40) -> SyntheticTraffic:
@@ -40,16 +31,26 @@ def _run(source, names=("random", "greedy", "sweeping"), seed=7):
     return run_patrol(source, {n: make_policy(n) for n in names}, starts, PARAMS, seed=seed)
 
 
-def test_baselines_score_as_before_the_step_was_shared():
+def test_the_loop_pays_each_distinct_visited_cell_once():
+    """R^k recomputed from the recorded paths: the visit gains of the distinct cells visited."""
     result = _run(_source())
-    got = dict(zip(result.swarms, result.rewards.mean(axis=1).tolist(), strict=True))
-    assert got == pytest.approx(R_HAT_T_BEFORE_THE_SHARED_STEP, rel=1e-12, abs=0)
+    grid, imp = result.grid, result.importance.astype(np.float64)
+    for s in range(len(result.swarms)):
+        idle = grid.free.astype(float)
+        for k in range(result.horizon):
+            cells = {tuple(c) for c in result.positions[s, k + 1].tolist()}
+            expected = sum(
+                visit_gain(PARAMS.alpha_T * imp[k + 1][c] + PARAMS.alpha_I, idle[c], PARAMS)
+                for c in cells
+            )
+            assert result.rewards[s, k] == pytest.approx(expected, rel=1e-6, abs=1e-9)
+            idle = update_idleness(idle, result.positions[s, k + 1], grid, PARAMS.eta, PARAMS.delta)
 
 
 def test_reward_parts_add_up_and_truth_defaults_to_none():
     result = _run(_source(20))
     shape = (3, 20)
-    for a in (result.reward_importance, result.reward_idleness, result.reward_plain):
+    for a in (result.reward_importance, result.reward_idleness, result.reward_paper):
         assert a.shape == shape and np.isfinite(a).all()
     np.testing.assert_allclose(
         result.reward_importance + result.reward_idleness, result.rewards, rtol=1e-12
@@ -57,11 +58,22 @@ def test_reward_parts_add_up_and_truth_defaults_to_none():
     assert result.truth is None and result.importance.shape == (21, 8, 12)
 
 
-def test_one_drone_earns_the_same_in_both_readings():
+def test_one_drone_the_paper_accounting_telescopes_to_the_headline():
+    """One drone: summed over the run, Def. 4 as printed is the headline plus the end terms
+    ``F(P_T, I^T, T^T) - F(P_0, I^0, T^0)``, ``F(p, I, T) = sum_{Adj(p)} (alpha_T T + alpha_I) I``."""
     source = _source(15)
     starts = np.array([[0, 0]])
     result = run_patrol(source, {"greedy": make_policy("greedy")}, starts, PARAMS, seed=1)
-    np.testing.assert_allclose(result.reward_plain, result.rewards, rtol=1e-12, atol=1e-12)
+    grid, imp = result.grid, result.importance.astype(np.float64)
+    idle = grid.free.astype(float)
+    for k in range(result.horizon):
+        idle = update_idleness(idle, result.positions[0, k + 1], grid, PARAMS.eta, PARAMS.delta)
+
+    def f(p, idleness, t):
+        return grid.sum_in_view((PARAMS.alpha_T * t + PARAMS.alpha_I) * idleness, p)[0]
+
+    ends = f(result.positions[0, -1], idle, imp[-1]) - f(starts, grid.free_float, imp[0])
+    assert result.reward_paper.sum() == pytest.approx(result.rewards.sum() + ends, rel=1e-6)
 
 
 def test_a_source_that_ends_early_keeps_the_steps_done():
@@ -74,7 +86,7 @@ def test_a_source_that_ends_early_keeps_the_steps_done():
 
     result = _run(Short(full.grid, maps))
     assert result.completed_steps == 5 and "ended after 5 of 10" in result.error
-    assert result.rewards.shape == result.reward_plain.shape == (3, 5)
+    assert result.rewards.shape == result.reward_paper.shape == (3, 5)
     assert result.positions.shape[1] == 6
 
 

@@ -10,9 +10,9 @@ from hypothesis import strategies as st
 from twin.errors import UserError
 from twin.grid import ACTION_DELTAS, Grid
 from twin.patrol import random_starts
-from twin.planners import LookaheadPolicy, VisitGainPolicy, action_paths, visit_gain
+from twin.planners import LookaheadPolicy, VisitGainPolicy, action_paths
 from twin.policies import SwarmView, available_policies, make_policy
-from twin.scores import ScoreParams, update_idleness
+from twin.scores import ScoreParams, update_idleness, visit_gain
 
 COORDINATED = ("greedy-coordinated", "visit-gain", "lookahead")
 PARAMS = ScoreParams()

@@ -13,9 +13,11 @@ from twin.scores import (
     directional_idleness,
     drone_states,
     initial_idleness,
+    paper_rewards,
     reward_parts,
     rewards_on_arrival,
     update_idleness,
+    visit_gain,
 )
 
 PARAMS = ScoreParams(eta=0.1, delta=0.025, alpha_T=1.0, alpha_I=0.5)
@@ -25,15 +27,18 @@ def test_hand_computed_step_on_3x3():
     grid = Grid.open(3, 3)
     idle = np.array([[1.0, 0.5, 1.0], [1.0, 0.1, 1.0], [1.0, 1.0, 1.0]])
     t = np.array([[0.0, 0.5, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.0]])
-    pos, nxt = np.array([[1, 1]]), np.array([[0, 1]])  # one drone moves up
+    pos, nxt = np.array([[1, 1]]), np.array([[0, 1]])  # one drone moves up to (0, 1)
 
-    # arrival: Ibar = min(1, I + delta) over Adj(0,1) = (0,1), (1,1), (0,0), (0,2)
-    a_t, a_i = 0.525 * 0.5 + 0.125 * 1.0, 0.525 + 0.125 + 1 + 1
-    # leaving: I over Adj(1,1) = (1,1), (0,1), (2,1), (1,0), (1,2)
-    b_t, b_i = 0.1 * 1.0 + 0.5 * 0.5, 0.1 + 0.5 + 1 + 1 + 1
+    # headline: the visit gain of (0, 1): (1.0 * 0.5 + 0.5) * (min(1, 0.5 + 0.025) - 0.1 * 0.5)
     r = rewards_on_arrival(grid, PARAMS, idle, t, t, pos, nxt)
-    assert r == pytest.approx([1.0 * (a_t - b_t) + 0.5 * (a_i - b_i)])
-    assert r[0] == pytest.approx(-0.4375)
+    assert r[0] == pytest.approx(1.0 * 0.475)
+    # Def. 4 as printed: arrival Ibar over Adj(0,1) = (0,1), (1,1), (0,0), (0,2) minus what
+    # the drone leaves in Adj(1,1) = (1,1), (0,1), (2,1), (1,0), (1,2)
+    a_t, a_i = 0.525 * 0.5 + 0.125 * 1.0, 0.525 + 0.125 + 1 + 1
+    b_t, b_i = 0.1 * 1.0 + 0.5 * 0.5, 0.1 + 0.5 + 1 + 1 + 1
+    paper = paper_rewards(grid, PARAMS, idle, t, t, pos, nxt)
+    assert paper == pytest.approx([1.0 * (a_t - b_t) + 0.5 * (a_i - b_i)])
+    assert paper[0] == pytest.approx(-0.4375)
 
     new = update_idleness(idle, nxt, grid, PARAMS.eta, PARAMS.delta)
     np.testing.assert_allclose(new, [[1, 0.05, 1], [1, 0.125, 1], [1, 1, 1]])
@@ -54,16 +59,21 @@ def test_two_drones_state_centre_of_mass_and_shared_cell_reduced_once():
     assert new[1, 1] == pytest.approx(0.05)
 
 
-def test_hovering_drone_earns_delta_times_importance_in_view():
-    """On arrival: a drone that stays earns delta * sum of T over unsaturated cells in view."""
+def test_hovering_drone_earns_only_what_recovers_on_its_own_cell():
+    """A drone that stays earns the gain of its own cell; hovering on, that tends to
+    ``weight * delta``: what recovered there, nothing of the cells around it."""
     grid = Grid.open(5, 5)
-    rng = np.random.default_rng(1)
-    t = rng.random((5, 5))
-    idle = np.full((5, 5), 0.3)  # nothing saturated: every cell in view recovers by delta
+    t = np.random.default_rng(1).random((5, 5))
+    idle = np.full((5, 5), 0.3)
     pos = np.array([[2, 2]])
+    weight = PARAMS.alpha_T * t[2, 2] + PARAMS.alpha_I
     r = rewards_on_arrival(grid, PARAMS, idle, t, t, pos, pos)
-    in_view = grid.sum_in_view(t, pos)[0]
-    assert r[0] == pytest.approx(PARAMS.delta * (PARAMS.alpha_T * in_view + PARAMS.alpha_I * 5))
+    assert r[0] == pytest.approx(weight * (0.3 + PARAMS.delta - PARAMS.eta * 0.3))
+    for _ in range(200):
+        r = rewards_on_arrival(grid, PARAMS, idle, t, t, pos, pos)
+        idle = update_idleness(idle, pos, grid, PARAMS.eta, PARAMS.delta)
+    assert idle[2, 2] < 1e-12  # a visited cell's idleness is multiplied by eta every step
+    assert r[0] == pytest.approx(weight * PARAMS.delta)
 
 
 def test_obstacles_hold_zero_idleness_and_block_moves():
@@ -167,51 +177,45 @@ def test_directional_means_from_row_and_column_keep_the_bits(scene):
         assert np.array_equal(directional_idleness(idle, grid, pos), expected)
 
 
-def test_drones_sharing_a_cell_share_its_reward():
-    """Two drones stacked on one cell earn together what one drone alone earns there."""
+def test_every_distinct_visited_cell_is_paid_once():
+    """R^k is the sum of the visit gains of the distinct cells visited: a pack of drones on
+    one cell earns together what one drone earns there, split evenly; drones on neighbouring
+    cells are each paid their own cell, however their views overlap."""
     grid = Grid.open(5, 5)
     rng = np.random.default_rng(3)
     t, t1, idle = rng.random((5, 5)), rng.random((5, 5)), rng.random((5, 5))
     one = rewards_on_arrival(grid, PARAMS, idle, t, t1, np.array([[2, 2]]), np.array([[2, 3]]))
     pack = rewards_on_arrival(
-        grid, PARAMS, idle, t, t1, np.array([[2, 2], [2, 2]]), np.array([[2, 3], [2, 3]])
-    )
-    assert pack.sum() == pytest.approx(one[0])
-    # two drones that meet on a cell coming from different cells: each pays its own departure
-    met = rewards_on_arrival(
         grid, PARAMS, idle, t, t1, np.array([[2, 2], [3, 3]]), np.array([[2, 3], [2, 3]])
     )
-    alone_b = rewards_on_arrival(grid, PARAMS, idle, t, t1, np.array([[3, 3]]), np.array([[2, 3]]))
-    # met = A/2 - B(2,2) and A/2 - B(3,3); alone: A - B(2,2) and A - B(3,3)
-    assert met[0] - met[1] == pytest.approx(one[0] - alone_b[0])
-    ibar = np.minimum(1.0, grid.values_in_view(idle, np.array([[2, 3]])) + PARAMS.delta)
-    arrival = PARAMS.alpha_T * (ibar * grid.values_in_view(t1, np.array([[2, 3]]))).sum()
-    arrival += PARAMS.alpha_I * ibar.sum()
-    assert met.sum() == pytest.approx(one[0] + alone_b[0] - arrival)
+    assert pack == pytest.approx([one[0] / 2] * 2)
+    line = np.array([[2, 0], [2, 1], [2, 2], [2, 3]])
+    r = rewards_on_arrival(grid, PARAMS, idle, t, t1, line, line)
+    gains = (PARAMS.alpha_T * t1[2, :4] + PARAMS.alpha_I) * (
+        np.minimum(1, idle[2, :4] + PARAMS.delta) - PARAMS.eta * idle[2, :4]
+    )
+    assert r == pytest.approx(gains)
 
 
-def test_reward_parts_on_the_hand_computed_step_and_a_stacked_pack():
+def test_reward_parts_split_the_reward_and_keep_the_paper_column():
     grid = Grid.open(3, 3)
     idle = np.array([[1.0, 0.5, 1.0], [1.0, 0.1, 1.0], [1.0, 1.0, 1.0]])
     t = np.array([[0.0, 0.5, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.0]])
     parts = reward_parts(grid, PARAMS, idle, t, t, np.array([[1, 1]]), np.array([[0, 1]]))
-    # the terms of test_hand_computed_step_on_3x3
-    a_t, a_i = 0.525 * 0.5 + 0.125 * 1.0, 0.525 + 0.125 + 1 + 1
-    b_t, b_i = 0.1 * 1.0 + 0.5 * 0.5, 0.1 + 0.5 + 1 + 1 + 1
-    assert parts.importance == pytest.approx([1.0 * (a_t - b_t)])
-    assert parts.idleness == pytest.approx([0.5 * (a_i - b_i)])
-    assert parts.plain == pytest.approx(parts.total)  # one drone: both readings agree
-    # two drones stacked on one cell: the shared reading splits, the plain one pays each in full
+    assert parts.importance == pytest.approx([1.0 * 0.5 * 0.475])
+    assert parts.idleness == pytest.approx([0.5 * 0.475])
+    assert parts.paper == pytest.approx([-0.4375])
+    # two drones stacked on one cell: the headline splits one gain, the paper pays each in full
     pack = reward_parts(
         grid, PARAMS, idle, t, t, np.array([[1, 1], [1, 1]]), np.array([[0, 1], [0, 1]])
     )
     assert pack.total == pytest.approx([parts.total[0] / 2] * 2)
-    assert pack.plain == pytest.approx([parts.plain[0]] * 2)
+    assert pack.paper == pytest.approx([parts.paper[0]] * 2)
 
 
 @settings(max_examples=100, deadline=None)
 @given(scenes())
-def test_reward_parts_sum_to_the_reward_and_plain_agrees_without_sharing(scene):
+def test_reward_is_the_sum_of_visit_gains_of_distinct_cells(scene):
     grid, pos, seed = scene
     rng = np.random.default_rng(seed)
     idle, t, t1 = (np.where(grid.free, rng.random(grid.shape), 0.0) for _ in range(3))
@@ -220,8 +224,9 @@ def test_reward_parts_sum_to_the_reward_and_plain_agrees_without_sharing(scene):
     parts = reward_parts(grid, PARAMS, idle, t, t1, pos, nxt)
     r = rewards_on_arrival(grid, PARAMS, idle, t, t1, pos, nxt)
     np.testing.assert_array_equal(parts.importance + parts.idleness, r)
-    alone = (
-        len({tuple(p) for p in pos.tolist()}) == len(pos) == len({tuple(p) for p in nxt.tolist()})
+    cells = {tuple(c) for c in nxt.tolist()}
+    expected = sum(
+        visit_gain(PARAMS.alpha_T * t1[c] + PARAMS.alpha_I, idle[c], PARAMS) for c in cells
     )
-    if alone:
-        np.testing.assert_allclose(parts.plain, r, rtol=1e-12, atol=1e-12)
+    assert r.sum() == pytest.approx(expected, rel=1e-12, abs=1e-12)
+    assert (r >= 0).all()

@@ -9,9 +9,11 @@ of the patrol loop, so a policy scores the same here as in ``run_patrol``.
   actions ``U_d(p)`` as 0/1 (PettingZoo's convention);
 - actions ``Discrete(5)`` in the order of :data:`twin.grid.ACTIONS`: 0 stay, 1 up, 2 down,
   3 left, 4 right; an infeasible action raises :class:`twin.swarm.InfeasibleActionError`;
-- reward per drone: ``r_d^k`` of Def. 4 as implemented (shared-cell rule); the infos carry its
-  parts ``reward_importance`` (alpha_T), ``reward_idleness`` (alpha_I) and ``reward_plain``
-  (every drone paid in full);
+- reward per drone: the headline reward :func:`twin.scores.rewards_on_arrival`, the gain of
+  the cell the drone visits (split evenly among drones on one cell), so the drones' rewards sum
+  to the swarm's ``R^k``; the infos carry its parts ``reward_importance`` (alpha_T) and
+  ``reward_idleness`` (alpha_I), and ``reward_paper``, Def. 4 as printed (gameable by
+  overlapping views and stacking, for comparison only);
 - no termination; truncation after ``horizon`` steps.
 
 ``reset(seed=s)`` draws the start cells as ``twin.patrol.random_starts(grid, N,
@@ -117,7 +119,7 @@ class SwarmParallelEnv(ParallelEnv):
             a: {
                 "reward_importance": float(out.importance[d]),
                 "reward_idleness": float(out.idleness[d]),
-                "reward_plain": float(out.plain[d]),
+                "reward_paper": float(out.paper[d]),
             }
             for d, a in enumerate(agents)
         }
@@ -247,7 +249,7 @@ class SwarmGymEnv(gymnasium.Env):
             rewards=out.rewards.copy(),
             reward_importance=float(out.importance.sum()),
             reward_idleness=float(out.idleness.sum()),
-            reward_plain=float(out.plain.sum()),
+            reward_paper=float(out.paper.sum()),
         )
         truncated = env.swarm.k >= env.horizon
         return env._states(), float(out.rewards.sum()), False, truncated, info

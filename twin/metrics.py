@@ -2,10 +2,11 @@
 
 Table 2 analog (one row per swarm and run):
 
-- ``R_hat_T``: mean of ``R^k`` over the horizon (Def. 4, the shared-cell rule: drones on one
-  cell share its terms); ``R_hat_T_importance`` and ``R_hat_T_idleness`` its alpha_T and alpha_I
-  parts (they add up to ``R_hat_T``); ``R_hat_T_plain`` the paper's plain sum over drones, every
-  drone paid in full. The two accountings agree when no two drones share a cell;
+- ``R_hat_T``: mean of ``R^k`` over the horizon, the headline score: every distinct visited
+  cell paid its visit gain once (:func:`twin.scores.rewards_on_arrival`);
+  ``R_hat_T_importance`` and ``R_hat_T_idleness`` its alpha_T and alpha_I parts (they add up to
+  ``R_hat_T``); ``R_hat_T_paper`` Def. 4 as printed, every drone paid its field of view: gameable
+  by overlapping views and stacking, kept for comparison with the paper;
 - ``C_hat_T``: mean of ``C^k`` (Def. 5); ``C_hat_T_ceiling`` the same for an oracle whose drones
   jump each step to the N freshest distinct cells (:func:`twin.monitoring.ceiling_coverage`):
   an upper bound for a swarm's choice of cells, so a value near it shows the swarm neither
@@ -31,14 +32,14 @@ from twin.patrol import PatrolResult
 from twin.scores import ScoreParams
 
 TABLE2_COLUMNS = ("R_hat_T", "C_hat_T", "pct_time_max_C", "pct_map_covered")
-#: Columns added to the paper's four: the reward split, the plain accounting, the ceiling.
-GAIN_COLUMNS = ("R_hat_T_importance", "R_hat_T_idleness", "R_hat_T_plain", "C_hat_T_ceiling")
+#: Columns added to the paper's four: the reward split, the paper's accounting, the ceiling.
+GAIN_COLUMNS = ("R_hat_T_importance", "R_hat_T_idleness", "R_hat_T_paper", "C_hat_T_ceiling")
 #: The Table 2 analog as printed and reported, in this order.
 SCORE_COLUMNS = (
     "R_hat_T",
     "R_hat_T_importance",
     "R_hat_T_idleness",
-    "R_hat_T_plain",
+    "R_hat_T_paper",
     "C_hat_T",
     "C_hat_T_ceiling",
     "pct_time_max_C",
@@ -62,7 +63,7 @@ TABLE2_HEADERS = {
     "R_hat_T": "R_hat_T",
     "R_hat_T_importance": "R importance",
     "R_hat_T_idleness": "R idleness",
-    "R_hat_T_plain": "R plain sum",
+    "R_hat_T_paper": "R paper (gameable)",
     "C_hat_T": "C_hat_T",
     "C_hat_T_ceiling": "C ceiling",
     "pct_time_max_C": "% time max C^k",
@@ -86,7 +87,7 @@ DIGITS = {
     "R_hat_T": 3,
     "R_hat_T_importance": 3,
     "R_hat_T_idleness": 3,
-    "R_hat_T_plain": 3,
+    "R_hat_T_paper": 3,
     "C_hat_T": 3,
     "C_hat_T_ceiling": 3,
     "pct_time_max_C": 2,
@@ -109,8 +110,8 @@ DIGITS = {
 def table2(result: PatrolResult, params: ScoreParams | None = None) -> pd.DataFrame:
     """One row per swarm with the Table 2 columns of one run, and :data:`GAIN_COLUMNS`.
 
-    The reward split and the plain accounting come from the result's ``reward_importance``,
-    ``reward_idleness`` and ``reward_plain``; the ceiling
+    The reward split and the paper's accounting come from the result's ``reward_importance``,
+    ``reward_idleness`` and ``reward_paper``; the ceiling
     needs ``eta`` and ``delta``: ``params``, else ``result.params``, else NaN.
     """
     cov = result.coverage
@@ -133,7 +134,7 @@ def table2(result: PatrolResult, params: ScoreParams | None = None) -> pd.DataFr
     for column, name in (
         ("R_hat_T_importance", "reward_importance"),
         ("R_hat_T_idleness", "reward_idleness"),
-        ("R_hat_T_plain", "reward_plain"),
+        ("R_hat_T_paper", "reward_paper"),
     ):
         frame[column] = getattr(result, name).mean(axis=1) if horizon else np.nan
     params = params or result.params
@@ -234,11 +235,14 @@ def table2_footnote(summary: pd.DataFrame) -> str:
     present = _present(summary, GAIN_COLUMNS)
     if "R_hat_T_importance" in present:
         notes.append(
-            "R_hat_T = R importance (alpha_T part) + R idleness (alpha_I part), drones on one "
-            "cell sharing its terms."
+            "R_hat_T: every distinct visited cell paid its visit gain once; = R importance "
+            "(alpha_T part) + R idleness (alpha_I part)."
         )
-    if "R_hat_T_plain" in present:
-        notes.append("R plain sum: the paper's plain sum over drones, each paid in full.")
+    if "R_hat_T_paper" in present:
+        notes.append(
+            "R paper (gameable): Def. 4 as printed, every drone paid its field of view; drones "
+            "with overlapping views or on one cell are paid several times for one visit."
+        )
     if "C_hat_T_ceiling" in present:
         notes.append(
             "C ceiling: C_hat_T of drones that jump each step to the freshest distinct cells; "

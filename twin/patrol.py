@@ -2,8 +2,8 @@
 
 Each swarm keeps its own :class:`twin.swarm.SwarmState` (positions, idleness map, visited
 cells) and advances with :func:`twin.swarm.step`; all swarms see the same ``T^k``. Per step and
-swarm the loop records ``R^k`` (Def. 4, read on arrival) and its parts, ``C^{k+1}`` (Def. 5) and
-the share of free cells visited so far.
+swarm the loop records ``R^k`` (the headline score: each distinct visited cell paid once) and
+its parts, Def. 4 as printed, ``C^{k+1}`` (Def. 5) and the share of free cells visited so far.
 """
 
 from __future__ import annotations
@@ -48,7 +48,7 @@ class PatrolResult:
     rewards: np.ndarray  # (S, T): R^k, summed over drones
     reward_importance: np.ndarray  # (S, T): the alpha_T part of R^k
     reward_idleness: np.ndarray  # (S, T): the alpha_I part of R^k
-    reward_plain: np.ndarray  # (S, T): R^k with every drone paid in full (m = m' = 1)
+    reward_paper: np.ndarray  # (S, T): Def. 4 as printed, summed over drones (gameable)
     coverage: np.ndarray  # (S, T): C^{k+1}
     visited_share: np.ndarray  # (S, T): share of free cells stood on up to step k+1
     positions: np.ndarray  # (S, T+1, N, 2): P_0 .. P_T
@@ -99,7 +99,7 @@ def run_patrol(
     starts = np.asarray(starts, dtype=np.int64)
     series = {
         key: np.zeros((n_swarms, horizon))
-        for key in ("rewards", "importance", "idleness", "plain", "coverage", "visited")
+        for key in ("rewards", "importance", "idleness", "paper", "coverage", "visited")
     }
     positions = np.zeros((n_swarms, horizon + 1, n_drones, 2), dtype=np.int64)
     importance = np.zeros((horizon + 1, *grid.shape), np.float32) if keep_importance else None
@@ -149,7 +149,7 @@ def run_patrol(
                     ("rewards", out.rewards),
                     ("importance", out.importance),
                     ("idleness", out.idleness),
-                    ("plain", out.plain),
+                    ("paper", out.paper),
                 ):
                     series[key][s, k] = values.sum()
                 series["coverage"][s, k] = coverage(states[s].idleness, grid)
@@ -193,7 +193,7 @@ def run_patrol(
         rewards=cut["rewards"],
         reward_importance=cut["importance"],
         reward_idleness=cut["idleness"],
-        reward_plain=cut["plain"],
+        reward_paper=cut["paper"],
         coverage=cut["coverage"],
         visited_share=cut["visited"],
         positions=positions[:, : done + 1],

@@ -26,7 +26,7 @@ from twin.coordinator import coordinate
 from twin.errors import UserError
 from twin.grid import ACTION_DELTAS, Grid
 from twin.policies import Policy, SwarmView
-from twin.scores import ScoreParams
+from twin.scores import visit_gain
 
 #: Relative size of the tie-breaking jitter: scores closer than this count as tied.
 TIE_JITTER = 1e-9
@@ -34,15 +34,6 @@ TIE_JITTER = 1e-9
 DEFAULT_HORIZON = 4
 #: Largest horizon accepted: 5^H paths per drone (H = 5: 1.7 s per step with 1000 drones).
 MAX_HORIZON = 5
-
-
-def visit_gain(weight: np.ndarray, idleness: np.ndarray, params: ScoreParams) -> np.ndarray:
-    """Gain of visiting a cell: ``weight * (min(1, I + delta) - eta I)``.
-
-    ``weight = alpha_T T + alpha_I``; the bracket is how much lower the cell's idleness is
-    after the visit (``eta I``, Def. 3) than without it (``min(1, I + delta)``).
-    """
-    return weight * (np.minimum(1.0, idleness + params.delta) - params.eta * idleness)
 
 
 def tie_jitter(scores: np.ndarray, feasible: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -83,15 +74,10 @@ class VisitGainPolicy(CoordinatedPolicy):
     """The one-step gain of the visit at the next cell ``p'``, by assignment:
     ``(alpha_T T^k + alpha_I) (min(1, I^k + delta) - eta I^k)`` at ``p'``.
 
-    Why this score: with ``F(p, I, T) = sum_{Adj(p)} (alpha_T T + alpha_I) I``, the reward of
-    Def. 4 as implemented (``twin.scores.rewards_on_arrival``, one drone per cell) is
-    ``r = F(p', Ibar^k, T^{k+1}) - F(p, I^k, T^k)``, and ``Ibar^k`` differs from ``I^{k+1}``
-    only at visited cells, by ``min(1, I^k + delta) - eta I^k``. Hence
-    ``r = [F(p', I^{k+1}, T^{k+1}) - F(p, I^k, T^k)] + gain(p') + (gains of the other drones'
-    visits inside Adj(p'))``: the bracket telescopes over the horizon, so summed over the run
-    the reward is the sum of visit gains (each counted once per drone that sees the visited cell)
-    plus the boundary terms. The score uses ``T^k`` where the reward uses ``T^{k+1}``, which the
-    swarm has not seen. It is exact for drones whose fields of view do not overlap.
+    This is the headline score's exact one-step greedy maximiser: ``R^k`` pays the visit gain
+    of every distinct cell visited (:func:`twin.scores.rewards_on_arrival`), and the coordinator
+    keeps the drones' next cells distinct. The score uses ``T^k`` where the reward uses
+    ``T^{k+1}``, which the swarm has not seen yet.
     """
 
     name = "visit-gain"

@@ -7,7 +7,7 @@ interrupted run never leaves a half-written file):
   coverage (C^{k+1}), visited_share, and belief_error (of the belief after the drones' view
   from ``P_{k+1}``, against ``T_true^{k+1}``; see ``twin/monitoring.py``);
 - ``trajectories.parquet``: seed, swarm, step (0..T), drone, i, j;
-- ``per_seed.csv``: seed, swarm, the Table 2 columns, the gain columns (reward split, plain
+- ``per_seed.csv``: seed, swarm, the Table 2 columns, the gain columns (reward split, the paper's
   accounting, coverage ceiling) and the monitoring columns (``twin/metrics.py``);
   ``summary.csv``: their mean over seeds with ``<column>_ci95`` half-widths and ``n_seeds``;
 - ``monitoring.csv``: the monitoring columns of ``summary.csv`` alone;

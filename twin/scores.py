@@ -1,9 +1,10 @@
-"""Idleness (Def. 3), patrolling reward read on arrival (Def. 4), coverage (Def. 5), and the
-13-value drone state (eq. s), vectorised over drones.
+"""Idleness (Def. 3), the patrolling score (Def. 4), coverage (Def. 5), and the 13-value
+drone state (eq. s), vectorised over drones.
 
-The reading of Def. 4 follows ``shared/notes/paper-notes.md``: a drone moving ``p -> p'`` earns
-what it finds in view on arrival (idleness after recovery, before its own visit resets it) minus
-what it leaves behind (idleness after the reset of the previous step).
+The score follows ``shared/notes/paper-notes.md``, "The headline score": each step pays the
+visit gain of every DISTINCT cell the swarm visits, once (:func:`rewards_on_arrival`). Def. 4
+as printed (every drone paid its whole field of view on arrival) is kept as a comparison
+column, :func:`paper_rewards`, which formations game.
 """
 
 from __future__ import annotations
@@ -65,18 +66,29 @@ def visit(visited: np.ndarray, positions: np.ndarray) -> None:
     visited[positions[:, 0], positions[:, 1]] = True
 
 
+def visit_gain(weight: np.ndarray, idleness: np.ndarray, params: ScoreParams) -> np.ndarray:
+    """Gain of visiting a cell: ``weight * (min(1, I + delta) - eta I)``.
+
+    ``weight = alpha_T T + alpha_I``; the bracket is how much lower the cell's idleness is
+    after the visit (``eta I``, Def. 3) than without it (``min(1, I + delta)``).
+    """
+    return weight * (np.minimum(1.0, idleness + params.delta) - params.eta * idleness)
+
+
 @dataclass(frozen=True)
 class RewardParts:
-    """Per-drone terms of Def. 4, each ``(N,)``.
+    """Per-drone rewards of one step, each ``(N,)``.
 
-    ``importance`` is the ``alpha_T`` part and ``idleness`` the ``alpha_I`` part under the
-    shared-cell rule (their sum is :func:`rewards_on_arrival`); ``plain`` is the same reward with
-    ``m = m' = 1``, every drone paid in full (the project notes' plain sum).
+    ``importance`` and ``idleness`` are the alpha_T and alpha_I parts of the headline reward
+    (:func:`rewards_on_arrival`; their sum, :attr:`total`, adds up over drones to ``R^k``).
+    ``paper`` is Def. 4 as printed, every drone paid its whole field of view on arrival: kept
+    for comparison with the paper, and gameable (overlapping views and stacked drones are paid
+    several times for one visit).
     """
 
     importance: np.ndarray
     idleness: np.ndarray
-    plain: np.ndarray
+    paper: np.ndarray
 
     @property
     def total(self) -> np.ndarray:
@@ -92,22 +104,17 @@ def reward_parts(
     positions: np.ndarray,
     next_positions: np.ndarray,
 ) -> RewardParts:
-    """The terms of Def. 4, computed once; see :func:`rewards_on_arrival` for the formulas."""
-    here, there = grid.view_index(positions), grid.view_index(next_positions)
-    m_here = _sharing(here[0][:, 0])
-    m_there = _sharing(there[0][:, 0])
-    # Ibar only where the drones arrive: min(1, I + delta) on free cells in view
-    arrive = np.minimum(1.0, grid.values_in_view(idleness, None, there) + params.delta)
-    arrive *= grid.values_in_view(grid.free_float, None, there)
-    leave = grid.values_in_view(idleness, None, here)
-    d_t = params.alpha_T * (arrive * grid.values_in_view(next_importance, None, there)).sum(axis=1)
-    c_t = params.alpha_T * (leave * grid.values_in_view(importance, None, here)).sum(axis=1)
-    d_i = params.alpha_I * arrive.sum(axis=1)
-    c_i = params.alpha_I * leave.sum(axis=1)
+    """The headline reward's parts and the paper's accounting; see :func:`rewards_on_arrival`
+    and :func:`paper_rewards` for the formulas."""
+    i, j = next_positions[:, 0], next_positions[:, 1]
+    share = 1.0 / _sharing(i * grid.ny + j)
+    bracket = visit_gain(np.ones(len(i)), idleness[i, j], params) * share
     return RewardParts(
-        importance=d_t / m_there - c_t / m_here,
-        idleness=d_i / m_there - c_i / m_here,
-        plain=(d_t + d_i) - (c_t + c_i),
+        importance=params.alpha_T * next_importance[i, j] * bracket,
+        idleness=params.alpha_I * bracket,
+        paper=paper_rewards(
+            grid, params, idleness, importance, next_importance, positions, next_positions
+        ),
     )
 
 
@@ -120,25 +127,55 @@ def rewards_on_arrival(
     positions: np.ndarray,
     next_positions: np.ndarray,
 ) -> np.ndarray:
-    """Per-drone reward ``r_d^k`` of Def. 4, read on arrival.
+    """Per-drone reward ``r_d^k`` of the headline score: the gain of the visit a drone makes.
 
-    ``idleness`` is ``I^k`` (after step k's reset), ``importance`` ``T^k``, ``next_importance``
-    ``T^{k+1}``. With ``Ibar = min(1, I^k + delta)``::
+    A drone arriving on ``c = p'_d`` is paid ``g(c) / m(c)``, with ``m(c)`` the number of drones
+    arriving on ``c`` and, for ``I^k`` after step k's reset and ``T^{k+1}`` seen on arrival,
 
-        A_T = sum_{Adj(p')} Ibar T^{k+1}     B_T = sum_{Adj(p)} I^k T^k
-        A_I = sum_{Adj(p')} Ibar             B_I = sum_{Adj(p)} I^k
-        r_d = alpha_T (A_T / m' - B_T / m) + alpha_I (A_I / m' - B_I / m)
+        g(c) = (alpha_T T^{k+1}(c) + alpha_I) (min(1, I^k(c) + delta) - eta I^k(c)),
 
-    ``m'`` is the number of drones arriving on ``p'`` and ``m`` the number leaving ``p``: drones
-    that share a cell share its terms, so the swarm's ``R^k`` counts each cell's view once, as
-    the idleness update reduces a shared cell once. (Departure from the project notes, which
-    pay every drone in full: that paid a pack of drones stacked on one cell several times for
-    one visit, and greedy drones do stack. With one drone per cell both readings agree; the
-    plain reading is :attr:`RewardParts.plain`.)
+    the value Def. 3's reset removes from ``c``. So the swarm's ``R^k = sum_d r_d^k`` is the sum
+    of ``g`` over the DISTINCT cells visited, each paid once however many drones stand on it or
+    see it. This is the project's reading of Def. 4 (``shared/notes/paper-notes.md``, "The
+    headline score"), which departs from the printed Def. 4 (:func:`paper_rewards`): that pays
+    every drone its field of view, so drones flying as a pack are paid several times for one
+    visit. A drone that hovers earns only what recovered on its own cell (``g`` of an idleness
+    near 0 is about ``weight * delta``). ``positions`` and ``importance`` (``P_k``, ``T^k``) are
+    not used; they keep the signature of :func:`paper_rewards`.
     """
     return reward_parts(
         grid, params, idleness, importance, next_importance, positions, next_positions
     ).total
+
+
+def paper_rewards(
+    grid: Grid,
+    params: ScoreParams,
+    idleness: np.ndarray,
+    importance: np.ndarray,
+    next_importance: np.ndarray,
+    positions: np.ndarray,
+    next_positions: np.ndarray,
+) -> np.ndarray:
+    """Def. 4 as printed, read on arrival: gameable by overlapping views and stacking.
+
+    For drone ``d`` moving ``p -> p'``, with ``Ibar = min(1, I^k + delta)`` on free cells::
+
+        A_T = sum_{Adj(p')} Ibar T^{k+1}     B_T = sum_{Adj(p)} I^k T^k
+        A_I = sum_{Adj(p')} Ibar             B_I = sum_{Adj(p)} I^k
+        r_d = alpha_T (A_T - B_T) + alpha_I (A_I - B_I)
+
+    Summed over a horizon this is (up to end terms) every visit gain counted once per drone
+    whose field of view holds the visited cell: a 1 x 4 line of drones is paid about three
+    times for each visit. Reported beside the headline, never used to rank or to learn.
+    """
+    here, there = grid.view_index(positions), grid.view_index(next_positions)
+    arrive = np.minimum(1.0, grid.values_in_view(idleness, None, there) + params.delta)
+    arrive *= grid.values_in_view(grid.free_float, None, there)
+    leave = grid.values_in_view(idleness, None, here)
+    a_t = (arrive * grid.values_in_view(next_importance, None, there)).sum(axis=1)
+    b_t = (leave * grid.values_in_view(importance, None, here)).sum(axis=1)
+    return params.alpha_T * (a_t - b_t) + params.alpha_I * (arrive.sum(axis=1) - leave.sum(axis=1))
 
 
 def _sharing(cells: np.ndarray) -> np.ndarray:

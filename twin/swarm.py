@@ -1,4 +1,5 @@
-"""The one swarm step: move, read the reward on arrival (Def. 4), update idleness (Def. 3).
+"""The one swarm step: move, pay each visited cell's gain once (Def. 4 as the project reads
+it), update idleness (Def. 3).
 
 The patrol loop, the pretraining rollouts and the environment (:mod:`twin.env`) all advance a
 swarm with :func:`step`. A :class:`SwarmState` holds what the step needs at step ``k``: the
@@ -36,10 +37,10 @@ class SwarmState:
 class StepOutcome:
     """What one step paid, per drone (``(N,)`` each), and ``U_d`` at the new positions."""
 
-    rewards: np.ndarray  # r_d^k of Def. 4 under the shared-cell rule = importance + idleness
+    rewards: np.ndarray  # r_d^k: the gain of the drone's visit, shared on a shared cell
     importance: np.ndarray  # its alpha_T part
     idleness: np.ndarray  # its alpha_I part
-    plain: np.ndarray  # the plain-sum reading: m = m' = 1, every drone paid in full
+    paper: np.ndarray  # Def. 4 as printed: every drone paid its field of view (gameable)
     feasible: np.ndarray  # (N, 5) bool at P_{k+1}
 
 
@@ -68,7 +69,7 @@ def step(
     grid: Grid,
     params: ScoreParams,
 ) -> tuple[SwarmState, StepOutcome]:
-    """Advance the swarm one step: ``P_{k+1} = P_k + u^k``, ``r^k`` (Def. 4), ``I^{k+1}``.
+    """Advance the swarm one step: ``P_{k+1} = P_k + u^k``, ``r^k`` (the headline reward), ``I^{k+1}``.
 
     Raises :class:`InfeasibleActionError` when an action is not in ``U_d(p)``.
     """
@@ -83,7 +84,7 @@ def step(
     feasible = grid.feasible_actions(nxt)
     return (
         SwarmState(state.k + 1, nxt, idle, next_importance, visited, feasible),
-        StepOutcome(parts.total, parts.importance, parts.idleness, parts.plain, feasible),
+        StepOutcome(parts.total, parts.importance, parts.idleness, parts.paper, feasible),
     )
 
 

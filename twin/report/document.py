@@ -28,7 +28,7 @@ TABLE_COLUMNS = (
     ("R_hat_T", "R̂_T (mean score per step)", 4),
     ("R_hat_T_importance", "of which importance (α_T)", 4),
     ("R_hat_T_idleness", "of which idleness (α_I)", 4),
-    ("R_hat_T_plain", "R̂_T, plain sum over drones", 4),
+    ("R_hat_T_paper", "R̂_T as Def. 4 prints it (gameable)", 4),
     ("C_hat_T", "Ĉ_T (mean coverage)", 4),
     ("C_hat_T_ceiling", "Ĉ_T ceiling (jumping oracle)", 4),
     ("pct_time_max_C", "% of time with max C^k", 2),
@@ -423,11 +423,17 @@ def _table_caption(rf: RunFiles) -> str:
     )
     if "R_hat_T_importance" in columns:
         text += (
-            " R̂_T counts a cell shared by several drones once (its terms split among them); it "
-            "is the sum of its importance (α_T) and idleness (α_I) parts."
+            " R̂_T pays the visit gain of every distinct visited cell once, however many drones "
+            "stand on it or see it; it is the sum of its importance (α_T) and idleness (α_I) "
+            "parts."
         )
-    if "R_hat_T_plain" in columns:
-        text += " The plain sum pays every drone in full, as the paper writes it."
+    if "R_hat_T_paper" in columns:
+        text += (
+            " The column of Def. 4 as printed pays every drone its whole field of view, so "
+            "drones with overlapping views or stacked on one cell are paid several times for "
+            "one visit: it is gameable by flying in a pack, shown only for comparison with "
+            "the paper."
+        )
     if "C_hat_T_ceiling" in columns:
         text += (
             " The Ĉ_T ceiling is the coverage of drones that jump, each step, to the freshest "
