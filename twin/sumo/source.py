@@ -96,6 +96,11 @@ class SumoTraffic(TrafficSource):
         self.separate_process = False
         self._truth: np.ndarray | None = None
         self._incidents: list[dict[str, Any]] | None = None
+        #: where SUMO's configured outputs go (the run folder's ``sumo/``); None: a temporary
+        #: folder removed when the run ends (never beside the scenario's files)
+        self.output_dir: Path | None = None
+        #: the output files and rewritten additional files of the last run
+        self.outputs: list[Path] = []
 
     def _model(self) -> MFDImportance:
         g, s = self.geometry, self.scenario
@@ -110,8 +115,17 @@ class SumoTraffic(TrafficSource):
             s.reads_per_step,
         )
 
-    def session(self) -> SumoSession:
+    def session(self, output_dir: Path | None = None) -> SumoSession:
+        """The SUMO session of a run; with ``output_dir``, the scenario's configured outputs
+        (sumocfg options, additional files' detectors ...) are written there
+        (:mod:`twin.sumo.outputs`)."""
         s = self.scenario
+        options = tuple(s.sumo_options)
+        if output_dir is not None:
+            from twin.sumo.outputs import redirect_outputs
+
+            options, plan = redirect_outputs(s.sumocfg, options, output_dir)
+            self.outputs = [*plan.targets.values(), *(c for o, c in plan.copies.items() if c != o)]
         return SumoSession(
             net_file=s.net_file,
             route_files=s.route_files,
@@ -120,7 +134,7 @@ class SumoTraffic(TrafficSource):
             seed=s.seed,
             mesoscopic=s.mesoscopic,
             config_file=s.sumocfg,
-            extra_options=(*ANTI_GRIDLOCK_OPTIONS, *s.sumo_options),
+            extra_options=(*ANTI_GRIDLOCK_OPTIONS, *options),
             gui=self.gui,
         )
 
@@ -169,7 +183,16 @@ class SumoTraffic(TrafficSource):
         first_read = s.sim_begin + 1.0  # the earliest instant with a state to read
         clock = time.perf_counter
         t_start = clock()
-        session = self.session().start()
+        scratch = None
+        if self.output_dir is None:
+            import tempfile
+
+            scratch = Path(tempfile.mkdtemp(prefix="twin-sumo-"))
+        try:
+            session = self.session(self.output_dir or scratch).start()
+        except BaseException:
+            _remove(scratch)
+            raise
         timer.add(SUMO_WARMUP, clock() - t_start)
         try:
             for k, t in self.sample_times():
@@ -214,6 +237,7 @@ class SumoTraffic(TrafficSource):
                     yield importance
         finally:
             session.close()
+            _remove(scratch)
 
     def incidents_info(self) -> list[dict[str, Any]]:
         """The scheduled incidents as applied so far (``incidents.json``)."""
@@ -246,7 +270,16 @@ class SumoTraffic(TrafficSource):
             "reads_per_step": s.reads_per_step,
             "read_offsets_s": s.read_offsets(),
             "error": self.error,
+            "sumo_outputs": self.output_files(),
         }
+
+    def output_files(self) -> list[str]:
+        """SUMO's configured outputs (and rewritten additional files) written into the output
+        folder, relative to it."""
+        d = self.output_dir
+        if d is None or not Path(d).is_dir():
+            return []
+        return sorted(p.relative_to(d).as_posix() for p in Path(d).rglob("*") if p.is_file())
 
     def network_info(self) -> dict[str, Any]:
         """``network.json``: the net file, the grid's placement and cell size, the bbox."""
@@ -265,3 +298,10 @@ class SumoTraffic(TrafficSource):
         from twin.traffic.tape import Tape
 
         return Tape.from_source(self)
+
+
+def _remove(folder: Path | None) -> None:
+    if folder is not None:
+        import shutil
+
+        shutil.rmtree(folder, ignore_errors=True)
