@@ -519,6 +519,12 @@ def sumo_source(
             "notices": notices,
         },
     )
+    if scenario.incidents:  # checked before SUMO starts, against the final window and grid
+        from twin.sumo.incidents import check_incidents
+
+        for text in check_incidents(scenario.incidents, scenario, geometry, str(config.path)):
+            notices.append(text)
+            notice(text)
     return SumoTraffic(scenario, geometry, Grid(obstacles))
 
 
