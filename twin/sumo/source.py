@@ -271,6 +271,29 @@ class SumoTraffic(TrafficSource):
             "read_offsets_s": s.read_offsets(),
             "error": self.error,
             "sumo_outputs": self.output_files(),
+            "identity": self.identity(),
+        }
+
+    def identity(self) -> dict[str, Any]:
+        """What a replay of this run must find unchanged: the network file (sha256), the cell
+        size, the grid's shape, SUMO's and twin's versions (``run.json`` traffic.identity)."""
+        if "net_sha256" not in self.scenario.extra:
+            import hashlib
+
+            h = hashlib.sha256()
+            with open(self.scenario.net_file, "rb") as fh:
+                for block in iter(lambda: fh.read(1 << 20), b""):
+                    h.update(block)
+            self.scenario.extra["net_sha256"] = h.hexdigest()
+        from twin import __version__
+        from twin.sumo.network import sumo_version
+
+        return {
+            "net_sha256": self.scenario.extra["net_sha256"],
+            "cell_m": float(self.geometry.cell_m),
+            "grid": [int(self.grid.nx), int(self.grid.ny)],
+            "sumo": sumo_version(),
+            "twin": __version__,
         }
 
     def output_files(self) -> list[str]:
