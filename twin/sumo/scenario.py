@@ -487,6 +487,7 @@ def sumo_source(
             lambda d: random_rush_hour_trips(
                 Path(net_file), d / "rush_hour.trips.xml", span_gen, seed=seed, scale=scale
             ),
+            verify=lambda d: resources.check_xml_files(d, {"rush_hour.trips.xml": "routes"}),
         )
         route_files = [*route_files, out / "rush_hour.trips.xml"]
 
