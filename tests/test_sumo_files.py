@@ -113,12 +113,13 @@ def _run(root: Path, out: Path, *args: str) -> int:
 def test_configured_outputs_go_into_the_run_folder(scenario, capsys):
     before = tree_hash(scenario / "scenario")
     out = scenario / "run-outputs"
-    code = _run(scenario, out, "--sumocfg", str(scenario / "scenario" / "public.sumocfg"))
+    code = _run(scenario, out, "--sumocfg", str(scenario / "scenario" / "public.sumocfg"),
+                "--seeds", "2")  # fmt: skip
     err = capsys.readouterr().err
     assert code == 0, err
     assert tree_hash(scenario / "scenario") == before  # nothing written beside its files
     sumo = out / "sumo"
-    names = {p.name for p in sumo.iterdir()}
+    names = {p.name for p in sumo.iterdir() if p.is_file()}
     want = {"tripinfo.xml", "summary.xml", "stats.xml", "sumo.log", "errors.log", "loops.xml",
             "area.xml", "edges.xml", "lanes.xml", "detectors.add.xml"}  # fmt: skip
     assert names == want
@@ -127,8 +128,11 @@ def test_configured_outputs_go_into_the_run_folder(scenario, capsys):
             assert len(ET.parse(fh).getroot()) > 0, name  # SUMO wrote and closed it
     with open(sumo / "loops.xml", "rb") as fh:  # one file shared by two detectors, as given
         assert {i.get("id") for i in ET.parse(fh).getroot().iter("interval")} == {"loop", "loop2"}
+    seed = json.loads((out / "run.json").read_text())["seeds"][1]
+    assert {p.name for p in (sumo / f"seed-{seed}").iterdir()} == want  # the second simulation
     manifest = check_run_folder(out)
     assert {f"sumo/{n}" for n in want} <= set(manifest["files"])
+    assert {f"sumo/seed-{seed}/{n}" for n in want} <= set(manifest["files"])
     run = json.loads((out / "run.json").read_text())
     assert set(run["traffic"]["sumo_outputs"]) == want
 

@@ -26,7 +26,7 @@ interrupted run never leaves a half-written file):
   (and ``tapes/seed-<s>.parquet`` for further seeds), and ``sumo/`` when the scenario asks SUMO
   for outputs (a sumocfg's ``<output>``, detectors of additional files): those outputs, under
   their own base names, and the rewritten copies of the additional files that name them
-  (``sumo/seed-<n>/`` for the n-th further seed; :mod:`twin.sumo.outputs`);
+  (``sumo/seed-<s>/`` for further seeds; :mod:`twin.sumo.outputs`);
 - ``manifest.json``, written LAST: ``{"partial", "partial_reason", "files": {name: bytes}}``.
   A folder is complete only when it has a manifest whose files all exist with those sizes; a
   kill at any instant leaves no manifest, and every reader (``twin report``, a rerun with the

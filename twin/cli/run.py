@@ -198,8 +198,9 @@ def main(args: argparse.Namespace) -> int:
 
     def on_source(source) -> None:
         if hasattr(source, "output_dir"):  # SUMO's configured outputs: into the run folder
-            n = n_sources[0]
-            source.output_dir = run_dir / "sumo" / (f"seed-{n}" if n else "")
+            n = n_sources[0]  # the first seed's in sumo/, the others' in sumo/seed-<s>/
+            seed = list(experiment.seeds)[n]
+            source.output_dir = run_dir / "sumo" / (f"seed-{seed}" if n else "")
             n_sources[0] += 1
         _announce(source)
         if drawer is not None:
