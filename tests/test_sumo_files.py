@@ -202,6 +202,11 @@ ACCEPTED = {
          "t.rou.xml.gz": "GZ:small.trips.xml"},
         None, None,
     ),
+    "no route files (twin generates demand)": (
+        _cfg('<input><net-file value="small.net.xml"/></input>'
+             '<time><begin value="0"/><end value="600"/></time>'),
+        {}, 0.0, 600.0,
+    ),
     "SUMO's no-end -1": (
         _cfg(NET_AND_TRIPS + '<time><begin value="0"/><end value="-1"/></time>'),
         {}, 0.0, None,
@@ -218,12 +223,15 @@ def _write_case(scenario: Path, d: Path, text: str, files: dict[str, str]) -> Pa
             (d / name).write_bytes(gzip.compress((d / body[3:]).read_bytes()))
         else:
             (d / name).write_text(body)
-    (d / "case.sumocfg").write_text(text)
+    if text.startswith("GZ:"):
+        (d / "case.sumocfg").write_bytes(gzip.compress(text[3:].encode()))
+    else:
+        (d / "case.sumocfg").write_text(text)
     return d / "case.sumocfg"
 
 
 @pytest.mark.parametrize("case", list(ACCEPTED))
-def test_accepted_sumocfg_forms(scenario, tmp_path, case):
+def test_accepted_sumocfg_forms(scenario, tmp_path, capsys, case):
     from twin.config import load_config
     from twin.sumo.scenario import sumo_source
 
@@ -234,6 +242,8 @@ def test_accepted_sumocfg_forms(scenario, tmp_path, case):
     assert (read.begin, read.end) == (begin, end)
     source = sumo_source(load_config(scenario / "config.toml"), sumocfg=cfg)
     assert source.horizon >= 1 and source.scenario.route_files
+    err = capsys.readouterr().err
+    assert ("names no <route-files>; twin generates" in err) == ("no route files" in case), err
 
 
 def test_gzip_additional_with_outputs_is_rewritten(scenario, tmp_path):
@@ -288,6 +298,8 @@ REFUSED = {
         {"x.sumocfg": _cfg(NET_AND_TRIPS)}, "not an additional file but a SUMO config",
     ),
     "not XML": ("<configuration><input>", {}, "not valid XML"),
+    "a compressed sumocfg": ("GZ:" + _cfg(NET_AND_TRIPS), {},
+                             "a gzip-compressed config, which SUMO does not read; decompress"),
 }  # fmt: skip
 
 

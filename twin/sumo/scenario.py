@@ -169,8 +169,15 @@ def read_sumocfg(path: Path) -> SumoConfigFile:
             f"{path}: not a SUMO simulation config ({what}); give a .sumocfg with a "
             "<configuration> or <sumoConfiguration> root (as `sumo -C` writes)"
         )
+    with open(path, "rb") as fh:
+        compressed = fh.read(2) == b"\x1f\x8b"
+    if compressed:  # SUMO reads compressed network, route and additional files, not configs
+        raise UserError(
+            f"{path}: a gzip-compressed config, which SUMO does not read; decompress it "
+            f"(gunzip -k {path.name}), its files may stay compressed"
+        )
     try:
-        with open_xml(path) as fh:
+        with open(path, "rb") as fh:
             root = ET.parse(fh).getroot()
     except (ET.ParseError, OSError, EOFError) as exc:
         raise UserError(f"{path}: not valid XML ({exc})") from exc
@@ -396,6 +403,11 @@ def sumo_source(
             additional_files = [*cfg.additional, *additional_files]
             window = [cfg.begin, cfg.end]
             name = sumocfg_path.name
+            if not route_files and not s.routes:
+                notice(
+                    f"{sumocfg_path}: names no <route-files>; twin generates a rush-hour demand "
+                    "(add route files to the config to run your own)"
+                )
         elif s.osm:
             osm_path = Path(s.osm)
             net_file = import_osm(osm_path)  # cached
