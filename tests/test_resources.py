@@ -214,3 +214,38 @@ def test_generated_demand_in_the_cache_is_rebuilt_when_damaged(tmp_path, monkeyp
 
     assert again == first and trips(again.read_bytes()) == trips(good)  # same seed, same trips
     assert "(rush_hour.trips.xml is empty); rebuilding it" in err and err.count("\n") == 1
+
+
+def test_a_damaged_network_build_is_rebuilt(tmp_path, monkeypatch, capsys):
+    """The built-in network's cache entry is checked on use: with its trips file cut short
+    (or its build stamp of another spec) it is rebuilt, with a one-line notice. netconvert and
+    the demand are stubbed: this checks the wiring, test_sumo_network the build itself."""
+    pytest.importorskip("sumo")
+    import twin.sumo.demand as demand
+    import twin.sumo.network as network
+
+    monkeypatch.setenv(resources.CACHE_ENV, str(tmp_path))
+    builds = []
+
+    def fake_netconvert(args, what):
+        out = Path(args[args.index("--output-file") + 1])
+        out.write_text('<net version="1.20">\n</net>\n')
+        builds.append(out)
+
+    def fake_demand(net, spec, out, seed):
+        out.write_text("<routes>\n</routes>\n")
+
+    monkeypatch.setattr(network, "run_sumo_program", fake_netconvert)
+    monkeypatch.setattr(demand, "write_spec_demand", fake_demand)
+    first = network.build_named_network("shenzhen_like")
+    assert network.build_named_network("shenzhen_like") == first and len(builds) == 1
+    first.trips_file.write_text("<routes>\n<trip id='0'")
+    again = network.build_named_network("shenzhen_like")
+    err = capsys.readouterr().err.strip()
+    assert len(builds) == 2 and again.trips_file.read_text() == "<routes>\n</routes>\n"
+    assert err.startswith("twin: notice: cache entry") and "\n" not in err
+    assert "shenzhen_like.trips.xml is cut short" in err
+    stamp = first.net_file.parent / "build.json"
+    stamp.write_text('{"spec_hash": "another"}')
+    network.build_named_network("shenzhen_like")
+    assert len(builds) == 3 and "build.json does not match the spec" in capsys.readouterr().err
