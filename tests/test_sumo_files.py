@@ -151,6 +151,23 @@ def test_sumo_writes_nothing_when_the_run_is_refused(scenario, capsys):
     assert tree_hash(scenario / "scenario") == before
 
 
+def test_sumo_refusing_a_rewritten_file_names_the_users_file(scenario, tmp_path, capsys):
+    """A detector on a lane the network lacks: SUMO refuses twin's copy of the file, the one
+    line names the user's file (the copy went with the refused run's folder)."""
+    bad = tmp_path / "bad-detector.add.xml"
+    bad.write_text(
+        '<additional><e1Detector id="d" lane="nowhere_0" pos="1" freq="60" file="d.xml"/>'
+        "</additional>"
+    )
+    out = tmp_path / "run"
+    code = _run(scenario, out, "--sumocfg", str(scenario / "scenario" / "public.sumocfg"),
+                "--additional", str(bad))  # fmt: skip
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and err[-1].startswith("twin: error:"), err
+    assert str(bad) in err[-1] and "nowhere_0" in err[-1] and str(out) not in err[-1]
+    assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == [bad.name]
+
+
 def test_a_sumocfg_written_by_sumo_itself(scenario, tmp_path, capsys):
     """``sumo -C`` writes ``<sumoConfiguration>`` with relative paths; twin runs it as is."""
     d = tmp_path / "generated"

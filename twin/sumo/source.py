@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from twin.clock import clock_label
+from twin.errors import UserError
 from twin.grid import Grid
 from twin.mfd import MFD, MFDImportance
 from twin.sumo.cells import CellGeometry
@@ -101,6 +102,7 @@ class SumoTraffic(TrafficSource):
         self.output_dir: Path | None = None
         #: the output files and rewritten additional files of the last run
         self.outputs: list[Path] = []
+        self._copies: dict[Path, Path] = {}  # rewritten additional file -> the user's
 
     def _model(self) -> MFDImportance:
         g, s = self.geometry, self.scenario
@@ -125,7 +127,8 @@ class SumoTraffic(TrafficSource):
             from twin.sumo.outputs import redirect_outputs
 
             options, plan = redirect_outputs(s.sumocfg, options, output_dir)
-            self.outputs = [*plan.targets.values(), *(c for o, c in plan.copies.items() if c != o)]
+            self._copies = {c: o for o, c in plan.copies.items() if c != o}
+            self.outputs = [*plan.targets.values(), *self._copies]
         return SumoSession(
             net_file=s.net_file,
             route_files=s.route_files,
@@ -190,6 +193,12 @@ class SumoTraffic(TrafficSource):
             scratch = Path(tempfile.mkdtemp(prefix="twin-sumo-"))
         try:
             session = self.session(self.output_dir or scratch).start()
+        except UserError as exc:  # name the user's file, not twin's rewritten copy of it
+            _remove(scratch)
+            message = str(exc)
+            for copy, original in self._copies.items():
+                message = message.replace(str(copy), str(original))
+            raise UserError(message) from None
         except BaseException:
             _remove(scratch)
             raise
