@@ -145,3 +145,83 @@ def test_run_writes_incidents_json_and_scores_them(tmp_path):
     assert rows[0][3] == "(2, 2)" and rows[0][6] == "3-6"
     markdown = next(out.rglob("*.md")).read_text()
     assert "## Incidents" in markdown and "% incidents seen" in markdown
+
+
+# ------------------------------------------------- checked before the run; overlapping closures
+def _small(tmp_path, incidents: str):
+    from helpers import small_sumo_scenario
+
+    small_sumo_scenario(tmp_path, horizon=10)
+    with open(tmp_path / "small.toml", "a") as fh:
+        fh.write(incidents)
+    return tmp_path / "small.toml"
+
+
+def _incident(kind="edge_closed", where='edge = "B1B2"', when='begin = "00:07"', minutes=4.0):
+    return f'\n[[traffic.incidents]]\nkind = "{kind}"\n{where}\n{when}\nduration_min = {minutes}\n'
+
+
+# name -> (incidents, words of the one-line error); T^0 = 00:05, 10 steps of 60 s, warm-up 5 min
+BAD_INCIDENTS = {
+    "late in the evening": (_incident(when='begin = "23:00"'), "outside the scenario's window"),
+    "after the end": (_incident(when='begin = "00:15"'), "00:00:00 - 00:15:00"),
+    "a step past the horizon": (_incident(when="step = 11"), "step = 11 (00:16:00) is outside"),
+    "a cell off the grid": (_incident(where="cell = [40, 1]"), "cell = [40, 1] is off the"),
+    "a cell without road": (  # a grid larger than the network: its border has no road
+        _incident(where="cell = [0, 0]") + "[grid]\nnx = 12\nny = 12\n",
+        "cell = [0, 0] has no road; pick a cell on a road",
+    ),
+    "an unknown edge": (_incident(where='edge = "nowhere"'), "'nowhere' is not an edge of"),
+    "a lane the edge lacks": (
+        _incident(kind="lane_closed", where='edge = "B1B2"\nlane = 5'),
+        "edge 'B1B2' has 2 lanes",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", list(BAD_INCIDENTS))
+def test_incidents_are_checked_before_the_run(tmp_path, capsys, case):
+    pytest.importorskip("libsumo")
+    from test_bad_inputs import run_case
+
+    incidents, needle = BAD_INCIDENTS[case]
+    cfg = _small(tmp_path, incidents)
+    out = tmp_path / "run"
+    argv = ["run", "--config", str(cfg), "--out", str(out), "--no-report", "--quiet"]
+    err = run_case(capsys, tmp_path, argv, out, 2, needle)
+    assert str(cfg) in err and "[traffic].incidents[0]" in err
+    assert not out.exists()
+
+
+def test_overlapping_closures_reopen_when_the_last_lifts(tmp_path, capsys):
+    """Two closures of edge B1B2 (00:07-00:11, 00:09-00:13) and a lane closure of its lane 0
+    inside them: the lane stays closed 00:07-00:13 and then gets back its own permissions (the
+    second closure must not restore the "authority" of the first); twin notes the overlaps."""
+    libsumo = pytest.importorskip("libsumo")
+    from twin.sumo.scenario import sumo_source
+
+    cfg = _small(
+        tmp_path,
+        _incident(minutes=4.0)
+        + _incident(when='begin = "00:09"', minutes=4.0)
+        + _incident(kind="lane_closed", where='edge = "B1B2"\nlane = 0', when='begin = "00:08"',
+                    minutes=2.0),
+    )  # fmt: skip
+    source = sumo_source(load_config(cfg))
+    err = capsys.readouterr().err
+    assert err.count("overlap on edge 'B1B2'") == 3, err
+    assert "[traffic].incidents[0] and [1] overlap on edge 'B1B2' from 00:09:00 to 00:11:00" in err
+    allowed = {}
+    maps = source.importance_maps()
+    for k, _ in enumerate(maps):  # T^k at 00:05 + k min
+        allowed[k] = {lane: list(libsumo.lane.getAllowed(lane)) for lane in ("B1B2_0", "B1B2_1")}
+        if k == 0:
+            original = allowed[0]
+    maps.close()
+    closed = [k for k, a in allowed.items() if a["B1B2_0"] == ["authority"]]
+    assert closed == [2, 3, 4, 5, 6, 7]  # 00:07 .. 00:12 (lifted at 00:13 = T^8)
+    assert [k for k, a in allowed.items() if a["B1B2_1"] == ["authority"]] == closed
+    assert all(allowed[k] == original for k in (0, 1, 8, 9, 10))
+    records = source.incidents_info()
+    assert [r["lifted_s"] for r in records] == [660.0, 780.0, 600.0]
+    assert "lanes" not in records[0]

@@ -125,3 +125,127 @@ def test_network_builds_go_to_the_cache_keyed_by_spec_and_sumo(tmp_path, monkeyp
     where = build_dir("shenzhen_like")
     assert where.parent == tmp_path / "networks" / "shenzhen_like"
     assert sumo_version() != "unknown"
+
+
+# ------------------------------------------------------- cache entries checked before use
+def _xml_entry(d: Path) -> None:
+    (d / "a.net.xml").write_text('<?xml version="1.0"?>\n<!-- x -->\n<net version="1">\n</net>\n')
+    (d / "a.trips.xml").write_text("<routes>\n  <trip id='0'/>\n</routes>\n")
+
+
+def _verify(d: Path) -> None:
+    resources.check_xml_files(d, {"a.net.xml": "net", "a.trips.xml": "routes"})
+
+
+# name -> (how an existing entry is damaged, words of the one-line notice)
+BROKEN_ENTRIES = {
+    "a file deleted": (lambda d: (d / "a.trips.xml").unlink(), "a.trips.xml is missing"),
+    "a file emptied": (lambda d: (d / "a.net.xml").write_bytes(b""), "a.net.xml is empty"),
+    "a file cut short": (
+        lambda d: (d / "a.net.xml").write_text('<net version="1">\n<edge id="e"'),
+        "a.net.xml is cut short",
+    ),
+    "another kind of file": (
+        lambda d: (d / "a.net.xml").write_text("<routes></routes>"),
+        "a.net.xml is not a SUMO <net> file",
+    ),
+    "not XML at all": (lambda d: (d / "a.trips.xml").write_text("hello"), "a.trips.xml is not"),
+}
+
+
+@pytest.mark.parametrize("case", list(BROKEN_ENTRIES))
+def test_a_broken_cache_entry_is_rebuilt_and_reported(tmp_path, capsys, case):
+    damage, needle = BROKEN_ENTRIES[case]
+    target = tmp_path / "cache" / "entry"
+    calls = []
+
+    def make(d: Path) -> None:
+        calls.append(d)
+        _xml_entry(d)
+
+    resources.build_once(target, make, verify=_verify)
+    resources.build_once(target, make, verify=_verify)  # a good entry: reused
+    assert len(calls) == 1 and capsys.readouterr().err == ""
+    damage(target)
+    assert resources.build_once(target, make, verify=_verify) == target
+    err = capsys.readouterr().err.strip()
+    assert len(calls) == 2 and "\n" not in err and err.startswith("twin: notice: cache entry")
+    assert needle in err and "rebuilding it" in err
+    _verify(target)  # whole again
+    assert sorted(p.name for p in target.parent.iterdir()) == ["entry"]  # no temporary left
+
+
+def test_a_broken_build_is_not_committed(tmp_path):
+    def half(d: Path) -> None:
+        _xml_entry(d)
+        (d / "a.trips.xml").write_text("<routes><trip id='0'/>")
+
+    with pytest.raises(UserError, match=r"broken entry \(a.trips.xml is cut short"):
+        resources.build_once(tmp_path / "t", half, verify=_verify)
+    assert list(tmp_path.iterdir()) == []  # nothing renamed in, no temporary left
+
+
+def test_generated_demand_in_the_cache_is_rebuilt_when_damaged(tmp_path, monkeypatch, capsys):
+    """A network without demand gets generated trips in the cache; emptied, they are
+    rebuilt on the next use with a one-line notice."""
+    pytest.importorskip("libsumo")
+    from twin.config import load_config
+    from twin.sumo.network import generate_grid_scenario
+    from twin.sumo.scenario import sumo_source
+
+    monkeypatch.setenv(resources.CACHE_ENV, str(tmp_path / "cache"))
+    generate_grid_scenario(tmp_path, 3, 300, 300, 5.0, 1)
+    (tmp_path / "c.toml").write_text(
+        '[swarm]\nn_drones = 1\n[traffic]\nkind = "sumo"\nnet = "small.net.xml"\n'
+        'cell_m = 200.0\ndrone_speed_kmh = 12.0\nbegin = "07:00"\nwarmup_min = 1.0\n'
+        "horizon = 2\n"
+    )
+    first = sumo_source(load_config(tmp_path / "c.toml")).scenario.route_files[-1]
+    assert first.is_relative_to(tmp_path / "cache" / "imported")
+    good = first.read_bytes()
+    capsys.readouterr()
+    first.write_bytes(b"")
+    again = sumo_source(load_config(tmp_path / "c.toml")).scenario.route_files[-1]
+    err = capsys.readouterr().err
+    import xml.etree.ElementTree as ET
+
+    def trips(data: bytes) -> list[dict]:
+        return [t.attrib for t in ET.fromstring(data).iter("trip")]
+
+    assert again == first and trips(again.read_bytes()) == trips(good)  # same seed, same trips
+    assert "(rush_hour.trips.xml is empty); rebuilding it" in err and err.count("\n") == 1
+
+
+def test_a_damaged_network_build_is_rebuilt(tmp_path, monkeypatch, capsys):
+    """The built-in network's cache entry is checked on use: with its trips file cut short
+    (or its build stamp of another spec) it is rebuilt, with a one-line notice. netconvert and
+    the demand are stubbed: this checks the wiring, test_sumo_network the build itself."""
+    pytest.importorskip("sumo")
+    import twin.sumo.demand as demand
+    import twin.sumo.network as network
+
+    monkeypatch.setenv(resources.CACHE_ENV, str(tmp_path))
+    builds = []
+
+    def fake_netconvert(args, what):
+        out = Path(args[args.index("--output-file") + 1])
+        out.write_text('<net version="1.20">\n</net>\n')
+        builds.append(out)
+
+    def fake_demand(net, spec, out, seed):
+        out.write_text("<routes>\n</routes>\n")
+
+    monkeypatch.setattr(network, "run_sumo_program", fake_netconvert)
+    monkeypatch.setattr(demand, "write_spec_demand", fake_demand)
+    first = network.build_named_network("shenzhen_like")
+    assert network.build_named_network("shenzhen_like") == first and len(builds) == 1
+    first.trips_file.write_text("<routes>\n<trip id='0'")
+    again = network.build_named_network("shenzhen_like")
+    err = capsys.readouterr().err.strip()
+    assert len(builds) == 2 and again.trips_file.read_text() == "<routes>\n</routes>\n"
+    assert err.startswith("twin: notice: cache entry") and "\n" not in err
+    assert "shenzhen_like.trips.xml is cut short" in err
+    stamp = first.net_file.parent / "build.json"
+    stamp.write_text('{"spec_hash": "another"}')
+    network.build_named_network("shenzhen_like")
+    assert len(builds) == 3 and "build.json does not match the spec" in capsys.readouterr().err

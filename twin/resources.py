@@ -20,8 +20,11 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import shutil
+import sys
 import tempfile
+import xml.etree.ElementTree as ET
 from collections.abc import Callable
 from importlib import resources
 from pathlib import Path
@@ -97,20 +100,52 @@ def cache_dir() -> Path:
     return Path(platformdirs.user_cache_dir("twin", appauthor=False))
 
 
-def build_once(target: Path, make: Callable[[Path], None], force: bool = False) -> Path:
+class BrokenEntry(Exception):
+    """A cache entry that fails its check (a missing, empty or unparseable file)."""
+
+
+def build_once(
+    target: Path,
+    make: Callable[[Path], None],
+    force: bool = False,
+    verify: Callable[[Path], None] | None = None,
+) -> Path:
     """The folder ``target``, made by ``make(folder)`` unless it exists already.
 
     ``make`` fills a fresh temporary folder beside ``target`` that is then renamed into place
     in one step, so a reader never sees a half-built folder and two processes building the same
     ``target`` at once both end up with one complete copy (the loser's is deleted). ``force``
     replaces an existing ``target``.
+
+    ``verify(folder)`` raises :class:`BrokenEntry` (or OSError) when an entry is not usable (a
+    file missing, empty or unparseable): a new build is checked before it is renamed in (a
+    broken build is a one-line :class:`UserError`); an existing entry that fails the check
+    (deleted or damaged files) is reported in one line on stderr and rebuilt.
     """
     if target.is_dir() and not force:
-        return target
+        if verify is None:
+            return target
+        try:
+            verify(target)
+            return target
+        except (BrokenEntry, OSError) as exc:
+            print(
+                f"twin: notice: cache entry {target} is broken ({_reason(exc)}); rebuilding it",
+                file=sys.stderr,
+            )
+            force = True
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=target.parent))
     try:
         make(tmp)
+        if verify is not None:
+            try:
+                verify(tmp)
+            except (BrokenEntry, OSError) as exc:
+                raise UserError(
+                    f"{target}: the build produced a broken entry ({_reason(exc)}); nothing "
+                    "was cached, see the message of the tool above or report it"
+                ) from None
         if force and target.is_dir():
             old = Path(tempfile.mkdtemp(prefix=f".{target.name}.old-", dir=target.parent))
             with contextlib.suppress(FileNotFoundError):  # removed meanwhile
@@ -125,3 +160,34 @@ def build_once(target: Path, make: Callable[[Path], None], force: bool = False) 
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return target
+
+
+def _reason(exc: BaseException) -> str:
+    if isinstance(exc, OSError) and exc.strerror:
+        return f"{exc.filename or ''}: {exc.strerror}".lstrip(": ")
+    return str(exc) or type(exc).__name__
+
+
+def check_xml_files(folder: Path, files: dict[str, str]) -> None:
+    """:class:`BrokenEntry` unless each ``files`` name (relative to ``folder``) is present,
+    non-empty and a whole XML document with the given root element (checked by its first
+    element and its closing tag, without parsing it all)."""
+    for name, root in files.items():
+        path = Path(folder) / name
+        if not path.is_file():
+            raise BrokenEntry(f"{name} is missing")
+        size = path.stat().st_size
+        if size == 0:
+            raise BrokenEntry(f"{name} is empty")
+        with open(path, "rb") as fh:
+            try:
+                start = next(ET.iterparse(fh, events=("start",)))[1].tag
+            except (ET.ParseError, StopIteration):
+                start = None
+            fh.seek(max(0, size - 256))
+            tail = fh.read()
+        if start != root:
+            raise BrokenEntry(f"{name} is not a SUMO <{root}> file")
+        closed = re.search(rb"(</%s>|<%s\b[^<>]*/>)\s*$" % (root.encode(), root.encode()), tail)
+        if closed is None:
+            raise BrokenEntry(f"{name} is cut short (no closing </{root}>)")

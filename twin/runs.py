@@ -23,7 +23,10 @@ interrupted run never leaves a half-written file):
   ``partial`` and, when partial, ``partial_reason``; written first as a marker when the run
   starts (``partial: true``, reason: not finished) and rewritten when it ends;
 - live SUMO runs add ``network.json``, ``mfd.json``, ``mfd_samples.parquet``, ``tape.parquet``
-  (and ``tapes/seed-<s>.parquet`` for further seeds);
+  (and ``tapes/seed-<s>.parquet`` for further seeds), and ``sumo/`` when the scenario asks SUMO
+  for outputs (a sumocfg's ``<output>``, detectors of additional files): those outputs, under
+  their own base names, and the rewritten copies of the additional files that name them
+  (``sumo/seed-<s>/`` for further seeds; :mod:`twin.sumo.outputs`);
 - ``manifest.json``, written LAST: ``{"partial", "partial_reason", "files": {name: bytes}}``.
   A folder is complete only when it has a manifest whose files all exist with those sizes; a
   kill at any instant leaves no manifest, and every reader (``twin report``, a rerun with the
@@ -64,6 +67,7 @@ RUN_FILE_NAMES = frozenset(
         "series.parquet", "trajectories.parquet", "per_seed.csv", "summary.csv",
         "comparison.csv", "monitoring.csv", "events.parquet", "importance.npz", "run.json",
         "network.json", "mfd.json", "mfd_samples.parquet", "tape.parquet", "tapes", "report",
+        "incidents.json", "timing.csv", "sumo",
         MANIFEST,
     }
 )  # fmt: skip
@@ -148,6 +152,7 @@ def discard_run_dir(path: Path) -> None:
     run = _read_json(path / "run.json")
     if isinstance(run, dict) and set(run) == {"created", "invocation", "partial", "partial_reason"}:
         (path / "run.json").unlink(missing_ok=True)
+        shutil.rmtree(path / "sumo", ignore_errors=True)  # SUMO's outputs of the refused run
     with contextlib.suppress(OSError):
         path.rmdir()  # only if empty
 

@@ -73,20 +73,28 @@ def main(args: argparse.Namespace) -> int:
     check_run_folder(run_dir)
     experiment = build_experiment(run_arguments(run_dir))
     path = run_dir / "trajectories.parquet"
-    trajectories = pd.read_parquet(path)
+    try:
+        trajectories = pd.read_parquet(path)
+    except Exception as exc:  # pyarrow's errors on a broken file
+        raise UserError(f"{path}: not a readable trajectory table ({exc})") from None
     seeds = list(experiment.seeds)
     seed = seeds[0] if args.seed is None else args.seed
     if seed not in seeds:
         raise UserError(f"--seed {seed}: not among the run's seeds {seeds}")
+    missing = {"seed", "swarm", "step", "drone", "i", "j"} - set(trajectories.columns)
+    if missing:
+        raise UserError(f"{path}: no column {sorted(missing)[0]!r}; rerun the run")
     rows = trajectories[trajectories["seed"] == seed]
     swarms = [s for s in experiment.swarms if s in set(rows["swarm"])]
     if not swarms:
         raise UserError(f"{path}: no trajectory of seed {seed}")
+    source = build_source(experiment, seeds.index(seed))
+    check_identity(run_dir, source)
+    check_cells(path, rows, source.grid.shape)
     args.gui = True
     drawer = gui_drawer(args, swarms)
     positions = {s: _positions(rows[rows["swarm"] == s]) for s in swarms}
     steps = min(len(p) for p in positions.values())
-    source = build_source(experiment, seeds.index(seed))
     drawer.attach(source)
     print(drawer.legend(), file=sys.stderr)
     with display():
@@ -103,6 +111,57 @@ def main(args: argparse.Namespace) -> int:
             print(f"video: {drawer.finish()}", file=sys.stderr)
     print(f"replayed {steps - 1} steps of seed {seed} from {run_dir}")
     return 0
+
+
+#: What a run folder's ``run.json`` (traffic.identity) records, as named in the messages.
+IDENTITY_NAMES = {
+    "net_sha256": "network file (sha256)",
+    "cell_m": "cell size (m)",
+    "grid": "grid (nx, ny)",
+    "sumo": "SUMO version",
+    "twin": "twin version",
+}
+
+
+def check_identity(run_dir: Path, source) -> None:
+    """Refuse (one line) to replay a run whose network, cell size, grid, SUMO or twin differ
+    from what its ``run.json`` records; a run recorded without them is replayed with a
+    notice."""
+    from twin.report.load import _read_json
+
+    run = _read_json(run_dir / "run.json") or {}
+    recorded = (run.get("traffic") or {}).get("identity")
+    if not isinstance(recorded, dict):
+        print(
+            f"twin: notice: {run_dir / 'run.json'} records no network hash or versions (an "
+            "older run); the replay cannot check it simulates the same scenario",
+            file=sys.stderr,
+        )
+        return
+    now = source.identity()
+    for key, name in IDENTITY_NAMES.items():
+        if key in recorded and recorded[key] != now[key]:
+            was, is_ = recorded[key], now[key]
+            if key == "net_sha256":
+                was, is_ = f"{was[:12]}...", f"{is_[:12]}... ({source.scenario.net_file})"
+            raise UserError(
+                f"{run_dir / 'run.json'}: the {name} was {was}, now {is_}; the replay would "
+                "not show the recorded run: replay with the run's files and versions, or rerun "
+                "`twin run`"
+            )
+
+
+def check_cells(path: Path, rows, shape: tuple[int, int]) -> None:
+    """Refuse (one line) trajectories with a cell off the ``shape`` grid."""
+    nx, ny = shape
+    off = rows[(rows["i"] < 0) | (rows["i"] >= nx) | (rows["j"] < 0) | (rows["j"] >= ny)]
+    if len(off):
+        r = off.iloc[0]
+        raise UserError(
+            f"{path}: swarm {r['swarm']} drone {r['drone']} at step {r['step']} is on cell "
+            f"({r['i']}, {r['j']}), off the {nx} x {ny} grid; the trajectories are not this "
+            "run's: rerun `twin run`"
+        )
 
 
 def _positions(rows) -> np.ndarray:

@@ -194,7 +194,14 @@ def main(args: argparse.Namespace) -> int:
     max_memory_gb(experiment)  # a bad limit is refused before any folder is made
     run_dir = prepare_run_dir(args.out or new_run_dir("runs", "run"), invocation("run", args))
 
+    n_sources = [0]
+
     def on_source(source) -> None:
+        if hasattr(source, "output_dir"):  # SUMO's configured outputs: into the run folder
+            n = n_sources[0]  # the first seed's in sumo/, the others' in sumo/seed-<s>/
+            seed = list(experiment.seeds)[n]
+            source.output_dir = run_dir / "sumo" / (f"seed-{seed}" if n else "")
+            n_sources[0] += 1
         _announce(source)
         if drawer is not None:
             drawer.attach(source)

@@ -45,6 +45,86 @@ def onset_and_end_steps(begin: float, end: float, t0: float, step_s: float) -> t
     return max(first, 0), max(last, first)
 
 
+def incident_window(inc, n: int, begin_s: float, step_s: float) -> tuple[float, float]:
+    """``[begin, end)`` (s) of incident ``n`` (its ``begin`` clock, or ``T^step``)."""
+    if inc.begin is not None:
+        begin = parse_clock(inc.begin, f"[traffic].incidents[{n}].begin")
+    else:
+        begin = begin_s + inc.step * step_s
+    return begin, begin + 60.0 * inc.duration_min
+
+
+def net_edges(net_file) -> dict[str, int]:
+    """Non-internal edges of a network and their number of lanes."""
+    import xml.etree.ElementTree as ET
+
+    from twin.sumo.scenario import open_xml
+
+    edges: dict[str, int] = {}
+    with open_xml(net_file) as fh:
+        for _, elem in ET.iterparse(fh, events=("end",)):
+            if elem.tag == "edge":
+                if elem.get("function") != "internal" and elem.get("id"):
+                    edges[elem.get("id")] = len(elem.findall("lane"))
+                elem.clear()
+    return edges
+
+
+def check_incidents(incidents: list[Any], scenario, geometry, where: str = "") -> list[str]:
+    """Refuse (one line) an incident outside the scenario's simulated window (warm-up
+    included), on a cell off the grid or without a road, on an edge or lane the network lacks;
+    return notices for incidents that overlap in time on one edge or cell (they are applied
+    together: a lane reopens when the last incident closing it lifts)."""
+    prefix = f"{where}: " if where else ""
+    edges = net_edges(scenario.net_file) if any(i.edge is not None for i in incidents) else {}
+    lo, hi = scenario.sim_begin, scenario.sim_end
+    places = []
+    for n, inc in enumerate(incidents):
+        field = f"{prefix}[traffic].incidents[{n}]"
+        begin, end = incident_window(inc, n, scenario.begin_s, scenario.step_s)
+        if not lo - 1e-6 <= begin < hi - 1e-6:  # (step times carry rounding errors)
+            given = f"begin = {inc.begin!r}" if inc.begin is not None else f"step = {inc.step}"
+            raise UserError(
+                f"{field}.{given} ({clock_label(begin)}) is outside the scenario's window "
+                f"{clock_label(lo)} - {clock_label(hi)} (warm-up included); give a time inside it"
+            )
+        if inc.cell is not None:
+            i, j = inc.cell
+            if not (0 <= i < geometry.nx and 0 <= j < geometry.ny):
+                raise UserError(
+                    f"{field}.cell = [{i}, {j}] is off the {geometry.nx} x {geometry.ny} grid; "
+                    f"give 0 <= i < {geometry.nx}, 0 <= j < {geometry.ny}"
+                )
+            if geometry.lane_km[i, j] <= 0:
+                raise UserError(
+                    f"{field}.cell = [{i}, {j}] has no road; pick a cell on a road (see the "
+                    "report's map) or give an edge"
+                )
+            place = f"cell [{i}, {j}]"
+        else:
+            if inc.edge not in edges:
+                raise UserError(
+                    f"{field}.edge = {inc.edge!r} is not an edge of {scenario.net_file}; give an "
+                    "edge id of the net file, or a cell = [i, j]"
+                )
+            if inc.kind == "lane_closed" and inc.lane >= edges[inc.edge]:
+                raise UserError(
+                    f"{field}.lane = {inc.lane}: edge {inc.edge!r} has {edges[inc.edge]} lanes "
+                    f"(0 is the rightmost); give a lane below {edges[inc.edge]}"
+                )
+            place = f"edge {inc.edge!r}"
+        places.append((place, begin, end))
+    notices = []
+    for (a, (pa, ba, ea)), (b, (pb, bb, eb)) in itertools.combinations(enumerate(places), 2):
+        if pa == pb and ba < eb and bb < ea:
+            notices.append(
+                f"{prefix}[traffic].incidents[{a}] and [{b}] overlap on {pa} from "
+                f"{clock_label(max(ba, bb))} to {clock_label(min(ea, eb))}; both apply, and a "
+                "closed lane reopens only when the last incident on it lifts"
+            )
+    return notices
+
+
 class IncidentSchedule:
     """The incidents of one run: applied as SUMO is advanced, recorded for ``incidents.json``."""
 
@@ -55,14 +135,12 @@ class IncidentSchedule:
         self.events: list[tuple[float, int, str]] = []  # (time, incident, "on" | "off")
         self._settings = list(incidents)
         self._edges: dict[str, tuple[tuple[int, int], set[tuple[int, int]]]] | None = None
-        self._saved: dict[int, Any] = {}
+        #: closed lanes: how many incidents close each, and its permissions before the first
+        self._closed: dict[str, tuple[int, tuple[list[str], list[str]]]] = {}
+        #: held vehicles: how many incidents hold each
+        self._held: dict[str, int] = {}
         for n, inc in enumerate(self._settings):
-            where = f"[traffic].incidents[{n}]"
-            if inc.begin is not None:
-                begin = parse_clock(inc.begin, f"{where}.begin")
-            else:
-                begin = scenario.begin_s + inc.step * scenario.step_s
-            end = begin + 60.0 * inc.duration_min
+            begin, end = incident_window(inc, n, scenario.begin_s, scenario.step_s)
             onset, last = onset_and_end_steps(begin, end, scenario.begin_s, scenario.step_s)
             self.records.append(
                 {
@@ -170,24 +248,40 @@ class IncidentSchedule:
         if rec["kind"] == "vehicle_stopped":
             vehicle = sorted(ls.edge.getLastStepVehicleIDs(edge))[0]
             ls.vehicle.setSpeed(vehicle, 0.0)
+            self._held[vehicle] = self._held.get(vehicle, 0) + 1
             rec["vehicle"] = vehicle
         else:
-            saved = {}
-            for lane in self._lanes(n, edge):
-                saved[lane] = (list(ls.lane.getAllowed(lane)), list(ls.lane.getDisallowed(lane)))
-                ls.lane.setAllowed(lane, CLOSED_TO)
-            self._saved[n] = saved
+            lanes = self._lanes(n, edge)
+            for lane in lanes:
+                count, saved = self._closed.get(lane, (0, None))
+                if count == 0:  # the first incident on this lane keeps its own permissions
+                    saved = (list(ls.lane.getAllowed(lane)), list(ls.lane.getDisallowed(lane)))
+                    ls.lane.setAllowed(lane, CLOSED_TO)
+                self._closed[lane] = (count + 1, saved)
+            rec["lanes"] = lanes
         rec["applied_s"] = session.time
 
     def _stop(self, n: int, session) -> None:
+        """Lift incident ``n``; a lane (a vehicle) closed (held) by several overlapping
+        incidents reopens (drives on) only when the last of them lifts, with the permissions
+        it had before the first."""
         ls, rec = _libsumo(), self.records[n]
         if rec["applied_s"] is None:
             return
         if rec["kind"] == "vehicle_stopped":
-            if rec["vehicle"] in ls.vehicle.getIDList():
-                ls.vehicle.setSpeed(rec["vehicle"], -1.0)  # back to its own driving
+            vehicle = rec["vehicle"]
+            self._held[vehicle] -= 1
+            if self._held[vehicle] == 0:
+                del self._held[vehicle]
+                if vehicle in ls.vehicle.getIDList():
+                    ls.vehicle.setSpeed(vehicle, -1.0)  # back to its own driving
         else:
-            for lane, (allowed, disallowed) in self._saved.pop(n).items():
+            for lane in rec.pop("lanes"):
+                count, (allowed, disallowed) = self._closed[lane]
+                if count > 1:
+                    self._closed[lane] = (count - 1, (allowed, disallowed))
+                    continue
+                del self._closed[lane]
                 if allowed:
                     ls.lane.setAllowed(lane, allowed)
                 else:
@@ -196,7 +290,7 @@ class IncidentSchedule:
 
     def to_json(self) -> list[dict[str, Any]]:
         """Ground truth for ``incidents.json``: what, where (edge, cell i, j), when, how long."""
-        return [dict(r) for r in self.records]
+        return [{k: v for k, v in r.items() if k != "lanes"} for r in self.records]
 
 
 def _along(shape, every_m: float) -> np.ndarray:
@@ -222,5 +316,3 @@ def _midpoint(shape) -> tuple[float, float]:
     f = (half - cum[i]) / seg[i] if seg[i] > 0 else 0.0
     p = xy[i] + f * (xy[i + 1] - xy[i])
     return float(p[0]), float(p[1])
-
-

@@ -135,7 +135,16 @@ def build_named_network(name: str, force: bool = False, progress: bool = False) 
         stamp = {"spec_hash": digest, "generator": GENERATOR_VERSION, "sumo": sumo_version()}
         (out / "build.json").write_text(json.dumps(stamp))
 
-    out = resources.build_once(build_dir(name), make, force=force)
+    def verify(out: Path) -> None:
+        resources.check_xml_files(out, {f"{name}.net.xml": "net", f"{name}.trips.xml": "routes"})
+        try:
+            stamp = json.loads((out / "build.json").read_text())
+        except (OSError, ValueError) as exc:
+            raise resources.BrokenEntry("build.json is missing or not JSON") from exc
+        if not isinstance(stamp, dict) or stamp.get("spec_hash") != digest:
+            raise resources.BrokenEntry("build.json does not match the spec")
+
+    out = resources.build_once(build_dir(name), make, force=force, verify=verify)
     return BuiltNetwork(name, out / f"{name}.net.xml", out / f"{name}.trips.xml", spec)
 
 
@@ -268,7 +277,8 @@ def import_osm(osm_file: Path, out_dir: Path | None = None) -> Path:
         )  # fmt: skip
 
     if out_dir is None:
-        return resources.build_once(imported_dir(osm_file), make) / name
+        verify = lambda d: resources.check_xml_files(d, {name: "net"})  # noqa: E731
+        return resources.build_once(imported_dir(osm_file), make, verify=verify) / name
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     make(out_dir)

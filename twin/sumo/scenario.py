@@ -26,7 +26,7 @@ import hashlib
 import math
 import sys
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any
 
@@ -98,6 +98,9 @@ class SumoConfigFile:
     additional: list[Path]
     begin: float | None = None
     end: float | None = None
+    #: every option the file sets (element name -> value, as written), e.g. its outputs
+    options: dict[str, str] = field(default_factory=dict)
+    path: Path | None = None
 
 
 def _file_list(value: str | None, base: Path) -> list[Path]:
@@ -105,19 +108,22 @@ def _file_list(value: str | None, base: Path) -> list[Path]:
 
 
 def parse_time(value: str | None) -> float | None:
-    """A SUMO time value: seconds ("3600", "3600.5") or a clock ("1:00:00"); None if neither."""
+    """A SUMO time value: seconds ("3600", "3600.5") or a clock ("1:00:00"); None if neither
+    (also for NaN and infinite values, which SUMO refuses too)."""
     if value is None:
         return None
     try:
-        return float(value)
+        t = float(value)
     except ValueError:
         pass
+    else:
+        return t if math.isfinite(t) else None
     parts = str(value).strip().split(":")
     try:
         numbers = [float(x) for x in parts]
     except ValueError:
         return None
-    if len(parts) not in (3, 4):
+    if len(parts) not in (3, 4) or not all(math.isfinite(x) for x in numbers):
         return None
     total = 0.0
     for x, unit in zip(reversed(numbers), (1, 60, 3600, 86400), strict=False):
@@ -125,38 +131,95 @@ def parse_time(value: str | None) -> float | None:
     return total
 
 
+#: Roots of a SUMO simulation config: ``<configuration>``, and ``<sumoConfiguration>`` as
+#: ``sumo -C`` (``--save-configuration``) writes it.
+SUMOCFG_ROOTS = ("configuration", "sumoConfiguration")
+
+
+def sumocfg_options(root: ET.Element) -> dict[str, str]:
+    """The options a SUMO config sets: ``<section><name value="..."/></section>`` or, as SUMO
+    also reads, ``<name>...</name>``; element name -> value (the last one wins, as in SUMO)."""
+    options: dict[str, str] = {}
+    for section in root:
+        if not isinstance(section.tag, str):
+            continue
+        for elem in section:
+            if not isinstance(elem.tag, str):
+                continue
+            value = elem.get("value")
+            if value is None and elem.text is not None and elem.text.strip():
+                value = elem.text.strip()
+            if value is not None:
+                options[elem.tag] = value
+    return options
+
+
 def read_sumocfg(path: Path) -> SumoConfigFile:
     """Net, route and additional files of a ``.sumocfg`` (relative to its folder, as SUMO reads
-    them) and its ``<time>`` window, if it gives one."""
+    them), its ``<time>`` window, if it gives one, and all its options."""
     path = Path(path).resolve() if Path(path).exists() else Path(path)
-    if root_tag(path, "SUMO config") != "configuration":
-        raise UserError(f"{path}: not a SUMO config (want a <configuration> root)")
-    with open_xml(path) as fh:
-        root = ET.parse(fh).getroot()
+    tag = root_tag(path, "SUMO config")
+    if tag not in SUMOCFG_ROOTS:
+        what = (
+            f"a {tag[: -len('Configuration')]} config"
+            if tag.endswith("Configuration")
+            else (f"root <{tag}>")
+        )
+        raise UserError(
+            f"{path}: not a SUMO simulation config ({what}); give a .sumocfg with a "
+            "<configuration> or <sumoConfiguration> root (as `sumo -C` writes)"
+        )
+    with open(path, "rb") as fh:
+        compressed = fh.read(2) == b"\x1f\x8b"
+    if compressed:  # SUMO reads compressed network, route and additional files, not configs
+        raise UserError(
+            f"{path}: a gzip-compressed config, which SUMO does not read; decompress it "
+            f"(gunzip -k {path.name}), its files may stay compressed"
+        )
+    try:
+        with open(path, "rb") as fh:
+            root = ET.parse(fh).getroot()
+    except (ET.ParseError, OSError, EOFError) as exc:
+        raise UserError(f"{path}: not valid XML ({exc})") from exc
+    options = sumocfg_options(root)
 
     def value(*names: str) -> str | None:
         for name in names:
-            elem = root.find(f".//{name}")
-            if elem is not None and elem.get("value"):
-                return elem.get("value")
+            if options.get(name):
+                return options[name]
         return None
 
     net = _file_list(value("net-file", "n"), path.parent)
     if not net:
-        raise UserError(f"{path}: names no <net-file value=...>; add one")
+        raise UserError(
+            f"{path}: names no network; add <net-file value=...> to its <input> (twin needs "
+            "the network to lay its grid)"
+        )
     window = []
     for key in ("begin", "end"):
         text = value(key, "b" if key == "begin" else "e")
         t = parse_time(text)
         if text is not None and t is None:
-            raise UserError(f"{path}: <{key} value={text!r}> is not a time; give seconds")
+            raise UserError(
+                f"{path}: <{key} value={text!r}> is not a finite time; give seconds "
+                "(e.g. 3600) or a clock (1:00:00)"
+            )
+        if key == "end" and t is not None and t < 0:  # SUMO's default -1: no end
+            t = None
         window.append(t)
+    if None not in window and window[1] <= window[0]:
+        raise UserError(
+            f"{path}: <end value={value('end', 'e')!r}> is not after <begin "
+            f"value={value('begin', 'b')!r}>; give an end after the begin"
+        )
     return SumoConfigFile(
         net=net[0],
         routes=_file_list(value("route-files", "r"), path.parent),
         additional=_file_list(value("additional-files", "a"), path.parent),
         begin=window[0],
         end=window[1],
+        options=options,
+        path=path,
     )
 
 
@@ -204,18 +267,30 @@ def earliest_depart(route_files: list[Path]) -> float | None:
     return None if span is None else span[0]
 
 
+#: Roots of SUMO files that are not demand nor additional files, and what to do instead.
+_OTHER_KINDS = {
+    "net": "a SUMO network; pass it as --net (or net = ... in [traffic])",
+    "osm": "an OpenStreetMap extract; pass it as --osm",
+    **{r: "a SUMO config; pass it as --sumocfg" for r in SUMOCFG_ROOTS},
+}
+
+
 def _check_routes(route_files: list[Path]) -> None:
+    """SUMO reads route files whatever their root (``<routes>`` as SUMO writes them): twin
+    refuses only a file of another kind (network, config, OSM), which SUMO would misread."""
     for path in route_files:
         tag = root_tag(path, "route file")
-        if tag not in ("routes", "additional"):
-            raise UserError(f"{path}: not a SUMO route file (root <{tag}>, want <routes>)")
+        if tag in _OTHER_KINDS:
+            raise UserError(f"{path}: not a route file but {_OTHER_KINDS[tag]}")
 
 
 def _check_additional(files: list[Path]) -> None:
+    """SUMO reads additional files whatever their root (``<additional>``, the older ``<add>``,
+    ``<routes>``, ``<polygons>`` ...): twin refuses only a file of another kind."""
     for path in files:
         tag = root_tag(path, "additional file")
-        if tag not in ("additional", "routes", "tlLogic", "polygons"):
-            raise UserError(f"{path}: not a SUMO additional file (root <{tag}>, want <additional>)")
+        if tag in _OTHER_KINDS:
+            raise UserError(f"{path}: not an additional file but {_OTHER_KINDS[tag]}")
 
 
 #: Fewer free cells per drone than this, and every swarm covers nearly all cells: the comparison
@@ -328,6 +403,11 @@ def sumo_source(
             additional_files = [*cfg.additional, *additional_files]
             window = [cfg.begin, cfg.end]
             name = sumocfg_path.name
+            if not route_files and not s.routes:
+                notice(
+                    f"{sumocfg_path}: names no <route-files>; twin generates a rush-hour demand "
+                    "(add route files to the config to run your own)"
+                )
         elif s.osm:
             osm_path = Path(s.osm)
             net_file = import_osm(osm_path)  # cached
@@ -419,6 +499,7 @@ def sumo_source(
             lambda d: random_rush_hour_trips(
                 Path(net_file), d / "rush_hour.trips.xml", span_gen, seed=seed, scale=scale
             ),
+            verify=lambda d: resources.check_xml_files(d, {"rush_hour.trips.xml": "routes"}),
         )
         route_files = [*route_files, out / "rush_hour.trips.xml"]
 
@@ -451,6 +532,12 @@ def sumo_source(
             "notices": notices,
         },
     )
+    if scenario.incidents:  # checked before SUMO starts, against the final window and grid
+        from twin.sumo.incidents import check_incidents
+
+        for text in check_incidents(scenario.incidents, scenario, geometry, str(config.path)):
+            notices.append(text)
+            notice(text)
     return SumoTraffic(scenario, geometry, Grid(obstacles))
 
 

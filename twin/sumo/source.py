@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from twin.clock import clock_label
+from twin.errors import UserError
 from twin.grid import Grid
 from twin.mfd import MFD, MFDImportance
 from twin.sumo.cells import CellGeometry
@@ -96,6 +97,12 @@ class SumoTraffic(TrafficSource):
         self.separate_process = False
         self._truth: np.ndarray | None = None
         self._incidents: list[dict[str, Any]] | None = None
+        #: where SUMO's configured outputs go (the run folder's ``sumo/``); None: a temporary
+        #: folder removed when the run ends (never beside the scenario's files)
+        self.output_dir: Path | None = None
+        #: the output files and rewritten additional files of the last run
+        self.outputs: list[Path] = []
+        self._copies: dict[Path, Path] = {}  # rewritten additional file -> the user's
 
     def _model(self) -> MFDImportance:
         g, s = self.geometry, self.scenario
@@ -110,8 +117,18 @@ class SumoTraffic(TrafficSource):
             s.reads_per_step,
         )
 
-    def session(self) -> SumoSession:
+    def session(self, output_dir: Path | None = None) -> SumoSession:
+        """The SUMO session of a run; with ``output_dir``, the scenario's configured outputs
+        (sumocfg options, additional files' detectors ...) are written there
+        (:mod:`twin.sumo.outputs`)."""
         s = self.scenario
+        options = tuple(s.sumo_options)
+        if output_dir is not None:
+            from twin.sumo.outputs import redirect_outputs
+
+            options, plan = redirect_outputs(s.sumocfg, options, output_dir)
+            self._copies = {c: o for o, c in plan.copies.items() if c != o}
+            self.outputs = [*plan.targets.values(), *self._copies]
         return SumoSession(
             net_file=s.net_file,
             route_files=s.route_files,
@@ -120,7 +137,7 @@ class SumoTraffic(TrafficSource):
             seed=s.seed,
             mesoscopic=s.mesoscopic,
             config_file=s.sumocfg,
-            extra_options=(*ANTI_GRIDLOCK_OPTIONS, *s.sumo_options),
+            extra_options=(*ANTI_GRIDLOCK_OPTIONS, *options),
             gui=self.gui,
         )
 
@@ -169,7 +186,22 @@ class SumoTraffic(TrafficSource):
         first_read = s.sim_begin + 1.0  # the earliest instant with a state to read
         clock = time.perf_counter
         t_start = clock()
-        session = self.session().start()
+        scratch = None
+        if self.output_dir is None:
+            import tempfile
+
+            scratch = Path(tempfile.mkdtemp(prefix="twin-sumo-"))
+        try:
+            session = self.session(self.output_dir or scratch).start()
+        except UserError as exc:  # name the user's file, not twin's rewritten copy of it
+            _remove(scratch)
+            message = str(exc)
+            for copy, original in self._copies.items():
+                message = message.replace(str(copy), str(original))
+            raise UserError(message) from None
+        except BaseException:
+            _remove(scratch)
+            raise
         timer.add(SUMO_WARMUP, clock() - t_start)
         try:
             for k, t in self.sample_times():
@@ -214,6 +246,7 @@ class SumoTraffic(TrafficSource):
                     yield importance
         finally:
             session.close()
+            _remove(scratch)
 
     def incidents_info(self) -> list[dict[str, Any]]:
         """The scheduled incidents as applied so far (``incidents.json``)."""
@@ -246,7 +279,39 @@ class SumoTraffic(TrafficSource):
             "reads_per_step": s.reads_per_step,
             "read_offsets_s": s.read_offsets(),
             "error": self.error,
+            "sumo_outputs": self.output_files(),
+            "identity": self.identity(),
         }
+
+    def identity(self) -> dict[str, Any]:
+        """What a replay of this run must find unchanged: the network file (sha256), the cell
+        size, the grid's shape, SUMO's and twin's versions (``run.json`` traffic.identity)."""
+        if "net_sha256" not in self.scenario.extra:
+            import hashlib
+
+            h = hashlib.sha256()
+            with open(self.scenario.net_file, "rb") as fh:
+                for block in iter(lambda: fh.read(1 << 20), b""):
+                    h.update(block)
+            self.scenario.extra["net_sha256"] = h.hexdigest()
+        from twin import __version__
+        from twin.sumo.network import sumo_version
+
+        return {
+            "net_sha256": self.scenario.extra["net_sha256"],
+            "cell_m": float(self.geometry.cell_m),
+            "grid": [int(self.grid.nx), int(self.grid.ny)],
+            "sumo": sumo_version(),
+            "twin": __version__,
+        }
+
+    def output_files(self) -> list[str]:
+        """SUMO's configured outputs (and rewritten additional files) written into the output
+        folder, relative to it."""
+        d = self.output_dir
+        if d is None or not Path(d).is_dir():
+            return []
+        return sorted(p.relative_to(d).as_posix() for p in Path(d).rglob("*") if p.is_file())
 
     def network_info(self) -> dict[str, Any]:
         """``network.json``: the net file, the grid's placement and cell size, the bbox."""
@@ -265,3 +330,10 @@ class SumoTraffic(TrafficSource):
         from twin.traffic.tape import Tape
 
         return Tape.from_source(self)
+
+
+def _remove(folder: Path | None) -> None:
+    if folder is not None:
+        import shutil
+
+        shutil.rmtree(folder, ignore_errors=True)

@@ -109,8 +109,9 @@ def _produce(source: SumoTraffic, conn, parent: int) -> None:
     source.separate_process = False
     sent_snapshots = sent_seen = 0
     failure: BaseException | None = None
+    maps = source.maps_here()
     try:
-        for importance in source.maps_here():
+        for importance in maps:
             snapshots = source.snapshots[sent_snapshots:]
             seen = source.vehicles_seen[sent_seen:]
             sent_snapshots, sent_seen = len(source.snapshots), len(source.vehicles_seen)
@@ -119,6 +120,9 @@ def _produce(source: SumoTraffic, conn, parent: int) -> None:
                 break
     except BaseException as exc:  # sent to the parent, which raises it
         failure = exc if _picklable(exc) else RuntimeError(f"{type(exc).__name__}: {exc}")
+    finally:
+        with contextlib.suppress(BaseException):
+            maps.close()  # closes SUMO, which writes out its configured outputs
     try:
         conn.send(
             (

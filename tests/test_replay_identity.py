@@ -1,0 +1,124 @@
+"""``twin replay`` checks that it would show the recorded run: the network file (sha256), the
+cell size, the grid, SUMO's and twin's versions recorded in ``run.json``, and trajectory cells
+on the grid. Each refusal: exit 2, one line naming what differs, no traceback, nothing changed
+(the run folder included). The checks come before sumo-gui is needed."""
+
+from __future__ import annotations
+
+import importlib
+import json
+from collections.abc import Callable
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+pytest.importorskip("libsumo")
+
+from test_bad_inputs import run_case
+
+from twin.cli import main
+from twin.runs import write_manifest
+
+CONFIG = """
+[swarm]
+n_drones = 1
+[traffic]
+kind = "sumo"
+net = "small.net.xml"
+routes = ["small.trips.xml"]
+cell_m = 200.0
+drone_speed_kmh = 12.0
+begin = "00:01"
+warmup_min = 1.0
+horizon = 3
+[evaluate]
+swarms = ["random", "greedy"]
+"""
+
+
+@pytest.fixture
+def recorded(tmp_path, capsys) -> Path:
+    from twin.sumo.network import generate_grid_scenario
+
+    generate_grid_scenario(tmp_path, blocks=3, block_m=300, end_s=300, period_s=5.0, seed=1)
+    (tmp_path / "c.toml").write_text(CONFIG)
+    run = tmp_path / "run"
+    argv = ["run", "--config", str(tmp_path / "c.toml"), "--out", str(run), "--no-report",
+            "--quiet"]  # fmt: skip
+    assert main(argv) == 0
+    capsys.readouterr()
+    return run
+
+
+def _edit_run_json(change: Callable[[dict], None]) -> Callable[[Path], None]:
+    """Change run.json as another twin might have written it (the manifest agrees)."""
+
+    def edit(run: Path) -> None:
+        meta = json.loads((run / "run.json").read_text())
+        change(meta)
+        (run / "run.json").write_text(json.dumps(meta))
+        write_manifest(run)
+
+    return edit
+
+
+def _off_grid(run: Path) -> None:
+    path = run / "trajectories.parquet"
+    rows = pd.read_parquet(path)
+    rows.loc[rows.index[5], "i"] = 99
+    rows.to_parquet(path, index=False)
+    write_manifest(run)
+
+
+def _edit_net(run: Path) -> None:
+    with open(run.parent / "small.net.xml", "a") as fh:
+        fh.write("<!-- edited after the run -->\n")
+
+
+# name -> (what to change, monkeypatched (module, attribute, value) or None, expected words)
+CASES = {
+    "network edited": (_edit_net, None, "the network file (sha256) was"),
+    "other twin": (None, ("twin", "__version__", "9.9.9"), "the twin version was 0.1.0, now 9.9.9"),
+    "other SUMO": (
+        None,
+        ("twin.sumo.network", "sumo_version", lambda: "0.0.1"),
+        "the SUMO version was",
+    ),
+    "other cell size": (
+        _edit_run_json(lambda m: m["traffic"]["identity"].update(cell_m=100.0)),
+        None,
+        "the cell size (m) was 100.0, now 200.0",
+    ),
+    "other grid": (
+        _edit_run_json(lambda m: m["traffic"]["identity"].update(grid=[9, 9])),
+        None,
+        "the grid (nx, ny) was [9, 9], now",
+    ),
+    "cell off the grid": (_off_grid, None, "on cell (99, "),
+}
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_replay_refuses_another_scenario(recorded, tmp_path, capsys, monkeypatch, case):
+    change, patch, needle = CASES[case]
+    if change is not None:
+        change(recorded)
+    if patch is not None:
+        module, name, value = patch
+        monkeypatch.setattr(importlib.import_module(module), name, value)
+    err = run_case(capsys, tmp_path, ["replay", str(recorded)], None, 2, needle)
+    assert "\n" not in err
+
+
+def test_run_json_records_the_identity(recorded):
+    from twin.sumo.network import sumo_version
+
+    identity = json.loads((recorded / "run.json").read_text())["traffic"]["identity"]
+    import hashlib
+
+    net = recorded.parent / "small.net.xml"
+    assert identity["net_sha256"] == hashlib.sha256(net.read_bytes()).hexdigest()
+    assert identity["cell_m"] == 200.0 and identity["sumo"] == sumo_version()
+    run = json.loads((recorded / "run.json").read_text())
+    assert identity["grid"] == [run["grid"]["nx"], run["grid"]["ny"]]

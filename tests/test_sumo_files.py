@@ -1,0 +1,340 @@
+"""SUMO's files as SUMO reads and writes them, SUMO's configured outputs kept in the run folder.
+
+Accepted forms (each read as SUMO reads it): ``<sumoConfiguration>`` as ``sumo -C`` writes it
+and ``<configuration>``; option values as ``value=`` attributes or as element text; additional
+files with an ``<add>`` root, route files of any root SUMO takes; gzip-compressed files. Refused
+(exit 2, one line naming the file and the fix, no traceback, nothing changed outside the run
+folder, no run folder left): NaN or infinite times, a config of another SUMO program, a config
+without a network, a network given as a route file. And a public-style scenario whose sumocfg
+asks for outputs (trip info, summary, log, detectors of an additional file) runs from its
+sumocfg alone: every output lands in ``RUN/sumo/``, listed in the manifest, and the scenario
+folder hashes the same before and after.
+"""
+
+from __future__ import annotations
+
+import gzip
+import hashlib
+import json
+import shutil
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import pytest
+
+pytest.importorskip("libsumo")
+
+from twin.cli import main
+from twin.errors import UserError
+from twin.runs import check_run_folder
+from twin.sumo.scenario import read_sumocfg
+from twin.sumo.tools import binary, run_sumo_program
+
+CONFIG = """
+[swarm]
+n_drones = 2
+[traffic]
+kind = "sumo"
+cell_m = 200.0
+drone_speed_kmh = 12.0   # one step = 60 s
+warmup_min = 1.0
+[evaluate]
+swarms = ["random", "greedy"]
+"""
+DETECTORS = """<additional>
+    <inductionLoop id="loop" lane="{lane}" pos="20" period="60" file="out/loops.xml"/>
+    <e1Detector id="loop2" lane="{lane}" pos="40" freq="60" file="out/loops.xml"/>
+    <laneAreaDetector id="area" lane="{lane}" pos="10" endPos="100" period="60"
+                      file="area.xml"/>
+    <edgeData id="ed" period="120" file="edges.xml"/>
+    <laneData id="ld" period="120" file="../scenario/out/lanes.xml"/>
+</additional>
+"""
+OUTPUTS = """<output>
+        <tripinfo-output value="out/tripinfo.xml"/>
+        <summary-output value="summary.xml"/>
+        <statistic-output value="stats.xml"/>
+    </output>
+    <report>
+        <log value="sumo.log"/>
+        <error-log value="errors.log"/>
+    </report>"""
+
+
+def tree_hash(root: Path) -> dict[str, str]:
+    """sha256 of every file under ``root`` and the list of its folders (the whole tree)."""
+    out = {}
+    for p in sorted(root.rglob("*")):
+        rel = p.relative_to(root).as_posix()
+        out[rel] = hashlib.sha256(p.read_bytes()).hexdigest() if p.is_file() else "dir"
+    return out
+
+
+@pytest.fixture(scope="module")
+def scenario(tmp_path_factory) -> Path:
+    """``scenario/``: a 3 x 3 signalised grid, 10 min of random trips, a detector file, a
+    sumocfg with outputs; ``config.toml`` beside it."""
+    from twin.sumo.network import generate_grid_scenario
+
+    root = tmp_path_factory.mktemp("files")
+    d = root / "scenario"
+    d.mkdir()
+    net, trips = generate_grid_scenario(d, blocks=3, block_m=300, end_s=600, period_s=4.0, seed=2)
+    (d / "small.rou.xml").unlink()  # keep the trips: SUMO routes them on loading
+    (d / "out").mkdir()  # SUMO writes into existing folders only
+    with open(net, "rb") as fh:
+        lane = next(
+            lane.get("id")
+            for lane in ET.parse(fh).getroot().iter("lane")
+            if not lane.get("id").startswith(":") and float(lane.get("length")) > 150
+        )
+    (d / "detectors.add.xml").write_text(DETECTORS.format(lane=lane))
+    (d / "public.sumocfg").write_text(
+        f"""<?xml version="1.0" encoding="UTF-8"?>
+<configuration>
+    <input>
+        <net-file value="{net.name}"/>
+        <route-files value="{trips.name}"/>
+        <additional-files value="detectors.add.xml"/>
+    </input>
+    {OUTPUTS}
+</configuration>
+"""
+    )
+    (root / "config.toml").write_text(CONFIG)
+    return root
+
+
+def _run(root: Path, out: Path, *args: str) -> int:
+    return main(["run", "--config", str(root / "config.toml"), "--quiet", "--no-report",
+                 "--out", str(out), *args])  # fmt: skip
+
+
+def test_configured_outputs_go_into_the_run_folder(scenario, capsys):
+    before = tree_hash(scenario / "scenario")
+    out = scenario / "run-outputs"
+    code = _run(scenario, out, "--sumocfg", str(scenario / "scenario" / "public.sumocfg"),
+                "--seeds", "2")  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert tree_hash(scenario / "scenario") == before  # nothing written beside its files
+    sumo = out / "sumo"
+    names = {p.name for p in sumo.iterdir() if p.is_file()}
+    want = {"tripinfo.xml", "summary.xml", "stats.xml", "sumo.log", "errors.log", "loops.xml",
+            "area.xml", "edges.xml", "lanes.xml", "detectors.add.xml"}  # fmt: skip
+    assert names == want
+    for name in ("tripinfo.xml", "summary.xml", "loops.xml", "area.xml", "edges.xml"):
+        with open(sumo / name, "rb") as fh:
+            assert len(ET.parse(fh).getroot()) > 0, name  # SUMO wrote and closed it
+    with open(sumo / "loops.xml", "rb") as fh:  # one file shared by two detectors, as given
+        assert {i.get("id") for i in ET.parse(fh).getroot().iter("interval")} == {"loop", "loop2"}
+    seed = json.loads((out / "run.json").read_text())["seeds"][1]
+    assert {p.name for p in (sumo / f"seed-{seed}").iterdir()} == want  # the second simulation
+    manifest = check_run_folder(out)
+    assert {f"sumo/{n}" for n in want} <= set(manifest["files"])
+    assert {f"sumo/seed-{seed}/{n}" for n in want} <= set(manifest["files"])
+    run = json.loads((out / "run.json").read_text())
+    assert set(run["traffic"]["sumo_outputs"]) == want
+
+
+def test_sumo_writes_nothing_when_the_run_is_refused(scenario, capsys):
+    """A bad additional file on top of the scenario: SUMO refuses to start, no run folder."""
+    bad = scenario / "bad.add.xml"
+    bad.write_text('<additional><vType id="x" vClass="flyingcar"/></additional>')
+    before = tree_hash(scenario / "scenario")
+    out = scenario / "run-refused"
+    code = _run(scenario, out, "--sumocfg", str(scenario / "scenario" / "public.sumocfg"),
+                "--additional", str(bad))  # fmt: skip
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and "flyingcar" in err[-1] and "Traceback" not in "".join(err)
+    assert not out.exists()
+    assert tree_hash(scenario / "scenario") == before
+
+
+def test_sumo_refusing_a_rewritten_file_names_the_users_file(scenario, tmp_path, capsys):
+    """A detector on a lane the network lacks: SUMO refuses twin's copy of the file, the one
+    line names the user's file (the copy went with the refused run's folder)."""
+    bad = tmp_path / "bad-detector.add.xml"
+    bad.write_text(
+        '<additional><e1Detector id="d" lane="nowhere_0" pos="1" freq="60" file="d.xml"/>'
+        "</additional>"
+    )
+    out = tmp_path / "run"
+    code = _run(scenario, out, "--sumocfg", str(scenario / "scenario" / "public.sumocfg"),
+                "--additional", str(bad))  # fmt: skip
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and err[-1].startswith("twin: error:"), err
+    assert str(bad) in err[-1] and "nowhere_0" in err[-1] and str(out) not in err[-1]
+    assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == [bad.name]
+
+
+def test_a_sumocfg_written_by_sumo_itself(scenario, tmp_path, capsys):
+    """``sumo -C`` writes ``<sumoConfiguration>`` with relative paths; twin runs it as is."""
+    d = tmp_path / "generated"
+    d.mkdir()
+    for name in ("small.net.xml", "small.trips.xml"):
+        shutil.copy(scenario / "scenario" / name, d / name)
+    cfg = d / "generated.sumocfg"
+    run_sumo_program(
+        [binary("sumo"), "-n", str(d / "small.net.xml"), "-r", str(d / "small.trips.xml"),
+         "--tripinfo-output", str(d / "trips.out.xml"), "--begin", "0", "--end", "600",
+         "--save-configuration.relative", "true", "-C", str(cfg)],
+        what="sumo -C",
+    )  # fmt: skip
+    root = ET.parse(cfg).getroot()
+    assert root.tag == "sumoConfiguration"
+    assert root.find("input/net-file").get("value") == "small.net.xml"
+    before = tree_hash(d)
+    out = tmp_path / "run"
+    code = _run(scenario, out, "--sumocfg", str(cfg))
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert tree_hash(d) == before
+    assert (out / "sumo" / "trips.out.xml").stat().st_size > 0
+    run = json.loads((out / "run.json").read_text())
+    assert run["traffic"]["begin"] == "00:01:00"  # the config's window: 0 + 1 min warm-up
+
+
+def _cfg(body: str, root: str = "configuration") -> str:
+    return f"<{root}>{body}</{root}>"
+
+
+NET_AND_TRIPS = (
+    '<input><net-file value="small.net.xml"/><route-files value="small.trips.xml"/></input>'
+)
+
+# name -> (sumocfg text, files to write beside it {name: text | bytes}, expected begin, end)
+ACCEPTED = {
+    "<sumoConfiguration> root": (_cfg(NET_AND_TRIPS, "sumoConfiguration"), {}, None, None),
+    "values as element text": (
+        _cfg("<input><net-file>small.net.xml</net-file>"
+             "<route-files>small.trips.xml</route-files></input>"
+             "<time><begin>60</begin><end>0:08:00</end></time>"),
+        {}, 60.0, 480.0,
+    ),
+    "an <add> root and gzip": (
+        _cfg('<input><net-file value="small.net.xml"/><route-files value="t.rou.xml.gz"/>'
+             '<additional-files value="types.add.xml"/></input>'),
+        {"types.add.xml": '<add><vType id="car" vClass="passenger"/></add>',
+         "t.rou.xml.gz": "GZ:small.trips.xml"},
+        None, None,
+    ),
+    "no route files (twin generates demand)": (
+        _cfg('<input><net-file value="small.net.xml"/></input>'
+             '<time><begin value="0"/><end value="600"/></time>'),
+        {}, 0.0, 600.0,
+    ),
+    "SUMO's no-end -1": (
+        _cfg(NET_AND_TRIPS + '<time><begin value="0"/><end value="-1"/></time>'),
+        {}, 0.0, None,
+    ),
+}  # fmt: skip
+
+
+def _write_case(scenario: Path, d: Path, text: str, files: dict[str, str]) -> Path:
+    d.mkdir()
+    for name in ("small.net.xml", "small.trips.xml"):
+        shutil.copy(scenario / "scenario" / name, d / name)
+    for name, body in files.items():
+        if body.startswith("GZ:"):
+            (d / name).write_bytes(gzip.compress((d / body[3:]).read_bytes()))
+        else:
+            (d / name).write_text(body)
+    if text.startswith("GZ:"):
+        (d / "case.sumocfg").write_bytes(gzip.compress(text[3:].encode()))
+    else:
+        (d / "case.sumocfg").write_text(text)
+    return d / "case.sumocfg"
+
+
+@pytest.mark.parametrize("case", list(ACCEPTED))
+def test_accepted_sumocfg_forms(scenario, tmp_path, capsys, case):
+    from twin.config import load_config
+    from twin.sumo.scenario import sumo_source
+
+    text, files, begin, end = ACCEPTED[case]
+    cfg = _write_case(scenario, tmp_path / "case", text, files)
+    read = read_sumocfg(cfg)
+    assert read.net == (tmp_path / "case" / "small.net.xml").resolve()
+    assert (read.begin, read.end) == (begin, end)
+    source = sumo_source(load_config(scenario / "config.toml"), sumocfg=cfg)
+    assert source.horizon >= 1 and source.scenario.route_files
+    err = capsys.readouterr().err
+    assert ("names no <route-files>; twin generates" in err) == ("no route files" in case), err
+
+
+def test_gzip_additional_with_outputs_is_rewritten(scenario, tmp_path):
+    """A compressed detector file whose outputs are redirected: the copy is plain XML in the
+    output folder, other relative paths in it made absolute (they resolve as before)."""
+    from twin.sumo.outputs import redirect_outputs
+
+    d = tmp_path / "gz"
+    d.mkdir()
+    add = d / "det.add.xml.gz"
+    add.write_bytes(gzip.compress(
+        b'<additional><include href="types.xml"/>'
+        b'<e1Detector id="a" lane="x_0" pos="1" freq="60" file="a.xml"/>'
+        b'<poly id="p" shape="0,0 1,1" imgFile="img/p.png"/></additional>'
+    ))  # fmt: skip
+    (d / "types.xml").write_text('<additional><vType id="t"/></additional>')
+    options, _ = redirect_outputs(None, ("--additional-files", str(add)), tmp_path / "o")
+    copy = Path(options[1])
+    assert copy == tmp_path / "o" / "det.add.xml"
+    root = ET.parse(copy).getroot()
+    assert root.find("e1Detector").get("file") == str(tmp_path / "o" / "a.xml")
+    assert root.find("include").get("href") == str(d / "types.xml")  # no output: the original
+    assert root.find("poly").get("imgFile") == str(d / "img" / "p.png")
+    untouched, _ = redirect_outputs(None, ("-a", str(d / "types.xml")), tmp_path / "o2")
+    assert untouched[1] == str(d / "types.xml") and not (tmp_path / "o2").exists()
+
+
+# name -> (sumocfg text, files beside it, words of the one-line error)
+REFUSED = {
+    "NaN end": (_cfg(NET_AND_TRIPS + '<time><end value="nan"/></time>'), {},
+                "<end value='nan'> is not a finite time"),
+    "infinite begin": (_cfg(NET_AND_TRIPS + '<time><begin value="inf"/></time>'), {},
+                       "<begin value='inf'> is not a finite time"),
+    "NaN clock": (_cfg(NET_AND_TRIPS + "<time><end>1:nan:00</end></time>"), {},
+                  "is not a finite time"),
+    "end before begin": (
+        _cfg(NET_AND_TRIPS + '<time><begin value="600"/><end value="60"/></time>'), {},
+        "is not after <begin",
+    ),
+    "a netconvert config": (_cfg(NET_AND_TRIPS, "netconvertConfiguration"), {},
+                            "not a SUMO simulation config (a netconvert config)"),
+    "another root": (_cfg(NET_AND_TRIPS, "routes"), {}, "not a SUMO simulation config"),
+    "no network": (_cfg('<input><route-files value="small.trips.xml"/></input>'), {},
+                   "names no network; add <net-file value=...>"),
+    "a network as route file": (
+        _cfg('<input><net-file value="small.net.xml"/><route-files value="small.net.xml"/>'
+             "</input>"),
+        {}, "not a route file but a SUMO network; pass it as --net",
+    ),
+    "a sumocfg as additional": (
+        _cfg(NET_AND_TRIPS + '<input><additional-files value="x.sumocfg"/></input>'),
+        {"x.sumocfg": _cfg(NET_AND_TRIPS)}, "not an additional file but a SUMO config",
+    ),
+    "not XML": ("<configuration><input>", {}, "not valid XML"),
+    "a compressed sumocfg": ("GZ:" + _cfg(NET_AND_TRIPS), {},
+                             "a gzip-compressed config, which SUMO does not read; decompress"),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("case", list(REFUSED))
+def test_refused_sumocfg(scenario, tmp_path, capsys, case):
+    text, files, needle = REFUSED[case]
+    cfg = _write_case(scenario, tmp_path / "case", text, files)
+    before = tree_hash(tmp_path)
+    out = tmp_path / "run"
+    code = _run(scenario, out, "--sumocfg", str(cfg))
+    captured = capsys.readouterr()
+    err = captured.err.strip()
+    assert code == 2, err
+    assert "\n" not in err and err.startswith("twin: error:"), err
+    assert needle in err and str(tmp_path / "case") in err, err
+    assert "Traceback" not in err + captured.out
+    assert not out.exists()
+    assert tree_hash(tmp_path) == before
+    if case.startswith(("NaN", "infinite")):
+        with pytest.raises(UserError, match="finite time"):
+            read_sumocfg(cfg)

@@ -1,0 +1,199 @@
+"""SUMO's configured outputs, sent into the run folder instead of beside the scenario's files.
+
+A scenario may ask SUMO for outputs: a sumocfg's ``<output>`` and ``<report>`` sections
+(``tripinfo-output``, ``summary-output``, ``fcd-output``, ``log``, ``save-state.files`` ...), and
+additional files whose elements write files (detectors' ``file=``, ``edgeData``/``laneData``
+``file=``, a calibrator's ``output=``, a ``timedEvent``'s ``dest=``). SUMO would write them next
+to the user's files; twin writes only into its run folder, so when it starts SUMO it
+
+- passes a command-line override for every output option the sumocfg sets, pointing into the
+  output folder (``RUN/sumo/``) with the same base name;
+- loads, instead of an additional file that writes outputs, a copy in the output folder whose
+  outputs point into that folder and whose other relative paths (``<include href>``, a
+  rerouter's definitions, images) are made absolute so they resolve as before.
+
+Files are named by their base name; two outputs of the same base name from different folders
+get ``-2``, ``-3`` ... One output file shared by several detectors stays shared.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+from twin.errors import UserError
+
+#: SUMO's output options (and their synonyms) -> the canonical name to override.
+OUTPUT_OPTIONS = {
+    **{
+        name: name
+        for name in (
+            "netstate-dump", "emission-output", "battery-output", "elechybrid-output",
+            "chargingstations-output", "overheadwiresegments-output", "substations-output",
+            "fcd-output", "person-fcd-output", "full-output", "queue-output", "vtk-output",
+            "amitran-output", "summary-output", "person-summary-output", "tripinfo-output",
+            "personinfo-output", "vehroute-output", "personroute-output", "link-output",
+            "railsignal-block-output", "railsignal-vehicle-output", "bt-output",
+            "lanechange-output", "stop-output", "collision-output", "edgedata-output",
+            "lanedata-output", "statistic-output", "deadlock-output", "save-state.files",
+            "save-state.prefix", "device.rerouting.output", "device.ssm.file",
+            "device.toc.file", "device.taxi.dispatch-algorithm.output",
+            "device.taxi.idle-algorithm.output", "log", "message-log", "error-log",
+        )
+    },
+    "ndump": "netstate-dump",
+    "netstate": "netstate-dump",
+    "netstate-output": "netstate-dump",
+    "summary": "summary-output",
+    "tripinfo": "tripinfo-output",
+    "vehroutes": "vehroute-output",
+    "l": "log",
+}  # fmt: skip
+#: Options whose value is a list of files.
+_FILE_LISTS = {"save-state.files"}
+#: Output names SUMO does not take as files.
+_NOT_FILES = {"", "nul", "/dev/null", "stdout", "stderr", "-"}
+
+#: Elements of additional files that write files, and the attribute naming the file.
+OUTPUT_ELEMENTS = {
+    **{
+        tag: "file"
+        for tag in (
+            "e1Detector", "inductionLoop", "instantInductionLoop", "e2Detector",
+            "laneAreaDetector", "e3Detector", "entryExitDetector", "edgeData", "laneData",
+            "meandata-edge", "meandata-lane", "edgeRelations", "tazRelations", "routeProbe",
+            "vTypeProbe",
+        )
+    },
+    "calibrator": "output",
+    "timedEvent": "dest",
+}  # fmt: skip
+#: Attributes of additional files that name input files (made absolute in a rewritten copy).
+INPUT_ATTRIBUTES = ("href", "file", "imgFile", "osgFile")
+
+ET.register_namespace("xsi", "http://www.w3.org/2001/XMLSchema-instance")
+
+
+def _is_file(value: str) -> bool:
+    v = value.strip()
+    if v.lower() in _NOT_FILES:
+        return False
+    host, _, port = v.rpartition(":")  # a socket host:port
+    return not (host and port.isdigit() and "/" not in v)
+
+
+class OutputPlan:
+    """Where each output goes in ``out_dir`` (created on first use) and the copies written."""
+
+    def __init__(self, out_dir: Path):
+        self.out_dir = Path(out_dir)
+        self.targets: dict[Path, Path] = {}
+        self.copies: dict[Path, Path] = {}
+        self._names: set[str] = set()
+
+    def _fresh(self, name: str) -> Path:
+        stem, dot, suffix = name.partition(".")
+        for n in itertools.count(1):
+            candidate = name if n == 1 else f"{stem}-{n}{dot}{suffix}"
+            if candidate not in self._names:
+                self._names.add(candidate)
+                self.out_dir.mkdir(parents=True, exist_ok=True)
+                return self.out_dir / candidate
+        raise AssertionError  # pragma: no cover
+
+    def target(self, original: Path) -> Path:
+        """The file in ``out_dir`` that replaces the output ``original`` (same base name)."""
+        original = Path(original).resolve()
+        if original not in self.targets:
+            self.targets[original] = self._fresh(original.name)
+        return self.targets[original]
+
+    def additional(self, path: Path) -> Path:
+        """``path``, or a rewritten copy in ``out_dir`` if it (or a file it includes) writes
+        outputs."""
+        from twin.sumo.scenario import open_xml
+
+        path = Path(path).resolve()
+        if path in self.copies:
+            return self.copies[path]
+        self.copies[path] = path  # (an include cycle ends here)
+        try:
+            with open_xml(path) as fh:
+                tree = ET.parse(fh)
+        except (ET.ParseError, OSError, EOFError):
+            return path  # SUMO will say what is wrong with it
+        root, base, changed = tree.getroot(), path.parent, False
+        for elem in root.iter():
+            attr = OUTPUT_ELEMENTS.get(elem.tag) if isinstance(elem.tag, str) else None
+            value = elem.get(attr) if attr else None
+            if value is not None and _is_file(value):
+                elem.set(attr, str(self.target(base / value)))
+                changed = True
+        for elem in root.iter("include"):
+            href = elem.get("href")
+            if href and self.additional(base / href) != (base / href).resolve():
+                changed = True
+        if changed:
+            for elem in root.iter():
+                if not isinstance(elem.tag, str):
+                    continue
+                for name in INPUT_ATTRIBUTES:
+                    value = elem.get(name)
+                    if value is None or name == OUTPUT_ELEMENTS.get(elem.tag):
+                        continue
+                    if name == "href" and elem.tag == "include":
+                        elem.set(name, str(self.additional(base / value)))
+                    elif _is_file(value) and not Path(value).is_absolute():
+                        elem.set(name, str((base / value).resolve()))
+            name = path.name[:-3] if path.name.endswith(".gz") else path.name
+            copy = self._fresh(name)
+            ET.indent(tree)
+            tree.write(copy, encoding="UTF-8", xml_declaration=True)
+            self.copies[path] = copy
+        return self.copies[path]
+
+
+def redirect_outputs(
+    sumocfg: Path | None, options: tuple[str, ...], out_dir: Path
+) -> tuple[tuple[str, ...], OutputPlan]:
+    """``options`` with additional files that write outputs replaced by rewritten copies, plus
+    an override of every output option of ``sumocfg``, all pointing into ``out_dir``."""
+    from twin.sumo.scenario import _file_list, read_sumocfg
+
+    plan = OutputPlan(out_dir)
+    extra: list[str] = []
+    if sumocfg is not None:
+        cfg = read_sumocfg(sumocfg)
+        base = Path(sumocfg).resolve().parent
+        given = {OUTPUT_OPTIONS[k]: v for k, v in cfg.options.items() if k in OUTPUT_OPTIONS}
+        state_times = any(cfg.options.get(k) for k in ("save-state.times", "save-state.period"))
+        if state_times and not given.get("save-state.files") and "save-state.prefix" not in given:
+            given["save-state.prefix"] = "state"  # SUMO's default prefix, in its working folder
+        for name, value in given.items():
+            if name in _FILE_LISTS:
+                files = _file_list(value, base)
+                if files:
+                    extra += [f"--{name}", ",".join(str(plan.target(f)) for f in files)]
+            elif _is_file(value):
+                extra += [f"--{name}", str(plan.target(base / value.strip()))]
+    out = list(options)
+    for i in range(len(out) - 1):
+        if out[i] in ("--additional-files", "-a"):
+            files = [Path(v) for v in out[i + 1].split(",") if v]
+            out[i + 1] = ",".join(str(plan.additional(f)) for f in files)
+    return (*out, *extra), plan
+
+
+def check_output_dir(out_dir: Path) -> None:
+    """One-line error if ``out_dir`` cannot be made."""
+    try:
+        Path(out_dir).mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"{out_dir}: cannot create SUMO's output folder ({exc.strerror})") from exc
+
+
+def remove_empty(out_dir: Path) -> None:
+    with contextlib.suppress(OSError):
+        Path(out_dir).rmdir()
