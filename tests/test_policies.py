@@ -40,7 +40,7 @@ def run(config, source, seed, names=("random", "greedy", "sweeping")):
 
 
 def test_paper_pattern_on_the_evaluation_map(evaluation):
-    """Issue 3's pattern, on the mean over seeds 0-4 (single seeds vary: greedy packs)."""
+    """The paper's Table 2 pattern, on the mean over seeds 0-4 (single seeds vary: greedy packs)."""
     config, source = evaluation
     tables = [table2(run(config, source, seed=s)) for s in range(5)]
     table = pd.concat(tables).groupby("swarm").mean()

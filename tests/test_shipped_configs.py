@@ -1,4 +1,4 @@
-"""The shipped scenario configs load, and the city-scale one is what README and issue 15 say."""
+"""The shipped scenario configs load, and the city-scale one is what the README says."""
 
 from __future__ import annotations
 

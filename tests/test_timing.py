@@ -1,4 +1,4 @@
-"""Per-stage timing (issue 15): every run records where its time went, and the stages cover the
+"""Per-stage timing: every run records where its time went, and the stages cover the
 patrol loop."""
 
 from __future__ import annotations

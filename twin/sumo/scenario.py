@@ -294,7 +294,7 @@ def _check_additional(files: list[Path]) -> None:
 
 
 #: Fewer free cells per drone than this, and every swarm covers nearly all cells: the comparison
-#: says little (issue 11), so twin says so and suggests a smaller cell.
+#: says little, so twin says so and suggests a smaller cell.
 MIN_FREE_CELLS_PER_DRONE = 10
 #: The smallest cell size twin suggests (m): below it a step is only a few seconds.
 MIN_SUGGESTED_CELL_M = 25.0

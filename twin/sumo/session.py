@@ -27,7 +27,7 @@ import numpy as np
 
 from twin.errors import UserError
 
-#: SUMO options that keep a congested run moving (Sec. "Rush-hour demand" of issue 5):
+#: SUMO options that keep a congested run moving in rush hour:
 #: a vehicle blocked for 300 s jumps ahead (teleport), a vehicle that cannot enter the network
 #: for 15 min is dropped, a share of vehicles reroute around congestion every 5 min.
 ANTI_GRIDLOCK_OPTIONS = (
