@@ -547,7 +547,10 @@ def _cell_list(value: list) -> np.ndarray:
 
 def make_grid(config: ScenarioConfig) -> Grid:
     """The grid of a config with explicit cells (synthetic scenarios)."""
+    from twin.resources import check_grid_size
+
     path, g = config.path, config.grid
+    check_grid_size(g.nx, g.ny, f"{path}: [grid]", "give fewer cells (nx, ny)")
     obstacles = np.zeros((g.nx, g.ny), dtype=bool)
     cells = _cell_list(g.obstacles)
     if len(cells):

@@ -100,6 +100,37 @@ def cache_dir() -> Path:
     return Path(platformdirs.user_cache_dir("twin", appauthor=False))
 
 
+#: The most cells a grid may have: 25 million (a 5000 x 5000 grid), whose maps alone need GBs
+#: per swarm and step; checked before any array of that size is allocated.
+MAX_CELLS = 25_000_000
+#: The cell sizes twin accepts (m): a drone's view is a cell, from a street corner to a region.
+MIN_CELL_M, MAX_CELL_M = 1.0, 100_000.0
+
+
+def check_grid_size(nx: int, ny: int, where: str, fix: str) -> None:
+    """Refuse (one line) a grid of more than :data:`MAX_CELLS` cells before it is allocated;
+    ``where`` names its source, ``fix`` says what to change."""
+    cells = int(nx) * int(ny)
+    if cells > MAX_CELLS:
+        raise UserError(
+            f"{where}: a {nx} x {ny} grid has {cells:,} cells, over the {MAX_CELLS:,} twin "
+            f"handles (about {cells * 8 / 1e9:,.0f} GB per map and step); {fix}"
+        )
+
+
+def check_cell_size(cell_m: float, where: str) -> None:
+    """Refuse (one line) a cell size outside ``MIN_CELL_M .. MAX_CELL_M`` (or not a number)."""
+    try:
+        value = float(cell_m)
+    except (TypeError, ValueError):
+        value = float("nan")
+    if not (MIN_CELL_M <= value <= MAX_CELL_M):
+        raise UserError(
+            f"{where}: cell size {cell_m} m is outside {MIN_CELL_M:g} .. {MAX_CELL_M:g} m; give "
+            "the side of one drone's view in metres, e.g. 500"
+        )
+
+
 class BrokenEntry(Exception):
     """A cache entry that fails its check (a missing, empty or unparseable file)."""
 

@@ -31,7 +31,8 @@ interrupted run never leaves a half-written file):
   A folder is complete only when it has a manifest whose files all exist with those sizes; a
   kill at any instant leaves no manifest, and every reader (``twin report``, a rerun with the
   same ``--out``) calls :func:`check_run_folder`. ``report/`` (written later by ``twin
-  report``) is not listed.
+  report``) is not listed, nor is ``error.log`` (the traceback of an unexpected error of the
+  command that wrote the folder or of ``twin report``; :mod:`twin.boundary`).
 """
 
 from __future__ import annotations
@@ -52,6 +53,7 @@ import numpy as np
 import pandas as pd
 
 from twin import __version__
+from twin.boundary import LOG_NAME, set_run_folder
 from twin.errors import UserError
 from twin.files import atomic_write, write_json
 from twin.metrics import MONITORING_COLUMNS, aggregate, learned_against_best_classical, table2
@@ -67,10 +69,12 @@ RUN_FILE_NAMES = frozenset(
         "series.parquet", "trajectories.parquet", "per_seed.csv", "summary.csv",
         "comparison.csv", "monitoring.csv", "events.parquet", "importance.npz", "run.json",
         "network.json", "mfd.json", "mfd_samples.parquet", "tape.parquet", "tapes", "report",
-        "incidents.json", "timing.csv", "sumo",
+        "incidents.json", "timing.csv", "sumo", "error.log",
         MANIFEST,
     }
 )  # fmt: skip
+#: Names in a run folder that its manifest does not list: written after the run, or again later.
+UNLISTED = ("report", LOG_NAME, MANIFEST)
 #: Options that change only what is printed: a rerun differing in these is the same command.
 DISPLAY_OPTIONS = frozenset(
     {"quiet", "no_report", "func", "gui", "gui_swarms", "gui_shade", "record"}
@@ -143,6 +147,7 @@ def prepare_run_dir(path: str | Path, started: dict[str, Any] | None = None) -> 
         "partial_reason": "interrupted: the run did not finish writing its folder",
     }
     write_json(path / "run.json", marker)
+    set_run_folder(path)  # an unexpected error's traceback goes to its error.log
     return path
 
 
@@ -204,7 +209,7 @@ def write_manifest(run_dir: Path, partial: bool = False, reason: str | None = No
     files = {}
     for p in sorted(run_dir.rglob("*")):
         rel = p.relative_to(run_dir)
-        if p.is_dir() or rel.parts[0] in ("report", MANIFEST) or _is_temp(p.name):
+        if p.is_dir() or rel.parts[0] in UNLISTED or _is_temp(p.name):
             continue
         files[rel.as_posix()] = p.stat().st_size
     write_json(

@@ -2,17 +2,19 @@
 
 Each subcommand module exposes ``add_parser(subparsers)``, which registers its parser with
 ``set_defaults(func=main)``, and ``main(args) -> int``. A module listed in :data:`COMMANDS`
-that does not exist is skipped.
+that does not exist is skipped. :func:`main` runs the chosen one through
+:func:`twin.boundary.run_command`, the one place where an escaping exception becomes a one-line
+message and an exit code (listed there).
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
-import os
 import sys
 
 from twin import __version__
+from twin.boundary import run_command
 from twin.errors import UserError
 
 COMMANDS = ["evaluate", "pretrain", "network", "run", "report", "sweep", "replay"]
@@ -63,17 +65,7 @@ def main(argv: list[str] | None = None) -> int:
     if not hasattr(args, "func"):
         parser.print_help()
         return 2
-    try:
-        return int(args.func(args) or 0)
-    except UserError as exc:
-        print(f"twin: error: {exc}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt:
-        print("twin: interrupted; files already written are complete", file=sys.stderr)
-        return 130
-    except BrokenPipeError:  # output piped into a reader that stopped (`twin ... | head`)
-        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-        return 141
+    return run_command(args.func, args)
 
 
 if __name__ == "__main__":

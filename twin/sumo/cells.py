@@ -114,8 +114,9 @@ def grid_over(
     from shapely.geometry import LineString
     from shapely.geometry import box as make_box
 
-    if cell_m <= 0:
-        raise UserError(f"{where}: cell size {cell_m} m must be positive")
+    from twin.resources import check_cell_size, check_grid_size
+
+    check_cell_size(cell_m, where)
     pts = np.concatenate(lanes.shapes)
     xmin, ymin = pts.min(axis=0)
     xmax, ymax = pts.max(axis=0)
@@ -127,6 +128,9 @@ def grid_over(
             f"({xmax - xmin:.0f} m x {ymax - ymin:.0f} m needs {need[0]} x {need[1]}); "
             "use a larger grid or cell size"
         )
+    check_grid_size(
+        nx, ny, where, f"use larger cells than {cell_m:g} m ([traffic].cell_m, --cell-m)"
+    )
     x0 = (xmin + xmax) / 2 - ny * cell_m / 2
     y_top = (ymin + ymax) / 2 + nx * cell_m / 2
     lane_m = np.zeros((nx, ny))

@@ -1,0 +1,178 @@
+"""The one boundary between twin and its user: whatever escapes a command ends here.
+
+:func:`run_command` calls a subcommand and turns every exception that escapes it into ONE line
+on stderr and an exit code (:data:`EXIT_CODES`); the full traceback of an unexpected error goes
+to ``error.log`` in the command's folder (:func:`set_run_folder`: the run folder, the sweep or
+pretraining folder, the folder ``twin report`` renders) or, before there is one, in twin's
+cache, and the line names that file.
+
+Exit codes of every ``twin`` command:
+
+- 0: done;
+- 1: done, but the run is partial (the traffic ended early, a swarm failed; the files say so)
+  or, with ``--record``, the results are written but the video could not be (a warning);
+- 2: refused: bad input, a file or folder twin cannot read or write (twin's own
+  :class:`~twin.errors.UserError`, and system errors such as a full disk or a read-only
+  folder), the command line itself (argparse);
+- 3: an unexpected error in twin (a bug): the line names the log with the traceback;
+- 130: interrupted (Ctrl-C); files already written are complete;
+- 141: the output went into a pipe whose reader stopped (``twin ... | head``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno
+import os
+import sys
+import traceback
+from collections.abc import Callable
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from twin.errors import UserError
+
+EXIT_OK, EXIT_PARTIAL, EXIT_REFUSED, EXIT_BUG = 0, 1, 2, 3
+EXIT_INTERRUPTED, EXIT_PIPE = 130, 141
+EXIT_CODES = {
+    EXIT_OK: "done",
+    EXIT_PARTIAL: "partial run, or results written but the --record video failed",
+    EXIT_REFUSED: "refused: bad input or a file twin cannot read or write",
+    EXIT_BUG: "unexpected error in twin (traceback in error.log)",
+    EXIT_INTERRUPTED: "interrupted",
+    EXIT_PIPE: "output pipe closed",
+}
+LOG_NAME = "error.log"
+#: the longest message printed (a huge value quoted in an exception stays on one screen line)
+MAX_MESSAGE = 600
+
+_state: dict[str, Path | None] = {"run_folder": None}
+
+
+def set_run_folder(path: Path | None) -> None:
+    """The folder the current command owns and writes into (None: none yet); an unexpected
+    error's traceback goes to its ``error.log``."""
+    _state["run_folder"] = None if path is None else Path(path)
+
+
+def run_folder() -> Path | None:
+    return _state["run_folder"]
+
+
+def one_line(text: str) -> str:
+    """``text`` on one line (newlines and runs of blanks collapsed), at most
+    :data:`MAX_MESSAGE` characters, and printable whatever the terminal's encoding."""
+    flat = " ".join(str(text).split())
+    if len(flat) > MAX_MESSAGE:
+        flat = flat[: MAX_MESSAGE - 3] + "..."
+    encoding = getattr(sys.stderr, "encoding", None) or "utf-8"
+    return flat.encode(encoding, "backslashreplace").decode(encoding, "replace")
+
+
+def say(message: str) -> None:
+    """Print ``twin: <message>`` as one line on stderr (never raising)."""
+    with contextlib.suppress(Exception):
+        print(f"twin: {one_line(message)}", file=sys.stderr, flush=True)
+
+
+#: errno -> what to do about it, for the one-line message of a system error
+_FIXES = {
+    errno.ENOSPC: "free some space or write to another disk (--out)",
+    errno.EDQUOT: "free some space or write to another disk (--out)",
+    errno.EROFS: "the file system is read-only: write to another folder (--out)",
+    errno.EACCES: "you may not write or read there: change the permissions or use another folder",
+    errno.EPERM: "you may not write or read there: change the permissions or use another folder",
+    errno.ENOENT: "a file or folder is missing: check the path",
+    errno.ENOTDIR: "a file stands where a folder is expected: move it or use another path",
+    errno.EISDIR: "a folder stands where a file is expected: move it or use another path",
+    errno.ENAMETOOLONG: "use a shorter name",
+    errno.ELOOP: "a symbolic link points to itself (a loop): fix or remove the link",
+    errno.EMFILE: "too many open files: raise the limit (ulimit -n)",
+    errno.ENOMEM: "out of memory: use a smaller grid, horizon or fewer seeds",
+    errno.EIO: "the disk reported an input/output error: check it",
+}
+
+
+def describe_os_error(exc: OSError) -> str:
+    """One line for a system error: the file, what happened and the fix."""
+    name = exc.filename if exc.filename is not None else ""
+    if isinstance(name, bytes):
+        name = name.decode("utf-8", "backslashreplace")
+    what = exc.strerror or str(exc) or type(exc).__name__
+    fix = _FIXES.get(exc.errno or -1, "check the file and the folder")
+    where = f"{name}: " if name else ""
+    return f"{where}{what}; {fix}"
+
+
+def log_traceback(exc: BaseException) -> Path | None:
+    """Write ``exc``'s traceback to ``error.log`` (the run folder's, else the cache's); the
+    log's path, or None when it could not be written."""
+    text = "".join(traceback.format_exception(exc))
+    stamp = datetime.now(UTC).isoformat(timespec="seconds")
+    body = f"{stamp} twin {' '.join(sys.argv[1:])}\n{text}"
+    for folder in _log_folders():
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            path = folder / LOG_NAME
+            with open(path, "w", encoding="utf-8", errors="backslashreplace") as fh:
+                fh.write(body)
+            return path
+        except (OSError, ValueError):
+            continue
+    return None
+
+
+def _log_folders() -> list[Path]:
+    folders = []
+    run = run_folder()
+    if run is not None and run.is_dir() and not run.is_symlink():
+        folders.append(run)
+    with contextlib.suppress(Exception):
+        from twin.resources import cache_dir
+
+        folders.append(cache_dir())
+    return folders
+
+
+def run_command(func: Callable[[Any], int | None], args: Any) -> int:
+    """``func(args)`` with every escaping exception turned into one line and an exit code."""
+    set_run_folder(None)
+    try:
+        return int(func(args) or 0)
+    except UserError as exc:
+        say(f"error: {exc}")
+        return EXIT_REFUSED
+    except KeyboardInterrupt:
+        say("interrupted; files already written are complete")
+        return EXIT_INTERRUPTED
+    except BrokenPipeError:  # output piped into a reader that stopped (`twin ... | head`)
+        with contextlib.suppress(OSError, ValueError):
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return EXIT_PIPE
+    except OSError as exc:
+        log = log_traceback(exc)
+        say(f"error: {describe_os_error(exc)}{_see(log)}")
+        return EXIT_REFUSED
+    except MemoryError as exc:
+        log = log_traceback(exc)
+        say(f"error: out of memory; use a smaller grid, horizon or fewer seeds{_see(log)}")
+        return EXIT_REFUSED
+    except UnicodeError as exc:  # a file name or text the file system or terminal cannot encode
+        log = log_traceback(exc)
+        say(f"error: {exc}; use names and text in UTF-8{_see(log)}")
+        return EXIT_REFUSED
+    except Exception as exc:
+        log = log_traceback(exc)
+        where = f"the traceback is in {log}" if log else "no log could be written"
+        say(
+            f"internal error: {type(exc).__name__}: {exc} ({where}; please report it with the "
+            "command that caused it)"
+        )
+        return EXIT_BUG
+    finally:
+        set_run_folder(None)
+
+
+def _see(log: Path | None) -> str:
+    return f" (details in {log})" if log else ""
