@@ -8,10 +8,14 @@ from twin.errors import UserError
 
 
 def clock_label(t: float, seconds: bool = True) -> str:
-    """``t`` seconds since midnight as ``HH:MM:SS`` (``HH:MM`` without seconds)."""
+    """``t`` seconds since midnight as ``HH:MM:SS`` (``HH:MM`` without seconds); past 24 h the
+    days come first (``1d 02:15``), so a multi-day run never shows an earlier time later on."""
     t = round(t)
-    hh, mm, ss = t // 3600 % 24, t % 3600 // 60, t % 60
-    return f"{hh:02d}:{mm:02d}:{ss:02d}" if seconds else f"{hh:02d}:{mm:02d}"
+    sign = "-" if t < 0 else ""
+    t = abs(t)
+    days, hh, mm, ss = t // 86400, t // 3600 % 24, t % 3600 // 60, t % 60
+    label = f"{hh:02d}:{mm:02d}:{ss:02d}" if seconds else f"{hh:02d}:{mm:02d}"
+    return f"{sign}{days}d {label}" if days else f"{sign}{label}"
 
 
 def parse_clock(text: str, where: str) -> float:

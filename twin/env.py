@@ -36,12 +36,31 @@ try:
 except ImportError:  # pragma: no cover - depends on the install
     raise ImportError("twin.env needs gymnasium and pettingzoo: pip install 'twin[env]'") from None
 
+from twin.errors import UserError
 from twin.grid import N_ACTIONS
 from twin.scores import STATE_SIZE, ScoreParams, drone_states
 from twin.swarm import StepOutcome, SwarmState, check_actions, initial_state, random_starts, step
 from twin.traffic.base import TrafficSource
 
 SourceLike = TrafficSource | Callable[[], TrafficSource]
+
+
+class EnvInputError(UserError, ValueError):
+    """A bad argument to an env (agent name, action, start cell): one line naming it."""
+
+
+def _action(agent: str, value: Any) -> int:
+    """One agent's action as an int in ``0 .. N_ACTIONS - 1`` (numpy integers accepted)."""
+    if isinstance(value, np.ndarray) and value.shape == ():
+        value = value.item()
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise EnvInputError(
+            f"{agent}: action {value!r} is not a whole number; give 0 .. {N_ACTIONS - 1} "
+            "(0 stay, 1 up, 2 down, 3 left, 4 right)"
+        )
+    if not 0 <= int(value) < N_ACTIONS:
+        raise EnvInputError(f"{agent}: action {value} is out of range 0 .. {N_ACTIONS - 1}")
+    return int(value)
 
 
 class SwarmParallelEnv(ParallelEnv):
@@ -94,10 +113,18 @@ class SwarmParallelEnv(ParallelEnv):
         self.swarm: SwarmState | None = None
 
     def observation_space(self, agent: str) -> spaces.Space:
-        return self._observation_spaces[agent]
+        return self._observation_spaces[self._agent(agent)]
 
     def action_space(self, agent: str) -> spaces.Space:
-        return self._action_spaces[agent]
+        return self._action_spaces[self._agent(agent)]
+
+    def _agent(self, agent: Any) -> str:
+        if not isinstance(agent, str) or agent not in self._action_spaces:
+            raise EnvInputError(
+                f"agent {agent!r} is not one of this env's agents "
+                f"(drone_0 .. drone_{self.n_drones - 1}); use env.possible_agents"
+            )
+        return agent
 
     def reset(self, seed: int | None = None, options: dict | None = None):
         if seed is not None:
@@ -107,10 +134,21 @@ class SwarmParallelEnv(ParallelEnv):
         return obs, {a: {} for a in self.agents}
 
     def step(self, actions: dict[str, int]):
+        if not isinstance(actions, dict):
+            raise EnvInputError(
+                f"actions must be a dict {{agent: action}}, got {type(actions).__name__}"
+            )
+        unknown = [a for a in actions if a not in self.agents]
+        if unknown:
+            live = f"drone_0 .. drone_{self.n_drones - 1}" if self.agents else "none: call reset()"
+            raise EnvInputError(
+                f"action for {unknown[0]!r}, which is not a live agent ({live}); "
+                "give one action per agent of env.agents"
+            )
         missing = [a for a in self.agents if a not in actions]
         if missing:
-            raise ValueError(f"no action for {', '.join(missing)}; give one per live agent")
-        out = self._advance(np.array([actions[a] for a in self.agents]))
+            raise EnvInputError(f"no action for {', '.join(missing)}; give one per live agent")
+        out = self._advance(np.array([_action(a, actions[a]) for a in self.agents]))
         agents = self.agents
         done = self.swarm.k >= self.horizon
         obs = self._observations()
@@ -194,13 +232,32 @@ class SwarmParallelEnv(ParallelEnv):
         }
 
     def _check_starts(self, starts) -> np.ndarray:
-        starts = np.asarray(starts, dtype=np.int64)
-        if starts.ndim != 2 or starts.shape[1] != 2 or not len(starts):
-            raise ValueError(f"starts must be (N, 2) cells, got shape {starts.shape}")
-        if not self.grid.is_free(starts).all():
-            raise ValueError("starts: every start must be a free cell on the map")
+        try:
+            raw = np.asarray(starts, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise EnvInputError(
+                "starts must be (N, 2) whole-number cells (i, j), e.g. [[0, 0], [1, 2]]"
+            ) from None
+        if raw.ndim != 2 or raw.shape[1] != 2 or not len(raw):
+            raise EnvInputError(f"starts must be (N, 2) cells, got shape {raw.shape}")
+        whole = np.isfinite(raw) & (raw == np.round(raw))
+        if not whole.all():
+            d = int(np.flatnonzero(~whole.all(axis=1))[0])
+            raise EnvInputError(
+                f"starts[{d}] = {raw[d].tolist()} is not a cell; give whole numbers (i, j)"
+            )
+        starts = raw.astype(np.int64)
+        nx, ny = self.grid.shape
+        free = self.grid.is_free(starts)
+        if not free.all():
+            d = int(np.flatnonzero(~free)[0])
+            i, j = (int(v) for v in starts[d])
+            where = "an obstacle" if self.grid.inside(starts[d]) else f"off the {nx} x {ny} grid"
+            raise EnvInputError(
+                f"starts[{d}] = ({i}, {j}) is {where}; every start must be a free cell on the map"
+            )
         if len({tuple(c) for c in starts.tolist()}) != len(starts):
-            raise ValueError("starts: two drones on one cell; give distinct cells")
+            raise EnvInputError("starts: two drones on one cell; give distinct cells")
         return starts
 
 
@@ -238,7 +295,7 @@ class SwarmGymEnv(gymnasium.Env):
 
     def step(self, action):
         env = self.swarm_env
-        action = np.asarray(action, dtype=np.int64)
+        action = _joint_action(action, env.n_drones)
         if self.infeasible == "stay" and env.swarm is not None and action.shape == (env.n_drones,):
             ok = (action >= 0) & (action < N_ACTIONS)
             ok[ok] = env.swarm.feasible[np.flatnonzero(ok), action[ok]]
@@ -259,6 +316,23 @@ class SwarmGymEnv(gymnasium.Env):
 
     def close(self) -> None:
         self.swarm_env.close()
+
+
+def _joint_action(action: Any, n: int) -> np.ndarray:
+    """The joint action as ``(n,)`` int64, refused (one line) when not ``n`` whole numbers."""
+    try:
+        raw = np.asarray(action)
+    except (TypeError, ValueError):
+        raw = np.asarray(None)
+    if raw.shape != (n,) or not (
+        np.issubdtype(raw.dtype, np.integer)
+        or (np.issubdtype(raw.dtype, np.floating) and np.all(raw == np.round(raw)))
+    ):
+        raise EnvInputError(
+            f"action must be {n} whole numbers 0 .. {N_ACTIONS - 1} (one per drone), got "
+            f"{raw.dtype} of shape {raw.shape}"
+        )
+    return raw.astype(np.int64)
 
 
 def make_env(

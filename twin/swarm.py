@@ -13,11 +13,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from twin.errors import UserError
 from twin.grid import ACTIONS, N_ACTIONS, Grid
 from twin.scores import ScoreParams, initial_idleness, reward_parts, update_idleness
 
 
-class InfeasibleActionError(ValueError):
+class InfeasibleActionError(UserError, ValueError):
     """An action leaves the map or enters an obstacle (or is not an action at all)."""
 
 

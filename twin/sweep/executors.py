@@ -86,6 +86,53 @@ def _local_executor(cells: list[dict], workers: int) -> Iterable[Outcome]:
         pool.shutdown(wait=True, cancel_futures=True)
 
 
+#: Seconds to wait for a Ray cluster's address to answer (TCP), then for ``ray.init`` to join.
+RAY_PROBE_S, RAY_CONNECT_S = 10.0, 45.0
+
+
+def _probe_address(address: str, timeout: float = RAY_PROBE_S) -> None:
+    """Refuse (one line) a ``host:port`` Ray address on which nothing answers within
+    ``timeout`` seconds; ``auto``/``local`` and addresses without a port are left to Ray."""
+    import socket
+
+    rest = address.split("://", 1)[-1]
+    host, sep, port = rest.rpartition(":")
+    if not sep or not host or not port.isdigit():
+        return
+    fix = "start the cluster (ray start --head) or give its address: --address HOST:PORT"
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout):
+            pass
+    except OSError as exc:
+        why = "no answer" if isinstance(exc, TimeoutError) else (exc.strerror or str(exc))
+        raise UserError(f"Ray address {address}: {why} (waited {timeout:.0f} s); {fix}") from None
+
+
+def _connect_ray(ray: Any, address: str, timeout: float = RAY_CONNECT_S) -> None:
+    """``ray.init(address)``, refused (one line) when the address does not answer or the
+    cluster does not let twin join within ``timeout`` seconds."""
+    _probe_address(address)
+    outcome: dict[str, BaseException | None] = {}
+
+    def join() -> None:
+        try:
+            ray.init(address=address, log_to_driver=False)
+            outcome["error"] = None
+        except BaseException as exc:  # reported in the caller's thread
+            outcome["error"] = exc
+
+    thread = threading.Thread(target=join, name="ray-connect", daemon=True)
+    thread.start()
+    thread.join(timeout)
+    fix = "check that the cluster runs (ray status) and that the address is its head's"
+    if "error" not in outcome:
+        raise UserError(f"Ray address {address}: no cluster joined within {timeout:.0f} s; {fix}")
+    error = outcome["error"]
+    if error is not None:
+        line = " ".join(str(error).split())[:200]
+        raise UserError(f"Ray address {address}: {type(error).__name__}: {line}; {fix}")
+
+
 def _ray_executor(cells: list[dict], workers: int, address: str | None) -> Iterable[Outcome]:
     """Run cells as Ray tasks, one CPU each, on a cluster at ``address`` or a local one."""
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # offline: never phone home
@@ -96,7 +143,7 @@ def _ray_executor(cells: list[dict], workers: int, address: str | None) -> Itera
     started = False
     if not ray.is_initialized():
         if address:
-            ray.init(address=address, log_to_driver=False)
+            _connect_ray(ray, address)
         else:
             ray.init(
                 num_cpus=workers,
