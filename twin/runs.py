@@ -59,6 +59,7 @@ from twin.files import atomic_write, write_json
 from twin.metrics import MONITORING_COLUMNS, aggregate, learned_against_best_classical, table2
 from twin.monitoring import MonitorSettings, RunMonitoring, monitor_run
 from twin.patrol import PatrolResult
+from twin.readback import check_manifest
 from twin.scores import ScoreParams
 from twin.timing import WRITING
 
@@ -235,6 +236,7 @@ def check_run_folder(run_dir: str | Path) -> dict[str, Any]:
     manifest = _read_json(manifest_path)
     if not isinstance(manifest, dict) or not isinstance(manifest.get("files"), dict):
         raise UserError(f"{manifest_path}: not a run manifest (unreadable JSON); {rerun}")
+    check_manifest(manifest_path, manifest)
     for name, size in manifest["files"].items():
         p = run_dir / name
         if not p.is_file():

@@ -24,8 +24,11 @@ def add_parser(subparsers) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
+    from twin.boundary import set_run_folder
     from twin.report import write_report
 
+    if args.run_dir.is_dir() and not args.run_dir.is_symlink():
+        set_run_folder(args.run_dir)  # an unexpected error's traceback goes to its error.log
     start = time.perf_counter()
     path = write_report(args.run_dir, animation=not args.no_animation)
     print(f"report: {path} ({time.perf_counter() - start:.1f} s)")

@@ -6,7 +6,6 @@ exactly (the idleness maps, replayed from the trajectories with Def. 3).
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from functools import cached_property
 from pathlib import Path
@@ -18,6 +17,22 @@ import pandas as pd
 from twin.clock import clock_label, parse_clock
 from twin.errors import UserError
 from twin.grid import Grid
+from twin.readback import (
+    EVENT_COLUMNS,
+    INT,
+    NUMBER,
+    RERUN,
+    TEXT,
+    TIMING_COLUMNS,
+    check_column,
+    check_run_json,
+    check_series,
+    check_trajectories,
+    numeric_columns,
+    read_json,
+    read_maps,
+    read_table,
+)
 from twin.scores import ScoreParams, initial_idleness, update_idleness
 
 REQUIRED_FILES = ("series.parquet", "trajectories.parquet", "summary.csv", "importance.npz")
@@ -146,19 +161,17 @@ class RunFiles:
         return self._idleness[key]
 
 
-def _read_json(path: Path) -> dict[str, Any] | None:
-    if not path.exists():
-        return None
-    try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise UserError(f"{path}: not valid JSON ({exc}); rerun the command that wrote it") from exc
+def _read_json(path: Path) -> Any:
+    """The JSON file at ``path``, None when absent; unreadable JSON is a one-line error."""
+    return read_json(path)
 
 
 def load_run(run_dir: str | Path) -> RunFiles:
     """Read a finished run folder: its ``manifest.json`` must be there and agree with the files
-    (:func:`twin.runs.check_run_folder`); a missing required file, an incomplete folder or a run
-    in which no step ran is a one-line :class:`UserError`."""
+    (:func:`twin.runs.check_run_folder`); a missing required file, an incomplete folder, a
+    damaged file (unreadable, a column missing, a string or NaN where a number belongs, rows
+    missing or duplicated, a cell off the grid, arrays of the wrong shape) or a run in which no
+    step ran is a one-line :class:`UserError` naming the file and the field."""
     from twin.runs import check_run_folder
 
     run_dir = Path(run_dir)
@@ -168,42 +181,132 @@ def load_run(run_dir: str | Path) -> RunFiles:
         )
     if (run_dir / "run.json").exists():  # a run folder: interrupted ones say so first
         check_run_folder(run_dir)
-    missing = [name for name in REQUIRED_FILES if not (run_dir / name).exists()]
+    missing = [name for name in REQUIRED_FILES if not (run_dir / name).is_file()]
     if missing:
         raise UserError(
             f"{run_dir}: missing {', '.join(missing)}; is this a run folder written by "
             "`twin run` or `twin evaluate`?"
         )
     manifest = check_run_folder(run_dir)
-    with np.load(run_dir / "importance.npz") as npz:
-        importance = np.asarray(npz["importance"], dtype=np.float64)
-        obstacles = np.asarray(npz["obstacles"], dtype=bool)
+    run_path = run_dir / "run.json"
+    run = check_run_json(run_path, read_json(run_path) or {})
+    importance, obstacles = read_maps(run_dir / "importance.npz")
     if importance.shape[0] < 2:
-        run = _read_json(run_dir / "run.json") or {}
         raise UserError(
             f"{run_dir}: partial run in which no step ran "
             f"({run.get('partial_reason') or 'no reason recorded'}); nothing to report, "
             "fix the inputs and rerun"
         )
-    per_seed_path = run_dir / "per_seed.csv"
-    samples_path = run_dir / "mfd_samples.parquet"
-    monitoring_path, events_path = run_dir / "monitoring.csv", run_dir / "events.parquet"
-    timing_path = run_dir / "timing.csv"
+    series_path, traj_path = run_dir / "series.parquet", run_dir / "trajectories.parquet"
+    series = read_table(series_path)
+    check_series(series_path, series)
+    trajectories = read_table(traj_path)
+    check_trajectories(traj_path, trajectories, obstacles.shape, obstacles)
+    summary_path = run_dir / "summary.csv"
+    summary = read_table(summary_path, {"swarm": TEXT})
+    if "n_seeds" in summary.columns:
+        check_column(summary_path, summary, "n_seeds", INT)
+    numeric_columns(summary_path, summary, ("swarm",))
+
+    def optional(name: str, columns: dict[str, str], text: tuple[str, ...] = ()):
+        path = run_dir / name
+        if not path.exists():
+            return None
+        frame = read_table(path, columns)
+        if text:
+            numeric_columns(path, frame, text)
+            if "n_seeds" in frame.columns:
+                check_column(path, frame, "n_seeds", INT)
+        return frame
+
+    per_seed = optional("per_seed.csv", {"seed": INT, "swarm": TEXT}, ("swarm",))
+    monitoring = optional("monitoring.csv", {"swarm": TEXT}, ("swarm",))
+    events = optional("events.parquet", EVENT_COLUMNS)
+    timing = optional("timing.csv", TIMING_COLUMNS)
+    if timing is not None:
+        for name, kind in (("process", TEXT), ("share", NUMBER)):
+            if name in timing.columns:
+                check_column(run_dir / "timing.csv", timing, name, kind)
+    samples = optional("mfd_samples.parquet", {})
+    network, mfd = read_json(run_dir / "network.json"), read_json(run_dir / "mfd.json")
+    incidents = read_json(run_dir / "incidents.json")
+    for name, node, kind in (
+        ("network.json", network, dict),
+        ("mfd.json", mfd, dict),
+        ("incidents.json", incidents, list),
+    ):
+        if node is not None and not isinstance(node, kind):
+            what = "an object" if kind is dict else "a list"
+            raise UserError(f"{run_dir / name}: must be {what}; {RERUN}")
+    if incidents is not None and not all(isinstance(x, dict) for x in incidents):
+        raise UserError(f"{run_dir / 'incidents.json'}: every incident must be an object; {RERUN}")
+    check_consistent(run_dir, run, series, trajectories, summary, importance)
     return RunFiles(
         run_dir=run_dir,
-        series=pd.read_parquet(run_dir / "series.parquet"),
-        trajectories=pd.read_parquet(run_dir / "trajectories.parquet"),
-        summary=pd.read_csv(run_dir / "summary.csv"),
-        per_seed=pd.read_csv(per_seed_path) if per_seed_path.exists() else None,
+        series=series,
+        trajectories=trajectories,
+        summary=summary,
+        per_seed=per_seed,
         importance=importance,
         obstacles=obstacles,
-        run=_read_json(run_dir / "run.json") or {},
-        network=_read_json(run_dir / "network.json"),
-        mfd=_read_json(run_dir / "mfd.json"),
-        mfd_samples=pd.read_parquet(samples_path) if samples_path.exists() else None,
-        monitoring=pd.read_csv(monitoring_path) if monitoring_path.exists() else None,
-        events=pd.read_parquet(events_path) if events_path.exists() else None,
-        incidents=_read_json(run_dir / "incidents.json"),
-        timing=pd.read_csv(timing_path) if timing_path.exists() else None,
+        run=run,
+        network=network,
+        mfd=mfd,
+        mfd_samples=samples,
+        monitoring=monitoring,
+        events=events,
+        incidents=incidents,
+        timing=timing,
         manifest=manifest,
     )
+
+
+def check_consistent(
+    run_dir: Path,
+    run: dict[str, Any],
+    series: pd.DataFrame,
+    trajectories: pd.DataFrame,
+    summary: pd.DataFrame,
+    importance: np.ndarray,
+) -> None:
+    """The run folder's files describe one run: the same seeds and swarms, and the first
+    seed's trajectories as long as its importance maps."""
+    traj = run_dir / "trajectories.parquet"
+    seeds = sorted(int(s) for s in series["seed"].unique())
+    if not seeds:
+        raise UserError(f"{run_dir / 'series.parquet'}: no rows; {RERUN}")
+    traj_seeds = sorted(int(s) for s in trajectories["seed"].unique())
+    if seeds != traj_seeds:
+        raise UserError(f"{traj}: seeds {traj_seeds} differ from series.parquet's {seeds}; {RERUN}")
+    swarms = [str(s) for s in summary["swarm"]]
+    if not swarms or len(set(swarms)) != len(swarms):
+        raise UserError(
+            f"{run_dir / 'summary.csv'}: swarm must list each swarm once (has {swarms}); {RERUN}"
+        )
+    first = run.get("importance_seed")
+    first = int(first) if first is not None else seeds[0]
+    if first not in seeds:
+        raise UserError(
+            f"{run_dir / 'run.json'}: importance_seed = {first} is not a seed of the run; {RERUN}"
+        )
+    rows = trajectories[trajectories["seed"] == first]
+    known = {str(s) for s in rows["swarm"].unique()}
+    for swarm in swarms:
+        if swarm not in known:
+            raise UserError(
+                f"{traj}: no rows for swarm {swarm!r} (summary.csv), seed {first}; {RERUN}"
+            )
+        steps = int(rows.loc[rows["swarm"].astype(str) == swarm, "step"].max()) + 1
+        if steps != importance.shape[0]:
+            raise UserError(
+                f"{traj}: swarm {swarm!r} has {steps} steps in seed {first}, importance.npz "
+                f"{importance.shape[0]}; {RERUN}"
+            )
+    s_rows = series[series["seed"] == first]
+    for swarm in swarms:
+        n = int((s_rows["swarm"].astype(str) == swarm).sum())
+        if n != importance.shape[0] - 1:
+            raise UserError(
+                f"{run_dir / 'series.parquet'}: swarm {swarm!r} has {n} steps in seed {first}, "
+                f"not {importance.shape[0] - 1}; {RERUN}"
+            )

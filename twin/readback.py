@@ -1,0 +1,358 @@
+"""Checks of the files twin reads back (run folders, their tables, maps and JSON) before use.
+
+Every reader of a file twin wrote earlier (``twin report``, ``twin replay``) goes through these:
+a file that cannot be parsed, a missing column, a string or NaN where a number belongs, a
+missing or duplicated row, a cell off the grid or an array of the wrong shape is a one-line
+:class:`~twin.errors.UserError` naming the file and the field, never a traceback further on.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from twin.errors import UserError
+
+RERUN = "rerun the command that wrote it"
+
+#: Column kinds: whole numbers (no NaN), finite numbers, numbers (NaN allowed: an empty
+#: interval, an event never seen), text (anything, read as text), a flag (true/false or 0/1).
+INT, FINITE, NUMBER, TEXT, FLAG = "int", "finite", "number", "text", "flag"
+
+
+def read_table(path: Path, columns: Mapping[str, str] | None = None) -> pd.DataFrame:
+    """The parquet or CSV table at ``path``, its ``columns`` checked (:func:`check_columns`)."""
+    path = Path(path)
+    try:
+        frame = pd.read_parquet(path) if path.suffix == ".parquet" else pd.read_csv(path)
+    except (OSError, UnicodeError) as exc:
+        raise UserError(f"{path}: cannot read it ({_why(exc)}); {RERUN}") from None
+    except Exception as exc:  # the parsers' own errors on a damaged file
+        kind = "parquet" if path.suffix == ".parquet" else "CSV"
+        raise UserError(f"{path}: not a readable {kind} table ({_why(exc)}); {RERUN}") from None
+    if columns:
+        check_columns(path, frame, columns)
+    return frame
+
+
+def check_columns(path: Path, frame: pd.DataFrame, columns: Mapping[str, str]) -> None:
+    """Every column of ``columns`` is in ``frame`` and holds values of its kind."""
+    if frame.columns.duplicated().any():
+        name = frame.columns[frame.columns.duplicated()][0]
+        raise UserError(f"{path}: column {name!r} appears twice; {RERUN}")
+    for name, kind in columns.items():
+        if name not in frame.columns:
+            raise UserError(f"{path}: no column {name!r}; {RERUN}")
+        check_column(path, frame, name, kind)
+
+
+def check_column(path: Path, frame: pd.DataFrame, name: str, kind: str) -> None:
+    col = frame[name]
+    if kind == TEXT:
+        return
+    if kind == FLAG:
+        values = col.dropna()
+        if col.isna().any() or not values.isin([True, False, 0, 1]).all():
+            raise UserError(f"{path}: column {name!r} must hold true/false; {RERUN}")
+        return
+    if pd.api.types.is_bool_dtype(col) or not pd.api.types.is_numeric_dtype(col):
+        bad = _first_non_number(col)
+        raise UserError(
+            f"{path}: column {name!r} holds {bad!r}, not a number (row {_row(col, bad)}); {RERUN}"
+        )
+    values = col.to_numpy(dtype=np.float64)
+    if kind in (INT, FINITE):
+        off = ~np.isfinite(values)
+        if off.any():
+            n = int(np.flatnonzero(off)[0])
+            raise UserError(
+                f"{path}: column {name!r} row {n} is {values[n]}, not a finite number; {RERUN}"
+            )
+    if kind == INT:
+        off = values != np.round(values)
+        if off.any():
+            n = int(np.flatnonzero(off)[0])
+            raise UserError(
+                f"{path}: column {name!r} row {n} is {values[n]}, not a whole number; {RERUN}"
+            )
+
+
+def _first_non_number(col: pd.Series) -> Any:
+    for v in col:
+        if isinstance(v, bool) or not isinstance(v, (int, float, np.integer, np.floating)):
+            return v
+    return col.iloc[0] if len(col) else None
+
+
+def _row(col: pd.Series, value: Any) -> int:
+    for n, v in enumerate(col):
+        if v is value or v == value:
+            return n
+    return 0
+
+
+def _why(exc: BaseException) -> str:
+    text = " ".join(str(exc).split()) or type(exc).__name__
+    return text[:200]
+
+
+def read_json(path: Path, required: bool = False) -> Any:
+    """The JSON at ``path`` (None when absent and not ``required``)."""
+    path = Path(path)
+    if not path.exists():
+        if required:
+            raise UserError(f"{path}: missing; {RERUN}")
+        return None
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeError) as exc:
+        raise UserError(f"{path}: cannot read it ({_why(exc)}); {RERUN}") from None
+    try:
+        return json.loads(text)
+    except (ValueError, RecursionError) as exc:
+        raise UserError(f"{path}: not valid JSON ({_why(exc)}); {RERUN}") from None
+
+
+def check_fields(path: Path, node: Any, fields: Mapping[str, Any], where: str = "") -> None:
+    """Each present key of ``fields`` in the JSON object ``node`` has one of its types (a
+    type, a tuple of types, or a nested mapping for an object); absent keys and null pass."""
+    if not isinstance(node, dict):
+        raise UserError(f"{path}: {where or 'the top level'} must be an object; {RERUN}")
+    for key, kind in fields.items():
+        value = node.get(key)
+        name = f"{where}.{key}" if where else key
+        if value is None:
+            continue
+        if isinstance(kind, Mapping):
+            check_fields(path, value, kind, name)
+            continue
+        kinds = kind if isinstance(kind, tuple) else (kind,)
+        ok = isinstance(value, kinds) and not (
+            isinstance(value, bool) and bool not in kinds and (int in kinds or float in kinds)
+        )
+        if isinstance(value, float) and float in kinds and not np.isfinite(value):
+            ok = False
+        if not ok:
+            want = " or ".join(_TYPE_NAMES.get(k, k.__name__) for k in kinds)
+            shown = json.dumps(value)[:60] if _jsonable(value) else repr(value)[:60]
+            raise UserError(f"{path}: {name} = {shown} must be {want}; {RERUN}")
+
+
+_TYPE_NAMES = {
+    int: "a whole number",
+    float: "a number",
+    str: "text",
+    bool: "true or false",
+    list: "a list",
+    dict: "an object",
+}
+
+
+def _jsonable(value: Any) -> bool:
+    try:
+        json.dumps(value)
+    except (TypeError, ValueError):
+        return False
+    return True
+
+
+NUM = (int, float)
+
+#: The fields of a run folder's ``run.json`` that its readers use, with their types.
+RUN_JSON_FIELDS: dict[str, Any] = {
+    "partial": bool,
+    "partial_reason": str,
+    "importance_seed": int,
+    "n_drones": int,
+    "horizon": int,
+    "seeds": list,
+    "swarms": list,
+    "errors": list,
+    "params": {"eta": NUM, "delta": NUM, "alpha_T": NUM, "alpha_I": NUM},
+    "score_params": {"eta": NUM, "delta": NUM, "alpha_T": NUM, "alpha_I": NUM},
+    "traffic": {
+        "kind": str,
+        "name": str,
+        "begin": str,
+        "step_s": NUM,
+        "horizon": int,
+        "identity": dict,
+        "recorded": {"step_s": NUM},
+    },
+    "timings": {"peak_memory_mb": NUM, "peak_memory_sumo_process_mb": NUM},
+    "monitoring": {"threshold": NUM, "min_duration": NUM, "weight_floor": NUM, "truth": str},
+    "invocation": {"command": str, "options": dict},
+    "config": (str, dict),
+}
+
+
+def check_run_json(path: Path, run: Any) -> dict[str, Any]:
+    """``run.json`` of a run folder: an object whose used fields have their types."""
+    check_fields(path, run, RUN_JSON_FIELDS)
+    config = run.get("config")
+    if isinstance(config, dict):
+        params = config.get("params", config.get("score"))
+        if params is not None:
+            check_fields(path, params, RUN_JSON_FIELDS["params"], "config.params")
+    return run
+
+
+def check_manifest(path: Path, manifest: Any) -> dict[str, Any]:
+    check_fields(path, manifest, {"partial": bool, "partial_reason": str, "files": dict})
+    if not isinstance(manifest.get("files"), dict):
+        raise UserError(f"{path}: files must be an object of file sizes; {RERUN}")
+    for name, size in manifest["files"].items():
+        if isinstance(size, bool) or not isinstance(size, int) or size < 0:
+            raise UserError(f"{path}: files.{name} = {size!r} must be a size in bytes; {RERUN}")
+        if Path(name).is_absolute() or ".." in Path(name).parts:
+            raise UserError(f"{path}: files.{name} is not a name inside the run folder; {RERUN}")
+    return manifest
+
+
+# run-folder tables --------------------------------------------------------------------------
+
+TRAJECTORY_COLUMNS = {"seed": INT, "swarm": TEXT, "step": INT, "drone": INT, "i": INT, "j": INT}
+SERIES_COLUMNS = {
+    "seed": INT,
+    "swarm": TEXT,
+    "step": INT,
+    "reward": FINITE,
+    "cumulative_reward": FINITE,
+    "coverage": FINITE,
+    "visited_share": FINITE,
+}
+TIMING_COLUMNS = {"seed": INT, "stage": TEXT, "seconds": FINITE, "ms_per_step": FINITE}
+EVENT_COLUMNS = {
+    "seed": INT,
+    "event": INT,
+    "i": INT,
+    "j": INT,
+    "onset": INT,
+    "duration": INT,
+    "peak": NUMBER,
+    "swarm": TEXT,
+    "seen": FLAG,
+    "first_seen": INT,
+    "latency_steps": INT,
+}
+
+
+def numeric_columns(path: Path, frame: pd.DataFrame, text: tuple[str, ...]) -> None:
+    """Every column of ``frame`` but ``text`` holds numbers (NaN allowed)."""
+    for name in frame.columns:
+        if name not in text:
+            check_column(path, frame, str(name), NUMBER)
+
+
+def check_trajectories(
+    path: Path, frame: pd.DataFrame, shape: tuple[int, int], obstacles: np.ndarray | None = None
+) -> None:
+    """One row per (seed, swarm, step, drone), steps ``0..S`` and drones ``0..N-1`` complete
+    for each seed and swarm, every cell on the ``shape`` grid (and off the ``obstacles``)."""
+    check_columns(path, frame, TRAJECTORY_COLUMNS)
+    if frame.empty:
+        raise UserError(f"{path}: no rows; {RERUN}")
+    key = ["seed", "swarm", "step", "drone"]
+    dup = frame.duplicated(key)
+    if dup.any():
+        r = frame[dup].iloc[0]
+        raise UserError(
+            f"{path}: row for seed {r['seed']}, swarm {r['swarm']}, step {r['step']}, drone "
+            f"{r['drone']} appears twice; {RERUN}"
+        )
+    nx, ny = shape
+    i, j = frame["i"].to_numpy(), frame["j"].to_numpy()
+    off = (i < 0) | (i >= nx) | (j < 0) | (j >= ny)
+    if off.any():
+        r = frame[off].iloc[0]
+        raise UserError(
+            f"{path}: swarm {r['swarm']} drone {r['drone']} at step {r['step']} of seed "
+            f"{r['seed']} is on cell ({r['i']}, {r['j']}), off the {nx} x {ny} grid; {RERUN}"
+        )
+    if obstacles is not None:
+        blocked = obstacles[i.astype(np.int64), j.astype(np.int64)]
+        if blocked.any():
+            r = frame[blocked].iloc[0]
+            raise UserError(
+                f"{path}: swarm {r['swarm']} drone {r['drone']} at step {r['step']} of seed "
+                f"{r['seed']} is on cell ({r['i']}, {r['j']}), an obstacle in importance.npz; "
+                f"{RERUN}"
+            )
+    for (seed, swarm), rows in frame.groupby(["seed", "swarm"], sort=False):
+        steps, drones = rows["step"].nunique(), rows["drone"].nunique()
+        complete = (
+            len(rows) == steps * drones
+            and rows["step"].min() == 0
+            and rows["step"].max() == steps - 1
+            and rows["drone"].min() == 0
+            and rows["drone"].max() == drones - 1
+        )
+        if not complete:
+            raise UserError(
+                f"{path}: rows of seed {seed}, swarm {swarm} are incomplete ({len(rows)} rows, "
+                f"steps {rows['step'].min()}..{rows['step'].max()}, {drones} drones); {RERUN}"
+            )
+
+
+def check_series(path: Path, frame: pd.DataFrame) -> None:
+    """One row per (seed, swarm, step), steps ``0..T-1`` complete for each seed and swarm."""
+    check_columns(path, frame, SERIES_COLUMNS)
+    if "belief_error" in frame.columns:
+        check_column(path, frame, "belief_error", NUMBER)
+    dup = frame.duplicated(["seed", "swarm", "step"])
+    if dup.any():
+        r = frame[dup].iloc[0]
+        raise UserError(
+            f"{path}: row for seed {r['seed']}, swarm {r['swarm']}, step {r['step']} appears "
+            f"twice; {RERUN}"
+        )
+    for (seed, swarm), rows in frame.groupby(["seed", "swarm"], sort=False):
+        if rows["step"].min() != 0 or rows["step"].max() != len(rows) - 1:
+            raise UserError(
+                f"{path}: steps of seed {seed}, swarm {swarm} are not 0..{len(rows) - 1} "
+                f"(rows missing); {RERUN}"
+            )
+
+
+def read_maps(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """``importance`` ``(T+1, nx, ny)`` (finite) and ``obstacles`` ``(nx, ny)`` of
+    ``importance.npz``."""
+    from twin.resources import check_grid_size
+
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            missing = [k for k in ("importance", "obstacles") if k not in npz.files]
+            if missing:
+                raise UserError(f"{path}: no array {missing[0]!r}; {RERUN}")
+            importance, obstacles = npz["importance"], npz["obstacles"]
+    except UserError:
+        raise
+    except (OSError, UnicodeError) as exc:
+        raise UserError(f"{path}: cannot read it ({_why(exc)}); {RERUN}") from None
+    except Exception as exc:  # zip, pickle and format errors of a damaged file
+        raise UserError(f"{path}: not a readable .npz ({_why(exc)}); {RERUN}") from None
+    if obstacles.ndim != 2 or min(obstacles.shape) < 1:
+        raise UserError(f"{path}: obstacles has shape {obstacles.shape}, not (nx, ny); {RERUN}")
+    check_grid_size(*obstacles.shape, str(path), RERUN)
+    if importance.ndim != 3 or importance.shape[1:] != obstacles.shape:
+        raise UserError(
+            f"{path}: importance has shape {importance.shape}, not (T+1, "
+            f"{obstacles.shape[0]}, {obstacles.shape[1]}); {RERUN}"
+        )
+    numeric = np.issubdtype(importance.dtype, np.number)
+    if not numeric or not (obstacles.dtype == bool or np.issubdtype(obstacles.dtype, np.number)):
+        raise UserError(f"{path}: importance or obstacles is not numeric; {RERUN}")
+    importance = np.asarray(importance, dtype=np.float64)
+    if not np.isfinite(importance).all():
+        raise UserError(f"{path}: importance holds NaN or infinite values; {RERUN}")
+    if obstacles.dtype != bool and not np.isin(obstacles, (0, 1)).all():
+        raise UserError(f"{path}: obstacles must hold true/false (or 0/1) per cell; {RERUN}")
+    obstacles = np.asarray(obstacles, dtype=bool)
+    if obstacles.all():
+        raise UserError(f"{path}: obstacles cover every cell (no free cell to patrol); {RERUN}")
+    return importance, obstacles
