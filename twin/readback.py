@@ -54,6 +54,9 @@ def check_columns(path: Path, frame: pd.DataFrame, columns: Mapping[str, str]) -
 def check_column(path: Path, frame: pd.DataFrame, name: str, kind: str) -> None:
     col = frame[name]
     if kind == TEXT:
+        if col.isna().any():
+            n = int(np.flatnonzero(col.isna().to_numpy())[0])
+            raise UserError(f"{path}: column {name!r} row {n} is empty; {RERUN}")
         return
     if kind == FLAG:
         values = col.dropna()

@@ -35,34 +35,82 @@ def add_parser(subparsers) -> None:
 def run_arguments(run_dir: Path) -> argparse.Namespace:
     """``twin run``'s flags of a run folder, from the invocation its ``run.json`` records."""
     from twin.cli import build_parser
-    from twin.report.load import _read_json
+    from twin.readback import check_run_json, read_json
 
-    run = _read_json(run_dir / "run.json") or {}
+    path = run_dir / "run.json"
+    run = check_run_json(path, read_json(path, required=True))
     invocation = run.get("invocation") or {}
     if invocation.get("command") != "run":
         raise UserError(
-            f"{run_dir / 'run.json'}: invocation = {invocation.get('command')!r} is not a "
+            f"{path}: invocation = {invocation.get('command')!r} is not a "
             "`twin run`; only live SUMO runs can be replayed"
         )
-    args = build_parser().parse_args(["run"])
+    parser = build_parser()
+    args = parser.parse_args(["run"])
     args.quiet = True
-    for key, value in invocation.get("options", {}).items():
-        default = getattr(args, key, None)
-        if key in ("net", "sumocfg", "osm", "config", "out") and value is not None:
-            value = Path(value)
-        elif key in ("routes", "additional") and value is not None:
-            value = [Path(v) for v in value]
-        elif default is not None and isinstance(default, Path):
-            value = Path(value)
-        setattr(args, key, value)
+    actions = _run_actions(parser)
+    for key, value in (invocation.get("options") or {}).items():
+        if key not in actions:
+            raise UserError(
+                f"{path}: invocation.options.{key} is not an option of `twin run`; {_RERUN}"
+            )
+        setattr(args, key, _option_value(path, key, value, actions[key]))
     return args
 
 
-def main(args: argparse.Namespace) -> int:
-    import pandas as pd
+_RERUN = "the run.json was edited or written by another twin: rerun `twin run`"
 
+
+def _run_actions(parser: argparse.ArgumentParser) -> dict[str, argparse.Action]:
+    """``twin run``'s options by destination."""
+    for action in parser._subparsers._group_actions:  # the subcommands
+        run = action.choices.get("run")
+        if run is not None:
+            return {a.dest: a for a in run._actions if a.dest != "help"}
+    return {}
+
+
+def _option_value(path: Path, key: str, value, action: argparse.Action):
+    """``value`` of the recorded option ``key``, typed as ``twin run`` would parse it; a
+    value of another type is a one-line error."""
+    if value is None:
+        return None
+    where = f"{path}: invocation.options.{key} = {str(value)[:60]!r}"
+    many = action.nargs in ("*", "+") or isinstance(action, argparse._AppendAction)
+    if isinstance(action, (argparse._StoreTrueAction, argparse._StoreFalseAction)):
+        if not isinstance(value, bool):
+            raise UserError(f"{where} must be true or false; {_RERUN}")
+        return value
+    if many:
+        if not isinstance(value, list):
+            raise UserError(f"{where} must be a list; {_RERUN}")
+        return [_typed(where, v, action) for v in value]
+    return _typed(where, value, action)
+
+
+def _typed(where: str, value, action: argparse.Action):
+    kind = action.type or (type(action.default) if action.default is not None else str)
+    if kind is Path or kind is str:
+        if not isinstance(value, str):
+            raise UserError(f"{where} must be text; {_RERUN}")
+        value = kind(value)
+    elif kind in (int, float):
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise UserError(f"{where} must be a number; {_RERUN}")
+        if kind is int and value != int(value):
+            raise UserError(f"{where} must be a whole number; {_RERUN}")
+        value = kind(value)
+    elif not isinstance(value, (str, int, float)):
+        raise UserError(f"{where} must be text or a number; {_RERUN}")
+    if action.choices is not None and value not in action.choices:
+        raise UserError(f"{where} is not one of {sorted(map(str, action.choices))}; {_RERUN}")
+    return value
+
+
+def main(args: argparse.Namespace) -> int:
     from twin.cli.run import build_experiment, gui_drawer
     from twin.experiment import build_source, limit_threads
+    from twin.readback import TRAJECTORY_COLUMNS, check_trajectories, read_table
     from twin.runs import check_run_folder
     from twin.sumo.gui import display
 
@@ -73,17 +121,11 @@ def main(args: argparse.Namespace) -> int:
     check_run_folder(run_dir)
     experiment = build_experiment(run_arguments(run_dir))
     path = run_dir / "trajectories.parquet"
-    try:
-        trajectories = pd.read_parquet(path)
-    except Exception as exc:  # pyarrow's errors on a broken file
-        raise UserError(f"{path}: not a readable trajectory table ({exc})") from None
+    trajectories = read_table(path, TRAJECTORY_COLUMNS)
     seeds = list(experiment.seeds)
     seed = seeds[0] if args.seed is None else args.seed
     if seed not in seeds:
         raise UserError(f"--seed {seed}: not among the run's seeds {seeds}")
-    missing = {"seed", "swarm", "step", "drone", "i", "j"} - set(trajectories.columns)
-    if missing:
-        raise UserError(f"{path}: no column {sorted(missing)[0]!r}; rerun the run")
     rows = trajectories[trajectories["seed"] == seed]
     swarms = [s for s in experiment.swarms if s in set(rows["swarm"])]
     if not swarms:
@@ -91,6 +133,7 @@ def main(args: argparse.Namespace) -> int:
     source = build_source(experiment, seeds.index(seed))
     check_identity(run_dir, source)
     check_cells(path, rows, source.grid.shape)
+    check_trajectories(path, rows, source.grid.shape, source.grid.obstacles)
     args.gui = True
     drawer = gui_drawer(args, swarms)
     positions = {s: _positions(rows[rows["swarm"] == s]) for s in swarms}
@@ -127,9 +170,9 @@ def check_identity(run_dir: Path, source) -> None:
     """Refuse (one line) to replay a run whose network, cell size, grid, SUMO or twin differ
     from what its ``run.json`` records; a run recorded without them is replayed with a
     notice."""
-    from twin.report.load import _read_json
+    from twin.readback import read_json
 
-    run = _read_json(run_dir / "run.json") or {}
+    run = read_json(run_dir / "run.json") or {}
     recorded = (run.get("traffic") or {}).get("identity")
     if not isinstance(recorded, dict):
         print(

@@ -105,10 +105,20 @@ def load_qnet(path: str | Path):
 
     blob = read_checkpoint(path)
     meta = blob["meta"]
+    layers = meta.get("layers")
+    if (
+        not isinstance(layers, (list, tuple))
+        or len(layers) < 2
+        or not all(isinstance(n, int) and not isinstance(n, bool) and n >= 1 for n in layers)
+    ):
+        raise UserError(
+            f"checkpoint {path}: meta.layers = {str(layers)[:60]} is not a list of layer "
+            "widths (whole numbers >= 1); re-create it with `twin pretrain`"
+        )
     try:
         net = QNetwork(meta["layers"])
         net.load_state_dict(blob["weights"])
-    except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+    except (KeyError, TypeError, ValueError, RuntimeError, AttributeError) as exc:
         first = str(exc).strip().splitlines()[0][:120] if str(exc).strip() else ""
         raise UserError(
             f"checkpoint {path}: weights do not match layers {meta.get('layers')} "
