@@ -348,6 +348,32 @@ def estimate_memory(
     )
 
 
+def disk_estimate_mb(experiment: Experiment) -> float:
+    """Disk space a run folder needs (MB), roughly and from above: the trajectories and series
+    (~100 B per swarm, seed, step and drone), the first seed's importance maps (float32), and a
+    live run's tapes (~8 B per cell and step and seed); at least
+    :data:`twin.outputs.MIN_FREE_MB`. A live run's grid is not known before SUMO's network is
+    read: the config's explicit grid is used when it gives one."""
+    from twin.outputs import MIN_FREE_MB
+
+    shape, horizon = planned_shape(experiment)
+    if shape is None or horizon is None:
+        try:
+            shape = experiment.config.explicit_shape()
+            horizon = experiment.config.traffic.horizon
+        except Exception:  # a live scenario's grid comes from its network
+            return float(MIN_FREE_MB)
+    if shape is None or not horizon:
+        return float(MIN_FREE_MB)
+    cells, steps = shape[0] * shape[1], int(horizon) + 1
+    n_seeds, n_swarms = len(experiment.seeds), max(len(experiment.swarms), 1)
+    drones = experiment.config.swarm.n_drones
+    size = n_seeds * n_swarms * steps * (drones * 100 + 200) + cells * steps * 4
+    if is_live_sumo(experiment):
+        size += cells * steps * 8 * n_seeds
+    return max(float(MIN_FREE_MB), size / 1e6 * 1.2)
+
+
 def check_memory(
     experiment: Experiment,
     shape: tuple[int, int] | None,

@@ -165,6 +165,9 @@ def build_once(
                 file=sys.stderr,
             )
             force = True
+    from twin.outputs import check_output_dir
+
+    check_output_dir(target.parent, f"the cache (${CACHE_ENV} moves it)")
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=target.parent))
     try:

@@ -29,9 +29,11 @@ def add_parser(subparsers) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
+    from twin.boundary import set_run_folder
     from twin.cli import check_count
     from twin.config import shipped_config
     from twin.learning.pretrain import PretrainConfig, load_config, pretrain
+    from twin.outputs import check_output_dir
 
     if args.help_config:
         for name, f in PretrainConfig.model_fields.items():
@@ -44,6 +46,9 @@ def main(args: argparse.Namespace) -> int:
     config = load_config(
         shipped_config(args.config or DEFAULT_CONFIG), out=args.out, epochs=args.epochs
     )
+    flag = "--out" if args.out else f"{args.config or DEFAULT_CONFIG}: out"
+    check_output_dir(config.out, flag, need_mb=200)  # the model, its checkpoints and snapshots
+    set_run_folder(Path(config.out))  # an unexpected error's traceback goes to its error.log
     progress = not args.quiet and sys.stderr.isatty()
     path = pretrain(config, progress=progress)
     print(f"model: {path}")

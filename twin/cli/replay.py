@@ -108,7 +108,7 @@ def _typed(where: str, value, action: argparse.Action):
 
 
 def main(args: argparse.Namespace) -> int:
-    from twin.cli.run import build_experiment, gui_drawer
+    from twin.cli.run import build_experiment, finish_video, gui_drawer
     from twin.experiment import build_source, limit_threads
     from twin.readback import TRAJECTORY_COLUMNS, check_trajectories, read_table
     from twin.runs import check_run_folder
@@ -150,10 +150,9 @@ def main(args: argparse.Namespace) -> int:
             drawer.flush()  # a partial run ends before the source's horizon
         finally:
             maps.close()
-        if args.record:
-            print(f"video: {drawer.finish()}", file=sys.stderr)
+    ok = not args.record or finish_video(drawer)
     print(f"replayed {steps - 1} steps of seed {seed} from {run_dir}")
-    return 0
+    return 0 if ok else 1
 
 
 #: What a run folder's ``run.json`` (traffic.identity) records, as named in the messages.

@@ -184,14 +184,23 @@ def build_experiment(args: argparse.Namespace):
 def main(args: argparse.Namespace) -> int:
     import contextlib
 
-    from twin.experiment import limit_threads, max_memory_gb, record, run_experiment, run_metadata
+    from twin.experiment import (
+        disk_estimate_mb,
+        limit_threads,
+        max_memory_gb,
+        record,
+        run_experiment,
+        run_metadata,
+    )
     from twin.metrics import format_comparison, format_results
+    from twin.outputs import check_output_dir
     from twin.runs import discard_run_dir, invocation, new_run_dir, prepare_run_dir
 
     limit_threads()
     experiment = build_experiment(args)
     drawer = gui_drawer(args, experiment.swarms)
     max_memory_gb(experiment)  # a bad limit is refused before any folder is made
+    check_output_dir(args.out or Path("runs"), "--out", disk_estimate_mb(experiment))
     run_dir = prepare_run_dir(args.out or new_run_dir("runs", "run"), invocation("run", args))
 
     n_sources = [0]
@@ -221,8 +230,6 @@ def main(args: argparse.Namespace) -> int:
                 interruptible=True,
                 on_step=drawer,
             )
-            if drawer is not None and args.record:  # sumo-gui has closed; Xvfb still runs
-                print(f"video: {drawer.finish()}", file=sys.stderr)
     except UserError:
         discard_run_dir(run_dir)
         raise
@@ -233,6 +240,7 @@ def main(args: argparse.Namespace) -> int:
         sumo_read_seconds=round(sum(s.read_seconds for s in outcome.sources), 3),
     )
     summary, comparison = record(run_dir, outcome, meta)
+    video_failed = drawer is not None and args.record and not finish_video(drawer, run_dir)
     done = outcome.results[-1]
     if (done.error or done.completed_steps == 0) and not outcome.interrupted:
         print(
@@ -279,7 +287,27 @@ def main(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 130
-    return 1 if outcome.partial or done.completed_steps == 0 else 0
+    return 1 if outcome.partial or done.completed_steps == 0 or video_failed else 0
+
+
+def finish_video(drawer, run_dir: Path | None = None) -> bool:
+    """Assemble ``--record``'s video after the results are written: whatever goes wrong costs
+    only the video (one warning line; an unexpected error's traceback in ``error.log``)."""
+    from twin.boundary import describe_os_error, log_traceback, say
+
+    kept = f"the results are written to {run_dir}; " if run_dir is not None else ""
+    try:
+        print(f"video: {drawer.finish()}", file=sys.stderr)
+        return True
+    except UserError as exc:
+        why = str(exc)
+    except OSError as exc:
+        why = f"--record: {describe_os_error(exc)}"
+    except Exception as exc:  # the video is never worth the run: log it, say it, go on
+        log = log_traceback(exc)
+        why = f"--record: {type(exc).__name__}: {exc}" + (f" (details in {log})" if log else "")
+    say(f"warning: {kept}the video failed: {why}")
+    return False
 
 
 def _announce(source) -> None:

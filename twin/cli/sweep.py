@@ -46,9 +46,11 @@ def add_parser(subparsers) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
+    from twin.boundary import set_run_folder
     from twin.cli import check_count
     from twin.errors import UserError
     from twin.metrics import format_table2
+    from twin.outputs import check_output_dir
     from twin.resources import shipped_config
     from twin.sweep import load_sweep_config, run_sweep
 
@@ -57,6 +59,8 @@ def main(args: argparse.Namespace) -> int:
         raise UserError("--address is for --executor ray")
     config = load_sweep_config(shipped_config(args.config))
     out = args.out or Path("runs") / f"sweep-{config.name}"
+    check_output_dir(out, "--out")
+    set_run_folder(out)  # an unexpected error's traceback goes to its error.log
     progress = not args.quiet and sys.stderr.isatty()
     outcome = run_sweep(
         config,

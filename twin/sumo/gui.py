@@ -104,6 +104,9 @@ def check_settings(settings: GuiSettings, available: Sequence[str]) -> None:
     if settings.record is not None:
         if settings.record.suffix.lower() not in VIDEO_SUFFIXES:
             raise UserError(f"--record {settings.record}: give a .mp4 or .gif file name")
+        from twin.outputs import check_output_file
+
+        check_output_file(settings.record, "--record", need_mb=10)
         try:
             if settings.record.suffix.lower() == ".mp4":
                 import imageio_ffmpeg  # noqa: F401

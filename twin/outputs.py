@@ -1,0 +1,101 @@
+"""Output paths checked before any work starts: ``--out`` folders, ``--record`` files, the cache.
+
+Each check refuses, in one line naming the flag and the path, a file in the way of a folder (or
+a folder in the way of a file), a parent that cannot be created, a place twin may not write
+into, and a disk with less free space than the output is estimated to need. Nothing is created
+by a check but the folder itself (``check_output_dir``); nothing existing is touched.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+from twin.errors import UserError
+
+#: Free space a run folder needs at least (MB) when no estimate is given.
+MIN_FREE_MB = 50
+
+
+def _existing_ancestor(path: Path) -> Path:
+    """The nearest existing folder at or above ``path`` (a file in the way is refused)."""
+    probe = path
+    while not probe.exists():
+        if probe.is_symlink():  # a dangling link: its target is missing
+            raise UserError(f"{path}: {probe} is a link to nothing; remove it or use another path")
+        parent = probe.parent
+        if parent == probe:
+            break
+        probe = parent
+    return probe
+
+
+def check_output_dir(path: str | Path, flag: str = "--out", need_mb: float = MIN_FREE_MB) -> Path:
+    """Refuse an output folder ``path`` twin cannot create or write into (one line naming
+    ``flag``); it need not exist yet (nothing is created here)."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise UserError(
+            f"{flag} {path}: a file is in the way of the folder; move it or pass another folder"
+        )
+    base = _existing_ancestor(path)
+    if not base.is_dir():
+        raise UserError(
+            f"{flag} {path}: {base} is a file, not a folder; move it or pass another folder"
+        )
+    _check_writable(base, path, flag)
+    _check_free(base, path, flag, need_mb)
+    return path
+
+
+def check_output_file(path: str | Path, flag: str, need_mb: float = 1) -> Path:
+    """Refuse an output file ``path`` twin cannot write (one line naming ``flag``): a folder
+    in its place, a parent that is a file or cannot be created, no write permission, no space."""
+    path = Path(path)
+    if path.is_dir():
+        raise UserError(f"{flag} {path}: is a folder; give a file name")
+    if path.exists() and not os.access(path, os.W_OK):
+        raise UserError(
+            f"{flag} {path}: the file exists and may not be written; change its permissions "
+            "or give another file name"
+        )
+    base = _existing_ancestor(path.parent)
+    if not base.is_dir():
+        raise UserError(
+            f"{flag} {path}: {base} is a file, not a folder; move it or give another file name"
+        )
+    _check_writable(base, path, flag)
+    _check_free(base, path, flag, need_mb)
+    return path
+
+
+def _check_writable(base: Path, path: Path, flag: str) -> None:
+    if _read_only(base):
+        raise UserError(
+            f"{flag} {path}: {base} is on a read-only file system; pass a folder you can write to"
+        )
+    if not os.access(base, os.W_OK | os.X_OK):
+        raise UserError(
+            f"{flag} {path}: the folder {base} may not be written by you; change its "
+            "permissions or pass a folder you can write to"
+        )
+
+
+def _read_only(base: Path) -> bool:
+    try:
+        return bool(os.statvfs(base).f_flag & os.ST_RDONLY)
+    except (OSError, AttributeError):
+        return False
+
+
+def _check_free(base: Path, path: Path, flag: str, need_mb: float) -> None:
+    try:
+        free_mb = shutil.disk_usage(base).free / 1e6
+    except OSError:
+        return
+    if free_mb < need_mb:
+        raise UserError(
+            f"{flag} {path}: only {free_mb:,.0f} MB free on its disk, about {need_mb:,.0f} MB "
+            "needed; free some space or write to another disk"
+        )
