@@ -7,6 +7,7 @@ import base64
 import html
 import json
 import math
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,6 +17,7 @@ import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 
+from twin.errors import UserError
 from twin.files import atomic_write
 from twin.report import figures
 from twin.report.animation import MAX_FRAMES, write_animation
@@ -606,10 +608,34 @@ def render_markdown(rf: RunFiles, sections: list[Section], report_seconds: float
     return "\n".join(lines) + "\n"
 
 
+def report_dir(run_dir: Path) -> Path:
+    """``RUN_DIR/report``, refused (one line) when writing into it would write outside the run
+    folder: a symbolic link (to anywhere), a file in its place, or links inside it that lead
+    out of the run folder."""
+    out = run_dir / REPORT_DIR
+    fix = "remove it (twin writes the report afresh) and rerun `twin report`"
+    if out.is_symlink():
+        raise UserError(
+            f"{out}: is a symbolic link (to {os.readlink(out)}); twin writes only inside the "
+            f"run folder: {fix}"
+        )
+    if out.exists() and not out.is_dir():
+        raise UserError(f"{out}: a file is in the way of the report folder; {fix}")
+    if out.is_dir():
+        root = run_dir.resolve()
+        for entry in out.rglob("*"):
+            if entry.is_symlink() and not entry.resolve().is_relative_to(root):
+                raise UserError(
+                    f"{entry}: is a symbolic link out of the run folder (to "
+                    f"{os.readlink(entry)}); twin writes only inside the run folder: {fix}"
+                )
+    return out
+
+
 def write_report(run_dir: str | Path, animation: bool = True) -> Path:
     """Write ``RUN_DIR/report/`` (report.html, report.md, PNGs, GIF); return the HTML's path."""
     rf = load_run(run_dir)
-    out = rf.run_dir / REPORT_DIR
+    out = report_dir(rf.run_dir)
     out.mkdir(exist_ok=True)
     sections, drawing = build_sections(rf, out, animation)
     html_path = out / "report.html"
