@@ -40,8 +40,19 @@ def check_seeds(flag: str, first: int | None, count: int = 1) -> None:
         )
 
 
+class Parser(argparse.ArgumentParser):
+    """An argument parser whose errors are one line (the flag, the problem, where the help is)
+    and exit code 2, like every other refusal of twin."""
+
+    def error(self, message: str):
+        from twin.boundary import EXIT_REFUSED, say
+
+        say(f"error: {self.prog}: {message}; see `{self.prog} --help`")
+        self.exit(EXIT_REFUSED)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="twin",
         description="A SUMO digital twin patrolled by a learning drone swarm "
         "(Maljkovic & Geroliminis, 'On Learning-Based Traffic Monitoring With a Swarm of Drones').",

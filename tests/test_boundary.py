@@ -1,0 +1,561 @@
+"""The boundary between twin and its user: every bad input or fault is one line and an exit
+code (2 refused, 3 unexpected with error.log, 130 interrupted), never a traceback, and nothing
+outside the run folder changes."""
+
+from __future__ import annotations
+
+import errno
+import hashlib
+import os
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from twin.boundary import EXIT_BUG, EXIT_INTERRUPTED, EXIT_REFUSED, LOG_NAME, run_command
+from twin.cli import main
+from twin.errors import UserError
+from twin.resources import shipped_config
+from twin.runs import RUN_FILE_NAMES, write_manifest
+
+SYNTHETIC = shipped_config("configs/synthetic.toml")
+
+
+def tree_hash(folder: Path, skip: Path | None = None) -> str:
+    """A digest of every file (name and bytes) under ``folder``, ``skip``'s subtree left out."""
+    digest = hashlib.sha256()
+    for p in sorted(folder.rglob("*")):
+        if skip is not None and (p == skip or skip in p.parents):
+            continue
+        digest.update(str(p.relative_to(folder)).encode())
+        if p.is_file() and not p.is_symlink():
+            digest.update(p.read_bytes())
+    return digest.hexdigest()
+
+
+def small_config(folder: Path, horizon: int = 12, **grid) -> Path:
+    """The shipped synthetic config with a short horizon (and another grid, if given)."""
+    text = SYNTHETIC.read_text().replace("horizon = 2000", f"horizon = {horizon}")
+    for key, value in grid.items():
+        text = text.replace(f"{key} = {20 if key == 'nx' else 30}\n", f"{key} = {value}\n", 1)
+    path = folder / "small.toml"
+    path.write_text(text)
+    return path
+
+
+@pytest.fixture(scope="module")
+def run_folder(tmp_path_factory) -> Path:
+    """A small finished `twin evaluate` run folder (2 seeds, 2 swarms), made once."""
+    root = tmp_path_factory.mktemp("boundary-run")
+    config = small_config(root)
+    out = root / "run"
+    argv = ["evaluate", "--config", str(config), "--swarms", "random,greedy", "--seeds", "2"]
+    assert main([*argv, "--out", str(out), "--no-report", "--quiet"]) == 0
+    return out
+
+
+@pytest.fixture()
+def run_copy(run_folder: Path, tmp_path: Path) -> Path:
+    out = tmp_path / "work" / "run"
+    shutil.copytree(run_folder, out)
+    return out
+
+
+def one_line(capsys) -> str:
+    err = capsys.readouterr().err
+    lines = err.strip().splitlines()
+    assert "Traceback" not in err
+    assert len(lines) == 1, err
+    return lines[0]
+
+
+def refresh_manifest(run: Path) -> None:
+    """A damaged file that the manifest agrees with: the content checks must catch it."""
+    write_manifest(run, False, None)
+
+
+# --- the boundary itself ----------------------------------------------------------------------
+
+
+def _raise(exc):
+    def command(args):
+        raise exc
+
+    return command
+
+
+@pytest.mark.parametrize(
+    ("exc", "code", "words"),
+    [
+        (UserError("config.toml: [grid].nx = -1 must be >= 1"), EXIT_REFUSED, "[grid].nx"),
+        (KeyboardInterrupt(), EXIT_INTERRUPTED, "interrupted"),
+        (OSError(errno.ENOSPC, "No space left on device", "out/x"), EXIT_REFUSED, "free some"),
+        (OSError(errno.EROFS, "Read-only file system", "out/x"), EXIT_REFUSED, "read-only"),
+        (PermissionError(errno.EACCES, "Permission denied", "out/x"), EXIT_REFUSED, "permission"),
+        (FileNotFoundError(errno.ENOENT, "No such file", "a/b"), EXIT_REFUSED, "a/b"),
+        (MemoryError(), EXIT_REFUSED, "out of memory"),
+        (RuntimeError("boom\nsecond line"), EXIT_BUG, LOG_NAME),
+        (ZeroDivisionError("float division by zero"), EXIT_BUG, LOG_NAME),
+    ],
+)
+def test_every_exception_is_one_line_and_an_exit_code(exc, code, words, capsys) -> None:
+    assert run_command(_raise(exc), None) == code
+    line = one_line(capsys)
+    assert line.startswith("twin: ") and words in line
+
+
+def test_unexpected_error_logs_its_traceback_in_the_run_folder(
+    tmp_path: Path, monkeypatch, capsys
+) -> None:
+    import twin.cli.evaluate  # imported first: it binds ``record`` when imported
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("a bug in the writer")
+
+    monkeypatch.setattr(twin.cli.evaluate, "record", broken)
+    config, out = small_config(tmp_path), tmp_path / "run"
+    code = main(["evaluate", "--config", str(config), "--swarms", "random", "--out", str(out)])
+    assert code == EXIT_BUG
+    line = one_line(capsys)
+    log = out / LOG_NAME
+    assert str(log) in line and "RuntimeError: a bug in the writer" in line
+    assert "Traceback" in log.read_text() and "a bug in the writer" in log.read_text()
+
+
+def test_unexpected_error_before_a_run_folder_logs_in_the_cache(
+    tmp_path: Path, monkeypatch, capsys
+) -> None:
+    cache = tmp_path / "cache"
+    monkeypatch.setenv("TWIN_CACHE_DIR", str(cache))
+
+    import twin.cli.evaluate
+
+    def broken(*args, **kwargs):
+        raise KeyError("nx")
+
+    monkeypatch.setattr(twin.cli.evaluate, "load_config", broken)
+    assert main(["evaluate", "--out", str(tmp_path / "run")]) == EXIT_BUG
+    line = one_line(capsys)
+    assert str(cache / LOG_NAME) in line
+    assert "KeyError" in (cache / LOG_NAME).read_text()
+    assert not (tmp_path / "run").exists()
+
+
+def test_error_log_is_a_run_file_and_not_in_the_manifest() -> None:
+    from twin.runs import UNLISTED
+
+    assert LOG_NAME in RUN_FILE_NAMES and LOG_NAME in UNLISTED
+    readme = (Path(__file__).parents[1] / "README.md").read_text()
+    assert f"| `{LOG_NAME}` |" in readme
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["evaluate", "--seeds", "x"],
+        ["nonsense"],
+        ["run", "--gui-shade", "pink"],
+        ["report"],
+    ],
+)
+def test_command_line_errors_are_one_line(argv, capsys) -> None:
+    with pytest.raises(SystemExit) as stop:
+        main(argv)
+    assert stop.value.code == EXIT_REFUSED
+    assert "--help" in one_line(capsys)
+
+
+# --- bad inputs through the CLI ---------------------------------------------------------------
+
+
+def _write(path: Path, text: str) -> Path:
+    path.write_text(text)
+    return path
+
+
+CASES = {
+    # name: (argv builder(tmp) -> argv, words expected in the line)
+    "missing config": (lambda t: ["evaluate", "--config", str(t / "nope.toml")], "nope.toml"),
+    "config not TOML": (
+        lambda t: ["evaluate", "--config", str(_write(t / "bad.toml", "[grid\nnx = 1"))],
+        "bad.toml",
+    ),
+    "huge grid": (
+        lambda t: ["evaluate", "--config", str(small_config(t, nx=100000, ny=100000))],
+        "100000",
+    ),
+    "out is a file": (
+        lambda t: ["evaluate", "--config", str(small_config(t)), "--out", str(_write(t / "f", ""))],
+        "in the way",
+    ),
+    "out under a file": (
+        lambda t: ["evaluate", "--config", str(small_config(t)), "--out", str(t / "f2" / "run")],
+        "is a file",
+    ),
+    "report of no folder": (lambda t: ["report", str(t / "none")], "no such run folder"),
+    "replay of no folder": (lambda t: ["replay", str(t / "none")], "no such run folder"),
+    "bad tape": (
+        lambda t: [
+            "evaluate",
+            "--config",
+            str(small_config(t)),
+            "--traffic",
+            str(_write(t / "tape.parquet", "not parquet")),
+        ],
+        "tape.parquet",
+    ),
+    "record into a folder": (lambda t: ["run", "--record", str(t)], "--record"),
+    "sweep out is a file": (
+        lambda t: [
+            "sweep",
+            "--config",
+            "sweep-demo",
+            "--out",
+            str(_write(t / "f3", "")),
+        ],
+        "in the way",
+    ),
+    "pretrain out is a file": (
+        lambda t: ["pretrain", "--out", str(_write(t / "f4", "")), "--epochs", "1"],
+        "in the way",
+    ),
+}
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_bad_input_is_one_line_exit_2(name, tmp_path: Path, capsys) -> None:
+    build, words = CASES[name]
+    (tmp_path / "f2").write_text("")
+    argv = build(tmp_path)
+    before = tree_hash(tmp_path)
+    assert main(argv) == EXIT_REFUSED
+    assert words in one_line(capsys)
+    assert tree_hash(tmp_path) == before  # a refusal writes nothing
+
+
+# --- run folders read back ------------------------------------------------------------------
+
+
+def _edit_table(name, edit):
+    def apply(run: Path) -> None:
+        path = run / name
+        frame = pd.read_parquet(path) if path.suffix == ".parquet" else pd.read_csv(path)
+        frame = edit(frame)
+        if path.suffix == ".parquet":
+            frame.to_parquet(path, index=False)
+        else:
+            frame.to_csv(path, index=False)
+
+    return apply
+
+
+def _set(column, value, row=0):
+    def edit(frame):
+        frame[column] = frame[column].astype(object)
+        frame.loc[frame.index[row], column] = value
+        return frame
+
+    return edit
+
+
+def _maps(**arrays):
+    def apply(run: Path) -> None:
+        with np.load(run / "importance.npz") as npz:
+            data = dict(npz)
+        data.update({k: v(data) for k, v in arrays.items()})
+        np.savez(run / "importance.npz", **data)
+
+    return apply
+
+
+def _json(name, key, value):
+    def apply(run: Path) -> None:
+        import json
+
+        data = json.loads((run / name).read_text())
+        node = data
+        *parents, last = key
+        for k in parents:
+            node = node.setdefault(k, {})
+        node[last] = value
+        (run / name).write_text(json.dumps(data))
+
+    return apply
+
+
+READ_BACK = {
+    "row deleted": (_edit_table("trajectories.parquet", lambda f: f.drop(f.index[5])), "rows"),
+    "row duplicated": (
+        _edit_table("trajectories.parquet", lambda f: pd.concat([f, f.iloc[[3]]])),
+        "twice",
+    ),
+    "cell off the grid": (_edit_table("trajectories.parquet", _set("i", 99)), "off the"),
+    "NaN in trajectories": (_edit_table("trajectories.parquet", _set("j", np.nan)), "'j'"),
+    "string in trajectories": (
+        _edit_table("trajectories.parquet", lambda f: f.astype({"i": str})),
+        "'i'",
+    ),
+    "column dropped": (
+        _edit_table("series.parquet", lambda f: f.drop(columns=["reward"])),
+        "'reward'",
+    ),
+    "series step missing": (_edit_table("series.parquet", lambda f: f.drop(f.index[2])), "steps"),
+    "NaN in series": (_edit_table("series.parquet", _set("coverage", np.nan, 4)), "coverage"),
+    "string in summary": (_edit_table("summary.csv", _set("R_hat_T", "lots")), "R_hat_T"),
+    "summary swarm duplicated": (
+        _edit_table("summary.csv", lambda f: pd.concat([f, f.iloc[[0]]])),
+        "swarm",
+    ),
+    "empty text in timing": (_edit_table("timing.csv", _set("process", np.nan)), "process"),
+    "n_seeds not whole": (_edit_table("monitoring.csv", _set("n_seeds", np.nan)), "n_seeds"),
+    "importance wrong shape": (_maps(importance=lambda d: d["importance"][:, :3]), "shape"),
+    "importance NaN": (
+        _maps(importance=lambda d: np.full(d["importance"].shape, np.nan)),
+        "NaN",
+    ),
+    "obstacles everywhere": (_maps(obstacles=lambda d: np.ones_like(d["obstacles"])), "obstacle"),
+    "npz truncated": (
+        lambda run: (run / "importance.npz").write_bytes(
+            (run / "importance.npz").read_bytes()[:100]
+        ),
+        "importance.npz",
+    ),
+    "run.json not JSON": (lambda run: (run / "run.json").write_text("{"), "run.json"),
+    "run.json option of a wrong type": (_json("run.json", ("params", "eta"), "fast"), "params.eta"),
+    "run.json traffic a list": (_json("run.json", ("traffic",), [1, 2]), "traffic"),
+    "manifest size a string": (
+        _json("manifest.json", ("files", "summary.csv"), "big"),
+        "summary.csv",
+    ),
+}
+
+
+@pytest.mark.parametrize("name", list(READ_BACK))
+@pytest.mark.parametrize("command", ["report", "replay"])
+def test_damaged_run_folder_is_one_line(name, command, run_copy: Path, capsys) -> None:
+    damage, words = READ_BACK[name]
+    damage(run_copy)
+    if not name.startswith("manifest"):
+        refresh_manifest(run_copy)
+    parent = run_copy.parent
+    before = tree_hash(parent, skip=run_copy)
+    argv = [command, str(run_copy)] + (["--no-animation"] if command == "report" else [])
+    assert main(argv) == EXIT_REFUSED
+    line = one_line(capsys)
+    if command == "report":
+        assert words in line
+    else:  # replay checks the manifest, then run.json: an evaluate folder is not replayable
+        assert "run.json" in line or "manifest.json" in line
+    assert tree_hash(parent, skip=run_copy) == before
+
+
+def test_report_refuses_a_report_link_out_of_the_run_folder(run_copy: Path, capsys) -> None:
+    outside = run_copy.parent / "outside"
+    outside.mkdir()
+    (run_copy / "report").symlink_to(outside)
+    assert main(["report", str(run_copy), "--no-animation"]) == EXIT_REFUSED
+    assert "symbolic link" in one_line(capsys)
+    assert not any(outside.iterdir())
+
+
+def test_report_refuses_links_inside_report_that_lead_out(run_copy: Path, capsys) -> None:
+    outside = run_copy.parent / "victim.html"
+    outside.write_text("keep me")
+    (run_copy / "report").mkdir()
+    (run_copy / "report" / "report.html").symlink_to(outside)
+    assert main(["report", str(run_copy), "--no-animation"]) == EXIT_REFUSED
+    assert "symbolic link" in one_line(capsys)
+    assert outside.read_text() == "keep me"
+
+
+def test_report_of_the_intact_copy_works(run_copy: Path, capsys) -> None:
+    assert main(["report", str(run_copy), "--no-animation"]) == 0
+    assert (run_copy / "report" / "report.html").is_file()
+
+
+# --- output paths and the video ---------------------------------------------------------------
+
+
+def test_output_checks(tmp_path: Path, monkeypatch) -> None:
+    from twin import outputs
+
+    (tmp_path / "file").write_text("")
+    assert outputs.check_output_dir(tmp_path / "new" / "deeper") == tmp_path / "new" / "deeper"
+    assert not (tmp_path / "new").exists()  # a check creates nothing
+    with pytest.raises(UserError, match="in the way"):
+        outputs.check_output_dir(tmp_path / "file")
+    with pytest.raises(UserError, match="is a file"):
+        outputs.check_output_file(tmp_path / "file" / "video.mp4", "--record")
+    with pytest.raises(UserError, match="is a folder"):
+        outputs.check_output_file(tmp_path, "--record")
+    monkeypatch.setattr(outputs.shutil, "disk_usage", lambda p: shutil._ntuple_diskusage(1, 1, 0))
+    with pytest.raises(UserError, match="MB free"):
+        outputs.check_output_dir(tmp_path / "run", need_mb=10)
+    monkeypatch.setattr(outputs, "_read_only", lambda p: True)
+    with pytest.raises(UserError, match="read-only"):
+        outputs.check_output_dir(tmp_path / "run")
+
+
+@pytest.mark.parametrize(
+    "exc",
+    [
+        UserError("--record v.mp4: no frame was recorded"),
+        OSError(errno.ENOSPC, "No space left on device", "v.mp4"),
+        RuntimeError("ffmpeg crashed"),
+    ],
+)
+def test_a_failed_video_costs_only_the_video(exc, tmp_path: Path, monkeypatch, capsys) -> None:
+    from twin.cli.run import finish_video
+
+    monkeypatch.setenv("TWIN_CACHE_DIR", str(tmp_path / "cache"))
+
+    class Drawer:
+        def finish(self):
+            raise exc
+
+    assert finish_video(Drawer(), tmp_path) is False
+    line = one_line(capsys)
+    assert line.startswith("twin: warning:") and "results are written" in line
+
+
+def test_huge_grid_is_refused_before_allocation() -> None:
+    from twin.resources import check_cell_size, check_grid_size
+
+    with pytest.raises(UserError, match="cells"):
+        check_grid_size(100_000, 100_000, "x", "fix")
+    for bad in (0, -5, float("nan"), 1e9, "abc"):
+        with pytest.raises(UserError, match="cell size"):
+            check_cell_size(bad, "--cell-m")
+
+
+# --- clock, executors, envs ------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("t", "seconds", "label"),
+    [
+        (0, True, "00:00:00"),
+        (86399, True, "23:59:59"),
+        (86400 + 2 * 3600 + 15 * 60, False, "1d 02:15"),
+        (3 * 86400 + 5, True, "3d 00:00:05"),
+    ],
+)
+def test_clock_labels_show_days(t, seconds, label) -> None:
+    from twin.clock import clock_label
+
+    assert clock_label(t, seconds) == label
+
+
+def test_ray_address_that_does_not_answer_fails_fast() -> None:
+    from twin.sweep.executors import _probe_address
+
+    start = time.monotonic()
+    with pytest.raises(UserError, match=r"Ray address 127\.0\.0\.1:1"):
+        _probe_address("127.0.0.1:1", timeout=2)
+    with pytest.raises(UserError, match="Ray address"):
+        _probe_address("ray://127.0.0.1:1", timeout=1)
+    assert time.monotonic() - start < 60
+
+
+def test_ray_cluster_that_does_not_let_twin_join_fails_within_the_timeout(monkeypatch) -> None:
+    from twin.sweep import executors
+
+    class SlowRay:
+        def init(self, **kwargs):
+            time.sleep(30)
+
+    class FailingRay:
+        def init(self, **kwargs):
+            raise ConnectionError("could not connect\nmore detail")
+
+    monkeypatch.setattr(executors, "_probe_address", lambda address: None)
+    start = time.monotonic()
+    with pytest.raises(UserError, match="no cluster joined within 1 s"):
+        executors._connect_ray(SlowRay(), "10.0.0.1:6379", timeout=1)
+    assert time.monotonic() - start < 10
+    with pytest.raises(UserError, match="ConnectionError: could not connect more detail"):
+        executors._connect_ray(FailingRay(), "10.0.0.1:6379", timeout=5)
+
+
+@pytest.fixture(scope="module")
+def env():
+    pytest.importorskip("pettingzoo")
+    from twin.env import SwarmParallelEnv
+    from twin.grid import Grid
+    from twin.traffic.base import RecordedTraffic
+
+    obstacles = np.zeros((4, 5), bool)
+    obstacles[3, 4] = True
+    maps = np.random.default_rng(0).uniform(0, 1, (6, 4, 5))
+    source = RecordedTraffic(Grid(obstacles), maps)
+    return SwarmParallelEnv, source
+
+
+@pytest.mark.parametrize(
+    ("starts", "words"),
+    [
+        ([[0.5, 1]], "whole numbers"),
+        ([[9, 9]], "off the 4 x 5 grid"),
+        ([[3, 4]], "obstacle"),
+        ([["a", 1]], "cells"),
+        ([[0, 0], [0, 0]], "two drones"),
+    ],
+)
+def test_env_refuses_bad_starts(env, starts, words) -> None:
+    cls, source = env
+    with pytest.raises(UserError, match=words):
+        cls(source, starts=starts)
+
+
+@pytest.mark.parametrize(
+    ("actions", "words"),
+    [
+        ({"drone_0": 0, "drone_7": 0}, "not a live agent"),
+        ({"drone_0": 1.5}, "whole number"),
+        ({"drone_0": "up"}, "whole number"),
+        ({"drone_0": 9}, "out of range"),
+        ({"drone_0": -1}, "out of range"),
+        ([0], "dict"),
+    ],
+)
+def test_env_refuses_bad_actions(env, actions, words) -> None:
+    cls, source = env
+    e = cls(source, starts=[[1, 1]])
+    e.reset(seed=0)
+    with pytest.raises(UserError, match=words):
+        e.step(actions)
+    with pytest.raises(UserError, match="not one of this env's agents"):
+        e.action_space("drone_3")
+
+
+def test_gym_env_refuses_bad_joint_actions(env) -> None:
+    from twin.env import SwarmGymEnv
+
+    _, source = env
+    e = SwarmGymEnv(source, starts=[[1, 1], [2, 2]])
+    e.reset(seed=0)
+    for bad in ([0], [0.5, 0], ["a", "b"], [[0, 0]]):
+        with pytest.raises(UserError, match="whole numbers"):
+            e.step(bad)
+    e.step(np.array([0, 0]))
+
+
+def test_error_log_never_follows_a_link(tmp_path: Path, monkeypatch) -> None:
+    from twin import boundary
+
+    monkeypatch.setenv("TWIN_CACHE_DIR", str(tmp_path / "cache"))
+    target = tmp_path / "elsewhere"
+    target.mkdir()
+    link = tmp_path / "run"
+    link.symlink_to(target)
+    boundary.set_run_folder(link)
+    try:
+        log = boundary.log_traceback(RuntimeError("x"))
+    finally:
+        boundary.set_run_folder(None)
+    assert log == tmp_path / "cache" / LOG_NAME
+    assert not any(target.iterdir())
+    assert os.path.getsize(log) > 0
