@@ -348,6 +348,18 @@ def estimate_memory(
     )
 
 
+def check_resources(experiment: Experiment, out: Path, flag: str = "--out") -> None:
+    """Before any folder is made: the memory estimate of a run whose grid is known from its
+    config or tape (:func:`check_memory`), then the output folder (:func:`disk_estimate_mb`;
+    :func:`twin.outputs.check_output_dir`)."""
+    from twin.outputs import check_output_dir
+
+    max_memory_gb(experiment)  # a bad limit is refused first
+    if not is_live_sumo(experiment):
+        check_memory(experiment, *planned_shape(experiment))
+    check_output_dir(out, flag, disk_estimate_mb(experiment))
+
+
 def disk_estimate_mb(experiment: Experiment) -> float:
     """Disk space a run folder needs (MB), roughly and from above: the trajectories and series
     (~100 B per swarm, seed, step and drone), the first seed's importance maps (float32), and a

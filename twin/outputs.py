@@ -37,7 +37,8 @@ def check_output_dir(path: str | Path, flag: str = "--out", need_mb: float = MIN
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise UserError(
-            f"{flag} {path}: a file is in the way of the folder; move it or pass another folder"
+            f"{flag} {path}: is a file, not a folder (a file is in the way); move it or pass "
+            "another folder"
         )
     base = _existing_ancestor(path)
     if not base.is_dir():

@@ -11,16 +11,14 @@ from twin.config import load_config, shipped_config
 from twin.errors import UserError
 from twin.experiment import (
     Experiment,
-    disk_estimate_mb,
+    check_resources,
     limit_threads,
-    max_memory_gb,
     parse_swarm_names,
     record,
     run_experiment,
     run_metadata,
 )
 from twin.metrics import format_comparison, format_results
-from twin.outputs import check_output_dir
 from twin.policies import available_policies
 from twin.runs import discard_run_dir, invocation, new_run_dir, prepare_run_dir
 
@@ -97,8 +95,7 @@ def main(args: argparse.Namespace) -> int:
             f"{config.path}: [traffic].kind = {config.traffic.kind!r} runs live with `twin run`; "
             "`twin evaluate` takes synthetic configs or --traffic TAPE"
         )
-    max_memory_gb(experiment)  # a bad limit is refused before any folder is made
-    check_output_dir(args.out or Path("runs"), "--out", disk_estimate_mb(experiment))
+    check_resources(experiment, args.out or Path("runs"))  # before any folder is made
     run_dir = prepare_run_dir(
         args.out or new_run_dir("runs", "evaluate"), invocation("evaluate", args)
     )

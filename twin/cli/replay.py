@@ -127,6 +127,9 @@ def main(args: argparse.Namespace) -> int:
     if seed not in seeds:
         raise UserError(f"--seed {seed}: not among the run's seeds {seeds}")
     rows = trajectories[trajectories["seed"] == seed]
+    recorded = _recorded_shape(run_dir)
+    if recorded is not None:  # checked before SUMO starts; the source's grid is checked below
+        check_trajectories(path, rows, recorded)
     swarms = [s for s in experiment.swarms if s in set(rows["swarm"])]
     if not swarms:
         raise UserError(f"{path}: no trajectory of seed {seed}")
@@ -153,6 +156,18 @@ def main(args: argparse.Namespace) -> int:
     ok = not args.record or finish_video(drawer)
     print(f"replayed {steps - 1} steps of seed {seed} from {run_dir}")
     return 0 if ok else 1
+
+
+def _recorded_shape(run_dir: Path) -> tuple[int, int] | None:
+    """The grid ``(nx, ny)`` the run's ``run.json`` records (None when it records none)."""
+    from twin.readback import read_json
+
+    grid = (read_json(run_dir / "run.json") or {}).get("grid")
+    if not isinstance(grid, dict):
+        return None
+    nx, ny = grid.get("nx"), grid.get("ny")
+    ok = all(isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in (nx, ny))
+    return (nx, ny) if ok else None
 
 
 #: What a run folder's ``run.json`` (traffic.identity) records, as named in the messages.

@@ -185,22 +185,19 @@ def main(args: argparse.Namespace) -> int:
     import contextlib
 
     from twin.experiment import (
-        disk_estimate_mb,
+        check_resources,
         limit_threads,
-        max_memory_gb,
         record,
         run_experiment,
         run_metadata,
     )
     from twin.metrics import format_comparison, format_results
-    from twin.outputs import check_output_dir
     from twin.runs import discard_run_dir, invocation, new_run_dir, prepare_run_dir
 
     limit_threads()
     experiment = build_experiment(args)
     drawer = gui_drawer(args, experiment.swarms)
-    max_memory_gb(experiment)  # a bad limit is refused before any folder is made
-    check_output_dir(args.out or Path("runs"), "--out", disk_estimate_mb(experiment))
+    check_resources(experiment, args.out or Path("runs"))  # before any folder is made
     run_dir = prepare_run_dir(args.out or new_run_dir("runs", "run"), invocation("run", args))
 
     n_sources = [0]
