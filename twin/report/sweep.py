@@ -12,7 +12,9 @@ import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 
+from twin.errors import UserError
 from twin.files import atomic_write
+from twin.readback import FINITE, INT, TEXT, read_json, read_table
 from twin.report.document import (
     CSS,
     PAPER_TABLE_COLUMNS,
@@ -22,6 +24,7 @@ from twin.report.document import (
     html_table,
     markdown_table,
     md_escape,
+    report_dir,
 )
 from twin.report.figures import swarm_colours
 from twin.report.stats import ci95_half_width
@@ -97,7 +100,10 @@ def figure_curves(out_dir: Path, results: pd.DataFrame) -> Figure | None:
     axes = fig.subplots(rows, cols, squeeze=False).ravel()
     for ax, (_, group) in zip(axes, keyed, strict=False):
         frames = [
-            pd.read_parquet(out_dir / "cells" / f"{cid}.parquet")
+            read_table(
+                out_dir / "cells" / f"{cid}.parquet",
+                {"swarm": TEXT, "step": INT, "seed": INT, "cumulative_reward": FINITE},
+            )
             for cid in group["cell"]
             if (out_dir / "cells" / f"{cid}.parquet").exists()
         ]
@@ -128,10 +134,12 @@ def figure_curves(out_dir: Path, results: pd.DataFrame) -> Figure | None:
 
 def write_sweep_report(out_dir: Path) -> Path:
     """Write ``out_dir/report/sweep.html``, ``sweep.md`` and the PNGs; return the HTML path."""
-    summary = pd.read_csv(out_dir / "summary.csv")
-    results = pd.read_csv(out_dir / "results.csv")
-    manifest = json.loads((out_dir / "sweep.json").read_text())
-    out = out_dir / REPORT_DIR
+    summary = read_table(out_dir / "summary.csv", {"swarm": TEXT})
+    results = read_table(out_dir / "results.csv", {"swarm": TEXT, "cell": TEXT})
+    manifest = read_json(out_dir / "sweep.json", required=True)
+    if not isinstance(manifest, dict):
+        raise UserError(f"{out_dir / 'sweep.json'}: not an object; rerun the sweep")
+    out = report_dir(out_dir)  # never a link out of the sweep folder
     out.mkdir(exist_ok=True)
     images = []
     figure_table2(summary).savefig(out / "table2.png", dpi=100)

@@ -64,6 +64,50 @@ def _write_manifest(
     atomic_write(path, lambda p: p.write_text(text))
 
 
+CELL_FIELDS: dict[str, Any] = {
+    "cell": {"scenario": str, "parameters": dict, "seed": int},
+    "rows": list,
+    "seconds": (int, float),
+    "code": str,
+}
+
+
+def read_cell(path: Path) -> dict[str, Any]:
+    """One cell's result record, checked; a damaged one is a one-line error that says to
+    delete it (the next run of the sweep computes the cell again)."""
+    from twin.errors import UserError
+    from twin.readback import check_fields, read_json
+
+    fix = f"delete {path} and rerun the sweep to compute that cell again"
+    try:
+        record = read_json(path, required=True)
+        check_fields(path, record, CELL_FIELDS)
+        cell = record.get("cell")
+        if not isinstance(cell, dict) or not isinstance(record.get("rows"), list):
+            raise UserError(f"{path}: no cell or rows")
+        for key in ("scenario", "parameters", "seed"):
+            if key not in cell:
+                raise UserError(f"{path}: cell.{key} is missing")
+        if "seconds" not in record:
+            raise UserError(f"{path}: seconds is missing")
+        if not all(isinstance(r, dict) for r in record["rows"]):
+            raise UserError(f"{path}: every row must be an object")
+    except UserError as exc:
+        raise UserError(f"{str(exc).split('; rerun')[0]}; {fix}") from None
+    return record
+
+
+def _sweep_cells(path: Path) -> list[str]:
+    from twin.errors import UserError
+    from twin.readback import read_json
+
+    manifest = read_json(path, required=True)
+    cells = manifest.get("cells") if isinstance(manifest, dict) else None
+    if not isinstance(cells, list) or not all(isinstance(c, str) for c in cells):
+        raise UserError(f"{path}: cells must be a list of cell ids; rerun the sweep")
+    return cells
+
+
 def merge(
     out_dir: Path, ids: list[str] | None = None, config: SweepConfig | None = None
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
@@ -71,14 +115,14 @@ def merge(
     from twin.metrics import aggregate
 
     if ids is None:
-        ids = json.loads((out_dir / "sweep.json").read_text())["cells"]
+        ids = _sweep_cells(out_dir / "sweep.json")
     parameters = list(config.parameters) if config else None
     rows = []
     for cid in ids:
         path = out_dir / CELLS_DIR / f"{cid}.json"
         if not path.exists():
             continue
-        record = json.loads(path.read_text())
+        record = read_cell(path)
         cell = record["cell"]
         for row in record["rows"]:
             rows.append(
