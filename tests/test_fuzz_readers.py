@@ -8,6 +8,7 @@ import contextlib
 import hashlib
 import io
 import json
+import os
 import shutil
 import tempfile
 from pathlib import Path
@@ -24,12 +25,22 @@ from twin.cli import main  # noqa: E402
 from twin.resources import shipped_config  # noqa: E402
 from twin.runs import write_manifest  # noqa: E402
 
-FUZZ = settings(
-    max_examples=40,
-    deadline=None,
-    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
-    derandomize=True,
-)
+#: TWIN_FUZZ_EXAMPLES=500 runs that many random examples per test (the default: a fixed,
+#: derandomized set, small enough for every test run).
+EXAMPLES = int(os.environ.get("TWIN_FUZZ_EXAMPLES", "0"))
+
+
+def fuzz(examples: int):
+    return settings(
+        max_examples=EXAMPLES or examples,
+        deadline=None,
+        suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+        derandomize=not EXAMPLES,
+        database=None,
+    )
+
+
+FUZZ = fuzz(40)
 SYNTHETIC = shipped_config("configs/synthetic.toml")
 
 
@@ -265,12 +276,7 @@ SUMOCFG_EDITS = st.sampled_from(
 )
 
 
-@settings(
-    max_examples=25,
-    deadline=None,
-    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
-    derandomize=True,
-)
+@fuzz(25)
 @given(data=st.data())
 def test_damaged_sumocfg_never_tracebacks(sumo_scenario: Path, data) -> None:
     with tempfile.TemporaryDirectory() as tmp:
@@ -289,5 +295,157 @@ def test_damaged_sumocfg_never_tracebacks(sumo_scenario: Path, data) -> None:
         argv = ["run", "--sumocfg", str(cfg), "--horizon", "2", "--cell-m", "400"]
         argv += ["--drones", "1", "--swarms", "random", "--out", str(run), "--no-report"]
         code, err = run_twin([*argv, "--quiet"])
+        assert_clean(code, err, allowed=(0, 1, 2))
+        assert tree_hash(folder, skip=run) == before
+
+
+# --- a live run's folder (replay) and its tape (evaluate --traffic) --------------------------
+
+
+@pytest.fixture(scope="module")
+def sumo_run(sumo_scenario: Path) -> Path:
+    """One small `twin run` folder (2 steps, 2 swarms) over the small SUMO scenario."""
+    out = sumo_scenario / "run"
+    argv = ["run", "--config", str(sumo_scenario / "small.toml"), "--horizon", "2"]
+    argv += ["--swarms", "random,greedy", "--out", str(out), "--no-report", "--quiet"]
+    code, err = run_twin(argv)
+    assert code == 0, err
+    return out
+
+
+def _no_gui(args, swarms):
+    from twin.errors import UserError
+
+    raise UserError("the GUI is not started in tests")
+
+
+@fuzz(30)
+@given(data=st.data())
+def test_damaged_live_run_folder_never_tracebacks(sumo_run: Path, monkeypatch, data) -> None:
+    """`twin replay` of a damaged `twin run` folder (the GUI replaced by a refusal, so that an
+    intact folder ends with one line too)."""
+    monkeypatch.setattr("twin.cli.run.gui_drawer", _no_gui)
+    with tempfile.TemporaryDirectory() as tmp:
+        parent = Path(tmp)
+        run = parent / "run"
+        shutil.copytree(sumo_run, run)
+        damage(run, data)
+        if data.draw(st.integers(0, 5)):
+            write_manifest(run, False, None)
+        before = tree_hash(parent, skip=run)
+        code, err = run_twin(["replay", str(run)])
+        assert_clean(code, err)
+        assert tree_hash(parent, skip=run) == before
+
+
+def edit_tape(path: Path, data) -> None:
+    """An edit of the tape's rows that keeps its twin metadata (or, sometimes, edits that)."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    table = pq.read_table(path)
+    meta = dict(table.schema.metadata or {})
+    frame = table.to_pandas()
+    tmp = path.with_suffix(".edit.parquet")
+    frame.to_parquet(tmp, index=False)
+    edit_table(tmp, data.draw(st.sampled_from(OPERATIONS[1:6])), data)
+    frame = pd.read_parquet(tmp)
+    tmp.unlink()
+    if b"twin_tape" in meta and data.draw(st.booleans()):
+        doc = json.loads(meta[b"twin_tape"])
+        key = data.draw(st.sampled_from(sorted(doc)))
+        doc[key] = data.draw(JUNK)
+        meta[b"twin_tape"] = json.dumps(doc).encode()
+    edited = pa.Table.from_pandas(frame, preserve_index=False)
+    pq.write_table(edited.replace_schema_metadata(meta), path)
+
+
+@fuzz(30)
+@given(data=st.data())
+def test_damaged_tape_never_tracebacks(sumo_run: Path, data) -> None:
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        tape = folder / "tape.parquet"
+        shutil.copy(sumo_run / "tape.parquet", tape)
+        if data.draw(st.integers(0, 4)):
+            edit_tape(tape, data)
+        else:
+            raw = tape.read_bytes()
+            tape.write_bytes(raw[: data.draw(st.integers(0, len(raw) - 1))])
+        run = folder / "run"
+        before = tree_hash(folder, skip=run)
+        argv = ["evaluate", "--traffic", str(tape), "--swarms", "random,greedy"]
+        code, err = run_twin([*argv, "--out", str(run), "--no-report", "--quiet"])
+        assert_clean(code, err, allowed=(0, 1, 2))
+        assert tree_hash(folder, skip=run) == before
+
+
+# --- checkpoints ------------------------------------------------------------------------------
+
+
+def edit_checkpoint(blob: dict, data) -> dict:
+    import torch
+
+    part = data.draw(st.sampled_from(["meta", "weights", "top"]))
+    if part == "top":
+        key = data.draw(st.sampled_from(sorted(blob)))
+        blob[key] = data.draw(st.sampled_from([None, [], {}, "x", 3]))
+    elif part == "meta":
+        key = data.draw(st.sampled_from(sorted(blob["meta"])))
+        if data.draw(st.booleans()):
+            del blob["meta"][key]
+        else:
+            blob["meta"][key] = data.draw(
+                st.sampled_from([None, [], "x", -1, 2.5, [13, 7, 5], [13, "a", 5], True])
+            )
+    else:
+        key = data.draw(st.sampled_from(sorted(blob["weights"])))
+        value = blob["weights"][key]
+        blob["weights"][key] = data.draw(
+            st.sampled_from(
+                [
+                    value[..., :-1],
+                    value.reshape(-1),
+                    torch.full_like(value, float("nan")),
+                    value.to(torch.int64),
+                    "x",
+                ]
+            )
+        )
+        if data.draw(st.booleans()):
+            del blob["weights"][key]
+    return blob
+
+
+@pytest.fixture(scope="module")
+def checkpoint_blob():
+    torch = pytest.importorskip("torch")
+    from twin.learning.checkpoint import default_checkpoint
+
+    return torch.load(default_checkpoint(), map_location="cpu", weights_only=True)
+
+
+@fuzz(30)
+@given(data=st.data())
+def test_damaged_checkpoint_never_tracebacks(checkpoint_blob, data) -> None:
+    import copy
+
+    import torch
+
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        path = folder / "qnet.pt"
+        if data.draw(st.integers(0, 4)):
+            torch.save(edit_checkpoint(copy.deepcopy(checkpoint_blob), data), path)
+        else:
+            torch.save(checkpoint_blob, path)
+            raw = path.read_bytes()
+            path.write_bytes(raw[: data.draw(st.integers(0, len(raw) - 1))])
+        config = small_config(folder, horizon=4)
+        config.write_text(config.read_text() + '\n[swarm_options.rl]\ncheckpoint = "qnet.pt"\n')
+        run = folder / "run"
+        before = tree_hash(folder, skip=run)
+        argv = ["evaluate", "--config", str(config), "--swarms", "rl"]
+        code, err = run_twin([*argv, "--out", str(run), "--no-report", "--quiet"])
         assert_clean(code, err, allowed=(0, 1, 2))
         assert tree_hash(folder, skip=run) == before

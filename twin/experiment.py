@@ -307,9 +307,14 @@ def planned_shape(experiment: Experiment) -> tuple[tuple[int, int] | None, int |
             import pyarrow.parquet as pq
 
             meta = json.loads(pq.read_schema(experiment.tape).metadata[b"twin_tape"])
-            return (int(meta["nx"]), int(meta["ny"])), int(meta["horizon"])
+            nx, ny, horizon = meta["nx"], meta["ny"], meta["horizon"]
         except Exception:  # the tape reader gives the one-line error
             return None, None
+        if not all(
+            isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in (nx, ny, horizon)
+        ):
+            return None, None  # likewise
+        return (nx, ny), horizon
     config = experiment.config
     return (config.grid.nx, config.grid.ny), int(config.traffic.horizon)
 
@@ -395,6 +400,12 @@ def check_memory(
     """Refuse (one line, with the estimate and a hint) a run past the memory limit."""
     if shape is None or horizon is None:
         return
+    from twin.resources import check_grid_size
+
+    where = str(experiment.tape or experiment.config.path)
+    check_grid_size(*shape, where, "use a coarser grid")
+    if horizon > 10**9:
+        raise UserError(f"{where}: horizon {horizon} is not a number of steps twin can run")
     limit = max_memory_gb(experiment)
     warmup = 0
     scenario = getattr(source, "scenario", None)
