@@ -559,3 +559,30 @@ def test_error_log_never_follows_a_link(tmp_path: Path, monkeypatch) -> None:
     assert log == tmp_path / "cache" / LOG_NAME
     assert not any(target.iterdir())
     assert os.path.getsize(log) > 0
+
+
+def test_disk_full_while_writing_is_one_line_and_the_rerun_replaces_it(
+    tmp_path: Path, monkeypatch, capsys
+) -> None:
+    import twin.runs
+
+    real = twin.runs.atomic_write
+
+    def full(path, write):
+        if Path(path).name == "trajectories.parquet":
+            raise OSError(errno.ENOSPC, "No space left on device", str(path))
+        return real(path, write)
+
+    config, out = small_config(tmp_path), tmp_path / "run"
+    argv = ["evaluate", "--config", str(config), "--swarms", "random", "--out", str(out)]
+    argv += ["--no-report", "--quiet"]
+    monkeypatch.setattr(twin.runs, "atomic_write", full)
+    before = tree_hash(tmp_path, skip=out)
+    assert main(argv) == EXIT_REFUSED
+    line = one_line(capsys)
+    assert "trajectories.parquet" in line and "free some space" in line
+    assert not (out / "manifest.json").exists()  # an incomplete folder says so
+    assert tree_hash(tmp_path, skip=out) == before
+    monkeypatch.setattr(twin.runs, "atomic_write", real)
+    assert main(argv) == 0  # the same command replaces its partial folder
+    assert (out / "manifest.json").is_file()

@@ -312,7 +312,12 @@ def _save_state(path, cfg, digest, net, target, optimizer, batch_rng, epoch, wal
 
 def _resume(path, cfg, digest, net, target, optimizer, batch_rng) -> tuple[int, float]:
     blob = read_checkpoint(path)
-    saved = blob["meta"].get("config", {})
+    saved = blob["meta"].get("config")
+    if not isinstance(saved, dict) or not isinstance(blob.get("buffer"), dict):
+        raise UserError(
+            f"{path}: meta.config or buffer is missing or not a table (a damaged checkpoint); "
+            f"delete {path.parent} or set another `out` to start afresh"
+        )
     now = cfg.training_dict()
     changed = [k for k in now if k not in cfg.RESUMABLE_CHANGES and saved.get(k) != now[k]]
     if changed:
@@ -320,7 +325,7 @@ def _resume(path, cfg, digest, net, target, optimizer, batch_rng) -> tuple[int, 
             f"{path} was written by a run with other settings ({', '.join(changed)}); "
             f"delete {path.parent} or set another `out` to start afresh"
         )
-    if blob.get("buffer", {}).get("digest") != digest:
+    if blob["buffer"].get("digest") != digest:
         raise UserError(f"{path}: the replay data differ from the saved run's; delete it")
     try:
         net.load_state_dict(blob["weights"])
@@ -329,7 +334,7 @@ def _resume(path, cfg, digest, net, target, optimizer, batch_rng) -> tuple[int, 
         batch_rng.bit_generator.state = blob["batch_rng"]
         torch.set_rng_state(blob["torch_rng"])
         return int(blob["epoch"]), float(blob["wall_s"])
-    except (KeyError, TypeError, ValueError, RuntimeError) as exc:
+    except (KeyError, TypeError, ValueError, RuntimeError, AttributeError, IndexError) as exc:
         raise UserError(f"{path} is incomplete ({type(exc).__name__}); delete it") from None
 
 
