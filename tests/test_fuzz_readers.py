@@ -69,9 +69,10 @@ def run_twin(argv: list[str]) -> tuple[int, str]:
 def assert_clean(code: int, err: str, allowed=(0, 2)) -> None:
     assert "Traceback" not in err, err
     assert code in allowed, err
-    if code == 2:
-        lines = [x for x in err.strip().splitlines() if not x.startswith("twin: notice")]
-        assert len(lines) == 1, err
+    if code == 2:  # one line; a live run may have announced its simulation before it
+        info = ("twin: notice", "SUMO: ")
+        lines = [x for x in err.strip().splitlines() if not x.startswith(info)]
+        assert len(lines) == 1 and lines[0].startswith("twin: error"), err
 
 
 def small_config(folder: Path, horizon: int = 10) -> Path:
@@ -170,15 +171,15 @@ def damage(run: Path, data) -> None:
     files = sorted(p for p in run.rglob("*") if p.is_file() and p.name not in ("manifest.json",))
     path = data.draw(st.sampled_from(files))
     op = data.draw(st.sampled_from(OPERATIONS))
-    if op == "truncate" or path.suffix not in (".parquet", ".csv", ".json", ".npz"):
-        raw = path.read_bytes()
-        path.write_bytes(raw[: data.draw(st.integers(0, max(len(raw) - 1, 0)))])
-    elif path.suffix in (".parquet", ".csv"):
-        edit_table(path, op, data)
-    elif path.suffix == ".json":
-        edit_json(path, data)
-    else:
-        edit_npz(path, data)
+    if op != "truncate" and path.suffix in (".parquet", ".csv", ".json", ".npz"):
+        edit = {".json": edit_json, ".npz": edit_npz}.get(path.suffix)
+        try:
+            edit(path, data) if edit else edit_table(path, op, data)
+            return
+        except Exception:  # a file an earlier edit broke: cut it shorter instead
+            pass
+    raw = path.read_bytes()
+    path.write_bytes(raw[: data.draw(st.integers(0, max(len(raw) - 1, 0)))])
 
 
 @FUZZ
