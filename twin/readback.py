@@ -194,6 +194,74 @@ RUN_JSON_FIELDS: dict[str, Any] = {
 }
 
 
+#: ``network.json`` of a live run: the grid's placement on the network.
+NETWORK_FIELDS: dict[str, Any] = {
+    "name": str,
+    "net_file": str,
+    "route_files": list,
+    "grid": {
+        "x0": NUM,
+        "y_top": NUM,
+        "cell_m": NUM,
+        "nx": int,
+        "ny": int,
+        "bbox": list,
+        "lane_km_total": NUM,
+    },
+    "n_obstacles": int,
+    "row_0": str,
+}
+#: ``mfd.json`` of a live run: the MFD fit and how it was used.
+MFD_FIELDS: dict[str, Any] = {
+    "form": str,
+    "a": NUM,
+    "k_c": NUM,
+    "fit": str,
+    "used": str,
+    "why": str,
+    "reads_per_step": NUM,
+    "rejected_fit": {"a": NUM, "k_c": NUM},
+    "detection_p": NUM,
+    "r2_binned": NUM,
+    "density_unit": str,
+    "speed_unit": str,
+    "n_samples": int,
+    "r2": NUM,
+    "rmse_kmh": NUM,
+    "online_r2": NUM,
+    "online_rmse_kmh": NUM,
+    "importance": str,
+}
+
+
+#: One scheduled incident of ``incidents.json``.
+INCIDENT_FIELDS: dict[str, Any] = {
+    "kind": str,
+    "edge": (str, int),
+    "lane": int,
+    "vehicle": str,
+    "cell": list,
+    "begin": (str, int, float),
+    "duration_min": NUM,
+    "onset_step": int,
+    "end_step": int,
+}
+#: ``mfd_samples.parquet``: the per-cell samples of the MFD fit.
+MFD_SAMPLE_COLUMNS = {"step": INT, "count": NUMBER, "speed": NUMBER, "density": NUMBER}
+
+
+def check_incidents(path: Path, incidents: Any) -> None:
+    if not isinstance(incidents, list):
+        raise UserError(f"{path}: must be a list of incidents; {RERUN}")
+    for n, inc in enumerate(incidents):
+        check_fields(path, inc, INCIDENT_FIELDS, f"[{n}]")
+        cell = inc.get("cell")
+        if cell is not None and not (
+            len(cell) == 2 and all(isinstance(v, int) and not isinstance(v, bool) for v in cell)
+        ):
+            raise UserError(f"{path}: [{n}].cell = {cell} must be a cell [i, j]; {RERUN}")
+
+
 def check_run_json(path: Path, run: Any) -> dict[str, Any]:
     """``run.json`` of a run folder: an object whose used fields have their types."""
     check_fields(path, run, RUN_JSON_FIELDS)

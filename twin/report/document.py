@@ -19,6 +19,7 @@ from matplotlib.figure import Figure
 
 from twin.errors import UserError
 from twin.files import atomic_write
+from twin.readback import INT, NUMBER, read_table
 from twin.report import figures
 from twin.report.animation import MAX_FRAMES, write_animation
 from twin.report.load import RunFiles, load_run
@@ -400,7 +401,7 @@ def _empty_steps(rf: RunFiles) -> str:
     tape = rf.run_dir / "tape.parquet"
     if not tape.exists():
         return ""
-    counts = pd.read_parquet(tape, columns=["step", "count"])
+    counts = read_table(tape, {"step": INT, "count": NUMBER})
     per_step = counts[counts["step"] >= 0].groupby("step")["count"].sum()
     empty = [k for k in range(rf.horizon + 1) if per_step.get(k, 0) == 0]
     if not empty:

@@ -20,11 +20,16 @@ from twin.grid import Grid
 from twin.readback import (
     EVENT_COLUMNS,
     INT,
+    MFD_FIELDS,
+    MFD_SAMPLE_COLUMNS,
+    NETWORK_FIELDS,
     NUMBER,
     RERUN,
     TEXT,
     TIMING_COLUMNS,
     check_column,
+    check_fields,
+    check_incidents,
     check_run_json,
     check_series,
     check_trajectories,
@@ -227,19 +232,17 @@ def load_run(run_dir: str | Path) -> RunFiles:
         for name, kind in (("process", TEXT), ("share", NUMBER)):
             if name in timing.columns:
                 check_column(run_dir / "timing.csv", timing, name, kind)
-    samples = optional("mfd_samples.parquet", {})
+    samples = optional("mfd_samples.parquet", MFD_SAMPLE_COLUMNS)
+    if samples is not None and "speed_limit" in samples.columns:
+        check_column(run_dir / "mfd_samples.parquet", samples, "speed_limit", NUMBER)
     network, mfd = read_json(run_dir / "network.json"), read_json(run_dir / "mfd.json")
     incidents = read_json(run_dir / "incidents.json")
-    for name, node, kind in (
-        ("network.json", network, dict),
-        ("mfd.json", mfd, dict),
-        ("incidents.json", incidents, list),
-    ):
-        if node is not None and not isinstance(node, kind):
-            what = "an object" if kind is dict else "a list"
-            raise UserError(f"{run_dir / name}: must be {what}; {RERUN}")
-    if incidents is not None and not all(isinstance(x, dict) for x in incidents):
-        raise UserError(f"{run_dir / 'incidents.json'}: every incident must be an object; {RERUN}")
+    if network is not None:
+        check_fields(run_dir / "network.json", network, NETWORK_FIELDS)
+    if mfd is not None:
+        check_fields(run_dir / "mfd.json", mfd, MFD_FIELDS)
+    if incidents is not None:
+        check_incidents(run_dir / "incidents.json", incidents)
     check_consistent(run_dir, run, series, trajectories, summary, importance)
     return RunFiles(
         run_dir=run_dir,
