@@ -339,6 +339,24 @@ def test_damaged_live_run_folder_never_tracebacks(sumo_run: Path, monkeypatch, d
         assert tree_hash(parent, skip=run) == before
 
 
+@fuzz(8)
+@given(data=st.data())
+def test_damaged_live_run_folder_report_never_tracebacks(sumo_run: Path, data) -> None:
+    """`twin report` of a damaged `twin run` folder: network.json, mfd.json, the MFD samples
+    and the tape besides what a synthetic run has."""
+    with tempfile.TemporaryDirectory() as tmp:
+        parent = Path(tmp)
+        run = parent / "run"
+        shutil.copytree(sumo_run, run)
+        damage(run, data)
+        if data.draw(st.integers(0, 5)):
+            write_manifest(run, False, None)
+        before = tree_hash(parent, skip=run)
+        code, err = run_twin(["report", str(run), "--no-animation"])
+        assert_clean(code, err)
+        assert tree_hash(parent, skip=run) == before
+
+
 def edit_tape(path: Path, data) -> None:
     """An edit of the tape's rows that keeps its twin metadata (or, sometimes, edits that)."""
     import pyarrow as pa
