@@ -526,7 +526,11 @@ def figure_mfd(rf: RunFiles) -> tuple[Figure, str]:
     else:
         note = "mfd_samples.parquet missing or without density/speed columns."
     grid = np.linspace(0.0, max(top, 1e-6), 200)
-    if "a" in mfd and "k_c" in mfd and relative:
+    fitted = all(
+        isinstance(mfd.get(k), (int, float)) and np.isfinite(mfd[k]) and mfd[k] > 0
+        for k in ("a", "k_c")
+    )
+    if fitted and relative:
         curve = MFD(float(mfd["a"]), float(mfd["k_c"])).speed_ratio(grid)
         ax.plot(grid, curve, "r-", lw=2.2,
                 label=f"fit: v/v_lim = {mfd['a']:.3f} exp(-k / {mfd['k_c']:.1f})")  # fmt: skip
