@@ -3,6 +3,7 @@ outcome as it finishes."""
 
 from __future__ import annotations
 
+import logging
 import multiprocessing
 import os
 import signal
@@ -87,7 +88,7 @@ def _local_executor(cells: list[dict], workers: int) -> Iterable[Outcome]:
 
 
 #: Seconds to wait for a Ray cluster's address to answer (TCP), then for ``ray.init`` to join.
-RAY_PROBE_S, RAY_CONNECT_S = 10.0, 45.0
+RAY_PROBE_S, RAY_CONNECT_S = 10.0, 40.0
 
 
 def _probe_address(address: str, timeout: float = RAY_PROBE_S) -> None:
@@ -116,7 +117,7 @@ def _connect_ray(ray: Any, address: str, timeout: float = RAY_CONNECT_S) -> None
 
     def join() -> None:
         try:
-            ray.init(address=address, log_to_driver=False)
+            ray.init(address=address, log_to_driver=False, logging_level=logging.ERROR)
             outcome["error"] = None
         except BaseException as exc:  # reported in the caller's thread
             outcome["error"] = exc
