@@ -71,12 +71,18 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Parse ``argv`` and run its command, both inside the boundary (an import that fails while
+    the parser is built is one line too)."""
+    return run_command(_dispatch, argv)
+
+
+def _dispatch(argv: list[str] | None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if not hasattr(args, "func"):
         parser.print_help()
         return 2
-    return run_command(args.func, args)
+    return int(args.func(args) or 0)
 
 
 if __name__ == "__main__":
