@@ -97,6 +97,8 @@ def _raise(exc):
         (PermissionError(errno.EACCES, "Permission denied", "out/x"), EXIT_REFUSED, "permission"),
         (FileNotFoundError(errno.ENOENT, "No such file", "a/b"), EXIT_REFUSED, "a/b"),
         (MemoryError(), EXIT_REFUSED, "out of memory"),
+        (ModuleNotFoundError("No module named 'ray'", name="ray"), EXIT_REFUSED, "pip install"),
+        (ModuleNotFoundError("No module named 'twin.x'", name="twin.x"), EXIT_BUG, LOG_NAME),
         (RuntimeError("boom\nsecond line"), EXIT_BUG, LOG_NAME),
         (ZeroDivisionError("float division by zero"), EXIT_BUG, LOG_NAME),
     ],

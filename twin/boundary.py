@@ -13,7 +13,7 @@ Exit codes of every ``twin`` command:
   or, with ``--record``, the results are written but the video could not be (a warning);
 - 2: refused: bad input, a file or folder twin cannot read or write (twin's own
   :class:`~twin.errors.UserError`, and system errors such as a full disk or a read-only
-  folder), the command line itself (argparse);
+  folder), a missing optional package, the command line itself (argparse);
 - 3: an unexpected error in twin (a bug): the line names the log with the traceback;
 - 130: interrupted (Ctrl-C); files already written are complete;
 - 141: the output went into a pipe whose reader stopped (``twin ... | head``).
@@ -150,6 +150,15 @@ def run_command(func: Callable[[Any], int | None], args: Any) -> int:
         with contextlib.suppress(OSError, ValueError):
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return EXIT_PIPE
+    except ModuleNotFoundError as exc:
+        missing = (exc.name or "").split(".")[0]
+        if not missing or missing == "twin":  # twin's own module: a bug
+            return _unexpected(exc)
+        say(
+            f"error: needs the Python package {missing!r}, which is not installed: "
+            f"pip install {missing} (or the twin extra that brings it, see the README)"
+        )
+        return EXIT_REFUSED
     except OSError as exc:
         log = log_traceback(exc)
         say(f"error: {describe_os_error(exc)}{_see(log)}")
@@ -163,15 +172,19 @@ def run_command(func: Callable[[Any], int | None], args: Any) -> int:
         say(f"error: {exc}; use names and text in UTF-8{_see(log)}")
         return EXIT_REFUSED
     except Exception as exc:
-        log = log_traceback(exc)
-        where = f"the traceback is in {log}" if log else "no log could be written"
-        say(
-            f"internal error: {type(exc).__name__}: {exc} ({where}; please report it with the "
-            "command that caused it)"
-        )
-        return EXIT_BUG
+        return _unexpected(exc)
     finally:
         set_run_folder(None)
+
+
+def _unexpected(exc: BaseException) -> int:
+    log = log_traceback(exc)
+    where = f"the traceback is in {log}" if log else "no log could be written"
+    say(
+        f"internal error: {type(exc).__name__}: {exc} ({where}; please report it with the "
+        "command that caused it)"
+    )
+    return EXIT_BUG
 
 
 def _see(log: Path | None) -> str:
