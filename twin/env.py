@@ -8,7 +8,9 @@ of the patrol loop, so a policy scores the same here as in ``run_patrol``.
   the 13 values of eq. (s) (:data:`twin.scores.STATE_LAYOUT`), and ``action_mask``, the feasible
   actions ``U_d(p)`` as 0/1 (PettingZoo's convention);
 - actions ``Discrete(5)`` in the order of :data:`twin.grid.ACTIONS`: 0 stay, 1 up, 2 down,
-  3 left, 4 right; an infeasible action raises :class:`twin.swarm.InfeasibleActionError`;
+  3 left, 4 right; an infeasible action raises :class:`twin.swarm.InfeasibleActionError`, an
+  unknown agent name, an action that is not a whole number in 0..4 or a fractional or off-grid
+  start :class:`EnvInputError` (both :class:`~twin.errors.UserError` and ``ValueError``);
 - reward per drone: the headline reward :func:`twin.scores.rewards_on_arrival`, the gain of
   the cell the drone visits (split evenly among drones on one cell), so the drones' rewards sum
   to the swarm's ``R^k``; the infos carry its parts ``reward_importance`` (alpha_T) and
