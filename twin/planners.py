@@ -34,6 +34,13 @@ TIE_JITTER = 1e-9
 DEFAULT_HORIZON = 4
 #: Largest horizon accepted: 5^H paths per drone (H = 5: 1.7 s per step with 1000 drones).
 MAX_HORIZON = 5
+#: Default weight of ``lookahead``'s end value (0: none).
+DEFAULT_END_WEIGHT = 0.0
+#: Default steps between ``lookahead``'s horizon and the later visit its end value prices.
+DEFAULT_END_WAIT = 5
+#: How ``lookahead`` treats the other drones' future visits.
+PLANS = ("independent", "sequential")
+DEFAULT_PLAN = "independent"
 
 
 def tie_jitter(scores: np.ndarray, feasible: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -110,36 +117,59 @@ def action_paths(horizon: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 class LookaheadPolicy(CoordinatedPolicy):
     """Receding-horizon planner: the score of a drone's move is the best summed visit gain
     (:func:`visit_gain`, discounted by ``discount^h``, undiscounted by default) over the
-    ``5^(H-1)`` feasible paths of ``H`` steps that start with it; then the assignment.
+    ``5^(H-1)`` feasible paths of ``H`` steps that start with it, plus an end value; then the
+    assignment.
 
     Along a path the idleness of each cell is predicted from ``I^k``: ``min(1, I + h delta)``
-    after ``h`` steps, ``eta I`` at the path's own visits, recovering again after them. The
-    other drones' future visits are ignored (only the first moves are coordinated).
+    after ``h`` steps, ``eta I`` at the path's own visits, recovering again after them.
+
+    End value (``end_weight > 0``): what the path leaves behind for later visits. For each
+    cell the path visits, the visit gain a visit ``end_wait`` steps after the horizon would
+    earn there, minus what it would earn had the path not visited the cell (both predicted as
+    above), times ``end_weight * discount^H``. It is negative: it charges each visit the gain
+    it takes from later ones, more on cells that were fresh, so a path through cells that
+    would soon be worth visiting again is preferred less than its summed gain says. The
+    unvisited cells' future gains do not depend on the path and are left out. With
+    ``end_weight = 0`` the scores are those without the term, bit for bit.
+
+    Planning (``plan``): ``"independent"`` ignores the other drones' future visits (only the
+    first moves are coordinated); ``"sequential"`` plans the drones in turn, each against the
+    idleness predicted after the best paths planned by the drones before it (their visits
+    lower the first-visit idleness it reads; its own revisits and the end value ignore them),
+    at the cost of a loop over the drones.
 
     What it reads: the swarm's idleness map ``I^k`` (all cells, as ``rl`` does) and a belief
     of the importance: for each cell the last ``T`` seen in any drone's field of view (the
     current ``T^k`` there), 0 for cells never seen, held constant along the path. With
-    ``H = 1`` the only cells scored are in view, so the scores are exactly ``visit-gain``'s.
+    ``H = 1`` and ``end_weight = 0`` the only cells scored are in view, so the scores are
+    exactly ``visit-gain``'s.
 
     How: the paths form a tree (level ``h`` holds the ``5^(h+1)`` prefixes of ``h + 1``
     steps); each node adds its step's gain to its parent's sum, so a shared prefix is summed
-    once, in the same order as path by path (bit for bit the same sums). The gain of a first
-    visit is looked up in a table over the ``2H(H+1)+1`` cells within ``H`` steps; only
-    revisits are computed per node. The last level needs no sums: rounding is monotone, so
-    ``max_c (v + g_c) = v + max_c g_c``. Cost per step: about ``N 5^H`` lookups, all drones
-    at once (no loop over drones or paths).
+    once, in the same order as path by path (bit for bit the same sums). A node's gain depends
+    only on its visit class (its cell and the earlier steps at which the prefix stood there),
+    so gains are computed per class, the end value's change included (a visit's end term
+    replaces that of the cell's previous visit on the path). The last level needs no sums
+    when the best path itself is not wanted: rounding is monotone, so
+    ``max_c (v + g_c) = v + max_c g_c``. Cost per step: about ``N 5^H`` lookups, all drones at
+    once when independent, one drone at a time when sequential.
 
-    ``DEFAULT_HORIZON`` is the ``H`` with the largest mean R_hat_T on ``configs/synthetic.toml``,
-    seeds 0-9, among those taking well under a second per step at 200 x 300 cells with 1000
-    drones (``python benchmarks/bench_swarms.py --pick-horizon``; R_hat_T mean ± 95%, ms/step
-    at 200 x 300 with 1000 drones, measured path by path before the tree): H=1 2.719 ± 0.031,
-    2 ms; H=2 2.736 ± 0.032, 3 ms; H=3 2.705 ± 0.040, 10 ms; H=4 2.784 ± 0.046, 135 ms;
-    H=5 2.782 ± 0.046, 1665 ms.
+    Defaults (:data:`DEFAULT_HORIZON`, :data:`DEFAULT_END_WEIGHT`, :data:`DEFAULT_END_WAIT`,
+    :data:`DEFAULT_PLAN`) were chosen on R_hat_T of ``configs/synthetic.toml``, validation
+    seeds 100-109 only (``python benchmarks/bench_swarms.py --pick-horizon``); measured once on
+    seeds 0-9, paired against ``visit-gain``: see MEASURED below.
     """
 
     name = "lookahead"
 
-    def __init__(self, horizon: int = DEFAULT_HORIZON, discount: float = 1.0):
+    def __init__(
+        self,
+        horizon: int = DEFAULT_HORIZON,
+        discount: float = 1.0,
+        end_weight: float = DEFAULT_END_WEIGHT,
+        end_wait: int = DEFAULT_END_WAIT,
+        plan: str = DEFAULT_PLAN,
+    ):
         if isinstance(horizon, bool) or not isinstance(horizon, int | np.integer):
             raise UserError(f"lookahead: horizon = {horizon!r} must be an integer; e.g. 2")
         if not 1 <= horizon <= MAX_HORIZON:
@@ -149,8 +179,22 @@ class LookaheadPolicy(CoordinatedPolicy):
             )
         if not 0.0 < float(discount) <= 1.0:
             raise UserError(f"lookahead: discount = {discount} must lie in (0, 1]; e.g. 1.0")
+        if not 0.0 <= float(end_weight) <= 10.0:
+            raise UserError(
+                f"lookahead: end_weight = {end_weight} must lie in [0, 10]; "
+                f"e.g. {DEFAULT_END_WEIGHT}"
+            )
+        if isinstance(end_wait, bool) or not isinstance(end_wait, int | np.integer):
+            raise UserError(f"lookahead: end_wait = {end_wait!r} must be an integer; e.g. 5")
+        if not 0 <= end_wait <= 1000:
+            raise UserError(f"lookahead: end_wait = {end_wait} must lie in 0..1000; e.g. 5")
+        if plan not in PLANS:
+            raise UserError(f"lookahead: plan = {plan!r} must be one of {', '.join(PLANS)}")
         self.horizon = int(horizon)
         self.discount = float(discount)
+        self.end_weight = float(end_weight)
+        self.end_wait = int(end_wait)
+        self.plan = plan
         self.offsets, self.last, self.first = action_paths(self.horizon)
         self.cells, self.levels = path_tree(self.offsets, self.last)
 
@@ -163,6 +207,8 @@ class LookaheadPolicy(CoordinatedPolicy):
         self.belief_padded = np.zeros((grid.nx + 2 * h, grid.ny + 2 * h))
         self.belief = self.belief_padded[h:-h, h:-h]  # last seen T per cell, 0 if never seen
         self.idle_padded = np.zeros_like(self.belief_padded)
+        flat = self.offsets[..., 0] * self.width + self.offsets[..., 1]  # (P, H)
+        self.path_cells = np.searchsorted(self.cell_flat, flat)  # cell_flat is sorted
 
     def scores(self, view: SwarmView) -> np.ndarray:
         grid, p, h_max = view.grid, view.params, self.horizon
@@ -173,27 +219,67 @@ class LookaheadPolicy(CoordinatedPolicy):
 
         pos = np.asarray(view.positions, dtype=np.int64)
         base = (pos[:, 0] + h_max) * self.width + pos[:, 1] + h_max
-        near = self.cell_flat[:, None] + base[None, :]  # (C, N) padded flat ids
+        if self.plan == "independent":
+            near = self.cell_flat[:, None] + base[None, :]  # (C, N) padded flat ids
+            idle = self.idle_padded.ravel()[near]
+            fresh = [np.minimum(1.0, idle + h * p.delta) for h in range(h_max + 1)]
+            fresh[h_max] = np.minimum(1.0, idle + (h_max + self.end_wait) * p.delta)
+            return self._tree(near, fresh, p)[0]
+        # sequential: predicted idleness before step h (h = H: the visit after the wait)
+        steps = np.append(np.arange(h_max), h_max + self.end_wait)
+        future = np.minimum(1.0, self.idle_padded.ravel()[None, :] + steps[:, None] * p.delta)
+        out = np.empty((len(pos), len(ACTION_DELTAS)))
+        for d in range(len(pos)):
+            near = self.cell_flat[:, None] + base[d]  # (C, 1)
+            fresh = [future[h][near] for h in range(h_max + 1)]
+            out[d], best = self._tree(near, fresh, p, best_path=True)
+            if best is None:
+                continue
+            for t, c in enumerate(self.cell_flat[self.path_cells[best]] + base[d]):
+                was = future[t, c]  # visited at step t: eta I, recovering from there
+                future[t + 1 :, c] = np.minimum(
+                    1.0, p.eta * was + (steps[t + 1 :] - 1 - t) * p.delta
+                )
+        return out
+
+    def _tree(self, near, fresh, p, best_path=False):
+        """``(N, 5)`` scores over the path tree; with ``best_path`` (one drone) also the index of
+        its best path (None if it has none). ``fresh[h]`` ``(C, N)``: the idleness of each near
+        cell before step ``h`` if the path has not visited it, ``fresh[H]`` at the end visit."""
+        h_max, end = self.horizon, self.end_weight > 0
         weight = p.alpha_T * self.belief_padded.ravel()[near] + p.alpha_I
-        idle = self.idle_padded.ravel()[near]
         blocked = ~self.free_padded[near]
-        pre, value = [], None  # pre[s]: predicted idleness before the step, per visit class
+        wait = h_max + self.end_wait  # the step of the visit after the horizon
+        end_scale = self.end_weight * self.discount**h_max
+        pre, ends, value = [], [], None  # pre[s]: idleness before the step, per visit class
         for h, level in enumerate(self.levels):
-            pre_h = np.minimum(1.0, idle[level.cell] + h * p.delta)  # first visits
+            pre_h = fresh[h][level.cell]  # first visits
             for s, classes, earlier in level.revisits:  # the cell's previous visit at level s
                 pre_h[classes] = np.minimum(1.0, p.eta * pre[s][earlier] + (h - 1 - s) * p.delta)
-            gain = self.discount**h * visit_gain(weight[level.cell], pre_h, p)
+            w = weight[level.cell]
+            gain = self.discount**h * visit_gain(w, pre_h, p)
+            if end:  # this visit's end term replaces the previous one (no visit: fresh[H])
+                end_h = visit_gain(w, np.minimum(1.0, p.eta * pre_h + (wait - 1 - h) * p.delta), p)
+                before = visit_gain(w, fresh[h_max][level.cell], p)
+                for s, classes, earlier in level.revisits:
+                    before[classes] = ends[s][earlier]
+                gain = gain + end_scale * (end_h - before)
+                ends.append(end_h)
             gain[blocked[level.cell]] = -np.inf
             pre.append(pre_h)
             gain = gain[level.klass]  # (5^(h+1), N): every prefix of h + 1 steps
             if h == 0:
                 value = 0.0 + gain
-            elif h < h_max - 1:
+            elif h < h_max - 1 or best_path:
                 value = np.repeat(value, 5, axis=0) + gain
             else:  # last level: best child per parent, then the parent's sum
                 value = value + gain.reshape(len(value), 5, -1).max(axis=1)
         n_first = len(ACTION_DELTAS)
-        return value.reshape(n_first, -1, len(pos)).max(axis=1).T
+        scores = value.reshape(n_first, -1, value.shape[1]).max(axis=1).T
+        if not best_path:
+            return scores, None
+        best = int(np.argmax(value[:, 0]))
+        return scores, (best if np.isfinite(value[best, 0]) else None)
 
 
 class _Level(NamedTuple):
