@@ -265,10 +265,10 @@ def lookahead_by_simulation(policy, grid, positions, idleness, params):
             if value > best_value:
                 best, best_value = cells, value
         if policy.plan == "sequential" and best is not None:
-            for t, (i, j) in enumerate(best):
+            for t, (i, j) in enumerate(best):  # claimed: eta I from now on
                 was = future[t, i, j]
-                future[t + 1 :, i, j] = np.minimum(
-                    1.0, p.eta * was + (steps[t + 1 :] - 1 - t) * p.delta
+                future[:, i, j] = np.minimum(
+                    1.0, p.eta * was + np.maximum(steps - 1 - t, 0) * p.delta
                 )
     return scores
 

@@ -133,10 +133,13 @@ class LookaheadPolicy(CoordinatedPolicy):
     ``end_weight = 0`` the scores are those without the term, bit for bit.
 
     Planning (``plan``): ``"independent"`` ignores the other drones' future visits (only the
-    first moves are coordinated); ``"sequential"`` plans the drones in turn, each against the
-    idleness predicted after the best paths planned by the drones before it (their visits
-    lower the first-visit idleness it reads; its own revisits and the end value ignore them),
-    at the cost of a loop over the drones.
+    first moves are coordinated); ``"sequential"`` plans the drones in turn (by index), each
+    against the best paths of the drones before it: a cell on such a path is claimed, read as
+    visited from now on (``eta I`` until the step of that visit, recovering after it), for the
+    visit gains and the end value alike (the drone's own revisits ignore the claims). Reading
+    a claimed cell as fresh until the claim's step made later drones take the cells earlier
+    drones planned to visit (worse than independent planning on the validation seeds). The
+    cost is a loop over the drones.
 
     What it reads: the swarm's idleness map ``I^k`` (all cells, as ``rl`` does) and a belief
     of the importance: for each cell the last ``T`` seen in any drone's field of view (the
@@ -222,8 +225,8 @@ class LookaheadPolicy(CoordinatedPolicy):
         if self.plan == "independent":
             near = self.cell_flat[:, None] + base[None, :]  # (C, N) padded flat ids
             idle = self.idle_padded.ravel()[near]
-            fresh = [np.minimum(1.0, idle + h * p.delta) for h in range(h_max + 1)]
-            fresh[h_max] = np.minimum(1.0, idle + (h_max + self.end_wait) * p.delta)
+            fresh = [np.minimum(1.0, idle + h * p.delta) for h in range(h_max)]
+            fresh.append(np.minimum(1.0, idle + (h_max + self.end_wait) * p.delta))
             return self._tree(near, fresh, p)[0]
         # sequential: predicted idleness before step h (h = H: the visit after the wait)
         steps = np.append(np.arange(h_max), h_max + self.end_wait)
@@ -236,10 +239,9 @@ class LookaheadPolicy(CoordinatedPolicy):
             if best is None:
                 continue
             for t, c in enumerate(self.cell_flat[self.path_cells[best]] + base[d]):
-                was = future[t, c]  # visited at step t: eta I, recovering from there
-                future[t + 1 :, c] = np.minimum(
-                    1.0, p.eta * was + (steps[t + 1 :] - 1 - t) * p.delta
-                )
+                # claimed: eta I from now on, recovering only after the visit at step t
+                recovery = np.maximum(steps - 1 - t, 0) * p.delta
+                future[:, c] = np.minimum(1.0, p.eta * future[t, c] + recovery)
         return out
 
     def _tree(self, near, fresh, p, best_path=False):
