@@ -333,3 +333,29 @@ def test_lookahead_without_end_value_keeps_its_scores_bit_for_bit(horizon, disco
 def test_lookahead_rejects_bad_end_options(options):
     with pytest.raises(UserError):
         LookaheadPolicy(horizon=2, **options)
+
+
+@pytest.mark.parametrize("plan", ["independent", "sequential"])
+@pytest.mark.parametrize("horizon, end_weight", [(1, 0.0), (3, 0.9), (4, 0.5)])
+def test_lookahead_beam_wide_enough_is_the_full_tree(plan, horizon, end_weight):
+    """A beam that keeps every prefix (``5^(H-1)`` per first action) searches all paths."""
+    rng, grid, positions, idleness = scene(40 + horizon, 7, 8, 4, 0.2)
+    positions = positions[np.argsort(positions[:, 1])]
+    p = ScoreParams(eta=0.3, delta=0.2)
+    view = make_view(grid, positions, idleness, rng.random(grid.shape) * grid.free, params=p)
+    scores = []
+    for beam in (0, 5 ** (horizon - 1)):
+        policy = LookaheadPolicy(horizon, 1.0, end_weight, 4, plan, beam=beam)
+        policy.reset(grid, len(positions), np.random.default_rng(0))
+        scores.append(policy.scores(view))
+    ok = view.feasible
+    np.testing.assert_allclose(scores[1][ok], scores[0][ok], rtol=1e-12, atol=1e-12)
+
+
+def test_lookahead_beam_reaches_long_horizons():
+    _, grid, positions, idleness = scene(5, 12, 14, 4, 0.1)
+    policy = LookaheadPolicy(horizon=8, end_weight=0.9, plan="sequential", beam=20)
+    actions = [a for _, a in run(policy, np.random.default_rng(1), grid, positions, idleness, 20)]
+    assert len(actions) == 20
+    with pytest.raises(UserError):
+        LookaheadPolicy(horizon=8)  # the full tree stops at MAX_HORIZON

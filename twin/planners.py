@@ -32,8 +32,11 @@ from twin.scores import visit_gain
 TIE_JITTER = 1e-9
 #: Default planning horizon of ``lookahead``, chosen on R_hat_T (see :class:`LookaheadPolicy`).
 DEFAULT_HORIZON = 4
-#: Largest horizon accepted: 5^H paths per drone (H = 5: 1.7 s per step with 1000 drones).
+#: Largest horizon of the full tree: 5^H paths per drone (H = 5: 1.7 s per step with 1000
+#: drones, path by path).
 MAX_HORIZON = 5
+#: Largest horizon of the beam search (``beam > 0``).
+MAX_BEAM_HORIZON = 16
 #: Default weight of ``lookahead``'s end value (0: none).
 DEFAULT_END_WEIGHT = 0.0
 #: Default steps between ``lookahead``'s horizon and the later visit its end value prices.
@@ -41,6 +44,8 @@ DEFAULT_END_WAIT = 5
 #: How ``lookahead`` treats the other drones' future visits.
 PLANS = ("independent", "sequential")
 DEFAULT_PLAN = "independent"
+#: Default prefixes kept per first action by ``lookahead``'s beam search (0: the full tree).
+DEFAULT_BEAM = 0
 
 
 def tie_jitter(scores: np.ndarray, feasible: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -172,13 +177,21 @@ class LookaheadPolicy(CoordinatedPolicy):
         end_weight: float = DEFAULT_END_WEIGHT,
         end_wait: int = DEFAULT_END_WAIT,
         plan: str = DEFAULT_PLAN,
+        beam: int = DEFAULT_BEAM,
     ):
+        if isinstance(beam, bool) or not isinstance(beam, int | np.integer) or beam < 0:
+            raise UserError(f"lookahead: beam = {beam!r} must be an integer >= 0; e.g. 0")
         if isinstance(horizon, bool) or not isinstance(horizon, int | np.integer):
             raise UserError(f"lookahead: horizon = {horizon!r} must be an integer; e.g. 2")
-        if not 1 <= horizon <= MAX_HORIZON:
+        if beam == 0 and not 1 <= horizon <= MAX_HORIZON:
             raise UserError(
                 f"lookahead: horizon = {horizon} must lie in 1..{MAX_HORIZON} "
-                f"(5^H paths per drone); e.g. {DEFAULT_HORIZON}"
+                f"(5^H paths per drone; longer with beam > 0); e.g. {DEFAULT_HORIZON}"
+            )
+        if beam > 0 and not 1 <= horizon <= MAX_BEAM_HORIZON:
+            raise UserError(
+                f"lookahead: horizon = {horizon} must lie in 1..{MAX_BEAM_HORIZON} with a beam; "
+                f"e.g. {DEFAULT_HORIZON}"
             )
         if not 0.0 < float(discount) <= 1.0:
             raise UserError(f"lookahead: discount = {discount} must lie in (0, 1]; e.g. 1.0")
@@ -198,20 +211,24 @@ class LookaheadPolicy(CoordinatedPolicy):
         self.end_weight = float(end_weight)
         self.end_wait = int(end_wait)
         self.plan = plan
-        self.offsets, self.last, self.first = action_paths(self.horizon)
-        self.cells, self.levels = path_tree(self.offsets, self.last)
+        self.beam = int(beam)
+        if self.beam == 0:
+            self.offsets, self.last, self.first = action_paths(self.horizon)
+            self.cells, self.levels = path_tree(self.offsets, self.last)
 
     def reset(self, grid: Grid, n_drones: int, rng: np.random.Generator) -> None:
         super().reset(grid, n_drones, rng)
         h = self.horizon
         self.width = grid.ny + 2 * h  # maps padded by H: every path stays inside
-        self.cell_flat = self.cells[:, 0] * self.width + self.cells[:, 1]  # (C,) rel. flat ids
         self.free_padded = np.pad(grid.free, h, constant_values=False).ravel()
         self.belief_padded = np.zeros((grid.nx + 2 * h, grid.ny + 2 * h))
         self.belief = self.belief_padded[h:-h, h:-h]  # last seen T per cell, 0 if never seen
         self.idle_padded = np.zeros_like(self.belief_padded)
-        flat = self.offsets[..., 0] * self.width + self.offsets[..., 1]  # (P, H)
-        self.path_cells = np.searchsorted(self.cell_flat, flat)  # cell_flat is sorted
+        self.moves = ACTION_DELTAS[:, 0] * self.width + ACTION_DELTAS[:, 1]  # flat steps
+        if self.beam == 0:
+            self.cell_flat = self.cells[:, 0] * self.width + self.cells[:, 1]  # (C,) rel. ids
+            flat = self.offsets[..., 0] * self.width + self.offsets[..., 1]  # (P, H)
+            self.path_cells = np.searchsorted(self.cell_flat, flat)  # cell_flat is sorted
 
     def scores(self, view: SwarmView) -> np.ndarray:
         grid, p, h_max = view.grid, view.params, self.horizon
@@ -222,7 +239,7 @@ class LookaheadPolicy(CoordinatedPolicy):
 
         pos = np.asarray(view.positions, dtype=np.int64)
         base = (pos[:, 0] + h_max) * self.width + pos[:, 1] + h_max
-        if self.plan == "independent":
+        if self.plan == "independent" and self.beam == 0:
             near = self.cell_flat[:, None] + base[None, :]  # (C, N) padded flat ids
             idle = self.idle_padded.ravel()[near]
             fresh = [np.minimum(1.0, idle + h * p.delta) for h in range(h_max)]
@@ -232,17 +249,73 @@ class LookaheadPolicy(CoordinatedPolicy):
         steps = np.append(np.arange(h_max), h_max + self.end_wait)
         future = np.minimum(1.0, self.idle_padded.ravel()[None, :] + steps[:, None] * p.delta)
         out = np.empty((len(pos), len(ACTION_DELTAS)))
+        weight = p.alpha_T * self.belief_padded.ravel() + p.alpha_I
         for d in range(len(pos)):
-            near = self.cell_flat[:, None] + base[d]  # (C, 1)
-            fresh = [future[h][near] for h in range(h_max + 1)]
-            out[d], best = self._tree(near, fresh, p, best_path=True)
-            if best is None:
+            if self.beam > 0:
+                out[d], cells = self._beam(base[d], future, weight, p)
+            else:
+                near = self.cell_flat[:, None] + base[d]  # (C, 1)
+                fresh = [future[h][near] for h in range(h_max + 1)]
+                out[d], best = self._tree(near, fresh, p, best_path=True)
+                cells = None if best is None else self.cell_flat[self.path_cells[best]] + base[d]
+            if cells is None or self.plan == "independent":
                 continue
-            for t, c in enumerate(self.cell_flat[self.path_cells[best]] + base[d]):
+            for t, c in enumerate(cells):
                 # claimed: eta I from now on, recovering only after the visit at step t
                 recovery = np.maximum(steps - 1 - t, 0) * p.delta
                 future[:, c] = np.minimum(1.0, p.eta * future[t, c] + recovery)
         return out
+
+    def _beam(self, start, future, weight, p):
+        """Beam search of one drone's paths: after each step only the ``beam`` best prefixes
+        starting with each action are extended. Returns its ``(5,)`` scores (the best value of
+        a kept path per first action) and the padded flat cells ``(H,)`` of its best path (None
+        if it has none). ``future``: as in :meth:`scores`, ``weight`` the padded flat map."""
+        h_max, n_act = self.horizon, len(ACTION_DELTAS)
+        wait, end = h_max + self.end_wait, self.end_weight > 0
+        end_scale = self.end_weight * self.discount**h_max
+        cells = np.empty((1, 0), dtype=np.int64)  # (B, h) kept prefixes
+        pres = np.empty((1, 0))  # idleness before each step
+        value, first = np.zeros(1), np.zeros(1, dtype=np.int64)
+        for h in range(h_max):
+            here = cells[:, -1] if h else np.array([start])
+            new = (here[:, None] + self.moves[None, :]).ravel()  # (5B,) children
+            cells = np.repeat(cells, n_act, axis=0)
+            pres = np.repeat(pres, n_act, axis=0)
+            value = np.repeat(value, n_act)
+            first = np.repeat(first, n_act) if h else np.arange(n_act)
+            w = weight[new]
+            pre, before = future[h][new], None
+            if h:
+                same = cells == new[:, None]  # (5B, h)
+                again = same.any(axis=1)
+                s = h - 1 - same[:, ::-1].argmax(axis=1)  # the last earlier visit
+                pre_s = pres[np.arange(len(new)), s]
+                pre = np.where(again, np.minimum(1.0, p.eta * pre_s + (h - 1 - s) * p.delta), pre)
+            gain = self.discount**h * visit_gain(w, pre, p)
+            if end:
+                later = np.minimum(1.0, p.eta * pre + (wait - 1 - h) * p.delta)
+                before = visit_gain(w, future[h_max][new], p)
+                if h:
+                    earlier = np.minimum(1.0, p.eta * pre_s + (wait - 1 - s) * p.delta)
+                    before = np.where(again, visit_gain(w, earlier, p), before)
+                gain = gain + end_scale * (visit_gain(w, later, p) - before)
+            value = value + np.where(self.free_padded[new], gain, -np.inf)
+            cells = np.column_stack([cells, new])
+            pres = np.column_stack([pres, pre])
+            keep = np.isfinite(value)
+            if h < h_max - 1:  # the best ``beam`` per first action
+                order = np.lexsort((-value, first))
+                start_of = np.searchsorted(first[order], np.arange(n_act))
+                rank = np.empty(len(order), dtype=np.int64)
+                rank[order] = np.arange(len(order)) - start_of[first[order]]
+                keep &= rank < self.beam
+            cells, pres, value, first = cells[keep], pres[keep], value[keep], first[keep]
+        scores = np.full(n_act, -np.inf)
+        np.maximum.at(scores, first, value)
+        if not len(value):
+            return scores, None
+        return scores, cells[int(np.argmax(value))]
 
     def _tree(self, near, fresh, p, best_path=False):
         """``(N, 5)`` scores over the path tree; with ``best_path`` (one drone) also the index of
