@@ -131,7 +131,10 @@ def test_lookahead_with_horizon_1_is_visit_gain():
     scores are visit-gain's (same expression, :func:`visit_gain`), bit for bit, and with the
     same generator the jitter and hence the actions are the same at every step."""
     _, grid, positions, idleness = scene(3, 9, 11, 6, 0.2)
-    look, gain = LookaheadPolicy(horizon=1), VisitGainPolicy()
+    look, gain = (
+        LookaheadPolicy(horizon=1, end_weight=0.0, plan="independent", beam=0),
+        VisitGainPolicy(),
+    )
     runs = [
         list(run(policy, np.random.default_rng(5), grid, positions, idleness, steps=40))
         for policy in (look, gain)
@@ -146,7 +149,7 @@ def test_lookahead_scores_match_a_step_by_step_simulation():
     """Each move's score = best over its feasible paths of the summed visit gains, with the
     idleness map advanced by Def. 3 (one drone) after each step, importance = the belief."""
     rng, grid, positions, idleness = scene(11, 5, 6, 2, 0.2)
-    policy = LookaheadPolicy(horizon=3, discount=0.9)
+    policy = LookaheadPolicy(horizon=3, discount=0.9, end_weight=0.0, plan="independent", beam=0)
     policy.reset(grid, len(positions), np.random.default_rng(0))
     importance = rng.random(grid.shape) * grid.free
     view = make_view(grid, positions, idleness, importance)
@@ -175,7 +178,9 @@ def test_lookahead_scores_equal_path_by_path_sums_bit_for_bit(horizon, discount)
     path-by-path sums exactly (same float operations in the same order), not just close."""
     rng, grid, positions, idleness = scene(7 + horizon, 7, 8, 4, 0.25)
     p = ScoreParams(eta=0.3, delta=0.4)  # large steps: idleness saturates and recovers
-    policy = LookaheadPolicy(horizon=horizon, discount=discount)
+    policy = LookaheadPolicy(
+        horizon=horizon, discount=discount, end_weight=0.0, plan="independent", beam=0
+    )
     policy.reset(grid, len(positions), np.random.default_rng(0))
     view = make_view(grid, positions, idleness, rng.random(grid.shape) * grid.free, params=p)
     scores = policy.scores(view)
@@ -290,7 +295,7 @@ def test_lookahead_end_value_and_sequential_match_a_simulation(
     rng, grid, positions, idleness = scene(20 + horizon, 7, 8, 4, 0.2)
     positions = positions[np.argsort(positions[:, 1])]  # neighbours, so the plans interact
     p = ScoreParams(eta=0.3, delta=0.2)
-    policy = LookaheadPolicy(horizon, discount, end_weight, end_wait, plan)
+    policy = LookaheadPolicy(horizon, discount, end_weight, end_wait, plan, beam=0)
     policy.reset(grid, len(positions), np.random.default_rng(0))
     view = make_view(grid, positions, idleness, rng.random(grid.shape) * grid.free, params=p)
     scores = policy.scores(view)
@@ -307,10 +312,10 @@ def test_lookahead_without_end_value_keeps_its_scores_bit_for_bit(horizon, disco
     view = make_view(grid, positions, idleness, rng.random(grid.shape) * grid.free)
     got = []
     for wait in (0, 7):
-        policy = LookaheadPolicy(horizon, discount, end_weight=0.0, end_wait=wait)
+        policy = LookaheadPolicy(horizon, discount, end_weight=0.0, end_wait=wait, beam=0)
         policy.reset(grid, len(positions), np.random.default_rng(0))
         got.append(policy.scores(view))
-    reference = LookaheadPolicy(horizon, discount, end_weight=0.0, plan="independent")
+    reference = LookaheadPolicy(horizon, discount, end_weight=0.0, plan="independent", beam=0)
     reference.reset(grid, len(positions), np.random.default_rng(0))
     reference.scores(view)  # sets the importance belief
     expect = lookahead_by_simulation(reference, grid, positions, idleness, PARAMS)
@@ -358,4 +363,4 @@ def test_lookahead_beam_reaches_long_horizons():
     actions = [a for _, a in run(policy, np.random.default_rng(1), grid, positions, idleness, 20)]
     assert len(actions) == 20
     with pytest.raises(UserError):
-        LookaheadPolicy(horizon=8)  # the full tree stops at MAX_HORIZON
+        LookaheadPolicy(horizon=8, beam=0)  # the full tree stops at MAX_HORIZON
