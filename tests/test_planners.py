@@ -59,10 +59,11 @@ def test_registered():
     assert make_policy("lookahead", horizon=3).horizon == 3
 
 
-@pytest.mark.parametrize("horizon", [0, 6, 2.5, True])
-def test_lookahead_rejects_bad_horizon(horizon):
+@pytest.mark.parametrize("horizon, beam", [(0, 20), (6, 0), (17, 20), (2.5, 20), (True, 0)])
+def test_lookahead_rejects_bad_horizon(horizon, beam):
+    """The full tree (``beam = 0``) stops at H = 5, the beam search at 16."""
     with pytest.raises(UserError, match="horizon"):
-        make_policy("lookahead", horizon=horizon)
+        make_policy("lookahead", horizon=horizon, beam=beam)
 
 
 @pytest.mark.parametrize("name", COORDINATED)
@@ -312,7 +313,7 @@ def test_lookahead_without_end_value_keeps_its_scores_bit_for_bit(horizon, disco
     view = make_view(grid, positions, idleness, rng.random(grid.shape) * grid.free)
     got = []
     for wait in (0, 7):
-        policy = LookaheadPolicy(horizon, discount, end_weight=0.0, end_wait=wait, beam=0)
+        policy = LookaheadPolicy(horizon, discount, 0.0, wait, "independent", beam=0)
         policy.reset(grid, len(positions), np.random.default_rng(0))
         got.append(policy.scores(view))
     reference = LookaheadPolicy(horizon, discount, end_weight=0.0, plan="independent", beam=0)
