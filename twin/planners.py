@@ -171,9 +171,9 @@ class LookaheadPolicy(CoordinatedPolicy):
     :data:`DEFAULT_END_WAIT` 3, :data:`DEFAULT_PLAN` sequential, :data:`DEFAULT_BEAM` 20) were
     chosen on R_hat_T of ``configs/synthetic.toml``, validation seeds 100-109 only, where
     visit-gain scores 2.634 (``python benchmarks/bench_swarms.py --pick-horizon`` runs these
-    settings; R_hat_T means): no end value, H = 1 2.634 (visit-gain), H = 4 2.594; independent
-    H = 4 with end values 0.7-1.2 and waits 0-10: 2.66-2.68 (weight 1.5: the drones hover,
-    0.07), a longer horizon no better (H = 5 2.676); sequential H = 4, end 0.9, wait 3: 2.755
+    settings; R_hat_T means): no end value, H = 4 2.594 (H = 1 decides as visit-gain but for
+    tie-breaks); independent H = 4 with end values 0.7-1.2 and waits 0-30: 2.63-2.68 (weight
+    1.5: the drones hover, 0.07), a longer horizon no better (H = 5 2.676); sequential H = 4, end 0.9, wait 3: 2.755
     (wait 8 2.746; with claimed cells read fresh until the claim's step 2.546); sequential
     H = 5, end 0.9 / 1.1, wait 3: 2.785 / 2.792; beam 20, H = 8, end 0.9 / 1.1, wait 3:
     2.822 / 2.827 (wait 1: 2.801).
