@@ -123,8 +123,8 @@ def action_paths(horizon: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 class LookaheadPolicy(CoordinatedPolicy):
     """Receding-horizon planner: the score of a drone's move is the best summed visit gain
     (:func:`visit_gain`, discounted by ``discount^h``, undiscounted by default) over the
-    ``5^(H-1)`` feasible paths of ``H`` steps that start with it, plus an end value; then the
-    assignment.
+    ``5^(H-1)`` feasible paths of ``H`` steps that start with it (those a beam search kept,
+    with ``beam > 0``), plus an end value; then the assignment.
 
     Along a path the idleness of each cell is predicted from ``I^k``: ``min(1, I + h delta)``
     after ``h`` steps, ``eta I`` at the path's own visits, recovering again after them.
@@ -132,9 +132,10 @@ class LookaheadPolicy(CoordinatedPolicy):
     End value (``end_weight > 0``): what the path leaves behind for later visits. For each
     cell the path visits, the visit gain a visit ``end_wait`` steps after the horizon would
     earn there, minus what it would earn had the path not visited the cell (both predicted as
-    above), times ``end_weight * discount^H``. It is negative: it charges each visit the gain
-    it takes from later ones, more on cells that were fresh, so a path through cells that
-    would soon be worth visiting again is preferred less than its summed gain says. The
+    above), times ``end_weight * discount^H``. It is (but for a sliver near saturation, where
+    ``g`` falls with ``I``) negative: it charges each visit the gain it takes from later ones,
+    more on cells that were fresh, so a path that takes cells a later visit would harvest
+    better is preferred less than its summed gain says. The
     unvisited cells' future gains do not depend on the path and are left out. With
     ``end_weight = 0`` the scores are those without the term, bit for bit.
 
@@ -173,10 +174,10 @@ class LookaheadPolicy(CoordinatedPolicy):
     visit-gain scores 2.634 (``python benchmarks/bench_swarms.py --pick-horizon`` runs these
     settings; R_hat_T means): no end value, H = 4 2.594 (H = 1 decides as visit-gain but for
     tie-breaks); independent H = 4 with end values 0.7-1.2 and waits 0-30: 2.63-2.68 (weight
-    1.5: the drones hover, 0.07), a longer horizon no better (H = 5 2.676); sequential H = 4, end 0.9, wait 3: 2.755
-    (wait 8 2.746; with claimed cells read fresh until the claim's step 2.546); sequential
-    H = 5, end 0.9 / 1.1, wait 3: 2.785 / 2.792; beam 20, H = 8, end 0.9 / 1.1, wait 3:
-    2.822 / 2.827 (wait 1: 2.801).
+    1.5: the drones hover, 0.07), a longer horizon no better (H = 5 2.676); sequential H = 4,
+    end 0.9, wait 3: 2.755 (wait 8 2.746; wait 5 with claimed cells read fresh until the
+    claim's step 2.546); sequential H = 5, end 0.9 / 1.1, wait 3: 2.785 / 2.792; beam 20,
+    H = 8, end 0.9 / 1.1, wait 3: 2.822 / 2.827 (wait 1: 2.801).
 
     Measured once on the evaluation seeds 0-9 with the defaults, paired against visit-gain
     (same starts and traffic per seed; mean ± 95% interval of the paired difference):
