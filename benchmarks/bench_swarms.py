@@ -4,8 +4,9 @@
   greedy-coordinated, visit-gain and lookahead at paper scale (20 x 30 cells, 4 drones), at
   city scale (100 x 150 cells, 200 drones: configs/shenzhen-city-scale.toml) and at 200 x 300
   cells with 1000 drones, in ms and as a ratio against greedy in the same process; lookahead
-  and the sweep's tour (``reset``) also against their previous implementations, kept below
-  (``ReferenceLookahead``, ``reference_boustrophedon_tour``), as a speed-up;
+  with H = 4 and no end value (the full tree) and the sweep's tour (``reset``) also against
+  their previous implementations, kept below (``ReferenceLookahead``,
+  ``reference_boustrophedon_tour``), as a speed-up;
 - ``--quick``: small sizes; checks that every swarm's actions are feasible and lead to
   distinct cells over a short run, and that lookahead's scores and the sweep's tour equal the
   previous implementations' bit for bit (exit 1 otherwise);
