@@ -4,17 +4,19 @@
   greedy-coordinated, visit-gain and lookahead at paper scale (20 x 30 cells, 4 drones), at
   city scale (100 x 150 cells, 200 drones: configs/shenzhen-city-scale.toml) and at 200 x 300
   cells with 1000 drones, in ms and as a ratio against greedy in the same process; lookahead
-  and the sweep's tour (``reset``) also against their previous implementations, kept below
-  (``ReferenceLookahead``, ``reference_boustrophedon_tour``), as a speed-up;
+  with H = 4 and no end value (the full tree) and the sweep's tour (``reset``) also against
+  their previous implementations, kept below (``ReferenceLookahead``,
+  ``reference_boustrophedon_tour``), as a speed-up;
 - ``--quick``: small sizes; checks that every swarm's actions are feasible and lead to
   distinct cells over a short run, and that lookahead's scores and the sweep's tour equal the
   previous implementations' bit for bit (exit 1 otherwise);
-- ``--pick-horizon``: R_hat_T of lookahead for H = 1 .. 5 on ``configs/synthetic.toml``,
-  seeds 0-9 (mean and 95% interval), with ms per step at both scales: how
-  ``twin.planners.DEFAULT_HORIZON`` was chosen (largest mean R_hat_T among the H whose step at
-  200 x 300 with 1000 drones takes well under a second).
+- ``--pick-horizon``: R_hat_T of lookahead settings (``CANDIDATES``: horizon, end value,
+  planning, beam) on ``configs/synthetic.toml``, validation seeds 100-109 by default (mean
+  and 95% interval, and paired against visit-gain), with ms per decision at 20 x 30 with 4
+  drones and 100 x 150 with 200: how lookahead's defaults were chosen (largest mean R_hat_T).
+  ``--seeds 0-9`` measures on the evaluation seeds.
 
-    python benchmarks/bench_swarms.py [--quick | --pick-horizon]
+    python benchmarks/bench_swarms.py [--quick | --pick-horizon [--seeds 100-109]]
 """
 
 from __future__ import annotations
@@ -63,7 +65,12 @@ def view_of(grid, positions, idleness, importance, k=0) -> SwarmView:
 
 def ms_per_decision(name: str, grid, positions, idleness, importance, repeats: int, **options):
     """Median ms of one ``act`` on a fixed view (after one warm-up call)."""
-    policy = ReferenceLookahead(**options) if name == REFERENCE else make_policy(name, **options)
+    if name == REFERENCE:
+        policy = ReferenceLookahead(**options)
+    elif name == TREE:
+        policy = make_policy("lookahead", **TREE_OPTIONS, **options)
+    else:
+        policy = make_policy(name, **options)
     policy.reset(grid, len(positions), swarm_rng(0, name))
     view = view_of(grid, positions, idleness, importance)
     policy.act(view)
@@ -80,14 +87,12 @@ def timing(sizes, repeats: int) -> None:
     print(f"{'cells':>10s} {'drones':>7s} {'swarm':>22s} {'ms':>10s} {'x greedy':>9s}")
     for nx, ny, n in sizes:
         maps = scene(nx, ny, n, obstacles=0.3)
-        names = (*SWARMS, REFERENCE)
+        names = (*SWARMS, TREE, REFERENCE)
         ms = {name: ms_per_decision(name, *maps, repeats) for name in names}
         for name in names:
             ratio = ms[name] / ms["greedy"]
             print(f"{f'{nx} x {ny}':>10s} {n:7d} {name:>22s} {ms[name]:10.3f} {ratio:9.1f}")
-        print(
-            f"{'':>10s} {'':>7s} {'lookahead speed-up':>22s} {ms[REFERENCE] / ms['lookahead']:9.1f}x"
-        )
+        print(f"{'':>10s} {'':>7s} {'lookahead speed-up':>22s} {ms[REFERENCE] / ms[TREE]:9.1f}x")
         new, old = (
             _seconds(lambda f=f, grid=maps[0]: f(grid))
             for f in (boustrophedon_tour, reference_boustrophedon_tour)
@@ -145,7 +150,8 @@ def check_same_as_previous(steps: int = 15) -> bool:
             print(f"FAIL sweep tour on {nx} x {ny}, seed {seed}")
             ok = False
         horizon, discount = 1 + seed % 4, (1.0, 0.9)[seed % 2]
-        new, old = LookaheadPolicy(horizon, discount), ReferenceLookahead(horizon, discount)
+        new = LookaheadPolicy(horizon, discount, end_weight=0.0, plan="independent", beam=0)
+        old = ReferenceLookahead(horizon, discount)
         for policy in (new, old):
             policy.reset(grid, len(pos), np.random.default_rng(seed))
         params = ScoreParams()
@@ -161,7 +167,24 @@ def check_same_as_previous(steps: int = 15) -> bool:
     return ok
 
 
-def pick_horizon(horizons, seeds: int) -> None:
+#: Lookahead settings compared by ``--pick-horizon`` (name, options).
+CANDIDATES = [
+    *((f"tree H={h}", {"horizon": h, "end_weight": 0.0, "plan": "independent", "beam": 0})
+      for h in (1, 4, 5)),
+    ("tree H=4, end 0.9/5", {"horizon": 4, "end_weight": 0.9, "end_wait": 5,
+                             "plan": "independent", "beam": 0}),
+    ("sequential H=4, end 0.9/3", {"horizon": 4, "end_weight": 0.9, "end_wait": 3,
+                                   "plan": "sequential", "beam": 0}),
+    ("sequential H=5, end 0.9/3", {"horizon": 5, "end_weight": 0.9, "end_wait": 3,
+                                   "plan": "sequential", "beam": 0}),
+    *((f"seq. beam 20 H=8, end {e}/3", {"horizon": 8, "end_weight": e, "end_wait": 3,
+                                        "plan": "sequential", "beam": 20})
+      for e in (0.9, 1.1)),
+]  # fmt: skip
+
+
+def pick_horizon(seeds) -> None:
+    """R_hat_T of each candidate and its paired difference with visit-gain on ``seeds``."""
     from twin.config import load_config, start_positions, synthetic_source
     from twin.metrics import ci95_halfwidth
     from twin.patrol import run_patrol
@@ -169,25 +192,36 @@ def pick_horizon(horizons, seeds: int) -> None:
 
     config = load_config(CONFIG)
     source = RecordedTraffic.from_source(synthetic_source(config))
-    big = scene(200, 300, 1000)
-    small = scene(20, 30, 4)
-    print(f"lookahead on {CONFIG.name}, seeds 0-{seeds - 1}, T = {source.horizon}")
-    print(
-        f"{'H':>3s} {'R_hat_T':>8s} {'± 95%':>7s} {'ms/step 20x30,4':>16s} {'ms/step 200x300,1000':>21s}"
-    )
-    for h in horizons:
-        r_hat = []
-        for seed in range(seeds):
+    small, city = scene(20, 30, 4), scene(100, 150, 200)
+
+    def r_hat(name, **options):
+        values = []
+        for seed in seeds:
             starts = start_positions(config, source.grid, np.random.default_rng(seed))
-            policies = {"lookahead": make_policy("lookahead", horizon=h)}
-            result = run_patrol(source, policies, starts, config.params, seed)
-            r_hat.append(result.rewards[0].mean())
-        ms_small = ms_per_decision("lookahead", *small, 50, horizon=h)
-        ms_big = ms_per_decision("lookahead", *big, 3, horizon=h)
-        r_hat = np.array(r_hat)
+            policies = {name: make_policy(name, **options)}
+            result = run_patrol(
+                source, policies, starts, config.params, seed, keep_importance=False
+            )
+            values.append(result.rewards[0].mean())
+        return np.array(values)
+
+    base = r_hat("visit-gain")
+    print(f"lookahead on {CONFIG.name}, seeds {seeds[0]}-{seeds[-1]}, T = {source.horizon}")
+    print(f"visit-gain R_hat_T {base.mean():.3f} ± {ci95_halfwidth(base):.3f}")
+    print(
+        f"{'setting':>28s} {'R_hat_T':>8s} {'± 95%':>6s} {'- visit-gain':>13s} {'± 95%':>6s} "
+        f"{'x':>6s} {'ms 20x30,4':>11s} {'ms 100x150,200':>15s}"
+    )
+    for label, options in CANDIDATES:
+        r = r_hat("lookahead", **options)
+        diff = r - base
+        ms_small = ms_per_decision("lookahead", *small, 50, **options)
+        ms_city = ms_per_decision("lookahead", *city, 3, **options)
         print(
-            f"{h:3d} {r_hat.mean():8.3f} {ci95_halfwidth(r_hat):7.3f} "
-            f"{ms_small:16.2f} {ms_big:21.1f}"
+            f"{label:>28s} {r.mean():8.3f} {ci95_halfwidth(r):6.3f} {diff.mean():13.3f} "
+            f"{ci95_halfwidth(diff):6.3f} {r.mean() / base.mean():6.3f} {ms_small:11.2f} "
+            f"{ms_city:15.1f}",
+            flush=True,
         )
 
 
@@ -196,10 +230,13 @@ def main() -> int:
     mode = p.add_mutually_exclusive_group()
     mode.add_argument("--quick", action="store_true", help="small sizes and a correctness check")
     mode.add_argument("--pick-horizon", action="store_true", help="lookahead's H on R_hat_T")
-    p.add_argument("--seeds", type=int, default=10, help="seeds for --pick-horizon")
+    p.add_argument(
+        "--seeds", default="100-109", help="seeds for --pick-horizon, e.g. 100-109 (validation)"
+    )
     args = p.parse_args()
     if args.pick_horizon:
-        pick_horizon(range(1, 6), args.seeds)
+        first, _, last = args.seeds.partition("-")
+        pick_horizon(list(range(int(first), int(last or first) + 1)))
         return 0
     if args.quick:
         timing([(20, 30, 4), (50, 60, 50)], repeats=5)
@@ -212,11 +249,18 @@ def main() -> int:
 
 #: Name of the previous lookahead in the timing table.
 REFERENCE = "lookahead (previous)"
+#: The same planner as the previous one (H = 4, no end value, independent), by the tree.
+TREE = "lookahead H=4 (tree)"
+TREE_OPTIONS = {"horizon": 4, "end_weight": 0.0, "plan": "independent", "beam": 0}
 
 
 class ReferenceLookahead(LookaheadPolicy):
     """Lookahead as it was before (main 7d5d5fb): every one of the ``5^H`` paths of every
-    drone summed step by step. Kept here only as the baseline and the reference."""
+    drone summed step by step, no end value, independent plans. Kept here only as the
+    baseline and the reference."""
+
+    def __init__(self, horizon: int = 4, discount: float = 1.0):
+        super().__init__(horizon, discount, end_weight=0.0, plan="independent", beam=0)
 
     def reset(self, grid, n_drones, rng) -> None:
         super().reset(grid, n_drones, rng)

@@ -59,10 +59,11 @@ def test_registered():
     assert make_policy("lookahead", horizon=3).horizon == 3
 
 
-@pytest.mark.parametrize("horizon", [0, 6, 2.5, True])
-def test_lookahead_rejects_bad_horizon(horizon):
+@pytest.mark.parametrize("horizon, beam", [(0, 20), (6, 0), (17, 20), (2.5, 20), (True, 0)])
+def test_lookahead_rejects_bad_horizon(horizon, beam):
+    """The full tree (``beam = 0``) stops at H = 5, the beam search at 16."""
     with pytest.raises(UserError, match="horizon"):
-        make_policy("lookahead", horizon=horizon)
+        make_policy("lookahead", horizon=horizon, beam=beam)
 
 
 @pytest.mark.parametrize("name", COORDINATED)
@@ -131,7 +132,10 @@ def test_lookahead_with_horizon_1_is_visit_gain():
     scores are visit-gain's (same expression, :func:`visit_gain`), bit for bit, and with the
     same generator the jitter and hence the actions are the same at every step."""
     _, grid, positions, idleness = scene(3, 9, 11, 6, 0.2)
-    look, gain = LookaheadPolicy(horizon=1), VisitGainPolicy()
+    look, gain = (
+        LookaheadPolicy(horizon=1, end_weight=0.0, plan="independent", beam=0),
+        VisitGainPolicy(),
+    )
     runs = [
         list(run(policy, np.random.default_rng(5), grid, positions, idleness, steps=40))
         for policy in (look, gain)
@@ -146,7 +150,7 @@ def test_lookahead_scores_match_a_step_by_step_simulation():
     """Each move's score = best over its feasible paths of the summed visit gains, with the
     idleness map advanced by Def. 3 (one drone) after each step, importance = the belief."""
     rng, grid, positions, idleness = scene(11, 5, 6, 2, 0.2)
-    policy = LookaheadPolicy(horizon=3, discount=0.9)
+    policy = LookaheadPolicy(horizon=3, discount=0.9, end_weight=0.0, plan="independent", beam=0)
     policy.reset(grid, len(positions), np.random.default_rng(0))
     importance = rng.random(grid.shape) * grid.free
     view = make_view(grid, positions, idleness, importance)
@@ -175,7 +179,9 @@ def test_lookahead_scores_equal_path_by_path_sums_bit_for_bit(horizon, discount)
     path-by-path sums exactly (same float operations in the same order), not just close."""
     rng, grid, positions, idleness = scene(7 + horizon, 7, 8, 4, 0.25)
     p = ScoreParams(eta=0.3, delta=0.4)  # large steps: idleness saturates and recovers
-    policy = LookaheadPolicy(horizon=horizon, discount=discount)
+    policy = LookaheadPolicy(
+        horizon=horizon, discount=discount, end_weight=0.0, plan="independent", beam=0
+    )
     policy.reset(grid, len(positions), np.random.default_rng(0))
     view = make_view(grid, positions, idleness, rng.random(grid.shape) * grid.free, params=p)
     scores = policy.scores(view)
@@ -228,3 +234,134 @@ def test_deterministic_given_the_seed(name):
 
     np.testing.assert_array_equal(actions(4), actions(4))
     assert not np.array_equal(actions(4), actions(5))
+
+
+def lookahead_by_simulation(policy, grid, positions, idleness, params):
+    """Reference for the end value and sequential planning: every path of every drone walked
+    step by step. ``future[h]`` is the idleness before step ``h`` (``h = H``: the visit
+    ``end_wait`` steps after the horizon) of cells the path has not visited, lowered by the
+    best paths of the drones planned before when sequential."""
+    h_max, p = policy.horizon, params
+    steps = np.append(np.arange(h_max), h_max + policy.end_wait)
+    future = np.minimum(1.0, idleness[None] + steps[:, None, None] * p.delta)
+    weight = p.alpha_T * policy.belief + p.alpha_I
+    scores = np.full((len(positions), 5), -np.inf)
+    for d, start in enumerate(positions):
+        best, best_value = None, -np.inf
+        for seq in itertools.product(range(5), repeat=h_max):
+            cells = start + np.cumsum(ACTION_DELTAS[list(seq)], axis=0)
+            if not grid.is_free(cells).all():
+                continue
+            value, visits = 0.0, {}  # cell -> (step, idleness before) of its last visit
+            for h, (i, j) in enumerate(cells):
+                if (i, j) in visits:
+                    s, pre_s = visits[i, j]
+                    pre = min(1.0, p.eta * pre_s + (h - 1 - s) * p.delta)
+                else:
+                    pre = future[h, i, j]
+                value += policy.discount**h * visit_gain(weight[i, j], pre, p)
+                visits[i, j] = (h, pre)
+            for (i, j), (s, pre_s) in visits.items():
+                later = min(1.0, p.eta * pre_s + (steps[-1] - 1 - s) * p.delta)
+                change = visit_gain(weight[i, j], later, p) - visit_gain(
+                    weight[i, j], future[-1, i, j], p
+                )
+                value += policy.end_weight * policy.discount**h_max * change
+            scores[d, seq[0]] = max(scores[d, seq[0]], value)
+            if value > best_value:
+                best, best_value = cells, value
+        if policy.plan == "sequential" and best is not None:
+            for t, (i, j) in enumerate(best):  # claimed: eta I from now on
+                was = future[t, i, j]
+                future[:, i, j] = np.minimum(
+                    1.0, p.eta * was + np.maximum(steps - 1 - t, 0) * p.delta
+                )
+    return scores
+
+
+@pytest.mark.parametrize(
+    "horizon, discount, end_weight, end_wait, plan",
+    [
+        (1, 1.0, 0.7, 0, "independent"),
+        (2, 0.9, 1.0, 3, "independent"),
+        (3, 1.0, 0.9, 5, "independent"),
+        (3, 0.8, 0.0, 5, "sequential"),
+        (2, 1.0, 0.5, 10, "sequential"),
+        (3, 1.0, 0.9, 5, "sequential"),
+    ],
+)
+def test_lookahead_end_value_and_sequential_match_a_simulation(
+    horizon, discount, end_weight, end_wait, plan
+):
+    rng, grid, positions, idleness = scene(20 + horizon, 7, 8, 4, 0.2)
+    positions = positions[np.argsort(positions[:, 1])]  # neighbours, so the plans interact
+    p = ScoreParams(eta=0.3, delta=0.2)
+    policy = LookaheadPolicy(horizon, discount, end_weight, end_wait, plan, beam=0)
+    policy.reset(grid, len(positions), np.random.default_rng(0))
+    view = make_view(grid, positions, idleness, rng.random(grid.shape) * grid.free, params=p)
+    scores = policy.scores(view)
+    expect = lookahead_by_simulation(policy, grid, positions, idleness, p)
+    ok = view.feasible
+    np.testing.assert_allclose(scores[ok], expect[ok], rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("horizon, discount", [(1, 1.0), (3, 0.9), (4, 1.0)])
+def test_lookahead_without_end_value_keeps_its_scores_bit_for_bit(horizon, discount):
+    """``end_weight = 0`` (independent) is the planner without an end value: the same scores
+    as the path-by-path sums, whatever ``end_wait``."""
+    rng, grid, positions, idleness = scene(3 + horizon, 8, 9, 5, 0.2)
+    view = make_view(grid, positions, idleness, rng.random(grid.shape) * grid.free)
+    got = []
+    for wait in (0, 7):
+        policy = LookaheadPolicy(horizon, discount, 0.0, wait, "independent", beam=0)
+        policy.reset(grid, len(positions), np.random.default_rng(0))
+        got.append(policy.scores(view))
+    reference = LookaheadPolicy(horizon, discount, end_weight=0.0, plan="independent", beam=0)
+    reference.reset(grid, len(positions), np.random.default_rng(0))
+    reference.scores(view)  # sets the importance belief
+    expect = lookahead_by_simulation(reference, grid, positions, idleness, PARAMS)
+    ok = view.feasible
+    for scores in got:
+        np.testing.assert_array_equal(scores, got[0])
+        np.testing.assert_allclose(scores[ok], expect[ok], rtol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "options",
+    [
+        {"end_weight": -0.1},
+        {"end_weight": 11},
+        {"end_wait": -1},
+        {"end_wait": 2.5},
+        {"plan": "greedy"},
+    ],
+)
+def test_lookahead_rejects_bad_end_options(options):
+    with pytest.raises(UserError):
+        LookaheadPolicy(horizon=2, **options)
+
+
+@pytest.mark.parametrize("plan", ["independent", "sequential"])
+@pytest.mark.parametrize("horizon, end_weight", [(1, 0.0), (3, 0.9), (4, 0.5)])
+def test_lookahead_beam_wide_enough_is_the_full_tree(plan, horizon, end_weight):
+    """A beam that keeps every prefix (``5^(H-1)`` per first action) searches all paths."""
+    rng, grid, positions, idleness = scene(40 + horizon, 7, 8, 4, 0.2)
+    positions = positions[np.argsort(positions[:, 1])]
+    p = ScoreParams(eta=0.3, delta=0.2)
+    view = make_view(grid, positions, idleness, rng.random(grid.shape) * grid.free, params=p)
+    scores = []
+    for beam in (0, 5 ** (horizon - 1)):
+        policy = LookaheadPolicy(horizon, 1.0, end_weight, 4, plan, beam=beam)
+        policy.reset(grid, len(positions), np.random.default_rng(0))
+        scores.append(policy.scores(view))
+    ok = view.feasible
+    np.testing.assert_allclose(scores[1][ok], scores[0][ok], rtol=1e-12, atol=1e-12)
+
+
+def test_lookahead_beam_reaches_long_horizons():
+    _, grid, positions, idleness = scene(5, 12, 14, 4, 0.1)
+    policy = LookaheadPolicy(horizon=8, end_weight=0.9, plan="sequential", beam=20)
+    actions = [a for _, a in run(policy, np.random.default_rng(1), grid, positions, idleness, 20)]
+    assert len(actions) == 20
+    with pytest.raises(UserError):
+        LookaheadPolicy(horizon=8, beam=0)  # the full tree stops at MAX_HORIZON

@@ -316,7 +316,8 @@ SWARMS: dict[str, SwarmKind] = {
         SwarmKind(
             "lookahead",
             _planner("lookahead"),
-            "the best summed visit gain over paths of H steps, first moves by the coordinator",
+            "the best visit gains over H steps plus the worth of the idleness left at the end, "
+            "drones planned in turn, first moves by the coordinator",
         ),
         SwarmKind("rl", _learned("rl"), "the Q-network with the central coordinator", True),
         SwarmKind(
