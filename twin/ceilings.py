@@ -14,22 +14,21 @@ results tables with ``role = "ceiling"``, never candidates for the best swarm.
 
 - :func:`lagrangian_bound`, "bound (ceiling)": a Lagrangian relaxation of the swarm's problem.
   Moves are ignored (any cell can be visited at any step); what remains couples the cells only
-  through "at most N cells visited per step", which is relaxed with a price ``lambda_k >= 0``
-  per step. Then every cell is its own problem, a DP over its visit times (:func:`cell_dp`),
-  and for ANY prices
+  through "between 1 and N cells visited per step", which is relaxed with a price
+  ``lambda_k`` per step. Then every cell is its own problem, a DP over its visit times
+  (:func:`cell_dp`), and for ANY prices
 
-      R_hat_T * T <= L(lambda) = sum_c V_c(lambda) + N sum_k lambda_k,
+      R_hat_T * T <= L(lambda) = sum_c V_c(lambda) + sum_k max(N lambda_k, lambda_k),
 
   so the bound is the smallest ``L`` the subgradient steps find, divided by ``T``.
 - :func:`oracle`, "oracle (ceiling)": real swarms (moves, the coordinator's distinct cells)
-  planned on the true maps; the row is the best of them on each seed. One is the price-directed
-  swarm (:class:`PricedPolicy`): each drone scores a cell by its gain now plus what the cell's
-  own DP (on the true maps, at the bound's prices) says a visit now is worth against waiting;
-  the other is the one-step visit gain scored with the true ``T^{k+1}``
-  (:class:`TrueVisitGainPolicy`).
+  planned on the true maps, the row being the best of them on each seed (:data:`ORACLE_SWARMS`):
+  the look-ahead on the true future maps with an end value for the idleness a path leaves
+  (:class:`TrueLookaheadPolicy`), and the one-step visit gain scored with the true
+  ``T^{k+1}`` (:class:`TrueVisitGainPolicy`). A lower bound on the best swarm possible, so
+  with the bound it brackets the headroom.
 
-Measured (synthetic, ``configs/synthetic.toml``, seeds 0-9, T = 2000, 4 drones, by
-``twin evaluate --seeds 10 --swarms visit-gain``): see :data:`MEASURED`.
+MEASURED_PLACEHOLDER
 """
 
 from __future__ import annotations
@@ -40,8 +39,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from twin.grid import Grid
-from twin.planners import CoordinatedPolicy
+from twin.grid import ACTION_DELTAS, Grid
+from twin.planners import CoordinatedPolicy, LookaheadPolicy
 from twin.policies import SwarmView
 from twin.scores import ScoreParams, visit_gain
 
@@ -50,9 +49,6 @@ ORACLE = "oracle (ceiling)"
 BOUND = "bound (ceiling)"
 CEILINGS = (ORACLE, BOUND)
 SWARM_ROLE, CEILING_ROLE = "swarm", "ceiling"
-
-#: Filled in by measurement; quoted by the module docstring.
-MEASURED = ""
 
 
 def visit_factor(idleness: np.ndarray, params: ScoreParams) -> np.ndarray:
@@ -132,12 +128,9 @@ class CellDP:
 
     total: float  # sum over cells of V_c at step 0 (the cells start at I = 1: state 0)
     visits: np.ndarray  # (T,) cells visited per step by the DP's optimal visit plans
-    values: np.ndarray | None = None  # (T+1, C, S) float32 V_k(c, state) when kept
 
 
-def cell_dp(
-    weights: np.ndarray, prices: np.ndarray, states: CellStates, keep_values: bool = False
-) -> CellDP:
+def cell_dp(weights: np.ndarray, prices: np.ndarray, states: CellStates) -> CellDP:
     """Every cell's best visit plan at prices ``lambda_k``, all cells at once (numpy over cells
     and states, a loop over steps).
 
@@ -154,9 +147,6 @@ def cell_dp(
     n_states = len(states.factors)
     value = np.zeros((n_cells, n_states))
     visit_best = np.empty((horizon, n_cells, n_states), dtype=bool)
-    values = np.empty((horizon + 1, n_cells, n_states), np.float32) if keep_values else None
-    if values is not None:
-        values[horizon] = 0.0
     factors = states.factors[None, :]
     for k in range(horizon - 1, -1, -1):
         skip = value[:, states.skip]
@@ -165,8 +155,6 @@ def cell_dp(
         visit -= prices[k]
         np.greater(visit, skip, out=visit_best[k])
         value = np.maximum(visit, skip, out=visit)
-        if values is not None:
-            values[k] = value
     state = np.zeros(n_cells, dtype=np.int64)
     cells = np.arange(n_cells)
     visits = np.empty(horizon)
@@ -174,7 +162,7 @@ def cell_dp(
         v = visit_best[k, cells, state]
         visits[k] = v.sum()
         state = np.where(v, states.visit[state], states.skip[state])
-    return CellDP(float(value[:, 0].sum()), visits, values)
+    return CellDP(float(value[:, 0].sum()), visits)
 
 
 def cell_weights(maps: np.ndarray, grid: Grid, params: ScoreParams) -> np.ndarray:
@@ -205,15 +193,19 @@ def lagrangian_bound(
 ) -> Bound:
     """Upper bound on the ``R_hat_T`` of any ``n_drones``-drone swarm on the true ``maps``.
 
-    ``L(lambda) = sum_c V_c(lambda) + N sum_k lambda_k`` (:func:`cell_dp`) bounds ``T R_hat_T``
-    for every ``lambda >= 0``: a swarm's visits are one visit plan per cell with at most N
-    cells a step, each plan's pay is at most its cell's DP value at those prices plus
-    ``lambda_k`` per visit, and the visits are at most N a step. Subgradient of ``L`` at
-    ``lambda``: ``N - n_k`` (``n_k`` the DP's visits at step k); projected steps
-    ``lambda <- max(0, lambda - s (N - n))`` with Polyak's step towards ``target`` (a value
-    reached by a swarm, ``R_hat_T`` scale; default 0.99 of the best bound so far), the step
-    halved when 3 steps bring no progress. Initial prices: the one price for every step with
-    the smallest ``L`` (a golden-section search; ``L`` is convex in it).
+    A swarm visits ``n_k`` distinct cells at step k, ``1 <= n_k <= N``. With a price
+    ``lambda_k`` of any sign per step and ``h(lambda) = max(N lambda, lambda)`` (so
+    ``lambda n_k <= h(lambda_k)``),
+
+        T R_hat_T <= L(lambda) = sum_c V_c(lambda) + sum_k h(lambda_k)
+
+    (:func:`cell_dp`): the swarm's visits are one visit plan per cell, each paying at most its
+    cell's DP value at these prices plus ``lambda_k`` per visit. ``L`` is convex; a
+    subgradient at ``lambda_k`` is ``h'(lambda_k) - n_k`` (``n_k`` now the DP plans' visits;
+    at 0, ``clip(n_k, 1, N) - n_k``). Steps ``lambda <- lambda - s g`` with Polyak's ``s``
+    towards ``target`` (``R_hat_T`` scale; default 0.99 of the best bound so far), halved when
+    3 steps bring no progress. Initial prices: the one price for every step with the smallest
+    ``L`` (golden-section search). Any prices give a valid bound; the smallest found is kept.
     """
     import time
 
@@ -222,15 +214,9 @@ def lagrangian_bound(
     horizon, n_cells = weights.shape
     factors = CellStates.build(params, horizon, levels)
     n = min(n_drones, n_cells)
-    if n >= n_cells:  # the constraint never binds
-        prices = np.zeros(horizon)
-        dp = cell_dp(weights, prices, factors)
-        return Bound(dp.total / horizon, prices, [dp.total / horizon], time.perf_counter() - t0)
     evaluate = _dual(weights, factors, n)
-    prices = np.full(
-        horizon,
-        _best_flat_price(evaluate, horizon, (1.0 - params.eta + params.delta) * weights.max()),
-    )
+    top = (1.0 - params.eta + params.delta) * weights.max()  # no visit pays more
+    prices = np.full(horizon, _best_flat_price(evaluate, horizon, top))
     best, best_prices, history = math.inf, prices.copy(), []
     theta, stall = 0.5, 0
     for _ in range(iterations):
@@ -242,13 +228,13 @@ def lagrangian_bound(
             stall += 1
             if stall >= 3:
                 theta, stall = theta / 2.0, 0
-        grad = n - visits
+        grad = np.where(prices > 0, n, np.where(prices < 0, 1, np.clip(visits, 1, n))) - visits
         norm = float(grad @ grad)
-        if norm == 0.0:  # the DP's plans visit exactly N cells a step: L is the optimum
+        if norm == 0.0:  # 0 is a subgradient: L is at its minimum
             break
         goal = target * horizon if target is not None else 0.99 * best
         step = theta * max(value - goal, 1e-6 * abs(value)) / norm
-        prices = np.maximum(0.0, prices - step * grad)
+        prices = prices - step * grad
     return Bound(best / horizon, best_prices, history, time.perf_counter() - t0)
 
 
@@ -257,7 +243,8 @@ def _dual(weights: np.ndarray, factors: CellStates, n: int):
 
     def evaluate(prices: np.ndarray) -> tuple[float, np.ndarray]:
         dp = cell_dp(weights, prices, factors)
-        return dp.total + n * float(prices.sum()), dp.visits
+        paid = np.where(prices > 0, n * prices, prices)
+        return dp.total + float(paid.sum()), dp.visits
 
     return evaluate
 
@@ -300,86 +287,79 @@ class TrueVisitGainPolicy(CoordinatedPolicy):
         return visit_gain(weight, grid.values_in_view(view.idleness, None, fov), p)
 
 
-class PricedPolicy(CoordinatedPolicy):
-    """The price-directed swarm: a drone's move to cell c at step k scores
-
-        g_k(c) + V_{k+1}(c, 1) - V_{k+1}(c, next(d_c)),
-
-    the true gain now (:func:`twin.scores.visit_gain` with ``T^{k+1}`` and ``I^k``) plus what
-    the cell's DP (:func:`cell_dp` at the bound's prices, on the true maps) values a visit now
-    against leaving it (``d_c``: the gap since the swarm last visited c). So a hot cell is not
-    revisited before it has recovered enough to be worth it; the coordinator keeps cells
-    distinct.
+class TrueLookaheadPolicy(LookaheadPolicy):
+    """The receding-horizon planner of :class:`twin.planners.LookaheadPolicy` on the true maps,
+    with an end value: a path's visit at level h (step ``k + h``) is paid its true gain
+    ``g`` with ``T^{k+h+1}``, plus ``rho w`` times the change it makes to the cell's idleness at
+    the path's end (``min(1, eta I + (H-1-h) delta) - min(1, I + (H-h) delta)``, ``I`` the
+    predicted idleness before the visit), so that harvesting a cell that has not recovered
+    costs what it takes from later visits (``rho = 0``: no end value).
     """
 
-    name = "priced"
+    name = "lookahead-true"
 
-    def __init__(
-        self,
-        maps: np.ndarray,
-        grid: Grid,
-        params: ScoreParams,
-        prices: np.ndarray,
-        levels: int = DEFAULT_LEVELS,
-    ):
+    def __init__(self, maps: np.ndarray, horizon: int = 4, end_value: float = 0.5):
+        super().__init__(horizon)
         self.maps = np.asarray(maps)
-        horizon = len(self.maps) - 1
-        self.states = CellStates.build(params, horizon, levels)
-        weights = cell_weights(self.maps, grid, params)
-        self.values = cell_dp(weights, prices, self.states, keep_values=True).values
-        self.cell_of = np.full(grid.shape, -1, dtype=np.int64)
-        self.cell_of[grid.free] = np.arange(grid.n_free)
-
-    def reset(self, grid: Grid, n_drones: int, rng: np.random.Generator) -> None:
-        super().reset(grid, n_drones, rng)
-        self.state = np.zeros(grid.n_free, dtype=np.int64)  # gap state of every free cell
-        self.last_k = -1
+        self.end_value = float(end_value)
 
     def scores(self, view: SwarmView) -> np.ndarray:
-        grid, p, k = view.grid, view.params, view.k
-        if k != self.last_k + 1:
-            raise RuntimeError("the price-directed swarm must be run step by step from k = 0")
-        if k > 0:  # the cells at P_k were visited at step k - 1
-            visited = np.zeros(grid.n_free, dtype=bool)
-            visited[self.cell_of[view.positions[:, 0], view.positions[:, 1]]] = True
-            self.state = np.where(
-                visited, self.states.visit[self.state], self.states.skip[self.state]
-            )
-        self.last_k = k
-        fov = grid.view_index(view.positions)
-        t_next = self.maps[min(k + 1, len(self.maps) - 1)]
-        weight = p.alpha_T * grid.values_in_view(t_next, None, fov) + p.alpha_I
-        gain = visit_gain(weight, grid.values_in_view(view.idleness, None, fov), p)
-        flat, valid = fov
-        cells = np.where(valid, self.cell_of.ravel()[np.where(valid, flat, 0)], -1)
-        ok = cells >= 0
-        later = self.values[min(k + 1, len(self.values) - 1)]
-        c = np.where(ok, cells, 0)
-        now = self.state[c]
-        future = later[c, self.states.visit[now]] - later[c, self.states.skip[now]]
-        return np.where(ok, gain + future, gain)
+        p, h_max = view.params, self.horizon
+        self.idle_padded[h_max:-h_max, h_max:-h_max] = view.idleness
+        pos = np.asarray(view.positions, dtype=np.int64)
+        base = (pos[:, 0] + h_max) * self.width + pos[:, 1] + h_max
+        near = self.cell_flat[:, None] + base[None, :]  # (C, N) padded flat ids
+        idle = self.idle_padded.ravel()[near]
+        blocked = ~self.free_padded[near]
+        last = len(self.maps) - 1
+        pre, value = [], None
+        for h, level in enumerate(self.levels):
+            self.belief[:] = self.maps[min(view.k + 1 + h, last)]
+            weight = p.alpha_T * self.belief_padded.ravel()[near] + p.alpha_I
+            pre_h = np.minimum(1.0, idle[level.cell] + h * p.delta)
+            for s, classes, earlier in level.revisits:
+                pre_h[classes] = np.minimum(1.0, p.eta * pre[s][earlier] + (h - 1 - s) * p.delta)
+            w = weight[level.cell]
+            gain = visit_gain(w, pre_h, p)
+            after = np.minimum(1.0, p.eta * pre_h + (h_max - 1 - h) * p.delta)
+            without = np.minimum(1.0, pre_h + (h_max - h) * p.delta)
+            gain += self.end_value * w * (after - without)
+            gain[blocked[level.cell]] = -np.inf
+            pre.append(pre_h)
+            gain = gain[level.klass]
+            if h == 0:
+                value = 0.0 + gain
+            elif h < h_max - 1:
+                value = np.repeat(value, 5, axis=0) + gain
+            else:
+                value = value + gain.reshape(len(value), 5, -1).max(axis=1)
+        return value.reshape(len(ACTION_DELTAS), -1, len(pos)).max(axis=1).T
+
+
+#: The oracle's swarms: (name, planner options); the oracle row is the best on each seed.
+ORACLE_SWARMS: tuple[tuple[str, dict], ...] = (
+    ("visit-gain-true", {}),
+    ("lookahead-true H=4", {"horizon": 4, "end_value": 1.0}),
+    ("lookahead-true H=5", {"horizon": 5, "end_value": 1.0}),
+    ("lookahead-true H=4 rho=0.9", {"horizon": 4, "end_value": 0.9}),
+)
 
 
 def oracle(
-    maps: np.ndarray,
-    grid: Grid,
-    starts: np.ndarray,
-    params: ScoreParams,
-    seed: int = 0,
-    bound: Bound | None = None,
+    maps: np.ndarray, grid: Grid, starts: np.ndarray, params: ScoreParams, seed: int = 0
 ) -> tuple[pd.Series, str, pd.DataFrame]:
-    """Run the oracle swarms on the true ``maps`` from ``starts``; return the best one's Table 2
-    row (:func:`twin.metrics.table2`), its name, and every oracle swarm's rows."""
+    """Run the oracle swarms (:data:`ORACLE_SWARMS`) on the true ``maps`` from ``starts``;
+    return the best one's Table 2 row (:func:`twin.metrics.table2`), its name, and every
+    oracle swarm's rows. Each is a real swarm (moves, distinct cells by the coordinator);
+    choosing the best in hindsight is what makes it an oracle rather than a competitor."""
     from twin.metrics import table2
     from twin.patrol import run_patrol
     from twin.traffic.base import RecordedTraffic
 
     maps = np.asarray(maps, dtype=np.float64)
-    if bound is None:
-        bound = lagrangian_bound(maps, grid, len(starts), params)
     swarms = {
-        "priced": PricedPolicy(maps, grid, params, bound.prices),
-        "visit-gain-true": TrueVisitGainPolicy(maps),
+        name: TrueVisitGainPolicy(maps) if not options else TrueLookaheadPolicy(maps, **options)
+        for name, options in ORACLE_SWARMS
     }
     result = run_patrol(RecordedTraffic(grid, maps), swarms, starts, params, seed=seed)
     table = table2(result, params)
@@ -413,7 +393,7 @@ def ceiling_table(
     if key not in cache:
         cache[key] = lagrangian_bound(maps, result.grid, len(starts), params)
     bound = cache[key]
-    row, name, _ = oracle(maps, result.grid, starts, params, result.seed, bound)
+    row, name, _ = oracle(maps, result.grid, starts, params, result.seed)
     oracle_row = row.to_dict()
     oracle_row.update(swarm=ORACLE, pct_time_max_C=np.nan, oracle_swarm=name)
     bound_row = {"swarm": BOUND, "R_hat_T": bound.value}
