@@ -75,7 +75,7 @@ def add_parser(subparsers) -> None:
         default=True,
         help="add the rows oracle (ceiling) and bound (ceiling): a swarm planning on the true "
         "future maps and an upper bound no swarm can exceed, computed after the swarms' run "
-        "(default on; --no-ceiling skips them)",
+        "(default on, left out of a run stopped by Ctrl-C; --no-ceiling skips them)",
     )
     p.add_argument("--no-report", action="store_true", help="do not render the HTML report")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -115,7 +115,10 @@ def main(args: argparse.Namespace) -> int:
         discard_run_dir(run_dir)
         raise
     summary, comparison = record(
-        run_dir, outcome, run_metadata(outcome, "evaluate"), ceilings=args.ceiling
+        run_dir,
+        outcome,
+        run_metadata(outcome, "evaluate"),
+        ceilings=args.ceiling and not outcome.interrupted,
     )
     done = outcome.results[-1]
     planned = (outcome.traffic[-1] or {}).get("horizon", done.horizon)

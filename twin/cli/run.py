@@ -86,7 +86,7 @@ def add_parser(subparsers) -> None:
         default=True,
         help="add the rows oracle (ceiling) and bound (ceiling): a swarm planning on the true "
         "future maps and an upper bound no swarm can exceed, computed after the swarms' run "
-        "(default on; --no-ceiling skips them)",
+        "(default on, left out of a run stopped by Ctrl-C; --no-ceiling skips them)",
     )
     p.add_argument("--no-report", action="store_true", help="do not render the HTML report")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -240,7 +240,9 @@ def main(args: argparse.Namespace) -> int:
         "run",
         sumo_read_seconds=round(sum(s.read_seconds for s in outcome.sources), 3),
     )
-    summary, comparison = record(run_dir, outcome, meta, ceilings=args.ceiling)
+    summary, comparison = record(
+        run_dir, outcome, meta, ceilings=args.ceiling and not outcome.interrupted
+    )
     done = outcome.results[-1]
     if (done.error or done.completed_steps == 0) and not outcome.interrupted:
         print(
