@@ -28,7 +28,18 @@ results tables with ``role = "ceiling"``, never candidates for the best swarm.
   ``T^{k+1}`` (:class:`TrueVisitGainPolicy`). A lower bound on the best swarm possible, so
   with the bound it brackets the headroom.
 
-MEASURED_PLACEHOLDER
+Measured (R_hat_T, mean ± 95% interval over seeds; the bound is one number when the seeds
+share the traffic):
+
+- synthetic, ``twin evaluate --seeds 10 --swarms visit-gain,lookahead`` (configs/synthetic.toml,
+  seeds 0-9, T = 2000, 4 drones): visit-gain 2.628 ± 0.014, lookahead 2.591 ± 0.014,
+  oracle 2.734 ± 0.016 (1.040 x visit-gain; won by the true-map look-ahead on every seed),
+  bound 2.955 (1.124 x; 40 subgradient steps, 15 s). The best swarm reaches 88.9% of the
+  bound, the oracle 92.5%. The dual's optimum lies a little lower: 150 subgradient steps give
+  2.949; a smoothed dual (soft-max DP, temperature 0.01 then 0.002, L-BFGS, 11 min) 2.918.
+- Shenzhen-like, ``twin run --seed 0 --swarms visit-gain,lookahead,greedy-coordinated``
+  (configs/shenzhen.toml, T = 144): visit-gain 1.990, lookahead 2.034, oracle 2.108, bound
+  2.365 (the best swarm reaches 86.0% of it, the oracle 89.1%); the ceilings took 1.4 s.
 """
 
 from __future__ import annotations
