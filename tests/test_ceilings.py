@@ -15,9 +15,11 @@ from twin.ceilings import (
     CellStates,
     TrueLookaheadPolicy,
     TrueVisitGainPolicy,
+    cell_weights,
     headroom,
     lagrangian_bound,
     oracle,
+    soft_dual,
 )
 from twin.cli import main
 from twin.grid import Grid
@@ -78,6 +80,27 @@ def test_no_swarm_beats_the_bound(seed, nx, ny, horizon, n_drones, eta, delta, l
     scores = [*result.rewards.mean(axis=1), *oracle_rows["R_hat_T"]]
     assert max(scores) <= bound.value + 1e-9
     assert min(bound.history) == pytest.approx(bound.value)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_smoothed_dual_bounds_too_and_refines(seed):
+    grid, maps, starts, params = random_case(seed, 3, 4, 40, 2, 0.1, 0.05)
+    plain = lagrangian_bound(maps, grid, 2, params, iterations=3)
+    refined = lagrangian_bound(maps, grid, 2, params, iterations=3, smoothing=(0.05, 0.01))
+    assert refined.value <= plain.value + 1e-12
+    swarms = {"visit-gain": VisitGainPolicy()}
+    result = run_patrol(RecordedTraffic(grid, maps), swarms, starts, params, seed=seed)
+    _, _, oracle_rows = oracle(maps, grid, starts, params, seed)
+    assert max(result.rewards.mean(), oracle_rows["R_hat_T"].max()) <= refined.value + 1e-9
+    # the gradient of the smoothed dual is its finite difference
+    weights, states = cell_weights(maps, grid, params), CellStates.build(params, 40)
+    prices = np.abs(np.random.default_rng(seed).normal(0.3, 0.1, 40))
+    soft, grad = soft_dual(prices, weights, states, 2, 0.05)
+    bumped = prices.copy()
+    bumped[7] += 1e-6
+    assert (soft_dual(bumped, weights, states, 2, 0.05)[0] - soft) / 1e-6 == pytest.approx(
+        grad[7], rel=1e-3, abs=1e-7
+    )
 
 
 @pytest.mark.parametrize("seed", range(4))

@@ -201,6 +201,8 @@ def lagrangian_bound(
     iterations: int = 40,
     target: float | None = None,
     levels: int = DEFAULT_LEVELS,
+    smoothing: tuple[float, ...] = (),
+    smoothing_steps: int = 40,
 ) -> Bound:
     """Upper bound on the ``R_hat_T`` of any ``n_drones``-drone swarm on the true ``maps``.
 
@@ -217,6 +219,13 @@ def lagrangian_bound(
     towards ``target`` (``R_hat_T`` scale; default 0.99 of the best bound so far), halved when
     3 steps bring no progress. Initial prices: the one price for every step with the smallest
     ``L`` (golden-section search). Any prices give a valid bound; the smallest found is kept.
+
+    ``smoothing`` (temperatures, e.g. ``(0.01, 0.002)``; none by default: slow) then refines
+    the prices on the smoothed dual (:func:`soft_dual`: the DP's max replaced by a soft-max,
+    which is at least the max, so it too bounds from above) with L-BFGS, up to
+    ``smoothing_steps`` evaluations per temperature, and keeps the hard ``L`` at the prices
+    found if lower. On the synthetic map it reaches 2.918 where 40 subgradient steps give 2.955,
+    in 11 min instead of 15 s.
     """
     import time
 
@@ -230,7 +239,7 @@ def lagrangian_bound(
     prices = np.full(horizon, _best_flat_price(evaluate, horizon, top))
     best, best_prices, history = math.inf, prices.copy(), []
     theta, stall = 0.5, 0
-    for _ in range(iterations):
+    for _ in range(max(1, iterations)):
         value, visits = evaluate(prices)
         history.append(value / horizon)
         if value < best - 1e-9 * abs(best if math.isfinite(best) else 1.0):
@@ -246,7 +255,61 @@ def lagrangian_bound(
         goal = target * horizon if target is not None else 0.99 * best
         step = theta * max(value - goal, 1e-6 * abs(value)) / norm
         prices = prices - step * grad
+    if smoothing:
+        from scipy.optimize import minimize
+
+        prices = np.maximum(best_prices, 0.0)
+        for tau in smoothing:
+            found = minimize(
+                soft_dual,
+                prices,
+                args=(weights, factors, n, float(tau)),
+                jac=True,
+                method="L-BFGS-B",
+                bounds=[(0.0, None)] * horizon,
+                options={"maxfun": int(smoothing_steps)},
+            )
+            prices = found.x
+            value, _ = evaluate(prices)
+            history.append(value / horizon)
+            if value < best:
+                best, best_prices = value, prices.copy()
     return Bound(best / horizon, best_prices, history, time.perf_counter() - t0)
+
+
+def soft_dual(
+    prices: np.ndarray, weights: np.ndarray, states: CellStates, n: int, tau: float
+) -> tuple[float, np.ndarray]:
+    """The smoothed dual ``L_tau(lambda) / T`` for ``lambda >= 0`` and its gradient.
+
+    :func:`cell_dp` with ``max(a, b)`` replaced by ``tau log(e^{a/tau} + e^{b/tau}) >= max(a, b)``,
+    so ``L_tau >= L``: still an upper bound, and smooth. Its gradient in ``lambda_k`` is
+    ``N - E[n_k]``: the expected visits of step k when each cell visits with probability
+    ``sigmoid((visit - skip) / tau)`` (a forward pass over the state distributions).
+    """
+    horizon, n_cells = weights.shape
+    n_states = len(states.factors)
+    value = np.zeros((n_cells, n_states))
+    chance = np.empty((horizon, n_cells, n_states), np.float32)
+    for k in range(horizon - 1, -1, -1):
+        skip = value[:, states.skip]
+        visit = value[:, states.visit] + weights[k][:, None] * states.factors[None, :] - prices[k]
+        diff = visit - skip
+        value = np.maximum(visit, skip) + tau * np.log1p(np.exp(-np.abs(diff) / tau))
+        chance[k] = 0.5 * (1.0 + np.tanh(diff / (2.0 * tau)))
+    to_visit = np.zeros((n_states, n_states))
+    to_visit[np.arange(n_states), states.visit] = 1.0
+    to_skip = np.zeros((n_states, n_states))
+    to_skip[np.arange(n_states), states.skip] = 1.0
+    dist = np.zeros((n_cells, n_states))
+    dist[:, 0] = 1.0
+    visits = np.empty(horizon)
+    for k in range(horizon):
+        moving = dist * chance[k]
+        visits[k] = moving.sum()
+        dist = moving @ to_visit + (dist - moving) @ to_skip
+    total = value[:, 0].sum() + n * float(prices.sum())
+    return total / horizon, (n - visits) / horizon
 
 
 def _dual(weights: np.ndarray, factors: CellStates, n: int):
