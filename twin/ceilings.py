@@ -410,6 +410,9 @@ class TrueLookaheadPolicy(LookaheadPolicy):
         return value.reshape(len(ACTION_DELTAS), -1, len(pos)).max(axis=1).T
 
 
+#: The largest DP (steps x free cells x states, one byte each) the bound is computed for.
+MAX_DP_BYTES = 2e9
+
 #: The oracle's swarms: (name, planner options); the oracle row is the best on each seed.
 ORACLE_SWARMS: tuple[tuple[str, dict], ...] = (
     ("visit-gain-true", {}),
@@ -464,14 +467,28 @@ def ceiling_table(
     starts = result.positions[0, 0]
     key = (hashlib.sha1(maps.tobytes()).hexdigest(), len(starts), astuple_params(params))
     cache = {} if cache is None else cache
-    if key not in cache:
-        cache[key] = lagrangian_bound(maps, result.grid, len(starts), params)
-    bound = cache[key]
+    n_states = len(CellStates.build(params, len(maps) - 1).factors)
+    dp_bytes = (len(maps) - 1) * result.grid.n_free * n_states  # the DP's decisions
+    if dp_bytes > MAX_DP_BYTES:
+        import sys
+
+        print(
+            f"twin: notice: bound (ceiling) left out: its DP would hold {dp_bytes / 1e9:.1f} GB "
+            f"({len(maps) - 1} steps x {result.grid.n_free} cells x {n_states} states)",
+            file=sys.stderr,
+        )
+        bound = None
+    elif key not in cache:
+        bound = cache[key] = lagrangian_bound(maps, result.grid, len(starts), params)
+    else:
+        bound = cache[key]
     row, name, _ = oracle(maps, result.grid, starts, params, result.seed)
     oracle_row = row.to_dict()
     oracle_row.update(swarm=ORACLE, pct_time_max_C=np.nan, oracle_swarm=name)
-    bound_row = {"swarm": BOUND, "R_hat_T": bound.value}
-    table = pd.DataFrame([oracle_row, bound_row])
+    rows = [oracle_row]
+    if bound is not None:
+        rows.append({"swarm": BOUND, "R_hat_T": bound.value})
+    table = pd.DataFrame(rows)
     table["role"] = CEILING_ROLE
     return table
 
