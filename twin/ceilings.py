@@ -36,7 +36,9 @@ share the traffic):
   oracle 2.734 ± 0.016 (1.040 x visit-gain; won by the true-map look-ahead on every seed),
   bound 2.955 (1.124 x; 40 subgradient steps, 15 s). The best swarm reaches 88.9% of the
   bound, the oracle 92.5%. The dual's optimum lies a little lower: 150 subgradient steps give
-  2.949; a smoothed dual (soft-max DP, temperature 0.01 then 0.002, L-BFGS, 11 min) 2.918.
+  2.949; the smoothed dual (``lagrangian_bound(..., smoothing=(0.01, 0.002),
+  smoothing_steps=45)``: soft-max DP, L-BFGS) 2.9215 then 2.918, in 13 min on the shared
+  2-core machine. So the best swarm reaches 90.1% of that tighter bound, the oracle 93.7%.
 - Shenzhen-like, ``twin run --seed 0 --swarms visit-gain,lookahead,greedy-coordinated``
   (configs/shenzhen.toml, T = 144): visit-gain 1.990, lookahead 2.034, oracle 2.108, bound
   2.365 (the best swarm reaches 86.0% of it, the oracle 89.1%); the ceilings took 1.4 s.
@@ -225,7 +227,7 @@ def lagrangian_bound(
     which is at least the max, so it too bounds from above) with L-BFGS, up to
     ``smoothing_steps`` evaluations per temperature, and keeps the hard ``L`` at the prices
     found if lower. On the synthetic map it reaches 2.918 where 40 subgradient steps give 2.955,
-    in 11 min instead of 15 s.
+    in 13 min instead of 15 s.
     """
     import time
 
