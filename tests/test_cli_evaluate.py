@@ -56,14 +56,15 @@ def test_evaluate_writes_the_run_folder(tmp_path, capsys):
     summary = pd.read_csv(out / "summary.csv")
     per_seed = pd.read_csv(out / "per_seed.csv")
     series = pd.read_parquet(out / "series.parquet")
-    assert list(summary.swarm) == ["random", "greedy", "sweeping"]
-    assert (summary.n_seeds == 3).all() and len(per_seed) == 9
+    ceilings = ["oracle (ceiling)", "bound (ceiling)"]
+    assert list(summary.swarm) == ["random", "greedy", "sweeping", *ceilings]
+    assert list(summary.role) == ["swarm"] * 3 + ["ceiling"] * 2
+    assert (summary.n_seeds == 3).all() and len(per_seed) == 9 + 2 * 3
     assert len(series) == 3 * 3 * 40
     # the summary is the mean of the per-seed rows, which are the means of the series
     g = series[series.seed == 0].groupby("swarm", sort=False)["reward"].mean()
-    assert per_seed[per_seed.seed == 0].set_index("swarm").R_hat_T.to_dict() == pytest.approx(
-        g.to_dict()
-    )
+    swarms = per_seed[(per_seed.seed == 0) & (per_seed.role == "swarm")]
+    assert swarms.set_index("swarm").R_hat_T.to_dict() == pytest.approx(g.to_dict())
     assert summary.set_index("swarm").R_hat_T.to_dict() == pytest.approx(
         per_seed.groupby("swarm").R_hat_T.mean().to_dict()
     )

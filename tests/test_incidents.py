@@ -131,6 +131,7 @@ def test_run_writes_incidents_json_and_scores_them(tmp_path):
     import pandas as pd
 
     summary = pd.read_csv(out / "summary.csv")
+    summary = summary[summary["role"] == "swarm"]  # the ceiling rows watch no incident
     assert (summary["incidents"] == 2).all()
     assert summary["pct_incidents_seen"].between(0, 100).all()
 

@@ -445,10 +445,12 @@ def run_metadata(outcome: ExperimentResult, kind: str, **extra: Any) -> dict[str
     }
 
 
-def record(run_dir: Path, outcome: ExperimentResult, meta: dict[str, Any]):
+def record(run_dir: Path, outcome: ExperimentResult, meta: dict[str, Any], ceilings: bool = False):
     """Write the run folder (with ``comparison.csv``: each learned swarm against the best
     classical one, paired over seeds); live SUMO runs add ``network.json``, the MFD fit and samples and
     the traffic tape of each seed (``tape.parquet`` for the first, ``tapes/`` for the rest).
+    With ``ceilings`` the tables add the oracle and bound rows (:mod:`twin.ceilings`),
+    computed from each seed's recorded maps after the swarms' run.
     ``manifest.json`` is written last (see ``twin/runs.py``). Returns the summary table and
     the comparison."""
     from twin.runs import write_run
@@ -460,7 +462,7 @@ def record(run_dir: Path, outcome: ExperimentResult, meta: dict[str, Any]):
             _write_sumo_extras(folder, outcome)
 
     # the SUMO files go before run.json and manifest.json: a kill in between leaves no manifest
-    return write_run(run_dir, outcome.results, meta, extras=extras)
+    return write_run(run_dir, outcome.results, meta, extras=extras, ceilings=ceilings)
 
 
 def _write_sumo_extras(run_dir: Path, outcome: ExperimentResult) -> None:

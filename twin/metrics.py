@@ -227,7 +227,9 @@ def format_table2(summary: pd.DataFrame) -> str:
 
 def table2_footnote(summary: pd.DataFrame) -> str:
     """What the printed Table 2 columns mean, naming the swarms compared."""
-    swarms = ", ".join(str(s) for s in summary["swarm"])
+    from twin.ceilings import swarm_rows
+
+    swarms = ", ".join(str(s) for s in swarm_rows(summary)["swarm"])
     notes = [
         f"% time max C^k: share of steps with the highest C^k among the swarms in this table "
         f"({swarms}); it changes with the set of swarms compared.",
@@ -248,6 +250,13 @@ def table2_footnote(summary: pd.DataFrame) -> str:
             "C ceiling: C_hat_T of drones that jump each step to the freshest distinct cells; "
             "an upper bound, so near it means no stacking or hovering, not more."
         )
+    from twin.ceilings import is_ceiling_row
+
+    if is_ceiling_row(summary).any():
+        notes.append(
+            "Rows marked (ceiling) are not swarms: the oracle plans on the true future maps, "
+            "the bound is a Lagrangian relaxation no swarm can exceed (twin/ceilings.py)."
+        )
     return "\n".join(notes)
 
 
@@ -260,14 +269,19 @@ def format_monitoring(summary: pd.DataFrame) -> str:
 def format_results(summary: pd.DataFrame, title: str) -> str:
     """What ``twin evaluate`` and ``twin run`` print: the Table 2 analog under ``title``, its
     footnote, and the monitoring table when the summary holds it."""
+    from twin.ceilings import headroom, swarm_rows
+
     parts = [f"{title}:", format_table2(summary), table2_footnote(summary)]
+    line = headroom(summary)
+    if line:
+        parts.append(line)
     if _present(summary, MONITORING_COLUMNS):
         parts += [
             "",
             "Monitoring against ground truth (belief error: importance-weighted MAE of the "
             "believed map; events: cells with true importance >= threshold; latency in steps "
             "from onset to first sighting):",
-            format_monitoring(summary),
+            format_monitoring(swarm_rows(summary)),
         ]
     return "\n".join(parts)
 
@@ -291,10 +305,12 @@ def paired_difference(per_seed: pd.DataFrame, a: str, b: str, column: str = "R_h
 
 def learned_against_best_classical(per_seed: pd.DataFrame, column: str = "R_hat_T"):
     """Each learned swarm against the classical swarm with the highest mean ``column``, paired
-    over seeds (empty when the run has no learned or no classical swarm)."""
+    over seeds (empty when the run has no learned or no classical swarm). Ceiling rows
+    (``role == "ceiling"``: the oracle, the bound) are never candidates."""
+    from twin.ceilings import swarm_rows
     from twin.policies import is_learned
 
-    means = per_seed.groupby("swarm", sort=False)[column].mean()
+    means = swarm_rows(per_seed).groupby("swarm", sort=False)[column].mean()
     classical = [s for s in means.index if not is_learned(s)]
     learned = [s for s in means.index if is_learned(s)]
     if not classical or not learned:

@@ -54,6 +54,7 @@ import pandas as pd
 
 from twin import __version__
 from twin.boundary import LOG_NAME, set_run_folder
+from twin.ceilings import SWARM_ROLE, ceiling_table, swarm_rows
 from twin.errors import UserError
 from twin.files import atomic_write, write_json
 from twin.metrics import MONITORING_COLUMNS, aggregate, learned_against_best_classical, table2
@@ -332,9 +333,14 @@ def write_run(
     metadata: dict[str, Any],
     monitor: MonitorSettings | None = None,
     extras: Callable[[Path], None] | None = None,
+    ceilings: bool = False,
 ) -> pd.DataFrame:
     """Write the run folder for one or several seeds; return the summary table and the
     comparison of each learned swarm with the best classical one (``comparison.csv``).
+
+    With ``ceilings``, ``per_seed.csv`` and ``summary.csv`` add the rows ``oracle (ceiling)``
+    and ``bound (ceiling)`` (:mod:`twin.ceilings`), computed from each seed's recorded maps
+    after the swarms ran; every row has a ``role``: ``swarm`` or ``ceiling``.
 
     Order: the result files, then ``extras(run_dir)`` (the SUMO files), then ``run.json``, then
     ``manifest.json`` last, so a kill at any instant leaves no manifest."""
@@ -355,10 +361,24 @@ def write_run(
         [seed_table(r, params, step_s, m) for r, m in zip(results, monitored, strict=True)],
         ignore_index=True,
     )
+    per_seed["role"] = SWARM_ROLE
+    if ceilings:
+        cache: dict = {}
+        tables = []
+        for r in results:
+            table = ceiling_table(r, params, cache) if r.rewards.shape[1] > 0 else None
+            if table is not None and len(table):
+                tables.append(table.assign(seed=r.seed))
+        if tables:
+            per_seed = pd.concat([per_seed, *tables], ignore_index=True)
     summary = aggregate(per_seed)
+    roles = per_seed.drop_duplicates("swarm").set_index("swarm")["role"]
+    summary.insert(1, "role", summary["swarm"].map(roles).fillna(SWARM_ROLE))
     comparison = learned_against_best_classical(per_seed)
     keep = [c for c in MONITORING_COLUMNS if c in summary.columns]
-    monitoring = summary[["swarm", *[x for c in keep for x in (c, f"{c}_ci95")], "n_seeds"]]
+    monitoring = swarm_rows(summary)[
+        ["swarm", *[x for c in keep for x in (c, f"{c}_ci95")], "n_seeds"]
+    ]
     event_frames = [m.events_frame() for m in monitored if m is not None]
     event_frames = [f for f in event_frames if len(f)] or event_frames[:1]
     events = pd.concat(event_frames, ignore_index=True) if event_frames else None

@@ -69,6 +69,14 @@ def add_parser(subparsers) -> None:
         default=None,
         help="refuse a run whose estimated memory exceeds this (default $TWIN_MAX_MEMORY_GB or 8)",
     )
+    p.add_argument(
+        "--ceiling",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="add the rows oracle (ceiling) and bound (ceiling): a swarm planning on the true "
+        "future maps and an upper bound no swarm can exceed, computed after the swarms' run "
+        "(default on, left out of a run stopped by Ctrl-C; --no-ceiling skips them)",
+    )
     p.add_argument("--no-report", action="store_true", help="do not render the HTML report")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=main)
@@ -106,7 +114,12 @@ def main(args: argparse.Namespace) -> int:
     except UserError:
         discard_run_dir(run_dir)
         raise
-    summary, comparison = record(run_dir, outcome, run_metadata(outcome, "evaluate"))
+    summary, comparison = record(
+        run_dir,
+        outcome,
+        run_metadata(outcome, "evaluate"),
+        ceilings=args.ceiling and not outcome.interrupted,
+    )
     done = outcome.results[-1]
     planned = (outcome.traffic[-1] or {}).get("horizon", done.horizon)
     partial = outcome.partial or done.completed_steps < planned

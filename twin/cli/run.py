@@ -80,6 +80,14 @@ def add_parser(subparsers) -> None:
         default=None,
         help="refuse a run whose estimated memory exceeds this (default $TWIN_MAX_MEMORY_GB or 8)",
     )
+    p.add_argument(
+        "--ceiling",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="add the rows oracle (ceiling) and bound (ceiling): a swarm planning on the true "
+        "future maps and an upper bound no swarm can exceed, computed after the swarms' run "
+        "(default on, left out of a run stopped by Ctrl-C; --no-ceiling skips them)",
+    )
     p.add_argument("--no-report", action="store_true", help="do not render the HTML report")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_gui_arguments(p)
@@ -236,7 +244,9 @@ def main(args: argparse.Namespace) -> int:
         "run",
         sumo_read_seconds=round(sum(s.read_seconds for s in outcome.sources), 3),
     )
-    summary, comparison = record(run_dir, outcome, meta)
+    summary, comparison = record(
+        run_dir, outcome, meta, ceilings=args.ceiling and not outcome.interrupted
+    )
     video_failed = drawer is not None and args.record and not finish_video(drawer, run_dir)
     done = outcome.results[-1]
     if (done.error or done.completed_steps == 0) and not outcome.interrupted:

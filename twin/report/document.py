@@ -437,6 +437,16 @@ def _table_caption(rf: RunFiles) -> str:
             "one visit: it is gameable by flying in a pack, shown only for comparison with "
             "the paper."
         )
+    from twin.ceilings import headroom, is_ceiling_row
+
+    if is_ceiling_row(rf.summary).any():
+        text += (
+            " Rows marked (ceiling) are not swarms: the oracle plans on the true future maps "
+            "and the bound is a Lagrangian relaxation no swarm can exceed (twin/ceilings.py)."
+        )
+        line = headroom(rf.summary)
+        if line:
+            text += f" {line}."
     if "C_hat_T_ceiling" in columns:
         text += (
             " The Ĉ_T ceiling is the coverage of drones that jump, each step, to the freshest "

@@ -81,8 +81,11 @@ class RunFiles:
 
     @property
     def swarms(self) -> list[str]:
-        """Swarm names in the order of ``summary.csv``."""
-        return [str(s) for s in self.summary["swarm"]]
+        """Swarm names in the order of ``summary.csv`` (ceiling rows left out: they have no
+        series or trajectories)."""
+        from twin.ceilings import swarm_rows
+
+        return [str(s) for s in swarm_rows(self.summary)["swarm"]]
 
     @property
     def seeds(self) -> list[int]:
