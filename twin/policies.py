@@ -280,6 +280,13 @@ def _planner(name: str) -> Callable[..., Policy]:
     return build
 
 
+def _tours(**options) -> Policy:
+    """Builder of the cyclic patrol swarm (``twin.tours`` imports this module)."""
+    from twin.tours import ToursPolicy
+
+    return ToursPolicy(**options)
+
+
 def _learned(name: str) -> Callable[..., Policy]:
     """Builder of a learned swarm; torch is imported only when one is built."""
 
@@ -317,6 +324,11 @@ SWARMS: dict[str, SwarmKind] = {
             "lookahead",
             _planner("lookahead"),
             "the best summed visit gain over paths of H steps, first moves by the coordinator",
+        ),
+        SwarmKind(
+            "tours",
+            _tours,
+            "drones spaced evenly along closed tours over the cells worth patrolling",
         ),
         SwarmKind("rl", _learned("rl"), "the Q-network with the central coordinator", True),
         SwarmKind(

@@ -1,0 +1,446 @@
+"""Cyclic patrol tours: drones spaced evenly along closed walks over the cells worth patrolling.
+
+Filled in below: what the planner does, the equation it serves and the measured figures.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from scipy.cluster.vq import kmeans2
+from scipy.optimize import linear_sum_assignment
+from scipy.sparse.csgraph import connected_components
+
+from twin.errors import UserError
+from twin.grid import Grid
+from twin.planners import CoordinatedPolicy
+from twin.policies import SwarmView, _free_cell_graph, _free_paths
+from twin.scores import ScoreParams, visit_gain
+
+#: Score added to a drone's planned move: larger than any visit gain, so the coordinator keeps
+#: every planned move unless two planned moves collide.
+PLAN_BONUS = 100.0
+#: Largest number of drones sharing one tour (a tour holds about ``per_tour * period`` cells
+#: and is ordered by 2-opt, quadratic in its cells).
+MAX_PER_TOUR = 8
+#: Passes of 2-opt over a tour at most.
+TWO_OPT_PASSES = 30
+#: Action index of a step ``(di, dj)``, looked up at ``(di + 1) * 3 + (dj + 1)``; -1: not a step.
+_STEP_ACTION = np.array([-1, 1, -1, 3, 0, 4, -1, 2, -1], dtype=np.int64)
+
+
+def visit_gain_factor(period: int, params: ScoreParams) -> float:
+    """The bracket of :func:`twin.scores.visit_gain` for a cell visited every ``period`` steps,
+    in the steady state: ``min(1, I + delta) - eta I`` where ``I`` is the idleness a visit finds.
+
+    A visit leaves ``eta I``; ``period - 1`` steps of recovery later the next visit finds
+    ``min(1, eta I + (period - 1) delta)``. The factor grows by ``delta`` per step of period
+    until the cell is fully recovered when visited (``1 - eta``), then stays there.
+    """
+    eta, delta = params.eta, params.delta
+    idle = 1.0
+    for _ in range(200):  # the fixed point; contraction by eta < 1
+        new = min(1.0, eta * idle + (period - 1) * delta)
+        if abs(new - idle) < 1e-12:
+            break
+        idle = new
+    return float(min(1.0, idle + delta) - eta * idle)
+
+
+def saturation_period(params: ScoreParams) -> int:
+    """The shortest revisit period at which a visit finds the cell fully recovered (``I = 1``):
+    ``1 + ceil((1 - eta) / delta)`` (37 steps for eta = 0.1, delta = 0.025). Beyond it a visit
+    gains no more, so a longer period only spreads the drones over worse cells."""
+    if params.delta <= 0:
+        return 1_000_000
+    return 1 + math.ceil((1.0 - params.eta) / params.delta - 1e-9)
+
+
+def best_period(weights_desc: np.ndarray, n_drones: int, params: ScoreParams) -> int:
+    """The revisit period ``P`` maximising the swarm's gain per step ``n_drones * mean(top
+    n_drones * P weights) * visit_gain_factor(P)``, with ``P`` up to the saturation period:
+    every drone visits one tour cell per step and each cell is revisited every ``P`` steps."""
+    top = saturation_period(params)
+    periods = np.arange(1, top + 1)
+    counts = np.minimum(periods * n_drones, len(weights_desc))
+    csum = np.concatenate([[0.0], np.cumsum(weights_desc)])
+    mean_w = csum[counts] / np.maximum(counts, 1)
+    factor = np.array([visit_gain_factor(int(p), params) for p in periods])
+    rate = mean_w * factor * np.minimum(1.0, len(weights_desc) / (periods * n_drones))
+    return int(periods[np.argmax(rate)])
+
+
+def closed_order(cells: np.ndarray) -> np.ndarray:
+    """An order of ``cells`` ``(n, 2)`` as a short closed tour (Manhattan lengths): nearest
+    neighbour from the first cell, then 2-opt. Returns indices into ``cells``."""
+    n = len(cells)
+    if n <= 3:
+        return np.arange(n)
+    dist = np.abs(cells[:, None, :] - cells[None, :, :]).sum(axis=2)
+    order = np.empty(n, dtype=np.int64)
+    left = np.ones(n, dtype=bool)
+    order[0], left[0] = 0, False
+    for t in range(1, n):
+        row = np.where(left, dist[order[t - 1]], np.iinfo(np.int64).max)
+        order[t] = row.argmin()
+        left[order[t]] = False
+    for _ in range(TWO_OPT_PASSES):
+        improved = _two_opt(order, dist) | _or_opt(order, dist)
+        if not improved:
+            break
+    return order
+
+
+def _two_opt(order: np.ndarray, dist: np.ndarray) -> bool:
+    """One pass of 2-opt (reverse a stretch when that shortens the tour), in place."""
+    n, improved = len(order), False
+    for i in range(n - 2):
+        a, b = order[i], order[i + 1]
+        js = np.arange(i + 2, n if i > 0 else n - 1)
+        if not len(js):
+            continue
+        c, d = order[js], order[(js + 1) % n]
+        change = dist[a, c] + dist[b, d] - dist[a, b] - dist[c, d]
+        best = int(change.argmin())
+        if change[best] < 0:
+            j = int(js[best])
+            order[i + 1 : j + 1] = order[i + 1 : j + 1][::-1].copy()
+            improved = True
+    return improved
+
+
+def _or_opt(order: np.ndarray, dist: np.ndarray) -> bool:
+    """One pass of Or-opt (move a stretch of 1 to 3 cells, either way round, between two other
+    consecutive cells when that shortens the tour), in place."""
+    n, improved = len(order), False
+    for size in (1, 2, 3):
+        if n < size + 3:
+            break
+        i = 0
+        while i < n:
+            seg = order[(i + np.arange(size)) % n]
+            prev, nxt = order[(i - 1) % n], order[(i + size) % n]
+            removed = dist[prev, seg[0]] + dist[seg[-1], nxt] - dist[prev, nxt]
+            rest = np.roll(order, -(i + size))[: n - size]  # the tour without the stretch
+            a, b = rest[:-1], rest[1:]
+            fwd = dist[a, seg[0]] + dist[seg[-1], b] - dist[a, b]
+            rev = dist[a, seg[-1]] + dist[seg[0], b] - dist[a, b]
+            both = np.minimum(fwd, rev)
+            j = int(both.argmin())
+            if both[j] < removed:
+                piece = seg if fwd[j] <= rev[j] else seg[::-1]
+                order[:] = np.concatenate([rest[: j + 1], piece, rest[j + 1 :]])
+                improved = True
+            i += 1
+    return improved
+
+
+def closed_walks(grid: Grid, orders: list[np.ndarray]) -> list[np.ndarray]:
+    """Each ordered list of cells as a closed walk of neighbouring free cells: consecutive cells
+    (and the last with the first) that are not neighbours are joined by a shortest free path
+    (the walk's last cell is a neighbour of its first, which is not repeated)."""
+    starts, ends, where = [], [], []
+    for t, cells in enumerate(orders):
+        nxt = np.roll(cells, -1, axis=0)
+        gap = np.flatnonzero(np.abs(nxt - cells).sum(axis=1) > 1) if len(cells) > 1 else []
+        for g in gap:
+            starts.append(cells[g])
+            ends.append(nxt[g])
+            where.append((t, int(g)))
+    paths = (
+        _free_paths(grid, np.array(starts), np.array(ends)) if starts else {}
+    )  # all cells lie in one connected area
+    joins = {key: paths[n] for n, key in enumerate(where)}
+    walks = []
+    for t, cells in enumerate(orders):
+        walk = []
+        for g, cell in enumerate(cells):
+            walk.append(tuple(cell))
+            if (t, g) in joins:
+                walk.extend(joins[(t, g)][1:-1])
+        walks.append(np.array(walk, dtype=np.int64).reshape(-1, 2))
+    return walks
+
+
+class ToursPolicy(CoordinatedPolicy):
+    """Placeholder docstring, replaced below."""
+
+    name = "tours"
+
+    def __init__(
+        self,
+        per_tour: int = 2,
+        explore: int | None = None,
+        replan: int | None = 400,
+        shift: float = 0.2,
+    ):
+        def whole(value, key, low, example):
+            if isinstance(value, bool) or not isinstance(value, int | np.integer):
+                raise UserError(f"tours: {key} = {value!r} must be an integer; e.g. {example}")
+            if value < low:
+                raise UserError(f"tours: {key} = {value} must be at least {low}; e.g. {example}")
+            return int(value)
+
+        self.per_tour = whole(per_tour, "per_tour", 1, 2)
+        if self.per_tour > MAX_PER_TOUR:
+            raise UserError(
+                f"tours: per_tour = {per_tour} must be at most {MAX_PER_TOUR} drones; e.g. 2"
+            )
+        self.explore = None if explore is None else whole(explore, "explore", 0, 40)
+        self.replan = None if replan is None else whole(replan, "replan", 1, 400)
+        if isinstance(shift, bool) or not isinstance(shift, int | float) or not shift > 0:
+            raise UserError(f"tours: shift = {shift!r} must be a positive number; e.g. 0.2")
+        self.shift = float(shift)
+
+    def describe(self) -> dict:
+        return {
+            "per_tour": self.per_tour,
+            "explore": self.explore,
+            "replan": self.replan,
+            "shift": self.shift,
+            "plans": self.plans,
+        }
+
+    def reset(self, grid: Grid, n_drones: int, rng: np.random.Generator) -> None:
+        super().reset(grid, n_drones, rng)
+        self.belief = np.zeros(grid.shape)  # last seen T per cell, 0 if never seen
+        _, labels = connected_components(_free_cell_graph(grid), directed=False)
+        labels = labels.reshape(grid.shape)
+        counts = np.bincount(labels[grid.free])
+        self.area = grid.free & (labels == counts.argmax())  # tours stay in the largest area
+        self.plans = 0
+        self.planned_at = None
+        self.tours: list[np.ndarray] = []
+
+    # -- what the swarm knows ---------------------------------------------------------------
+
+    def _see(self, view: SwarmView) -> None:
+        flat, valid = view.grid.view_index(view.positions)
+        i, j = np.divmod(flat[valid], view.grid.ny)
+        self.belief[i, j] = view.importance[i, j]
+
+    def _weights(self, params: ScoreParams) -> np.ndarray:
+        return params.alpha_T * self.belief + params.alpha_I
+
+    # -- planning ---------------------------------------------------------------------------
+
+    def _due(self, view: SwarmView) -> bool:
+        explore = self.explore if self.explore is not None else self.period_hint(view.params)
+        if view.k < explore:
+            return False
+        if self.planned_at is None:
+            return True
+        since = view.k - self.planned_at
+        if since < saturation_period(view.params):
+            return False
+        if self.replan is not None and since >= self.replan:
+            return True
+        w = self._weights(view.params)
+        value = np.bincount(self.cell_tour, w[self.cell_i, self.cell_j], len(self.tours))
+        return bool((np.abs(value - self.value0) > self.shift * self.value0).any())
+
+    def period_hint(self, params: ScoreParams) -> int:
+        return saturation_period(params)
+
+    def _plan(self, view: SwarmView) -> None:
+        grid, n = view.grid, self.n_drones
+        w = self._weights(view.params)
+        # ties (cells never seen, or seen at T = 0) go to cells near important ones
+        key = w + 1e-3 * _blur(w * self.area) + 1e-9 * self.rng.random(w.shape)
+        key = np.where(self.area, key, -np.inf)
+        n_area = int(self.area.sum())
+        ranked = np.argsort(-key.ravel(), kind="stable")[:n_area]
+        period = best_period(w.ravel()[ranked], n, view.params)
+        chosen = ranked[: min(n * period, n_area)]
+        cells = np.stack(np.divmod(chosen, grid.ny), axis=1)
+        k = max(1, min(math.ceil(n / self.per_tour), len(cells)))
+        if k > 1:
+            _, label = kmeans2(cells.astype(float), k, minit="++", seed=self.rng)
+        else:
+            label = np.zeros(len(cells), dtype=np.int64)
+        groups = [cells[label == t] for t in range(k) if (label == t).any()]
+        orders = [g[closed_order(g)] for g in groups]
+        self.tours = closed_walks(grid, orders)
+        lengths = np.array([len(t) for t in self.tours])
+        self.period = period
+        self._assign(view, lengths)
+        self.cell_tour = np.repeat(np.arange(len(self.tours)), lengths)
+        flat_tours = np.concatenate(self.tours)
+        self.cell_i, self.cell_j = flat_tours[:, 0], flat_tours[:, 1]
+        self.value0 = np.bincount(self.cell_tour, w[self.cell_i, self.cell_j], len(self.tours))
+        self.planned_at = view.k
+        self.plans += 1
+
+    def _assign(self, view: SwarmView, lengths: np.ndarray) -> None:
+        """Drones per tour (each tour one, the rest to the longest periods), which drone on
+        which tour (assignment on the distance to the tour), and where each joins it."""
+        n, n_tours = self.n_drones, len(self.tours)
+        per = np.ones(n_tours, dtype=np.int64)
+        if n_tours > n:  # cannot happen with ceil(n / per_tour) tours; kept for safety
+            raise AssertionError("more tours than drones")
+        for _ in range(n - n_tours):
+            per[np.argmax(lengths / per)] += 1
+        pos = np.asarray(view.positions, dtype=np.int64)
+        near = np.empty((n, n_tours))
+        dists = []
+        for t, tour in enumerate(self.tours):
+            d = np.abs(pos[:, None, :] - tour[None, :, :]).sum(axis=2)  # (n, L)
+            dists.append(d)
+            near[:, t] = d.min(axis=1)
+        slots = np.repeat(np.arange(n_tours), per)
+        rows, cols = linear_sum_assignment(near[:, slots])
+        self.tour_of = np.empty(n, dtype=np.int64)
+        self.tour_of[rows] = slots[cols]
+        self.per = per
+        entry = np.zeros(n, dtype=np.int64)
+        for t in range(n_tours):
+            members = np.flatnonzero(self.tour_of == t)
+            members = members[np.argsort(near[members, t], kind="stable")]
+            length = lengths[t]
+            idx = np.arange(length)
+            first = None
+            for r, d in enumerate(members):
+                dist = dists[t][d]
+                if first is None:
+                    entry[d] = int(dist.argmin())
+                    first = (entry[d] - dist[entry[d]]) % length
+                    continue
+                target = first + r * length / len(members)
+                virtual = (idx - dist) % length  # where it would be had it been on the tour
+                err = np.abs((virtual - target + length / 2) % length - length / 2)
+                entry[d] = int(np.argmin(dist + err))
+        self.phase = entry
+        self.offset = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+        self.lengths = lengths
+        targets = np.concatenate(self.tours)[self.offset[self.tour_of] + entry]
+        self._route(pos, np.arange(n), targets)
+
+    def _route(self, pos: np.ndarray, drones: np.ndarray, targets: np.ndarray) -> None:
+        """Shortest free paths from the given drones to their targets (kept as approaches)."""
+        if not hasattr(self, "approach") or len(self.approach) != self.n_drones:
+            self.approach = [np.zeros((0, 2), dtype=np.int64)] * self.n_drones
+            self.off_plan = np.zeros(self.n_drones, dtype=bool)
+        away = np.flatnonzero((pos[drones] != targets).any(axis=1))
+        for d in drones:
+            self.approach[d] = np.zeros((0, 2), dtype=np.int64)
+        self.off_plan[drones] = False
+        if not len(away):
+            return
+        paths = _free_paths(self.grid, pos[drones[away]], targets[away])
+        for m, d in enumerate(drones[away]):
+            if m in paths:
+                self.approach[d] = np.array(paths[m][1:], dtype=np.int64)
+            else:  # another area than the tour: this drone follows the visit gain
+                self.off_plan[d] = True
+
+    # -- acting -----------------------------------------------------------------------------
+
+    def scores(self, view: SwarmView) -> np.ndarray:
+        grid, fov, p = view.grid, view.grid.view_index(view.positions), view.params
+        weight = p.alpha_T * grid.values_in_view(view.importance, None, fov) + p.alpha_I
+        return visit_gain(weight, grid.values_in_view(view.idleness, None, fov), p)
+
+    def act(self, view: SwarmView) -> np.ndarray:
+        self._see(view)
+        if self._due(view):
+            self._plan(view)
+        scores = self.scores(view)
+        planned = None
+        if self.planned_at is not None:
+            planned = self._planned_actions(view)
+            has = planned >= 0
+            scores[np.flatnonzero(has), planned[has]] += PLAN_BONUS
+        scores = scores + _jitter(scores, view.feasible, self.rng)
+        from twin.coordinator import coordinate
+
+        actions = coordinate(scores, view.positions, view.feasible, view.grid)
+        if planned is not None:
+            self._advance(view, planned, actions)
+        return actions
+
+    def _next_cells(self, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Each drone's planned next cell and whether it is on its tour."""
+        n = self.n_drones
+        on_tour = np.array([len(a) == 0 for a in self.approach])
+        flat = np.concatenate(self.tours)
+        length = self.lengths[self.tour_of]
+        nxt = flat[self.offset[self.tour_of] + (self.phase + 1) % length].copy()
+        for d in np.flatnonzero(~on_tour):
+            nxt[d] = self.approach[d][0]
+        del n
+        return nxt, on_tour
+
+    def _planned_actions(self, view: SwarmView) -> np.ndarray:
+        pos = np.asarray(view.positions, dtype=np.int64)
+        nxt, on_tour = self._next_cells(pos)
+        here = np.concatenate(self.tours)[self.offset[self.tour_of] + self.phase]
+        # a drone on its tour but not where the plan has it was pushed off: route it back
+        lost = on_tour & (pos != here).any(axis=1) & ~self.off_plan
+        step = nxt - pos
+        bad = (np.abs(step).sum(axis=1) > 1) & ~on_tour & ~self.off_plan
+        if lost.any() or bad.any():
+            redo = np.flatnonzero(lost | bad)
+            targets = np.where(
+                lost[redo, None],
+                here[redo],
+                np.array(
+                    [self.approach[d][-1] if len(self.approach[d]) else here[d] for d in redo]
+                ),
+            )
+            self._route(pos, redo, targets)
+            nxt, on_tour = self._next_cells(pos)
+            step = nxt - pos
+        code = (step[:, 0] + 1) * 3 + (step[:, 1] + 1)
+        ok = (np.abs(step) <= 1).all(axis=1)
+        planned = np.where(ok, _STEP_ACTION[np.clip(code, 0, 8)], -1)
+        planned[self.off_plan] = -1
+        # spacing: a drone on its tour too close behind the next one on the same tour waits
+        wait = self._too_close(on_tour & ~self.off_plan & (planned >= 0))
+        planned[wait] = 0
+        self._waiting = wait
+        return planned
+
+    def _too_close(self, on_tour: np.ndarray) -> np.ndarray:
+        drones = np.flatnonzero(on_tour)
+        wait = np.zeros(self.n_drones, dtype=bool)
+        if len(drones) < 2:
+            return wait
+        tour, phase = self.tour_of[drones], self.phase[drones]
+        order = np.lexsort((phase, tour))
+        tour, phase, drones = tour[order], phase[order], drones[order]
+        start = np.flatnonzero(np.r_[True, tour[1:] != tour[:-1]])
+        size = np.diff(np.r_[start, len(tour)])
+        group = np.repeat(np.arange(len(start)), size)
+        rank = np.arange(len(tour)) - start[group]
+        ahead = start[group] + (rank + 1) % size[group]
+        length = self.lengths[tour]
+        gap = (phase[ahead] - phase) % length
+        ideal = length / self.per[tour]
+        wait[drones] = (size[group] > 1) & (gap < ideal - 1) & (gap > 0)
+        return wait
+
+    def _advance(self, view: SwarmView, planned: np.ndarray, actions: np.ndarray) -> None:
+        """Move each drone's place in its plan along when it made its planned move."""
+        followed = (planned == actions) & (planned >= 0) & ~self.off_plan & ~self._waiting
+        for d in np.flatnonzero(followed):
+            if len(self.approach[d]):
+                self.approach[d] = self.approach[d][1:]
+            else:
+                self.phase[d] = (self.phase[d] + 1) % self.lengths[self.tour_of[d]]
+
+
+def _blur(values: np.ndarray, radius: int = 2) -> np.ndarray:
+    """Mean of ``values`` over the ``(2 radius + 1)^2`` square around each cell (box filter)."""
+    padded = np.pad(values, radius)
+    c = padded.cumsum(axis=0).cumsum(axis=1)
+    c = np.pad(c, ((1, 0), (1, 0)))
+    s = 2 * radius + 1
+    box = c[s:, s:] - c[:-s, s:] - c[s:, :-s] + c[:-s, :-s]
+    return box / s**2
+
+
+def _jitter(scores, feasible, rng):
+    from twin.planners import tie_jitter
+
+    return tie_jitter(scores, feasible, rng)
