@@ -78,17 +78,35 @@ def closed_order(cells: np.ndarray) -> np.ndarray:
     if n <= 3:
         return np.arange(n)
     dist = np.abs(cells[:, None, :] - cells[None, :, :]).sum(axis=2)
-    order = np.empty(n, dtype=np.int64)
-    left = np.ones(n, dtype=bool)
-    order[0], left[0] = 0, False
-    for t in range(1, n):
-        row = np.where(left, dist[order[t - 1]], np.iinfo(np.int64).max)
-        order[t] = row.argmin()
-        left[order[t]] = False
+    order = _warnsdorff(cells, dist)
     for _ in range(TWO_OPT_PASSES):
         improved = _two_opt(order, dist) | _or_opt(order, dist)
         if not improved:
             break
+    return order
+
+
+def _warnsdorff(cells: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """A walk over ``cells`` that steps to a neighbouring cell not walked yet with the fewest
+    such neighbours of its own (Warnsdorff's rule: it leaves no cell stranded, so on compact
+    areas it rarely has to jump); when stuck it jumps to the nearest cell not walked yet. Starts
+    at a cell with the fewest neighbours (an end of the area)."""
+    n = len(cells)
+    adjacent = dist == 1
+    free_deg = adjacent.sum(axis=1)
+    left = np.ones(n, dtype=bool)
+    order = np.empty(n, dtype=np.int64)
+    cur = int(np.argmin(free_deg))
+    for t in range(n):
+        order[t], left[cur] = cur, False
+        free_deg -= adjacent[cur]
+        if t == n - 1:
+            break
+        nbrs = np.flatnonzero(adjacent[cur] & left)
+        if len(nbrs):
+            cur = int(nbrs[np.argmin(free_deg[nbrs])])
+        else:
+            cur = int(np.argmin(np.where(left, dist[cur], np.iinfo(np.int64).max)))
     return order
 
 
@@ -138,20 +156,33 @@ def _or_opt(order: np.ndarray, dist: np.ndarray) -> bool:
 
 def closed_walks(grid: Grid, orders: list[np.ndarray]) -> list[np.ndarray]:
     """Each ordered list of cells as a closed walk of neighbouring free cells: consecutive cells
-    (and the last with the first) that are not neighbours are joined by a shortest free path
-    (the walk's last cell is a neighbour of its first, which is not repeated)."""
-    starts, ends, where = [], [], []
+    (and the last with the first) that are not neighbours are joined through free cells (the
+    walk's last cell is a neighbour of its first, which is not repeated).
+
+    A diagonal gap is bridged through whichever of its two corner cells is free and not on a
+    tour yet (a repeat visit finds the cell barely recovered); longer gaps by a shortest free
+    path.
+    """
+    taken = np.zeros(grid.shape, dtype=bool)
+    for cells in orders:
+        taken[cells[:, 0], cells[:, 1]] = True
+    starts, ends, where, joins = [], [], [], {}
     for t, cells in enumerate(orders):
         nxt = np.roll(cells, -1, axis=0)
-        gap = np.flatnonzero(np.abs(nxt - cells).sum(axis=1) > 1) if len(cells) > 1 else []
-        for g in gap:
-            starts.append(cells[g])
-            ends.append(nxt[g])
+        gaps = np.flatnonzero(np.abs(nxt - cells).sum(axis=1) > 1) if len(cells) > 1 else []
+        for g in gaps:
+            a, b = cells[g], nxt[g]
+            corner = _corner(grid, taken, a, b)
+            if corner is not None:
+                taken[corner] = True
+                joins[(t, int(g))] = [tuple(a), corner, tuple(b)]
+                continue
+            starts.append(a)
+            ends.append(b)
             where.append((t, int(g)))
-    paths = (
-        _free_paths(grid, np.array(starts), np.array(ends)) if starts else {}
-    )  # all cells lie in one connected area
-    joins = {key: paths[n] for n, key in enumerate(where)}
+    if starts:  # all cells lie in one connected area
+        paths = _free_paths(grid, np.array(starts), np.array(ends))
+        joins.update({key: paths[n] for n, key in enumerate(where)})
     walks = []
     for t, cells in enumerate(orders):
         walk = []
@@ -161,6 +192,21 @@ def closed_walks(grid: Grid, orders: list[np.ndarray]) -> list[np.ndarray]:
                 walk.extend(joins[(t, g)][1:-1])
         walks.append(np.array(walk, dtype=np.int64).reshape(-1, 2))
     return walks
+
+
+def _corner(grid: Grid, taken: np.ndarray, a: np.ndarray, b: np.ndarray):
+    """A free cell next to both ``a`` and ``b`` (two steps apart), preferring one not taken;
+    None if there is none."""
+    if np.abs(b - a).sum() != 2:
+        return None
+    options = {(int(a[0]), int(b[1])), (int(b[0]), int(a[1]))}
+    options.discard((int(a[0]), int(a[1])))
+    options.discard((int(b[0]), int(b[1])))
+    if not options:  # a straight gap: the cell in between
+        options = {(int(a[0] + b[0]) // 2, int(a[1] + b[1]) // 2)}
+    free = sorted(c for c in options if grid.free[c])
+    fresh = [c for c in free if not taken[c]]
+    return (fresh or free or [None])[0]
 
 
 class ToursPolicy(CoordinatedPolicy):
@@ -174,6 +220,7 @@ class ToursPolicy(CoordinatedPolicy):
         explore: int | None = None,
         replan: int | None = 400,
         shift: float = 0.2,
+        stretch: float = 1.0,
     ):
         def whole(value, key, low, example):
             if isinstance(value, bool) or not isinstance(value, int | np.integer):
@@ -192,6 +239,9 @@ class ToursPolicy(CoordinatedPolicy):
         if isinstance(shift, bool) or not isinstance(shift, int | float) or not shift > 0:
             raise UserError(f"tours: shift = {shift!r} must be a positive number; e.g. 0.2")
         self.shift = float(shift)
+        if isinstance(stretch, bool) or not isinstance(stretch, int | float) or not stretch > 0:
+            raise UserError(f"tours: stretch = {stretch!r} must be a positive number; e.g. 1.0")
+        self.stretch = float(stretch)
 
     def describe(self) -> dict:
         return {
@@ -199,6 +249,7 @@ class ToursPolicy(CoordinatedPolicy):
             "explore": self.explore,
             "replan": self.replan,
             "shift": self.shift,
+            "stretch": self.stretch,
             "plans": self.plans,
         }
 
@@ -252,16 +303,16 @@ class ToursPolicy(CoordinatedPolicy):
         n_area = int(self.area.sum())
         ranked = np.argsort(-key.ravel(), kind="stable")[:n_area]
         period = best_period(w.ravel()[ranked], n, view.params)
-        chosen = ranked[: min(n * period, n_area)]
-        cells = np.stack(np.divmod(chosen, grid.ny), axis=1)
-        k = max(1, min(math.ceil(n / self.per_tour), len(cells)))
-        if k > 1:
-            _, label = kmeans2(cells.astype(float), k, minit="++", seed=self.rng)
-        else:
-            label = np.zeros(len(cells), dtype=np.int64)
-        groups = [cells[label == t] for t in range(k) if (label == t).any()]
-        orders = [g[closed_order(g)] for g in groups]
-        self.tours = closed_walks(grid, orders)
+        # the walks joining the chosen cells pass over others: choose fewer cells until the
+        # walks hold about n * period cells, so each cell's revisit period is about `period`
+        want = self.stretch * n * period
+        count = min(round(want), n_area)
+        for _ in range(3):
+            self.tours = self._walks(ranked[:count], grid)
+            total = sum(len(t) for t in self.tours)
+            if total <= want * 1.03 or count <= n:
+                break
+            count = max(n, round(count * want / total))
         lengths = np.array([len(t) for t in self.tours])
         self.period = period
         self._assign(view, lengths)
@@ -271,6 +322,18 @@ class ToursPolicy(CoordinatedPolicy):
         self.value0 = np.bincount(self.cell_tour, w[self.cell_i, self.cell_j], len(self.tours))
         self.planned_at = view.k
         self.plans += 1
+
+    def _walks(self, chosen: np.ndarray, grid: Grid) -> list[np.ndarray]:
+        """Closed walks over the chosen cells (flat ids): one group per tour, by k-means."""
+        n = self.n_drones
+        cells = np.stack(np.divmod(chosen, grid.ny), axis=1)
+        k = max(1, min(math.ceil(n / self.per_tour), len(cells)))
+        if k > 1:
+            _, label = kmeans2(cells.astype(float), k, minit="++", seed=self.rng)
+        else:
+            label = np.zeros(len(cells), dtype=np.int64)
+        groups = [cells[label == t] for t in range(k) if (label == t).any()]
+        return closed_walks(grid, [g[closed_order(g)] for g in groups])
 
     def _assign(self, view: SwarmView, lengths: np.ndarray) -> None:
         """Drones per tour (each tour one, the rest to the longest periods), which drone on
@@ -313,7 +376,10 @@ class ToursPolicy(CoordinatedPolicy):
         self.phase = entry
         self.offset = np.concatenate([[0], np.cumsum(lengths)[:-1]])
         self.lengths = lengths
-        targets = np.concatenate(self.tours)[self.offset[self.tour_of] + entry]
+        self.flat = np.concatenate(self.tours)
+        self.tour_cells = np.zeros(self.grid.shape, dtype=bool)
+        self.tour_cells[self.flat[:, 0], self.flat[:, 1]] = True
+        targets = self.flat[self.offset[self.tour_of] + entry]
         self._route(pos, np.arange(n), targets)
 
     def _route(self, pos: np.ndarray, drones: np.ndarray, targets: np.ndarray) -> None:
@@ -361,36 +427,38 @@ class ToursPolicy(CoordinatedPolicy):
 
     def _next_cells(self, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Each drone's planned next cell and whether it is on its tour."""
-        n = self.n_drones
         on_tour = np.array([len(a) == 0 for a in self.approach])
-        flat = np.concatenate(self.tours)
+        flat = self.flat
         length = self.lengths[self.tour_of]
         nxt = flat[self.offset[self.tour_of] + (self.phase + 1) % length].copy()
         for d in np.flatnonzero(~on_tour):
             nxt[d] = self.approach[d][0]
-        del n
         return nxt, on_tour
 
     def _planned_actions(self, view: SwarmView) -> np.ndarray:
         pos = np.asarray(view.positions, dtype=np.int64)
         nxt, on_tour = self._next_cells(pos)
-        here = np.concatenate(self.tours)[self.offset[self.tour_of] + self.phase]
-        # a drone on its tour but not where the plan has it was pushed off: route it back
-        lost = on_tour & (pos != here).any(axis=1) & ~self.off_plan
-        step = nxt - pos
-        bad = (np.abs(step).sum(axis=1) > 1) & ~on_tour & ~self.off_plan
+        flat = self.flat
+        here = flat[self.offset[self.tour_of] + self.phase]
+        # a drone on its tour whose next tour cell is not a step away was pushed off (or took
+        # a corner): route it back to the tour
+        far = np.abs(nxt - pos).sum(axis=1) > 1
+        lost = on_tour & far & ~self.off_plan
+        bad = far & ~on_tour & ~self.off_plan
         if lost.any() or bad.any():
             redo = np.flatnonzero(lost | bad)
             targets = np.where(
                 lost[redo, None],
-                here[redo],
+                nxt[redo],
                 np.array(
                     [self.approach[d][-1] if len(self.approach[d]) else here[d] for d in redo]
                 ),
             )
+            self.phase[lost] = (self.phase[lost] + 1) % self.lengths[self.tour_of[lost]]
             self._route(pos, redo, targets)
             nxt, on_tour = self._next_cells(pos)
-            step = nxt - pos
+        nxt = self._corners(view, pos, nxt, on_tour & ~self.off_plan, flat)
+        step = nxt - pos
         code = (step[:, 0] + 1) * 3 + (step[:, 1] + 1)
         ok = (np.abs(step) <= 1).all(axis=1)
         planned = np.where(ok, _STEP_ACTION[np.clip(code, 0, 8)], -1)
@@ -400,6 +468,31 @@ class ToursPolicy(CoordinatedPolicy):
         planned[wait] = 0
         self._waiting = wait
         return planned
+
+    def _corners(self, view, pos, nxt, on_tour, flat) -> np.ndarray:
+        """Where the tour turns a corner (the cell after next is diagonal to the drone), step
+        on the other corner cell if it lies off every tour and has the larger visit gain: it
+        bridges the same two cells, and the tour's own corner may have been visited moments ago
+        (a corner on a tour is left alone: its own visit is scheduled)."""
+        after = flat[self.offset[self.tour_of] + (self.phase + 2) % self.lengths[self.tour_of]]
+        other = pos + (after - nxt)
+        diagonal = on_tour & (np.abs(after - pos) == 1).all(axis=1)
+        if not diagonal.any():
+            return nxt
+        d = np.flatnonzero(diagonal)
+        ok = view.grid.is_free(other[d])
+        ok[ok] = ~self.tour_cells[other[d[ok], 0], other[d[ok], 1]]  # off every tour
+        d, alt, cur = d[ok], other[d[ok]], nxt[d[ok]]
+        p = view.params
+
+        def gain(cells):
+            weight = p.alpha_T * view.importance[cells[:, 0], cells[:, 1]] + p.alpha_I
+            return visit_gain(weight, view.idleness[cells[:, 0], cells[:, 1]], p)
+
+        better = gain(alt) > gain(cur)
+        nxt = nxt.copy()
+        nxt[d[better]] = alt[better]
+        return nxt
 
     def _too_close(self, on_tour: np.ndarray) -> np.ndarray:
         drones = np.flatnonzero(on_tour)
