@@ -218,9 +218,11 @@ class ToursPolicy(CoordinatedPolicy):
         self,
         per_tour: int = 2,
         explore: int | None = None,
-        replan: int | None = 400,
+        replan: int | None = None,
         shift: float = 0.2,
-        stretch: float = 1.0,
+        stretch: float = 1.05,
+        bonus: float = PLAN_BONUS,
+        prior: float = 0.25,
     ):
         def whole(value, key, low, example):
             if isinstance(value, bool) or not isinstance(value, int | np.integer):
@@ -242,6 +244,12 @@ class ToursPolicy(CoordinatedPolicy):
         if isinstance(stretch, bool) or not isinstance(stretch, int | float) or not stretch > 0:
             raise UserError(f"tours: stretch = {stretch!r} must be a positive number; e.g. 1.0")
         self.stretch = float(stretch)
+        if isinstance(bonus, bool) or not isinstance(bonus, int | float) or not bonus >= 0:
+            raise UserError(f"tours: bonus = {bonus!r} must be a number >= 0; e.g. {PLAN_BONUS}")
+        self.bonus = float(bonus)
+        if isinstance(prior, bool) or not isinstance(prior, int | float) or not 0 <= prior <= 1:
+            raise UserError(f"tours: prior = {prior!r} must be a number in 0..1; e.g. 0.25")
+        self.prior = float(prior)
 
     def describe(self) -> dict:
         return {
@@ -250,12 +258,15 @@ class ToursPolicy(CoordinatedPolicy):
             "replan": self.replan,
             "shift": self.shift,
             "stretch": self.stretch,
+            "bonus": self.bonus,
+            "prior": self.prior,
             "plans": self.plans,
         }
 
     def reset(self, grid: Grid, n_drones: int, rng: np.random.Generator) -> None:
         super().reset(grid, n_drones, rng)
         self.belief = np.zeros(grid.shape)  # last seen T per cell, 0 if never seen
+        self.seen = np.zeros(grid.shape, dtype=bool)
         _, labels = connected_components(_free_cell_graph(grid), directed=False)
         labels = labels.reshape(grid.shape)
         counts = np.bincount(labels[grid.free])
@@ -270,9 +281,15 @@ class ToursPolicy(CoordinatedPolicy):
         flat, valid = view.grid.view_index(view.positions)
         i, j = np.divmod(flat[valid], view.grid.ny)
         self.belief[i, j] = view.importance[i, j]
+        self.seen[i, j] = True
 
     def _weights(self, params: ScoreParams) -> np.ndarray:
-        return params.alpha_T * self.belief + params.alpha_I
+        """``alpha_T T + alpha_I`` with ``T`` the belief; a cell never seen is valued at
+        ``prior`` times the largest ``T`` seen (optimism: tours pass over unseen areas while
+        they rank among the cells worth patrolling, and what they reveal re-plans them)."""
+        top = float(self.belief.max()) if self.seen.any() else 1.0
+        t = np.where(self.seen, self.belief, self.prior * top)
+        return params.alpha_T * t + params.alpha_I
 
     # -- planning ---------------------------------------------------------------------------
 
@@ -297,7 +314,7 @@ class ToursPolicy(CoordinatedPolicy):
     def _plan(self, view: SwarmView) -> None:
         grid, n = view.grid, self.n_drones
         w = self._weights(view.params)
-        # ties (cells never seen, or seen at T = 0) go to cells near important ones
+        # ties (cells seen at T = 0, cells never seen) go to cells near important ones
         key = w + 1e-3 * _blur(w * self.area) + 1e-9 * self.rng.random(w.shape)
         key = np.where(self.area, key, -np.inf)
         n_area = int(self.area.sum())
@@ -416,7 +433,7 @@ class ToursPolicy(CoordinatedPolicy):
         if self.planned_at is not None:
             planned = self._planned_actions(view)
             has = planned >= 0
-            scores[np.flatnonzero(has), planned[has]] += PLAN_BONUS
+            scores[np.flatnonzero(has), planned[has]] += self.bonus
         scores = scores + _jitter(scores, view.feasible, self.rng)
         from twin.coordinator import coordinate
 
