@@ -223,6 +223,7 @@ class ToursPolicy(CoordinatedPolicy):
         stretch: float = 1.05,
         bonus: float = PLAN_BONUS,
         prior: float = 0.25,
+        memory: int | None = 300,
     ):
         def whole(value, key, low, example):
             if isinstance(value, bool) or not isinstance(value, int | np.integer):
@@ -250,6 +251,7 @@ class ToursPolicy(CoordinatedPolicy):
         if isinstance(prior, bool) or not isinstance(prior, int | float) or not 0 <= prior <= 1:
             raise UserError(f"tours: prior = {prior!r} must be a number in 0..1; e.g. 0.25")
         self.prior = float(prior)
+        self.memory = None if memory is None else whole(memory, "memory", 1, 300)
 
     def describe(self) -> dict:
         return {
@@ -260,6 +262,7 @@ class ToursPolicy(CoordinatedPolicy):
             "stretch": self.stretch,
             "bonus": self.bonus,
             "prior": self.prior,
+            "memory": self.memory,
             "plans": self.plans,
         }
 
@@ -267,6 +270,7 @@ class ToursPolicy(CoordinatedPolicy):
         super().reset(grid, n_drones, rng)
         self.belief = np.zeros(grid.shape)  # last seen T per cell, 0 if never seen
         self.seen = np.zeros(grid.shape, dtype=bool)
+        self.last_seen = np.zeros(grid.shape)  # step at which each cell was last in view
         _, labels = connected_components(_free_cell_graph(grid), directed=False)
         labels = labels.reshape(grid.shape)
         counts = np.bincount(labels[grid.free])
@@ -282,13 +286,20 @@ class ToursPolicy(CoordinatedPolicy):
         i, j = np.divmod(flat[valid], view.grid.ny)
         self.belief[i, j] = view.importance[i, j]
         self.seen[i, j] = True
+        self.last_seen[i, j] = view.k
+        self.now = view.k
 
     def _weights(self, params: ScoreParams) -> np.ndarray:
-        """``alpha_T T + alpha_I`` with ``T`` the belief; a cell never seen is valued at
-        ``prior`` times the largest ``T`` seen (optimism: tours pass over unseen areas while
-        they rank among the cells worth patrolling, and what they reveal re-plans them)."""
+        """``alpha_T T + alpha_I`` with ``T`` the belief, made optimistic where it is old: a
+        cell never seen counts ``prior`` times the largest ``T`` seen, and a cell last seen
+        ``a`` steps ago moves from its last seen ``T`` towards that value by ``a / memory``
+        (tours pass over unknown or stale areas while they rank among the cells worth
+        patrolling, and what they reveal re-plans them)."""
         top = float(self.belief.max()) if self.seen.any() else 1.0
-        t = np.where(self.seen, self.belief, self.prior * top)
+        hope = self.prior * top
+        age = np.where(self.seen, getattr(self, "now", 0) - self.last_seen, np.inf)
+        fade = np.minimum(1.0, age / self.memory) if self.memory else (~self.seen) * 1.0
+        t = self.belief + np.maximum(0.0, hope - self.belief) * fade
         return params.alpha_T * t + params.alpha_I
 
     # -- planning ---------------------------------------------------------------------------
