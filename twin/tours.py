@@ -24,8 +24,8 @@ PLAN_BONUS = 100.0
 #: Largest number of drones sharing one tour (a tour holds about ``per_tour * period`` cells
 #: and is ordered by 2-opt, quadratic in its cells).
 MAX_PER_TOUR = 8
-#: Passes of 2-opt over a tour at most.
-TWO_OPT_PASSES = 30
+#: Passes of 2-opt and Or-opt over a tour at most.
+TWO_OPT_PASSES = 4
 #: Action index of a step ``(di, dj)``, looked up at ``(di + 1) * 3 + (dj + 1)``; -1: not a step.
 _STEP_ACTION = np.array([-1, 1, -1, 3, 0, 4, -1, 2, -1], dtype=np.int64)
 
@@ -129,18 +129,17 @@ def _two_opt(order: np.ndarray, dist: np.ndarray) -> bool:
 
 
 def _or_opt(order: np.ndarray, dist: np.ndarray) -> bool:
-    """One pass of Or-opt (move a stretch of 1 to 3 cells, either way round, between two other
+    """One pass of Or-opt (move a stretch of 1 or 2 cells, either way round, between two other
     consecutive cells when that shortens the tour), in place."""
     n, improved = len(order), False
-    for size in (1, 2, 3):
+    for size in (1, 2):
         if n < size + 3:
             break
-        i = 0
-        while i < n:
-            seg = order[(i + np.arange(size)) % n]
-            prev, nxt = order[(i - 1) % n], order[(i + size) % n]
+        for i in range(n - size + 1):
+            seg = order[i : i + size]
+            prev, nxt = order[i - 1], order[(i + size) % n]
             removed = dist[prev, seg[0]] + dist[seg[-1], nxt] - dist[prev, nxt]
-            rest = np.roll(order, -(i + size))[: n - size]  # the tour without the stretch
+            rest = np.concatenate([order[i + size :], order[:i]])  # the tour without it
             a, b = rest[:-1], rest[1:]
             fwd = dist[a, seg[0]] + dist[seg[-1], b] - dist[a, b]
             rev = dist[a, seg[-1]] + dist[seg[0], b] - dist[a, b]
@@ -150,7 +149,6 @@ def _or_opt(order: np.ndarray, dist: np.ndarray) -> bool:
                 piece = seg if fwd[j] <= rev[j] else seg[::-1]
                 order[:] = np.concatenate([rest[: j + 1], piece, rest[j + 1 :]])
                 improved = True
-            i += 1
     return improved
 
 
@@ -192,6 +190,24 @@ def closed_walks(grid: Grid, orders: list[np.ndarray]) -> list[np.ndarray]:
                 walk.extend(joins[(t, g)][1:-1])
         walks.append(np.array(walk, dtype=np.int64).reshape(-1, 2))
     return walks
+
+
+def l_path(grid: Grid, a: np.ndarray, b: np.ndarray) -> list | None:
+    """A shortest path from ``a`` to ``b`` (cells ``a`` .. ``b``) going first along one axis and
+    then the other, if either way is all free; else None."""
+    (ai, aj), (bi, bj) = (int(v) for v in a), (int(v) for v in b)
+    si = 1 if bi >= ai else -1
+    sj = 1 if bj >= aj else -1
+    rows = list(range(ai, bi + si, si))
+    cols = list(range(aj, bj + sj, sj))
+    for path in (
+        [(i, aj) for i in rows] + [(bi, j) for j in cols[1:]],
+        [(ai, j) for j in cols] + [(i, bj) for i in rows[1:]],
+    ):
+        idx = np.array(path)
+        if grid.free[idx[:, 0], idx[:, 1]].all():
+            return path
+    return None
 
 
 def _corner(grid: Grid, taken: np.ndarray, a: np.ndarray, b: np.ndarray):
@@ -357,7 +373,8 @@ class ToursPolicy(CoordinatedPolicy):
         cells = np.stack(np.divmod(chosen, grid.ny), axis=1)
         k = max(1, min(math.ceil(n / self.per_tour), len(cells)))
         if k > 1:
-            _, label = kmeans2(cells.astype(float), k, minit="++", seed=self.rng)
+            points = cells.astype(float)
+            _, label = kmeans2(points, _kmeans_pp(points, k, self.rng), minit="matrix")
         else:
             label = np.zeros(len(cells), dtype=np.int64)
         groups = [cells[label == t] for t in range(k) if (label == t).any()]
@@ -421,7 +438,17 @@ class ToursPolicy(CoordinatedPolicy):
         self.off_plan[drones] = False
         if not len(away):
             return
-        paths = _free_paths(self.grid, pos[drones[away]], targets[away])
+        paths, rest = {}, []
+        for m in range(len(away)):
+            straight = l_path(self.grid, pos[drones[away[m]]], targets[away[m]])
+            if straight is not None:
+                paths[m] = straight
+            else:
+                rest.append(m)
+        if rest:
+            rest = np.array(rest)
+            found = _free_paths(self.grid, pos[drones[away[rest]]], targets[away[rest]])
+            paths.update({int(rest[m]): path for m, path in found.items()})
         for m, d in enumerate(drones[away]):
             if m in paths:
                 self.approach[d] = np.array(paths[m][1:], dtype=np.int64)
@@ -549,6 +576,23 @@ class ToursPolicy(CoordinatedPolicy):
                 self.approach[d] = self.approach[d][1:]
             else:
                 self.phase[d] = (self.phase[d] + 1) % self.lengths[self.tour_of[d]]
+
+
+def _kmeans_pp(points: np.ndarray, k: int, rng: np.random.Generator) -> np.ndarray:
+    """k-means++ seeds (each next seed drawn with probability proportional to the squared
+    distance to the nearest seed so far), keeping that distance up to date: O(k n), where
+    scipy's own seeding recomputes every distance at every draw."""
+    seeds = np.empty((k, points.shape[1]))
+    seeds[0] = points[rng.integers(len(points))]
+    nearest = ((points - seeds[0]) ** 2).sum(axis=1)
+    for s in range(1, k):
+        total = nearest.sum()
+        pick = (
+            rng.choice(len(points), p=nearest / total) if total > 0 else rng.integers(len(points))
+        )
+        seeds[s] = points[pick]
+        np.minimum(nearest, ((points - seeds[s]) ** 2).sum(axis=1), out=nearest)
+    return seeds
 
 
 def _blur(values: np.ndarray, radius: int = 2) -> np.ndarray:
