@@ -285,6 +285,11 @@ class ToursPolicy(CoordinatedPolicy):
     does not send it there soon enough; where the belief is right it leads by 0-3 %, close to
     what perfect tours over the believed cells can earn here, since visit-gain already visits
     nearly saturated cells (idleness 0.96 at its visits).
+
+    On the Shenzhen-like SUMO scenario (``twin run --config configs/shenzhen.toml --seeds 1
+    --seed 0 --swarms visit-gain,tours``, T = 144, 482 free cells): tours 1.891 against
+    visit-gain 1.990 (0.950 x; one seed): the horizon is four revisit periods, one of them spent
+    before the first plan.
     """
 
     name = "tours"
