@@ -280,6 +280,13 @@ def _planner(name: str) -> Callable[..., Policy]:
     return build
 
 
+def _tours(**options) -> Policy:
+    """Builder of the cyclic patrol swarm (``twin.tours`` imports this module)."""
+    from twin.tours import ToursPolicy
+
+    return ToursPolicy(**options)
+
+
 def _learned(name: str) -> Callable[..., Policy]:
     """Builder of a learned swarm; torch is imported only when one is built."""
 
@@ -318,6 +325,11 @@ SWARMS: dict[str, SwarmKind] = {
             _planner("lookahead"),
             "the best visit gains over H steps plus the worth of the idleness left at the end, "
             "drones planned in turn, first moves by the coordinator",
+        ),
+        SwarmKind(
+            "tours",
+            _tours,
+            "drones spaced evenly along closed tours over the cells worth patrolling",
         ),
         SwarmKind("rl", _learned("rl"), "the Q-network with the central coordinator", True),
         SwarmKind(

@@ -1,0 +1,126 @@
+"""The cyclic patrol swarm (twin.tours): legal, reproducible, general, and better than random."""
+
+import numpy as np
+import pytest
+
+from twin.errors import UserError
+from twin.grid import Grid
+from twin.patrol import random_starts
+from twin.policies import RandomPolicy, SwarmView, make_policy
+from twin.scores import ScoreParams, update_idleness, visit_gain
+from twin.tours import (
+    ToursPolicy,
+    best_period,
+    closed_order,
+    closed_walks,
+    saturation_period,
+    visit_gain_factor,
+)
+
+PARAMS = ScoreParams()
+
+
+def blobs(grid: Grid, centres, sigma=2.0) -> np.ndarray:
+    i, j = np.mgrid[: grid.nx, : grid.ny]
+    t = sum(np.exp(-((i - a) ** 2 + (j - b) ** 2) / (2 * sigma**2)) for a, b in centres)
+    return t / t.max() * grid.free
+
+
+def patrol(policy, grid, n, steps, importance, seed=0, shift_at=None, moved=None):
+    """Run ``policy``; check every move; return (total headline reward, positions per step)."""
+    rng = np.random.default_rng(seed)
+    positions = random_starts(grid, n, rng)
+    policy.reset(grid, n, np.random.default_rng(seed + 1))
+    idleness = grid.free.astype(float)
+    total, trail = 0.0, []
+    for k in range(steps):
+        t = moved if shift_at is not None and k >= shift_at else importance
+        view = SwarmView(
+            k, steps, grid, positions, idleness, t, grid.feasible_actions(positions), PARAMS
+        )
+        actions = policy.act(view)
+        assert actions.shape == (n,)
+        assert view.feasible[np.arange(n), actions].all(), "an infeasible action"
+        nxt = grid.move(positions, actions)
+        assert grid.free[nxt[:, 0], nxt[:, 1]].all()
+        cells = np.unique(nxt[:, 0] * grid.ny + nxt[:, 1])
+        i, j = np.divmod(cells, grid.ny)
+        total += visit_gain(PARAMS.alpha_T * t[i, j] + PARAMS.alpha_I, idleness[i, j], PARAMS).sum()
+        idleness = update_idleness(idleness, nxt, grid, PARAMS.eta, PARAMS.delta)
+        positions = nxt
+        trail.append(positions.copy())
+    return total, np.array(trail)
+
+
+def test_registered_and_options_checked():
+    assert isinstance(make_policy("tours"), ToursPolicy)
+    for bad in ({"per_tour": 0}, {"per_tour": 99}, {"per_tour": 1.5}, {"shift": -1},
+                {"explore": -1}, {"stretch": 0}, {"prior": 2}, {"bonus": -1}):  # fmt: skip
+        with pytest.raises(UserError) as err:
+            ToursPolicy(**bad)
+        assert "\n" not in str(err.value)
+
+
+def test_period_follows_eta_and_delta():
+    assert saturation_period(PARAMS) == 37
+    assert visit_gain_factor(37, PARAMS) == pytest.approx(0.9)
+    assert visit_gain_factor(10, PARAMS) == pytest.approx(10 * PARAMS.delta)
+    slow = ScoreParams(delta=0.01)
+    assert saturation_period(slow) == 91
+    flat = np.ones(10_000)
+    assert best_period(flat, 4, PARAMS) == 36  # the first period with the full factor
+    assert best_period(flat, 4, slow) > 80
+
+
+def test_walks_are_closed_and_step_between_neighbours():
+    grid = Grid(np.zeros((12, 12), dtype=bool))
+    obstacles = np.zeros((12, 12), dtype=bool)
+    obstacles[3:9, 6] = True
+    grid = Grid(obstacles)
+    cells = np.argwhere(grid.free)[::3]
+    walk = closed_walks(grid, [cells[closed_order(cells)]])[0]
+    steps = np.abs(np.diff(np.vstack([walk, walk[:1]]), axis=0)).sum(axis=1)
+    assert (steps == 1).all()
+    assert grid.free[walk[:, 0], walk[:, 1]].all()
+    assert {tuple(c) for c in cells} <= {tuple(c) for c in walk}
+
+
+@pytest.mark.parametrize("n", [1, 7])
+def test_legal_moves_with_obstacles(n):
+    rng = np.random.default_rng(3)
+    obstacles = rng.random((15, 20)) < 0.2
+    grid = Grid(obstacles)
+    importance = blobs(grid, [(4, 5), (11, 15)])
+    _, trail = patrol(ToursPolicy(), grid, n, 150, importance)
+    if n > 1:  # the coordinator keeps next cells distinct
+        flat = trail[..., 0] * grid.ny + trail[..., 1]
+        assert all(len(np.unique(row)) == n for row in flat)
+
+
+def test_deterministic_under_a_seed():
+    grid = Grid.open(12, 16)
+    importance = blobs(grid, [(3, 4), (9, 12)])
+    a = patrol(ToursPolicy(), grid, 3, 120, importance, seed=5)
+    b = patrol(ToursPolicy(), grid, 3, 120, importance, seed=5)
+    assert a[0] == b[0] and np.array_equal(a[1], b[1])
+
+
+def test_replans_when_the_map_shifts():
+    grid = Grid.open(16, 24)
+    before = blobs(grid, [(3, 4)])
+    after = blobs(grid, [(8, 11)])  # moved, overlapping what the tours see
+    policy = ToursPolicy()
+    _, trail = patrol(policy, grid, 2, 400, before, shift_at=150, moved=after)
+    assert policy.plans >= 2
+    assert policy.planned_at > 150
+    # the drones now stand on important cells of the new map far more than on average
+    end = trail[-100:].reshape(-1, 2)
+    assert after[end[:, 0], end[:, 1]].mean() > 2 * after.mean()
+
+
+def test_beats_random_clearly():
+    grid = Grid.open(14, 20)
+    importance = blobs(grid, [(3, 4), (10, 15)])
+    tours, _ = patrol(ToursPolicy(), grid, 3, 300, importance, seed=2)
+    rand, _ = patrol(RandomPolicy(), grid, 3, 300, importance, seed=2)
+    assert tours > 1.3 * rand
