@@ -68,9 +68,9 @@ def test_run_with_several_sumo_seeds(tmp_path):
     generate_grid_scenario(tmp_path, blocks=4, block_m=300, end_s=900, period_s=2.0, seed=5)
     config = tmp_path / "small.toml"
     config.write_text(
-        "[swarm]\nn_drones = 2\n[traffic]\nkind = \"sumo\"\nnet = \"small.net.xml\"\n"
-        "routes = [\"small.trips.xml\"]\ncell_m = 200.0\ndrone_speed_kmh = 12.0\n"
-        "begin = \"00:05\"\nwarmup_min = 5.0\nhorizon = 4\nseed = 3\n"
+        '[swarm]\nn_drones = 2\n[traffic]\nkind = "sumo"\nnet = "small.net.xml"\n'
+        'routes = ["small.trips.xml"]\ncell_m = 200.0\ndrone_speed_kmh = 12.0\n'
+        'begin = "00:05"\nwarmup_min = 5.0\nhorizon = 4\nseed = 3\n'
     )
     out = tmp_path / "run"
     code = twin_main(["run", "--config", str(config), "--seeds", "2", "--swarms", "random,greedy",

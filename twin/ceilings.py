@@ -54,7 +54,7 @@ import pandas as pd
 
 from twin.grid import ACTION_DELTAS, Grid
 from twin.planners import CoordinatedPolicy, LookaheadPolicy
-from twin.policies import SwarmView
+from twin.policies import Policy, SwarmView
 from twin.scores import ScoreParams, visit_gain
 
 #: Names of the ceiling rows in the results tables.
@@ -375,7 +375,8 @@ class TrueLookaheadPolicy(LookaheadPolicy):
     name = "lookahead-true"
 
     def __init__(self, maps: np.ndarray, horizon: int = 4, end_value: float = 0.5):
-        super().__init__(horizon)
+        # its own end value and tree below: the parent's search with none of its options
+        super().__init__(horizon, end_weight=0.0, plan="independent", beam=0)
         self.maps = np.asarray(maps)
         self.end_value = float(end_value)
 
@@ -412,16 +413,41 @@ class TrueLookaheadPolicy(LookaheadPolicy):
         return value.reshape(len(ACTION_DELTAS), -1, len(pos)).max(axis=1).T
 
 
+class KnownMapLookaheadPolicy(LookaheadPolicy):
+    """The ``lookahead`` swarm, with its own defaults, told the whole true map ``T^{k+1}`` at
+    every step instead of the last ``T`` seen in its fields of view: the yardstick with
+    perfect knowledge of the present, so the oracle never falls below it for want of the
+    information the yardstick lacks."""
+
+    name = "lookahead-known-map"
+
+    def __init__(self, maps: np.ndarray, **options):
+        super().__init__(**options)
+        self.maps = np.asarray(maps)
+
+    def update_belief(self, view: SwarmView) -> None:
+        self.belief[:] = self.maps[min(view.k + 1, len(self.maps) - 1)]
+
+
 #: The largest DP (steps x free cells x states, one byte each) the bound is computed for.
 MAX_DP_BYTES = 2e9
 
 #: The oracle's swarms: (name, planner options); the oracle row is the best on each seed.
 ORACLE_SWARMS: tuple[tuple[str, dict], ...] = (
     ("visit-gain-true", {}),
+    ("lookahead-known-map", {"known_map": True}),
     ("lookahead-true H=4", {"horizon": 4, "end_value": 1.0}),
     ("lookahead-true H=5", {"horizon": 5, "end_value": 1.0}),
     ("lookahead-true H=4 rho=0.9", {"horizon": 4, "end_value": 0.9}),
 )
+
+
+def _oracle_swarm(maps: np.ndarray, options: dict) -> Policy:
+    if not options:
+        return TrueVisitGainPolicy(maps)
+    if options.get("known_map"):
+        return KnownMapLookaheadPolicy(maps)
+    return TrueLookaheadPolicy(maps, **options)
 
 
 def oracle(
@@ -436,10 +462,7 @@ def oracle(
     from twin.traffic.base import RecordedTraffic
 
     maps = np.asarray(maps, dtype=np.float64)
-    swarms = {
-        name: TrueVisitGainPolicy(maps) if not options else TrueLookaheadPolicy(maps, **options)
-        for name, options in ORACLE_SWARMS
-    }
+    swarms = {name: _oracle_swarm(maps, options) for name, options in ORACLE_SWARMS}
     result = run_patrol(RecordedTraffic(grid, maps), swarms, starts, params, seed=seed)
     table = table2(result, params)
     best = table.loc[table["R_hat_T"].idxmax()]

@@ -27,7 +27,7 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
-from twin.monitoring import MonitorSettings, ceiling_coverage, monitor_run
+from twin.monitoring import ceiling_coverage
 from twin.patrol import PatrolResult
 from twin.scores import ScoreParams
 
@@ -145,13 +145,6 @@ def table2(result: PatrolResult, params: ScoreParams | None = None) -> pd.DataFr
     else:
         frame["C_hat_T_ceiling"] = np.nan
     return frame
-
-
-def monitoring_table(
-    result: PatrolResult, step_s: float | None = None, settings: MonitorSettings | None = None
-) -> pd.DataFrame:
-    """One row per swarm with the monitoring columns of one run (see :mod:`twin.monitoring`)."""
-    return monitor_run(result, settings).table(step_s)
 
 
 def ci95_halfwidth(values: np.ndarray) -> float:

@@ -253,10 +253,8 @@ class LookaheadPolicy(CoordinatedPolicy):
             self.path_cells = np.searchsorted(self.cell_flat, flat)  # cell_flat is sorted
 
     def scores(self, view: SwarmView) -> np.ndarray:
-        grid, p, h_max = view.grid, view.params, self.horizon
-        flat, valid = grid.view_index(view.positions)
-        i, j = np.divmod(flat[valid], grid.ny)
-        self.belief[i, j] = view.importance[i, j]
+        p, h_max = view.params, self.horizon
+        self.update_belief(view)
         self.idle_padded[h_max:-h_max, h_max:-h_max] = view.idleness
 
         pos = np.asarray(view.positions, dtype=np.int64)
@@ -287,6 +285,12 @@ class LookaheadPolicy(CoordinatedPolicy):
                 recovery = np.maximum(steps - 1 - t, 0) * p.delta
                 future[:, c] = np.minimum(1.0, p.eta * future[t, c] + recovery)
         return out
+
+    def update_belief(self, view: SwarmView) -> None:
+        """The importance the planner assumes: the last ``T`` seen in a field of view."""
+        flat, valid = view.grid.view_index(view.positions)
+        i, j = np.divmod(flat[valid], view.grid.ny)
+        self.belief[i, j] = view.importance[i, j]
 
     def _beam(self, start, future, weight, p):
         """Beam search of one drone's paths: after each step only the ``beam`` best prefixes

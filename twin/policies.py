@@ -348,11 +348,6 @@ SWARMS: dict[str, SwarmKind] = {
 }
 
 
-def register_policy(name: str, build: Callable[..., Policy], summary: str = "") -> None:
-    """Add a swarm of your own: ``make_policy(name, **options)`` calls ``build(**options)``."""
-    SWARMS[name] = SwarmKind(name, build, summary or name)
-
-
 def available_policies() -> list[str]:
     return sorted(SWARMS)
 

@@ -495,7 +495,3 @@ def _with_belief(series: pd.DataFrame, monitoring: RunMonitoring | None) -> pd.D
     if monitoring is None:
         return series
     return series.assign(belief_error=monitoring.belief_error[:, 1:].ravel())
-
-
-def read_summary(run_dir: str | Path) -> pd.DataFrame:
-    return pd.read_csv(Path(run_dir) / "summary.csv")

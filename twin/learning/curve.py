@@ -46,7 +46,9 @@ def evaluate_snapshots(snapshots, config_path, seeds, first_seed=0, others=("gre
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m twin.learning.curve", description=__doc__)
     p.add_argument("snapshots", type=Path, nargs="+", help="snapshot files or folders of them")
-    p.add_argument("--config", default="synthetic", help="scenario config (default: shipped synthetic)")
+    p.add_argument(
+        "--config", default="synthetic", help="scenario config (default: shipped synthetic)"
+    )
     p.add_argument("--seeds", type=int, default=10)
     p.add_argument("--seed", type=int, default=0, help="first seed")
     p.add_argument("--others", default="greedy", help="comma-separated comparison swarms")

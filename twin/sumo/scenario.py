@@ -261,12 +261,6 @@ def _flow_end(elem: ET.Element, begin: float) -> float:
     return begin + 3600.0  # SUMO's default flow end is its --end; assume an hour
 
 
-def earliest_depart(route_files: list[Path]) -> float | None:
-    """The earliest numeric departure (``depart`` of vehicles/trips, ``begin`` of flows)."""
-    span = departure_span(route_files)
-    return None if span is None else span[0]
-
-
 #: Roots of SUMO files that are not demand nor additional files, and what to do instead.
 _OTHER_KINDS = {
     "net": "a SUMO network; pass it as --net (or net = ... in [traffic])",
