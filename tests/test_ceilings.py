@@ -234,3 +234,15 @@ def test_cli_shows_the_ceiling_rows_unless_asked_not_to(tmp_path, capsys, flag):
         assert ORACLE not in printed and BOUND not in printed and "Headroom" not in printed
         assert list(summary.swarm) == ["random", "visit-gain"]
         assert (summary.role == "swarm").all()
+
+
+def test_the_report_reads_a_run_folder_with_ceiling_rows(tmp_path):
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(SMALL)
+    out = tmp_path / "run"
+    argv = ["evaluate", "--config", str(cfg), "--seeds", "2", "--out", str(out), "--quiet"]
+    assert main(argv) == 0
+    assert (out / "report" / "report.html").is_file()
+    assert main(["report", str(out)]) == 0
+    html = (out / "report" / "report.html").read_text()
+    assert ORACLE in html and "visit-gain" in html

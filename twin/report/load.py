@@ -169,6 +169,11 @@ class RunFiles:
         return self._idleness[key]
 
 
+#: Text columns of the results tables: the row's name, whether it is a swarm or a ceiling, and
+#: which oracle swarm gave the oracle row.
+TABLE_TEXT = ("swarm", "role", "oracle_swarm")
+
+
 def _read_json(path: Path) -> Any:
     """The JSON file at ``path``, None when absent; unreadable JSON is a one-line error."""
     return read_json(path)
@@ -214,7 +219,7 @@ def load_run(run_dir: str | Path) -> RunFiles:
     summary = read_table(summary_path, {"swarm": TEXT})
     if "n_seeds" in summary.columns:
         check_column(summary_path, summary, "n_seeds", INT)
-    numeric_columns(summary_path, summary, ("swarm",))
+    numeric_columns(summary_path, summary, TABLE_TEXT)
 
     def optional(name: str, columns: dict[str, str], text: tuple[str, ...] = ()):
         path = run_dir / name
@@ -227,8 +232,8 @@ def load_run(run_dir: str | Path) -> RunFiles:
                 check_column(path, frame, "n_seeds", INT)
         return frame
 
-    per_seed = optional("per_seed.csv", {"seed": INT, "swarm": TEXT}, ("swarm",))
-    monitoring = optional("monitoring.csv", {"swarm": TEXT}, ("swarm",))
+    per_seed = optional("per_seed.csv", {"seed": INT, "swarm": TEXT}, TABLE_TEXT)
+    monitoring = optional("monitoring.csv", {"swarm": TEXT}, TABLE_TEXT)
     events = optional("events.parquet", EVENT_COLUMNS)
     timing = optional("timing.csv", TIMING_COLUMNS)
     if timing is not None:
@@ -289,6 +294,8 @@ def check_consistent(
         raise UserError(
             f"{run_dir / 'summary.csv'}: swarm must list each swarm once (has {swarms}); {RERUN}"
         )
+    if "role" in summary.columns:  # ceilings (oracle, bound) are rows without paths
+        swarms = [s for s, role in zip(swarms, summary["role"], strict=True) if role != "ceiling"]
     first = run.get("importance_seed")
     first = int(first) if first is not None else seeds[0]
     if first not in seeds:
