@@ -7,10 +7,10 @@ Table 2 analog (one row per swarm and run):
   ``R_hat_T_importance`` and ``R_hat_T_idleness`` its alpha_T and alpha_I parts (they add up to
   ``R_hat_T``); ``R_hat_T_paper`` Def. 4 as printed, every drone paid its field of view: gameable
   by overlapping views and stacking, kept for comparison with the paper;
-- ``C_hat_T``: mean of ``C^k`` (Def. 5); ``C_hat_T_ceiling`` the same for an oracle whose drones
-  jump each step to the N freshest distinct cells (:func:`twin.monitoring.ceiling_coverage`):
-  an upper bound for a swarm's choice of cells, so a value near it shows the swarm neither
-  stacks nor hovers, not more;
+- ``C_hat_T``: mean of ``C^k`` (Def. 5); ``C_hat_T_ceiling`` the same for drones that jump
+  each step to the N freshest distinct cells (:func:`twin.monitoring.ceiling_coverage`): a
+  reference, not a bound (pacing revisits can exceed it slightly), so a value near it shows the
+  swarm neither stacks nor hovers, not more;
 - ``pct_time_max_C``: share of steps at which a swarm has the highest ``C^k`` among the swarms
   run side by side (ties count for each tied swarm), in percent: relative to the swarms
   compared, so it changes when a swarm is added or removed;
@@ -241,7 +241,7 @@ def table2_footnote(summary: pd.DataFrame) -> str:
     if "C_hat_T_ceiling" in present:
         notes.append(
             "C ceiling: C_hat_T of drones that jump each step to the freshest distinct cells; "
-            "an upper bound, so near it means no stacking or hovering, not more."
+            "a reference, not a bound: near it means no stacking or hovering, not more."
         )
     from twin.ceilings import is_ceiling_row
 

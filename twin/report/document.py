@@ -33,7 +33,7 @@ TABLE_COLUMNS = (
     ("R_hat_T_idleness", "of which idleness (α_I)", 4),
     ("R_hat_T_paper", "R̂_T as Def. 4 prints it (gameable)", 4),
     ("C_hat_T", "Ĉ_T (mean coverage)", 4),
-    ("C_hat_T_ceiling", "Ĉ_T ceiling (jumping oracle)", 4),
+    ("C_hat_T_ceiling", "Ĉ_T of jumping drones (reference)", 4),
     ("pct_time_max_C", "% of time with max C^k", 2),
     ("pct_map_covered", "% of map covered", 2),
 )
