@@ -312,7 +312,7 @@ def sweep(config_path: Path, cells: list[float], drones: list[int], hours: float
             cmd = [
                 sys.executable, "-m", "twin", "run", "--config", str(config_path),
                 "--cell-m", f"{cell:g}", "--drones", str(n), "--horizon", str(horizon),
-                "--out", str(folder), "--no-report", "--quiet",
+                "--out", str(folder), "--no-report", "--quiet", "--no-ceiling",
             ]  # fmt: skip
             t0 = time.perf_counter()
             done = subprocess.run(cmd, capture_output=True, text=True, env=os.environ.copy())
