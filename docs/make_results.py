@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 from pathlib import Path
 
@@ -80,7 +81,7 @@ def section(name: str, run_dir: Path) -> str:
         f"## {SECTIONS[name]}",
         "",
         "```bash",
-        meta["command"],
+        re.sub(r" --out \S+", "", meta["command"]),  # where it was written is not the recipe
         "```",
         "",
         f"Seeds {seeds[0]}-{seeds[-1]} ({len(seeds)}); {meta.get('horizon')} steps; "
