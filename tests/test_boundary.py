@@ -150,8 +150,8 @@ def test_error_log_is_a_run_file_and_not_in_the_manifest() -> None:
     from twin.runs import UNLISTED
 
     assert LOG_NAME in RUN_FILE_NAMES and LOG_NAME in UNLISTED
-    readme = (Path(__file__).parents[1] / "README.md").read_text()
-    assert f"| `{LOG_NAME}` |" in readme
+    guide = (Path(__file__).parents[1] / "docs" / "guide.md").read_text()
+    assert f"| `{LOG_NAME}` |" in guide
 
 
 @pytest.mark.parametrize(

@@ -1,4 +1,4 @@
-"""The shipped scenario configs load, and the city-scale one is what the README says."""
+"""The shipped scenario configs load, and the city-scale one is what the docs say."""
 
 from __future__ import annotations
 

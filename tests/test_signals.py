@@ -173,3 +173,28 @@ def test_ctrl_c_on_run_writes_a_partial_run_with_its_tape(small: Path, tmp_path:
     html = write_report(out, animation=False)
     assert "PARTIAL" in (html.parent / "report.md").read_text().splitlines()[0]
     assert "PARTIAL" in re.search(r"<h1>(.*?)</h1>", html.read_text()).group(1)
+
+
+def test_the_same_command_completes_a_run_stopped_by_ctrl_c(tmp_path: Path) -> None:
+    config = scenario_file(tmp_path, horizon=20_000)
+    out = tmp_path / "run"
+    args = ["evaluate", "--config", str(config), "--seeds", "1", "--swarms", "random",
+            "--out", str(out), "--no-report", "--quiet"]  # fmt: skip
+    cmd = Command(args, tmp_path)
+    cmd.wait_for((out / "run.json").exists)
+    time.sleep(0.5)
+    assert cmd.interrupt() == 130, cmd.stderr()
+    assert json.loads((out / "run.json").read_text())["partial"] is True
+    again = subprocess.run(
+        [sys.executable, "-m", "twin", *args],
+        cwd=tmp_path,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert again.returncode == 0, again.stderr
+    meta = json.loads((out / "run.json").read_text())
+    assert meta["partial"] is False
+    series = pd.read_parquet(out / "series.parquet")
+    assert series["step"].max() + 1 == 20_000
