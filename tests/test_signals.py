@@ -179,7 +179,7 @@ def test_the_same_command_completes_a_run_stopped_by_ctrl_c(tmp_path: Path) -> N
     config = scenario_file(tmp_path, horizon=20_000)
     out = tmp_path / "run"
     args = ["evaluate", "--config", str(config), "--seeds", "1", "--swarms", "random",
-            "--out", str(out), "--no-report", "--quiet"]  # fmt: skip
+            "--out", str(out), "--no-report", "--no-ceiling", "--quiet"]  # fmt: skip
     cmd = Command(args, tmp_path)
     cmd.wait_for((out / "run.json").exists)
     time.sleep(0.5)
