@@ -302,7 +302,7 @@ def reference_boustrophedon_tour(grid: Grid) -> np.ndarray:
     per detour target over the whole grid."""
     from scipy.sparse.csgraph import shortest_path
 
-    from twin.policies import _free_cell_graph, largest_free_component
+    from twin.paths import free_cell_graph, largest_free_component
 
     reachable = largest_free_component(grid)
     order = []
@@ -319,7 +319,7 @@ def reference_boustrophedon_tour(grid: Grid) -> np.ndarray:
     targets = order[np.flatnonzero(steps != 1) + 1]
     roots = np.unique(targets[:, 0] * ny + targets[:, 1])
     _, pred = shortest_path(
-        _free_cell_graph(grid), unweighted=True, indices=roots, return_predecessors=True
+        free_cell_graph(grid), unweighted=True, indices=roots, return_predecessors=True
     )
     row = {int(root): n for n, root in enumerate(roots)}
     tour = [order[0]]

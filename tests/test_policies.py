@@ -12,13 +12,11 @@ from scipy.sparse.csgraph import shortest_path
 from twin.config import load_config, start_positions, synthetic_source
 from twin.grid import Grid
 from twin.metrics import table2
+from twin.paths import free_cell_graph, free_paths, largest_free_component
 from twin.patrol import run_patrol
 from twin.policies import (
     SweepingPolicy,
-    _free_cell_graph,
-    _free_paths,
     boustrophedon_tour,
-    largest_free_component,
     make_policy,
     sweeping_roles,
 )
@@ -72,8 +70,6 @@ def test_boustrophedon_tour_is_a_walk_over_every_free_cell():
     tour = boustrophedon_tour(grid)
     assert (np.abs(np.diff(tour, axis=0)).sum(axis=1) == 1).all()
     assert grid.is_free(tour).all()
-    from twin.policies import largest_free_component
-
     reachable = {tuple(c) for c in np.argwhere(largest_free_component(grid))}
     assert {tuple(c) for c in tour} == reachable
 
@@ -91,10 +87,10 @@ def test_limited_searches_find_the_paths_of_full_searches(seed, nx, ny):
     grid = Grid(obstacles)
     cells = np.argwhere(largest_free_component(grid))
     pairs = cells[rng.integers(len(cells), size=(12, 2))]
-    paths = _free_paths(grid, pairs[:, 0], pairs[:, 1])
+    paths = free_paths(grid, pairs[:, 0], pairs[:, 1])
     flat = pairs[..., 0] * ny + pairs[..., 1]
     _, pred = shortest_path(
-        _free_cell_graph(grid), unweighted=True, indices=flat[:, 1], return_predecessors=True
+        free_cell_graph(grid), unweighted=True, indices=flat[:, 1], return_predecessors=True
     )
     for n, (a, b) in enumerate(flat):
         walk = [a]

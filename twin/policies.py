@@ -14,11 +14,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import connected_components, dijkstra
 
 from twin.errors import UserError
 from twin.grid import ACTION_DELTAS, Grid
+from twin.paths import free_paths, largest_free_component
 from twin.scores import ScoreParams
 
 
@@ -116,7 +115,7 @@ def boustrophedon_tour(grid: Grid) -> np.ndarray:
     if np.all(steps == 1):
         return order
     jumps = np.flatnonzero(steps != 1)
-    found = _free_paths(grid, order[jumps], order[jumps + 1])
+    found = free_paths(grid, order[jumps], order[jumps + 1])
     paths = {int(jumps[k]): path for k, path in found.items()}  # by pair of the order
     tour = [order[0]]
     for n, b in enumerate(order[1:]):
@@ -125,81 +124,6 @@ def boustrophedon_tour(grid: Grid) -> np.ndarray:
         else:
             tour.extend(paths[n][1:])
     return np.array(tour, dtype=np.int64)
-
-
-def _free_cell_graph(grid: Grid) -> csr_matrix:
-    """The 4-neighbour graph of free cells, nodes numbered ``i * ny + j``."""
-    nx, ny = grid.shape
-    flat = np.arange(nx * ny).reshape(nx, ny)
-    rows, cols = [], []
-    for di, dj in ((1, 0), (0, 1)):
-        a = flat[: nx - di, : ny - dj]
-        b = flat[di:, dj:]
-        ok = grid.free[: nx - di, : ny - dj] & grid.free[di:, dj:]
-        rows += [a[ok], b[ok]]
-        cols += [b[ok], a[ok]]
-    r, c = np.concatenate(rows), np.concatenate(cols)
-    return csr_matrix((np.ones(len(r)), (r, c)), shape=(nx * ny, nx * ny))
-
-
-def largest_free_component(grid: Grid) -> np.ndarray:
-    """Mask of the largest 4-connected area of free cells."""
-    _, labels = connected_components(_free_cell_graph(grid), directed=False)
-    labels = labels.reshape(grid.shape)
-    counts = np.bincount(labels[grid.free])
-    return grid.free & (labels == counts.argmax())
-
-
-#: Roots per call of the shortest-path search in :func:`_free_paths` (bounds its memory).
-_ROOTS_PER_CALL = 256
-
-
-def _free_paths(grid: Grid, starts: np.ndarray, ends: np.ndarray) -> dict[int, list]:
-    """Cells of a shortest free path from each ``starts[n]`` to ``ends[n]`` (both in one
-    connected area), keyed by ``n``: walked back from the start along Dijkstra's tree rooted
-    at the end (``scipy.sparse.csgraph.dijkstra``, unweighted).
-
-    The search from each root stops at a distance ``limit`` (tried at 8, then x4 until the
-    start is reached). The tree up to the limit is the unlimited tree's: every node within
-    ``limit`` gets its predecessor while nodes closer than ``limit`` are scanned, and until
-    then both searches do the same heap operations. So the paths are the ones of one full
-    search per root, at a fraction of the cost.
-    """
-    graph = _free_cell_graph(grid)
-    ny = grid.ny
-    start = starts[:, 0] * ny + starts[:, 1]
-    end = ends[:, 0] * ny + ends[:, 1]
-    paths: dict[int, list] = {}
-    todo, limit = np.arange(len(start)), 8.0
-    while len(todo):
-        roots = np.unique(end[todo])
-        if limit >= grid.nx * grid.ny:
-            limit = np.inf
-        for chunk in range(0, len(roots), _ROOTS_PER_CALL):
-            some = roots[chunk : chunk + _ROOTS_PER_CALL]
-            _, pred = dijkstra(
-                graph, indices=some, unweighted=True, limit=limit, return_predecessors=True
-            )
-            row_of = {int(r): k for k, r in enumerate(some)}
-            for n in todo[np.isin(end[todo], some)]:
-                path = _walk(pred[row_of[int(end[n])]], int(start[n]), int(end[n]), ny)
-                if path is not None:
-                    paths[int(n)] = path
-        todo = np.array([n for n in todo if int(n) not in paths], dtype=np.int64)
-        limit *= 4
-    return paths
-
-
-def _walk(pred: np.ndarray, node: int, target: int, ny: int) -> list | None:
-    """Cells from ``node`` to ``target`` along a predecessor row; None if not reached."""
-    if node != target and pred[node] < 0:
-        return None
-    path = []
-    while node != target:
-        path.append((node // ny, node % ny))
-        node = int(pred[node])
-    path.append((target // ny, target % ny))
-    return path
 
 
 def sweeping_roles(n_drones: int) -> tuple[int, int, int]:

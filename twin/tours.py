@@ -23,8 +23,9 @@ from scipy.sparse.csgraph import connected_components
 
 from twin.errors import UserError
 from twin.grid import Grid
+from twin.paths import free_cell_graph, free_paths
 from twin.planners import CoordinatedPolicy
-from twin.policies import SwarmView, _free_cell_graph, _free_paths
+from twin.policies import SwarmView
 from twin.scores import ScoreParams, visit_gain
 
 #: Score added to a drone's planned move: larger than any visit gain, so the coordinator keeps
@@ -188,7 +189,7 @@ def closed_walks(grid: Grid, orders: list[np.ndarray]) -> list[np.ndarray]:
             ends.append(b)
             where.append((t, int(g)))
     if starts:  # all cells lie in one connected area
-        paths = _free_paths(grid, np.array(starts), np.array(ends))
+        paths = free_paths(grid, np.array(starts), np.array(ends))
         joins.update({key: paths[n] for n, key in enumerate(where)})
     walks = []
     for t, cells in enumerate(orders):
@@ -351,7 +352,7 @@ class ToursPolicy(CoordinatedPolicy):
         self.belief = np.zeros(grid.shape)  # last seen T per cell, 0 if never seen
         self.seen = np.zeros(grid.shape, dtype=bool)
         self.last_seen = np.zeros(grid.shape)  # step at which each cell was last in view
-        _, labels = connected_components(_free_cell_graph(grid), directed=False)
+        _, labels = connected_components(free_cell_graph(grid), directed=False)
         labels = labels.reshape(grid.shape)
         counts = np.bincount(labels[grid.free])
         self.area = grid.free & (labels == counts.argmax())  # tours stay in the largest area
@@ -511,7 +512,7 @@ class ToursPolicy(CoordinatedPolicy):
                 rest.append(m)
         if rest:
             rest = np.array(rest)
-            found = _free_paths(self.grid, pos[drones[away[rest]]], targets[away[rest]])
+            found = free_paths(self.grid, pos[drones[away[rest]]], targets[away[rest]])
             paths.update({int(rest[m]): path for m, path in found.items()})
         for m, d in enumerate(drones[away]):
             if m in paths:
