@@ -40,9 +40,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from twin.config import load_config
 from twin.patrol import run_patrol
-from twin.policies import make_policy
 from twin.scores import ScoreParams
 from twin.sumo.scenario import sumo_source
+from twin.swarms import make_policy
 
 ROOT = Path(__file__).resolve().parents[1]
 QUICK_CONFIG = """

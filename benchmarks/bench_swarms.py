@@ -32,8 +32,9 @@ import numpy as np
 from twin.grid import Grid
 from twin.patrol import random_starts, swarm_rng
 from twin.planners import LookaheadPolicy
-from twin.policies import SwarmView, boustrophedon_tour, make_policy
+from twin.policies import SwarmView, boustrophedon_tour
 from twin.scores import ScoreParams, update_idleness, visit_gain
+from twin.swarms import make_policy
 
 SWARMS = ("random", "greedy", "sweeping", "greedy-coordinated", "visit-gain", "lookahead")
 UNCOORDINATED = ("random", "greedy", "sweeping")  # may put two drones on one cell

@@ -20,7 +20,7 @@ from pathlib import Path
 import pandas as pd
 
 from twin.metrics import paired_difference
-from twin.policies import is_learned
+from twin.swarms import is_learned
 
 #: (column, header, decimals, with interval) of the results tables.
 COLUMNS = (

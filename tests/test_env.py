@@ -19,9 +19,9 @@ from pettingzoo.test import parallel_api_test
 from twin.env import SwarmGymEnv, SwarmParallelEnv, make_env
 from twin.grid import Grid
 from twin.patrol import random_starts, run_patrol, swarm_rng, swarm_view
-from twin.policies import make_policy
 from twin.scores import ScoreParams, drone_states
 from twin.swarm import InfeasibleActionError
+from twin.swarms import make_policy
 from twin.traffic.synthetic import Disturbance, SyntheticTraffic
 from twin.traffic.tape import Tape, TapeTraffic
 

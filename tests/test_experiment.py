@@ -11,7 +11,7 @@ import pytest
 from twin.cli import main as twin_main
 from twin.config import load_config
 from twin.experiment import Experiment, run_experiment
-from twin.policies import make_policy
+from twin.swarms import make_policy
 
 SYNTHETIC = """
 [grid]
@@ -89,9 +89,10 @@ def test_the_core_imports_neither_sumo_nor_torch():
     import subprocess
     import sys
 
-    core = ["grid", "scores", "swarm", "policies", "planners", "coordinator", "idleness_maps",
-            "patrol", "experiment", "metrics", "monitoring", "mfd", "runs", "files", "config",
-            "resources", "sweep", "traffic.synthetic", "traffic.tape"]  # fmt: skip
+    core = ["grid", "scores", "swarm", "paths", "policies", "planners", "tours", "swarms",
+            "coordinator", "idleness_maps", "patrol", "experiment", "metrics", "monitoring",
+            "mfd", "runs", "files", "config", "resources", "sweep", "traffic.synthetic",
+            "traffic.tape"]  # fmt: skip
     code = (
         "import sys\n"
         + "".join(f"import twin.{m}\n" for m in core)

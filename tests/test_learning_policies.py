@@ -9,8 +9,9 @@ from twin.learning.checkpoint import model_metadata, save_model
 from twin.learning.policies import RLPolicy, local_drone_states
 from twin.learning.qnet import QNetwork
 from twin.patrol import run_patrol
-from twin.policies import SwarmView, make_policy
+from twin.policies import SwarmView
 from twin.scores import ScoreParams, drone_states, update_idleness
+from twin.swarms import make_policy
 from twin.traffic.synthetic import Disturbance, SyntheticTraffic
 
 LAYERS = [13, 24, 5]

@@ -19,8 +19,9 @@ from twin.monitoring import (
     sightings,
 )
 from twin.patrol import PatrolResult, random_starts, run_patrol
-from twin.policies import Policy, make_policy
+from twin.policies import Policy
 from twin.scores import ScoreParams, paper_rewards, rewards_on_arrival, update_idleness
+from twin.swarms import make_policy
 from twin.traffic.synthetic import Disturbance, SyntheticTraffic
 
 PARAMS = ScoreParams()

@@ -8,9 +8,9 @@ import pytest
 from twin.grid import Grid
 from twin.learning.data import random_swarm_episode
 from twin.patrol import random_starts, run_patrol
-from twin.policies import make_policy
 from twin.scores import ScoreParams, rewards_on_arrival, update_idleness, visit_gain
 from twin.swarm import InfeasibleActionError, initial_state, step
+from twin.swarms import make_policy
 from twin.traffic.base import RecordedTraffic
 from twin.traffic.synthetic import Disturbance, SyntheticTraffic
 

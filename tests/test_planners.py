@@ -11,8 +11,9 @@ from twin.errors import UserError
 from twin.grid import ACTION_DELTAS, Grid
 from twin.patrol import random_starts
 from twin.planners import LookaheadPolicy, VisitGainPolicy, action_paths
-from twin.policies import SwarmView, available_policies, make_policy
+from twin.policies import SwarmView
 from twin.scores import ScoreParams, update_idleness, visit_gain
+from twin.swarms import available_policies, make_policy
 
 COORDINATED = ("greedy-coordinated", "visit-gain", "lookahead")
 PARAMS = ScoreParams()

@@ -14,12 +14,8 @@ from twin.grid import Grid
 from twin.metrics import table2
 from twin.paths import free_cell_graph, free_paths, largest_free_component
 from twin.patrol import run_patrol
-from twin.policies import (
-    SweepingPolicy,
-    boustrophedon_tour,
-    make_policy,
-    sweeping_roles,
-)
+from twin.policies import SweepingPolicy, boustrophedon_tour, sweeping_roles
+from twin.swarms import make_policy
 from twin.traffic.base import RecordedTraffic
 
 CONFIG = Path(__file__).resolve().parents[1] / "configs" / "synthetic.toml"

@@ -339,8 +339,8 @@ def test_missing_files_are_one_line_errors(tmp_path: Path, capsys) -> None:
 def test_report_of_a_real_patrol_run(tmp_path: Path) -> None:
     """The core's own run-folder writer, read back: the table equals its summary.csv."""
     from twin.patrol import random_starts, run_patrol
-    from twin.policies import make_policy
     from twin.runs import write_run
+    from twin.swarms import make_policy
     from twin.traffic.synthetic import Disturbance, SyntheticTraffic
 
     grid = Grid.open(8, 12)

@@ -17,11 +17,11 @@ from twin.cli import main as twin_main
 from twin.config import load_config
 from twin.errors import UserError
 from twin.patrol import run_patrol
-from twin.policies import make_policy
 from twin.scores import ScoreParams
 from twin.sumo.scenario import sumo_source
 from twin.sumo.session import SumoRunError, SumoSession
 from twin.sumo.tools import binary, run_sumo_program
+from twin.swarms import make_policy
 from twin.traffic.tape import Tape, TapeTraffic
 
 

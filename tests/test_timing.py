@@ -12,9 +12,10 @@ import pytest
 
 from twin.grid import Grid
 from twin.patrol import run_patrol
-from twin.policies import Policy, make_policy
+from twin.policies import Policy
 from twin.runs import timing_frame, write_run
 from twin.scores import ScoreParams
+from twin.swarms import make_policy
 from twin.timing import (
     OBSERVATION,
     READS,

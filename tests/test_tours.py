@@ -6,8 +6,9 @@ import pytest
 from twin.errors import UserError
 from twin.grid import Grid
 from twin.patrol import random_starts
-from twin.policies import RandomPolicy, SwarmView, make_policy
+from twin.policies import RandomPolicy, SwarmView
 from twin.scores import ScoreParams, update_idleness, visit_gain
+from twin.swarms import make_policy
 from twin.tours import (
     ToursPolicy,
     best_period,

@@ -286,7 +286,7 @@ class ScenarioConfig(StrictModel):
 
     def make_swarm(self, name: str, **overrides: Any):
         """The swarm ``name`` with this config's options for it, ``overrides`` on top."""
-        from twin.policies import make_policy
+        from twin.swarms import make_policy
 
         options = {**self.swarm_options.get(name, {}), **overrides}
         if isinstance(options.get("checkpoint"), str):  # relative to the config, as in sweeps

@@ -301,7 +301,7 @@ def learned_against_best_classical(per_seed: pd.DataFrame, column: str = "R_hat_
     over seeds (empty when the run has no learned or no classical swarm). Ceiling rows
     (``role == "ceiling"``: the oracle, the bound) are never candidates."""
     from twin.ceilings import swarm_rows
-    from twin.policies import is_learned
+    from twin.swarms import is_learned
 
     means = swarm_rows(per_seed).groupby("swarm", sort=False)[column].mean()
     classical = [s for s in means.index if not is_learned(s)]

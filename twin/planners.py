@@ -426,7 +426,7 @@ def path_tree(offsets: np.ndarray, last: np.ndarray) -> tuple[np.ndarray, list[_
     return cells, levels
 
 
-#: The swarms of this module by registry name (see ``twin.policies._REGISTRY``).
+#: The swarms of this module by registry name (see :data:`twin.swarms.SWARMS`).
 PLANNERS: dict[str, type[CoordinatedPolicy]] = {
     "greedy-coordinated": GreedyCoordinatedPolicy,
     "visit-gain": VisitGainPolicy,

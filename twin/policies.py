@@ -4,18 +4,16 @@
 - greedy: move to the cell of Adj(p) with the largest ``I^k T^k`` (ties broken at random);
 - sweeping: boustrophedon drones, greedy drones and random drones (see :func:`sweeping_roles`).
 
-A policy decides for all drones at once from a :class:`SwarmView`. Learning swarms live in
-``twin.learning`` and join the registry lazily, so this module imports no torch.
+A policy decides for all drones at once from a :class:`SwarmView`. The registry of every swarm
+by name is :mod:`twin.swarms`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
-from twin.errors import UserError
 from twin.grid import ACTION_DELTAS, Grid
 from twin.paths import free_paths, largest_free_component
 from twin.scores import ScoreParams
@@ -183,105 +181,16 @@ class SweepingPolicy(Policy):
         return actions
 
 
-@dataclass(frozen=True)
-class SwarmKind:
-    """An entry of the swarm registry: how to build the swarm and what it is."""
-
-    name: str
-    build: Callable[..., Policy]  # keyword options -> a fresh policy
-    summary: str
-    learned: bool = False  # driven by a trained Q-network (needs torch and a checkpoint)
-
-
-def _planner(name: str) -> Callable[..., Policy]:
-    """Builder of a coordinated classical swarm (``twin.planners`` imports this module)."""
-
-    def build(**options) -> Policy:
-        from twin.planners import PLANNERS
-
-        return PLANNERS[name](**options)
-
-    return build
-
-
-def _tours(**options) -> Policy:
-    """Builder of the cyclic patrol swarm (``twin.tours`` imports this module)."""
-    from twin.tours import ToursPolicy
-
-    return ToursPolicy(**options)
-
-
-def _learned(name: str) -> Callable[..., Policy]:
-    """Builder of a learned swarm; torch is imported only when one is built."""
-
-    def build(**options) -> Policy:
-        try:
-            from twin.learning.policies import build_learned_swarm
-        except ImportError as exc:
-            raise UserError(
-                f"swarm {name!r} needs {exc.name or 'an optional dependency'}: "
-                "install twin with its learning dependencies (pip install twin)"
-            ) from exc
-        return build_learned_swarm(name, **options)
-
-    return build
-
-
-#: Every swarm twin can run, by name.
-SWARMS: dict[str, SwarmKind] = {
-    kind.name: kind
-    for kind in (
-        SwarmKind("random", RandomPolicy, "a uniform feasible action per drone"),
-        SwarmKind("greedy", GreedyPolicy, "each drone to the cell of its view with the most I*T"),
-        SwarmKind("sweeping", SweepingPolicy, "zig-zag sweepers plus greedy and random drones"),
-        SwarmKind(
-            "greedy-coordinated",
-            _planner("greedy-coordinated"),
-            "greedy's I*T of the cell reached, collisions resolved by the coordinator",
-        ),
-        SwarmKind(
-            "visit-gain",
-            _planner("visit-gain"),
-            "the one-step gain of the visit at the next cell, by the coordinator",
-        ),
-        SwarmKind(
-            "lookahead",
-            _planner("lookahead"),
-            "the best visit gains over H steps plus the worth of the idleness left at the end, "
-            "drones planned in turn, first moves by the coordinator",
-        ),
-        SwarmKind(
-            "tours",
-            _tours,
-            "drones spaced evenly along closed tours over the cells worth patrolling",
-        ),
-        SwarmKind("rl", _learned("rl"), "the Q-network with the central coordinator", True),
-        SwarmKind(
-            "rl-decentralized",
-            _learned("rl-decentralized"),
-            "the Q-network, epsilon-greedy per drone on its own map",
-            True,
-        ),
-        SwarmKind(
-            "rl-online",
-            _learned("rl-online"),
-            "the coordinated Q-network that keeps learning every step",
-            True,
-        ),
-    )
-}
-
-
 def available_policies() -> list[str]:
-    return sorted(SWARMS)
+    """:func:`twin.swarms.available_policies`, for :mod:`twin.experiment`, which imports it
+    from here."""
+    from twin.swarms import available_policies
+
+    return available_policies()
 
 
 def is_learned(name: str) -> bool:
-    return name in SWARMS and SWARMS[name].learned
+    """:func:`twin.swarms.is_learned`, for :mod:`twin.experiment`, which imports it from here."""
+    from twin.swarms import is_learned
 
-
-def make_policy(name: str, **options) -> Policy:
-    """Build the swarm registered under ``name``."""
-    if name not in SWARMS:
-        raise UserError(f"unknown swarm {name!r}; choose from {', '.join(available_policies())}")
-    return SWARMS[name].build(**options)
+    return is_learned(name)

@@ -19,8 +19,8 @@ from twin.experiment import (
     run_metadata,
 )
 from twin.metrics import format_comparison, format_results
-from twin.policies import available_policies
 from twin.runs import discard_run_dir, invocation, new_run_dir, prepare_run_dir
+from twin.swarms import available_policies
 
 DEFAULT_CONFIG = "configs/synthetic.toml"
 

@@ -187,7 +187,7 @@ class RLPolicy(Policy):
 
 
 def build_learned_swarm(name: str, **options) -> RLPolicy:
-    """The learned swarms of :data:`twin.policies.SWARMS` by name."""
+    """The learned swarms of :data:`twin.swarms.SWARMS` by name."""
     defaults = {
         "rl": {},
         "rl-decentralized": {"decentralized": True},

@@ -22,6 +22,7 @@ from pydantic import (
 )
 
 from twin.config import StrictModel, check_name, read_toml, validation_error
+from twin.errors import UserError
 
 SECTIONS = ("grid", "swarm", "traffic", "evaluate")
 
@@ -61,14 +62,16 @@ class SweepSection(StrictModel):
     @field_validator("swarms")
     @classmethod
     def _swarms(cls, swarms: list[str]) -> list[str]:
-        from twin.policies import available_policies
+        from twin.swarms import available_policies, check_swarm_name
 
         if len(set(swarms)) != len(swarms):
             raise ValueError("lists a swarm twice; list each once")
-        known = available_policies()
         for swarm in swarms:
-            if swarm not in known:
-                raise ValueError(f"has unknown swarm {swarm!r}; use {', '.join(known)}")
+            try:
+                check_swarm_name(swarm)
+            except UserError:
+                known = ", ".join(available_policies())
+                raise ValueError(f"has unknown swarm {swarm!r}; use {known}") from None
         return swarms
 
     @field_validator("seeds", mode="plain")
