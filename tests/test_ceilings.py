@@ -10,19 +10,17 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from twin.ceilings import (
-    BOUND,
-    ORACLE,
     CellStates,
     TrueLookaheadPolicy,
     TrueVisitGainPolicy,
     cell_weights,
-    headroom,
     lagrangian_bound,
     oracle,
     soft_dual,
 )
 from twin.cli import main
 from twin.grid import Grid
+from twin.metrics import BOUND, ORACLE, headroom
 from twin.patrol import run_patrol
 from twin.planners import VisitGainPolicy
 from twin.policies import RandomPolicy

@@ -53,15 +53,10 @@ import numpy as np
 import pandas as pd
 
 from twin.grid import ACTION_DELTAS, Grid
+from twin.metrics import BOUND, CEILING_ROLE, ORACLE, table2
 from twin.planners import CoordinatedPolicy, LookaheadPolicy
 from twin.policies import Policy, SwarmView
 from twin.scores import ScoreParams, visit_gain
-
-#: Names of the ceiling rows in the results tables.
-ORACLE = "oracle (ceiling)"
-BOUND = "bound (ceiling)"
-CEILINGS = (ORACLE, BOUND)
-SWARM_ROLE, CEILING_ROLE = "swarm", "ceiling"
 
 
 def visit_factor(idleness: np.ndarray, params: ScoreParams) -> np.ndarray:
@@ -457,7 +452,6 @@ def oracle(
     return the best one's Table 2 row (:func:`twin.metrics.table2`), its name, and every
     oracle swarm's rows. Each is a real swarm (moves, distinct cells by the coordinator);
     choosing the best in hindsight is what makes it an oracle rather than a competitor."""
-    from twin.metrics import table2
     from twin.patrol import run_patrol
     from twin.traffic.base import RecordedTraffic
 
@@ -520,34 +514,3 @@ def ceiling_table(
 
 def astuple_params(params: ScoreParams) -> tuple[float, ...]:
     return (params.eta, params.delta, params.alpha_T, params.alpha_I)
-
-
-def is_ceiling_row(frame: pd.DataFrame) -> pd.Series:
-    """Which rows of a results table are ceilings (``role == "ceiling"``), not swarms."""
-    if "role" not in frame.columns:
-        return pd.Series(False, index=frame.index)
-    return frame["role"].eq(CEILING_ROLE)
-
-
-def swarm_rows(frame: pd.DataFrame) -> pd.DataFrame:
-    """The rows of a results table that are swarms (ceilings left out)."""
-    return frame[~is_ceiling_row(frame)]
-
-
-def headroom(summary: pd.DataFrame, column: str = "R_hat_T") -> str | None:
-    """``best swarm X reaches a% of the bound; oracle b%`` from a summary with ceiling rows
-    (``None`` without them): how much of the headline score is left above the best swarm."""
-    if column not in summary.columns:
-        return None
-    ceilings = summary[is_ceiling_row(summary)].set_index("swarm")[column]
-    swarms = swarm_rows(summary).set_index("swarm")[column].dropna()
-    if swarms.empty or BOUND not in ceilings or not np.isfinite(ceilings[BOUND]):
-        return None
-    best = str(swarms.idxmax())
-    text = f"best swarm {best} reaches {swarms[best] / ceilings[BOUND]:.1%} of the bound"
-    if ORACLE in ceilings and np.isfinite(ceilings[ORACLE]):
-        text += f"; oracle {ceilings[ORACLE] / ceilings[BOUND]:.1%}"
-    return (
-        f"Headroom ({column}): {text} (bound {ceilings[BOUND]:.3f}, "
-        f"oracle {ceilings.get(ORACLE, float('nan')):.3f}, {best} {swarms[best]:.3f})"
-    )

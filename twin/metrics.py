@@ -19,6 +19,10 @@ Table 2 analog (one row per swarm and run):
 Monitoring (:mod:`twin.monitoring`): ``belief_error``, ``events``, ``pct_events_seen``,
 ``latency_median_steps``, ``latency_p90_steps`` (and ``_min`` when a step's length is known),
 ``pct_congested_observed``.
+
+A results table may add the ceilings of :mod:`twin.ceilings` (rows :data:`ORACLE` and
+:data:`BOUND`, ``role = "ceiling"``) to its swarms' rows (``role = "swarm"``): they are never
+swarms compared (:func:`swarm_rows`), and :func:`headroom` reports the swarms against them.
 """
 
 from __future__ import annotations
@@ -106,6 +110,13 @@ DIGITS = {
     "incident_latency_min": 1,
 }
 
+#: Names of the ceiling rows (:mod:`twin.ceilings`) in the results tables.
+ORACLE = "oracle (ceiling)"
+BOUND = "bound (ceiling)"
+CEILINGS = (ORACLE, BOUND)
+#: The ``role`` column of a results table: a swarm's row or a ceiling's.
+SWARM_ROLE, CEILING_ROLE = "swarm", "ceiling"
+
 
 def table2(result: PatrolResult, params: ScoreParams | None = None) -> pd.DataFrame:
     """One row per swarm with the Table 2 columns of one run, and :data:`GAIN_COLUMNS`.
@@ -145,6 +156,18 @@ def table2(result: PatrolResult, params: ScoreParams | None = None) -> pd.DataFr
     else:
         frame["C_hat_T_ceiling"] = np.nan
     return frame
+
+
+def is_ceiling_row(frame: pd.DataFrame) -> pd.Series:
+    """Which rows of a results table are ceilings (``role == "ceiling"``), not swarms."""
+    if "role" not in frame.columns:
+        return pd.Series(False, index=frame.index)
+    return frame["role"].eq(CEILING_ROLE)
+
+
+def swarm_rows(frame: pd.DataFrame) -> pd.DataFrame:
+    """The rows of a results table that are swarms (ceilings left out)."""
+    return frame[~is_ceiling_row(frame)]
 
 
 def ci95_halfwidth(values: np.ndarray) -> float:
@@ -220,8 +243,6 @@ def format_table2(summary: pd.DataFrame) -> str:
 
 def table2_footnote(summary: pd.DataFrame) -> str:
     """What the printed Table 2 columns mean, naming the swarms compared."""
-    from twin.ceilings import swarm_rows
-
     swarms = ", ".join(str(s) for s in swarm_rows(summary)["swarm"])
     notes = [
         f"% time max C^k: share of steps with the highest C^k among the swarms in this table "
@@ -243,8 +264,6 @@ def table2_footnote(summary: pd.DataFrame) -> str:
             "C ceiling: C_hat_T of drones that jump each step to the freshest distinct cells; "
             "a reference, not a bound: near it means no stacking or hovering, not more."
         )
-    from twin.ceilings import is_ceiling_row
-
     if is_ceiling_row(summary).any():
         notes.append(
             "Rows marked (ceiling) are not swarms: the oracle plans on the true future maps, "
@@ -259,11 +278,28 @@ def format_monitoring(summary: pd.DataFrame) -> str:
     return _format(summary, _present(summary, MONITORING_COLUMNS), MONITORING_HEADERS)
 
 
+def headroom(summary: pd.DataFrame, column: str = "R_hat_T") -> str | None:
+    """``best swarm X reaches a% of the bound; oracle b%`` from a summary with ceiling rows
+    (``None`` without them): how much of the headline score is left above the best swarm."""
+    if column not in summary.columns:
+        return None
+    ceilings = summary[is_ceiling_row(summary)].set_index("swarm")[column]
+    swarms = swarm_rows(summary).set_index("swarm")[column].dropna()
+    if swarms.empty or BOUND not in ceilings or not np.isfinite(ceilings[BOUND]):
+        return None
+    best = str(swarms.idxmax())
+    text = f"best swarm {best} reaches {swarms[best] / ceilings[BOUND]:.1%} of the bound"
+    if ORACLE in ceilings and np.isfinite(ceilings[ORACLE]):
+        text += f"; oracle {ceilings[ORACLE] / ceilings[BOUND]:.1%}"
+    return (
+        f"Headroom ({column}): {text} (bound {ceilings[BOUND]:.3f}, "
+        f"oracle {ceilings.get(ORACLE, float('nan')):.3f}, {best} {swarms[best]:.3f})"
+    )
+
+
 def format_results(summary: pd.DataFrame, title: str) -> str:
     """What ``twin evaluate`` and ``twin run`` print: the Table 2 analog under ``title``, its
     footnote, and the monitoring table when the summary holds it."""
-    from twin.ceilings import headroom, swarm_rows
-
     parts = [f"{title}:", format_table2(summary), table2_footnote(summary)]
     line = headroom(summary)
     if line:
@@ -300,7 +336,6 @@ def learned_against_best_classical(per_seed: pd.DataFrame, column: str = "R_hat_
     """Each learned swarm against the classical swarm with the highest mean ``column``, paired
     over seeds (empty when the run has no learned or no classical swarm). Ceiling rows
     (``role == "ceiling"``: the oracle, the bound) are never candidates."""
-    from twin.ceilings import swarm_rows
     from twin.swarms import is_learned
 
     means = swarm_rows(per_seed).groupby("swarm", sort=False)[column].mean()

@@ -54,10 +54,17 @@ import pandas as pd
 
 from twin import __version__
 from twin.boundary import LOG_NAME, set_run_folder
-from twin.ceilings import SWARM_ROLE, ceiling_table, swarm_rows
+from twin.ceilings import ceiling_table
 from twin.errors import UserError
 from twin.files import atomic_write, write_json
-from twin.metrics import MONITORING_COLUMNS, aggregate, learned_against_best_classical, table2
+from twin.metrics import (
+    MONITORING_COLUMNS,
+    SWARM_ROLE,
+    aggregate,
+    learned_against_best_classical,
+    swarm_rows,
+    table2,
+)
 from twin.monitoring import MonitorSettings, RunMonitoring, monitor_run
 from twin.patrol import PatrolResult
 from twin.readback import check_manifest

@@ -437,7 +437,7 @@ def _table_caption(rf: RunFiles) -> str:
             "one visit: it is gameable by flying in a pack, shown only for comparison with "
             "the paper."
         )
-    from twin.ceilings import headroom, is_ceiling_row
+    from twin.metrics import headroom, is_ceiling_row
 
     if is_ceiling_row(rf.summary).any():
         text += (

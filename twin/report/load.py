@@ -83,7 +83,7 @@ class RunFiles:
     def swarms(self) -> list[str]:
         """Swarm names in the order of ``summary.csv`` (ceiling rows left out: they have no
         series or trajectories)."""
-        from twin.ceilings import swarm_rows
+        from twin.metrics import swarm_rows
 
         return [str(s) for s in swarm_rows(self.summary)["swarm"]]
 
