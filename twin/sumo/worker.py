@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from twin.processes import exit_with_parent
 from twin.timing import StageTimer
 
 if TYPE_CHECKING:
@@ -102,8 +103,6 @@ def _take_end(source: SumoTraffic, message) -> None:
 
 def _produce(source: SumoTraffic, conn, parent: int) -> None:
     """The child: every map with the snapshots behind it, then ``end``."""
-    from twin.sweep.executors import exit_with_parent
-
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     exit_with_parent(parent)
     source.separate_process = False
