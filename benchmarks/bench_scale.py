@@ -178,7 +178,7 @@ def one_run(
         "running": running,
         "peak_mb": peak_memory_mb(),
         "stages": result.stage_seconds,
-        "sumo_stages": result.extra.get("sumo_process_stages", {}),
+        "sumo_stages": result.extra.get("process_stages", {}).get("sumo", {}),
         "loop_seconds": result.seconds,
         "steps": result.completed_steps,
         "writing": writing,

@@ -27,7 +27,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pandas as pd
 
 from twin.config import ScenarioConfig, check_swarm_fits, start_positions
 from twin.errors import UserError
@@ -258,8 +257,9 @@ def _run_seeds(
             )
             results.append(result)
             traffic.append(source.metadata())
-            if getattr(source, "incidents_info", None) and source.incidents_info():
-                result.extra["incidents"] = source.incidents_info()  # scored by monitoring
+            incidents = source.incidents_info()
+            if incidents:
+                result.extra["incidents"] = incidents  # scored by monitoring
         finally:
             if keep_sources:
                 sources.append(source)
@@ -407,19 +407,14 @@ def check_memory(
     if horizon > 10**9:
         raise UserError(f"{where}: horizon {horizon} is not a number of steps twin can run")
     limit = max_memory_gb(experiment)
-    warmup = 0
-    scenario = getattr(source, "scenario", None)
-    if scenario is not None:
-        warmup = int(scenario.warmup_steps())
-    need = estimate_memory(experiment, shape, horizon, warmup, live=scenario is not None)
+    warmup = int(source.warmup_steps()) if source is not None else 0
+    live = source is not None and source.live
+    need = estimate_memory(experiment, shape, horizon, warmup, live=live)
     if need <= limit * 1e9:
         return
     ratio = (need / (limit * 1e9)) ** 0.5
-    geometry = getattr(source, "geometry", None)
-    if geometry is not None:
-        cell = float(np.ceil(geometry.cell_m * ratio / 50.0) * 50.0)
-        hint = f"cells of {cell:g} m ([traffic].cell_m) or fewer steps (--horizon)"
-    else:
+    hint = source.coarser_hint(ratio) if source is not None else None
+    if hint is None:
         hint = f"a grid about {ratio:.1f} times coarser per side, fewer steps or fewer seeds"
     raise UserError(
         f"{shape[0]} x {shape[1]} cells x {horizon} steps x {len(experiment.swarms)} swarms x "
@@ -447,8 +442,8 @@ def run_metadata(outcome: ExperimentResult, kind: str, **extra: Any) -> dict[str
 
 def record(run_dir: Path, outcome: ExperimentResult, meta: dict[str, Any], ceilings: bool = False):
     """Write the run folder (with ``comparison.csv``: each learned swarm against the best
-    classical one, paired over seeds); live SUMO runs add ``network.json``, the MFD fit and samples and
-    the traffic tape of each seed (``tape.parquet`` for the first, ``tapes/`` for the rest).
+    classical one, paired over seeds); the kept sources add their own files
+    (:meth:`TrafficSource.write_extras`: a live run's network, MFD fit and tape of each seed).
     With ``ceilings`` the tables add the oracle and bound rows (:mod:`twin.ceilings`),
     computed from each seed's recorded maps after the swarms' run.
     ``manifest.json`` is written last (see ``twin/runs.py``). Returns the summary table and
@@ -456,30 +451,15 @@ def record(run_dir: Path, outcome: ExperimentResult, meta: dict[str, Any], ceili
     from twin.runs import write_run
 
     extras = None
-    if outcome.sources and hasattr(outcome.sources[0], "tape"):
+    if outcome.sources:
+        first = outcome.sources[0]
+        by_seed = [(r.seed, s) for r, s in zip(outcome.results, outcome.sources, strict=False)]
 
         def extras(folder: Path) -> None:
-            _write_sumo_extras(folder, outcome)
+            first.write_extras(folder, by_seed)
 
-    # the SUMO files go before run.json and manifest.json: a kill in between leaves no manifest
+    # the source's files go before run.json and manifest.json: a kill in between leaves no manifest
     return write_run(run_dir, outcome.results, meta, extras=extras, ceilings=ceilings)
-
-
-def _write_sumo_extras(run_dir: Path, outcome: ExperimentResult) -> None:
-    from twin.runs import atomic_write, write_json
-
-    first = outcome.sources[0]
-    write_json(run_dir / "network.json", first.network_info())
-    write_json(run_dir / "mfd.json", first.model.report())
-    if first.incidents_info():
-        write_json(run_dir / "incidents.json", first.incidents_info())
-    samples = pd.DataFrame(first.model.samples())
-    atomic_write(run_dir / "mfd_samples.parquet", lambda p: samples.to_parquet(p, index=False))
-    atomic_write(run_dir / "tape.parquet", first.tape().write)
-    if len(outcome.sources) > 1:
-        (run_dir / "tapes").mkdir(exist_ok=True)
-        for result, source in zip(outcome.results, outcome.sources, strict=False):
-            atomic_write(run_dir / "tapes" / f"seed-{result.seed}.parquet", source.tape().write)
 
 
 def close_sources(outcome: ExperimentResult) -> None:
