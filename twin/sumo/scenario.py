@@ -24,6 +24,7 @@ from __future__ import annotations
 import hashlib
 import math
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -122,6 +123,42 @@ def suggest_cell_m(lanes, cell_m: float, n_drones: int, min_lane_km: float = 0.0
 
 def notice(text: str) -> None:
     print(f"twin: notice: {text}", file=sys.stderr)
+
+
+@dataclass
+class SumoInputs:
+    """Files and settings that replace the config's SUMO scenario (``twin run`` flags)."""
+
+    net: Path | None = None
+    routes: list[Path] | None = None
+    sumocfg: Path | None = None
+    osm: Path | None = None
+    horizon: int | None = None
+    begin: str | None = None
+    mesoscopic: bool | None = None
+    additional: list[Path] | None = None
+    cell_m: float | None = None
+    drone_speed_kmh: float | None = None
+
+    def as_kwargs(self) -> dict[str, Any]:
+        return {k: v for k, v in vars(self).items() if v is not None}
+
+
+def live_source(
+    config,
+    index: int = 0,
+    traffic_seed: int | None = None,
+    separate_process: bool = False,
+    **inputs: Any,
+):
+    """The live source of the ``index``-th seed (:func:`twin.traffic.kinds.build_traffic`):
+    SUMO seed ``traffic_seed + index`` (``traffic_seed`` defaults to ``[traffic].seed``), the
+    :class:`SumoInputs` given as keywords; with ``separate_process`` SUMO works ahead of the
+    swarms in a process of its own (:mod:`twin.sumo.worker`)."""
+    base = sumo_settings(config).seed if traffic_seed is None else traffic_seed
+    source = sumo_source(config, seed=base + index, **inputs)
+    source.separate_process = separate_process
+    return source
 
 
 def sumo_source(
@@ -341,7 +378,9 @@ def sumo_source(
 __all__ = [
     "MIN_FREE_CELLS_PER_DRONE",
     "MFDSettings",
+    "SumoInputs",
     "SumoSettings",
+    "live_source",
     "parse_clock",
     "sumo_settings",
     "sumo_source",
