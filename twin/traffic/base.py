@@ -2,7 +2,9 @@
 
 A source owns the grid it is defined on and yields the importance map of each step, ``T^0``
 to ``T^horizon`` (``horizon + 1`` maps: step ``k`` needs ``T^k`` and ``T^{k+1}``). The maps are
-yielded in order, so that a live simulation can advance in lockstep with the swarms.
+yielded in order, so that a live simulation can advance in lockstep with the swarms. Beside
+the maps, the interface declares (with defaults) all that the loop and the experiment runner
+read of a source: its stage timings and own process, incidents, truth, files for the run folder.
 """
 
 from __future__ import annotations
