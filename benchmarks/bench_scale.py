@@ -13,7 +13,7 @@ order (default 2), each kind's mean counting:
 
 SUMO runs in its own process ahead of the swarms (``twin/sumo/worker.py``), so the twin run
 uses both cores: its CPU seconds (both processes) exceed its wall seconds. ``--same-process``
-runs SUMO inside the runner's process instead, as with ``Experiment(sumo_process=False)``.
+runs SUMO inside the runner's process instead, as with ``Experiment(separate_process=False)``.
 
 It prints wall and CPU seconds of each, their ratio (the target is at most 1.3), the peak
 memory of the process, and the per-stage table of the ``twin`` run (``twin/timing.py``).
@@ -47,8 +47,9 @@ import pandas as pd
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from twin.config import load_config
-from twin.experiment import Experiment, SumoInputs, build_source, limit_threads, run_experiment
+from twin.experiment import Experiment, build_source, limit_threads, run_experiment
 from twin.runs import peak_memory_mb, timing_frame
+from twin.sumo.scenario import SumoInputs
 from twin.timing import (
     OBSERVATION,
     READS,
@@ -106,12 +107,13 @@ def experiment_of(
     config_path: Path, horizon: int | None, meso: bool = False, same_process: bool = False
 ) -> Experiment:
     config = load_config(config_path)
+    inputs = SumoInputs(horizon=horizon, mesoscopic=True if meso else None)
     return Experiment(
-        sumo_process=not same_process,
+        separate_process=not same_process,
         config=config,
         swarms=config.evaluate.swarms,
         seeds=[config.evaluate.seed],
-        sumo=SumoInputs(horizon=horizon, mesoscopic=True if meso else None),
+        traffic_options=inputs.as_kwargs(),
         skip_unavailable=True,
     )
 
@@ -178,7 +180,7 @@ def one_run(
         "running": running,
         "peak_mb": peak_memory_mb(),
         "stages": result.stage_seconds,
-        "sumo_stages": result.extra.get("sumo_process_stages", {}),
+        "sumo_stages": result.extra.get("process_stages", {}).get("sumo", {}),
         "loop_seconds": result.seconds,
         "steps": result.completed_steps,
         "writing": writing,

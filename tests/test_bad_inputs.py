@@ -427,13 +427,18 @@ def test_a_huge_sumo_grid_is_refused_with_a_cell_size(tmp_path):
     from twin.config import load_config
     from twin.errors import UserError
     from twin.experiment import Experiment, check_memory
+    from twin.sumo.source import SumoScenario, SumoTraffic
+
+    class Unstarted(SumoTraffic):  # a live source's scenario and cells, nothing simulated
+        def __init__(self):
+            self.scenario = SumoScenario(Path("net.xml"), [], warmup_s=900.0, step_s=75.0)
+            self.geometry = SimpleNamespace(cell_m=500.0)
 
     cfg = tmp_path / "s.toml"
     cfg.write_text(SMALL.format(horizon=144))
     experiment = Experiment(load_config(cfg), ["random", "greedy"], [0])
-    source = SimpleNamespace(
-        scenario=SimpleNamespace(warmup_steps=lambda: 12), geometry=SimpleNamespace(cell_m=500.0)
-    )
+    source = Unstarted()
+    assert source.warmup_steps() == 12
     with pytest.raises(UserError, match=r"cells of \d+ m \(\[traffic\]\.cell_m\)") as info:
         check_memory(experiment, (3000, 4000), 144, source)
     assert "\n" not in str(info.value)

@@ -27,7 +27,7 @@ pytest.importorskip("libsumo")
 from twin.cli import main
 from twin.errors import UserError
 from twin.runs import check_run_folder
-from twin.sumo.scenario import read_sumocfg
+from twin.sumo.readers import read_sumocfg
 from twin.sumo.tools import binary, run_sumo_program
 
 CONFIG = """

@@ -19,7 +19,8 @@ import pytest
 pytest.importorskip("libsumo")
 
 from twin.cli import main as twin_main
-from twin.sumo.scenario import MIN_FREE_CELLS_PER_DRONE, departure_span, read_sumocfg
+from twin.sumo.readers import departure_span, read_sumocfg
+from twin.sumo.scenario import MIN_FREE_CELLS_PER_DRONE
 from twin.sumo.tools import binary, run_sumo_program, tool
 
 CONFIG = """

@@ -154,8 +154,8 @@ def test_sumo_in_its_own_process_gives_the_same_run_and_reports_its_stages(tmp_p
     assert here.vehicles_seen == there.vehicles_seen
     assert here.model.report() == there.model.report()
     assert WAITING_FOR_SUMO in b.stage_seconds and SUMO_STEPPING not in b.stage_seconds
-    assert b.extra["sumo_process_stages"][SUMO_STEPPING] > 0
-    assert a.extra["sumo_process_stages"] == {}
+    assert b.extra["process_stages"]["sumo"][SUMO_STEPPING] > 0
+    assert a.extra["process_stages"] == {}
     frame = timing_frame([b])
     assert set(frame["process"]) == {"main", "sumo"}
 

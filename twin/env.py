@@ -350,14 +350,14 @@ def make_env(
     ``joint=True`` gives the Gymnasium joint-swarm env; ``options`` go to the env's constructor.
     """
     from twin.config import load_config, shipped_config
-    from twin.experiment import Experiment, build_source, is_live_sumo
+    from twin.experiment import Experiment, build_source, is_live
 
     path = Path(config)
     if not path.exists() and path.suffix != ".toml":
         path = shipped_config(f"configs/{config}.toml")
     cfg = load_config(path)
     experiment = Experiment(cfg, swarms=(), seeds=(0,), tape=Path(tape) if tape else None)
-    if is_live_sumo(experiment):
+    if is_live(experiment):
 
         def source() -> TrafficSource:  # a fresh simulation at every reset
             return build_source(experiment)

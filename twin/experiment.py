@@ -3,13 +3,14 @@
 Every command that runs swarms goes through here: ``twin evaluate``, ``twin run``, a sweep
 cell, the learning-curve tool and the benchmarks. An :class:`Experiment` names a scenario
 config, the swarms (with options on top of the config's ``[swarm_options]``), the seeds and
-where the traffic comes from (the config's own traffic, a replayed tape, or a live SUMO run
-with swapped-in files); :func:`run_experiment` builds the traffic source and the swarms and
-runs one patrol pass per seed; :func:`record` writes the run folder.
+where the traffic comes from (the config's own traffic, a replayed tape, or a live simulation
+with swapped-in files); :func:`run_experiment` builds the traffic source
+(:mod:`twin.traffic.kinds`) and the swarms and runs one patrol pass per seed; :func:`record`
+writes the run folder.
 
 Seeds: seed ``s`` fixes the drones' starts (``default_rng(s)``) and the swarms' randomness
-(:func:`twin.patrol.swarm_rng`). Live SUMO traffic is simulated once per seed, the n-th seed
-with SUMO seed ``traffic_seed + n`` (``traffic_seed`` defaults to ``[traffic].seed``);
+(:func:`twin.patrol.swarm_rng`). Live traffic is simulated once per seed, the n-th seed with
+traffic seed ``traffic_seed + n`` (``traffic_seed`` defaults to ``[traffic].seed``);
 synthetic and replayed traffic is the same for every seed.
 """
 
@@ -27,32 +28,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pandas as pd
 
 from twin.config import ScenarioConfig, check_swarm_fits, start_positions
 from twin.errors import UserError
 from twin.patrol import INTERRUPTED, PatrolResult, run_patrol
 from twin.policies import Policy, available_policies, is_learned
 from twin.traffic.base import TrafficSource
-
-
-@dataclass
-class SumoInputs:
-    """Files and settings that replace the config's SUMO scenario (``twin run`` flags)."""
-
-    net: Path | None = None
-    routes: list[Path] | None = None
-    sumocfg: Path | None = None
-    osm: Path | None = None
-    horizon: int | None = None
-    begin: str | None = None
-    mesoscopic: bool | None = None
-    additional: list[Path] | None = None
-    cell_m: float | None = None
-    drone_speed_kmh: float | None = None
-
-    def as_kwargs(self) -> dict[str, Any]:
-        return {k: v for k, v in vars(self).items() if v is not None}
+from twin.traffic.kinds import build_traffic, is_live_kind
 
 
 @dataclass
@@ -65,15 +47,16 @@ class Experiment:
     #: keyword options per swarm, applied over the config's ``[swarm_options.<swarm>]``
     swarm_options: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
     tape: Path | None = None  # replay a recorded traffic tape instead of the config's traffic
-    sumo: SumoInputs = field(default_factory=SumoInputs)
-    traffic_seed: int | None = None  # SUMO seed of the first seed (default [traffic].seed)
+    #: options of the live traffic's builder (``twin run``'s swapped-in files, horizon ...)
+    traffic_options: Mapping[str, Any] = field(default_factory=dict)
+    traffic_seed: int | None = None  # live traffic's seed of the first seed ([traffic].seed)
     #: learned swarms that cannot be built (no torch, no checkpoint) are skipped with a notice
     skip_unavailable: bool = False
     keep_importance: bool = True
     #: refuse a run whose estimated memory exceeds this (GB); None: $TWIN_MAX_MEMORY_GB or 8
     max_memory_gb: float | None = None
-    #: live SUMO in its own process, ahead of the swarms (:mod:`twin.sumo.worker`); same results
-    sumo_process: bool = True
+    #: live traffic in a process of its own, ahead of the swarms; same results
+    separate_process: bool = True
 
 
 @dataclass
@@ -97,7 +80,8 @@ def limit_threads(n: int = 1) -> None:
     """Run the numeric libraries on ``n`` threads: the commands that run swarms call this.
 
     A swarm's Q-network infers on a handful of rows, where one thread is fastest and leaves
-    the other core to SUMO (several threads oversubscribe a 2-core machine: 10x slower).
+    the other core to the traffic simulation (several threads oversubscribe a 2-core machine:
+    10x slower).
     Set before torch is imported it is torch's default; set after, it is applied directly.
     """
     for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
@@ -120,33 +104,25 @@ def parse_swarm_names(text: str | None, default: Sequence[str], flag: str = "--s
     return names
 
 
-def is_live_sumo(experiment: Experiment) -> bool:
-    return experiment.tape is None and experiment.config.traffic.kind == "sumo"
+def is_live(experiment: Experiment) -> bool:
+    """Whether the experiment's traffic is simulated once per seed (not a tape, a live kind)."""
+    return experiment.tape is None and is_live_kind(experiment.config.traffic.kind)
 
 
 def build_source(experiment: Experiment, index: int = 0) -> TrafficSource:
-    """The traffic of the ``index``-th seed: a replayed tape, the synthetic maps, or live SUMO."""
+    """The traffic of the ``index``-th seed: a replayed tape, or the config's own traffic."""
     config = experiment.config
     if experiment.tape is not None:
         from twin.traffic.tape import TapeTraffic
 
         return TapeTraffic.from_file(experiment.tape, config)
-    kind = config.traffic.kind
-    if kind == "synthetic":
-        from twin.config import synthetic_source
-        from twin.traffic.base import RecordedTraffic
-
-        return RecordedTraffic.from_source(synthetic_source(config))
-    if kind == "sumo":
-        from twin.sumo.scenario import sumo_settings, sumo_source
-
-        base = experiment.traffic_seed
-        if base is None:
-            base = sumo_settings(config).seed
-        source = sumo_source(config, seed=base + index, **experiment.sumo.as_kwargs())
-        source.separate_process = experiment.sumo_process  # SUMO works ahead on the other core
-        return source
-    raise UserError(f"{config.path}: [traffic].kind = {kind!r} is not a traffic twin can run")
+    return build_traffic(
+        config,
+        index,
+        experiment.traffic_seed,
+        experiment.separate_process,  # the simulation works ahead on the other core
+        **experiment.traffic_options,
+    )
 
 
 def build_swarms(experiment: Experiment) -> dict[str, Policy]:
@@ -231,7 +207,7 @@ def _run_seeds(
     t0 = time.perf_counter()
     results, traffic, sources = [], [], []
     swarms: dict[str, Policy] = {}
-    live = is_live_sumo(experiment)
+    live = is_live(experiment)
     if not live:
         check_memory(experiment, *planned_shape(experiment))
     shared_source = None if live else build_source(experiment)
@@ -258,8 +234,9 @@ def _run_seeds(
             )
             results.append(result)
             traffic.append(source.metadata())
-            if getattr(source, "incidents_info", None) and source.incidents_info():
-                result.extra["incidents"] = source.incidents_info()  # scored by monitoring
+            incidents = source.incidents_info()
+            if incidents:
+                result.extra["incidents"] = incidents  # scored by monitoring
         finally:
             if keep_sources:
                 sources.append(source)
@@ -330,8 +307,8 @@ def estimate_memory(
 
     Per cell and step: every seed's result keeps its importance maps and recorded truth
     (float32, ``(T+1) x nx x ny`` each: 8 B); monitoring's event search ~12 B while one seed is
-    scored; synthetic traffic precomputes its maps (float64, stacked: 16 B); live SUMO keeps each
-    seed's tape (int32 counts + float32 speeds, warm-up included: 8 B) and writes the first as
+    scored; synthetic traffic precomputes its maps (float64, stacked: 16 B); live traffic keeps
+    each seed's tape (int32 counts + float32 speeds, warm-up included: 8 B) and writes the first as
     a long table (~48 B). Per cell and swarm: its state, view and belief map (~64 B). Per
     swarm, drone and step: positions (16 B per seed).
     """
@@ -360,7 +337,7 @@ def check_resources(experiment: Experiment, out: Path, flag: str = "--out") -> N
     from twin.outputs import check_output_dir
 
     max_memory_gb(experiment)  # a bad limit is refused first
-    if not is_live_sumo(experiment):
+    if not is_live(experiment):
         check_memory(experiment, *planned_shape(experiment))
     check_output_dir(out, flag, disk_estimate_mb(experiment))
 
@@ -369,8 +346,8 @@ def disk_estimate_mb(experiment: Experiment) -> float:
     """Disk space a run folder needs (MB), roughly and from above: the trajectories and series
     (~100 B per swarm, seed, step and drone), the first seed's importance maps (float32), and a
     live run's tapes (~8 B per cell and step and seed); at least
-    :data:`twin.outputs.MIN_FREE_MB`. A live run's grid is not known before SUMO's network is
-    read: the config's explicit grid is used when it gives one."""
+    :data:`twin.outputs.MIN_FREE_MB`. A live run's grid is not known before the simulation's
+    network is read: the config's explicit grid is used when it gives one."""
     from twin.outputs import MIN_FREE_MB
 
     shape, horizon = planned_shape(experiment)
@@ -386,7 +363,7 @@ def disk_estimate_mb(experiment: Experiment) -> float:
     n_seeds, n_swarms = len(experiment.seeds), max(len(experiment.swarms), 1)
     drones = experiment.config.swarm.n_drones
     size = n_seeds * n_swarms * steps * (drones * 100 + 200) + cells * steps * 4
-    if is_live_sumo(experiment):
+    if is_live(experiment):
         size += cells * steps * 8 * n_seeds
     return max(float(MIN_FREE_MB), size / 1e6 * 1.2)
 
@@ -407,19 +384,14 @@ def check_memory(
     if horizon > 10**9:
         raise UserError(f"{where}: horizon {horizon} is not a number of steps twin can run")
     limit = max_memory_gb(experiment)
-    warmup = 0
-    scenario = getattr(source, "scenario", None)
-    if scenario is not None:
-        warmup = int(scenario.warmup_steps())
-    need = estimate_memory(experiment, shape, horizon, warmup, live=scenario is not None)
+    warmup = int(source.warmup_steps()) if source is not None else 0
+    live = source is not None and source.live
+    need = estimate_memory(experiment, shape, horizon, warmup, live=live)
     if need <= limit * 1e9:
         return
     ratio = (need / (limit * 1e9)) ** 0.5
-    geometry = getattr(source, "geometry", None)
-    if geometry is not None:
-        cell = float(np.ceil(geometry.cell_m * ratio / 50.0) * 50.0)
-        hint = f"cells of {cell:g} m ([traffic].cell_m) or fewer steps (--horizon)"
-    else:
+    hint = source.coarser_hint(ratio) if source is not None else None
+    if hint is None:
         hint = f"a grid about {ratio:.1f} times coarser per side, fewer steps or fewer seeds"
     raise UserError(
         f"{shape[0]} x {shape[1]} cells x {horizon} steps x {len(experiment.swarms)} swarms x "
@@ -447,8 +419,8 @@ def run_metadata(outcome: ExperimentResult, kind: str, **extra: Any) -> dict[str
 
 def record(run_dir: Path, outcome: ExperimentResult, meta: dict[str, Any], ceilings: bool = False):
     """Write the run folder (with ``comparison.csv``: each learned swarm against the best
-    classical one, paired over seeds); live SUMO runs add ``network.json``, the MFD fit and samples and
-    the traffic tape of each seed (``tape.parquet`` for the first, ``tapes/`` for the rest).
+    classical one, paired over seeds); the kept sources add their own files
+    (:meth:`TrafficSource.write_extras`: a live run's network, MFD fit and tape of each seed).
     With ``ceilings`` the tables add the oracle and bound rows (:mod:`twin.ceilings`),
     computed from each seed's recorded maps after the swarms' run.
     ``manifest.json`` is written last (see ``twin/runs.py``). Returns the summary table and
@@ -456,30 +428,15 @@ def record(run_dir: Path, outcome: ExperimentResult, meta: dict[str, Any], ceili
     from twin.runs import write_run
 
     extras = None
-    if outcome.sources and hasattr(outcome.sources[0], "tape"):
+    if outcome.sources:
+        first = outcome.sources[0]
+        by_seed = [(r.seed, s) for r, s in zip(outcome.results, outcome.sources, strict=False)]
 
         def extras(folder: Path) -> None:
-            _write_sumo_extras(folder, outcome)
+            first.write_extras(folder, by_seed)
 
-    # the SUMO files go before run.json and manifest.json: a kill in between leaves no manifest
+    # the source's files go before run.json and manifest.json: a kill in between leaves no manifest
     return write_run(run_dir, outcome.results, meta, extras=extras, ceilings=ceilings)
-
-
-def _write_sumo_extras(run_dir: Path, outcome: ExperimentResult) -> None:
-    from twin.runs import atomic_write, write_json
-
-    first = outcome.sources[0]
-    write_json(run_dir / "network.json", first.network_info())
-    write_json(run_dir / "mfd.json", first.model.report())
-    if first.incidents_info():
-        write_json(run_dir / "incidents.json", first.incidents_info())
-    samples = pd.DataFrame(first.model.samples())
-    atomic_write(run_dir / "mfd_samples.parquet", lambda p: samples.to_parquet(p, index=False))
-    atomic_write(run_dir / "tape.parquet", first.tape().write)
-    if len(outcome.sources) > 1:
-        (run_dir / "tapes").mkdir(exist_ok=True)
-        for result, source in zip(outcome.results, outcome.sources, strict=False):
-            atomic_write(run_dir / "tapes" / f"seed-{result.seed}.parquet", source.tape().write)
 
 
 def close_sources(outcome: ExperimentResult) -> None:

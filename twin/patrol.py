@@ -26,7 +26,6 @@ from twin.timing import (
     SCORING,
     TRAFFIC,
     TRAFFIC_OTHER,
-    WAITING_FOR_SUMO,
     StageTimer,
     swarm_stage,
 )
@@ -176,15 +175,13 @@ def run_patrol(
     except StopIteration:
         error = f"traffic source ended after {done} of {horizon} steps"
     except Exception as exc:
-        if isinstance(exc, UserError) or not getattr(source, "keeps_partial_results", False):
-            raise  # bad input (e.g. a file SUMO refuses to start on) is no partial result
+        if isinstance(exc, UserError) or not source.keeps_partial_results:
+            raise  # bad input (e.g. a file a simulator refuses to start on) is no partial result
         error = f"{type(exc).__name__}: {exc}"
     finally:
         if bar is not None:
             bar.close()
-        close = getattr(maps, "close", None)
-        if close is not None:
-            close()  # ends the simulation now (a live source in its own process reports back)
+        maps.close()  # ends a live simulation now (one in its own process reports back)
     cut = {key: values[:, :done] for key, values in series.items()}
     return PatrolResult(
         swarms=names,
@@ -204,33 +201,26 @@ def run_patrol(
         completed_steps=done,
         error=error,
         stage_seconds=_stage_seconds(timer, source),
-        extra={"sumo_process_stages": sumo_process_stages(source)},
+        extra={"process_stages": source.process_stages()},
     )
 
 
 def _stage_seconds(timer: StageTimer, source: TrafficSource) -> dict[str, float]:
     """The loop's stages, the traffic source's time split into the source's own stages (a live
-    SUMO source times its stepping, reads and observation model) and the rest. When SUMO runs
-    in its own process (:mod:`twin.sumo.worker`), the loop only waits for it: that wait is the
-    traffic stage, and the SUMO process's stages are kept apart (:func:`sumo_process_stages`)."""
+    simulation times its stepping, reads and observation model) and the rest. When the source
+    runs in its own process, the loop only waits for it: that wait is the traffic stage
+    (:attr:`TrafficSource.waiting_stage`), and that process's stages are kept apart
+    (:meth:`TrafficSource.process_stages`)."""
     seconds = timer.as_dict()
-    own = getattr(source, "timer", None)
+    own = source.timer
     traffic = seconds.pop(TRAFFIC, 0.0)
-    if getattr(source, "separate_process", False):
-        return {WAITING_FOR_SUMO: traffic, **seconds}
-    if not isinstance(own, StageTimer) or not own.seconds:
+    if source.separate_process:
+        return {source.waiting_stage: traffic, **seconds}
+    if own is None or not own.seconds:
         return {TRAFFIC: traffic, **seconds}
     split = own.as_dict()
     split[TRAFFIC_OTHER] = max(traffic - sum(split.values()), 0.0)
     return {**split, **seconds}
-
-
-def sumo_process_stages(source: TrafficSource) -> dict[str, float]:
-    """The stages of SUMO's own process, run beside the loop (empty when SUMO ran in it)."""
-    own = getattr(source, "timer", None)
-    if getattr(source, "separate_process", False) and isinstance(own, StageTimer):
-        return own.as_dict()
-    return {}
 
 
 def swarm_view(state: SwarmState, horizon: int, grid: Grid, params: ScoreParams) -> SwarmView:
@@ -251,7 +241,7 @@ def _record_truth(source, truth, k, horizon, keep):
     """Store the source's true ``T^k`` when it knows one (:meth:`TrafficSource.truth_map`)."""
     if not keep:
         return None
-    t = source.truth_map() if hasattr(source, "truth_map") else None
+    t = source.truth_map()
     if t is None:
         return truth
     if truth is None:

@@ -472,7 +472,7 @@ def peak_memory_mb(children: bool = False) -> float | None:
 def timing_frame(results: Sequence[PatrolResult], writing_seconds: float = 0.0) -> pd.DataFrame:
     """``timing.csv``: each seed's stages (:attr:`PatrolResult.stage_seconds`), then the
     monitoring and writing of the run folder (once, on the first seed's rows); ``process`` is
-    ``main``, or ``sumo`` for the stages of SUMO's own process, which ran beside the main one
+    ``main``, or the traffic source's own process (``sumo``), which ran beside the main one
     (their shares are of that process)."""
     rows = []
     for n, r in enumerate(results):
@@ -480,7 +480,7 @@ def timing_frame(results: Sequence[PatrolResult], writing_seconds: float = 0.0) 
         if n == 0 and writing_seconds > 0:
             stages[WRITING] = writing_seconds
         steps = max(r.completed_steps, 1)
-        for process, part in (("main", stages), ("sumo", r.extra.get("sumo_process_stages", {}))):
+        for process, part in (("main", stages), *r.extra.get("process_stages", {}).items()):
             total = sum(part.values()) or 1.0
             for stage, seconds in part.items():
                 rows.append(

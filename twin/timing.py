@@ -12,13 +12,14 @@ import time
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
 
-#: Stage names shared by the patrol loop and the live SUMO source.
+#: Stage names shared by the patrol loop and the traffic sources.
 SUMO_WARMUP = "SUMO warm-up (stepping, reads, model)"
 SUMO_STEPPING = "SUMO stepping"
 READS = "reads and binning"
 OBSERVATION = "observation model (MFD)"
 TRAFFIC = "traffic source"
 TRAFFIC_OTHER = "traffic source (other)"
+WAITING_FOR_SOURCE = "waiting for the traffic source (its own process)"
 WAITING_FOR_SUMO = "waiting for SUMO (its own process)"
 SCORING = "step and scoring"
 RECORDING = "recording"

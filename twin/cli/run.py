@@ -136,7 +136,8 @@ def build_experiment(args: argparse.Namespace):
     """The :class:`twin.experiment.Experiment` of ``twin run``'s flags (``twin replay`` rebuilds
     a run's from the flags recorded in its ``run.json``)."""
     from twin.config import load_config, shipped_config
-    from twin.experiment import Experiment, SumoInputs, parse_swarm_names
+    from twin.experiment import Experiment, parse_swarm_names
+    from twin.sumo.scenario import SumoInputs
 
     for flag, value in (
         ("--cell-m", args.cell_m),
@@ -170,7 +171,7 @@ def build_experiment(args: argparse.Namespace):
         config=config,
         swarms=parse_swarm_names(args.swarms, config.evaluate.swarms),
         seeds=range(first, first + args.seeds),
-        sumo=SumoInputs(
+        traffic_options=SumoInputs(
             net=args.net,
             routes=args.routes,
             sumocfg=args.sumocfg,
@@ -181,7 +182,7 @@ def build_experiment(args: argparse.Namespace):
             additional=args.additional,
             cell_m=args.cell_m,
             drone_speed_kmh=args.drone_speed,
-        ),
+        ).as_kwargs(),
         traffic_seed=args.sumo_seed,
         skip_unavailable=args.swarms is None,
         max_memory_gb=args.max_memory_gb,

@@ -26,6 +26,7 @@ import numpy as np
 
 from twin.clock import clock_label, parse_clock
 from twin.errors import UserError
+from twin.sumo.readers import open_xml
 
 #: The one vehicle class a closed lane still allows.
 CLOSED_TO = ["authority"]
@@ -57,8 +58,6 @@ def incident_window(inc, n: int, begin_s: float, step_s: float) -> tuple[float, 
 def net_edges(net_file) -> dict[str, int]:
     """Non-internal edges of a network and their number of lanes."""
     import xml.etree.ElementTree as ET
-
-    from twin.sumo.scenario import open_xml
 
     edges: dict[str, int] = {}
     with open_xml(net_file) as fh:

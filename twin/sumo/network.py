@@ -19,6 +19,7 @@ from typing import Any
 
 from twin import resources
 from twin.errors import UserError
+from twin.sumo.readers import root_tag
 from twin.sumo.tools import binary, run_sumo_program
 
 #: Bump when the generator's output changes for the same spec (forces a rebuild).
@@ -287,8 +288,6 @@ def import_osm(osm_file: Path, out_dir: Path | None = None) -> Path:
 
 def check_net_file(net_file: Path) -> None:
     """One-line error unless ``net_file`` is a readable SUMO network (gzip-compressed or not)."""
-    from twin.sumo.scenario import root_tag
-
     net_file = Path(net_file)
     tag = root_tag(net_file, "network file")
     if tag != "net":

@@ -24,6 +24,7 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 from twin.errors import UserError
+from twin.sumo.readers import file_list, open_xml, read_sumocfg
 
 #: SUMO's output options (and their synonyms) -> the canonical name to override.
 OUTPUT_OPTIONS = {
@@ -113,8 +114,6 @@ class OutputPlan:
     def additional(self, path: Path) -> Path:
         """``path``, or a rewritten copy in ``out_dir`` if it (or a file it includes) writes
         outputs."""
-        from twin.sumo.scenario import open_xml
-
         path = Path(path).resolve()
         if path in self.copies:
             return self.copies[path]
@@ -160,8 +159,6 @@ def redirect_outputs(
 ) -> tuple[tuple[str, ...], OutputPlan]:
     """``options`` with additional files that write outputs replaced by rewritten copies, plus
     an override of every output option of ``sumocfg``, all pointing into ``out_dir``."""
-    from twin.sumo.scenario import _file_list, read_sumocfg
-
     plan = OutputPlan(out_dir)
     extra: list[str] = []
     if sumocfg is not None:
@@ -173,7 +170,7 @@ def redirect_outputs(
             given["save-state.prefix"] = "state"  # SUMO's default prefix, in its working folder
         for name, value in given.items():
             if name in _FILE_LISTS:
-                files = _file_list(value, base)
+                files = file_list(value, base)
                 if files:
                     extra += [f"--{name}", ",".join(str(plan.target(f)) for f in files)]
             elif _is_file(value):

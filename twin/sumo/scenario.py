@@ -21,19 +21,18 @@ scaled to the network's lane-km, cached in the user cache (``imported/``, :mod:`
 
 from __future__ import annotations
 
-import gzip
 import hashlib
 import math
 import sys
-import xml.etree.ElementTree as ET
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 from twin.clock import clock_label, parse_clock
 from twin.config import MFDSettings, SumoSettings
 from twin.errors import UserError
 from twin.grid import Grid
+from twin.sumo.readers import SUMOCFG_ROOTS, departure_span, read_sumocfg, root_tag
 
 #: Peak demand of the built-in network per lane-km (trips/h), used to scale generated demand.
 SHENZHEN_LANE_KM = 1350.0
@@ -64,201 +63,6 @@ def _digest(*parts: Any) -> str:
         else:
             h.update(repr(p).encode())
     return h.hexdigest()[:12]
-
-
-def open_xml(path: Path) -> IO[bytes]:
-    """A SUMO XML file for reading, gzip-compressed or not (SUMO reads both; told by content)."""
-    path = Path(path)
-    fh = open(path, "rb")  # noqa: SIM115 (the caller closes it)
-    if fh.read(2) == b"\x1f\x8b":
-        fh.close()
-        return gzip.open(path, "rb")
-    fh.seek(0)
-    return fh
-
-
-def root_tag(path: Path, what: str) -> str:
-    """The root element of a SUMO XML file (compressed or not); one-line errors."""
-    path = Path(path)
-    if not path.exists():
-        raise UserError(f"{path}: no such {what}")
-    try:
-        with open_xml(path) as fh:
-            return next(ET.iterparse(fh, events=("start",)))[1].tag
-    except (ET.ParseError, OSError, EOFError, StopIteration) as exc:
-        raise UserError(f"{path}: not valid XML ({exc or 'empty file'})") from exc
-
-
-@dataclass
-class SumoConfigFile:
-    """What twin takes from a ``.sumocfg``: files (resolved against its folder) and window."""
-
-    net: Path
-    routes: list[Path]
-    additional: list[Path]
-    begin: float | None = None
-    end: float | None = None
-    #: every option the file sets (element name -> value, as written), e.g. its outputs
-    options: dict[str, str] = field(default_factory=dict)
-    path: Path | None = None
-
-
-def _file_list(value: str | None, base: Path) -> list[Path]:
-    return [(base / v.strip()).resolve() for v in (value or "").split(",") if v.strip()]
-
-
-def parse_time(value: str | None) -> float | None:
-    """A SUMO time value: seconds ("3600", "3600.5") or a clock ("1:00:00"); None if neither
-    (also for NaN and infinite values, which SUMO refuses too)."""
-    if value is None:
-        return None
-    try:
-        t = float(value)
-    except ValueError:
-        pass
-    else:
-        return t if math.isfinite(t) else None
-    parts = str(value).strip().split(":")
-    try:
-        numbers = [float(x) for x in parts]
-    except ValueError:
-        return None
-    if len(parts) not in (3, 4) or not all(math.isfinite(x) for x in numbers):
-        return None
-    total = 0.0
-    for x, unit in zip(reversed(numbers), (1, 60, 3600, 86400), strict=False):
-        total += x * unit
-    return total
-
-
-#: Roots of a SUMO simulation config: ``<configuration>``, and ``<sumoConfiguration>`` as
-#: ``sumo -C`` (``--save-configuration``) writes it.
-SUMOCFG_ROOTS = ("configuration", "sumoConfiguration")
-
-
-def sumocfg_options(root: ET.Element) -> dict[str, str]:
-    """The options a SUMO config sets: ``<section><name value="..."/></section>`` or, as SUMO
-    also reads, ``<name>...</name>``; element name -> value (the last one wins, as in SUMO)."""
-    options: dict[str, str] = {}
-    for section in root:
-        if not isinstance(section.tag, str):
-            continue
-        for elem in section:
-            if not isinstance(elem.tag, str):
-                continue
-            value = elem.get("value")
-            if value is None and elem.text is not None and elem.text.strip():
-                value = elem.text.strip()
-            if value is not None:
-                options[elem.tag] = value
-    return options
-
-
-def read_sumocfg(path: Path) -> SumoConfigFile:
-    """Net, route and additional files of a ``.sumocfg`` (relative to its folder, as SUMO reads
-    them), its ``<time>`` window, if it gives one, and all its options."""
-    path = Path(path).resolve() if Path(path).exists() else Path(path)
-    tag = root_tag(path, "SUMO config")
-    if tag not in SUMOCFG_ROOTS:
-        what = (
-            f"a {tag[: -len('Configuration')]} config"
-            if tag.endswith("Configuration")
-            else (f"root <{tag}>")
-        )
-        raise UserError(
-            f"{path}: not a SUMO simulation config ({what}); give a .sumocfg with a "
-            "<configuration> or <sumoConfiguration> root (as `sumo -C` writes)"
-        )
-    with open(path, "rb") as fh:
-        compressed = fh.read(2) == b"\x1f\x8b"
-    if compressed:  # SUMO reads compressed network, route and additional files, not configs
-        raise UserError(
-            f"{path}: a gzip-compressed config, which SUMO does not read; decompress it "
-            f"(gunzip -k {path.name}), its files may stay compressed"
-        )
-    try:
-        with open(path, "rb") as fh:
-            root = ET.parse(fh).getroot()
-    except (ET.ParseError, OSError, EOFError) as exc:
-        raise UserError(f"{path}: not valid XML ({exc})") from exc
-    options = sumocfg_options(root)
-
-    def value(*names: str) -> str | None:
-        for name in names:
-            if options.get(name):
-                return options[name]
-        return None
-
-    net = _file_list(value("net-file", "n"), path.parent)
-    if not net:
-        raise UserError(
-            f"{path}: names no network; add <net-file value=...> to its <input> (twin needs "
-            "the network to lay its grid)"
-        )
-    window = []
-    for key in ("begin", "end"):
-        text = value(key, "b" if key == "begin" else "e")
-        t = parse_time(text)
-        if text is not None and t is None:
-            raise UserError(
-                f"{path}: <{key} value={text!r}> is not a finite time; give seconds "
-                "(e.g. 3600) or a clock (1:00:00)"
-            )
-        if key == "end" and t is not None and t < 0:  # SUMO's default -1: no end
-            t = None
-        window.append(t)
-    if None not in window and window[1] <= window[0]:
-        raise UserError(
-            f"{path}: <end value={value('end', 'e')!r}> is not after <begin "
-            f"value={value('begin', 'b')!r}>; give an end after the begin"
-        )
-    return SumoConfigFile(
-        net=net[0],
-        routes=_file_list(value("route-files", "r"), path.parent),
-        additional=_file_list(value("additional-files", "a"), path.parent),
-        begin=window[0],
-        end=window[1],
-        options=options,
-        path=path,
-    )
-
-
-#: Elements that put vehicles on the road, and the attribute of their departure.
-_DEPARTING = {"vehicle": "depart", "trip": "depart", "person": "depart", "flow": "begin"}
-
-
-def departure_span(route_files: list[Path]) -> tuple[float, float] | None:
-    """First and last numeric departure of the demand (``depart`` of vehicles, trips and persons,
-    ``begin`` .. ``end`` of flows); None when the files hold no vehicle (e.g. only vTypes)."""
-    first = last = None
-    for path in route_files:
-        try:
-            with open_xml(path) as fh:
-                for _, elem in ET.iterparse(fh, events=("end",)):
-                    key = _DEPARTING.get(elem.tag)
-                    t = parse_time(elem.get(key)) if key else None
-                    if t is not None:
-                        end = t
-                        if elem.tag == "flow":
-                            end = _flow_end(elem, t)
-                        first = t if first is None else min(first, t)
-                        last = end if last is None else max(last, end)
-                    if elem.tag in _DEPARTING or elem.tag in ("route", "vType"):
-                        elem.clear()
-        except (ET.ParseError, OSError, EOFError) as exc:
-            raise UserError(f"{path}: not valid XML ({exc})") from exc
-    return None if first is None else (first, last)
-
-
-def _flow_end(elem: ET.Element, begin: float) -> float:
-    end = parse_time(elem.get("end"))
-    if end is not None:
-        return end
-    number = elem.get("number")
-    step = parse_time(elem.get("period")) or parse_time(elem.get("headway"))
-    if number is not None and step is not None:
-        return begin + float(number) * step
-    return begin + 3600.0  # SUMO's default flow end is its --end; assume an hour
 
 
 #: Roots of SUMO files that are not demand nor additional files, and what to do instead.
@@ -319,6 +123,42 @@ def suggest_cell_m(lanes, cell_m: float, n_drones: int, min_lane_km: float = 0.0
 
 def notice(text: str) -> None:
     print(f"twin: notice: {text}", file=sys.stderr)
+
+
+@dataclass
+class SumoInputs:
+    """Files and settings that replace the config's SUMO scenario (``twin run`` flags)."""
+
+    net: Path | None = None
+    routes: list[Path] | None = None
+    sumocfg: Path | None = None
+    osm: Path | None = None
+    horizon: int | None = None
+    begin: str | None = None
+    mesoscopic: bool | None = None
+    additional: list[Path] | None = None
+    cell_m: float | None = None
+    drone_speed_kmh: float | None = None
+
+    def as_kwargs(self) -> dict[str, Any]:
+        return {k: v for k, v in vars(self).items() if v is not None}
+
+
+def live_source(
+    config,
+    index: int = 0,
+    traffic_seed: int | None = None,
+    separate_process: bool = False,
+    **inputs: Any,
+):
+    """The live source of the ``index``-th seed (:func:`twin.traffic.kinds.build_traffic`):
+    SUMO seed ``traffic_seed + index`` (``traffic_seed`` defaults to ``[traffic].seed``), the
+    :class:`SumoInputs` given as keywords; with ``separate_process`` SUMO works ahead of the
+    swarms in a process of its own (:mod:`twin.sumo.worker`)."""
+    base = sumo_settings(config).seed if traffic_seed is None else traffic_seed
+    source = sumo_source(config, seed=base + index, **inputs)
+    source.separate_process = separate_process
+    return source
 
 
 def sumo_source(
@@ -538,9 +378,10 @@ def sumo_source(
 __all__ = [
     "MIN_FREE_CELLS_PER_DRONE",
     "MFDSettings",
+    "SumoInputs",
     "SumoSettings",
+    "live_source",
     "parse_clock",
-    "read_sumocfg",
     "sumo_settings",
     "sumo_source",
 ]

@@ -16,7 +16,7 @@ of every cell at every sample time) and the MFD samples, also after a SUMO failu
 from __future__ import annotations
 
 import time
-from collections.abc import Iterator
+from collections.abc import Generator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -29,7 +29,14 @@ from twin.grid import Grid
 from twin.mfd import MFD, MFDImportance
 from twin.sumo.cells import CellGeometry
 from twin.sumo.session import ANTI_GRIDLOCK_OPTIONS, SumoRunError, SumoSession
-from twin.timing import OBSERVATION, READS, SUMO_STEPPING, SUMO_WARMUP, StageTimer
+from twin.timing import (
+    OBSERVATION,
+    READS,
+    SUMO_STEPPING,
+    SUMO_WARMUP,
+    WAITING_FOR_SUMO,
+    StageTimer,
+)
 from twin.traffic.base import TrafficSource
 
 
@@ -76,6 +83,9 @@ class SumoTraffic(TrafficSource):
     """``T^0 .. T^horizon`` from a SUMO run advanced as the maps are pulled."""
 
     keeps_partial_results = True
+    live = True
+    waiting_stage = WAITING_FOR_SUMO
+    process_name = "sumo"
 
     def __init__(self, scenario: SumoScenario, geometry: CellGeometry, grid: Grid):
         self.scenario = scenario
@@ -155,7 +165,7 @@ class SumoTraffic(TrafficSource):
             return self._truth
         return self.model.truth if self.model.detection_p < 1.0 else None
 
-    def importance_maps(self) -> Iterator[np.ndarray]:
+    def importance_maps(self) -> Generator[np.ndarray, None, None]:
         """``T^0 .. T^horizon``; in a forked child process when :attr:`separate_process` (on
         Linux, not under sumo-gui, nor inside a daemonic process, which may have no children)."""
         import multiprocessing
@@ -173,7 +183,7 @@ class SumoTraffic(TrafficSource):
         self.separate_process = False
         return self.maps_here()
 
-    def maps_here(self) -> Iterator[np.ndarray]:
+    def maps_here(self) -> Generator[np.ndarray, None, None]:
         """The maps, SUMO running in this process."""
         from twin.sumo.incidents import IncidentSchedule
 
@@ -259,6 +269,14 @@ class SumoTraffic(TrafficSource):
     def clock(self, k: int) -> str | None:
         return clock_label(self.scenario.begin_s + k * self.scenario.step_s)
 
+    def warmup_steps(self) -> int:
+        return self.scenario.warmup_steps()
+
+    def coarser_hint(self, ratio: float) -> str | None:
+        """A cell size (rounded up to 50 m) about ``ratio`` times larger, or fewer steps."""
+        cell = float(np.ceil(self.geometry.cell_m * ratio / 50.0) * 50.0)
+        return f"cells of {cell:g} m ([traffic].cell_m) or fewer steps (--horizon)"
+
     def metadata(self) -> dict[str, Any]:
         s = self.scenario
         return {
@@ -330,6 +348,25 @@ class SumoTraffic(TrafficSource):
         from twin.traffic.tape import Tape
 
         return Tape.from_source(self)
+
+    def write_extras(self, run_dir: Path, by_seed: Sequence[tuple[int, TrafficSource]]) -> None:
+        """``network.json``, the MFD fit and samples, ``incidents.json`` (if any) and the tape
+        of this seed (``tape.parquet``); with several seeds every seed's tape in ``tapes/``."""
+        import pandas as pd
+
+        from twin.files import atomic_write, write_json
+
+        write_json(run_dir / "network.json", self.network_info())
+        write_json(run_dir / "mfd.json", self.model.report())
+        if self.incidents_info():
+            write_json(run_dir / "incidents.json", self.incidents_info())
+        samples = pd.DataFrame(self.model.samples())
+        atomic_write(run_dir / "mfd_samples.parquet", lambda p: samples.to_parquet(p, index=False))
+        atomic_write(run_dir / "tape.parquet", self.tape().write)
+        if len(by_seed) > 1:
+            (run_dir / "tapes").mkdir(exist_ok=True)
+            for seed, source in by_seed:
+                atomic_write(run_dir / "tapes" / f"seed-{seed}.parquet", source.tape().write)
 
 
 def _remove(folder: Path | None) -> None:

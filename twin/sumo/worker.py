@@ -24,17 +24,35 @@ import os
 import pickle
 import signal
 from collections.abc import Iterator
-from typing import TYPE_CHECKING
+from typing import Any, Protocol
 
 import numpy as np
 
+from twin.processes import exit_with_parent
 from twin.timing import StageTimer
 
-if TYPE_CHECKING:
-    from twin.sumo.source import SumoTraffic
+
+class WorksAhead(Protocol):
+    """What the child runs and the parent fills in: the live SUMO source."""
+
+    snapshots: list
+    vehicles_seen: list[int]
+    error: str | None
+    model: Any
+    timer: StageTimer
+    read_seconds: float
+    separate_process: bool
+    _truth: np.ndarray | None
+    _incidents: list[dict[str, Any]] | None
+
+    def maps_here(self) -> Iterator[np.ndarray]: ...
+
+    def truth_map(self) -> np.ndarray | None: ...
+
+    def incidents_info(self) -> list[dict[str, Any]]: ...
 
 
-def maps_from_child(source: SumoTraffic) -> Iterator[np.ndarray]:
+def maps_from_child(source: WorksAhead) -> Iterator[np.ndarray]:
     """The source's maps computed in a forked child process (see the module docstring)."""
     context = multiprocessing.get_context("fork")
     here, there = context.Pipe(duplex=True)
@@ -74,7 +92,7 @@ def maps_from_child(source: SumoTraffic) -> Iterator[np.ndarray]:
             child.join()
 
 
-def _stop(source: SumoTraffic, here, child) -> None:
+def _stop(source: WorksAhead, here, child) -> None:
     """Ask the child to stop after its current snapshot (it may have ended already) and take
     its end state; the snapshots of maps the parent never used are dropped."""
     used = len(source.snapshots)
@@ -92,7 +110,7 @@ def _stop(source: SumoTraffic, here, child) -> None:
     del source.vehicles_seen[used:]
 
 
-def _take_end(source: SumoTraffic, message) -> None:
+def _take_end(source: WorksAhead, message) -> None:
     _, _, snapshots, seen, model, timer, read_seconds, error, incidents = message
     source.snapshots.extend(snapshots)
     source.vehicles_seen.extend(seen)
@@ -100,10 +118,8 @@ def _take_end(source: SumoTraffic, message) -> None:
     source.error, source._incidents = error, incidents
 
 
-def _produce(source: SumoTraffic, conn, parent: int) -> None:
+def _produce(source: WorksAhead, conn, parent: int) -> None:
     """The child: every map with the snapshots behind it, then ``end``."""
-    from twin.sweep.executors import exit_with_parent
-
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     exit_with_parent(parent)
     source.separate_process = False

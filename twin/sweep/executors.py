@@ -6,16 +6,14 @@ from __future__ import annotations
 import logging
 import multiprocessing
 import os
-import signal
-import sys
 import threading
-import time
 from collections.abc import Iterable
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any
 
 from twin.errors import UserError
+from twin.processes import exit_with_parent
 from twin.sweep.cells import run_cell
 
 EXECUTORS = ("local", "ray")
@@ -29,33 +27,6 @@ def _error_line(exc: BaseException) -> str:
     cause = getattr(exc, "cause", None) or exc  # Ray wraps the task's exception
     text = str(cause).strip().splitlines()
     return f"{type(cause).__name__}: {text[0] if text else ''}"
-
-
-#: Seconds between two checks of a pool worker that its parent (the sweep) is alive.
-PARENT_POLL_S = 0.5
-
-
-def exit_with_parent(parent: int) -> None:
-    """Pool-worker initializer: end this worker when the sweep that started it dies, even by
-    ``kill -9`` (no cleanup runs there). On Linux the kernel sends SIGKILL on the parent's death
-    (``PR_SET_PDEATHSIG``); everywhere a daemon thread checks ``os.getppid()`` twice a second."""
-    if sys.platform.startswith("linux"):
-        try:
-            import ctypes
-
-            libc = ctypes.CDLL(None, use_errno=True)
-            libc.prctl(1, signal.SIGKILL, 0, 0, 0)  # PR_SET_PDEATHSIG = 1
-        except (OSError, AttributeError):
-            pass
-    if os.getppid() != parent:  # the parent died before the line above took effect
-        os._exit(1)
-
-    def watch() -> None:
-        while os.getppid() == parent:
-            time.sleep(PARENT_POLL_S)
-        os._exit(1)
-
-    threading.Thread(target=watch, name="twin-parent-watch", daemon=True).start()
 
 
 def _local_executor(cells: list[dict], workers: int) -> Iterable[Outcome]:

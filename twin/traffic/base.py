@@ -2,18 +2,22 @@
 
 A source owns the grid it is defined on and yields the importance map of each step, ``T^0``
 to ``T^horizon`` (``horizon + 1`` maps: step ``k`` needs ``T^k`` and ``T^{k+1}``). The maps are
-yielded in order, so that a live simulation can advance in lockstep with the swarms.
+yielded in order, so that a live simulation can advance in lockstep with the swarms. Beside
+the maps, the interface declares (with defaults) all that the loop and the experiment runner
+read of a source: its stage timings and own process, incidents, truth, files for the run folder.
 """
 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Iterator
+from collections.abc import Generator, Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from twin.grid import Grid
+from twin.timing import WAITING_FOR_SOURCE, StageTimer
 
 
 def normalise_importance(z: np.ndarray, grid: Grid, z_lo: float, z_hi: float) -> np.ndarray:
@@ -30,10 +34,21 @@ class TrafficSource(ABC):
     horizon: int
     #: A live simulation sets this: a failure mid-run then keeps the steps recorded so far.
     keeps_partial_results: bool = False
+    #: Simulated as the maps are pulled, once per seed, its tape kept (memory estimates).
+    live: bool = False
+    #: The source's own stages (a simulation's stepping, reads ...), when it times them.
+    timer: StageTimer | None = None
+    #: The maps are computed in a process of their own, ahead of the loop, which waits for them.
+    separate_process: bool = False
+    #: The loop's stage while it waits for a source in its own process.
+    waiting_stage: str = WAITING_FOR_SOURCE
+    #: The name of that process in ``timing.csv``.
+    process_name: str = "traffic source"
 
     @abstractmethod
-    def importance_maps(self) -> Iterator[np.ndarray]:
-        """Yield ``horizon + 1`` arrays of shape ``grid.shape``, values in [0, 1]."""
+    def importance_maps(self) -> Generator[np.ndarray, None, None]:
+        """Yield ``horizon + 1`` arrays of shape ``grid.shape``, values in [0, 1]. The loop
+        closes the generator when its pass ends (a live simulation stops there)."""
 
     def metadata(self) -> dict[str, Any]:
         """What a run folder should record about this source (JSON-serialisable)."""
@@ -47,6 +62,30 @@ class TrafficSource(ABC):
     def clock(self, k: int) -> str | None:
         """A label for step ``k`` in progress bars (a live simulation gives its clock time)."""
         return None
+
+    def process_stages(self) -> dict[str, dict[str, float]]:
+        """The stages of the source's own process, run beside the loop, keyed by
+        :attr:`process_name`; empty when the maps were computed in the loop's process."""
+        if self.separate_process and self.timer is not None:
+            return {self.process_name: self.timer.as_dict()}
+        return {}
+
+    def incidents_info(self) -> list[dict[str, Any]]:
+        """Scheduled incidents as applied so far (scored by monitoring); none by default."""
+        return []
+
+    def warmup_steps(self) -> int:
+        """Steps simulated before ``T^0`` and kept with the run (memory estimates); 0 here."""
+        return 0
+
+    def coarser_hint(self, ratio: float) -> str | None:
+        """How to make the grid ``ratio`` times coarser per side in this source's own settings,
+        for a run refused for its memory; None: no such setting."""
+        return None
+
+    def write_extras(self, run_dir: Path, by_seed: Sequence[tuple[int, TrafficSource]]) -> None:
+        """Write the source's own files into the run folder, before ``run.json``: called on the
+        first seed's source with ``(seed, source)`` of every seed run; nothing by default."""
 
     def close(self) -> None:
         """Release what the source holds (a simulation, files)."""
@@ -69,7 +108,7 @@ class RecordedTraffic(TrafficSource):
         maps = np.stack(list(source.importance_maps()))
         return cls(source.grid, maps, source.metadata())
 
-    def importance_maps(self) -> Iterator[np.ndarray]:
+    def importance_maps(self) -> Generator[np.ndarray, None, None]:
         yield from self.maps
 
     def metadata(self) -> dict[str, Any]:

@@ -7,7 +7,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+from collections.abc import Generator, Sequence
 from dataclasses import asdict, dataclass
 from typing import Any, Literal
 
@@ -93,7 +93,7 @@ class SyntheticTraffic(TrafficSource):
         """``T^k`` (Def. 2)."""
         return normalise_importance(self.z(k), self.grid, self.z_lo, self.z_hi)
 
-    def importance_maps(self) -> Iterator[np.ndarray]:
+    def importance_maps(self) -> Generator[np.ndarray, None, None]:
         for k in range(self.horizon + 1):
             yield self.importance(k)
 

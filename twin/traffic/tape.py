@@ -11,7 +11,7 @@ observation settings. :class:`TapeTraffic` feeds the snapshots through the same
 from __future__ import annotations
 
 import json
-from collections.abc import Iterator
+from collections.abc import Generator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -343,7 +343,7 @@ class TapeTraffic(TrafficSource):
         observer = getattr(self, "_observer", None)
         return observer.truth if observer is not None and self.detection_p < 1.0 else None
 
-    def importance_maps(self) -> Iterator[np.ndarray]:
+    def importance_maps(self) -> Generator[np.ndarray, None, None]:
         model = self._observer = self.model()
         for step, count, speed in zip(
             self.tape.steps, self.tape.counts, self.tape.speeds, strict=True
