@@ -307,6 +307,15 @@ READ_BACK = {
     "series step missing": (_edit_table("series.parquet", lambda f: f.drop(f.index[2])), "steps"),
     "NaN in series": (_edit_table("series.parquet", _set("coverage", np.nan, 4)), "coverage"),
     "string in summary": (_edit_table("summary.csv", _set("R_hat_T", "lots")), "R_hat_T"),
+    "NaN headline in summary": (_edit_table("summary.csv", _set("R_hat_T", np.nan)), "R_hat_T"),
+    "empty headline in per_seed": (
+        _edit_table("per_seed.csv", _set("R_hat_T", np.nan, 1)),
+        "per_seed.csv",
+    ),
+    "summary swarm row missing": (
+        _edit_table("summary.csv", lambda f: f[f["swarm"] != "greedy"]),
+        "'greedy'",
+    ),
     "summary swarm duplicated": (
         _edit_table("summary.csv", lambda f: pd.concat([f, f.iloc[[0]]])),
         "swarm",
