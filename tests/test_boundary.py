@@ -209,6 +209,14 @@ CASES = {
         ],
         "tape.parquet",
     ),
+    "swarms empty": (
+        lambda t: ["evaluate", "--config", str(small_config(t)), "--swarms", ""],
+        "--swarms is empty; name at least one swarm",
+    ),
+    "swarms only commas": (
+        lambda t: ["evaluate", "--config", str(small_config(t)), "--swarms", " , "],
+        "--swarms is empty",
+    ),
     "record into a folder": (lambda t: ["run", "--record", str(t)], "--record"),
     "sweep out is a file": (
         lambda t: [
