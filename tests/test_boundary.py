@@ -209,6 +209,20 @@ CASES = {
         ],
         "tape.parquet",
     ),
+    "out not UTF-8": (
+        lambda t: [
+            "evaluate",
+            "--config",
+            str(small_config(t)),
+            "--out",
+            os.fsdecode(bytes(t) + b"/\xff\xfe"),
+        ],
+        "not valid UTF-8",
+    ),
+    "sweep out not UTF-8": (
+        lambda t: ["sweep", "--config", "sweep-demo", "--out", os.fsdecode(bytes(t) + b"/x\xff")],
+        "not valid UTF-8",
+    ),
     "swarms empty": (
         lambda t: ["evaluate", "--config", str(small_config(t)), "--swarms", ""],
         "--swarms is empty; name at least one swarm",
@@ -410,6 +424,8 @@ def test_output_checks(tmp_path: Path, monkeypatch) -> None:
         outputs.check_output_file(tmp_path / "file" / "video.mp4", "--record")
     with pytest.raises(UserError, match="is a folder"):
         outputs.check_output_file(tmp_path, "--record")
+    with pytest.raises(UserError, match=r"--record .*not valid UTF-8"):
+        outputs.check_output_file(os.fsdecode(b"video\xff.mp4"), "--record")
     monkeypatch.setattr(outputs.shutil, "disk_usage", lambda p: shutil._ntuple_diskusage(1, 1, 0))
     with pytest.raises(UserError, match="MB free"):
         outputs.check_output_dir(tmp_path / "run", need_mb=10)
