@@ -231,6 +231,10 @@ CASES = {
         lambda t: ["evaluate", "--config", str(small_config(t)), "--swarms", " , "],
         "--swarms is empty",
     ),
+    "record over an existing file": (
+        lambda t: ["run", "--record", str(_write(t / "mine.mp4", "my video"))],
+        "the file exists, and --record never overwrites a file",
+    ),
     "record into a folder": (lambda t: ["run", "--record", str(t)], "--record"),
     "sweep out is a file": (
         lambda t: [
