@@ -209,6 +209,32 @@ CASES = {
         ],
         "tape.parquet",
     ),
+    "out not UTF-8": (
+        lambda t: [
+            "evaluate",
+            "--config",
+            str(small_config(t)),
+            "--out",
+            os.fsdecode(bytes(t) + b"/\xff\xfe"),
+        ],
+        "not valid UTF-8",
+    ),
+    "sweep out not UTF-8": (
+        lambda t: ["sweep", "--config", "sweep-demo", "--out", os.fsdecode(bytes(t) + b"/x\xff")],
+        "not valid UTF-8",
+    ),
+    "swarms empty": (
+        lambda t: ["evaluate", "--config", str(small_config(t)), "--swarms", ""],
+        "--swarms is empty; name at least one swarm",
+    ),
+    "swarms only commas": (
+        lambda t: ["evaluate", "--config", str(small_config(t)), "--swarms", " , "],
+        "--swarms is empty",
+    ),
+    "record over an existing file": (
+        lambda t: ["run", "--record", str(_write(t / "mine.mp4", "my video"))],
+        "the file exists, and --record never overwrites a file",
+    ),
     "record into a folder": (lambda t: ["run", "--record", str(t)], "--record"),
     "sweep out is a file": (
         lambda t: [
@@ -307,6 +333,15 @@ READ_BACK = {
     "series step missing": (_edit_table("series.parquet", lambda f: f.drop(f.index[2])), "steps"),
     "NaN in series": (_edit_table("series.parquet", _set("coverage", np.nan, 4)), "coverage"),
     "string in summary": (_edit_table("summary.csv", _set("R_hat_T", "lots")), "R_hat_T"),
+    "NaN headline in summary": (_edit_table("summary.csv", _set("R_hat_T", np.nan)), "R_hat_T"),
+    "empty headline in per_seed": (
+        _edit_table("per_seed.csv", _set("R_hat_T", np.nan, 1)),
+        "per_seed.csv",
+    ),
+    "summary swarm row missing": (
+        _edit_table("summary.csv", lambda f: f[f["swarm"] != "greedy"]),
+        "'greedy'",
+    ),
     "summary swarm duplicated": (
         _edit_table("summary.csv", lambda f: pd.concat([f, f.iloc[[0]]])),
         "swarm",
@@ -393,6 +428,8 @@ def test_output_checks(tmp_path: Path, monkeypatch) -> None:
         outputs.check_output_file(tmp_path / "file" / "video.mp4", "--record")
     with pytest.raises(UserError, match="is a folder"):
         outputs.check_output_file(tmp_path, "--record")
+    with pytest.raises(UserError, match=r"--record .*not valid UTF-8"):
+        outputs.check_output_file(os.fsdecode(b"video\xff.mp4"), "--record")
     monkeypatch.setattr(outputs.shutil, "disk_usage", lambda p: shutil._ntuple_diskusage(1, 1, 0))
     with pytest.raises(UserError, match="MB free"):
         outputs.check_output_dir(tmp_path / "run", need_mb=10)
@@ -539,10 +576,55 @@ def test_gym_env_refuses_bad_joint_actions(env) -> None:
     _, source = env
     e = SwarmGymEnv(source, starts=[[1, 1], [2, 2]])
     e.reset(seed=0)
-    for bad in ([0], [0.5, 0], ["a", "b"], [[0, 0]]):
+    for bad in ([0], [0.5, 0], [1.0, 0], np.array([0.0, 0.0]), ["a", "b"], [[0, 0]]):
         with pytest.raises(UserError, match="whole numbers"):
             e.step(bad)
     e.step(np.array([0, 0]))
+    e.step([0, 0])
+
+
+@pytest.mark.parametrize(
+    ("options", "words"),
+    [
+        ({"n_drones": 2.5}, "n_drones = 2.5 is not a whole number"),
+        ({"n_drones": 2.0}, "n_drones = 2.0 is not a whole number"),
+        ({"n_drones": True}, "n_drones = True is not a whole number"),
+        ({"n_drones": "3"}, "n_drones = '3' is not a whole number"),
+        ({"n_drones": None}, "n_drones = None"),
+        ({"n_drones": 0}, "need 1 .. 19 drones"),
+        ({"n_drones": 601}, "need 1 .. 19 drones"),
+        ({"starts": [[1e20, 1], [0, 0]]}, r"starts\[0\] = \(100000000000000000000, 1\) is off"),
+        ({"starts": [[-1e30, 1]]}, "is off the 4 x 5 grid"),
+        ({"starts": [[0, 0], [1, 1]], "n_drones": 4}, "n_drones = 4 but starts gives 2 cells"),
+    ],
+)
+@pytest.mark.parametrize("joint", [False, True])
+def test_env_refuses_bad_options(env, options, words, joint) -> None:
+    import warnings
+
+    from twin.env import EnvInputError, SwarmGymEnv
+
+    cls, source = env
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no numpy warning on the way
+        with pytest.raises(EnvInputError, match=words) as info:
+            (SwarmGymEnv if joint else cls)(source, **options)
+    assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("seed", "words"),
+    [("abc", "seed = 'abc' is not a whole number"), (-1, "seed = -1 is negative"), (1.5, "1.5")],
+)
+@pytest.mark.parametrize("joint", [False, True])
+def test_env_refuses_bad_reset_seeds(env, seed, words, joint) -> None:
+    from twin.env import EnvInputError, SwarmGymEnv
+
+    cls, source = env
+    e = (SwarmGymEnv if joint else cls)(source, n_drones=2)
+    with pytest.raises(EnvInputError, match=words):
+        e.reset(seed=seed)
+    e.reset(seed=np.int64(3))
 
 
 def test_error_log_never_follows_a_link(tmp_path: Path, monkeypatch) -> None:

@@ -160,3 +160,20 @@ def test_without_the_extra_the_import_names_the_fix():
     assert run.stderr.strip().splitlines()[-1] == (
         "ImportError: twin.env needs gymnasium and pettingzoo: pip install 'twin[env]'"
     )
+
+
+@pytest.mark.parametrize("joint", [False, True])
+def test_make_env_refuses_bad_options_in_one_line(joint):
+    from twin.env import EnvInputError
+
+    for options, words in (
+        ({"n_drones": 2.5}, "n_drones = 2.5"),
+        ({"n_drones": "3"}, "n_drones = '3'"),
+        ({"n_drones": 601}, "n_drones = 601"),
+        ({"starts": [[0, 0], [1, 1]], "n_drones": 4}, "starts gives 2 cells"),
+    ):
+        with pytest.raises(EnvInputError, match=words) as info:
+            make_env("synthetic", joint=joint, **options)
+        assert "\n" not in str(info.value)
+    with pytest.raises(TypeError, match="colour"):  # Python's own message names the keyword
+        make_env("synthetic", joint=joint, colour="red")

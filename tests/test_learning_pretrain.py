@@ -133,3 +133,78 @@ def test_cli_pretrain_bad_config_exits_2(tmp_path):
     path = tmp_path / "bad.toml"
     path.write_text("batch_size = 0\n")
     assert main(["pretrain", "--config", str(path), "--quiet"]) == 2
+
+
+def _run_cli(argv, capsys):
+    from twin.cli import main
+
+    code = main(argv)
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    return code, err.strip()
+
+
+@pytest.mark.parametrize(
+    ("text", "words"),
+    [
+        ("layers = [13, 100000000, 5]", "lower batch_size or layers"),
+        ("layers = [13, 20000, 20000, 5]", "(network: "),
+        ("batch_size = 100000000000", "lower batch_size"),
+        ("episodes = 100000000", "lower episodes, horizon or n_drones"),
+        ("nx = 100000\nny = 100000", "nx, ny"),
+        ("nx = 3000\nny = 3000", "lower nx, ny"),
+        ("n_drones = 1000\nnx = 10\nny = 10", "n_drones = 1000 do not fit on the 10 x 10"),
+    ],
+)
+def test_pretraining_past_memory_or_map_is_refused(tmp_path, capsys, text, words):
+    path = tmp_path / "big.toml"
+    path.write_text(text + f'\nout = "{tmp_path / "out"}"\nepochs = 1\n')
+    code, err = _run_cli(["pretrain", "--config", str(path), "--quiet"], capsys)
+    assert code == 2 and err.count("\n") == 0 and words in err, err
+    assert str(path) in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_pretraining_memory_limit_flag(tmp_path, capsys):
+    config = _config(tmp_path)
+    argv = ["pretrain", "--config", str(config), "--quiet", "--max-memory-gb", "1e-9"]
+    code, err = _run_cli(argv, capsys)
+    assert code == 2 and "over the 1e-09 GB limit" in err and err.count("\n") == 0
+
+
+def _foreign_files(out):
+    out.mkdir()
+    (out / "qnet.pt").write_text("my own model")
+    (out / "train_log.csv").write_text("mine\n1\n")
+
+
+@pytest.mark.parametrize(
+    ("make", "words"),
+    [
+        (_foreign_files, "train_log.csv is not a pretraining log"),
+        (lambda out: (out.mkdir(), (out / "qnet.pt").write_text("x")), "no checkpoint state.pt"),
+        (lambda out: (out.mkdir(), (out / "notes.txt").write_text("x")), "'notes.txt'"),
+        (
+            lambda out: (out.mkdir(), (out / "snapshots").mkdir(), (out / "snapshots/a").touch()),
+            "snapshots/a",
+        ),
+        (lambda out: (out.mkdir(), (out / "state.pt").write_text("x")), "state.pt"),
+    ],
+)
+def test_out_holding_files_pretraining_did_not_write_is_refused(tmp_path, capsys, make, words):
+    out = tmp_path / "own"
+    make(out)
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    argv = ["pretrain", "--config", str(_config(tmp_path)), "--out", str(out), "--quiet"]
+    code, err = _run_cli(argv, capsys)
+    assert code == 2 and err.count("\n") == 0 and words in err, err
+    assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+
+
+def test_out_with_a_checkpoint_of_other_settings_is_refused_before_collecting(tmp_path, capsys):
+    config = _config(tmp_path, epochs=10)
+    argv = ["pretrain", "--config", str(config), "--quiet"]
+    assert _run_cli(argv, capsys)[0] == 0
+    _changed(config)
+    code, err = _run_cli(argv, capsys)
+    assert code == 2 and "other settings (iters_per_epoch)" in err and err.count("\n") == 0

@@ -180,6 +180,16 @@ def test_killed_sweep_resumes(tmp_path: Path) -> None:
             '[parameters]\n"n_drones" = [1]\n',
             "must be a dotted key",
         ),
+        (
+            '[sweep]\nswarms = ["greedy"]\n[[scenario]]\nname = "a"\nconfig = "scenario.toml"\n'
+            '[parameters]\n"swarm.n_drones" = [2, 3, 2]\n',
+            "'swarm.n_drones' lists 2 twice",
+        ),
+        (
+            '[sweep]\nswarms = ["greedy"]\n[[scenario]]\nname = "a"\nconfig = "scenario.toml"\n'
+            '[parameters]\n"grid.obstacles" = [[[1, 1]], [], [[1, 1]]]\n',
+            "'grid.obstacles' lists [[1, 1]] twice",
+        ),
     ],
 )
 def test_bad_sweep_configs_are_one_line_errors(tmp_path: Path, text: str, message: str, capsys):
@@ -206,6 +216,22 @@ def test_demo_config_expands(tmp_path: Path) -> None:
     assert len(cells) == len(config.seeds) * 2
     assert len({c["id"] for c in cells}) == len(cells)
     json.dumps(cells)  # plain data, shippable to any executor
+
+
+def test_list_valued_parameters_are_swept(tmp_path: Path, capsys) -> None:
+    """Swept values that are lists (obstacles, start cells) label their cells as JSON text."""
+    parameters = (
+        '"grid.obstacles" = [[], [[1, 1], [2, 2]]]\n'
+        '"swarm.starts" = [[[0, 0], [0, 1], [0, 2]], "random"]'
+    )
+    path = sweep_file(tmp_path, seeds=1, parameters=parameters, horizon=5)
+    out = tmp_path / "s"
+    assert cli(["sweep", "--config", str(path), "--out", str(out), "--quiet"]) == 0
+    summary = pd.read_csv(out / "summary.csv")
+    assert len(summary) == 4 * 3 and (summary["n_seeds"] == 1).all()
+    assert set(summary["grid.obstacles"]) == {"[]", "[[1, 1], [2, 2]]"}
+    assert set(summary["swarm.starts"]) == {"[[0, 0], [0, 1], [0, 2]]", "random"}
+    assert (out / "report" / "sweep.html").is_file()
 
 
 def test_bad_parameter_value_fails_before_any_cell_runs(tmp_path: Path) -> None:

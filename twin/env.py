@@ -9,8 +9,10 @@ of the patrol loop, so a policy scores the same here as in ``run_patrol``.
   actions ``U_d(p)`` as 0/1 (PettingZoo's convention);
 - actions ``Discrete(5)`` in the order of :data:`twin.grid.ACTIONS`: 0 stay, 1 up, 2 down,
   3 left, 4 right; an infeasible action raises :class:`twin.swarm.InfeasibleActionError`, an
-  unknown agent name, an action that is not a whole number in 0..4 or a fractional or off-grid
-  start :class:`EnvInputError` (both :class:`~twin.errors.UserError` and ``ValueError``);
+  unknown agent name, an action that is not a whole number in 0..4 (in either env: ``1.0`` is
+  not an action), a fractional or off-grid start, an ``n_drones`` that is not a whole number
+  in 1..free cells or disagrees with ``starts``, a reset seed that is not a whole number >= 0
+  :class:`EnvInputError` (both :class:`~twin.errors.UserError` and ``ValueError``);
 - reward per drone: the headline reward :func:`twin.scores.rewards_on_arrival`, the gain of
   the cell the drone visits (split evenly among drones on one cell), so the drones' rewards sum
   to the swarm's ``R^k``; the infos carry its parts ``reward_importance`` (alpha_T) and
@@ -65,6 +67,23 @@ def _action(agent: str, value: Any) -> int:
     return int(value)
 
 
+def _whole(name: str, value: Any) -> int:
+    """``value`` as an int (numpy integers accepted), else :class:`EnvInputError`."""
+    if isinstance(value, np.ndarray) and value.shape == ():
+        value = value.item()
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise EnvInputError(f"{name} = {value!r} is not a whole number; give e.g. 4")
+    return int(value)
+
+
+def _seed(seed: Any) -> int:
+    """A reset seed: a whole number >= 0."""
+    seed = _whole("seed", seed)
+    if seed < 0:
+        raise EnvInputError(f"seed = {seed} is negative; give a whole number >= 0 (or None)")
+    return seed
+
+
 class SwarmParallelEnv(ParallelEnv):
     """PettingZoo ``ParallelEnv``: one agent per drone over a traffic source."""
 
@@ -90,10 +109,17 @@ class SwarmParallelEnv(ParallelEnv):
         self.grid, self.horizon = self.source.grid, self.source.horizon
         self.params = params or ScoreParams()
         self._starts = None if starts is None else self._check_starts(starts)
+        if n_drones is not None:
+            n_drones = _whole("n_drones", n_drones)
         if self._starts is not None:
+            if n_drones is not None and n_drones != len(self._starts):
+                raise EnvInputError(
+                    f"n_drones = {n_drones} but starts gives {len(self._starts)} cells; give one "
+                    "start cell per drone, or only one of n_drones and starts"
+                )
             n_drones = len(self._starts)
         if n_drones is None or n_drones < 1 or n_drones > self.grid.n_free:
-            raise ValueError(
+            raise EnvInputError(
                 f"n_drones = {n_drones}: need 1 .. {self.grid.n_free} drones (the free cells)"
             )
         self.n_drones = int(n_drones)
@@ -130,7 +156,7 @@ class SwarmParallelEnv(ParallelEnv):
 
     def reset(self, seed: int | None = None, options: dict | None = None):
         if seed is not None:
-            self._rng = np.random.default_rng(seed)
+            self._rng = np.random.default_rng(_seed(seed))
         self._restart(self._rng)
         obs = self._observations()
         return obs, {a: {} for a in self.agents}
@@ -248,8 +274,16 @@ class SwarmParallelEnv(ParallelEnv):
             raise EnvInputError(
                 f"starts[{d}] = {raw[d].tolist()} is not a cell; give whole numbers (i, j)"
             )
-        starts = raw.astype(np.int64)
         nx, ny = self.grid.shape
+        inside = (raw[:, 0] >= 0) & (raw[:, 0] < nx) & (raw[:, 1] >= 0) & (raw[:, 1] < ny)
+        if not inside.all():
+            d = int(np.flatnonzero(~inside)[0])
+            i, j = (int(v) for v in raw[d])
+            raise EnvInputError(
+                f"starts[{d}] = ({i}, {j}) is off the {nx} x {ny} grid; every start must be a "
+                "free cell on the map"
+            )
+        starts = raw.astype(np.int64)
         free = self.grid.is_free(starts)
         if not free.all():
             d = int(np.flatnonzero(~free)[0])
@@ -291,7 +325,9 @@ class SwarmGymEnv(gymnasium.Env):
         self.observation_space = spaces.Box(0.0, 1.0, (n, STATE_SIZE), np.float32)
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
-        super().reset(seed=seed)  # np_random from seed: the stream of default_rng(seed)
+        super().reset(
+            seed=None if seed is None else _seed(seed)
+        )  # np_random from seed: the stream of default_rng(seed)
         self.swarm_env._restart(self.np_random)
         return self.swarm_env._states(), self._info()
 
@@ -321,15 +357,13 @@ class SwarmGymEnv(gymnasium.Env):
 
 
 def _joint_action(action: Any, n: int) -> np.ndarray:
-    """The joint action as ``(n,)`` int64, refused (one line) when not ``n`` whole numbers."""
+    """The joint action as ``(n,)`` int64, refused (one line) when not ``n`` integers (floats
+    such as ``1.0`` are refused, as by the parallel env)."""
     try:
         raw = np.asarray(action)
     except (TypeError, ValueError):
         raw = np.asarray(None)
-    if raw.shape != (n,) or not (
-        np.issubdtype(raw.dtype, np.integer)
-        or (np.issubdtype(raw.dtype, np.floating) and np.all(raw == np.round(raw)))
-    ):
+    if raw.shape != (n,) or not np.issubdtype(raw.dtype, np.integer):
         raise EnvInputError(
             f"action must be {n} whole numbers 0 .. {N_ACTIONS - 1} (one per drone), got "
             f"{raw.dtype} of shape {raw.shape}"

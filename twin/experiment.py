@@ -92,9 +92,9 @@ def limit_threads(n: int = 1) -> None:
 
 def parse_swarm_names(text: str | None, default: Sequence[str], flag: str = "--swarms"):
     """Swarm names from a comma-separated flag (or ``default``), checked against the registry."""
-    names = [s.strip() for s in text.split(",") if s.strip()] if text else list(default)
+    names = [s.strip() for s in text.split(",") if s.strip()] if text is not None else list(default)
     if not names:
-        raise UserError(f"{flag}: give at least one swarm name")
+        raise UserError(f"{flag} is empty; name at least one swarm")
     known = available_policies()
     for name in names:
         if name not in known:
@@ -259,7 +259,13 @@ MEMORY_ENV = "TWIN_MAX_MEMORY_GB"
 def max_memory_gb(experiment: Experiment) -> float:
     """The memory limit: the experiment's (``--max-memory-gb``), else ``$TWIN_MAX_MEMORY_GB``,
     else 8 GB."""
-    value, where = experiment.max_memory_gb, "--max-memory-gb"
+    return memory_limit_gb(experiment.max_memory_gb)
+
+
+def memory_limit_gb(value: float | None = None) -> float:
+    """The memory limit in GB: ``value`` (``--max-memory-gb``), else ``$TWIN_MAX_MEMORY_GB``,
+    else 8 GB; a limit that is not a number > 0 is refused in one line."""
+    where = "--max-memory-gb"
     if value is None:
         where = MEMORY_ENV
         text = os.environ.get(MEMORY_ENV, "").strip()
@@ -268,7 +274,9 @@ def max_memory_gb(experiment: Experiment) -> float:
         try:
             value = float(text)
         except ValueError:
-            value = float("nan")
+            raise UserError(
+                f"{where} = {text!r} is not a number; give the limit in GB, e.g. 8"
+            ) from None
     if not np.isfinite(value) or value <= 0:
         raise UserError(f"{where} = {value}: not a number > 0; give the limit in GB, e.g. 8")
     return float(value)

@@ -35,6 +35,7 @@ def check_output_dir(path: str | Path, flag: str = "--out", need_mb: float = MIN
     """Refuse an output folder ``path`` twin cannot create or write into (one line naming
     ``flag``); it need not exist yet (nothing is created here)."""
     path = Path(path)
+    _check_name(path, flag)
     if path.exists() and not path.is_dir():
         raise UserError(
             f"{flag} {path}: is a file, not a folder (a file is in the way); move it or pass "
@@ -54,6 +55,7 @@ def check_output_file(path: str | Path, flag: str, need_mb: float = 1) -> Path:
     """Refuse an output file ``path`` twin cannot write (one line naming ``flag``): a folder
     in its place, a parent that is a file or cannot be created, no write permission, no space."""
     path = Path(path)
+    _check_name(path, flag)
     if path.is_dir():
         raise UserError(f"{flag} {path}: is a folder; give a file name")
     if path.exists() and not os.access(path, os.W_OK):
@@ -69,6 +71,19 @@ def check_output_file(path: str | Path, flag: str, need_mb: float = 1) -> Path:
     _check_writable(base, path, flag)
     _check_free(base, path, flag, need_mb)
     return path
+
+
+def _check_name(path: Path, flag: str) -> None:
+    """Refuse a path that is not valid UTF-8 text (bytes the file system took but twin could
+    not write into its JSON and reports, nor print)."""
+    try:
+        str(path).encode("utf-8")
+    except UnicodeEncodeError:
+        shown = str(path).encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+        raise UserError(
+            f"{flag} {shown}: the name is not valid UTF-8; use a name in UTF-8 (e.g. plain "
+            "letters, digits, - and _)"
+        ) from None
 
 
 def _check_writable(base: Path, path: Path, flag: str) -> None:

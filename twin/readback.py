@@ -313,6 +313,42 @@ EVENT_COLUMNS = {
 }
 
 
+#: The headline columns of a results table (``summary.csv``, ``per_seed.csv``): every swarm row
+#: holds a finite number in each of them that the table has. Ceiling rows (``role`` =
+#: ``ceiling``) leave the columns they do not fill empty.
+HEADLINE_COLUMNS = (
+    "R_hat_T",
+    "R_hat_T_importance",
+    "R_hat_T_idleness",
+    "R_hat_T_paper",
+    "C_hat_T",
+    "pct_map_covered",
+)
+
+
+def check_headline(path: Path, frame: pd.DataFrame) -> None:
+    """Every swarm row of the results table ``frame`` has a finite number in each headline
+    column present (``R_hat_T`` is required)."""
+    if "R_hat_T" not in frame.columns:
+        raise UserError(f"{path}: no column 'R_hat_T'; {RERUN}")
+    swarm = ~frame["role"].eq("ceiling") if "role" in frame.columns else None
+    for name in HEADLINE_COLUMNS:
+        if name not in frame.columns:
+            continue
+        check_column(path, frame, name, NUMBER)
+        values = frame[name].to_numpy(dtype=np.float64)
+        off = ~np.isfinite(values)
+        if swarm is not None:
+            off &= swarm.to_numpy()
+        if off.any():
+            n = int(np.flatnonzero(off)[0])
+            who = frame["swarm"].iloc[n] if "swarm" in frame.columns else "?"
+            raise UserError(
+                f"{path}: column {name!r} of swarm {who!r} (row {n}) is {values[n]}, not a "
+                f"finite number; {RERUN}"
+            )
+
+
 def numeric_columns(path: Path, frame: pd.DataFrame, text: tuple[str, ...]) -> None:
     """Every column of ``frame`` but ``text`` holds numbers (NaN allowed)."""
     for name in frame.columns:

@@ -22,6 +22,8 @@ def add_parser(subparsers) -> None:
                    help=f"pretraining config (TOML); default {DEFAULT_CONFIG}")  # fmt: skip
     p.add_argument("--out", default=None, help="output folder (overrides the config's `out`)")
     p.add_argument("--epochs", type=int, default=None, help="overrides the config's `epochs`")
+    p.add_argument("--max-memory-gb", type=float, default=None,
+                   help="memory limit in GB (default $TWIN_MAX_MEMORY_GB, else 8)")  # fmt: skip
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.add_argument("--help-config", action="store_true",
                    help="list every config key with its default and meaning, then exit")  # fmt: skip
@@ -32,7 +34,13 @@ def main(args: argparse.Namespace) -> int:
     from twin.boundary import set_run_folder
     from twin.cli import check_count
     from twin.config import shipped_config
-    from twin.learning.pretrain import PretrainConfig, load_config, pretrain
+    from twin.learning.pretrain import (
+        PretrainConfig,
+        check_out_folder,
+        check_pretrain_memory,
+        load_config,
+        pretrain,
+    )
     from twin.outputs import check_output_dir
 
     if args.help_config:
@@ -46,8 +54,11 @@ def main(args: argparse.Namespace) -> int:
     config = load_config(
         shipped_config(args.config or DEFAULT_CONFIG), out=args.out, epochs=args.epochs
     )
-    flag = "--out" if args.out else f"{args.config or DEFAULT_CONFIG}: out"
+    where = str(args.config or DEFAULT_CONFIG)
+    check_pretrain_memory(config, where, args.max_memory_gb)
+    flag = "--out" if args.out else f"{where}: out"
     check_output_dir(config.out, flag, need_mb=200)  # the model, its checkpoints and snapshots
+    check_out_folder(config, flag)  # resumes its own checkpoint, refuses anything else
     set_run_folder(Path(config.out))  # an unexpected error's traceback goes to its error.log
     progress = not args.quiet and sys.stderr.isatty()
     path = pretrain(config, progress=progress)

@@ -16,13 +16,14 @@ from __future__ import annotations
 
 import csv
 import hashlib
+import itertools
 import time
 from pathlib import Path
 from typing import Annotated, Any, ClassVar
 
 import numpy as np
 import torch
-from pydantic import Field, ValidationError, field_validator
+from pydantic import Field, ValidationError, ValidationInfo, field_validator
 
 from twin.config import DisturbanceConfig, StrictModel, read_toml, validation_error
 from twin.errors import UserError
@@ -131,6 +132,17 @@ class PretrainConfig(StrictModel):
             )
         return layers
 
+    @field_validator("n_drones")
+    @classmethod
+    def _fits(cls, n_drones: int, info: ValidationInfo) -> int:
+        nx, ny = info.data.get("nx"), info.data.get("ny")
+        if nx is not None and ny is not None and n_drones > nx * ny:
+            raise ValueError(
+                f"do not fit on the {nx} x {ny} training map ({nx * ny} cells, one drone per "
+                f"cell); use at most {nx * ny} drones or a larger map (nx, ny)"
+            )
+        return n_drones
+
     def training_dict(self) -> dict[str, Any]:
         """The config as plain python types (stored in every checkpoint)."""
         return self.model_dump()
@@ -154,6 +166,62 @@ def load_config(path: str | Path, **overrides: Any) -> PretrainConfig:
         return PretrainConfig.model_validate(raw)
     except ValidationError as exc:
         raise validation_error(path, exc, raw, PretrainConfig, False, FLAGS) from None
+
+
+# ----------------------------------------------------------------------------- memory
+#: Bytes per stored transition: the buffer's state, next state, action, reward and feasible
+#: mask (121 B), and the copies the buffer's digest makes of them (69 B).
+TRANSITION_BYTES = 190
+#: Copies of the network's float32 parameters: online, target, gradient, Adam's two moments,
+#: and the copies a checkpoint holds while it is written.
+PARAMETER_COPIES = 9
+
+
+def estimate_pretrain_memory(cfg: PretrainConfig) -> dict[str, float]:
+    """Bytes pretraining needs, roughly and from above, per part: the replay buffer (plus one
+    episode being recorded), the network (:data:`PARAMETER_COPIES` copies of its parameters),
+    a batch's activations and gradients, and the training map (its kernels and the blocks the
+    importance scale is searched in)."""
+    layers = [int(n) for n in cfg.layers]
+    params = sum(a * b + b for a, b in itertools.pairwise(layers))
+    cells = cfg.nx * cfg.ny
+    return {
+        "buffer": float((cfg.episodes + 1) * cfg.horizon * cfg.n_drones * TRANSITION_BYTES),
+        "network": float(params * 4 * PARAMETER_COPIES),
+        "batch": float(cfg.batch_size * (sum(layers) * 4 * 8 + 200)),
+        "map": float(cells * 8 * (len(cfg.disturbances) + 3 * 256 + 16)),
+    }
+
+
+#: The keys that size each part of the estimate, for the refusal's hint.
+MEMORY_FIELDS = {
+    "buffer": "episodes, horizon or n_drones",
+    "network": "layers",
+    "batch": "batch_size or layers",
+    "map": "nx, ny",
+}
+
+
+def check_pretrain_memory(
+    cfg: PretrainConfig, where: str = "pretraining config", limit_gb: float | None = None
+) -> None:
+    """Refuse (one line naming the key) a pretraining past the memory limit (``limit_gb``,
+    else ``$TWIN_MAX_MEMORY_GB``, else 8 GB) before anything is allocated."""
+    from twin.experiment import MEMORY_ENV, memory_limit_gb
+    from twin.resources import check_grid_size
+
+    check_grid_size(cfg.nx, cfg.ny, f"{where}: nx, ny", "use a smaller training map")
+    limit = memory_limit_gb(limit_gb)
+    parts = estimate_pretrain_memory(cfg)
+    need = sum(parts.values())
+    if need <= limit * 1e9:
+        return
+    part = max(parts, key=lambda k: parts[k])
+    raise UserError(
+        f"{where}: pretraining needs about {need / 1e9:,.1f} GB ({part}: "
+        f"{parts[part] / 1e9:,.1f} GB), over the {limit:g} GB limit; lower "
+        f"{MEMORY_FIELDS[part]}, or raise --max-memory-gb / ${MEMORY_ENV}"
+    )
 
 
 # ----------------------------------------------------------------------------- 2. data
@@ -198,6 +266,8 @@ def pretrain(cfg: PretrainConfig, progress: bool = True) -> Path:
     """Train (or resume) as configured; returns the path of the final model checkpoint."""
     out = Path(cfg.out)
     state_path, model_path, log_path = out / "state.pt", out / "qnet.pt", out / "train_log.csv"
+    check_pretrain_memory(cfg)
+    check_out_folder(cfg, "out")
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
 
@@ -310,7 +380,75 @@ def _save_state(path, cfg, digest, net, target, optimizer, batch_rng, epoch, wal
     )
 
 
-def _resume(path, cfg, digest, net, target, optimizer, batch_rng) -> tuple[int, float]:
+#: What pretraining writes into its folder (and the boundary's error.log).
+PRETRAIN_FILES = frozenset({"state.pt", "qnet.pt", "train_log.csv", "snapshots", "error.log"})
+
+
+def check_out_folder(cfg: PretrainConfig, flag: str = "--out") -> None:
+    """Refuse (one line naming ``flag``) an ``out`` folder that is not empty and not this
+    pretraining's own: a file twin did not write, a model or log without the checkpoint
+    ``state.pt`` to resume from, or a checkpoint of other settings. A folder of this config's
+    checkpoint (an interrupted or finished run) is resumed by :func:`pretrain`."""
+    out = Path(cfg.out)
+    if not out.is_dir():
+        return
+    entries = list(out.iterdir())
+    fix = "pass a new or empty folder (or delete this one to start afresh)"
+    foreign = sorted(e.name for e in entries if e.name not in PRETRAIN_FILES and not _temp(e))
+    if foreign:
+        raise UserError(
+            f"{flag} {out}: holds {foreign[0]!r}, which `twin pretrain` did not write; {fix}"
+        )
+    snapshots = out / "snapshots"
+    if snapshots.exists():
+        odd = [e.name for e in _entries(snapshots) if not _snapshot_name(e)]
+        if not snapshots.is_dir() or snapshots.is_symlink() or odd:
+            what = repr(f"snapshots/{odd[0]}") if odd else "snapshots, not a folder of its own,"
+            raise UserError(
+                f"{flag} {out}: holds {what} which `twin pretrain` did not write; {fix}"
+            )
+    log = out / "train_log.csv"
+    if log.exists() and not _own_log(log):
+        raise UserError(
+            f"{flag} {out}: train_log.csv is not a pretraining log of twin (its header is not "
+            f"{','.join(LOG_COLUMNS)}); {fix}"
+        )
+    state = out / "state.pt"
+    if state.exists():
+        _check_settings(state, cfg)
+    elif (out / "qnet.pt").exists():
+        raise UserError(
+            f"{flag} {out}: holds qnet.pt but no checkpoint state.pt of the run that wrote it, "
+            f"so it would be overwritten; {fix}"
+        )
+
+
+def _temp(entry: Path) -> bool:
+    return entry.name.startswith(".") and entry.name.endswith(".tmp") and entry.is_file()
+
+
+def _entries(folder: Path) -> list[Path]:
+    return list(folder.iterdir()) if folder.is_dir() and not folder.is_symlink() else []
+
+
+def _snapshot_name(entry: Path) -> bool:
+    name = entry.name
+    return _temp(entry) or (
+        name.startswith("qnet_e") and name.endswith(".pt") and name[6:-3].isdigit()
+    )
+
+
+def _own_log(path: Path) -> bool:
+    try:
+        with open(path, newline="", encoding="utf-8") as f:
+            header = next(csv.reader(f), [])
+    except (OSError, UnicodeError, csv.Error):
+        return False
+    return tuple(header) == LOG_COLUMNS
+
+
+def _check_settings(path: Path, cfg: PretrainConfig) -> dict[str, Any]:
+    """The checkpoint at ``path``, refused unless it was written with ``cfg``'s settings."""
     blob = read_checkpoint(path)
     saved = blob["meta"].get("config")
     if not isinstance(saved, dict) or not isinstance(blob.get("buffer"), dict):
@@ -325,6 +463,11 @@ def _resume(path, cfg, digest, net, target, optimizer, batch_rng) -> tuple[int, 
             f"{path} was written by a run with other settings ({', '.join(changed)}); "
             f"delete {path.parent} or set another `out` to start afresh"
         )
+    return blob
+
+
+def _resume(path, cfg, digest, net, target, optimizer, batch_rng) -> tuple[int, float]:
+    blob = _check_settings(path, cfg)
     if blob["buffer"].get("digest") != digest:
         raise UserError(f"{path}: the replay data differ from the saved run's; delete it")
     try:

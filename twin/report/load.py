@@ -29,6 +29,7 @@ from twin.readback import (
     TIMING_COLUMNS,
     check_column,
     check_fields,
+    check_headline,
     check_incidents,
     check_run_json,
     check_series,
@@ -220,6 +221,7 @@ def load_run(run_dir: str | Path) -> RunFiles:
     if "n_seeds" in summary.columns:
         check_column(summary_path, summary, "n_seeds", INT)
     numeric_columns(summary_path, summary, TABLE_TEXT)
+    check_headline(summary_path, summary)
 
     def optional(name: str, columns: dict[str, str], text: tuple[str, ...] = ()):
         path = run_dir / name
@@ -233,6 +235,8 @@ def load_run(run_dir: str | Path) -> RunFiles:
         return frame
 
     per_seed = optional("per_seed.csv", {"seed": INT, "swarm": TEXT}, TABLE_TEXT)
+    if per_seed is not None:
+        check_headline(run_dir / "per_seed.csv", per_seed)
     monitoring = optional("monitoring.csv", {"swarm": TEXT}, TABLE_TEXT)
     events = optional("events.parquet", EVENT_COLUMNS)
     timing = optional("timing.csv", TIMING_COLUMNS)
@@ -296,6 +300,18 @@ def check_consistent(
         )
     if "role" in summary.columns:  # ceilings (oracle, bound) are rows without paths
         swarms = [s for s, role in zip(swarms, summary["role"], strict=True) if role != "ceiling"]
+    listed = set(swarms)
+    for name, held in (
+        ("series.parquet", series["swarm"].unique()),
+        ("trajectories.parquet", trajectories["swarm"].unique()),
+        ("run.json", run.get("swarms") if isinstance(run.get("swarms"), list) else []),
+    ):
+        extra = [str(s) for s in held if str(s) not in listed]
+        if extra:
+            raise UserError(
+                f"{run_dir / 'summary.csv'}: no row for swarm {extra[0]!r}, which {name} "
+                f"holds; {RERUN}"
+            )
     first = run.get("importance_seed")
     first = int(first) if first is not None else seeds[0]
     if first not in seeds:

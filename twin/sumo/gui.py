@@ -106,6 +106,11 @@ def check_settings(settings: GuiSettings, available: Sequence[str]) -> None:
             raise UserError(f"--record {settings.record}: give a .mp4 or .gif file name")
         from twin.outputs import check_output_file
 
+        if settings.record.exists() or settings.record.is_symlink():
+            raise UserError(
+                f"--record {settings.record}: the file exists, and --record never overwrites a "
+                "file; remove it or give a new file name"
+            )
         check_output_file(settings.record, "--record", need_mb=10)
         try:
             if settings.record.suffix.lower() == ".mp4":

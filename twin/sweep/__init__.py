@@ -17,7 +17,8 @@ A sweep config (TOML, e.g. ``configs/sweep-demo.toml``)::
     overrides = { "traffic.horizon" = 144 }
 
     [parameters]                      # every combination is a cell (per scenario and seed)
-    "swarm.n_drones" = [2, 4]
+    "swarm.n_drones" = [2, 4]         # each value once; lists too, e.g. "grid.obstacles" =
+                                      # [[], [[1, 1]]] (labelled by their JSON text)
 
 Modules: :mod:`~twin.sweep.config` (the config model), :mod:`~twin.sweep.cells` (expansion,
 ids, :func:`run_cell`), :mod:`~twin.sweep.executors` (local pool, Ray),

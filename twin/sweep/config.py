@@ -8,6 +8,7 @@ sweep folder, so they are plain (no ``/``, no ``..``).
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -121,6 +122,14 @@ class ScenarioSpec(StrictModel):
         return overrides
 
 
+def _same_value(value: Any) -> Any:
+    """What makes two swept values the same cell: equal numbers (2 and 2.0), equal text,
+    equal lists or tables."""
+    if isinstance(value, (list, dict)):
+        return ("json", json.dumps(value, sort_keys=True))
+    return value
+
+
 class SweepConfig(StrictModel):
     """A validated sweep config; ``path`` is the file it was read from."""
 
@@ -141,6 +150,16 @@ class SweepConfig(StrictModel):
                 raise ValueError(
                     f"[parameters].{key!r} {exc}".replace(f"key {key!r} ", "")
                 ) from None
+            seen: list[Any] = []
+            for value in parameters[key]:
+                same = _same_value(value)
+                if same in seen:
+                    shown = json.dumps(value) if not isinstance(value, str) else repr(value)
+                    raise ValueError(
+                        f"[parameters].{key!r} lists {shown} twice; list each value once "
+                        "(every value is a cell for every seed)"
+                    )
+                seen.append(same)
         return parameters
 
     @model_validator(mode="after")

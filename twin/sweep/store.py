@@ -108,6 +108,14 @@ def _sweep_cells(path: Path) -> list[str]:
     return cells
 
 
+def parameter_label(value: Any) -> Any:
+    """A swept value as a table cell: numbers and text as they are, a list or a table (e.g.
+    ``grid.obstacles``) as its JSON text."""
+    if value is None or isinstance(value, (str, int, float, bool)):
+        return value
+    return json.dumps(value, sort_keys=True)
+
+
 def merge(
     out_dir: Path, ids: list[str] | None = None, config: SweepConfig | None = None
 ) -> tuple[pd.DataFrame, pd.DataFrame]:
@@ -129,7 +137,7 @@ def merge(
                 {
                     "cell": cid,
                     "scenario": cell["scenario"],
-                    **cell["parameters"],
+                    **{k: parameter_label(v) for k, v in cell["parameters"].items()},
                     "seed": cell["seed"],
                     **row,
                     "seconds": record["seconds"],
