@@ -32,7 +32,8 @@ import numpy as np
 from twin.config import ScenarioConfig, check_swarm_fits, start_positions
 from twin.errors import UserError
 from twin.patrol import INTERRUPTED, PatrolResult, run_patrol
-from twin.policies import Policy, available_policies, is_learned
+from twin.policies import Policy
+from twin.swarms import available_policies, is_learned
 from twin.traffic.base import TrafficSource
 from twin.traffic.kinds import build_traffic, is_live_kind
 

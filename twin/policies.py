@@ -179,18 +179,3 @@ class SweepingPolicy(Policy):
             actions[:s] = np.where(on_tour, match.argmax(axis=1), actions[:s])
             self.phase = np.where(on_tour, self.phase + 1, self.phase) % len(self.cycle)
         return actions
-
-
-def available_policies() -> list[str]:
-    """:func:`twin.swarms.available_policies`, for :mod:`twin.experiment`, which imports it
-    from here."""
-    from twin.swarms import available_policies
-
-    return available_policies()
-
-
-def is_learned(name: str) -> bool:
-    """:func:`twin.swarms.is_learned`, for :mod:`twin.experiment`, which imports it from here."""
-    from twin.swarms import is_learned
-
-    return is_learned(name)
