@@ -33,7 +33,7 @@ from twin.config import ScenarioConfig, check_swarm_fits, start_positions
 from twin.errors import UserError
 from twin.patrol import INTERRUPTED, PatrolResult, run_patrol
 from twin.policies import Policy
-from twin.swarms import available_policies, is_learned
+from twin.swarms import check_swarm_name, is_learned
 from twin.traffic.base import TrafficSource
 from twin.traffic.kinds import build_traffic, is_live_kind
 
@@ -96,10 +96,11 @@ def parse_swarm_names(text: str | None, default: Sequence[str], flag: str = "--s
     names = [s.strip() for s in text.split(",") if s.strip()] if text is not None else list(default)
     if not names:
         raise UserError(f"{flag} is empty; name at least one swarm")
-    known = available_policies()
     for name in names:
-        if name not in known:
-            raise UserError(f"{flag}: unknown swarm {name!r}; choose from {', '.join(known)}")
+        try:
+            check_swarm_name(name)
+        except UserError as exc:
+            raise UserError(f"{flag}: {exc}") from None
     if len(set(names)) != len(names):
         raise UserError(f"{flag}: a swarm is listed twice")
     return names
