@@ -288,6 +288,39 @@ def test_gzip_additional_with_outputs_is_rewritten(scenario, tmp_path):
     assert untouched[1] == str(d / "types.xml") and not (tmp_path / "o2").exists()
 
 
+def _detector_case(scenario: Path, d: Path, output: str = "") -> Path:
+    """A sumocfg in ``d`` with an induction loop writing ``det.xml`` and ``output`` options."""
+    with open(scenario / "scenario" / "detectors.add.xml", "rb") as fh:
+        lane = ET.parse(fh).getroot().find("inductionLoop").get("lane")
+    detector = f'<e1Detector id="d" lane="{lane}" pos="20" freq="60" file="det.xml"/>'
+    cfg = _cfg(
+        '<input><net-file value="small.net.xml"/><route-files value="small.trips.xml"/>'
+        f'<additional-files value="det.add.xml"/></input><output>{output}</output>'
+    )
+    return _write_case(scenario, d, cfg, {"det.add.xml": f"<additional>{detector}</additional>"})
+
+
+def test_relative_out_keeps_detector_outputs_in_the_run_folder(
+    scenario, tmp_path, capsys, monkeypatch
+):
+    """``--out run1`` from the scenario's folder: SUMO reads the rewritten additional file's
+    outputs relative to that copy, so twin gives them absolute (not ``run1/sumo/run1/...``)."""
+    cfg = _detector_case(scenario, tmp_path / "case")
+    before = tree_hash(tmp_path / "case")
+    monkeypatch.chdir(tmp_path / "case")
+    code = _run(scenario, Path("run1"), "--sumocfg", cfg.name)
+    err = capsys.readouterr().err
+    assert code == 0, err
+    sumo = tmp_path / "case" / "run1" / "sumo"
+    written = sorted(p.relative_to(sumo).as_posix() for p in sumo.rglob("*"))
+    assert written == ["det.add.xml", "det.xml"]
+    with open(sumo / "det.xml", "rb") as fh:
+        assert len(ET.parse(fh).getroot()) > 0
+    after = {k: v for k, v in tree_hash(tmp_path / "case").items() if not k.startswith("run1")}
+    assert after == before
+    assert {"sumo/det.xml", "sumo/det.add.xml"} <= set(check_run_folder(sumo.parent)["files"])
+
+
 # name -> (sumocfg text, files beside it, words of the one-line error)
 REFUSED = {
     "NaN end": (_cfg(NET_AND_TRIPS + '<time><end value="nan"/></time>'), {},

@@ -13,13 +13,16 @@ to the user's files; twin writes only into its run folder, so when it starts SUM
   rerouter's definitions, images) are made absolute so they resolve as before.
 
 Files are named by their base name; two outputs of the same base name from different folders
-get ``-2``, ``-3`` ... One output file shared by several detectors stays shared.
+get ``-2``, ``-3`` ... One output file shared by several detectors stays shared. Every path
+handed to SUMO is absolute: SUMO reads an additional file's outputs relative to that file, so a
+relative run folder would put them in ``RUN/sumo/RUN/sumo/``.
 """
 
 from __future__ import annotations
 
 import contextlib
 import itertools
+import os
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -89,7 +92,7 @@ class OutputPlan:
     """Where each output goes in ``out_dir`` (created on first use) and the copies written."""
 
     def __init__(self, out_dir: Path):
-        self.out_dir = Path(out_dir)
+        self.out_dir = Path(os.path.abspath(out_dir))
         self.targets: dict[Path, Path] = {}
         self.copies: dict[Path, Path] = {}
         self._names: set[str] = set()
