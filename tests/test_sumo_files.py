@@ -321,6 +321,45 @@ def test_relative_out_keeps_detector_outputs_in_the_run_folder(
     assert {"sumo/det.xml", "sumo/det.add.xml"} <= set(check_run_folder(sumo.parent)["files"])
 
 
+# output-prefix of the sumocfg ({root}: the folder holding the scenario's folder) -> the
+# pattern of the names SUMO writes in RUN/sumo/ (SUMO replaces TIME by the date and time)
+PREFIXES = {
+    "../escape_": r"escape_",
+    "../../escape_": r"escape_",
+    "{root}/abs_": r"abs_",
+    "sub/TIME_": r"\d{4}(-\d\d){5}_",
+    "..": r"\.\.",
+}
+
+
+@pytest.mark.parametrize("prefix", list(PREFIXES))
+def test_output_prefix_keeps_outputs_in_the_run_folder(scenario, tmp_path, capsys, prefix):
+    """SUMO puts ``output-prefix`` before every output's name, folders included; twin keeps
+    only its name part, so the outputs stay in ``RUN/sumo/`` with the prefixed names."""
+    import re
+
+    root = tmp_path / "root"
+    root.mkdir()
+    given = prefix.format(root=root)
+    output = f'<output-prefix value="{given}"/><tripinfo-output value="trips.xml"/>'
+    cfg = _detector_case(scenario, root / "case", output)
+    before = tree_hash(root)
+    out = tmp_path / "run"
+    code = _run(scenario, out, "--sumocfg", str(cfg))
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert tree_hash(root) == before  # the scenario's folder and the one above it as they were
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["root", "run"]
+    names = sorted(p.relative_to(out / "sumo").as_posix() for p in (out / "sumo").rglob("*"))
+    assert len(names) == 3 and "det.add.xml" in names, names
+    for written in ("det.xml", "trips.xml"):
+        assert any(re.fullmatch(PREFIXES[prefix] + re.escape(written), n) for n in names), names
+    manifest = check_run_folder(out)
+    assert {f"sumo/{n}" for n in names} <= set(manifest["files"])
+    run = json.loads((out / "run.json").read_text())
+    assert sorted(run["traffic"]["sumo_outputs"]) == names
+
+
 # name -> (sumocfg text, files beside it, words of the one-line error)
 REFUSED = {
     "NaN end": (_cfg(NET_AND_TRIPS + '<time><end value="nan"/></time>'), {},

@@ -16,6 +16,11 @@ Files are named by their base name; two outputs of the same base name from diffe
 get ``-2``, ``-3`` ... One output file shared by several detectors stays shared. Every path
 handed to SUMO is absolute: SUMO reads an additional file's outputs relative to that file, so a
 relative run folder would put them in ``RUN/sumo/RUN/sumo/``.
+
+SUMO prepends ``output-prefix`` to the last part of every output's path, so a prefix with a
+folder part (``../escape_``, ``/tmp/x_``) would move all outputs out of the folder; an
+``output-prefix`` the sumocfg sets is overridden by its last part only (``escape_``, ``x_``;
+SUMO's ``TIME`` placeholder kept), which names the files but keeps them in ``RUN/sumo/``.
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ from __future__ import annotations
 import contextlib
 import itertools
 import os
+import re
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -157,15 +163,26 @@ class OutputPlan:
         return self.copies[path]
 
 
+def prefix_name(prefix: str) -> str:
+    """The part of an ``output-prefix`` that names files, without its folders (SUMO splits at
+    the last ``/`` or ``\\``): ``../escape_`` -> ``escape_``."""
+    return re.split(r"[\\/]", prefix)[-1]
+
+
 def redirect_outputs(
     sumocfg: Path | None, options: tuple[str, ...], out_dir: Path
 ) -> tuple[tuple[str, ...], OutputPlan]:
     """``options`` with additional files that write outputs replaced by rewritten copies, plus
-    an override of every output option of ``sumocfg``, all pointing into ``out_dir``."""
+    an override of every output option of ``sumocfg``, all pointing into ``out_dir``; an
+    ``output-prefix`` (of ``sumocfg`` or ``options``) keeps only its name part."""
     plan = OutputPlan(out_dir)
     extra: list[str] = []
+    out = list(options)
     if sumocfg is not None:
         cfg = read_sumocfg(sumocfg)
+        prefix = cfg.options.get("output-prefix")
+        if prefix and "--output-prefix" not in out:
+            extra += ["--output-prefix", prefix_name(prefix)]
         base = Path(sumocfg).resolve().parent
         given = {OUTPUT_OPTIONS[k]: v for k, v in cfg.options.items() if k in OUTPUT_OPTIONS}
         state_times = any(cfg.options.get(k) for k in ("save-state.times", "save-state.period"))
@@ -178,11 +195,12 @@ def redirect_outputs(
                     extra += [f"--{name}", ",".join(str(plan.target(f)) for f in files)]
             elif _is_file(value):
                 extra += [f"--{name}", str(plan.target(base / value.strip()))]
-    out = list(options)
     for i in range(len(out) - 1):
         if out[i] in ("--additional-files", "-a"):
             files = [Path(v) for v in out[i + 1].split(",") if v]
             out[i + 1] = ",".join(str(plan.additional(f)) for f in files)
+        elif out[i] == "--output-prefix":
+            out[i + 1] = prefix_name(out[i + 1])
     return (*out, *extra), plan
 
 
