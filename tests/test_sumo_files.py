@@ -5,10 +5,11 @@ and ``<configuration>``; option values as ``value=`` attributes or as element te
 files with an ``<add>`` root, route files of any root SUMO takes; gzip-compressed files. Refused
 (exit 2, one line naming the file and the fix, no traceback, nothing changed outside the run
 folder, no run folder left): NaN or infinite times, a config of another SUMO program, a config
-without a network, a network given as a route file. And a public-style scenario whose sumocfg
-asks for outputs (trip info, summary, log, detectors of an additional file) runs from its
-sumocfg alone: every output lands in ``RUN/sumo/``, listed in the manifest, and the scenario
-folder hashes the same before and after.
+without a network, a network given as a route file, a ``<save-configuration>`` (SUMO would
+write it and quit). And a public-style scenario whose sumocfg asks for outputs (trip info,
+summary, log, detectors of an additional file) runs from its sumocfg alone: every output lands
+in ``RUN/sumo/``, listed in the manifest, and the scenario folder hashes the same before and
+after, also with a relative ``--out`` and with an ``output-prefix`` that names folders.
 """
 
 from __future__ import annotations
@@ -385,6 +386,15 @@ REFUSED = {
     "a sumocfg as additional": (
         _cfg(NET_AND_TRIPS + '<input><additional-files value="x.sumocfg"/></input>'),
         {"x.sumocfg": _cfg(NET_AND_TRIPS)}, "not an additional file but a SUMO config",
+    ),
+    "a save-configuration": (
+        _cfg(NET_AND_TRIPS + '<configuration><save-configuration value="../saved.sumocfg"/>'
+             "</configuration>"),
+        {}, "<save-configuration value='../saved.sumocfg'> makes SUMO write that file and quit",
+    ),
+    "a save-template": (
+        _cfg(NET_AND_TRIPS + "<configuration><save-template>t.xml</save-template></configuration>"),
+        {}, "<save-template value='t.xml'> makes SUMO write that file and quit",
     ),
     "not XML": ("<configuration><input>", {}, "not valid XML"),
     "a compressed sumocfg": ("GZ:" + _cfg(NET_AND_TRIPS), {},
