@@ -9,7 +9,8 @@ without a network, a network given as a route file, a ``<save-configuration>`` (
 write it and quit). And a public-style scenario whose sumocfg asks for outputs (trip info,
 summary, log, detectors of an additional file) runs from its sumocfg alone: every output lands
 in ``RUN/sumo/``, listed in the manifest, and the scenario folder hashes the same before and
-after, also with a relative ``--out`` and with an ``output-prefix`` that names folders.
+after, also with a relative ``--out`` and with an ``output-prefix`` (``-suffix``) that names
+folders.
 """
 
 from __future__ import annotations
@@ -322,27 +323,32 @@ def test_relative_out_keeps_detector_outputs_in_the_run_folder(
     assert {"sumo/det.xml", "sumo/det.add.xml"} <= set(check_run_folder(sumo.parent)["files"])
 
 
-# output-prefix of the sumocfg ({root}: the folder holding the scenario's folder) -> the
-# pattern of the names SUMO writes in RUN/sumo/ (SUMO replaces TIME by the date and time)
-PREFIXES = {
-    "../escape_": r"escape_",
-    "../../escape_": r"escape_",
-    "{root}/abs_": r"abs_",
-    "sub/TIME_": r"\d{4}(-\d\d){5}_",
-    "..": r"\.\.",
+TIME = r"\d{4}(-\d\d){5}"  # SUMO replaces TIME in a prefix or suffix by the date and time
+# <option value> of the sumocfg ({root}: the folder holding the scenario's folder) -> the pattern
+# of the names SUMO writes in RUN/sumo/ for det.xml and trips.xml (NAME: det or trips)
+NAMINGS = {
+    '<output-prefix value="../escape_"/>': r"escape_NAME\.xml",
+    '<output-prefix value="../../escape_"/>': r"escape_NAME\.xml",
+    '<output-prefix value="{root}/abs_"/>': r"abs_NAME\.xml",
+    '<output-prefix value="sub/TIME_"/>': TIME + r"_NAME\.xml",
+    '<output-prefix value=".."/>': r"\.\.NAME\.xml",
+    '<output-suffix value="/../../escape"/>': r"NAMEescape\.xml",
+    '<output-suffix value="_TIME"/>': r"NAME_" + TIME + r"\.xml",
 }
 
 
-@pytest.mark.parametrize("prefix", list(PREFIXES))
-def test_output_prefix_keeps_outputs_in_the_run_folder(scenario, tmp_path, capsys, prefix):
-    """SUMO puts ``output-prefix`` before every output's name, folders included; twin keeps
-    only its name part, so the outputs stay in ``RUN/sumo/`` with the prefixed names."""
+@pytest.mark.parametrize("naming", list(NAMINGS))
+def test_output_prefix_and_suffix_keep_outputs_in_the_run_folder(
+    scenario, tmp_path, capsys, naming
+):
+    """SUMO puts ``output-prefix`` before every output's name, folders included (and
+    ``output-suffix`` before its extension); twin keeps only their name part, so the outputs
+    stay in ``RUN/sumo/``, named as the sumocfg asks."""
     import re
 
     root = tmp_path / "root"
     root.mkdir()
-    given = prefix.format(root=root)
-    output = f'<output-prefix value="{given}"/><tripinfo-output value="trips.xml"/>'
+    output = naming.format(root=root) + '<tripinfo-output value="trips.xml"/>'
     cfg = _detector_case(scenario, root / "case", output)
     before = tree_hash(root)
     out = tmp_path / "run"
@@ -353,8 +359,9 @@ def test_output_prefix_keeps_outputs_in_the_run_folder(scenario, tmp_path, capsy
     assert sorted(p.name for p in tmp_path.iterdir()) == ["root", "run"]
     names = sorted(p.relative_to(out / "sumo").as_posix() for p in (out / "sumo").rglob("*"))
     assert len(names) == 3 and "det.add.xml" in names, names
-    for written in ("det.xml", "trips.xml"):
-        assert any(re.fullmatch(PREFIXES[prefix] + re.escape(written), n) for n in names), names
+    for written in ("det", "trips"):
+        pattern = NAMINGS[naming].replace("NAME", written)
+        assert any(re.fullmatch(pattern, n) for n in names), names
     manifest = check_run_folder(out)
     assert {f"sumo/{n}" for n in names} <= set(manifest["files"])
     run = json.loads((out / "run.json").read_text())

@@ -17,10 +17,11 @@ get ``-2``, ``-3`` ... One output file shared by several detectors stays shared.
 handed to SUMO is absolute: SUMO reads an additional file's outputs relative to that file, so a
 relative run folder would put them in ``RUN/sumo/RUN/sumo/``.
 
-SUMO prepends ``output-prefix`` to the last part of every output's path, so a prefix with a
-folder part (``../escape_``, ``/tmp/x_``) would move all outputs out of the folder; an
-``output-prefix`` the sumocfg sets is overridden by its last part only (``escape_``, ``x_``;
-SUMO's ``TIME`` placeholder kept), which names the files but keeps them in ``RUN/sumo/``.
+SUMO prepends ``output-prefix`` to the last part of every output's path (and inserts
+``output-suffix`` before its extension), so a prefix with a folder part (``../escape_``,
+``/tmp/x_``) would move all outputs out of the folder; an ``output-prefix`` or ``output-suffix``
+the sumocfg sets is overridden by its last part only (``escape_``, ``x_``; SUMO's ``TIME``
+placeholder kept), which names the files but keeps them in ``RUN/sumo/``.
 """
 
 from __future__ import annotations
@@ -51,6 +52,7 @@ OUTPUT_OPTIONS = {
             "save-state.prefix", "device.rerouting.output", "device.ssm.file",
             "device.toc.file", "device.taxi.dispatch-algorithm.output",
             "device.taxi.idle-algorithm.output", "log", "message-log", "error-log",
+            "pedestrian.jupedsim.wkt", "pedestrian.jupedsim.py", "gui-testing.setting-output",
         )
     },
     "ndump": "netstate-dump",
@@ -61,6 +63,8 @@ OUTPUT_OPTIONS = {
     "vehroutes": "vehroute-output",
     "l": "log",
 }  # fmt: skip
+#: Options that add to every output's name (kept to their name part, :func:`name_part`).
+NAMING_OPTIONS = ("output-prefix", "output-suffix")
 #: Options whose value is a list of files.
 _FILE_LISTS = {"save-state.files"}
 #: Output names SUMO does not take as files.
@@ -163,10 +167,10 @@ class OutputPlan:
         return self.copies[path]
 
 
-def prefix_name(prefix: str) -> str:
-    """The part of an ``output-prefix`` that names files, without its folders (SUMO splits at
-    the last ``/`` or ``\\``): ``../escape_`` -> ``escape_``."""
-    return re.split(r"[\\/]", prefix)[-1]
+def name_part(value: str) -> str:
+    """The part of an ``output-prefix`` (``output-suffix``) that names files, without its folders
+    (SUMO splits at the last ``/`` or ``\\``): ``../escape_`` -> ``escape_``."""
+    return re.split(r"[\\/]", value)[-1]
 
 
 def redirect_outputs(
@@ -174,15 +178,17 @@ def redirect_outputs(
 ) -> tuple[tuple[str, ...], OutputPlan]:
     """``options`` with additional files that write outputs replaced by rewritten copies, plus
     an override of every output option of ``sumocfg``, all pointing into ``out_dir``; an
-    ``output-prefix`` (of ``sumocfg`` or ``options``) keeps only its name part."""
+    ``output-prefix`` or ``output-suffix`` (of ``sumocfg`` or ``options``) keeps only its name
+    part."""
     plan = OutputPlan(out_dir)
     extra: list[str] = []
     out = list(options)
     if sumocfg is not None:
         cfg = read_sumocfg(sumocfg)
-        prefix = cfg.options.get("output-prefix")
-        if prefix and "--output-prefix" not in out:
-            extra += ["--output-prefix", prefix_name(prefix)]
+        for name in NAMING_OPTIONS:
+            value = cfg.options.get(name)
+            if value and f"--{name}" not in out:
+                extra += [f"--{name}", name_part(value)]
         base = Path(sumocfg).resolve().parent
         given = {OUTPUT_OPTIONS[k]: v for k, v in cfg.options.items() if k in OUTPUT_OPTIONS}
         state_times = any(cfg.options.get(k) for k in ("save-state.times", "save-state.period"))
@@ -199,8 +205,8 @@ def redirect_outputs(
         if out[i] in ("--additional-files", "-a"):
             files = [Path(v) for v in out[i + 1].split(",") if v]
             out[i + 1] = ",".join(str(plan.additional(f)) for f in files)
-        elif out[i] == "--output-prefix":
-            out[i + 1] = prefix_name(out[i + 1])
+        elif out[i] in {f"--{name}" for name in NAMING_OPTIONS}:
+            out[i + 1] = name_part(out[i + 1])
     return (*out, *extra), plan
 
 
