@@ -323,6 +323,40 @@ def test_relative_out_keeps_detector_outputs_in_the_run_folder(
     assert {"sumo/det.xml", "sumo/det.add.xml"} <= set(check_run_folder(sumo.parent)["files"])
 
 
+SSM_TYPE = (
+    '<vType id="DEFAULT_VEHTYPE"><param key="has.ssm.device" value="true"/>'
+    '<param key="device.ssm.file" value="../ssm.xml"/></vType>'
+)
+
+
+@pytest.mark.parametrize("where", ["additional file", "route file"])
+def test_device_outputs_of_vehicle_types_go_into_the_run_folder(scenario, tmp_path, capsys, where):
+    """A vehicle type whose SSM device writes ``../ssm.xml`` (in an additional or a route
+    file): twin loads a rewritten copy, the output lands in ``RUN/sumo/ssm.xml``."""
+    root = tmp_path / "root"
+    root.mkdir()
+    cfg = _detector_case(scenario, root / "case")
+    if where == "additional file":
+        (root / "case" / "det.add.xml").write_text(f"<additional>{SSM_TYPE}</additional>")
+    else:
+        trips = root / "case" / "small.trips.xml"
+        text = trips.read_text()
+        trips.write_text(text.replace("<trip ", SSM_TYPE + "<trip ", 1))
+    before = tree_hash(root)
+    out = tmp_path / "run"
+    code = _run(scenario, out, "--sumocfg", str(cfg))
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert tree_hash(root) == before
+    with open(out / "sumo" / "ssm.xml", "rb") as fh:
+        assert ET.parse(fh).getroot().tag == "SSMLog"
+    want = ["det.add.xml", "ssm.xml"]
+    if where == "route file":  # the detector of _detector_case too
+        want = ["det.add.xml", "det.xml", "small.trips.xml", "ssm.xml"]
+    run = json.loads((out / "run.json").read_text())
+    assert sorted(run["traffic"]["sumo_outputs"]) == want
+
+
 TIME = r"\d{4}(-\d\d){5}"  # SUMO replaces TIME in a prefix or suffix by the date and time
 # <option value> of the sumocfg ({root}: the folder holding the scenario's folder) -> the pattern
 # of the names SUMO writes in RUN/sumo/ for det.xml and trips.xml (NAME: det or trips)

@@ -3,14 +3,16 @@
 A scenario may ask SUMO for outputs: a sumocfg's ``<output>`` and ``<report>`` sections
 (``tripinfo-output``, ``summary-output``, ``fcd-output``, ``log``, ``save-state.files`` ...), and
 additional files whose elements write files (detectors' ``file=``, ``edgeData``/``laneData``
-``file=``, a calibrator's ``output=``, a ``timedEvent``'s ``dest=``). SUMO would write them next
-to the user's files; twin writes only into its run folder, so when it starts SUMO it
+``file=``, a calibrator's ``output=``, a ``timedEvent``'s ``dest=``), and vehicle types or
+vehicles whose device parameters name files (``<param key="device.ssm.file" value=...>``, in
+additional or route files). SUMO would write them next to the user's files; twin writes only into its run folder, so when it starts SUMO it
 
 - passes a command-line override for every output option the sumocfg sets, pointing into the
   output folder (``RUN/sumo/``) with the same base name;
 - loads, instead of an additional file that writes outputs, a copy in the output folder whose
   outputs point into that folder and whose other relative paths (``<include href>``, a
-  rerouter's definitions, images) are made absolute so they resolve as before.
+  rerouter's definitions, images) are made absolute so they resolve as before (the same for a
+  route file whose device parameters name files).
 
 Files are named by their base name; two outputs of the same base name from different folders
 get ``-2``, ``-3`` ... One output file shared by several detectors stays shared. Every path
@@ -84,6 +86,8 @@ OUTPUT_ELEMENTS = {
     "calibrator": "output",
     "timedEvent": "dest",
 }  # fmt: skip
+#: Device parameters of vehicle types and vehicles that name output files (``<param key=...>``).
+DEVICE_OUTPUTS = {name for name in OUTPUT_OPTIONS if name.startswith("device.")}
 #: Attributes of additional files that name input files (made absolute in a rewritten copy).
 INPUT_ATTRIBUTES = ("href", "file", "imgFile", "osgFile")
 
@@ -139,6 +143,8 @@ class OutputPlan:
         root, base, changed = tree.getroot(), path.parent, False
         for elem in root.iter():
             attr = OUTPUT_ELEMENTS.get(elem.tag) if isinstance(elem.tag, str) else None
+            if elem.tag == "param" and elem.get("key") in DEVICE_OUTPUTS:
+                attr = "value"
             value = elem.get(attr) if attr else None
             if value is not None and _is_file(value):
                 elem.set(attr, str(self.target(base / value)))
@@ -165,6 +171,20 @@ class OutputPlan:
             tree.write(copy, encoding="UTF-8", xml_declaration=True)
             self.copies[path] = copy
         return self.copies[path]
+
+    def routes(self, path: Path) -> Path:
+        """``path``, or a rewritten copy in ``out_dir`` if device parameters in it name output
+        files (read in full only when it mentions ``device.``: route files may be large)."""
+        tail = b""
+        try:
+            with open_xml(path) as fh:
+                while chunk := fh.read(1 << 24):
+                    if b"device." in tail + chunk[:16] or b"device." in chunk:
+                        return self.additional(path)
+                    tail = chunk[-16:]
+        except (OSError, EOFError):
+            pass  # SUMO will say what is wrong with it
+        return path
 
 
 def name_part(value: str) -> str:
