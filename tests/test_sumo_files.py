@@ -5,12 +5,12 @@ and ``<configuration>``; option values as ``value=`` attributes or as element te
 files with an ``<add>`` root, route files of any root SUMO takes; gzip-compressed files. Refused
 (exit 2, one line naming the file and the fix, no traceback, nothing changed outside the run
 folder, no run folder left): NaN or infinite times, a config of another SUMO program, a config
-without a network, a network given as a route file, a ``<save-configuration>`` (SUMO would
-write it and quit). And a public-style scenario whose sumocfg asks for outputs (trip info,
-summary, log, detectors of an additional file) runs from its sumocfg alone: every output lands
-in ``RUN/sumo/``, listed in the manifest, and the scenario folder hashes the same before and
-after, also with a relative ``--out`` and with an ``output-prefix`` (``-suffix``) that names
-folders.
+without a network, a network given as a route file, a ``<save-configuration>`` or ``<help>``
+(SUMO would write or print it and quit). And a public-style scenario whose sumocfg asks for
+outputs (trip info, summary, log, detectors of an additional file) runs from its sumocfg alone:
+every output lands in ``RUN/sumo/``, listed in the manifest, and the scenario folder hashes the
+same before and after, also with a relative ``--out``, an ``output-prefix`` (``-suffix``) that
+names folders, and device outputs named by vehicle types.
 """
 
 from __future__ import annotations
@@ -437,6 +437,8 @@ REFUSED = {
         _cfg(NET_AND_TRIPS + "<configuration><save-template>t.xml</save-template></configuration>"),
         {}, "<save-template value='t.xml'> makes SUMO write that file and quit",
     ),
+    "a help switch": (_cfg(NET_AND_TRIPS + '<report><help value="true"/></report>'), {},
+                      "<help value='true'> makes SUMO print its help and quit"),
     "not XML": ("<configuration><input>", {}, "not valid XML"),
     "a compressed sumocfg": ("GZ:" + _cfg(NET_AND_TRIPS), {},
                              "a gzip-compressed config, which SUMO does not read; decompress"),

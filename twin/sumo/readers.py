@@ -104,6 +104,8 @@ def sumocfg_options(root: ET.Element) -> dict[str, str]:
 
 #: Options that make SUMO write a file (beside the user's files) and quit without simulating.
 _SAVE_AND_QUIT = ("save-configuration", "C", "save-template", "save-schema")
+#: Switches that make SUMO print something and quit without simulating.
+_PRINT_AND_QUIT = ("help", "version")
 
 
 def read_sumocfg(path: Path) -> SumoConfigFile:
@@ -152,6 +154,12 @@ def read_sumocfg(path: Path) -> SumoConfigFile:
             raise UserError(
                 f"{path}: <{name} value={options[name]!r}> makes SUMO write that file and quit "
                 "instead of simulating; remove it (twin runs the simulation)"
+            )
+    for name in _PRINT_AND_QUIT:
+        if options.get(name, "false").strip().lower() not in ("false", "0", "no", "off", ""):
+            raise UserError(
+                f"{path}: <{name} value={options[name]!r}> makes SUMO print its {name} and quit "
+                "instead of simulating; remove it"
             )
     window = []
     for key in ("begin", "end"):
