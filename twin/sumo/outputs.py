@@ -5,7 +5,8 @@ A scenario may ask SUMO for outputs: a sumocfg's ``<output>`` and ``<report>`` s
 additional files whose elements write files (detectors' ``file=``, ``edgeData``/``laneData``
 ``file=``, a calibrator's ``output=``, a ``timedEvent``'s ``dest=``), and vehicle types or
 vehicles whose device parameters name files (``<param key="device.ssm.file" value=...>``, in
-additional or route files). SUMO would write them next to the user's files; twin writes only into its run folder, so when it starts SUMO it
+additional or route files). SUMO would write them next to the user's files; twin writes only
+into its run folder, so when it starts SUMO it
 
 - passes a command-line override for every output option the sumocfg sets, pointing into the
   output folder (``RUN/sumo/``) with the same base name;
