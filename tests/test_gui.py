@@ -140,6 +140,26 @@ def test_record_and_replay_write_videos_of_every_step(scenario, tmp_path, monkey
     assert iio.imread(gif, index=None).shape[0] == HORIZON + 1
 
 
+@needs_display
+def test_sumo_gui_keeps_its_settings_in_the_cache_not_in_home(scenario, tmp_path, monkeypatch):
+    """sumo-gui saves its registry (window, recent files) on closing: into twin's cache, the
+    user's home (``HOME``, ``XDG_CONFIG_HOME``) untouched."""
+    from twin.cli import main
+    from twin.resources import cache_dir
+
+    home = tmp_path / "home"
+    home.mkdir()
+    monkeypatch.setenv("HOME", str(home))
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(home / ".config"))
+    monkeypatch.chdir(scenario)
+    args = ["--config", "small.toml", "--swarms", "random", "--no-report", "--quiet", "--gui"]
+    assert main(["run", *args, "--out", str(tmp_path / "run")]) == 0
+    assert list(home.iterdir()) == []
+    assert (os.environ["HOME"], os.environ["XDG_CONFIG_HOME"]) == (str(home), str(home / ".config"))
+    saved = {p.name for p in (cache_dir() / "sumo-gui").rglob("*") if p.is_file()}
+    assert saved - {"twin-gui-settings.xml"}, saved  # sumo-gui's own, e.g. .foxrc/sumo-gui/...
+
+
 def test_no_display_and_no_xvfb_is_one_line_naming_the_fix(monkeypatch, tmp_path):
     from twin.sumo.gui import display
 

@@ -5,10 +5,12 @@ and ``<configuration>``; option values as ``value=`` attributes or as element te
 files with an ``<add>`` root, route files of any root SUMO takes; gzip-compressed files. Refused
 (exit 2, one line naming the file and the fix, no traceback, nothing changed outside the run
 folder, no run folder left): NaN or infinite times, a config of another SUMO program, a config
-without a network, a network given as a route file. And a public-style scenario whose sumocfg
-asks for outputs (trip info, summary, log, detectors of an additional file) runs from its
-sumocfg alone: every output lands in ``RUN/sumo/``, listed in the manifest, and the scenario
-folder hashes the same before and after.
+without a network, a network given as a route file, a ``<save-configuration>`` or ``<help>``
+(SUMO would write or print it and quit). And a public-style scenario whose sumocfg asks for
+outputs (trip info, summary, log, detectors of an additional file) runs from its sumocfg alone:
+every output lands in ``RUN/sumo/``, listed in the manifest, and the scenario folder hashes the
+same before and after, also with a relative ``--out``, an ``output-prefix`` (``-suffix``) that
+names folders, and device outputs named by vehicle types.
 """
 
 from __future__ import annotations
@@ -288,6 +290,118 @@ def test_gzip_additional_with_outputs_is_rewritten(scenario, tmp_path):
     assert untouched[1] == str(d / "types.xml") and not (tmp_path / "o2").exists()
 
 
+def _detector_case(scenario: Path, d: Path, output: str = "") -> Path:
+    """A sumocfg in ``d`` with an induction loop writing ``det.xml`` and ``output`` options."""
+    with open(scenario / "scenario" / "detectors.add.xml", "rb") as fh:
+        lane = ET.parse(fh).getroot().find("inductionLoop").get("lane")
+    detector = f'<e1Detector id="d" lane="{lane}" pos="20" freq="60" file="det.xml"/>'
+    cfg = _cfg(
+        '<input><net-file value="small.net.xml"/><route-files value="small.trips.xml"/>'
+        f'<additional-files value="det.add.xml"/></input><output>{output}</output>'
+    )
+    return _write_case(scenario, d, cfg, {"det.add.xml": f"<additional>{detector}</additional>"})
+
+
+def test_relative_out_keeps_detector_outputs_in_the_run_folder(
+    scenario, tmp_path, capsys, monkeypatch
+):
+    """``--out run1`` from the scenario's folder: SUMO reads the rewritten additional file's
+    outputs relative to that copy, so twin gives them absolute (not ``run1/sumo/run1/...``)."""
+    cfg = _detector_case(scenario, tmp_path / "case")
+    before = tree_hash(tmp_path / "case")
+    monkeypatch.chdir(tmp_path / "case")
+    code = _run(scenario, Path("run1"), "--sumocfg", cfg.name)
+    err = capsys.readouterr().err
+    assert code == 0, err
+    sumo = tmp_path / "case" / "run1" / "sumo"
+    written = sorted(p.relative_to(sumo).as_posix() for p in sumo.rglob("*"))
+    assert written == ["det.add.xml", "det.xml"]
+    with open(sumo / "det.xml", "rb") as fh:
+        assert len(ET.parse(fh).getroot()) > 0
+    after = {k: v for k, v in tree_hash(tmp_path / "case").items() if not k.startswith("run1")}
+    assert after == before
+    assert {"sumo/det.xml", "sumo/det.add.xml"} <= set(check_run_folder(sumo.parent)["files"])
+
+
+SSM_TYPE = (
+    '<vType id="DEFAULT_VEHTYPE"><param key="has.ssm.device" value="true"/>'
+    '<param key="device.ssm.file" value="../ssm.xml"/></vType>'
+)
+
+
+@pytest.mark.parametrize("where", ["additional file", "route file"])
+def test_device_outputs_of_vehicle_types_go_into_the_run_folder(scenario, tmp_path, capsys, where):
+    """A vehicle type whose SSM device writes ``../ssm.xml`` (in an additional or a route
+    file): twin loads a rewritten copy, the output lands in ``RUN/sumo/ssm.xml``."""
+    root = tmp_path / "root"
+    root.mkdir()
+    cfg = _detector_case(scenario, root / "case")
+    if where == "additional file":
+        (root / "case" / "det.add.xml").write_text(f"<additional>{SSM_TYPE}</additional>")
+    else:
+        trips = root / "case" / "small.trips.xml"
+        text = trips.read_text()
+        trips.write_text(text.replace("<trip ", SSM_TYPE + "<trip ", 1))
+    before = tree_hash(root)
+    out = tmp_path / "run"
+    code = _run(scenario, out, "--sumocfg", str(cfg))
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert tree_hash(root) == before
+    with open(out / "sumo" / "ssm.xml", "rb") as fh:
+        assert ET.parse(fh).getroot().tag == "SSMLog"
+    want = ["det.add.xml", "ssm.xml"]
+    if where == "route file":  # the detector of _detector_case too
+        want = ["det.add.xml", "det.xml", "small.trips.xml", "ssm.xml"]
+    run = json.loads((out / "run.json").read_text())
+    assert sorted(run["traffic"]["sumo_outputs"]) == want
+
+
+TIME = r"\d{4}(-\d\d){5}"  # SUMO replaces TIME in a prefix or suffix by the date and time
+# <option value> of the sumocfg ({root}: the folder holding the scenario's folder) -> the pattern
+# of the names SUMO writes in RUN/sumo/ for det.xml and trips.xml (NAME: det or trips)
+NAMINGS = {
+    '<output-prefix value="../escape_"/>': r"escape_NAME\.xml",
+    '<output-prefix value="../../escape_"/>': r"escape_NAME\.xml",
+    '<output-prefix value="{root}/abs_"/>': r"abs_NAME\.xml",
+    '<output-prefix value="sub/TIME_"/>': TIME + r"_NAME\.xml",
+    '<output-prefix value=".."/>': r"\.\.NAME\.xml",
+    '<output-suffix value="/../../escape"/>': r"NAMEescape\.xml",
+    '<output-suffix value="_TIME"/>': r"NAME_" + TIME + r"\.xml",
+}
+
+
+@pytest.mark.parametrize("naming", list(NAMINGS))
+def test_output_prefix_and_suffix_keep_outputs_in_the_run_folder(
+    scenario, tmp_path, capsys, naming
+):
+    """SUMO puts ``output-prefix`` before every output's name, folders included (and
+    ``output-suffix`` before its extension); twin keeps only their name part, so the outputs
+    stay in ``RUN/sumo/``, named as the sumocfg asks."""
+    import re
+
+    root = tmp_path / "root"
+    root.mkdir()
+    output = naming.format(root=root) + '<tripinfo-output value="trips.xml"/>'
+    cfg = _detector_case(scenario, root / "case", output)
+    before = tree_hash(root)
+    out = tmp_path / "run"
+    code = _run(scenario, out, "--sumocfg", str(cfg))
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert tree_hash(root) == before  # the scenario's folder and the one above it as they were
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["root", "run"]
+    names = sorted(p.relative_to(out / "sumo").as_posix() for p in (out / "sumo").rglob("*"))
+    assert len(names) == 3 and "det.add.xml" in names, names
+    for written in ("det", "trips"):
+        pattern = NAMINGS[naming].replace("NAME", written)
+        assert any(re.fullmatch(pattern, n) for n in names), names
+    manifest = check_run_folder(out)
+    assert {f"sumo/{n}" for n in names} <= set(manifest["files"])
+    run = json.loads((out / "run.json").read_text())
+    assert sorted(run["traffic"]["sumo_outputs"]) == names
+
+
 # name -> (sumocfg text, files beside it, words of the one-line error)
 REFUSED = {
     "NaN end": (_cfg(NET_AND_TRIPS + '<time><end value="nan"/></time>'), {},
@@ -314,6 +428,17 @@ REFUSED = {
         _cfg(NET_AND_TRIPS + '<input><additional-files value="x.sumocfg"/></input>'),
         {"x.sumocfg": _cfg(NET_AND_TRIPS)}, "not an additional file but a SUMO config",
     ),
+    "a save-configuration": (
+        _cfg(NET_AND_TRIPS + '<configuration><save-configuration value="../saved.sumocfg"/>'
+             "</configuration>"),
+        {}, "<save-configuration value='../saved.sumocfg'> makes SUMO write that file and quit",
+    ),
+    "a save-template": (
+        _cfg(NET_AND_TRIPS + "<configuration><save-template>t.xml</save-template></configuration>"),
+        {}, "<save-template value='t.xml'> makes SUMO write that file and quit",
+    ),
+    "a help switch": (_cfg(NET_AND_TRIPS + '<report><help value="true"/></report>'), {},
+                      "<help value='true'> makes SUMO print its help and quit"),
     "not XML": ("<configuration><input>", {}, "not valid XML"),
     "a compressed sumocfg": ("GZ:" + _cfg(NET_AND_TRIPS), {},
                              "a gzip-compressed config, which SUMO does not read; decompress"),

@@ -14,7 +14,8 @@ while SUMO stands at that step's time, and draws on the network:
 
 With ``--record`` every step's view is saved (``traci.gui.screenshot``) and the frames are
 assembled into an MP4 (imageio-ffmpeg) or a GIF (pillow). Without a display, :func:`display`
-starts Xvfb on a free display number and stops it at the end.
+starts Xvfb on a free display number and stops it at the end. sumo-gui runs with its home in
+twin's cache (:meth:`GuiSettings.home`), so the settings it saves on closing stay out of ``~``.
 """
 
 from __future__ import annotations
@@ -76,12 +77,44 @@ class GuiSettings:
 
         return sumolib.checkBinary("sumo-gui")
 
+    def home(self) -> Path:
+        """sumo-gui's home: ``sumo-gui/`` in twin's cache, where sumo-gui keeps the settings it
+        saves on closing (its FOX registry ``.foxrc/``) instead of the user's home."""
+        from twin.resources import CACHE_ENV, cache_dir
+
+        home = cache_dir() / "sumo-gui"
+        try:
+            home.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise UserError(
+                f"--gui: cannot create {home} for sumo-gui's settings ({exc.strerror}); "
+                f"${CACHE_ENV} moves twin's cache"
+            ) from None
+        return home
+
+    @contextlib.contextmanager
+    def environment(self) -> Iterator[None]:
+        """``HOME`` and ``XDG_CONFIG_HOME`` pointing into :meth:`home` while sumo-gui starts
+        (it inherits them), restored afterwards."""
+        home = self.home()
+        values = {"HOME": str(home), "XDG_CONFIG_HOME": str(home / ".config")}
+        saved = {name: os.environ.get(name) for name in values}
+        os.environ.update(values)
+        try:
+            yield
+        finally:
+            for name, value in saved.items():
+                if value is None:
+                    os.environ.pop(name, None)
+                else:
+                    os.environ[name] = value
+
     def sumo_options(self) -> list[str]:
         """sumo-gui's options: start at once, close at the end, a fixed window size, vehicles
         drawn 4 times larger (seen at city scale); none of them changes the simulation."""
         w, h = self.window
-        settings = Path(tempfile.gettempdir()) / "twin-gui-settings.xml"
-        if not settings.exists():
+        settings = self.home() / "twin-gui-settings.xml"
+        if not settings.is_file() or settings.read_text() != GUI_SETTINGS:
             from twin.files import atomic_write
 
             atomic_write(settings, lambda p: p.write_text(GUI_SETTINGS))

@@ -3,23 +3,36 @@
 A scenario may ask SUMO for outputs: a sumocfg's ``<output>`` and ``<report>`` sections
 (``tripinfo-output``, ``summary-output``, ``fcd-output``, ``log``, ``save-state.files`` ...), and
 additional files whose elements write files (detectors' ``file=``, ``edgeData``/``laneData``
-``file=``, a calibrator's ``output=``, a ``timedEvent``'s ``dest=``). SUMO would write them next
-to the user's files; twin writes only into its run folder, so when it starts SUMO it
+``file=``, a calibrator's ``output=``, a ``timedEvent``'s ``dest=``), and vehicle types or
+vehicles whose device parameters name files (``<param key="device.ssm.file" value=...>``, in
+additional or route files). SUMO would write them next to the user's files; twin writes only
+into its run folder, so when it starts SUMO it
 
 - passes a command-line override for every output option the sumocfg sets, pointing into the
   output folder (``RUN/sumo/``) with the same base name;
 - loads, instead of an additional file that writes outputs, a copy in the output folder whose
   outputs point into that folder and whose other relative paths (``<include href>``, a
-  rerouter's definitions, images) are made absolute so they resolve as before.
+  rerouter's definitions, images) are made absolute so they resolve as before (the same for a
+  route file whose device parameters name files).
 
 Files are named by their base name; two outputs of the same base name from different folders
-get ``-2``, ``-3`` ... One output file shared by several detectors stays shared.
+get ``-2``, ``-3`` ... One output file shared by several detectors stays shared. Every path
+handed to SUMO is absolute: SUMO reads an additional file's outputs relative to that file, so a
+relative run folder would put them in ``RUN/sumo/RUN/sumo/``.
+
+SUMO prepends ``output-prefix`` to the last part of every output's path (and inserts
+``output-suffix`` before its extension), so a prefix with a folder part (``../escape_``,
+``/tmp/x_``) would move all outputs out of the folder; an ``output-prefix`` or ``output-suffix``
+the sumocfg sets is overridden by its last part only (``escape_``, ``x_``; SUMO's ``TIME``
+placeholder kept), which names the files but keeps them in ``RUN/sumo/``.
 """
 
 from __future__ import annotations
 
 import contextlib
 import itertools
+import os
+import re
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -42,6 +55,7 @@ OUTPUT_OPTIONS = {
             "save-state.prefix", "device.rerouting.output", "device.ssm.file",
             "device.toc.file", "device.taxi.dispatch-algorithm.output",
             "device.taxi.idle-algorithm.output", "log", "message-log", "error-log",
+            "pedestrian.jupedsim.wkt", "pedestrian.jupedsim.py", "gui-testing.setting-output",
         )
     },
     "ndump": "netstate-dump",
@@ -52,6 +66,8 @@ OUTPUT_OPTIONS = {
     "vehroutes": "vehroute-output",
     "l": "log",
 }  # fmt: skip
+#: Options that add to every output's name (kept to their name part, :func:`name_part`).
+NAMING_OPTIONS = ("output-prefix", "output-suffix")
 #: Options whose value is a list of files.
 _FILE_LISTS = {"save-state.files"}
 #: Output names SUMO does not take as files.
@@ -71,6 +87,8 @@ OUTPUT_ELEMENTS = {
     "calibrator": "output",
     "timedEvent": "dest",
 }  # fmt: skip
+#: Device parameters of vehicle types and vehicles that name output files (``<param key=...>``).
+DEVICE_OUTPUTS = {name for name in OUTPUT_OPTIONS if name.startswith("device.")}
 #: Attributes of additional files that name input files (made absolute in a rewritten copy).
 INPUT_ATTRIBUTES = ("href", "file", "imgFile", "osgFile")
 
@@ -89,7 +107,7 @@ class OutputPlan:
     """Where each output goes in ``out_dir`` (created on first use) and the copies written."""
 
     def __init__(self, out_dir: Path):
-        self.out_dir = Path(out_dir)
+        self.out_dir = Path(os.path.abspath(out_dir))
         self.targets: dict[Path, Path] = {}
         self.copies: dict[Path, Path] = {}
         self._names: set[str] = set()
@@ -126,6 +144,8 @@ class OutputPlan:
         root, base, changed = tree.getroot(), path.parent, False
         for elem in root.iter():
             attr = OUTPUT_ELEMENTS.get(elem.tag) if isinstance(elem.tag, str) else None
+            if elem.tag == "param" and elem.get("key") in DEVICE_OUTPUTS:
+                attr = "value"
             value = elem.get(attr) if attr else None
             if value is not None and _is_file(value):
                 elem.set(attr, str(self.target(base / value)))
@@ -153,16 +173,43 @@ class OutputPlan:
             self.copies[path] = copy
         return self.copies[path]
 
+    def routes(self, path: Path) -> Path:
+        """``path``, or a rewritten copy in ``out_dir`` if device parameters in it name output
+        files (read in full only when it mentions ``device.``: route files may be large)."""
+        tail = b""
+        try:
+            with open_xml(path) as fh:
+                while chunk := fh.read(1 << 24):
+                    if b"device." in tail + chunk[:16] or b"device." in chunk:
+                        return self.additional(path)
+                    tail = chunk[-16:]
+        except (OSError, EOFError):
+            pass  # SUMO will say what is wrong with it
+        return path
+
+
+def name_part(value: str) -> str:
+    """The part of an ``output-prefix`` (``output-suffix``) that names files, without its folders
+    (SUMO splits at the last ``/`` or ``\\``): ``../escape_`` -> ``escape_``."""
+    return re.split(r"[\\/]", value)[-1]
+
 
 def redirect_outputs(
     sumocfg: Path | None, options: tuple[str, ...], out_dir: Path
 ) -> tuple[tuple[str, ...], OutputPlan]:
     """``options`` with additional files that write outputs replaced by rewritten copies, plus
-    an override of every output option of ``sumocfg``, all pointing into ``out_dir``."""
+    an override of every output option of ``sumocfg``, all pointing into ``out_dir``; an
+    ``output-prefix`` or ``output-suffix`` (of ``sumocfg`` or ``options``) keeps only its name
+    part."""
     plan = OutputPlan(out_dir)
     extra: list[str] = []
+    out = list(options)
     if sumocfg is not None:
         cfg = read_sumocfg(sumocfg)
+        for name in NAMING_OPTIONS:
+            value = cfg.options.get(name)
+            if value and f"--{name}" not in out:
+                extra += [f"--{name}", name_part(value)]
         base = Path(sumocfg).resolve().parent
         given = {OUTPUT_OPTIONS[k]: v for k, v in cfg.options.items() if k in OUTPUT_OPTIONS}
         state_times = any(cfg.options.get(k) for k in ("save-state.times", "save-state.period"))
@@ -175,11 +222,12 @@ def redirect_outputs(
                     extra += [f"--{name}", ",".join(str(plan.target(f)) for f in files)]
             elif _is_file(value):
                 extra += [f"--{name}", str(plan.target(base / value.strip()))]
-    out = list(options)
     for i in range(len(out) - 1):
         if out[i] in ("--additional-files", "-a"):
             files = [Path(v) for v in out[i + 1].split(",") if v]
             out[i + 1] = ",".join(str(plan.additional(f)) for f in files)
+        elif out[i] in {f"--{name}" for name in NAMING_OPTIONS}:
+            out[i + 1] = name_part(out[i + 1])
     return (*out, *extra), plan
 
 

@@ -102,6 +102,12 @@ def sumocfg_options(root: ET.Element) -> dict[str, str]:
     return options
 
 
+#: Options that make SUMO write a file (beside the user's files) and quit without simulating.
+_SAVE_AND_QUIT = ("save-configuration", "C", "save-template", "save-schema")
+#: Switches that make SUMO print something and quit without simulating.
+_PRINT_AND_QUIT = ("help", "version")
+
+
 def read_sumocfg(path: Path) -> SumoConfigFile:
     """Net, route and additional files of a ``.sumocfg`` (relative to its folder, as SUMO reads
     them), its ``<time>`` window, if it gives one, and all its options."""
@@ -143,6 +149,18 @@ def read_sumocfg(path: Path) -> SumoConfigFile:
             f"{path}: names no network; add <net-file value=...> to its <input> (twin needs "
             "the network to lay its grid)"
         )
+    for name in _SAVE_AND_QUIT:
+        if options.get(name):
+            raise UserError(
+                f"{path}: <{name} value={options[name]!r}> makes SUMO write that file and quit "
+                "instead of simulating; remove it (twin runs the simulation)"
+            )
+    for name in _PRINT_AND_QUIT:
+        if options.get(name, "false").strip().lower() not in ("false", "0", "no", "off", ""):
+            raise UserError(
+                f"{path}: <{name} value={options[name]!r}> makes SUMO print its {name} and quit "
+                "instead of simulating; remove it"
+            )
     window = []
     for key in ("begin", "end"):
         text = value(key, "b" if key == "begin" else "e")

@@ -150,7 +150,10 @@ class SumoSession:
 
         cmd = [self.gui.binary(), *self.command()[1:], *self.gui.sumo_options()]
         try:
-            with contextlib.redirect_stdout(io.StringIO()):  # traci's "Retrying in 1 seconds"
+            with (
+                self.gui.environment(),  # its saved settings in twin's cache, not in ~
+                contextlib.redirect_stdout(io.StringIO()),  # traci's "Retrying in 1 seconds"
+            ):
                 traci.start(cmd, stdout=subprocess.DEVNULL)
         except Exception as exc:  # traci raises FatalTraCIError or OSError
             with contextlib.suppress(Exception):

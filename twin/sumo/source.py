@@ -132,16 +132,17 @@ class SumoTraffic(TrafficSource):
         (sumocfg options, additional files' detectors ...) are written there
         (:mod:`twin.sumo.outputs`)."""
         s = self.scenario
-        options = tuple(s.sumo_options)
+        options, route_files = tuple(s.sumo_options), list(s.route_files)
         if output_dir is not None:
             from twin.sumo.outputs import redirect_outputs
 
             options, plan = redirect_outputs(s.sumocfg, options, output_dir)
+            route_files = [plan.routes(r) for r in route_files]
             self._copies = {c: o for o, c in plan.copies.items() if c != o}
             self.outputs = [*plan.targets.values(), *self._copies]
         return SumoSession(
             net_file=s.net_file,
-            route_files=s.route_files,
+            route_files=route_files,
             begin=s.sim_begin,
             end=s.sim_end + 1.0,
             seed=s.seed,
