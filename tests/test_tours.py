@@ -125,3 +125,10 @@ def test_beats_random_clearly():
     tours, _ = patrol(ToursPolicy(), grid, 3, 300, importance, seed=2)
     rand, _ = patrol(RandomPolicy(), grid, 3, 300, importance, seed=2)
     assert tours > 1.3 * rand
+
+
+def test_tours_describes_itself_before_any_step():
+    """A run that stops before its first step still records the swarm's description."""
+    from twin.tours import ToursPolicy
+
+    assert ToursPolicy().describe()["plans"] == 0

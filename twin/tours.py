@@ -333,6 +333,7 @@ class ToursPolicy(CoordinatedPolicy):
             raise UserError(f"tours: prior = {prior!r} must be a number in 0..1; e.g. 0.25")
         self.prior = float(prior)
         self.memory = None if memory is None else whole(memory, "memory", 1, 300)
+        self.plans = 0  # plans made; described even by a run that stopped before its first step
 
     def describe(self) -> dict:
         return {
