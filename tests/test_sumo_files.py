@@ -338,3 +338,27 @@ def test_refused_sumocfg(scenario, tmp_path, capsys, case):
     if case.startswith(("NaN", "infinite")):
         with pytest.raises(UserError, match="finite time"):
             read_sumocfg(cfg)
+
+
+# name -> (flags of `twin run --sumocfg public.sumocfg`, words of the one-line error)
+REFUSED_FLAGS = {
+    "more drones than free cells": (["--drones", "1000"], "--drones 1000 exceeds the"),
+    "a cell size too large": (["--cell-m", "1e9"], "--cell-m 1e+09: cell size"),
+    "a cell size too small": (["--cell-m", "0.5"], "--cell-m 0.5: cell size"),
+    "a negative drone speed": (["--drone-speed", "-3"], "--drone-speed -3.0: give a positive"),
+    "a begin that is no clock": (["--begin", "x"], "--begin = 'x' must be a clock time"),
+}
+
+
+@pytest.mark.parametrize("case", list(REFUSED_FLAGS))
+def test_refused_flags_name_the_flag_not_the_config(scenario, tmp_path, capsys, case):
+    flags, needle = REFUSED_FLAGS[case]
+    out = tmp_path / "run"
+    code = _run(scenario, out, "--sumocfg", str(scenario / "scenario" / "public.sumocfg"), *flags)
+    captured = capsys.readouterr()
+    err = captured.err.strip()
+    assert code == 2, err
+    assert "\n" not in err and err.startswith("twin: error:"), err
+    assert needle in err and "config.toml" not in err, err
+    assert "Traceback" not in err + captured.out
+    assert not out.exists()

@@ -58,6 +58,9 @@ class Experiment:
     max_memory_gb: float | None = None
     #: live traffic in a process of its own, ahead of the swarms; same results
     separate_process: bool = True
+    #: the command-line flag that set the number of drones (``twin run --drones``), named in
+    #: the error when they do not fit the grid; None: the config file's
+    drones_flag: str | None = None
 
 
 @dataclass
@@ -218,7 +221,7 @@ def _run_seeds(
         try:
             if live and n == 0:
                 check_memory(experiment, source.grid.shape, source.horizon, source)
-            check_swarm_fits(experiment.config, source.grid)
+            check_swarm_fits(experiment.config, source.grid, experiment.drones_flag)
             if on_source is not None:
                 on_source(source)
             swarms = build_swarms(experiment)

@@ -135,8 +135,10 @@ def gui_drawer(args: argparse.Namespace, swarms):
 def build_experiment(args: argparse.Namespace):
     """The :class:`twin.experiment.Experiment` of ``twin run``'s flags (``twin replay`` rebuilds
     a run's from the flags recorded in its ``run.json``)."""
+    from twin.clock import parse_clock
     from twin.config import load_config, shipped_config
     from twin.experiment import Experiment, parse_swarm_names
+    from twin.resources import check_cell_size
     from twin.sumo.scenario import SumoInputs
 
     for flag, value in (
@@ -146,6 +148,10 @@ def build_experiment(args: argparse.Namespace):
     ):
         if value is not None and not (value > 0 and math.isfinite(value)):
             raise UserError(f"{flag} {value}: give a positive number")
+    if args.cell_m is not None:
+        check_cell_size(args.cell_m, f"--cell-m {args.cell_m:g}")
+    if args.begin is not None:
+        parse_clock(args.begin, "--begin")
     config = load_config(shipped_config(args.config or DEFAULT_CONFIG))
     if args.drones is not None:
         config = config.model_copy(
@@ -186,6 +192,7 @@ def build_experiment(args: argparse.Namespace):
         traffic_seed=args.sumo_seed,
         skip_unavailable=args.swarms is None,
         max_memory_gb=args.max_memory_gb,
+        drones_flag="--drones" if args.drones is not None else None,
     )
     return experiment
 

@@ -216,7 +216,11 @@ def sumo_source(
     seed = s.seed if seed is None else seed
     begin_given = begin is not None or (not swapped and "begin" in fields)
     horizon_given = horizon is not None or (not swapped and "horizon" in fields)
-    begin = parse_clock(begin or s.begin, f"{config.path}: [traffic].begin")
+    begin = (
+        parse_clock(begin, "--begin")
+        if begin
+        else parse_clock(s.begin, f"{config.path}: [traffic].begin")
+    )
     warmup = s.warmup_min * 60.0
     demand = load_spec(resources.network_spec("shenzhen_like"))["demand"]
 
@@ -286,7 +290,8 @@ def sumo_source(
     shape = None
     if not (net or sumocfg or osm or cell_m):
         shape = config.explicit_shape()  # set in the file or by an override
-    geometry = grid_over(lanes, s.cell_m, shape, where=f"{config.path}: [grid]")
+    where = f"--cell-m {cell_m:g}" if cell_m else f"{config.path}: [grid]"
+    geometry = grid_over(lanes, s.cell_m, shape, where=where)
     obstacles = geometry.obstacles(s.min_lane_km)
     for i, j in getattr(config.grid, "obstacles", []) or []:
         if 0 <= i < geometry.nx and 0 <= j < geometry.ny:
@@ -295,7 +300,7 @@ def sumo_source(
         raise UserError(f"{net_file}: no cell of the {geometry.nx} x {geometry.ny} grid has a lane")
     n_free, n_drones = int((~obstacles).sum()), config.swarm.n_drones
     notices = []
-    if n_free < MIN_FREE_CELLS_PER_DRONE * n_drones:
+    if n_drones <= n_free < MIN_FREE_CELLS_PER_DRONE * n_drones:  # more drones: refused later
         better = suggest_cell_m(lanes, s.cell_m, n_drones, s.min_lane_km)
         fix = (
             f"try --cell-m {better[0]:g} ({better[1]} free cells)"
