@@ -238,6 +238,8 @@ def _write_case(scenario: Path, d: Path, text: str, files: dict[str, str]) -> Pa
     for name, body in files.items():
         if body.startswith("GZ:"):
             (d / name).write_bytes(gzip.compress((d / body[3:]).read_bytes()))
+        elif body.startswith("LINK:"):
+            (d / name).symlink_to(d / body[5:])
         else:
             (d / name).write_text(body)
     if text.startswith("GZ:"):
@@ -315,6 +317,21 @@ REFUSED = {
         {"x.sumocfg": _cfg(NET_AND_TRIPS)}, "not an additional file but a SUMO config",
     ),
     "not XML": ("<configuration><input>", {}, "not valid XML"),
+    "a link loop as route file": (
+        _cfg('<input><net-file value="small.net.xml"/><route-files value="a.rou.xml"/></input>'),
+        {"a.rou.xml": "LINK:b.rou.xml", "b.rou.xml": "LINK:a.rou.xml"},
+        "a.rou.xml: a symbolic link loop (named in",
+    ),
+    "a link loop as network": (
+        _cfg('<input><net-file value="a.net.xml"/><route-files value="small.trips.xml"/></input>'),
+        {"a.net.xml": "LINK:b.net.xml", "b.net.xml": "LINK:a.net.xml"},
+        "a.net.xml: a symbolic link loop (named in",
+    ),
+    "a link loop as additional": (
+        _cfg(NET_AND_TRIPS + '<input><additional-files value="a.add.xml"/></input>'),
+        {"a.add.xml": "LINK:b.add.xml", "b.add.xml": "LINK:a.add.xml"},
+        "a.add.xml: a symbolic link loop (named in",
+    ),
     "a compressed sumocfg": ("GZ:" + _cfg(NET_AND_TRIPS), {},
                              "a gzip-compressed config, which SUMO does not read; decompress"),
 }  # fmt: skip
@@ -340,25 +357,40 @@ def test_refused_sumocfg(scenario, tmp_path, capsys, case):
             read_sumocfg(cfg)
 
 
-# name -> (flags of `twin run --sumocfg public.sumocfg`, words of the one-line error)
+# name -> (flags of `twin run`, words of the one-line error); {cfg}: the scenario's sumocfg,
+# {net}: its network, {tmp}: a folder holding two loops of symbolic links, loop.xml and
+# loop.sumocfg
+PUBLIC = ["--sumocfg", "{cfg}"]
 REFUSED_FLAGS = {
-    "more drones than free cells": (["--drones", "1000"], "--drones 1000 exceeds the"),
-    "a cell size too large": (["--cell-m", "1e9"], "--cell-m 1e+09: cell size"),
-    "a cell size too small": (["--cell-m", "0.5"], "--cell-m 0.5: cell size"),
-    "a negative drone speed": (["--drone-speed", "-3"], "--drone-speed -3.0: give a positive"),
-    "a begin that is no clock": (["--begin", "x"], "--begin = 'x' must be a clock time"),
-}
+    "more drones than free cells": ([*PUBLIC, "--drones", "1000"], "--drones 1000 exceeds the"),
+    "a cell size too large": ([*PUBLIC, "--cell-m", "1e9"], "--cell-m 1e+09: cell size"),
+    "a cell size too small": ([*PUBLIC, "--cell-m", "0.5"], "--cell-m 0.5: cell size"),
+    "a negative drone speed": ([*PUBLIC, "--drone-speed", "-3"], "--drone-speed -3.0: give"),
+    "a begin that is no clock": ([*PUBLIC, "--begin", "x"], "--begin = 'x' must be a clock"),
+    "a link loop as sumocfg": (["--sumocfg", "{tmp}/loop.sumocfg"],
+                               "{tmp}/loop.sumocfg: a symbolic link loop"),
+    "a link loop as net": (["--net", "{tmp}/loop.xml"], "{tmp}/loop.xml: a symbolic link loop"),
+    "a link loop as routes": (["--net", "{net}", "--routes", "{tmp}/loop.xml"],
+                              "{tmp}/loop.xml: a symbolic link loop"),
+    "a link loop as additional": ([*PUBLIC, "--additional", "{tmp}/loop.xml"],
+                                  "{tmp}/loop.xml: a symbolic link loop"),
+}  # fmt: skip
 
 
 @pytest.mark.parametrize("case", list(REFUSED_FLAGS))
-def test_refused_flags_name_the_flag_not_the_config(scenario, tmp_path, capsys, case):
+def test_refused_flags_name_the_flag_or_file(scenario, tmp_path, capsys, case):
     flags, needle = REFUSED_FLAGS[case]
+    for loop in ("loop.xml", "loop.sumocfg"):
+        (tmp_path / f"other-{loop}").symlink_to(tmp_path / loop)
+        (tmp_path / loop).symlink_to(tmp_path / f"other-{loop}")
+    names = {"cfg": scenario / "scenario" / "public.sumocfg", "tmp": tmp_path,
+             "net": scenario / "scenario" / "small.net.xml"}  # fmt: skip
     out = tmp_path / "run"
-    code = _run(scenario, out, "--sumocfg", str(scenario / "scenario" / "public.sumocfg"), *flags)
+    code = _run(scenario, out, *(f.format(**names) for f in flags))
     captured = capsys.readouterr()
     err = captured.err.strip()
     assert code == 2, err
     assert "\n" not in err and err.startswith("twin: error:"), err
-    assert needle in err and "config.toml" not in err, err
+    assert needle.format(**names) in err and "config.toml" not in err, err
     assert "Traceback" not in err + captured.out
     assert not out.exists()

@@ -3,8 +3,10 @@ options and time window, the span of a demand's departures."""
 
 from __future__ import annotations
 
+import errno
 import gzip
 import math
+import os
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,11 +26,36 @@ def open_xml(path: Path) -> IO[bytes]:
     return fh
 
 
+def link_loop(path: Path, named_in: Path | None = None) -> str:
+    """The one-line message for a file that is a symbolic link loop."""
+    where = f" (named in {named_in})" if named_in is not None else ""
+    return f"{path}: a symbolic link loop{where}; fix or remove the link"
+
+
+def resolved(path: Path, named_in: Path | None = None) -> Path:
+    """``path`` made absolute, its links followed; a symbolic link loop is a one-line error
+    (``named_in``: the config that names the file)."""
+    try:
+        return Path(path).resolve()
+    except (RuntimeError, OSError) as exc:  # Python 3.11 raises RuntimeError for a loop
+        raise UserError(link_loop(path, named_in)) from exc
+
+
+def missing(path: Path, what: str) -> UserError:
+    """The one-line error for a file that is not there: a symbolic link loop, or no file."""
+    try:
+        os.stat(path)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            return UserError(link_loop(path))
+    return UserError(f"{path}: no such {what}")
+
+
 def root_tag(path: Path, what: str) -> str:
     """The root element of a SUMO XML file (compressed or not); one-line errors."""
     path = Path(path)
     if not path.exists():
-        raise UserError(f"{path}: no such {what}")
+        raise missing(path, what)
     try:
         with open_xml(path) as fh:
             return next(ET.iterparse(fh, events=("start",)))[1].tag
@@ -50,9 +77,10 @@ class SumoConfigFile:
     path: Path | None = None
 
 
-def file_list(value: str | None, base: Path) -> list[Path]:
-    """The files of a comma-separated SUMO option, resolved against ``base``."""
-    return [(base / v.strip()).resolve() for v in (value or "").split(",") if v.strip()]
+def file_list(value: str | None, base: Path, named_in: Path | None = None) -> list[Path]:
+    """The files of a comma-separated SUMO option, resolved against ``base`` (``named_in``: the
+    config that lists them, named in errors)."""
+    return [resolved(base / v.strip(), named_in) for v in (value or "").split(",") if v.strip()]
 
 
 def parse_time(value: str | None) -> float | None:
@@ -105,7 +133,7 @@ def sumocfg_options(root: ET.Element) -> dict[str, str]:
 def read_sumocfg(path: Path) -> SumoConfigFile:
     """Net, route and additional files of a ``.sumocfg`` (relative to its folder, as SUMO reads
     them), its ``<time>`` window, if it gives one, and all its options."""
-    path = Path(path).resolve() if Path(path).exists() else Path(path)
+    path = resolved(path) if Path(path).exists() else Path(path)
     tag = root_tag(path, "SUMO config")
     if tag not in SUMOCFG_ROOTS:
         what = (
@@ -137,7 +165,7 @@ def read_sumocfg(path: Path) -> SumoConfigFile:
                 return options[name]
         return None
 
-    net = file_list(value("net-file", "n"), path.parent)
+    net = file_list(value("net-file", "n"), path.parent, path)
     if not net:
         raise UserError(
             f"{path}: names no network; add <net-file value=...> to its <input> (twin needs "
@@ -162,8 +190,8 @@ def read_sumocfg(path: Path) -> SumoConfigFile:
         )
     return SumoConfigFile(
         net=net[0],
-        routes=file_list(value("route-files", "r"), path.parent),
-        additional=file_list(value("additional-files", "a"), path.parent),
+        routes=file_list(value("route-files", "r"), path.parent, path),
+        additional=file_list(value("additional-files", "a"), path.parent, path),
         begin=window[0],
         end=window[1],
         options=options,

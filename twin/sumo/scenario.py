@@ -32,7 +32,13 @@ from twin.clock import clock_label, parse_clock
 from twin.config import MFDSettings, SumoSettings
 from twin.errors import UserError
 from twin.grid import Grid
-from twin.sumo.readers import SUMOCFG_ROOTS, departure_span, read_sumocfg, root_tag
+from twin.sumo.readers import (
+    SUMOCFG_ROOTS,
+    departure_span,
+    read_sumocfg,
+    resolved,
+    root_tag,
+)
 
 #: Peak demand of the built-in network per lane-km (trips/h), used to scale generated demand.
 SHENZHEN_LANE_KM = 1350.0
@@ -224,8 +230,8 @@ def sumo_source(
     warmup = s.warmup_min * 60.0
     demand = load_spec(resources.network_spec("shenzhen_like"))["demand"]
 
-    sumocfg_path = Path(s.sumocfg).resolve() if s.sumocfg else None
-    additional_files = [Path(a).resolve() for a in s.additional]
+    sumocfg_path = resolved(s.sumocfg) if s.sumocfg else None
+    additional_files = [resolved(a) for a in s.additional]
     window: list[float | None] = [None, None]  # the scenario's own time window
     span = None  # first and last departure of the given demand
     if s.network and not (s.net or sumocfg_path or s.osm):
