@@ -317,6 +317,24 @@ REFUSED = {
         {"x.sumocfg": _cfg(NET_AND_TRIPS)}, "not an additional file but a SUMO config",
     ),
     "not XML": ("<configuration><input>", {}, "not valid XML"),
+    "a negative begin": (_cfg(NET_AND_TRIPS + '<time><begin value="-60"/></time>'), {},
+                         "<begin value='-60'> is negative, which SUMO refuses"),
+    "a NaN departure": (
+        _cfg('<input><net-file value="small.net.xml"/><route-files value="n.rou.xml"/></input>'),
+        {"n.rou.xml": '<routes><trip id="t" depart="nan" from="a" to="b"/></routes>'},
+        "n.rou.xml: <trip id='t' depart='nan'>: the time is not a finite number",
+    ),
+    "an infinite departure": (
+        _cfg('<input><net-file value="small.net.xml"/><route-files value="i.rou.xml"/></input>'),
+        {"i.rou.xml": '<routes><vehicle id="v" depart="inf" route="r"/></routes>'},
+        "i.rou.xml: <vehicle id='v' depart='inf'>: the time is not a finite number",
+    ),
+    "a flow beginning before 0": (
+        _cfg('<input><net-file value="small.net.xml"/><route-files value="f.rou.xml"/></input>'),
+        {"f.rou.xml": '<routes><flow id="f" begin="-50" end="60" period="5" from="a" to="b"/>'
+                      "</routes>"},
+        "f.rou.xml: <flow id='f' begin='-50'>: the time is negative",
+    ),
     "a link loop as route file": (
         _cfg('<input><net-file value="small.net.xml"/><route-files value="a.rou.xml"/></input>'),
         {"a.rou.xml": "LINK:b.rou.xml", "b.rou.xml": "LINK:a.rou.xml"},
@@ -359,7 +377,7 @@ def test_refused_sumocfg(scenario, tmp_path, capsys, case):
 
 # name -> (flags of `twin run`, words of the one-line error); {cfg}: the scenario's sumocfg,
 # {net}: its network, {tmp}: a folder holding two loops of symbolic links, loop.xml and
-# loop.sumocfg
+# loop.sumocfg, and early.rou.xml, a trip departing at -5 s
 PUBLIC = ["--sumocfg", "{cfg}"]
 REFUSED_FLAGS = {
     "more drones than free cells": ([*PUBLIC, "--drones", "1000"], "--drones 1000 exceeds the"),
@@ -367,6 +385,8 @@ REFUSED_FLAGS = {
     "a cell size too small": ([*PUBLIC, "--cell-m", "0.5"], "--cell-m 0.5: cell size"),
     "a negative drone speed": ([*PUBLIC, "--drone-speed", "-3"], "--drone-speed -3.0: give"),
     "a begin that is no clock": ([*PUBLIC, "--begin", "x"], "--begin = 'x' must be a clock"),
+    "a negative departure": (["--net", "{net}", "--routes", "{tmp}/early.rou.xml"],
+                             "{tmp}/early.rou.xml: <trip id='t' depart='-5'>: the time is"),
     "a link loop as sumocfg": (["--sumocfg", "{tmp}/loop.sumocfg"],
                                "{tmp}/loop.sumocfg: a symbolic link loop"),
     "a link loop as net": (["--net", "{tmp}/loop.xml"], "{tmp}/loop.xml: a symbolic link loop"),
@@ -383,6 +403,9 @@ def test_refused_flags_name_the_flag_or_file(scenario, tmp_path, capsys, case):
     for loop in ("loop.xml", "loop.sumocfg"):
         (tmp_path / f"other-{loop}").symlink_to(tmp_path / loop)
         (tmp_path / loop).symlink_to(tmp_path / f"other-{loop}")
+    (tmp_path / "early.rou.xml").write_text(
+        '<routes><trip id="t" depart="-5" from="a" to="b"/></routes>'
+    )
     names = {"cfg": scenario / "scenario" / "public.sumocfg", "tmp": tmp_path,
              "net": scenario / "scenario" / "small.net.xml"}  # fmt: skip
     out = tmp_path / "run"

@@ -182,6 +182,11 @@ def read_sumocfg(path: Path) -> SumoConfigFile:
             )
         if key == "end" and t is not None and t < 0:  # SUMO's default -1: no end
             t = None
+        if key == "begin" and t is not None and t < 0:
+            raise UserError(
+                f"{path}: <begin value={text!r}> is negative, which SUMO refuses; give seconds "
+                "from 0 (e.g. 3600) or a clock (1:00:00)"
+            )
         window.append(t)
     if None not in window and window[1] <= window[0]:
         raise UserError(
@@ -200,7 +205,35 @@ def read_sumocfg(path: Path) -> SumoConfigFile:
 
 
 #: Elements that put vehicles on the road, and the attribute of their departure.
-_DEPARTING = {"vehicle": "depart", "trip": "depart", "person": "depart", "flow": "begin"}
+_DEPARTING = {
+    "vehicle": "depart",
+    "trip": "depart",
+    "person": "depart",
+    "container": "depart",
+    "flow": "begin",
+    "personFlow": "begin",
+    "containerFlow": "begin",
+}
+
+
+def _check_departure(path: Path, elem: ET.Element, key: str) -> float | None:
+    """The departure time of ``elem`` (None for SUMO's words such as "triggered" or "now"); a
+    negative, NaN or infinite time, which SUMO refuses, is a one-line error naming the file."""
+    text = elem.get(key)
+    if text is None:
+        return None
+    t = parse_time(text)
+    try:
+        number = float(text)
+    except ValueError:
+        number = t
+    if number is not None and (t is None or t < 0):
+        what = "negative" if number < 0 else "not a finite number"
+        raise UserError(
+            f"{path}: <{elem.tag} id={elem.get('id')!r} {key}={text!r}>: the time is {what}, "
+            "which SUMO refuses; give seconds from 0 (e.g. 3600) or a clock (1:00:00)"
+        )
+    return t
 
 
 def departure_span(route_files: list[Path]) -> tuple[float, float] | None:
@@ -212,7 +245,7 @@ def departure_span(route_files: list[Path]) -> tuple[float, float] | None:
             with open_xml(path) as fh:
                 for _, elem in ET.iterparse(fh, events=("end",)):
                     key = _DEPARTING.get(elem.tag)
-                    t = parse_time(elem.get(key)) if key else None
+                    t = _check_departure(path, elem, key) if key else None
                     if t is not None:
                         end = t
                         if elem.tag == "flow":
