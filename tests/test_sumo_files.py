@@ -27,7 +27,7 @@ pytest.importorskip("libsumo")
 from twin.cli import main
 from twin.errors import UserError
 from twin.runs import check_run_folder
-from twin.sumo.readers import read_sumocfg
+from twin.sumo.readers import departure_span, read_sumocfg
 from twin.sumo.tools import binary, run_sumo_program
 
 CONFIG = """
@@ -224,6 +224,13 @@ ACCEPTED = {
              '<time><begin value="0"/><end value="600"/></time>'),
         {}, 0.0, 600.0,
     ),
+    "demand only in an additional file": (
+        _cfg('<input><net-file value="small.net.xml"/>'
+             '<additional-files value="types.add.xml,trips.add.xml"/></input>'),
+        {"types.add.xml": '<add><vType id="car" vClass="passenger"/></add>',
+         "trips.add.xml": "ADD:small.trips.xml"},
+        None, None,
+    ),
     "SUMO's no-end -1": (
         _cfg(NET_AND_TRIPS + '<time><begin value="0"/><end value="-1"/></time>'),
         {}, 0.0, None,
@@ -238,6 +245,11 @@ def _write_case(scenario: Path, d: Path, text: str, files: dict[str, str]) -> Pa
     for name, body in files.items():
         if body.startswith("GZ:"):
             (d / name).write_bytes(gzip.compress((d / body[3:]).read_bytes()))
+        elif body.startswith("ADD:"):  # a route file's demand in an additional file
+            routes = (d / body[4:]).read_text()
+            (d / name).write_text(
+                routes.replace("<routes", "<additional").replace("</routes>", "</additional>")
+            )
         elif body.startswith("LINK:"):
             (d / name).symlink_to(d / body[5:])
         else:
@@ -260,9 +272,15 @@ def test_accepted_sumocfg_forms(scenario, tmp_path, capsys, case):
     assert read.net == (tmp_path / "case" / "small.net.xml").resolve()
     assert (read.begin, read.end) == (begin, end)
     source = sumo_source(load_config(scenario / "config.toml"), sumocfg=cfg)
-    assert source.horizon >= 1 and source.scenario.route_files
+    assert source.horizon >= 1
     err = capsys.readouterr().err
     assert ("names no <route-files>; twin generates" in err) == ("no route files" in case), err
+    if "additional" in case:  # SUMO loads its vehicles as demand: the window is theirs
+        assert not source.scenario.route_files
+        trips = scenario / "scenario" / "small.trips.xml"
+        assert source.scenario.extra["departures"] == list(departure_span([trips]))
+    else:
+        assert source.scenario.route_files
 
 
 def test_gzip_additional_with_outputs_is_rewritten(scenario, tmp_path):

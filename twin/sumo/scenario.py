@@ -239,6 +239,7 @@ def sumo_source(
         net_file, route_files, name = built.net_file, [built.trips_file], s.network
         if s.routes:
             route_files = [Path(r) for r in s.routes]
+        _check_additional(additional_files)
         own_window = False
     else:
         if sumocfg_path is not None:
@@ -247,11 +248,6 @@ def sumo_source(
             additional_files = [*cfg.additional, *additional_files]
             window = [cfg.begin, cfg.end]
             name = sumocfg_path.name
-            if not route_files and not s.routes:
-                notice(
-                    f"{sumocfg_path}: names no <route-files>; twin generates a rush-hour demand "
-                    "(add route files to the config to run your own)"
-                )
         elif s.osm:
             osm_path = Path(s.osm)
             net_file = import_osm(osm_path)  # cached
@@ -261,14 +257,20 @@ def sumo_source(
         if s.routes:
             route_files = [Path(r) for r in s.routes]
         _check_routes(route_files)
-        span = departure_span(route_files) if route_files else None
-        if route_files and span is None:
+        _check_additional(additional_files)
+        # SUMO loads vehicles, flows and persons of additional files as demand too
+        span = departure_span([*route_files, *additional_files])
+        if span is None and sumocfg_path is not None and not route_files:
+            notice(
+                f"{sumocfg_path}: names no <route-files>; twin generates a rush-hour demand "
+                "(add route files to the config to run your own)"
+            )
+        elif span is None and route_files:
             notice(
                 f"{', '.join(str(r) for r in route_files)}: no vehicle departs in the route "
                 "files (vehicle types only?); twin generates a rush-hour demand"
             )
         own_window = span is not None
-    _check_additional(additional_files)
     if s.end is not None and not swapped:
         window[1] = parse_clock(s.end, f"{config.path}: [traffic].end")
     check_net_file(net_file)
@@ -330,7 +332,7 @@ def sumo_source(
     for text in notices:
         notice(text)
 
-    if not route_files or (span is None and not s.network):
+    if span is None and not s.network:  # no demand given: twin generates it
         lane_km = float(geometry.lane_km.sum())
         scale = s.demand_scale * lane_km / SHENZHEN_LANE_KM
         span_gen = {**demand, "begin_s": begin - warmup, "end_s": begin + s.horizon * step_s}
