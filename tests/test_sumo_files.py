@@ -283,6 +283,20 @@ def test_accepted_sumocfg_forms(scenario, tmp_path, capsys, case):
         assert source.scenario.route_files
 
 
+def test_a_net_given_besides_the_sumocfg_replaces_its_own(scenario, tmp_path, capsys):
+    """As with ``sumo -c case.sumocfg -n small.net.xml``: the sumocfg's own <net-file> (here
+    named twice, which SUMO alone would refuse) is not read."""
+    text = _cfg('<input><net-file value="small.net.xml,small.net.xml"/>'
+                '<route-files value="small.trips.xml"/></input>')  # fmt: skip
+    cfg = _write_case(scenario, tmp_path / "case", text, {})
+    net = scenario / "scenario" / "small.net.xml"
+    out = tmp_path / "run"
+    code = _run(scenario, out, "--sumocfg", str(cfg), "--net", str(net), "--horizon", "2")
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert json.loads((out / "run.json").read_text())["traffic"]["net_file"] == str(net)
+
+
 def test_gzip_additional_with_outputs_is_rewritten(scenario, tmp_path):
     """A compressed detector file whose outputs are redirected: the copy is plain XML in the
     output folder, other relative paths in it made absolute (they resolve as before)."""
@@ -352,6 +366,16 @@ REFUSED = {
         {"f.rou.xml": '<routes><flow id="f" begin="-50" end="60" period="5" from="a" to="b"/>'
                       "</routes>"},
         "f.rou.xml: <flow id='f' begin='-50'>: the time is negative",
+    ),
+    "the network twice": (
+        _cfg('<input><net-file value="small.net.xml,small.net.xml"/>'
+             '<route-files value="small.trips.xml"/></input>'),
+        {}, "names a network twice, which SUMO refuses",
+    ),
+    "two networks": (
+        _cfg('<input><net-file value="small.net.xml, b.net.xml"/>'
+             '<route-files value="small.trips.xml"/></input>'),
+        {"b.net.xml": "<net/>"}, "names 2 networks; twin lays its grid over one: merge them",
     ),
     "a link loop as route file": (
         _cfg('<input><net-file value="small.net.xml"/><route-files value="a.rou.xml"/></input>'),

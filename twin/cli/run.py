@@ -29,9 +29,16 @@ def add_parser(subparsers) -> None:
         "generates a rush-hour demand with SUMO's randomTrips.py.",
     )
     p.add_argument("--config", type=Path, default=None, help=f"scenario (default {DEFAULT_CONFIG})")
-    p.add_argument("--net", type=Path, help="a SUMO network (.net.xml) instead of the config's")
     p.add_argument(
-        "--routes", type=Path, action="append", help="route/trip file(s) for --net (repeatable)"
+        "--net",
+        type=Path,
+        help="a SUMO network (.net.xml) instead of the config's or the --sumocfg's",
+    )
+    p.add_argument(
+        "--routes",
+        type=Path,
+        action="append",
+        help="route/trip file(s) for --net or instead of the --sumocfg's (repeatable)",
     )
     p.add_argument("--sumocfg", type=Path, help="a SUMO configuration (.sumocfg): network + demand")
     p.add_argument("--osm", type=Path, help="an OpenStreetMap extract, converted with netconvert")
@@ -162,11 +169,12 @@ def build_experiment(args: argparse.Namespace):
             f"{config.path}: [traffic].kind = {config.traffic.kind!r}; `twin run` needs "
             '"sumo" (use `twin evaluate` for synthetic traffic)'
         )
-    if args.routes and not args.net:
-        raise UserError("--routes needs --net (the network the routes run on)")
-    given = sum(x is not None for x in (args.net, args.sumocfg, args.osm))
-    if given > 1:
-        raise UserError("give one of --net, --sumocfg, --osm")
+    if args.routes and not (args.net or args.sumocfg):
+        raise UserError("--routes needs --net or --sumocfg (the network the routes run on)")
+    if args.osm is not None and (args.net or args.sumocfg):
+        raise UserError(
+            "give --osm alone, or --net and/or --sumocfg (--net replaces the sumocfg's)"
+        )
     check_count("--seeds", args.seeds)
     check_count("--horizon", args.horizon)
     check_seeds("--seed", args.seed, args.seeds)

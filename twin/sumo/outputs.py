@@ -162,7 +162,7 @@ def redirect_outputs(
     plan = OutputPlan(out_dir)
     extra: list[str] = []
     if sumocfg is not None:
-        cfg = read_sumocfg(sumocfg)
+        cfg = read_sumocfg(sumocfg, own_net=False)  # its outputs only
         base = Path(sumocfg).resolve().parent
         given = {OUTPUT_OPTIONS[k]: v for k, v in cfg.options.items() if k in OUTPUT_OPTIONS}
         state_times = any(cfg.options.get(k) for k in ("save-state.times", "save-state.period"))

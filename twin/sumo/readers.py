@@ -130,9 +130,11 @@ def sumocfg_options(root: ET.Element) -> dict[str, str]:
     return options
 
 
-def read_sumocfg(path: Path) -> SumoConfigFile:
+def read_sumocfg(path: Path, own_net: bool = True) -> SumoConfigFile:
     """Net, route and additional files of a ``.sumocfg`` (relative to its folder, as SUMO reads
-    them), its ``<time>`` window, if it gives one, and all its options."""
+    them), its ``<time>`` window, if it gives one, and all its options. Without ``own_net``
+    (a network given besides it replaces its own, as with ``sumo -c ... -n``) its
+    ``<net-file>`` is not checked."""
     path = resolved(path) if Path(path).exists() else Path(path)
     tag = root_tag(path, "SUMO config")
     if tag not in SUMOCFG_ROOTS:
@@ -166,10 +168,23 @@ def read_sumocfg(path: Path) -> SumoConfigFile:
         return None
 
     net = file_list(value("net-file", "n"), path.parent, path)
+    if not own_net:
+        net = net[:1] or [Path()]
     if not net:
         raise UserError(
             f"{path}: names no network; add <net-file value=...> to its <input> (twin needs "
             "the network to lay its grid)"
+        )
+    if len(set(net)) < len(net):
+        raise UserError(
+            f"{path}: <net-file value={value('net-file', 'n')!r}> names a network twice, which "
+            "SUMO refuses (each junction would exist twice); name it once"
+        )
+    if len(net) > 1:
+        raise UserError(
+            f"{path}: <net-file value={value('net-file', 'n')!r}> names {len(net)} networks; "
+            "twin lays its grid over one: merge them (netconvert -s a.net.xml,b.net.xml -o "
+            "merged.net.xml) and name that"
         )
     window = []
     for key in ("begin", "end"):

@@ -243,8 +243,9 @@ def sumo_source(
         own_window = False
     else:
         if sumocfg_path is not None:
-            cfg = read_sumocfg(sumocfg_path)
-            net_file, route_files = cfg.net, cfg.routes
+            cfg = read_sumocfg(sumocfg_path, own_net=not s.net)
+            # a network given besides the sumocfg replaces its own, as `sumo -c ... -n` does
+            net_file, route_files = (Path(s.net) if s.net else cfg.net), cfg.routes
             additional_files = [*cfg.additional, *additional_files]
             window = [cfg.begin, cfg.end]
             name = sumocfg_path.name
