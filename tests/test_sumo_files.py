@@ -168,6 +168,21 @@ def test_sumo_refusing_a_rewritten_file_names_the_users_file(scenario, tmp_path,
     assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == [bad.name]
 
 
+def test_sumo_refusing_a_file_of_the_sumocfg_names_both(scenario, tmp_path, capsys):
+    """SUMO refuses, when it starts, an additional file the sumocfg lists: the error line
+    names that file and the sumocfg."""
+    text = _cfg(NET_AND_TRIPS + '<input><additional-files value="t.add.xml"/></input>')
+    bad = {"t.add.xml": '<additional><vType id="x" vClass="nonsense"/></additional>'}
+    cfg = _write_case(scenario, tmp_path / "case", text, bad)
+    out = tmp_path / "run"
+    code = _run(scenario, out, "--sumocfg", str(cfg))
+    captured = capsys.readouterr()
+    err = captured.err.strip().splitlines()
+    assert code == 2 and err[-1].startswith("twin: error:"), err
+    assert f"{cfg.parent / 't.add.xml'} (named in {cfg}): SUMO refuses it" in err[-1], err
+    assert "Traceback" not in captured.err + captured.out and not out.exists()
+
+
 def test_a_sumocfg_written_by_sumo_itself(scenario, tmp_path, capsys):
     """``sumo -C`` writes ``<sumoConfiguration>`` with relative paths; twin runs it as is."""
     d = tmp_path / "generated"
@@ -354,18 +369,18 @@ REFUSED = {
     "a NaN departure": (
         _cfg('<input><net-file value="small.net.xml"/><route-files value="n.rou.xml"/></input>'),
         {"n.rou.xml": '<routes><trip id="t" depart="nan" from="a" to="b"/></routes>'},
-        "n.rou.xml: <trip id='t' depart='nan'>: the time is not a finite number",
+        "n.rou.xml (named in {case}/case.sumocfg): <trip id='t' depart='nan'>: the time is not a finite number",
     ),
     "an infinite departure": (
         _cfg('<input><net-file value="small.net.xml"/><route-files value="i.rou.xml"/></input>'),
         {"i.rou.xml": '<routes><vehicle id="v" depart="inf" route="r"/></routes>'},
-        "i.rou.xml: <vehicle id='v' depart='inf'>: the time is not a finite number",
+        "i.rou.xml (named in {case}/case.sumocfg): <vehicle id='v' depart='inf'>: the time is not a finite number",
     ),
     "a flow beginning before 0": (
         _cfg('<input><net-file value="small.net.xml"/><route-files value="f.rou.xml"/></input>'),
         {"f.rou.xml": '<routes><flow id="f" begin="-50" end="60" period="5" from="a" to="b"/>'
                       "</routes>"},
-        "f.rou.xml: <flow id='f' begin='-50'>: the time is negative",
+        "f.rou.xml (named in {case}/case.sumocfg): <flow id='f' begin='-50'>: the time is negative",
     ),
     "the network twice": (
         _cfg('<input><net-file value="small.net.xml,small.net.xml"/>'
@@ -377,20 +392,33 @@ REFUSED = {
              '<route-files value="small.trips.xml"/></input>'),
         {"b.net.xml": "<net/>"}, "names 2 networks; twin lays its grid over one: merge them",
     ),
+    "a missing route file": (
+        _cfg('<input><net-file value="small.net.xml"/><route-files value="no.rou.xml"/></input>'),
+        {}, "{case}/no.rou.xml (named in {case}/case.sumocfg): no such route file",
+    ),
+    "a route file not XML": (
+        _cfg('<input><net-file value="small.net.xml"/><route-files value="x.rou.xml"/></input>'),
+        {"x.rou.xml": "<routes><trip"},
+        "{case}/x.rou.xml (named in {case}/case.sumocfg): not valid XML",
+    ),
+    "a route file as network": (
+        _cfg('<input><net-file value="small.trips.xml"/></input>'), {},
+        "{case}/small.trips.xml (named in {case}/case.sumocfg): not a SUMO network",
+    ),
     "a link loop as route file": (
         _cfg('<input><net-file value="small.net.xml"/><route-files value="a.rou.xml"/></input>'),
         {"a.rou.xml": "LINK:b.rou.xml", "b.rou.xml": "LINK:a.rou.xml"},
-        "a.rou.xml: a symbolic link loop (named in",
+        "a.rou.xml (named in {case}/case.sumocfg): a symbolic link loop",
     ),
     "a link loop as network": (
         _cfg('<input><net-file value="a.net.xml"/><route-files value="small.trips.xml"/></input>'),
         {"a.net.xml": "LINK:b.net.xml", "b.net.xml": "LINK:a.net.xml"},
-        "a.net.xml: a symbolic link loop (named in",
+        "a.net.xml (named in {case}/case.sumocfg): a symbolic link loop",
     ),
     "a link loop as additional": (
         _cfg(NET_AND_TRIPS + '<input><additional-files value="a.add.xml"/></input>'),
         {"a.add.xml": "LINK:b.add.xml", "b.add.xml": "LINK:a.add.xml"},
-        "a.add.xml: a symbolic link loop (named in",
+        "a.add.xml (named in {case}/case.sumocfg): a symbolic link loop",
     ),
     "a compressed sumocfg": ("GZ:" + _cfg(NET_AND_TRIPS), {},
                              "a gzip-compressed config, which SUMO does not read; decompress"),
@@ -408,7 +436,7 @@ def test_refused_sumocfg(scenario, tmp_path, capsys, case):
     err = captured.err.strip()
     assert code == 2, err
     assert "\n" not in err and err.startswith("twin: error:"), err
-    assert needle in err and str(tmp_path / "case") in err, err
+    assert needle.replace("{case}", str(tmp_path / "case")) in err, err
     assert "Traceback" not in err + captured.out
     assert not out.exists()
     assert tree_hash(tmp_path) == before

@@ -29,7 +29,7 @@ def open_xml(path: Path) -> IO[bytes]:
 def link_loop(path: Path, named_in: Path | None = None) -> str:
     """The one-line message for a file that is a symbolic link loop."""
     where = f" (named in {named_in})" if named_in is not None else ""
-    return f"{path}: a symbolic link loop{where}; fix or remove the link"
+    return f"{path}{where}: a symbolic link loop; fix or remove the link"
 
 
 def resolved(path: Path, named_in: Path | None = None) -> Path:
@@ -75,6 +75,21 @@ class SumoConfigFile:
     #: every option the file sets (element name -> value, as written), e.g. its outputs
     options: dict[str, str] = field(default_factory=dict)
     path: Path | None = None
+
+    def files(self) -> list[Path]:
+        """The network, route and additional files it names."""
+        return [self.net, *self.routes, *self.additional]
+
+
+def naming_the_sumocfg(message: str, sumocfg: Path | None, files: list[Path]) -> str:
+    """``message``, when it begins with one of ``files`` (those ``sumocfg`` lists), with the
+    sumocfg named after the file: the user sees where the file comes from."""
+    if sumocfg is None or str(sumocfg) in message:
+        return message
+    for path in files:
+        if message.startswith(f"{path}:"):
+            return f"{path} (named in {sumocfg}){message[len(str(path)) :]}"
+    return message
 
 
 def file_list(value: str | None, base: Path, named_in: Path | None = None) -> list[Path]:

@@ -21,9 +21,11 @@ scaled to the network's lane-km, cached in the user cache (``imported/``, :mod:`
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import math
 import sys
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -35,6 +37,7 @@ from twin.grid import Grid
 from twin.sumo.readers import (
     SUMOCFG_ROOTS,
     departure_span,
+    naming_the_sumocfg,
     read_sumocfg,
     resolved,
     root_tag,
@@ -125,6 +128,18 @@ def suggest_cell_m(lanes, cell_m: float, n_drones: int, min_lane_km: float = 0.0
             return size, free
         size /= 2
     return None
+
+
+@contextlib.contextmanager
+def _named_in(sumocfg: Path | None, files: list[Path]) -> Iterator[None]:
+    """A one-line error about one of ``files`` names the ``sumocfg`` that lists it too."""
+    try:
+        yield
+    except UserError as exc:
+        message = naming_the_sumocfg(str(exc), sumocfg, files)
+        if message == str(exc):
+            raise
+        raise UserError(message) from exc
 
 
 def notice(text: str) -> None:
@@ -234,6 +249,7 @@ def sumo_source(
     additional_files = [resolved(a) for a in s.additional]
     window: list[float | None] = [None, None]  # the scenario's own time window
     span = None  # first and last departure of the given demand
+    listed: list[Path] = []  # the files of the sumocfg that twin uses (named with it in errors)
     if s.network and not (s.net or sumocfg_path or s.osm):
         built = build_named_network(s.network)
         net_file, route_files, name = built.net_file, [built.trips_file], s.network
@@ -247,6 +263,8 @@ def sumo_source(
             # a network given besides the sumocfg replaces its own, as `sumo -c ... -n` does
             net_file, route_files = (Path(s.net) if s.net else cfg.net), cfg.routes
             additional_files = [*cfg.additional, *additional_files]
+            listed = [*([] if s.net else [cfg.net]), *([] if s.routes else cfg.routes)]
+            listed += cfg.additional
             window = [cfg.begin, cfg.end]
             name = sumocfg_path.name
         elif s.osm:
@@ -257,10 +275,12 @@ def sumo_source(
             net_file, route_files, name = Path(s.net), [], Path(s.net).name
         if s.routes:
             route_files = [Path(r) for r in s.routes]
-        _check_routes(route_files)
-        _check_additional(additional_files)
-        # SUMO loads vehicles, flows and persons of additional files as demand too
-        span = departure_span([*route_files, *additional_files])
+        with _named_in(sumocfg_path, listed):
+            check_net_file(net_file)
+            _check_routes(route_files)
+            _check_additional(additional_files)
+            # SUMO loads vehicles, flows and persons of additional files as demand too
+            span = departure_span([*route_files, *additional_files])
         if span is None and sumocfg_path is not None and not route_files:
             notice(
                 f"{sumocfg_path}: names no <route-files>; twin generates a rush-hour demand "
@@ -274,8 +294,9 @@ def sumo_source(
         own_window = span is not None
     if s.end is not None and not swapped:
         window[1] = parse_clock(s.end, f"{config.path}: [traffic].end")
-    check_net_file(net_file)
-    lanes = read_lanes(net_file)
+    with _named_in(sumocfg_path, listed):
+        check_net_file(net_file)
+        lanes = read_lanes(net_file)
     step_s = s.cell_m / (s.drone_speed_kmh / 3.6)
 
     if own_window:
@@ -373,6 +394,7 @@ def sumo_source(
         sumo_options=options,
         extra={
             "additional_files": [str(a) for a in additional_files],
+            "sumocfg_files": [str(f) for f in listed],
             "window": [w0, w1] if own_window else None,
             "departures": list(span) if span else None,
             "n_drones": n_drones,
