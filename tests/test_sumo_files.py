@@ -454,6 +454,8 @@ REFUSED_FLAGS = {
     "a cell size too large": ([*PUBLIC, "--cell-m", "1e9"], "--cell-m 1e+09: cell size"),
     "a cell size too small": ([*PUBLIC, "--cell-m", "0.5"], "--cell-m 0.5: cell size"),
     "a negative drone speed": ([*PUBLIC, "--drone-speed", "-3"], "--drone-speed -3.0: give"),
+    "a step shorter than SUMO's": ([*PUBLIC, "--drone-speed", "1e9"],
+                                   "--drone-speed 1e+09: a step (200 m at 1e+09 km/h) lasts"),
     "a begin that is no clock": ([*PUBLIC, "--begin", "x"], "--begin = 'x' must be a clock"),
     "a negative departure": (["--net", "{net}", "--routes", "{tmp}/early.rou.xml"],
                              "{tmp}/early.rou.xml: <trip id='t' depart='-5'>: the time is"),

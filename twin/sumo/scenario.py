@@ -43,6 +43,8 @@ from twin.sumo.readers import (
     root_tag,
 )
 
+#: SUMO's step (s, its default --step-length): a twin step may not be shorter.
+SUMO_STEP_S = 1.0
 #: Peak demand of the built-in network per lane-km (trips/h), used to scale generated demand.
 SHENZHEN_LANE_KM = 1350.0
 
@@ -298,6 +300,15 @@ def sumo_source(
         check_net_file(net_file)
         lanes = read_lanes(net_file)
     step_s = s.cell_m / (s.drone_speed_kmh / 3.6)
+    if step_s < SUMO_STEP_S:
+        flags = [f"--drone-speed {drone_speed_kmh:g}" if drone_speed_kmh else ""]
+        flags.append(f"--cell-m {cell_m:g}" if cell_m else "")
+        where = ", ".join(f for f in flags if f) or f"{config.path}: [traffic]"
+        raise UserError(
+            f"{where}: a step ({s.cell_m:g} m at {s.drone_speed_kmh:g} km/h) lasts {step_s:.2g} "
+            f"s, shorter than SUMO's {SUMO_STEP_S:g} s step; give a lower drone speed or larger "
+            "cells"
+        )
 
     if own_window:
         w0 = window[0] if window[0] is not None else span[0]
