@@ -451,6 +451,7 @@ def test_refused_sumocfg(scenario, tmp_path, capsys, case):
 PUBLIC = ["--sumocfg", "{cfg}"]
 REFUSED_FLAGS = {
     "more drones than free cells": ([*PUBLIC, "--drones", "1000"], "--drones 1000 exceeds the"),
+    "drones past any disk": ([*PUBLIC, "--drones", "99999999999"], "--drones 99999999999 exceeds"),
     "a cell size too large": ([*PUBLIC, "--cell-m", "1e9"], "--cell-m 1e+09: cell size"),
     "a cell size too small": ([*PUBLIC, "--cell-m", "0.5"], "--cell-m 0.5: cell size"),
     "a negative drone speed": ([*PUBLIC, "--drone-speed", "-3"], "--drone-speed -3.0: give"),

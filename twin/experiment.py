@@ -335,7 +335,7 @@ def estimate_memory(
         per_cell_step += 16
     else:  # a tape: its counts, speeds (and the table they are read from, ~40 B)
         per_cell_step += 48
-    n_drones = experiment.config.swarm.n_drones
+    n_drones = min(experiment.config.swarm.n_drones, cells)  # more cannot fit: refused later
     return float(
         cells * steps * per_cell_step
         + cells * n_swarms * 64
@@ -374,7 +374,7 @@ def disk_estimate_mb(experiment: Experiment) -> float:
         return float(MIN_FREE_MB)
     cells, steps = shape[0] * shape[1], int(horizon) + 1
     n_seeds, n_swarms = len(experiment.seeds), max(len(experiment.swarms), 1)
-    drones = experiment.config.swarm.n_drones
+    drones = min(experiment.config.swarm.n_drones, cells)  # more cannot fit: refused later
     size = n_seeds * n_swarms * steps * (drones * 100 + 200) + cells * steps * 4
     if is_live(experiment):
         size += cells * steps * 8 * n_seeds

@@ -277,7 +277,7 @@ class SumoTraffic(TrafficSource):
     def coarser_hint(self, ratio: float) -> str | None:
         """A cell size (rounded up to 50 m) about ``ratio`` times larger, or fewer steps."""
         cell = float(np.ceil(self.geometry.cell_m * ratio / 50.0) * 50.0)
-        return f"cells of {cell:g} m ([traffic].cell_m) or fewer steps (--horizon)"
+        return f"cells of {cell:g} m (--cell-m, [traffic].cell_m) or fewer steps (--horizon)"
 
     def metadata(self) -> dict[str, Any]:
         s = self.scenario
