@@ -337,6 +337,24 @@ def test_gzip_additional_with_outputs_is_rewritten(scenario, tmp_path):
     assert untouched[1] == str(d / "types.xml") and not (tmp_path / "o2").exists()
 
 
+def test_outputs_and_includes_that_are_link_loops_are_rewritten(tmp_path):
+    """An output file or an include that is a symbolic link loop: the output goes into the
+    output folder as any other, the include is left for SUMO to refuse (no internal error)."""
+    from twin.sumo.outputs import redirect_outputs
+
+    d = tmp_path / "loops"
+    d.mkdir()
+    (d / "a.xml").symlink_to(d / "b.xml")
+    (d / "b.xml").symlink_to(d / "a.xml")
+    add = d / "det.add.xml"
+    add.write_text('<additional><include href="a.xml"/>'
+                   '<e1Detector id="d" lane="x_0" pos="1" freq="60" file="b.xml"/></additional>')  # fmt: skip
+    options, _ = redirect_outputs(None, ("--additional-files", str(add)), tmp_path / "o")
+    root = ET.parse(options[1]).getroot()
+    assert root.find("e1Detector").get("file") == str(tmp_path / "o" / "b.xml")
+    assert root.find("include").get("href") == str(d / "a.xml")
+
+
 # name -> (sumocfg text, files beside it, words of the one-line error)
 REFUSED = {
     "NaN end": (_cfg(NET_AND_TRIPS + '<time><end value="nan"/></time>'), {},
