@@ -257,6 +257,8 @@ def sumo_source(
         net_file, route_files, name = built.net_file, [built.trips_file], s.network
         if s.routes:
             route_files = [Path(r) for r in s.routes]
+            _check_routes(route_files)
+            departure_span(route_files)  # departures SUMO refuses are named here
         _check_additional(additional_files)
         own_window = False
     else:
