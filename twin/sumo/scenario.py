@@ -237,6 +237,7 @@ def sumo_source(
     if drone_speed_kmh is not None:
         s.drone_speed_kmh = drone_speed_kmh
     seed = s.seed if seed is None else seed
+    begin_where = "--begin" if begin else f"{config.path}: [traffic].begin"
     begin_given = begin is not None or (not swapped and "begin" in fields)
     horizon_given = horizon is not None or (not swapped and "horizon" in fields)
     begin = (
@@ -327,6 +328,12 @@ def sumo_source(
             begin = w0 + warmup
         if not horizon_given:
             s.horizon = max(1, int((w1 - begin) / step_s + 1e-9))
+    if begin < warmup:
+        raise UserError(
+            f"{begin_where} = {clock_label(begin)}: the {warmup / 60:g} min warm-up "
+            f"([traffic].warmup_min) would start SUMO before 00:00, which SUMO refuses; give a "
+            f"begin of at least {clock_label(warmup)} or a shorter warm-up"
+        )
 
     # The grid: derived from the bounding box, or the config's [grid] nx, ny if it gives them
     # (for the configured network only; a swapped-in network gets its own grid).
