@@ -6,7 +6,8 @@ Keys of ``[traffic]`` (all optional except ``kind``; see configs/shenzhen.toml):
   or ``net`` (+ ``routes``), ``sumocfg``, ``osm``: files, relative to the config file;
 - ``cell_m`` (500), ``drone_speed_kmh`` (24): one step = ``cell_m / speed`` of simulated time;
 - ``additional``: additional files (vehicle types, signal programs, detectors, polygons) for
-  SUMO, besides those of the sumocfg; files may be gzip-compressed, as SUMO reads them;
+  SUMO, besides those of the sumocfg; files may be gzip-compressed, as SUMO reads them; their
+  vehicles, flows and persons are demand, as SUMO loads them;
 - ``begin`` ("07:00", time of ``T^0``), ``horizon`` (144), ``warmup_min`` (30), ``seed`` (0);
   ``end`` (a clock time): the end of the scenario's window. For a network given as files, the
   window is its own (``<time>`` of the sumocfg, else the demand's departures) unless set;
