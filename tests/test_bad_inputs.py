@@ -439,7 +439,9 @@ def test_a_huge_sumo_grid_is_refused_with_a_cell_size(tmp_path):
     experiment = Experiment(load_config(cfg), ["random", "greedy"], [0])
     source = Unstarted()
     assert source.warmup_steps() == 12
-    with pytest.raises(UserError, match=r"cells of \d+ m \(\[traffic\]\.cell_m\)") as info:
+    with pytest.raises(
+        UserError, match=r"cells of \d+ m \(--cell-m, \[traffic\]\.cell_m\)"
+    ) as info:
         check_memory(experiment, (3000, 4000), 144, source)
     assert "\n" not in str(info.value)
     check_memory(experiment, (20, 30), 144, source)  # the Shenzhen-like grid passes

@@ -236,6 +236,13 @@ CASES = {
         "the file exists, and --record never overwrites a file",
     ),
     "record into a folder": (lambda t: ["run", "--record", str(t)], "--record"),
+    "cell size below a metre": (
+        lambda t: ["run", "--cell-m", "0.001"],
+        "--cell-m 0.001: cell size 0.001 m is outside 1 .. 100000 m",
+    ),
+    "cell size huge": (lambda t: ["run", "--cell-m", "1e9"], "--cell-m 1e+09: cell size"),
+    "cell size NaN": (lambda t: ["run", "--cell-m", "nan"], "--cell-m nan: give a positive"),
+    "begin not a clock": (lambda t: ["run", "--begin", "7:99"], "--begin = '7:99' must be"),
     "sweep out is a file": (
         lambda t: [
             "sweep",

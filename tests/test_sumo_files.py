@@ -29,7 +29,7 @@ pytest.importorskip("libsumo")
 from twin.cli import main
 from twin.errors import UserError
 from twin.runs import check_run_folder
-from twin.sumo.readers import read_sumocfg
+from twin.sumo.readers import departure_span, read_sumocfg
 from twin.sumo.tools import binary, run_sumo_program
 
 CONFIG = """
@@ -170,6 +170,21 @@ def test_sumo_refusing_a_rewritten_file_names_the_users_file(scenario, tmp_path,
     assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == [bad.name]
 
 
+def test_sumo_refusing_a_file_of_the_sumocfg_names_both(scenario, tmp_path, capsys):
+    """SUMO refuses, when it starts, an additional file the sumocfg lists: the error line
+    names that file and the sumocfg."""
+    text = _cfg(NET_AND_TRIPS + '<input><additional-files value="t.add.xml"/></input>')
+    bad = {"t.add.xml": '<additional><vType id="x" vClass="nonsense"/></additional>'}
+    cfg = _write_case(scenario, tmp_path / "case", text, bad)
+    out = tmp_path / "run"
+    code = _run(scenario, out, "--sumocfg", str(cfg))
+    captured = capsys.readouterr()
+    err = captured.err.strip().splitlines()
+    assert code == 2 and err[-1].startswith("twin: error:"), err
+    assert f"{cfg.parent / 't.add.xml'} (named in {cfg}): SUMO refuses it" in err[-1], err
+    assert "Traceback" not in captured.err + captured.out and not out.exists()
+
+
 def test_a_sumocfg_written_by_sumo_itself(scenario, tmp_path, capsys):
     """``sumo -C`` writes ``<sumoConfiguration>`` with relative paths; twin runs it as is."""
     d = tmp_path / "generated"
@@ -226,6 +241,13 @@ ACCEPTED = {
              '<time><begin value="0"/><end value="600"/></time>'),
         {}, 0.0, 600.0,
     ),
+    "demand only in an additional file": (
+        _cfg('<input><net-file value="small.net.xml"/>'
+             '<additional-files value="types.add.xml,trips.add.xml"/></input>'),
+        {"types.add.xml": '<add><vType id="car" vClass="passenger"/></add>',
+         "trips.add.xml": "ADD:small.trips.xml"},
+        None, None,
+    ),
     "SUMO's no-end -1": (
         _cfg(NET_AND_TRIPS + '<time><begin value="0"/><end value="-1"/></time>'),
         {}, 0.0, None,
@@ -240,6 +262,13 @@ def _write_case(scenario: Path, d: Path, text: str, files: dict[str, str]) -> Pa
     for name, body in files.items():
         if body.startswith("GZ:"):
             (d / name).write_bytes(gzip.compress((d / body[3:]).read_bytes()))
+        elif body.startswith("ADD:"):  # a route file's demand in an additional file
+            routes = (d / body[4:]).read_text()
+            (d / name).write_text(
+                routes.replace("<routes", "<additional").replace("</routes>", "</additional>")
+            )
+        elif body.startswith("LINK:"):
+            (d / name).symlink_to(d / body[5:])
         else:
             (d / name).write_text(body)
     if text.startswith("GZ:"):
@@ -260,9 +289,29 @@ def test_accepted_sumocfg_forms(scenario, tmp_path, capsys, case):
     assert read.net == (tmp_path / "case" / "small.net.xml").resolve()
     assert (read.begin, read.end) == (begin, end)
     source = sumo_source(load_config(scenario / "config.toml"), sumocfg=cfg)
-    assert source.horizon >= 1 and source.scenario.route_files
+    assert source.horizon >= 1
     err = capsys.readouterr().err
     assert ("names no <route-files>; twin generates" in err) == ("no route files" in case), err
+    if "additional" in case:  # SUMO loads its vehicles as demand: the window is theirs
+        assert not source.scenario.route_files
+        trips = scenario / "scenario" / "small.trips.xml"
+        assert source.scenario.extra["departures"] == list(departure_span([trips]))
+    else:
+        assert source.scenario.route_files
+
+
+def test_a_net_given_besides_the_sumocfg_replaces_its_own(scenario, tmp_path, capsys):
+    """As with ``sumo -c case.sumocfg -n small.net.xml``: the sumocfg's own <net-file> (here
+    named twice, which SUMO alone would refuse) is not read."""
+    text = _cfg('<input><net-file value="small.net.xml,small.net.xml"/>'
+                '<route-files value="small.trips.xml"/></input>')  # fmt: skip
+    cfg = _write_case(scenario, tmp_path / "case", text, {})
+    net = scenario / "scenario" / "small.net.xml"
+    out = tmp_path / "run"
+    code = _run(scenario, out, "--sumocfg", str(cfg), "--net", str(net), "--horizon", "2")
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert json.loads((out / "run.json").read_text())["traffic"]["net_file"] == str(net)
 
 
 def test_gzip_additional_with_outputs_is_rewritten(scenario, tmp_path):
@@ -402,6 +451,24 @@ def test_output_prefix_and_suffix_keep_outputs_in_the_run_folder(
     assert sorted(run["traffic"]["sumo_outputs"]) == names
 
 
+def test_outputs_and_includes_that_are_link_loops_are_rewritten(tmp_path):
+    """An output file or an include that is a symbolic link loop: the output goes into the
+    output folder as any other, the include is left for SUMO to refuse (no internal error)."""
+    from twin.sumo.outputs import redirect_outputs
+
+    d = tmp_path / "loops"
+    d.mkdir()
+    (d / "a.xml").symlink_to(d / "b.xml")
+    (d / "b.xml").symlink_to(d / "a.xml")
+    add = d / "det.add.xml"
+    add.write_text('<additional><include href="a.xml"/>'
+                   '<e1Detector id="d" lane="x_0" pos="1" freq="60" file="b.xml"/></additional>')  # fmt: skip
+    options, _ = redirect_outputs(None, ("--additional-files", str(add)), tmp_path / "o")
+    root = ET.parse(options[1]).getroot()
+    assert root.find("e1Detector").get("file") == str(tmp_path / "o" / "b.xml")
+    assert root.find("include").get("href") == str(d / "a.xml")
+
+
 # name -> (sumocfg text, files beside it, words of the one-line error)
 REFUSED = {
     "NaN end": (_cfg(NET_AND_TRIPS + '<time><end value="nan"/></time>'), {},
@@ -440,6 +507,62 @@ REFUSED = {
     "a help switch": (_cfg(NET_AND_TRIPS + '<report><help value="true"/></report>'), {},
                       "<help value='true'> makes SUMO print its help and quit"),
     "not XML": ("<configuration><input>", {}, "not valid XML"),
+    "a negative begin": (_cfg(NET_AND_TRIPS + '<time><begin value="-60"/></time>'), {},
+                         "<begin value='-60'> is negative, which SUMO refuses"),
+    "a NaN departure": (
+        _cfg('<input><net-file value="small.net.xml"/><route-files value="n.rou.xml"/></input>'),
+        {"n.rou.xml": '<routes><trip id="t" depart="nan" from="a" to="b"/></routes>'},
+        "n.rou.xml (named in {case}/case.sumocfg): <trip id='t' depart='nan'>: the time is not a finite number",
+    ),
+    "an infinite departure": (
+        _cfg('<input><net-file value="small.net.xml"/><route-files value="i.rou.xml"/></input>'),
+        {"i.rou.xml": '<routes><vehicle id="v" depart="inf" route="r"/></routes>'},
+        "i.rou.xml (named in {case}/case.sumocfg): <vehicle id='v' depart='inf'>: the time is not a finite number",
+    ),
+    "a flow beginning before 0": (
+        _cfg('<input><net-file value="small.net.xml"/><route-files value="f.rou.xml"/></input>'),
+        {"f.rou.xml": '<routes><flow id="f" begin="-50" end="60" period="5" from="a" to="b"/>'
+                      "</routes>"},
+        "f.rou.xml (named in {case}/case.sumocfg): <flow id='f' begin='-50'>: the time is negative",
+    ),
+    "the network twice": (
+        _cfg('<input><net-file value="small.net.xml,small.net.xml"/>'
+             '<route-files value="small.trips.xml"/></input>'),
+        {}, "names a network twice, which SUMO refuses",
+    ),
+    "two networks": (
+        _cfg('<input><net-file value="small.net.xml, b.net.xml"/>'
+             '<route-files value="small.trips.xml"/></input>'),
+        {"b.net.xml": "<net/>"}, "names 2 networks; twin lays its grid over one: merge them",
+    ),
+    "a missing route file": (
+        _cfg('<input><net-file value="small.net.xml"/><route-files value="no.rou.xml"/></input>'),
+        {}, "{case}/no.rou.xml (named in {case}/case.sumocfg): no such route file",
+    ),
+    "a route file not XML": (
+        _cfg('<input><net-file value="small.net.xml"/><route-files value="x.rou.xml"/></input>'),
+        {"x.rou.xml": "<routes><trip"},
+        "{case}/x.rou.xml (named in {case}/case.sumocfg): not valid XML",
+    ),
+    "a route file as network": (
+        _cfg('<input><net-file value="small.trips.xml"/></input>'), {},
+        "{case}/small.trips.xml (named in {case}/case.sumocfg): not a SUMO network",
+    ),
+    "a link loop as route file": (
+        _cfg('<input><net-file value="small.net.xml"/><route-files value="a.rou.xml"/></input>'),
+        {"a.rou.xml": "LINK:b.rou.xml", "b.rou.xml": "LINK:a.rou.xml"},
+        "a.rou.xml (named in {case}/case.sumocfg): a symbolic link loop",
+    ),
+    "a link loop as network": (
+        _cfg('<input><net-file value="a.net.xml"/><route-files value="small.trips.xml"/></input>'),
+        {"a.net.xml": "LINK:b.net.xml", "b.net.xml": "LINK:a.net.xml"},
+        "a.net.xml (named in {case}/case.sumocfg): a symbolic link loop",
+    ),
+    "a link loop as additional": (
+        _cfg(NET_AND_TRIPS + '<input><additional-files value="a.add.xml"/></input>'),
+        {"a.add.xml": "LINK:b.add.xml", "b.add.xml": "LINK:a.add.xml"},
+        "a.add.xml (named in {case}/case.sumocfg): a symbolic link loop",
+    ),
     "a compressed sumocfg": ("GZ:" + _cfg(NET_AND_TRIPS), {},
                              "a gzip-compressed config, which SUMO does not read; decompress"),
 }  # fmt: skip
@@ -456,10 +579,59 @@ def test_refused_sumocfg(scenario, tmp_path, capsys, case):
     err = captured.err.strip()
     assert code == 2, err
     assert "\n" not in err and err.startswith("twin: error:"), err
-    assert needle in err and str(tmp_path / "case") in err, err
+    assert needle.replace("{case}", str(tmp_path / "case")) in err, err
     assert "Traceback" not in err + captured.out
     assert not out.exists()
     assert tree_hash(tmp_path) == before
     if case.startswith(("NaN", "infinite")):
         with pytest.raises(UserError, match="finite time"):
             read_sumocfg(cfg)
+
+
+# name -> (flags of `twin run`, words of the one-line error); {cfg}: the scenario's sumocfg,
+# {net}: its network, {tmp}: a folder holding two loops of symbolic links, loop.xml and
+# loop.sumocfg, and early.rou.xml, a trip departing at -5 s
+PUBLIC = ["--sumocfg", "{cfg}"]
+REFUSED_FLAGS = {
+    "more drones than free cells": ([*PUBLIC, "--drones", "1000"], "--drones 1000 exceeds the"),
+    "drones past any disk": ([*PUBLIC, "--drones", "99999999999"], "--drones 99999999999 exceeds"),
+    "a cell size too large": ([*PUBLIC, "--cell-m", "1e9"], "--cell-m 1e+09: cell size"),
+    "a cell size too small": ([*PUBLIC, "--cell-m", "0.5"], "--cell-m 0.5: cell size"),
+    "a negative drone speed": ([*PUBLIC, "--drone-speed", "-3"], "--drone-speed -3.0: give"),
+    "a step shorter than SUMO's": ([*PUBLIC, "--drone-speed", "1e9"],
+                                   "--drone-speed 1e+09: a step (200 m at 1e+09 km/h) lasts"),
+    "a begin inside the warm-up": ([*PUBLIC, "--begin", "00:00"],
+                                   "--begin = 00:00:00: the 1 min warm-up"),
+    "a begin that is no clock": ([*PUBLIC, "--begin", "x"], "--begin = 'x' must be a clock"),
+    "a negative departure": (["--net", "{net}", "--routes", "{tmp}/early.rou.xml"],
+                             "{tmp}/early.rou.xml: <trip id='t' depart='-5'>: the time is"),
+    "a link loop as sumocfg": (["--sumocfg", "{tmp}/loop.sumocfg"],
+                               "{tmp}/loop.sumocfg: a symbolic link loop"),
+    "a link loop as net": (["--net", "{tmp}/loop.xml"], "{tmp}/loop.xml: a symbolic link loop"),
+    "a link loop as routes": (["--net", "{net}", "--routes", "{tmp}/loop.xml"],
+                              "{tmp}/loop.xml: a symbolic link loop"),
+    "a link loop as additional": ([*PUBLIC, "--additional", "{tmp}/loop.xml"],
+                                  "{tmp}/loop.xml: a symbolic link loop"),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("case", list(REFUSED_FLAGS))
+def test_refused_flags_name_the_flag_or_file(scenario, tmp_path, capsys, case):
+    flags, needle = REFUSED_FLAGS[case]
+    for loop in ("loop.xml", "loop.sumocfg"):
+        (tmp_path / f"other-{loop}").symlink_to(tmp_path / loop)
+        (tmp_path / loop).symlink_to(tmp_path / f"other-{loop}")
+    (tmp_path / "early.rou.xml").write_text(
+        '<routes><trip id="t" depart="-5" from="a" to="b"/></routes>'
+    )
+    names = {"cfg": scenario / "scenario" / "public.sumocfg", "tmp": tmp_path,
+             "net": scenario / "scenario" / "small.net.xml"}  # fmt: skip
+    out = tmp_path / "run"
+    code = _run(scenario, out, *(f.format(**names) for f in flags))
+    captured = capsys.readouterr()
+    err = captured.err.strip()
+    assert code == 2, err
+    assert "\n" not in err and err.startswith("twin: error:"), err
+    assert needle.format(**names) in err and "config.toml" not in err, err
+    assert "Traceback" not in err + captured.out
+    assert not out.exists()

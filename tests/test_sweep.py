@@ -109,8 +109,9 @@ def tiny_checkpoint(path: Path) -> Path:
     return path
 
 
-def test_local_pool_and_ray_give_identical_results(tmp_path: Path) -> None:
-    """Baselines and an online-learning swarm (torch) give the same numbers on both executors."""
+def test_local_pool_and_ray_give_identical_results(tmp_path: Path, capfd) -> None:
+    """Baselines and an online-learning swarm (torch) give the same numbers on both executors;
+    Ray writes nothing on the terminal (no log or warning lines)."""
     pytest.importorskip("ray", reason="Ray not installed (pip install 'twin[ray]')")
     path = sweep_file(tmp_path, seeds=1, parameters='"swarm.eta" = [0.1, 0.2]')
     tiny_checkpoint(tmp_path / "tiny.pt")
@@ -118,7 +119,9 @@ def test_local_pool_and_ray_give_identical_results(tmp_path: Path) -> None:
     path.write_text(text + '\n[swarm_options.rl-online]\ncheckpoint = "tiny.pt"\n')
     config = load_sweep_config(path)
     local = run_sweep(config, tmp_path / "local", executor="local", workers=2, report=False)
+    capfd.readouterr()
     ray = run_sweep(config, tmp_path / "ray", executor="ray", workers=2, report=False)
+    assert capfd.readouterr().err == ""
     assert sorted(local.ran) == sorted(ray.ran) and len(local.ran) == 2
     got = numbers(tmp_path / "local")
     assert set(got["swarm"]) == {"random", "greedy", "sweeping", "rl-online"}

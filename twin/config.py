@@ -564,9 +564,16 @@ def make_grid(config: ScenarioConfig) -> Grid:
     return Grid(obstacles)
 
 
-def check_swarm_fits(config: ScenarioConfig, grid: Grid) -> None:
-    """Enough free cells for the drones; explicit starts on distinct free cells of the map."""
+def check_swarm_fits(config: ScenarioConfig, grid: Grid, drones_flag: str | None = None) -> None:
+    """Enough free cells for the drones; explicit starts on distinct free cells of the map.
+    ``drones_flag``: the command-line flag that set the number of drones (named instead of the
+    config file)."""
     path, s = config.path, config.swarm
+    if s.n_drones > grid.n_free and drones_flag:
+        raise ConfigError(
+            f"{drones_flag} {s.n_drones} exceeds the {grid.n_free} free cells of the "
+            f"{grid.shape[0]} x {grid.shape[1]} grid; give at most {grid.n_free}"
+        )
     if s.n_drones > grid.n_free:
         raise _fail(
             path,

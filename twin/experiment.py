@@ -58,6 +58,9 @@ class Experiment:
     max_memory_gb: float | None = None
     #: live traffic in a process of its own, ahead of the swarms; same results
     separate_process: bool = True
+    #: the command-line flag that set the number of drones (``twin run --drones``), named in
+    #: the error when they do not fit the grid; None: the config file's
+    drones_flag: str | None = None
 
 
 @dataclass
@@ -218,7 +221,7 @@ def _run_seeds(
         try:
             if live and n == 0:
                 check_memory(experiment, source.grid.shape, source.horizon, source)
-            check_swarm_fits(experiment.config, source.grid)
+            check_swarm_fits(experiment.config, source.grid, experiment.drones_flag)
             if on_source is not None:
                 on_source(source)
             swarms = build_swarms(experiment)
@@ -332,7 +335,7 @@ def estimate_memory(
         per_cell_step += 16
     else:  # a tape: its counts, speeds (and the table they are read from, ~40 B)
         per_cell_step += 48
-    n_drones = experiment.config.swarm.n_drones
+    n_drones = min(experiment.config.swarm.n_drones, cells)  # more cannot fit: refused later
     return float(
         cells * steps * per_cell_step
         + cells * n_swarms * 64
@@ -371,7 +374,7 @@ def disk_estimate_mb(experiment: Experiment) -> float:
         return float(MIN_FREE_MB)
     cells, steps = shape[0] * shape[1], int(horizon) + 1
     n_seeds, n_swarms = len(experiment.seeds), max(len(experiment.swarms), 1)
-    drones = experiment.config.swarm.n_drones
+    drones = min(experiment.config.swarm.n_drones, cells)  # more cannot fit: refused later
     size = n_seeds * n_swarms * steps * (drones * 100 + 200) + cells * steps * 4
     if is_live(experiment):
         size += cells * steps * 8 * n_seeds

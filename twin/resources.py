@@ -59,6 +59,8 @@ def shipped_config(given: str | Path) -> Path:
     path = Path(given)
     if path.exists():
         return path
+    if path.is_symlink():  # a link to nothing, or a loop of links
+        raise UserError(f"{given}: a symbolic link to no file or a loop; fix or remove the link")
     if path.parent in (Path("."), Path("configs")):
         name = path.name if path.suffix == ".toml" else f"{path.name}.toml"
         candidate = shipped("configs", name)

@@ -6,8 +6,6 @@ import argparse
 import time
 from pathlib import Path
 
-from twin.errors import UserError
-
 
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
@@ -44,8 +42,9 @@ def main_build(args: argparse.Namespace) -> int:
 
 def main_osm(args: argparse.Namespace) -> int:
     from twin.sumo.network import import_osm
+    from twin.sumo.readers import missing
 
     if not args.osm.exists():
-        raise UserError(f"{args.osm}: no such OSM file")
+        raise missing(args.osm, "OSM file")
     print(f"network: {import_osm(args.osm, args.out)}")
     return 0

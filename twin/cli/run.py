@@ -29,9 +29,16 @@ def add_parser(subparsers) -> None:
         "generates a rush-hour demand with SUMO's randomTrips.py.",
     )
     p.add_argument("--config", type=Path, default=None, help=f"scenario (default {DEFAULT_CONFIG})")
-    p.add_argument("--net", type=Path, help="a SUMO network (.net.xml) instead of the config's")
     p.add_argument(
-        "--routes", type=Path, action="append", help="route/trip file(s) for --net (repeatable)"
+        "--net",
+        type=Path,
+        help="a SUMO network (.net.xml) instead of the config's or the --sumocfg's",
+    )
+    p.add_argument(
+        "--routes",
+        type=Path,
+        action="append",
+        help="route/trip file(s) for --net or instead of the --sumocfg's (repeatable)",
     )
     p.add_argument("--sumocfg", type=Path, help="a SUMO configuration (.sumocfg): network + demand")
     p.add_argument("--osm", type=Path, help="an OpenStreetMap extract, converted with netconvert")
@@ -135,8 +142,10 @@ def gui_drawer(args: argparse.Namespace, swarms):
 def build_experiment(args: argparse.Namespace):
     """The :class:`twin.experiment.Experiment` of ``twin run``'s flags (``twin replay`` rebuilds
     a run's from the flags recorded in its ``run.json``)."""
+    from twin.clock import parse_clock
     from twin.config import load_config, shipped_config
     from twin.experiment import Experiment, parse_swarm_names
+    from twin.resources import check_cell_size
     from twin.sumo.scenario import SumoInputs
 
     for flag, value in (
@@ -146,6 +155,10 @@ def build_experiment(args: argparse.Namespace):
     ):
         if value is not None and not (value > 0 and math.isfinite(value)):
             raise UserError(f"{flag} {value}: give a positive number")
+    if args.cell_m is not None:
+        check_cell_size(args.cell_m, f"--cell-m {args.cell_m:g}")
+    if args.begin is not None:
+        parse_clock(args.begin, "--begin")
     config = load_config(shipped_config(args.config or DEFAULT_CONFIG))
     if args.drones is not None:
         config = config.model_copy(
@@ -156,11 +169,12 @@ def build_experiment(args: argparse.Namespace):
             f"{config.path}: [traffic].kind = {config.traffic.kind!r}; `twin run` needs "
             '"sumo" (use `twin evaluate` for synthetic traffic)'
         )
-    if args.routes and not args.net:
-        raise UserError("--routes needs --net (the network the routes run on)")
-    given = sum(x is not None for x in (args.net, args.sumocfg, args.osm))
-    if given > 1:
-        raise UserError("give one of --net, --sumocfg, --osm")
+    if args.routes and not (args.net or args.sumocfg):
+        raise UserError("--routes needs --net or --sumocfg (the network the routes run on)")
+    if args.osm is not None and (args.net or args.sumocfg):
+        raise UserError(
+            "give --osm alone, or --net and/or --sumocfg (--net replaces the sumocfg's)"
+        )
     check_count("--seeds", args.seeds)
     check_count("--horizon", args.horizon)
     check_seeds("--seed", args.seed, args.seeds)
@@ -186,6 +200,7 @@ def build_experiment(args: argparse.Namespace):
         traffic_seed=args.sumo_seed,
         skip_unavailable=args.swarms is None,
         max_memory_gb=args.max_memory_gb,
+        drones_flag="--drones" if args.drones is not None else None,
     )
     return experiment
 

@@ -19,7 +19,7 @@ from typing import Any
 
 from twin import resources
 from twin.errors import UserError
-from twin.sumo.readers import root_tag
+from twin.sumo.readers import missing, root_tag
 from twin.sumo.tools import binary, run_sumo_program
 
 #: Bump when the generator's output changes for the same spec (forces a rebuild).
@@ -267,7 +267,7 @@ def import_osm(osm_file: Path, out_dir: Path | None = None) -> Path:
     ``out_dir`` or (by default) the cache, reusing a cached conversion."""
     osm_file = Path(osm_file)
     if not osm_file.exists():
-        raise UserError(f"{osm_file}: no such OSM file")
+        raise missing(osm_file, "OSM file")
     name = osm_file.name.split(".")[0] + ".net.xml"
 
     def make(out: Path) -> None:

@@ -124,7 +124,7 @@ class OutputPlan:
 
     def target(self, original: Path) -> Path:
         """The file in ``out_dir`` that replaces the output ``original`` (same base name)."""
-        original = Path(original).resolve()
+        original = _absolute(original)
         if original not in self.targets:
             self.targets[original] = self._fresh(original.name)
         return self.targets[original]
@@ -132,7 +132,7 @@ class OutputPlan:
     def additional(self, path: Path) -> Path:
         """``path``, or a rewritten copy in ``out_dir`` if it (or a file it includes) writes
         outputs."""
-        path = Path(path).resolve()
+        path = _absolute(path)
         if path in self.copies:
             return self.copies[path]
         self.copies[path] = path  # (an include cycle ends here)
@@ -152,7 +152,7 @@ class OutputPlan:
                 changed = True
         for elem in root.iter("include"):
             href = elem.get("href")
-            if href and self.additional(base / href) != (base / href).resolve():
+            if href and self.additional(base / href) != _absolute(base / href):
                 changed = True
         if changed:
             for elem in root.iter():
@@ -165,7 +165,7 @@ class OutputPlan:
                     if name == "href" and elem.tag == "include":
                         elem.set(name, str(self.additional(base / value)))
                     elif _is_file(value) and not Path(value).is_absolute():
-                        elem.set(name, str((base / value).resolve()))
+                        elem.set(name, str(_absolute(base / value)))
             name = path.name[:-3] if path.name.endswith(".gz") else path.name
             copy = self._fresh(name)
             ET.indent(tree)
@@ -194,6 +194,15 @@ def name_part(value: str) -> str:
     return re.split(r"[\\/]", value)[-1]
 
 
+def _absolute(path: Path) -> Path:
+    """``path`` absolute, its links followed where they lead somewhere (a link loop stays as it
+    is, for SUMO to refuse or, for an output, to be replaced)."""
+    try:
+        return Path(path).resolve()
+    except (RuntimeError, OSError):  # Python 3.11 raises RuntimeError for a loop
+        return Path(os.path.abspath(path))
+
+
 def redirect_outputs(
     sumocfg: Path | None, options: tuple[str, ...], out_dir: Path
 ) -> tuple[tuple[str, ...], OutputPlan]:
@@ -205,7 +214,7 @@ def redirect_outputs(
     extra: list[str] = []
     out = list(options)
     if sumocfg is not None:
-        cfg = read_sumocfg(sumocfg)
+        cfg = read_sumocfg(sumocfg, own_net=False)  # its outputs only
         for name in NAMING_OPTIONS:
             value = cfg.options.get(name)
             if value and f"--{name}" not in out:

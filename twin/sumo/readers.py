@@ -3,8 +3,10 @@ options and time window, the span of a demand's departures."""
 
 from __future__ import annotations
 
+import errno
 import gzip
 import math
+import os
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,11 +26,36 @@ def open_xml(path: Path) -> IO[bytes]:
     return fh
 
 
+def link_loop(path: Path, named_in: Path | None = None) -> str:
+    """The one-line message for a file that is a symbolic link loop."""
+    where = f" (named in {named_in})" if named_in is not None else ""
+    return f"{path}{where}: a symbolic link loop; fix or remove the link"
+
+
+def resolved(path: Path, named_in: Path | None = None) -> Path:
+    """``path`` made absolute, its links followed; a symbolic link loop is a one-line error
+    (``named_in``: the config that names the file)."""
+    try:
+        return Path(path).resolve()
+    except (RuntimeError, OSError) as exc:  # Python 3.11 raises RuntimeError for a loop
+        raise UserError(link_loop(path, named_in)) from exc
+
+
+def missing(path: Path, what: str) -> UserError:
+    """The one-line error for a file that is not there: a symbolic link loop, or no file."""
+    try:
+        os.stat(path)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            return UserError(link_loop(path))
+    return UserError(f"{path}: no such {what}")
+
+
 def root_tag(path: Path, what: str) -> str:
     """The root element of a SUMO XML file (compressed or not); one-line errors."""
     path = Path(path)
     if not path.exists():
-        raise UserError(f"{path}: no such {what}")
+        raise missing(path, what)
     try:
         with open_xml(path) as fh:
             return next(ET.iterparse(fh, events=("start",)))[1].tag
@@ -49,10 +76,26 @@ class SumoConfigFile:
     options: dict[str, str] = field(default_factory=dict)
     path: Path | None = None
 
+    def files(self) -> list[Path]:
+        """The network, route and additional files it names."""
+        return [self.net, *self.routes, *self.additional]
 
-def file_list(value: str | None, base: Path) -> list[Path]:
-    """The files of a comma-separated SUMO option, resolved against ``base``."""
-    return [(base / v.strip()).resolve() for v in (value or "").split(",") if v.strip()]
+
+def naming_the_sumocfg(message: str, sumocfg: Path | None, files: list[Path]) -> str:
+    """``message``, when it begins with one of ``files`` (those ``sumocfg`` lists), with the
+    sumocfg named after the file: the user sees where the file comes from."""
+    if sumocfg is None or str(sumocfg) in message:
+        return message
+    for path in files:
+        if message.startswith(f"{path}:"):
+            return f"{path} (named in {sumocfg}){message[len(str(path)) :]}"
+    return message
+
+
+def file_list(value: str | None, base: Path, named_in: Path | None = None) -> list[Path]:
+    """The files of a comma-separated SUMO option, resolved against ``base`` (``named_in``: the
+    config that lists them, named in errors)."""
+    return [resolved(base / v.strip(), named_in) for v in (value or "").split(",") if v.strip()]
 
 
 def parse_time(value: str | None) -> float | None:
@@ -108,10 +151,12 @@ _SAVE_AND_QUIT = ("save-configuration", "C", "save-template", "save-schema")
 _PRINT_AND_QUIT = ("help", "version")
 
 
-def read_sumocfg(path: Path) -> SumoConfigFile:
+def read_sumocfg(path: Path, own_net: bool = True) -> SumoConfigFile:
     """Net, route and additional files of a ``.sumocfg`` (relative to its folder, as SUMO reads
-    them), its ``<time>`` window, if it gives one, and all its options."""
-    path = Path(path).resolve() if Path(path).exists() else Path(path)
+    them), its ``<time>`` window, if it gives one, and all its options. Without ``own_net``
+    (a network given besides it replaces its own, as with ``sumo -c ... -n``) its
+    ``<net-file>`` is not checked."""
+    path = resolved(path) if Path(path).exists() else Path(path)
     tag = root_tag(path, "SUMO config")
     if tag not in SUMOCFG_ROOTS:
         what = (
@@ -143,7 +188,9 @@ def read_sumocfg(path: Path) -> SumoConfigFile:
                 return options[name]
         return None
 
-    net = file_list(value("net-file", "n"), path.parent)
+    net = file_list(value("net-file", "n"), path.parent, path)
+    if not own_net:
+        net = net[:1] or [Path()]
     if not net:
         raise UserError(
             f"{path}: names no network; add <net-file value=...> to its <input> (twin needs "
@@ -161,6 +208,17 @@ def read_sumocfg(path: Path) -> SumoConfigFile:
                 f"{path}: <{name} value={options[name]!r}> makes SUMO print its {name} and quit "
                 "instead of simulating; remove it"
             )
+    if len(set(net)) < len(net):
+        raise UserError(
+            f"{path}: <net-file value={value('net-file', 'n')!r}> names a network twice, which "
+            "SUMO refuses (each junction would exist twice); name it once"
+        )
+    if len(net) > 1:
+        raise UserError(
+            f"{path}: <net-file value={value('net-file', 'n')!r}> names {len(net)} networks; "
+            "twin lays its grid over one: merge them (netconvert -s a.net.xml,b.net.xml -o "
+            "merged.net.xml) and name that"
+        )
     window = []
     for key in ("begin", "end"):
         text = value(key, "b" if key == "begin" else "e")
@@ -172,6 +230,11 @@ def read_sumocfg(path: Path) -> SumoConfigFile:
             )
         if key == "end" and t is not None and t < 0:  # SUMO's default -1: no end
             t = None
+        if key == "begin" and t is not None and t < 0:
+            raise UserError(
+                f"{path}: <begin value={text!r}> is negative, which SUMO refuses; give seconds "
+                "from 0 (e.g. 3600) or a clock (1:00:00)"
+            )
         window.append(t)
     if None not in window and window[1] <= window[0]:
         raise UserError(
@@ -180,8 +243,8 @@ def read_sumocfg(path: Path) -> SumoConfigFile:
         )
     return SumoConfigFile(
         net=net[0],
-        routes=file_list(value("route-files", "r"), path.parent),
-        additional=file_list(value("additional-files", "a"), path.parent),
+        routes=file_list(value("route-files", "r"), path.parent, path),
+        additional=file_list(value("additional-files", "a"), path.parent, path),
         begin=window[0],
         end=window[1],
         options=options,
@@ -190,7 +253,35 @@ def read_sumocfg(path: Path) -> SumoConfigFile:
 
 
 #: Elements that put vehicles on the road, and the attribute of their departure.
-_DEPARTING = {"vehicle": "depart", "trip": "depart", "person": "depart", "flow": "begin"}
+_DEPARTING = {
+    "vehicle": "depart",
+    "trip": "depart",
+    "person": "depart",
+    "container": "depart",
+    "flow": "begin",
+    "personFlow": "begin",
+    "containerFlow": "begin",
+}
+
+
+def _check_departure(path: Path, elem: ET.Element, key: str) -> float | None:
+    """The departure time of ``elem`` (None for SUMO's words such as "triggered" or "now"); a
+    negative, NaN or infinite time, which SUMO refuses, is a one-line error naming the file."""
+    text = elem.get(key)
+    if text is None:
+        return None
+    t = parse_time(text)
+    try:
+        number = float(text)
+    except ValueError:
+        number = t
+    if number is not None and (t is None or t < 0):
+        what = "negative" if number < 0 else "not a finite number"
+        raise UserError(
+            f"{path}: <{elem.tag} id={elem.get('id')!r} {key}={text!r}>: the time is {what}, "
+            "which SUMO refuses; give seconds from 0 (e.g. 3600) or a clock (1:00:00)"
+        )
+    return t
 
 
 def departure_span(route_files: list[Path]) -> tuple[float, float] | None:
@@ -202,7 +293,7 @@ def departure_span(route_files: list[Path]) -> tuple[float, float] | None:
             with open_xml(path) as fh:
                 for _, elem in ET.iterparse(fh, events=("end",)):
                     key = _DEPARTING.get(elem.tag)
-                    t = parse_time(elem.get(key)) if key else None
+                    t = _check_departure(path, elem, key) if key else None
                     if t is not None:
                         end = t
                         if elem.tag == "flow":

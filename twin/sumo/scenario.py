@@ -6,7 +6,8 @@ Keys of ``[traffic]`` (all optional except ``kind``; see configs/shenzhen.toml):
   or ``net`` (+ ``routes``), ``sumocfg``, ``osm``: files, relative to the config file;
 - ``cell_m`` (500), ``drone_speed_kmh`` (24): one step = ``cell_m / speed`` of simulated time;
 - ``additional``: additional files (vehicle types, signal programs, detectors, polygons) for
-  SUMO, besides those of the sumocfg; files may be gzip-compressed, as SUMO reads them;
+  SUMO, besides those of the sumocfg; files may be gzip-compressed, as SUMO reads them; their
+  vehicles, flows and persons are demand, as SUMO loads them;
 - ``begin`` ("07:00", time of ``T^0``), ``horizon`` (144), ``warmup_min`` (30), ``seed`` (0);
   ``end`` (a clock time): the end of the scenario's window. For a network given as files, the
   window is its own (``<time>`` of the sumocfg, else the demand's departures) unless set;
@@ -21,9 +22,11 @@ scaled to the network's lane-km, cached in the user cache (``imported/``, :mod:`
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import math
 import sys
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -32,8 +35,17 @@ from twin.clock import clock_label, parse_clock
 from twin.config import MFDSettings, SumoSettings
 from twin.errors import UserError
 from twin.grid import Grid
-from twin.sumo.readers import SUMOCFG_ROOTS, departure_span, read_sumocfg, root_tag
+from twin.sumo.readers import (
+    SUMOCFG_ROOTS,
+    departure_span,
+    naming_the_sumocfg,
+    read_sumocfg,
+    resolved,
+    root_tag,
+)
 
+#: SUMO's step (s, its default --step-length): a twin step may not be shorter.
+SUMO_STEP_S = 1.0
 #: Peak demand of the built-in network per lane-km (trips/h), used to scale generated demand.
 SHENZHEN_LANE_KM = 1350.0
 
@@ -119,6 +131,18 @@ def suggest_cell_m(lanes, cell_m: float, n_drones: int, min_lane_km: float = 0.0
             return size, free
         size /= 2
     return None
+
+
+@contextlib.contextmanager
+def _named_in(sumocfg: Path | None, files: list[Path]) -> Iterator[None]:
+    """A one-line error about one of ``files`` names the ``sumocfg`` that lists it too."""
+    try:
+        yield
+    except UserError as exc:
+        message = naming_the_sumocfg(str(exc), sumocfg, files)
+        if message == str(exc):
+            raise
+        raise UserError(message) from exc
 
 
 def notice(text: str) -> None:
@@ -214,34 +238,41 @@ def sumo_source(
     if drone_speed_kmh is not None:
         s.drone_speed_kmh = drone_speed_kmh
     seed = s.seed if seed is None else seed
+    begin_where = "--begin" if begin else f"{config.path}: [traffic].begin"
     begin_given = begin is not None or (not swapped and "begin" in fields)
     horizon_given = horizon is not None or (not swapped and "horizon" in fields)
-    begin = parse_clock(begin or s.begin, f"{config.path}: [traffic].begin")
+    begin = (
+        parse_clock(begin, "--begin")
+        if begin
+        else parse_clock(s.begin, f"{config.path}: [traffic].begin")
+    )
     warmup = s.warmup_min * 60.0
     demand = load_spec(resources.network_spec("shenzhen_like"))["demand"]
 
-    sumocfg_path = Path(s.sumocfg).resolve() if s.sumocfg else None
-    additional_files = [Path(a).resolve() for a in s.additional]
+    sumocfg_path = resolved(s.sumocfg) if s.sumocfg else None
+    additional_files = [resolved(a) for a in s.additional]
     window: list[float | None] = [None, None]  # the scenario's own time window
     span = None  # first and last departure of the given demand
+    listed: list[Path] = []  # the files of the sumocfg that twin uses (named with it in errors)
     if s.network and not (s.net or sumocfg_path or s.osm):
         built = build_named_network(s.network)
         net_file, route_files, name = built.net_file, [built.trips_file], s.network
         if s.routes:
             route_files = [Path(r) for r in s.routes]
+            _check_routes(route_files)
+            departure_span(route_files)  # departures SUMO refuses are named here
+        _check_additional(additional_files)
         own_window = False
     else:
         if sumocfg_path is not None:
-            cfg = read_sumocfg(sumocfg_path)
-            net_file, route_files = cfg.net, cfg.routes
+            cfg = read_sumocfg(sumocfg_path, own_net=not s.net)
+            # a network given besides the sumocfg replaces its own, as `sumo -c ... -n` does
+            net_file, route_files = (Path(s.net) if s.net else cfg.net), cfg.routes
             additional_files = [*cfg.additional, *additional_files]
+            listed = [*([] if s.net else [cfg.net]), *([] if s.routes else cfg.routes)]
+            listed += cfg.additional
             window = [cfg.begin, cfg.end]
             name = sumocfg_path.name
-            if not route_files and not s.routes:
-                notice(
-                    f"{sumocfg_path}: names no <route-files>; twin generates a rush-hour demand "
-                    "(add route files to the config to run your own)"
-                )
         elif s.osm:
             osm_path = Path(s.osm)
             net_file = import_osm(osm_path)  # cached
@@ -250,20 +281,38 @@ def sumo_source(
             net_file, route_files, name = Path(s.net), [], Path(s.net).name
         if s.routes:
             route_files = [Path(r) for r in s.routes]
-        _check_routes(route_files)
-        span = departure_span(route_files) if route_files else None
-        if route_files and span is None:
+        with _named_in(sumocfg_path, listed):
+            check_net_file(net_file)
+            _check_routes(route_files)
+            _check_additional(additional_files)
+            # SUMO loads vehicles, flows and persons of additional files as demand too
+            span = departure_span([*route_files, *additional_files])
+        if span is None and sumocfg_path is not None and not route_files:
+            notice(
+                f"{sumocfg_path}: names no <route-files>; twin generates a rush-hour demand "
+                "(add route files to the config to run your own)"
+            )
+        elif span is None and route_files:
             notice(
                 f"{', '.join(str(r) for r in route_files)}: no vehicle departs in the route "
                 "files (vehicle types only?); twin generates a rush-hour demand"
             )
         own_window = span is not None
-    _check_additional(additional_files)
     if s.end is not None and not swapped:
         window[1] = parse_clock(s.end, f"{config.path}: [traffic].end")
-    check_net_file(net_file)
-    lanes = read_lanes(net_file)
+    with _named_in(sumocfg_path, listed):
+        check_net_file(net_file)
+        lanes = read_lanes(net_file)
     step_s = s.cell_m / (s.drone_speed_kmh / 3.6)
+    if step_s < SUMO_STEP_S:
+        flags = [f"--drone-speed {drone_speed_kmh:g}" if drone_speed_kmh else ""]
+        flags.append(f"--cell-m {cell_m:g}" if cell_m else "")
+        where = ", ".join(f for f in flags if f) or f"{config.path}: [traffic]"
+        raise UserError(
+            f"{where}: a step ({s.cell_m:g} m at {s.drone_speed_kmh:g} km/h) lasts {step_s:.2g} "
+            f"s, shorter than SUMO's {SUMO_STEP_S:g} s step; give a lower drone speed or larger "
+            "cells"
+        )
 
     if own_window:
         w0 = window[0] if window[0] is not None else span[0]
@@ -280,13 +329,20 @@ def sumo_source(
             begin = w0 + warmup
         if not horizon_given:
             s.horizon = max(1, int((w1 - begin) / step_s + 1e-9))
+    if begin < warmup:
+        raise UserError(
+            f"{begin_where} = {clock_label(begin)}: the {warmup / 60:g} min warm-up "
+            f"([traffic].warmup_min) would start SUMO before 00:00, which SUMO refuses; give a "
+            f"begin of at least {clock_label(warmup)} or a shorter warm-up"
+        )
 
     # The grid: derived from the bounding box, or the config's [grid] nx, ny if it gives them
     # (for the configured network only; a swapped-in network gets its own grid).
     shape = None
     if not (net or sumocfg or osm or cell_m):
         shape = config.explicit_shape()  # set in the file or by an override
-    geometry = grid_over(lanes, s.cell_m, shape, where=f"{config.path}: [grid]")
+    where = f"--cell-m {cell_m:g}" if cell_m else f"{config.path}: [grid]"
+    geometry = grid_over(lanes, s.cell_m, shape, where=where)
     obstacles = geometry.obstacles(s.min_lane_km)
     for i, j in getattr(config.grid, "obstacles", []) or []:
         if 0 <= i < geometry.nx and 0 <= j < geometry.ny:
@@ -295,7 +351,7 @@ def sumo_source(
         raise UserError(f"{net_file}: no cell of the {geometry.nx} x {geometry.ny} grid has a lane")
     n_free, n_drones = int((~obstacles).sum()), config.swarm.n_drones
     notices = []
-    if n_free < MIN_FREE_CELLS_PER_DRONE * n_drones:
+    if n_drones <= n_free < MIN_FREE_CELLS_PER_DRONE * n_drones:  # more drones: refused later
         better = suggest_cell_m(lanes, s.cell_m, n_drones, s.min_lane_km)
         fix = (
             f"try --cell-m {better[0]:g} ({better[1]} free cells)"
@@ -319,7 +375,7 @@ def sumo_source(
     for text in notices:
         notice(text)
 
-    if not route_files or (span is None and not s.network):
+    if span is None and not s.network:  # no demand given: twin generates it
         lane_km = float(geometry.lane_km.sum())
         scale = s.demand_scale * lane_km / SHENZHEN_LANE_KM
         span_gen = {**demand, "begin_s": begin - warmup, "end_s": begin + s.horizon * step_s}
@@ -359,6 +415,7 @@ def sumo_source(
         sumo_options=options,
         extra={
             "additional_files": [str(a) for a in additional_files],
+            "sumocfg_files": [str(f) for f in listed],
             "window": [w0, w1] if own_window else None,
             "departures": list(span) if span else None,
             "n_drones": n_drones,

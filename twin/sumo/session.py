@@ -26,6 +26,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from twin.errors import UserError
+from twin.sumo.readers import missing
 
 #: SUMO options that keep a congested run moving in rush hour:
 #: a vehicle blocked for 300 s jumps ahead (teleport), a vehicle that cannot enter the network
@@ -124,7 +125,7 @@ class SumoSession:
         ]
         for path in files:
             if not Path(path).exists():
-                raise UserError(f"{path}: no such file")
+                raise missing(path, "file")
         if self.gui is not None:
             self._start_gui()
             return self

@@ -28,6 +28,7 @@ from twin.errors import UserError
 from twin.grid import Grid
 from twin.mfd import MFD, MFDImportance
 from twin.sumo.cells import CellGeometry
+from twin.sumo.readers import naming_the_sumocfg
 from twin.sumo.session import ANTI_GRIDLOCK_OPTIONS, SumoRunError, SumoSession
 from twin.timing import (
     OBSERVATION,
@@ -209,7 +210,8 @@ class SumoTraffic(TrafficSource):
             message = str(exc)
             for copy, original in self._copies.items():
                 message = message.replace(str(copy), str(original))
-            raise UserError(message) from None
+            listed = [Path(f) for f in s.extra.get("sumocfg_files", [])]
+            raise UserError(naming_the_sumocfg(message, s.sumocfg, listed)) from None
         except BaseException:
             _remove(scratch)
             raise
@@ -276,7 +278,7 @@ class SumoTraffic(TrafficSource):
     def coarser_hint(self, ratio: float) -> str | None:
         """A cell size (rounded up to 50 m) about ``ratio`` times larger, or fewer steps."""
         cell = float(np.ceil(self.geometry.cell_m * ratio / 50.0) * 50.0)
-        return f"cells of {cell:g} m ([traffic].cell_m) or fewer steps (--horizon)"
+        return f"cells of {cell:g} m (--cell-m, [traffic].cell_m) or fewer steps (--horizon)"
 
     def metadata(self) -> dict[str, Any]:
         s = self.scenario

@@ -112,6 +112,9 @@ def _ray_executor(cells: list[dict], workers: int, address: str | None) -> Itera
         import ray
     except ImportError:
         raise UserError("--executor ray needs Ray: pip install 'twin[ray]'") from None
+    # Ray's Python warnings (e.g. on token authentication) stay off the terminal; set after
+    # the import, which configures Ray's logger
+    logging.getLogger("ray").setLevel(logging.ERROR)
     started = False
     if not ray.is_initialized():
         if address:
