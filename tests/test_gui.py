@@ -124,6 +124,23 @@ def test_cells_are_shaded(gui_run):
 
 
 @needs_display
+def test_roads_are_coloured_by_speed_and_vehicles_drawn(gui_run):
+    """sumo-gui took twin's view settings: free-flowing roads grey, slow ones orange to red (the
+    small grid's signals queue traffic), vehicles dark (not the default black roads)."""
+    from PIL import Image
+
+    from twin.sumo.gui import ROAD_SPEED_COLOURS
+
+    drawer = gui_run[1]
+    image = np.asarray(Image.open(drawer.frames[-1]).convert("RGB")).astype(int)
+    free = tuple(int(v) for v in ROAD_SPEED_COLOURS[-1][1].split(","))
+    assert (np.abs(image - free).max(axis=-1) <= 6).sum() > 100
+    r, g, b = image[..., 0], image[..., 1], image[..., 2]
+    assert ((r > 140) & (g < 120) & (b < 60)).sum() > 20  # slow or stopped lanes
+    assert (np.abs(image - 30).max(axis=-1) <= 6).sum() > 20  # vehicles
+
+
+@needs_display
 def test_the_header_shows_the_clock_and_the_legend(gui_run):
     """Above the grid: the simulated time and step, a square and the name of each shown swarm
     (POIs whose type sumo-gui writes, so in the live window and in the frames alike)."""
