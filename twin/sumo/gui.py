@@ -405,13 +405,26 @@ class GuiDrawer:
 
     def _legend_rows(self) -> list[list[str]]:
         """The header's rows of legend entries: the clock first, then the shown swarms, wrapped
-        to the grid's width (a row's entries then the key, in :meth:`_draw_header`)."""
-        width = self.settings.window[0] - 2 * ROW_PX
+        where the view ends right of the grid's left edge (the view centres the grid, so the
+        room depends on the rows: wrapped again until their number holds)."""
+        rows = self._wrap(self.settings.window[0] - BARS_PX[0])
+        for _ in range(3):
+            view_px = self.settings.window[0] - BARS_PX[0]
+            grid_px = self.source.grid.ny * self.source.geometry.cell_m
+            grid_px /= self._metres_per_px(len(rows))
+            wrapped = self._wrap(grid_px + (view_px - grid_px) / 2 - ROW_PX)
+            if len(wrapped) == len(rows):
+                return wrapped
+            rows = wrapped
+        return rows
+
+    def _wrap(self, width: float) -> list[list[str]]:
+        """The clock and the shown swarms' legend entries in rows of ``width`` pixels."""
         rows: list[list[str]] = [[CLOCK]]
         used = _text_px(self.clock_text(self.source.horizon)) + 2 * ROW_PX
         for name in self.shown:
             need = ROW_PX + _text_px(name) + ROW_PX
-            if used + need > width:
+            if used + need > width and rows[-1]:
                 rows.append([])
                 used = 0
             rows[-1].append(name)
