@@ -106,8 +106,9 @@ def add_gui_arguments(p) -> None:
         "--gui-swarms",
         type=str,
         help="comma-separated swarms drawn in the GUI, or 'all' (default: the learned swarm, rl "
-        "if in the run, and the best classical one: lookahead if in the run, else the first "
-        "coordinated classical swarm of the run's list, else its first swarm)",
+        "if in the run, else its first learned one, and the best classical one, chosen before "
+        "any result: lookahead if in the run, else its first coordinated classical swarm "
+        "(greedy-coordinated, visit-gain, tours), else its first classical one)",
     )
     p.add_argument(
         "--gui-shade",
