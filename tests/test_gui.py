@@ -40,7 +40,8 @@ def _experiment(scenario):
 
 @pytest.fixture(scope="module")
 def gui_run(scenario, tmp_path_factory):
-    """The small run under sumo-gui (random and greedy shown) with every frame kept."""
+    """The small run under sumo-gui (random and greedy shown) with every frame kept, and the
+    header's POI types (clock, legend) as sumo-gui has them at every step."""
     from twin.experiment import run_experiment
     from twin.sumo.gui import GuiDrawer, GuiSettings, display
 
@@ -49,11 +50,20 @@ def gui_run(scenario, tmp_path_factory):
         GuiSettings(swarms=["random", "greedy"], frames_dir=frames),
         ["random", "greedy", "sweeping"],
     )
+    header: list[dict[str, str]] = []
+
+    def on_step(k, positions, importance):
+        import traci
+
+        drawer(k, positions, importance)
+        pois = traci.poi.getIDList()
+        header.append({p: traci.poi.getType(p) for p in pois if p.startswith("legend")})
+
     with display():
         outcome = run_experiment(
-            _experiment(scenario), keep_sources=True, on_source=drawer.attach, on_step=drawer
+            _experiment(scenario), keep_sources=True, on_source=drawer.attach, on_step=on_step
         )
-    return outcome, drawer
+    return outcome, drawer, header
 
 
 def _pixel(drawer, x: float, y: float, shape) -> tuple[int, int]:
@@ -71,7 +81,7 @@ def _near(image, row, col, colour, radius=6, tol=40) -> int:
 def test_screenshots_show_the_shown_swarms_drones_where_they_are(gui_run):
     from PIL import Image
 
-    outcome, drawer = gui_run
+    outcome, drawer, _ = gui_run
     result = outcome.results[0]
     geometry = outcome.sources[0].geometry
     assert len(drawer.frames) == HORIZON + 1
@@ -98,7 +108,7 @@ def test_screenshots_show_the_shown_swarms_drones_where_they_are(gui_run):
 def test_cells_are_shaded(gui_run):
     from PIL import Image
 
-    outcome, drawer = gui_run
+    outcome, drawer, _ = gui_run
     image = np.asarray(Image.open(drawer.frames[-1]).convert("RGB")).astype(int)
     geometry, grid = outcome.sources[0].geometry, outcome.sources[0].grid
     top, left = _pixel(drawer, geometry.x0, geometry.y_top, image.shape)
@@ -111,6 +121,44 @@ def test_cells_are_shaded(gui_run):
     assert (inside[..., 2] < 240).mean() > 0.5  # blue channel lowered by the fill
     if left > 5:
         assert (image[:, : left - 3, :3] == 255).all(axis=-1).mean() > 0.9
+
+
+@needs_display
+def test_roads_are_coloured_by_speed_and_vehicles_drawn(gui_run):
+    """sumo-gui took twin's view settings: free-flowing roads grey, slow ones orange to red (the
+    small grid's signals queue traffic), vehicles dark (not the default black roads)."""
+    from PIL import Image
+
+    from twin.sumo.gui import ROAD_SPEED_COLOURS
+
+    drawer = gui_run[1]
+    image = np.asarray(Image.open(drawer.frames[-1]).convert("RGB")).astype(int)
+    free = tuple(int(v) for v in ROAD_SPEED_COLOURS[-1][1].split(","))
+    assert (np.abs(image - free).max(axis=-1) <= 6).sum() > 100
+    r, g, b = image[..., 0], image[..., 1], image[..., 2]
+    assert ((r > 140) & (g < 120) & (b < 60)).sum() > 20  # slow or stopped lanes
+    assert (np.abs(image - 30).max(axis=-1) <= 6).sum() > 20  # vehicles
+
+
+@needs_display
+def test_the_header_shows_the_clock_and_the_legend(gui_run):
+    """Above the grid: the simulated time and step, a square and the name of each shown swarm
+    (POIs whose type sumo-gui writes, so in the live window and in the frames alike)."""
+    from PIL import Image
+
+    outcome, drawer, header = gui_run
+    clocks = [f"00:0{5 + k}:00  step {k}/{HORIZON}" for k in range(HORIZON + 1)]  # 60 s steps
+    assert [h["legend_clock"] for h in header] == clocks
+    names = {h: t for h, t in header[-1].items() if h.startswith("legend_name_")}
+    assert names == {"legend_name_random": "random", "legend_name_greedy": "greedy"}
+    assert any("cells: importance random believes" in t for t in header[-1].values())
+    geometry = outcome.sources[0].geometry
+    image = np.asarray(Image.open(drawer.frames[-1]).convert("RGB")).astype(int)
+    top, _ = _pixel(drawer, geometry.x0, geometry.y_top, image.shape)
+    above = image[: top - 2]
+    for name in drawer.shown:  # the legend's squares
+        assert (np.abs(above - drawer.colours[name][:3]).max(axis=-1) <= 20).sum() > 20, name
+    assert (above.max(axis=-1) < 80).sum() > 200  # dark text
 
 
 @needs_display
@@ -180,3 +228,31 @@ def test_bad_record_name_is_refused_before_the_run():
         check_settings(GuiSettings(record=Path("x.avi")), ["greedy"])
     with pytest.raises(UserError, match="--gui-swarms"):
         check_settings(GuiSettings(swarms=["nope"]), ["greedy"])
+
+
+def test_default_swarms_are_the_learned_and_the_best_classical_one():
+    from twin.sumo.gui import default_swarms
+
+    shenzhen = ["random", "greedy", "sweeping", "greedy-coordinated", "visit-gain", "lookahead",
+                "tours", "rl", "rl-decentralized"]  # fmt: skip
+    assert default_swarms(shenzhen) == ["lookahead", "rl"]
+    assert default_swarms(["greedy", "tours", "visit-gain", "rl-decentralized"]) == [
+        "tours",
+        "rl-decentralized",
+    ]
+    assert default_swarms(["random", "greedy"]) == ["random"]
+    assert default_swarms(["rl-online"]) == ["rl-online"]
+
+
+def test_gui_swarms_all_shows_every_swarm_and_shown_swarms_take_the_first_colours():
+    import argparse
+
+    from twin.cli.run import gui_drawer
+    from twin.sumo.gui import SWARM_COLOURS
+
+    args = argparse.Namespace(gui=True, record=None, gui_swarms="all", gui_shade="belief")
+    assert gui_drawer(args, ["random", "greedy", "rl"]).shown == ["random", "greedy", "rl"]
+    args.gui_swarms = None
+    drawer = gui_drawer(args, ["random", "lookahead", "rl"])
+    assert drawer.shown == ["lookahead", "rl"]
+    assert [drawer.colours[n] for n in drawer.shown] == SWARM_COLOURS[:2]

@@ -110,7 +110,12 @@ def add_gui_arguments(p) -> None:
         "display twin starts Xvfb (apt-get install xvfb)",
     )
     p.add_argument(
-        "--gui-swarms", type=str, help="comma-separated swarms drawn in the GUI (default all)"
+        "--gui-swarms",
+        type=str,
+        help="comma-separated swarms drawn in the GUI, or 'all' (default: the learned swarm, rl "
+        "if in the run, else its first learned one, and the best classical one, chosen before "
+        "any result: lookahead if in the run, else its first coordinated classical swarm "
+        "(greedy-coordinated, visit-gain, tours), else its first classical one)",
     )
     p.add_argument(
         "--gui-shade",
@@ -134,6 +139,8 @@ def gui_drawer(args: argparse.Namespace, swarms):
     shown = (
         [s.strip() for s in args.gui_swarms.split(",") if s.strip()] if args.gui_swarms else None
     )
+    if shown == ["all"]:
+        shown = list(swarms)
     settings = GuiSettings(swarms=shown, shade=args.gui_shade, record=args.record)
     check_settings(settings, list(swarms))
     return GuiDrawer(settings, list(swarms))

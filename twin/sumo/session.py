@@ -149,7 +149,7 @@ class SumoSession:
         """Start sumo-gui through traci with the same options (see :mod:`twin.sumo.gui`)."""
         import traci
 
-        cmd = [self.gui.binary(), *self.command()[1:], *self.gui.sumo_options()]
+        cmd = [self.gui.binary(), *self.command()[1:], *self.gui.sumo_options(self.mesoscopic)]
         try:
             with (
                 self.gui.environment(),  # its saved settings in twin's cache, not in ~
