@@ -1,4 +1,4 @@
-"""The issues' done-criteria on the full scenarios (minutes): `python -m pytest -m slow`."""
+"""The issues' done-criteria on the full scenarios (minutes): `python -m pytest -m long`."""
 
 from pathlib import Path
 
@@ -8,7 +8,7 @@ import pytest
 
 from twin.cli import main
 
-pytestmark = pytest.mark.slow
+pytestmark = pytest.mark.long
 ROOT = Path(__file__).resolve().parents[1]
 
 
