@@ -28,6 +28,21 @@ VTYPES = {
 }
 
 
+#: The rush-hour profile of demand generated for a network brought without demand, for a
+#: network of ``lane_km`` lane-km (scaled to the network's own): off-peak and peak trips per
+#: hour, the peak ``peak_after_s`` after the demand begins (at the warm-up's start), with a
+#: Gaussian spread of ``peak_width_s``. The numbers are those of the built-in network's demand
+#: (``networks/shenzhen_like/spec.toml``, 1350 lane-km): a morning peak 1 h 45 min into a 3.5 h
+#: window.
+GENERIC_RUSH_HOUR = {
+    "lane_km": 1350.0,
+    "base_rate_per_h": 1200.0,
+    "peak_rate_per_h": 16000.0,
+    "peak_after_s": 6300.0,
+    "peak_width_s": 2400.0,
+}
+
+
 def departure_rate(t: np.ndarray, demand: dict[str, Any]) -> np.ndarray:
     """Trips per second at time ``t`` (s since midnight): base plus a Gaussian peak."""
     base = float(demand["base_rate_per_h"]) / 3600.0

@@ -27,7 +27,7 @@ import hashlib
 import math
 import sys
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -46,8 +46,6 @@ from twin.sumo.readers import (
 
 #: SUMO's step (s, its default --step-length): a twin step may not be shorter.
 SUMO_STEP_S = 1.0
-#: Peak demand of the built-in network per lane-km (trips/h), used to scale generated demand.
-SHENZHEN_LANE_KM = 1350.0
 
 
 def sumo_settings(config) -> SumoSettings:
@@ -185,6 +183,248 @@ def live_source(
     return source
 
 
+@dataclass
+class _ScenarioFiles:
+    """The files SUMO will load and what they say of the scenario's time window."""
+
+    net_file: Path
+    route_files: list[Path]
+    additional_files: list[Path]
+    name: str  # the scenario's name in messages: the network, sumocfg or OSM file
+    sumocfg: Path | None = None
+    listed: list[Path] = field(default_factory=list)  # sumocfg files (named with it in errors)
+    window: list[float | None] = field(default_factory=lambda: [None, None])  # <time> of it
+    span: tuple[float, float] | None = None  # first and last departure of the given demand
+
+    @property
+    def own_window(self) -> bool:
+        """Whether the window comes from the files (a network brought with its demand)."""
+        return self.span is not None
+
+
+def _with_inputs(s: SumoSettings, inputs: SumoInputs) -> SumoSettings:
+    """The settings ``s`` with the swapped-in files and flags of ``inputs`` applied."""
+    if inputs.net or inputs.sumocfg or inputs.osm:
+        s.network, s.net, s.sumocfg, s.osm = None, None, None, None
+        s.routes, s.additional = [], []
+        s.end = None
+    s.net = str(inputs.net) if inputs.net else s.net
+    s.sumocfg = str(inputs.sumocfg) if inputs.sumocfg else s.sumocfg
+    s.osm = str(inputs.osm) if inputs.osm else s.osm
+    s.routes = [str(r) for r in inputs.routes] if inputs.routes else s.routes
+    s.additional = [*s.additional, *(str(a) for a in inputs.additional or [])]
+    for key in ("horizon", "mesoscopic", "cell_m", "drone_speed_kmh"):
+        if getattr(inputs, key) is not None:
+            setattr(s, key, getattr(inputs, key))
+    return s
+
+
+def _scenario_files(s: SumoSettings) -> _ScenarioFiles:
+    """Network, route and additional files (a built-in network is built on first use, an OSM
+    extract imported), each checked as SUMO would read it, and the given demand's span."""
+    from twin.sumo.network import build_named_network, check_net_file, import_osm
+
+    additional_files = [resolved(a) for a in s.additional]
+    sumocfg_path = resolved(s.sumocfg) if s.sumocfg else None
+    if s.network and not (s.net or sumocfg_path or s.osm):
+        built = build_named_network(s.network)
+        files = _ScenarioFiles(built.net_file, [built.trips_file], additional_files, s.network)
+        if s.routes:
+            files.route_files = [Path(r) for r in s.routes]
+            _check_routes(files.route_files)
+            departure_span(files.route_files)  # departures SUMO refuses are named here
+        _check_additional(additional_files)
+        files.span = None  # the built network's demand: the config's window, not its own
+        return files
+    if sumocfg_path is not None:
+        cfg = read_sumocfg(sumocfg_path, own_net=not s.net)
+        # a network given besides the sumocfg replaces its own, as `sumo -c ... -n` does
+        files = _ScenarioFiles(
+            Path(s.net) if s.net else cfg.net,
+            cfg.routes,
+            [*cfg.additional, *additional_files],
+            sumocfg_path.name,
+            sumocfg=sumocfg_path,
+            listed=[
+                *([] if s.net else [cfg.net]),
+                *([] if s.routes else cfg.routes),
+                *cfg.additional,
+            ],
+            window=[cfg.begin, cfg.end],
+        )
+    elif s.osm:
+        osm_path = Path(s.osm)
+        files = _ScenarioFiles(import_osm(osm_path), [], additional_files, osm_path.name)
+    else:
+        files = _ScenarioFiles(Path(s.net), [], additional_files, Path(s.net).name)
+    if s.routes:
+        files.route_files = [Path(r) for r in s.routes]
+    with _named_in(files.sumocfg, files.listed):
+        check_net_file(files.net_file)
+        _check_routes(files.route_files)
+        _check_additional(files.additional_files)
+        # SUMO loads vehicles, flows and persons of additional files as demand too
+        files.span = departure_span([*files.route_files, *files.additional_files])
+    if files.span is None and files.sumocfg is not None and not files.route_files:
+        notice(
+            f"{files.sumocfg}: names no <route-files>; twin generates a rush-hour demand "
+            "(add route files to the config to run your own)"
+        )
+    elif files.span is None and files.route_files:
+        notice(
+            f"{', '.join(str(r) for r in files.route_files)}: no vehicle departs in the route "
+            "files (vehicle types only?); twin generates a rush-hour demand"
+        )
+    return files
+
+
+def _step_seconds(s: SumoSettings, config, inputs: SumoInputs) -> float:
+    """Simulated seconds per step, ``cell_m / speed``; not shorter than SUMO's own step."""
+    step_s = s.cell_m / (s.drone_speed_kmh / 3.6)
+    if step_s < SUMO_STEP_S:
+        flags = [f"--drone-speed {inputs.drone_speed_kmh:g}" if inputs.drone_speed_kmh else ""]
+        flags.append(f"--cell-m {inputs.cell_m:g}" if inputs.cell_m else "")
+        where = ", ".join(f for f in flags if f) or f"{config.path}: [traffic]"
+        raise UserError(
+            f"{where}: a step ({s.cell_m:g} m at {s.drone_speed_kmh:g} km/h) lasts {step_s:.2g} "
+            f"s, shorter than SUMO's {SUMO_STEP_S:g} s step; give a lower drone speed or larger "
+            "cells"
+        )
+    return step_s
+
+
+def _time_window(
+    s: SumoSettings,
+    files: _ScenarioFiles,
+    step_s: float,
+    begin: float,
+    warmup: float,
+    begin_given: bool,
+    horizon_given: bool,
+    begin_where: str,
+) -> tuple[float, float, list[float] | None]:
+    """``T^0`` (s since midnight), the warm-up (s) and the scenario's own window if it has one;
+    sets ``s.horizon`` to what fits the window unless it was given."""  # fmt: skip
+    window = None
+    if files.own_window:
+        w0 = files.window[0] if files.window[0] is not None else files.span[0]
+        w1 = files.window[1] if files.window[1] is not None else files.span[1]
+        window = [w0, w1]
+        if not begin_given:
+            if w1 - w0 < warmup + step_s:  # too short for the warm-up: half of it warms up
+                short = max(0.0, (w1 - w0) / 2)
+                notice(
+                    f"{files.name}: the scenario's window {clock_label(w0)} - {clock_label(w1)} "
+                    f"is shorter than the {warmup / 60:g} min warm-up plus a step; warm-up cut "
+                    f"to {short / 60:.1f} min"
+                )
+                warmup = short
+            begin = w0 + warmup
+        if not horizon_given:
+            s.horizon = max(1, int((w1 - begin) / step_s + 1e-9))
+    if begin < warmup:
+        raise UserError(
+            f"{begin_where} = {clock_label(begin)}: the {warmup / 60:g} min warm-up "
+            f"([traffic].warmup_min) would start SUMO before 00:00, which SUMO refuses; give a "
+            f"begin of at least {clock_label(warmup)} or a shorter warm-up"
+        )
+    return begin, warmup, window
+
+
+def _grid_and_notices(
+    s: SumoSettings,
+    config,
+    inputs: SumoInputs,
+    files: _ScenarioFiles,
+    lanes,
+    begin: float,
+    step_s: float,
+    window_given: bool,
+):
+    """The grid over the network's lanes (the config's ``[grid]`` shape and obstacles for the
+    configured network), and the notices of a grid too small for the drones or a run that
+    outlasts the demand."""  # fmt: skip
+    from twin.sumo.cells import grid_over
+
+    # The grid: derived from the bounding box, or the config's [grid] nx, ny if it gives them
+    # (for the configured network only; a swapped-in network gets its own grid).
+    shape = None
+    if not (inputs.net or inputs.sumocfg or inputs.osm or inputs.cell_m):
+        shape = config.explicit_shape()  # set in the file or by an override
+    where = f"--cell-m {inputs.cell_m:g}" if inputs.cell_m else f"{config.path}: [grid]"
+    geometry = grid_over(lanes, s.cell_m, shape, where=where)
+    obstacles = geometry.obstacles(s.min_lane_km)
+    for i, j in getattr(config.grid, "obstacles", []) or []:
+        if 0 <= i < geometry.nx and 0 <= j < geometry.ny:
+            obstacles[i, j] = True
+    if obstacles.all():
+        raise UserError(
+            f"{files.net_file}: no cell of the {geometry.nx} x {geometry.ny} grid has a lane"
+        )
+    n_free, n_drones = int((~obstacles).sum()), config.swarm.n_drones
+    notices = []
+    if n_drones <= n_free < MIN_FREE_CELLS_PER_DRONE * n_drones:  # more drones: refused later
+        better = suggest_cell_m(lanes, s.cell_m, n_drones, s.min_lane_km)
+        fix = (
+            f"try --cell-m {better[0]:g} ({better[1]} free cells)"
+            if better
+            else f"use fewer drones (--drones {max(1, n_free // MIN_FREE_CELLS_PER_DRONE)})"
+        )
+        notices.append(
+            f"{files.name}: {geometry.nx} x {geometry.ny} cells of {s.cell_m:g} m, {n_free} free "
+            f"for {n_drones} drones (fewer than {MIN_FREE_CELLS_PER_DRONE} per drone: every "
+            f"swarm covers nearly all, the comparison says little); {fix}"
+        )
+    if files.span is not None and window_given:
+        clear = clearing_time(geometry)
+        end = begin + s.horizon * step_s
+        if end > files.span[1] + clear:
+            notices.append(
+                f"{files.name}: the run ends at {clock_label(end)}, past the last departure "
+                f"({clock_label(files.span[1])}) plus {clear / 60:.0f} min to clear the network; "
+                f"the last {int((end - files.span[1] - clear) / step_s)} steps may have no vehicle"
+            )
+    for text in notices:
+        notice(text)
+    return geometry, obstacles, notices
+
+
+def _generated_demand(
+    s: SumoSettings,
+    files: _ScenarioFiles,
+    geometry,
+    begin: float,
+    warmup: float,
+    step_s: float,
+    seed: int,
+) -> Path:
+    """Rush-hour trips for a network brought without demand (:data:`twin.sumo.demand.
+    GENERIC_RUSH_HOUR` scaled to its lane-km), built once per network, window and seed in the
+    user cache."""  # fmt: skip
+    from twin import resources
+    from twin.sumo.demand import GENERIC_RUSH_HOUR, random_rush_hour_trips
+    from twin.sumo.network import sumo_version
+
+    profile = GENERIC_RUSH_HOUR
+    scale = s.demand_scale * float(geometry.lane_km.sum()) / profile["lane_km"]
+    span = {
+        **{k: v for k, v in profile.items() if k != "lane_km"},
+        "begin_s": begin - warmup,
+        "end_s": begin + s.horizon * step_s,
+        "peak_s": begin - warmup + profile["peak_after_s"],
+    }
+    net_file = Path(files.net_file)
+    key = f"{net_file.stem}-{_digest(net_file, span, scale, seed, sumo_version())}"
+    out = resources.build_once(
+        resources.cache_dir() / "imported" / key,
+        lambda d: random_rush_hour_trips(
+            net_file, d / "rush_hour.trips.xml", span, seed=seed, scale=scale
+        ),
+        verify=lambda d: resources.check_xml_files(d, {"rush_hour.trips.xml": "routes"}),
+    )
+    return out / "rush_hour.trips.xml"
+
+
 def sumo_source(
     config,
     seed: int | None = None,
@@ -204,202 +444,55 @@ def sumo_source(
     The time window of a network brought as files is the scenario's own: ``<time>`` of the
     sumocfg, else the span of the demand's departures; the warm-up is taken inside it (``T^0`` =
     window begin + warm-up) and the horizon is what fits, unless ``begin``/``horizon`` are given.
+    In steps: the settings with the flags applied, the files, the step, the time window, the
+    grid, the generated demand (if none is given), the scenario.
     """
-    from twin import resources
-    from twin.sumo.cells import grid_over, read_lanes
-    from twin.sumo.demand import random_rush_hour_trips
-    from twin.sumo.network import (
-        build_named_network,
-        check_net_file,
-        import_osm,
-        load_spec,
-        sumo_version,
-    )
+    from twin.sumo.cells import read_lanes
+    from twin.sumo.network import check_net_file
     from twin.sumo.source import SumoScenario, SumoTraffic
 
-    s = sumo_settings(config)
+    inputs = SumoInputs(
+        net=net, routes=routes, sumocfg=sumocfg, osm=osm, horizon=horizon, begin=begin,
+        mesoscopic=mesoscopic, additional=additional, cell_m=cell_m,
+        drone_speed_kmh=drone_speed_kmh,
+    )  # fmt: skip
+    s = _with_inputs(sumo_settings(config), inputs)
     fields = config.traffic.model_fields_set
     swapped = bool(net or sumocfg or osm or routes)
-    if net or sumocfg or osm:
-        s.network, s.net, s.sumocfg, s.osm = None, None, None, None
-        s.routes, s.additional = [], []
-        s.end = None
-    s.net = str(net) if net else s.net
-    s.sumocfg = str(sumocfg) if sumocfg else s.sumocfg
-    s.osm = str(osm) if osm else s.osm
-    s.routes = [str(r) for r in routes] if routes else s.routes
-    s.additional = [*s.additional, *(str(a) for a in additional or [])]
-    if horizon is not None:
-        s.horizon = horizon
-    if mesoscopic is not None:
-        s.mesoscopic = mesoscopic
-    if cell_m is not None:
-        s.cell_m = cell_m
-    if drone_speed_kmh is not None:
-        s.drone_speed_kmh = drone_speed_kmh
     seed = s.seed if seed is None else seed
     begin_where = "--begin" if begin else f"{config.path}: [traffic].begin"
     begin_given = begin is not None or (not swapped and "begin" in fields)
     horizon_given = horizon is not None or (not swapped and "horizon" in fields)
-    begin = (
+    t0 = (
         parse_clock(begin, "--begin")
         if begin
         else parse_clock(s.begin, f"{config.path}: [traffic].begin")
     )
-    warmup = s.warmup_min * 60.0
-    demand = load_spec(resources.network_spec("shenzhen_like"))["demand"]
 
-    sumocfg_path = resolved(s.sumocfg) if s.sumocfg else None
-    additional_files = [resolved(a) for a in s.additional]
-    window: list[float | None] = [None, None]  # the scenario's own time window
-    span = None  # first and last departure of the given demand
-    listed: list[Path] = []  # the files of the sumocfg that twin uses (named with it in errors)
-    if s.network and not (s.net or sumocfg_path or s.osm):
-        built = build_named_network(s.network)
-        net_file, route_files, name = built.net_file, [built.trips_file], s.network
-        if s.routes:
-            route_files = [Path(r) for r in s.routes]
-            _check_routes(route_files)
-            departure_span(route_files)  # departures SUMO refuses are named here
-        _check_additional(additional_files)
-        own_window = False
-    else:
-        if sumocfg_path is not None:
-            cfg = read_sumocfg(sumocfg_path, own_net=not s.net)
-            # a network given besides the sumocfg replaces its own, as `sumo -c ... -n` does
-            net_file, route_files = (Path(s.net) if s.net else cfg.net), cfg.routes
-            additional_files = [*cfg.additional, *additional_files]
-            listed = [*([] if s.net else [cfg.net]), *([] if s.routes else cfg.routes)]
-            listed += cfg.additional
-            window = [cfg.begin, cfg.end]
-            name = sumocfg_path.name
-        elif s.osm:
-            osm_path = Path(s.osm)
-            net_file = import_osm(osm_path)  # cached
-            route_files, name = [], osm_path.name
-        else:
-            net_file, route_files, name = Path(s.net), [], Path(s.net).name
-        if s.routes:
-            route_files = [Path(r) for r in s.routes]
-        with _named_in(sumocfg_path, listed):
-            check_net_file(net_file)
-            _check_routes(route_files)
-            _check_additional(additional_files)
-            # SUMO loads vehicles, flows and persons of additional files as demand too
-            span = departure_span([*route_files, *additional_files])
-        if span is None and sumocfg_path is not None and not route_files:
-            notice(
-                f"{sumocfg_path}: names no <route-files>; twin generates a rush-hour demand "
-                "(add route files to the config to run your own)"
-            )
-        elif span is None and route_files:
-            notice(
-                f"{', '.join(str(r) for r in route_files)}: no vehicle departs in the route "
-                "files (vehicle types only?); twin generates a rush-hour demand"
-            )
-        own_window = span is not None
+    files = _scenario_files(s)
     if s.end is not None and not swapped:
-        window[1] = parse_clock(s.end, f"{config.path}: [traffic].end")
-    with _named_in(sumocfg_path, listed):
-        check_net_file(net_file)
-        lanes = read_lanes(net_file)
-    step_s = s.cell_m / (s.drone_speed_kmh / 3.6)
-    if step_s < SUMO_STEP_S:
-        flags = [f"--drone-speed {drone_speed_kmh:g}" if drone_speed_kmh else ""]
-        flags.append(f"--cell-m {cell_m:g}" if cell_m else "")
-        where = ", ".join(f for f in flags if f) or f"{config.path}: [traffic]"
-        raise UserError(
-            f"{where}: a step ({s.cell_m:g} m at {s.drone_speed_kmh:g} km/h) lasts {step_s:.2g} "
-            f"s, shorter than SUMO's {SUMO_STEP_S:g} s step; give a lower drone speed or larger "
-            "cells"
-        )
-
-    if own_window:
-        w0 = window[0] if window[0] is not None else span[0]
-        w1 = window[1] if window[1] is not None else span[1]
-        if not begin_given:
-            if w1 - w0 < warmup + step_s:  # too short for the warm-up: half of it warms up
-                short = max(0.0, (w1 - w0) / 2)
-                notice(
-                    f"{name}: the scenario's window {clock_label(w0)} - {clock_label(w1)} is shorter than "
-                    f"the {warmup / 60:g} min warm-up plus a step; warm-up cut to "
-                    f"{short / 60:.1f} min"
-                )
-                warmup = short
-            begin = w0 + warmup
-        if not horizon_given:
-            s.horizon = max(1, int((w1 - begin) / step_s + 1e-9))
-    if begin < warmup:
-        raise UserError(
-            f"{begin_where} = {clock_label(begin)}: the {warmup / 60:g} min warm-up "
-            f"([traffic].warmup_min) would start SUMO before 00:00, which SUMO refuses; give a "
-            f"begin of at least {clock_label(warmup)} or a shorter warm-up"
-        )
-
-    # The grid: derived from the bounding box, or the config's [grid] nx, ny if it gives them
-    # (for the configured network only; a swapped-in network gets its own grid).
-    shape = None
-    if not (net or sumocfg or osm or cell_m):
-        shape = config.explicit_shape()  # set in the file or by an override
-    where = f"--cell-m {cell_m:g}" if cell_m else f"{config.path}: [grid]"
-    geometry = grid_over(lanes, s.cell_m, shape, where=where)
-    obstacles = geometry.obstacles(s.min_lane_km)
-    for i, j in getattr(config.grid, "obstacles", []) or []:
-        if 0 <= i < geometry.nx and 0 <= j < geometry.ny:
-            obstacles[i, j] = True
-    if obstacles.all():
-        raise UserError(f"{net_file}: no cell of the {geometry.nx} x {geometry.ny} grid has a lane")
-    n_free, n_drones = int((~obstacles).sum()), config.swarm.n_drones
-    notices = []
-    if n_drones <= n_free < MIN_FREE_CELLS_PER_DRONE * n_drones:  # more drones: refused later
-        better = suggest_cell_m(lanes, s.cell_m, n_drones, s.min_lane_km)
-        fix = (
-            f"try --cell-m {better[0]:g} ({better[1]} free cells)"
-            if better
-            else f"use fewer drones (--drones {max(1, n_free // MIN_FREE_CELLS_PER_DRONE)})"
-        )
-        notices.append(
-            f"{name}: {geometry.nx} x {geometry.ny} cells of {s.cell_m:g} m, {n_free} free for "
-            f"{n_drones} drones (fewer than {MIN_FREE_CELLS_PER_DRONE} per drone: every swarm "
-            f"covers nearly all, the comparison says little); {fix}"
-        )
-    if span is not None and (begin_given or horizon_given):
-        clear = clearing_time(geometry)
-        end = begin + s.horizon * step_s
-        if end > span[1] + clear:
-            notices.append(
-                f"{name}: the run ends at {clock_label(end)}, past the last departure "
-                f"({clock_label(span[1])}) plus {clear / 60:.0f} min to clear the network; the last "
-                f"{int((end - span[1] - clear) / step_s)} steps may have no vehicle"
-            )
-    for text in notices:
-        notice(text)
-
-    if span is None and not s.network:  # no demand given: twin generates it
-        lane_km = float(geometry.lane_km.sum())
-        scale = s.demand_scale * lane_km / SHENZHEN_LANE_KM
-        span_gen = {**demand, "begin_s": begin - warmup, "end_s": begin + s.horizon * step_s}
-        span_gen["peak_s"] = span_gen["begin_s"] + (demand["peak_s"] - demand["begin_s"])
-        key = (
-            f"{Path(net_file).stem}-"
-            f"{_digest(Path(net_file), span_gen, scale, seed, sumo_version())}"
-        )
-        out = resources.build_once(
-            resources.cache_dir() / "imported" / key,
-            lambda d: random_rush_hour_trips(
-                Path(net_file), d / "rush_hour.trips.xml", span_gen, seed=seed, scale=scale
-            ),
-            verify=lambda d: resources.check_xml_files(d, {"rush_hour.trips.xml": "routes"}),
-        )
-        route_files = [*route_files, out / "rush_hour.trips.xml"]
+        files.window[1] = parse_clock(s.end, f"{config.path}: [traffic].end")
+    with _named_in(files.sumocfg, files.listed):
+        check_net_file(files.net_file)
+        lanes = read_lanes(files.net_file)
+    step_s = _step_seconds(s, config, inputs)
+    t0, warmup, window = _time_window(
+        s, files, step_s, t0, s.warmup_min * 60.0, begin_given, horizon_given, begin_where
+    )
+    geometry, obstacles, notices = _grid_and_notices(
+        s, config, inputs, files, lanes, t0, step_s, begin_given or horizon_given
+    )
+    route_files = list(files.route_files)
+    if files.span is None and not s.network:  # no demand given: twin generates it
+        route_files.append(_generated_demand(s, files, geometry, t0, warmup, step_s, seed))
 
     options: tuple[str, ...] = ()
-    if additional_files:
-        options = ("--additional-files", ",".join(str(a) for a in additional_files))
+    if files.additional_files:
+        options = ("--additional-files", ",".join(str(a) for a in files.additional_files))
     scenario = SumoScenario(
-        net_file=Path(net_file),
+        net_file=Path(files.net_file),
         route_files=[Path(r) for r in route_files],
-        begin_s=begin,
+        begin_s=t0,
         warmup_s=warmup,
         step_s=step_s,
         horizon=s.horizon,
@@ -407,19 +500,19 @@ def sumo_source(
         mesoscopic=s.mesoscopic,
         mfd_fit=s.mfd.fit,
         detection_p=s.mfd.detection_p,
-        name=name,
-        sumocfg=sumocfg_path,
+        name=files.name,
+        sumocfg=files.sumocfg,
         mfd_prior=(s.mfd.a, s.mfd.k_c),
         reads_per_step=s.reads_per_step,
         incidents=list(s.incidents),
         sumo_options=options,
         extra={
-            "additional_files": [str(a) for a in additional_files],
-            "sumocfg_files": [str(f) for f in listed],
-            "window": [w0, w1] if own_window else None,
-            "departures": list(span) if span else None,
-            "n_drones": n_drones,
-            "n_free": n_free,
+            "additional_files": [str(a) for a in files.additional_files],
+            "sumocfg_files": [str(f) for f in files.listed],
+            "window": window,
+            "departures": list(files.span) if files.span else None,
+            "n_drones": config.swarm.n_drones,
+            "n_free": int((~obstacles).sum()),
             "notices": notices,
         },
     )
