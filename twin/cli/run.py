@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import sys
 from pathlib import Path
 
@@ -71,6 +72,22 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument(
         "--sumo-seed", type=int, help="SUMO's seed of the first simulation (default [traffic].seed)"
+    )
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help="seeds run at once, each SUMO simulation with its swarms in a worker process of its "
+        "own; same results as one after another (default 1: each seed already keeps two cores "
+        "busy, SUMO working ahead of the swarms, and each worker holds a whole simulation in "
+        f"memory; this machine has {os.cpu_count()} CPUs)",
+    )
+    p.add_argument(
+        "--executor",
+        choices=("local", "ray"),
+        default="local",
+        help="where --workers run: a local process pool (default) or a local Ray (pip install "
+        "'twin[ray]')",
     )
     p.add_argument("--meso", action="store_true", help="SUMO's mesoscopic model (faster)")
     p.add_argument("--out", type=Path, help="run folder (default runs/run-<time>)")
@@ -163,6 +180,9 @@ def build_experiment(args: argparse.Namespace):
         raise UserError("give one of --net, --sumocfg, --osm")
     check_count("--seeds", args.seeds)
     check_count("--horizon", args.horizon)
+    check_count("--workers", args.workers)
+    if args.workers > 1 and (args.gui or args.record):
+        raise UserError("--gui and --record draw one simulation at a time; drop --workers")
     check_seeds("--seed", args.seed, args.seeds)
     check_seeds("--sumo-seed", args.sumo_seed, args.seeds)
     first = args.seed if args.seed is not None else config.evaluate.seed
@@ -186,6 +206,8 @@ def build_experiment(args: argparse.Namespace):
         traffic_seed=args.sumo_seed,
         skip_unavailable=args.swarms is None,
         max_memory_gb=args.max_memory_gb,
+        workers=args.workers,
+        executor=args.executor,
     )
     return experiment
 
@@ -208,15 +230,11 @@ def main(args: argparse.Namespace) -> int:
     drawer = gui_drawer(args, experiment.swarms)
     check_resources(experiment, args.out or Path("runs"))  # before any folder is made
     run_dir = prepare_run_dir(args.out or new_run_dir("runs", "run"), invocation("run", args))
-
-    n_sources = [0]
+    # SUMO's configured outputs: into the run folder, the first seed's in sumo/, the others' in
+    # sumo/seed-<s>/
+    experiment.outputs_dir = run_dir / "sumo"
 
     def on_source(source) -> None:
-        if hasattr(source, "output_dir"):  # SUMO's configured outputs: into the run folder
-            n = n_sources[0]  # the first seed's in sumo/, the others' in sumo/seed-<s>/
-            seed = list(experiment.seeds)[n]
-            source.output_dir = run_dir / "sumo" / (f"seed-{seed}" if n else "")
-            n_sources[0] += 1
         _announce(source)
         if drawer is not None:
             drawer.attach(source)
