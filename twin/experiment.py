@@ -400,7 +400,17 @@ def _run_seeds_in_workers(
         outcomes = local_tasks(
             run_seed_in_worker, tasks, workers, ignore_sigint=True, kill_on_close=True
         )
-    done: dict[int, SeedOutcome] = {}
+    done: dict[int, SeedOutcome | None] = {}
+    announced = 0  # on_source goes through the seeds in order, as each is done
+
+    def announce(upto: int) -> None:
+        nonlocal announced
+        while announced < upto and announced in done:
+            value = done[announced]
+            if on_source is not None and value is not None and value.source is not None:
+                on_source(value.source)
+            announced += 1
+
     bar = _seed_bar(len(seeds), progress)
     try:
         for n, value, error in outcomes:
@@ -409,23 +419,23 @@ def _run_seeds_in_workers(
                 raise _worker_error(error, seeds[n])
             if bar is not None:
                 bar.update(1)
-            if value is None:  # stopped before it started
-                continue
-            done[n] = value
-            if value.result.error and not stop():
+            done[n] = value  # None: stopped before it started
+            if value is not None and value.result.error and not stop():
                 signal_file.request(n)  # the seeds after a failed one stop
-            if on_source is not None and value.source is not None:
-                on_source(value.source)
+            announce(len(seeds))
     finally:
         outcomes.close()  # an early end kills the workers still running
         if bar is not None:
             bar.close()
-    kept = sorted(done)
+    kept = sorted(n for n, value in done.items() if value is not None)
     if not stop():
         failed = [n for n in kept if done[n].result.error]
         if failed:
             kept = [n for n in kept if n <= failed[0]]
     kept_outcomes = [done[n] for n in kept]
+    for n in kept:  # those after a seed that never started
+        if n >= announced and on_source is not None and done[n].source is not None:
+            on_source(done[n].source)
     return ExperimentResult(
         experiment,
         [o.result for o in kept_outcomes],
