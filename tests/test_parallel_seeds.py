@@ -239,3 +239,23 @@ def test_workers_die_with_a_killed_parent(endless, tmp_path):
         if proc.poll() is None:
             proc.kill()
     assert _group_gone(proc.pid), "a worker outlived its killed parent"
+
+
+def test_evaluate_with_two_workers_gives_the_sequential_run_folder(tmp_path, capsys):
+    """Synthetic traffic takes the same path: each worker builds the shared traffic itself."""
+    text = (ROOT / "configs" / "synthetic.toml").read_text()
+    assert "horizon = 2000" in text
+    config = tmp_path / "short.toml"
+    config.write_text(text.replace("horizon = 2000", "horizon = 40"))
+    folders = []
+    for workers in ("1", "2"):
+        out = tmp_path / f"workers-{workers}"
+        argv = ["evaluate", "--config", str(config), "--seeds", "3", "--swarms", "random,greedy",
+                "--workers", workers, "--out", str(out), "--no-report", "--quiet"]  # fmt: skip
+        assert twin_main(argv) == 0, capsys.readouterr().err
+        folders.append(out)
+    capsys.readouterr()
+    one, two = folders
+    assert _files(one) == _files(two)
+    for name in _files(one):
+        assert (one / name).read_bytes() == (two / name).read_bytes(), name

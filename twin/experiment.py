@@ -58,8 +58,9 @@ class Experiment:
     max_memory_gb: float | None = None
     #: live traffic in a process of its own, ahead of the swarms; same results
     separate_process: bool = True
-    #: live traffic: seeds run at once, each simulation with its swarms in a worker process of
-    #: its own (:func:`run_experiment`); 1: one after another in this process. Same results.
+    #: seeds run at once, each in a worker process of its own with its traffic (a live
+    #: simulation) and swarms (:func:`run_experiment`); 1: one after another in this process.
+    #: Same results.
     workers: int = 1
     executor: str = "local"  # where the workers run: a local process pool, or "ray"
     #: where a live source writes its scenario's configured outputs: the first seed's in this
@@ -211,9 +212,10 @@ def run_experiment(
     the result keeps the steps done, runs no more seeds and says ``interrupted``.
     ``on_step`` is handed to :func:`twin.patrol.run_patrol` (the GUI's per-step drawer).
 
-    Live traffic with ``experiment.workers`` > 1 runs the seeds at once, each in a worker process
-    (:func:`_run_seeds_in_workers`; ``on_source`` is then called as each seed finishes, with
-    the source the worker ran): the same results, in the same order, as one after another.
+    With ``experiment.workers`` > 1 the seeds run at once, each in a worker process
+    (:func:`_run_seeds_in_workers`; ``on_source`` is then called as the seeds finish, in seed
+    order, with the source the worker ran): the same results, in the same order, as one after
+    another.
     """
     if parallel(experiment) and on_step is None:
         signal_file = StopFile()
@@ -234,9 +236,10 @@ def run_experiment(
 
 
 def parallel(experiment: Experiment) -> bool:
-    """Whether the experiment's seeds run in worker processes: live traffic (each seed its own
-    simulation), more than one seed and more than one worker."""
-    return is_live(experiment) and experiment.workers > 1 and len(experiment.seeds) > 1
+    """Whether the experiment's seeds run in worker processes: more than one seed and more than
+    one worker. Each worker builds its seed's traffic: a live simulation of its own, or the
+    synthetic or replayed traffic every seed shares (built once per seed then)."""
+    return experiment.workers > 1 and len(experiment.seeds) > 1
 
 
 def _run_seeds(
@@ -378,8 +381,9 @@ def run_seed_in_worker(
 def _run_seeds_in_workers(
     experiment, progress, keep_sources, on_source, stop, signal_file: StopFile
 ) -> ExperimentResult:
-    """The seeds of a live experiment on ``experiment.workers`` worker processes (a local
-    process pool, or Ray), each seed one simulation with its swarms; results in seed order.
+    """The seeds of an experiment on ``experiment.workers`` worker processes (a local process
+    pool, or Ray), each seed its traffic (a live simulation) with its swarms; results in seed
+    order.
 
     A seed that fails mid-run (its result says why) stops the seeds after it, which are then
     left out: the same seeds and results as one after another. An error (bad input, a bug)
@@ -391,6 +395,8 @@ def _run_seeds_in_workers(
     if experiment.executor not in EXECUTORS:
         raise UserError(f"--executor {experiment.executor!r}: choose from {', '.join(EXECUTORS)}")
     t0 = time.perf_counter()
+    if not is_live(experiment):
+        check_memory(experiment, *planned_shape(experiment))
     seeds = list(experiment.seeds)
     workers = min(experiment.workers, len(seeds))
     tasks = [(experiment, n, str(signal_file.path), keep_sources) for n in range(len(seeds))]
@@ -570,9 +576,9 @@ def estimate_memory(
 
 
 #: A worker of a parallel run beside its parent: a Python interpreter with twin's modules and
-#: one SUMO simulation in its own process (measured: about 0.4 GB on the default scenario; see
-#: docs/benchmarks.md, bench_seeds.py).
-WORKER_BYTES = 0.5e9
+#: one SUMO simulation in its own process (peak resident memory on the default scenario: about
+#: 0.4 GB for the runner plus 0.4 GB for SUMO's process; docs/benchmarks.md).
+WORKER_BYTES = 0.8e9
 
 
 def n_workers(experiment: Experiment) -> int:

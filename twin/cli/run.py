@@ -9,11 +9,10 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
 import sys
 from pathlib import Path
 
-from twin.cli import check_count, check_seeds
+from twin.cli import add_worker_arguments, check_count, check_seeds
 from twin.errors import UserError
 
 DEFAULT_CONFIG = "configs/shenzhen.toml"
@@ -73,22 +72,7 @@ def add_parser(subparsers) -> None:
     p.add_argument(
         "--sumo-seed", type=int, help="SUMO's seed of the first simulation (default [traffic].seed)"
     )
-    p.add_argument(
-        "--workers",
-        type=int,
-        default=1,
-        help="seeds run at once, each SUMO simulation with its swarms in a worker process of its "
-        "own; same results as one after another (default 1: each seed already keeps two cores "
-        "busy, SUMO working ahead of the swarms, and each worker holds a whole simulation in "
-        f"memory; this machine has {os.cpu_count()} CPUs)",
-    )
-    p.add_argument(
-        "--executor",
-        choices=("local", "ray"),
-        default="local",
-        help="where --workers run: a local process pool (default) or a local Ray (pip install "
-        "'twin[ray]')",
-    )
+    add_worker_arguments(p)
     p.add_argument("--meso", action="store_true", help="SUMO's mesoscopic model (faster)")
     p.add_argument("--out", type=Path, help="run folder (default runs/run-<time>)")
     p.add_argument(
