@@ -73,6 +73,17 @@ def test_two_workers_give_the_sequential_run_folder(small, tmp_path, capsys):
         assert one[key] == two[key], key
 
 
+def test_ray_gives_the_sequential_run_folder(small, tmp_path, capsys):
+    pytest.importorskip("ray")
+    sequential, on_ray = tmp_path / "one", tmp_path / "ray"
+    assert _run(small, sequential) == 0
+    assert _run(small, on_ray, "--workers", "2", "--executor", "ray") == 0
+    capsys.readouterr()
+    assert _files(sequential) == _files(on_ray)
+    for name in _files(sequential):
+        assert (sequential / name).read_bytes() == (on_ray / name).read_bytes(), name
+
+
 @pytest.mark.parametrize("value", ["0", "-2", "1.5", "two"])
 def test_a_bad_workers_value_is_one_line(small, tmp_path, capsys, value):
     out = tmp_path / "out"
@@ -259,3 +270,20 @@ def test_evaluate_with_two_workers_gives_the_sequential_run_folder(tmp_path, cap
     assert _files(one) == _files(two)
     for name in _files(one):
         assert (one / name).read_bytes() == (two / name).read_bytes(), name
+
+
+def test_one_progress_bar_over_the_seeds(tmp_path, capsys):
+    """With workers, the bar counts seeds (each worker's step bar is off); without progress,
+    nothing is drawn."""
+    from twin.config import load_config
+    from twin.experiment import Experiment, run_experiment
+
+    text = (ROOT / "configs" / "synthetic.toml").read_text()
+    config = tmp_path / "short.toml"
+    config.write_text(text.replace("horizon = 2000", "horizon = 20"))
+    experiment = Experiment(load_config(config), ["random"], range(3), workers=2)
+    run_experiment(experiment, progress=True)
+    err = capsys.readouterr().err
+    assert "seeds" in err and "/3 [" in err and "patrol" not in err, err
+    run_experiment(experiment, progress=False)
+    assert capsys.readouterr().err == ""
