@@ -8,9 +8,10 @@ table, tape, trajectory and map (exit 1 otherwise). Reported: the wall seconds o
 ratio. Each seed already keeps about two cores busy (SUMO works ahead of the swarms in its own
 process), so the speed-up depends on the cores free beside it.
 
-Usage: ``python benchmarks/bench_seeds.py [--seeds 4] [--workers 2] [--horizon 24]`` (the
-default Shenzhen-like scenario, without ceilings or report); ``--quick`` uses a small generated
-grid (3 seeds, 10 steps; about 30 s).
+Usage: ``python benchmarks/bench_seeds.py [--seeds 4] [--workers 2] [--horizon 24]
+[--rounds 2]`` (the default Shenzhen-like scenario, without ceilings or report; ``--rounds R``:
+R pairs of runs in ABBA order, wall times summed); ``--quick`` uses a small generated grid
+(3 seeds, 10 steps; about 30 s).
 """
 
 from __future__ import annotations
@@ -96,6 +97,9 @@ def main() -> None:
     p.add_argument("--seeds", type=int, default=4)
     p.add_argument("--workers", type=int, default=2)
     p.add_argument("--horizon", type=int, default=24)
+    p.add_argument(
+        "--rounds", type=int, default=1, help="pairs of runs, ABBA-ordered (default 1: A, B)"
+    )
     p.add_argument("--quick", action="store_true", help="small generated grid, about 30 s")
     args = p.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="bench-seeds-"))
@@ -106,15 +110,28 @@ def main() -> None:
         common += ["--config", str(config)]
     if not args.quick:
         common += ["--horizon", str(args.horizon)]
-    one, many = tmp / "workers-1", tmp / f"workers-{args.workers}"
-    t_one = run([*common, "--workers", "1", "--out", str(one)])
-    t_many = run([*common, "--workers", str(args.workers), "--out", str(many)])
-    print(f"twin run {' '.join(common)}")
-    print(f"  --workers 1: {t_one:8.1f} s")
-    print(f"  --workers {args.workers}: {t_many:8.1f} s   speed-up {t_one / t_many:.2f} x")
-    differ = differences(one, many)
-    if differ:
-        sys.exit(f"bench_seeds: the run folders disagree: {', '.join(differ)} (in {tmp})")
+    order = ["1", str(args.workers)] * args.rounds
+    for r in range(1, args.rounds, 2):  # ABBA: the machine's load drifts alike on both
+        order[2 * r], order[2 * r + 1] = order[2 * r + 1], order[2 * r]
+    seconds: dict[str, list[float]] = {"1": [], str(args.workers): []}
+    folders: list[Path] = []
+    for n, workers in enumerate(order):
+        out = tmp / f"run-{n}-workers-{workers}"
+        seconds[workers].append(run([*common, "--workers", workers, "--out", str(out)]))
+        folders.append(out)
+    t_one, t_many = sum(seconds["1"]), sum(seconds[str(args.workers)])
+    print(f"twin run {' '.join(common)}   (runs in order: --workers {', '.join(order)})")
+    each = {w: " + ".join(f"{x:.1f}" for x in ts) for w, ts in seconds.items()}
+    print(f"  --workers 1: {t_one:8.1f} s   ({each['1']})")
+    print(
+        f"  --workers {args.workers}: {t_many:8.1f} s   ({each[str(args.workers)]})   "
+        f"speed-up {t_one / t_many:.2f} x"
+    )
+    for folder in folders[1:]:
+        differ = differences(folders[0], folder)
+        if differ:
+            sys.exit(f"bench_seeds: the run folders disagree: {', '.join(differ)} (in {tmp})")
+    one = folders[0]
     n_files = len([p for p in one.rglob("*") if p.is_file()]) - len(WALL_TIME_FILES)
     print(f"  same files, byte for byte: {n_files} (timing.csv, run.json, manifest.json aside)")
     import shutil

@@ -45,8 +45,9 @@ def add_worker_arguments(p, live: bool = True) -> None:
     """``--workers``, ``--executor`` (``twin run``: ``live``, ``twin evaluate``)."""
     what = "SUMO simulation" if live else "seed"
     why = (
-        "a seed already keeps two cores busy, SUMO working ahead of the swarms in its own "
-        "process, and each worker holds a whole simulation in memory"
+        "a seed already uses more than one core, SUMO working ahead of the swarms in its own "
+        "process (on 2 shared cores 2 workers gained nothing, docs/benchmarks.md), and each "
+        "worker holds a whole simulation in memory"
         if live
         else "each worker holds a whole run in memory and starts a fresh interpreter, a few "
         "seconds that short seeds do not repay"
