@@ -61,6 +61,14 @@ class Experiment:
     #: the command-line flag that set the number of drones (``twin run --drones``), named in
     #: the error when they do not fit the grid; None: the config file's
     drones_flag: str | None = None
+    #: seeds run at once, each in a worker process of its own with its traffic (a live
+    #: simulation) and swarms (:func:`run_experiment`); 1: one after another in this process.
+    #: Same results.
+    workers: int = 1
+    executor: str = "local"  # where the workers run: a local process pool, or "ray"
+    #: where a live source writes its scenario's configured outputs: the first seed's in this
+    #: folder, the others' in ``seed-<s>/`` under it; None: a temporary folder
+    outputs_dir: Path | None = None
 
 
 @dataclass
@@ -121,13 +129,17 @@ def build_source(experiment: Experiment, index: int = 0) -> TrafficSource:
         from twin.traffic.tape import TapeTraffic
 
         return TapeTraffic.from_file(experiment.tape, config)
-    return build_traffic(
+    source = build_traffic(
         config,
         index,
         experiment.traffic_seed,
         experiment.separate_process,  # the simulation works ahead on the other core
         **experiment.traffic_options,
     )
+    if experiment.outputs_dir is not None and hasattr(source, "output_dir"):
+        seed = list(experiment.seeds)[index]
+        source.output_dir = Path(experiment.outputs_dir) / (f"seed-{seed}" if index else "")
+    return source
 
 
 def build_swarms(experiment: Experiment) -> dict[str, Policy]:
@@ -147,10 +159,13 @@ def build_swarms(experiment: Experiment) -> dict[str, Policy]:
 
 
 @contextlib.contextmanager
-def stop_on_interrupt(enabled: bool = True) -> Iterator[Callable[[], bool]]:
+def stop_on_interrupt(
+    enabled: bool = True, on_stop: Callable[[], None] | None = None
+) -> Iterator[Callable[[], bool]]:
     """Within the block, a first Ctrl-C (SIGINT) only sets a flag (the yielded callable turns
-    true) so the run can stop after its current step and keep what it did; a second Ctrl-C
-    raises :class:`KeyboardInterrupt` at once. The previous handler is restored on exit.
+    true) so the run can stop after its current step and keep what it did, and calls
+    ``on_stop()`` (which passes the word to worker processes); a second Ctrl-C raises
+    :class:`KeyboardInterrupt` at once. The previous handler is restored on exit.
 
     Nothing is installed off the main thread, or when SIGINT is not Python's default handler
     (ignored, as in a background job, or handled by the caller): the flag then stays false.
@@ -168,6 +183,8 @@ def stop_on_interrupt(enabled: bool = True) -> Iterator[Callable[[], bool]]:
     def first(signum, frame) -> None:
         flag.set()
         signal.signal(signal.SIGINT, signal.default_int_handler)  # the next one stops at once
+        if on_stop is not None:
+            on_stop()
         print(
             "\ntwin: interrupted; stopping after the current step and writing a partial run "
             "(Ctrl-C again to stop at once)",
@@ -197,13 +214,35 @@ def run_experiment(
     ``interruptible`` a Ctrl-C stops the run after its current step (:func:`stop_on_interrupt`):
     the result keeps the steps done, runs no more seeds and says ``interrupted``.
     ``on_step`` is handed to :func:`twin.patrol.run_patrol` (the GUI's per-step drawer).
+
+    With ``experiment.workers`` > 1 the seeds run at once, each in a worker process
+    (:func:`_run_seeds_in_workers`; ``on_source`` is then called as the seeds finish, in seed
+    order, with the source the worker ran): the same results, in the same order, as one after
+    another.
     """
-    with stop_on_interrupt(interruptible) as stop:
-        outcome = _run_seeds(experiment, progress, keep_sources, on_source, stop, on_step)
+    if parallel(experiment) and on_step is None:
+        signal_file = StopFile()
+        try:
+            with stop_on_interrupt(interruptible, lambda: signal_file.request(-1)) as stop:
+                outcome = _run_seeds_in_workers(
+                    experiment, progress, keep_sources, on_source, stop, signal_file
+                )
+        finally:
+            signal_file.remove()
+    else:
+        with stop_on_interrupt(interruptible) as stop:
+            outcome = _run_seeds(experiment, progress, keep_sources, on_source, stop, on_step)
     outcome.interrupted = stop() or any(
         (r.error or "").startswith(INTERRUPTED) for r in outcome.results
     )
     return outcome
+
+
+def parallel(experiment: Experiment) -> bool:
+    """Whether the experiment's seeds run in worker processes: more than one seed and more than
+    one worker. Each worker builds its seed's traffic: a live simulation of its own, or the
+    synthetic or replayed traffic every seed shares (built once per seed then)."""
+    return experiment.workers > 1 and len(experiment.seeds) > 1
 
 
 def _run_seeds(
@@ -211,7 +250,7 @@ def _run_seeds(
 ) -> ExperimentResult:
     t0 = time.perf_counter()
     results, traffic, sources = [], [], []
-    swarms: dict[str, Policy] = {}
+    policies: dict[str, dict[str, Any]] = {}
     live = is_live(experiment)
     if not live:
         check_memory(experiment, *planned_shape(experiment))
@@ -219,29 +258,11 @@ def _run_seeds(
     for n, seed in enumerate(experiment.seeds):
         source = shared_source or build_source(experiment, n)
         try:
-            if live and n == 0:
-                check_memory(experiment, source.grid.shape, source.horizon, source)
-            check_swarm_fits(experiment.config, source.grid, experiment.drones_flag)
-            if on_source is not None:
-                on_source(source)
-            swarms = build_swarms(experiment)
-            starts = start_positions(experiment.config, source.grid, np.random.default_rng(seed))
-            result = run_patrol(
-                source,
-                swarms,
-                starts,
-                experiment.config.params,
-                seed,
-                progress=progress,
-                keep_importance=experiment.keep_importance,
-                stop=stop,
-                on_step=on_step,
+            result, meta, policies = _run_seed(
+                experiment, n, seed, source, stop, progress, on_source, on_step
             )
             results.append(result)
-            traffic.append(source.metadata())
-            incidents = source.incidents_info()
-            if incidents:
-                result.extra["incidents"] = incidents  # scored by monitoring
+            traffic.append(meta)
         finally:
             if keep_sources:
                 sources.append(source)
@@ -251,10 +272,209 @@ def _run_seeds(
             break
     if shared_source is not None and not keep_sources:
         shared_source.close()
-    policies = {n: p.describe() for n, p in swarms.items() if hasattr(p, "describe")}
     return ExperimentResult(
         experiment, results, traffic, policies, time.perf_counter() - t0, sources
     )
+
+
+def _run_seed(experiment, n, seed, source, stop, progress=False, on_source=None, on_step=None):
+    """One seed's patrol pass of all swarms over ``source``: its result, the source's metadata
+    and what each swarm says of itself. A live run's memory is checked on its first seed, once
+    its grid is known."""
+    if is_live(experiment) and n == 0:
+        check_memory(experiment, source.grid.shape, source.horizon, source)
+    check_swarm_fits(experiment.config, source.grid, experiment.drones_flag)
+    if on_source is not None:
+        on_source(source)
+    swarms = build_swarms(experiment)
+    starts = start_positions(experiment.config, source.grid, np.random.default_rng(seed))
+    result = run_patrol(
+        source,
+        swarms,
+        starts,
+        experiment.config.params,
+        seed,
+        progress=progress,
+        keep_importance=experiment.keep_importance,
+        stop=stop,
+        on_step=on_step,
+    )
+    incidents = source.incidents_info()
+    if incidents:
+        result.extra["incidents"] = incidents  # scored by monitoring
+    policies = {name: p.describe() for name, p in swarms.items() if hasattr(p, "describe")}
+    return result, source.metadata(), policies
+
+
+class StopFile:
+    """The word to stop, passed from the parent to the workers of a parallel run: a file in a
+    fresh temporary folder that holds an index; every seed above it stops after its current
+    step (or does not start). ``-1``: every seed (Ctrl-C); ``n``: the seeds after seed n (seed
+    n failed: the seeds one after another would have stopped there)."""
+
+    def __init__(self) -> None:
+        import tempfile
+
+        self.folder = Path(tempfile.mkdtemp(prefix="twin-stop-"))
+        self.path = self.folder / "stop"
+
+    def request(self, after: int) -> None:
+        current = self.read()
+        if current is not None and current <= after:
+            return
+        tmp = self.folder / f"stop.{after + 1}.tmp"
+        tmp.write_text(str(after))
+        os.replace(tmp, self.path)  # never seen half-written
+
+    def read(self) -> int | None:
+        return read_stop(self.path)
+
+    def remove(self) -> None:
+        import shutil
+
+        shutil.rmtree(self.folder, ignore_errors=True)
+
+
+def read_stop(path: Path) -> int | None:
+    """The index in a :class:`StopFile`'s file, or None while no stop was asked for."""
+    try:
+        return int(Path(path).read_text())
+    except (OSError, ValueError):
+        return None
+
+
+@dataclass
+class SeedOutcome:
+    """What a worker sends back of one seed (:func:`run_seed_in_worker`)."""
+
+    index: int
+    result: PatrolResult
+    traffic: dict[str, Any]
+    policies: dict[str, dict[str, Any]]
+    source: TrafficSource | None  # the source as the run left it, when the caller keeps sources
+
+
+def run_seed_in_worker(
+    experiment: Experiment, index: int, stop_path: str, keep_source: bool
+) -> SeedOutcome | None:
+    """One seed of a parallel run, in a worker process: build its simulation, run the swarms
+    over it and send back the result (with the source, for the run folder's files). None: a
+    stop was asked for before the seed started."""
+    limit_threads()
+    path = Path(stop_path)
+    stopped = [False]
+
+    def stop() -> bool:  # one stat per step; the word, once read, holds
+        if not stopped[0] and path.exists():
+            after = read_stop(path)
+            stopped[0] = after is not None and index > after
+        return stopped[0]
+
+    if stop():
+        return None
+    seed = list(experiment.seeds)[index]
+    source = build_source(experiment, index)
+    try:
+        result, traffic, policies = _run_seed(experiment, index, seed, source, stop)
+    finally:
+        source.close()
+    return SeedOutcome(index, result, traffic, policies, source if keep_source else None)
+
+
+def _run_seeds_in_workers(
+    experiment, progress, keep_sources, on_source, stop, signal_file: StopFile
+) -> ExperimentResult:
+    """The seeds of an experiment on ``experiment.workers`` worker processes (a local process
+    pool, or Ray), each seed its traffic (a live simulation) with its swarms; results in seed
+    order.
+
+    A seed that fails mid-run (its result says why) stops the seeds after it, which are then
+    left out: the same seeds and results as one after another. An error (bad input, a bug)
+    stops every worker at once and is raised here. Ctrl-C stops every seed after its current
+    step and keeps every seed done or partly done.
+    """
+    from twin.sweep.executors import EXECUTORS, local_tasks, ray_tasks
+
+    if experiment.executor not in EXECUTORS:
+        raise UserError(f"--executor {experiment.executor!r}: choose from {', '.join(EXECUTORS)}")
+    t0 = time.perf_counter()
+    if not is_live(experiment):
+        check_memory(experiment, *planned_shape(experiment))
+    seeds = list(experiment.seeds)
+    workers = min(experiment.workers, len(seeds))
+    tasks = [(experiment, n, str(signal_file.path), keep_sources) for n in range(len(seeds))]
+    if experiment.executor == "ray":
+        outcomes = ray_tasks(run_seed_in_worker, tasks, workers)
+    else:
+        outcomes = local_tasks(
+            run_seed_in_worker, tasks, workers, ignore_sigint=True, kill_on_close=True
+        )
+    done: dict[int, SeedOutcome | None] = {}
+    announced = 0  # on_source goes through the seeds in order, as each is done
+
+    def announce(upto: int) -> None:
+        nonlocal announced
+        while announced < upto and announced in done:
+            value = done[announced]
+            if on_source is not None and value is not None and value.source is not None:
+                on_source(value.source)
+            announced += 1
+
+    bar = _seed_bar(len(seeds), progress)
+    try:
+        for n, value, error in outcomes:
+            if error is not None:
+                signal_file.request(-1)
+                raise _worker_error(error, seeds[n])
+            if bar is not None:
+                bar.update(1)
+            done[n] = value  # None: stopped before it started
+            if value is not None and value.result.error and not stop():
+                signal_file.request(n)  # the seeds after a failed one stop
+            announce(len(seeds))
+    finally:
+        outcomes.close()  # an early end kills the workers still running
+        if bar is not None:
+            bar.close()
+    kept = sorted(n for n, value in done.items() if value is not None)
+    if not stop():
+        failed = [n for n in kept if done[n].result.error]
+        if failed:
+            kept = [n for n in kept if n <= failed[0]]
+    kept_outcomes = [done[n] for n in kept]
+    for n in kept:  # those after a seed that never started
+        if n >= announced and on_source is not None and done[n].source is not None:
+            on_source(done[n].source)
+    return ExperimentResult(
+        experiment,
+        [o.result for o in kept_outcomes],
+        [o.traffic for o in kept_outcomes],
+        kept_outcomes[-1].policies if kept_outcomes else {},
+        time.perf_counter() - t0,
+        [o.source for o in kept_outcomes if o.source is not None],
+    )
+
+
+def _worker_error(error: BaseException, seed: int) -> BaseException:
+    """A worker's exception as raised here: bad input as it is; a worker that died as one line
+    (:class:`UserError`); anything else as it is (its traceback goes to ``error.log``)."""
+    from concurrent.futures.process import BrokenProcessPool
+
+    if isinstance(error, BrokenProcessPool):
+        return UserError(
+            f"the worker process of seed {seed} died ({error}); nothing was written, rerun "
+            "with fewer --workers (memory) or --workers 1"
+        )
+    return error
+
+
+def _seed_bar(total: int, enabled: bool):
+    """One progress bar over the seeds of a parallel run (each worker's own bar is off)."""
+    if not enabled:
+        return None
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, desc="seeds", unit="seed", leave=False, dynamic_ncols=True)
 
 
 DEFAULT_MAX_MEMORY_GB = 8.0
@@ -324,6 +544,11 @@ def estimate_memory(
     each seed's tape (int32 counts + float32 speeds, warm-up included: 8 B) and writes the first as
     a long table (~48 B). Per cell and swarm: its state, view and belief map (~64 B). Per
     swarm, drone and step: positions (16 B per seed).
+
+    Seeds run at once on W workers (:func:`parallel`): each worker holds one simulation with its
+    swarms (:data:`WORKER_BYTES`: an interpreter, SUMO and its process), its seed's result and
+    tape while it runs, and the copy it sends back (twice those 8 + 8 B per cell and step),
+    beside the parent, which gathers every seed's.
     """
     cells = shape[0] * shape[1]
     steps = horizon + 1
@@ -336,11 +561,35 @@ def estimate_memory(
     else:  # a tape: its counts, speeds (and the table they are read from, ~40 B)
         per_cell_step += 48
     n_drones = min(experiment.config.swarm.n_drones, cells)  # more cannot fit: refused later
-    return float(
+    need = (
         cells * steps * per_cell_step
         + cells * n_swarms * 64
         + n_swarms * n_seeds * steps * n_drones * 16
     )
+    workers = n_workers(experiment)
+    if workers > 1:
+        per_worker = (
+            WORKER_BYTES
+            + cells * steps * 2 * (8 + 8 * (steps + warmup_steps) / steps)
+            + cells * n_swarms * 64
+            + n_swarms * steps * n_drones * 16 * 2
+        )
+        need += workers * per_worker
+    return float(need)
+
+
+#: A worker of a parallel run beside its parent: a Python interpreter with twin's modules and
+#: one SUMO simulation in its own process (peak resident memory on the default scenario: about
+#: 0.4 GB for the runner plus 0.4 GB for SUMO's process; docs/benchmarks.md).
+WORKER_BYTES = 0.8e9
+
+
+def n_workers(experiment: Experiment) -> int:
+    """The worker processes a run uses at once: ``experiment.workers`` up to the number of seeds
+    when its seeds run in parallel (:func:`parallel`), else 0 (all in this process)."""
+    if not parallel(experiment):
+        return 0
+    return min(experiment.workers, len(experiment.seeds))
 
 
 def check_resources(experiment: Experiment, out: Path, flag: str = "--out") -> None:
@@ -406,10 +655,13 @@ def check_memory(
     hint = source.coarser_hint(ratio) if source is not None else None
     if hint is None:
         hint = f"a grid about {ratio:.1f} times coarser per side, fewer steps or fewer seeds"
+    workers = n_workers(experiment)
+    on = f" on {workers} workers" if workers > 1 else ""
+    fewer = ", fewer --workers" if workers > 1 else ""
     raise UserError(
         f"{shape[0]} x {shape[1]} cells x {horizon} steps x {len(experiment.swarms)} swarms x "
-        f"{len(experiment.seeds)} seeds need about {need / 1e9:.1f} GB, over the "
-        f"{limit:g} GB limit; use {hint}, or raise --max-memory-gb / ${MEMORY_ENV}"
+        f"{len(experiment.seeds)} seeds{on} need about {need / 1e9:.1f} GB, over the "
+        f"{limit:g} GB limit; use {hint}{fewer}, or raise --max-memory-gb / ${MEMORY_ENV}"
     )
 
 

@@ -12,10 +12,13 @@ import time
 PARENT_POLL_S = 0.5
 
 
-def exit_with_parent(parent: int) -> None:
+def exit_with_parent(parent: int, ignore_sigint: bool = False) -> None:
     """End this process when ``parent`` dies, even by ``kill -9`` (no cleanup runs there). On
     Linux the kernel sends SIGKILL on the parent's death (``PR_SET_PDEATHSIG``); everywhere a
-    daemon thread checks ``os.getppid()`` twice a second."""
+    daemon thread checks ``os.getppid()`` twice a second. With ``ignore_sigint`` the process
+    ignores Ctrl-C, which reaches the whole terminal's process group: the parent decides."""
+    if ignore_sigint:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
     if sys.platform.startswith("linux"):
         try:
             import ctypes

@@ -85,8 +85,10 @@ RUN_FILE_NAMES = frozenset(
 #: Names in a run folder that its manifest does not list: written after the run, or again later.
 UNLISTED = ("report", LOG_NAME, MANIFEST)
 #: Options that change only what is printed: a rerun differing in these is the same command.
+#: (``--workers``/``--executor`` change where seeds run, not their results)
 DISPLAY_OPTIONS = frozenset(
     {"quiet", "no_report", "func", "gui", "gui_swarms", "gui_shade", "record"}
+    | {"workers", "executor"}
 )
 
 

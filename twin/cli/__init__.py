@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 from twin import __version__
@@ -38,6 +39,34 @@ def check_seeds(flag: str, first: int | None, count: int = 1) -> None:
         raise UserError(
             f"{flag} = {first} is out of range{last}; seeds are whole numbers from 0 to {MAX_SEED}"
         )
+
+
+def add_worker_arguments(p, live: bool = True) -> None:
+    """``--workers``, ``--executor`` (``twin run``: ``live``, ``twin evaluate``)."""
+    what = "SUMO simulation" if live else "seed"
+    why = (
+        "a seed already uses more than one core, SUMO working ahead of the swarms in its own "
+        "process (on 2 shared cores 2 workers gained nothing, docs/benchmarks.md), and each "
+        "worker holds a whole simulation in memory"
+        if live
+        else "each worker holds a whole run in memory and starts a fresh interpreter, a few "
+        "seconds that short seeds do not repay"
+    )
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help=f"seeds run at once, each {what} with its swarms in a worker process of its own; "
+        f"same results as one after another (default 1, one after another: {why}; this "
+        f"machine has {os.cpu_count()} CPUs)",
+    )
+    p.add_argument(
+        "--executor",
+        choices=("local", "ray"),
+        default="local",
+        help="where --workers run: a local process pool (default) or a local Ray (pip install "
+        "'twin[ray]')",
+    )
 
 
 class Parser(argparse.ArgumentParser):

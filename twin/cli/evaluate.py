@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from twin.cli import check_count, check_seeds
+from twin.cli import add_worker_arguments, check_count, check_seeds
 from twin.config import load_config, shipped_config
 from twin.errors import UserError
 from twin.experiment import (
@@ -77,6 +77,7 @@ def add_parser(subparsers) -> None:
         "future maps and an upper bound no swarm can exceed, computed after the swarms' run "
         "(default on, left out of a run stopped by Ctrl-C; --no-ceiling skips them)",
     )
+    add_worker_arguments(p, live=False)
     p.add_argument("--no-report", action="store_true", help="do not render the HTML report")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=main)
@@ -86,6 +87,7 @@ def main(args: argparse.Namespace) -> int:
     limit_threads()
     config = load_config(shipped_config(args.config or DEFAULT_CONFIG))
     check_count("--seeds", args.seeds)
+    check_count("--workers", args.workers)
     seeds = args.seeds if args.seeds is not None else config.evaluate.seeds
     first = args.seed if args.seed is not None else config.evaluate.seed
     check_seeds(
@@ -97,6 +99,8 @@ def main(args: argparse.Namespace) -> int:
         seeds=range(first, first + seeds),
         tape=args.traffic,
         max_memory_gb=args.max_memory_gb,
+        workers=args.workers,
+        executor=args.executor,
     )
     if experiment.tape is None and config.traffic.kind != "synthetic":
         raise UserError(

@@ -12,7 +12,7 @@ import math
 import sys
 from pathlib import Path
 
-from twin.cli import check_count, check_seeds
+from twin.cli import add_worker_arguments, check_count, check_seeds
 from twin.errors import UserError
 
 DEFAULT_CONFIG = "configs/shenzhen.toml"
@@ -79,6 +79,7 @@ def add_parser(subparsers) -> None:
     p.add_argument(
         "--sumo-seed", type=int, help="SUMO's seed of the first simulation (default [traffic].seed)"
     )
+    add_worker_arguments(p)
     p.add_argument("--meso", action="store_true", help="SUMO's mesoscopic model (faster)")
     p.add_argument("--out", type=Path, help="run folder (default runs/run-<time>)")
     p.add_argument(
@@ -184,6 +185,9 @@ def build_experiment(args: argparse.Namespace):
         )
     check_count("--seeds", args.seeds)
     check_count("--horizon", args.horizon)
+    check_count("--workers", args.workers)
+    if args.workers > 1 and (args.gui or args.record):
+        raise UserError("--gui and --record draw one simulation at a time; drop --workers")
     check_seeds("--seed", args.seed, args.seeds)
     check_seeds("--sumo-seed", args.sumo_seed, args.seeds)
     first = args.seed if args.seed is not None else config.evaluate.seed
@@ -208,6 +212,8 @@ def build_experiment(args: argparse.Namespace):
         skip_unavailable=args.swarms is None,
         max_memory_gb=args.max_memory_gb,
         drones_flag="--drones" if args.drones is not None else None,
+        workers=args.workers,
+        executor=args.executor,
     )
     return experiment
 
@@ -230,15 +236,11 @@ def main(args: argparse.Namespace) -> int:
     drawer = gui_drawer(args, experiment.swarms)
     check_resources(experiment, args.out or Path("runs"))  # before any folder is made
     run_dir = prepare_run_dir(args.out or new_run_dir("runs", "run"), invocation("run", args))
-
-    n_sources = [0]
+    # SUMO's configured outputs: into the run folder, the first seed's in sumo/, the others' in
+    # sumo/seed-<s>/
+    experiment.outputs_dir = run_dir / "sumo"
 
     def on_source(source) -> None:
-        if hasattr(source, "output_dir"):  # SUMO's configured outputs: into the run folder
-            n = n_sources[0]  # the first seed's in sumo/, the others' in sumo/seed-<s>/
-            seed = list(experiment.seeds)[n]
-            source.output_dir = run_dir / "sumo" / (f"seed-{seed}" if n else "")
-            n_sources[0] += 1
         _announce(source)
         if drawer is not None:
             drawer.attach(source)

@@ -1,5 +1,5 @@
-"""Executors: run a list of cells on a local process pool or on Ray, yielding each cell's
-outcome as it finishes."""
+"""Executors: run a list of tasks (a sweep's cells, a run's seeds) on a local process pool or
+on Ray, yielding each one's outcome as it finishes."""
 
 from __future__ import annotations
 
@@ -7,14 +7,13 @@ import logging
 import multiprocessing
 import os
 import threading
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
 from typing import Any
 
 from twin.errors import UserError
 from twin.processes import exit_with_parent
-from twin.sweep.cells import run_cell
 
 EXECUTORS = ("local", "ray")
 
@@ -29,33 +28,55 @@ def _error_line(exc: BaseException) -> str:
     return f"{type(cause).__name__}: {text[0] if text else ''}"
 
 
-def _local_executor(cells: list[dict], workers: int) -> Iterable[Outcome]:
-    """Run cells on a process pool (spawn: one fresh interpreter, hence one SUMO, per worker).
-    Workers exit when the sweep dies (:func:`exit_with_parent`)."""
+def local_tasks(
+    fn: Callable[..., Any],
+    tasks: Sequence[tuple],
+    workers: int,
+    ignore_sigint: bool = False,
+    kill_on_close: bool = False,
+) -> Iterator[tuple[int, Any, BaseException | None]]:
+    """Run ``fn(*tasks[n])`` for every n on a process pool (spawn: one fresh interpreter, hence
+    one SUMO, per worker), yielding ``(n, value, None)`` or ``(n, None, exception)`` as each
+    finishes. Workers exit when the parent dies (:func:`exit_with_parent`); with
+    ``ignore_sigint`` they leave Ctrl-C to the parent. With ``kill_on_close``, a caller that
+    stops reading early (an error, a second Ctrl-C) kills the running workers instead of
+    waiting for them."""
     context = multiprocessing.get_context("spawn")
     pool = ProcessPoolExecutor(
         max_workers=workers,
         mp_context=context,
         initializer=exit_with_parent,
-        initargs=(os.getpid(),),
+        initargs=(os.getpid(), ignore_sigint),
     )
+    pending: dict = {}
     try:
-        pending = {pool.submit(run_cell, cell): cell["id"] for cell in cells}
+        pending = {pool.submit(fn, *args): n for n, args in enumerate(tasks)}
         while pending:
-            done, _ = wait(pending, return_when=FIRST_COMPLETED)
+            done, _ = wait(pending, timeout=1.0, return_when=FIRST_COMPLETED)
             for future in done:
-                cid = pending.pop(future)
+                n = pending.pop(future)
                 try:
-                    yield cid, future.result(), None
-                except BrokenProcessPool as exc:
-                    raise UserError(
-                        f"a sweep worker died while running cell {cid} ({exc}); finished cells "
-                        "are saved, rerun the same command to resume"
-                    ) from None
+                    yield n, future.result(), None
                 except Exception as exc:
-                    yield cid, None, _error_line(exc)
+                    yield n, None, exc
     finally:
+        if pending and kill_on_close:
+            for process in list((getattr(pool, "_processes", None) or {}).values()):
+                process.kill()
         pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _local_executor(cells: list[dict], workers: int, fn: Callable) -> Iterable[Outcome]:
+    """Run cells (``fn``: :func:`twin.sweep.cells.run_cell`) on a process pool
+    (:func:`local_tasks`)."""
+    for n, record, error in local_tasks(fn, [(cell,) for cell in cells], workers):
+        cid = cells[n]["id"]
+        if isinstance(error, BrokenProcessPool):
+            raise UserError(
+                f"a sweep worker died while running cell {cid} ({error}); finished cells "
+                "are saved, rerun the same command to resume"
+            ) from None
+        yield cid, record, None if error is None else _error_line(error)
 
 
 #: Seconds to wait for a Ray cluster's address to answer (TCP), then for ``ray.init`` to join.
@@ -105,8 +126,12 @@ def _connect_ray(ray: Any, address: str, timeout: float = RAY_CONNECT_S) -> None
         raise UserError(f"Ray address {address}: {type(error).__name__}: {line}; {fix}")
 
 
-def _ray_executor(cells: list[dict], workers: int, address: str | None) -> Iterable[Outcome]:
-    """Run cells as Ray tasks, one CPU each, on a cluster at ``address`` or a local one."""
+def ray_tasks(
+    fn: Callable[..., Any], tasks: Sequence[tuple], workers: int, address: str | None = None
+) -> Iterator[tuple[int, Any, BaseException | None]]:
+    """Run ``fn(*tasks[n])`` as Ray tasks, one CPU each, on a cluster at ``address`` or a local
+    one of ``workers`` CPUs, yielding ``(n, value, None)`` or ``(n, None, exception)`` as each
+    finishes; tasks still running when the caller stops reading are cancelled."""
     os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")  # offline: never phone home
     try:
         import ray
@@ -129,18 +154,26 @@ def _ray_executor(cells: list[dict], workers: int, address: str | None) -> Itera
         started = True
     pending: dict = {}
     try:
-        task = ray.remote(num_cpus=1, max_retries=0)(run_cell)
-        pending = {task.remote(cell): cell["id"] for cell in cells}
+        task = ray.remote(num_cpus=1, max_retries=0)(fn)
+        pending = {task.remote(*args): n for n, args in enumerate(tasks)}
         while pending:
-            done, _ = ray.wait(list(pending), num_returns=1)
+            done, _ = ray.wait(list(pending), num_returns=1, timeout=1.0)
             for ref in done:
-                cid = pending.pop(ref)
+                n = pending.pop(ref)
                 try:
-                    yield cid, ray.get(ref), None
+                    yield n, ray.get(ref), None
                 except Exception as exc:
-                    yield cid, None, _error_line(exc)
+                    yield n, None, exc
     finally:
         for ref in pending:
             ray.cancel(ref, force=True)
         if started:
             ray.shutdown()
+
+
+def _ray_executor(
+    cells: list[dict], workers: int, address: str | None, fn: Callable
+) -> Iterable[Outcome]:
+    """Run cells as Ray tasks (:func:`ray_tasks`)."""
+    for n, record, error in ray_tasks(fn, [(cell,) for cell in cells], workers, address):
+        yield cells[n]["id"], record, None if error is None else _error_line(error)

@@ -14,7 +14,7 @@ from typing import Any
 import pandas as pd
 
 from twin.errors import UserError
-from twin.sweep.cells import expand_cells, scenario_config
+from twin.sweep.cells import expand_cells, run_cell, scenario_config
 from twin.sweep.config import SweepConfig
 from twin.sweep.executors import EXECUTORS, _local_executor, _ray_executor
 from twin.sweep.store import (
@@ -67,9 +67,9 @@ def run_sweep(
     failed: dict[str, str] = {}
     if todo:
         outcomes = (
-            _local_executor(todo, workers)
+            _local_executor(todo, workers, run_cell)
             if executor == "local"
-            else _ray_executor(todo, workers, address)
+            else _ray_executor(todo, workers, address, run_cell)
         )
         bar = _progress(len(todo), progress)
         try:

@@ -1,0 +1,289 @@
+"""`twin run --seeds N --workers W`: seeds in worker processes, each SUMO simulation with its
+swarms in one; the run folder equals the one of the seeds run one after another."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+pytest.importorskip("libsumo")
+
+from helpers import small_sumo_scenario
+
+from twin.cli import main as twin_main
+
+ROOT = Path(__file__).resolve().parents[1]
+
+#: Files of a run folder that hold wall times (or list the files' sizes): not compared.
+WALL_TIME_FILES = {"timing.csv", "run.json", "manifest.json"}
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory) -> Path:
+    return small_sumo_scenario(tmp_path_factory.mktemp("small"), horizon=10)
+
+
+def _run(small: Path, out: Path, *extra: str) -> int:
+    """``twin run`` on the small scenario over 3 seeds, in this process: its exit code (a
+    refused flag's too: the parser exits as the command would)."""
+    try:
+        return twin_main(
+            ["run", "--config", str(small / "small.toml"), "--seeds", "3", "--out", str(out),
+             "--no-report", "--quiet", *extra]
+        )  # fmt: skip
+    except SystemExit as exc:
+        return exc.code
+
+
+def _files(folder: Path) -> list[str]:
+    return sorted(
+        p.relative_to(folder).as_posix()
+        for p in folder.rglob("*")
+        if p.is_file() and p.name not in WALL_TIME_FILES
+    )
+
+
+def test_two_workers_give_the_sequential_run_folder(small, tmp_path, capsys):
+    sequential, parallel = tmp_path / "one", tmp_path / "two"
+    assert _run(small, sequential) == 0
+    assert _run(small, parallel, "--workers", "2") == 0
+    capsys.readouterr()
+    names = _files(sequential)
+    assert names == _files(parallel)
+    assert {"per_seed.csv", "summary.csv", "tapes/seed-2.parquet"} <= set(names)
+    for name in names:  # every table, tape and map, byte for byte
+        assert (sequential / name).read_bytes() == (parallel / name).read_bytes(), name
+    per_seed = pd.read_csv(parallel / "per_seed.csv")
+    assert list(per_seed["seed"].unique()) == [0, 1, 2]  # seed order
+    assert per_seed.groupby("seed")["R_hat_T"].sum().nunique() == 3  # three simulations
+    timing = pd.read_csv(parallel / "timing.csv")
+    assert list(timing["seed"].unique()) == [0, 1, 2]
+    meta = (json.loads((f / "run.json").read_text()) for f in (sequential, parallel))
+    one, two = meta
+    for key in ("seeds", "traffic_by_seed", "partial", "policies", "horizon"):
+        assert one[key] == two[key], key
+
+
+def test_ray_gives_the_sequential_run_folder(small, tmp_path, capsys):
+    pytest.importorskip("ray")
+    sequential, on_ray = tmp_path / "one", tmp_path / "ray"
+    assert _run(small, sequential) == 0
+    assert _run(small, on_ray, "--workers", "2", "--executor", "ray") == 0
+    capsys.readouterr()
+    assert _files(sequential) == _files(on_ray)
+    for name in _files(sequential):
+        assert (sequential / name).read_bytes() == (on_ray / name).read_bytes(), name
+
+
+@pytest.mark.parametrize("value", ["0", "-2", "1.5", "two"])
+def test_a_bad_workers_value_is_one_line(small, tmp_path, capsys, value):
+    out = tmp_path / "out"
+    code = _run(small, out, "--workers", value)
+    err = capsys.readouterr().err.strip()
+    assert code == 2, err
+    assert err.count("\n") == 0 and err.startswith("twin: "), err
+    assert "--workers" in err and "Traceback" not in err
+    assert not out.exists()
+
+
+def test_gui_with_workers_is_refused(small, tmp_path, capsys):
+    code = _run(small, tmp_path / "out", "--workers", "2", "--gui")
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "--workers" in err and err.count("\n") == 0, err
+
+
+def test_a_failed_seed_stops_the_seeds_after_it_as_one_after_another(small, monkeypatch):
+    """Seed 1's simulation fails mid-run: kept are seeds 0 and 1 (partial), as sequentially,
+    whatever order the workers finish in (here the last seed first)."""
+    from twin.config import load_config
+    from twin.experiment import Experiment, run_experiment
+    from twin.sumo.session import SumoRunError, SumoSession
+    from twin.sweep import executors
+
+    original = SumoSession.advance_to
+
+    def failing(self, t):
+        if self.seed == 4 and t > 600.0:  # SUMO seed 3 + 1: the second simulation
+            raise SumoRunError(f"SUMO failed before t = {t:g} s: simulated crash")
+        original(self, t)
+
+    def backwards(fn, tasks, workers, **options):  # in this process, last task first
+        for n in reversed(range(len(tasks))):
+            yield n, fn(*tasks[n]), None
+
+    monkeypatch.setattr(SumoSession, "advance_to", failing)
+    monkeypatch.setattr(executors, "local_tasks", backwards)
+    config = load_config(small / "small.toml")
+
+    def experiment(workers):
+        return Experiment(config, ["random", "greedy"], range(3), workers=workers)
+
+    one, two = run_experiment(experiment(1)), run_experiment(experiment(3))
+    assert [r.seed for r in one.results] == [r.seed for r in two.results] == [0, 1]
+    assert two.results[1].error and "simulated crash" in two.results[1].error
+    assert two.partial and not two.interrupted
+    for a, b in zip(one.results, two.results, strict=True):
+        np.testing.assert_array_equal(a.rewards, b.rewards)
+        np.testing.assert_array_equal(a.positions, b.positions)
+
+
+def test_memory_estimate_counts_every_worker(small):
+    from twin.config import load_config
+    from twin.errors import UserError
+    from twin.experiment import WORKER_BYTES, Experiment, check_memory, estimate_memory
+    from twin.sumo.scenario import sumo_source
+
+    config = load_config(small / "small.toml")
+    source = sumo_source(config)
+    shape, horizon = source.grid.shape, source.horizon
+
+    def need(workers, seeds=4):
+        experiment = Experiment(config, ["random"], range(seeds), workers=workers)
+        return estimate_memory(experiment, shape, horizon, source.warmup_steps(), live=True)
+
+    assert need(2) - need(1) > 2 * WORKER_BYTES
+    assert need(4) - need(2) > 2 * WORKER_BYTES
+    assert need(8) == need(4)  # no more workers than seeds
+    assert need(2, seeds=1) == need(1, seeds=1)  # one seed: no worker
+    limit = (need(1) + 1.5 * WORKER_BYTES) / 1e9  # one after another fits, two workers do not
+    check_memory(
+        Experiment(config, ["random"], range(4), max_memory_gb=limit), shape, horizon, source
+    )
+    experiment = Experiment(config, ["random"], range(4), workers=2, max_memory_gb=limit)
+    with pytest.raises(UserError, match=r"4 seeds on 2 workers need .* fewer --workers"):
+        check_memory(experiment, shape, horizon, source)
+
+
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)  # background jobs start with SIGINT ignored
+
+
+def _group_gone(pgid: int, seconds: float = 15.0) -> bool:
+    """Whether every process of the process group ``pgid`` has ended within ``seconds``."""
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        try:
+            os.killpg(pgid, 0)
+        except ProcessLookupError:
+            return True
+        time.sleep(0.2)
+    return False
+
+
+@pytest.fixture(scope="module")
+def endless(tmp_path_factory) -> Path:
+    """The small scenario with a horizon no test waits for."""
+    return small_sumo_scenario(tmp_path_factory.mktemp("endless"), horizon=5000)
+
+
+def _start(endless: Path, out: Path, cwd: Path) -> subprocess.Popen:
+    args = ["run", "--config", str(endless / "small.toml"), "--seeds", "3", "--workers", "2",
+            "--out", str(out), "--no-report", "--no-ceiling"]  # fmt: skip
+    return subprocess.Popen(
+        [sys.executable, "-m", "twin", *args],
+        cwd=cwd,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        stdout=subprocess.DEVNULL,
+        stderr=open(cwd / "stderr.txt", "w"),
+        preexec_fn=_default_sigint,
+        start_new_session=True,
+    )
+
+
+def _wait_for_workers(proc: subprocess.Popen, n: int = 2, seconds: float = 120.0) -> None:
+    """Until ``proc`` has ``n`` worker processes that each run SUMO in a child of their own."""
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        assert proc.poll() is None, "ended early"
+        group = subprocess.run(
+            ["ps", "-o", "pid=,ppid=", "-s", str(proc.pid)], capture_output=True, text=True
+        ).stdout.split()
+        parents = dict(zip(group[::2], group[1::2], strict=True))
+        workers = {p for p, pp in parents.items() if pp == str(proc.pid)}
+        if sum(pp in workers for pp in parents.values()) >= n:
+            time.sleep(2.0)  # some steps done
+            return
+        time.sleep(0.2)
+    proc.kill()
+    pytest.fail("the workers did not start")
+
+
+def test_ctrl_c_keeps_the_seeds_done_and_ends_every_worker(endless, tmp_path):
+    out = tmp_path / "run"
+    proc = _start(endless, out, tmp_path)
+    try:
+        _wait_for_workers(proc)
+        proc.send_signal(signal.SIGINT)
+        code = proc.wait(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    stderr = (tmp_path / "stderr.txt").read_text()
+    assert code == 130, stderr
+    assert "Traceback" not in stderr
+    assert _group_gone(proc.pid), "a worker outlived the run"
+    meta = json.loads((out / "run.json").read_text())
+    assert meta["partial"] is True
+    assert meta["seeds"] == [0, 1]  # both running seeds, stopped; the third never started
+    series = pd.read_parquet(out / "series.parquet")
+    assert set(series["seed"]) == {0, 1}
+    assert 1 <= series["step"].max() + 1 < 5000
+    assert (out / "manifest.json").exists() and (out / "tapes" / "seed-1.parquet").exists()
+
+
+def test_workers_die_with_a_killed_parent(endless, tmp_path):
+    proc = _start(endless, tmp_path / "run", tmp_path)
+    try:
+        _wait_for_workers(proc)
+        proc.kill()  # kill -9: no cleanup runs in the parent
+        proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert _group_gone(proc.pid), "a worker outlived its killed parent"
+
+
+def test_evaluate_with_two_workers_gives_the_sequential_run_folder(tmp_path, capsys):
+    """Synthetic traffic takes the same path: each worker builds the shared traffic itself."""
+    text = (ROOT / "configs" / "synthetic.toml").read_text()
+    assert "horizon = 2000" in text
+    config = tmp_path / "short.toml"
+    config.write_text(text.replace("horizon = 2000", "horizon = 40"))
+    folders = []
+    for workers in ("1", "2"):
+        out = tmp_path / f"workers-{workers}"
+        argv = ["evaluate", "--config", str(config), "--seeds", "3", "--swarms", "random,greedy",
+                "--workers", workers, "--out", str(out), "--no-report", "--quiet"]  # fmt: skip
+        assert twin_main(argv) == 0, capsys.readouterr().err
+        folders.append(out)
+    capsys.readouterr()
+    one, two = folders
+    assert _files(one) == _files(two)
+    for name in _files(one):
+        assert (one / name).read_bytes() == (two / name).read_bytes(), name
+
+
+def test_one_progress_bar_over_the_seeds(tmp_path, capsys):
+    """With workers, the bar counts seeds (each worker's step bar is off); without progress,
+    nothing is drawn."""
+    from twin.config import load_config
+    from twin.experiment import Experiment, run_experiment
+
+    text = (ROOT / "configs" / "synthetic.toml").read_text()
+    config = tmp_path / "short.toml"
+    config.write_text(text.replace("horizon = 2000", "horizon = 20"))
+    experiment = Experiment(load_config(config), ["random"], range(3), workers=2)
+    run_experiment(experiment, progress=True)
+    err = capsys.readouterr().err
+    assert "seeds" in err and "/3 [" in err and "patrol" not in err, err
+    run_experiment(experiment, progress=False)
+    assert capsys.readouterr().err == ""
