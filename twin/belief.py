@@ -318,7 +318,7 @@ def belief_scores(
     events, % known and median latency (steps, minutes), false alarms and per hour."""
     settings = settings or MonitorSettings()
     steps = mean.shape[0]
-    truth = np.asarray(truth[:steps], dtype=np.float64)
+    truth = np.asarray(truth[:steps])  # dtype kept: same sums as monitoring
     if events is None:
         events = congestion_events(truth, grid, settings.threshold, settings.min_duration)
     curve = error_curve(mean, truth, grid, settings.weight_floor)

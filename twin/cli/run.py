@@ -88,6 +88,12 @@ def add_parser(subparsers) -> None:
         "future maps and an upper bound no swarm can exceed, computed after the swarms' run "
         "(default on, left out of a run stopped by Ctrl-C; --no-ceiling skips them)",
     )
+    p.add_argument(
+        "--history",
+        type=Path,
+        help="a history of earlier days (`twin history`): also score each swarm's belief "
+        "models (last-seen, history, nowcast) and write belief_models.csv",
+    )
     p.add_argument("--no-report", action="store_true", help="do not render the HTML report")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_gui_arguments(p)
@@ -205,6 +211,11 @@ def main(args: argparse.Namespace) -> int:
 
     limit_threads()
     experiment = build_experiment(args)
+    history = None
+    if getattr(args, "history", None) is not None:
+        from twin.belief import History
+
+        history = History.load(args.history)  # a bad file is refused before SUMO starts
     drawer = gui_drawer(args, experiment.swarms)
     check_resources(experiment, args.out or Path("runs"))  # before any folder is made
     run_dir = prepare_run_dir(args.out or new_run_dir("runs", "run"), invocation("run", args))
@@ -218,6 +229,8 @@ def main(args: argparse.Namespace) -> int:
             source.output_dir = run_dir / "sumo" / (f"seed-{seed}" if n else "")
             n_sources[0] += 1
         _announce(source)
+        if history is not None:
+            check_history(history, args.history, source)
         if drawer is not None:
             drawer.attach(source)
             print(drawer.legend(), file=sys.stderr)
@@ -245,8 +258,26 @@ def main(args: argparse.Namespace) -> int:
         "run",
         sumo_read_seconds=round(sum(s.read_seconds for s in outcome.sources), 3),
     )
+    beliefs = None
+    if history is not None:
+        from twin.belief import belief_table, summarize
+        from twin.files import atomic_write
+        from twin.runs import step_seconds_of
+
+        step_s = step_seconds_of(meta)
+        per_seed = [belief_table(r, history, step_s=step_s) for r in outcome.results]
+        beliefs = summarize(pd_concat(per_seed))
+
+    def belief_file(folder: Path) -> None:
+        if beliefs is not None:
+            atomic_write(folder / BELIEF_FILE, lambda p: beliefs.to_csv(p, index=False))
+
     summary, comparison = record(
-        run_dir, outcome, meta, ceilings=args.ceiling and not outcome.interrupted
+        run_dir,
+        outcome,
+        meta,
+        ceilings=args.ceiling and not outcome.interrupted,
+        more_files=belief_file,
     )
     video_failed = drawer is not None and args.record and not finish_video(drawer, run_dir)
     done = outcome.results[-1]
@@ -272,6 +303,14 @@ def main(args: argparse.Namespace) -> int:
         f"RMSE = {mfd.get('rmse_kmh', float('nan')):.2f} km/h over {mfd['n_samples']} cell samples"
         f"; used: {mfd.get('used', 'fit')} ({mfd.get('why', '')})"
     )
+    if beliefs is not None:
+        from twin.belief import format_belief_table
+
+        print(
+            format_belief_table(
+                beliefs, f"Belief models (history {args.history}, {label}): {BELIEF_FILE}"
+            )
+        )
     print(f"wall time {outcome.seconds:.0f} s (SUMO + swarms)")
     if outcome.results and outcome.results[0].stage_seconds:
         from twin.timing import largest_stages
@@ -296,6 +335,31 @@ def main(args: argparse.Namespace) -> int:
         )
         return 130
     return 1 if outcome.partial or done.completed_steps == 0 or video_failed else 0
+
+
+BELIEF_FILE = "belief_models.csv"
+
+
+def pd_concat(frames):
+    import pandas as pd
+
+    return pd.concat(frames, ignore_index=True)
+
+
+def check_history(history, path: Path, source) -> None:
+    """Refuse a history whose grid, horizon, step, start or traffic seeds do not fit the
+    simulation ``source`` about to run (one line naming the file)."""
+    from twin.clock import clock_label
+
+    s = source.scenario
+    history.check_matches(
+        path,
+        source.grid.obstacles,
+        int(source.horizon),
+        float(s.step_s),
+        clock_label(s.begin_s),
+        [int(s.seed)],
+    )
 
 
 def finish_video(drawer, run_dir: Path | None = None) -> bool:
