@@ -70,6 +70,9 @@ def test_history_then_run_writes_the_belief_table(small, history, tmp_path, caps
         )
     assert table.loc[table["model"] != "last-seen", "calibration_90"].between(0, 1).all()
     assert np.isfinite(table["false_alarms_per_hour"]).all()
+    assert twin_main(["report", str(out), "--no-animation"]) == 0
+    report = (out / "report" / "report.md").read_text()
+    assert "## Belief models" in report and "| (no drones) | history |" in report
 
 
 def test_without_history_no_belief_file(small, tmp_path):
