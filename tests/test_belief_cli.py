@@ -73,6 +73,15 @@ def test_history_then_run_writes_the_belief_table(small, history, tmp_path, caps
     assert twin_main(["report", str(out), "--no-animation"]) == 0
     report = (out / "report" / "report.md").read_text()
     assert "## Belief models" in report and "| (no drones) | history |" in report
+    # the run's tape replayed without SUMO gives the same belief table
+    replay = tmp_path / "replay"
+    code = twin_main(
+        ["evaluate", "--config", str(small / "small.toml"), "--traffic", str(out / "tape.parquet"),
+         "--swarms", "random,greedy", "--no-ceiling", "--no-report", "--quiet",
+         "--history", str(history), "--out", str(replay)]
+    )  # fmt: skip
+    assert code == 0
+    pd.testing.assert_frame_equal(pd.read_csv(replay / "belief_models.csv"), table)
 
 
 def test_without_history_no_belief_file(small, tmp_path):

@@ -442,3 +442,28 @@ def format_belief_table(table: pd.DataFrame, title: str = "Belief models") -> st
         f"lat med: median latency ({unit}); FA/h: false-alarm onsets per hour"
     )
     return "\n".join(lines)
+
+
+def check_source(history: History, where: Path | str, source) -> None:
+    """:meth:`History.check_matches` against a traffic source about to run: its grid and
+    horizon, and the step length, start and traffic seed of its metadata (a live run's, or
+    those a tape recorded)."""
+    meta = source.metadata() or {}
+    meta = meta.get("recorded") or meta if meta.get("kind") == "tape" else meta
+    step_s, begin, seed = meta.get("step_s"), meta.get("begin"), meta.get("seed")
+    history.check_matches(
+        where,
+        source.grid.obstacles,
+        int(source.horizon),
+        float(step_s) if isinstance(step_s, (int, float)) else None,
+        begin if isinstance(begin, str) else None,
+        [seed] if isinstance(seed, int) and not isinstance(seed, bool) else [],
+    )
+
+
+def run_beliefs(results, history: History, step_s: float | None) -> pd.DataFrame:
+    """The belief-model table of a run (``belief_models.csv``): :func:`belief_table` of every
+    seed's result, mean over seeds (:func:`summarize`)."""
+    return summarize(
+        pd.concat([belief_table(r, history, step_s=step_s) for r in results], ignore_index=True)
+    )

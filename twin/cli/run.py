@@ -213,7 +213,7 @@ def main(args: argparse.Namespace) -> int:
     experiment = build_experiment(args)
     history = None
     if getattr(args, "history", None) is not None:
-        from twin.belief import History
+        from twin.belief import History, check_source
 
         history = History.load(args.history)  # a bad file is refused before SUMO starts
     drawer = gui_drawer(args, experiment.swarms)
@@ -230,7 +230,7 @@ def main(args: argparse.Namespace) -> int:
             n_sources[0] += 1
         _announce(source)
         if history is not None:
-            check_history(history, args.history, source)
+            check_source(history, args.history, source)
         if drawer is not None:
             drawer.attach(source)
             print(drawer.legend(), file=sys.stderr)
@@ -258,26 +258,13 @@ def main(args: argparse.Namespace) -> int:
         "run",
         sumo_read_seconds=round(sum(s.read_seconds for s in outcome.sources), 3),
     )
-    beliefs = None
-    if history is not None:
-        from twin.belief import belief_table, summarize
-        from twin.files import atomic_write
-        from twin.runs import step_seconds_of
-
-        step_s = step_seconds_of(meta)
-        per_seed = [belief_table(r, history, step_s=step_s) for r in outcome.results]
-        beliefs = summarize(pd_concat(per_seed))
-
-    def belief_file(folder: Path) -> None:
-        if beliefs is not None:
-            atomic_write(folder / BELIEF_FILE, lambda p: beliefs.to_csv(p, index=False))
-
+    beliefs = belief_models(outcome, history, meta)
     summary, comparison = record(
         run_dir,
         outcome,
         meta,
         ceilings=args.ceiling and not outcome.interrupted,
-        more_files=belief_file,
+        more_files=belief_writer(beliefs),
     )
     video_failed = drawer is not None and args.record and not finish_video(drawer, run_dir)
     done = outcome.results[-1]
@@ -303,14 +290,7 @@ def main(args: argparse.Namespace) -> int:
         f"RMSE = {mfd.get('rmse_kmh', float('nan')):.2f} km/h over {mfd['n_samples']} cell samples"
         f"; used: {mfd.get('used', 'fit')} ({mfd.get('why', '')})"
     )
-    if beliefs is not None:
-        from twin.belief import format_belief_table
-
-        print(
-            format_belief_table(
-                beliefs, f"Belief models (history {args.history}, {label}): {BELIEF_FILE}"
-            )
-        )
+    print_beliefs(beliefs, args.history, label)
     print(f"wall time {outcome.seconds:.0f} s (SUMO + swarms)")
     if outcome.results and outcome.results[0].stage_seconds:
         from twin.timing import largest_stages
@@ -340,26 +320,34 @@ def main(args: argparse.Namespace) -> int:
 BELIEF_FILE = "belief_models.csv"
 
 
-def pd_concat(frames):
-    import pandas as pd
+def belief_models(outcome, history, meta):
+    """``belief_models.csv``'s table of a finished run with ``--history`` (None without)."""
+    if history is None or not outcome.results:
+        return None
+    from twin.belief import run_beliefs
+    from twin.runs import step_seconds_of
 
-    return pd.concat(frames, ignore_index=True)
+    return run_beliefs(outcome.results, history, step_seconds_of(meta))
 
 
-def check_history(history, path: Path, source) -> None:
-    """Refuse a history whose grid, horizon, step, start or traffic seeds do not fit the
-    simulation ``source`` about to run (one line naming the file)."""
-    from twin.clock import clock_label
+def belief_writer(beliefs):
+    """The ``more_files`` of :func:`twin.experiment.record` writing ``belief_models.csv``."""
+    if beliefs is None:
+        return None
+    from twin.files import atomic_write
 
-    s = source.scenario
-    history.check_matches(
-        path,
-        source.grid.obstacles,
-        int(source.horizon),
-        float(s.step_s),
-        clock_label(s.begin_s),
-        [int(s.seed)],
-    )
+    def write(folder: Path) -> None:
+        atomic_write(folder / BELIEF_FILE, lambda p: beliefs.to_csv(p, index=False))
+
+    return write
+
+
+def print_beliefs(beliefs, path: Path | None, label: str) -> None:
+    if beliefs is not None:
+        from twin.belief import format_belief_table
+
+        title = f"Belief models (history {path}, {label}): {BELIEF_FILE}"
+        print(format_belief_table(beliefs, title))
 
 
 def finish_video(drawer, run_dir: Path | None = None) -> bool:
