@@ -186,6 +186,8 @@ def test_belief_table_has_every_swarm_and_model_and_the_history_row():
     assert (table["latency_median_min"].dropna() >= 0).all()
     summary = summarize(table)
     assert len(summary) == 5 and (summary["n_seeds"] == 1).all()
+    spatial = belief_table(result, history, step_s=60.0, spatial=True)
+    assert spatial["model"].tolist().count("nowcast-spatial") == 2
 
 
 def test_false_alarms_count_onset_runs_per_hour():
@@ -242,3 +244,34 @@ def test_beliefs_stay_in_range(nx, ny, steps, n_days, seed, meas_var):
         assert row["belief_error"] >= 0
         known = row["pct_events_known"]
         assert np.isnan(known) or 0 <= known <= 100
+
+
+def test_spatial_coupling_moves_unobserved_neighbours_only():
+    grid = Grid.open(1, 9)
+    steps = 5
+    history = History(
+        mean=np.full((steps, 1, 9), 0.3),
+        var=np.full((steps, 1, 9), 0.04),
+        rho=np.full((1, 9), 0.8),
+        obstacles=np.zeros((1, 9), bool),
+        n_runs=5,
+        neighbour_corr=0.6,
+    )
+    positions = np.zeros((steps, 1, 2), np.int64)  # sees cells 0, 1; cell 2 is a neighbour
+    observed = np.full((steps, 1, 9), 0.9)
+    plain, plain_std = nowcast(grid, positions, observed, history)
+    coupled, coupled_std = nowcast(grid, positions, observed, history, coupling=0.6)
+    assert np.array_equal(plain[:, :2], coupled[:, :2])  # observed cells: unchanged
+    assert (coupled[:, 2] > plain[:, 2] + 0.05).all()  # the neighbour leans to the sighting
+    assert (coupled_std[:, 2] < plain_std[:, 2]).all()
+    assert np.array_equal(plain[:, 3:], coupled[:, 3:])  # farther cells: untouched
+    assert nowcast(grid, positions, observed, history, coupling=0.0)[0].tolist() == plain.tolist()
+
+
+def test_fit_history_neighbour_correlation():
+    rng = np.random.default_rng(0)
+    shared = rng.normal(0, 0.1, (20, 30, 1, 1))  # one deviation for the whole map per day-step
+    maps = list(np.clip(0.5 + shared + rng.normal(0, 0.02, (20, 30, 3, 3)), 0, 1))
+    assert fit_history(maps, np.zeros((3, 3), bool)).neighbour_corr > 0.9
+    independent = list(rng.random((20, 30, 3, 3)))
+    assert fit_history(independent, np.zeros((3, 3), bool)).neighbour_corr < 0.1

@@ -42,6 +42,8 @@ DEFAULT_MEAS_VAR = 1e-3
 VAR_FLOOR = 1e-4
 #: Largest autocorrelation used (keeps some process noise on every cell).
 RHO_MAX = 0.99
+#: Largest neighbour correlation used by the spatial coupling.
+CORR_MAX = 0.95
 #: Half-width of the 90% interval in standard deviations.
 Z90 = 1.6448536269514722
 HISTORY_VERSION = 1
@@ -60,6 +62,8 @@ class History:
     begin: str | None = None
     traffic_seeds: tuple[int, ...] = ()  # SUMO seeds of the runs (when known)
     sources: tuple[str, ...] = ()
+    #: correlation of deviations between 4-neighbour free cells (same step), pooled
+    neighbour_corr: float = 0.0
 
     @property
     def horizon(self) -> int:
@@ -78,6 +82,7 @@ class History:
             "begin": self.begin,
             "traffic_seeds": list(self.traffic_seeds),
             "sources": list(self.sources),
+            "neighbour_corr": self.neighbour_corr,
         }
         with open(path, "wb") as fh:
             np.savez_compressed(
@@ -133,6 +138,9 @@ class History:
                     f"{path}: {name} = {arr[at]} at {at} is not a number in [{lo}, {hi}]; {fix}"
                 )
         step_s = info.get("step_s")
+        corr = info.get("neighbour_corr", 0.0)
+        if not isinstance(corr, (int, float)) or not 0.0 <= corr <= 1.0:
+            raise UserError(f"{path}: neighbour_corr = {corr!r} is not a number in [0, 1]; {fix}")
         return cls(
             mean,
             var,
@@ -143,6 +151,7 @@ class History:
             info.get("begin") if isinstance(info.get("begin"), str) else None,
             tuple(int(s) for s in info.get("traffic_seeds") or () if isinstance(s, int)),
             tuple(str(s) for s in info.get("sources") or ()),
+            float(corr),
         )
 
     def check_matches(
@@ -216,6 +225,11 @@ def fit_history(
     with np.errstate(invalid="ignore", divide="ignore"):
         rho = np.where(den > 0, num / np.where(den > 0, den, 1.0), pooled)
     rho = np.clip(rho, 0.0, RHO_MAX)
+    src, dst = neighbour_pairs(Grid(np.asarray(obstacles, dtype=bool)))
+    flat = dev.reshape(*dev.shape[:2], -1)
+    a, b = flat[..., src], flat[..., dst]
+    den = np.sqrt((a * a).sum() * (b * b).sum())
+    corr = float(np.clip((a * b).sum() / den, 0.0, CORR_MAX)) if den > 0 else 0.0
     return History(
         np.clip(mean, 0.0, 1.0),
         np.clip(var, 0.0, 1.0),
@@ -226,7 +240,20 @@ def fit_history(
         begin,
         tuple(int(s) for s in traffic_seeds),
         tuple(str(s) for s in sources),
+        corr,
     )
+
+
+def neighbour_pairs(grid: Grid) -> tuple[np.ndarray, np.ndarray]:
+    """Flat indices ``(src, dst)`` of every ordered pair of 4-neighbour free cells."""
+    free = grid.free
+    idx = np.arange(grid.nx * grid.ny).reshape(grid.shape)
+    src, dst = [], []
+    for a, b in ((idx[:-1], idx[1:]), (idx[:, :-1], idx[:, 1:])):
+        ok = free.ravel()[a] & free.ravel()[b]
+        src += [a[ok], b[ok]]
+        dst += [b[ok], a[ok]]
+    return np.concatenate(src), np.concatenate(dst)
 
 
 def _view_cells(grid: Grid, positions_k: np.ndarray) -> np.ndarray:
@@ -262,12 +289,16 @@ def nowcast(
     observed: np.ndarray,
     history: History,
     meas_var: float = DEFAULT_MEAS_VAR,
+    coupling: float = 0.0,
 ):
     """``(mean, std)`` of the history fused with the drones' sightings (module docstring).
 
     The filter starts from the history's prior at step 0 (deviation 0, variance ``var^0``),
     predicts ``d <- rho d``, ``P <- rho^2 P + (1 - rho^2) var^k`` and updates every cell in
     view with ``z = observed^k - mean^k`` of variance ``meas_var``; vectorised over cells.
+    With ``coupling = r > 0`` each observed cell's innovation also updates its unobserved
+    4-neighbours, as if their deviations had correlation ``r`` (cross-covariance
+    ``r sqrt(P_n P_c)``, one neighbour at a time).
     """
     steps = positions.shape[0]
     mu = history.mean[:steps].reshape(steps, -1)
@@ -278,6 +309,8 @@ def nowcast(
     p = var[0].copy()
     mean = np.empty_like(mu)
     std = np.empty_like(mu)
+    src, dst = neighbour_pairs(grid) if coupling > 0 else (None, None)
+    seen = np.zeros(mu.shape[1], dtype=bool)
     for k in range(steps):
         if k:
             d = rho * d
@@ -285,9 +318,23 @@ def nowcast(
         cells = _view_cells(grid, positions[k])
         if len(cells):
             z = observed[k].ravel()[cells] - mu[k, cells]
-            gain = p[cells] / (p[cells] + meas_var)
-            d[cells] += gain * (z - d[cells])
+            innovation = z - d[cells]
+            s = p[cells] + meas_var
+            p_before = p[cells].copy()
+            gain = p[cells] / s
+            d[cells] += gain * innovation
             p[cells] *= 1.0 - gain
+            if src is not None:
+                seen[:] = False
+                seen[cells] = True
+                at = np.full(mu.shape[1], -1)
+                at[cells] = np.arange(len(cells))
+                pick = seen[src] & ~seen[dst]
+                for a, b in zip(src[pick], dst[pick], strict=True):  # few pairs per step
+                    c = at[a]
+                    cov = coupling * np.sqrt(p[b] * p_before[c])
+                    d[b] += cov / s[c] * innovation[c]
+                    p[b] -= cov * cov / s[c]
         mean[k] = np.clip(mu[k] + d, 0.0, 1.0)
         std[k] = np.sqrt(p)
     return mean, std
@@ -377,10 +424,12 @@ def belief_table(
     settings: MonitorSettings | None = None,
     step_s: float | None = None,
     meas_var: float = DEFAULT_MEAS_VAR,
+    spatial: bool = False,
 ) -> pd.DataFrame:
     """One row per swarm x model (last-seen, nowcast) of one seed, plus the history-only
     reference row (swarm ``(no drones)``, model ``history``), scored against the run's truth
-    (``result.truth``, else what the drones observed)."""
+    (``result.truth``, else what the drones observed). ``spatial`` adds the model
+    ``nowcast-spatial``: the nowcast with the 4-neighbour coupling ``history.neighbour_corr``."""
     settings = settings or MonitorSettings()
     observed = result.importance
     if observed is None:
@@ -398,10 +447,14 @@ def belief_table(
     )
     for s, swarm in enumerate(result.swarms):
         positions = result.positions[s]
-        for model, (mean, std) in (
-            ("last-seen", last_seen(grid, positions, observed)),
-            ("nowcast", nowcast(grid, positions, observed, history, meas_var)),
-        ):
+        couplings = [("nowcast", 0.0)] + (
+            [("nowcast-spatial", history.neighbour_corr)] if spatial else []
+        )
+        models = [("last-seen", last_seen(grid, positions, observed))] + [
+            (name, nowcast(grid, positions, observed, history, meas_var, c))
+            for name, c in couplings
+        ]
+        for model, (mean, std) in models:
             rows.append(
                 {"swarm": swarm, "model": model}
                 | belief_scores(mean, std, truth, grid, settings, step_s, events)
