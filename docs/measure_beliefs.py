@@ -1,6 +1,7 @@
 """Score the belief models of a finished `twin run` folder against a history, after the run.
 
-    python docs/measure_beliefs.py --history HISTORY.npz RUN_DIR [RUN_DIR ...] [--spatial]
+    python docs/measure_beliefs.py --history HISTORY.npz RUN_DIR [RUN_DIR ...] [--spatial] \
+        [--meas-var V] [--csv OUT.csv]
 
 Replays each seed's tape (``tapes/seed-<s>.parquet``, else ``tape.parquet``) without SUMO for
 the observed and true maps, reads the swarms' positions from ``trajectories.parquet`` and
@@ -17,7 +18,7 @@ from types import SimpleNamespace
 import numpy as np
 import pandas as pd
 
-from twin.belief import History, belief_table, format_belief_table, summarize
+from twin.belief import DEFAULT_MEAS_VAR, History, belief_table, format_belief_table, summarize
 from twin.traffic.tape import Tape, TapeTraffic
 
 
@@ -56,6 +57,7 @@ def main() -> None:
     parser.add_argument("run_dirs", type=Path, nargs="+")
     parser.add_argument("--history", type=Path, required=True)
     parser.add_argument("--spatial", action="store_true")
+    parser.add_argument("--meas-var", type=float, default=DEFAULT_MEAS_VAR)
     parser.add_argument("--csv", type=Path, help="also write the table here")
     args = parser.parse_args()
     history = History.load(args.history)
@@ -63,7 +65,11 @@ def main() -> None:
     for run_dir in args.run_dirs:
         for r in seed_results(run_dir):
             print(f"{run_dir}: seed {r.seed} ({len(r.swarms)} swarms)", flush=True)
-            tables.append(belief_table(r, history, step_s=r.step_s, spatial=args.spatial))
+            tables.append(
+                belief_table(
+                    r, history, step_s=r.step_s, meas_var=args.meas_var, spatial=args.spatial
+                )
+            )
     table = summarize(pd.concat(tables, ignore_index=True))
     print(
         f"history {args.history}: rho median {np.median(history.rho[~history.obstacles]):.3f}, "

@@ -474,7 +474,7 @@ def format_belief_table(table: pd.DataFrame, title: str = "Belief models") -> st
     """The table as aligned text: error, calibration, % events known, latency, false alarms."""
     lines = [
         title,
-        f"{'swarm':<22} {'model':<10} {'error':>7} {'calib90':>8} {'known %':>8} "
+        f"{'swarm':<22} {'model':<15} {'error':>7} {'calib90':>8} {'known %':>8} "
         f"{'lat med':>8} {'FA/h':>7}",
     ]
 
@@ -484,7 +484,7 @@ def format_belief_table(table: pd.DataFrame, title: str = "Belief models") -> st
     for r in table.itertuples(index=False):
         lat = r.latency_median_min if not pd.isna(r.latency_median_min) else r.latency_median_steps
         lines.append(
-            f"{r.swarm:<22} {r.model:<10} {num(r.belief_error, '.4f'):>7} "
+            f"{r.swarm:<22} {r.model:<15} {num(r.belief_error, '.4f'):>7} "
             f"{num(r.calibration_90, '.3f'):>8} {num(r.pct_events_known, '.1f'):>8} "
             f"{num(lat, '.1f'):>8} {num(r.false_alarms_per_hour, '.1f'):>7}"
         )
