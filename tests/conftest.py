@@ -17,7 +17,7 @@ from twin.resources import CACHE_ENV
 SLOW_MODULES = {
     "test_bad_inputs", "test_boundary", "test_cli_evaluate", "test_config_table",
     "test_experiment", "test_faults", "test_formations", "test_fuzz_readers", "test_gui",
-    "test_incidents", "test_learning_pretrain", "test_parallel_seeds", "test_replay_identity", "test_report",
+    "test_belief_cli", "test_incidents", "test_learning_pretrain", "test_parallel_seeds", "test_replay_identity", "test_report",
     "test_resources", "test_signals", "test_slow", "test_sumo_files", "test_sumo_inputs",
     "test_sumo_network", "test_sumo_observe", "test_sumo_small", "test_sweep", "test_sweep_sumo",
     "test_timing",

@@ -682,23 +682,33 @@ def run_metadata(outcome: ExperimentResult, kind: str, **extra: Any) -> dict[str
     }
 
 
-def record(run_dir: Path, outcome: ExperimentResult, meta: dict[str, Any], ceilings: bool = False):
+def record(
+    run_dir: Path,
+    outcome: ExperimentResult,
+    meta: dict[str, Any],
+    ceilings: bool = False,
+    more_files: Callable[[Path], None] | None = None,
+):
     """Write the run folder (with ``comparison.csv``: each learned swarm against the best
     classical one, paired over seeds); the kept sources add their own files
     (:meth:`TrafficSource.write_extras`: a live run's network, MFD fit and tape of each seed).
     With ``ceilings`` the tables add the oracle and bound rows (:mod:`twin.ceilings`),
     computed from each seed's recorded maps after the swarms' run.
+    ``more_files(run_dir)`` writes the caller's own files (``twin run --history``'s
+    ``belief_models.csv``) before ``run.json``.
     ``manifest.json`` is written last (see ``twin/runs.py``). Returns the summary table and
     the comparison."""
     from twin.runs import write_run
 
-    extras = None
+    extras = more_files
     if outcome.sources:
         first = outcome.sources[0]
         by_seed = [(r.seed, s) for r, s in zip(outcome.results, outcome.sources, strict=False)]
 
         def extras(folder: Path) -> None:
             first.write_extras(folder, by_seed)
+            if more_files is not None:
+                more_files(folder)
 
     # the source's files go before run.json and manifest.json: a kill in between leaves no manifest
     return write_run(run_dir, outcome.results, meta, extras=extras, ceilings=ceilings)

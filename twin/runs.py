@@ -78,7 +78,7 @@ RUN_FILE_NAMES = frozenset(
         "series.parquet", "trajectories.parquet", "per_seed.csv", "summary.csv",
         "comparison.csv", "monitoring.csv", "events.parquet", "importance.npz", "run.json",
         "network.json", "mfd.json", "mfd_samples.parquet", "tape.parquet", "tapes", "report",
-        "incidents.json", "timing.csv", "sumo", "error.log",
+        "incidents.json", "timing.csv", "sumo", "error.log", "belief_models.csv",
         MANIFEST,
     }
 )  # fmt: skip

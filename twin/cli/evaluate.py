@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from twin.cli import add_worker_arguments, check_count, check_seeds
+from twin.cli.run import belief_models, belief_writer, print_beliefs
 from twin.config import load_config, shipped_config
 from twin.errors import UserError
 from twin.experiment import (
@@ -78,6 +79,12 @@ def add_parser(subparsers) -> None:
         "(default on, left out of a run stopped by Ctrl-C; --no-ceiling skips them)",
     )
     add_worker_arguments(p, live=False)
+    p.add_argument(
+        "--history",
+        type=Path,
+        help="a history of earlier days (`twin history`): also score each swarm's belief "
+        "models (last-seen, history, nowcast) and write belief_models.csv",
+    )
     p.add_argument("--no-report", action="store_true", help="do not render the HTML report")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=main)
@@ -107,22 +114,37 @@ def main(args: argparse.Namespace) -> int:
             f"{config.path}: [traffic].kind = {config.traffic.kind!r} runs live with `twin run`; "
             "`twin evaluate` takes synthetic configs or --traffic TAPE"
         )
+    history = on_source = None
+    if args.history is not None:
+        from twin.belief import History, check_source
+
+        history = History.load(args.history)
+
+        def on_source(source) -> None:
+            check_source(history, args.history, source)
+
     check_resources(experiment, args.out or Path("runs"))  # before any folder is made
     run_dir = prepare_run_dir(
         args.out or new_run_dir("runs", "evaluate"), invocation("evaluate", args)
     )
     try:
         outcome = run_experiment(
-            experiment, progress=not args.quiet and sys.stderr.isatty(), interruptible=True
+            experiment,
+            progress=not args.quiet and sys.stderr.isatty(),
+            interruptible=True,
+            on_source=on_source,
         )
     except UserError:
         discard_run_dir(run_dir)
         raise
+    meta = run_metadata(outcome, "evaluate")
+    beliefs = belief_models(outcome, history, meta)
     summary, comparison = record(
         run_dir,
         outcome,
-        run_metadata(outcome, "evaluate"),
+        meta,
         ceilings=args.ceiling and not outcome.interrupted,
+        more_files=belief_writer(beliefs),
     )
     done = outcome.results[-1]
     planned = (outcome.traffic[-1] or {}).get("horizon", done.horizon)
@@ -138,6 +160,7 @@ def main(args: argparse.Namespace) -> int:
     print(format_results(summary, f"Table 2 analog ({config.path.name}, {label}, T = {horizon})"))
     if not comparison.empty:
         print(format_comparison(comparison))
+    print_beliefs(beliefs, args.history, label)
     if not args.no_report and done.completed_steps > 0:
         _report(run_dir)
     print(f"run folder: {run_dir}")

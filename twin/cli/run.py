@@ -96,6 +96,12 @@ def add_parser(subparsers) -> None:
         "future maps and an upper bound no swarm can exceed, computed after the swarms' run "
         "(default on, left out of a run stopped by Ctrl-C; --no-ceiling skips them)",
     )
+    p.add_argument(
+        "--history",
+        type=Path,
+        help="a history of earlier days (`twin history`): also score each swarm's belief "
+        "models (last-seen, history, nowcast) and write belief_models.csv",
+    )
     p.add_argument("--no-report", action="store_true", help="do not render the HTML report")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_gui_arguments(p)
@@ -233,6 +239,11 @@ def main(args: argparse.Namespace) -> int:
 
     limit_threads()
     experiment = build_experiment(args)
+    history = None
+    if getattr(args, "history", None) is not None:
+        from twin.belief import History, check_source
+
+        history = History.load(args.history)  # a bad file is refused before SUMO starts
     drawer = gui_drawer(args, experiment.swarms)
     check_resources(experiment, args.out or Path("runs"))  # before any folder is made
     run_dir = prepare_run_dir(args.out or new_run_dir("runs", "run"), invocation("run", args))
@@ -242,6 +253,8 @@ def main(args: argparse.Namespace) -> int:
 
     def on_source(source) -> None:
         _announce(source)
+        if history is not None:
+            check_source(history, args.history, source)
         if drawer is not None:
             drawer.attach(source)
             print(drawer.legend(), file=sys.stderr)
@@ -269,8 +282,13 @@ def main(args: argparse.Namespace) -> int:
         "run",
         sumo_read_seconds=round(sum(s.read_seconds for s in outcome.sources), 3),
     )
+    beliefs = belief_models(outcome, history, meta)
     summary, comparison = record(
-        run_dir, outcome, meta, ceilings=args.ceiling and not outcome.interrupted
+        run_dir,
+        outcome,
+        meta,
+        ceilings=args.ceiling and not outcome.interrupted,
+        more_files=belief_writer(beliefs),
     )
     video_failed = drawer is not None and args.record and not finish_video(drawer, run_dir)
     done = outcome.results[-1]
@@ -296,6 +314,7 @@ def main(args: argparse.Namespace) -> int:
         f"RMSE = {mfd.get('rmse_kmh', float('nan')):.2f} km/h over {mfd['n_samples']} cell samples"
         f"; used: {mfd.get('used', 'fit')} ({mfd.get('why', '')})"
     )
+    print_beliefs(beliefs, args.history, label)
     print(f"wall time {outcome.seconds:.0f} s (SUMO + swarms)")
     if outcome.results and outcome.results[0].stage_seconds:
         from twin.timing import largest_stages
@@ -320,6 +339,39 @@ def main(args: argparse.Namespace) -> int:
         )
         return 130
     return 1 if outcome.partial or done.completed_steps == 0 or video_failed else 0
+
+
+BELIEF_FILE = "belief_models.csv"
+
+
+def belief_models(outcome, history, meta):
+    """``belief_models.csv``'s table of a finished run with ``--history`` (None without)."""
+    if history is None or not outcome.results:
+        return None
+    from twin.belief import run_beliefs
+    from twin.runs import step_seconds_of
+
+    return run_beliefs(outcome.results, history, step_seconds_of(meta))
+
+
+def belief_writer(beliefs):
+    """The ``more_files`` of :func:`twin.experiment.record` writing ``belief_models.csv``."""
+    if beliefs is None:
+        return None
+    from twin.files import atomic_write
+
+    def write(folder: Path) -> None:
+        atomic_write(folder / BELIEF_FILE, lambda p: beliefs.to_csv(p, index=False))
+
+    return write
+
+
+def print_beliefs(beliefs, path: Path | None, label: str) -> None:
+    if beliefs is not None:
+        from twin.belief import format_belief_table
+
+        title = f"Belief models (history {path}, {label}): {BELIEF_FILE}"
+        print(format_belief_table(beliefs, title))
 
 
 def finish_video(drawer, run_dir: Path | None = None) -> bool:

@@ -56,7 +56,45 @@ MONITORING_TABLE_COLUMNS = (
     ("incident_latency_steps", "incident latency (steps)", 1),
     ("incident_latency_min", "incident latency (min)", 1),
 )
+#: Columns of belief_models.csv shown: (column, header, decimals).
+BELIEF_TABLE_COLUMNS = (
+    ("belief_error", "belief error", 4),
+    ("calibration_90", "in 90% interval", 3),
+    ("events", "events", 1),
+    ("pct_events_known", "% events known", 1),
+    ("latency_median_min", "latency median (min)", 1),
+    ("latency_median_steps", "latency median (steps)", 1),
+    ("false_alarms_per_hour", "false alarms / h", 1),
+)
+BELIEF_CAPTION = (
+    "From belief_models.csv (twin run --history): each swarm's picture of the city under three "
+    "belief models, mean over seeds. last-seen: the last importance a drone saw (the monitoring "
+    "table's belief map); history: the mean of earlier days' runs per cell and time of day, "
+    "no drones; nowcast: the history fused with the drones' sightings (a per-cell Kalman "
+    "filter on the deviation from the history). belief error: importance-weighted MAE against "
+    "the truth; in 90% interval: share of true values inside the stated 90% interval (none for "
+    "last-seen); % events known: congestion events whose cell is believed >= the threshold "
+    "while they last, latency from onset; false alarms: onsets of a believed >= threshold "
+    "where the truth is below it."
+)
 REPORT_DIR = "report"
+
+
+def belief_rows(beliefs: pd.DataFrame) -> tuple[list[str], list[list[str]]]:
+    """Header and rows of the belief-model table (swarm, model, the shown columns)."""
+    columns = [c for c in BELIEF_TABLE_COLUMNS if c[0] in beliefs.columns]
+    columns = [c for c in columns if beliefs[c[0]].notna().any()]
+    header = ["swarm", "model"] + [h for _, h, _ in columns]
+    if "n_seeds" in beliefs.columns:
+        header.append("seeds")
+    rows = []
+    for _, row in beliefs.iterrows():
+        cells = [str(row["swarm"]), str(row["model"])]
+        cells += [format_cell(row, c, d) for c, _, d in columns]
+        if "n_seeds" in beliefs.columns:
+            cells.append(str(int(row["n_seeds"])))
+        rows.append(cells)
+    return header, rows
 
 
 @dataclass
@@ -323,6 +361,13 @@ def render_html(
             html_table(m_header, m_rows, "monitoring"),
             f'<p class="caption">{html.escape(_monitoring_caption(rf))}</p>',
         ]
+    if rf.beliefs is not None:
+        b_header, b_rows = belief_rows(rf.beliefs)
+        parts += [
+            "<h2>Belief models</h2>",
+            html_table(b_header, b_rows, "beliefs"),
+            f'<p class="caption">{html.escape(BELIEF_CAPTION)}</p>',
+        ]
     if rf.incidents:
         parts += [
             "<h2>Incidents</h2>",
@@ -585,6 +630,16 @@ def render_markdown(rf: RunFiles, sections: list[Section], report_seconds: float
             markdown_table(m_header, m_rows),
             "",
             md_escape(_monitoring_caption(rf)),
+            "",
+        ]
+    if rf.beliefs is not None:
+        b_header, b_rows = belief_rows(rf.beliefs)
+        lines += [
+            "## Belief models",
+            "",
+            markdown_table(b_header, b_rows),
+            "",
+            md_escape(BELIEF_CAPTION),
             "",
         ]
     if rf.incidents:

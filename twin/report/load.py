@@ -60,6 +60,7 @@ class RunFiles:
     mfd: dict[str, Any] | None = None
     mfd_samples: pd.DataFrame | None = None
     monitoring: pd.DataFrame | None = None  # monitoring.csv
+    beliefs: pd.DataFrame | None = None  # belief_models.csv (twin run --history)
     events: pd.DataFrame | None = None  # events.parquet
     incidents: list[dict[str, Any]] | None = None  # incidents.json (scheduled SUMO incidents)
     timing: pd.DataFrame | None = None  # timing.csv (wall time per stage)
@@ -239,6 +240,7 @@ def load_run(run_dir: str | Path) -> RunFiles:
         check_headline(run_dir / "per_seed.csv", per_seed)
     monitoring = optional("monitoring.csv", {"swarm": TEXT}, TABLE_TEXT)
     events = optional("events.parquet", EVENT_COLUMNS)
+    beliefs = optional("belief_models.csv", {"swarm": TEXT, "model": TEXT}, ("swarm", "model"))
     timing = optional("timing.csv", TIMING_COLUMNS)
     if timing is not None:
         for name, kind in (("process", TEXT), ("share", NUMBER)):
@@ -269,6 +271,7 @@ def load_run(run_dir: str | Path) -> RunFiles:
         mfd=mfd,
         mfd_samples=samples,
         monitoring=monitoring,
+        beliefs=beliefs,
         events=events,
         incidents=incidents,
         timing=timing,

@@ -1,0 +1,127 @@
+"""``twin history`` and ``twin run --history`` on a small real SUMO scenario."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+pytest.importorskip("libsumo")
+
+from helpers import small_sumo_scenario
+
+from twin.belief import NO_DRONES, History
+from twin.cli import main as twin_main
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory) -> Path:
+    return small_sumo_scenario(tmp_path_factory.mktemp("small"), horizon=8)
+
+
+@pytest.fixture(scope="module")
+def history(small, tmp_path_factory) -> Path:
+    """A history from SUMO seeds 10 and 11 (never the evaluated seed 3)."""
+    base = tmp_path_factory.mktemp("history")
+    code = twin_main(
+        ["run", "--config", str(small / "small.toml"), "--sumo-seed", "10", "--seeds", "2",
+         "--swarms", "random", "--no-ceiling", "--no-report", "--quiet",
+         "--out", str(base / "days")]
+    )  # fmt: skip
+    assert code == 0
+    out = base / "history.npz"
+    assert twin_main(["history", "--from", str(base / "days"), "--out", str(out)]) == 0
+    return out
+
+
+def run_args(small, out, *extra):
+    return ["run", "--config", str(small / "small.toml"), "--swarms", "random,greedy",
+            "--no-ceiling", "--no-report", "--quiet", "--out", str(out), *extra]  # fmt: skip
+
+
+def test_history_then_run_writes_the_belief_table(small, history, tmp_path, capsys):
+    h = History.load(history)
+    assert h.n_runs == 2 and h.horizon == 8 and h.traffic_seeds == (10, 11)
+    assert h.step_s == pytest.approx(60.0) and h.begin == "00:05:00"
+    capsys.readouterr()
+    out = tmp_path / "eval"
+    assert twin_main(run_args(small, out, "--history", str(history))) == 0
+    printed = capsys.readouterr().out
+    assert "Belief models" in printed and "nowcast" in printed
+    table = pd.read_csv(out / "belief_models.csv")
+    assert list(zip(table["swarm"], table["model"], strict=True)) == [
+        (NO_DRONES, "history"),
+        ("random", "last-seen"),
+        ("random", "nowcast"),
+        ("greedy", "last-seen"),
+        ("greedy", "nowcast"),
+    ]
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert "belief_models.csv" in manifest["files"]
+    # last-seen is the monitoring table's belief error
+    monitoring = pd.read_csv(out / "monitoring.csv").set_index("swarm")
+    last = table[table["model"] == "last-seen"].set_index("swarm")
+    for swarm in ("random", "greedy"):
+        assert last.loc[swarm, "belief_error"] == pytest.approx(
+            monitoring.loc[swarm, "belief_error"], rel=1e-12
+        )
+    assert table.loc[table["model"] != "last-seen", "calibration_90"].between(0, 1).all()
+    assert np.isfinite(table["false_alarms_per_hour"]).all()
+    assert twin_main(["report", str(out), "--no-animation"]) == 0
+    report = (out / "report" / "report.md").read_text()
+    assert "## Belief models" in report and "| (no drones) | history |" in report
+    # the run's tape replayed without SUMO gives the same belief table
+    replay = tmp_path / "replay"
+    code = twin_main(
+        ["evaluate", "--config", str(small / "small.toml"), "--traffic", str(out / "tape.parquet"),
+         "--swarms", "random,greedy", "--no-ceiling", "--no-report", "--quiet",
+         "--history", str(history), "--out", str(replay)]
+    )  # fmt: skip
+    assert code == 0
+    pd.testing.assert_frame_equal(pd.read_csv(replay / "belief_models.csv"), table)
+
+
+def test_without_history_no_belief_file(small, tmp_path):
+    out = tmp_path / "plain"
+    assert twin_main(run_args(small, out)) == 0
+    assert not (out / "belief_models.csv").exists()
+
+
+def test_mismatched_history_is_one_line_and_exit_2(small, history, tmp_path, capsys):
+    cases = [
+        (["--horizon", "6"], "horizon T = 8 differs from the run's T = 6"),
+        (["--sumo-seed", "11"], "traffic seed 11"),
+        (["--begin", "00:06"], "starts at 00:05:00"),
+    ]
+    for extra, text in cases:
+        out = tmp_path / f"bad{len(extra[1])}{extra[0]}"
+        code = twin_main(run_args(small, out, "--history", str(history), *extra))
+        err = capsys.readouterr().err.strip()
+        assert code == 2, err
+        assert "Traceback" not in err
+        err = err.splitlines()[-1]  # after the line announcing the simulation
+        assert err.startswith("twin: error: ") and text in err and str(history) in err
+        assert not out.exists()  # the refused run leaves no folder
+    broken = tmp_path / "broken.npz"
+    broken.write_bytes(b"PK\x03\x04 not really")
+    code = twin_main(run_args(small, tmp_path / "b", "--history", str(broken)))
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and str(broken) in err and "\n" not in err
+
+
+def test_history_needs_two_distinct_simulations(small, history, tmp_path, capsys):
+    days = history.parent / "days"
+    one = days / "tapes" / "seed-0.parquet"
+    code = twin_main(["history", "--from", str(one), "--out", str(tmp_path / "h.npz")])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "at least 2" in err and "\n" not in err
+    code = twin_main(["history", "--from", str(one), str(one), "--out", str(tmp_path / "h.npz")])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "SUMO seed 10 again" in err
+    code = twin_main(["history", "--from", str(tmp_path), "--out", str(tmp_path / "h.npz")])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "no tape.parquet" in err
+    assert not (tmp_path / "h.npz").exists()

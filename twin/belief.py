@@ -1,0 +1,522 @@
+"""Belief models: a swarm's picture of the city per cell and step, and how good it is.
+
+Three models over one run, for one swarm (numpy only):
+
+- ``last-seen``: the last importance a drone saw in its field of view, 0 before any sighting
+  (the belief map of :mod:`twin.monitoring`, same numbers); no stated uncertainty.
+- ``history``: per cell and step (time of day), the mean importance of earlier days' runs
+  (a :class:`History`), with their standard deviation; needs no drones.
+- ``nowcast``: the history fused with the drones' sightings by a per-cell Kalman filter on the
+  deviation from the history mean, ``d^{k+1} = rho d^k + w`` with
+  ``Var(w) = (1 - rho^2) var^{k+1}`` (the prior stays near the history's variance), ``rho``
+  the history's lag-1 autocorrelation of deviations, and a measurement ``z = observed - mean``
+  of variance ``meas_var`` on every cell in a drone's field of view.
+
+Each model gives a mean and a standard deviation per step and cell (``(T+1, nx*ny)``; NaN
+std: none stated), the mean clipped to [0, 1]. :func:`belief_scores` scores one against the
+truth: the importance-weighted MAE of :mod:`twin.monitoring`, calibration of the 90% interval,
+congestion events known (belief >= threshold while the event lasts) with their latency, and
+false alarms (onsets of belief >= threshold where the truth is below it) per hour.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from twin.errors import UserError
+from twin.grid import Grid
+from twin.monitoring import MonitorSettings, congestion_events
+
+MODELS = ("last-seen", "history", "nowcast")
+#: Row name of the history-only reference (no drones).
+NO_DRONES = "(no drones)"
+#: Variance of a drone's reading of a cell's importance (std 0.03).
+DEFAULT_MEAS_VAR = 1e-3
+#: Smallest per-cell history variance used by the filter (std 0.01).
+VAR_FLOOR = 1e-4
+#: Largest autocorrelation used (keeps some process noise on every cell).
+RHO_MAX = 0.99
+#: Largest neighbour correlation used by the spatial coupling.
+CORR_MAX = 0.95
+#: Half-width of the 90% interval in standard deviations.
+Z90 = 1.6448536269514722
+HISTORY_VERSION = 1
+
+
+@dataclass(frozen=True)
+class History:
+    """Per step and cell: mean and variance of earlier days' importance; per cell ``rho``."""
+
+    mean: np.ndarray  # (T+1, nx, ny)
+    var: np.ndarray  # (T+1, nx, ny)
+    rho: np.ndarray  # (nx, ny) in [0, RHO_MAX]
+    obstacles: np.ndarray  # (nx, ny) bool
+    n_runs: int
+    step_s: float | None = None
+    begin: str | None = None
+    traffic_seeds: tuple[int, ...] = ()  # SUMO seeds of the runs (when known)
+    sources: tuple[str, ...] = ()
+    #: correlation of deviations between 4-neighbour free cells (same step), pooled
+    neighbour_corr: float = 0.0
+
+    @property
+    def horizon(self) -> int:
+        return self.mean.shape[0] - 1
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.obstacles.shape
+
+    def save(self, path: Path) -> None:
+        """Write the history as ``.npz`` (arrays plus a JSON ``info``)."""
+        info = {
+            "version": HISTORY_VERSION,
+            "n_runs": self.n_runs,
+            "step_s": self.step_s,
+            "begin": self.begin,
+            "traffic_seeds": list(self.traffic_seeds),
+            "sources": list(self.sources),
+            "neighbour_corr": self.neighbour_corr,
+        }
+        with open(path, "wb") as fh:
+            np.savez_compressed(
+                fh,
+                mean=self.mean.astype(np.float32),
+                var=self.var.astype(np.float32),
+                rho=self.rho.astype(np.float32),
+                obstacles=self.obstacles,
+                info=np.array(json.dumps(info)),
+            )
+
+    @classmethod
+    def load(cls, path: Path) -> History:
+        """Read and check a history file; any problem is one :class:`UserError` line."""
+        path = Path(path)
+        fix = "build it again with `twin history --from RUN_DIR ... --out FILE`"
+        if not path.is_file():
+            raise UserError(f"{path}: no such history file; {fix}")
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                arrays = {k: data[k] for k in ("mean", "var", "rho", "obstacles", "info")}
+        except KeyError as exc:
+            raise UserError(f"{path}: not a twin history (no {exc.args[0]!r}); {fix}") from None
+        except Exception as exc:
+            raise UserError(f"{path}: not a readable .npz ({type(exc).__name__}); {fix}") from None
+        try:
+            info = json.loads(str(arrays["info"]))
+            assert isinstance(info, dict)
+        except Exception:
+            raise UserError(f"{path}: its info is not valid JSON; {fix}") from None
+        if info.get("version") != HISTORY_VERSION:
+            raise UserError(
+                f"{path}: history version = {info.get('version')!r}, expected "
+                f"{HISTORY_VERSION}; {fix}"
+            )
+        mean, var, rho = (np.asarray(arrays[k], dtype=np.float64) for k in ("mean", "var", "rho"))
+        obstacles = np.asarray(arrays["obstacles"]).astype(bool)
+        if mean.ndim != 3 or var.shape != mean.shape or mean.shape[0] < 2:
+            raise UserError(
+                f"{path}: mean {mean.shape} and var {var.shape} are not (T+1, nx, ny) "
+                f"arrays of one shape; {fix}"
+            )
+        if obstacles.shape != mean.shape[1:] or rho.shape != mean.shape[1:]:
+            raise UserError(
+                f"{path}: obstacles {obstacles.shape} or rho {rho.shape} do not match the "
+                f"grid {mean.shape[1]} x {mean.shape[2]}; {fix}"
+            )
+        for name, arr, lo, hi in (("mean", mean, 0, 1), ("var", var, 0, 1), ("rho", rho, 0, 1)):
+            bad = ~np.isfinite(arr) | (arr < lo) | (arr > hi)
+            if bad.any():
+                at = tuple(int(x) for x in np.argwhere(bad)[0])
+                raise UserError(
+                    f"{path}: {name} = {arr[at]} at {at} is not a number in [{lo}, {hi}]; {fix}"
+                )
+        step_s = info.get("step_s")
+        corr = info.get("neighbour_corr", 0.0)
+        if not isinstance(corr, (int, float)) or not 0.0 <= corr <= 1.0:
+            raise UserError(f"{path}: neighbour_corr = {corr!r} is not a number in [0, 1]; {fix}")
+        return cls(
+            mean,
+            var,
+            rho,
+            obstacles,
+            int(info.get("n_runs", 0)),
+            float(step_s) if isinstance(step_s, (int, float)) else None,
+            info.get("begin") if isinstance(info.get("begin"), str) else None,
+            tuple(int(s) for s in info.get("traffic_seeds") or () if isinstance(s, int)),
+            tuple(str(s) for s in info.get("sources") or ()),
+            float(corr),
+        )
+
+    def check_matches(
+        self,
+        where: Path | str,
+        obstacles: np.ndarray,
+        horizon: int,
+        step_s: float | None = None,
+        begin: str | None = None,
+        traffic_seeds: Sequence[int] = (),
+    ) -> None:
+        """Refuse (one line naming ``where``) a history whose grid, horizon, step length or
+        start differs from the run's, or that was built from one of the run's traffic seeds."""
+        nx, ny = self.shape
+        fix = "build the history from runs of the same scenario and options"
+        if tuple(obstacles.shape) != (nx, ny):
+            raise UserError(
+                f"{where}: history grid {nx} x {ny} differs from the run's "
+                f"{obstacles.shape[0]} x {obstacles.shape[1]}; {fix}"
+            )
+        if not np.array_equal(obstacles, self.obstacles):
+            i, j = (int(x) for x in np.argwhere(obstacles != self.obstacles)[0])
+            raise UserError(
+                f"{where}: history obstacles differ from the run's (first at cell ({i}, {j})); "
+                f"{fix}"
+            )
+        if horizon != self.horizon:
+            raise UserError(
+                f"{where}: history horizon T = {self.horizon} differs from the run's T = "
+                f"{horizon}; {fix}"
+            )
+        if step_s is not None and self.step_s is not None and abs(step_s - self.step_s) > 1e-9:
+            raise UserError(
+                f"{where}: history step {self.step_s:g} s differs from the run's {step_s:g} s; "
+                f"{fix}"
+            )
+        if begin is not None and self.begin is not None and begin != self.begin:
+            raise UserError(f"{where}: history starts at {self.begin}, the run at {begin}; {fix}")
+        shared = sorted(set(self.traffic_seeds) & set(traffic_seeds))
+        if shared:
+            raise UserError(
+                f"{where}: history built from traffic seed {shared[0]}, which this run "
+                "evaluates on; build it from other seeds (e.g. --sumo-seed 100)"
+            )
+
+
+def fit_history(
+    maps: Sequence[np.ndarray],
+    obstacles: np.ndarray,
+    step_s: float | None = None,
+    begin: str | None = None,
+    traffic_seeds: Sequence[int] = (),
+    sources: Sequence[str] = (),
+) -> History:
+    """The :class:`History` of ``maps`` (each ``(T+1, nx, ny)``, one per earlier day).
+
+    Variance per step and cell with ``ddof = 1`` (0 with one run); ``rho`` per cell is the
+    lag-1 autocorrelation of the deviations from the mean, pooled over runs, the value pooled
+    over all cells where a cell's deviations are all zero, clipped to ``[0, RHO_MAX]``.
+    """
+    x = np.stack([np.asarray(m, dtype=np.float64) for m in maps])  # (R, T+1, nx, ny)
+    n_runs = x.shape[0]
+    mean = x.mean(axis=0)
+    var = x.var(axis=0, ddof=1) if n_runs > 1 else np.zeros_like(mean)
+    dev = x - mean
+    a, b = dev[:, 1:], dev[:, :-1]
+    num = (a * b).sum(axis=(0, 1))
+    den = np.sqrt((a * a).sum(axis=(0, 1)) * (b * b).sum(axis=(0, 1)))
+    pooled_den = np.sqrt((a * a).sum() * (b * b).sum())
+    pooled = num.sum() / pooled_den if pooled_den > 0 else 0.0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rho = np.where(den > 0, num / np.where(den > 0, den, 1.0), pooled)
+    rho = np.clip(rho, 0.0, RHO_MAX)
+    src, dst = neighbour_pairs(Grid(np.asarray(obstacles, dtype=bool)))
+    flat = dev.reshape(*dev.shape[:2], -1)
+    a, b = flat[..., src], flat[..., dst]
+    den = np.sqrt((a * a).sum() * (b * b).sum())
+    corr = float(np.clip((a * b).sum() / den, 0.0, CORR_MAX)) if den > 0 else 0.0
+    return History(
+        np.clip(mean, 0.0, 1.0),
+        np.clip(var, 0.0, 1.0),
+        rho,
+        np.asarray(obstacles, dtype=bool).copy(),
+        n_runs,
+        step_s,
+        begin,
+        tuple(int(s) for s in traffic_seeds),
+        tuple(str(s) for s in sources),
+        corr,
+    )
+
+
+def neighbour_pairs(grid: Grid) -> tuple[np.ndarray, np.ndarray]:
+    """Flat indices ``(src, dst)`` of every ordered pair of 4-neighbour free cells."""
+    free = grid.free
+    idx = np.arange(grid.nx * grid.ny).reshape(grid.shape)
+    src, dst = [], []
+    for a, b in ((idx[:-1], idx[1:]), (idx[:, :-1], idx[:, 1:])):
+        ok = free.ravel()[a] & free.ravel()[b]
+        src += [a[ok], b[ok]]
+        dst += [b[ok], a[ok]]
+    return np.concatenate(src), np.concatenate(dst)
+
+
+def _view_cells(grid: Grid, positions_k: np.ndarray) -> np.ndarray:
+    """Flat indices of the free cells in the drones' fields of view at one step."""
+    flat, valid = grid.view_index(positions_k)
+    cells = flat[valid]
+    return np.unique(cells[grid.free.ravel()[cells]])
+
+
+def last_seen(grid: Grid, positions: np.ndarray, observed: np.ndarray):
+    """``(mean, std)`` of the last-seen belief: the last observed value, 0 before; std NaN."""
+    steps = positions.shape[0]
+    belief = np.zeros(grid.nx * grid.ny)
+    out = np.empty((steps, grid.nx * grid.ny))
+    for k in range(steps):
+        flat, valid = grid.view_index(positions[k])
+        cells = flat[valid]
+        belief[cells] = observed[k].ravel()[cells]
+        out[k] = belief
+    return out, np.full_like(out, np.nan)
+
+
+def history_belief(history: History, steps: int | None = None):
+    """``(mean, std)`` of the history model for steps ``0 .. steps-1`` (no drones needed)."""
+    steps = history.mean.shape[0] if steps is None else steps
+    mean = history.mean[:steps].reshape(steps, -1)
+    return mean.copy(), np.sqrt(np.maximum(history.var[:steps].reshape(steps, -1), VAR_FLOOR))
+
+
+def nowcast(
+    grid: Grid,
+    positions: np.ndarray,
+    observed: np.ndarray,
+    history: History,
+    meas_var: float = DEFAULT_MEAS_VAR,
+    coupling: float = 0.0,
+):
+    """``(mean, std)`` of the history fused with the drones' sightings (module docstring).
+
+    The filter starts from the history's prior at step 0 (deviation 0, variance ``var^0``),
+    predicts ``d <- rho d``, ``P <- rho^2 P + (1 - rho^2) var^k`` and updates every cell in
+    view with ``z = observed^k - mean^k`` of variance ``meas_var``; vectorised over cells.
+    With ``coupling = r > 0`` each observed cell's innovation also updates its unobserved
+    4-neighbours, as if their deviations had correlation ``r`` (cross-covariance
+    ``r sqrt(P_n P_c)``, one neighbour at a time).
+    """
+    steps = positions.shape[0]
+    mu = history.mean[:steps].reshape(steps, -1)
+    var = np.maximum(history.var[:steps].reshape(steps, -1), VAR_FLOOR)
+    rho = history.rho.ravel()
+    rho2 = rho * rho
+    d = np.zeros(mu.shape[1])
+    p = var[0].copy()
+    mean = np.empty_like(mu)
+    std = np.empty_like(mu)
+    src, dst = neighbour_pairs(grid) if coupling > 0 else (None, None)
+    seen = np.zeros(mu.shape[1], dtype=bool)
+    for k in range(steps):
+        if k:
+            d = rho * d
+            p = rho2 * p + (1.0 - rho2) * var[k]
+        cells = _view_cells(grid, positions[k])
+        if len(cells):
+            z = observed[k].ravel()[cells] - mu[k, cells]
+            innovation = z - d[cells]
+            s = p[cells] + meas_var
+            p_before = p[cells].copy()
+            gain = p[cells] / s
+            d[cells] += gain * innovation
+            p[cells] *= 1.0 - gain
+            if src is not None:
+                seen[:] = False
+                seen[cells] = True
+                at = np.full(mu.shape[1], -1)
+                at[cells] = np.arange(len(cells))
+                pick = seen[src] & ~seen[dst]
+                for a, b in zip(src[pick], dst[pick], strict=True):  # few pairs per step
+                    c = at[a]
+                    cov = coupling * np.sqrt(p[b] * p_before[c])
+                    d[b] += cov / s[c] * innovation[c]
+                    p[b] -= cov * cov / s[c]
+        mean[k] = np.clip(mu[k] + d, 0.0, 1.0)
+        std[k] = np.sqrt(p)
+    return mean, std
+
+
+def error_curve(mean: np.ndarray, truth: np.ndarray, grid: Grid, floor: float) -> np.ndarray:
+    """``(T+1,)`` importance-weighted MAE over free cells (as :mod:`twin.monitoring`)."""
+    free = grid.free.ravel()
+    out = np.empty(mean.shape[0])
+    for k in range(mean.shape[0]):  # per step, summed as monitoring sums: equal to the bit
+        true = truth[k].ravel()
+        w = np.maximum(true, floor)[free]
+        out[k] = float((w * np.abs(mean[k][free] - true[free])).sum() / w.sum())
+    return out
+
+
+def belief_scores(
+    mean: np.ndarray,
+    std: np.ndarray,
+    truth: np.ndarray,
+    grid: Grid,
+    settings: MonitorSettings | None = None,
+    step_s: float | None = None,
+    events: pd.DataFrame | None = None,
+) -> dict:
+    """The columns of one belief model: belief error (mean over k = 1..T), calibration (share of
+    free cell-steps k = 1..T whose truth lies in the clipped 90% interval; NaN without std),
+    events, % known and median latency (steps, minutes), false alarms and per hour."""
+    settings = settings or MonitorSettings()
+    steps = mean.shape[0]
+    truth = np.asarray(truth[:steps])  # dtype kept: same sums as monitoring
+    if events is None:
+        events = congestion_events(truth, grid, settings.threshold, settings.min_duration)
+    curve = error_curve(mean, truth, grid, settings.weight_floor)
+    free = grid.free.ravel()
+    true = truth.reshape(steps, -1)
+    if np.isnan(std).all():
+        calibration = np.nan
+    else:
+        lo = np.clip(mean - Z90 * std, 0.0, 1.0)[1:, free]
+        hi = np.clip(mean + Z90 * std, 0.0, 1.0)[1:, free]
+        t = true[1:, free]
+        calibration = float(((t >= lo - 1e-9) & (t <= hi + 1e-9)).mean()) if t.size else np.nan
+    hot = mean >= settings.threshold
+    cell = events["i"].to_numpy(np.int64) * grid.ny + events["j"].to_numpy(np.int64)
+    onset = events["onset"].to_numpy(np.int64)
+    duration = events["duration"].to_numpy(np.int64)
+    latency = []
+    for c, a, n in zip(cell, onset, duration, strict=True):
+        hit = np.flatnonzero(hot[a : a + n, c])
+        if len(hit):
+            latency.append(int(hit[0]))
+    alarms = hot & (true < settings.threshold) & free
+    starts = alarms.copy()
+    starts[1:] &= ~alarms[:-1]
+    n_alarms = int(starts.sum())
+    hours = steps * step_s / 3600.0 if step_s else None
+    row = {
+        "belief_error": float(curve[1:].mean()) if steps > 1 else np.nan,
+        "calibration_90": calibration,
+        "events": len(cell),
+        "pct_events_known": 100.0 * len(latency) / len(cell) if len(cell) else np.nan,
+        "latency_median_steps": float(np.median(latency)) if latency else np.nan,
+        "false_alarms": n_alarms,
+        "false_alarms_per_hour": n_alarms / hours if hours else np.nan,
+    }
+    row["latency_median_min"] = row["latency_median_steps"] * step_s / 60.0 if step_s else np.nan
+    return row
+
+
+#: Columns of ``belief_models.csv`` besides swarm and model.
+BELIEF_COLUMNS = (
+    "belief_error",
+    "calibration_90",
+    "events",
+    "pct_events_known",
+    "latency_median_steps",
+    "latency_median_min",
+    "false_alarms",
+    "false_alarms_per_hour",
+)
+
+
+def belief_table(
+    result,
+    history: History,
+    settings: MonitorSettings | None = None,
+    step_s: float | None = None,
+    meas_var: float = DEFAULT_MEAS_VAR,
+    spatial: bool = False,
+) -> pd.DataFrame:
+    """One row per swarm x model (last-seen, nowcast) of one seed, plus the history-only
+    reference row (swarm ``(no drones)``, model ``history``), scored against the run's truth
+    (``result.truth``, else what the drones observed). ``spatial`` adds the model
+    ``nowcast-spatial``: the nowcast with the 4-neighbour coupling ``history.neighbour_corr``."""
+    settings = settings or MonitorSettings()
+    observed = result.importance
+    if observed is None:
+        raise ValueError("belief models need the run's importance maps (keep_importance=True)")
+    truth = observed if result.truth is None else result.truth
+    grid = result.grid
+    steps = result.positions.shape[1]
+    observed, truth = observed[:steps], truth[:steps]
+    events = congestion_events(truth, grid, settings.threshold, settings.min_duration)
+    rows = []
+    mean, std = history_belief(history, steps)
+    rows.append(
+        {"swarm": NO_DRONES, "model": "history"}
+        | belief_scores(mean, std, truth, grid, settings, step_s, events)
+    )
+    for s, swarm in enumerate(result.swarms):
+        positions = result.positions[s]
+        couplings = [("nowcast", 0.0)] + (
+            [("nowcast-spatial", history.neighbour_corr)] if spatial else []
+        )
+        models = [("last-seen", last_seen(grid, positions, observed))] + [
+            (name, nowcast(grid, positions, observed, history, meas_var, c))
+            for name, c in couplings
+        ]
+        for model, (mean, std) in models:
+            rows.append(
+                {"swarm": swarm, "model": model}
+                | belief_scores(mean, std, truth, grid, settings, step_s, events)
+            )
+    return pd.DataFrame(rows).assign(seed=result.seed)[["seed", "swarm", "model", *BELIEF_COLUMNS]]
+
+
+def summarize(per_seed: pd.DataFrame) -> pd.DataFrame:
+    """Mean over seeds per swarm and model (order kept), with ``n_seeds``."""
+    grouped = per_seed.groupby(["swarm", "model"], sort=False)
+    table = grouped[list(BELIEF_COLUMNS)].mean().reset_index()
+    table["n_seeds"] = grouped.size().to_numpy()
+    return table
+
+
+def format_belief_table(table: pd.DataFrame, title: str = "Belief models") -> str:
+    """The table as aligned text: error, calibration, % events known, latency, false alarms."""
+    lines = [
+        title,
+        f"{'swarm':<22} {'model':<15} {'error':>7} {'calib90':>8} {'known %':>8} "
+        f"{'lat med':>8} {'FA/h':>7}",
+    ]
+
+    def num(v, fmt):
+        return "-" if pd.isna(v) else format(v, fmt)
+
+    for r in table.itertuples(index=False):
+        lat = r.latency_median_min if not pd.isna(r.latency_median_min) else r.latency_median_steps
+        lines.append(
+            f"{r.swarm:<22} {r.model:<15} {num(r.belief_error, '.4f'):>7} "
+            f"{num(r.calibration_90, '.3f'):>8} {num(r.pct_events_known, '.1f'):>8} "
+            f"{num(lat, '.1f'):>8} {num(r.false_alarms_per_hour, '.1f'):>7}"
+        )
+    unit = "min" if table["latency_median_min"].notna().any() else "steps"
+    lines.append(
+        f"error: importance-weighted MAE; calib90: share of true values inside the 90% "
+        f"interval; known: congestion events with belief >= threshold while they last; "
+        f"lat med: median latency ({unit}); FA/h: false-alarm onsets per hour"
+    )
+    return "\n".join(lines)
+
+
+def check_source(history: History, where: Path | str, source) -> None:
+    """:meth:`History.check_matches` against a traffic source about to run: its grid and
+    horizon, and the step length, start and traffic seed of its metadata (a live run's, or
+    those a tape recorded)."""
+    meta = source.metadata() or {}
+    meta = meta.get("recorded") or meta if meta.get("kind") == "tape" else meta
+    step_s, begin, seed = meta.get("step_s"), meta.get("begin"), meta.get("seed")
+    history.check_matches(
+        where,
+        source.grid.obstacles,
+        int(source.horizon),
+        float(step_s) if isinstance(step_s, (int, float)) else None,
+        begin if isinstance(begin, str) else None,
+        [seed] if isinstance(seed, int) and not isinstance(seed, bool) else [],
+    )
+
+
+def run_beliefs(results, history: History, step_s: float | None) -> pd.DataFrame:
+    """The belief-model table of a run (``belief_models.csv``): :func:`belief_table` of every
+    seed's result, mean over seeds (:func:`summarize`)."""
+    return summarize(
+        pd.concat([belief_table(r, history, step_s=step_s) for r in results], ignore_index=True)
+    )

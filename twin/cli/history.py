@@ -1,0 +1,138 @@
+"""``twin history``: the per-step, per-cell history of earlier days from SUMO runs' tapes.
+
+Each tape (``tape.parquet``, ``tapes/seed-<s>.parquet`` of a ``twin run`` folder, or a tape
+file) is replayed without SUMO through the run's own MFD observation model
+(:class:`twin.traffic.tape.TapeTraffic`); the true maps ``T^0..T^T`` of all of them give the
+mean, variance and autocorrelation of :class:`twin.belief.History`, written as ``.npz`` for
+``twin run --history``.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from twin.errors import UserError
+
+
+def add_parser(subparsers) -> None:
+    p = subparsers.add_parser(
+        "history",
+        help="build the history of earlier days (belief models' prior) from SUMO runs",
+        description="Replay the traffic tapes of earlier `twin run` folders (every seed's) "
+        "without SUMO and write, per step and cell, the mean and variance of the true "
+        "importance and, per cell, the lag-1 autocorrelation of its deviations: the history "
+        "that `twin run --history FILE` scores its belief models with. Use SUMO seeds that "
+        "the runs you evaluate do not use (e.g. `twin run --sumo-seed 100 --seeds 3`).",
+    )
+    p.add_argument(
+        "--from",
+        dest="sources",
+        type=Path,
+        nargs="+",
+        required=True,
+        metavar="RUN_DIR",
+        help="`twin run` folders (all their seeds' tapes) or tape.parquet files; at least 2 "
+        "simulations in all",
+    )
+    p.add_argument("--out", type=Path, required=True, help="history file to write (.npz)")
+    p.set_defaults(func=main)
+
+
+def tapes_of(path: Path) -> list[Path]:
+    """The tapes of a run folder (every seed's, else ``tape.parquet``) or a tape file."""
+    if path.is_file():
+        return [path]
+    if not path.is_dir():
+        raise UserError(f"{path}: no such run folder or tape; pass `twin run` folders")
+    per_seed = sorted((path / "tapes").glob("seed-*.parquet"))
+    if per_seed:
+        return per_seed
+    if (path / "tape.parquet").is_file():
+        return [path / "tape.parquet"]
+    raise UserError(
+        f"{path}: no tape.parquet (nor tapes/); a history needs the folders of SUMO runs "
+        "(`twin run`)"
+    )
+
+
+def replay_truth(path: Path):
+    """The true maps ``(T+1, nx, ny)`` of a tape, its obstacles and recorded settings."""
+    import numpy as np
+
+    from twin.traffic.tape import Tape, TapeTraffic
+
+    source = TapeTraffic(Tape.read(path), source_name=str(path))
+    maps = []
+    for importance in source.importance_maps():
+        truth = source.truth_map()
+        maps.append(np.array(importance if truth is None else truth, dtype=np.float64))
+    if len(maps) != source.horizon + 1:
+        raise UserError(
+            f"{path}: the tape holds {len(maps)} of the {source.horizon + 1} steps T^0..T^"
+            f"{source.horizon} (a partial run); use finished runs"
+        )
+    return np.stack(maps), source.grid.obstacles, source.tape.settings
+
+
+def main(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from twin.belief import fit_history
+    from twin.files import atomic_write
+    from twin.outputs import check_output_file
+
+    if args.out.suffix != ".npz":
+        raise UserError(f"--out {args.out}: give a file name ending in .npz")
+    check_output_file(args.out, "--out")
+    paths = [t for p in args.sources for t in tapes_of(p)]
+    if len(paths) < 2:
+        raise UserError(
+            f"--from gives {len(paths)} simulation; a history needs at least 2 (variance "
+            "across days): run more seeds, e.g. `twin run --sumo-seed 100 --seeds 3`"
+        )
+    maps, seeds, first = [], {}, None
+    for path in paths:
+        truth, obstacles, settings = replay_truth(path)
+        seed = settings.get("seed")
+        key = (truth.shape[0] - 1, settings.get("step_s"), settings.get("begin"))
+        if first is None:
+            first = (path, obstacles, key)
+        elif obstacles.shape != first[1].shape or not np.array_equal(obstacles, first[1]):
+            raise UserError(
+                f"{path}: grid or obstacles differ from those of {first[0]}; a history needs "
+                "runs of one scenario"
+            )
+        elif key != first[2]:
+            raise UserError(
+                f"{path}: horizon, step or start (T, step_s, begin) = {key} differs from "
+                f"{first[0]}'s {first[2]}; a history needs runs of one scenario"
+            )
+        if isinstance(seed, int):
+            if seed in seeds:
+                raise UserError(
+                    f"{path}: SUMO seed {seed} again (also {seeds[seed]}); a history needs "
+                    "distinct simulations"
+                )
+            seeds[seed] = path
+        maps.append(truth)
+    _, obstacles, (horizon, step_s, begin) = first
+    history = fit_history(
+        maps,
+        obstacles,
+        float(step_s) if isinstance(step_s, (int, float)) else None,
+        begin if isinstance(begin, str) else None,
+        list(seeds),
+        [str(p) for p in paths],
+    )
+    atomic_write(args.out, history.save)
+    free = ~history.obstacles
+    print(
+        f"history: {history.n_runs} simulations (SUMO seeds "
+        f"{', '.join(map(str, seeds)) or 'unknown'}), {obstacles.shape[0]} x "
+        f"{obstacles.shape[1]} cells, T = {horizon}, from {begin or '?'}; mean importance "
+        f"{history.mean[:, free].mean():.3f}, mean std {np.sqrt(history.var[:, free]).mean():.3f}"
+        f", median rho {np.median(history.rho[free]):.2f}"
+    )
+    print(f"written: {args.out}")
+    return 0
