@@ -677,3 +677,20 @@ def test_disk_full_while_writing_is_one_line_and_the_rerun_replaces_it(
     monkeypatch.setattr(twin.runs, "atomic_write", real)
     assert main(argv) == 0  # the same command replaces its partial folder
     assert (out / "manifest.json").is_file()
+
+
+def test_the_guides_run_folder_table_names_every_run_file() -> None:
+    """docs/guide.md's table of a run folder and the schema in twin/runs.py name the same files
+    (``tapes/seed-<s>.parquet`` counts as ``tapes``); ``report/`` is the report's own folder."""
+    import re
+
+    from twin.runs import RUN_FILE_NAMES
+
+    guide = (Path(__file__).parents[1] / "docs" / "guide.md").read_text()
+    section = guide[guide.index("## Run folders") :]
+    section = section[: section.index("\n## ", 3)]
+    rows = [line for line in section.splitlines() if line.startswith("| `")]
+    named = {
+        name.split("/")[0] for row in rows for name in re.findall(r"`([^`]+)`", row.split(" | ")[0])
+    }
+    assert named == RUN_FILE_NAMES - {"report"}

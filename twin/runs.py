@@ -44,6 +44,7 @@ import shutil
 import sys
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from importlib import metadata as importlib_metadata
 from pathlib import Path
@@ -72,18 +73,55 @@ from twin.scores import ScoreParams
 from twin.timing import WRITING
 
 MANIFEST = "manifest.json"
+
+
+@dataclass(frozen=True)
+class RunFile:
+    """One entry of a run folder (docs/guide.md, "Run folders", describes each): which commands
+    write it, which read it back, whether ``twin report`` needs it, whether the manifest lists
+    it (with its size) and whether it is a folder."""
+
+    name: str
+    written_by: str
+    read_by: str
+    required: bool = False
+    listed: bool = True
+    folder: bool = False
+
+
+#: The run folder's schema: every name twin writes into a run folder. It drives the manifest
+#: (:data:`UNLISTED`), the check that a partial run may be replaced (:data:`RUN_FILE_NAMES`),
+#: the files ``twin report`` requires (:data:`REQUIRED_FILES`); a test checks the guide's table
+#: against it.
+RUN_FILES = (
+    RunFile("series.parquet", "run, evaluate", "report", required=True),
+    RunFile("trajectories.parquet", "run, evaluate", "report, replay", required=True),
+    RunFile("summary.csv", "run, evaluate", "report, docs/make_results.py", required=True),
+    RunFile("per_seed.csv", "run, evaluate", "report, docs/make_results.py"),
+    RunFile("comparison.csv", "run, evaluate", "report"),
+    RunFile("monitoring.csv", "run, evaluate", "report"),
+    RunFile("events.parquet", "run, evaluate", "report"),
+    RunFile("belief_models.csv", "run, evaluate (--history)", "report"),
+    RunFile("importance.npz", "run, evaluate", "report", required=True),
+    RunFile("network.json", "run (SUMO)", "report, replay"),
+    RunFile("mfd.json", "run (SUMO)", "report"),
+    RunFile("mfd_samples.parquet", "run (SUMO)", "report"),
+    RunFile("tape.parquet", "run (SUMO)", "evaluate --traffic, history"),
+    RunFile("tapes", "run (SUMO, several seeds)", "evaluate --traffic, history", folder=True),
+    RunFile("incidents.json", "run (SUMO, incidents)", "report"),
+    RunFile("sumo", "run (SUMO outputs of the scenario)", "the user", folder=True),
+    RunFile("timing.csv", "run, evaluate", "report"),
+    RunFile("run.json", "run, evaluate", "report, replay, the rerun check of --out"),
+    RunFile(MANIFEST, "run, evaluate (last)", "report, replay", listed=False),
+    RunFile("report", "report (run, evaluate)", "a browser", listed=False, folder=True),
+    RunFile(LOG_NAME, "any command, after an unexpected error", "the user", listed=False),
+)
 #: Names twin writes into a run folder: a partial run made of these alone may be replaced.
-RUN_FILE_NAMES = frozenset(
-    {
-        "series.parquet", "trajectories.parquet", "per_seed.csv", "summary.csv",
-        "comparison.csv", "monitoring.csv", "events.parquet", "importance.npz", "run.json",
-        "network.json", "mfd.json", "mfd_samples.parquet", "tape.parquet", "tapes", "report",
-        "incidents.json", "timing.csv", "sumo", "error.log", "belief_models.csv",
-        MANIFEST,
-    }
-)  # fmt: skip
+RUN_FILE_NAMES = frozenset(f.name for f in RUN_FILES)
 #: Names in a run folder that its manifest does not list: written after the run, or again later.
-UNLISTED = ("report", LOG_NAME, MANIFEST)
+UNLISTED = tuple(f.name for f in RUN_FILES if not f.listed)
+#: Files ``twin report`` cannot draw without.
+REQUIRED_FILES = tuple(f.name for f in RUN_FILES if f.required)
 #: Options that change only what is printed: a rerun differing in these is the same command.
 #: (``--workers``/``--executor`` change where seeds run, not their results)
 DISPLAY_OPTIONS = frozenset(

@@ -39,9 +39,8 @@ from twin.readback import (
     read_maps,
     read_table,
 )
+from twin.runs import REQUIRED_FILES
 from twin.scores import ScoreParams, initial_idleness, update_idleness
-
-REQUIRED_FILES = ("series.parquet", "trajectories.parquet", "summary.csv", "importance.npz")
 
 
 @dataclass
