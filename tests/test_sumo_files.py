@@ -248,6 +248,11 @@ ACCEPTED = {
          "trips.add.xml": "ADD:small.trips.xml"},
         None, None,
     ),
+    "options right under the root, no sections": (
+        _cfg('<net-file value="small.net.xml"/><route-files value="small.trips.xml"/>'
+             '<begin value="60"/><end value="480"/>', "sumoConfiguration"),
+        {}, 60.0, 480.0,
+    ),
     "SUMO's no-end -1": (
         _cfg(NET_AND_TRIPS + '<time><begin value="0"/><end value="-1"/></time>'),
         {}, 0.0, None,
@@ -635,3 +640,14 @@ def test_refused_flags_name_the_flag_or_file(scenario, tmp_path, capsys, case):
     assert needle.format(**names) in err and "config.toml" not in err, err
     assert "Traceback" not in err + captured.out
     assert not out.exists()
+
+
+def test_a_run_past_the_demand_counts_at_most_its_own_steps_as_empty(scenario, tmp_path, capsys):
+    """A begin a day after the demand: the notice counts at most the run's own steps."""
+    d = scenario / "scenario"
+    code = _run(scenario, tmp_path / "run", "--net", str(d / "small.net.xml"), "--routes",
+                str(d / "small.trips.xml"), "--begin", "25:00", "--horizon", "3",
+                "--swarms", "random", "--no-ceiling")  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert "the last 3 steps may have no vehicle" in err

@@ -128,20 +128,19 @@ SUMOCFG_ROOTS = ("configuration", "sumoConfiguration")
 
 
 def sumocfg_options(root: ET.Element) -> dict[str, str]:
-    """The options a SUMO config sets: ``<section><name value="..."/></section>`` or, as SUMO
-    also reads, ``<name>...</name>``; element name -> value (the last one wins, as in SUMO)."""
+    """The options a SUMO config sets, as SUMO reads them: any element with a ``value``
+    attribute or, without children, a text, whether in a section (``<input><net-file
+    value="..."/></input>``) or right under the root; element name -> value (the last one wins,
+    as in SUMO)."""
     options: dict[str, str] = {}
-    for section in root:
-        if not isinstance(section.tag, str):
+    for elem in root.iter():
+        if elem is root or not isinstance(elem.tag, str):
             continue
-        for elem in section:
-            if not isinstance(elem.tag, str):
-                continue
-            value = elem.get("value")
-            if value is None and elem.text is not None and elem.text.strip():
-                value = elem.text.strip()
-            if value is not None:
-                options[elem.tag] = value
+        value = elem.get("value")
+        if value is None and len(elem) == 0 and elem.text is not None and elem.text.strip():
+            value = elem.text.strip()
+        if value is not None:
+            options[elem.tag] = value
     return options
 
 

@@ -382,7 +382,8 @@ def _grid_and_notices(
             notices.append(
                 f"{files.name}: the run ends at {clock_label(end)}, past the last departure "
                 f"({clock_label(files.span[1])}) plus {clear / 60:.0f} min to clear the network; "
-                f"the last {int((end - files.span[1] - clear) / step_s)} steps may have no vehicle"
+                f"the last {min(s.horizon, int((end - files.span[1] - clear) / step_s))} steps "
+                "may have no vehicle"
             )
     for text in notices:
         notice(text)
