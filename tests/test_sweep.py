@@ -365,3 +365,20 @@ def test_every_swarm_option_gives_a_cell_equal_to_evaluate(tmp_path, swarm, in_c
                 in_config.startswith(f"{k} =")) else scenario  # fmt: skip
     expected = _evaluate_rows(tmp_path, scenario, [swarm])
     assert got.loc[swarm, "R_hat_T"] == pytest.approx(expected.loc[swarm, "R_hat_T"], rel=1e-12)
+
+
+@pytest.mark.parametrize("foreign", ["summary.csv", "results.csv", "mine.txt"])
+def test_a_folder_a_sweep_did_not_write_is_refused(tmp_path: Path, capsys, foreign) -> None:
+    """--out that holds a user's file (even one named like a sweep's, without sweep.json) is
+    refused in one line; the file is left as it was."""
+    path = sweep_file(tmp_path, seeds=1, horizon=4)
+    out = tmp_path / "userdata"
+    out.mkdir()
+    (out / "notes.md").write_text("mine\n")
+    if foreign != "mine.txt":
+        (out / "notes.md").rename(out / foreign)
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    assert cli(["sweep", "--config", str(path), "--out", str(out), "--quiet", "--no-report"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "no twin sweep" in err
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before

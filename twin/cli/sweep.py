@@ -53,6 +53,7 @@ def main(args: argparse.Namespace) -> int:
     from twin.outputs import check_output_dir
     from twin.resources import shipped_config
     from twin.sweep import load_sweep_config, run_sweep
+    from twin.sweep.store import check_sweep_folder
 
     check_count("--workers", args.workers)
     if args.address and args.executor != "ray":
@@ -60,6 +61,7 @@ def main(args: argparse.Namespace) -> int:
     config = load_sweep_config(shipped_config(args.config))
     out = args.out or Path("runs") / f"sweep-{config.name}"
     check_output_dir(out, "--out")
+    check_sweep_folder(out)
     set_run_folder(out)  # an unexpected error's traceback goes to its error.log
     progress = not args.quiet and sys.stderr.isatty()
     outcome = run_sweep(

@@ -12,14 +12,41 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import pandas as pd
 
+from twin.errors import UserError
 from twin.files import atomic_write
 
 if TYPE_CHECKING:
     from twin.sweep.config import SweepConfig
 
 CELLS_DIR = "cells"
+#: Names twin writes into a sweep folder: a folder holding anything else is not a sweep's.
+SWEEP_FILE_NAMES = frozenset(
+    {CELLS_DIR, "sweep.json", "results.csv", "summary.csv", "failed.json", "report", "error.log"}
+)
 #: Columns of results.csv that identify a cell (plus one column per swept parameter).
 KEY_COLUMNS = ("cell", "scenario", "seed", "swarm")
+
+
+def check_sweep_folder(out_dir: Path) -> None:
+    """One-line :class:`UserError` if ``out_dir`` holds anything a sweep does not write: a sweep
+    resumes in its own folder, and never writes over a user's files."""
+    out_dir = Path(out_dir)
+    if not out_dir.is_dir():
+        return
+    foreign = sorted(
+        p.name
+        for p in out_dir.iterdir()
+        if p.name not in SWEEP_FILE_NAMES and not (p.name.startswith(".") and ".tmp" in p.name)
+    )
+    fix = "give an empty or new folder, or the folder of the sweep to resume"
+    if foreign:
+        raise UserError(f"--out {out_dir}: holds {foreign[0]!r}, which no twin sweep writes; {fix}")
+    names = {p.name for p in out_dir.iterdir()}
+    if names and not names & {"sweep.json", CELLS_DIR}:
+        raise UserError(
+            f"--out {out_dir}: holds {sorted(names)[0]!r} but no sweep.json, so no twin sweep "
+            f"wrote it; {fix}"
+        )
 
 
 def write_cell_record(cells_dir: Path, record: dict[str, Any]) -> None:
