@@ -660,9 +660,15 @@ def check_memory(
     fewer = ", fewer --workers" if workers > 1 else ""
     raise UserError(
         f"{shape[0]} x {shape[1]} cells x {horizon} steps x {len(experiment.swarms)} swarms x "
-        f"{len(experiment.seeds)} seeds{on} need about {need / 1e9:.1f} GB, over the "
+        f"{len(experiment.seeds)} seeds{on} need about {_gb(need)} GB, over the "
         f"{limit:g} GB limit; use {hint}{fewer}, or raise --max-memory-gb / ${MEMORY_ENV}"
     )
+
+
+def _gb(n_bytes: float) -> str:
+    """Bytes as GB with one decimal, or two significant digits below 0.1 GB."""
+    gb = n_bytes / 1e9
+    return f"{gb:.1f}" if gb >= 0.1 else f"{gb:.2g}"
 
 
 def run_metadata(outcome: ExperimentResult, kind: str, **extra: Any) -> dict[str, Any]:
