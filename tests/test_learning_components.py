@@ -146,3 +146,26 @@ def test_mismatched_checkpoints_are_user_errors(tmp_path):
     torch.save(blob, tmp_path / "order.pt")
     with pytest.raises(UserError, match="action order"):
         load_qnet(tmp_path / "order.pt")
+
+
+@pytest.mark.parametrize("layers", [SMALL, [13, 64, 32, 16, 5]])
+def test_gradient_in_place_equals_autograd_bit_for_bit(layers):
+    import torch.nn.functional as F
+
+    from twin.learning.dqn import gradient
+
+    torch.manual_seed(3)
+    net, ref = QNetwork(layers), QNetwork(layers)
+    ref.load_state_dict(net.state_dict())
+    s, y = torch.randn(32, 13), torch.randn(32)
+    s[:4] = -5.0  # rows with dead ReLUs
+    a = torch.randint(0, 5, (32, 1))
+    for _ in range(2):  # the second time into the existing .grad
+        loss, q = gradient([m for m in net.net if isinstance(m, torch.nn.Linear)], s, a, y)
+        ref.zero_grad(set_to_none=True)
+        q_ref = ref(s).gather(1, a).squeeze(1)
+        loss_ref = F.mse_loss(q_ref, y)
+        loss_ref.backward()
+        assert torch.equal(loss, loss_ref.detach()) and torch.equal(q, q_ref.detach())
+        for p, p_ref in zip(net.parameters(), ref.parameters(), strict=True):
+            assert torch.equal(p.grad, p_ref.grad)

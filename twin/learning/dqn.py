@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import torch
 import torch.nn.functional as F
+from torch import nn
 
 from twin.learning.qnet import QNetwork, masked_argmax
 from twin.learning.replay import Batch
@@ -36,13 +37,40 @@ def train_epoch(net, target, optimizer, batch: Batch, gamma: float, iters: int):
     s, a, r, s1, feasible1 = to_tensors(batch)
     y = double_dqn_target(net, target, r, s1, feasible1, gamma)
     a = a[:, None]
+    linears = [m for m in net.net if isinstance(m, nn.Linear)]
     for _ in range(iters):
-        q = net(s).gather(1, a).squeeze(1)
-        loss = F.mse_loss(q, y)
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
+        loss, q = gradient(linears, s, a, y)
         optimizer.step()
-    return loss.detach(), q.detach().mean()
+    return loss, q.mean()
+
+
+@torch.no_grad()
+def gradient(linears: list[nn.Linear], s, a, y) -> tuple[torch.Tensor, torch.Tensor]:
+    """``dL/dtheta`` of ``L = mean (Y - Q(s, a; theta))^2`` into the parameters' ``.grad``,
+    written in place (no allocation of the weight-sized gradients); returns ``L`` and
+    ``Q(s, a)``. The same kernels autograd runs for ``QNetwork``'s ``addmm``/``relu`` layers,
+    ``gather`` and ``mse_loss``, in the same order, so the gradients are bit for bit the same
+    as ``loss.backward()``'s (``tests/test_learning_components.py``)."""
+    hidden, x = [s], s
+    for i, lin in enumerate(linears):
+        z = torch.addmm(lin.bias, x, lin.weight.t())
+        if i < len(linears) - 1:
+            x = torch.relu(z)
+            hidden.append(x)
+    q = z.gather(1, a).squeeze(1)
+    loss = F.mse_loss(q, y)
+    # mse_loss backward: 2 / n (q - y); gather backward: scattered into zeros
+    dz = torch.zeros_like(z).scatter_(1, a, ((q - y) * (2 / q.numel()))[:, None])
+    for i in reversed(range(len(linears))):
+        lin = linears[i]
+        for p in (lin.weight, lin.bias):
+            if p.grad is None:
+                p.grad = torch.empty_like(p)
+        torch.mm(dz.t(), hidden[i], out=lin.weight.grad)
+        torch.sum(dz, 0, out=lin.bias.grad)
+        if i > 0:
+            dz = torch.ops.aten.threshold_backward(dz.mm(lin.weight), hidden[i], 0)
+    return loss, q
 
 
 def sync_target(net: QNetwork, target: QNetwork) -> None:
