@@ -1,8 +1,9 @@
 """Pretraining speed of the Table 1 Q-network: the Double DQN update's share of the dense rate
 of its own layer shapes, beside a plain loop.
 
-Measured in one process, on the same thread count (``--threads``, default 2), interleaved over
-``--rounds`` rounds (each implementation timed in every round; medians are reported):
+Measured in one process, on the same thread count (``--threads``, default 2), in ``--rounds``
+interleaved rounds (each implementation and the plain matmuls timed in every round, call by
+call; the medians of the per-call times are reported):
 
 - ``plain``: a reference update as a single-file DQN writes it: every gradient step computes
   its Double DQN target, default ``torch.optim.Adam``, no tricks;
@@ -12,7 +13,8 @@ Measured in one process, on the same thread count (``--threads``, default 2), in
   the same shapes on random data: for each layer ``n_in -> n_out`` at batch 32 the forward
   ``(32, n_in) @ (n_in, n_out)``, the weight gradient ``(n_out, 32) @ (32, n_in)`` and, for
   every layer but the first (the states need no gradient), the input gradient
-  ``(32, n_out) @ (n_out, n_in)``.
+  ``(32, n_out) @ (n_out, n_in)``; each set called back to back (warm caches), as a dense
+  rate is measured, while the update's own matmuls find the weights after Adam's pass.
 
 The share of an update is ``T_dense / T_update``: ``T_dense`` is the time those plain matmuls
 take for one gradient step (forward + both gradients) plus ``2 / N_iter`` forward passes (the
@@ -26,7 +28,7 @@ the paper's schedule (30000 epochs x 30 updates, batch 32). First checks that ou
 update per epoch and the plain loop reach the same weights from the same start (exit 1
 otherwise). ``--quick`` uses a small network and short timings.
 
-    python benchmarks/bench_learning.py [--quick] [--threads 2] [--rounds 5] [--seconds 2]
+    python benchmarks/bench_learning.py [--quick] [--threads 2] [--rounds 10] [--seconds 10]
 """
 
 from __future__ import annotations
@@ -131,10 +133,12 @@ def main() -> None:
     p.add_argument("--quick", action="store_true", help="small network, short timings")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--seconds", type=float, default=None, help="seconds per implementation")
+    p.add_argument("--rounds", type=int, default=None, help="interleaved rounds (default 10)")
     args = p.parse_args()
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
     seconds = args.seconds or (0.5 if args.quick else 10.0)
+    rounds = args.rounds or (2 if args.quick else 10)
     layers = [13, 256, 128, 5] if args.quick else list(TABLE1_LAYERS)
     rng = np.random.default_rng(0)
     buffer = synthetic_buffer(rng)
@@ -158,22 +162,27 @@ def main() -> None:
     }
     for step, _ in steps.values():  # warm-up
         step()
-    # Call by call: every update beside the plain matmuls of its own shapes, so that the load
-    # of a shared machine falls on both alike; medians of the per-call times.
+    # Interleaved rounds: in each, every implementation and the plain matmuls (each set of them
+    # called back to back, so warm, as a dense rate is measured) for seconds / rounds; the
+    # medians of the per-call times over all rounds.
     times: dict = {name: [] for name in (*steps, "forward", "backward")}
-    t_end = time.perf_counter() + len(steps) * seconds
-    while time.perf_counter() < t_end:
-        for name, (step, per_call) in steps.items():
-            times[name].append(call_seconds(step) / per_call)
-            times["forward"].append(call_seconds(lambda: [c() for c in forward]))
-            times["backward"].append(call_seconds(lambda: [c() for c in backward]))
+    calls = {name: (step, per_call) for name, (step, per_call) in steps.items()}
+    calls["forward"] = (lambda: [c() for c in forward], 1)
+    calls["backward"] = (lambda: [c() for c in backward], 1)
+    for _ in range(rounds):
+        for name, (call, per_call) in calls.items():
+            t_end = time.perf_counter() + seconds / rounds
+            while True:
+                times[name].append(call_seconds(call) / per_call)
+                if time.perf_counter() > t_end:
+                    break
     med = {name: float(np.median(t)) for name, t in times.items()}
 
     def dense_seconds(iters: int) -> float:
         return med["forward"] * (1 + 2 / iters) + med["backward"]
 
     print(f"Table 1 network {layers}, batch {BATCH}, {args.threads} thread(s), "
-          f"{len(times['plain'])} interleaved calls each, medians")  # fmt: skip
+          f"{rounds} interleaved rounds of {seconds / rounds:.2g} s each, medians per call")  # fmt: skip
     print(f"own layer shapes as plain matmuls: "
           f"{matmul_flops(layers, 10**9) / dense_seconds(10**9) / 1e9:.1f} GFLOP/s (forward "
           f"{med['forward'] * 1e3:.2f} ms, gradients {med['backward'] * 1e3:.2f} ms per step)")  # fmt: skip
