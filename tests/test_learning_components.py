@@ -169,3 +169,33 @@ def test_gradient_in_place_equals_autograd_bit_for_bit(layers):
         assert torch.equal(loss, loss_ref.detach()) and torch.equal(q, q_ref.detach())
         for p, p_ref in zip(net.parameters(), ref.parameters(), strict=True):
             assert torch.equal(p.grad, p_ref.grad)
+
+
+def test_flat_adam_step_equals_fused_adam_bit_for_bit_and_survives_a_resume():
+    import copy
+
+    from twin.learning.dqn import adam_step, make_optimizer
+
+    torch.manual_seed(4)
+    nets = [QNetwork(SMALL), QNetwork(SMALL)]
+    nets[1].load_state_dict(nets[0].state_dict())
+    opts = [make_optimizer(n, 1e-3, True) for n in nets]
+    for k in range(6):
+        grads = [torch.randn_like(p) for p in nets[0].parameters()]
+        for net in nets:
+            for p, g in zip(net.parameters(), grads, strict=True):
+                if p.grad is None:
+                    p.grad = g.clone()
+                else:
+                    p.grad.copy_(g)
+        opts[0].step()
+        adam_step(opts[1])
+        if k == 3:  # a resume replaces the state: flattened anew at the next step
+            opts[1].load_state_dict(copy.deepcopy(opts[0].state_dict()))
+        for a, b in zip(nets[0].parameters(), nets[1].parameters(), strict=True):
+            assert torch.equal(a, b)
+    assert hasattr(opts[1], "_twin_flat")  # the flat step ran
+    state0, state1 = opts[0].state_dict()["state"], opts[1].state_dict()["state"]
+    for i in state0:
+        for key in ("step", "exp_avg", "exp_avg_sq"):
+            assert torch.equal(state0[i][key], state1[i][key])
