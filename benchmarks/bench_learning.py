@@ -42,7 +42,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from twin.learning.pretrain import make_optimizer, train_epoch
+from twin.learning.pretrain import flush_subnormals, make_optimizer, train_epoch
 from twin.learning.qnet import TABLE1_LAYERS, QNetwork, masked_argmax
 from twin.learning.replay import ReplayBuffer
 
@@ -133,9 +133,12 @@ def main() -> None:
     p.add_argument("--quick", action="store_true", help="small network, short timings")
     p.add_argument("--threads", type=int, default=2)
     p.add_argument("--seconds", type=float, default=None, help="seconds per implementation")
+    p.add_argument("--keep-subnormals", action="store_true", help="no flush_subnormals()")
     p.add_argument("--rounds", type=int, default=None, help="interleaved rounds (default 10)")
     args = p.parse_args()
     torch.set_num_threads(args.threads)
+    if not args.keep_subnormals:
+        flush_subnormals()  # as twin pretrain does, for every loop alike
     torch.manual_seed(0)
     seconds = args.seconds or (0.5 if args.quick else 10.0)
     rounds = args.rounds or (2 if args.quick else 10)

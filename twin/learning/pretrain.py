@@ -32,6 +32,7 @@ from twin.learning.checkpoint import atomic_save, model_metadata, read_checkpoin
 from twin.learning.data import random_swarm_episode
 from twin.learning.dqn import (  # noqa: F401  (double_dqn_target re-exported for tests)
     double_dqn_target,
+    flush_subnormals,
     make_optimizer,
     sync_target,
     train_epoch,
@@ -269,6 +270,7 @@ def pretrain(cfg: PretrainConfig, progress: bool = True) -> Path:
     check_pretrain_memory(cfg)
     check_out_folder(cfg, "out")
     torch.set_num_threads(cfg.threads)
+    flush_subnormals()
     torch.manual_seed(cfg.seed)
 
     buffer = collect_buffer(cfg, progress=progress)
