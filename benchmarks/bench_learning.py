@@ -23,6 +23,10 @@ per gradient step. It equals the update's FLOP rate over the dense FLOP rate of 
 matmuls. The remainder is what is not a matmul: Adam, bias and ReLU passes, the loss, the
 allocator and Python.
 
+Float32 subnormals are flushed to zero for every loop alike, as ``twin pretrain`` does
+(``--keep-subnormals`` keeps them). On a machine shared with other jobs the share on 2 threads
+follows their load: every parallel region of the update waits for the second thread.
+
 Prints updates/s, the ratio ours / plain, GFLOP/s, the share, and the projected wall time of
 the paper's schedule (30000 epochs x 30 updates, batch 32). First checks that ours with one
 update per epoch and the plain loop reach the same weights from the same start (exit 1
@@ -136,9 +140,9 @@ def main() -> None:
     p.add_argument("--keep-subnormals", action="store_true", help="no flush_subnormals()")
     p.add_argument("--rounds", type=int, default=None, help="interleaved rounds (default 10)")
     args = p.parse_args()
-    torch.set_num_threads(args.threads)
     if not args.keep_subnormals:
-        flush_subnormals()  # as twin pretrain does, for every loop alike
+        flush_subnormals()  # as twin pretrain does, for every loop alike; before the threads start
+    torch.set_num_threads(args.threads)
     torch.manual_seed(0)
     seconds = args.seconds or (0.5 if args.quick else 10.0)
     rounds = args.rounds or (2 if args.quick else 10)
