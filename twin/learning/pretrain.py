@@ -269,8 +269,8 @@ def pretrain(cfg: PretrainConfig, progress: bool = True) -> Path:
     state_path, model_path, log_path = out / "state.pt", out / "qnet.pt", out / "train_log.csv"
     check_pretrain_memory(cfg)
     check_out_folder(cfg, "out")
+    flush_subnormals()  # before the threads start: they keep the flag they start with
     torch.set_num_threads(cfg.threads)
-    flush_subnormals()
     torch.manual_seed(cfg.seed)
 
     buffer = collect_buffer(cfg, progress=progress)
