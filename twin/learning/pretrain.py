@@ -32,6 +32,7 @@ from twin.learning.checkpoint import atomic_save, model_metadata, read_checkpoin
 from twin.learning.data import random_swarm_episode
 from twin.learning.dqn import (  # noqa: F401  (double_dqn_target re-exported for tests)
     double_dqn_target,
+    flush_subnormals,
     make_optimizer,
     sync_target,
     train_epoch,
@@ -268,6 +269,15 @@ def pretrain(cfg: PretrainConfig, progress: bool = True) -> Path:
     state_path, model_path, log_path = out / "state.pt", out / "qnet.pt", out / "train_log.csv"
     check_pretrain_memory(cfg)
     check_out_folder(cfg, "out")
+    flush_subnormals()  # before the threads start: they keep the flag they start with
+    try:
+        return _pretrain(cfg, progress, out, state_path, model_path, log_path)
+    finally:
+        torch.set_flush_denormal(False)  # the process's default again
+
+
+def _pretrain(cfg, progress, out, state_path, model_path, log_path) -> Path:
+    """:func:`pretrain`'s work, with subnormals flushed: collect, train, checkpoint."""
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
 
