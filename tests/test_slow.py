@@ -23,7 +23,7 @@ def test_synthetic_table2_over_ten_seeds(tmp_path):
     assert t.loc["greedy", "pct_map_covered"] <= 70.0
     assert t.loc["random", "pct_map_covered"] >= 90.0
     assert t.loc["rl", "R_hat_T"] >= 1.05 * t.loc["greedy", "R_hat_T"]
-    assert t["C_hat_T"].idxmax() == "rl"
+    assert t.loc[t["role"] == "swarm", "C_hat_T"].idxmax() == "rl"  # ceiling rows aside
 
 
 def test_default_rush_hour_run_shows_congestion_forming_and_dissolving(tmp_path):
