@@ -206,6 +206,38 @@ def check_identity(run_dir: Path, source) -> None:
                 "not show the recorded run: replay with the run's files and versions, or rerun "
                 "`twin run`"
             )
+    check_input_files(run_dir, recorded.get("files"), source)
+
+
+def check_input_files(run_dir: Path, recorded, source) -> None:
+    """Refuse (one line) to replay a run one of whose SUMO input files (network, route,
+    additional files, sumocfg) changed since the run; a run that records no file hashes (an
+    older run) or a file it does not record is not checked."""
+    from twin.sumo.source import file_sha256
+
+    if not isinstance(recorded, list):
+        return
+    was = {
+        (f.get("role"), f.get("path")): f.get("sha256")
+        for f in recorded
+        if isinstance(f, dict) and isinstance(f.get("sha256"), str)
+    }
+    for role, path in source.input_files():
+        before = was.get((role, str(path)))
+        if before is None:
+            continue
+        try:
+            now = file_sha256(path)
+        except OSError as exc:
+            raise UserError(
+                f"{path}: the run's {role} cannot be read ({exc.strerror}); restore it or "
+                "rerun `twin run`"
+            ) from None
+        if now != before:
+            raise UserError(
+                f"{path}: the {role} changed since the run (sha256 {before[:12]}... in "
+                f"{run_dir / 'run.json'}, now {now[:12]}...); restore it or rerun `twin run`"
+            )
 
 
 def check_cells(path: Path, rows, shape: tuple[int, int]) -> None:
