@@ -109,6 +109,29 @@ def test_every_exception_is_one_line_and_an_exit_code(exc, code, words, capsys) 
     assert line.startswith("twin: ") and words in line
 
 
+# errno, whether the command has --out -> words of the fix, and whether it names --out
+OS_ERROR_FIXES = {
+    "full disk, --out": (errno.ENOSPC, True, "free some space on that disk", True),
+    "full disk, no --out": (errno.ENOSPC, False, "free some space on that disk", False),
+    "quota, no --out": (errno.EDQUOT, False, "free some space on that disk", False),
+    "read-only, --out": (errno.EROFS, True, "read-only", True),
+    "read-only, no --out": (errno.EROFS, False, "read-only", False),
+}
+
+
+@pytest.mark.parametrize("case", list(OS_ERROR_FIXES))
+def test_os_error_names_the_file_and_a_fix_the_command_has(case, capsys) -> None:
+    import argparse
+
+    code, has_out, words, names_out = OS_ERROR_FIXES[case]
+    args = argparse.Namespace(run_dir=Path("r"), **({"out": None} if has_out else {}))
+    exc = OSError(code, os.strerror(code), "r/report/scores.png")
+    assert run_command(_raise(exc), args) == EXIT_REFUSED
+    line = one_line(capsys)
+    assert line.startswith(f"twin: error: r/report/scores.png: {os.strerror(code)}; ")
+    assert words in line and ("--out" in line) == names_out
+
+
 def test_unexpected_error_logs_its_traceback_in_the_run_folder(
     tmp_path: Path, monkeypatch, capsys
 ) -> None:

@@ -78,8 +78,8 @@ def say(message: str) -> None:
 
 #: errno -> what to do about it, for the one-line message of a system error
 _FIXES = {
-    errno.ENOSPC: "free some space or write to another disk (--out)",
-    errno.EDQUOT: "free some space or write to another disk (--out)",
+    errno.ENOSPC: "free some space on that disk or write to another disk (--out)",
+    errno.EDQUOT: "free some space on that disk or write to another disk (--out)",
     errno.EROFS: "the file system is read-only: write to another folder (--out)",
     errno.EACCES: "you may not write or read there: change the permissions or use another folder",
     errno.EPERM: "you may not write or read there: change the permissions or use another folder",
@@ -94,13 +94,23 @@ _FIXES = {
 }
 
 
-def describe_os_error(exc: OSError) -> str:
-    """One line for a system error: the file, what happened and the fix."""
+#: the fixes above for a command without ``--out`` (``twin report`` writes into its run folder)
+_FIXES_WITHOUT_OUT = {
+    errno.ENOSPC: "free some space on that disk",
+    errno.EDQUOT: "free some space on that disk (or raise your quota)",
+    errno.EROFS: "the file system is read-only: copy the folder to a writable disk",
+}
+
+
+def describe_os_error(exc: OSError, has_out: bool = True) -> str:
+    """One line for a system error: the file, what happened and the fix (``--out`` named only
+    when the command has that flag: ``has_out``)."""
     name = exc.filename if exc.filename is not None else ""
     if isinstance(name, bytes):
         name = name.decode("utf-8", "backslashreplace")
     what = exc.strerror or str(exc) or type(exc).__name__
-    fix = _FIXES.get(exc.errno or -1, "check the file and the folder")
+    fixes = _FIXES if has_out else {**_FIXES, **_FIXES_WITHOUT_OUT}
+    fix = fixes.get(exc.errno or -1, "check the file and the folder")
     where = f"{name}: " if name else ""
     return f"{where}{what}; {fix}"
 
@@ -161,7 +171,7 @@ def run_command(func: Callable[[Any], int | None], args: Any) -> int:
         return EXIT_REFUSED
     except OSError as exc:
         log = log_traceback(exc)
-        say(f"error: {describe_os_error(exc)}{_see(log)}")
+        say(f"error: {describe_os_error(exc, has_out=hasattr(args, 'out'))}{_see(log)}")
         return EXIT_REFUSED
     except MemoryError as exc:
         log = log_traceback(exc)
