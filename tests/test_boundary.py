@@ -8,6 +8,7 @@ import errno
 import hashlib
 import os
 import shutil
+import sys
 import time
 from pathlib import Path
 
@@ -717,3 +718,48 @@ def test_the_guides_run_folder_table_names_every_run_file() -> None:
         name.split("/")[0] for row in rows for name in re.findall(r"`([^`]+)`", row.split(" | ")[0])
     }
     assert named == RUN_FILE_NAMES - {"report"}
+
+
+def _notices_then(outcome):
+    """A command that holds its notices, says two, then ``outcome`` ("start": the simulation
+    starts, then it ends well; an exception: it is refused before the start)."""
+    from twin.boundary import hold_notices, notify, release_notices
+
+    def command(args):
+        hold_notices()
+        notify("twin: notice: first")
+        notify("SUMO: second")
+        if isinstance(outcome, BaseException):
+            raise outcome
+        if outcome == "start":
+            release_notices()
+        print("results", file=sys.stderr)
+        return 0
+
+    return command
+
+
+# name -> (outcome, exit code, stderr lines)
+HELD_NOTICES = {
+    "started": ("start", 0, ["twin: notice: first", "SUMO: second", "results"]),
+    "ended before a start": ("end", 0, ["results", "twin: notice: first", "SUMO: second"]),
+    "refused": (UserError("x.rou.xml: SUMO refuses it"), EXIT_REFUSED,
+                ["twin: error: x.rou.xml: SUMO refuses it"]),
+    "system error": (OSError(errno.ENOSPC, "No space left on device", "r/x"), EXIT_REFUSED,
+                     None),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("case", list(HELD_NOTICES))
+def test_held_notices_print_after_the_start_and_vanish_on_a_refusal(case, capsys) -> None:
+    outcome, code, lines = HELD_NOTICES[case]
+    assert run_command(_notices_then(outcome), None) == code
+    err = capsys.readouterr().err.splitlines()
+    if lines is None:
+        assert len(err) == 1 and err[0].startswith("twin: error: r/x: No space"), err
+    else:
+        assert err == lines
+    from twin.boundary import notify
+
+    notify("twin: notice: after")  # no command holds them any more
+    assert capsys.readouterr().err == "twin: notice: after\n"

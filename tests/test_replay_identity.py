@@ -172,3 +172,28 @@ def test_runs_without_file_hashes_are_not_refused(tmp_path, recorded_files):
             return [("route file", path)]
 
     check_input_files(tmp_path, recorded_files, Source())
+
+
+# flags of `twin replay` -> words of the one-line error; checked before the scenario loads
+REPLAY_FLAGS = {
+    "a video of another format": (["--record", "{tmp}/x.avi"], "give a .mp4 or .gif file name"),
+    "a video that exists": (["--record", "{tmp}/existing.mp4"], "--record never overwrites"),
+    "a swarm not in the run": (["--gui-swarms", "lookahead"], "'lookahead' is not among"),
+}
+
+
+@pytest.mark.parametrize("case", list(REPLAY_FLAGS))
+def test_replay_flags_are_checked_before_the_scenario_loads(
+    recorded, tmp_path, capsys, monkeypatch, case
+):
+    import twin.experiment
+
+    def no_scenario(*args, **kwargs):
+        raise AssertionError("the scenario was loaded before the flags were checked")
+
+    monkeypatch.setattr(twin.experiment, "build_source", no_scenario)
+    (tmp_path / "existing.mp4").write_bytes(b"")
+    flags, needle = REPLAY_FLAGS[case]
+    argv = ["replay", str(recorded), *(f.format(tmp=tmp_path) for f in flags)]
+    err = run_case(capsys, tmp_path, argv, None, 2, needle)
+    assert "\n" not in err

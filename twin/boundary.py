@@ -48,6 +48,8 @@ LOG_NAME = "error.log"
 MAX_MESSAGE = 600
 
 _state: dict[str, Path | None] = {"run_folder": None}
+#: notices held back until the simulation has started (None: print them at once)
+_held: dict[str, list[str] | None] = {"lines": None}
 
 
 def set_run_folder(path: Path | None) -> None:
@@ -58,6 +60,37 @@ def set_run_folder(path: Path | None) -> None:
 
 def run_folder() -> Path | None:
     return _state["run_folder"]
+
+
+def hold_notices() -> None:
+    """From now on, hold back :func:`notify`'s lines (notices, the simulation's announcement)
+    until :func:`release_notices`: a command refused before its simulation starts prints its
+    one error line only."""
+    if _held["lines"] is None:
+        _held["lines"] = []
+
+
+def notify(line: str) -> None:
+    """Print ``line`` on stderr, or hold it back while :func:`hold_notices` is in force."""
+    held = _held["lines"]
+    if held is not None:
+        held.append(line)
+    else:
+        print(line, file=sys.stderr, flush=True)
+
+
+def release_notices() -> None:
+    """Print the held lines, in order (the simulation has started), and stop holding."""
+    held, _held["lines"] = _held["lines"], None
+    for line in held or []:
+        with contextlib.suppress(Exception):
+            print(line, file=sys.stderr, flush=True)
+
+
+def drop_notices() -> list[str]:
+    """Stop holding and return the held lines unprinted (a refusal prints only its error)."""
+    held, _held["lines"] = _held["lines"], None
+    return held or []
 
 
 def one_line(text: str) -> str:
@@ -149,7 +182,7 @@ def run_command(func: Callable[[Any], int | None], args: Any) -> int:
     """``func(args)`` with every escaping exception turned into one line and an exit code."""
     set_run_folder(None)
     try:
-        return int(func(args) or 0)
+        return int(_notices_held_on_failure(func, args) or 0)
     except UserError as exc:
         say(f"error: {exc}")
         return EXIT_REFUSED
@@ -185,6 +218,19 @@ def run_command(func: Callable[[Any], int | None], args: Any) -> int:
         return _unexpected(exc)
     finally:
         set_run_folder(None)
+
+
+def _notices_held_on_failure(func: Callable[[Any], int | None], args: Any) -> int | None:
+    """``func(args)``; the notices it still holds back are printed when it returns, dropped
+    when it fails (its error is the one line)."""
+    drop_notices()
+    try:
+        code = func(args)
+    except BaseException:
+        drop_notices()
+        raise
+    release_notices()
+    return code
 
 
 def _unexpected(exc: BaseException) -> int:

@@ -8,7 +8,6 @@ drawn where ``trajectories.parquet`` says they were, no swarm is recomputed.
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -108,6 +107,7 @@ def _typed(where: str, value, action: argparse.Action):
 
 
 def main(args: argparse.Namespace) -> int:
+    from twin.boundary import hold_notices, notify, release_notices
     from twin.cli.run import build_experiment, finish_video, gui_drawer
     from twin.experiment import build_source, limit_threads
     from twin.readback import TRAJECTORY_COLUMNS, check_trajectories, read_table
@@ -115,6 +115,7 @@ def main(args: argparse.Namespace) -> int:
     from twin.sumo.gui import display
 
     limit_threads()
+    hold_notices()  # printed once the simulation has started; a refusal is one line
     run_dir = args.run_dir
     if not run_dir.is_dir():
         raise UserError(f"{run_dir}: no such run folder")
@@ -133,20 +134,22 @@ def main(args: argparse.Namespace) -> int:
     swarms = [s for s in experiment.swarms if s in set(rows["swarm"])]
     if not swarms:
         raise UserError(f"{path}: no trajectory of seed {seed}")
+    args.gui = True
+    drawer = gui_drawer(args, swarms)  # its flags are checked before the scenario loads
     source = build_source(experiment, seeds.index(seed))
     check_identity(run_dir, source)
     check_cells(path, rows, source.grid.shape)
     check_trajectories(path, rows, source.grid.shape, source.grid.obstacles)
-    args.gui = True
-    drawer = gui_drawer(args, swarms)
     positions = {s: _positions(rows[rows["swarm"] == s]) for s in swarms}
     steps = min(len(p) for p in positions.values())
     drawer.attach(source)
-    print(drawer.legend(), file=sys.stderr)
+    notify(drawer.legend())
     with display():
         maps = source.importance_maps()
         try:
             for k, importance in enumerate(maps):
+                if k == 0:
+                    release_notices()  # the simulation started
                 if k >= steps:
                     break
                 drawer(k, {s: p[k] for s, p in positions.items()}, importance)
@@ -189,10 +192,11 @@ def check_identity(run_dir: Path, source) -> None:
     run = read_json(run_dir / "run.json") or {}
     recorded = (run.get("traffic") or {}).get("identity")
     if not isinstance(recorded, dict):
-        print(
+        from twin.boundary import notify
+
+        notify(
             f"twin: notice: {run_dir / 'run.json'} records no network hash or versions (an "
-            "older run); the replay cannot check it simulates the same scenario",
-            file=sys.stderr,
+            "older run); the replay cannot check it simulates the same scenario"
         )
         return
     now = source.identity()
