@@ -8,6 +8,7 @@ import errno
 import hashlib
 import os
 import shutil
+import sys
 import time
 from pathlib import Path
 
@@ -107,6 +108,29 @@ def test_every_exception_is_one_line_and_an_exit_code(exc, code, words, capsys) 
     assert run_command(_raise(exc), None) == code
     line = one_line(capsys)
     assert line.startswith("twin: ") and words in line
+
+
+# errno, whether the command has --out -> words of the fix, and whether it names --out
+OS_ERROR_FIXES = {
+    "full disk, --out": (errno.ENOSPC, True, "free some space on that disk", True),
+    "full disk, no --out": (errno.ENOSPC, False, "free some space on that disk", False),
+    "quota, no --out": (errno.EDQUOT, False, "free some space on that disk", False),
+    "read-only, --out": (errno.EROFS, True, "read-only", True),
+    "read-only, no --out": (errno.EROFS, False, "read-only", False),
+}
+
+
+@pytest.mark.parametrize("case", list(OS_ERROR_FIXES))
+def test_os_error_names_the_file_and_a_fix_the_command_has(case, capsys) -> None:
+    import argparse
+
+    code, has_out, words, names_out = OS_ERROR_FIXES[case]
+    args = argparse.Namespace(run_dir=Path("r"), **({"out": None} if has_out else {}))
+    exc = OSError(code, os.strerror(code), "r/report/scores.png")
+    assert run_command(_raise(exc), args) == EXIT_REFUSED
+    line = one_line(capsys)
+    assert line.startswith(f"twin: error: r/report/scores.png: {os.strerror(code)}; ")
+    assert words in line and ("--out" in line) == names_out
 
 
 def test_unexpected_error_logs_its_traceback_in_the_run_folder(
@@ -694,3 +718,48 @@ def test_the_guides_run_folder_table_names_every_run_file() -> None:
         name.split("/")[0] for row in rows for name in re.findall(r"`([^`]+)`", row.split(" | ")[0])
     }
     assert named == RUN_FILE_NAMES - {"report"}
+
+
+def _notices_then(outcome):
+    """A command that holds its notices, says two, then ``outcome`` ("start": the simulation
+    starts, then it ends well; an exception: it is refused before the start)."""
+    from twin.boundary import hold_notices, notify, release_notices
+
+    def command(args):
+        hold_notices()
+        notify("twin: notice: first")
+        notify("SUMO: second")
+        if isinstance(outcome, BaseException):
+            raise outcome
+        if outcome == "start":
+            release_notices()
+        print("results", file=sys.stderr)
+        return 0
+
+    return command
+
+
+# name -> (outcome, exit code, stderr lines)
+HELD_NOTICES = {
+    "started": ("start", 0, ["twin: notice: first", "SUMO: second", "results"]),
+    "ended before a start": ("end", 0, ["results", "twin: notice: first", "SUMO: second"]),
+    "refused": (UserError("x.rou.xml: SUMO refuses it"), EXIT_REFUSED,
+                ["twin: error: x.rou.xml: SUMO refuses it"]),
+    "system error": (OSError(errno.ENOSPC, "No space left on device", "r/x"), EXIT_REFUSED,
+                     None),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("case", list(HELD_NOTICES))
+def test_held_notices_print_after_the_start_and_vanish_on_a_refusal(case, capsys) -> None:
+    outcome, code, lines = HELD_NOTICES[case]
+    assert run_command(_notices_then(outcome), None) == code
+    err = capsys.readouterr().err.splitlines()
+    if lines is None:
+        assert len(err) == 1 and err[0].startswith("twin: error: r/x: No space"), err
+    else:
+        assert err == lines
+    from twin.boundary import notify
+
+    notify("twin: notice: after")  # no command holds them any more
+    assert capsys.readouterr().err == "twin: notice: after\n"

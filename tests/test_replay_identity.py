@@ -76,6 +76,20 @@ def _edit_net(run: Path) -> None:
         fh.write("<!-- edited after the run -->\n")
 
 
+def _edit_routes(run: Path) -> None:
+    with open(run.parent / "small.trips.xml", "a") as fh:
+        fh.write("<!-- fewer vehicles since the run -->\n")
+
+
+def _edit_recorded_route_hash(run: Path) -> None:
+    def change(meta: dict) -> None:
+        for f in meta["traffic"]["identity"]["files"]:
+            if f["role"] == "route file":
+                f["sha256"] = "0" * 64
+
+    _edit_run_json(change)(run)
+
+
 # name -> (what to change, monkeypatched (module, attribute, value) or None, expected words)
 CASES = {
     "network edited": (_edit_net, None, "the network file (sha256) was"),
@@ -96,6 +110,16 @@ CASES = {
         "the grid (nx, ny) was [9, 9], now",
     ),
     "cell off the grid": (_off_grid, None, "on cell (99, "),
+    "route file edited": (
+        _edit_routes,
+        None,
+        "small.trips.xml: the route file changed since the run (sha256 ",
+    ),
+    "route hash differs": (
+        _edit_recorded_route_hash,
+        None,
+        "the route file changed since the run (sha256 000000000000...",
+    ),
 }
 
 
@@ -122,3 +146,54 @@ def test_run_json_records_the_identity(recorded):
     assert identity["cell_m"] == 200.0 and identity["sumo"] == sumo_version()
     run = json.loads((recorded / "run.json").read_text())
     assert identity["grid"] == [run["grid"]["nx"], run["grid"]["ny"]]
+
+
+def test_run_json_records_every_input_file(recorded):
+    import hashlib
+
+    identity = json.loads((recorded / "run.json").read_text())["traffic"]["identity"]
+    files = {f["role"]: f for f in identity["files"]}
+    assert set(files) == {"network", "route file"}
+    for f in identity["files"]:
+        assert f["sha256"] == hashlib.sha256(Path(f["path"]).read_bytes()).hexdigest()
+    assert Path(files["route file"]["path"]).name == "small.trips.xml"
+
+
+@pytest.mark.parametrize("recorded_files", [None, [], [{"role": "route file"}], "x"])
+def test_runs_without_file_hashes_are_not_refused(tmp_path, recorded_files):
+    """Older run folders record no file hashes: unknown, not a mismatch."""
+    from twin.cli.replay import check_input_files
+
+    path = tmp_path / "r.xml"
+    path.write_text("<routes/>")
+
+    class Source:
+        def input_files(self):
+            return [("route file", path)]
+
+    check_input_files(tmp_path, recorded_files, Source())
+
+
+# flags of `twin replay` -> words of the one-line error; checked before the scenario loads
+REPLAY_FLAGS = {
+    "a video of another format": (["--record", "{tmp}/x.avi"], "give a .mp4 or .gif file name"),
+    "a video that exists": (["--record", "{tmp}/existing.mp4"], "--record never overwrites"),
+    "a swarm not in the run": (["--gui-swarms", "lookahead"], "'lookahead' is not among"),
+}
+
+
+@pytest.mark.parametrize("case", list(REPLAY_FLAGS))
+def test_replay_flags_are_checked_before_the_scenario_loads(
+    recorded, tmp_path, capsys, monkeypatch, case
+):
+    import twin.experiment
+
+    def no_scenario(*args, **kwargs):
+        raise AssertionError("the scenario was loaded before the flags were checked")
+
+    monkeypatch.setattr(twin.experiment, "build_source", no_scenario)
+    (tmp_path / "existing.mp4").write_bytes(b"")
+    flags, needle = REPLAY_FLAGS[case]
+    argv = ["replay", str(recorded), *(f.format(tmp=tmp_path) for f in flags)]
+    err = run_case(capsys, tmp_path, argv, None, 2, needle)
+    assert "\n" not in err

@@ -394,3 +394,80 @@ def test_every_image_loads_in_headless_chromium(report: Path, tmp_path: Path) ->
     found = re.search(r"IMAGES (\d+)/(\d+)", dom)
     assert found, "the check script did not run"
     assert found.group(1) == found.group(2) == str(len(FIGURES))
+
+
+def _full_disk(monkeypatch, where: str, name: str, filename: bool) -> None:
+    """The disk fills while the report writes ``name`` (a figure or a page)."""
+    import errno
+
+    import matplotlib.figure
+
+    import twin.report.document as document
+
+    def raise_full(path) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device", *([str(path)] if filename else []))
+
+    if where == "figure":
+        real_save = matplotlib.figure.Figure.savefig
+
+        def savefig(self, path, *args, **kwargs):
+            if Path(path).name == name:
+                raise_full(path)
+            return real_save(self, path, *args, **kwargs)
+
+        monkeypatch.setattr(matplotlib.figure.Figure, "savefig", savefig)
+    else:
+        real_write = document.atomic_write
+
+        def atomic_write(path, write):
+            if Path(path).name == name:
+                return real_write(path, lambda p: raise_full(p))
+            return real_write(path, write)
+
+        monkeypatch.setattr(document, "atomic_write", atomic_write)
+
+
+# name -> (where the disk fills, the file being written, whether the error names it)
+FULL_DISK = {
+    "figure, named": ("figure", "traffic.png", True),
+    "figure, unnamed": ("figure", "scores.png", False),
+    "page, named": ("page", "report.html", True),
+    "page, unnamed": ("page", "report.md", False),
+}
+
+
+@pytest.mark.parametrize("earlier", [False, True], ids=["first report", "earlier report"])
+@pytest.mark.parametrize("case", list(FULL_DISK))
+def test_full_disk_during_report_is_one_line_and_leaves_no_partial_report(
+    tmp_path: Path, monkeypatch, capsys, case, earlier
+) -> None:
+    from twin.cli import main
+
+    run = write_fixture_run(tmp_path, seeds=(3,), sumo=False)
+    if earlier:
+        write_report(run, animation=False)
+        before = {p.name: p.read_bytes() for p in (run / "report").iterdir()}
+    name = FULL_DISK[case][1]
+    _full_disk(monkeypatch, *FULL_DISK[case])
+    capsys.readouterr()
+    assert main(["report", str(run), "--no-animation"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("twin: error: "), err
+    assert f"{run / 'report' / name}: No space left on device" in err, err
+    assert "free some space on that disk" in err and "--out" not in err, err
+    assert ".tmp" not in err
+    if earlier:  # the earlier report is left whole
+        assert {p.name: p.read_bytes() for p in (run / "report").iterdir()} == before
+    else:
+        assert not (run / "report").exists()
+    assert not [p for p in run.iterdir() if p.name.startswith(".report")]
+
+
+def test_report_replaces_an_earlier_report(tmp_path: Path) -> None:
+    run = write_fixture_run(tmp_path, seeds=(3,), sumo=False)
+    write_report(run, animation=False)
+    (run / "report" / "stale.txt").write_text("from before")
+    out = write_report(run, animation=False)
+    assert out == run / "report" / "report.html" and out.is_file()
+    assert not (run / "report" / "stale.txt").exists()
+    assert sorted(p.name for p in run.iterdir() if p.name.startswith(".")) == []

@@ -651,3 +651,62 @@ def test_a_run_past_the_demand_counts_at_most_its_own_steps_as_empty(scenario, t
     err = capsys.readouterr().err
     assert code == 0, err
     assert "the last 3 steps may have no vehicle" in err
+
+
+# name -> (flags of `twin run`, words of the one-line error). Each run is given a horizon past
+# its demand, so a notice (and the SUMO announcement) would come before the simulation starts:
+# they are held back until it has, and a refusal prints its one error line only. {tmp}: a
+# folder with bad.rou.xml (a trip from an unknown edge), bogus.sumocfg (an option SUMO does not
+# know), copy.trips.xml (the scenario's trips again: duplicate vehicle ids)
+HELD_BACK = {
+    "a route over an unknown edge": (["--net", "{net}", "--routes", "{tmp}/bad.rou.xml"],
+                                     "bad.rou.xml: SUMO refuses it: "),
+    "an option SUMO does not know": (["--sumocfg", "{tmp}/bogus.sumocfg"],
+                                     "bogus.sumocfg: SUMO refuses it: No option with the name"),
+    "duplicate vehicle ids": (["--net", "{net}", "--routes", "{trips}", "--routes",
+                               "{tmp}/copy.trips.xml"], "already exists"),
+    "an additional file twice": ([*PUBLIC, "--additional", "{detectors}"], "SUMO refuses it"),
+    "more drones than free cells": (["--net", "{net}", "--routes", "{trips}", "--drones",
+                                     "100000"], "--drones 100000 exceeds the"),
+}  # fmt: skip
+
+
+def _held_back_names(scenario: Path, tmp_path: Path) -> dict[str, Path]:
+    d = scenario / "scenario"
+    (tmp_path / "bad.rou.xml").write_text(
+        '<routes><trip id="x" depart="0" from="nosuchedge" to="nosuchedge"/></routes>'
+    )
+    (tmp_path / "bogus.sumocfg").write_text(
+        f'<configuration><input><net-file value="{d / "small.net.xml"}"/><route-files '
+        f'value="{d / "small.trips.xml"}"/></input><bogus-option value="1"/></configuration>'
+    )
+    shutil.copy(d / "small.trips.xml", tmp_path / "copy.trips.xml")
+    return {"cfg": d / "public.sumocfg", "tmp": tmp_path, "net": d / "small.net.xml",
+            "trips": d / "small.trips.xml", "detectors": d / "detectors.add.xml"}  # fmt: skip
+
+
+@pytest.mark.parametrize("case", list(HELD_BACK))
+def test_a_refusal_after_notices_is_one_line(scenario, tmp_path, capsys, case):
+    flags, needle = HELD_BACK[case]
+    names = _held_back_names(scenario, tmp_path)
+    out = tmp_path / "run"
+    code = _run(scenario, out, "--horizon", "200", *(f.format(**names) for f in flags))
+    captured = capsys.readouterr()
+    err = captured.err.strip()
+    assert code == 2, err
+    assert "\n" not in err and err.startswith("twin: error:"), err
+    assert needle in err and "Traceback" not in err + captured.out, err
+    assert not out.exists()
+
+
+def test_notices_come_before_the_results_of_a_run_that_starts(scenario, tmp_path, capsys):
+    names = _held_back_names(scenario, tmp_path)
+    out = tmp_path / "run"
+    code = _run(scenario, out, "--horizon", "200", "--net", str(names["net"]), "--routes",
+                str(names["trips"]))  # fmt: skip
+    err = capsys.readouterr().err.splitlines()
+    assert code == 0, err
+    notices = [x for x in err if x.startswith("twin: notice:")]
+    assert any("past the last departure" in x for x in notices), err
+    assert err[: len(notices) + 1] == [*notices, err[len(notices)]], err  # notices first
+    assert err[len(notices)].startswith("SUMO: small.net.xml (seed "), err

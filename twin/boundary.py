@@ -48,6 +48,8 @@ LOG_NAME = "error.log"
 MAX_MESSAGE = 600
 
 _state: dict[str, Path | None] = {"run_folder": None}
+#: notices held back until the simulation has started (None: print them at once)
+_held: dict[str, list[str] | None] = {"lines": None}
 
 
 def set_run_folder(path: Path | None) -> None:
@@ -58,6 +60,37 @@ def set_run_folder(path: Path | None) -> None:
 
 def run_folder() -> Path | None:
     return _state["run_folder"]
+
+
+def hold_notices() -> None:
+    """From now on, hold back :func:`notify`'s lines (notices, the simulation's announcement)
+    until :func:`release_notices`: a command refused before its simulation starts prints its
+    one error line only."""
+    if _held["lines"] is None:
+        _held["lines"] = []
+
+
+def notify(line: str) -> None:
+    """Print ``line`` on stderr, or hold it back while :func:`hold_notices` is in force."""
+    held = _held["lines"]
+    if held is not None:
+        held.append(line)
+    else:
+        print(line, file=sys.stderr, flush=True)
+
+
+def release_notices() -> None:
+    """Print the held lines, in order (the simulation has started), and stop holding."""
+    held, _held["lines"] = _held["lines"], None
+    for line in held or []:
+        with contextlib.suppress(Exception):
+            print(line, file=sys.stderr, flush=True)
+
+
+def drop_notices() -> list[str]:
+    """Stop holding and return the held lines unprinted (a refusal prints only its error)."""
+    held, _held["lines"] = _held["lines"], None
+    return held or []
 
 
 def one_line(text: str) -> str:
@@ -78,8 +111,8 @@ def say(message: str) -> None:
 
 #: errno -> what to do about it, for the one-line message of a system error
 _FIXES = {
-    errno.ENOSPC: "free some space or write to another disk (--out)",
-    errno.EDQUOT: "free some space or write to another disk (--out)",
+    errno.ENOSPC: "free some space on that disk or write to another disk (--out)",
+    errno.EDQUOT: "free some space on that disk or write to another disk (--out)",
     errno.EROFS: "the file system is read-only: write to another folder (--out)",
     errno.EACCES: "you may not write or read there: change the permissions or use another folder",
     errno.EPERM: "you may not write or read there: change the permissions or use another folder",
@@ -94,13 +127,23 @@ _FIXES = {
 }
 
 
-def describe_os_error(exc: OSError) -> str:
-    """One line for a system error: the file, what happened and the fix."""
+#: the fixes above for a command without ``--out`` (``twin report`` writes into its run folder)
+_FIXES_WITHOUT_OUT = {
+    errno.ENOSPC: "free some space on that disk",
+    errno.EDQUOT: "free some space on that disk (or raise your quota)",
+    errno.EROFS: "the file system is read-only: copy the folder to a writable disk",
+}
+
+
+def describe_os_error(exc: OSError, has_out: bool = True) -> str:
+    """One line for a system error: the file, what happened and the fix (``--out`` named only
+    when the command has that flag: ``has_out``)."""
     name = exc.filename if exc.filename is not None else ""
     if isinstance(name, bytes):
         name = name.decode("utf-8", "backslashreplace")
     what = exc.strerror or str(exc) or type(exc).__name__
-    fix = _FIXES.get(exc.errno or -1, "check the file and the folder")
+    fixes = _FIXES if has_out else {**_FIXES, **_FIXES_WITHOUT_OUT}
+    fix = fixes.get(exc.errno or -1, "check the file and the folder")
     where = f"{name}: " if name else ""
     return f"{where}{what}; {fix}"
 
@@ -139,7 +182,7 @@ def run_command(func: Callable[[Any], int | None], args: Any) -> int:
     """``func(args)`` with every escaping exception turned into one line and an exit code."""
     set_run_folder(None)
     try:
-        return int(func(args) or 0)
+        return int(_notices_held_on_failure(func, args) or 0)
     except UserError as exc:
         say(f"error: {exc}")
         return EXIT_REFUSED
@@ -161,7 +204,7 @@ def run_command(func: Callable[[Any], int | None], args: Any) -> int:
         return EXIT_REFUSED
     except OSError as exc:
         log = log_traceback(exc)
-        say(f"error: {describe_os_error(exc)}{_see(log)}")
+        say(f"error: {describe_os_error(exc, has_out=hasattr(args, 'out'))}{_see(log)}")
         return EXIT_REFUSED
     except MemoryError as exc:
         log = log_traceback(exc)
@@ -175,6 +218,19 @@ def run_command(func: Callable[[Any], int | None], args: Any) -> int:
         return _unexpected(exc)
     finally:
         set_run_folder(None)
+
+
+def _notices_held_on_failure(func: Callable[[Any], int | None], args: Any) -> int | None:
+    """``func(args)``; the notices it still holds back are printed when it returns, dropped
+    when it fails (its error is the one line)."""
+    drop_notices()
+    try:
+        code = func(args)
+    except BaseException:
+        drop_notices()
+        raise
+    release_notices()
+    return code
 
 
 def _unexpected(exc: BaseException) -> int:

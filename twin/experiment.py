@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from twin.boundary import notify, release_notices
 from twin.config import ScenarioConfig, check_swarm_fits, start_positions
 from twin.errors import UserError
 from twin.patrol import INTERRUPTED, PatrolResult, run_patrol
@@ -152,7 +153,7 @@ def build_swarms(experiment: Experiment) -> dict[str, Policy]:
         except Exception as exc:  # a missing checkpoint or torch: skip a learned swarm if allowed
             if not (experiment.skip_unavailable and is_learned(name)):
                 raise
-            print(f"twin: notice: swarm {name!r} skipped ({exc})", file=sys.stderr)
+            notify(f"twin: notice: swarm {name!r} skipped ({exc})")
     if not swarms:
         raise UserError("no swarm to run; give --swarms random,greedy,sweeping")
     return swarms
@@ -417,6 +418,7 @@ def _run_seeds_in_workers(
         while announced < upto and announced in done:
             value = done[announced]
             if on_source is not None and value is not None and value.source is not None:
+                release_notices()  # a seed ran: its simulation started
                 on_source(value.source)
             announced += 1
 
@@ -444,6 +446,7 @@ def _run_seeds_in_workers(
     kept_outcomes = [done[n] for n in kept]
     for n in kept:  # those after a seed that never started
         if n >= announced and on_source is not None and done[n].source is not None:
+            release_notices()
             on_source(done[n].source)
     return ExperimentResult(
         experiment,

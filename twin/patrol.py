@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from twin.boundary import release_notices
 from twin.errors import UserError
 from twin.grid import Grid
 from twin.policies import Policy, SwarmView, Transition
@@ -109,11 +110,13 @@ def run_patrol(
     views: list[SwarmView] = []
     maps = source.importance_maps()
     t0 = time.perf_counter()
-    bar = _progress_bar(source, horizon, progress)
+    bar = None
     done, error = 0, None
     try:
         with timer.stage(TRAFFIC):
             t_now = next(maps)
+        release_notices()  # the simulation started: its notices, then the progress bar
+        bar = _progress_bar(source, horizon, progress)
         truth = _record_truth(source, truth, 0, horizon, keep_importance)
         if importance is not None:
             importance[0] = t_now
@@ -173,10 +176,12 @@ def run_patrol(
                 error = f"{INTERRUPTED} after {done} of {horizon} steps"
                 break
     except StopIteration:
+        release_notices()
         error = f"traffic source ended after {done} of {horizon} steps"
     except Exception as exc:
         if isinstance(exc, UserError) or not source.keeps_partial_results:
             raise  # bad input (e.g. a file a simulator refuses to start on) is no partial result
+        release_notices()  # a partial run: what it said of its scenario still holds
         error = f"{type(exc).__name__}: {exc}"
     finally:
         if bar is not None:

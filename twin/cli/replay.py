@@ -8,7 +8,6 @@ drawn where ``trajectories.parquet`` says they were, no swarm is recomputed.
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -108,6 +107,7 @@ def _typed(where: str, value, action: argparse.Action):
 
 
 def main(args: argparse.Namespace) -> int:
+    from twin.boundary import hold_notices, notify, release_notices
     from twin.cli.run import build_experiment, finish_video, gui_drawer
     from twin.experiment import build_source, limit_threads
     from twin.readback import TRAJECTORY_COLUMNS, check_trajectories, read_table
@@ -115,6 +115,7 @@ def main(args: argparse.Namespace) -> int:
     from twin.sumo.gui import display
 
     limit_threads()
+    hold_notices()  # printed once the simulation has started; a refusal is one line
     run_dir = args.run_dir
     if not run_dir.is_dir():
         raise UserError(f"{run_dir}: no such run folder")
@@ -133,20 +134,22 @@ def main(args: argparse.Namespace) -> int:
     swarms = [s for s in experiment.swarms if s in set(rows["swarm"])]
     if not swarms:
         raise UserError(f"{path}: no trajectory of seed {seed}")
+    args.gui = True
+    drawer = gui_drawer(args, swarms)  # its flags are checked before the scenario loads
     source = build_source(experiment, seeds.index(seed))
     check_identity(run_dir, source)
     check_cells(path, rows, source.grid.shape)
     check_trajectories(path, rows, source.grid.shape, source.grid.obstacles)
-    args.gui = True
-    drawer = gui_drawer(args, swarms)
     positions = {s: _positions(rows[rows["swarm"] == s]) for s in swarms}
     steps = min(len(p) for p in positions.values())
     drawer.attach(source)
-    print(drawer.legend(), file=sys.stderr)
+    notify(drawer.legend())
     with display():
         maps = source.importance_maps()
         try:
             for k, importance in enumerate(maps):
+                if k == 0:
+                    release_notices()  # the simulation started
                 if k >= steps:
                     break
                 drawer(k, {s: p[k] for s, p in positions.items()}, importance)
@@ -189,10 +192,11 @@ def check_identity(run_dir: Path, source) -> None:
     run = read_json(run_dir / "run.json") or {}
     recorded = (run.get("traffic") or {}).get("identity")
     if not isinstance(recorded, dict):
-        print(
+        from twin.boundary import notify
+
+        notify(
             f"twin: notice: {run_dir / 'run.json'} records no network hash or versions (an "
-            "older run); the replay cannot check it simulates the same scenario",
-            file=sys.stderr,
+            "older run); the replay cannot check it simulates the same scenario"
         )
         return
     now = source.identity()
@@ -205,6 +209,38 @@ def check_identity(run_dir: Path, source) -> None:
                 f"{run_dir / 'run.json'}: the {name} was {was}, now {is_}; the replay would "
                 "not show the recorded run: replay with the run's files and versions, or rerun "
                 "`twin run`"
+            )
+    check_input_files(run_dir, recorded.get("files"), source)
+
+
+def check_input_files(run_dir: Path, recorded, source) -> None:
+    """Refuse (one line) to replay a run one of whose SUMO input files (network, route,
+    additional files, sumocfg) changed since the run; a run that records no file hashes (an
+    older run) or a file it does not record is not checked."""
+    from twin.sumo.source import file_sha256
+
+    if not isinstance(recorded, list):
+        return
+    was = {
+        (f.get("role"), f.get("path")): f.get("sha256")
+        for f in recorded
+        if isinstance(f, dict) and isinstance(f.get("sha256"), str)
+    }
+    for role, path in source.input_files():
+        before = was.get((role, str(path)))
+        if before is None:
+            continue
+        try:
+            now = file_sha256(path)
+        except OSError as exc:
+            raise UserError(
+                f"{path}: the run's {role} cannot be read ({exc.strerror}); restore it or "
+                "rerun `twin run`"
+            ) from None
+        if now != before:
+            raise UserError(
+                f"{path}: the {role} changed since the run (sha256 {before[:12]}... in "
+                f"{run_dir / 'run.json'}, now {now[:12]}...); restore it or rerun `twin run`"
             )
 
 

@@ -227,6 +227,7 @@ def build_experiment(args: argparse.Namespace):
 def main(args: argparse.Namespace) -> int:
     import contextlib
 
+    from twin.boundary import hold_notices, notify
     from twin.experiment import (
         check_resources,
         limit_threads,
@@ -238,6 +239,7 @@ def main(args: argparse.Namespace) -> int:
     from twin.runs import discard_run_dir, invocation, new_run_dir, prepare_run_dir
 
     limit_threads()
+    hold_notices()  # printed once the simulation has started; a refusal is one line
     experiment = build_experiment(args)
     history = None
     if getattr(args, "history", None) is not None:
@@ -257,7 +259,7 @@ def main(args: argparse.Namespace) -> int:
             check_source(history, args.history, source)
         if drawer is not None:
             drawer.attach(source)
-            print(drawer.legend(), file=sys.stderr)
+            notify(drawer.legend())
 
     try:
         with contextlib.ExitStack() as stack:
@@ -395,12 +397,13 @@ def finish_video(drawer, run_dir: Path | None = None) -> bool:
 
 
 def _announce(source) -> None:
+    from twin.boundary import notify
+
     s = source.scenario
-    print(
+    notify(
         f"SUMO: {s.name} (seed {s.seed}), {source.grid.nx} x {source.grid.ny} cells of "
         f"{source.geometry.cell_m:g} m ({source.grid.n_free} free, "
         f"{s.extra.get('n_drones', '?')} drones), "
         f"{source.clock(-s.warmup_steps())} warm-up, {source.clock(0)} - "
-        f"{source.clock(s.horizon)}, step {s.step_s:g} s",
-        file=sys.stderr,
+        f"{source.clock(s.horizon)}, step {s.step_s:g} s"
     )

@@ -205,7 +205,12 @@ def idleness_check(rf: RunFiles) -> str:
 
 
 def _save(fig: Figure, path: Path) -> str:
-    fig.savefig(path, dpi=100)
+    try:
+        fig.savefig(path, dpi=100)
+    except OSError as exc:  # name the file being written
+        if exc.filename is None:
+            exc.filename = str(path)
+        raise
     return path.name
 
 
@@ -699,15 +704,44 @@ def report_dir(run_dir: Path) -> Path:
 
 
 def write_report(run_dir: str | Path, animation: bool = True) -> Path:
-    """Write ``RUN_DIR/report/`` (report.html, report.md, PNGs, GIF); return the HTML's path."""
+    """Write ``RUN_DIR/report/`` (report.html, report.md, PNGs, GIF); return the HTML's path.
+
+    The report is drawn into a temporary folder inside the run folder and renamed into place
+    at the end: a report that fails mid-way (a full disk ...) leaves the previous report, or
+    none, never a partial one."""
+    import shutil
+    import tempfile
+
     rf = load_run(run_dir)
     out = report_dir(rf.run_dir)
-    out.mkdir(exist_ok=True)
-    sections, drawing = build_sections(rf, out, animation)
-    html_path = out / "report.html"
-    seconds = sum(drawing.values())
-    page = render_html(rf, out, sections, seconds)
-    md = render_markdown(rf, sections, seconds)
-    atomic_write(html_path, lambda p: p.write_text(page, encoding="utf-8"))
-    atomic_write(out / "report.md", lambda p: p.write_text(md, encoding="utf-8"))
-    return html_path
+    stage = Path(tempfile.mkdtemp(dir=rf.run_dir, prefix=f".{REPORT_DIR}.", suffix=".tmp"))
+    try:
+        os.chmod(stage, 0o777 & ~_umask())
+        sections, drawing = build_sections(rf, stage, animation)
+        seconds = sum(drawing.values())
+        page = render_html(rf, stage, sections, seconds)
+        md = render_markdown(rf, sections, seconds)
+        atomic_write(stage / "report.html", lambda p: p.write_text(page, encoding="utf-8"))
+        atomic_write(stage / "report.md", lambda p: p.write_text(md, encoding="utf-8"))
+        old = None
+        if out.is_dir():
+            old = Path(tempfile.mkdtemp(dir=rf.run_dir, prefix=f".{REPORT_DIR}.", suffix=".old"))
+            os.replace(out, old / REPORT_DIR)
+        os.replace(stage, out)
+    except OSError as exc:  # name the report's file, not its temporary copy
+        shutil.rmtree(stage, ignore_errors=True)
+        name = str(exc.filename) if exc.filename is not None else str(out)
+        exc.filename = name.replace(str(stage), str(out))
+        raise
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        raise
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+    return out / "report.html"
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask

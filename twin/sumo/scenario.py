@@ -25,7 +25,6 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import math
-import sys
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -144,7 +143,11 @@ def _named_in(sumocfg: Path | None, files: list[Path]) -> Iterator[None]:
 
 
 def notice(text: str) -> None:
-    print(f"twin: notice: {text}", file=sys.stderr)
+    """``twin: notice: text`` on stderr; held back while a command holds its notices until its
+    simulation starts (:func:`twin.boundary.hold_notices`)."""
+    from twin.boundary import notify
+
+    notify(f"twin: notice: {text}")
 
 
 @dataclass

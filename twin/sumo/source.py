@@ -305,26 +305,41 @@ class SumoTraffic(TrafficSource):
         }
 
     def identity(self) -> dict[str, Any]:
-        """What a replay of this run must find unchanged: the network file (sha256), the cell
-        size, the grid's shape, SUMO's and twin's versions (``run.json`` traffic.identity)."""
+        """What a replay of this run must find unchanged: the network file (sha256), every file
+        SUMO loads (sha256 of the network, route, additional and sumocfg files, generated demand
+        included), the cell size, the grid's shape, SUMO's and twin's versions (``run.json``
+        traffic.identity)."""
         if "net_sha256" not in self.scenario.extra:
-            import hashlib
-
-            h = hashlib.sha256()
-            with open(self.scenario.net_file, "rb") as fh:
-                for block in iter(lambda: fh.read(1 << 20), b""):
-                    h.update(block)
-            self.scenario.extra["net_sha256"] = h.hexdigest()
+            self.scenario.extra["net_sha256"] = file_sha256(self.scenario.net_file)
         from twin import __version__
         from twin.sumo.network import sumo_version
 
         return {
             "net_sha256": self.scenario.extra["net_sha256"],
+            "files": self.input_hashes(),
             "cell_m": float(self.geometry.cell_m),
             "grid": [int(self.grid.nx), int(self.grid.ny)],
             "sumo": sumo_version(),
             "twin": __version__,
         }
+
+    def input_files(self) -> list[tuple[str, Path]]:
+        """``(role, path)`` of every file SUMO loads for this scenario."""
+        s = self.scenario
+        files = [("network", Path(s.net_file))]
+        files += [("route file", Path(r)) for r in s.route_files]
+        files += [("additional file", Path(a)) for a in s.extra.get("additional_files", [])]
+        if s.sumocfg is not None:
+            files.append(("sumocfg", Path(s.sumocfg)))
+        return files
+
+    def input_hashes(self) -> list[dict[str, str]]:
+        """``{"role", "path", "sha256"}`` of every file SUMO loads (hashed once per file and
+        version, streamed)."""
+        return [
+            {"role": role, "path": str(path), "sha256": file_sha256(path)}
+            for role, path in self.input_files()
+        ]
 
     def output_files(self) -> list[str]:
         """SUMO's configured outputs (and rewritten additional files) written into the output
@@ -370,6 +385,26 @@ class SumoTraffic(TrafficSource):
             (run_dir / "tapes").mkdir(exist_ok=True)
             for seed, source in by_seed:
                 atomic_write(run_dir / "tapes" / f"seed-{seed}.parquet", source.tape().write)
+
+
+_HASHES: dict[tuple[str, int, int], str] = {}
+
+
+def file_sha256(path: Path) -> str:
+    """The sha256 of a file, read in blocks; remembered per path, size and modification time
+    (a run's seeds hash each input once)."""
+    import hashlib
+    import os
+
+    st = os.stat(path)
+    key = (os.path.abspath(path), st.st_size, st.st_mtime_ns)
+    if key not in _HASHES:
+        h = hashlib.sha256()
+        with open(path, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                h.update(block)
+        _HASHES[key] = h.hexdigest()
+    return _HASHES[key]
 
 
 def _remove(folder: Path | None) -> None:
