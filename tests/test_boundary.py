@@ -365,6 +365,7 @@ READ_BACK = {
     "NaN in series": (_edit_table("series.parquet", _set("coverage", np.nan, 4)), "coverage"),
     "string in summary": (_edit_table("summary.csv", _set("R_hat_T", "lots")), "R_hat_T"),
     "NaN headline in summary": (_edit_table("summary.csv", _set("R_hat_T", np.nan)), "R_hat_T"),
+    "unknown role in summary": (_edit_table("summary.csv", _set("role", "xxxxx")), "'role'"),
     "empty headline in per_seed": (
         _edit_table("per_seed.csv", _set("R_hat_T", np.nan, 1)),
         "per_seed.csv",

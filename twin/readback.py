@@ -332,6 +332,14 @@ def check_headline(path: Path, frame: pd.DataFrame) -> None:
     if "R_hat_T" not in frame.columns:
         raise UserError(f"{path}: no column 'R_hat_T'; {RERUN}")
     swarm = ~frame["role"].eq("ceiling") if "role" in frame.columns else None
+    if swarm is not None:
+        odd = ~frame["role"].isin(("swarm", "ceiling"))
+        if odd.any():
+            n = int(np.flatnonzero(odd.to_numpy())[0])
+            raise UserError(
+                f"{path}: column 'role' of row {n} is {frame['role'].iloc[n]!r}, not 'swarm' or "
+                f"'ceiling'; {RERUN}"
+            )
     for name in HEADLINE_COLUMNS:
         if name not in frame.columns:
             continue
