@@ -349,6 +349,14 @@ def _out_cases(cfg: Path, out: Path) -> dict[str, tuple[Callable[[Path], None], 
             lambda d: [_partial_of(same)(d), (d / "notes.txt").write_text("mine")],
             "'notes.txt', which twin did not write",
         ),
+        "a partial run with a foreign file in tapes/": (
+            lambda d: [
+                _partial_of(same)(d),
+                (d / "tapes").mkdir(),
+                (d / "tapes" / "notes.txt").write_text("mine"),
+            ],
+            "'tapes/notes.txt', which twin did not write",
+        ),
         "a complete run": (
             lambda d: shutil.copytree(_FINISHED[0], d),
             "already holds a complete run",
@@ -362,6 +370,7 @@ OUT_CASES = [
     "a file",
     "a partial run of another command",
     "a partial run with a foreign file",
+    "a partial run with a foreign file in tapes/",
     "a complete run",
 ]
 

@@ -15,6 +15,7 @@ from helpers import small_sumo_scenario
 
 from twin.belief import NO_DRONES, History
 from twin.cli import main as twin_main
+from twin.errors import UserError
 
 
 @pytest.fixture(scope="module")
@@ -125,3 +126,24 @@ def test_history_needs_two_distinct_simulations(small, history, tmp_path, capsys
     err = capsys.readouterr().err.strip()
     assert code == 2 and "no tape.parquet" in err
     assert not (tmp_path / "h.npz").exists()
+
+
+def test_history_never_overwrites_a_file(history, tmp_path, capsys):
+    days = history.parent / "days"
+    mine = tmp_path / "mine.npz"
+    mine.write_bytes(b"keep")
+    code = twin_main(["history", "--from", str(days), "--out", str(mine)])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "exists; give a new file name" in err and "\n" not in err
+    assert mine.read_bytes() == b"keep"
+
+
+@pytest.mark.parametrize("dtype", ["complex64", "U12"])
+def test_a_history_of_other_than_real_numbers_is_refused(history, tmp_path, dtype):
+    with np.load(history) as data:
+        arrays = dict(data)
+    arrays["mean"] = arrays["mean"].astype(dtype)
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, **arrays)
+    with pytest.raises(UserError, match=r"mean holds .* not real numbers"):
+        History.load(bad)

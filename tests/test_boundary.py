@@ -366,6 +366,10 @@ READ_BACK = {
     "string in summary": (_edit_table("summary.csv", _set("R_hat_T", "lots")), "R_hat_T"),
     "NaN headline in summary": (_edit_table("summary.csv", _set("R_hat_T", np.nan)), "R_hat_T"),
     "unknown role in summary": (_edit_table("summary.csv", _set("role", "xxxxx")), "'role'"),
+    "per_seed row twice": (
+        _edit_table("per_seed.csv", lambda f: pd.concat([f, f.iloc[[0]]])),
+        "appears twice",
+    ),
     "empty headline in per_seed": (
         _edit_table("per_seed.csv", _set("R_hat_T", np.nan, 1)),
         "per_seed.csv",

@@ -208,3 +208,16 @@ def test_out_with_a_checkpoint_of_other_settings_is_refused_before_collecting(tm
     _changed(config)
     code, err = _run_cli(argv, capsys)
     assert code == 2 and "other settings (iters_per_epoch)" in err and err.count("\n") == 0
+
+
+def test_a_damaged_log_row_is_one_line_naming_the_file(tmp_path):
+    from twin.errors import UserError
+    from twin.learning.pretrain import _truncate_log
+
+    log = tmp_path / "train_log.csv"
+    log.write_text("epoch,updates,loss\n1000,1000,0.02\ngarbage,,,\n")
+    with pytest.raises(UserError, match=r"train_log.csv: row 3 starts with 'garbage'"):
+        _truncate_log(log, 1000)
+    log.write_text("epoch,updates,loss\n1000,1000,0.02\n2000,2000,0.01\n")
+    _truncate_log(log, 1000)
+    assert log.read_text().splitlines() == ["epoch,updates,loss", "1000,1000,0.02"]

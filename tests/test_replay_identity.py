@@ -159,7 +159,17 @@ def test_run_json_records_every_input_file(recorded):
     assert Path(files["route file"]["path"]).name == "small.trips.xml"
 
 
-@pytest.mark.parametrize("recorded_files", [None, [], [{"role": "route file"}], "x"])
+@pytest.mark.parametrize("recorded_files", ["x", [1], {"role": "route file"}])
+def test_file_hashes_of_the_wrong_type_are_refused(tmp_path, recorded_files):
+    """A damaged identity must not switch the check off."""
+    from twin.cli.replay import check_input_files
+    from twin.errors import UserError
+
+    with pytest.raises(UserError, match="is not a list of files"):
+        check_input_files(tmp_path, recorded_files, None)
+
+
+@pytest.mark.parametrize("recorded_files", [None, [], [{"role": "route file"}]])
 def test_runs_without_file_hashes_are_not_refused(tmp_path, recorded_files):
     """Older run folders record no file hashes: unknown, not a mismatch."""
     from twin.cli.replay import check_input_files

@@ -509,6 +509,8 @@ REFUSED = {
         _cfg(NET_AND_TRIPS + "<configuration><save-template>t.xml</save-template></configuration>"),
         {}, "<save-template value='t.xml'> makes SUMO write that file and quit",
     ),
+    "a remote port": (_cfg(NET_AND_TRIPS + '<remote-port value="8813"/>'), {},
+                      "<remote-port value='8813'> makes SUMO wait for a TraCI client"),
     "a help switch": (_cfg(NET_AND_TRIPS + '<report><help value="true"/></report>'), {},
                       "<help value='true'> makes SUMO print its help and quit"),
     "not XML": ("<configuration><input>", {}, "not valid XML"),
@@ -710,3 +712,17 @@ def test_notices_come_before_the_results_of_a_run_that_starts(scenario, tmp_path
     assert any("past the last departure" in x for x in notices), err
     assert err[: len(notices) + 1] == [*notices, err[len(notices)]], err  # notices first
     assert err[len(notices)].startswith("SUMO: small.net.xml (seed "), err
+
+
+def test_included_files_are_found_through_nested_includes_and_cycles(tmp_path):
+    """The files an additional file includes (and theirs) are part of the run's identity."""
+    from twin.sumo.readers import included_files
+
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "a.add.xml").write_text('<additional><include href="sub/b.add.xml"/></additional>')
+    (tmp_path / "sub" / "b.add.xml").write_text(
+        '<additional><include href="../a.add.xml"/><include href="c.add.xml"/></additional>'
+    )
+    (tmp_path / "sub" / "c.add.xml").write_text("<additional/>")
+    found = included_files(tmp_path / "a.add.xml")
+    assert [p.name for p in found] == ["b.add.xml", "c.add.xml"]

@@ -118,6 +118,12 @@ class History:
                 f"{path}: history version = {info.get('version')!r}, expected "
                 f"{HISTORY_VERSION}; {fix}"
             )
+        for name in ("mean", "var", "rho"):
+            kind = arrays[name].dtype.kind
+            if kind not in "fiub":
+                raise UserError(
+                    f"{path}: {name} holds {arrays[name].dtype} values, not real numbers; {fix}"
+                )
         mean, var, rho = (np.asarray(arrays[k], dtype=np.float64) for k in ("mean", "var", "rho"))
         obstacles = np.asarray(arrays["obstacles"]).astype(bool)
         if mean.ndim != 3 or var.shape != mean.shape or mean.shape[0] < 2:

@@ -40,6 +40,7 @@ from __future__ import annotations
 import contextlib
 import json
 import platform
+import re
 import shutil
 import sys
 import time
@@ -235,11 +236,36 @@ def _replaceable(path: Path, started: dict[str, Any] | None) -> None:
     foreign = sorted(
         e.name for e in path.iterdir() if e.name not in RUN_FILE_NAMES and not _is_temp(e.name)
     )
+    foreign += _foreign_in_folders(path, manifest)
     if foreign:
         raise UserError(
             f"--out {path}: holds {foreign[0]!r}, which twin did not write; {fix} "
             "(a partial run is replaced only when it holds twin's files alone)"
         )
+
+
+def _foreign_in_folders(path: Path, manifest: Any) -> list[str]:
+    """Files in the run's listed folders (``sumo/``, ``tapes/``) that its manifest does not
+    list (without a manifest, a run killed before writing it: tapes other than
+    ``seed-<s>.parquet``; SUMO's outputs cannot be told apart then). ``report/`` is the
+    report's own folder, drawn afresh."""
+    listed = manifest.get("files") if isinstance(manifest, dict) else None
+    foreign = []
+    for entry in RUN_FILES:
+        folder = path / entry.name
+        if not (entry.folder and entry.listed and folder.is_dir()):
+            continue
+        for p in sorted(folder.rglob("*")):
+            if p.is_dir() or _is_temp(p.name):
+                continue
+            rel = p.relative_to(path).as_posix()
+            if isinstance(listed, dict):
+                ours = rel in listed
+            else:
+                ours = entry.name != "tapes" or re.fullmatch(r"seed-\d+\.parquet", p.name)
+            if not ours:
+                foreign.append(rel)
+    return foreign
 
 
 def _is_temp(name: str) -> bool:

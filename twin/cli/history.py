@@ -85,6 +85,10 @@ def main(args: argparse.Namespace) -> int:
     if args.out.suffix != ".npz":
         raise UserError(f"--out {args.out}: give a file name ending in .npz")
     check_output_file(args.out, "--out")
+    if args.out.exists():
+        raise UserError(
+            f"--out {args.out}: exists; give a new file name (twin history never overwrites a file)"
+        )
     paths = [t for p in args.sources for t in tapes_of(p)]
     if len(paths) < 2:
         raise UserError(

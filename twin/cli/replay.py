@@ -219,8 +219,13 @@ def check_input_files(run_dir: Path, recorded, source) -> None:
     older run) or a file it does not record is not checked."""
     from twin.sumo.source import file_sha256
 
-    if not isinstance(recorded, list):
+    if recorded is None:
         return
+    if not isinstance(recorded, list) or not all(isinstance(f, dict) for f in recorded):
+        raise UserError(
+            f"{run_dir / 'run.json'}: traffic.identity.files = {str(recorded)[:40]!r} is not a "
+            "list of files with their sha256; rerun `twin run`"
+        )
     was = {
         (f.get("role"), f.get("path")): f.get("sha256")
         for f in recorded

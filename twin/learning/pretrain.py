@@ -497,6 +497,18 @@ def _truncate_log(path: Path, epoch: int) -> None:
         return
     with open(path, newline="") as f:
         rows = list(csv.reader(f))
-    kept = [rows[0]] + [r for r in rows[1:] if r and int(r[0]) <= epoch] if rows else []
+    kept = rows[:1]
+    for n, row in enumerate(rows[1:], start=2):
+        if not row:
+            continue
+        try:
+            row_epoch = int(row[0])
+        except ValueError:
+            raise UserError(
+                f"{path}: row {n} starts with {row[0]!r}, not an epoch number; delete the row "
+                "(or the file, to start its log afresh)"
+            ) from None
+        if row_epoch <= epoch:
+            kept.append(row)
     with open(path, "w", newline="") as f:
         csv.writer(f).writerows(kept or [LOG_COLUMNS])

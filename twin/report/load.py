@@ -237,6 +237,13 @@ def load_run(run_dir: str | Path) -> RunFiles:
     per_seed = optional("per_seed.csv", {"seed": INT, "swarm": TEXT}, TABLE_TEXT)
     if per_seed is not None:
         check_headline(run_dir / "per_seed.csv", per_seed)
+        dup = per_seed.duplicated(["seed", "swarm"])
+        if dup.any():
+            r = per_seed[dup].iloc[0]
+            raise UserError(
+                f"{run_dir / 'per_seed.csv'}: the row of seed {r['seed']}, swarm {r['swarm']!r} "
+                f"appears twice; {RERUN}"
+            )
     monitoring = optional("monitoring.csv", {"swarm": TEXT}, TABLE_TEXT)
     events = optional("events.parquet", EVENT_COLUMNS)
     beliefs = optional("belief_models.csv", {"swarm": TEXT, "model": TEXT}, ("swarm", "model"))

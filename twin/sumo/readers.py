@@ -148,6 +148,8 @@ def sumocfg_options(root: ET.Element) -> dict[str, str]:
 _SAVE_AND_QUIT = ("save-configuration", "C", "save-template", "save-schema")
 #: Switches that make SUMO print something and quit without simulating.
 _PRINT_AND_QUIT = ("help", "version")
+#: Options that make SUMO wait for a client on a socket before it simulates.
+_WAIT_FOR_CLIENT = ("remote-port",)
 
 
 def read_sumocfg(path: Path, own_net: bool = True) -> SumoConfigFile:
@@ -200,6 +202,12 @@ def read_sumocfg(path: Path, own_net: bool = True) -> SumoConfigFile:
             raise UserError(
                 f"{path}: <{name} value={options[name]!r}> makes SUMO write that file and quit "
                 "instead of simulating; remove it (twin runs the simulation)"
+            )
+    for name in _WAIT_FOR_CLIENT:
+        if options.get(name):
+            raise UserError(
+                f"{path}: <{name} value={options[name]!r}> makes SUMO wait for a TraCI client "
+                "instead of simulating; remove it (twin drives SUMO itself)"
             )
     for name in _PRINT_AND_QUIT:
         if options.get(name, "false").strip().lower() not in ("false", "0", "no", "off", ""):
@@ -315,3 +323,27 @@ def _flow_end(elem: ET.Element, begin: float) -> float:
     if number is not None and step is not None:
         return begin + float(number) * step
     return begin + 3600.0  # SUMO's default flow end is its --end; assume an hour
+
+
+def included_files(path: Path) -> list[Path]:
+    """The files an additional file pulls in with ``<include href="...">`` (relative to the
+    including file, as SUMO reads them), and theirs in turn; a file SUMO could not read or a
+    cycle ends the search there (SUMO says what is wrong with it)."""
+    found: list[Path] = []
+    todo, seen = [Path(path)], {Path(os.path.normpath(Path(path).absolute()))}
+    while todo:
+        current = todo.pop(0)
+        try:
+            with open_xml(current) as fh:
+                hrefs = [e.get("href") for e in ET.parse(fh).getroot().iter("include")]
+        except (ET.ParseError, OSError, EOFError, UserError):
+            continue
+        for href in hrefs:
+            if not href:
+                continue
+            child = Path(os.path.normpath((current.parent / href).absolute()))
+            if child not in seen:
+                seen.add(child)
+                found.append(child)
+                todo.append(child)
+    return found

@@ -28,7 +28,7 @@ from twin.errors import UserError
 from twin.grid import Grid
 from twin.mfd import MFD, MFDImportance
 from twin.sumo.cells import CellGeometry
-from twin.sumo.readers import naming_the_sumocfg
+from twin.sumo.readers import included_files, naming_the_sumocfg
 from twin.sumo.session import ANTI_GRIDLOCK_OPTIONS, SumoRunError, SumoSession
 from twin.timing import (
     OBSERVATION,
@@ -328,7 +328,9 @@ class SumoTraffic(TrafficSource):
         s = self.scenario
         files = [("network", Path(s.net_file))]
         files += [("route file", Path(r)) for r in s.route_files]
-        files += [("additional file", Path(a)) for a in s.extra.get("additional_files", [])]
+        for a in s.extra.get("additional_files", []):
+            files.append(("additional file", Path(a)))
+            files += [("included file", p) for p in included_files(Path(a)) if p.is_file()]
         if s.sumocfg is not None:
             files.append(("sumocfg", Path(s.sumocfg)))
         return files
