@@ -525,7 +525,7 @@ def test_clock_labels_show_days(t, seconds, label) -> None:
 
 
 def test_ray_address_that_does_not_answer_fails_fast() -> None:
-    from twin.sweep.executors import _probe_address
+    from twin.executors import _probe_address
 
     start = time.monotonic()
     with pytest.raises(UserError, match=r"Ray address 127\.0\.0\.1:1"):
@@ -536,7 +536,7 @@ def test_ray_address_that_does_not_answer_fails_fast() -> None:
 
 
 def test_ray_cluster_that_does_not_let_twin_join_fails_within_the_timeout(monkeypatch) -> None:
-    from twin.sweep import executors
+    from twin import executors
 
     class SlowRay:
         def init(self, **kwargs):

@@ -104,10 +104,10 @@ def test_gui_with_workers_is_refused(small, tmp_path, capsys):
 def test_a_failed_seed_stops_the_seeds_after_it_as_one_after_another(small, monkeypatch):
     """Seed 1's simulation fails mid-run: kept are seeds 0 and 1 (partial), as sequentially,
     whatever order the workers finish in (here the last seed first)."""
+    from twin import executors
     from twin.config import load_config
     from twin.experiment import Experiment, run_experiment
     from twin.sumo.session import SumoRunError, SumoSession
-    from twin.sweep import executors
 
     original = SumoSession.advance_to
 

@@ -394,7 +394,7 @@ def _run_seeds_in_workers(
     stops every worker at once and is raised here. Ctrl-C stops every seed after its current
     step and keeps every seed done or partly done.
     """
-    from twin.sweep.executors import EXECUTORS, local_tasks, ray_tasks
+    from twin.executors import EXECUTORS, local_tasks, ray_tasks
 
     if experiment.executor not in EXECUTORS:
         raise UserError(f"--executor {experiment.executor!r}: choose from {', '.join(EXECUTORS)}")

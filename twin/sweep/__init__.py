@@ -21,7 +21,7 @@ A sweep config (TOML, e.g. ``configs/sweep-demo.toml``)::
                                       # [[], [[1, 1]]] (labelled by their JSON text)
 
 Modules: :mod:`~twin.sweep.config` (the config model), :mod:`~twin.sweep.cells` (expansion,
-ids, :func:`run_cell`), :mod:`~twin.sweep.executors` (local pool, Ray),
+ids, :func:`run_cell`), :mod:`~twin.executors` (local pool, Ray),
 :mod:`~twin.sweep.store` (cell records, manifest, merge), :mod:`~twin.sweep.runner`
 (:func:`run_sweep`).
 
@@ -33,6 +33,7 @@ the drones' starts (``default_rng(seed)``, as ``twin evaluate``), the swarms' ra
 executor and in ``twin evaluate``.
 """
 
+from twin.executors import EXECUTORS, Outcome
 from twin.sweep.cells import (
     DEFINING_KEYS,
     cell_id,
@@ -44,7 +45,6 @@ from twin.sweep.cells import (
     scenario_config,
 )
 from twin.sweep.config import ScenarioSpec, SweepConfig, load_sweep_config
-from twin.sweep.executors import EXECUTORS, Outcome
 from twin.sweep.runner import SweepOutcome, check_cells, prepare_sumo, run_sweep
 from twin.sweep.store import (
     CELLS_DIR,

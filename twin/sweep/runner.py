@@ -14,9 +14,9 @@ from typing import Any
 import pandas as pd
 
 from twin.errors import UserError
+from twin.executors import EXECUTORS, _local_executor, _ray_executor
 from twin.sweep.cells import expand_cells, run_cell, scenario_config
 from twin.sweep.config import SweepConfig
-from twin.sweep.executors import EXECUTORS, _local_executor, _ray_executor
 from twin.sweep.store import (
     CELLS_DIR,
     _write_manifest,
