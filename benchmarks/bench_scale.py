@@ -146,7 +146,8 @@ def coupled(experiment: Experiment):
 
 def write_folder(outcome, folder: Path) -> float:
     """The run folder as ``twin run`` writes it (monitoring, tape, MFD samples); seconds."""
-    from twin.experiment import close_sources, record, run_metadata
+    from twin.experiment import close_sources, run_metadata
+    from twin.runs import record
 
     t0 = time.perf_counter()
     record(folder, outcome, run_metadata(outcome, "run"))

@@ -34,6 +34,7 @@ from twin.errors import UserError
 from twin.grid import Grid
 from twin.resources import shipped_config as shipped_config  # re-export (moved there)
 from twin.scores import ScoreParams
+from twin.swarms import make_policy
 
 
 class ConfigError(UserError):
@@ -286,8 +287,6 @@ class ScenarioConfig(StrictModel):
 
     def make_swarm(self, name: str, **overrides: Any):
         """The swarm ``name`` with this config's options for it, ``overrides`` on top."""
-        from twin.swarms import make_policy
-
         options = {**self.swarm_options.get(name, {}), **overrides}
         if isinstance(options.get("checkpoint"), str):  # relative to the config, as in sweeps
             options["checkpoint"] = self.path.parent / options["checkpoint"]

@@ -15,12 +15,11 @@ from twin.experiment import (
     check_resources,
     limit_threads,
     parse_swarm_names,
-    record,
     run_experiment,
     run_metadata,
 )
 from twin.metrics import format_comparison, format_results
-from twin.runs import discard_run_dir, invocation, new_run_dir, prepare_run_dir
+from twin.runs import discard_run_dir, invocation, new_run_dir, prepare_run_dir, record
 from twin.swarms import available_policies
 
 DEFAULT_CONFIG = "configs/synthetic.toml"

@@ -231,12 +231,11 @@ def main(args: argparse.Namespace) -> int:
     from twin.experiment import (
         check_resources,
         limit_threads,
-        record,
         run_experiment,
         run_metadata,
     )
     from twin.metrics import format_comparison, format_results
-    from twin.runs import discard_run_dir, invocation, new_run_dir, prepare_run_dir
+    from twin.runs import discard_run_dir, invocation, new_run_dir, prepare_run_dir, record
 
     limit_threads()
     hold_notices()  # printed once the simulation has started; a refusal is one line
@@ -357,7 +356,7 @@ def belief_models(outcome, history, meta):
 
 
 def belief_writer(beliefs):
-    """The ``more_files`` of :func:`twin.experiment.record` writing ``belief_models.csv``."""
+    """The ``more_files`` of :func:`twin.runs.record` writing ``belief_models.csv``."""
     if beliefs is None:
         return None
     from twin.files import atomic_write

@@ -176,7 +176,7 @@ def live_source(
     separate_process: bool = False,
     **inputs: Any,
 ):
-    """The live source of the ``index``-th seed (:func:`twin.traffic.kinds.build_traffic`):
+    """The live source of the ``index``-th seed (:func:`twin.traffic_kinds.build_traffic`):
     SUMO seed ``traffic_seed + index`` (``traffic_seed`` defaults to ``[traffic].seed``), the
     :class:`SumoInputs` given as keywords; with ``separate_process`` SUMO works ahead of the
     swarms in a process of its own (:mod:`twin.sumo.worker`)."""
