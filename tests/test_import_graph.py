@@ -161,8 +161,9 @@ LAYERS: list[tuple[str, list[str]]] = [
     ("command line", ["twin.cli", "twin.cli.", "twin.__main__"]),
 ]
 
-#: Packages only twin/sumo/ (simulator) and twin/learning/ (torch) import.
-HEAVY = {"libsumo", "sumolib", "traci", "torch"}
+#: The simulator's packages, imported only under twin/sumo/, and torch, only under twin/learning/.
+SIMULATOR = {"libsumo", "sumolib", "traci"}
+HEAVY = {"twin.sumo.": SIMULATOR, "twin.learning.": {"torch"}}
 
 
 def layer_of(module: str, layers=LAYERS) -> int | None:
@@ -205,15 +206,14 @@ def test_no_import_runs_back_up_the_layers():
     assert upward_imports(import_graph()) == []
 
 
-def test_only_sumo_and_learning_import_a_simulator_or_torch():
-    heavy = {
-        module_name(path): sorted({base.partition(".")[0] for base, _ in imports(path)} & HEAVY)
+def test_only_sumo_imports_the_simulator_and_only_learning_torch():
+    found = {
+        module_name(path): {base.partition(".")[0] for base, _ in imports(path)}
+        & (SIMULATOR | {"torch"})
         for path in sorted(PACKAGE.rglob("*.py"))
     }
-    outside = {
-        m: found
-        for m, found in heavy.items()
-        if found and not m.startswith(("twin.sumo.", "twin.learning."))
+    allowed = {
+        m: next((ok for prefix, ok in HEAVY.items() if m.startswith(prefix)), set()) for m in found
     }
-    assert outside == {}
-    assert heavy["twin.learning.qnet"] == ["torch"] and heavy["twin.sumo.session"]
+    assert {m: heavy - allowed[m] for m, heavy in found.items() if heavy - allowed[m]} == {}
+    assert found["twin.learning.qnet"] == {"torch"} and found["twin.sumo.session"]

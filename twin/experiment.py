@@ -49,7 +49,7 @@ class Experiment:
     #: keyword options per swarm, applied over the config's ``[swarm_options.<swarm>]``
     swarm_options: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
     tape: Path | None = None  # replay a recorded traffic tape instead of the config's traffic
-    #: options of the live traffic's builder (``twin run``'s swapped-in files, horizon ...)
+    #: options of the live traffic's builder (``twin run``'s swapped-in files)
     traffic_options: Mapping[str, Any] = field(default_factory=dict)
     traffic_seed: int | None = None  # live traffic's seed of the first seed ([traffic].seed)
     #: learned swarms that cannot be built (no torch, no checkpoint) are skipped with a notice
@@ -59,9 +59,6 @@ class Experiment:
     max_memory_gb: float | None = None
     #: live traffic in a process of its own, ahead of the swarms; same results
     separate_process: bool = True
-    #: the command-line flag that set the number of drones (``twin run --drones``), named in
-    #: the error when they do not fit the grid; None: the config file's
-    drones_flag: str | None = None
     #: seeds run at once, each in a worker process of its own with its traffic (a live
     #: simulation) and swarms (:func:`run_experiment`); 1: one after another in this process.
     #: Same results.
@@ -284,7 +281,7 @@ def _run_seed(experiment, n, seed, source, stop, progress=False, on_source=None,
     its grid is known."""
     if is_live(experiment) and n == 0:
         check_memory(experiment, source.grid.shape, source.horizon, source)
-    check_swarm_fits(experiment.config, source.grid, experiment.drones_flag)
+    check_swarm_fits(experiment.config, source.grid)
     if on_source is not None:
         on_source(source)
     swarms = build_swarms(experiment)
