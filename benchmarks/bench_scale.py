@@ -46,10 +46,9 @@ import pandas as pd
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from twin.config import load_config
+from twin.config import load_config, with_overrides
 from twin.experiment import Experiment, build_source, limit_threads, run_experiment
 from twin.runs import peak_memory_mb, timing_frame
-from twin.sumo.scenario import SumoInputs
 from twin.timing import (
     OBSERVATION,
     READS,
@@ -106,14 +105,15 @@ def timed(fn):
 def experiment_of(
     config_path: Path, horizon: int | None, meso: bool = False, same_process: bool = False
 ) -> Experiment:
-    config = load_config(config_path)
-    inputs = SumoInputs(horizon=horizon, mesoscopic=True if meso else None)
+    settings = {"traffic.horizon": horizon, "traffic.mesoscopic": True if meso else None}
+    config = with_overrides(
+        load_config(config_path), {k: v for k, v in settings.items() if v is not None}
+    )
     return Experiment(
         separate_process=not same_process,
         config=config,
         swarms=config.evaluate.swarms,
         seeds=[config.evaluate.seed],
-        traffic_options=inputs.as_kwargs(),
         skip_unavailable=True,
     )
 
@@ -146,7 +146,8 @@ def coupled(experiment: Experiment):
 
 def write_folder(outcome, folder: Path) -> float:
     """The run folder as ``twin run`` writes it (monitoring, tape, MFD samples); seconds."""
-    from twin.experiment import close_sources, record, run_metadata
+    from twin.experiment import close_sources, run_metadata
+    from twin.runs import record
 
     t0 = time.perf_counter()
     record(folder, outcome, run_metadata(outcome, "run"))

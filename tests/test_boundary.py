@@ -136,12 +136,12 @@ def test_os_error_names_the_file_and_a_fix_the_command_has(case, capsys) -> None
 def test_unexpected_error_logs_its_traceback_in_the_run_folder(
     tmp_path: Path, monkeypatch, capsys
 ) -> None:
-    import twin.cli.evaluate  # imported first: it binds ``record`` when imported
+    import twin.cli.recording  # imported first: it binds ``record`` when imported
 
     def broken(*args, **kwargs):
         raise RuntimeError("a bug in the writer")
 
-    monkeypatch.setattr(twin.cli.evaluate, "record", broken)
+    monkeypatch.setattr(twin.cli.recording, "record", broken)
     config, out = small_config(tmp_path), tmp_path / "run"
     code = main(["evaluate", "--config", str(config), "--swarms", "random", "--out", str(out)])
     assert code == EXIT_BUG
@@ -265,7 +265,10 @@ CASES = {
         "--cell-m 0.001: cell size 0.001 m is outside 1 .. 100000 m",
     ),
     "cell size huge": (lambda t: ["run", "--cell-m", "1e9"], "--cell-m 1e+09: cell size"),
-    "cell size NaN": (lambda t: ["run", "--cell-m", "nan"], "--cell-m nan: give a positive"),
+    "cell size NaN": (
+        lambda t: ["run", "--cell-m", "nan"],
+        "--cell-m = nan must be a finite number",
+    ),
     "begin not a clock": (lambda t: ["run", "--begin", "7:99"], "--begin = '7:99' must be"),
     "sweep out is a file": (
         lambda t: [

@@ -604,7 +604,7 @@ REFUSED_FLAGS = {
     "drones past any disk": ([*PUBLIC, "--drones", "99999999999"], "--drones 99999999999 exceeds"),
     "a cell size too large": ([*PUBLIC, "--cell-m", "1e9"], "--cell-m 1e+09: cell size"),
     "a cell size too small": ([*PUBLIC, "--cell-m", "0.5"], "--cell-m 0.5: cell size"),
-    "a negative drone speed": ([*PUBLIC, "--drone-speed", "-3"], "--drone-speed -3.0: give"),
+    "a negative drone speed": ([*PUBLIC, "--drone-speed", "-3"], "--drone-speed = -3.0 must be > 0"),
     "a step shorter than SUMO's": ([*PUBLIC, "--drone-speed", "1e9"],
                                    "--drone-speed 1e+09: a step (200 m at 1e+09 km/h) lasts"),
     "a begin inside the warm-up": ([*PUBLIC, "--begin", "00:00"],

@@ -6,16 +6,20 @@ A config has the sections ``[grid]``, ``[swarm]``, ``[traffic]``, ``[evaluate]``
 Types are strict (no ``"500"`` for a number, no ``"false"`` for a bool), numbers finite, unknown
 keys refused. Every problem is reported as one :class:`ConfigError` line naming the file, the
 key, the value and the fix (:func:`validation_error` serves every config kind: scenario, sweep,
-pretraining).
+pretraining). Command-line flags and sweep keys change a scenario by one path, dotted keys
+applied to its tables and validated by the same models (:func:`with_overrides`); an error then
+names the flag or the key.
 """
 
 from __future__ import annotations
 
+import copy
 import math
 import re
 import tomllib
 import types
 import typing
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -34,6 +38,7 @@ from twin.errors import UserError
 from twin.grid import Grid
 from twin.resources import shipped_config as shipped_config  # re-export (moved there)
 from twin.scores import ScoreParams
+from twin.swarms import make_policy
 
 
 class ConfigError(UserError):
@@ -258,6 +263,8 @@ class ScenarioConfig(StrictModel):
     swarm_options: dict[str, dict[str, Any]] = {}
 
     _path: Path = PrivateAttr(default=Path("config.toml"))
+    _tables: dict[str, Any] | None = PrivateAttr(default=None)  # as read, overrides applied
+    _flags: dict[str, str] = PrivateAttr(default_factory=dict)  # dotted key -> its flag
 
     @model_validator(mode="before")
     @classmethod
@@ -278,6 +285,11 @@ class ScenarioConfig(StrictModel):
     def path(self) -> Path:
         return self._path
 
+    def flag_of(self, key: str) -> str | None:
+        """The command-line flag that set the dotted ``key`` (:func:`with_overrides`), or None
+        when the file (or a sweep key, or the default) did."""
+        return self._flags.get(key)
+
     def explicit_shape(self) -> tuple[int, int] | None:
         """``[grid] nx, ny`` if the config (or an override) sets them, else None."""
         if {"nx", "ny"} <= self.grid.model_fields_set:
@@ -286,8 +298,6 @@ class ScenarioConfig(StrictModel):
 
     def make_swarm(self, name: str, **overrides: Any):
         """The swarm ``name`` with this config's options for it, ``overrides`` on top."""
-        from twin.swarms import make_policy
-
         options = {**self.swarm_options.get(name, {}), **overrides}
         if isinstance(options.get("checkpoint"), str):  # relative to the config, as in sweeps
             options["checkpoint"] = self.path.parent / options["checkpoint"]
@@ -436,11 +446,13 @@ def validation_error(
     model: type[BaseModel],
     sections: bool = True,
     flags: dict[str, str] | None = None,
+    labels: Mapping[str, str] | None = None,
 ) -> ConfigError:
     """The first error of ``exc`` as one line: ``<file>: <key> = <value> <problem>; <fix>``.
 
     ``sections``: the file's top level holds tables (scenario, sweep) or plain keys (pretrain);
-    ``flags`` maps a top-level key to the command-line flag that set it.
+    ``flags`` maps a top-level key to the command-line flag that set it; ``labels`` maps a
+    dotted key to the flag or sweep key that overrode it (``<label> = <value> <problem>``).
     """
     err = exc.errors(include_url=False)[0]
     loc = tuple(err["loc"])
@@ -458,18 +470,23 @@ def validation_error(
         )
         where = key_name(loc, data, sections, arrays)
         what = "section" if sections and len(loc) == 1 else "key"
+        label = _labelled(labels, loc)
+        if label:
+            known = ", ".join(dict.fromkeys(known))
+            return ConfigError(f"{label} is not a known key; use one of: {known}")
         return ConfigError(
             f"{source}: {where} is not a known {what}; use one of: {', '.join(dict.fromkeys(known))}"
         )
     loc = tuple(p for n, p in enumerate(loc) if not (n == 1 and loc[0] == "traffic" and p in tags))
     where = key_name(loc, data, sections, arrays)
+    at = _labelled(labels, loc) or f"{source}: {where}"  # the flag or key, else the file's key
     if kind == "missing":
-        return ConfigError(f"{source}: {where} is missing; add it")
+        return ConfigError(f"{at} is missing; add it")
     problem = _problem(err)
     if problem.startswith("["):  # a check across keys names its keys itself
         return ConfigError(f"{source}: {problem}")
     if kind == "value_error" and "; " in problem:  # the check gave its own fix
-        return ConfigError(f"{source}: {where} {problem}")
+        return ConfigError(f"{at} {problem}")
     fix = "fix the value"
     if field is not None and field.default is not None and not isinstance(field.default, BaseModel):
         default = field.default
@@ -483,7 +500,17 @@ def validation_error(
     if flags and loc and loc[0] in flags:  # set by a command-line flag, not by the file
         value = problem.removeprefix("= ")
         return ConfigError(f"{flags[loc[0]]} {value}; {fix}")
-    return ConfigError(f"{source}: {where} {problem}; {fix}")
+    return ConfigError(f"{at} {problem}; {fix}")
+
+
+def _labelled(labels: Mapping[str, str] | None, loc: tuple) -> str | None:
+    """The label of the longest overridden dotted key that ``loc`` lies in, with the rest of
+    ``loc`` after it (``--drones``; ``override 'traffic.mfd'.a``); None when the file's."""
+    for n in range(len(loc), 0, -1):
+        label = (labels or {}).get(".".join(str(p) for p in loc[:n]))
+        if label:
+            return label + "".join(_part(p) for p in loc[n:])
+    return None
 
 
 def _toml(value: Any) -> str:
@@ -520,16 +547,54 @@ def load_config(path: str | Path) -> ScenarioConfig:
     return config_from_data(path, read_toml(path))
 
 
-def config_from_data(path: Path, data: dict[str, Any]) -> ScenarioConfig:
-    """Validate the tables of a scenario config read from ``path`` (perhaps with overrides)."""
+def config_from_data(
+    path: Path,
+    data: dict[str, Any],
+    labels: Mapping[str, str] | None = None,
+    flags: Mapping[str, str] | None = None,
+) -> ScenarioConfig:
+    """Validate the tables of a scenario config read from ``path``; ``labels`` names the flag
+    or sweep key that set a dotted key, named in an error instead of the file; ``flags`` the
+    command-line flags among them (:func:`with_overrides`)."""
     try:
         config = ScenarioConfig.model_validate(data)
     except ValidationError as exc:
-        raise validation_error(path, exc, data, ScenarioConfig) from None
+        raise validation_error(path, exc, data, ScenarioConfig, labels=labels) from None
     config._path = Path(path)
+    config._tables = copy.deepcopy(data)
+    config._flags = dict(flags or {})
     if config.traffic.kind == "synthetic":
         check_swarm_fits(config, make_grid(config))
     return config
+
+
+def with_overrides(
+    config: ScenarioConfig, overrides: Mapping[str, Any], flags: Mapping[str, str] | None = None
+) -> ScenarioConfig:
+    """``config`` with dotted-key ``overrides`` (``{"swarm.n_drones": 2}``) set in its tables
+    and validated again by the same models: the one path by which command-line flags and sweep
+    keys change a scenario. ``flags`` names the command-line flag that set a key
+    (``{"swarm.n_drones": "--drones"}``): a one-line error names it instead of the file, and
+    :meth:`ScenarioConfig.flag_of` tells it later; other keys are named as overrides. The
+    tables are those the config was validated from: change a config by this function, not by
+    ``model_copy``."""
+    flags = {**config._flags, **(flags or {})}
+    if config._tables is None:  # built in code, not read from a file
+        data = config.model_dump(exclude_unset=True)
+    else:
+        data = copy.deepcopy(config._tables)
+    named = dict(flags)
+    for key, value in overrides.items():
+        label = flags.get(key) or f"{config.path}: override {key!r}"
+        node = data
+        *parents, last = key.split(".")
+        for part in parents:
+            node = node.setdefault(part, {})
+            if not isinstance(node, dict):
+                raise UserError(f"{label} goes through {part!r}, which is not a table")
+        node[last] = value
+        named[key] = label
+    return config_from_data(config.path, data, named, flags)
 
 
 def validate(config: ScenarioConfig) -> None:
@@ -564,11 +629,12 @@ def make_grid(config: ScenarioConfig) -> Grid:
     return Grid(obstacles)
 
 
-def check_swarm_fits(config: ScenarioConfig, grid: Grid, drones_flag: str | None = None) -> None:
+def check_swarm_fits(config: ScenarioConfig, grid: Grid) -> None:
     """Enough free cells for the drones; explicit starts on distinct free cells of the map.
-    ``drones_flag``: the command-line flag that set the number of drones (named instead of the
-    config file)."""
+    The command-line flag that set the number of drones, if one did, is named instead of the
+    config file."""
     path, s = config.path, config.swarm
+    drones_flag = config.flag_of("swarm.n_drones")
     if s.n_drones > grid.n_free and drones_flag:
         raise ConfigError(
             f"{drones_flag} {s.n_drones} exceeds the {grid.n_free} free cells of the "

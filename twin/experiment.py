@@ -5,8 +5,8 @@ cell, the learning-curve tool and the benchmarks. An :class:`Experiment` names a
 config, the swarms (with options on top of the config's ``[swarm_options]``), the seeds and
 where the traffic comes from (the config's own traffic, a replayed tape, or a live simulation
 with swapped-in files); :func:`run_experiment` builds the traffic source
-(:mod:`twin.traffic.kinds`) and the swarms and runs one patrol pass per seed; :func:`record`
-writes the run folder.
+(:mod:`twin.traffic_kinds`) and the swarms and runs one patrol pass per seed;
+:func:`twin.runs.record` writes the run folder.
 
 Seeds: seed ``s`` fixes the drones' starts (``default_rng(s)``) and the swarms' randomness
 (:func:`twin.patrol.swarm_rng`). Live traffic is simulated once per seed, the n-th seed with
@@ -36,7 +36,7 @@ from twin.patrol import INTERRUPTED, PatrolResult, run_patrol
 from twin.policies import Policy
 from twin.swarms import check_swarm_name, is_learned
 from twin.traffic.base import TrafficSource
-from twin.traffic.kinds import build_traffic, is_live_kind
+from twin.traffic_kinds import build_traffic, is_live_kind
 
 
 @dataclass
@@ -49,7 +49,7 @@ class Experiment:
     #: keyword options per swarm, applied over the config's ``[swarm_options.<swarm>]``
     swarm_options: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
     tape: Path | None = None  # replay a recorded traffic tape instead of the config's traffic
-    #: options of the live traffic's builder (``twin run``'s swapped-in files, horizon ...)
+    #: options of the live traffic's builder (``twin run``'s swapped-in files)
     traffic_options: Mapping[str, Any] = field(default_factory=dict)
     traffic_seed: int | None = None  # live traffic's seed of the first seed ([traffic].seed)
     #: learned swarms that cannot be built (no torch, no checkpoint) are skipped with a notice
@@ -59,9 +59,6 @@ class Experiment:
     max_memory_gb: float | None = None
     #: live traffic in a process of its own, ahead of the swarms; same results
     separate_process: bool = True
-    #: the command-line flag that set the number of drones (``twin run --drones``), named in
-    #: the error when they do not fit the grid; None: the config file's
-    drones_flag: str | None = None
     #: seeds run at once, each in a worker process of its own with its traffic (a live
     #: simulation) and swarms (:func:`run_experiment`); 1: one after another in this process.
     #: Same results.
@@ -211,7 +208,7 @@ def run_experiment(
 
     ``on_source(source)`` is called once per seed after the traffic source is built (the CLI
     prints what it is about to simulate). With ``keep_sources`` live sources stay open for
-    :func:`record` (their MFD fit and tape); otherwise each is closed after its pass. With
+    :func:`twin.runs.record` (their MFD fit and tape); otherwise each is closed after its pass. With
     ``interruptible`` a Ctrl-C stops the run after its current step (:func:`stop_on_interrupt`):
     the result keeps the steps done, runs no more seeds and says ``interrupted``.
     ``on_step`` is handed to :func:`twin.patrol.run_patrol` (the GUI's per-step drawer).
@@ -284,7 +281,7 @@ def _run_seed(experiment, n, seed, source, stop, progress=False, on_source=None,
     its grid is known."""
     if is_live(experiment) and n == 0:
         check_memory(experiment, source.grid.shape, source.horizon, source)
-    check_swarm_fits(experiment.config, source.grid, experiment.drones_flag)
+    check_swarm_fits(experiment.config, source.grid)
     if on_source is not None:
         on_source(source)
     swarms = build_swarms(experiment)
@@ -689,38 +686,6 @@ def run_metadata(outcome: ExperimentResult, kind: str, **extra: Any) -> dict[str
         "policies": outcome.policies,
         **extra,
     }
-
-
-def record(
-    run_dir: Path,
-    outcome: ExperimentResult,
-    meta: dict[str, Any],
-    ceilings: bool = False,
-    more_files: Callable[[Path], None] | None = None,
-):
-    """Write the run folder (with ``comparison.csv``: each learned swarm against the best
-    classical one, paired over seeds); the kept sources add their own files
-    (:meth:`TrafficSource.write_extras`: a live run's network, MFD fit and tape of each seed).
-    With ``ceilings`` the tables add the oracle and bound rows (:mod:`twin.ceilings`),
-    computed from each seed's recorded maps after the swarms' run.
-    ``more_files(run_dir)`` writes the caller's own files (``twin run --history``'s
-    ``belief_models.csv``) before ``run.json``.
-    ``manifest.json`` is written last (see ``twin/runs.py``). Returns the summary table and
-    the comparison."""
-    from twin.runs import write_run
-
-    extras = more_files
-    if outcome.sources:
-        first = outcome.sources[0]
-        by_seed = [(r.seed, s) for r, s in zip(outcome.results, outcome.sources, strict=False)]
-
-        def extras(folder: Path) -> None:
-            first.write_extras(folder, by_seed)
-            if more_files is not None:
-                more_files(folder)
-
-    # the source's files go before run.json and manifest.json: a kill in between leaves no manifest
-    return write_run(run_dir, outcome.results, meta, extras=extras, ceilings=ceilings)
 
 
 def close_sources(outcome: ExperimentResult) -> None:

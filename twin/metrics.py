@@ -34,6 +34,7 @@ from scipy import stats
 from twin.monitoring import ceiling_coverage
 from twin.patrol import PatrolResult
 from twin.scores import ScoreParams
+from twin.swarms import is_learned
 
 TABLE2_COLUMNS = ("R_hat_T", "C_hat_T", "pct_time_max_C", "pct_map_covered")
 #: Columns added to the paper's four: the reward split, the paper's accounting, the ceiling.
@@ -336,8 +337,6 @@ def learned_against_best_classical(per_seed: pd.DataFrame, column: str = "R_hat_
     """Each learned swarm against the classical swarm with the highest mean ``column``, paired
     over seeds (empty when the run has no learned or no classical swarm). Ceiling rows
     (``role == "ceiling"``: the oracle, the bound) are never candidates."""
-    from twin.swarms import is_learned
-
     means = swarm_rows(per_seed).groupby("swarm", sort=False)[column].mean()
     classical = [s for s in means.index if not is_learned(s)]
     learned = [s for s in means.index if is_learned(s)]

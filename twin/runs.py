@@ -49,7 +49,7 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from importlib import metadata as importlib_metadata
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pandas as pd
@@ -72,6 +72,9 @@ from twin.patrol import PatrolResult
 from twin.readback import check_manifest
 from twin.scores import ScoreParams
 from twin.timing import WRITING
+
+if TYPE_CHECKING:
+    from twin.experiment import ExperimentResult
 
 MANIFEST = "manifest.json"
 
@@ -521,6 +524,36 @@ def write_run(
     write_json(run_dir / "run.json", meta)
     write_manifest(run_dir, partial, reason)
     return summary, comparison
+
+
+def record(
+    run_dir: Path,
+    outcome: ExperimentResult,
+    meta: dict[str, Any],
+    ceilings: bool = False,
+    more_files: Callable[[Path], None] | None = None,
+):
+    """Write the run folder (with ``comparison.csv``: each learned swarm against the best
+    classical one, paired over seeds); the kept sources add their own files
+    (:meth:`TrafficSource.write_extras`: a live run's network, MFD fit and tape of each seed).
+    With ``ceilings`` the tables add the oracle and bound rows (:mod:`twin.ceilings`),
+    computed from each seed's recorded maps after the swarms' run.
+    ``more_files(run_dir)`` writes the caller's own files (``twin run --history``'s
+    ``belief_models.csv``) before ``run.json``.
+    ``manifest.json`` is written last (see ``twin/runs.py``). Returns the summary table and
+    the comparison."""
+    extras = more_files
+    if outcome.sources:
+        first = outcome.sources[0]
+        by_seed = [(r.seed, s) for r, s in zip(outcome.results, outcome.sources, strict=False)]
+
+        def extras(folder: Path) -> None:
+            first.write_extras(folder, by_seed)
+            if more_files is not None:
+                more_files(folder)
+
+    # the source's files go before run.json and manifest.json: a kill in between leaves no manifest
+    return write_run(run_dir, outcome.results, meta, extras=extras, ceilings=ceilings)
 
 
 def peak_memory_mb(children: bool = False) -> float | None:

@@ -1,8 +1,9 @@
 """The swarm registry: every swarm twin can run, by name, and how to build it.
 
 The baselines come from :mod:`twin.policies`, the coordinated classical swarms from
-:mod:`twin.planners` and :mod:`twin.tours`. The learned swarms (``twin.learning``) are imported
-only when one is built, so this module imports no torch.
+:mod:`twin.planners` and :mod:`twin.tours`, the learned swarms from
+:mod:`twin.learning.policies`. The registry stands above all of them; the learned swarms are
+imported only when one is built, so that importing the registry loads no torch.
 """
 
 from __future__ import annotations

@@ -7,20 +7,16 @@ import sys
 from pathlib import Path
 
 from twin.cli import add_worker_arguments, check_count, check_seeds
-from twin.cli.run import belief_models, belief_writer, print_beliefs
+from twin.cli.recording import (
+    print_beliefs,
+    print_tables,
+    render_report,
+    run_and_record,
+    with_flags,
+)
 from twin.config import load_config, shipped_config
 from twin.errors import UserError
-from twin.experiment import (
-    Experiment,
-    check_resources,
-    limit_threads,
-    parse_swarm_names,
-    record,
-    run_experiment,
-    run_metadata,
-)
-from twin.metrics import format_comparison, format_results
-from twin.runs import discard_run_dir, invocation, new_run_dir, prepare_run_dir
+from twin.experiment import Experiment, limit_threads, parse_swarm_names
 from twin.swarms import available_policies
 
 DEFAULT_CONFIG = "configs/synthetic.toml"
@@ -93,16 +89,21 @@ def add_parser(subparsers) -> None:
 def main(args: argparse.Namespace) -> int:
     limit_threads()
     config = load_config(shipped_config(args.config or DEFAULT_CONFIG))
-    check_count("--seeds", args.seeds)
-    check_count("--workers", args.workers)
-    seeds = args.seeds if args.seeds is not None else config.evaluate.seeds
-    first = args.seed if args.seed is not None else config.evaluate.seed
-    check_seeds(
-        "--seed" if args.seed is not None else f"{config.path}: [evaluate].seed", first, seeds
+    swarms = parse_swarm_names(args.swarms, []) if args.swarms is not None else None
+    config = with_flags(
+        config,
+        {
+            "--seeds": ("evaluate.seeds", args.seeds),
+            "--seed": ("evaluate.seed", args.seed),
+            "--swarms": ("evaluate.swarms", swarms),
+        },
     )
+    check_count("--workers", args.workers)
+    seeds, first = config.evaluate.seeds, config.evaluate.seed
+    check_seeds(config.flag_of("evaluate.seed") or f"{config.path}: [evaluate].seed", first, seeds)
     experiment = Experiment(
         config=config,
-        swarms=parse_swarm_names(args.swarms, config.evaluate.swarms),
+        swarms=config.evaluate.swarms,
         seeds=range(first, first + seeds),
         tape=args.traffic,
         max_memory_gb=args.max_memory_gb,
@@ -123,29 +124,8 @@ def main(args: argparse.Namespace) -> int:
         def on_source(source) -> None:
             check_source(history, args.history, source)
 
-    check_resources(experiment, args.out or Path("runs"))  # before any folder is made
-    run_dir = prepare_run_dir(
-        args.out or new_run_dir("runs", "evaluate"), invocation("evaluate", args)
-    )
-    try:
-        outcome = run_experiment(
-            experiment,
-            progress=not args.quiet and sys.stderr.isatty(),
-            interruptible=True,
-            on_source=on_source,
-        )
-    except UserError:
-        discard_run_dir(run_dir)
-        raise
-    meta = run_metadata(outcome, "evaluate")
-    beliefs = belief_models(outcome, history, meta)
-    summary, comparison = record(
-        run_dir,
-        outcome,
-        meta,
-        ceilings=args.ceiling and not outcome.interrupted,
-        more_files=belief_writer(beliefs),
-    )
+    recorded = run_and_record("evaluate", args, experiment, history, on_source)
+    outcome, run_dir = recorded.outcome, recorded.run_dir
     done = outcome.results[-1]
     planned = (outcome.traffic[-1] or {}).get("horizon", done.horizon)
     partial = outcome.partial or done.completed_steps < planned
@@ -157,22 +137,13 @@ def main(args: argparse.Namespace) -> int:
         )
     horizon = done.completed_steps
     label = f"{seeds} seed{'s' if seeds > 1 else ''} from {first}"
-    print(format_results(summary, f"Table 2 analog ({config.path.name}, {label}, T = {horizon})"))
-    if not comparison.empty:
-        print(format_comparison(comparison))
-    print_beliefs(beliefs, args.history, label)
+    title = f"Table 2 analog ({config.path.name}, {label}, T = {horizon})"
+    print_tables(recorded, title)
+    print_beliefs(recorded.beliefs, args.history, label)
     if not args.no_report and done.completed_steps > 0:
-        _report(run_dir)
+        render_report(run_dir)
     print(f"run folder: {run_dir}")
     if outcome.interrupted:
         print(f"twin: interrupted; partial run written to {run_dir}", file=sys.stderr)
         return 130
     return 1 if partial else 0
-
-
-def _report(run_dir: Path) -> None:
-    try:
-        from twin.report import write_report
-    except ImportError:
-        return
-    print(f"report: {write_report(run_dir)}")

@@ -8,7 +8,6 @@ with the SUMO extras: ``network.json``, ``mfd.json``, ``mfd_samples.parquet``, `
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 from pathlib import Path
 
@@ -155,88 +154,74 @@ def gui_drawer(args: argparse.Namespace, swarms):
 
 def build_experiment(args: argparse.Namespace):
     """The :class:`twin.experiment.Experiment` of ``twin run``'s flags (``twin replay`` rebuilds
-    a run's from the flags recorded in its ``run.json``)."""
-    from twin.clock import parse_clock
+    a run's from the flags recorded in its ``run.json``). The flags that set a config key are
+    dotted overrides of the scenario config (:func:`twin.cli.recording.with_flags`), validated
+    by its models; the swapped-in files go to the live source."""
+    from twin.cli.recording import with_flags
     from twin.config import load_config, shipped_config
     from twin.experiment import Experiment, parse_swarm_names
     from twin.resources import check_cell_size
     from twin.sumo.scenario import SumoInputs
 
-    for flag, value in (
-        ("--cell-m", args.cell_m),
-        ("--drones", args.drones),
-        ("--drone-speed", args.drone_speed),
-    ):
-        if value is not None and not (value > 0 and math.isfinite(value)):
-            raise UserError(f"{flag} {value}: give a positive number")
-    if args.cell_m is not None:
-        check_cell_size(args.cell_m, f"--cell-m {args.cell_m:g}")
-    if args.begin is not None:
-        parse_clock(args.begin, "--begin")
     config = load_config(shipped_config(args.config or DEFAULT_CONFIG))
-    if args.drones is not None:
-        config = config.model_copy(
-            update={"swarm": config.swarm.model_copy(update={"n_drones": args.drones})}
-        )
     if config.traffic.kind != "sumo":
         raise UserError(
             f"{config.path}: [traffic].kind = {config.traffic.kind!r}; `twin run` needs "
             '"sumo" (use `twin evaluate` for synthetic traffic)'
         )
+    swarms = parse_swarm_names(args.swarms, []) if args.swarms is not None else None
+    config = with_flags(
+        config,
+        {
+            "--drones": ("swarm.n_drones", args.drones),
+            "--seed": ("evaluate.seed", args.seed),
+            "--seeds": ("evaluate.seeds", args.seeds),
+            "--swarms": ("evaluate.swarms", swarms),
+            "--sumo-seed": ("traffic.seed", args.sumo_seed),
+            "--cell-m": ("traffic.cell_m", args.cell_m),
+            "--drone-speed": ("traffic.drone_speed_kmh", args.drone_speed),
+            "--horizon": ("traffic.horizon", args.horizon),
+            "--begin": ("traffic.begin", args.begin),
+            "--meso": ("traffic.mesoscopic", True if args.meso else None),
+        },
+    )
+    if args.cell_m is not None:
+        check_cell_size(args.cell_m, f"--cell-m {args.cell_m:g}")
     if args.routes and not (args.net or args.sumocfg):
         raise UserError("--routes needs --net or --sumocfg (the network the routes run on)")
     if args.osm is not None and (args.net or args.sumocfg):
         raise UserError(
             "give --osm alone, or --net and/or --sumocfg (--net replaces the sumocfg's)"
         )
-    check_count("--seeds", args.seeds)
-    check_count("--horizon", args.horizon)
     check_count("--workers", args.workers)
     if args.workers > 1 and (args.gui or args.record):
         raise UserError("--gui and --record draw one simulation at a time; drop --workers")
-    check_seeds("--seed", args.seed, args.seeds)
-    check_seeds("--sumo-seed", args.sumo_seed, args.seeds)
-    first = args.seed if args.seed is not None else config.evaluate.seed
-    check_seeds(f"{config.path}: [evaluate].seed", first, args.seeds)
-    experiment = Experiment(
+    seeds, first = config.evaluate.seeds, config.evaluate.seed
+    check_seeds(config.flag_of("evaluate.seed") or f"{config.path}: [evaluate].seed", first, seeds)
+    check_seeds(config.flag_of("traffic.seed") or f"{config.path}: [traffic].seed",
+                config.traffic.seed, seeds)  # fmt: skip
+    return Experiment(
         config=config,
-        swarms=parse_swarm_names(args.swarms, config.evaluate.swarms),
-        seeds=range(first, first + args.seeds),
+        swarms=config.evaluate.swarms,
+        seeds=range(first, first + seeds),
         traffic_options=SumoInputs(
             net=args.net,
             routes=args.routes,
             sumocfg=args.sumocfg,
             osm=args.osm,
-            horizon=args.horizon,
-            begin=args.begin,
-            mesoscopic=True if args.meso else None,
             additional=args.additional,
-            cell_m=args.cell_m,
-            drone_speed_kmh=args.drone_speed,
         ).as_kwargs(),
-        traffic_seed=args.sumo_seed,
         skip_unavailable=args.swarms is None,
         max_memory_gb=args.max_memory_gb,
-        drones_flag="--drones" if args.drones is not None else None,
         workers=args.workers,
         executor=args.executor,
     )
-    return experiment
 
 
 def main(args: argparse.Namespace) -> int:
-    import contextlib
-
     from twin.boundary import hold_notices, notify
-    from twin.experiment import (
-        check_resources,
-        limit_threads,
-        record,
-        run_experiment,
-        run_metadata,
-    )
-    from twin.metrics import format_comparison, format_results
-    from twin.runs import discard_run_dir, invocation, new_run_dir, prepare_run_dir
+    from twin.cli.recording import print_beliefs, print_tables, render_report, run_and_record
+    from twin.experiment import limit_threads
 
     limit_threads()
     hold_notices()  # printed once the simulation has started; a refusal is one line
@@ -247,11 +232,6 @@ def main(args: argparse.Namespace) -> int:
 
         history = History.load(args.history)  # a bad file is refused before SUMO starts
     drawer = gui_drawer(args, experiment.swarms)
-    check_resources(experiment, args.out or Path("runs"))  # before any folder is made
-    run_dir = prepare_run_dir(args.out or new_run_dir("runs", "run"), invocation("run", args))
-    # SUMO's configured outputs: into the run folder, the first seed's in sumo/, the others' in
-    # sumo/seed-<s>/
-    experiment.outputs_dir = run_dir / "sumo"
 
     def on_source(source) -> None:
         _announce(source)
@@ -261,37 +241,29 @@ def main(args: argparse.Namespace) -> int:
             drawer.attach(source)
             notify(drawer.legend())
 
-    try:
-        with contextlib.ExitStack() as stack:
-            if drawer is not None:
-                from twin.sumo.gui import display
+    around = None
+    if drawer is not None:
+        from twin.sumo.gui import display
 
-                stack.enter_context(display())
-            outcome = run_experiment(
-                experiment,
-                progress=not args.quiet and sys.stderr.isatty(),
-                keep_sources=True,
-                on_source=on_source,
-                interruptible=True,
-                on_step=drawer,
-            )
-    except UserError:
-        discard_run_dir(run_dir)
-        raise
-    first_source = outcome.sources[0]
-    meta = run_metadata(
-        outcome,
+        around = display()
+    # SUMO's configured outputs: into the run folder, the first seed's in sumo/, the others' in
+    # sumo/seed-<s>/
+    recorded = run_and_record(
         "run",
-        sumo_read_seconds=round(sum(s.read_seconds for s in outcome.sources), 3),
+        args,
+        experiment,
+        history,
+        on_source,
+        extra_meta=lambda outcome: {
+            "sumo_read_seconds": round(sum(s.read_seconds for s in outcome.sources), 3)
+        },
+        outputs_folder="sumo",
+        around=around,
+        keep_sources=True,
+        on_step=drawer,
     )
-    beliefs = belief_models(outcome, history, meta)
-    summary, comparison = record(
-        run_dir,
-        outcome,
-        meta,
-        ceilings=args.ceiling and not outcome.interrupted,
-        more_files=belief_writer(beliefs),
-    )
+    outcome, run_dir = recorded.outcome, recorded.run_dir
+    first_source = outcome.sources[0]
     video_failed = drawer is not None and args.record and not finish_video(drawer, run_dir)
     done = outcome.results[-1]
     if (done.error or done.completed_steps == 0) and not outcome.interrupted:
@@ -307,16 +279,14 @@ def main(args: argparse.Namespace) -> int:
         f"Table 2 analog ({first_source.scenario.name}, {label}, "
         f"T = {outcome.results[0].completed_steps})"
     )
-    print(format_results(summary, title))
-    if not comparison.empty:
-        print(format_comparison(comparison))
+    print_tables(recorded, title)
     print(
         f"MFD ({mfd['form']}, SUMO seed {first_source.scenario.seed}): a = {mfd['a']:.3f}, "
         f"k_c = {mfd['k_c']:.1f} veh/lane-km, R2 = {mfd.get('r2', float('nan')):.3f}, "
         f"RMSE = {mfd.get('rmse_kmh', float('nan')):.2f} km/h over {mfd['n_samples']} cell samples"
         f"; used: {mfd.get('used', 'fit')} ({mfd.get('why', '')})"
     )
-    print_beliefs(beliefs, args.history, label)
+    print_beliefs(recorded.beliefs, args.history, label)
     print(f"wall time {outcome.seconds:.0f} s (SUMO + swarms)")
     if outcome.results and outcome.results[0].stage_seconds:
         from twin.timing import largest_stages
@@ -326,12 +296,7 @@ def main(args: argparse.Namespace) -> int:
             f"{largest_stages(outcome.results[0].stage_seconds)}"
         )
     if not args.no_report:
-        try:
-            from twin.report import write_report
-
-            print(f"report: {write_report(run_dir)}")
-        except ImportError:
-            pass
+        render_report(run_dir)
     print(f"run folder: {run_dir}")
     if outcome.interrupted:
         print(
@@ -341,39 +306,6 @@ def main(args: argparse.Namespace) -> int:
         )
         return 130
     return 1 if outcome.partial or done.completed_steps == 0 or video_failed else 0
-
-
-BELIEF_FILE = "belief_models.csv"
-
-
-def belief_models(outcome, history, meta):
-    """``belief_models.csv``'s table of a finished run with ``--history`` (None without)."""
-    if history is None or not outcome.results:
-        return None
-    from twin.belief import run_beliefs
-    from twin.runs import step_seconds_of
-
-    return run_beliefs(outcome.results, history, step_seconds_of(meta))
-
-
-def belief_writer(beliefs):
-    """The ``more_files`` of :func:`twin.experiment.record` writing ``belief_models.csv``."""
-    if beliefs is None:
-        return None
-    from twin.files import atomic_write
-
-    def write(folder: Path) -> None:
-        atomic_write(folder / BELIEF_FILE, lambda p: beliefs.to_csv(p, index=False))
-
-    return write
-
-
-def print_beliefs(beliefs, path: Path | None, label: str) -> None:
-    if beliefs is not None:
-        from twin.belief import format_belief_table
-
-        title = f"Belief models (history {path}, {label}): {BELIEF_FILE}"
-        print(format_belief_table(beliefs, title))
 
 
 def finish_video(drawer, run_dir: Path | None = None) -> bool:

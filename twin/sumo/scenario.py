@@ -31,7 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from twin.clock import clock_label, parse_clock
-from twin.config import MFDSettings, SumoSettings
+from twin.config import MFDSettings, SumoSettings, with_overrides
 from twin.errors import UserError
 from twin.grid import Grid
 from twin.sumo.readers import (
@@ -152,21 +152,27 @@ def notice(text: str) -> None:
 
 @dataclass
 class SumoInputs:
-    """Files and settings that replace the config's SUMO scenario (``twin run`` flags)."""
+    """Files that replace the config's SUMO network and demand (``twin run --net`` ...)."""
 
     net: Path | None = None
     routes: list[Path] | None = None
     sumocfg: Path | None = None
     osm: Path | None = None
-    horizon: int | None = None
-    begin: str | None = None
-    mesoscopic: bool | None = None
     additional: list[Path] | None = None
-    cell_m: float | None = None
-    drone_speed_kmh: float | None = None
 
     def as_kwargs(self) -> dict[str, Any]:
         return {k: v for k, v in vars(self).items() if v is not None}
+
+
+#: The ``[traffic]`` keys :func:`sumo_source` also takes as keywords, and the flag of each
+#: (named in errors; a key set by its flag counts as given even for a swapped-in network).
+SETTING_FLAGS = {
+    "horizon": "--horizon",
+    "begin": "--begin",
+    "mesoscopic": "--meso",
+    "cell_m": "--cell-m",
+    "drone_speed_kmh": "--drone-speed",
+}
 
 
 def live_source(
@@ -176,7 +182,7 @@ def live_source(
     separate_process: bool = False,
     **inputs: Any,
 ):
-    """The live source of the ``index``-th seed (:func:`twin.traffic.kinds.build_traffic`):
+    """The live source of the ``index``-th seed (:func:`twin.traffic_kinds.build_traffic`):
     SUMO seed ``traffic_seed + index`` (``traffic_seed`` defaults to ``[traffic].seed``), the
     :class:`SumoInputs` given as keywords; with ``separate_process`` SUMO works ahead of the
     swarms in a process of its own (:mod:`twin.sumo.worker`)."""
@@ -216,9 +222,6 @@ def _with_inputs(s: SumoSettings, inputs: SumoInputs) -> SumoSettings:
     s.osm = str(inputs.osm) if inputs.osm else s.osm
     s.routes = [str(r) for r in inputs.routes] if inputs.routes else s.routes
     s.additional = [*s.additional, *(str(a) for a in inputs.additional or [])]
-    for key in ("horizon", "mesoscopic", "cell_m", "drone_speed_kmh"):
-        if getattr(inputs, key) is not None:
-            setattr(s, key, getattr(inputs, key))
     return s
 
 
@@ -281,13 +284,16 @@ def _scenario_files(s: SumoSettings) -> _ScenarioFiles:
     return files
 
 
-def _step_seconds(s: SumoSettings, config, inputs: SumoInputs) -> float:
+def _step_seconds(s: SumoSettings, config) -> float:
     """Simulated seconds per step, ``cell_m / speed``; not shorter than SUMO's own step."""
     step_s = s.cell_m / (s.drone_speed_kmh / 3.6)
     if step_s < SUMO_STEP_S:
-        flags = [f"--drone-speed {inputs.drone_speed_kmh:g}" if inputs.drone_speed_kmh else ""]
-        flags.append(f"--cell-m {inputs.cell_m:g}" if inputs.cell_m else "")
-        where = ", ".join(f for f in flags if f) or f"{config.path}: [traffic]"
+        flags = [
+            f"{config.flag_of(f'traffic.{key}')} {getattr(s, key):g}"
+            for key in ("drone_speed_kmh", "cell_m")
+            if config.flag_of(f"traffic.{key}")
+        ]
+        where = ", ".join(flags) or f"{config.path}: [traffic]"
         raise UserError(
             f"{where}: a step ({s.cell_m:g} m at {s.drone_speed_kmh:g} km/h) lasts {step_s:.2g} "
             f"s, shorter than SUMO's {SUMO_STEP_S:g} s step; give a lower drone speed or larger "
@@ -352,9 +358,10 @@ def _grid_and_notices(
     # The grid: derived from the bounding box, or the config's [grid] nx, ny if it gives them
     # (for the configured network only; a swapped-in network gets its own grid).
     shape = None
-    if not (inputs.net or inputs.sumocfg or inputs.osm or inputs.cell_m):
+    cell_flag = config.flag_of("traffic.cell_m")
+    if not (inputs.net or inputs.sumocfg or inputs.osm or cell_flag):
         shape = config.explicit_shape()  # set in the file or by an override
-    where = f"--cell-m {inputs.cell_m:g}" if inputs.cell_m else f"{config.path}: [grid]"
+    where = f"{cell_flag} {s.cell_m:g}" if cell_flag else f"{config.path}: [grid]"
     geometry = grid_over(lanes, s.cell_m, shape, where=where)
     obstacles = geometry.obstacles(s.min_lane_km)
     for i, j in getattr(config.grid, "obstacles", []) or []:
@@ -448,30 +455,33 @@ def sumo_source(
     The time window of a network brought as files is the scenario's own: ``<time>`` of the
     sumocfg, else the span of the demand's departures; the warm-up is taken inside it (``T^0`` =
     window begin + warm-up) and the horizon is what fits, unless ``begin``/``horizon`` are given.
-    In steps: the settings with the flags applied, the files, the step, the time window, the
+    The settings ``horizon`` ... ``drone_speed_kmh`` are ``[traffic]`` keys, set as by their
+    flags (:data:`SETTING_FLAGS`, :func:`twin.config.with_overrides`).
+    In steps: the settings with the files swapped in, the files, the step, the time window, the
     grid, the generated demand (if none is given), the scenario.
     """
     from twin.sumo.cells import read_lanes
     from twin.sumo.network import check_net_file
     from twin.sumo.source import SumoScenario, SumoTraffic
 
-    inputs = SumoInputs(
-        net=net, routes=routes, sumocfg=sumocfg, osm=osm, horizon=horizon, begin=begin,
-        mesoscopic=mesoscopic, additional=additional, cell_m=cell_m,
-        drone_speed_kmh=drone_speed_kmh,
-    )  # fmt: skip
+    settings = {"horizon": horizon, "begin": begin, "mesoscopic": mesoscopic, "cell_m": cell_m,
+                "drone_speed_kmh": drone_speed_kmh}  # fmt: skip
+    given = {f"traffic.{k}": v for k, v in settings.items() if v is not None}
+    if given:
+        flags = {f"traffic.{k}": flag for k, flag in SETTING_FLAGS.items()}
+        config = with_overrides(config, given, {k: flags[k] for k in given})
+    inputs = SumoInputs(net=net, routes=routes, sumocfg=sumocfg, osm=osm, additional=additional)
     s = _with_inputs(sumo_settings(config), inputs)
     fields = config.traffic.model_fields_set
     swapped = bool(net or sumocfg or osm or routes)
     seed = s.seed if seed is None else seed
-    begin_where = "--begin" if begin else f"{config.path}: [traffic].begin"
-    begin_given = begin is not None or (not swapped and "begin" in fields)
-    horizon_given = horizon is not None or (not swapped and "horizon" in fields)
-    t0 = (
-        parse_clock(begin, "--begin")
-        if begin
-        else parse_clock(s.begin, f"{config.path}: [traffic].begin")
+    begin_flag = config.flag_of("traffic.begin")
+    begin_where = begin_flag or f"{config.path}: [traffic].begin"
+    begin_given = begin_flag is not None or (not swapped and "begin" in fields)
+    horizon_given = config.flag_of("traffic.horizon") is not None or (
+        not swapped and "horizon" in fields
     )
+    t0 = parse_clock(s.begin, begin_where)
 
     files = _scenario_files(s)
     if s.end is not None and not swapped:
@@ -479,7 +489,7 @@ def sumo_source(
     with _named_in(files.sumocfg, files.listed):
         check_net_file(files.net_file)
         lanes = read_lanes(files.net_file)
-    step_s = _step_seconds(s, config, inputs)
+    step_s = _step_seconds(s, config)
     t0, warmup, window = _time_window(
         s, files, step_s, t0, s.warmup_min * 60.0, begin_given, horizon_given, begin_where
     )

@@ -19,7 +19,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-from twin.errors import UserError
 from twin.files import atomic_write
 from twin.sweep.config import SweepConfig
 from twin.sweep.store import CELLS_DIR, write_cell_record
@@ -86,21 +85,11 @@ def expand_cells(config: SweepConfig, out_dir: Path) -> list[dict[str, Any]]:
 
 
 def scenario_config(path: Path, overrides: dict[str, Any]):
-    """The scenario config at ``path`` with dotted-key ``overrides`` applied, validated."""
-    from twin import config as cfg
+    """The scenario config at ``path`` with dotted-key ``overrides`` applied, validated
+    (:func:`twin.config.with_overrides`: an error names the key)."""
+    from twin.config import load_config, with_overrides
 
-    data = cfg.read_toml(path)
-    for key, value in overrides.items():
-        node = data
-        *parents, last = key.split(".")
-        for part in parents:
-            node = node.setdefault(part, {})
-            if not isinstance(node, dict):
-                raise UserError(
-                    f"{path}: override {key!r} goes through {part!r}, which is not a table"
-                )
-        node[last] = value
-    return cfg.config_from_data(path, data)
+    return with_overrides(load_config(path), overrides)
 
 
 def run_cell(cell: dict[str, Any]) -> dict[str, Any]:

@@ -1,7 +1,9 @@
 """The traffic kinds a scenario's ``[traffic].kind`` names, and how each builds its source.
 
-A kind's builder imports what it needs only when a source of that kind is built: the core runs
-synthetic traffic without importing a simulator.
+This module stands above the scenario config and the SUMO package, whose builders it calls; the
+traffic sources themselves (:mod:`twin.traffic`) know neither. A kind's builder imports what it
+needs only when a source of that kind is built: synthetic traffic runs without importing a
+simulator.
 """
 
 from __future__ import annotations
@@ -9,8 +11,9 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from twin.config import synthetic_source
 from twin.errors import UserError
-from twin.traffic.base import TrafficSource
+from twin.traffic.base import RecordedTraffic, TrafficSource
 
 
 @dataclass(frozen=True)
@@ -25,9 +28,6 @@ class TrafficKind:
 
 
 def _synthetic(config, index, traffic_seed, separate_process, **options) -> TrafficSource:
-    from twin.config import synthetic_source
-    from twin.traffic.base import RecordedTraffic
-
     return RecordedTraffic.from_source(synthetic_source(config))
 
 

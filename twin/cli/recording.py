@@ -1,0 +1,138 @@
+"""What ``twin run`` and ``twin evaluate`` share: their flags applied to the scenario config,
+and one run-and-record (check resources -> prepare the run folder -> run the experiment ->
+record it -> print its tables -> render its report)."""
+
+from __future__ import annotations
+
+import contextlib
+import sys
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from twin.config import ScenarioConfig, with_overrides
+from twin.errors import UserError
+from twin.experiment import (
+    Experiment,
+    ExperimentResult,
+    check_resources,
+    run_experiment,
+    run_metadata,
+)
+from twin.runs import discard_run_dir, invocation, new_run_dir, prepare_run_dir, record
+
+BELIEF_FILE = "belief_models.csv"
+
+
+def with_flags(config: ScenarioConfig, flags: Mapping[str, tuple[str, Any]]) -> ScenarioConfig:
+    """``config`` with the flags given (``{"--drones": ("swarm.n_drones", args.drones)}``; a
+    value of None: not given) applied as dotted overrides (:func:`twin.config.with_overrides`):
+    every value is validated by the config's models, and an error names the flag."""
+    given = {flag: (key, value) for flag, (key, value) in flags.items() if value is not None}
+    overrides = {key: value for key, value in given.values()}
+    return with_overrides(config, overrides, {key: flag for flag, (key, _) in given.items()})
+
+
+@dataclass
+class Recorded:
+    """A finished run, written to its run folder."""
+
+    run_dir: Path
+    outcome: ExperimentResult
+    summary: Any  # the summary table (pandas)
+    comparison: Any  # each learned swarm against the best classical one (pandas; may be empty)
+    beliefs: Any  # belief_models.csv's table, or None without --history
+
+
+def run_and_record(
+    command: str,
+    args,
+    experiment: Experiment,
+    history=None,
+    on_source: Callable | None = None,
+    extra_meta: Callable[[ExperimentResult], dict[str, Any]] | None = None,
+    outputs_folder: str | None = None,
+    around: contextlib.AbstractContextManager | None = None,
+    **run_options: Any,
+) -> Recorded:
+    """Run ``experiment`` for ``twin <command>`` and write its run folder (``args.out``, else
+    ``runs/<command>-<time>``): resources checked before any folder is made, a refusal while
+    it runs discards the folder; ``args.ceiling`` adds the ceiling rows unless interrupted,
+    ``history`` the belief models. ``outputs_folder``: where in the run folder a live source
+    writes its scenario's configured outputs; ``around`` is entered while the experiment runs
+    (a display); ``run_options`` go to :func:`twin.experiment.run_experiment`."""
+    check_resources(experiment, args.out or Path("runs"))  # before any folder is made
+    run_dir = prepare_run_dir(args.out or new_run_dir("runs", command), invocation(command, args))
+    if outputs_folder is not None:
+        experiment.outputs_dir = run_dir / outputs_folder
+    try:
+        with around if around is not None else contextlib.nullcontext():
+            outcome = run_experiment(
+                experiment,
+                progress=not args.quiet and sys.stderr.isatty(),
+                interruptible=True,
+                on_source=on_source,
+                **run_options,
+            )
+    except UserError:
+        discard_run_dir(run_dir)
+        raise
+    meta = run_metadata(outcome, command, **(extra_meta(outcome) if extra_meta else {}))
+    beliefs = belief_models(outcome, history, meta)
+    summary, comparison = record(
+        run_dir,
+        outcome,
+        meta,
+        ceilings=args.ceiling and not outcome.interrupted,
+        more_files=belief_writer(beliefs),
+    )
+    return Recorded(run_dir, outcome, summary, comparison, beliefs)
+
+
+def print_tables(recorded: Recorded, title: str) -> None:
+    """The Table 2 analog and each learned swarm against the best classical one."""
+    from twin.metrics import format_comparison, format_results
+
+    print(format_results(recorded.summary, title))
+    if not recorded.comparison.empty:
+        print(format_comparison(recorded.comparison))
+
+
+def render_report(run_dir: Path) -> None:
+    """The HTML report of the run folder (skipped when the report's packages are missing)."""
+    try:
+        from twin.report import write_report
+    except ImportError:
+        return
+    print(f"report: {write_report(run_dir)}")
+
+
+def belief_models(outcome, history, meta):
+    """``belief_models.csv``'s table of a finished run with ``--history`` (None without)."""
+    if history is None or not outcome.results:
+        return None
+    from twin.belief import run_beliefs
+    from twin.runs import step_seconds_of
+
+    return run_beliefs(outcome.results, history, step_seconds_of(meta))
+
+
+def belief_writer(beliefs):
+    """The ``more_files`` of :func:`twin.runs.record` writing ``belief_models.csv``."""
+    if beliefs is None:
+        return None
+    from twin.files import atomic_write
+
+    def write(folder: Path) -> None:
+        atomic_write(folder / BELIEF_FILE, lambda p: beliefs.to_csv(p, index=False))
+
+    return write
+
+
+def print_beliefs(beliefs, path: Path | None, label: str) -> None:
+    if beliefs is not None:
+        from twin.belief import format_belief_table
+
+        title = f"Belief models (history {path}, {label}): {BELIEF_FILE}"
+        print(format_belief_table(beliefs, title))
