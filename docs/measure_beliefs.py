@@ -3,6 +3,7 @@
     python docs/measure_beliefs.py --history HISTORY.npz RUN_DIR [RUN_DIR ...] [--spatial] \
         [--meas-var V] [--detector-var V] [--csv OUT.csv]
     python docs/measure_beliefs.py --detector-error RUN_DIR [RUN_DIR ...]
+    python docs/measure_beliefs.py --history HISTORY.npz RUN_DIR --ideal-stations N
 
 Replays each seed's tape (``tapes/seed-<s>.parquet``, else ``tape.parquet``) without SUMO for
 the observed and true maps, reads the swarms' positions from ``trajectories.parquet`` and
@@ -11,7 +12,12 @@ prints :func:`twin.belief.run_beliefs`' table (mean over seeds), the same number
 read fixed detectors (``detectors.parquet``) adds the detectors-only row and each swarm's
 ``nowcast+detectors``. ``--detector-error`` prints instead how far the detector stations'
 readings lie from their cells' true importance (bias, variance, RMSE over all readings): the
-measurement variance of the detectors, to be chosen on validation seeds.
+measurement variance of the detectors, to be chosen on validation seeds. ``--ideal-stations
+N`` replaces the run's detectors by N stations at the cells of the placement rule
+(:func:`twin.sumo.detectors.station_cells` on the tape's lane-km; every free cell with lanes
+counts) that read their cell's true importance exactly, filtered with the drones' measurement
+variance: a bound on what stations at those cells could add, rows ``(ideal stations only)``
+and ``nowcast+ideal``.
 """
 
 from __future__ import annotations
@@ -26,6 +32,7 @@ import pandas as pd
 from twin.belief import (
     DEFAULT_DETECTOR_VAR,
     DEFAULT_MEAS_VAR,
+    DETECTORS_ONLY,
     DetectorObservations,
     History,
     belief_table,
@@ -35,7 +42,7 @@ from twin.belief import (
 from twin.traffic.tape import Tape, TapeTraffic
 
 
-def seed_results(run_dir: Path):
+def seed_results(run_dir: Path, ideal_stations: int = 0):
     """One result-like object per seed of ``run_dir``: swarms, grid, seed, positions, maps."""
     trajectories = pd.read_parquet(run_dir / "trajectories.parquet")
     detectors = run_dir / "detectors.parquet"
@@ -57,7 +64,16 @@ def seed_results(run_dir: Path):
             f = frame[frame["swarm"] == swarm]
             positions[s, f["step"], f["drone"]] = f[["i", "j"]].to_numpy()
         extra = {}
-        if detectors is not None:
+        if ideal_stations:
+            from twin.sumo.detectors import station_cells
+
+            tape_ = source.tape
+            free = ~tape_.obstacles & (tape_.lane_km > 0)
+            cells = station_cells(tape_.lane_km, free, ideal_stations)
+            flat = np.array(sorted(i * source.grid.ny + j for i, j in cells))
+            t = np.stack(truth)[:steps].reshape(steps, -1)
+            extra["detectors"] = DetectorObservations(flat, t[:, flat].astype(float))
+        elif detectors is not None:
             d = detectors[detectors["seed"] == seed]
             extra["detectors"] = DetectorObservations.from_readings(
                 zip(d["step"], d["i"] * source.grid.ny + d["j"], d["importance"], strict=True),
@@ -102,6 +118,7 @@ def main() -> None:
     parser.add_argument("--history", type=Path)
     parser.add_argument("--detector-var", type=float, default=DEFAULT_DETECTOR_VAR)
     parser.add_argument("--detector-error", action="store_true")
+    parser.add_argument("--ideal-stations", type=int, default=0)
     parser.add_argument("--spatial", action="store_true")
     parser.add_argument("--meas-var", type=float, default=DEFAULT_MEAS_VAR)
     parser.add_argument("--csv", type=Path, help="also write the table here")
@@ -114,7 +131,7 @@ def main() -> None:
     history = History.load(args.history)
     tables = []
     for run_dir in args.run_dirs:
-        for r in seed_results(run_dir):
+        for r in seed_results(run_dir, args.ideal_stations):
             print(f"{run_dir}: seed {r.seed} ({len(r.swarms)} swarms)", flush=True)
             tables.append(
                 belief_table(
@@ -123,10 +140,13 @@ def main() -> None:
                     step_s=r.step_s,
                     meas_var=args.meas_var,
                     spatial=args.spatial,
-                    detector_var=args.detector_var,
+                    detector_var=args.meas_var if args.ideal_stations else args.detector_var,
                 )
             )
     table = summarize(pd.concat(tables, ignore_index=True))
+    if args.ideal_stations:
+        table["swarm"] = table["swarm"].replace(DETECTORS_ONLY, "(ideal stations only)")
+        table["model"] = table["model"].replace("nowcast+detectors", "nowcast+ideal")
     print(
         f"history {args.history}: rho median {np.median(history.rho[~history.obstacles]):.3f}, "
         f"neighbour correlation {history.neighbour_corr:.3f}"
