@@ -133,6 +133,23 @@ def with_detectors(config, horizon: int, n: int):
     return out
 
 
+def detectors_only(config, horizon: int, stations: int, repeat: int, run_bare) -> None:
+    """Bare stepping against bare stepping with ``stations`` loop stations read, interleaved;
+    every run's CPU printed (their spread is the measure's noise), the fastest of each counts."""
+    bare_cpu, loops_cpu, reads = [], [], []
+    for _ in range(repeat):
+        bare_cpu.append(run_bare()[0])
+        cpu, _, (read, n_loops) = with_detectors(config, horizon, stations)
+        loops_cpu.append(cpu)
+        reads.append(read)
+    b, d = min(bare_cpu), min(loops_cpu)
+    print(f"T = {horizon}, {stations} loop stations ({n_loops} loops), {repeat} runs of each")
+    print("bare SUMO CPU s: " + ", ".join(f"{c:.2f}" for c in bare_cpu))
+    print("bare + loops CPU s: " + ", ".join(f"{c:.2f}" for c in loops_cpu))
+    print(f"fastest: x{d / b:.4f} bare ({100 * (d / b - 1):+.2f}%); reads "
+          f"{100 * min(reads) / b:.3f}% of bare")  # fmt: skip
+
+
 def coupled(config, horizon: int, names: list[str], first: int = 0):
     source = sumo_source(config, horizon=horizon)
     swarms = {}
@@ -277,6 +294,9 @@ def main() -> None:
     p.add_argument("--aliasing", default="", help="reads per step to compare, e.g. 1,2,3,5")
     p.add_argument("--only-aliasing", action="store_true", help="skip the swarm runs")
     p.add_argument("--detectors", type=int, help="loop stations (default 48; 8 with --quick)")
+    p.add_argument(
+        "--only-detectors", action="store_true", help="only bare and bare + loop stations"
+    )
     args = p.parse_args()
     tmp = tempfile.TemporaryDirectory()
     config_path = quick_config(Path(tmp.name)) if args.quick else args.config
@@ -300,9 +320,13 @@ def main() -> None:
         "one": lambda: coupled(config, horizon, ["greedy"], first=1),
         "k": lambda: coupled(config, horizon, k_names),
     }
+    stations = args.detectors if args.detectors is not None else (8 if args.quick else 48)
+    if args.only_detectors:
+        detectors_only(config, horizon, stations, repeat, kinds["bare"])
+        tmp.cleanup()
+        return
     if not args.no_meso:
         kinds["meso"] = lambda: bare(config, horizon, mesoscopic=True)
-    stations = args.detectors if args.detectors is not None else (8 if args.quick else 48)
     if stations:
         kinds["loops"] = lambda: with_detectors(config, horizon, stations)
     best: dict[str, tuple] = {}

@@ -1,7 +1,7 @@
 """Score the belief models of a finished `twin run` folder against a history, after the run.
 
     python docs/measure_beliefs.py --history HISTORY.npz RUN_DIR [RUN_DIR ...] [--spatial] \
-        [--meas-var V] [--detector-var V] [--csv OUT.csv]
+        [--meas-var V] [--detector-var V] [--detector-bias B] [--csv OUT.csv]
     python docs/measure_beliefs.py --detector-error RUN_DIR [RUN_DIR ...]
     python docs/measure_beliefs.py --history HISTORY.npz RUN_DIR --ideal-stations N
 
@@ -42,7 +42,7 @@ from twin.belief import (
 from twin.traffic.tape import Tape, TapeTraffic
 
 
-def seed_results(run_dir: Path, ideal_stations: int = 0):
+def seed_results(run_dir: Path, ideal_stations: int = 0, detector_bias: float = 0.0):
     """One result-like object per seed of ``run_dir``: swarms, grid, seed, positions, maps."""
     trajectories = pd.read_parquet(run_dir / "trajectories.parquet")
     detectors = run_dir / "detectors.parquet"
@@ -76,7 +76,12 @@ def seed_results(run_dir: Path, ideal_stations: int = 0):
         elif detectors is not None:
             d = detectors[detectors["seed"] == seed]
             extra["detectors"] = DetectorObservations.from_readings(
-                zip(d["step"], d["i"] * source.grid.ny + d["j"], d["importance"], strict=True),
+                zip(
+                    d["step"],
+                    d["i"] * source.grid.ny + d["j"],
+                    (d["importance"] - detector_bias).clip(0.0, 1.0),
+                    strict=True,
+                ),
                 steps - 1,
             )
         yield SimpleNamespace(
@@ -119,6 +124,7 @@ def main() -> None:
     parser.add_argument("--detector-var", type=float, default=DEFAULT_DETECTOR_VAR)
     parser.add_argument("--detector-error", action="store_true")
     parser.add_argument("--ideal-stations", type=int, default=0)
+    parser.add_argument("--detector-bias", type=float, default=0.0, help="subtracted from readings")
     parser.add_argument("--spatial", action="store_true")
     parser.add_argument("--meas-var", type=float, default=DEFAULT_MEAS_VAR)
     parser.add_argument("--csv", type=Path, help="also write the table here")
@@ -131,7 +137,7 @@ def main() -> None:
     history = History.load(args.history)
     tables = []
     for run_dir in args.run_dirs:
-        for r in seed_results(run_dir, args.ideal_stations):
+        for r in seed_results(run_dir, args.ideal_stations, args.detector_bias):
             print(f"{run_dir}: seed {r.seed} ({len(r.swarms)} swarms)", flush=True)
             tables.append(
                 belief_table(
