@@ -8,7 +8,11 @@ wall seconds of:
 - ``coupled, 1 swarm``: the live source (bulk read of every vehicle at each sample time, cell
   binning, online MFD) driving one swarm through ``run_patrol``;
 - ``coupled, K swarms``: the same with K swarms side by side on the same SUMO run;
-- ``bare, mesoscopic``: SUMO's mesoscopic model, against the microscopic ``bare``.
+- ``bare, mesoscopic``: SUMO's mesoscopic model, against the microscopic ``bare``;
+- ``bare + N loop stations``: bare stepping with N fixed-detector stations loaded (twin's
+  virtual loops, :mod:`twin.sumo.detectors`) and read at every sample time; its CPU against
+  ``bare`` is the detectors' coupling cost (SUMO's own work for the loops plus the reads), which
+  must stay within 2% of bare SUMO time (``--detectors N``, default 48, 8 with ``--quick``).
 
 The 1-swarm and K-swarm runs must read the same vehicles and importance maps and move the
 greedy swarm alike (exit 1 otherwise).
@@ -86,6 +90,64 @@ def bare(config, horizon: int, mesoscopic: bool = False):
             session.close()
 
     return timed(run)
+
+
+def with_detectors(config, horizon: int, n: int):
+    """Bare stepping with ``n`` loop stations loaded and read at every sample time; returns
+    the CPU seconds of the reads alone and the number of loops."""
+    from twin.sumo.detectors import (
+        DetectorPlan,
+        DetectorReader,
+        main_edges,
+        place_loops,
+        station_cells,
+    )
+    from twin.sumo.session import _libsumo
+
+    source = sumo_source(config, horizon=horizon)
+    edges = main_edges(source.scenario.net_file, source.geometry)
+    with_edge = np.zeros(source.grid.shape, dtype=bool)
+    for cell in edges:
+        with_edge[cell] = source.grid.free[cell]
+    cells = station_cells(source.geometry.lane_km, with_edge, n)
+    plan = DetectorPlan(loops=place_loops(edges, source.geometry, cells))
+    source.scenario.detectors = plan
+    folder = tempfile.TemporaryDirectory()
+
+    def run():
+        session = source.session(Path(folder.name)).start()
+        reader = DetectorReader(plan, source.geometry, _libsumo())
+        reading = 0.0
+        try:
+            for _, t in source.sample_times():
+                session.advance_to(t)
+                c0 = time.process_time()
+                reader.read()
+                reading += time.process_time() - c0
+            return reading, len(reader.detectors)
+        finally:
+            session.close()
+
+    out = timed(run)
+    folder.cleanup()
+    return out
+
+
+def detectors_only(config, horizon: int, stations: int, repeat: int, run_bare) -> None:
+    """Bare stepping against bare stepping with ``stations`` loop stations read, interleaved;
+    every run's CPU printed (their spread is the measure's noise), the fastest of each counts."""
+    bare_cpu, loops_cpu, reads = [], [], []
+    for _ in range(repeat):
+        bare_cpu.append(run_bare()[0])
+        cpu, _, (read, n_loops) = with_detectors(config, horizon, stations)
+        loops_cpu.append(cpu)
+        reads.append(read)
+    b, d = min(bare_cpu), min(loops_cpu)
+    print(f"T = {horizon}, {stations} loop stations ({n_loops} loops), {repeat} runs of each")
+    print("bare SUMO CPU s: " + ", ".join(f"{c:.2f}" for c in bare_cpu))
+    print("bare + loops CPU s: " + ", ".join(f"{c:.2f}" for c in loops_cpu))
+    print(f"fastest: x{d / b:.4f} bare ({100 * (d / b - 1):+.2f}%); reads "
+          f"{100 * min(reads) / b:.3f}% of bare")  # fmt: skip
 
 
 def coupled(config, horizon: int, names: list[str], first: int = 0):
@@ -231,6 +293,10 @@ def main() -> None:
     p.add_argument("--repeat", type=int, default=1, help="runs of each kind; the fastest counts")
     p.add_argument("--aliasing", default="", help="reads per step to compare, e.g. 1,2,3,5")
     p.add_argument("--only-aliasing", action="store_true", help="skip the swarm runs")
+    p.add_argument("--detectors", type=int, help="loop stations (default 48; 8 with --quick)")
+    p.add_argument(
+        "--only-detectors", action="store_true", help="only bare and bare + loop stations"
+    )
     args = p.parse_args()
     tmp = tempfile.TemporaryDirectory()
     config_path = quick_config(Path(tmp.name)) if args.quick else args.config
@@ -254,8 +320,15 @@ def main() -> None:
         "one": lambda: coupled(config, horizon, ["greedy"], first=1),
         "k": lambda: coupled(config, horizon, k_names),
     }
+    stations = args.detectors if args.detectors is not None else (8 if args.quick else 48)
+    if args.only_detectors:
+        detectors_only(config, horizon, stations, repeat, kinds["bare"])
+        tmp.cleanup()
+        return
     if not args.no_meso:
         kinds["meso"] = lambda: bare(config, horizon, mesoscopic=True)
+    if stations:
+        kinds["loops"] = lambda: with_detectors(config, horizon, stations)
     best: dict[str, tuple] = {}
     for _ in range(repeat):
         for kind, fn in kinds.items():
@@ -283,6 +356,13 @@ def main() -> None:
     print(f"coupling overhead over bare stepping: {100 * (cpu_1 / cpu_b - 1):+.1f}% CPU")
     print(f"{args.swarms} swarms against 1: x{cpu_k / cpu_1:.3f} CPU")
     print(f"vehicle reads and binning inside the coupled run: {src1.read_seconds:.2f} s wall")
+    if stations:
+        cpu_d, _, (read_d, n_loops) = best["loops"]
+        share = cpu_d / cpu_b - 1
+        verdict = "within" if share <= 0.02 else "OVER"
+        print(f"bare + {stations} loop stations ({n_loops} loops): {cpu_d:.2f} s CPU, x{cpu_d / cpu_b:.3f} "
+              f"bare; reads {read_d:.3f} s CPU = {100 * read_d / cpu_b:.2f}% of bare; detectors' "
+              f"cost {100 * share:+.2f}% of bare SUMO time: {verdict} the 2% budget")  # fmt: skip
     if not args.no_meso:
         print(f"mesoscopic speed-up over microscopic: x{cpu_b / cpu_m:.2f}")
     if reads:

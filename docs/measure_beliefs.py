@@ -1,12 +1,23 @@
 """Score the belief models of a finished `twin run` folder against a history, after the run.
 
     python docs/measure_beliefs.py --history HISTORY.npz RUN_DIR [RUN_DIR ...] [--spatial] \
-        [--meas-var V] [--csv OUT.csv]
+        [--meas-var V] [--detector-var V] [--detector-bias B] [--csv OUT.csv]
+    python docs/measure_beliefs.py --detector-error RUN_DIR [RUN_DIR ...]
+    python docs/measure_beliefs.py --history HISTORY.npz RUN_DIR --ideal-stations N
 
 Replays each seed's tape (``tapes/seed-<s>.parquet``, else ``tape.parquet``) without SUMO for
 the observed and true maps, reads the swarms' positions from ``trajectories.parquet`` and
 prints :func:`twin.belief.run_beliefs`' table (mean over seeds), the same numbers as
-``twin run --history``; ``--spatial`` adds the nowcast with 4-neighbour coupling.
+``twin run --history``; ``--spatial`` adds the nowcast with 4-neighbour coupling. A run that
+read fixed detectors (``detectors.parquet``) adds the detectors-only row and each swarm's
+``nowcast+detectors``. ``--detector-error`` prints instead how far the detector stations'
+readings lie from their cells' true importance (bias, variance, RMSE over all readings): the
+measurement variance of the detectors, to be chosen on validation seeds. ``--ideal-stations
+N`` replaces the run's detectors by N stations at the cells of the placement rule
+(:func:`twin.sumo.detectors.station_cells` on the tape's lane-km; every free cell with lanes
+counts) that read their cell's true importance exactly, filtered with the drones' measurement
+variance: a bound on what stations at those cells could add, rows ``(ideal stations only)``
+and ``nowcast+ideal``.
 """
 
 from __future__ import annotations
@@ -18,13 +29,24 @@ from types import SimpleNamespace
 import numpy as np
 import pandas as pd
 
-from twin.belief import DEFAULT_MEAS_VAR, History, belief_table, format_belief_table, summarize
+from twin.belief import (
+    DEFAULT_DETECTOR_VAR,
+    DEFAULT_MEAS_VAR,
+    DETECTORS_ONLY,
+    DetectorObservations,
+    History,
+    belief_table,
+    format_belief_table,
+    summarize,
+)
 from twin.traffic.tape import Tape, TapeTraffic
 
 
-def seed_results(run_dir: Path):
+def seed_results(run_dir: Path, ideal_stations: int = 0, detector_bias: float = 0.0):
     """One result-like object per seed of ``run_dir``: swarms, grid, seed, positions, maps."""
     trajectories = pd.read_parquet(run_dir / "trajectories.parquet")
+    detectors = run_dir / "detectors.parquet"
+    detectors = pd.read_parquet(detectors) if detectors.is_file() else None
     for seed, frame in trajectories.groupby("seed", sort=True):
         tape = run_dir / "tapes" / f"seed-{seed}.parquet"
         tape = tape if tape.is_file() else run_dir / "tape.parquet"
@@ -41,7 +63,29 @@ def seed_results(run_dir: Path):
         for s, swarm in enumerate(swarms):
             f = frame[frame["swarm"] == swarm]
             positions[s, f["step"], f["drone"]] = f[["i", "j"]].to_numpy()
+        extra = {}
+        if ideal_stations:
+            from twin.sumo.detectors import station_cells
+
+            tape_ = source.tape
+            free = ~tape_.obstacles & (tape_.lane_km > 0)
+            cells = station_cells(tape_.lane_km, free, ideal_stations)
+            flat = np.array(sorted(i * source.grid.ny + j for i, j in cells))
+            t = np.stack(truth)[:steps].reshape(steps, -1)
+            extra["detectors"] = DetectorObservations(flat, t[:, flat].astype(float))
+        elif detectors is not None:
+            d = detectors[detectors["seed"] == seed]
+            extra["detectors"] = DetectorObservations.from_readings(
+                zip(
+                    d["step"],
+                    d["i"] * source.grid.ny + d["j"],
+                    (d["importance"] - detector_bias).clip(0.0, 1.0),
+                    strict=True,
+                ),
+                steps - 1,
+            )
         yield SimpleNamespace(
+            extra=extra,
             swarms=swarms,
             grid=source.grid,
             seed=int(seed),
@@ -52,25 +96,63 @@ def seed_results(run_dir: Path):
         )
 
 
+def detector_error(run_dirs) -> None:
+    """Station readings against their cells' true importance, over every seed of the runs."""
+    errors = []
+    for run_dir in run_dirs:
+        for r in seed_results(run_dir):
+            obs = r.extra.get("detectors")
+            if obs is None:
+                raise SystemExit(f"{run_dir}: no detectors.parquet (a run without detectors)")
+            truth = r.truth.reshape(r.truth.shape[0], -1)[: len(obs.values), obs.cells]
+            values = obs.values[: len(truth)]
+            ok = np.isfinite(values)
+            errors.append((values - truth)[ok])
+            print(f"{run_dir}: seed {r.seed}, {len(obs.cells)} stations, {ok.sum()} readings")
+    e = np.concatenate(errors)
+    print(
+        f"reading - truth: bias {e.mean():+.4f}, variance {e.var():.5f}, "
+        f"mean square {np.mean(e * e):.5f} (RMSE {np.sqrt(np.mean(e * e)):.4f}), "
+        f"median |error| {np.median(np.abs(e)):.4f}, over {len(e)} readings"
+    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("run_dirs", type=Path, nargs="+")
-    parser.add_argument("--history", type=Path, required=True)
+    parser.add_argument("--history", type=Path)
+    parser.add_argument("--detector-var", type=float, default=DEFAULT_DETECTOR_VAR)
+    parser.add_argument("--detector-error", action="store_true")
+    parser.add_argument("--ideal-stations", type=int, default=0)
+    parser.add_argument("--detector-bias", type=float, default=0.0, help="subtracted from readings")
     parser.add_argument("--spatial", action="store_true")
     parser.add_argument("--meas-var", type=float, default=DEFAULT_MEAS_VAR)
     parser.add_argument("--csv", type=Path, help="also write the table here")
     args = parser.parse_args()
+    if args.detector_error:
+        detector_error(args.run_dirs)
+        return
+    if args.history is None:
+        parser.error("--history is required (except with --detector-error)")
     history = History.load(args.history)
     tables = []
     for run_dir in args.run_dirs:
-        for r in seed_results(run_dir):
+        for r in seed_results(run_dir, args.ideal_stations, args.detector_bias):
             print(f"{run_dir}: seed {r.seed} ({len(r.swarms)} swarms)", flush=True)
             tables.append(
                 belief_table(
-                    r, history, step_s=r.step_s, meas_var=args.meas_var, spatial=args.spatial
+                    r,
+                    history,
+                    step_s=r.step_s,
+                    meas_var=args.meas_var,
+                    spatial=args.spatial,
+                    detector_var=args.meas_var if args.ideal_stations else args.detector_var,
                 )
             )
     table = summarize(pd.concat(tables, ignore_index=True))
+    if args.ideal_stations:
+        table["swarm"] = table["swarm"].replace(DETECTORS_ONLY, "(ideal stations only)")
+        table["model"] = table["model"].replace("nowcast+detectors", "nowcast+ideal")
     print(
         f"history {args.history}: rho median {np.median(history.rho[~history.obstacles]):.3f}, "
         f"neighbour correlation {history.neighbour_corr:.3f}"

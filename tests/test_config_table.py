@@ -55,6 +55,7 @@ SUMO = {
         "demand_scale": "1.0",
     },
     "traffic.mfd": {"fit": '"online"', "a": "0.7", "k_c": "40.0", "detection_p": "1.0"},
+    "traffic.detectors": {"scenario": "false", "virtual_loops": "0"},
     "evaluate": {"swarms": '["greedy"]'},
 }
 SWEEP = {
@@ -214,6 +215,9 @@ SUMO_BAD = {
     ("traffic.mfd", "a"): [*NUMBER, "0", "1.5"],
     ("traffic.mfd", "k_c"): [*NUMBER, '"40"', "0"],
     ("traffic.mfd", "detection_p"): [*NUMBER, "0", "1.5"],
+    ("traffic.detectors", "scenario"): ['"yes"', "1"],
+    ("traffic.detectors", "virtual_loops"): [*WHOLE, "-1", "100000"],
+    ("traffic.detectors", "cells"): ['"x"', "[[1]]", '[["a", 1]]', "[[1, 2, 3]]"],
     ("swarm", "eta"): ["nan", "2"],
 }
 

@@ -11,6 +11,10 @@ Three models over one run, for one swarm (numpy only):
   ``Var(w) = (1 - rho^2) var^{k+1}`` (the prior stays near the history's variance), ``rho``
   the history's lag-1 autocorrelation of deviations, and a measurement ``z = observed - mean``
   of variance ``meas_var`` on every cell in a drone's field of view.
+- ``nowcast+detectors``: the same filter also updated, at every step, on each cell that fixed
+  detectors read (:class:`DetectorObservations`, the importance of a station's reading by the
+  MFD), a measurement of variance ``detector_var``. Without drones (swarm
+  :data:`DETECTORS_ONLY`) it is the reference for what the drones add.
 
 Each model gives a mean and a standard deviation per step and cell (``(T+1, nx*ny)``; NaN
 std: none stated), the mean clipped to [0, 1]. :func:`belief_scores` scores one against the
@@ -33,11 +37,17 @@ from twin.errors import UserError
 from twin.grid import Grid
 from twin.monitoring import MonitorSettings, congestion_events
 
-MODELS = ("last-seen", "history", "nowcast")
+MODELS = ("last-seen", "history", "nowcast", "nowcast+detectors")
 #: Row name of the history-only reference (no drones).
 NO_DRONES = "(no drones)"
+#: Row name of the detectors-only reference (history and fixed detectors, no drones).
+DETECTORS_ONLY = "(detectors only)"
 #: Variance of a drone's reading of a cell's importance (std 0.03).
 DEFAULT_MEAS_VAR = 1e-3
+#: Variance of a detector station's reading of its cell's importance: the mean square error of
+#: the readings of 48 virtual loop stations against their cells' true importance on validation
+#: SUMO seed 100 of the default rush hour (0.0029, bias -0.027 included; docs/beliefs.md).
+DEFAULT_DETECTOR_VAR = 3e-3
 #: Smallest per-cell history variance used by the filter (std 0.01).
 VAR_FLOOR = 1e-4
 #: Largest autocorrelation used (keeps some process noise on every cell).
@@ -204,6 +214,32 @@ class History:
             )
 
 
+@dataclass(frozen=True)
+class DetectorObservations:
+    """What fixed detectors read: per step ``k = 0..T`` and station cell, the importance of
+    their reading (the mean over a cell's detectors that reported at that step), NaN where
+    none did."""
+
+    cells: np.ndarray  # (n,) flat cell indices, distinct
+    values: np.ndarray  # (T+1, n)
+
+    @classmethod
+    def from_readings(cls, readings, horizon: int) -> DetectorObservations:
+        """From ``(k, flat cell, importance)`` triples (several detectors per cell averaged)."""
+        rows = [(int(k), int(c), float(v)) for k, c, v in readings if 0 <= k <= horizon]
+        cells = np.array(sorted({c for _, c, _ in rows}), dtype=np.int64)
+        total = np.zeros((horizon + 1, len(cells)))
+        count = np.zeros((horizon + 1, len(cells)))
+        if rows:
+            k, c, v = (np.array(x) for x in zip(*rows, strict=True))
+            col = np.searchsorted(cells, c)
+            np.add.at(total, (k, col), v)
+            np.add.at(count, (k, col), 1.0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            values = np.where(count > 0, total / np.maximum(count, 1.0), np.nan)
+        return cls(cells, values)
+
+
 def fit_history(
     maps: Sequence[np.ndarray],
     obstacles: np.ndarray,
@@ -296,8 +332,12 @@ def nowcast(
     history: History,
     meas_var: float = DEFAULT_MEAS_VAR,
     coupling: float = 0.0,
+    detectors: DetectorObservations | None = None,
+    detector_var: float = DEFAULT_DETECTOR_VAR,
 ):
-    """``(mean, std)`` of the history fused with the drones' sightings (module docstring).
+    """``(mean, std)`` of the history fused with the drones' sightings (module docstring),
+    and with ``detectors``' readings (variance ``detector_var``) when given; ``positions``
+    may hold no drone (``(T+1, 0, 2)``): history and detectors alone.
 
     The filter starts from the history's prior at step 0 (deviation 0, variance ``var^0``),
     predicts ``d <- rho d``, ``P <- rho^2 P + (1 - rho^2) var^k`` and updates every cell in
@@ -341,6 +381,13 @@ def nowcast(
                     cov = coupling * np.sqrt(p[b] * p_before[c])
                     d[b] += cov / s[c] * innovation[c]
                     p[b] -= cov * cov / s[c]
+        if detectors is not None and k < len(detectors.values):
+            read = np.isfinite(detectors.values[k])
+            cells = detectors.cells[read]
+            innovation = detectors.values[k, read] - mu[k, cells] - d[cells]
+            gain = p[cells] / (p[cells] + detector_var)
+            d[cells] += gain * innovation
+            p[cells] *= 1.0 - gain
         mean[k] = np.clip(mu[k] + d, 0.0, 1.0)
         std[k] = np.sqrt(p)
     return mean, std
@@ -431,11 +478,15 @@ def belief_table(
     step_s: float | None = None,
     meas_var: float = DEFAULT_MEAS_VAR,
     spatial: bool = False,
+    detector_var: float = DEFAULT_DETECTOR_VAR,
 ) -> pd.DataFrame:
     """One row per swarm x model (last-seen, nowcast) of one seed, plus the history-only
     reference row (swarm ``(no drones)``, model ``history``), scored against the run's truth
     (``result.truth``, else what the drones observed). ``spatial`` adds the model
-    ``nowcast-spatial``: the nowcast with the 4-neighbour coupling ``history.neighbour_corr``."""
+    ``nowcast-spatial``: the nowcast with the 4-neighbour coupling ``history.neighbour_corr``.
+    When the run read fixed detectors (``result.extra["detectors"]``), the detectors-only
+    reference row (swarm ``(detectors only)``, model ``nowcast``) and a ``nowcast+detectors``
+    row per swarm are added."""
     settings = settings or MonitorSettings()
     observed = result.importance
     if observed is None:
@@ -451,6 +502,15 @@ def belief_table(
         {"swarm": NO_DRONES, "model": "history"}
         | belief_scores(mean, std, truth, grid, settings, step_s, events)
     )
+    detectors = (getattr(result, "extra", None) or {}).get("detectors")
+    if detectors is not None:
+        nobody = np.zeros((steps, 0, 2), dtype=np.int64)
+        mean, std = nowcast(grid, nobody, observed, history, meas_var, 0.0, detectors,
+                            detector_var)  # fmt: skip
+        rows.append(
+            {"swarm": DETECTORS_ONLY, "model": "nowcast"}
+            | belief_scores(mean, std, truth, grid, settings, step_s, events)
+        )
     for s, swarm in enumerate(result.swarms):
         positions = result.positions[s]
         couplings = [("nowcast", 0.0)] + (
@@ -460,6 +520,15 @@ def belief_table(
             (name, nowcast(grid, positions, observed, history, meas_var, c))
             for name, c in couplings
         ]
+        if detectors is not None:
+            models.append(
+                (
+                    "nowcast+detectors",
+                    nowcast(
+                        grid, positions, observed, history, meas_var, 0.0, detectors, detector_var
+                    ),
+                )
+            )
         for model, (mean, std) in models:
             rows.append(
                 {"swarm": swarm, "model": model}
@@ -480,7 +549,7 @@ def format_belief_table(table: pd.DataFrame, title: str = "Belief models") -> st
     """The table as aligned text: error, calibration, % events known, latency, false alarms."""
     lines = [
         title,
-        f"{'swarm':<22} {'model':<15} {'error':>7} {'calib90':>8} {'known %':>8} "
+        f"{'swarm':<22} {'model':<17} {'error':>7} {'calib90':>8} {'known %':>8} "
         f"{'lat med':>8} {'FA/h':>7}",
     ]
 
@@ -490,7 +559,7 @@ def format_belief_table(table: pd.DataFrame, title: str = "Belief models") -> st
     for r in table.itertuples(index=False):
         lat = r.latency_median_min if not pd.isna(r.latency_median_min) else r.latency_median_steps
         lines.append(
-            f"{r.swarm:<22} {r.model:<15} {num(r.belief_error, '.4f'):>7} "
+            f"{r.swarm:<22} {r.model:<17} {num(r.belief_error, '.4f'):>7} "
             f"{num(r.calibration_90, '.3f'):>8} {num(r.pct_events_known, '.1f'):>8} "
             f"{num(lat, '.1f'):>8} {num(r.false_alarms_per_hour, '.1f'):>7}"
         )

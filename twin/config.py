@@ -181,6 +181,25 @@ class IncidentSettings(StrictModel):
         return self
 
 
+class DetectorSettings(StrictModel):
+    """``[traffic.detectors]``: fixed detectors the twin reads (:mod:`twin.sumo.detectors`).
+
+    ``scenario``: the induction loops and lane-area detectors of the scenario's additional
+    files; ``virtual_loops``: that many loop stations placed by the documented rule;
+    ``cells``: loop stations at these cells instead (not both).
+    """
+
+    scenario: bool = False
+    virtual_loops: Annotated[int, Field(ge=0, le=10000)] = 0
+    cells: list[Cell] = []
+
+    @model_validator(mode="after")
+    def _one_placement(self) -> DetectorSettings:
+        if self.virtual_loops and self.cells:
+            raise ValueError("gives both virtual_loops and cells; give one of them")
+        return self
+
+
 class SumoSettings(StrictModel):
     """``[traffic] kind = "sumo"``; see :mod:`twin.sumo.scenario` for the meaning of each key."""
 
@@ -204,6 +223,7 @@ class SumoSettings(StrictModel):
     reads_per_step: Annotated[int, Field(ge=1, le=75)] = 3
     mfd: MFDSettings = MFDSettings()
     incidents: list[IncidentSettings] = []
+    detectors: DetectorSettings = DetectorSettings()
 
     @field_validator("network")
     @classmethod

@@ -297,6 +297,9 @@ def _run_seed(experiment, n, seed, source, stop, progress=False, on_source=None,
         stop=stop,
         on_step=on_step,
     )
+    detectors = source.detector_observations()
+    if detectors is not None:
+        result.extra["detectors"] = detectors  # a belief model's observations
     incidents = source.incidents_info()
     if incidents:
         result.extra["incidents"] = incidents  # scored by monitoring

@@ -113,6 +113,7 @@ RUN_FILES = (
     RunFile("tape.parquet", "run (SUMO)", "evaluate --traffic, history"),
     RunFile("tapes", "run (SUMO, several seeds)", "evaluate --traffic, history", folder=True),
     RunFile("incidents.json", "run (SUMO, incidents)", "report"),
+    RunFile("detectors.parquet", "run (SUMO, [traffic.detectors])", "docs/measure_beliefs.py"),
     RunFile("sumo", "run (SUMO outputs of the scenario)", "the user", folder=True),
     RunFile("timing.csv", "run, evaluate", "report"),
     RunFile("run.json", "run, evaluate", "report, replay, the rerun check of --out"),

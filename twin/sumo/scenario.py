@@ -30,6 +30,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from twin.clock import clock_label, parse_clock
 from twin.config import MFDSettings, SumoSettings, with_overrides
 from twin.errors import UserError
@@ -530,6 +532,7 @@ def sumo_source(
             "notices": notices,
         },
     )
+    scenario.detectors = detector_plan(s.detectors, scenario, geometry, obstacles, config.path)
     if scenario.incidents:  # checked before SUMO starts, against the final window and grid
         from twin.sumo.incidents import check_incidents
 
@@ -537,6 +540,42 @@ def sumo_source(
             notices.append(text)
             notice(text)
     return SumoTraffic(scenario, geometry, Grid(obstacles))
+
+
+def detector_plan(settings, scenario, geometry, obstacles, where):
+    """The detectors a run reads (``[traffic.detectors]``): the scenario's own and the loop
+    stations twin places, their cells checked (one-line errors naming the config's field)."""
+    from twin.sumo.detectors import (
+        DetectorPlan,
+        check_cells,
+        main_edges,
+        place_loops,
+        station_cells,
+    )
+
+    if not (settings.cells or settings.virtual_loops):
+        return DetectorPlan(scenario=settings.scenario)
+    free = ~np.asarray(obstacles, dtype=bool)
+    edges = main_edges(scenario.net_file, geometry)
+    if settings.cells:
+        cells = check_cells(settings.cells, geometry, free, f"{where}: ")
+        for i, j in cells:
+            if (i, j) not in edges:
+                raise UserError(
+                    f"{where}: [traffic.detectors].cells: cell [{i}, {j}] holds only junction "
+                    "lanes, no edge for a loop; pick another cell"
+                )
+    else:
+        with_edge = free & np.zeros(free.shape, dtype=bool)
+        for i, j in edges:
+            with_edge[i, j] = free[i, j]
+        cells = station_cells(geometry.lane_km, with_edge, settings.virtual_loops)
+        if len(cells) < settings.virtual_loops:
+            raise UserError(
+                f"{where}: [traffic.detectors].virtual_loops = {settings.virtual_loops} exceeds "
+                f"the {len(cells)} cells with a road; give at most {len(cells)}"
+            )
+    return DetectorPlan(scenario=settings.scenario, loops=place_loops(edges, geometry, cells))
 
 
 __all__ = [

@@ -28,9 +28,11 @@ from twin.errors import UserError
 from twin.grid import Grid
 from twin.mfd import MFD, MFDImportance
 from twin.sumo.cells import CellGeometry
+from twin.sumo.detectors import DetectorPlan
 from twin.sumo.readers import included_files, naming_the_sumocfg
 from twin.sumo.session import ANTI_GRIDLOCK_OPTIONS, SumoRunError, SumoSession
 from twin.timing import (
+    DETECTOR_READS,
     OBSERVATION,
     READS,
     SUMO_STEPPING,
@@ -61,6 +63,7 @@ class SumoScenario:
     sumo_options: tuple[str, ...] = ()  # more SUMO options (e.g. --fcd-output in tests)
     reads_per_step: int = 1  # read instants per step, the last at the sample time
     incidents: list[Any] = field(default_factory=list)  # IncidentSettings (twin.config)
+    detectors: DetectorPlan = field(default_factory=DetectorPlan)  # fixed detectors read
     extra: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -114,6 +117,10 @@ class SumoTraffic(TrafficSource):
         #: the output files and rewritten additional files of the last run
         self.outputs: list[Path] = []
         self._copies: dict[Path, Path] = {}  # rewritten additional file -> the user's
+        #: the fixed detectors read (:mod:`twin.sumo.detectors`) and their readings per step:
+        #: ``(k, detector index, vehicles, occupancy %, mean speed, importance)``
+        self.detectors: list = []
+        self.detector_readings: list[tuple[int, int, int, float, float, float]] = []
 
     def _model(self) -> MFDImportance:
         g, s = self.geometry, self.scenario
@@ -141,6 +148,14 @@ class SumoTraffic(TrafficSource):
             route_files = [plan.routes(r) for r in route_files]
             self._copies = {c: o for o, c in plan.copies.items() if c != o}
             self.outputs = [*plan.targets.values(), *self._copies]
+            if s.detectors.loops:
+                from twin.sumo.detectors import with_additional, write_loops
+
+                Path(output_dir).mkdir(parents=True, exist_ok=True)
+                loops = write_loops(s.detectors.loops, Path(output_dir) / "twin-loops.add.xml",
+                                    s.step_s)  # fmt: skip
+                options = with_additional(options, loops)
+                self.outputs.append(loops)
         return SumoSession(
             net_file=s.net_file,
             route_files=route_files,
@@ -216,6 +231,14 @@ class SumoTraffic(TrafficSource):
             _remove(scratch)
             raise
         timer.add(SUMO_WARMUP, clock() - t_start)
+        reader = None
+        self.detector_readings = []
+        if s.detectors.active:
+            from twin.sumo.detectors import DetectorReader
+            from twin.sumo.session import _libsumo
+
+            reader = DetectorReader(s.detectors, self.geometry, _libsumo())
+            self.detectors = reader.detectors
         try:
             for k, t in self.sample_times():
                 t_snapshot = clock()
@@ -248,6 +271,10 @@ class SumoTraffic(TrafficSource):
                 # The model sees exactly what the tape keeps (float32 speeds), so replays match.
                 count, mean_speed = count.astype(np.int32), mean_speed.astype(np.float32)
                 self.snapshots.append((k, t, count, mean_speed))
+                t_detectors = clock()
+                if reader is not None and k >= 0:
+                    self._read_detectors(reader, k)
+                    timer.add(DETECTOR_READS, clock() - t_detectors)
                 t3 = clock()
                 importance = self.model.observe(k, count, mean_speed.astype(float))
                 if k < 0:
@@ -260,6 +287,45 @@ class SumoTraffic(TrafficSource):
         finally:
             session.close()
             _remove(scratch)
+
+    def _read_detectors(self, reader, k: int) -> None:
+        """Step ``k``'s new detector readings, their importance by the MFD in effect (the one
+        that observes this step's snapshot)."""
+        from twin.sumo.detectors import density_from_occupancy
+
+        rows = reader.read()
+        if rows:
+            occupancy = np.array([r[2] for r in rows])
+            importance = self.model.mfd.importance(density_from_occupancy(occupancy))
+            self.detector_readings += [
+                (k, n, count, occ, speed, float(imp))
+                for (n, count, occ, speed), imp in zip(rows, importance, strict=True)
+            ]
+
+    def detector_observations(self):
+        """The readings as :class:`twin.belief.DetectorObservations` (None without detectors)."""
+        if not self.scenario.detectors.active:
+            return None
+        from twin.belief import DetectorObservations
+
+        cells = [d.cell for d in self.detectors]
+        return DetectorObservations.from_readings(
+            [(k, cells[n][0] * self.grid.ny + cells[n][1], imp)
+             for k, n, _, _, _, imp in self.detector_readings],
+            self.horizon,
+        )  # fmt: skip
+
+    def detector_table(self):
+        """``detectors.parquet``'s rows of this run: one per reading, with the detector."""
+        import pandas as pd
+
+        rows = []
+        for k, n, count, occ, speed, imp in self.detector_readings:
+            d = self.detectors[n]
+            rows.append({"step": k, "detector": d.id, "kind": d.kind, "virtual": d.virtual,
+                         "lane": d.lane, "i": d.cell[0], "j": d.cell[1], "vehicles": count,
+                         "occupancy_pct": occ, "speed": speed, "importance": imp})  # fmt: skip
+        return pd.DataFrame(rows, columns=DETECTOR_COLUMNS)
 
     def incidents_info(self) -> list[dict[str, Any]]:
         """The scheduled incidents as applied so far (``incidents.json``)."""
@@ -383,11 +449,21 @@ class SumoTraffic(TrafficSource):
         samples = pd.DataFrame(self.model.samples())
         atomic_write(run_dir / "mfd_samples.parquet", lambda p: samples.to_parquet(p, index=False))
         atomic_write(run_dir / "tape.parquet", self.tape().write)
+        if self.scenario.detectors.active:
+            table = pd.concat(
+                [src.detector_table().assign(seed=seed) for seed, src in by_seed
+                 if isinstance(src, SumoTraffic)], ignore_index=True,
+            )[DETECTOR_COLUMNS]  # fmt: skip
+            atomic_write(run_dir / "detectors.parquet", lambda p: table.to_parquet(p, index=False))
         if len(by_seed) > 1:
             (run_dir / "tapes").mkdir(exist_ok=True)
             for seed, source in by_seed:
                 atomic_write(run_dir / "tapes" / f"seed-{seed}.parquet", source.tape().write)
 
+
+#: Columns of ``detectors.parquet``.
+DETECTOR_COLUMNS = ["seed", "step", "detector", "kind", "virtual", "lane", "i", "j", "vehicles",
+                    "occupancy_pct", "speed", "importance"]  # fmt: skip
 
 _HASHES: dict[tuple[str, int, int], str] = {}
 

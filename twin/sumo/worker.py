@@ -37,6 +37,8 @@ class WorksAhead(Protocol):
 
     snapshots: list
     vehicles_seen: list[int]
+    detectors: list
+    detector_readings: list
     error: str | None
     model: Any
     timer: StageTimer
@@ -60,6 +62,7 @@ def maps_from_child(source: WorksAhead) -> Iterator[np.ndarray]:
         target=_produce, args=(source, there, os.getpid()), name="twin-sumo", daemon=True
     )
     source.snapshots, source.vehicles_seen, source.error = [], [], None
+    source.detector_readings = []
     source.timer, source._truth, source._incidents = StageTimer(), None, None
     child.start()
     there.close()
@@ -68,9 +71,11 @@ def maps_from_child(source: WorksAhead) -> Iterator[np.ndarray]:
         while True:
             message = here.recv()
             if message[0] == "map":
-                _, importance, truth, snapshots, seen = message
+                _, importance, truth, snapshots, seen, (detectors, readings) = message
                 source.snapshots.extend(snapshots)
                 source.vehicles_seen.extend(seen)
+                source.detectors = detectors
+                source.detector_readings.extend(readings)
                 source._truth = truth
                 yield importance
             else:
@@ -108,12 +113,16 @@ def _stop(source: WorksAhead, here, child) -> None:
         child.kill()
     del source.snapshots[used:]  # one vehicle count per snapshot
     del source.vehicles_seen[used:]
+    last = source.snapshots[-1][0] if source.snapshots else -1
+    source.detector_readings[:] = [r for r in source.detector_readings if r[0] <= last]
 
 
 def _take_end(source: WorksAhead, message) -> None:
-    _, _, snapshots, seen, model, timer, read_seconds, error, incidents = message
+    _, _, snapshots, seen, model, timer, read_seconds, error, incidents, det = message
     source.snapshots.extend(snapshots)
     source.vehicles_seen.extend(seen)
+    source.detectors = det[0]
+    source.detector_readings.extend(det[1])
     source.model, source.timer, source.read_seconds = model, timer, read_seconds
     source.error, source._incidents = error, incidents
 
@@ -123,7 +132,7 @@ def _produce(source: WorksAhead, conn, parent: int) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     exit_with_parent(parent)
     source.separate_process = False
-    sent_snapshots = sent_seen = 0
+    sent_snapshots = sent_seen = sent_readings = 0
     failure: BaseException | None = None
     maps = source.maps_here()
     try:
@@ -131,7 +140,10 @@ def _produce(source: WorksAhead, conn, parent: int) -> None:
             snapshots = source.snapshots[sent_snapshots:]
             seen = source.vehicles_seen[sent_seen:]
             sent_snapshots, sent_seen = len(source.snapshots), len(source.vehicles_seen)
-            conn.send(("map", importance, source.truth_map(), snapshots, seen))
+            readings = source.detector_readings[sent_readings:]
+            sent_readings = len(source.detector_readings)
+            detectors = (source.detectors, readings)
+            conn.send(("map", importance, source.truth_map(), snapshots, seen, detectors))
             if conn.poll() and conn.recv() == "stop":
                 break
     except BaseException as exc:  # sent to the parent, which raises it
@@ -151,6 +163,7 @@ def _produce(source: WorksAhead, conn, parent: int) -> None:
                 source.read_seconds,
                 source.error,
                 source.incidents_info(),
+                (source.detectors, source.detector_readings[sent_readings:]),
             )
         )
     except (BrokenPipeError, OSError):

@@ -54,6 +54,11 @@ class TrafficSource(ABC):
         """What a run folder should record about this source (JSON-serialisable)."""
         return {"kind": type(self).__name__, "horizon": self.horizon}
 
+    def detector_observations(self):
+        """What fixed detectors read over the run (a :class:`twin.belief.DetectorObservations`);
+        ``None`` (the default): the source has no detectors."""
+        return None
+
     def truth_map(self) -> np.ndarray | None:
         """The true ``T^k`` of the map last yielded, when the source observes traffic through a
         model that may err and knows the truth; ``None`` (the default): no separate truth."""

@@ -1,0 +1,298 @@
+"""Fixed detectors: reading loops and lane-area detectors through libsumo, placing virtual
+loops, the nowcast fed by detectors, bad detector settings."""
+
+from __future__ import annotations
+
+import itertools
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from twin.belief import (
+    DETECTORS_ONLY,
+    DetectorObservations,
+    error_curve,
+    fit_history,
+    history_belief,
+    nowcast,
+)
+from twin.grid import Grid
+
+
+# ----------------------------------------------------------------- nowcast with detectors
+def _days(rng, n_days, steps, shape, rho=0.8):
+    """Days of importance: a common mean pattern plus an AR(1) deviation per cell."""
+    base = rng.uniform(0.1, 0.6, (steps, *shape))
+    days = []
+    for _ in range(n_days):
+        dev = np.zeros((steps, *shape))
+        for k in range(1, steps):
+            dev[k] = rho * dev[k - 1] + rng.normal(0, 0.06, shape)
+        days.append(np.clip(base + dev, 0.0, 1.0))
+    return days
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_nowcast_with_detectors_is_never_worse(seed):
+    """Detectors that read the truth with noise of the stated variance: the nowcast with them
+    is closer to the truth than without, with drones and without (history only)."""
+    rng = np.random.default_rng(seed)
+    shape, steps = (8, 10), 40
+    obstacles = np.zeros(shape, bool)
+    obstacles[0, :3] = True
+    grid = Grid(obstacles)
+    *earlier, today = _days(rng, 9, steps, shape)
+    history = fit_history(earlier, obstacles)
+    free = np.flatnonzero(grid.free.ravel())
+    cells = np.sort(rng.choice(free, 12, replace=False))
+    noise_var = 0.02**2
+    flat = today.reshape(steps, -1)
+    values = flat[:, cells] + rng.normal(0, np.sqrt(noise_var), (steps, len(cells)))
+    values[rng.random(values.shape) < 0.2] = np.nan  # some steps without a reading
+    detectors = DetectorObservations(cells, np.clip(values, 0, 1))
+    positions = np.stack([rng.integers(0, [8, 10], (2, 2)) for _ in range(steps)])
+    curve = {}
+    for name, pos, det in (
+        ("drones", positions, None),
+        ("drones+detectors", positions, detectors),
+        ("detectors", positions[:, :0], detectors),
+    ):
+        mean, _ = nowcast(grid, pos, today, history, 1e-3, 0.0, det, noise_var)
+        curve[name] = error_curve(mean, today, grid, 0.1)[1:].mean()
+    hist_mean, _ = history_belief(history, steps)
+    curve["history"] = error_curve(hist_mean, today, grid, 0.1)[1:].mean()
+    assert curve["drones+detectors"] < curve["drones"]
+    assert curve["detectors"] < curve["history"]
+
+
+def test_detectors_shrink_the_stated_uncertainty_of_their_cells_only():
+    rng = np.random.default_rng(1)
+    obstacles = np.zeros((4, 5), bool)
+    grid = Grid(obstacles)
+    earlier = _days(rng, 4, 6, (4, 5))
+    history = fit_history(earlier, obstacles)
+    cells = np.array([3, 11])
+    det = DetectorObservations(cells, np.full((6, 2), 0.5))
+    nobody = np.zeros((6, 0, 2), np.int64)
+    _, std0 = nowcast(grid, nobody, earlier[0], history)
+    _, std1 = nowcast(grid, nobody, earlier[0], history, detectors=det)
+    others = np.setdiff1d(np.arange(20), cells)
+    assert np.all(std1[:, cells] < std0[:, cells])
+    np.testing.assert_array_equal(std1[:, others], std0[:, others])
+
+
+def test_observations_average_a_station_and_leave_gaps():
+    obs = DetectorObservations.from_readings(
+        [(0, 7, 0.2), (0, 7, 0.4), (2, 7, 0.1), (1, 3, 0.9), (9, 3, 0.5)], horizon=2
+    )
+    assert list(obs.cells) == [3, 7]
+    np.testing.assert_allclose(obs.values[:, 1], [0.3, np.nan, 0.1])
+    np.testing.assert_allclose(obs.values[:, 0], [np.nan, 0.9, np.nan])
+
+
+# ---------------------------------------------------------------- SUMO: placement, reading
+libsumo = pytest.importorskip("libsumo")
+
+from helpers import small_sumo_scenario  # noqa: E402
+
+from twin.cli import main as twin_main  # noqa: E402
+from twin.config import load_config  # noqa: E402
+from twin.errors import UserError  # noqa: E402
+from twin.sumo.detectors import (  # noqa: E402
+    DetectorPlan,
+    DetectorReader,
+    main_edges,
+    place_loops,
+    station_cells,
+)
+from twin.sumo.scenario import sumo_source  # noqa: E402
+from twin.sumo.session import _libsumo  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory) -> Path:
+    return small_sumo_scenario(tmp_path_factory.mktemp("small"), horizon=6)
+
+
+def _with_detectors(small: Path, name: str, text: str) -> Path:
+    path = small / name
+    path.write_text((small / "small.toml").read_text() + "\n[traffic.detectors]\n" + text)
+    return path
+
+
+def test_virtual_loop_placement_is_deterministic_and_on_roads(small):
+    source = sumo_source(load_config(small / "small.toml"))
+    g = source.geometry
+    edges = main_edges(source.scenario.net_file, g)
+    with_edge = np.zeros(source.grid.shape, bool)
+    for cell in edges:
+        with_edge[cell] = source.grid.free[cell]
+    cells = station_cells(g.lane_km, with_edge, 6)
+    assert cells == station_cells(g.lane_km, with_edge, 6)
+    assert len(set(cells)) == 6
+    loops = place_loops(edges, g, cells)
+    assert loops == place_loops(main_edges(source.scenario.net_file, g), g, cells)
+    import sumolib
+    from sumolib.geomhelper import positionAtShapeOffset
+
+    net = sumolib.net.readNet(str(source.scenario.net_file))
+    for loop in loops:
+        assert source.grid.free[loop.cell] and g.lane_km[loop.cell] > 0
+        lane = net.getLane(loop.lane)
+        assert lane.allows("passenger") and 0 < loop.pos < lane.getLength()
+        shape = lane.getShape()
+        shape_len = sum(np.hypot(*np.subtract(b, a)) for a, b in itertools.pairwise(shape))
+        x, y = positionAtShapeOffset(shape, loop.pos * shape_len / lane.getLength())
+        r, c, inside = g.cell_index(np.array([[x, y]]))
+        assert inside[0] and (int(r[0]), int(c[0])) == loop.cell
+    # the first station is the cell with the most lane-km; no two stations touch while
+    # untouched cells remain
+    assert g.lane_km[cells[0]] == g.lane_km[with_edge].max()
+    touching = [
+        (a, b)
+        for n, a in enumerate(cells)
+        for b in cells[:n]
+        if max(abs(a[0] - b[0]), abs(a[1] - b[1])) <= 1
+    ]
+    assert not touching
+
+
+def _additional_with_detectors(small: Path, lane: str, length: float) -> Path:
+    path = small / "detectors.add.xml"
+    path.write_text(
+        "<additional>\n"
+        f'  <inductionLoop id="own-loop" lane="{lane}" pos="{length / 2:.1f}" period="60" '
+        'file="NUL"/>\n'
+        f'  <laneAreaDetector id="own-area" lane="{lane}" pos="10" length="{length - 20:.1f}" '
+        'period="60" file="area.xml"/>\n'
+        "</additional>\n"
+    )
+    return path
+
+
+def test_readings_equal_what_libsumo_reports(small):
+    """Twin's loops and the scenario's own loop: each reading's vehicle count equals the distinct
+    vehicles libsumo reported on the loop at each SUMO step of the interval; the scenario's
+    lane-area detector: its count equals what SUMO writes to the detector's own output."""
+    loops = load_config(_with_detectors(small, "det.toml", "virtual_loops = 3\n"))
+    lane = sumo_source(loops).scenario.detectors.loops[0].lane
+    import sumolib
+
+    length = sumolib.net.readNet(str(small / "small.net.xml")).getLane(lane).getLength()
+    _additional_with_detectors(small, lane, length)
+    text = (
+        (small / "small.toml")
+        .read_text()
+        .replace("[traffic]", '[traffic]\nadditional = ["detectors.add.xml"]')
+    )
+    (small / "own.toml").write_text(
+        text + "\n[traffic.detectors]\nscenario = true\nvirtual_loops = 3\n"
+    )
+    source = sumo_source(load_config(small / "own.toml"))
+    session = source.session(small / "out-read").start()
+    try:
+        api = _libsumo()
+        reader = DetectorReader(source.scenario.detectors, source.geometry, api)
+        ids = [d.id for d in reader.detectors]
+        assert "own-loop" in ids and "own-area" in ids
+        assert len(ids) == 2 + len(source.scenario.detectors.loops)
+        own = {d.id: d for d in reader.detectors}
+        shape = sumolib.net.readNet(str(small / "small.net.xml")).getLane(lane).getShape()
+        shape_len = sum(np.hypot(*np.subtract(b, a)) for a, b in itertools.pairwise(shape))
+        xy = sumolib.geomhelper.positionAtShapeOffset(shape, shape_len / 2)
+        r, c, _ = source.geometry.cell_index(np.array([xy]))
+        assert own["own-loop"].cell == (int(r[0]), int(c[0]))
+        loops = [d for d in reader.detectors if d.kind == "loop"]
+        seen = {d.id: set() for d in loops}
+        t = api.simulation.getTime()
+        compared, area = 0, {}
+        for _, sample in source.sample_times():
+            while t < sample - 1e-9:
+                t += 1.0
+                api.simulationStep(t)
+                for d in loops:
+                    seen[d.id] |= set(api.inductionloop.getLastStepVehicleIDs(d.id))
+            for n, count, _, _ in reader.read():
+                d = reader.detectors[n]
+                if d.kind == "loop":
+                    assert count == len(seen[d.id]), d.id
+                    compared += count
+                else:
+                    area[round(sample)] = count
+            seen = {d.id: set() for d in loops}
+        assert compared > 0
+    finally:
+        session.close()
+    import xml.etree.ElementTree as ET
+
+    (written,) = (small / "out-read").rglob("area.xml")
+    intervals = {
+        round(float(e.get("end"))): int(e.get("nVehSeen"))
+        for e in ET.parse(written).iter("interval")
+    }
+    assert area and sum(area.values()) > 0
+    assert all(intervals[t] == count for t, count in area.items())
+
+
+def test_run_with_detectors_writes_them_and_the_reference_row(small, tmp_path):
+    base = tmp_path / "days"
+    args = ["--no-ceiling", "--no-report", "--quiet"]
+    assert twin_main(["run", "--config", str(small / "small.toml"), "--sumo-seed", "20",
+                      "--seeds", "2", "--swarms", "random", *args, "--out", str(base)]) == 0  # fmt: skip
+    history = tmp_path / "history.npz"
+    assert twin_main(["history", "--from", str(base), "--out", str(history)]) == 0
+    config = _with_detectors(small, "loops.toml", "virtual_loops = 3\n")
+    out = tmp_path / "eval"
+    assert twin_main(["run", "--config", str(config), "--swarms", "random,greedy", *args,
+                      "--history", str(history), "--out", str(out)]) == 0  # fmt: skip
+    readings = pd.read_parquet(out / "detectors.parquet")
+    assert readings["virtual"].all() and readings["detector"].nunique() >= 3
+    assert readings["step"].min() == 0 and readings["step"].max() == 6
+    assert readings["importance"].between(0, 1).all()
+    table = pd.read_csv(out / "belief_models.csv")
+    pairs = list(zip(table["swarm"], table["model"], strict=True))
+    assert (DETECTORS_ONLY, "nowcast") in pairs
+    assert ("random", "nowcast+detectors") in pairs and ("greedy", "nowcast+detectors") in pairs
+
+
+@pytest.mark.parametrize(
+    ("text", "needle"),
+    [
+        ("cells = [[0, 99]]", "off the"),
+        ("cells = [[1, 1], [1, 1]]", "listed twice"),
+        ("virtual_loops = 10000", "exceeds"),
+        ("virtual_loops = 2\ncells = [[1, 1]]", "give one of them"),
+    ],
+)
+def test_bad_detector_settings_are_one_line(small, tmp_path, capsys, text, needle):
+    config = _with_detectors(small, "bad.toml", text + "\n")
+    out = tmp_path / "out"
+    code = twin_main(["run", "--config", str(config), "--quiet", "--no-report", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert err.count("\n") == 1 and "Traceback" not in err and needle in err, err
+    assert "detectors" in err and str(config) in err, err
+    assert not (out / "summary.csv").exists()
+
+
+def test_a_cell_without_road_is_refused(small):
+    """An obstacle cell (listed in [grid].obstacles here) takes no station."""
+    text = (
+        (small / "small.toml")
+        .read_text()
+        .replace("[swarm]", "[grid]\nobstacles = [[2, 2]]\n[swarm]")
+    )
+    (small / "noroad.toml").write_text(text + "\n[traffic.detectors]\ncells = [[2, 2]]\n")
+    with pytest.raises(UserError, match=r"cells\[0\] = \[2, 2\] is an obstacle or has no road"):
+        sumo_source(load_config(small / "noroad.toml"))
+
+
+def test_reader_without_plan_reads_nothing(small):
+    source = sumo_source(load_config(small / "small.toml"))
+    session = source.session().start()
+    try:
+        assert DetectorReader(DetectorPlan(), source.geometry, _libsumo()).detectors == []
+    finally:
+        session.close()

@@ -1,0 +1,257 @@
+"""Fixed detectors: the scenario's induction loops and lane-area detectors, or virtual loops.
+
+Which detectors (``[traffic.detectors]``): those the scenario's additional files define
+(``<inductionLoop>``/``<e1Detector>``, ``<laneAreaDetector>``/``<e2Detector>``, found through
+libsumo once SUMO has loaded them), and loop stations that twin places itself, written as an
+additional file of ``<inductionLoop>`` elements with an aggregation period of one step:
+
+- at the listed ``cells``, or
+- at ``virtual_loops = N`` cells chosen by a deterministic rule from the network alone
+  (:func:`station_cells`): free cells by decreasing lane-km (ties: row, then column), each
+  taken unless it touches (8-neighbourhood) a cell taken before, until N are chosen; if fewer
+  than N remain, the skipped ones follow in the same order.
+
+A station is one loop on every passenger lane of the cell's main edge (the normal edge with the
+longest lane length inside the cell; ties by edge id), at the middle of that lane's stretch in
+the cell.
+
+Reading: at every sample time each detector's last completed aggregation interval is read
+(vehicles counted, occupancy, mean speed: three calls, no subscriptions, no per-SUMO-step
+work). Twin's own loops aggregate over exactly one step. A scenario detector aggregates over
+its file's period; its reading is passed on only when the interval changed (the reading
+differs from the previous one), so a period longer than a step gives fewer readings, never the
+same one twice (an interval that repeats the previous one exactly is lost, which happens
+mostly when nothing passes). Density from occupancy, ``k = occ / L`` with ``L`` the effective
+vehicle length (:data:`VEHICLE_LENGTH_M`), per lane-km as the cells' density, then the
+importance of :class:`twin.mfd.MFD` in effect at that step (the same mapping as the cells').
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from xml.sax.saxutils import quoteattr
+
+import numpy as np
+
+from twin.errors import UserError
+
+#: Prefix of the ids of the loops twin places (told apart from the scenario's own).
+VIRTUAL_PREFIX = "twin-loop-"
+#: Effective vehicle length (m) in ``density = occupancy / length``: SUMO's default passenger
+#: car (5 m) seen by a point loop.
+VEHICLE_LENGTH_M = 5.0
+LOOP = "loop"
+AREA = "area"
+
+
+@dataclass(frozen=True)
+class LoopSpec:
+    """One loop twin places: id, lane, position along the lane (m), cell."""
+
+    id: str
+    lane: str
+    pos: float
+    cell: tuple[int, int]
+
+
+@dataclass(frozen=True)
+class DetectorPlan:
+    """What a run reads: the scenario's detectors (``scenario``) and twin's loops."""
+
+    scenario: bool = False
+    loops: tuple[LoopSpec, ...] = ()
+
+    @property
+    def active(self) -> bool:
+        return self.scenario or bool(self.loops)
+
+
+@dataclass(frozen=True)
+class Detector:
+    """A detector being read: id, kind (loop or area), lane, cell, placed by twin or not."""
+
+    id: str
+    kind: str
+    lane: str
+    cell: tuple[int, int]
+    virtual: bool
+
+
+def station_cells(lane_km: np.ndarray, free: np.ndarray, n: int) -> list[tuple[int, int]]:
+    """``n`` cells for loop stations by the rule of the module docstring (deterministic)."""
+    nx, ny = lane_km.shape
+    cells = [(int(i), int(j)) for i, j in np.argwhere(free & (lane_km > 0))]
+    cells.sort(key=lambda c: (-float(lane_km[c]), c[0], c[1]))
+    taken: list[tuple[int, int]] = []
+    blocked = np.zeros((nx, ny), dtype=bool)
+    skipped = []
+    for i, j in cells:
+        if len(taken) == n:
+            break
+        if blocked[i, j]:
+            skipped.append((i, j))
+            continue
+        taken.append((i, j))
+        blocked[max(i - 1, 0) : i + 2, max(j - 1, 0) : j + 2] = True
+    return taken + skipped[: max(n - len(taken), 0)]
+
+
+def check_cells(cells, geometry, free: np.ndarray, where: str) -> list[tuple[int, int]]:
+    """The listed station cells, refused (one line) off the grid, without road or twice."""
+    out: list[tuple[int, int]] = []
+    for n, (i, j) in enumerate(cells):
+        field = f"{where}[traffic.detectors].cells[{n}] = [{i}, {j}]"
+        if not (0 <= i < geometry.nx and 0 <= j < geometry.ny):
+            raise UserError(
+                f"{field} is off the {geometry.nx} x {geometry.ny} grid; give "
+                f"0 <= i < {geometry.nx}, 0 <= j < {geometry.ny}"
+            )
+        if geometry.lane_km[i, j] <= 0 or not free[i, j]:
+            raise UserError(
+                f"{field} is an obstacle or has no road; pick a free cell on a road (see the "
+                "report's map)"
+            )
+        if (i, j) in out:
+            raise UserError(f"{field} is listed twice; give each cell once")
+        out.append((int(i), int(j)))
+    return out
+
+
+def _cell_box(geometry, cell: tuple[int, int]):
+    from shapely.geometry import box
+
+    x0 = geometry.x0 + cell[1] * geometry.cell_m
+    y1 = geometry.y_top - cell[0] * geometry.cell_m
+    return box(x0, y1 - geometry.cell_m, x0 + geometry.cell_m, y1)
+
+
+def main_edges(net_file: Path, geometry) -> dict[tuple[int, int], list]:
+    """Per cell, the passenger lanes (sumolib) of its main edge: the normal edge with the most
+    lane length inside the cell, ties by edge id. Cells with junction lanes only are absent."""
+    import sumolib
+    from shapely.geometry import LineString
+
+    net = sumolib.net.readNet(str(net_file))
+    best: dict[tuple[int, int], tuple[float, str, list]] = {}
+    quarter = geometry.cell_m / 4
+    for edge in sorted(net.getEdges(), key=lambda e: e.getID()):
+        lanes = [lane for lane in edge.getLanes() if lane.allows("passenger")]
+        if not lanes:
+            continue
+        line = LineString(lanes[0].getShape())
+        steps = max(int(line.length / quarter), 1)
+        pts = np.array(
+            [line.interpolate(t, normalized=True).coords[0] for t in np.linspace(0, 1, steps + 1)]
+        )
+        rows, cols, inside = geometry.cell_index(pts)
+        touched = {(int(r), int(c)) for r, c, ok in zip(rows, cols, inside, strict=True) if ok}
+        for cell in touched:
+            box = _cell_box(geometry, cell)
+            length = sum(LineString(lane.getShape()).intersection(box).length for lane in lanes)
+            if length > 0 and (cell not in best or length > best[cell][0]):
+                best[cell] = (length, edge.getID(), lanes)
+    return {cell: lanes for cell, (_, _, lanes) in best.items()}
+
+
+def place_loops(edges: dict, geometry, cells: list[tuple[int, int]]) -> tuple[LoopSpec, ...]:
+    """One station per cell (each a key of :func:`main_edges`' ``edges``): a loop on every
+    passenger lane of the cell's main edge, at the middle of the lane's stretch in the cell."""
+    from shapely.geometry import LineString
+
+    specs = []
+    for cell in cells:
+        box = _cell_box(geometry, cell)
+        for lane in edges[cell]:
+            line = LineString(lane.getShape())
+            pieces = list(getattr(part := line.intersection(box), "geoms", [part]))
+            piece = max(pieces, key=lambda g: g.length)
+            along = line.project(piece.interpolate(0.5, normalized=True))
+            pos = along * lane.getLength() / line.length if line.length > 0 else 0.0
+            pos = float(min(max(pos, 0.1), max(lane.getLength() - 0.1, 0.1)))
+            loop_id = f"{VIRTUAL_PREFIX}{cell[0]}-{cell[1]}-{lane.getIndex()}"
+            specs.append(LoopSpec(loop_id, lane.getID(), round(pos, 2), cell))
+    return tuple(specs)
+
+
+def write_loops(specs: tuple[LoopSpec, ...], path: Path, period_s: float) -> Path:
+    """The additional file of twin's loops (aggregation period one step, output discarded)."""
+    lines = ["<additional>"]
+    for s in specs:
+        lines.append(
+            f'    <inductionLoop id={quoteattr(s.id)} lane={quoteattr(s.lane)} pos="{s.pos:.2f}" '
+            f'period="{period_s:g}" file="NUL"/>'
+        )
+    lines.append("</additional>\n")
+    Path(path).write_text("\n".join(lines))
+    return Path(path)
+
+
+def with_additional(options: tuple[str, ...], extra: Path) -> tuple[str, ...]:
+    """SUMO ``options`` with ``extra`` added to the ``--additional-files`` list (or a new one)."""
+    out = list(options)
+    for i in range(len(out) - 1):
+        if out[i] in ("--additional-files", "-a"):
+            out[i + 1] = ",".join([*[v for v in out[i + 1].split(",") if v], str(extra)])
+            return tuple(out)
+    return (*out, "--additional-files", str(extra))
+
+
+class DetectorReader:
+    """The detectors of an open SUMO session, their cells, and their readings per sample time."""
+
+    def __init__(self, plan: DetectorPlan, geometry, api):
+        self.api = api
+        virtual = {s.id: s for s in plan.loops}
+        found: list[Detector] = []
+        loop_ids = list(api.inductionloop.getIDList())
+        area_ids = list(api.lanearea.getIDList()) if plan.scenario else []
+        for det_id in loop_ids:
+            if det_id in virtual:
+                found.append(
+                    Detector(det_id, LOOP, virtual[det_id].lane, virtual[det_id].cell, True)
+                )
+            elif plan.scenario:
+                lane = api.inductionloop.getLaneID(det_id)
+                cell = self._cell(geometry, lane, api.inductionloop.getPosition(det_id))
+                if cell is not None:
+                    found.append(Detector(det_id, LOOP, lane, cell, False))
+        for det_id in area_ids:
+            lane = api.lanearea.getLaneID(det_id)
+            mid = api.lanearea.getPosition(det_id) + api.lanearea.getLength(det_id) / 2.0
+            cell = self._cell(geometry, lane, mid)
+            if cell is not None:
+                found.append(Detector(det_id, AREA, lane, cell, False))
+        self.detectors = found
+        self._last: dict[str, tuple] = {}
+
+    def _cell(self, geometry, lane: str, pos: float) -> tuple[int, int] | None:
+        edge = self.api.lane.getEdgeID(lane)
+        index = int(lane.rsplit("_", 1)[1])
+        length = self.api.lane.getLength(lane)
+        x, y = self.api.simulation.convert2D(edge, min(max(pos, 0.0), length), index)
+        r, c, inside = geometry.cell_index(np.array([[x, y]]))
+        return (int(r[0]), int(c[0])) if inside[0] else None
+
+    def read(self) -> list[tuple[int, int, float, float]]:
+        """``(index, vehicles, occupancy %, mean speed m/s)`` of each detector whose last
+        completed interval is new (twin's loops: always; speed NaN when nothing passed)."""
+        rows = []
+        for n, d in enumerate(self.detectors):
+            dom = self.api.inductionloop if d.kind == LOOP else self.api.lanearea
+            reading = (
+                int(dom.getLastIntervalVehicleNumber(d.id)),
+                float(dom.getLastIntervalOccupancy(d.id)),
+                float(dom.getLastIntervalMeanSpeed(d.id)),
+            )
+            if not d.virtual and self._last.get(d.id) == reading:
+                continue
+            self._last[d.id] = reading
+            count, occupancy, speed = reading
+            rows.append((n, count, occupancy, speed if speed >= 0 else float("nan")))
+        return rows
+
+
+def density_from_occupancy(occupancy_pct: np.ndarray) -> np.ndarray:
+    """Vehicles per lane-km from a detector's occupancy (%): ``k = occ / L``."""
+    return np.asarray(occupancy_pct, dtype=float) / 100.0 * 1000.0 / VEHICLE_LENGTH_M
