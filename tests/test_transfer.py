@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+import torch
 from helpers import small_sumo_scenario
 
 from twin.cli import main as cli
@@ -95,11 +96,11 @@ def test_tiny_matrix_end_to_end_and_pool_equals_sequential(tmp_path: Path) -> No
         seen = col[col["swarm"] == line.swarm]["pct_events_seen"].mean()  # NaN: no event
         assert line.pct_events_seen == pytest.approx(seen, nan_ok=True)
     assert np.isfinite(a[a["evaluated_on"] == "synthetic"]["pct_events_seen"]).all()
-    # the checkpoints are the same bits, each with its provenance beside it
+    # the checkpoints hold the same weights, each with its provenance beside it
     for row in ("paper", "paper+tapes"):
+        w1, w2 = (torch.load(d / "rows" / row / "qnet.pt")["weights"] for d in (sequential, pool))
+        assert all(torch.equal(w1[k], w2[k]) for k in w1)
         p1 = json.loads((sequential / "rows" / row / "provenance.json").read_text())
-        p2 = json.loads((pool / "rows" / row / "provenance.json").read_text())
-        assert p1["qnet_sha256"] == p2["qnet_sha256"]
         assert {"command", "recipe", "seeds", "schedule", "wall_s", "curve"} <= set(p1)
         assert all(p["seed"] >= 100 for p in p1["curve"]["points"])  # validation seeds only
     tuned = json.loads((sequential / "rows" / "paper+tapes" / "provenance.json").read_text())
@@ -202,3 +203,12 @@ def test_learned_swarms_take_labels_and_classical_ones_do_not() -> None:
             check_swarm_name(bad)
     policy = make_policy("rl@shipped", checkpoint=ROOT / "data" / "qnet.pt")
     assert policy.name == "rl@shipped" and not policy.online
+
+
+def test_the_full_transfer_config_is_the_short_one_at_full_size() -> None:
+    short = load_transfer_config(ROOT / "configs" / "transfer.toml")
+    full = load_transfer_config(ROOT / "configs" / "transfer-full.toml")
+    assert full.seeds == list(range(10))
+    assert [r.name for r in full.row] == [r.name for r in short.row]
+    assert [c.name for c in full.column] == [c.name for c in short.column]
+    assert full.schedule["epochs"] > short.schedule["epochs"]

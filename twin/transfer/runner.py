@@ -308,8 +308,14 @@ def run_transfer(
     sweep = sweep_config(config, rows)
     say(f"evaluating on {len(config.column)} columns x {len(config.seeds)} seeds "
         f"(seeds {config.seeds})")  # fmt: skip
-    run_sweep(sweep, out / "sweep", executor=executor, workers=workers, address=address,
-              progress=progress, report=False)  # fmt: skip
+    failure = None
+    try:
+        run_sweep(sweep, out / "sweep", executor=executor, workers=workers, address=address,
+                  progress=progress, report=False)  # fmt: skip
+    except UserError as exc:  # failed cells: the matrix of the others, then the error
+        if not (out / "sweep" / "results.csv").exists():
+            raise
+        failure = exc
     timings["evaluation_s"] = round(time.perf_counter() - t0, 2)
 
     import pandas as pd
@@ -330,4 +336,7 @@ def run_transfer(
     }
     text = json.dumps(manifest, indent=1, default=str)
     atomic_write(out / "transfer.json", lambda p: p.write_text(text))
-    return write_transfer_report(out, matrix, results, manifest)
+    report = write_transfer_report(out, matrix, results, manifest)
+    if failure is not None:
+        raise failure
+    return report
