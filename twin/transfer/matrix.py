@@ -106,14 +106,16 @@ def _pct(value: float) -> str:
 
 def verdict(matrix: pd.DataFrame) -> str:
     """One plain sentence: does any learned swarm beat the best classical swarm anywhere (its
-    whole 95% interval above zero)?"""
+    whole 95% interval above zero, over at least 2 seeds)?"""
     if matrix.empty:
         return "The matrix is empty."
-    wins = matrix[matrix["difference"] - matrix["difference_ci95"] > 0]
+    interval = (matrix["n_seeds"] >= 2) & (matrix["difference"] - matrix["difference_ci95"] > 0)
+    wins = matrix[interval]
     if wins.empty:
         best = matrix.loc[matrix["difference"].idxmax()]
         return (
-            "No learned swarm beats the best classical swarm in any cell; the closest is "
+            "No learned swarm beats the best classical swarm in any cell (95% interval above "
+            "zero); the closest is "
             f"{best['swarm']} on {best['evaluated_on']}, {best['difference']:+.3f} ± "
             f"{best['difference_ci95']:.3f}."
         )

@@ -107,7 +107,7 @@ def tape_tasks(config: TransferConfig, out: Path) -> list[dict[str, Any]]:
             "config": str(t.config),
             "overrides": t.overrides,
             "seed": seed,
-            "path": str(out / "tapes" / f"{tape_stem(t)}-seed-{seed}.parquet"),
+            "path": str((out / "tapes" / f"{tape_stem(t)}-seed-{seed}.parquet").resolve()),
         }
         for seed in t.seeds
     ]
@@ -289,6 +289,7 @@ def run_transfer(
     from twin.transfer.report import write_transfer_report
 
     out.mkdir(parents=True, exist_ok=True)
+    out = out.resolve()  # the rows' provenance names files the same from any folder
     timings: dict[str, float] = {}
 
     t0 = time.perf_counter()
