@@ -94,10 +94,14 @@ def format_matrix(matrix: pd.DataFrame) -> str:
         lines.append(
             f"| {r.trained_on} | {r.swarm.split('@')[0]} | {r.evaluated_on} | {r.best_classical} "
             f"| {r.difference:+.3f} ± {r.difference_ci95:.3f} | {_pct(r.gap_closed_oracle)} "
-            f"| {r.pct_events_seen:.0f} ({r.best_pct_events_seen:.0f}) "
-            f"| {r.latency_median_steps:.1f} ({r.best_latency_median_steps:.1f}) |"
+            f"| {_num(r.pct_events_seen, 0)} ({_num(r.best_pct_events_seen, 0)}) "
+            f"| {_num(r.latency_median_steps, 1)} ({_num(r.best_latency_median_steps, 1)}) |"
         )
     return head + "\n".join(lines)
+
+
+def _num(value: float, digits: int) -> str:
+    return "n/a" if not np.isfinite(value) else f"{value:.{digits}f}"
 
 
 def _pct(value: float) -> str:

@@ -129,7 +129,7 @@ def write_transfer_report(
         init = recipe.get("init") or {}
         prov_rows.append([
             name, "loaded " + record["loaded"] if "loaded" in record else "trained",
-            str(recipe.get("traffic")), Path(init["path"]).parent.name if init else "",
+            str(recipe.get("traffic")), "/".join(Path(init["path"]).parts[-3:]) if init else "",
             str(record.get("updates", "")), str(record.get("wall_s")), last,
             record.get("qnet_sha256", "")[:12],
         ])  # fmt: skip

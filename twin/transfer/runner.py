@@ -182,15 +182,17 @@ def loaded_provenance(row, out: Path) -> dict[str, Any]:
     from twin.learning.pretrain import SCHEDULE_KEYS, file_sha256
 
     meta = read_checkpoint(row.checkpoint)["meta"]
+    config = meta.get("config") if isinstance(meta.get("config"), dict) else {}
     record = {
         "loaded": str(row.checkpoint),
         "qnet_sha256": file_sha256(row.checkpoint),
-        "recipe": {"traffic": (meta.get("config") or {}).get("traffic", "paper")},
-        "schedule": {k: (meta.get("config") or {}).get(k) for k in SCHEDULE_KEYS},
+        "recipe": {"traffic": config.get("traffic", "paper")},
+        "schedule": {k: config.get(k) for k in SCHEDULE_KEYS},
         "seeds": {"training": meta.get("seed")},
+        "updates": int(meta.get("epoch") or 0) * int(config.get("iters_per_epoch") or 1),
         "wall_s": meta.get("wall_s"),
         "epoch": meta.get("epoch"),
-        "config": meta.get("config"),
+        "config": config,
     }
     out.mkdir(parents=True, exist_ok=True)
     text = json.dumps(record, indent=1, default=str)
