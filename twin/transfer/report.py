@@ -148,7 +148,9 @@ def write_transfer_report(
         )
     parts.append("<h2>Matrix (Markdown)</h2><pre>" + html.escape(format_matrix(matrix)) + "</pre>")
     parts.append(
-        "<h2>Run</h2><pre>" + html.escape(json.dumps(manifest["timings"], indent=1)) + "</pre>"
+        "<h2>Invocations</h2><pre>"
+        + html.escape(json.dumps(manifest["invocations"], indent=1))
+        + "</pre>"
     )
     page = (
         "<!doctype html><html><head><meta charset='utf-8'><title>transfer matrix</title>"

@@ -5,7 +5,7 @@ one traffic pass with the classical swarms, every row's learned swarms (``rl@<ro
 
 The run folder::
 
-    transfer.json            the config, the stages' timings, the rows' checkpoints
+    transfer.json            the config, the rows' checkpoints, every invocation's timings
     tapes/<seed>.parquet     the earlier days' SUMO runs (rows trained on tapes)
     rows/<row>/              each row's pretraining folder: qnet.pt, provenance.json,
                              curve.csv, train_log.csv (a loaded row: provenance.json only)
@@ -326,6 +326,17 @@ def run_transfer(
     results = pd.read_csv(out / "sweep" / "results.csv")
     matrix = transfer_matrix(results, config)
     atomic_write(out / "matrix.csv", lambda p: matrix.to_csv(p, index=False))
+    history = []
+    try:  # earlier invocations of this transfer (a resumed run skips what they did)
+        history = json.loads((out / "transfer.json").read_text()).get("invocations", [])
+    except (OSError, ValueError, AttributeError):
+        history = []
+    invocation = {
+        "executor": executor,
+        "workers": workers,
+        "timings": timings,
+        "finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    }
     manifest = {
         "name": config.name,
         "config": str(config.path),
@@ -333,9 +344,8 @@ def run_transfer(
         "rows": rows,
         "columns": [c.model_dump(mode="json") for c in config.column],
         "classical": config.transfer.classical,
-        "executor": executor,
-        "workers": workers,
         "timings": timings,
+        "invocations": [*history, invocation],
     }
     text = json.dumps(manifest, indent=1, default=str)
     atomic_write(out / "transfer.json", lambda p: p.write_text(text))
