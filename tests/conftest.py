@@ -20,7 +20,7 @@ SLOW_MODULES = {
     "test_belief_cli", "test_incidents", "test_learning_pretrain", "test_parallel_seeds", "test_replay_identity", "test_report",
     "test_resources", "test_signals", "test_slow", "test_sumo_files", "test_sumo_inputs",
     "test_sumo_network", "test_sumo_observe", "test_sumo_small", "test_sweep", "test_sweep_sumo",
-    "test_timing",
+    "test_timing", "test_transfer",
 }  # fmt: skip
 #: Tests elsewhere that take seconds (long swarm runs) or start SUMO: module::function.
 SLOW_TESTS = {

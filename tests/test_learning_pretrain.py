@@ -221,3 +221,70 @@ def test_a_damaged_log_row_is_one_line_naming_the_file(tmp_path):
     log.write_text("epoch,updates,loss\n1000,1000,0.02\n2000,2000,0.01\n")
     _truncate_log(log, 1000)
     assert log.read_text().splitlines() == ["epoch,updates,loss", "1000,1000,0.02"]
+
+
+# ----------------------------------------------------------------------------- recipes
+def test_recipes_collect_on_their_traffic_and_record_curve_and_provenance(tmp_path):
+    import json
+
+    from helpers import random_tape
+
+    from twin.learning.pretrain import collect_buffer
+
+    tape_a, tape_b = tmp_path / "a.parquet", tmp_path / "b.parquet"
+    random_tape(seed=1, nx=6, ny=6, horizon=30).write(tape_a)
+    random_tape(seed=2, nx=6, ny=6, horizon=25).write(tape_b)
+    paper = load_config(_config(tmp_path, out="paper"))
+    tapes = load_config(_config(tmp_path, out="tapes"), tapes=[str(tape_a), str(tape_b)])
+    assert tapes.traffic == "tapes"
+    # one episode per tape, each as long as its tape
+    assert collect_buffer(tapes).steps == 30 + 25
+    dyn = load_config(_config(tmp_path, out="dyn")).model_copy(update={"traffic": "dynamics"})
+    buffers = [collect_buffer(c) for c in (paper, dyn)]
+    assert not np.array_equal(buffers[0].rewards[:60], buffers[1].rewards[:60])
+
+    # fine-tuning starts from the given weights: the curve's first point is that network
+    pretrain(paper, progress=False)
+    tuned = tapes.model_copy(
+        update={"init": str(tmp_path / "paper/qnet.pt"), "curve_every": 20, "curve_horizon": 8}
+    )
+    pretrain(tuned, progress=False)
+    start, final = (
+        _weights(tmp_path / "tapes/snapshots/qnet_e0000000.pt"),
+        _weights(tmp_path / "paper/qnet.pt"),
+    )
+    assert all(torch.equal(start[k], final[k]) for k in start)
+    with open(tmp_path / "tapes/curve.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert [int(r["epoch"]) for r in rows] == [0, 0, 20, 20, 40, 40]
+    assert {int(r["seed"]) for r in rows} == {100, 101}
+    record = json.loads((tmp_path / "tapes/provenance.json").read_text())
+    assert record["recipe"]["traffic"] == "tapes" and len(record["recipe"]["tapes"]) == 2
+    assert record["recipe"]["init"]["path"].endswith("paper/qnet.pt")
+    assert record["updates"] == 40 * 2 and len(record["curve"]["points"]) == 6
+
+
+@pytest.mark.parametrize(
+    ("text", "match"),
+    [
+        ("curve_seeds = [3, 100]\n", "evaluation seed"),
+        ('traffic = "tapes"\n', "needs tape files"),
+        ('traffic = "tapes"\ntapes = ["nowhere.parquet"]\n', "does not exist"),
+        ('traffic = "weather"\n', "traffic"),
+    ],
+)
+def test_bad_recipes_are_one_line_errors(tmp_path, text, match):
+    path = _config(tmp_path)
+    path.write_text(path.read_text() + text)
+    with pytest.raises(UserError, match=match) as info:
+        load_config(path)
+    assert "\n" not in str(info.value)
+
+
+def test_init_of_other_layers_is_refused(tmp_path):
+    pretrain(load_config(_config(tmp_path, out="small")), progress=False)
+    path = _config(tmp_path, name="big.toml", out="big")
+    path.write_text(path.read_text().replace("[13, 16, 5]", "[13, 32, 5]"))
+    config = load_config(path, init=str(tmp_path / "small/qnet.pt"))
+    with pytest.raises(UserError, match="layers"):
+        pretrain(config, progress=False)

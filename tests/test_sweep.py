@@ -260,22 +260,6 @@ def test_failing_cells_are_reported_and_rerun(tmp_path: Path, capsys) -> None:
     assert set(pd.read_csv(tmp_path / "s" / "results.csv")["swarm"]) >= {"rl"}
 
 
-def test_transfer_config(tmp_path: Path) -> None:
-    from twin.sweep import file_sha256
-
-    path = ROOT / "configs" / "transfer.toml"
-    checkpoint = ROOT / "data" / "qnet.pt"
-    if not checkpoint.exists():
-        with pytest.raises(UserError, match=r"qnet\.pt does not exist"):
-            load_sweep_config(path)
-        return
-    config = load_sweep_config(path)
-    cells = expand_cells(config, tmp_path)
-    assert {c["scenario"] for c in cells} == {"synthetic", "shenzhen-rush"}
-    assert len(cells) == 2 * len(config.seeds)
-    assert all(c["checkpoints"]["rl"] == file_sha256(checkpoint) for c in cells)
-
-
 #: (dotted key, the line of configs/synthetic.toml it replaces, the new line) for every key a
 #: sweep override can reach in a synthetic scenario.
 OVERRIDES = [

@@ -93,17 +93,43 @@ def available_policies() -> list[str]:
     return sorted(SWARMS)
 
 
+#: ``rl@paper``: a learned swarm labelled, so that one run holds several of one kind (each with
+#: its own checkpoint, e.g. the rows of a transfer matrix).
+LABEL_SEPARATOR = "@"
+
+
+def base_name(name: str) -> str:
+    """The registered swarm of a (perhaps labelled) name: ``rl@paper`` -> ``rl``."""
+    return name.split(LABEL_SEPARATOR, 1)[0]
+
+
 def is_learned(name: str) -> bool:
-    return name in SWARMS and SWARMS[name].learned
+    base = base_name(name)
+    return base in SWARMS and SWARMS[base].learned
 
 
 def check_swarm_name(name: str) -> None:
-    """Raise :class:`UserError` naming the choices unless a swarm is registered as ``name``."""
-    if name not in SWARMS:
+    """Raise :class:`UserError` naming the choices unless a swarm is registered as ``name``
+    (a learned swarm may carry a label: ``rl@paper``)."""
+    base, _, label = name.partition(LABEL_SEPARATOR)
+    if base not in SWARMS:
         raise UserError(f"unknown swarm {name!r}; choose from {', '.join(available_policies())}")
+    if LABEL_SEPARATOR in name:
+        if not SWARMS[base].learned:
+            raise UserError(
+                f"swarm {name!r}: only learned swarms take a label (e.g. 'rl@paper'); use {base!r}"
+            )
+        if not label or not all(c.isascii() and (c.isalnum() or c in "-_.+=") for c in label):
+            raise UserError(
+                f"swarm {name!r}: the label after '@' must be letters, digits, '-', '_', '.', "
+                "'+', '='"
+            )
 
 
 def make_policy(name: str, **options) -> Policy:
-    """Build the swarm registered under ``name``."""
+    """Build the swarm registered under ``name`` (a labelled one under its base name)."""
     check_swarm_name(name)
-    return SWARMS[name].build(**options)
+    policy = SWARMS[base_name(name)].build(**options)
+    if name != base_name(name):
+        policy.name = name
+    return policy

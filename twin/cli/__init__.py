@@ -18,7 +18,9 @@ from twin import __version__
 from twin.boundary import run_command
 from twin.errors import UserError
 
-COMMANDS = ["evaluate", "pretrain", "network", "run", "history", "report", "sweep", "replay"]
+COMMANDS = [
+    "evaluate", "pretrain", "network", "run", "history", "report", "sweep", "replay", "transfer",
+]  # fmt: skip
 
 #: The largest seed a command takes (SUMO's seeds are 32-bit signed integers).
 MAX_SEED = 2**31 - 1

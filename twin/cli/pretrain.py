@@ -22,6 +22,12 @@ def add_parser(subparsers) -> None:
                    help=f"pretraining config (TOML); default {DEFAULT_CONFIG}")  # fmt: skip
     p.add_argument("--out", default=None, help="output folder (overrides the config's `out`)")
     p.add_argument("--epochs", type=int, default=None, help="overrides the config's `epochs`")
+    p.add_argument("--traffic", nargs="+", default=None, metavar="TAPE",
+                   help='train on these SUMO tapes (tape.parquet of `twin run`): the recipe '
+                   'traffic = "tapes" (other recipes: the config key `traffic`, see '
+                   "--help-config)")  # fmt: skip
+    p.add_argument("--init", default=None, metavar="QNET",
+                   help="start from this model checkpoint (fine-tuning); the config key `init`")  # fmt: skip
     p.add_argument("--max-memory-gb", type=float, default=None,
                    help="memory limit in GB (default $TWIN_MAX_MEMORY_GB, else 8)")  # fmt: skip
     p.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -49,10 +55,20 @@ def main(args: argparse.Namespace) -> int:
             if name == "disturbances":
                 default = f"{len(default)} disturbances (4 big, 3 small)"
             print(f"{name:22s} {default!s:24s} {f.description or ''}")
+        print(
+            "\nRecipes: traffic = paper | dynamics | tapes (--traffic TAPE ...); init = a "
+            "checkpoint to fine-tune (--init); the state is always the paper's 13 values. "
+            "curve_every > 0 writes curve.csv (R_hat_T on curve_seeds against updates); "
+            "provenance.json records command, recipe, seeds, schedule, wall time and curve."
+        )
         return 0
     check_count("--epochs", args.epochs)
     config = load_config(
-        shipped_config(args.config or DEFAULT_CONFIG), out=args.out, epochs=args.epochs
+        shipped_config(args.config or DEFAULT_CONFIG),
+        out=args.out,
+        epochs=args.epochs,
+        tapes=args.traffic,
+        init=args.init,
     )
     where = str(args.config or DEFAULT_CONFIG)
     check_pretrain_memory(config, where, args.max_memory_gb)

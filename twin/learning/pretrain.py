@@ -19,11 +19,11 @@ import hashlib
 import itertools
 import time
 from pathlib import Path
-from typing import Annotated, Any, ClassVar
+from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
 import torch
-from pydantic import Field, ValidationError, ValidationInfo, field_validator
+from pydantic import Field, ValidationError, ValidationInfo, field_validator, model_validator
 
 from twin.config import DisturbanceConfig, StrictModel, read_toml, validation_error
 from twin.errors import UserError
@@ -88,6 +88,24 @@ class PretrainConfig(StrictModel):
         default_factory=lambda: [DisturbanceConfig(**d) for d in TRAINING_DISTURBANCES],
     )
     n_drones: PositiveInt = _help("drones in the random swarm", default=4)
+    # the learning recipe: which traffic the random swarm collects on, where training starts
+    traffic: Literal["paper", "dynamics", "tapes"] = _help(
+        'training traffic: "paper" (the fixed map of Sec. III-A, `disturbances`), "dynamics" '
+        "(a fresh map per episode: disturbances that move, grow and fade under a rush-hour "
+        'wave, twin/traffic/dynamic.py), "tapes" (recorded SUMO runs, `tapes`; also --traffic)',
+        default="paper",
+    )
+    tapes: list[str] = _help(
+        'tape.parquet files of SUMO runs for traffic = "tapes", one per episode in turn',
+        default_factory=list,
+    )
+    dynamics_disturbances: PositiveInt = _help(
+        'disturbances per map for traffic = "dynamics"', default=8
+    )
+    init: str | None = _help(
+        "a model checkpoint (qnet.pt) to start from: fine-tuning (default: a fresh network)",
+        default=None,
+    )
     episodes: PositiveInt = _help("random-swarm episodes in the replay buffer", default=10)
     eta: float = _help("idleness kept by a visited cell (Def. 3)", default=0.1, gt=0, lt=1)
     delta: float = _help("idleness recovery per step (Def. 3)", default=0.025, gt=0, lt=1)
@@ -118,10 +136,24 @@ class PretrainConfig(StrictModel):
         "epochs between checkpoints (what a kill can lose)", default=1000
     )
     snapshot_every: int = _help("epochs between kept weight snapshots (0: none)", default=0, ge=0)
+    # the learning curve: R_hat_T of the "rl" swarm on validation seeds against updates
+    curve_every: int = _help(
+        "epochs between points of the learning curve, curve.csv (0: no curve)", default=0, ge=0
+    )
+    curve_seeds: list[Annotated[int, Field(ge=0)]] = _help(
+        "validation seeds of the curve (never the evaluation seeds 0-9)",
+        default_factory=lambda: [100, 101],
+    )
+    curve_config: str = _help(
+        "scenario config the curve is measured on (a synthetic or a SUMO tape's)",
+        default="synthetic",
+    )
+    curve_horizon: PositiveInt = _help("steps of each curve evaluation", default=200)
 
     # Fields that may change between a run and its resumption without invalidating it.
     RESUMABLE_CHANGES: ClassVar[tuple[str, ...]] = (
         "epochs", "out", "log_every", "checkpoint_every", "snapshot_every",
+        "curve_every", "curve_seeds", "curve_config", "curve_horizon",
     )  # fmt: skip
 
     @field_validator("layers")
@@ -144,13 +176,39 @@ class PretrainConfig(StrictModel):
             )
         return n_drones
 
+    @field_validator("curve_seeds")
+    @classmethod
+    def _validation_seeds(cls, seeds: list[int]) -> list[int]:
+        if any(s < 10 for s in seeds):
+            raise ValueError(
+                "holds an evaluation seed (0-9); measure the curve on validation seeds, "
+                "e.g. [100, 101]"
+            )
+        return seeds
+
+    @model_validator(mode="after")
+    def _tapes_given(self) -> PretrainConfig:
+        if self.traffic == "tapes" and not self.tapes:
+            raise ValueError(
+                '[tapes] is empty; traffic = "tapes" needs tape files (or --traffic TAPE)'
+            )
+        return self
+
+    @field_validator("tapes")
+    @classmethod
+    def _tapes(cls, tapes: list[str]) -> list[str]:
+        for tape in tapes:
+            if not Path(tape).is_file():
+                raise ValueError(f"names {tape}, which does not exist; give tape.parquet files")
+        return tapes
+
     def training_dict(self) -> dict[str, Any]:
         """The config as plain python types (stored in every checkpoint)."""
         return self.model_dump()
 
 
 #: Command-line flags that override config keys.
-FLAGS = {"out": "--out", "epochs": "--epochs"}
+FLAGS = {"out": "--out", "epochs": "--epochs", "tapes": "--traffic", "init": "--init"}
 
 
 def load_config(path: str | Path, **overrides: Any) -> PretrainConfig:
@@ -163,6 +221,14 @@ def load_config(path: str | Path, **overrides: Any) -> PretrainConfig:
     except ValidationError as exc:
         raise validation_error(path, exc, raw, PretrainConfig, sections=False) from None
     raw.update({k: v for k, v in overrides.items() if v is not None})
+    if overrides.get("tapes"):  # --traffic TAPE [TAPE ...]
+        raw["traffic"] = "tapes"
+    base = path.resolve().parent
+    for key in ("init",):  # a file named in the config is relative to it
+        if isinstance(raw.get(key), str) and overrides.get(key) is None:
+            raw[key] = str(base / raw[key])
+    if isinstance(raw.get("tapes"), list) and overrides.get("tapes") is None:
+        raw["tapes"] = [str(base / t) if isinstance(t, str) else t for t in raw["tapes"]]
     try:
         return PretrainConfig.model_validate(raw)
     except ValidationError as exc:
@@ -234,11 +300,32 @@ def training_source(cfg: PretrainConfig) -> SyntheticTraffic:
     return SyntheticTraffic(grid, disturbances, cfg.horizon, beta1=cfg.beta1, beta2=cfg.beta2)
 
 
+def episode_sources(cfg: PretrainConfig) -> list:
+    """The traffic of each episode, by the recipe's ``traffic``: the one paper map for all,
+    a fresh dynamic map per episode (seeded by ``seed`` and the episode), or the tapes in
+    turn."""
+    if cfg.traffic == "dynamics":
+        from twin.traffic.dynamic import DynamicTraffic
+
+        grid = Grid.open(cfg.nx, cfg.ny)
+        return [
+            DynamicTraffic(grid, cfg.horizon, cfg.dynamics_disturbances, seed=cfg.seed * 100003 + e)
+            for e in range(cfg.episodes)
+        ]
+    if cfg.traffic == "tapes":
+        from twin.traffic.tape import TapeTraffic
+
+        tapes = [TapeTraffic.from_file(t) for t in cfg.tapes]
+        return [tapes[e % len(tapes)] for e in range(cfg.episodes)]
+    source = training_source(cfg)
+    return [source] * cfg.episodes
+
+
 def collect_buffer(cfg: PretrainConfig, progress: bool = False) -> ReplayBuffer:
     """``episodes`` random-swarm episodes, pooled; a function of the config alone (seeded)."""
-    source = training_source(cfg)
+    sources = episode_sources(cfg)
     params = ScoreParams(cfg.eta, cfg.delta, cfg.alpha_T, cfg.alpha_I)
-    buffer = ReplayBuffer(cfg.episodes * cfg.horizon, cfg.n_drones)
+    buffer = ReplayBuffer(sum(s.horizon for s in sources), cfg.n_drones)
     episodes = range(cfg.episodes)
     if progress:
         from tqdm.auto import tqdm
@@ -246,9 +333,17 @@ def collect_buffer(cfg: PretrainConfig, progress: bool = False) -> ReplayBuffer:
         episodes = tqdm(episodes, desc="random swarm", unit="episode", leave=False)
     for e in episodes:
         rng = np.random.default_rng([cfg.seed, 1, e])
-        ep = random_swarm_episode(source, cfg.n_drones, params, rng)
+        ep = random_swarm_episode(sources[e], cfg.n_drones, params, rng)
         buffer.add_steps(ep.states, ep.actions, ep.rewards, ep.next_states, ep.next_feasible)
     return buffer
+
+
+def file_sha256(path: str | Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
 
 
 def buffer_digest(buffer: ReplayBuffer) -> str:
@@ -294,6 +389,13 @@ def _pretrain(cfg, progress, out, state_path, model_path, log_path) -> Path:
     if state_path.exists():
         epoch, wall = _resume(state_path, cfg, digest, net, target, optimizer, batch_rng)
         _truncate_log(log_path, epoch)
+    elif cfg.init is not None:  # fine-tuning: start from the given network's weights
+        load_initial_weights(cfg, net)
+        sync_target(net, target)
+    if epoch == 0 and cfg.curve_every:  # the curve's first point: the starting network
+        meta = model_metadata(cfg.layers, cfg.training_dict(), cfg.seed, 0)
+        meta["wall_s"] = 0.0
+        save_model(out / "snapshots" / f"qnet_e{0:07d}.pt", net.state_dict(), meta)
     if epoch == 0:
         log_path.parent.mkdir(parents=True, exist_ok=True)
         with open(log_path, "w", newline="") as f:
@@ -321,7 +423,9 @@ def _pretrain(cfg, progress, out, state_path, model_path, log_path) -> Path:
                 sync_target(net, target)
             log = epoch % cfg.log_every == 0 or epoch == cfg.epochs
             save = epoch % cfg.checkpoint_every == 0 or epoch == cfg.epochs
-            snapshot = cfg.snapshot_every and epoch % cfg.snapshot_every == 0
+            snapshot = (cfg.snapshot_every and epoch % cfg.snapshot_every == 0) or (
+                cfg.curve_every and epoch % cfg.curve_every == 0
+            )
             if log or save or snapshot:  # never log or write a diverged network
                 _check_finite(cfg, net, losses, epoch, state_path, saved)
             if log:
@@ -340,6 +444,7 @@ def _pretrain(cfg, progress, out, state_path, model_path, log_path) -> Path:
                 saved = epoch
             if snapshot:
                 meta = model_metadata(cfg.layers, cfg.training_dict(), cfg.seed, epoch)
+                meta["wall_s"] = round(time.perf_counter() - t_start, 2)
                 save_model(out / "snapshots" / f"qnet_e{epoch:07d}.pt", net.state_dict(), meta)
             if bar is not None:
                 bar.update(1)
@@ -350,7 +455,122 @@ def _pretrain(cfg, progress, out, state_path, model_path, log_path) -> Path:
     meta["wall_s"] = round(time.perf_counter() - t_start, 1)
     meta["buffer_digest"] = digest
     save_model(model_path, net.state_dict(), meta)
+    if cfg.curve_every:
+        write_curve(cfg, out)
+    write_provenance(cfg, out, meta)
     return model_path
+
+
+#: The keys of a recipe's schedule that its provenance lists.
+SCHEDULE_KEYS = (
+    "episodes", "horizon", "n_drones", "epochs", "iters_per_epoch", "batch_size", "gamma", "lr",
+    "target_update_epochs", "layers",
+)  # fmt: skip
+
+
+def write_provenance(cfg: PretrainConfig, out: Path, meta: dict[str, Any]) -> Path:
+    """``provenance.json`` beside ``qnet.pt``: the command, the recipe, the seeds, the schedule,
+    the wall time, the inputs' hashes and the learning curve (if measured)."""
+    import json
+    import shlex
+    import sys
+
+    from twin.files import atomic_write
+
+    curve_path = out / "curve.csv"
+    curve = []
+    if curve_path.exists():
+        with open(curve_path, newline="") as f:
+            curve = [
+                {k: float(v) if k in ("R_hat_T", "wall_s") else int(v) for k, v in row.items()}
+                for row in csv.DictReader(f)
+            ]
+    record = {
+        "command": shlex.join([Path(sys.argv[0]).name, *sys.argv[1:]]),
+        "recipe": {
+            "traffic": cfg.traffic,
+            "tapes": {t: file_sha256(t) for t in cfg.tapes},
+            "dynamics_disturbances": cfg.dynamics_disturbances
+            if cfg.traffic == "dynamics"
+            else None,
+            "init": {"path": cfg.init, "sha256": file_sha256(cfg.init)} if cfg.init else None,
+            "state": "the paper's 13 values (eq. s)",
+        },
+        "seeds": {
+            "training": cfg.seed,
+            "validation_curve": cfg.curve_seeds if cfg.curve_every else [],
+        },
+        "schedule": {k: getattr(cfg, k) for k in SCHEDULE_KEYS},
+        "updates": cfg.epochs * cfg.iters_per_epoch,
+        "wall_s": meta.get("wall_s"),
+        "qnet_sha256": file_sha256(out / "qnet.pt"),
+        "buffer_digest": meta.get("buffer_digest"),
+        "curve": {"config": cfg.curve_config, "horizon": cfg.curve_horizon, "points": curve},
+        "config": cfg.training_dict(),
+    }
+    path = out / "provenance.json"
+    text = json.dumps(record, indent=1, default=str)
+    atomic_write(path, lambda tmp: tmp.write_text(text))
+    return path
+
+
+def load_initial_weights(cfg: PretrainConfig, net: QNetwork) -> None:
+    """The weights of ``cfg.init`` into ``net``; refused (one line) when its layers differ."""
+    blob = read_checkpoint(cfg.init)
+    layers = blob["meta"].get("layers")
+    if layers != list(cfg.layers):
+        raise UserError(
+            f"init = {cfg.init}: its layers {layers} differ from `layers` {list(cfg.layers)}; "
+            "give a checkpoint of the same network or set `layers` to match"
+        )
+    net.load_state_dict(blob["weights"])
+
+
+# ----------------------------------------------------------------------------- 6. the curve
+CURVE_COLUMNS = ("epoch", "updates", "seed", "R_hat_T", "wall_s")
+
+
+def curve_scenario(cfg: PretrainConfig):
+    """The scenario config the curve is measured on, at ``curve_horizon`` steps."""
+    from twin.config import config_from_data, shipped_config
+
+    path = shipped_config(cfg.curve_config)
+    data = read_toml(path)
+    data.setdefault("traffic", {})["horizon"] = cfg.curve_horizon
+    return config_from_data(path, data)
+
+
+def write_curve(cfg: PretrainConfig, out: Path) -> Path:
+    """``curve.csv``: R_hat_T of the "rl" swarm driven by each curve snapshot (every
+    ``curve_every`` epochs, and the final model) on the validation seeds ``curve_seeds``."""
+    from twin.experiment import Experiment, run_experiment
+    from twin.metrics import table2
+
+    config = curve_scenario(cfg)
+    points = sorted(
+        e
+        for e in (int(f.name[6:-3]) for f in (out / "snapshots").glob("qnet_e*.pt"))
+        if e % cfg.curve_every == 0 and e <= cfg.epochs
+    )
+    files = [(e, out / "snapshots" / f"qnet_e{e:07d}.pt") for e in points]
+    if cfg.epochs not in points:
+        files.append((cfg.epochs, out / "qnet.pt"))
+    rows = []
+    for epoch, path in files:
+        wall = read_checkpoint(path)["meta"].get("wall_s")
+        experiment = Experiment(
+            config, swarms=["rl"], seeds=cfg.curve_seeds,
+            swarm_options={"rl": {"checkpoint": path}}, keep_importance=False,
+        )  # fmt: skip
+        for result in run_experiment(experiment).results:
+            value = float(table2(result, config.params)["R_hat_T"].iloc[0])
+            rows.append((epoch, epoch * cfg.iters_per_epoch, result.seed, value, wall))
+    path = out / "curve.csv"
+    with open(path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(CURVE_COLUMNS)
+        writer.writerows(rows)
+    return path
 
 
 def _check_finite(cfg, net, losses, epoch, state_path, saved) -> None:
@@ -391,7 +611,10 @@ def _save_state(path, cfg, digest, net, target, optimizer, batch_rng, epoch, wal
 
 
 #: What pretraining writes into its folder (and the boundary's error.log).
-PRETRAIN_FILES = frozenset({"state.pt", "qnet.pt", "train_log.csv", "snapshots", "error.log"})
+PRETRAIN_FILES = frozenset(
+    {"state.pt", "qnet.pt", "train_log.csv", "snapshots", "error.log", "curve.csv",
+     "provenance.json"}
+)  # fmt: skip
 
 
 def check_out_folder(cfg: PretrainConfig, flag: str = "--out") -> None:
@@ -467,7 +690,10 @@ def _check_settings(path: Path, cfg: PretrainConfig) -> dict[str, Any]:
             f"delete {path.parent} or set another `out` to start afresh"
         )
     now = cfg.training_dict()
-    changed = [k for k in now if k not in cfg.RESUMABLE_CHANGES and saved.get(k) != now[k]]
+    defaults = PretrainConfig().training_dict()  # keys a checkpoint of older code lacks
+    changed = [
+        k for k in now if k not in cfg.RESUMABLE_CHANGES and saved.get(k, defaults.get(k)) != now[k]
+    ]
     if changed:
         raise UserError(
             f"{path} was written by a run with other settings ({', '.join(changed)}); "

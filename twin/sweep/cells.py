@@ -50,6 +50,8 @@ def cell_id(cell: dict[str, Any]) -> str:
     """``<scenario>-s<seed>-<hash>``: the hash covers everything that defines the cell's numbers
     (a retrained checkpoint, a changed scenario file's path or overrides give new cells)."""
     defining = {k: cell.get(k) for k in DEFINING_KEYS}
+    if cell.get("ceilings"):  # only when asked for, so earlier sweeps keep their ids
+        defining["ceilings"] = True
     digest = hashlib.sha1(json.dumps(defining, sort_keys=True, default=str).encode()).hexdigest()[
         :10
     ]
@@ -79,6 +81,8 @@ def expand_cells(config: SweepConfig, out_dir: Path) -> list[dict[str, Any]]:
                     "checkpoints": checkpoints,
                     "cells_dir": str(out_dir / CELLS_DIR),
                 }
+                if config.sweep.ceilings:
+                    cell["ceilings"] = True
                 cell["id"] = cell_id(cell)
                 cells.append(cell)
     return cells
@@ -120,6 +124,13 @@ def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
     result = outcome.results[0]
     meta = run_metadata(outcome, "sweep-cell")
     rows = seed_table(result, config.params, step_seconds_of(meta), monitor_run(result))
+    if cell.get("ceilings"):  # the oracle and the bound on this cell's true maps
+        import pandas as pd
+
+        from twin.ceilings import ceiling_table
+
+        rows["role"] = "swarm"
+        rows = pd.concat([rows, ceiling_table(result, config.params)], ignore_index=True)
     rows = rows.drop(columns="seed").to_dict(orient="records")
     record = {
         "id": cell["id"],

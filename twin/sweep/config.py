@@ -54,6 +54,8 @@ class SweepSection(StrictModel):
     swarms: Annotated[list[str], Field(min_length=1)]
     seeds: Any = 1  # a count (seeds seed, seed + 1, ...) or a list of seeds
     seed: Annotated[int, Field(ge=0)] = 0
+    #: each cell also runs the ceilings (oracle, bound) on its true maps: rows with role ceiling
+    ceilings: bool = False
 
     @field_validator("name")
     @classmethod

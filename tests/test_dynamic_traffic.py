@@ -1,0 +1,48 @@
+"""Synthetic traffic with dynamics: maps in [0, 1] per Def. 2, disturbances that move, grow and
+fade under a rush-hour wave, the same maps from the same seed."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from twin.grid import Grid
+from twin.traffic.dynamic import DynamicTraffic
+
+
+def maps(source: DynamicTraffic) -> np.ndarray:
+    return np.stack(list(source.importance_maps()))
+
+
+def test_maps_are_importance_maps_and_follow_the_seed() -> None:
+    grid = Grid.open(10, 12)
+    a = maps(DynamicTraffic(grid, 50, 5, seed=3))
+    assert a.shape == (51, 10, 12)
+    assert a.min() >= 0 and a.max() == 1.0  # z_hi is the largest z over map and horizon
+    assert np.array_equal(a, maps(DynamicTraffic(grid, 50, 5, seed=3)))
+    assert not np.array_equal(a, maps(DynamicTraffic(grid, 50, 5, seed=4)))
+
+
+def test_disturbances_move_and_stay_on_the_map() -> None:
+    source = DynamicTraffic(Grid.open(8, 8), 200, 6, seed=0)
+    start, later = source.centres_at(0), source.centres_at(150)
+    assert not np.allclose(start, later)
+    for k in range(0, 201, 10):
+        c = source.centres_at(k)
+        assert (c >= 0).all() and (c <= 7).all()
+
+
+def test_a_disturbance_grows_and_fades() -> None:
+    source = DynamicTraffic(Grid.open(6, 6), 100, 1, seed=1)
+    z = np.array([source.z(k).sum() for k in range(101)])
+    on = np.flatnonzero(z > 0)
+    assert len(on) > 2 and z[0] >= 0
+    peak = int(np.argmax(z))
+    # rises to one peak, then fades (a sine envelope times the wave)
+    assert peak in range(on[0], on[-1] + 1)
+    assert z[on[-1]] < z[peak] and z[on[0]] <= z[peak]
+
+
+def test_the_rush_hour_wave_peaks_inside_the_horizon() -> None:
+    source = DynamicTraffic(Grid.open(4, 4), 100, 1, seed=0)
+    wave = [source.wave(k) for k in range(101)]
+    assert 30 < int(np.argmax(wave)) < 60 and min(wave) > 0

@@ -1,0 +1,214 @@
+"""`twin transfer`: a tiny matrix end to end (2 rows, a synthetic and a small SUMO column, 2
+seeds, a few updates), the same numbers on a local pool as one after another, a rerun that
+reuses every checkpoint and cell, and bad transfer configs as one-line errors."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+from helpers import small_sumo_scenario
+
+from twin.cli import main as cli
+from twin.errors import UserError
+from twin.metrics import ci95_halfwidth
+from twin.transfer.config import load_transfer_config
+from twin.transfer.runner import run_transfer
+
+ROOT = Path(__file__).resolve().parents[1]
+
+SCHEDULE = """
+[schedule]
+episodes = 1
+horizon = 40
+epochs = 12
+target_update_epochs = 4
+log_every = 4
+checkpoint_every = 4
+curve_every = 6
+curve_horizon = 10
+"""
+
+
+def tiny_config(tmp: Path, sumo: bool = True) -> Path:
+    """2 rows (the paper recipe, then fine-tuned on a small SUMO scenario's tapes) x the
+    synthetic map and (``sumo``) that SUMO scenario, seeds 0 and 1."""
+    small_sumo_scenario(tmp, horizon=5)
+    synthetic = ROOT / "configs" / "synthetic.toml"
+    text = f"""
+[transfer]
+name = "tiny"
+seeds = [0, 1]
+classical = ["visit-gain", "greedy-coordinated"]
+{SCHEDULE}
+[tapes]
+config = "small.toml"
+seeds = [100, 101]
+
+[[row]]
+name = "paper"
+
+[[row]]
+name = "paper+tapes"
+traffic = "tapes"
+init = "paper"
+
+[[column]]
+name = "synthetic"
+config = "{synthetic}"
+overrides = {{ "traffic.horizon" = 12, "swarm.n_drones" = 2 }}
+"""
+    if sumo:
+        text += '\n[[column]]\nname = "small"\nconfig = "small.toml"\n'
+    path = tmp / "transfer.toml"
+    path.write_text(text)
+    return path
+
+
+def test_tiny_matrix_end_to_end_and_pool_equals_sequential(tmp_path: Path) -> None:
+    config = load_transfer_config(tiny_config(tmp_path))
+    sequential, pool = tmp_path / "seq", tmp_path / "pool"
+    report = run_transfer(config, sequential, workers=1)
+    run_transfer(config, pool, workers=2)
+
+    a, b = pd.read_csv(sequential / "matrix.csv"), pd.read_csv(pool / "matrix.csv")
+    pd.testing.assert_frame_equal(a, b)
+    # every row x learned swarm x column, paired over both seeds
+    assert len(a) == 2 * 2 * 2 and set(a["n_seeds"]) == {2}
+    assert set(a["evaluated_on"]) == {"synthetic", "small"}
+    # the cells recomputed from the per-seed results
+    results = pd.read_csv(sequential / "sweep" / "results.csv")
+    for line in a.itertuples(index=False):
+        col = results[results["scenario"] == line.evaluated_on]
+        means = col[col["swarm"].isin(["visit-gain", "greedy-coordinated"])].groupby("swarm")
+        assert line.best_classical == means["R_hat_T"].mean().idxmax()
+        by_seed = col.pivot_table(index="seed", columns="swarm", values="R_hat_T")
+        diff = (by_seed[line.swarm] - by_seed[line.best_classical]).to_numpy()
+        assert line.difference == pytest.approx(diff.mean())
+        assert line.difference_ci95 == pytest.approx(ci95_halfwidth(diff))
+        oracle = col[col["swarm"] == "oracle (ceiling)"]["R_hat_T"].mean()
+        share = (line.R_learned - line.R_best_classical) / (oracle - line.R_best_classical)
+        assert line.gap_closed_oracle == pytest.approx(share)
+        seen = col[col["swarm"] == line.swarm]["pct_events_seen"].mean()  # NaN: no event
+        assert line.pct_events_seen == pytest.approx(seen, nan_ok=True)
+    assert np.isfinite(a[a["evaluated_on"] == "synthetic"]["pct_events_seen"]).all()
+    # the checkpoints hold the same weights, each with its provenance beside it
+    for row in ("paper", "paper+tapes"):
+        w1, w2 = (torch.load(d / "rows" / row / "qnet.pt")["weights"] for d in (sequential, pool))
+        assert all(torch.equal(w1[k], w2[k]) for k in w1)
+        p1 = json.loads((sequential / "rows" / row / "provenance.json").read_text())
+        assert {"command", "recipe", "seeds", "schedule", "wall_s", "curve"} <= set(p1)
+        assert all(p["seed"] >= 100 for p in p1["curve"]["points"])  # validation seeds only
+    tuned = json.loads((sequential / "rows" / "paper+tapes" / "provenance.json").read_text())
+    assert tuned["recipe"]["traffic"] == "tapes" and len(tuned["recipe"]["tapes"]) == 2
+    assert tuned["recipe"]["init"]["path"].endswith("rows/paper/qnet.pt")
+    html = report.read_text()
+    assert "heatmap" in html and (sequential / "report" / "heatmap.png").stat().st_size > 0
+
+    # a rerun trains nothing and runs no cell again
+    model = sequential / "rows" / "paper" / "qnet.pt"
+    stamp = model.stat().st_mtime_ns
+    run_transfer(config, sequential, workers=1)
+    assert model.stat().st_mtime_ns == stamp
+    manifest = json.loads((sequential / "sweep" / "sweep.json").read_text())
+    assert manifest["invocations"][-1]["ran"] == 0
+
+
+def test_ray_gives_the_local_numbers(tmp_path: Path) -> None:
+    pytest.importorskip("ray")
+    config = load_transfer_config(tiny_config(tmp_path, sumo=False))
+    run_transfer(config, tmp_path / "local", workers=2)
+    run_transfer(config, tmp_path / "ray", executor="ray", workers=2)
+    pd.testing.assert_frame_equal(
+        pd.read_csv(tmp_path / "local" / "matrix.csv"), pd.read_csv(tmp_path / "ray" / "matrix.csv")
+    )
+
+
+GOOD = """
+[transfer]
+seeds = [0]
+[[row]]
+name = "paper"
+[[column]]
+name = "synthetic"
+config = "{synthetic}"
+"""
+
+BAD = [
+    ("[transfer]\nseeds = [0]\nbogus = 1\n", "bogus"),
+    ('[transfer]\nclassical = ["rl"]\n', "learned swarm"),
+    ('[transfer]\nclassical = ["nope"]\n', "unknown swarm 'nope'"),
+    ("[transfer]\nseeds = 0\n", "seeds"),
+    ("[schedule]\nepocs = 3\n", "epocs is not a pretraining key"),
+    ('[schedule]\nout = "x"\n', "set per row"),
+    ('[tapes]\nconfig = "{synthetic}"\nseeds = [3]\n', "evaluation seed 3"),
+    ('[[row]]\nname = "tuned"\ninit = "later"\n', "neither a row nor a checkpoint"),
+    ('[[row]]\nname = "t"\ntraffic = "tapes"\n', "needs a [tapes] section"),
+    ('[[row]]\nname = "paper"\n', "is taken"),
+    ('[[row]]\nname = "x"\ntraffic = "weather"\n', "traffic"),
+    ('[[row]]\nname = "x"\ncheckpoint = "missing.pt"\n', "does not exist"),
+    ('[[column]]\nname = "c"\nconfig = "nowhere.toml"\n', "does not exist"),
+    ('[[column]]\nname = "c"\nconfig = "{synthetic}"\ngenerate = "moon"\n', "spider"),
+    ('[[column]]\nname = "c"\nconfig = "{synthetic}"\noverrides = {{ "x" = 1 }}\n', "dotted"),
+    ('[[row]]\nname = "a/b"\n', "plain name"),
+]
+
+
+@pytest.mark.parametrize(("extra", "message"), BAD)
+def test_bad_transfer_configs_are_one_line_errors(tmp_path: Path, extra: str, message, capsys):
+    synthetic = ROOT / "configs" / "synthetic.toml"
+    text = GOOD.format(synthetic=synthetic)
+    extra = extra.format(synthetic=synthetic)
+    if extra.startswith("[transfer]"):  # replaces the section
+        text = text.replace("[transfer]\nseeds = [0]\n", "")
+    path = tmp_path / "bad.toml"
+    path.write_text(extra + text if extra.startswith("[transfer]") else text + extra)
+    with pytest.raises(UserError) as info:
+        load_transfer_config(path)
+    assert message in str(info.value) and str(path) in str(info.value)
+    assert cli(["transfer", "--config", str(path), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_foreign_out_folder_is_refused(tmp_path: Path, capsys) -> None:
+    path = tmp_path / "t.toml"
+    path.write_text(GOOD.format(synthetic=ROOT / "configs" / "synthetic.toml"))
+    (tmp_path / "o").mkdir()
+    (tmp_path / "o" / "mine.txt").write_text("keep")
+    assert cli(["transfer", "--config", str(path), "--out", str(tmp_path / "o")]) == 2
+    assert "mine.txt" in capsys.readouterr().err
+
+
+def test_the_shipped_transfer_config_loads() -> None:
+    config = load_transfer_config(ROOT / "configs" / "transfer.toml")
+    assert [r.name for r in config.row] == ["paper", "dynamics", "tapes", "paper+tapes"]
+    assert [c.name for c in config.column] == ["synthetic", "shenzhen", "spider"]
+    assert not set(config.tapes.seeds) & set(config.seeds)
+
+
+def test_learned_swarms_take_labels_and_classical_ones_do_not() -> None:
+    from twin.swarms import check_swarm_name, is_learned, make_policy
+
+    check_swarm_name("rl@paper+tapes")
+    assert is_learned("rl-online@dynamics") and not is_learned("lookahead")
+    for bad, words in [("lookahead@x", "only learned"), ("rl@", "label"), ("rl@a/b", "label"),
+                       ("nope@x", "unknown swarm")]:  # fmt: skip
+        with pytest.raises(UserError, match=words):
+            check_swarm_name(bad)
+    policy = make_policy("rl@shipped", checkpoint=ROOT / "data" / "qnet.pt")
+    assert policy.name == "rl@shipped" and not policy.online
+
+
+def test_the_full_transfer_config_is_the_short_one_at_full_size() -> None:
+    short = load_transfer_config(ROOT / "configs" / "transfer.toml")
+    full = load_transfer_config(ROOT / "configs" / "transfer-full.toml")
+    assert full.seeds == list(range(10))
+    assert [r.name for r in full.row] == [r.name for r in short.row]
+    assert [c.name for c in full.column] == [c.name for c in short.column]
+    assert full.schedule["epochs"] > short.schedule["epochs"]

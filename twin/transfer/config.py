@@ -1,0 +1,269 @@
+"""The transfer config (TOML, e.g. ``configs/transfer.toml``) as a pydantic model.
+
+Sections: ``[transfer]`` (name, evaluation seeds, the classical swarms, online learning),
+``[schedule]`` (pretraining keys shared by every trained row, ``twin pretrain --help-config``),
+``[tapes]`` (the SUMO runs recorded for rows trained on tapes: scenario config, overrides,
+seeds), ``[[row]]`` (trained on: name, traffic, init, checkpoint) and ``[[column]]`` (evaluated
+on: name, config, overrides, generate). Paths are relative to the config's folder.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from pydantic import (
+    Field,
+    PrivateAttr,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
+
+from twin.config import StrictModel, check_name, read_toml, validation_error
+from twin.errors import UserError
+from twin.sweep.config import RelPath, check_dotted
+
+#: Seeds that evaluation uses; tapes and validation curves must stay off them.
+EVALUATION_SEEDS = range(0, 10)
+
+
+def _seed_list(seeds: Any, what: str) -> list[int]:
+    def whole(x: Any) -> bool:
+        return isinstance(x, int) and not isinstance(x, bool)
+
+    if whole(seeds):
+        if seeds < 1:
+            raise ValueError("must be at least 1; give a count or a list of seeds")
+        return list(range(seeds))
+    if not isinstance(seeds, list) or not seeds or not all(whole(s) and s >= 0 for s in seeds):
+        raise ValueError(f"must be a count or a non-empty list of seeds >= 0; e.g. {what}")
+    if len(set(seeds)) != len(seeds):
+        raise ValueError("lists a seed twice; list each once")
+    return seeds
+
+
+class TransferSection(StrictModel):
+    name: str | None = None  # default: the config file's stem
+    seeds: Any = 3  # evaluation seeds per column: a count (0, 1, ...) or a list
+    classical: Annotated[list[str], Field(min_length=1)] = Field(
+        default_factory=lambda: ["visit-gain", "lookahead", "tours"]
+    )
+    online: bool = True  # each row also as "rl-online" (learning while patrolling)
+
+    @field_validator("name")
+    @classmethod
+    def _name(cls, value: str | None) -> str | None:
+        return None if value is None else check_name(value)
+
+    @field_validator("seeds", mode="plain")
+    @classmethod
+    def _seeds(cls, seeds: Any) -> list[int]:
+        return _seed_list(seeds, "[0, 1, 2]")
+
+    @field_validator("classical")
+    @classmethod
+    def _classical(cls, swarms: list[str]) -> list[str]:
+        from twin.swarms import available_policies, check_swarm_name, is_learned
+
+        if len(set(swarms)) != len(swarms):
+            raise ValueError("lists a swarm twice; list each once")
+        for swarm in swarms:
+            try:
+                check_swarm_name(swarm)
+            except UserError:
+                known = ", ".join(s for s in available_policies() if not is_learned(s))
+                raise ValueError(f"has unknown swarm {swarm!r}; use {known}") from None
+            if is_learned(swarm):
+                raise ValueError(f"has {swarm!r}, a learned swarm; list classical swarms only")
+        return swarms
+
+
+class TapesSection(StrictModel):
+    """The earlier days' SUMO runs that rows with ``traffic = "tapes"`` train on."""
+
+    config: RelPath
+    overrides: dict[str, Any] = Field(default_factory=dict)
+    seeds: Any = Field(default_factory=lambda: [100, 101, 102])
+
+    @field_validator("config")
+    @classmethod
+    def _config(cls, path: Path) -> Path:
+        if not path.is_file():
+            raise ValueError(f"names {path}, which does not exist; fix the path")
+        return path
+
+    @field_validator("overrides")
+    @classmethod
+    def _overrides(cls, overrides: dict[str, Any]) -> dict[str, Any]:
+        for key in overrides:
+            check_dotted(key)
+        return overrides
+
+    @field_validator("seeds", mode="plain")
+    @classmethod
+    def _seeds(cls, seeds: Any) -> list[int]:
+        seeds = _seed_list(seeds, "[100, 101, 102]")
+        used = [s for s in seeds if s in EVALUATION_SEEDS]
+        if used:
+            raise ValueError(
+                f"holds evaluation seed {used[0]}; record tapes from seeds never used for "
+                "evaluation, e.g. [100, 101, 102]"
+            )
+        return seeds
+
+
+class RowSpec(StrictModel):
+    """A row, trained on: a pretraining recipe, or a checkpoint loaded as it is."""
+
+    name: str
+    traffic: Literal["paper", "dynamics", "tapes"] = "paper"
+    init: str | None = None  # another row's name, or a checkpoint file: fine-tuning
+    checkpoint: RelPath | None = None  # load this model instead of training
+    schedule: dict[str, Any] = Field(default_factory=dict)  # keys over [schedule] for this row
+
+    @field_validator("name")
+    @classmethod
+    def _name(cls, value: str) -> str:
+        return check_name(value)
+
+    @field_validator("checkpoint")
+    @classmethod
+    def _checkpoint(cls, path: Path | None) -> Path | None:
+        if path is not None and not path.is_file():
+            raise ValueError(f"names {path}, which does not exist; run `twin pretrain` or fix it")
+        return path
+
+
+class ColumnSpec(StrictModel):
+    """A column, evaluated on: a scenario config with overrides; ``generate`` builds a SUMO
+    network of another shape (``twin.sumo.network.GENERATED_NETWORKS``) into the cache and
+    runs the scenario on it, with demand generated by SUMO's tools."""
+
+    name: str
+    config: RelPath
+    overrides: dict[str, Any] = Field(default_factory=dict)
+    generate: str | None = None
+
+    @field_validator("name")
+    @classmethod
+    def _name(cls, value: str) -> str:
+        return check_name(value)
+
+    @field_validator("config")
+    @classmethod
+    def _config(cls, path: Path) -> Path:
+        if not path.is_file():
+            raise ValueError(f"names {path}, which does not exist; fix the path")
+        return path
+
+    @field_validator("overrides")
+    @classmethod
+    def _overrides(cls, overrides: dict[str, Any]) -> dict[str, Any]:
+        for key in overrides:
+            check_dotted(key)
+        return overrides
+
+    @field_validator("generate")
+    @classmethod
+    def _generate(cls, kind: str | None) -> str | None:
+        from twin.sumo.network import GENERATED_NETWORKS
+
+        if kind is not None and kind not in GENERATED_NETWORKS:
+            raise ValueError(f"is unknown; use one of: {', '.join(GENERATED_NETWORKS)}")
+        return kind
+
+
+class TransferConfig(StrictModel):
+    """A validated transfer config; ``path`` is the file it was read from."""
+
+    transfer: TransferSection = TransferSection()
+    schedule: dict[str, Any] = Field(default_factory=dict)
+    tapes: TapesSection | None = None
+    row: Annotated[list[RowSpec], Field(min_length=1)]
+    column: Annotated[list[ColumnSpec], Field(min_length=1)]
+
+    _path: Path = PrivateAttr(default=Path("transfer.toml"))
+
+    @field_validator("schedule")
+    @classmethod
+    def _schedule(cls, schedule: dict[str, Any]) -> dict[str, Any]:
+        return _check_schedule(schedule, "[schedule]")
+
+    @model_validator(mode="after")
+    def _across(self, info: ValidationInfo) -> TransferConfig:
+        for what, specs in (("row", self.row), ("column", self.column)):
+            names = [s.name for s in specs]
+            for n, name in enumerate(names):
+                if name in names[:n]:
+                    raise ValueError(
+                        f"[[{what}]] #{n + 1}.name = {name!r} is taken; give distinct names"
+                    )
+        names = [r.name for r in self.row]
+        base = Path((info.context or {}).get("path", "transfer.toml")).parent
+        for n, row in enumerate(self.row):
+            where = f"[[row]] #{n + 1} ({row.name})"
+            _check_schedule(row.schedule, f"{where}.schedule")
+            if row.traffic == "tapes" and self.tapes is None and row.checkpoint is None:
+                raise ValueError(
+                    f'{where}.traffic = "tapes" needs a [tapes] section (the SUMO runs to record)'
+                )
+            if row.init is not None and row.init not in names:
+                path = Path(row.init)
+                row.init = str(path if path.is_absolute() else (base / path).resolve())
+                if not Path(row.init).is_file():
+                    raise ValueError(
+                        f"{where}.init = {row.init!r} is neither a row nor a checkpoint file; "
+                        f"give one of {names} or a qnet.pt"
+                    )
+            elif row.init is not None and names.index(row.init) >= n:
+                raise ValueError(f"{where}.init = {row.init!r} must name a row listed before it")
+        return self
+
+    @property
+    def path(self) -> Path:
+        return self._path
+
+    @property
+    def name(self) -> str:
+        return self.transfer.name or self.path.stem
+
+    @property
+    def seeds(self) -> list[int]:
+        return self.transfer.seeds
+
+    def learned_swarms(self) -> list[tuple[str, str, str]]:
+        """``(swarm, row, kind)`` of every row's learned swarms: ``rl@<row>`` and, with
+        ``online``, ``rl-online@<row>``."""
+        kinds = ["rl", "rl-online"] if self.transfer.online else ["rl"]
+        return [(f"{kind}@{row.name}", row.name, kind) for row in self.row for kind in kinds]
+
+
+#: Pretraining keys that the transfer command sets itself, per row.
+ROW_KEYS = ("out", "traffic", "tapes", "init")
+
+
+def _check_schedule(schedule: dict[str, Any], where: str) -> dict[str, Any]:
+    from twin.learning.pretrain import PretrainConfig
+
+    for key in schedule:
+        if key in ROW_KEYS:
+            raise ValueError(f"{where}.{key}: set per row ([[row]] traffic, init), not here")
+        if key not in PretrainConfig.model_fields:
+            raise ValueError(
+                f"{where}.{key} is not a pretraining key; see `twin pretrain --help-config`"
+            )
+    return schedule
+
+
+def load_transfer_config(path: str | Path) -> TransferConfig:
+    """Read and validate a transfer config; every problem is one line naming the key."""
+    path = Path(path)
+    data = read_toml(path)
+    try:
+        config = TransferConfig.model_validate(data, context={"path": path})
+    except ValidationError as exc:
+        raise validation_error(path, exc, data, TransferConfig) from None
+    config._path = path
+    return config

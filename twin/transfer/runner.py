@@ -1,0 +1,355 @@
+"""Running a transfer matrix: record the tapes, train (or load) each row's checkpoint, then
+evaluate every row on every column with one sweep (:func:`twin.sweep.run_sweep`), each cell
+one traffic pass with the classical swarms, every row's learned swarms (``rl@<row>``,
+``rl-online@<row>``) and the ceilings side by side.
+
+The run folder::
+
+    transfer.json            the config, the rows' checkpoints, every invocation's timings
+    tapes/<seed>.parquet     the earlier days' SUMO runs (rows trained on tapes)
+    rows/<row>/              each row's pretraining folder: qnet.pt, provenance.json,
+                             curve.csv, train_log.csv (a loaded row: provenance.json only)
+    sweep/                   the evaluation sweep: cells/, results.csv, summary.csv
+    matrix.csv               one line per (row, learned swarm, column)
+    report/transfer.html     the matrix, the heatmap, the ceilings, the rows' provenance
+
+Every stage skips what is done: a rerun resumes.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from twin.errors import UserError
+from twin.files import atomic_write
+from twin.transfer.config import TransferConfig
+
+#: What a transfer writes into its folder (and the boundary's error.log).
+TRANSFER_FILES = frozenset(
+    {"transfer.json", "tapes", "rows", "sweep", "matrix.csv", "report", "error.log"}
+)
+
+
+def check_transfer_folder(out: Path, flag: str = "--out") -> None:
+    """Refuse (one line) a folder that holds anything a transfer does not write."""
+    if not out.is_dir():
+        return
+    foreign = sorted(
+        p.name for p in out.iterdir() if p.name not in TRANSFER_FILES and ".tmp" not in p.name
+    )
+    if foreign:
+        raise UserError(
+            f"{flag} {out}: holds {foreign[0]!r}, which `twin transfer` does not write; give an "
+            "empty or new folder, or the folder of the transfer to resume"
+        )
+
+
+def run_tasks(
+    fn: Callable, tasks: Sequence[dict], executor: str, workers: int, address: str | None
+) -> list[Any]:
+    """``fn(task)`` for every task on the executor (:mod:`twin.executors`), results in task
+    order; the first failure is one line naming the task."""
+    from twin.executors import _error_line, local_tasks, ray_tasks
+
+    if not tasks:
+        return []
+    workers = max(1, min(workers, len(tasks)))
+    args = [(t,) for t in tasks]
+    if workers == 1 and executor == "local":  # one after another, in this process
+        return [fn(t) for t in tasks]
+    runs = (
+        local_tasks(fn, args, workers)
+        if executor == "local"
+        else ray_tasks(fn, args, workers, address)
+    )
+    results: list[Any] = [None] * len(tasks)
+    for n, value, error in runs:
+        if error is not None:
+            if isinstance(error, UserError):
+                raise UserError(f"{tasks[n]['what']}: {error}") from None
+            raise UserError(f"{tasks[n]['what']} failed: {_error_line(error)}") from None
+        results[n] = value
+    return results
+
+
+# ----------------------------------------------------------------------------- 1. tapes
+def record_tape(task: dict[str, Any]) -> str:
+    """Run one SUMO simulation of the tapes' scenario (seed ``task["seed"]``) to its end and
+    write its tape to ``task["path"]`` (a worker task: plain dict in, path out)."""
+    from twin.experiment import limit_threads
+    from twin.sweep.cells import scenario_config
+    from twin.traffic.kinds import build_traffic
+
+    limit_threads()
+    config = scenario_config(Path(task["config"]), task["overrides"])
+    source = build_traffic(config, 0, int(task["seed"]), separate_process=False)
+    try:
+        for _ in source.importance_maps():
+            pass
+        Path(task["path"]).parent.mkdir(parents=True, exist_ok=True)
+        atomic_write(Path(task["path"]), source.tape().write)
+    finally:
+        source.close()
+    return task["path"]
+
+
+def tape_tasks(config: TransferConfig, out: Path) -> list[dict[str, Any]]:
+    t = config.tapes
+    if t is None or not any(r.traffic == "tapes" and r.checkpoint is None for r in config.row):
+        return []
+    return [
+        {
+            "what": f"tape of seed {seed}",
+            "config": str(t.config),
+            "overrides": t.overrides,
+            "seed": seed,
+            "path": str((out / "tapes" / f"{tape_stem(t)}-seed-{seed}.parquet").resolve()),
+        }
+        for seed in t.seeds
+    ]
+
+
+def tape_stem(tapes) -> str:
+    """``<config>-<hash>``: the hash covers the scenario file's text and the overrides, so a
+    changed scenario records new tapes instead of reusing the old ones."""
+    import hashlib
+
+    text = Path(tapes.config).read_bytes() + json.dumps(tapes.overrides, sort_keys=True).encode()
+    return f"{Path(tapes.config).stem}-{hashlib.sha256(text).hexdigest()[:8]}"
+
+
+# ----------------------------------------------------------------------------- 2. rows
+def row_pretrain_config(config: TransferConfig, row, out: Path, checkpoints: dict[str, str]):
+    """The :class:`PretrainConfig` of a trained row: ``[schedule]``, the row's own schedule
+    keys, its traffic, tapes and init (a row's name resolved to that row's checkpoint)."""
+    from pydantic import ValidationError
+
+    from twin.config import validation_error
+    from twin.learning.pretrain import PretrainConfig
+
+    raw = {**config.schedule, **row.schedule, "traffic": row.traffic, "out": str(out)}
+    if row.traffic == "tapes":
+        raw["tapes"] = [t["path"] for t in tape_tasks(config, out.parents[1])]
+    if row.init is not None:
+        raw["init"] = checkpoints.get(row.init, row.init)
+    try:
+        return PretrainConfig.model_validate(raw)
+    except ValidationError as exc:
+        raise validation_error(
+            f"{config.path}: [[row]] {row.name}", exc, raw, PretrainConfig, sections=False
+        ) from None
+
+
+def train_row(task: dict[str, Any]) -> dict[str, Any]:
+    """Train one row (a worker task), or reuse its folder when its provenance matches."""
+    from twin.experiment import limit_threads
+    from twin.learning.pretrain import PretrainConfig, pretrain
+
+    limit_threads()
+    cfg = PretrainConfig.model_validate(task["pretrain"])
+    out = Path(cfg.out)
+    if not provenance_matches(out, cfg):
+        pretrain(cfg, progress=False)
+    return json.loads((out / "provenance.json").read_text())
+
+
+def provenance_matches(out: Path, cfg) -> bool:
+    """Whether ``out`` holds a finished model whose provenance records ``cfg``'s settings."""
+    from twin.learning.pretrain import file_sha256
+
+    path, model = out / "provenance.json", out / "qnet.pt"
+    if not (path.is_file() and model.is_file()):
+        return False
+    try:
+        record = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return False
+    return (
+        isinstance(record, dict)
+        and record.get("config") == json.loads(json.dumps(cfg.training_dict(), default=str))
+        and record.get("qnet_sha256") == file_sha256(model)
+    )
+
+
+def loaded_provenance(row, out: Path) -> dict[str, Any]:
+    """``provenance.json`` of a row loaded from a checkpoint: what the checkpoint says of its
+    training (its own recipe, epochs, wall time), its hash and path."""
+    from twin.learning.checkpoint import read_checkpoint
+    from twin.learning.pretrain import SCHEDULE_KEYS, file_sha256
+
+    meta = read_checkpoint(row.checkpoint)["meta"]
+    config = meta.get("config") if isinstance(meta.get("config"), dict) else {}
+    record = {
+        "loaded": str(row.checkpoint),
+        "qnet_sha256": file_sha256(row.checkpoint),
+        "recipe": {"traffic": config.get("traffic", "paper")},
+        "schedule": {k: config.get(k) for k in SCHEDULE_KEYS},
+        "seeds": {"training": meta.get("seed")},
+        "updates": int(meta.get("epoch") or 0) * int(config.get("iters_per_epoch") or 1),
+        "wall_s": meta.get("wall_s"),
+        "epoch": meta.get("epoch"),
+        "config": config,
+    }
+    out.mkdir(parents=True, exist_ok=True)
+    text = json.dumps(record, indent=1, default=str)
+    atomic_write(out / "provenance.json", lambda p: p.write_text(text))
+    return record
+
+
+def train_rows(
+    config: TransferConfig, out: Path, executor: str, workers: int, address: str | None
+) -> dict[str, dict[str, Any]]:
+    """Every row's checkpoint and provenance: loaded rows first, then the trained rows in
+    waves (a row fine-tuned from another waits for it), each wave on the executor."""
+    rows: dict[str, dict[str, Any]] = {}
+    checkpoints: dict[str, str] = {}
+    for row in config.row:
+        if row.checkpoint is not None:
+            rows[row.name] = loaded_provenance(row, out / "rows" / row.name)
+            checkpoints[row.name] = str(row.checkpoint)
+    waiting = [r for r in config.row if r.checkpoint is None]
+    while waiting:
+        ready = [
+            r for r in waiting if r.init is None or r.init in checkpoints or Path(r.init).is_file()
+        ]
+        tasks = [
+            {
+                "what": f"row {r.name!r}",
+                "pretrain": row_pretrain_config(
+                    config, r, out / "rows" / r.name, checkpoints
+                ).model_dump(),
+            }
+            for r in ready
+        ]
+        for r, record in zip(
+            ready, run_tasks(train_row, tasks, executor, workers, address), strict=True
+        ):
+            rows[r.name] = record
+            checkpoints[r.name] = str(out / "rows" / r.name / "qnet.pt")
+        waiting = [r for r in waiting if r not in ready]
+    for name, path in checkpoints.items():
+        rows[name]["checkpoint"] = path
+    return rows
+
+
+# ----------------------------------------------------------------------------- 3. the sweep
+def column_overrides(column) -> dict[str, Any]:
+    """A column's overrides, with a generated network's file (built here, once)."""
+    overrides = dict(column.overrides)
+    if column.generate is not None:
+        from twin.sumo.network import generated_network
+
+        overrides["traffic.net"] = str(generated_network(column.generate))
+    return overrides
+
+
+def sweep_config(config: TransferConfig, rows: dict[str, dict[str, Any]]):
+    """The evaluation sweep: the columns as scenarios, the classical and learned swarms, the
+    rows' checkpoints, the evaluation seeds, the ceilings."""
+    from pydantic import ValidationError
+
+    from twin.sweep.config import SweepConfig
+
+    learned = config.learned_swarms()
+    data = {
+        "sweep": {
+            "name": config.name,
+            "swarms": [*config.transfer.classical, *(s for s, _, _ in learned)],
+            "seeds": config.seeds,
+            "ceilings": True,
+        },
+        "scenario": [
+            {"name": c.name, "config": str(c.config), "overrides": column_overrides(c)}
+            for c in config.column
+        ],
+        "swarm_options": {s: {"checkpoint": rows[row]["checkpoint"]} for s, row, _ in learned},
+    }
+    try:
+        sweep = SweepConfig.model_validate(data, context={"path": config.path})
+    except ValidationError as exc:  # a checkpoint gone between training and evaluation
+        raise UserError(f"{config.path}: {exc.errors(include_url=False)[0]['msg']}") from None
+    sweep._path = config.path
+    return sweep
+
+
+def run_transfer(
+    config: TransferConfig,
+    out: Path,
+    executor: str = "local",
+    workers: int = 1,
+    address: str | None = None,
+    progress: bool = False,
+    say: Callable[[str], None] = lambda text: None,
+) -> Path:
+    """All the stages; returns the report's path."""
+    from twin.sweep import run_sweep
+    from twin.transfer.matrix import transfer_matrix
+    from twin.transfer.report import write_transfer_report
+
+    out.mkdir(parents=True, exist_ok=True)
+    out = out.resolve()  # the rows' provenance names files the same from any folder
+    timings: dict[str, float] = {}
+
+    t0 = time.perf_counter()
+    tasks = [t for t in tape_tasks(config, out) if not Path(t["path"]).is_file()]
+    if tasks:
+        say(f"recording {len(tasks)} tapes ({config.tapes.config.name}, seeds "
+            f"{[t['seed'] for t in tasks]})")  # fmt: skip
+    run_tasks(record_tape, tasks, executor, workers, address)
+    timings["tapes_s"] = round(time.perf_counter() - t0, 2)
+
+    t0 = time.perf_counter()
+    say(f"training or loading {len(config.row)} rows: {', '.join(r.name for r in config.row)}")
+    rows = train_rows(config, out, executor, workers, address)
+    timings["rows_s"] = round(time.perf_counter() - t0, 2)
+
+    t0 = time.perf_counter()
+    sweep = sweep_config(config, rows)
+    say(f"evaluating on {len(config.column)} columns x {len(config.seeds)} seeds "
+        f"(seeds {config.seeds})")  # fmt: skip
+    failure = None
+    try:
+        run_sweep(sweep, out / "sweep", executor=executor, workers=workers, address=address,
+                  progress=progress, report=False)  # fmt: skip
+    except UserError as exc:  # failed cells: the matrix of the others, then the error
+        if not (out / "sweep" / "results.csv").exists():
+            raise
+        failure = exc
+    timings["evaluation_s"] = round(time.perf_counter() - t0, 2)
+
+    import pandas as pd
+
+    results = pd.read_csv(out / "sweep" / "results.csv")
+    matrix = transfer_matrix(results, config)
+    atomic_write(out / "matrix.csv", lambda p: matrix.to_csv(p, index=False))
+    history = []
+    try:  # earlier invocations of this transfer (a resumed run skips what they did)
+        history = json.loads((out / "transfer.json").read_text()).get("invocations", [])
+    except (OSError, ValueError, AttributeError):
+        history = []
+    invocation = {
+        "executor": executor,
+        "workers": workers,
+        "timings": timings,
+        "finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    }
+    manifest = {
+        "name": config.name,
+        "config": str(config.path),
+        "seeds": config.seeds,
+        "rows": rows,
+        "columns": [c.model_dump(mode="json") for c in config.column],
+        "classical": config.transfer.classical,
+        "timings": timings,
+        "invocations": [*history, invocation],
+    }
+    text = json.dumps(manifest, indent=1, default=str)
+    atomic_write(out / "transfer.json", lambda p: p.write_text(text))
+    report = write_transfer_report(out, matrix, results, manifest)
+    if failure is not None:
+        raise failure
+    return report
