@@ -158,6 +158,7 @@ LAYERS: list[tuple[str, list[str]]] = [
     ("training", ["twin.env", "twin.learning.pretrain", "twin.learning.curve"]),
     ("report", ["twin.report", "twin.report."]),
     ("sweep", ["twin.sweep", "twin.sweep."]),
+    ("transfer experiments", ["twin.transfer", "twin.transfer."]),
     ("command line", ["twin.cli", "twin.cli.", "twin.__main__"]),
 ]
 

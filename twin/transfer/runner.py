@@ -82,7 +82,7 @@ def record_tape(task: dict[str, Any]) -> str:
     write its tape to ``task["path"]`` (a worker task: plain dict in, path out)."""
     from twin.experiment import limit_threads
     from twin.sweep.cells import scenario_config
-    from twin.traffic.kinds import build_traffic
+    from twin.traffic_kinds import build_traffic
 
     limit_threads()
     config = scenario_config(Path(task["config"]), task["overrides"])
