@@ -48,8 +48,9 @@ LOG_NAME = "error.log"
 MAX_MESSAGE = 600
 
 _state: dict[str, Path | None] = {"run_folder": None}
-#: notices held back until the simulation has started (None: print them at once)
-_held: dict[str, list[str] | None] = {"lines": None}
+#: notices held back until the simulation has started (None: print them at once), or, with
+#: ``to_end``, until the command has ended well
+_held: dict[str, Any] = {"lines": None, "to_end": False}
 
 
 def set_run_folder(path: Path | None) -> None:
@@ -62,12 +63,15 @@ def run_folder() -> Path | None:
     return _state["run_folder"]
 
 
-def hold_notices() -> None:
+def hold_notices(to_end: bool = False) -> None:
     """From now on, hold back :func:`notify`'s lines (notices, the simulation's announcement)
     until :func:`release_notices`: a command refused before its simulation starts prints its
-    one error line only."""
+    one error line only. With ``to_end`` (a command writing its results after the run) they
+    are held until the command has ended well, whatever simulations start meanwhile (the
+    ceilings' oracle): a write that fails is its error's line alone."""
     if _held["lines"] is None:
         _held["lines"] = []
+    _held["to_end"] = _held["to_end"] or to_end
 
 
 def notify(line: str) -> None:
@@ -79,9 +83,12 @@ def notify(line: str) -> None:
         print(line, file=sys.stderr, flush=True)
 
 
-def release_notices() -> None:
-    """Print the held lines, in order (the simulation has started), and stop holding."""
-    held, _held["lines"] = _held["lines"], None
+def release_notices(final: bool = False) -> None:
+    """Print the held lines, in order (the simulation has started), and stop holding; lines
+    held ``to_end`` wait for the ``final`` release, when the command has ended well."""
+    if _held["to_end"] and not final:
+        return
+    held, _held["lines"], _held["to_end"] = _held["lines"], None, False
     for line in held or []:
         with contextlib.suppress(Exception):
             print(line, file=sys.stderr, flush=True)
@@ -89,7 +96,7 @@ def release_notices() -> None:
 
 def drop_notices() -> list[str]:
     """Stop holding and return the held lines unprinted (a refusal prints only its error)."""
-    held, _held["lines"] = _held["lines"], None
+    held, _held["lines"], _held["to_end"] = _held["lines"], None, False
     return held or []
 
 
@@ -229,7 +236,7 @@ def _notices_held_on_failure(func: Callable[[Any], int | None], args: Any) -> in
     except BaseException:
         drop_notices()
         raise
-    release_notices()
+    release_notices(final=True)
     return code
 
 

@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from twin.boundary import notify, release_notices
+from twin.boundary import hold_notices, notify, release_notices
 from twin.config import ScenarioConfig, check_swarm_fits, start_positions
 from twin.errors import UserError
 from twin.patrol import INTERRUPTED, PatrolResult, run_patrol
@@ -709,6 +709,9 @@ def record(
     the comparison."""
     from twin.runs import write_run
 
+    # what writing notices (a ceiling left out) is printed once the command has ended well: a
+    # write that fails after it (a full disk) is the error's line alone
+    hold_notices(to_end=True)
     extras = more_files
     if outcome.sources:
         first = outcome.sources[0]

@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from twin.cli import add_worker_arguments, check_count, check_seeds
+from twin.cli import add_worker_arguments, check_count, check_seeds, path_arg
 from twin.cli.run import belief_models, belief_writer, print_beliefs
 from twin.config import load_config, shipped_config
 from twin.errors import UserError
@@ -36,7 +36,7 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument(
         "--config",
-        type=Path,
+        type=path_arg,
         default=None,
         help=f"scenario config (TOML); default {DEFAULT_CONFIG}",
     )
@@ -57,12 +57,15 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument(
         "--traffic",
-        type=Path,
+        type=path_arg,
         default=None,
         help="replay a traffic tape (tape.parquet of a `twin run`) instead of the config's traffic",
     )
     p.add_argument(
-        "--out", type=Path, default=None, help="run folder to write (default runs/evaluate-<time>)"
+        "--out",
+        type=path_arg,
+        default=None,
+        help="run folder to write (default runs/evaluate-<time>)",
     )
     p.add_argument(
         "--max-memory-gb",
@@ -81,7 +84,7 @@ def add_parser(subparsers) -> None:
     add_worker_arguments(p, live=False)
     p.add_argument(
         "--history",
-        type=Path,
+        type=path_arg,
         help="a history of earlier days (`twin history`): also score each swarm's belief "
         "models (last-seen, history, nowcast) and write belief_models.csv",
     )
@@ -91,7 +94,10 @@ def add_parser(subparsers) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
+    from twin.boundary import hold_notices
+
     limit_threads()
+    hold_notices()  # printed once the simulation has started; a refusal is one line
     config = load_config(shipped_config(args.config or DEFAULT_CONFIG))
     check_count("--seeds", args.seeds)
     check_count("--workers", args.workers)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from twin.cli import path_arg
 from twin.errors import UserError
 
 
@@ -28,14 +29,14 @@ def add_parser(subparsers) -> None:
     p.add_argument(
         "--from",
         dest="sources",
-        type=Path,
+        type=path_arg,
         nargs="+",
         required=True,
         metavar="RUN_DIR",
         help="`twin run` folders (all their seeds' tapes) or tape.parquet files; at least 2 "
         "simulations in all",
     )
-    p.add_argument("--out", type=Path, required=True, help="history file to write (.npz)")
+    p.add_argument("--out", type=path_arg, required=True, help="history file to write (.npz)")
     p.set_defaults(func=main)
 
 
