@@ -247,13 +247,31 @@ def recorded_relative(tmp_path, capsys, monkeypatch) -> Path:
     return run
 
 
-def _decoy_folder(tmp_path: Path) -> Path:
-    """Another folder holding files of the same names: another scenario."""
+def _decoy_folder(tmp_path: Path, same_config: bool = False) -> Path:
+    """Another folder holding files of the same names: another scenario (the same network,
+    other trips; another cell size unless ``same_config``)."""
+    import shutil
+
     elsewhere = tmp_path / "elsewhere"
-    elsewhere.mkdir()
-    (elsewhere / "c.toml").write_text(CONFIG.replace("cell_m = 200.0", "cell_m = 100.0"))
-    (elsewhere / "small.net.xml").write_text("<net/>")
+    shutil.copytree(tmp_path / "scenario", elsewhere)
+    if not same_config:
+        (elsewhere / "c.toml").write_text(CONFIG.replace("cell_m = 200.0", "cell_m = 100.0"))
+    with open(elsewhere / "small.trips.xml", "a") as fh:
+        fh.write("<!-- another day's trips -->\n")
     return elsewhere
+
+
+def test_an_older_run_replayed_among_other_files_is_refused(
+    recorded_relative, tmp_path, capsys, monkeypatch
+):
+    """A run that records no folder reads relative paths from the current one: a route file
+    of another scenario there is not the run's (its sha256 differs from the recorded one)."""
+    _edit_run_json(lambda m: m["invocation"].pop("cwd"))(recorded_relative)
+    elsewhere = _decoy_folder(tmp_path, same_config=True)
+    monkeypatch.chdir(elsewhere)
+    needle = "small.trips.xml: this route file is not one the run loaded"
+    err = run_case(capsys, tmp_path, ["replay", str(recorded_relative)], None, 2, needle)
+    assert str(elsewhere / "small.trips.xml") in err
 
 
 def test_replay_reads_relative_paths_from_the_folder_the_run_was_made_in(

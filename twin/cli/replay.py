@@ -245,8 +245,10 @@ def check_identity(run_dir: Path, source) -> None:
 
 def check_input_files(run_dir: Path, recorded, source) -> None:
     """Refuse (one line) to replay a run one of whose SUMO input files (network, route,
-    additional files, sumocfg) changed since the run; a run that records no file hashes (an
-    older run) or a file it does not record is not checked."""
+    additional files, sumocfg) changed since the run, or that loads a file the run did not: a
+    file recorded under another name (another folder) must have the sha256 of one the run
+    recorded in the same role. A run that records no file hashes (an older run), or none in a
+    role, is not checked."""
     from twin.sumo.source import file_sha256
 
     if recorded is None:
@@ -263,7 +265,8 @@ def check_input_files(run_dir: Path, recorded, source) -> None:
     }
     for role, path in source.input_files():
         before = was.get((role, str(path)))
-        if before is None:
+        same_role = {(p, h) for (r, p), h in was.items() if r == role}
+        if before is None and not same_role:
             continue
         try:
             now = file_sha256(path)
@@ -272,6 +275,15 @@ def check_input_files(run_dir: Path, recorded, source) -> None:
                 f"{path}: the run's {role} cannot be read ({exc.strerror}); restore it or "
                 "rerun `twin run`"
             ) from None
+        if before is None:  # another name: one of the run's files of that role, moved?
+            if now in {h for _, h in same_role}:
+                continue
+            other, sha = sorted(same_role)[0]
+            raise UserError(
+                f"{path}: this {role} is not one the run loaded ({run_dir / 'run.json'} "
+                f"records {other}, sha256 {sha[:12]}..., now {now[:12]}...); replay with the "
+                "run's files, or rerun `twin run`"
+            )
         if now != before:
             raise UserError(
                 f"{path}: the {role} changed since the run (sha256 {before[:12]}... in "
