@@ -974,3 +974,16 @@ def test_a_sweep_cell_that_fails_leaves_no_notice_to_the_next(monkeypatch, capsy
     monkeypatch.setattr(cells, "_run_cell", starting)
     assert cells.run_cell({"id": "b"}) == {"id": "b"}
     assert capsys.readouterr().err == "twin: notice: of the good cell\n"
+
+
+def test_a_write_into_a_missing_folder_names_the_file_not_a_temporary_one(tmp_path: Path) -> None:
+    from twin.files import atomic_write, staged_folder
+
+    target = tmp_path / "gone" / "h.npz"
+    with pytest.raises(FileNotFoundError) as raised:
+        atomic_write(target, lambda p: p.write_text("x"))
+    assert raised.value.filename == str(target)
+    with pytest.raises(FileNotFoundError) as raised, staged_folder(tmp_path / "gone" / "report"):
+        pass
+    assert raised.value.filename == str(tmp_path / "gone" / "report")
+    assert not (tmp_path / "gone").exists()

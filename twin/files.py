@@ -23,7 +23,11 @@ def atomic_write(path: str | Path, write: Callable[[Path], None]) -> None:
     the ``0600`` of a temporary file; the temporary name is unique, so concurrent writers of
     one path never share it."""
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    except OSError as exc:  # name the file being written, not a temporary name
+        exc.filename = str(path)
+        raise
     os.close(fd)
     try:
         write(Path(tmp))
@@ -49,7 +53,11 @@ def staged_folder(path: str | Path) -> Iterator[Path]:
     folder, or none, never a partial one. A system error names the file under ``path``, not
     under its temporary copy."""
     path = Path(path)
-    stage = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp"))
+    try:
+        stage = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp"))
+    except OSError as exc:  # name the folder being written, not a temporary name
+        exc.filename = str(path)
+        raise
     old = None
     try:
         os.chmod(stage, 0o777 & ~_umask())

@@ -75,6 +75,20 @@ def check_output_file(path: str | Path, flag: str, need_mb: float = 1) -> Path:
     return path
 
 
+def make_parent(path: str | Path, flag: str) -> Path:
+    """Create the missing folders above the output file ``path`` (:func:`check_output_file`
+    accepted them as folders that can be created); a failure is one line naming ``flag``."""
+    path = Path(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(
+            f"{flag} {path}: cannot create the folder {path.parent} ({exc.strerror}); create "
+            "it or give another file name"
+        ) from None
+    return path
+
+
 def _check_name(path: Path, flag: str) -> None:
     """Refuse a path that is not valid UTF-8 text (bytes the file system took but twin could
     not write into its JSON and reports, nor print)."""

@@ -81,7 +81,7 @@ def main(args: argparse.Namespace) -> int:
 
     from twin.belief import fit_history
     from twin.files import atomic_write
-    from twin.outputs import check_output_file
+    from twin.outputs import check_output_file, make_parent
 
     if args.out.suffix != ".npz":
         raise UserError(f"--out {args.out}: give a file name ending in .npz")
@@ -130,7 +130,7 @@ def main(args: argparse.Namespace) -> int:
         list(seeds),
         [str(p) for p in paths],
     )
-    atomic_write(args.out, history.save)
+    atomic_write(make_parent(args.out, "--out"), history.save)
     free = ~history.obstacles
     print(
         f"history: {history.n_runs} simulations (SUMO seeds "
