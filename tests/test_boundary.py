@@ -513,6 +513,25 @@ READ_BACK = {
         _json("manifest.json", ("files", "summary.csv"), "big"),
         "summary.csv",
     ),
+    "summary headline off its series": (
+        _edit_table("summary.csv", _set("R_hat_T", 123.456)),
+        "has R_hat_T = 123.456, its series in series.parquet gives",
+    ),
+    "bound below a swarm": (
+        _edit_table(
+            "summary.csv",
+            lambda f: f.assign(R_hat_T=f["R_hat_T"].where(f["swarm"] != "bound (ceiling)", 1e-3)),
+        ),
+        "the bound (ceiling) row's R_hat_T = 0.001 lies below a swarm's",
+    ),
+    "run.json seeds without results": (
+        _json("run.json", ("seeds",), [0, 1, 2]),
+        "seeds = [0, 1, 2] differ from those with results in series.parquet, [0, 1]",
+    ),
+    "infinite seconds in timing": (
+        _edit_table("timing.csv", _set("seconds", np.inf)),
+        "column 'seconds' row 0 is inf, not a finite number",
+    ),
     "run.json negative horizon": (
         _json("run.json", ("horizon",), -5),
         "horizon = -5 must be at least 0",
