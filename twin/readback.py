@@ -166,6 +166,13 @@ def _jsonable(value: Any) -> bool:
 
 NUM = (int, float)
 
+
+def _at_least(low: float) -> tuple[Any, str]:
+    return (lambda v: v >= low), f"at least {low:g}"
+
+
+_POSITIVE = ((lambda v: v > 0), "above 0")
+
 #: The fields of a run folder's ``run.json`` that its readers use, with their types.
 RUN_JSON_FIELDS: dict[str, Any] = {
     "partial": bool,
@@ -211,6 +218,14 @@ NETWORK_FIELDS: dict[str, Any] = {
     },
     "n_obstacles": int,
     "row_0": str,
+}
+#: The plausible values of ``network.json``'s numbers.
+NETWORK_RANGES: dict[str, tuple[Any, str]] = {
+    "grid.cell_m": _POSITIVE,
+    "grid.nx": _at_least(1),
+    "grid.ny": _at_least(1),
+    "grid.lane_km_total": _at_least(0),
+    "n_obstacles": _at_least(0),
 }
 #: ``mfd.json`` of a live run: the MFD fit and how it was used.
 MFD_FIELDS: dict[str, Any] = {
@@ -263,11 +278,6 @@ def check_incidents(path: Path, incidents: Any) -> None:
             raise UserError(f"{path}: [{n}].cell = {cell} must be a cell [i, j]; {RERUN}")
 
 
-def _at_least(low: float) -> tuple[Any, str]:
-    return (lambda v: v >= low), f"at least {low:g}"
-
-
-_POSITIVE = ((lambda v: v > 0), "above 0")
 _SCORE_RANGES = {
     "eta": ((lambda v: 0 < v < 1), "between 0 and 1"),
     "delta": ((lambda v: 0 < v < 1), "between 0 and 1"),
@@ -306,10 +316,7 @@ def check_run_json(path: Path, run: Any) -> dict[str, Any]:
         params = config.get("params", config.get("score"))
         if params is not None:
             check_fields(path, params, RUN_JSON_FIELDS["params"], "config.params")
-    for name, (plausible, want) in RUN_JSON_RANGES.items():
-        value = _dotted(run, name)
-        if value is not None and not plausible(value):
-            raise UserError(f"{path}: {name} = {value!r} must be {want}; {RERUN}")
+    check_ranges(path, run, RUN_JSON_RANGES)
     for n, seed in enumerate(run.get("seeds") or []):
         if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= _MAX_SEED:
             raise UserError(
@@ -329,6 +336,15 @@ def check_run_json(path: Path, run: Any) -> dict[str, Any]:
             f"of at least 1; {RERUN}"
         )
     return run
+
+
+def check_ranges(path: Path, node: Any, ranges: Mapping[str, tuple[Any, str]]) -> None:
+    """Each present number of ``ranges`` (dotted name -> test, what it must be) in the JSON
+    object ``node`` passes its test (types are checked before, :func:`check_fields`)."""
+    for name, (plausible, want) in ranges.items():
+        value = _dotted(node, name)
+        if value is not None and not plausible(value):
+            raise UserError(f"{path}: {name} = {value!r} must be {want}; {RERUN}")
 
 
 def _dotted(node: Any, name: str) -> Any:

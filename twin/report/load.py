@@ -24,6 +24,7 @@ from twin.readback import (
     MFD_FIELDS,
     MFD_SAMPLE_COLUMNS,
     NETWORK_FIELDS,
+    NETWORK_RANGES,
     NUMBER,
     RERUN,
     TEXT,
@@ -32,6 +33,7 @@ from twin.readback import (
     check_fields,
     check_headline,
     check_incidents,
+    check_ranges,
     check_run_json,
     check_series,
     check_trajectories,
@@ -260,6 +262,7 @@ def load_run(run_dir: str | Path) -> RunFiles:
     incidents = read_json(run_dir / "incidents.json")
     if network is not None:
         check_fields(run_dir / "network.json", network, NETWORK_FIELDS)
+        check_ranges(run_dir / "network.json", network, NETWORK_RANGES)
     if mfd is not None:
         check_fields(run_dir / "mfd.json", mfd, MFD_FIELDS)
     if incidents is not None:
