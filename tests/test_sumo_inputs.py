@@ -207,6 +207,30 @@ def test_route_files_with_only_vehicle_types(city, tmp_path, capsys):
     _assert_window_matches_demand(city / "types-only", trips)
 
 
+def test_a_demand_of_persons_alone_gets_a_notice(city, tmp_path, capsys):
+    """Persons walk and containers wait: a demand of them alone leaves the roads empty, and the
+    run says so rather than showing an empty twin without a word."""
+    walkers = tmp_path / "walkers.rou.xml"
+    persons = "".join(
+        f'<person id="p{n}" depart="{FIRST_DEPART + 30 * n}"><walk from="A0A1" to="C2C3"/></person>'
+        for n in range(20)
+    )
+    walkers.write_text(f"<routes>{persons}</routes>")
+    counts: dict[str, int] = {}
+    assert departure_span([walkers], counts) is not None and counts == {"person": 20}
+    net = str(city / "data" / "grid.net.xml")
+    code, err = _run(city, "walkers", "--net", net, "--routes", str(walkers), "--horizon", "3",
+                     capsys=capsys)  # fmt: skip
+    assert code == 0, err
+    (line,) = [x for x in err.splitlines() if "no vehicle" in x]
+    assert line.startswith(f"twin: notice: {walkers}: the demand holds persons"), line
+    code, err = _run(city, "walkers-and-cars", "--net", net, "--routes", str(walkers),
+                     "--routes", str(city / "data" / "grid.rou.xml"), "--additional",
+                     str(city / "data" / "vtypes.add.xml"), "--horizon", "3",
+                     capsys=capsys)  # fmt: skip
+    assert code == 0 and "no vehicle" not in err, err
+
+
 def test_too_small_grid_notice_and_its_suggestion_works(city, capsys):
     drones = 3
     cfg = str(city / "scenario" / "gz.sumocfg")

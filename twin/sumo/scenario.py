@@ -36,6 +36,7 @@ from twin.errors import UserError
 from twin.grid import Grid
 from twin.sumo.readers import (
     SUMOCFG_ROOTS,
+    VEHICLE_DEMAND,
     departure_span,
     naming_the_sumocfg,
     read_sumocfg,
@@ -267,7 +268,8 @@ def _scenario_files(s: SumoSettings) -> _ScenarioFiles:
         _check_routes(files.route_files)
         _check_additional(files.additional_files)
         # SUMO loads vehicles, flows and persons of additional files as demand too
-        files.span = departure_span([*files.route_files, *files.additional_files])
+        departing: dict[str, int] = {}
+        files.span = departure_span([*files.route_files, *files.additional_files], departing)
     if files.span is None and files.sumocfg is not None and not files.route_files:
         notice(
             f"{files.sumocfg}: names no <route-files>; twin generates a rush-hour demand "
@@ -277,6 +279,13 @@ def _scenario_files(s: SumoSettings) -> _ScenarioFiles:
         notice(
             f"{', '.join(str(r) for r in files.route_files)}: no vehicle departs in the route "
             "files (vehicle types only?); twin generates a rush-hour demand"
+        )
+    elif files.span is not None and not any(departing.get(t) for t in VEHICLE_DEMAND):
+        named = [*files.route_files, *files.additional_files]
+        notice(
+            f"{', '.join(str(r) for r in named)}: the demand holds persons or containers but no "
+            "vehicle, so every cell's traffic stays 0 (no MFD can be fitted); add vehicles, or "
+            "leave the demand out and twin generates a rush-hour one"
         )
     return files
 
