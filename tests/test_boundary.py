@@ -197,6 +197,15 @@ def test_command_line_errors_are_one_line(argv, capsys) -> None:
 # --- bad inputs through the CLI ---------------------------------------------------------------
 
 
+def _edited_config(folder: Path, old: str, new: str) -> Path:
+    """The small synthetic config with ``old`` replaced by ``new`` (which must be in it)."""
+    path = small_config(folder)
+    text = path.read_text()
+    assert old in text
+    path.write_text(text.replace(old, new, 1))
+    return path
+
+
 def _write(path: Path, text: str) -> Path:
     path.write_text(text)
     return path
@@ -284,6 +293,18 @@ CASES = {
     "pretrain out empty": (
         lambda t: ["pretrain", "--out", "", "--epochs", "1"],
         "--out '': string should have at least 1 character",
+    ),
+    "z_lo above every z of the map": (
+        lambda t: ["evaluate", "--config", str(_edited_config(t, "z_lo = 0.0", "z_lo = 5.0"))],
+        "[traffic].z_lo = 5 is not below the largest z of the map over the horizon",
+    ),
+    "a disturbance off the map": (
+        lambda t: [
+            "evaluate",
+            "--config",
+            str(_edited_config(t, "i = 5, j = 8", "i = 500, j = 8")),
+        ],
+        "[traffic].disturbances[0] is centred at (i, j) = (500, 8), off the 20 x 30 map",
     ),
     "gui swarms without --gui": (
         lambda t: ["run", "--gui-swarms", "nosuch"],

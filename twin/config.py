@@ -527,8 +527,7 @@ def config_from_data(path: Path, data: dict[str, Any]) -> ScenarioConfig:
     except ValidationError as exc:
         raise validation_error(path, exc, data, ScenarioConfig) from None
     config._path = Path(path)
-    if config.traffic.kind == "synthetic":
-        check_swarm_fits(config, make_grid(config))
+    validate(config)
     return config
 
 
@@ -536,6 +535,21 @@ def validate(config: ScenarioConfig) -> None:
     """The checks that need the grid (synthetic scenarios); the rest is in the models."""
     if config.traffic.kind == "synthetic":
         check_swarm_fits(config, make_grid(config))
+        check_disturbances(config)
+
+
+def check_disturbances(config: ScenarioConfig) -> None:
+    """Each disturbance of a synthetic config is centred on the map (one far off it would
+    add nothing to any cell), as obstacles and starts must lie on it."""
+    g = config.grid
+    for n, d in enumerate(config.traffic.disturbances):
+        if not (0 <= d.i <= g.nx - 1 and 0 <= d.j <= g.ny - 1):
+            raise _fail(
+                config.path,
+                f"[traffic].disturbances[{n}]",
+                f"is centred at (i, j) = ({d.i:g}, {d.j:g}), off the {g.nx} x {g.ny} map "
+                f"(0 .. {g.nx - 1}, 0 .. {g.ny - 1}); centre it on the map",
+            )
 
 
 # ------------------------------------------------------------------------- grid and swarm
@@ -626,4 +640,12 @@ def synthetic_source(config: ScenarioConfig, grid: Grid | None = None):
     t = synthetic_config(config)
     grid = grid or make_grid(config)
     disturbances = [Disturbance(**d.model_dump()) for d in t.disturbances]
-    return SyntheticTraffic(grid, disturbances, t.horizon, t.beta1, t.beta2, t.z_lo, t.z_hi)
+    source = SyntheticTraffic(grid, disturbances, t.horizon, t.beta1, t.beta2, t.z_lo, t.z_hi)
+    if disturbances and source.peak_z() <= t.z_lo:
+        raise _fail(
+            config.path,
+            "[traffic].z_lo",
+            f"= {t.z_lo:g} is not below the largest z of the map over the horizon "
+            f"({source.peak_z():.3g}): every importance would be 0; give a z_lo below it",
+        )
+    return source
