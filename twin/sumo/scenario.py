@@ -46,6 +46,8 @@ from twin.sumo.readers import (
 
 #: SUMO's step (s, its default --step-length): a twin step may not be shorter.
 SUMO_STEP_S = 1.0
+#: The longest twin step (s): one drone move per simulated day at most.
+MAX_STEP_S = 86400.0
 
 
 def sumo_settings(config) -> SumoSettings:
@@ -293,10 +295,16 @@ def _scenario_files(s: SumoSettings) -> _ScenarioFiles:
 def _step_seconds(s: SumoSettings, config, inputs: SumoInputs) -> float:
     """Simulated seconds per step, ``cell_m / speed``; not shorter than SUMO's own step."""
     step_s = s.cell_m / (s.drone_speed_kmh / 3.6)
+    flags = [f"--drone-speed {inputs.drone_speed_kmh:g}" if inputs.drone_speed_kmh else ""]
+    flags.append(f"--cell-m {inputs.cell_m:g}" if inputs.cell_m else "")
+    where = ", ".join(f for f in flags if f) or f"{config.path}: [traffic]"
+    if step_s > MAX_STEP_S:
+        raise UserError(
+            f"{where}: a step ({s.cell_m:g} m at {s.drone_speed_kmh:g} km/h) lasts {step_s:.3g} "
+            f"s, longer than a day ({MAX_STEP_S:g} s) of simulation per drone move; give a "
+            "higher drone speed or smaller cells"
+        )
     if step_s < SUMO_STEP_S:
-        flags = [f"--drone-speed {inputs.drone_speed_kmh:g}" if inputs.drone_speed_kmh else ""]
-        flags.append(f"--cell-m {inputs.cell_m:g}" if inputs.cell_m else "")
-        where = ", ".join(f for f in flags if f) or f"{config.path}: [traffic]"
         raise UserError(
             f"{where}: a step ({s.cell_m:g} m at {s.drone_speed_kmh:g} km/h) lasts {step_s:.2g} "
             f"s, shorter than SUMO's {SUMO_STEP_S:g} s step; give a lower drone speed or larger "
