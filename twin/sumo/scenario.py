@@ -398,6 +398,13 @@ def _grid_and_notices(
     if files.span is not None and window_given:
         clear = clearing_time(geometry)
         end = begin + s.horizon * step_s
+        if begin >= files.span[1] + clear or end <= files.span[0]:
+            raise UserError(
+                f"{files.name}: the run ({clock_label(begin)} - {clock_label(end)}) lies outside "
+                f"the demand (departures {clock_label(files.span[0])} - "
+                f"{clock_label(files.span[1])}, plus {clear / 60:.0f} min to clear the "
+                "network): every step would be empty; give a --begin (and --horizon) within it"
+            )
         if end > files.span[1] + clear:
             notices.append(
                 f"{files.name}: the run ends at {clock_label(end)}, past the last departure "
