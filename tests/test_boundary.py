@@ -1027,3 +1027,24 @@ def test_a_write_into_a_missing_folder_names_the_file_not_a_temporary_one(tmp_pa
         pass
     assert raised.value.filename == str(tmp_path / "gone" / "report")
     assert not (tmp_path / "gone").exists()
+
+
+def test_a_notice_said_again_by_the_next_seed_is_printed_once(capsys) -> None:
+    """Each seed's scenario says the same notices: the command prints each once."""
+    from twin.boundary import notify
+
+    def command(args) -> int:
+        for _seed in range(3):
+            notify("twin: notice: the run ends past the last departure")
+            notify("SUMO: small.net.xml (seed 0)")
+        notify("twin: notice: another")
+        return 0
+
+    assert run_command(command, None) == 0
+    assert capsys.readouterr().err.splitlines() == [
+        "twin: notice: the run ends past the last departure",
+        "SUMO: small.net.xml (seed 0)",
+        "twin: notice: another",
+    ]
+    assert run_command(command, None) == 0  # the next command says them again
+    assert len(capsys.readouterr().err.splitlines()) == 3

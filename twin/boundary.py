@@ -51,6 +51,8 @@ _state: dict[str, Path | None] = {"run_folder": None}
 #: notices held back until the simulation has started (None: print them at once), or, with
 #: ``to_end``, until the command has ended well
 _held: dict[str, Any] = {"lines": None, "to_end": False}
+#: the notices a command has said (None outside a command): each is said once, not once per seed
+_said: dict[str, set[str] | None] = {"lines": None}
 
 
 def set_run_folder(path: Path | None) -> None:
@@ -75,7 +77,14 @@ def hold_notices(to_end: bool = False) -> None:
 
 
 def notify(line: str) -> None:
-    """Print ``line`` on stderr, or hold it back while :func:`hold_notices` is in force."""
+    """Print ``line`` on stderr, or hold it back while :func:`hold_notices` is in force; a
+    line the command has said already (the same notice of each seed's scenario) is not
+    repeated."""
+    said = _said["lines"]
+    if said is not None:
+        if line in said:
+            return
+        said.add(line)
     held = _held["lines"]
     if held is not None:
         held.append(line)
@@ -231,11 +240,14 @@ def _notices_held_on_failure(func: Callable[[Any], int | None], args: Any) -> in
     """``func(args)``; the notices it still holds back are printed when it returns, dropped
     when it fails (its error is the one line)."""
     drop_notices()
+    _said["lines"] = set()
     try:
         code = func(args)
     except BaseException:
         drop_notices()
         raise
+    finally:
+        _said["lines"] = None
     release_notices(final=True)
     return code
 
