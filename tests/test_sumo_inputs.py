@@ -257,6 +257,17 @@ def test_a_step_or_time_that_cannot_show_traffic_is_refused(city, capsys, case):
     assert not (city / out).exists()
 
 
+def test_a_flags_file_is_never_said_to_be_named_in_the_sumocfg(city, capsys):
+    """The sumocfg's network given again by --routes: refused as a network, and as --routes'
+    file, not as one the sumocfg names (it names it as its network)."""
+    net = city / "data" / "grid.net.xml"
+    cfg = str(city / "scenario" / "plain.sumocfg")
+    code, err = _run(city, "net-as-routes", "--sumocfg", cfg, "--routes", str(net), capsys=capsys)
+    assert code == 2 and err.count("\n") == 1, err
+    assert err.startswith(f"twin: error: {net}: not a route file but a SUMO network"), err
+    assert "named in" not in err
+
+
 def test_too_small_grid_notice_and_its_suggestion_works(city, capsys):
     drones = 3
     cfg = str(city / "scenario" / "gz.sumocfg")

@@ -199,6 +199,9 @@ class _ScenarioFiles:
     name: str  # the scenario's name in messages: the network, sumocfg or OSM file
     sumocfg: Path | None = None
     listed: list[Path] = field(default_factory=list)  # sumocfg files (named with it in errors)
+    #: the sumocfg's files by role ("net", "routes", "additional"): a file given by a flag is
+    #: never said to be named in the sumocfg, even where the sumocfg names it in another role
+    listed_as: dict[str, list[Path]] = field(default_factory=dict)
     window: list[float | None] = field(default_factory=lambda: [None, None])  # <time> of it
     span: tuple[float, float] | None = None  # first and last departure of the given demand
 
@@ -256,6 +259,11 @@ def _scenario_files(s: SumoSettings) -> _ScenarioFiles:
                 *([] if s.routes else cfg.routes),
                 *cfg.additional,
             ],
+            listed_as={
+                "net": [] if s.net else [cfg.net],
+                "routes": [] if s.routes else list(cfg.routes),
+                "additional": list(cfg.additional),
+            },
             window=[cfg.begin, cfg.end],
         )
     elif s.osm:
@@ -265,10 +273,14 @@ def _scenario_files(s: SumoSettings) -> _ScenarioFiles:
         files = _ScenarioFiles(Path(s.net), [], additional_files, Path(s.net).name)
     if s.routes:
         files.route_files = [Path(r) for r in s.routes]
-    with _named_in(files.sumocfg, files.listed):
+    as_ = files.listed_as
+    with _named_in(files.sumocfg, as_.get("net", [])):
         check_net_file(files.net_file)
+    with _named_in(files.sumocfg, as_.get("routes", [])):
         _check_routes(files.route_files)
+    with _named_in(files.sumocfg, as_.get("additional", [])):
         _check_additional(files.additional_files)
+    with _named_in(files.sumocfg, [*as_.get("routes", []), *as_.get("additional", [])]):
         # SUMO loads vehicles, flows and persons of additional files as demand too
         departing: dict[str, int] = {}
         files.span = departure_span([*files.route_files, *files.additional_files], departing)
