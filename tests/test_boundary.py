@@ -304,7 +304,7 @@ CASES = {
             "--config",
             str(_edited_config(t, "i = 5, j = 8", "i = 500, j = 8")),
         ],
-        "[traffic].disturbances[0] is centred at (i, j) = (500, 8), off the 20 x 30 map",
+        "[traffic].disturbances[0] is centred at (i, j) = (500, 8), 481 cells off the 20 x 30 map",
     ),
     "gui swarms without --gui": (
         lambda t: ["run", "--gui-swarms", "nosuch"],

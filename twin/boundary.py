@@ -32,6 +32,13 @@ from pathlib import Path
 from typing import Any
 
 from twin.errors import UserError
+from twin.notices import (  # noqa: F401 (the notices are part of the boundary's interface)
+    count_said,
+    drop_notices,
+    hold_notices,
+    notify,
+    release_notices,
+)
 
 EXIT_OK, EXIT_PARTIAL, EXIT_REFUSED, EXIT_BUG = 0, 1, 2, 3
 EXIT_INTERRUPTED, EXIT_PIPE = 130, 141
@@ -48,11 +55,6 @@ LOG_NAME = "error.log"
 MAX_MESSAGE = 600
 
 _state: dict[str, Path | None] = {"run_folder": None}
-#: notices held back until the simulation has started (None: print them at once), or, with
-#: ``to_end``, until the command has ended well
-_held: dict[str, Any] = {"lines": None, "to_end": False}
-#: the notices a command has said (None outside a command): each is said once, not once per seed
-_said: dict[str, set[str] | None] = {"lines": None}
 
 
 def set_run_folder(path: Path | None) -> None:
@@ -63,50 +65,6 @@ def set_run_folder(path: Path | None) -> None:
 
 def run_folder() -> Path | None:
     return _state["run_folder"]
-
-
-def hold_notices(to_end: bool = False) -> None:
-    """From now on, hold back :func:`notify`'s lines (notices, the simulation's announcement)
-    until :func:`release_notices`: a command refused before its simulation starts prints its
-    one error line only. With ``to_end`` (a command writing its results after the run) they
-    are held until the command has ended well, whatever simulations start meanwhile (the
-    ceilings' oracle): a write that fails is its error's line alone."""
-    if _held["lines"] is None:
-        _held["lines"] = []
-    _held["to_end"] = _held["to_end"] or to_end
-
-
-def notify(line: str) -> None:
-    """Print ``line`` on stderr, or hold it back while :func:`hold_notices` is in force; a
-    line the command has said already (the same notice of each seed's scenario) is not
-    repeated."""
-    said = _said["lines"]
-    if said is not None:
-        if line in said:
-            return
-        said.add(line)
-    held = _held["lines"]
-    if held is not None:
-        held.append(line)
-    else:
-        print(line, file=sys.stderr, flush=True)
-
-
-def release_notices(final: bool = False) -> None:
-    """Print the held lines, in order (the simulation has started), and stop holding; lines
-    held ``to_end`` wait for the ``final`` release, when the command has ended well."""
-    if _held["to_end"] and not final:
-        return
-    held, _held["lines"], _held["to_end"] = _held["lines"], None, False
-    for line in held or []:
-        with contextlib.suppress(Exception):
-            print(line, file=sys.stderr, flush=True)
-
-
-def drop_notices() -> list[str]:
-    """Stop holding and return the held lines unprinted (a refusal prints only its error)."""
-    held, _held["lines"], _held["to_end"] = _held["lines"], None, False
-    return held or []
 
 
 def one_line(text: str) -> str:
@@ -240,14 +198,14 @@ def _notices_held_on_failure(func: Callable[[Any], int | None], args: Any) -> in
     """``func(args)``; the notices it still holds back are printed when it returns, dropped
     when it fails (its error is the one line)."""
     drop_notices()
-    _said["lines"] = set()
+    count_said(True)
     try:
         code = func(args)
     except BaseException:
         drop_notices()
         raise
     finally:
-        _said["lines"] = None
+        count_said(False)
     release_notices(final=True)
     return code
 

@@ -171,7 +171,7 @@ def build_once(
             verify(target)
             return target
         except (BrokenEntry, OSError) as exc:
-            from twin.boundary import notify
+            from twin.notices import notify
 
             notify(f"twin: notice: cache entry {target} is broken ({_reason(exc)}); rebuilding it")
             force = True
