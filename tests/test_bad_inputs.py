@@ -135,6 +135,16 @@ TAPE_CASES: dict[str, tuple[Callable[[Path], Path], str]] = {
         lambda p: write_tape(p, lambda f: f.assign(time_s=np.nan)),
         "column time_s = nan",
     ),
+    "NaN time in one cell's row": (
+        lambda p: write_tape(
+            p, lambda f: _set(f, "time_s", float("nan"), (f["step"] == -1) & (f["j"] == 2))
+        ),
+        "column time_s = nan at step -1, cell (0, 2) is not finite",
+    ),
+    "another time in one cell's row": (
+        lambda p: write_tape(p, lambda f: _set(f, "time_s", 1.0, (f["step"] == 2) & (f["i"] == 1))),
+        "column time_s = 1.0 at step 2, cell (1, 0) differs from the step's time 25350.0",
+    ),
     "a missing step": (
         lambda p: write_tape(p, lambda f: f[f["step"] != 3]),
         "step 3 missing",

@@ -138,6 +138,17 @@ def test_history_never_overwrites_a_file(history, tmp_path, capsys):
     assert mine.read_bytes() == b"keep"
 
 
+def test_history_out_into_missing_folders_creates_them(history, tmp_path, capsys):
+    """--out's missing folders are created (the check before the work accepted them), and the
+    written file is the one named, never a temporary name."""
+    days = history.parent / "days"
+    out = tmp_path / "new" / "sub" / "h.npz"
+    assert twin_main(["history", "--from", str(days), "--out", str(out)]) == 0
+    assert f"written: {out}" in capsys.readouterr().out
+    assert History.load(out).n_runs == 2
+    assert sorted(p.name for p in out.parent.iterdir()) == ["h.npz"]
+
+
 @pytest.mark.parametrize("dtype", ["complex64", "U12"])
 def test_a_history_of_other_than_real_numbers_is_refused(history, tmp_path, dtype):
     with np.load(history) as data:

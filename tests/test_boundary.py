@@ -197,6 +197,15 @@ def test_command_line_errors_are_one_line(argv, capsys) -> None:
 # --- bad inputs through the CLI ---------------------------------------------------------------
 
 
+def _edited_config(folder: Path, old: str, new: str) -> Path:
+    """The small synthetic config with ``old`` replaced by ``new`` (which must be in it)."""
+    path = small_config(folder)
+    text = path.read_text()
+    assert old in text
+    path.write_text(text.replace(old, new, 1))
+    return path
+
+
 def _write(path: Path, text: str) -> Path:
     path.write_text(text)
     return path
@@ -284,7 +293,129 @@ CASES = {
         lambda t: ["pretrain", "--out", str(_write(t / "f4", "")), "--epochs", "1"],
         "in the way",
     ),
+    "pretrain out empty": (
+        lambda t: ["pretrain", "--out", "", "--epochs", "1"],
+        "--out '': string should have at least 1 character",
+    ),
+    "z_lo above every z of the map": (
+        lambda t: ["evaluate", "--config", str(_edited_config(t, "z_lo = 0.0", "z_lo = 5.0"))],
+        "[traffic].z_lo = 5 is not below the largest z of the map over the horizon",
+    ),
+    "a disturbance off the map": (
+        lambda t: [
+            "evaluate",
+            "--config",
+            str(_edited_config(t, "i = 5, j = 8", "i = 500, j = 8")),
+        ],
+        "[traffic].disturbances[0] is centred at (i, j) = (500, 8), 481 cells off the 20 x 30 map",
+    ),
+    "gui swarms without --gui": (
+        lambda t: ["run", "--gui-swarms", "nosuch"],
+        "--gui-swarms: 'nosuch' is not among the run's swarms",
+    ),
+    "gui swarms naming none": (
+        lambda t: ["run", "--gui-swarms", " , "],
+        "--gui-swarms ' , ': names no swarm",
+    ),
 }
+#: output paths on a file system that reports no size and takes no files (Linux: /proc, /sys)
+SPECIAL_FS = {
+    "out on /proc": (
+        lambda t: ["evaluate", "--config", str(small_config(t)), "--out", "/proc/twin-run"],
+        "--out /proc/twin-run: /proc is on a special file system",
+    ),
+    "sweep out on /sys": (
+        lambda t: ["sweep", "--config", "sweep-demo", "--out", "/sys/twin-sweep"],
+        "--out /sys/twin-sweep: /sys is on a special file system",
+    ),
+    "record on /proc": (
+        lambda t: ["run", "--record", "/proc/twin.mp4"],
+        "--record /proc/twin.mp4: /proc is on a special file system",
+    ),
+    "pretrain out on /proc": (
+        lambda t: ["pretrain", "--out", "/proc/twin-pretrain", "--epochs", "1"],
+        "--out /proc/twin-pretrain: /proc is on a special file system",
+    ),
+    "history out on /proc": (
+        lambda t: ["history", "--from", str(t / "run"), "--out", "/proc/twin-history.npz"],
+        "--out /proc/twin-history.npz: /proc is on a special file system",
+    ),
+}
+
+
+def _reports_no_size(path: str) -> bool:
+    try:
+        return os.statvfs(path).f_blocks == 0
+    except OSError:
+        return False
+
+
+@pytest.mark.skipif(
+    not (_reports_no_size("/proc") and _reports_no_size("/sys")),
+    reason="needs /proc and /sys as file systems that report no size (Linux)",
+)
+@pytest.mark.parametrize("name", list(SPECIAL_FS))
+def test_output_on_a_special_file_system_is_one_line(name, tmp_path: Path, capsys) -> None:
+    """Not the misleading "0 MB free" of a file system that reports no size: the path and what
+    is wrong with it."""
+    build, words = SPECIAL_FS[name]
+    argv = build(tmp_path)
+    before = tree_hash(tmp_path)
+    assert main(argv) == EXIT_REFUSED
+    line = one_line(capsys)
+    assert words in line and "MB free" not in line, line
+    assert tree_hash(tmp_path) == before
+    assert not Path(argv[argv.index("--out" if "--out" in argv else "--record") + 1]).exists()
+
+
+def test_a_file_system_that_reports_no_size_but_takes_files_is_not_refused(
+    tmp_path: Path, monkeypatch
+) -> None:
+    """Some mounts report no size and still take files: the estimate is skipped, not failed."""
+    import twin.outputs
+    from twin.outputs import check_output_dir
+
+    real = os.statvfs
+
+    def no_size(path):
+        stats = real(path)
+        return os.statvfs_result((*stats[:2], 0, 0, 0, *stats[5:]))
+
+    monkeypatch.setattr(twin.outputs.os, "statvfs", no_size)
+    monkeypatch.setattr(
+        twin.outputs.shutil, "disk_usage", lambda p: shutil._ntuple_diskusage(0, 0, 0)
+    )
+    before = tree_hash(tmp_path)
+    assert check_output_dir(tmp_path / "run", "--out") == tmp_path / "run"
+    assert tree_hash(tmp_path) == before  # the probe folder is gone again
+
+
+# every path argument: an empty one is refused, never read as the current folder
+EMPTY_PATHS = {
+    "run --out": ["run", "--out", ""],
+    "evaluate --out": ["evaluate", "--out", ""],
+    "sweep --out": ["sweep", "--config", "sweep-demo", "--out", ""],
+    "history --out": ["history", "--from", "x", "--out", ""],
+    "network --out": ["network", "import-osm", "x.osm", "--out", ""],
+    "run --config": ["run", "--config", ""],
+    "run --net": ["run", "--net", ""],
+    "run --record": ["run", "--record", ""],
+    "evaluate --traffic": ["evaluate", "--traffic", ""],
+    "report RUN_DIR": ["report", ""],
+    "replay RUN_DIR": ["replay", ""],
+}
+
+
+@pytest.mark.parametrize("name", list(EMPTY_PATHS))
+def test_an_empty_path_is_refused(name, tmp_path: Path, capsys, monkeypatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    before = tree_hash(tmp_path)
+    with pytest.raises(SystemExit) as stop:
+        main(EMPTY_PATHS[name])
+    assert stop.value.code == EXIT_REFUSED
+    line = one_line(capsys)
+    assert "an empty path; give a file or folder name" in line, line
+    assert tree_hash(tmp_path) == before
 
 
 @pytest.mark.parametrize("name", list(CASES))
@@ -406,6 +537,47 @@ READ_BACK = {
         _json("manifest.json", ("files", "summary.csv"), "big"),
         "summary.csv",
     ),
+    "summary headline off its series": (
+        _edit_table("summary.csv", _set("R_hat_T", 123.456)),
+        "has R_hat_T = 123.456, its series in series.parquet gives",
+    ),
+    "bound below a swarm": (
+        _edit_table(
+            "summary.csv",
+            lambda f: f.assign(R_hat_T=f["R_hat_T"].where(f["swarm"] != "bound (ceiling)", 1e-3)),
+        ),
+        "the bound (ceiling) row's R_hat_T = 0.001 lies below a swarm's",
+    ),
+    "run.json seeds without results": (
+        _json("run.json", ("seeds",), [0, 1, 2]),
+        "seeds = [0, 1, 2] differ from those with results in series.parquet, [0, 1]",
+    ),
+    "infinite seconds in timing": (
+        _edit_table("timing.csv", _set("seconds", np.inf)),
+        "column 'seconds' row 0 is inf, not a finite number",
+    ),
+    "run.json negative horizon": (
+        _json("run.json", ("horizon",), -5),
+        "horizon = -5 must be at least 0",
+    ),
+    "run.json no drones": (_json("run.json", ("n_drones",), 0), "n_drones = 0 must be at least"),
+    "run.json cell size 0": (
+        _json("run.json", ("traffic", "identity", "cell_m"), 0),
+        "traffic.identity.cell_m = 0 must be above 0",
+    ),
+    "run.json grid of no rows": (_json("run.json", ("grid", "nx"), 0), "grid.nx = 0"),
+    "run.json identity grid of one number": (
+        _json("run.json", ("traffic", "identity", "grid"), [4]),
+        "traffic.identity.grid = [4] must be [nx, ny]",
+    ),
+    "run.json step of 0 s": (_json("run.json", ("traffic", "step_s"), 0), "traffic.step_s = 0"),
+    "run.json negative seed": (_json("run.json", ("seeds",), [-1]), "seeds[0] = -1"),
+    "run.json eta above 1": (_json("run.json", ("params", "eta"), 3), "params.eta = 3 must be"),
+    "run.json threshold 0": (
+        _json("run.json", ("monitoring", "threshold"), 0),
+        "monitoring.threshold = 0",
+    ),
+    "run.json folder not text": (_json("run.json", ("invocation", "cwd"), 5), "invocation.cwd"),
 }
 
 
@@ -771,3 +943,111 @@ def test_held_notices_print_after_the_start_and_vanish_on_a_refusal(case, capsys
 
     notify("twin: notice: after")  # no command holds them any more
     assert capsys.readouterr().err == "twin: notice: after\n"
+
+
+def test_a_notice_of_writing_is_held_behind_a_refusal_and_printed_after_success(
+    tmp_path: Path, monkeypatch, capsys
+) -> None:
+    """The bound left out (too large a DP) is noticed while the run folder is written: a full
+    disk after it is one line; a run that ends well prints the notice after its results."""
+    import twin.ceilings
+    import twin.runs
+
+    monkeypatch.setattr(twin.ceilings, "MAX_DP_BYTES", 0)
+    real = twin.runs.atomic_write
+
+    def full(path, write):
+        if Path(path).name == "trajectories.parquet":
+            raise OSError(errno.ENOSPC, "No space left on device", str(path))
+        return real(path, write)
+
+    config, out = small_config(tmp_path), tmp_path / "run"
+    argv = ["evaluate", "--config", str(config), "--swarms", "random", "--out", str(out)]
+    argv += ["--no-report", "--quiet"]
+    monkeypatch.setattr(twin.runs, "atomic_write", full)
+    assert main(argv) == EXIT_REFUSED
+    assert "No space left on device" in one_line(capsys)
+    monkeypatch.setattr(twin.runs, "atomic_write", real)
+    assert main(argv) == 0
+    err = capsys.readouterr().err.splitlines()
+    assert err == [next(line for line in err if "bound (ceiling) left out" in line)], err
+
+
+def test_a_cache_rebuild_notice_is_held_behind_a_refusal(tmp_path: Path, capsys) -> None:
+    from twin.boundary import hold_notices
+    from twin.resources import BrokenEntry, build_once
+
+    target = tmp_path / "entry"
+    target.mkdir()  # an entry whose file went missing
+
+    def verify(folder: Path) -> None:
+        if not (folder / "data.txt").is_file():
+            raise BrokenEntry("data.txt is missing")
+
+    def command(args) -> int:
+        hold_notices()  # as twin run, evaluate, sweep and pretrain do
+        build_once(target, lambda folder: (folder / "data.txt").write_text("x"), verify=verify)
+        raise UserError("x.toml: refused after the cache was rebuilt")
+
+    assert run_command(command, None) == EXIT_REFUSED
+    assert one_line(capsys) == "twin: error: x.toml: refused after the cache was rebuilt"
+    assert (target / "data.txt").read_text() == "x"  # rebuilt all the same
+    target.joinpath("data.txt").unlink()
+    assert run_command(lambda args: build_once(target, lambda f: None, verify=verify) and 0, None)
+    assert "cache entry" in capsys.readouterr().err
+
+
+def test_a_sweep_cell_that_fails_leaves_no_notice_to_the_next(monkeypatch, capsys) -> None:
+    """A worker runs cell after cell: a failed cell's held notices never print with the next."""
+    import twin.sweep.cells as cells
+    from twin.boundary import notify, release_notices
+
+    def failing(cell):
+        notify("twin: notice: of the failed cell")
+        raise UserError("the failed cell's error")
+
+    def starting(cell):
+        notify("twin: notice: of the good cell")
+        release_notices()  # its simulation starts
+        return {"id": cell["id"]}
+
+    monkeypatch.setattr(cells, "_run_cell", failing)
+    with pytest.raises(UserError):
+        cells.run_cell({"id": "a"})
+    monkeypatch.setattr(cells, "_run_cell", starting)
+    assert cells.run_cell({"id": "b"}) == {"id": "b"}
+    assert capsys.readouterr().err == "twin: notice: of the good cell\n"
+
+
+def test_a_write_into_a_missing_folder_names_the_file_not_a_temporary_one(tmp_path: Path) -> None:
+    from twin.files import atomic_write, staged_folder
+
+    target = tmp_path / "gone" / "h.npz"
+    with pytest.raises(FileNotFoundError) as raised:
+        atomic_write(target, lambda p: p.write_text("x"))
+    assert raised.value.filename == str(target)
+    with pytest.raises(FileNotFoundError) as raised, staged_folder(tmp_path / "gone" / "report"):
+        pass
+    assert raised.value.filename == str(tmp_path / "gone" / "report")
+    assert not (tmp_path / "gone").exists()
+
+
+def test_a_notice_said_again_by_the_next_seed_is_printed_once(capsys) -> None:
+    """Each seed's scenario says the same notices: the command prints each once."""
+    from twin.boundary import notify
+
+    def command(args) -> int:
+        for _seed in range(3):
+            notify("twin: notice: the run ends past the last departure")
+            notify("SUMO: small.net.xml (seed 0)")
+        notify("twin: notice: another")
+        return 0
+
+    assert run_command(command, None) == 0
+    assert capsys.readouterr().err.splitlines() == [
+        "twin: notice: the run ends past the last departure",
+        "SUMO: small.net.xml (seed 0)",
+        "twin: notice: another",
+    ]
+    assert run_command(command, None) == 0  # the next command says them again
+    assert len(capsys.readouterr().err.splitlines()) == 3

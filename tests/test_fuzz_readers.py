@@ -357,6 +357,34 @@ def test_damaged_live_run_folder_report_never_tracebacks(sumo_run: Path, data) -
         assert tree_hash(parent, skip=run) == before
 
 
+# network.json of a live run: (dotted key, implausible value, words of the one line)
+NETWORK_JSON_CASES = {
+    "a negative obstacle count": (("n_obstacles",), -1, "n_obstacles = -1 must be at least 0"),
+    "cells of 0 m": (("grid", "cell_m"), 0, "grid.cell_m = 0 must be above 0"),
+    "a grid of no rows": (("grid", "nx"), 0, "grid.nx = 0 must be at least 1"),
+    "negative lane-km": (("grid", "lane_km_total"), -2.5, "grid.lane_km_total = -2.5"),
+}
+
+
+@pytest.mark.parametrize("case", list(NETWORK_JSON_CASES))
+def test_implausible_network_json_is_one_line(sumo_run: Path, tmp_path: Path, case) -> None:
+    keys, value, words = NETWORK_JSON_CASES[case]
+    run = tmp_path / "run"
+    shutil.copytree(sumo_run, run)
+    network = json.loads((run / "network.json").read_text())
+    node = network
+    for key in keys[:-1]:
+        node = node[key]
+    node[keys[-1]] = value
+    (run / "network.json").write_text(json.dumps(network))
+    write_manifest(run, False, None)
+    before = tree_hash(tmp_path)
+    code, err = run_twin(["report", str(run), "--no-animation"])
+    assert code == 2 and err.count("\n") == 1 and "Traceback" not in err, err
+    assert f"{run / 'network.json'}: {words}" in err, err
+    assert tree_hash(tmp_path) == before  # nothing written, the run folder included
+
+
 def edit_tape(path: Path, data) -> None:
     """An edit of the tape's rows that keeps its twin metadata (or, sometimes, edits that)."""
     import pyarrow as pa

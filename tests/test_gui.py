@@ -180,7 +180,8 @@ def test_record_and_replay_write_videos_of_every_step(scenario, tmp_path, monkey
     from twin.cli import main
 
     monkeypatch.chdir(scenario)
-    out, video, gif = tmp_path / "run", tmp_path / "run.mp4", tmp_path / "replay.gif"
+    out, video = tmp_path / "run", tmp_path / "run.mp4"
+    gif = tmp_path / "videos" / "new" / "replay.gif"  # folders --record creates
     args = ["--config", "small.toml", "--swarms", "random,greedy", "--no-report", "--quiet"]
     assert main(["run", *args, "--out", str(out), "--record", str(video)]) == 0
     assert iio.imread(video).shape[0] == HORIZON + 1

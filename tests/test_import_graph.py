@@ -102,10 +102,11 @@ def test_no_import_circles_in_twin():
 #: loads only then); pretraining runs experiments, so it sits above the runner.
 LAYERS: list[tuple[str, list[str]]] = [
     (
-        "foundation: errors, files, processes, clocks, resources, executors, the user boundary",
+        "foundation: errors, notices, files, processes, clocks, resources, executors, the user boundary",
         [
             "twin",
             "twin.errors",
+            "twin.notices",
             "twin.files",
             "twin.processes",
             "twin.timing",

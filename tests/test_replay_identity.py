@@ -15,7 +15,7 @@ import pytest
 
 pytest.importorskip("libsumo")
 
-from test_bad_inputs import run_case
+from test_bad_inputs import run_case, snapshot
 
 from twin.cli import main
 from twin.runs import write_manifest
@@ -115,6 +115,26 @@ CASES = {
         None,
         "small.trips.xml: the route file changed since the run (sha256 ",
     ),
+    "recorded folder not absolute": (
+        _edit_run_json(lambda m: m["invocation"].update(cwd="somewhere")),
+        None,
+        "invocation.cwd = 'somewhere' is not a folder",
+    ),
+    "no drones recorded": (
+        _edit_run_json(lambda m: m.update(n_drones=0)),
+        None,
+        "n_drones = 0 must be at least 1",
+    ),
+    "negative horizon recorded": (
+        _edit_run_json(lambda m: m["traffic"].update(horizon=-4)),
+        None,
+        "traffic.horizon = -4 must be at least 1",
+    ),
+    "cell size 0 recorded": (
+        _edit_run_json(lambda m: m["traffic"]["identity"].update(cell_m=0)),
+        None,
+        "traffic.identity.cell_m = 0 must be above 0",
+    ),
     "route hash differs": (
         _edit_recorded_route_hash,
         None,
@@ -207,3 +227,91 @@ def test_replay_flags_are_checked_before_the_scenario_loads(
     argv = ["replay", str(recorded), *(f.format(tmp=tmp_path) for f in flags)]
     err = run_case(capsys, tmp_path, argv, None, 2, needle)
     assert "\n" not in err
+
+
+@pytest.fixture
+def recorded_relative(tmp_path, capsys, monkeypatch) -> Path:
+    """A run made from the scenario's folder with relative paths (config, network, routes)."""
+    from twin.sumo.network import generate_grid_scenario
+
+    scenario = tmp_path / "scenario"
+    scenario.mkdir()
+    generate_grid_scenario(scenario, blocks=3, block_m=300, end_s=300, period_s=5.0, seed=1)
+    (scenario / "c.toml").write_text(CONFIG)
+    monkeypatch.chdir(scenario)
+    run = tmp_path / "run"
+    argv = ["run", "--config", "c.toml", "--net", "small.net.xml", "--routes", "small.trips.xml",
+            "--out", str(run), "--no-report", "--quiet"]  # fmt: skip
+    assert main(argv) == 0
+    capsys.readouterr()
+    return run
+
+
+def _decoy_folder(tmp_path: Path, same_config: bool = False) -> Path:
+    """Another folder holding files of the same names: another scenario (the same network,
+    other trips; another cell size unless ``same_config``)."""
+    import shutil
+
+    elsewhere = tmp_path / "elsewhere"
+    shutil.copytree(tmp_path / "scenario", elsewhere)
+    if not same_config:
+        (elsewhere / "c.toml").write_text(CONFIG.replace("cell_m = 200.0", "cell_m = 100.0"))
+    with open(elsewhere / "small.trips.xml", "a") as fh:
+        fh.write("<!-- another day's trips -->\n")
+    return elsewhere
+
+
+def test_an_older_run_replayed_among_other_files_is_refused(
+    recorded_relative, tmp_path, capsys, monkeypatch
+):
+    """A run that records no folder reads relative paths from the current one: a route file
+    of another scenario there is not the run's (its sha256 differs from the recorded one)."""
+    _edit_run_json(lambda m: m["invocation"].pop("cwd"))(recorded_relative)
+    elsewhere = _decoy_folder(tmp_path, same_config=True)
+    monkeypatch.chdir(elsewhere)
+    needle = "small.trips.xml: this route file is not one the run loaded"
+    err = run_case(capsys, tmp_path, ["replay", str(recorded_relative)], None, 2, needle)
+    assert str(elsewhere / "small.trips.xml") in err
+
+
+def test_replay_reads_relative_paths_from_the_folder_the_run_was_made_in(
+    recorded_relative, tmp_path, capsys, monkeypatch
+):
+    from twin.cli.replay import run_arguments
+
+    scenario = tmp_path / "scenario"
+    monkeypatch.chdir(_decoy_folder(tmp_path))
+    args = run_arguments(recorded_relative)
+    assert args.config == scenario / "c.toml" and args.net == scenario / "small.net.xml"
+    assert args.routes == [scenario / "small.trips.xml"]
+    before = snapshot(tmp_path, recorded_relative)
+    assert main(["replay", str(recorded_relative)]) == 0
+    captured = capsys.readouterr()
+    assert "replayed 3 steps of seed 0" in captured.out
+    assert "error" not in captured.err and "Traceback" not in captured.err
+    assert snapshot(tmp_path, recorded_relative) == before
+
+
+def test_replay_from_elsewhere_refuses_a_file_gone_from_the_runs_folder(
+    recorded_relative, tmp_path, capsys, monkeypatch
+):
+    scenario = tmp_path / "scenario"
+    (scenario / "small.trips.xml").unlink()
+    monkeypatch.chdir(_decoy_folder(tmp_path))
+    (tmp_path / "elsewhere" / "small.trips.xml").write_text("<routes/>")
+    err = run_case(capsys, tmp_path, ["replay", str(recorded_relative)], None, 2, "small.trips")
+    assert str(scenario / "small.trips.xml") in err
+
+
+def test_a_shipped_config_named_relatively_stays_the_shipped_one(tmp_path, monkeypatch):
+    """A run of ``--config configs/shenzhen.toml`` from a folder without that file used the
+    shipped config; replayed from a folder that has one, it still does."""
+    from twin.cli.replay import _from_folder
+    from twin.resources import shipped
+
+    (tmp_path / "configs").mkdir()
+    (tmp_path / "configs" / "shenzhen.toml").write_text("[grid]\nnx = 2\n")
+    monkeypatch.chdir(tmp_path)
+    made_in = tmp_path / "where-the-run-was-made"
+    got = _from_folder("config", Path("configs/shenzhen.toml"), made_in)
+    assert got == shipped("configs", "shenzhen.toml") and got.is_file()

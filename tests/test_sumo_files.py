@@ -644,15 +644,17 @@ def test_refused_flags_name_the_flag_or_file(scenario, tmp_path, capsys, case):
     assert not out.exists()
 
 
-def test_a_run_past_the_demand_counts_at_most_its_own_steps_as_empty(scenario, tmp_path, capsys):
-    """A begin a day after the demand: the notice counts at most the run's own steps."""
+def test_a_run_wholly_after_the_demand_is_refused(scenario, tmp_path, capsys):
+    """A begin a day after the demand: every step would be empty, so the run is refused in one
+    line (a run partly past the demand gets a notice instead, test_sumo_inputs)."""
     d = scenario / "scenario"
     code = _run(scenario, tmp_path / "run", "--net", str(d / "small.net.xml"), "--routes",
                 str(d / "small.trips.xml"), "--begin", "25:00", "--horizon", "3",
                 "--swarms", "random", "--no-ceiling")  # fmt: skip
     err = capsys.readouterr().err
-    assert code == 0, err
-    assert "the last 3 steps may have no vehicle" in err
+    assert code == 2 and err.count("\n") == 1, err
+    assert "lies outside the demand" in err and "every step would be empty" in err
+    assert not (tmp_path / "run").exists()
 
 
 # name -> (flags of `twin run`, words of the one-line error). Each run is given a horizon past

@@ -207,6 +207,67 @@ def test_route_files_with_only_vehicle_types(city, tmp_path, capsys):
     _assert_window_matches_demand(city / "types-only", trips)
 
 
+def test_a_demand_of_persons_alone_gets_a_notice(city, tmp_path, capsys):
+    """Persons walk and containers wait: a demand of them alone leaves the roads empty, and the
+    run says so rather than showing an empty twin without a word."""
+    walkers = tmp_path / "walkers.rou.xml"
+    persons = "".join(
+        f'<person id="p{n}" depart="{FIRST_DEPART + 30 * n}"><walk from="A0A1" to="C2C3"/></person>'
+        for n in range(20)
+    )
+    walkers.write_text(f"<routes>{persons}</routes>")
+    counts: dict[str, int] = {}
+    assert departure_span([walkers], counts) is not None and counts == {"person": 20}
+    net = str(city / "data" / "grid.net.xml")
+    code, err = _run(city, "walkers", "--net", net, "--routes", str(walkers), "--horizon", "3",
+                     capsys=capsys)  # fmt: skip
+    assert code == 0, err
+    (line,) = [x for x in err.splitlines() if "no vehicle" in x]
+    assert line.startswith(f"twin: notice: {walkers}: the demand holds persons"), line
+    code, err = _run(city, "walkers-and-cars", "--net", net, "--routes", str(walkers),
+                     "--routes", str(city / "data" / "grid.rou.xml"), "--additional",
+                     str(city / "data" / "vtypes.add.xml"), "--horizon", "3",
+                     capsys=capsys)  # fmt: skip
+    assert code == 0 and "no vehicle" not in err, err
+
+
+# flags -> words of the one-line refusal: a step SUMO cannot take, one it would take for ever,
+# or a run outside the demand (every step empty)
+STEP_CASES = {
+    "a step of years": (["--drone-speed", "1e-9"], "lasts 7.2e+11 s, longer than a day"),
+    "a step over a day": (["--drone-speed", "0.001"], "lasts 7.2e+05 s, longer than a day"),
+    "a step under SUMO's": (["--drone-speed", "1000"], "shorter than SUMO's 1 s step"),
+    "a begin after the demand": (["--begin", "23:00"], "lies outside the demand (departures"),
+    "a begin the next day": (["--begin", "25:00"], "(1d 01:00:00 - 1d 01:"),
+    "an end before the demand": (
+        ["--begin", "00:02", "--horizon", "2"],
+        "(00:02:00 - 00:04:00) lies outside the demand",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", list(STEP_CASES))
+def test_a_step_or_time_that_cannot_show_traffic_is_refused(city, capsys, case):
+    flags, words = STEP_CASES[case]
+    cfg = str(city / "scenario" / "plain.sumocfg")
+    out = case.replace(" ", "-").replace("'", "")
+    code, err = _run(city, out, "--sumocfg", cfg, *flags, capsys=capsys)
+    assert code == 2 and err.count("\n") == 1 and "Traceback" not in err, err
+    assert words in err and (flags[0] != "--drone-speed" or "--drone-speed" in err), err
+    assert not (city / out).exists()
+
+
+def test_a_flags_file_is_never_said_to_be_named_in_the_sumocfg(city, capsys):
+    """The sumocfg's network given again by --routes: refused as a network, and as --routes'
+    file, not as one the sumocfg names (it names it as its network)."""
+    net = city / "data" / "grid.net.xml"
+    cfg = str(city / "scenario" / "plain.sumocfg")
+    code, err = _run(city, "net-as-routes", "--sumocfg", cfg, "--routes", str(net), capsys=capsys)
+    assert code == 2 and err.count("\n") == 1, err
+    assert err.startswith(f"twin: error: {net}: not a route file but a SUMO network"), err
+    assert "named in" not in err
+
+
 def test_too_small_grid_notice_and_its_suggestion_works(city, capsys):
     drones = 3
     cfg = str(city / "scenario" / "gz.sumocfg")

@@ -96,6 +96,65 @@ def test_sweep_report_table_equals_summary(tmp_path: Path) -> None:
     assert html.count('<img src="data:image/png;base64,') == 2
 
 
+@pytest.fixture(scope="module")
+def swept(tmp_path_factory) -> Path:
+    """A finished sweep folder with its report (2 seeds)."""
+    tmp = tmp_path_factory.mktemp("swept")
+    run_sweep(load_sweep_config(sweep_file(tmp, seeds=2)), tmp / "s", workers=1)
+    return tmp / "s"
+
+
+def _disk_fills_at(monkeypatch, name: str) -> None:
+    """The disk fills while the sweep report writes ``name`` (a figure or a page)."""
+    import errno
+
+    import matplotlib.figure
+
+    import twin.report.sweep as sweep_report
+
+    def full(path):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    real_save, real_write = matplotlib.figure.Figure.savefig, sweep_report.atomic_write
+
+    def savefig(self, path, *args, **kwargs):
+        return full(path) if Path(path).name == name else real_save(self, path, *args, **kwargs)
+
+    def atomic_write(path, write):
+        return real_write(path, (lambda p: full(p)) if Path(path).name == name else write)
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", savefig)
+    monkeypatch.setattr(sweep_report, "atomic_write", atomic_write)
+
+
+@pytest.mark.parametrize("earlier", [False, True], ids=["first report", "earlier report"])
+@pytest.mark.parametrize("name", ["table2.png", "curves.png", "sweep.html", "sweep.md"])
+def test_full_disk_during_the_sweep_report_leaves_no_partial_report(
+    swept, tmp_path, monkeypatch, capsys, name, earlier
+) -> None:
+    """The sweep report is drawn aside and renamed into place, as a run's report: a failure
+    mid-way is one line naming the report's file, and leaves the earlier report or none."""
+    import shutil
+
+    out = tmp_path / "s"
+    shutil.copytree(swept, out)
+    if not earlier:
+        shutil.rmtree(out / "report")
+    before = {p.name: p.read_bytes() for p in (out / "report").iterdir()} if earlier else None
+    _disk_fills_at(monkeypatch, name)
+    capsys.readouterr()
+    argv = ["sweep", "--config", str(swept.parent / "sweep.toml"), "--out", str(out), "--quiet"]
+    assert cli(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("twin: error: "), err
+    assert f"{out / 'report' / name}: No space left on device" in err and ".tmp" not in err, err
+    if earlier:
+        assert {p.name: p.read_bytes() for p in (out / "report").iterdir()} == before
+    else:
+        assert not (out / "report").exists()
+    assert not [p for p in out.iterdir() if p.name.startswith(".report")]
+
+
 def tiny_checkpoint(path: Path) -> Path:
     """A small Q-network checkpoint (13 -> 16 -> 5), so the learning swarm runs in seconds."""
     import torch

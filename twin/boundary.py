@@ -32,6 +32,13 @@ from pathlib import Path
 from typing import Any
 
 from twin.errors import UserError
+from twin.notices import (  # noqa: F401 (the notices are part of the boundary's interface)
+    count_said,
+    drop_notices,
+    hold_notices,
+    notify,
+    release_notices,
+)
 
 EXIT_OK, EXIT_PARTIAL, EXIT_REFUSED, EXIT_BUG = 0, 1, 2, 3
 EXIT_INTERRUPTED, EXIT_PIPE = 130, 141
@@ -48,8 +55,6 @@ LOG_NAME = "error.log"
 MAX_MESSAGE = 600
 
 _state: dict[str, Path | None] = {"run_folder": None}
-#: notices held back until the simulation has started (None: print them at once)
-_held: dict[str, list[str] | None] = {"lines": None}
 
 
 def set_run_folder(path: Path | None) -> None:
@@ -60,37 +65,6 @@ def set_run_folder(path: Path | None) -> None:
 
 def run_folder() -> Path | None:
     return _state["run_folder"]
-
-
-def hold_notices() -> None:
-    """From now on, hold back :func:`notify`'s lines (notices, the simulation's announcement)
-    until :func:`release_notices`: a command refused before its simulation starts prints its
-    one error line only."""
-    if _held["lines"] is None:
-        _held["lines"] = []
-
-
-def notify(line: str) -> None:
-    """Print ``line`` on stderr, or hold it back while :func:`hold_notices` is in force."""
-    held = _held["lines"]
-    if held is not None:
-        held.append(line)
-    else:
-        print(line, file=sys.stderr, flush=True)
-
-
-def release_notices() -> None:
-    """Print the held lines, in order (the simulation has started), and stop holding."""
-    held, _held["lines"] = _held["lines"], None
-    for line in held or []:
-        with contextlib.suppress(Exception):
-            print(line, file=sys.stderr, flush=True)
-
-
-def drop_notices() -> list[str]:
-    """Stop holding and return the held lines unprinted (a refusal prints only its error)."""
-    held, _held["lines"] = _held["lines"], None
-    return held or []
 
 
 def one_line(text: str) -> str:
@@ -224,12 +198,15 @@ def _notices_held_on_failure(func: Callable[[Any], int | None], args: Any) -> in
     """``func(args)``; the notices it still holds back are printed when it returns, dropped
     when it fails (its error is the one line)."""
     drop_notices()
+    count_said(True)
     try:
         code = func(args)
     except BaseException:
         drop_notices()
         raise
-    release_notices()
+    finally:
+        count_said(False)
+    release_notices(final=True)
     return code
 
 

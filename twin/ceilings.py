@@ -489,12 +489,11 @@ def ceiling_table(
     n_states = len(CellStates.build(params, len(maps) - 1).factors)
     dp_bytes = (len(maps) - 1) * result.grid.n_free * n_states  # the DP's decisions
     if dp_bytes > MAX_DP_BYTES:
-        import sys
+        from twin.boundary import notify
 
-        print(
+        notify(
             f"twin: notice: bound (ceiling) left out: its DP would hold {dp_bytes / 1e9:.1f} GB "
-            f"({len(maps) - 1} steps x {result.grid.n_free} cells x {n_states} states)",
-            file=sys.stderr,
+            f"({len(maps) - 1} steps x {result.grid.n_free} cells x {n_states} states)"
         )
         bound = None
     elif key not in cache:

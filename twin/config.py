@@ -583,8 +583,7 @@ def config_from_data(
     config._path = Path(path)
     config._tables = copy.deepcopy(data)
     config._flags = dict(flags or {})
-    if config.traffic.kind == "synthetic":
-        check_swarm_fits(config, make_grid(config))
+    validate(config)
     return config
 
 
@@ -621,6 +620,29 @@ def validate(config: ScenarioConfig) -> None:
     """The checks that need the grid (synthetic scenarios); the rest is in the models."""
     if config.traffic.kind == "synthetic":
         check_swarm_fits(config, make_grid(config))
+        check_disturbances(config)
+
+
+#: How far (in sigmas) a disturbance's centre may lie off the map: beyond, its kernel is below
+#: exp(-12.5) ~ 4e-6 on every cell.
+DISTURBANCE_REACH = 5.0
+
+
+def check_disturbances(config: ScenarioConfig) -> None:
+    """Each disturbance of a synthetic config reaches the map: one centred more than
+    :data:`DISTURBANCE_REACH` sigmas from its nearest cell would add nothing to any cell (a
+    centre just off the map, reaching in, is kept: a sweep may shrink the grid)."""
+    g = config.grid
+    for n, d in enumerate(config.traffic.disturbances):
+        gap = math.hypot(d.i - min(max(d.i, 0), g.nx - 1), d.j - min(max(d.j, 0), g.ny - 1))
+        if gap > DISTURBANCE_REACH * d.sigma:
+            raise _fail(
+                config.path,
+                f"[traffic].disturbances[{n}]",
+                f"is centred at (i, j) = ({d.i:g}, {d.j:g}), {gap:.3g} cells off the "
+                f"{g.nx} x {g.ny} map (more than {DISTURBANCE_REACH:g} x sigma = "
+                f"{DISTURBANCE_REACH * d.sigma:g}): it reaches no cell; centre it on the map",
+            )
 
 
 # ------------------------------------------------------------------------- grid and swarm
@@ -712,4 +734,12 @@ def synthetic_source(config: ScenarioConfig, grid: Grid | None = None):
     t = synthetic_config(config)
     grid = grid or make_grid(config)
     disturbances = [Disturbance(**d.model_dump()) for d in t.disturbances]
-    return SyntheticTraffic(grid, disturbances, t.horizon, t.beta1, t.beta2, t.z_lo, t.z_hi)
+    source = SyntheticTraffic(grid, disturbances, t.horizon, t.beta1, t.beta2, t.z_lo, t.z_hi)
+    if disturbances and source.peak_z() <= t.z_lo:
+        raise _fail(
+            config.path,
+            "[traffic].z_lo",
+            f"= {t.z_lo:g} is not below the largest z of the map over the horizon "
+            f"({source.peak_z():.3g}): every importance would be 0; give a z_lo below it",
+        )
+    return source

@@ -5,10 +5,12 @@ One helper for every writer of twin (run folders, sweep cells, checkpoints, cach
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import shutil
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -21,7 +23,11 @@ def atomic_write(path: str | Path, write: Callable[[Path], None]) -> None:
     the ``0600`` of a temporary file; the temporary name is unique, so concurrent writers of
     one path never share it."""
     path = Path(path)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    except OSError as exc:  # name the file being written, not a temporary name
+        exc.filename = str(path)
+        raise
     os.close(fd)
     try:
         write(Path(tmp))
@@ -37,6 +43,42 @@ def atomic_write(path: str | Path, write: Callable[[Path], None]) -> None:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+@contextlib.contextmanager
+def staged_folder(path: str | Path) -> Iterator[Path]:
+    """A fresh temporary folder beside ``path`` to draw a whole folder in (a report); when the
+    block ends without error it replaces ``path`` (the old folder is moved aside, then
+    deleted), else it is deleted: a failure mid-way (a full disk ...) leaves the previous
+    folder, or none, never a partial one. A system error names the file under ``path``, not
+    under its temporary copy."""
+    path = Path(path)
+    try:
+        stage = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp"))
+    except OSError as exc:  # name the folder being written, not a temporary name
+        exc.filename = str(path)
+        raise
+    old = None
+    try:
+        os.chmod(stage, 0o777 & ~_umask())
+        yield stage
+        if path.is_dir():
+            old = Path(
+                tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".old.tmp")
+            )
+            os.replace(path, old / path.name)
+        os.replace(stage, path)
+    except OSError as exc:
+        shutil.rmtree(stage, ignore_errors=True)
+        name = str(exc.filename) if exc.filename is not None else str(path)
+        exc.filename = name.replace(str(stage), str(path))
+        raise
+    except BaseException:
+        shutil.rmtree(stage, ignore_errors=True)
+        raise
+    finally:
+        if old is not None:
+            shutil.rmtree(old, ignore_errors=True)
 
 
 def _umask() -> int:

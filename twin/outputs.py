@@ -2,8 +2,9 @@
 
 Each check refuses, in one line naming the flag and the path, a file in the way of a folder (or
 a folder in the way of a file), a parent that cannot be created, a place twin may not write
-into, and a disk with less free space than the output is estimated to need. Nothing is created
-by a check but the folder itself (``check_output_dir``); nothing existing is touched.
+into, and a disk with less free space than the output is estimated to need (on a file system
+that reports no size, such as ``/proc``, a folder made and removed at once tells instead whether
+it takes files). Nothing existing is touched.
 """
 
 from __future__ import annotations
@@ -33,7 +34,8 @@ def _existing_ancestor(path: Path) -> Path:
 
 def check_output_dir(path: str | Path, flag: str = "--out", need_mb: float = MIN_FREE_MB) -> Path:
     """Refuse an output folder ``path`` twin cannot create or write into (one line naming
-    ``flag``); it need not exist yet (nothing is created here)."""
+    ``flag``); it need not exist yet (nothing is created here but, on a file system that
+    reports no size, a probe folder removed at once)."""
     path = Path(path)
     _check_name(path, flag)
     if path.exists() and not path.is_dir():
@@ -73,6 +75,20 @@ def check_output_file(path: str | Path, flag: str, need_mb: float = 1) -> Path:
     return path
 
 
+def make_parent(path: str | Path, flag: str) -> Path:
+    """Create the missing folders above the output file ``path`` (:func:`check_output_file`
+    accepted them as folders that can be created); a failure is one line naming ``flag``."""
+    path = Path(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(
+            f"{flag} {path}: cannot create the folder {path.parent} ({exc.strerror}); create "
+            "it or give another file name"
+        ) from None
+    return path
+
+
 def _check_name(path: Path, flag: str) -> None:
     """Refuse a path that is not valid UTF-8 text (bytes the file system took but twin could
     not write into its JSON and reports, nor print)."""
@@ -107,11 +123,30 @@ def _read_only(base: Path) -> bool:
 
 def _check_free(base: Path, path: Path, flag: str, need_mb: float) -> None:
     try:
+        stats = os.statvfs(base)
         free_mb = shutil.disk_usage(base).free / 1e6
-    except OSError:
+    except (OSError, AttributeError):
+        return
+    if stats.f_blocks == 0:  # a file system that reports no size (/proc, /sys, some mounts)
+        _check_takes_files(base, path, flag)
         return
     if free_mb < need_mb:
         raise UserError(
             f"{flag} {path}: only {free_mb:,.0f} MB free on its disk, about {need_mb:,.0f} MB "
             "needed; free some space or write to another disk"
         )
+
+
+def _check_takes_files(base: Path, path: Path, flag: str) -> None:
+    """On a file system that reports no size, the free-space estimate means nothing: try
+    making (and at once removing) a folder in ``base`` instead, and refuse one that takes none
+    (``/proc``, ``/sys``)."""
+    import tempfile
+
+    try:
+        os.rmdir(tempfile.mkdtemp(dir=base, prefix=".twin-probe-"))
+    except OSError as exc:
+        raise UserError(
+            f"{flag} {path}: {base} is on a special file system (it reports no size) that "
+            f"takes no new files ({exc.strerror}); pass a folder on a disk"
+        ) from None

@@ -166,6 +166,13 @@ def _jsonable(value: Any) -> bool:
 
 NUM = (int, float)
 
+
+def _at_least(low: float) -> tuple[Any, str]:
+    return (lambda v: v >= low), f"at least {low:g}"
+
+
+_POSITIVE = ((lambda v: v > 0), "above 0")
+
 #: The fields of a run folder's ``run.json`` that its readers use, with their types.
 RUN_JSON_FIELDS: dict[str, Any] = {
     "partial": bool,
@@ -178,18 +185,19 @@ RUN_JSON_FIELDS: dict[str, Any] = {
     "errors": list,
     "params": {"eta": NUM, "delta": NUM, "alpha_T": NUM, "alpha_I": NUM},
     "score_params": {"eta": NUM, "delta": NUM, "alpha_T": NUM, "alpha_I": NUM},
+    "grid": {"nx": int, "ny": int, "n_free": int},
     "traffic": {
         "kind": str,
         "name": str,
         "begin": str,
         "step_s": NUM,
         "horizon": int,
-        "identity": dict,
+        "identity": {"net_sha256": str, "cell_m": NUM, "grid": list, "sumo": str, "twin": str},
         "recorded": {"step_s": NUM},
     },
     "timings": {"peak_memory_mb": NUM, "peak_memory_sumo_process_mb": NUM},
     "monitoring": {"threshold": NUM, "min_duration": NUM, "weight_floor": NUM, "truth": str},
-    "invocation": {"command": str, "options": dict},
+    "invocation": {"command": str, "options": dict, "cwd": str},
     "config": (str, dict),
 }
 
@@ -210,6 +218,14 @@ NETWORK_FIELDS: dict[str, Any] = {
     },
     "n_obstacles": int,
     "row_0": str,
+}
+#: The plausible values of ``network.json``'s numbers.
+NETWORK_RANGES: dict[str, tuple[Any, str]] = {
+    "grid.cell_m": _POSITIVE,
+    "grid.nx": _at_least(1),
+    "grid.ny": _at_least(1),
+    "grid.lane_km_total": _at_least(0),
+    "n_obstacles": _at_least(0),
 }
 #: ``mfd.json`` of a live run: the MFD fit and how it was used.
 MFD_FIELDS: dict[str, Any] = {
@@ -262,15 +278,82 @@ def check_incidents(path: Path, incidents: Any) -> None:
             raise UserError(f"{path}: [{n}].cell = {cell} must be a cell [i, j]; {RERUN}")
 
 
+_SCORE_RANGES = {
+    "eta": ((lambda v: 0 < v < 1), "between 0 and 1"),
+    "delta": ((lambda v: 0 < v < 1), "between 0 and 1"),
+    "alpha_T": _at_least(0),
+    "alpha_I": _at_least(0),
+}
+#: The plausible values of ``run.json``'s numbers (dotted name -> test, what it must be): a
+#: run never records a horizon below 1, no drone, a cell of 0 m ...
+RUN_JSON_RANGES: dict[str, tuple[Any, str]] = {
+    "n_drones": _at_least(1),
+    "horizon": _at_least(0),  # the steps that ran: 0 in a partial run where none did
+    "importance_seed": _at_least(0),
+    "grid.nx": _at_least(1),
+    "grid.ny": _at_least(1),
+    "grid.n_free": _at_least(0),
+    "traffic.horizon": _at_least(1),
+    "traffic.step_s": _POSITIVE,
+    "traffic.recorded.step_s": _POSITIVE,
+    "traffic.identity.cell_m": _POSITIVE,
+    "monitoring.threshold": ((lambda v: 0 < v <= 1), "above 0 and at most 1"),
+    "monitoring.min_duration": _at_least(1),
+    "monitoring.weight_floor": _POSITIVE,
+    **{f"params.{k}": v for k, v in _SCORE_RANGES.items()},
+    **{f"score_params.{k}": v for k, v in _SCORE_RANGES.items()},
+}
+#: The largest seed (SUMO's seeds are 32-bit signed integers).
+_MAX_SEED = 2**31 - 1
+
+
 def check_run_json(path: Path, run: Any) -> dict[str, Any]:
-    """``run.json`` of a run folder: an object whose used fields have their types."""
+    """``run.json`` of a run folder: an object whose used fields have their types and
+    plausible values (:data:`RUN_JSON_RANGES`)."""
     check_fields(path, run, RUN_JSON_FIELDS)
     config = run.get("config")
     if isinstance(config, dict):
         params = config.get("params", config.get("score"))
         if params is not None:
             check_fields(path, params, RUN_JSON_FIELDS["params"], "config.params")
+    check_ranges(path, run, RUN_JSON_RANGES)
+    for n, seed in enumerate(run.get("seeds") or []):
+        if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= _MAX_SEED:
+            raise UserError(
+                f"{path}: seeds[{n}] = {str(seed)[:40]} must be a whole number from 0 to "
+                f"{_MAX_SEED}; {RERUN}"
+            )
+    for n, swarm in enumerate(run.get("swarms") or []):
+        if not isinstance(swarm, str):
+            raise UserError(f"{path}: swarms[{n}] = {str(swarm)[:40]} must be a name; {RERUN}")
+    grid = _dotted(run, "traffic.identity.grid")
+    if grid is not None and not (
+        len(grid) == 2
+        and all(isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in grid)
+    ):
+        raise UserError(
+            f"{path}: traffic.identity.grid = {str(grid)[:40]} must be [nx, ny], whole numbers "
+            f"of at least 1; {RERUN}"
+        )
     return run
+
+
+def check_ranges(path: Path, node: Any, ranges: Mapping[str, tuple[Any, str]]) -> None:
+    """Each present number of ``ranges`` (dotted name -> test, what it must be) in the JSON
+    object ``node`` passes its test (types are checked before, :func:`check_fields`)."""
+    for name, (plausible, want) in ranges.items():
+        value = _dotted(node, name)
+        if value is not None and not plausible(value):
+            raise UserError(f"{path}: {name} = {value!r} must be {want}; {RERUN}")
+
+
+def _dotted(node: Any, name: str) -> Any:
+    """``node[a][b]...`` for the dotted ``name`` (None where a level is missing)."""
+    for key in name.split("."):
+        if not isinstance(node, dict):
+            return None
+        node = node.get(key)
+    return node
 
 
 def check_manifest(path: Path, manifest: Any) -> dict[str, Any]:

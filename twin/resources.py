@@ -22,7 +22,6 @@ import contextlib
 import os
 import re
 import shutil
-import sys
 import tempfile
 import xml.etree.ElementTree as ET
 from collections.abc import Callable
@@ -61,16 +60,26 @@ def shipped_config(given: str | Path) -> Path:
         return path
     if path.is_symlink():  # a link to nothing, or a loop of links
         raise UserError(f"{given}: a symbolic link to no file or a loop; fix or remove the link")
-    if path.parent in (Path("."), Path("configs")):
-        name = path.name if path.suffix == ".toml" else f"{path.name}.toml"
-        candidate = shipped("configs", name)
-        if candidate.is_file():
-            return candidate
+    candidate = shipped_config_named(path)
+    if candidate is not None:
+        return candidate
     names = ", ".join(shipped_config_names()) or "none"
     raise UserError(
         f"{given}: config file not found; give the path of a TOML file or a shipped config "
         f"({names})"
     )
+
+
+def shipped_config_named(given: str | Path) -> Path | None:
+    """The shipped config ``given`` names (``synthetic``, ``synthetic.toml`` or
+    ``configs/synthetic.toml``), None when it names none."""
+    path = Path(given)
+    if path.parent in (Path("."), Path("configs")):
+        name = path.name if path.suffix == ".toml" else f"{path.name}.toml"
+        candidate = shipped("configs", name)
+        if candidate.is_file():
+            return candidate
+    return None
 
 
 def network_names() -> list[str]:
@@ -162,10 +171,9 @@ def build_once(
             verify(target)
             return target
         except (BrokenEntry, OSError) as exc:
-            print(
-                f"twin: notice: cache entry {target} is broken ({_reason(exc)}); rebuilding it",
-                file=sys.stderr,
-            )
+            from twin.notices import notify
+
+            notify(f"twin: notice: cache entry {target} is broken ({_reason(exc)}); rebuilding it")
             force = True
     from twin.outputs import check_output_dir
 

@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import platform
 import re
 import shutil
@@ -163,14 +164,24 @@ def new_run_dir(root: str | Path, prefix: str) -> Path:
 
 
 def invocation(command: str, args: Any = None) -> dict[str, Any]:
-    """What identifies a command for ``--out``: its name and options (display options left
-    out); a rerun with the same invocation may replace its partial run folder."""
+    """What identifies a command for ``--out``: its name, options (display options left out)
+    and the folder it runs in; a rerun with the same invocation may replace its partial run
+    folder."""
     options = {
         k: (str(v) if isinstance(v, Path) else [str(x) for x in v] if isinstance(v, list) else v)
         for k, v in sorted(vars(args).items() if args is not None else [])
         if k not in DISPLAY_OPTIONS
     }
-    return {"command": command, "options": options}
+    return {"command": command, "options": options, "cwd": working_folder()}
+
+
+def working_folder() -> str | None:
+    """The folder the command runs in (relative paths among its options are read from it;
+    ``twin replay`` reads them from there again), None when it no longer exists."""
+    try:
+        return os.getcwd()
+    except OSError:
+        return None
 
 
 def prepare_run_dir(path: str | Path, started: dict[str, Any] | None = None) -> Path:
@@ -543,6 +554,11 @@ def record(
     ``belief_models.csv``) before ``run.json``.
     ``manifest.json`` is written last (see ``twin/runs.py``). Returns the summary table and
     the comparison."""
+    from twin.notices import hold_notices
+
+    # what writing notices (a ceiling left out) is printed once the command has ended well: a
+    # write that fails after it (a full disk) is the error's line alone
+    hold_notices(to_end=True)
     extras = more_files
     if outcome.sources:
         first = outcome.sources[0]

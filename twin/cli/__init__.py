@@ -13,6 +13,7 @@ import argparse
 import importlib
 import os
 import sys
+from pathlib import Path
 
 from twin import __version__
 from twin.boundary import run_command
@@ -24,6 +25,14 @@ COMMANDS = [
 
 #: The largest seed a command takes (SUMO's seeds are 32-bit signed integers).
 MAX_SEED = 2**31 - 1
+
+
+def path_arg(text: str) -> Path:
+    """The value of a path argument; an empty one (``--out ''``) is refused rather than read
+    as the current folder."""
+    if text == "":
+        raise argparse.ArgumentTypeError("an empty path; give a file or folder name")
+    return Path(text)
 
 
 def check_count(flag: str, value: int | None) -> None:

@@ -4,9 +4,8 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
-from twin.cli import add_worker_arguments, check_count, check_seeds
+from twin.cli import add_worker_arguments, check_count, check_seeds, path_arg
 from twin.cli.recording import (
     print_beliefs,
     print_tables,
@@ -32,7 +31,7 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument(
         "--config",
-        type=Path,
+        type=path_arg,
         default=None,
         help=f"scenario config (TOML); default {DEFAULT_CONFIG}",
     )
@@ -53,12 +52,15 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument(
         "--traffic",
-        type=Path,
+        type=path_arg,
         default=None,
         help="replay a traffic tape (tape.parquet of a `twin run`) instead of the config's traffic",
     )
     p.add_argument(
-        "--out", type=Path, default=None, help="run folder to write (default runs/evaluate-<time>)"
+        "--out",
+        type=path_arg,
+        default=None,
+        help="run folder to write (default runs/evaluate-<time>)",
     )
     p.add_argument(
         "--max-memory-gb",
@@ -77,7 +79,7 @@ def add_parser(subparsers) -> None:
     add_worker_arguments(p, live=False)
     p.add_argument(
         "--history",
-        type=Path,
+        type=path_arg,
         help="a history of earlier days (`twin history`): also score each swarm's belief "
         "models (last-seen, history, nowcast) and write belief_models.csv",
     )
@@ -87,7 +89,10 @@ def add_parser(subparsers) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
+    from twin.boundary import hold_notices
+
     limit_threads()
+    hold_notices()  # printed once the simulation has started; a refusal is one line
     config = load_config(shipped_config(args.config or DEFAULT_CONFIG))
     swarms = parse_swarm_names(args.swarms, []) if args.swarms is not None else None
     config = with_flags(

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from twin.cli import path_arg
 from twin.errors import UserError
 
 
@@ -28,14 +29,14 @@ def add_parser(subparsers) -> None:
     p.add_argument(
         "--from",
         dest="sources",
-        type=Path,
+        type=path_arg,
         nargs="+",
         required=True,
         metavar="RUN_DIR",
         help="`twin run` folders (all their seeds' tapes) or tape.parquet files; at least 2 "
         "simulations in all",
     )
-    p.add_argument("--out", type=Path, required=True, help="history file to write (.npz)")
+    p.add_argument("--out", type=path_arg, required=True, help="history file to write (.npz)")
     p.set_defaults(func=main)
 
 
@@ -80,7 +81,7 @@ def main(args: argparse.Namespace) -> int:
 
     from twin.belief import fit_history
     from twin.files import atomic_write
-    from twin.outputs import check_output_file
+    from twin.outputs import check_output_file, make_parent
 
     if args.out.suffix != ".npz":
         raise UserError(f"--out {args.out}: give a file name ending in .npz")
@@ -129,7 +130,7 @@ def main(args: argparse.Namespace) -> int:
         list(seeds),
         [str(p) for p in paths],
     )
-    atomic_write(args.out, history.save)
+    atomic_write(make_parent(args.out, "--out"), history.save)
     free = ~history.obstacles
     print(
         f"history: {history.n_runs} simulations (SUMO seeds "

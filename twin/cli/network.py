@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import argparse
 import time
-from pathlib import Path
+
+from twin.cli import path_arg
 
 
 def add_parser(subparsers) -> None:
@@ -22,8 +23,8 @@ def add_parser(subparsers) -> None:
     b.add_argument("--force", action="store_true", help="rebuild even if up to date")
     b.set_defaults(func=main_build)
     o = sub.add_parser("import-osm", help="convert an OSM extract into a SUMO network")
-    o.add_argument("osm", type=Path, help="the .osm file")
-    o.add_argument("--out", type=Path, default=None, help="folder (default: the user cache)")
+    o.add_argument("osm", type=path_arg, help="the .osm file")
+    o.add_argument("--out", type=path_arg, default=None, help="folder (default: the user cache)")
     o.set_defaults(func=main_osm)
     p.set_defaults(func=lambda args: (p.print_help(), 2)[1])
 

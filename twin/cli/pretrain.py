@@ -6,6 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from twin.cli import path_arg
+
 DEFAULT_CONFIG = "configs/pretrain.toml"
 
 
@@ -18,7 +20,7 @@ def add_parser(subparsers) -> None:
         "model), <out>/train_log.csv (loss and mean Q) and <out>/state.pt (checkpoint every "
         "checkpoint_every epochs). Running the same command again resumes from state.pt.",
     )
-    p.add_argument("--config", type=Path, default=None,
+    p.add_argument("--config", type=path_arg, default=None,
                    help=f"pretraining config (TOML); default {DEFAULT_CONFIG}")  # fmt: skip
     p.add_argument("--out", default=None, help="output folder (overrides the config's `out`)")
     p.add_argument("--epochs", type=int, default=None, help="overrides the config's `epochs`")
@@ -37,7 +39,7 @@ def add_parser(subparsers) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from twin.boundary import set_run_folder
+    from twin.boundary import hold_notices, release_notices, set_run_folder
     from twin.cli import check_count
     from twin.config import shipped_config
     from twin.learning.pretrain import (
@@ -62,6 +64,7 @@ def main(args: argparse.Namespace) -> int:
             "provenance.json records command, recipe, seeds, schedule, wall time and curve."
         )
         return 0
+    hold_notices()  # printed once training starts; a refusal is one line
     check_count("--epochs", args.epochs)
     config = load_config(
         shipped_config(args.config or DEFAULT_CONFIG),
@@ -77,6 +80,7 @@ def main(args: argparse.Namespace) -> int:
     check_out_folder(config, flag)  # resumes its own checkpoint, refuses anything else
     set_run_folder(Path(config.out))  # an unexpected error's traceback goes to its error.log
     progress = not args.quiet and sys.stderr.isatty()
+    release_notices()  # every check passed: training starts
     path = pretrain(config, progress=progress)
     print(f"model: {path}")
     print(f"log: {Path(config.out) / 'train_log.csv'}")

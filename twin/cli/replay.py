@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from twin.cli import path_arg
 from twin.errors import UserError
 
 
@@ -23,9 +24,10 @@ def add_parser(subparsers) -> None:
         help="watch a finished `twin run` in sumo-gui (recorded trajectories, same traffic)",
         description="Re-run a `twin run` folder's SUMO simulation under sumo-gui and draw the "
         "drones along their recorded trajectories (no swarm is recomputed); --record saves it "
-        "as a video. Relative paths in the run's flags are read from the current folder.",
+        "as a video. Relative paths in the run's flags are read from the folder the run was "
+        "started in (run.json records it), whatever the current folder.",
     )
-    p.add_argument("run_dir", type=Path, help="a run folder written by `twin run`")
+    p.add_argument("run_dir", type=path_arg, help="a run folder written by `twin run`")
     p.add_argument("--seed", type=int, help="which of the run's seeds to replay (default: first)")
     add_gui_arguments(p)
     p.set_defaults(func=main)
@@ -48,13 +50,41 @@ def run_arguments(run_dir: Path) -> argparse.Namespace:
     args = parser.parse_args(["run"])
     args.quiet = True
     actions = _run_actions(parser)
+    started_in = _started_in(path, invocation.get("cwd"))
     for key, value in (invocation.get("options") or {}).items():
         if key not in actions:
             raise UserError(
                 f"{path}: invocation.options.{key} is not an option of `twin run`; {_RERUN}"
             )
-        setattr(args, key, _option_value(path, key, value, actions[key]))
+        value = _option_value(path, key, value, actions[key])
+        setattr(args, key, _from_folder(key, value, started_in))
     return args
+
+
+def _started_in(path: Path, cwd) -> Path | None:
+    """The folder the run was started in (``invocation.cwd``; None for an older run, whose
+    relative paths are read from the current folder)."""
+    if cwd is None:
+        return None
+    if not isinstance(cwd, str) or not Path(cwd).is_absolute():
+        raise UserError(f"{path}: invocation.cwd = {str(cwd)[:60]!r} is not a folder; {_RERUN}")
+    return Path(cwd)
+
+
+def _from_folder(key: str, value, started_in: Path | None):
+    """A recorded path option read from the folder the run was started in: the same file
+    whatever the current folder. A config that was not found there was a shipped one (its
+    name, ``configs/shenzhen.toml``), and is looked up among the shipped configs again."""
+    if isinstance(value, list):
+        return [_from_folder(key, v, started_in) for v in value]
+    if not isinstance(value, Path) or value.is_absolute() or started_in is None:
+        return value
+    there = started_in / value
+    if key == "config" and not there.exists() and not there.is_symlink():
+        from twin.resources import shipped_config_named
+
+        return shipped_config_named(value) or there
+    return there
 
 
 _RERUN = "the run.json was edited or written by another twin: rerun `twin run`"
@@ -89,10 +119,10 @@ def _option_value(path: Path, key: str, value, action: argparse.Action):
 
 def _typed(where: str, value, action: argparse.Action):
     kind = action.type or (type(action.default) if action.default is not None else str)
-    if kind is Path or kind is str:
-        if not isinstance(value, str):
-            raise UserError(f"{where} must be text; {_RERUN}")
-        value = kind(value)
+    if kind in (path_arg, Path, str):
+        if not isinstance(value, str) or (kind is not str and value == ""):
+            raise UserError(f"{where} must be {'text' if kind is str else 'a path'}; {_RERUN}")
+        value = Path(value) if kind is not str else value
     elif kind in (int, float):
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise UserError(f"{where} must be a number; {_RERUN}")
@@ -215,8 +245,10 @@ def check_identity(run_dir: Path, source) -> None:
 
 def check_input_files(run_dir: Path, recorded, source) -> None:
     """Refuse (one line) to replay a run one of whose SUMO input files (network, route,
-    additional files, sumocfg) changed since the run; a run that records no file hashes (an
-    older run) or a file it does not record is not checked."""
+    additional files, sumocfg) changed since the run, or that loads a file the run did not: a
+    file recorded under another name (another folder) must have the sha256 of one the run
+    recorded in the same role. A run that records no file hashes (an older run), or none in a
+    role, is not checked."""
     from twin.sumo.source import file_sha256
 
     if recorded is None:
@@ -233,7 +265,8 @@ def check_input_files(run_dir: Path, recorded, source) -> None:
     }
     for role, path in source.input_files():
         before = was.get((role, str(path)))
-        if before is None:
+        same_role = {(p, h) for (r, p), h in was.items() if r == role}
+        if before is None and not same_role:
             continue
         try:
             now = file_sha256(path)
@@ -242,6 +275,15 @@ def check_input_files(run_dir: Path, recorded, source) -> None:
                 f"{path}: the run's {role} cannot be read ({exc.strerror}); restore it or "
                 "rerun `twin run`"
             ) from None
+        if before is None:  # another name: one of the run's files of that role, moved?
+            if now in {h for _, h in same_role}:
+                continue
+            other, sha = sorted(same_role)[0]
+            raise UserError(
+                f"{path}: this {role} is not one the run loaded ({run_dir / 'run.json'} "
+                f"records {other}, sha256 {sha[:12]}..., now {now[:12]}...); replay with the "
+                "run's files, or rerun `twin run`"
+            )
         if now != before:
             raise UserError(
                 f"{path}: the {role} changed since the run (sha256 {before[:12]}... in "

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import argparse
 import time
-from pathlib import Path
+
+from twin.cli import path_arg
 
 
 def add_parser(subparsers) -> None:
@@ -16,7 +17,7 @@ def add_parser(subparsers) -> None:
         "report.md and the PNG figures and GIF animation it shows. Every number comes from "
         "the run folder's own files.",
     )
-    p.add_argument("run_dir", type=Path, metavar="RUN_DIR", help="run folder to render")
+    p.add_argument("run_dir", type=path_arg, metavar="RUN_DIR", help="run folder to render")
     p.add_argument(
         "--no-animation", action="store_true", help="skip the GIF animation (the slowest part)"
     )

@@ -11,7 +11,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from twin.cli import add_worker_arguments, check_count, check_seeds
+from twin.cli import add_worker_arguments, check_count, check_seeds, path_arg
 from twin.errors import UserError
 
 DEFAULT_CONFIG = "configs/shenzhen.toml"
@@ -27,23 +27,29 @@ def add_parser(subparsers) -> None:
         "Swap in a network with --net/--routes, --sumocfg or --osm; without routes twin "
         "generates a rush-hour demand with SUMO's randomTrips.py.",
     )
-    p.add_argument("--config", type=Path, default=None, help=f"scenario (default {DEFAULT_CONFIG})")
+    p.add_argument(
+        "--config", type=path_arg, default=None, help=f"scenario (default {DEFAULT_CONFIG})"
+    )
     p.add_argument(
         "--net",
-        type=Path,
+        type=path_arg,
         help="a SUMO network (.net.xml) instead of the config's or the --sumocfg's",
     )
     p.add_argument(
         "--routes",
-        type=Path,
+        type=path_arg,
         action="append",
         help="route/trip file(s) for --net or instead of the --sumocfg's (repeatable)",
     )
-    p.add_argument("--sumocfg", type=Path, help="a SUMO configuration (.sumocfg): network + demand")
-    p.add_argument("--osm", type=Path, help="an OpenStreetMap extract, converted with netconvert")
+    p.add_argument(
+        "--sumocfg", type=path_arg, help="a SUMO configuration (.sumocfg): network + demand"
+    )
+    p.add_argument(
+        "--osm", type=path_arg, help="an OpenStreetMap extract, converted with netconvert"
+    )
     p.add_argument(
         "--additional",
-        type=Path,
+        type=path_arg,
         action="append",
         help="a SUMO additional file (vehicle types, signal programs, detectors, polygons; "
         "repeatable), besides those of the sumocfg",
@@ -80,7 +86,7 @@ def add_parser(subparsers) -> None:
     )
     add_worker_arguments(p)
     p.add_argument("--meso", action="store_true", help="SUMO's mesoscopic model (faster)")
-    p.add_argument("--out", type=Path, help="run folder (default runs/run-<time>)")
+    p.add_argument("--out", type=path_arg, help="run folder (default runs/run-<time>)")
     p.add_argument(
         "--max-memory-gb",
         type=float,
@@ -97,7 +103,7 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument(
         "--history",
-        type=Path,
+        type=path_arg,
         help="a history of earlier days (`twin history`): also score each swarm's belief "
         "models (last-seen, history, nowcast) and write belief_models.csv",
     )
@@ -131,25 +137,30 @@ def add_gui_arguments(p) -> None:
     )
     p.add_argument(
         "--record",
-        type=Path,
+        type=path_arg,
         help="save the GUI's view at every step as a video (FILE.mp4 or FILE.gif); implies --gui",
     )
 
 
 def gui_drawer(args: argparse.Namespace, swarms):
-    """The per-step drawer of ``--gui`` (None without it), its settings checked."""
-    if not (args.gui or args.record):
-        return None
+    """The per-step drawer of ``--gui`` (None without it), its settings checked (the
+    ``--gui-*`` flags are checked without ``--gui`` too: a typo is refused, not ignored)."""
     from twin.sumo.gui import GuiDrawer, GuiSettings, check_settings
 
     shown = (
         [s.strip() for s in args.gui_swarms.split(",") if s.strip()] if args.gui_swarms else None
     )
+    if args.gui_swarms is not None and not shown:
+        raise UserError(
+            f"--gui-swarms {args.gui_swarms!r}: names no swarm; give comma-separated swarms of "
+            "the run, or all"
+        )
     if shown == ["all"]:
         shown = list(swarms)
+    shown_later = args.gui or args.record
     settings = GuiSettings(swarms=shown, shade=args.gui_shade, record=args.record)
     check_settings(settings, list(swarms))
-    return GuiDrawer(settings, list(swarms))
+    return GuiDrawer(settings, list(swarms)) if shown_later else None
 
 
 def build_experiment(args: argparse.Namespace):

@@ -7,6 +7,8 @@ import os
 import sys
 from pathlib import Path
 
+from twin.cli import path_arg
+
 
 def add_parser(subparsers) -> None:
     p = subparsers.add_parser(
@@ -18,10 +20,10 @@ def add_parser(subparsers) -> None:
         "where it stopped. Results merge into results.csv, summary.csv (mean and 95% interval "
         "over seeds) and report/sweep.html.",
     )
-    p.add_argument("--config", type=Path, required=True, help="sweep config (TOML)")
+    p.add_argument("--config", type=path_arg, required=True, help="sweep config (TOML)")
     p.add_argument(
         "--out",
-        type=Path,
+        type=path_arg,
         default=None,
         help="sweep folder (default runs/sweep-<name>; rerun with the same folder to resume)",
     )
@@ -46,7 +48,7 @@ def add_parser(subparsers) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from twin.boundary import set_run_folder
+    from twin.boundary import hold_notices, notify, set_run_folder
     from twin.cli import check_count
     from twin.errors import UserError
     from twin.metrics import format_table2
@@ -55,6 +57,7 @@ def main(args: argparse.Namespace) -> int:
     from twin.sweep import load_sweep_config, run_sweep
     from twin.sweep.store import check_sweep_folder
 
+    hold_notices()  # printed once the cells start; a refusal is one line
     check_count("--workers", args.workers)
     if args.address and args.executor != "ray":
         raise UserError("--address is for --executor ray")
@@ -81,10 +84,9 @@ def main(args: argparse.Namespace) -> int:
 
     results = pd.read_csv(out / "results.csv") if (out / "results.csv").exists() else None
     if results is not None and "code" in results and results["code"].nunique() > 1:
-        print(
+        notify(
             f"twin: warning: the cells in {out} were computed by {results['code'].nunique()} "
-            "versions of the code (column 'code' of results.csv)",
-            file=sys.stderr,
+            "versions of the code (column 'code' of results.csv)"
         )
     summary = outcome.summary
     if not summary.empty:

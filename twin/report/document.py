@@ -18,7 +18,7 @@ import pandas as pd
 from matplotlib.figure import Figure
 
 from twin.errors import UserError
-from twin.files import atomic_write
+from twin.files import atomic_write, staged_folder
 from twin.readback import INT, NUMBER, read_table
 from twin.report import figures
 from twin.report.animation import MAX_FRAMES, write_animation
@@ -711,39 +711,13 @@ def write_report(run_dir: str | Path, animation: bool = True) -> Path:
     The report is drawn into a temporary folder inside the run folder and renamed into place
     at the end: a report that fails mid-way (a full disk ...) leaves the previous report, or
     none, never a partial one."""
-    import shutil
-    import tempfile
-
     rf = load_run(run_dir)
     out = report_dir(rf.run_dir)
-    stage = Path(tempfile.mkdtemp(dir=rf.run_dir, prefix=f".{REPORT_DIR}.", suffix=".tmp"))
-    try:
-        os.chmod(stage, 0o777 & ~_umask())
+    with staged_folder(out) as stage:
         sections, drawing = build_sections(rf, stage, animation)
         seconds = sum(drawing.values())
         page = render_html(rf, stage, sections, seconds)
         md = render_markdown(rf, sections, seconds)
         atomic_write(stage / "report.html", lambda p: p.write_text(page, encoding="utf-8"))
         atomic_write(stage / "report.md", lambda p: p.write_text(md, encoding="utf-8"))
-        old = None
-        if out.is_dir():
-            old = Path(tempfile.mkdtemp(dir=rf.run_dir, prefix=f".{REPORT_DIR}.", suffix=".old"))
-            os.replace(out, old / REPORT_DIR)
-        os.replace(stage, out)
-    except OSError as exc:  # name the report's file, not its temporary copy
-        shutil.rmtree(stage, ignore_errors=True)
-        name = str(exc.filename) if exc.filename is not None else str(out)
-        exc.filename = name.replace(str(stage), str(out))
-        raise
-    except BaseException:
-        shutil.rmtree(stage, ignore_errors=True)
-        raise
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
     return out / "report.html"
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask

@@ -17,12 +17,14 @@ import pandas as pd
 from twin.clock import clock_label, parse_clock
 from twin.errors import UserError
 from twin.grid import Grid
+from twin.metrics import BOUND
 from twin.readback import (
     EVENT_COLUMNS,
     INT,
     MFD_FIELDS,
     MFD_SAMPLE_COLUMNS,
     NETWORK_FIELDS,
+    NETWORK_RANGES,
     NUMBER,
     RERUN,
     TEXT,
@@ -31,6 +33,7 @@ from twin.readback import (
     check_fields,
     check_headline,
     check_incidents,
+    check_ranges,
     check_run_json,
     check_series,
     check_trajectories,
@@ -259,6 +262,7 @@ def load_run(run_dir: str | Path) -> RunFiles:
     incidents = read_json(run_dir / "incidents.json")
     if network is not None:
         check_fields(run_dir / "network.json", network, NETWORK_FIELDS)
+        check_ranges(run_dir / "network.json", network, NETWORK_RANGES)
     if mfd is not None:
         check_fields(run_dir / "mfd.json", mfd, MFD_FIELDS)
     if incidents is not None:
@@ -348,3 +352,45 @@ def check_consistent(
                 f"{run_dir / 'series.parquet'}: swarm {swarm!r} has {n} steps in seed {first}, "
                 f"not {importance.shape[0] - 1}; {RERUN}"
             )
+    recorded = run.get("seeds")
+    if isinstance(recorded, list) and sorted(set(recorded)) != seeds:
+        raise UserError(
+            f"{run_dir / 'run.json'}: seeds = {str(recorded)[:60]} differ from those with "
+            f"results in series.parquet, {seeds}; {RERUN}"
+        )
+    check_scores(run_dir, series, summary)
+
+
+#: How far summary.csv's R_hat_T may lie from the one series.parquet gives (float rounding).
+SCORE_TOLERANCE = 1e-9
+
+
+def check_scores(run_dir: Path, series: pd.DataFrame, summary: pd.DataFrame) -> None:
+    """``summary.csv``'s headline is the series' own: each swarm's ``R_hat_T`` is the mean
+    over seeds of its mean ``R^k`` in ``series.parquet`` (Def. 4), and no swarm lies above the
+    bound row (the bound is an upper bound of every swarm, :mod:`twin.ceilings`)."""
+    path = run_dir / "summary.csv"
+    if "R_hat_T" not in summary.columns:
+        return
+    by_seed = series.assign(swarm=series["swarm"].astype(str)).groupby(["swarm", "seed"])
+    expected = by_seed["reward"].mean().groupby(level="swarm").mean()
+    roles = summary["role"] if "role" in summary.columns else pd.Series("swarm", summary.index)
+    best = None
+    for (_, row), role in zip(summary.iterrows(), roles, strict=True):
+        swarm, value = str(row["swarm"]), float(row["R_hat_T"])
+        if role == "ceiling" or swarm not in expected.index or not np.isfinite(value):
+            continue
+        want = float(expected[swarm])
+        if abs(value - want) > SCORE_TOLERANCE * max(1.0, abs(want)):
+            raise UserError(
+                f"{path}: swarm {swarm!r} has R_hat_T = {value:.6g}, its series in "
+                f"series.parquet gives {want:.6g}; {RERUN}"
+            )
+        best = value if best is None else max(best, value)
+    bound = summary.loc[summary["swarm"].astype(str) == BOUND, "R_hat_T"].astype(float)
+    limit = float(bound.iloc[0]) if len(bound) else np.nan
+    if best is not None and best > limit + SCORE_TOLERANCE * max(1.0, abs(best)):
+        raise UserError(
+            f"{path}: the {BOUND} row's R_hat_T = {limit:.6g} lies below a swarm's "
+            f"{best:.6g}, which no swarm can exceed; {RERUN}"
+        )

@@ -13,7 +13,7 @@ import pandas as pd
 from matplotlib.figure import Figure
 
 from twin.errors import UserError
-from twin.files import atomic_write
+from twin.files import atomic_write, staged_folder
 from twin.readback import FINITE, INT, TEXT, read_json, read_table
 from twin.report.document import (
     CSS,
@@ -133,14 +133,26 @@ def figure_curves(out_dir: Path, results: pd.DataFrame) -> Figure | None:
 
 
 def write_sweep_report(out_dir: Path) -> Path:
-    """Write ``out_dir/report/sweep.html``, ``sweep.md`` and the PNGs; return the HTML path."""
+    """Write ``out_dir/report/sweep.html``, ``sweep.md`` and the PNGs; return the HTML path.
+
+    Drawn into a temporary folder inside the sweep folder and renamed into place at the end,
+    as a run's report (:func:`twin.files.staged_folder`): a failure mid-way leaves the previous
+    report, or none, never a partial one."""
     summary = read_table(out_dir / "summary.csv", {"swarm": TEXT})
     results = read_table(out_dir / "results.csv", {"swarm": TEXT, "cell": TEXT})
     manifest = read_json(out_dir / "sweep.json", required=True)
     if not isinstance(manifest, dict):
         raise UserError(f"{out_dir / 'sweep.json'}: not an object; rerun the sweep")
     out = report_dir(out_dir)  # never a link out of the sweep folder
-    out.mkdir(exist_ok=True)
+    with staged_folder(out) as stage:
+        _draw_sweep_report(out_dir, stage, summary, results, manifest)
+    return out / "sweep.html"
+
+
+def _draw_sweep_report(
+    out_dir: Path, out: Path, summary: pd.DataFrame, results: pd.DataFrame, manifest: dict
+) -> None:
+    """The sweep report's files, drawn into the folder ``out``."""
     images = []
     figure_table2(summary).savefig(out / "table2.png", dpi=100)
     images.append(("Table 2 columns per scenario", "table2.png"))
@@ -218,4 +230,3 @@ def write_sweep_report(out_dir: Path) -> Path:
     page, text = "\n".join(parts), "\n".join(md) + "\n"
     atomic_write(html_path, lambda p: p.write_text(page, encoding="utf-8"))
     atomic_write(out / "sweep.md", lambda p: p.write_text(text, encoding="utf-8"))
-    return html_path

@@ -556,7 +556,9 @@ class GuiDrawer:
             frames = [f for f in self.frames if _wait_for(f)]
             if not frames:
                 raise UserError(f"--record {self.settings.record}: no frame was recorded")
-            write_video(self.settings.record, frames)
+            from twin.outputs import make_parent
+
+            write_video(make_parent(self.settings.record, "--record"), frames)
             return self.settings.record
         finally:
             if self._tmp is not None:

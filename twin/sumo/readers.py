@@ -291,10 +291,18 @@ def _check_departure(path: Path, elem: ET.Element, key: str) -> float | None:
     return t
 
 
-def departure_span(route_files: list[Path]) -> tuple[float, float] | None:
+#: The departing elements that put vehicles on the roads (persons walk, containers wait).
+VEHICLE_DEMAND = ("vehicle", "trip", "flow")
+
+
+def departure_span(
+    route_files: list[Path], counts: dict[str, int] | None = None
+) -> tuple[float, float] | None:
     """First and last numeric departure of the demand (``depart`` of vehicles, trips and persons,
-    ``begin`` .. ``end`` of flows); None when the files hold no vehicle (e.g. only vTypes)."""
+    ``begin`` .. ``end`` of flows); None when the files hold no vehicle (e.g. only vTypes).
+    ``counts``, when given, gets the number of departing elements of each tag."""
     first = last = None
+    counts = {} if counts is None else counts
     for path in route_files:
         try:
             with open_xml(path) as fh:
@@ -302,6 +310,7 @@ def departure_span(route_files: list[Path]) -> tuple[float, float] | None:
                     key = _DEPARTING.get(elem.tag)
                     t = _check_departure(path, elem, key) if key else None
                     if t is not None:
+                        counts[elem.tag] = counts.get(elem.tag, 0) + 1
                         end = t
                         if elem.tag == "flow":
                             end = _flow_end(elem, t)

@@ -38,6 +38,7 @@ from twin.errors import UserError
 from twin.grid import Grid
 from twin.sumo.readers import (
     SUMOCFG_ROOTS,
+    VEHICLE_DEMAND,
     departure_span,
     naming_the_sumocfg,
     read_sumocfg,
@@ -47,6 +48,8 @@ from twin.sumo.readers import (
 
 #: SUMO's step (s, its default --step-length): a twin step may not be shorter.
 SUMO_STEP_S = 1.0
+#: The longest twin step (s): one drone move per simulated day at most.
+MAX_STEP_S = 86400.0
 
 
 def sumo_settings(config) -> SumoSettings:
@@ -204,6 +207,9 @@ class _ScenarioFiles:
     name: str  # the scenario's name in messages: the network, sumocfg or OSM file
     sumocfg: Path | None = None
     listed: list[Path] = field(default_factory=list)  # sumocfg files (named with it in errors)
+    #: the sumocfg's files by role ("net", "routes", "additional"): a file given by a flag is
+    #: never said to be named in the sumocfg, even where the sumocfg names it in another role
+    listed_as: dict[str, list[Path]] = field(default_factory=dict)
     window: list[float | None] = field(default_factory=lambda: [None, None])  # <time> of it
     span: tuple[float, float] | None = None  # first and last departure of the given demand
 
@@ -258,6 +264,11 @@ def _scenario_files(s: SumoSettings) -> _ScenarioFiles:
                 *([] if s.routes else cfg.routes),
                 *cfg.additional,
             ],
+            listed_as={
+                "net": [] if s.net else [cfg.net],
+                "routes": [] if s.routes else list(cfg.routes),
+                "additional": list(cfg.additional),
+            },
             window=[cfg.begin, cfg.end],
         )
     elif s.osm:
@@ -267,12 +278,17 @@ def _scenario_files(s: SumoSettings) -> _ScenarioFiles:
         files = _ScenarioFiles(Path(s.net), [], additional_files, Path(s.net).name)
     if s.routes:
         files.route_files = [Path(r) for r in s.routes]
-    with _named_in(files.sumocfg, files.listed):
+    as_ = files.listed_as
+    with _named_in(files.sumocfg, as_.get("net", [])):
         check_net_file(files.net_file)
+    with _named_in(files.sumocfg, as_.get("routes", [])):
         _check_routes(files.route_files)
+    with _named_in(files.sumocfg, as_.get("additional", [])):
         _check_additional(files.additional_files)
+    with _named_in(files.sumocfg, [*as_.get("routes", []), *as_.get("additional", [])]):
         # SUMO loads vehicles, flows and persons of additional files as demand too
-        files.span = departure_span([*files.route_files, *files.additional_files])
+        departing: dict[str, int] = {}
+        files.span = departure_span([*files.route_files, *files.additional_files], departing)
     if files.span is None and files.sumocfg is not None and not files.route_files:
         notice(
             f"{files.sumocfg}: names no <route-files>; twin generates a rush-hour demand "
@@ -283,19 +299,33 @@ def _scenario_files(s: SumoSettings) -> _ScenarioFiles:
             f"{', '.join(str(r) for r in files.route_files)}: no vehicle departs in the route "
             "files (vehicle types only?); twin generates a rush-hour demand"
         )
+    elif files.span is not None and not any(departing.get(t) for t in VEHICLE_DEMAND):
+        named = [*files.route_files, *files.additional_files]
+        notice(
+            f"{', '.join(str(r) for r in named)}: the demand holds persons or containers but no "
+            "vehicle, so every cell's traffic stays 0 (no MFD can be fitted); add vehicles, or "
+            "leave the demand out and twin generates a rush-hour one"
+        )
     return files
 
 
 def _step_seconds(s: SumoSettings, config) -> float:
-    """Simulated seconds per step, ``cell_m / speed``; not shorter than SUMO's own step."""
+    """Simulated seconds per step, ``cell_m / speed``; not shorter than SUMO's own step and
+    not longer than a day."""
     step_s = s.cell_m / (s.drone_speed_kmh / 3.6)
+    flags = [
+        f"{config.flag_of(f'traffic.{key}')} {getattr(s, key):g}"
+        for key in ("drone_speed_kmh", "cell_m")
+        if config.flag_of(f"traffic.{key}")
+    ]
+    where = ", ".join(flags) or f"{config.path}: [traffic]"
+    if step_s > MAX_STEP_S:
+        raise UserError(
+            f"{where}: a step ({s.cell_m:g} m at {s.drone_speed_kmh:g} km/h) lasts {step_s:.3g} "
+            f"s, longer than a day ({MAX_STEP_S:g} s) of simulation per drone move; give a "
+            "higher drone speed or smaller cells"
+        )
     if step_s < SUMO_STEP_S:
-        flags = [
-            f"{config.flag_of(f'traffic.{key}')} {getattr(s, key):g}"
-            for key in ("drone_speed_kmh", "cell_m")
-            if config.flag_of(f"traffic.{key}")
-        ]
-        where = ", ".join(flags) or f"{config.path}: [traffic]"
         raise UserError(
             f"{where}: a step ({s.cell_m:g} m at {s.drone_speed_kmh:g} km/h) lasts {step_s:.2g} "
             f"s, shorter than SUMO's {SUMO_STEP_S:g} s step; give a lower drone speed or larger "
@@ -390,6 +420,13 @@ def _grid_and_notices(
     if files.span is not None and window_given:
         clear = clearing_time(geometry)
         end = begin + s.horizon * step_s
+        if begin >= files.span[1] + clear or end <= files.span[0]:
+            raise UserError(
+                f"{files.name}: the run ({clock_label(begin)} - {clock_label(end)}) lies outside "
+                f"the demand (departures {clock_label(files.span[0])} - "
+                f"{clock_label(files.span[1])}, plus {clear / 60:.0f} min to clear the "
+                "network): every step would be empty; give a --begin (and --horizon) within it"
+            )
         if end > files.span[1] + clear:
             notices.append(
                 f"{files.name}: the run ends at {clock_label(end)}, past the last departure "

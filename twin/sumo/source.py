@@ -15,6 +15,7 @@ of every cell at every sample time) and the MFD samples, also after a SUMO failu
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Generator, Sequence
 from dataclasses import dataclass, field
@@ -390,7 +391,8 @@ class SumoTraffic(TrafficSource):
         }
 
     def input_files(self) -> list[tuple[str, Path]]:
-        """``(role, path)`` of every file SUMO loads for this scenario."""
+        """``(role, path)`` of every file SUMO loads for this scenario, absolute (a replay from
+        another folder finds the same names)."""
         s = self.scenario
         files = [("network", Path(s.net_file))]
         files += [("route file", Path(r)) for r in s.route_files]
@@ -399,7 +401,7 @@ class SumoTraffic(TrafficSource):
             files += [("included file", p) for p in included_files(Path(a)) if p.is_file()]
         if s.sumocfg is not None:
             files.append(("sumocfg", Path(s.sumocfg)))
-        return files
+        return [(role, Path(os.path.abspath(path))) for role, path in files]
 
     def input_hashes(self) -> list[dict[str, str]]:
         """``{"role", "path", "sha256"}`` of every file SUMO loads (hashed once per file and

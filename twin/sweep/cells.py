@@ -103,6 +103,20 @@ def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
     Returns ``{"id", "seconds", "rows": [one dict per swarm: Table 2 and monitoring columns],
     "error", ...}``.
     """
+    from twin.boundary import drop_notices, hold_notices, release_notices
+
+    drop_notices()  # a worker's earlier cell that failed keeps none of its notices
+    hold_notices()  # printed once the cell's simulation starts; a failing cell is its error
+    try:
+        record = _run_cell(cell)
+    except BaseException:
+        drop_notices()
+        raise
+    release_notices()
+    return record
+
+
+def _run_cell(cell: dict[str, Any]) -> dict[str, Any]:
     from twin.experiment import Experiment, limit_threads, run_experiment, run_metadata
     from twin.monitoring import monitor_run
     from twin.runs import seed_table, series_frame, step_seconds_of

@@ -13,6 +13,7 @@ from typing import Any
 
 import pandas as pd
 
+from twin.boundary import release_notices
 from twin.errors import UserError
 from twin.executors import EXECUTORS, _local_executor, _ray_executor
 from twin.sweep.cells import expand_cells, run_cell, scenario_config
@@ -61,6 +62,7 @@ def run_sweep(
     skipped = [c["id"] for c in cells if c["id"] in done]
     _write_manifest(out_dir, config, cells)
     check_cells(todo)
+    release_notices()  # every cell is valid: what the checks noticed is printed now
     workers = max(1, min(workers or os.cpu_count() or 1, len(todo) or 1))
     start = time.perf_counter()
     ran: list[str] = []

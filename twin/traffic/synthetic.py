@@ -79,11 +79,19 @@ class SyntheticTraffic(TrafficSource):
     def _largest_z(self) -> float:
         if not self.disturbances:
             return 1.0
-        peak = 0.0
-        for start in range(0, self.horizon + 1, 256):
-            block = np.tensordot(self._amplitudes[:, start : start + 256].T, self._kernels, axes=1)
-            peak = max(peak, float(np.where(self.grid.free, block, 0.0).max()))
+        peak = self.peak_z()
         return peak if peak > self.z_lo else self.z_lo + 1.0
+
+    def peak_z(self) -> float:
+        """The largest ``z`` on a free cell over the horizon (0 without disturbances)."""
+        if getattr(self, "_peak", None) is None:
+            peak = 0.0
+            for start in range(0, self.horizon + 1, 256):
+                amplitudes = self._amplitudes[:, start : start + 256].T
+                block = np.tensordot(amplitudes, self._kernels, axes=1)
+                peak = max(peak, float(np.where(self.grid.free, block, 0.0).max(initial=0.0)))
+            self._peak = peak
+        return self._peak
 
     def z(self, k: int) -> np.ndarray:
         """The raw traffic variable ``z^k`` over the map."""

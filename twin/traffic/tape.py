@@ -177,10 +177,11 @@ class Tape:
                 f"{nx * ny} cells of the {nx} x {ny} grid; the tape is corrupt, record it again"
             )
         df = df.sort_values(["step", "i", "j"])
-        times = df["time_s"].to_numpy(dtype=float)[:: nx * ny]
+        times = df["time_s"].to_numpy(dtype=float).reshape(-1, nx, ny)
         counts = df["count"].to_numpy().reshape(-1, nx, ny)
         speeds = df["speed"].to_numpy(dtype=float).reshape(-1, nx, ny)
         _check_values(path, steps, times, counts, speeds)
+        times = times[:, 0, 0]
         return cls(
             steps=steps.astype(np.int64),
             times=times,
@@ -217,7 +218,8 @@ def _check_columns(path: Path, df) -> None:
 
 
 def _check_values(path: Path, steps, times, counts, speeds) -> None:
-    """Finite non-negative counts, finite times, speeds finite and >= 0 where vehicles are."""
+    """Finite non-negative counts, one finite time per step (``times``: per step and cell),
+    speeds finite and >= 0 where vehicles are."""
 
     def fail(col: str, idx: tuple, value, problem: str) -> None:
         s, *cell = idx
@@ -229,7 +231,12 @@ def _check_values(path: Path, steps, times, counts, speeds) -> None:
 
     bad = ~np.isfinite(times)
     if bad.any():
-        fail("time_s", (int(np.flatnonzero(bad)[0]),), times[bad][0], "is not finite")
+        idx = tuple(int(x) for x in np.argwhere(bad)[0])
+        fail("time_s", idx, times[idx], "is not finite")
+    bad = times != times[:, :1, :1]  # one time per step, in every cell's row
+    if bad.any():
+        idx = tuple(int(x) for x in np.argwhere(bad)[0])
+        fail("time_s", idx, times[idx], f"differs from the step's time {times[idx[0], 0, 0]}")
     bad = counts < 0
     if bad.any():
         idx = tuple(int(x) for x in np.argwhere(bad)[0])
