@@ -57,6 +57,7 @@ from twin.metrics import BOUND, CEILING_ROLE, ORACLE, table2
 from twin.planners import CoordinatedPolicy, LookaheadPolicy
 from twin.policies import Policy, SwarmView
 from twin.scores import ScoreParams, visit_gain
+from twin.tours import ToursPolicy
 
 
 def visit_factor(idleness: np.ndarray, params: ScoreParams) -> np.ndarray:
@@ -424,6 +425,24 @@ class KnownMapLookaheadPolicy(LookaheadPolicy):
         self.belief[:] = self.maps[min(view.k + 1, len(self.maps) - 1)]
 
 
+class KnownMapToursPolicy(ToursPolicy):
+    """The ``tours`` swarm told the whole true map ``T^{k+1}`` at every step (no survey, its
+    first plan at step 0): the cyclic patrol with perfect knowledge of the present, so the
+    oracle stays above ``tours``."""
+
+    name = "tours-known-map"
+
+    def __init__(self, maps: np.ndarray, **options):
+        super().__init__(**{"survey": False, "explore": 0, **options})
+        self.maps = np.asarray(maps)
+
+    def _see(self, view: SwarmView) -> None:
+        self.belief[:] = self.maps[min(view.k + 1, len(self.maps) - 1)]
+        self.seen[:] = True
+        self.last_seen[:] = view.k
+        self.now = view.k
+
+
 #: The largest DP (steps x free cells x states, one byte each) the bound is computed for.
 MAX_DP_BYTES = 2e9
 
@@ -431,6 +450,7 @@ MAX_DP_BYTES = 2e9
 ORACLE_SWARMS: tuple[tuple[str, dict], ...] = (
     ("visit-gain-true", {}),
     ("lookahead-known-map", {"known_map": True}),
+    ("tours-known-map", {"known_map": "tours"}),
     ("lookahead-true H=4", {"horizon": 4, "end_value": 1.0}),
     ("lookahead-true H=5", {"horizon": 5, "end_value": 1.0}),
     ("lookahead-true H=4 rho=0.9", {"horizon": 4, "end_value": 0.9}),
@@ -440,6 +460,8 @@ ORACLE_SWARMS: tuple[tuple[str, dict], ...] = (
 def _oracle_swarm(maps: np.ndarray, options: dict) -> Policy:
     if not options:
         return TrueVisitGainPolicy(maps)
+    if options.get("known_map") == "tours":
+        return KnownMapToursPolicy(maps)
     if options.get("known_map"):
         return KnownMapLookaheadPolicy(maps)
     return TrueLookaheadPolicy(maps, **options)
