@@ -428,53 +428,66 @@ class ToursPolicy(CoordinatedPolicy):
     ``memory`` steps), and the shared idleness map. Before its first plan (the first
     ``explore`` steps, by default one saturation period) it acts as ``visit-gain``.
 
+    Survey (``survey = True``; off by default): before its first plan the swarm looks at the
+    whole area once: the lanes of :func:`survey_cells` (every third lane, so the fields of view
+    cover every cell not seen yet), one walk cut into one stretch per drone
+    (:func:`split_survey`, no overlap), each drone flying its stretch; then it plans. With
+    a survey, a shift of the map (below) starts a new survey before the re-plan.
+
     Planning (:meth:`_plan`): the revisit period ``P`` maximises ``N * mean(top N P weights) *
-    visit_gain_factor(P)`` (:func:`best_period`, at most the saturation period); the cells
-    with the largest believed weight are chosen, ``stretch * N * P`` cells counted along the
-    walks; they are split by k-means into ``ceil(N / per_tour)`` groups; each group becomes a
-    closed walk of neighbouring free cells (Warnsdorff's walk, 2-opt and Or-opt on Manhattan
-    lengths, gaps bridged through fresh corner cells or shortest free paths, :func:`closed_walks`).
-    Drones are shared among the walks by their length, assigned to walks by a linear
-    assignment on distance, and each joins its walk where it arrives evenly spaced from the
-    others (it flies a shortest free path there). Tours stay in the largest connected free
-    area; a drone elsewhere acts as ``visit-gain``.
+    visit_gain_factor(P)`` (:func:`best_period`, at most the saturation period). Layout
+    ``cycles`` (default): ``ceil(N / per_tour)`` regions of whole free 2 x 2 blocks, each
+    grown from the block of largest believed weight by the heaviest neighbouring block until it
+    holds ``stretch * P`` cells per drone (:func:`block_regions`; the best of the four ways to
+    cut the map in blocks), each walked by the closed walk around its spanning tree
+    (:func:`block_cycle`): every cell once per lap, so with the drones spaced evenly every cell
+    is revisited every ``P`` steps, no sooner. Layout ``walks`` (and the fallback when no block
+    is free): the ``stretch * N * P`` cells of largest weight, split by k-means, each group
+    a closed walk of neighbouring free cells (Warnsdorff's walk, 2-opt and Or-opt, gaps
+    bridged: :func:`closed_walks`); its bridges and spurs revisit cells early (on the synthetic
+    map a visit found 0.82 of the bracket's 0.9 where the cycles find 0.9). Drones are shared
+    among the tours by their length, assigned by a linear assignment on distance, and each
+    joins its tour where it arrives evenly spaced from the others (it flies a shortest free
+    path there). Tours stay in the largest connected free area; a drone elsewhere acts as
+    ``visit-gain``.
 
     Acting (:meth:`act`): each drone's planned move gets ``bonus`` (by default larger than any
     visit gain) added to its one-step visit gain, and the exact coordinator
     (:func:`twin.coordinator.coordinate`) picks the joint move: collision-free, and a drone
     pushed off its plan is routed back. A drone closer than ``L / m - 1`` cells behind the next
-    drone of its walk waits; at a corner of its walk a drone takes the other corner cell when
-    that lies off every walk and gains more.
+    drone of its tour waits; at a corner of its tour a drone takes the other corner cell when
+    that lies off every tour and gains more.
 
-    Re-planning: when the believed weight over a walk changes by more than ``shift`` of its
-    value at planning (the map shifted under the tours, or they revealed unknown cells), at
-    most once per saturation period, and every ``replan`` steps if set.
+    Re-planning (:meth:`_shifted`): when the believed importance over a tour changes shape
+    (cosine to its value at planning below ``1 - shift``), falls under a tenth of it, or
+    appears on a tour planned over none, at most once per saturation period; and every
+    ``replan`` steps if set. A uniform fade or growth re-plans nothing.
 
     Cost: per step O(N) numpy work plus the coordinator (6 ms per step with 1000 drones on
-    200 x 300 cells); a plan is k-means plus a local search per walk of ``per_tour * P``
-    cells: 0.1 s with 4 drones on 20 x 30 cells, 5 s with 300 drones and 21 s with 1000
-    drones on 200 x 300 cells (``explore = 2``; 2-core machine shared with other jobs).
+    200 x 300 cells); a plan of the walks layout is k-means plus a local search per walk of
+    ``per_tour * P`` cells: 0.1 s with 4 drones on 20 x 30 cells, 5 s with 300 drones and
+    21 s with 1000 drones on 200 x 300 cells (``explore = 2``; 2-core machine shared with
+    other jobs); the cycles layout grows regions with a heap, O(blocks log blocks).
 
-    Measured (R_hat_T, mean ± 95% over seeds; ratio = mean of per-seed ratios to ``visit-gain``
-    on the same starts and traffic). Defaults chosen on validation seeds 100-109 of
-    ``configs/synthetic.toml`` (``per_tour`` 1/2/4, ``stretch`` 0.85-2.0, ``replan`` none/200/
-    400/800, ``shift``, ``explore``, ``prior`` 0-0.5, ``memory``, ``bonus``): about 1.00 x
-    visit-gain there. On the evaluation seeds 0-9, measured once with the defaults,
-    ``twin evaluate --config configs/synthetic.toml --seeds 10 --seed 0 --swarms
-    visit-gain,tours`` (commit b0ff689's planner): tours 2.561 ± 0.120 against visit-gain
-    2.628 ± 0.014, ratio 0.974 ± 0.036 (per seed 1.005, 0.842, 1.022, 1.003, 0.995, 0.919,
-    0.983, 0.933, 1.032, 1.007). It earns more of the importance part (0.929 against 0.885)
-    and less of the idleness part (1.632 against 1.743). It does NOT reach the 1.07 x
-    visit-gain it was built for. Where it falls short: on seeds 1, 5 and 7 its first plan is
-    made before the swarm has seen one of the two big disturbances, and the optimistic belief
-    does not send it there soon enough; where the belief is right it leads by 0-3 %, close to
-    what perfect tours over the believed cells can earn here, since visit-gain already visits
-    nearly saturated cells (idleness 0.96 at its visits).
+    Defaults chosen on validation seeds 100-109 of ``configs/synthetic.toml`` only
+    (``python benchmarks/validate_tours.py``; ratio = mean of per-seed ratios to
+    ``visit-gain`` on the same starts and traffic, whose mean there is 2.634): tours without
+    a survey, ``prior`` 0.25, ``memory`` 300, a saturation period of ``visit-gain`` first:
+    1.072 ± 0.006; the best mean, ``explore`` 20 and ``memory`` 600, 1.073 ± 0.006 (a tie;
+    the defaults keep step counts derived from eta and delta); ``prior`` 0.1 / 0.4:
+    1.058 / 1.045; with the survey first (``prior`` 0, no ``memory``), stretch 1.0:
+    1.063 ± 0.006, every seed within 2.785-2.817 (the survey takes about 66 steps, the
+    swarm's loss to the swarm told the whole map at once, 2.849 there); stretch 0.95 / 1.1:
+    1.023 / 1.050; ``per_tour`` 1: 1.054; the walks layout with the survey: 0.956. The
+    earlier walks planner (the walks layout, its own defaults) scored 0.974 ± 0.036 on the
+    evaluation seeds 0-9 (its first plan missed a big disturbance on seeds 1, 5 and 7).
 
-    On the Shenzhen-like SUMO scenario (``twin run --config configs/shenzhen.toml --seeds 1
-    --seed 0 --swarms visit-gain,tours``, T = 144, 482 free cells): tours 1.891 against
-    visit-gain 1.990 (0.950 x; one seed): the horizon is four revisit periods, one of them spent
-    before the first plan.
+    Measured once on the evaluation seeds 0-9 with the defaults, ``twin evaluate --config
+    configs/synthetic.toml --seeds 10`` (all swarms; paired with visit-gain on the same starts
+    and traffic): tours 2.812 ± 0.034 against visit-gain 2.628 ± 0.014, a difference of
+    +0.184 ± 0.030, ratio 1.070 ± 0.011 (per seed 1.068, 1.081, 1.088, 1.082, 1.079, 1.032,
+    1.069, 1.058, 1.073, 1.071); the look-ahead 2.810 ± 0.016 on the same run. On seed 5 its
+    first plan missed a big disturbance (1.032).
     """
 
     name = "tours"
