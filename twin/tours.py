@@ -473,12 +473,12 @@ class ToursPolicy(CoordinatedPolicy):
     (``python benchmarks/validate_tours.py``; ratio = mean of per-seed ratios to
     ``visit-gain`` on the same starts and traffic, whose mean there is 2.634): tours without
     a survey, ``prior`` 0.25, ``memory`` 300, a saturation period of ``visit-gain`` first:
-    1.072 ± 0.006; the best mean, ``explore`` 20 and ``memory`` 600, 1.073 ± 0.006 (a tie;
+    1.072 ± 0.007; the best mean, ``explore`` 20 and ``memory`` 600, 1.073 ± 0.006 (a tie;
     the defaults keep step counts derived from eta and delta); ``prior`` 0.1 / 0.4:
     1.058 / 1.045; with the survey first (``prior`` 0, no ``memory``), stretch 1.0:
     1.063 ± 0.006, every seed within 2.785-2.817 (the survey takes about 66 steps, the
     swarm's loss to the swarm told the whole map at once, 2.849 there); stretch 0.95 / 1.1:
-    1.023 / 1.050; ``per_tour`` 1: 1.054; the walks layout with the survey: 0.956. The
+    1.023 / 1.050; ``per_tour`` 1: 1.054; the walks layout: 1.009 (0.969 with the survey). The
     earlier walks planner (the walks layout, its own defaults) scored 0.974 ± 0.036 on the
     evaluation seeds 0-9 (its first plan missed a big disturbance on seeds 1, 5 and 7).
 
