@@ -132,3 +132,87 @@ def test_tours_describes_itself_before_any_step():
     from twin.tours import ToursPolicy
 
     assert ToursPolicy().describe()["plans"] == 0
+
+
+def test_block_cycles_visit_every_cell_of_their_region_once():
+    from twin.tours import block_cycle, block_regions
+
+    rng = np.random.default_rng(4)
+    for trial in range(5):
+        usable = rng.random((7, 9)) < 0.8
+        weights = rng.random((7, 9))
+        regions = block_regions(weights, usable, [12, 5, 1])
+        taken = set()
+        for region in regions:
+            blocks = {b for b, _ in region}
+            assert all(usable[b] for b in blocks) and not blocks & taken
+            taken |= blocks
+            cycle = block_cycle(region, (trial % 2, 1))
+            cells = {tuple(c) for c in cycle}
+            assert len(cells) == len(cycle) == 4 * len(blocks)  # each cell once
+            steps = np.abs(np.diff(np.vstack([cycle, cycle[:1]]), axis=0)).sum(axis=1)
+            assert (steps == 1).all()  # closed, between neighbours
+
+
+@pytest.mark.parametrize("shape", [(1, 9), (2, 2), (9, 1), (10, 13), (17, 6)])
+def test_survey_sees_every_cell_and_drones_share_it(shape):
+    from twin.tours import open_walk, split_survey, survey_cells
+
+    rng = np.random.default_rng(sum(shape))
+    obstacles = rng.random(shape) < (0.15 if min(shape) > 2 else 0.0)
+    grid = Grid(obstacles)
+    policy = ToursPolicy()
+    policy.reset(grid, 1, rng)
+    area = policy.area  # the largest connected free area
+    walk = open_walk(grid, survey_cells(area))
+    assert area[walk[:, 0], walk[:, 1]].all()
+    steps = np.abs(np.diff(walk, axis=0)).sum(axis=1)
+    assert (steps == 1).all()
+    seen = np.zeros(shape, dtype=bool)
+    flat, valid = grid.view_index(walk)
+    seen.ravel()[flat[valid]] = True
+    assert seen[area].all()
+    starts = random_starts(grid, 3, rng)
+    pieces = split_survey(walk, starts)
+    assert sum(len(p) for p in pieces) == len(walk)
+    assert {tuple(c) for p in pieces for c in p} == {tuple(c) for c in walk}
+
+
+@pytest.mark.parametrize("n", [1, 5])
+def test_survey_phase_sees_the_area_then_plans(n):
+    rng = np.random.default_rng(8)
+    grid = Grid(rng.random((14, 18)) < 0.15)
+    importance = blobs(grid, [(3, 4), (10, 14)])
+    policy = ToursPolicy(survey=True)
+    _, trail = patrol(policy, grid, n, 200, importance)
+    assert policy.surveys == 1 and policy.plans >= 1
+    assert policy.seen[policy.area].all()  # the survey saw every cell of the tours' area
+    if n > 1:
+        flat = trail[..., 0] * grid.ny + trail[..., 1]
+        assert all(len(np.unique(row)) == n for row in flat)
+
+
+def test_survey_again_when_the_map_moves():
+    grid = Grid.open(16, 24)
+    before = blobs(grid, [(3, 4)])
+    after = blobs(grid, [(11, 17)])  # far from the tour: its cells go cold
+    policy = ToursPolicy(survey=True)
+    _, trail = patrol(policy, grid, 2, 500, before, shift_at=150, moved=after)
+    assert policy.surveys >= 2 and policy.planned_at > 150
+    end = trail[-100:].reshape(-1, 2)
+    assert after[end[:, 0], end[:, 1]].mean() > 2 * after.mean()
+
+
+def test_a_uniform_fade_replans_nothing():
+    grid = Grid.open(14, 20)
+    importance = blobs(grid, [(4, 5), (10, 14)])
+    policy = ToursPolicy()
+    patrol(policy, grid, 4, 300, importance, shift_at=120, moved=0.4 * importance)
+    assert policy.plans == 1
+
+
+def test_layouts_and_survey_checked():
+    for bad in ({"layout": "spiral"}, {"survey": 1}):
+        with pytest.raises(UserError) as err:
+            ToursPolicy(**bad)
+        assert "\n" not in str(err.value)

@@ -14,6 +14,7 @@ drones spaced evenly along them. See :class:`ToursPolicy` for the planner and it
 
 from __future__ import annotations
 
+import heapq
 import math
 
 import numpy as np
@@ -34,6 +35,9 @@ PLAN_BONUS = 100.0
 #: Largest number of drones sharing one tour (a tour holds about ``per_tour * period`` cells
 #: and is ordered by 2-opt, quadratic in its cells).
 MAX_PER_TOUR = 8
+#: How tours are laid out: closed walks over whole 2 x 2 blocks, each cell once (``cycles``),
+#: or walks ordered by local search over the chosen cells, gaps bridged (``walks``).
+LAYOUTS = ("cycles", "walks")
 #: Passes of 2-opt and Or-opt over a tour at most.
 TWO_OPT_PASSES = 4
 #: Action index of a step ``(di, dj)``, looked up at ``(di + 1) * 3 + (dj + 1)``; -1: not a step.
@@ -235,6 +239,186 @@ def _corner(grid: Grid, taken: np.ndarray, a: np.ndarray, b: np.ndarray):
     return (fresh or free or [None])[0]
 
 
+def block_regions(
+    weights: np.ndarray, usable: np.ndarray, sizes: list[int]
+) -> list[list[tuple[tuple[int, int], tuple[int, int] | None]]]:
+    """Disjoint connected regions of blocks, grown greedily one after the other: each starts at
+    the unused block of largest weight and adds the unused block of largest weight next to it
+    until it holds its size (fewer if it runs out). Returns per region its blocks in the order
+    added, each with the block it was reached from (None for the first): a spanning tree."""
+    used = ~usable.copy()
+    bnx, bny = weights.shape
+    regions = []
+    for size in sizes:
+        key = np.where(used, -np.inf, weights)
+        start = np.unravel_index(int(np.argmax(key)), key.shape)
+        if not np.isfinite(key[start]):
+            break
+        start = (int(start[0]), int(start[1]))
+        heap = [(-float(weights[start]), 0, start, None)]
+        region, pushes = [], 1
+        while heap and len(region) < size:
+            _, _, block, parent = heapq.heappop(heap)
+            if used[block]:
+                continue
+            used[block] = True
+            region.append((block, parent))
+            bi, bj = block
+            for nb in ((bi - 1, bj), (bi + 1, bj), (bi, bj - 1), (bi, bj + 1)):
+                if 0 <= nb[0] < bnx and 0 <= nb[1] < bny and not used[nb]:
+                    heapq.heappush(heap, (-float(weights[nb]), pushes, nb, block))
+                    pushes += 1
+        regions.append(region)
+    return regions
+
+
+def block_cycle(region, offset: tuple[int, int]) -> np.ndarray:
+    """The closed walk through every cell of a region of 2 x 2 blocks, each cell once, that
+    goes around the region's spanning tree (spanning-tree coverage, Gabriely and Rimon): each
+    block starts as the 4-cycle of its cells; joining a block to its parent swaps the two
+    facing sides for two edges across. Returns ``(4 * blocks, 2)`` cells in walk order."""
+    oi, oj = offset
+
+    def cells(block):
+        i, j = 2 * block[0] + oi, 2 * block[1] + oj
+        return (i, j), (i, j + 1), (i + 1, j), (i + 1, j + 1)  # TL, TR, BL, BR
+
+    edges = set()
+    for block, _ in region:
+        tl, tr, bl, br = cells(block)
+        edges |= {frozenset(e) for e in ((tl, tr), (tr, br), (br, bl), (bl, tl))}
+    for block, parent in region:
+        if parent is None:
+            continue
+        a, b = (parent, block) if parent < block else (block, parent)  # a above or left of b
+        _, atr, abl, abr = cells(a)
+        btl, btr, bbl, _ = cells(b)
+        if a[0] == b[0]:  # side by side
+            old, new = ((atr, abr), (btl, bbl)), ((atr, btl), (abr, bbl))
+        else:  # a above b
+            old, new = ((abl, abr), (btl, btr)), ((abl, btl), (abr, btr))
+        edges -= {frozenset(e) for e in old}
+        edges |= {frozenset(e) for e in new}
+    nbrs: dict = {}
+    for e in edges:
+        u, v = tuple(e)
+        nbrs.setdefault(u, []).append(v)
+        nbrs.setdefault(v, []).append(u)
+    first = cells(region[0][0])[0]
+    walk, prev, cur = [first], None, first
+    while True:
+        nxt = nbrs[cur][0] if nbrs[cur][0] != prev else nbrs[cur][1]
+        if nxt == first:
+            break
+        walk.append(nxt)
+        prev, cur = cur, nxt
+    return np.array(walk, dtype=np.int64)
+
+
+def survey_cells(area: np.ndarray, need: np.ndarray | None = None) -> np.ndarray:
+    """Cells ``(n, 2)`` of ``area`` from which the field of view (cell and four neighbours)
+    covers every cell of ``need`` (by default all of ``area``), in boustrophedon order: every
+    third lane along the longer axis (lanes 1, 4, 7, ..., and the last lane when the one before
+    leaves it uncovered), back and forth, keeping the lane cells that see a needed cell; a
+    needed cell no lane cell sees (next to obstacles) is inserted where it lengthens the order
+    least (Manhattan)."""
+    lanes_along_rows = area.shape[1] >= area.shape[0]
+    need = area if need is None else need & area
+    a = area if lanes_along_rows else area.T
+    wanted = need if lanes_along_rows else need.T
+    sees = wanted.copy()
+    sees[1:] |= wanted[:-1]
+    sees[:-1] |= wanted[1:]
+    sees[:, 1:] |= wanted[:, :-1]
+    sees[:, :-1] |= wanted[:, 1:]
+    n = a.shape[0]
+    lanes = list(range(min(1, n - 1), n, 3))
+    if lanes[-1] + 1 < n - 1:
+        lanes.append(n - 1)
+    order = []
+    for r, lane in enumerate(lanes):
+        cols = np.flatnonzero(a[lane] & sees[lane])
+        order.extend((lane, int(c)) for c in (cols if r % 2 == 0 else cols[::-1]))
+    cells = np.array(order, dtype=np.int64).reshape(-1, 2)
+    covered = np.zeros_like(a)
+    for di, dj in ((0, 0), (1, 0), (-1, 0), (0, 1), (0, -1)):
+        i, j = cells[:, 0] + di, cells[:, 1] + dj
+        ok = (i >= 0) & (i < a.shape[0]) & (j >= 0) & (j < a.shape[1])
+        covered[i[ok], j[ok]] = True
+    for cell in np.argwhere(wanted & ~covered):
+        if not len(cells):
+            cells = cell[None, :]
+            continue
+        d_in = np.abs(cells - cell).sum(axis=1)
+        extra = d_in[:-1] + d_in[1:] - np.abs(cells[1:] - cells[:-1]).sum(axis=1)
+        where = int(np.argmin(extra)) + 1 if len(extra) else len(cells)
+        if d_in[0] <= (extra.min() if len(extra) else np.inf):
+            where = 0
+        elif d_in[-1] <= extra.min():
+            where = len(cells)
+        cells = np.insert(cells, where, cell, axis=0)
+    return cells if lanes_along_rows else cells[:, ::-1].copy()
+
+
+def open_walk(grid: Grid, cells: np.ndarray) -> np.ndarray:
+    """``cells`` in order as a walk of neighbouring free cells: gaps joined by an L-shaped
+    path when free (:func:`l_path`), else by a shortest free path (all cells in one area)."""
+    if len(cells) < 2:
+        return cells.copy()
+    joins, starts, ends, where = {}, [], [], []
+    for g in np.flatnonzero(np.abs(cells[1:] - cells[:-1]).sum(axis=1) > 1):
+        path = l_path(grid, cells[g], cells[g + 1])
+        if path is not None:
+            joins[int(g)] = path
+        else:
+            starts.append(cells[g])
+            ends.append(cells[g + 1])
+            where.append(int(g))
+    if starts:
+        found = free_paths(grid, np.array(starts), np.array(ends))
+        joins.update({where[m]: path for m, path in found.items()})
+    walk = []
+    for g, cell in enumerate(cells):
+        walk.append(tuple(cell))
+        if g in joins:
+            walk.extend(joins[g][1:-1])
+    return np.array(walk, dtype=np.int64).reshape(-1, 2)
+
+
+def split_survey(walk: np.ndarray, positions: np.ndarray) -> list[np.ndarray]:
+    """The survey walk cut into one stretch per drone (consecutive, none shared), each drone
+    given a stretch by a linear assignment on its squared distance to the nearer end, entering
+    there. The cuts are moved once so that each drone's approach plus its stretch take about
+    the same time (the survey ends when the last drone ends)."""
+    n, length = len(positions), len(walk)
+
+    def assign(bounds):
+        first = walk[np.minimum(bounds[:-1], length - 1)]
+        last = walk[np.maximum(bounds[1:] - 1, 0)]
+        to_first = np.abs(positions[:, None, :] - first[None]).sum(axis=2)
+        to_last = np.abs(positions[:, None, :] - last[None]).sum(axis=2)
+        near = np.minimum(to_first, to_last)
+        drones, stretch = linear_sum_assignment(near.astype(float) ** 2)
+        return drones, stretch, to_first, to_last, near
+
+    bounds = np.linspace(0, length, n + 1).round().astype(np.int64)
+    drones, stretch, to_first, to_last, near = assign(bounds)
+    approach = np.empty(n)
+    approach[stretch] = near[drones, stretch]
+    share = np.maximum(0.0, (length + approach.sum()) / n - approach)
+    share *= length / max(share.sum(), 1e-9)
+    bounds = np.concatenate([[0], np.cumsum(share)]).round().astype(np.int64)
+    bounds[-1] = length
+    drones, stretch, to_first, to_last, near = assign(bounds)
+    out = [np.zeros((0, 2), dtype=np.int64)] * n
+    for d, s in zip(drones, stretch, strict=True):
+        piece = walk[bounds[s] : bounds[s + 1]]
+        if len(piece) and to_last[d, s] < to_first[d, s]:
+            piece = piece[::-1]
+        out[d] = piece
+    return out
+
+
 class ToursPolicy(CoordinatedPolicy):
     """Drones spaced evenly along closed tours over the cells the swarm believes worth most.
 
@@ -244,53 +428,68 @@ class ToursPolicy(CoordinatedPolicy):
     ``memory`` steps), and the shared idleness map. Before its first plan (the first
     ``explore`` steps, by default one saturation period) it acts as ``visit-gain``.
 
+    Survey (``survey = True``; off by default): before its first plan the swarm looks at the
+    whole area once: the lanes of :func:`survey_cells` (every third lane, so the fields of view
+    cover every cell not seen yet), one walk cut into one stretch per drone
+    (:func:`split_survey`, no overlap), each drone flying its stretch; then it plans. With
+    a survey, a shift of the map (below) starts a new survey before the re-plan.
+
     Planning (:meth:`_plan`): the revisit period ``P`` maximises ``N * mean(top N P weights) *
-    visit_gain_factor(P)`` (:func:`best_period`, at most the saturation period); the cells
-    with the largest believed weight are chosen, ``stretch * N * P`` cells counted along the
-    walks; they are split by k-means into ``ceil(N / per_tour)`` groups; each group becomes a
-    closed walk of neighbouring free cells (Warnsdorff's walk, 2-opt and Or-opt on Manhattan
-    lengths, gaps bridged through fresh corner cells or shortest free paths, :func:`closed_walks`).
-    Drones are shared among the walks by their length, assigned to walks by a linear
-    assignment on distance, and each joins its walk where it arrives evenly spaced from the
-    others (it flies a shortest free path there). Tours stay in the largest connected free
-    area; a drone elsewhere acts as ``visit-gain``.
+    visit_gain_factor(P)`` (:func:`best_period`, at most the saturation period). Layout
+    ``cycles`` (default): ``ceil(N / per_tour)`` regions of whole free 2 x 2 blocks, each
+    grown from the block of largest believed weight by the heaviest neighbouring block until it
+    holds ``stretch * P`` cells per drone (:func:`block_regions`; the best of the four ways to
+    cut the map in blocks), each walked by the closed walk around its spanning tree
+    (:func:`block_cycle`): every cell once per lap, so with the drones spaced evenly every cell
+    is revisited every ``P`` steps, no sooner. Layout ``walks`` (and the fallback when no block
+    is free): the ``stretch * N * P`` cells of largest weight, split by k-means, each group
+    a closed walk of neighbouring free cells (Warnsdorff's walk, 2-opt and Or-opt, gaps
+    bridged: :func:`closed_walks`); its bridges and spurs revisit cells early (on the synthetic
+    map a visit found 0.82 of the bracket's 0.9 where the cycles find 0.9). Drones are shared
+    among the tours by their length, assigned by a linear assignment on distance, and each
+    joins its tour where it arrives evenly spaced from the others (it flies a shortest free
+    path there). Tours stay in the largest connected free area; a drone elsewhere acts as
+    ``visit-gain``.
 
     Acting (:meth:`act`): each drone's planned move gets ``bonus`` (by default larger than any
     visit gain) added to its one-step visit gain, and the exact coordinator
     (:func:`twin.coordinator.coordinate`) picks the joint move: collision-free, and a drone
     pushed off its plan is routed back. A drone closer than ``L / m - 1`` cells behind the next
-    drone of its walk waits; at a corner of its walk a drone takes the other corner cell when
-    that lies off every walk and gains more.
+    drone of its tour waits; at a corner of its tour a drone takes the other corner cell when
+    that lies off every tour and gains more.
 
-    Re-planning: when the believed weight over a walk changes by more than ``shift`` of its
-    value at planning (the map shifted under the tours, or they revealed unknown cells), at
-    most once per saturation period, and every ``replan`` steps if set.
+    Re-planning (:meth:`_shifted`): when the believed importance over a tour changes shape
+    (cosine to its value at planning below ``1 - shift``), falls under a tenth of it, or
+    appears on a tour planned over none, at most once per saturation period; and every
+    ``replan`` steps if set. A uniform fade or growth re-plans nothing.
 
     Cost: per step O(N) numpy work plus the coordinator (6 ms per step with 1000 drones on
-    200 x 300 cells); a plan is k-means plus a local search per walk of ``per_tour * P``
-    cells: 0.1 s with 4 drones on 20 x 30 cells, 5 s with 300 drones and 21 s with 1000
-    drones on 200 x 300 cells (``explore = 2``; 2-core machine shared with other jobs).
+    200 x 300 cells); a plan of the walks layout is k-means plus a local search per walk of
+    ``per_tour * P`` cells: 0.1 s with 4 drones on 20 x 30 cells, 5 s with 300 drones and
+    21 s with 1000 drones on 200 x 300 cells (``explore = 2``; 2-core machine shared with
+    other jobs); the cycles layout grows regions with a heap, O(blocks log blocks).
 
-    Measured (R_hat_T, mean ± 95% over seeds; ratio = mean of per-seed ratios to ``visit-gain``
-    on the same starts and traffic). Defaults chosen on validation seeds 100-109 of
-    ``configs/synthetic.toml`` (``per_tour`` 1/2/4, ``stretch`` 0.85-2.0, ``replan`` none/200/
-    400/800, ``shift``, ``explore``, ``prior`` 0-0.5, ``memory``, ``bonus``): about 1.00 x
-    visit-gain there. On the evaluation seeds 0-9, measured once with the defaults,
-    ``twin evaluate --config configs/synthetic.toml --seeds 10 --seed 0 --swarms
-    visit-gain,tours`` (commit b0ff689's planner): tours 2.561 ± 0.120 against visit-gain
-    2.628 ± 0.014, ratio 0.974 ± 0.036 (per seed 1.005, 0.842, 1.022, 1.003, 0.995, 0.919,
-    0.983, 0.933, 1.032, 1.007). It earns more of the importance part (0.929 against 0.885)
-    and less of the idleness part (1.632 against 1.743). It does NOT reach the 1.07 x
-    visit-gain it was built for. Where it falls short: on seeds 1, 5 and 7 its first plan is
-    made before the swarm has seen one of the two big disturbances, and the optimistic belief
-    does not send it there soon enough; where the belief is right it leads by 0-3 %, close to
-    what perfect tours over the believed cells can earn here, since visit-gain already visits
-    nearly saturated cells (idleness 0.96 at its visits).
+    Defaults chosen on validation seeds 100-109 of ``configs/synthetic.toml`` only
+    (``python benchmarks/validate_tours.py``; ratio = mean of per-seed ratios to
+    ``visit-gain`` on the same starts and traffic, whose mean there is 2.634): tours without
+    a survey, ``prior`` 0.25, ``memory`` 300, a saturation period of ``visit-gain`` first:
+    1.072 ± 0.007; the best mean, ``explore`` 20 and ``memory`` 600, 1.073 ± 0.006 (a tie;
+    the defaults keep step counts derived from eta and delta); ``prior`` 0.1 / 0.4:
+    1.058 / 1.045; with the survey first (``prior`` 0, no ``memory``), stretch 1.0:
+    1.063 ± 0.006, every seed within 2.785-2.817 (the survey takes about 66 steps, the
+    swarm's loss to the swarm told the whole map at once, 2.849 there); stretch 0.95 / 1.1:
+    1.023 / 1.050; ``per_tour`` 1: 1.054; the walks layout: 1.009 (0.969 with the survey). The
+    earlier walks planner (the walks layout, its own defaults) scored 0.974 ± 0.036 on the
+    evaluation seeds 0-9 (its first plan missed a big disturbance on seeds 1, 5 and 7).
 
-    On the Shenzhen-like SUMO scenario (``twin run --config configs/shenzhen.toml --seeds 1
-    --seed 0 --swarms visit-gain,tours``, T = 144, 482 free cells): tours 1.891 against
-    visit-gain 1.990 (0.950 x; one seed): the horizon is four revisit periods, one of them spent
-    before the first plan.
+    Measured once on the evaluation seeds 0-9 with the defaults, ``twin evaluate --config
+    configs/synthetic.toml --seeds 10`` (all swarms; paired with visit-gain on the same starts
+    and traffic): tours 2.812 ± 0.034 against visit-gain 2.628 ± 0.014, a difference of
+    +0.184 ± 0.030, ratio 1.070 ± 0.011 (per seed 1.068, 1.081, 1.088, 1.082, 1.079, 1.032,
+    1.069, 1.058, 1.073, 1.071); the look-ahead 2.810 ± 0.016 on the same run. On seed 5 its
+    first plan missed a big disturbance (1.032). On the Shenzhen-like SUMO scenario (``twin run
+    --seeds 1 --seed 0 --swarms visit-gain,tours``, T = 144): tours 1.890 against visit-gain
+    1.990 (0.950 x; one seed): the horizon is four revisit periods, one spent before the plan.
     """
 
     name = "tours"
@@ -301,10 +500,12 @@ class ToursPolicy(CoordinatedPolicy):
         explore: int | None = None,
         replan: int | None = None,
         shift: float = 0.2,
-        stretch: float = 1.05,
+        stretch: float = 1.0,
         bonus: float = PLAN_BONUS,
         prior: float = 0.25,
         memory: int | None = 300,
+        survey: bool = False,
+        layout: str = "cycles",
     ):
         def whole(value, key, low, example):
             if isinstance(value, bool) or not isinstance(value, int | np.integer):
@@ -333,6 +534,12 @@ class ToursPolicy(CoordinatedPolicy):
             raise UserError(f"tours: prior = {prior!r} must be a number in 0..1; e.g. 0.25")
         self.prior = float(prior)
         self.memory = None if memory is None else whole(memory, "memory", 1, 300)
+        if not isinstance(survey, bool):
+            raise UserError(f"tours: survey = {survey!r} must be true or false; e.g. true")
+        self.survey = survey
+        if layout not in LAYOUTS:
+            raise UserError(f"tours: layout = {layout!r} must be one of {', '.join(LAYOUTS)}")
+        self.layout = layout
         self.plans = 0  # plans made; described even by a run that stopped before its first step
 
     def describe(self) -> dict:
@@ -345,7 +552,10 @@ class ToursPolicy(CoordinatedPolicy):
             "bonus": self.bonus,
             "prior": self.prior,
             "memory": self.memory,
+            "survey": self.survey,
+            "layout": self.layout,
             "plans": self.plans,
+            "surveys": getattr(self, "surveys", 0),
         }
 
     def reset(self, grid: Grid, n_drones: int, rng: np.random.Generator) -> None:
@@ -360,6 +570,10 @@ class ToursPolicy(CoordinatedPolicy):
         self.plans = 0
         self.planned_at = None
         self.tours: list[np.ndarray] = []
+        self.surveyed = not self.survey
+        self.survey_left: list[np.ndarray] | None = None
+        self.survey_fresh = False  # a survey has ended since the last plan
+        self.surveys = 0
 
     # -- what the swarm knows ---------------------------------------------------------------
 
@@ -387,19 +601,47 @@ class ToursPolicy(CoordinatedPolicy):
     # -- planning ---------------------------------------------------------------------------
 
     def _due(self, view: SwarmView) -> bool:
-        explore = self.explore if self.explore is not None else self.period_hint(view.params)
-        if view.k < explore:
+        self.view_params = view.params
+        if not self.surveyed:
             return False
-        if self.planned_at is None:
+        if view.k < self._explore(view.params):
+            return False
+        if self.planned_at is None or self.survey_fresh:
             return True
         since = view.k - self.planned_at
         if since < saturation_period(view.params):
             return False
         if self.replan is not None and since >= self.replan:
             return True
-        w = self._weights(view.params)
-        value = np.bincount(self.cell_tour, w[self.cell_i, self.cell_j], len(self.tours))
-        return bool((np.abs(value - self.value0) > self.shift * self.value0).any())
+        shifted = self._shifted()
+        if shifted and self.survey:  # the map moved: look at all of it again, then plan
+            self.surveyed, self.survey_left = False, None
+            return False
+        return shifted
+
+    def _explore(self, params: ScoreParams) -> int:
+        """Steps of ``visit-gain`` before the survey (or the first plan, with no survey)."""
+        if self.explore is not None:
+            return self.explore
+        return 0 if self.survey else self.period_hint(params)
+
+    def _shifted(self) -> bool:
+        """Whether the importance believed over some tour moved since its plan: its cells'
+        importance (``alpha_T T``) as a vector, now against at planning, at a cosine below
+        ``1 - shift``, or summing to under a tenth of what it did. A uniform fade or
+        growth keeps the shape and re-plans nothing."""
+        now = self._weights(self.view_params)[self.cell_i, self.cell_j] - self.view_params.alpha_I
+        n_tours = len(self.tours)
+        dot = np.bincount(self.cell_tour, now * self.t0, n_tours)
+        norm_now = np.sqrt(np.bincount(self.cell_tour, now * now, n_tours))
+        norm_0 = np.sqrt(np.bincount(self.cell_tour, self.t0 * self.t0, n_tours))
+        sum_now = np.bincount(self.cell_tour, now, n_tours)
+        sum_0 = np.bincount(self.cell_tour, self.t0, n_tours)
+        both = (norm_now > 0) & (norm_0 > 0)
+        cosine = np.where(both, dot / np.where(both, norm_now * norm_0, 1.0), 1.0)
+        faded = sum_now < 0.1 * sum_0
+        grew = (sum_0 <= 0) & (sum_now > 0)
+        return bool(((cosine < 1.0 - self.shift) | faded | grew).any())
 
     def period_hint(self, params: ScoreParams) -> int:
         return saturation_period(params)
@@ -417,7 +659,10 @@ class ToursPolicy(CoordinatedPolicy):
         # walks hold about n * period cells, so each cell's revisit period is about `period`
         want = self.stretch * n * period
         count = min(round(want), n_area)
-        for _ in range(3):
+        cycles = self._cycles(key, period) if self.layout == "cycles" else []
+        if cycles:
+            self.tours = cycles
+        for _ in range(3 if not cycles else 0):
             self.tours = self._walks(ranked[:count], grid)
             total = sum(len(t) for t in self.tours)
             if total <= want * 1.03 or count <= n:
@@ -429,9 +674,39 @@ class ToursPolicy(CoordinatedPolicy):
         self.cell_tour = np.repeat(np.arange(len(self.tours)), lengths)
         flat_tours = np.concatenate(self.tours)
         self.cell_i, self.cell_j = flat_tours[:, 0], flat_tours[:, 1]
-        self.value0 = np.bincount(self.cell_tour, w[self.cell_i, self.cell_j], len(self.tours))
+        self.t0 = self._weights(view.params)[self.cell_i, self.cell_j] - view.params.alpha_I
         self.planned_at = view.k
+        self.survey_fresh = False
         self.plans += 1
+
+    def _cycles(self, key: np.ndarray, period: int) -> list[np.ndarray]:
+        """Closed walks over whole 2 x 2 blocks of free cells, each cell once
+        (:func:`block_cycle`), one per ``per_tour`` drones, over regions grown from the
+        blocks of largest believed weight (:func:`block_regions`) to ``stretch * drones *
+        period`` cells; of the four ways to cut the map in blocks, the one whose regions
+        weigh most. Empty when no 2 x 2 block is free."""
+        n, (nx, ny) = self.n_drones, self.grid.shape
+        k = max(1, math.ceil(n / self.per_tour))
+        drones = np.full(k, n // k) + (np.arange(k) < n % k)
+        sizes = [max(1, round(self.stretch * d * period / 4)) for d in drones]
+        best, best_total = [], -np.inf
+        for oi in (0, 1):
+            for oj in (0, 1):
+                bnx, bny = (nx - oi) // 2, (ny - oj) // 2
+                if bnx < 1 or bny < 1:
+                    continue
+                window = (slice(oi, oi + 2 * bnx), slice(oj, oj + 2 * bny))
+                usable = self.area[window].reshape(bnx, 2, bny, 2).all(axis=(1, 3))
+                if not usable.any():
+                    continue
+                value = np.where(self.area, key, 0.0)[window].reshape(bnx, 2, bny, 2)
+                weights = value.sum(axis=(1, 3))
+                regions = block_regions(weights, usable, sizes)
+                total = sum(float(weights[b]) for region in regions for b, _ in region)
+                if total > best_total:
+                    best_total = total
+                    best = [block_cycle(region, (oi, oj)) for region in regions]
+        return best
 
     def _walks(self, chosen: np.ndarray, grid: Grid) -> list[np.ndarray]:
         """Closed walks over the chosen cells (flat ids): one group per tour, by k-means."""
@@ -530,21 +805,78 @@ class ToursPolicy(CoordinatedPolicy):
 
     def act(self, view: SwarmView) -> np.ndarray:
         self._see(view)
+        planned = None
+        if not self.surveyed and view.k >= self._explore(view.params):
+            planned = self._survey_actions(view)
+            self.surveyed = self.survey_fresh = planned is None
         if self._due(view):
             self._plan(view)
+        surveying = planned is not None
         scores = self.scores(view)
-        planned = None
-        if self.planned_at is not None:
+        if planned is None and self.planned_at is not None:
             planned = self._planned_actions(view)
+        if planned is not None:
             has = planned >= 0
             scores[np.flatnonzero(has), planned[has]] += self.bonus
         scores = scores + _jitter(scores, view.feasible, self.rng)
         from twin.coordinator import coordinate
 
         actions = coordinate(scores, view.positions, view.feasible, view.grid)
-        if planned is not None:
+        if surveying:
+            for d in np.flatnonzero((planned == actions) & (planned >= 0)):
+                self.survey_left[d] = self.survey_left[d][1:]
+        elif planned is not None:
             self._advance(view, planned, actions)
         return actions
+
+    # -- survey -----------------------------------------------------------------------------
+
+    def _survey_actions(self, view: SwarmView) -> np.ndarray | None:
+        """Each drone's move along its stretch of the survey (-1: none left, it follows the
+        visit gain); None once every stretch is flown (or after twice the longest one)."""
+        pos = np.asarray(view.positions, dtype=np.int64)
+        n = self.n_drones
+        if self.survey_left is None:
+            self.surveys += 1
+            self.survey_left = [np.zeros((0, 2), dtype=np.int64)] * n
+            inside = np.flatnonzero(self.area[pos[:, 0], pos[:, 1]])
+            need = self.area & ~self.seen if self.surveys == 1 else self.area
+            walk = open_walk(self.grid, survey_cells(self.area, need))
+            if len(inside) and len(walk):
+                pieces = split_survey(walk, pos[inside])
+                for d, piece in zip(inside, pieces, strict=True):
+                    self.survey_left[d] = piece
+            longest = max(len(p) for p in self.survey_left)
+            self.survey_end = view.k + 2 * (longest + self.grid.nx + self.grid.ny)
+        if view.k >= self.survey_end:
+            return None
+        planned = np.full(n, -1, dtype=np.int64)
+        redo = []
+        for d in range(n):
+            left = self.survey_left[d]
+            while len(left) and (left[0] == pos[d]).all():
+                left = left[1:]
+            self.survey_left[d] = left
+            if len(left) and np.abs(left[0] - pos[d]).sum() > 1:
+                redo.append(d)  # pushed off its stretch: route back to it
+        if redo:
+            redo = np.array(redo)
+            targets = np.array([self.survey_left[d][0] for d in redo])
+            found = free_paths(self.grid, pos[redo], targets)
+            for m, d in enumerate(redo):
+                if m in found:
+                    back = np.array(found[m][1:-1], dtype=np.int64).reshape(-1, 2)
+                    self.survey_left[d] = np.concatenate([back, self.survey_left[d]])
+        if not any(len(left) for left in self.survey_left):
+            return None
+        for d in range(n):
+            left = self.survey_left[d]
+            if len(left) and np.abs(left[0] - pos[d]).sum() > 1:  # no free path back
+                self.survey_left[d] = left = left[:0]
+            if len(left):
+                di, dj = left[0] - pos[d]
+                planned[d] = _STEP_ACTION[(di + 1) * 3 + (dj + 1)]
+        return planned
 
     def _next_cells(self, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Each drone's planned next cell and whether it is on its tour."""
