@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from twin.boundary import notify, release_notices
-from twin.config import ScenarioConfig, check_swarm_fits, start_positions
+from twin.config import ScenarioConfig, check_faults, check_swarm_fits, start_positions
 from twin.errors import UserError
 from twin.patrol import INTERRUPTED, PatrolResult, run_patrol
 from twin.policies import Policy
@@ -285,9 +285,13 @@ def _run_seed(experiment, n, seed, source, stop, progress=False, on_source=None,
     if is_live(experiment) and n == 0:
         check_memory(experiment, source.grid.shape, source.horizon, source)
     check_swarm_fits(experiment.config, source.grid, experiment.drones_flag)
+    config = experiment.config
+    check_faults(config, config.swarm.n_drones, source.horizon)
     if on_source is not None:
         on_source(source)
     swarms = build_swarms(experiment)
+    faults = config.fault_plan()
+    twins = build_swarms(experiment) if faults is not None and config.faults.compare else None
     starts = start_positions(experiment.config, source.grid, np.random.default_rng(seed))
     result = run_patrol(
         source,
@@ -299,10 +303,14 @@ def _run_seed(experiment, n, seed, source, stop, progress=False, on_source=None,
         keep_importance=experiment.keep_importance,
         stop=stop,
         on_step=on_step,
+        faults=faults,
+        fault_free=twins,
     )
     incidents = source.incidents_info()
     if incidents:
         result.extra["incidents"] = incidents  # scored by monitoring
+        if result.fault_free is not None:
+            result.fault_free.extra["incidents"] = incidents
     policies = {name: p.describe() for name, p in swarms.items() if hasattr(p, "describe")}
     return result, source.metadata(), policies
 

@@ -31,6 +31,9 @@ class SwarmView:
     importance: np.ndarray  # (nx, ny): T^k; policies read it only inside the field of view
     feasible: np.ndarray  # (N, 5) bool: U_d(p)
     params: ScoreParams
+    #: (N,) bool: the drones whose arrival at P_k the swarm recorded (None: all of them); a
+    #: scripted fault (:mod:`twin.faults`) can leave a visit unrecorded
+    recorded: np.ndarray | None = None
 
 
 @dataclass
@@ -47,6 +50,8 @@ class Policy:
     """Chooses the actions of every drone of a swarm."""
 
     name = "policy"
+    #: step windows ``[start, stop)`` without the central coordinator (``[faults]``)
+    outages: tuple[tuple[int, int], ...] = ()
 
     def reset(self, grid: Grid, n_drones: int, rng: np.random.Generator) -> None:
         self.grid = grid
@@ -58,6 +63,16 @@ class Policy:
 
     def learn(self, transition: Transition) -> None:
         """Online learning hook; baselines do not learn."""
+
+    def drones_changed(self, before: np.ndarray, after: np.ndarray) -> None:
+        """The live drones changed from the ``(N,)`` mask ``before`` to ``after`` (a drone lost
+        or back, :mod:`twin.faults`): from now on :meth:`act` sees the ``after`` drones, in
+        their order. Policies that keep something per drone override this."""
+        self.n_drones = int(after.sum())
+
+    def coordinator_down(self, k: int) -> bool:
+        """Whether step ``k`` falls in a window without the central coordinator."""
+        return any(start <= k < stop for start, stop in self.outages)
 
 
 def random_feasible(feasible: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -155,6 +170,10 @@ class SweepingPolicy(Policy):
         self.phase: np.ndarray | None = None
         self.greedy = GreedyPolicy()
         self.greedy.reset(grid, n_drones, rng)
+
+    def drones_changed(self, before: np.ndarray, after: np.ndarray) -> None:
+        """Roles dealt again among the live drones; sweepers rejoin the tour where they are."""
+        self.reset(self.grid, int(after.sum()), self.rng)
 
     def _start_phase(self, starts: np.ndarray) -> np.ndarray:
         key = self.cycle[:, 0] * self.grid.ny + self.cycle[:, 1]

@@ -361,6 +361,13 @@ class ToursPolicy(CoordinatedPolicy):
         self.planned_at = None
         self.tours: list[np.ndarray] = []
 
+    def drones_changed(self, before: np.ndarray, after: np.ndarray) -> None:
+        """Tours planned again for the live drones at the next step (what was seen is kept)."""
+        super().drones_changed(before, after)
+        if self.planned_at is not None:
+            self.planned_at = None
+            self.approach = []
+
     # -- what the swarm knows ---------------------------------------------------------------
 
     def _see(self, view: SwarmView) -> None:
@@ -539,9 +546,7 @@ class ToursPolicy(CoordinatedPolicy):
             has = planned >= 0
             scores[np.flatnonzero(has), planned[has]] += self.bonus
         scores = scores + _jitter(scores, view.feasible, self.rng)
-        from twin.coordinator import coordinate
-
-        actions = coordinate(scores, view.positions, view.feasible, view.grid)
+        actions = self.joint_action(scores, view)
         if planned is not None:
             self._advance(view, planned, actions)
         return actions

@@ -87,10 +87,18 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument("--no-report", action="store_true", help="do not render the HTML report")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--help-config", action="store_true",
+                   help="list every table and key of a scenario config with its default, "
+                   "then exit")  # fmt: skip
     p.set_defaults(func=main)
 
 
 def main(args: argparse.Namespace) -> int:
+    if args.help_config:
+        from twin.config import config_help
+
+        print(config_help())
+        return 0
     limit_threads()
     config = load_config(shipped_config(args.config or DEFAULT_CONFIG))
     check_count("--seeds", args.seeds)

@@ -104,6 +104,9 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument("--no-report", action="store_true", help="do not render the HTML report")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--help-config", action="store_true",
+                   help="list every table and key of a scenario config with its default, "
+                   "then exit")  # fmt: skip
     add_gui_arguments(p)
     p.set_defaults(func=main)
 
@@ -225,6 +228,11 @@ def build_experiment(args: argparse.Namespace):
 
 
 def main(args: argparse.Namespace) -> int:
+    if args.help_config:
+        from twin.config import config_help
+
+        print(config_help())
+        return 0
     import contextlib
 
     from twin.boundary import hold_notices, notify
