@@ -332,6 +332,18 @@ def test_a_small_sumo_scenario_with_a_drone_loss_runs(tmp_path):
     assert set(rf.degradation["label"]) == {"no drone lost", "1 of 2 drones lost", "whole run"}
 
 
+def test_the_shipped_drone_loss_config_loses_two_of_four_drones_at_t_3_and_one_is_back_at_2t_3():
+    config = load_config(ROOT / "configs" / "drone-loss.toml")
+    horizon, plan = config.traffic.horizon, config.fault_plan()
+    assert config.swarm.n_drones == 4
+    assert [(a, b, label) for a, b, label in plan.phases(horizon, 4)] == [
+        (0, horizon // 3, "no drone lost"),
+        (horizon // 3, 2 * horizon // 3, "2 of 4 drones lost"),
+        (2 * horizon // 3, horizon, "1 of 4 drones lost"),
+    ]
+    assert set(config.evaluate.swarms) >= set(CLASSICAL) | {"rl", "rl-online"}
+
+
 def test_live_drones_wrapper_names_the_swarm():
     policy = LiveDrones(make_policy("greedy"), FaultPlan((DroneLoss(0, 1),)))
     assert policy.name == "greedy"

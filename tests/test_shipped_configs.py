@@ -10,7 +10,8 @@ from twin.config import load_config
 from twin.experiment import Experiment, estimate_memory
 
 ROOT = Path(__file__).resolve().parents[1]
-SCENARIOS = ["synthetic.toml", "shenzhen.toml", "incident.toml", "shenzhen-city-scale.toml"]
+SCENARIOS = ["synthetic.toml", "shenzhen.toml", "incident.toml", "shenzhen-city-scale.toml",
+             "drone-loss.toml"]  # fmt: skip
 
 
 @pytest.mark.parametrize("name", SCENARIOS)
