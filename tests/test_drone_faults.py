@@ -163,6 +163,28 @@ def test_learned_swarms_run_with_drones_lost_back_and_the_coordinator_down():
     assert swarms["rl"].outages == ((15, 20),)
 
 
+@pytest.mark.parametrize("losses", [(), (DroneLoss(1, 6, 14),)])
+def test_the_learned_swarms_map_misses_the_sightings_the_swarm_missed(losses):
+    pytest.importorskip("torch")
+    grid = Grid(np.zeros((5, 6), dtype=bool))
+    maps = float32_maps(5, 6, 20, 3)
+    policy = make_policy("rl")
+    checked = []
+    act = policy.act
+
+    def checking_act(view):
+        actions = act(view)
+        assert np.array_equal(policy.maps.shared, view.idleness)  # the swarm's own map
+        checked.append(view.k)
+        return actions
+
+    policy.act = checking_act
+    plan = FaultPlan(losses, (), 0.5)
+    starts = np.array([[0, 0], [4, 5], [2, 2]])
+    run_patrol(RecordedTraffic(grid, maps), {"rl": policy}, starts, PARAMS, 1, faults=plan)
+    assert checked == list(range(20))
+
+
 def test_the_fault_free_twin_is_the_same_swarm_run_without_faults():
     config = load_config(DATA / "regression-small.toml")
     grid = Grid(np.zeros((8, 10), dtype=bool))

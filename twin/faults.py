@@ -179,6 +179,7 @@ def live_view(view: SwarmView, live: np.ndarray) -> SwarmView:
         importance=view.importance,
         feasible=view.feasible[live],
         params=view.params,
+        recorded=None if view.recorded is None else view.recorded[live],
     )
 
 
