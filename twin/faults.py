@@ -289,3 +289,24 @@ def degradation_frame(result, events):
                 )
             rows.append(row)
     return pd.DataFrame(rows, columns=list(DEGRADATION_COLUMNS))
+
+
+def format_degradation(frame) -> str:
+    """What ``twin evaluate`` and ``twin run`` print of ``degradation.csv``: per swarm and
+    phase, ``R_hat`` with the faults / fault-free (change %), means over seeds."""
+    keys = ["swarm", "phase", "label", "start", "stop"]
+    means = frame.groupby(keys, sort=False).mean(numeric_only=True).reset_index()
+    table = {}
+    for _, r in means.iterrows():
+        change = 100.0 * (r["R_hat"] - r["R_hat_fault_free"]) / r["R_hat_fault_free"]
+        column = f"{r['label']} ({int(r['start'])}-{int(r['stop'])})"
+        cell = f"{r['R_hat']:.3f} / {r['R_hat_fault_free']:.3f} ({change:+.1f}%)"
+        table.setdefault(r["swarm"], {})[column] = cell
+    import pandas as pd
+
+    text = pd.DataFrame.from_dict(table, orient="index").to_string()
+    seeds = ", ".join(str(s) for s in sorted(set(frame["seed"])))
+    return (
+        f"Faults: R_hat per phase with the faults / fault-free twin (change), seeds {seeds}; "
+        "monitoring per phase in degradation.csv and the report:\n" + text
+    )

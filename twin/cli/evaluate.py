@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from twin.cli import add_worker_arguments, check_count, check_seeds
-from twin.cli.run import belief_models, belief_writer, print_beliefs
+from twin.cli.run import belief_models, belief_writer, print_beliefs, print_degradation
 from twin.config import load_config, shipped_config
 from twin.errors import UserError
 from twin.experiment import (
@@ -168,6 +168,7 @@ def main(args: argparse.Namespace) -> int:
     print(format_results(summary, f"Table 2 analog ({config.path.name}, {label}, T = {horizon})"))
     if not comparison.empty:
         print(format_comparison(comparison))
+    print_degradation(run_dir)
     print_beliefs(beliefs, args.history, label)
     if not args.no_report and done.completed_steps > 0:
         _report(run_dir)

@@ -227,6 +227,17 @@ def build_experiment(args: argparse.Namespace):
     return experiment
 
 
+def print_degradation(run_dir: Path) -> None:
+    """The degradation table's headline when the run had ``[faults]``."""
+    path = Path(run_dir) / "degradation.csv"
+    if path.exists():
+        import pandas as pd
+
+        from twin.faults import format_degradation
+
+        print(format_degradation(pd.read_csv(path)))
+
+
 def main(args: argparse.Namespace) -> int:
     if args.help_config:
         from twin.config import config_help
@@ -318,6 +329,7 @@ def main(args: argparse.Namespace) -> int:
     print(format_results(summary, title))
     if not comparison.empty:
         print(format_comparison(comparison))
+    print_degradation(run_dir)
     print(
         f"MFD ({mfd['form']}, SUMO seed {first_source.scenario.seed}): a = {mfd['a']:.3f}, "
         f"k_c = {mfd['k_c']:.1f} veh/lane-km, R2 = {mfd.get('r2', float('nan')):.3f}, "
