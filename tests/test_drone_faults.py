@@ -112,6 +112,7 @@ def test_lost_drones_never_move_see_or_score_and_are_never_planned_for(case, swa
     idle = initial_idleness(grid)
     for k in range(horizon):
         rec = np.ones(n, bool) if recorded is None else recorded[k + 1, :, 0]
+        assert not rec[~live[k]].any(), "a drone lost at step k is paid for its arrival"
         expected = reward_parts(grid, PARAMS, idle, maps[k], maps[k + 1], pos[k][rec],
                                 pos[k + 1][rec]).total.sum() if rec.any() else 0.0  # fmt: skip
         assert result.rewards[0, k] == pytest.approx(expected, abs=1e-12)
@@ -201,6 +202,9 @@ def test_the_fault_free_twin_is_the_same_swarm_run_without_faults():
     assert np.array_equal(twin.positions, plain.positions)
     assert np.array_equal(twin.rewards, plain.rewards)
     assert not np.array_equal(faulted.rewards, plain.rewards)
+    # before the loss at step 10 the swarms are their twins: the moves of steps 0..9 count
+    assert np.array_equal(faulted.rewards[:, :10], plain.rewards[:, :10])
+    assert np.array_equal(faulted.positions[:, :11], plain.positions[:, :11])
 
 
 # ------------------------------------------------------------------------------ regression

@@ -17,8 +17,10 @@
   know of (no idleness reset, no pay); an unrecorded sighting of any cell of the view is not a
   sighting for monitoring. The traffic (ground truth) is untouched.
 
-A drone is live at step ``k`` when no loss window holds it; its sighting at ``P_k`` counts
-when it is live at ``k`` and the draw records it. The fault-free twin of each swarm runs in the
+A drone is live at step ``k`` when no loss window holds it: it then acts at ``k``, and its
+arrival and sighting at ``P_{k+1}`` count when the draw records them. So a drone lost at ``s``
+still arrives at ``P_s`` (its last move), and one back at ``b`` first counts at ``P_{b+1}``:
+each phase's scores come from the moves made in it. The fault-free twin of each swarm runs in the
 same pass over the same traffic (:func:`twin.patrol.run_patrol`), so each phase of the run
 (between two changes of the faults) can be compared with the same swarm without faults.
 """
@@ -80,6 +82,13 @@ class FaultPlan:
                 live[loss.step : stop, loss.drone] = False
         return live
 
+    def flown_steps(self, steps: int, n_drones: int) -> np.ndarray:
+        """``(steps, N)`` bool: the drones that flew to ``P_k``, live at step ``k - 1`` (at
+        ``k = 0``: live at 0). Their arrival and sighting at ``P_k`` count; a drone lost at
+        ``s`` still arrives at ``P_s``, a drone back at ``b`` first counts at ``P_{b+1}``."""
+        live = self.live_steps(steps, n_drones)
+        return np.concatenate([live[:1], live[:-1]]) if steps else live
+
     def detected(self, seed: int, steps: int, n_drones: int) -> np.ndarray | None:
         """``(steps, N, 5)`` bool: which sightings of the fields of view are recorded (None:
         all of them, p = 1). Drawn from ``seed`` alone: the same for every swarm."""
@@ -92,11 +101,11 @@ class FaultPlan:
         return self._cache[key]
 
     def recorded(self, seed: int, steps: int, n_drones: int) -> np.ndarray | None:
-        """``(steps, N, 5)`` bool: the sightings that count (live drone, recorded draw); None
-        when every sighting counts."""
+        """``(steps, N, 5)`` bool: the sightings that count (a drone that flew to its cell, a
+        recorded draw); None when every sighting counts."""
         if not self.drone_loss and self.detection_p >= 1.0:
             return None
-        live = self.live_steps(steps, n_drones)[:, :, None]
+        live = self.flown_steps(steps, n_drones)[:, :, None]
         detected = self.detected(seed, steps, n_drones)
         return np.broadcast_to(live, (steps, n_drones, 5)) & (
             True if detected is None else detected
@@ -157,11 +166,12 @@ class FaultPlan:
 def recorded_arrivals(
     plan: FaultPlan | None, seed: int, k: int, n_drones: int, horizon: int
 ) -> np.ndarray | None:
-    """``(N,)`` bool: the drones whose arrival at ``P_k`` is recorded (live at ``k``, own-cell
-    sighting drawn); None when every arrival is."""
+    """``(N,)`` bool: the drones whose arrival at ``P_k`` (``k >= 1``) is recorded (live at
+    ``k - 1``, :meth:`FaultPlan.flown_steps`; own-cell sighting drawn); None when every
+    arrival is."""
     if plan is None or (not plan.drone_loss and plan.detection_p >= 1.0):
         return None
-    rec = plan.live(k, n_drones)
+    rec = plan.live(k - 1, n_drones)
     detected = plan.detected(seed, horizon + 1, n_drones)
     if detected is not None:
         rec &= detected[k, :, STAY]  # slot 0 of the field of view is the drone's own cell
@@ -180,6 +190,7 @@ def live_view(view: SwarmView, live: np.ndarray) -> SwarmView:
         feasible=view.feasible[live],
         params=view.params,
         recorded=None if view.recorded is None else view.recorded[live],
+        visits=view.recorded_visits(),
     )
 
 

@@ -151,11 +151,11 @@ class SwarmMaps:
         return not any(start <= k < stop for start, stop in self.outages)
 
     def advance(self, k: int, positions: np.ndarray, shared_map: np.ndarray, grid: Grid,
-                params: ScoreParams, recorded: np.ndarray | None = None) -> None:  # fmt: skip
+                params: ScoreParams, visits: np.ndarray | None = None) -> None:  # fmt: skip
         """Bring the maps to step ``k``, the drones now at ``positions``. At ``k = 0`` every
-        map starts from ``shared_map`` (``I^0``). ``recorded`` ``(N,)`` bool: the drones whose
-        visit was recorded (a missed sighting, :mod:`twin.faults`); None: all."""
-        visits = positions if recorded is None else positions[recorded]
+        map starts from ``shared_map`` (``I^0``). ``visits``: the cells whose visit the swarm
+        recorded (scripted faults, :mod:`twin.faults`); None: the drones' cells."""
+        visits = positions if visits is None else visits
         central = self.central(k)
         if self.k < 0:
             self.shared = shared_map.copy()

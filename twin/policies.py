@@ -34,6 +34,15 @@ class SwarmView:
     #: (N,) bool: the drones whose arrival at P_k the swarm recorded (None: all of them); a
     #: scripted fault (:mod:`twin.faults`) can leave a visit unrecorded
     recorded: np.ndarray | None = None
+    #: (M, 2) the cells whose visit at P_k the swarm recorded, when the view shows only some of
+    #: the drones (a drone lost at k still arrived at P_k); None: read them from the drones
+    visits: np.ndarray | None = None
+
+    def recorded_visits(self) -> np.ndarray:
+        """The cells the swarm recorded a visit of at ``P_k`` (the idleness resets of Def. 3)."""
+        if self.visits is not None:
+            return self.visits
+        return self.positions if self.recorded is None else self.positions[self.recorded]
 
 
 @dataclass

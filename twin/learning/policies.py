@@ -169,7 +169,7 @@ class RLPolicy(Policy):
             maps.heard = view.positions.copy()
             self.regroup = False
         maps.advance(view.k, view.positions, view.idleness, view.grid, view.params,
-                     view.recorded)  # fmt: skip
+                     view.recorded_visits())  # fmt: skip
         return self.local_states(view)
 
     def local_states(self, view: SwarmView) -> np.ndarray:
