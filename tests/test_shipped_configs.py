@@ -11,7 +11,7 @@ from twin.experiment import Experiment, estimate_memory
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENARIOS = ["synthetic.toml", "shenzhen.toml", "incident.toml", "shenzhen-city-scale.toml",
-             "drone-loss.toml"]  # fmt: skip
+             "drone-loss.toml", "coordinator-down.toml"]  # fmt: skip
 
 
 @pytest.mark.parametrize("name", SCENARIOS)

@@ -554,7 +554,8 @@ def estimate_memory(
     scored; synthetic traffic precomputes its maps (float64, stacked: 16 B); live traffic keeps
     each seed's tape (int32 counts + float32 speeds, warm-up included: 8 B) and writes the first as
     a long table (~48 B). Per cell and swarm: its state, view and belief map (~64 B). Per
-    swarm, drone and step: positions (16 B per seed).
+    swarm, drone and step: positions (16 B per seed). With ``[faults]``, each swarm's
+    fault-free twin counts as one more swarm.
 
     Seeds run at once on W workers (:func:`parallel`): each worker holds one simulation with its
     swarms (:data:`WORKER_BYTES`: an interpreter, SUMO and its process), its seed's result and
@@ -564,6 +565,9 @@ def estimate_memory(
     cells = shape[0] * shape[1]
     steps = horizon + 1
     n_seeds, n_swarms = len(experiment.seeds), len(experiment.swarms)
+    config = experiment.config
+    if config.fault_plan() is not None and config.faults.compare:
+        n_swarms *= 2  # each swarm's fault-free twin runs beside it
     per_cell_step = 8 * n_seeds + 12
     if live:
         per_cell_step += 8 * n_seeds * (steps + warmup_steps) / steps + 48
