@@ -323,11 +323,13 @@ def test_evaluate_with_faults_writes_the_degradation_table_and_the_report(tmp_pa
     assert code == 0
     rf = load_run(out)
     deg = rf.degradation
-    assert list(deg["label"].unique()) == ["no drone lost", "2 of 3 drones lost",
-                                           "1 of 3 drones lost", "whole run"]  # fmt: skip
+    assert list(deg["label"].unique()) == [
+        "no drone lost, sightings at p = 0.9", "2 of 3 drones lost, sightings at p = 0.9",
+        "1 of 3 drones lost, sightings at p = 0.9", "whole run",
+    ]  # fmt: skip
     assert len(deg) == 2 * 4 * 4
     # lost drones cost score while they are lost (a swarm of one drone against three)
-    lost = deg[deg["label"] == "2 of 3 drones lost"]
+    lost = deg[deg["label"] == "2 of 3 drones lost, sightings at p = 0.9"]
     assert (lost["R_hat"] < lost["R_hat_fault_free"]).all()
     assert rf.run["faults"]["detection_p"] == 0.9
     md = (out / "report" / "report.md").read_text()

@@ -138,7 +138,12 @@ class FaultPlan:
                 parts.append(f"{lost} of {n_drones} drones lost")
             if self.down(start):
                 parts.append("coordinator down")
-            phases.append((start, stop, ", ".join(parts) or "no drone lost"))
+            if not parts:
+                quiet = self.coordinator_down and not self.drone_loss
+                parts.append("coordinator up" if quiet else "no drone lost")
+            if self.detection_p < 1.0:
+                parts.append(f"sightings at p = {self.detection_p:g}")
+            phases.append((start, stop, ", ".join(parts)))
         return phases
 
     def describe(self) -> dict:
