@@ -120,11 +120,11 @@ def run_patrol(
     runs = [(name, policies[name], plan) for name in names]
     if plan is not None and fault_free:
         runs += [(name, fault_free[name], None) for name in names]
-    policies = {}  # by place in ``runs`` from here on
+    acting: dict[int, Policy] = {}  # each run's policy, by its place in ``runs``
     for s, (_, policy, faulted) in enumerate(runs):
         if faulted is not None and faulted.coordinator_down:
             policy.outages = tuple(faulted.coordinator_down)
-        policies[s] = LiveDrones(policy, faulted) if faulted and faulted.drone_loss else policy
+        acting[s] = LiveDrones(policy, faulted) if faulted and faulted.drone_loss else policy
     stages = [swarm_stage(name if faulted or plan is None else f"{name} (fault-free)")
               for name, _, faulted in runs]  # fmt: skip
     n_swarms, n_drones = len(runs), len(starts)
@@ -154,7 +154,7 @@ def run_patrol(
             importance[0] = t_now
         for s, (name, _, _) in enumerate(runs):
             t_reset = time.perf_counter()
-            policies[s].reset(grid, n_drones, swarm_rng(seed, name))
+            acting[s].reset(grid, n_drones, swarm_rng(seed, name))
             timer.add(stages[s], time.perf_counter() - t_reset, calls=0)
             states.append(initial_state(grid, starts.copy(), t_now))
             views.append(swarm_view(states[s], horizon, grid, params))
@@ -170,7 +170,7 @@ def run_patrol(
                 if importance is not None:
                     importance[k + 1] = t_next
             for s, (name, _, faulted) in enumerate(runs):
-                policy, view = policies[s], views[s]
+                policy, view = acting[s], views[s]
                 stage = stages[s]
                 recorded = recorded_arrivals(faulted, seed, k + 1, n_drones, horizon)
                 with timer.stage(stage):
