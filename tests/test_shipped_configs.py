@@ -16,6 +16,8 @@ SCENARIOS = [
     "incident.toml",
     "shenzhen-city-scale.toml",
     "shenzhen-detectors.toml",
+    "drone-loss.toml",
+    "coordinator-down.toml",
 ]
 
 

@@ -474,18 +474,26 @@ def _oracle_swarm(maps: np.ndarray, options: dict) -> Policy:
 
 
 def oracle(
-    maps: np.ndarray, grid: Grid, starts: np.ndarray, params: ScoreParams, seed: int = 0
+    maps: np.ndarray,
+    grid: Grid,
+    starts: np.ndarray,
+    params: ScoreParams,
+    seed: int = 0,
+    faults=None,
 ) -> tuple[pd.Series, str, pd.DataFrame]:
     """Run the oracle swarms (:data:`ORACLE_SWARMS`) on the true ``maps`` from ``starts``;
     return the best one's Table 2 row (:func:`twin.metrics.table2`), its name, and every
     oracle swarm's rows. Each is a real swarm (moves, distinct cells by the coordinator);
-    choosing the best in hindsight is what makes it an oracle rather than a competitor."""
+    choosing the best in hindsight is what makes it an oracle rather than a competitor.
+    ``faults`` (:class:`twin.faults.FaultPlan`): the oracle swarms fly under the same faults."""
     from twin.patrol import run_patrol
     from twin.traffic.base import RecordedTraffic
 
     maps = np.asarray(maps, dtype=np.float64)
     swarms = {name: _oracle_swarm(maps, options) for name, options in ORACLE_SWARMS}
-    result = run_patrol(RecordedTraffic(grid, maps), swarms, starts, params, seed=seed)
+    result = run_patrol(
+        RecordedTraffic(grid, maps), swarms, starts, params, seed=seed, faults=faults
+    )
     table = table2(result, params)
     best = table.loc[table["R_hat_T"].idxmax()]
     return best, str(best["swarm"]), table
@@ -528,7 +536,7 @@ def ceiling_table(
         bound = cache[key] = lagrangian_bound(maps, result.grid, len(starts), params)
     else:
         bound = cache[key]
-    row, name, _ = oracle(maps, result.grid, starts, params, result.seed)
+    row, name, _ = oracle(maps, result.grid, starts, params, result.seed, result.faults)
     oracle_row = row.to_dict()
     oracle_row.update(swarm=ORACLE, pct_time_max_C=np.nan, oracle_swarm=name)
     rows = [oracle_row]

@@ -259,6 +259,54 @@ class EvaluateConfig(StrictModel):
     seed: Seed = 0
 
 
+class DroneLossConfig(StrictModel):
+    """``[[faults.drone_loss]]``: drone ``drone`` (0-based) lost at ``step``, back at ``back``."""
+
+    drone: Annotated[int, Field(ge=0, description="the lost drone, 0 .. n_drones - 1")]
+    step: Annotated[int, Field(ge=1, description="first step without it, 1 .. T - 1")]
+    back: Annotated[int, Field(ge=1)] | None = Field(
+        None, description="first step with it again (left out: lost to the end)"
+    )
+
+
+class FaultsConfig(StrictModel):
+    """``[faults]``: scripted faults applied to every swarm (see :mod:`twin.faults`)."""
+
+    drone_loss: list[DroneLossConfig] = Field(
+        [], description="drones lost for steps step <= k < back: they neither move, see nor score"
+    )
+    coordinator_down: list[Annotated[list[int], Field(min_length=2, max_length=2)]] = Field(
+        [], description="[[start, stop], ...]: steps start <= k < stop without the coordinator"
+    )
+    detection_p: Annotated[float, Field(gt=0, le=1)] = Field(
+        1.0, description="chance that a drone's sighting of a cell is recorded (seeded)"
+    )
+    compare: bool = Field(
+        True, description="run each swarm's fault-free twin beside it (the degradation table)"
+    )
+
+    @field_validator("coordinator_down")
+    @classmethod
+    def _windows(cls, value: list[list[int]]) -> list[list[int]]:
+        for start, stop in value:
+            if not 0 <= start < stop:
+                raise ValueError(
+                    f"[faults].coordinator_down has [{start}, {stop}]; give windows "
+                    "[start, stop] with 0 <= start < stop"
+                )
+        return value
+
+    def plan(self):
+        """The :class:`twin.faults.FaultPlan` of this table."""
+        from twin.faults import DroneLoss, FaultPlan
+
+        return FaultPlan(
+            drone_loss=tuple(DroneLoss(d.drone, d.step, d.back) for d in self.drone_loss),
+            coordinator_down=tuple((a, b) for a, b in self.coordinator_down),
+            detection_p=self.detection_p,
+        )
+
+
 TrafficConfig = Annotated[SyntheticConfig | SumoSettings, Field(discriminator="kind")]
 
 
@@ -281,6 +329,7 @@ class ScenarioConfig(StrictModel):
     evaluate: EvaluateConfig = EvaluateConfig()
     #: ``[swarm_options.<name>]``: keyword options of ``make_policy(name, ...)``
     swarm_options: dict[str, dict[str, Any]] = {}
+    faults: FaultsConfig = FaultsConfig()
 
     _path: Path = PrivateAttr(default=Path("config.toml"))
     _tables: dict[str, Any] | None = PrivateAttr(default=None)  # as read, overrides applied
@@ -299,7 +348,19 @@ class ScenarioConfig(StrictModel):
         if self.traffic.kind == "sumo" and len(given) == 1:
             raise ValueError("[grid] gives one of nx, ny; give both (or neither, to fit the map)")
         _finite_options(self.swarm_options)
+        if self.faults.coordinator_down:
+            for name, options in self.swarm_options.items():
+                if "outages" in options:
+                    raise ValueError(
+                        f"[swarm_options.{name}].outages and [faults].coordinator_down both "
+                        "give coordinator outages; keep [faults].coordinator_down alone"
+                    )
         return self
+
+    def fault_plan(self):
+        """The scenario's :class:`twin.faults.FaultPlan`, or None when it scripts no fault."""
+        plan = self.faults.plan()
+        return plan if plan.active else None
 
     @property
     def path(self) -> Path:
@@ -334,6 +395,45 @@ class ScenarioConfig(StrictModel):
     def params(self) -> ScoreParams:
         s = self.swarm
         return ScoreParams(eta=s.eta, delta=s.delta, alpha_T=s.alpha_T, alpha_I=s.alpha_I)
+
+
+def config_help() -> str:
+    """Every table and key of a scenario config with its default (and meaning, where the model
+    states one): what ``--help-config`` prints."""
+    from pydantic_core import PydanticUndefined
+
+    lines: list[str] = []
+
+    def table(path: str, model: type[BaseModel], array: bool = False, note: str = "") -> None:
+        lines.append((f"[[{path}]]" if array else f"[{path}]") + note)
+        nested = []
+        for name, f in model.model_fields.items():
+            inner = _models(f.annotation)
+            if inner:
+                nested.append((f"{path}.{name}", inner[0], _is_array(f.annotation)))
+                continue
+            if f.default is PydanticUndefined and f.default_factory is None:
+                text = "(required)"
+            else:
+                default = f.get_default(call_default_factory=True)
+                text = "(none)" if default is None else _toml(default)
+            text = text if len(text) <= 30 else text[:27] + "..."
+            lines.append(f"  {name:18s} {text:30s} {f.description or ''}".rstrip())
+        for args in nested:
+            table(*args)
+
+    for section, f in ScenarioConfig.model_fields.items():
+        if section == "traffic":
+            for model in _models(f.annotation):
+                table(
+                    "traffic", model, note=f"  (kind = {_toml(model.model_fields['kind'].default)})"
+                )
+        elif section == "swarm_options":
+            lines.append("[swarm_options.<swarm>]")
+            lines.append("  <option> = <value>  keyword options of that swarm (docs/guide.md)")
+        else:
+            table(section, _models(f.annotation)[0])
+    return "\n".join(lines)
 
 
 # --------------------------------------------------------------------------- error messages
@@ -643,6 +743,7 @@ def check_disturbances(config: ScenarioConfig) -> None:
                 f"{g.nx} x {g.ny} map (more than {DISTURBANCE_REACH:g} x sigma = "
                 f"{DISTURBANCE_REACH * d.sigma:g}): it reaches no cell; centre it on the map",
             )
+    check_faults(config, config.swarm.n_drones, config.traffic.horizon)
 
 
 # ------------------------------------------------------------------------- grid and swarm
@@ -669,6 +770,43 @@ def make_grid(config: ScenarioConfig) -> Grid:
     if obstacles.all():
         raise _fail(path, "[grid].obstacles", "cover every cell; leave at least one free cell")
     return Grid(obstacles)
+
+
+def check_faults(config: ScenarioConfig, n_drones: int, horizon: int) -> None:
+    """The ``[faults]`` table against the swarm and the horizon: drones in range, steps inside
+    ``1 .. T - 1``, no two loss windows of one drone overlapping, a live drone at every step."""
+    path, f = config.path, config.faults
+    for n, loss in enumerate(f.drone_loss):
+        key = f"[faults].drone_loss[{n}]"
+        if loss.back is not None and loss.back <= loss.step:
+            raise _fail(path, f"{key}.back", f"= {loss.back} must come after step = {loss.step}; "
+                        "give a later step, or leave back out (lost to the end)")  # fmt: skip
+        if loss.drone >= n_drones:
+            raise _fail(path, f"{key}.drone", f"= {loss.drone} is not one of the {n_drones} "
+                        f"drones; give 0 .. {n_drones - 1}")  # fmt: skip
+        for name, value in (("step", loss.step), ("back", loss.back)):
+            if value is not None and value >= horizon:
+                raise _fail(path, f"{key}.{name}", f"= {value} is outside the horizon "
+                            f"T = {horizon}; give 1 .. {horizon - 1}")  # fmt: skip
+    for a in range(len(f.drone_loss)):
+        for b in range(a + 1, len(f.drone_loss)):
+            x, y = f.drone_loss[a], f.drone_loss[b]
+            x_end = horizon if x.back is None else x.back
+            y_end = horizon if y.back is None else y.back
+            if x.drone == y.drone and x.step < y_end and y.step < x_end:
+                raise _fail(path, f"[faults].drone_loss[{a}] and [{b}]",
+                            f"lose drone {x.drone} in overlapping windows; give one window, "
+                            "or separate them")  # fmt: skip
+    for start, stop in f.coordinator_down:
+        if stop > horizon:
+            raise _fail(path, "[faults].coordinator_down", f"has [{start}, {stop}] past the "
+                        f"horizon T = {horizon}; end it by {horizon}")  # fmt: skip
+    plan = f.plan()
+    live = plan.live_steps(horizon, n_drones).any(axis=1)
+    if not live.all():
+        k = int(np.flatnonzero(~live)[0])
+        raise _fail(path, "[faults].drone_loss", f"leaves no drone flying at step {k}; keep "
+                    "at least one drone live")  # fmt: skip
 
 
 def check_swarm_fits(config: ScenarioConfig, grid: Grid) -> None:

@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 
 from twin.boundary import notify, release_notices
-from twin.config import ScenarioConfig, check_swarm_fits, start_positions
+from twin.config import ScenarioConfig, check_faults, check_swarm_fits, start_positions
 from twin.errors import UserError
 from twin.patrol import INTERRUPTED, PatrolResult, run_patrol
 from twin.policies import Policy
@@ -282,9 +282,13 @@ def _run_seed(experiment, n, seed, source, stop, progress=False, on_source=None,
     if is_live(experiment) and n == 0:
         check_memory(experiment, source.grid.shape, source.horizon, source)
     check_swarm_fits(experiment.config, source.grid)
+    config = experiment.config
+    check_faults(config, config.swarm.n_drones, source.horizon)
     if on_source is not None:
         on_source(source)
     swarms = build_swarms(experiment)
+    faults = config.fault_plan()
+    twins = build_swarms(experiment) if faults is not None and config.faults.compare else None
     starts = start_positions(experiment.config, source.grid, np.random.default_rng(seed))
     result = run_patrol(
         source,
@@ -296,6 +300,8 @@ def _run_seed(experiment, n, seed, source, stop, progress=False, on_source=None,
         keep_importance=experiment.keep_importance,
         stop=stop,
         on_step=on_step,
+        faults=faults,
+        fault_free=twins,
     )
     detectors = source.detector_observations()
     if detectors is not None:
@@ -303,6 +309,8 @@ def _run_seed(experiment, n, seed, source, stop, progress=False, on_source=None,
     incidents = source.incidents_info()
     if incidents:
         result.extra["incidents"] = incidents  # scored by monitoring
+        if result.fault_free is not None:
+            result.fault_free.extra["incidents"] = incidents
     policies = {name: p.describe() for name, p in swarms.items() if hasattr(p, "describe")}
     return result, source.metadata(), policies
 
@@ -546,7 +554,8 @@ def estimate_memory(
     scored; synthetic traffic precomputes its maps (float64, stacked: 16 B); live traffic keeps
     each seed's tape (int32 counts + float32 speeds, warm-up included: 8 B) and writes the first as
     a long table (~48 B). Per cell and swarm: its state, view and belief map (~64 B). Per
-    swarm, drone and step: positions (16 B per seed).
+    swarm, drone and step: positions (16 B per seed). With ``[faults]``, each swarm's
+    fault-free twin counts as one more swarm.
 
     Seeds run at once on W workers (:func:`parallel`): each worker holds one simulation with its
     swarms (:data:`WORKER_BYTES`: an interpreter, SUMO and its process), its seed's result and
@@ -556,6 +565,9 @@ def estimate_memory(
     cells = shape[0] * shape[1]
     steps = horizon + 1
     n_seeds, n_swarms = len(experiment.seeds), len(experiment.swarms)
+    config = experiment.config
+    if config.fault_plan() is not None and config.faults.compare:
+        n_swarms *= 2  # each swarm's fault-free twin runs beside it
     per_cell_step = 8 * n_seeds + 12
     if live:
         per_cell_step += 8 * n_seeds * (steps + warmup_steps) / steps + 48

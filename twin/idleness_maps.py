@@ -151,9 +151,11 @@ class SwarmMaps:
         return not any(start <= k < stop for start, stop in self.outages)
 
     def advance(self, k: int, positions: np.ndarray, shared_map: np.ndarray, grid: Grid,
-                params: ScoreParams) -> None:  # fmt: skip
+                params: ScoreParams, visits: np.ndarray | None = None) -> None:  # fmt: skip
         """Bring the maps to step ``k``, the drones now at ``positions``. At ``k = 0`` every
-        map starts from ``shared_map`` (``I^0``)."""
+        map starts from ``shared_map`` (``I^0``). ``visits``: the cells whose visit the swarm
+        recorded (scripted faults, :mod:`twin.faults`); None: the drones' cells."""
+        visits = positions if visits is None else visits
         central = self.central(k)
         if self.k < 0:
             self.shared = shared_map.copy()
@@ -166,9 +168,7 @@ class SwarmMaps:
                 self.shared = self.own.merged()
                 self.own = None
             else:
-                self.shared = update_idleness(
-                    self.shared, positions, grid, params.eta, params.delta
-                )
+                self.shared = update_idleness(self.shared, visits, grid, params.eta, params.delta)
         else:
             if self.own is None:  # the coordinator just went down
                 self.own = OwnMaps(self.shared, self.n_drones)

@@ -64,21 +64,25 @@ class MonitorSettings:
             raise ValueError(f"weight_floor = {self.weight_floor} must be > 0")
 
 
-def sightings(grid: Grid, positions: np.ndarray) -> np.ndarray:
+def sightings(grid: Grid, positions: np.ndarray, recorded: np.ndarray | None = None) -> np.ndarray:
     """Sorted unique keys ``cell * (T+1) + k`` of every (free cell, step) in some drone's view.
 
     ``positions`` is one swarm's ``(T+1, N, 2)``; ``cell`` is the flat index ``i * ny + j``.
+    ``recorded`` ``(T+1, N, 5)`` bool: the sightings that count (scripted faults,
+    :meth:`twin.faults.FaultPlan.recorded`); None: all.
     """
     steps, n_drones, _ = positions.shape
     flat, valid = grid.view_index(positions.reshape(-1, 2))
     k = np.repeat(np.arange(steps), n_drones)[:, None]
     keys = flat * steps + k
     keep = valid & grid.free.ravel()[flat]
+    if recorded is not None:
+        keep &= recorded[:steps].reshape(-1, 5)
     return np.unique(keys[keep])
 
 
 def incident_sightings(
-    grid: Grid, positions: np.ndarray, incidents: list[dict]
+    grid: Grid, positions: np.ndarray, incidents: list[dict], recorded: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """First step at which a drone's field of view covers each incident's cell while it lasts
     (-1 when never) and the latency from onset (-1 when not seen), per incident.
@@ -87,7 +91,7 @@ def incident_sightings(
     ``positions``: one swarm's ``(T+1, N, 2)``.
     """
     steps = positions.shape[0]
-    keys = sightings(grid, positions)
+    keys = sightings(grid, positions, recorded)
     first = np.full(len(incidents), -1, dtype=np.int64)
     for n, inc in enumerate(incidents):
         i, j = inc["cell"]
@@ -122,11 +126,12 @@ def belief_error_curve(
     observed: np.ndarray,
     truth: np.ndarray,
     floor: float = DEFAULT_WEIGHT_FLOOR,
+    recorded: np.ndarray | None = None,
 ) -> np.ndarray:
     """``(T+1,)`` importance-weighted MAE of the swarm's belief map against the truth, per step.
 
-    ``positions`` ``(T+1, N, 2)``; ``observed`` and ``truth`` ``(T+1, nx, ny)``. One numpy pass
-    over the cells per step.
+    ``positions`` ``(T+1, N, 2)``; ``observed`` and ``truth`` ``(T+1, nx, ny)``; ``recorded``
+    as in :func:`sightings`. One numpy pass over the cells per step.
     """
     steps = positions.shape[0]
     free = grid.free.ravel()
@@ -134,7 +139,7 @@ def belief_error_curve(
     out = np.empty(steps)
     for k in range(steps):
         flat, valid = grid.view_index(positions[k])
-        cells = flat[valid]
+        cells = flat[valid if recorded is None else valid & recorded[k]]
         belief[cells] = observed[k].ravel()[cells]
         true = truth[k].ravel()
         w = np.maximum(true, floor)[free]
@@ -311,14 +316,22 @@ def monitor_run(result, settings: MonitorSettings | None = None) -> RunMonitorin
     belief = np.zeros((n_swarms, steps))
     first = np.zeros((n_swarms, len(events)), dtype=np.int64)
     seen_steps = np.zeros((n_swarms, len(events)), dtype=np.int64)
+    faults = getattr(result, "faults", None)
+    recorded = None
+    if faults is not None:
+        recorded = faults.recorded(result.seed, steps, positions.shape[2])
     for s in range(n_swarms):
-        belief[s] = belief_error_curve(grid, positions[s], observed, truth, settings.weight_floor)
-        keys = sightings(grid, positions[s])
+        belief[s] = belief_error_curve(
+            grid, positions[s], observed, truth, settings.weight_floor, recorded
+        )
+        keys = sightings(grid, positions[s], recorded)
         first[s], seen_steps[s] = event_sightings(events, keys, steps, grid.ny)
     incidents = (getattr(result, "extra", None) or {}).get("incidents") or None
     inc_first = inc_latency = None
     if incidents:
-        pairs = [incident_sightings(grid, positions[s], incidents) for s in range(n_swarms)]
+        pairs = [
+            incident_sightings(grid, positions[s], incidents, recorded) for s in range(n_swarms)
+        ]
         inc_first = np.array([p[0] for p in pairs]).reshape(n_swarms, len(incidents))
         inc_latency = np.array([p[1] for p in pairs]).reshape(n_swarms, len(incidents))
     return RunMonitoring(

@@ -11,12 +11,13 @@ from __future__ import annotations
 import time
 import zlib
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from twin.boundary import release_notices
 from twin.errors import UserError
+from twin.faults import FaultPlan, LiveDrones, recorded_arrivals
 from twin.grid import Grid
 from twin.policies import Policy, SwarmView, Transition
 from twin.scores import ScoreParams, coverage
@@ -61,10 +62,23 @@ class PatrolResult:
     extra: dict = field(default_factory=dict)
     #: wall seconds per stage of the loop (:mod:`twin.timing`), in the order of the step
     stage_seconds: dict[str, float] = field(default_factory=dict)
+    faults: FaultPlan | None = None  # the scripted faults the swarms ran under (twin.faults)
+    fault_free: PatrolResult | None = None  # the same swarms without them, same traffic
 
     @property
     def horizon(self) -> int:
         return self.rewards.shape[1]
+
+    def select(self, rows) -> PatrolResult:
+        """The result of the swarms at places ``rows`` alone (shared maps and timings kept)."""
+        rows = list(rows)
+        picked = {
+            key: getattr(self, key)[rows]
+            for key in ("rewards", "reward_importance", "reward_idleness", "reward_paper",
+                        "coverage", "visited_share", "positions")
+        }  # fmt: skip
+        return replace(self, swarms=[self.swarms[s] for s in rows], extra=dict(self.extra),
+                       **picked)  # fmt: skip
 
 
 def swarm_rng(seed: int, name: str) -> np.random.Generator:
@@ -82,6 +96,8 @@ def run_patrol(
     keep_importance: bool = True,
     stop: Callable[[], bool] | None = None,
     on_step: Callable[[int, dict[str, np.ndarray], np.ndarray], None] | None = None,
+    faults: FaultPlan | None = None,
+    fault_free: Mapping[str, Policy] | None = None,
 ) -> PatrolResult:
     """Run every swarm in ``policies`` from ``starts`` over the whole horizon of ``source``.
 
@@ -92,10 +108,26 @@ def run_patrol(
     ``on_step(k, positions, importance)``, if given, is called at ``k = 0 .. T`` once every
     swarm stands at ``P_k`` (``{swarm: (N, 2)}``) under ``T^k``, before ``T^{k+1}`` is pulled
     (a live source is still at step k's time): the GUI draws there.
+
+    ``faults`` (:class:`twin.faults.FaultPlan`) applies to every swarm of ``policies``;
+    ``fault_free`` (the same swarm names, fresh policies) runs beside them without the faults,
+    on the same traffic and with the same randomness, and comes back as the result's
+    ``fault_free``.
     """
     grid, horizon = source.grid, source.horizon
+    plan = faults if faults is not None and faults.active else None
     names = list(policies)
-    n_swarms, n_drones = len(names), len(starts)
+    runs = [(name, policies[name], plan) for name in names]
+    if plan is not None and fault_free:
+        runs += [(name, fault_free[name], None) for name in names]
+    acting: dict[int, Policy] = {}  # each run's policy, by its place in ``runs``
+    for s, (_, policy, faulted) in enumerate(runs):
+        if faulted is not None and faulted.coordinator_down:
+            policy.outages = tuple(faulted.coordinator_down)
+        acting[s] = LiveDrones(policy, faulted) if faulted and faulted.drone_loss else policy
+    stages = [swarm_stage(name if faulted or plan is None else f"{name} (fault-free)")
+              for name, _, faulted in runs]  # fmt: skip
+    n_swarms, n_drones = len(runs), len(starts)
     starts = np.asarray(starts, dtype=np.int64)
     series = {
         key: np.zeros((n_swarms, horizon))
@@ -120,10 +152,10 @@ def run_patrol(
         truth = _record_truth(source, truth, 0, horizon, keep_importance)
         if importance is not None:
             importance[0] = t_now
-        for s, name in enumerate(names):
+        for s, (name, _, _) in enumerate(runs):
             t_reset = time.perf_counter()
-            policies[name].reset(grid, n_drones, swarm_rng(seed, name))
-            timer.add(swarm_stage(name), time.perf_counter() - t_reset, calls=0)
+            acting[s].reset(grid, n_drones, swarm_rng(seed, name))
+            timer.add(stages[s], time.perf_counter() - t_reset, calls=0)
             states.append(initial_state(grid, starts.copy(), t_now))
             views.append(swarm_view(states[s], horizon, grid, params))
             positions[s, 0] = starts
@@ -137,14 +169,15 @@ def run_patrol(
                 truth = _record_truth(source, truth, k + 1, horizon, keep_importance)
                 if importance is not None:
                     importance[k + 1] = t_next
-            for s, name in enumerate(names):
-                policy, view = policies[name], views[s]
-                stage = swarm_stage(name)
+            for s, (name, _, faulted) in enumerate(runs):
+                policy, view = acting[s], views[s]
+                stage = stages[s]
+                recorded = recorded_arrivals(faulted, seed, k + 1, n_drones, horizon)
                 with timer.stage(stage):
                     actions = np.asarray(policy.act(view), dtype=np.int64)
                 t_score = time.perf_counter()
                 try:
-                    states[s], out = step(states[s], actions, t_next, grid, params)
+                    states[s], out = step(states[s], actions, t_next, grid, params, recorded)
                 except InfeasibleActionError as exc:
                     raise RuntimeError(f"swarm {name!r} chose an infeasible action: {exc}") from exc
                 for key, values in (
@@ -188,8 +221,8 @@ def run_patrol(
             bar.close()
         maps.close()  # ends a live simulation now (one in its own process reports back)
     cut = {key: values[:, :done] for key, values in series.items()}
-    return PatrolResult(
-        swarms=names,
+    result = PatrolResult(
+        swarms=[name for name, _, _ in runs],
         grid=grid,
         seed=seed,
         rewards=cut["rewards"],
@@ -207,7 +240,13 @@ def run_patrol(
         error=error,
         stage_seconds=_stage_seconds(timer, source),
         extra={"process_stages": source.process_stages()},
+        faults=plan,
     )
+    if len(runs) > len(names):  # the fault-free twins: a result of their own
+        result, twin = result.select(range(len(names))), result.select(range(len(names), len(runs)))
+        twin.faults = None
+        result.fault_free = twin
+    return result
 
 
 def _stage_seconds(timer: StageTimer, source: TrafficSource) -> dict[str, float]:
@@ -239,6 +278,7 @@ def swarm_view(state: SwarmState, horizon: int, grid: Grid, params: ScoreParams)
         importance=state.importance,
         feasible=state.feasible,
         params=params,
+        recorded=state.recorded,
     )
 
 

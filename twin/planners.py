@@ -68,6 +68,13 @@ class CoordinatedPolicy(Policy):
     def act(self, view: SwarmView) -> np.ndarray:
         scores = self.scores(view)
         scores = scores + tie_jitter(scores, view.feasible, self.rng)
+        return self.joint_action(scores, view)
+
+    def joint_action(self, scores: np.ndarray, view: SwarmView) -> np.ndarray:
+        """The coordinator's joint action (eq. maxi:op2); while it is down, each drone's own
+        best-scored feasible move, collisions unresolved."""
+        if self.coordinator_down(view.k):
+            return np.argmax(np.where(view.feasible, scores, -np.inf), axis=1)
         return coordinate(scores, view.positions, view.feasible, view.grid)
 
 

@@ -31,6 +31,18 @@ class SwarmView:
     importance: np.ndarray  # (nx, ny): T^k; policies read it only inside the field of view
     feasible: np.ndarray  # (N, 5) bool: U_d(p)
     params: ScoreParams
+    #: (N,) bool: the drones whose arrival at P_k the swarm recorded (None: all of them); a
+    #: scripted fault (:mod:`twin.faults`) can leave a visit unrecorded
+    recorded: np.ndarray | None = None
+    #: (M, 2) the cells whose visit at P_k the swarm recorded, when the view shows only some of
+    #: the drones (a drone lost at k still arrived at P_k); None: read them from the drones
+    visits: np.ndarray | None = None
+
+    def recorded_visits(self) -> np.ndarray:
+        """The cells the swarm recorded a visit of at ``P_k`` (the idleness resets of Def. 3)."""
+        if self.visits is not None:
+            return self.visits
+        return self.positions if self.recorded is None else self.positions[self.recorded]
 
 
 @dataclass
@@ -47,6 +59,8 @@ class Policy:
     """Chooses the actions of every drone of a swarm."""
 
     name = "policy"
+    #: step windows ``[start, stop)`` without the central coordinator (``[faults]``)
+    outages: tuple[tuple[int, int], ...] = ()
 
     def reset(self, grid: Grid, n_drones: int, rng: np.random.Generator) -> None:
         self.grid = grid
@@ -58,6 +72,16 @@ class Policy:
 
     def learn(self, transition: Transition) -> None:
         """Online learning hook; baselines do not learn."""
+
+    def drones_changed(self, before: np.ndarray, after: np.ndarray) -> None:
+        """The live drones changed from the ``(N,)`` mask ``before`` to ``after`` (a drone lost
+        or back, :mod:`twin.faults`): from now on :meth:`act` sees the ``after`` drones, in
+        their order. Policies that keep something per drone override this."""
+        self.n_drones = int(after.sum())
+
+    def coordinator_down(self, k: int) -> bool:
+        """Whether step ``k`` falls in a window without the central coordinator."""
+        return any(start <= k < stop for start, stop in self.outages)
 
 
 def random_feasible(feasible: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -155,6 +179,10 @@ class SweepingPolicy(Policy):
         self.phase: np.ndarray | None = None
         self.greedy = GreedyPolicy()
         self.greedy.reset(grid, n_drones, rng)
+
+    def drones_changed(self, before: np.ndarray, after: np.ndarray) -> None:
+        """Roles dealt again among the live drones; sweepers rejoin the tour where they are."""
+        self.reset(self.grid, int(after.sum()), self.rng)
 
     def _start_phase(self, starts: np.ndarray) -> np.ndarray:
         key = self.cycle[:, 0] * self.grid.ny + self.cycle[:, 1]

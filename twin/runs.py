@@ -115,6 +115,7 @@ RUN_FILES = (
     RunFile("tapes", "run (SUMO, several seeds)", "evaluate --traffic, history", folder=True),
     RunFile("incidents.json", "run (SUMO, incidents)", "report"),
     RunFile("detectors.parquet", "run (SUMO, [traffic.detectors])", "docs/measure_beliefs.py"),
+    RunFile("degradation.csv", "run, evaluate ([faults])", "report"),
     RunFile("sumo", "run (SUMO outputs of the scenario)", "the user", folder=True),
     RunFile("timing.csv", "run, evaluate", "report"),
     RunFile("run.json", "run, evaluate", "report, replay, the rerun check of --out"),
@@ -467,6 +468,7 @@ def write_run(
     monitoring = swarm_rows(summary)[
         ["swarm", *[x for c in keep for x in (c, f"{c}_ci95")], "n_seeds"]
     ]
+    degradation = _degradation(results, monitored)
     event_frames = [m.events_frame() for m in monitored if m is not None]
     event_frames = [f for f in event_frames if len(f)] or event_frames[:1]
     events = pd.concat(event_frames, ignore_index=True) if event_frames else None
@@ -482,6 +484,8 @@ def write_run(
     if keep and events is not None:
         atomic_write(run_dir / "monitoring.csv", lambda p: monitoring.to_csv(p, index=False))
         atomic_write(run_dir / "events.parquet", lambda p: events.to_parquet(p, index=False))
+    if degradation is not None:
+        atomic_write(run_dir / "degradation.csv", lambda p: degradation.to_csv(p, index=False))
     first = results[0]
     if first.importance is not None:
 
@@ -527,6 +531,7 @@ def write_run(
                 else "the observed importance"
             ),
         },
+        **({"faults": first.faults.describe()} if first.faults is not None else {}),
         "versions": package_versions(),
         "invocation": started.get("invocation") if isinstance(started, dict) else None,
         **metadata,
@@ -571,6 +576,19 @@ def record(
 
     # the source's files go before run.json and manifest.json: a kill in between leaves no manifest
     return write_run(run_dir, outcome.results, meta, extras=extras, ceilings=ceilings)
+
+
+def _degradation(results, monitored) -> pd.DataFrame | None:
+    """``degradation.csv`` (:func:`twin.faults.degradation_frame`) of the seeds that ran a
+    fault-free twin beside their faulted swarms; None when none did."""
+    from twin.faults import degradation_frame
+
+    frames = [
+        degradation_frame(r, m.events)
+        for r, m in zip(results, monitored, strict=True)
+        if r.fault_free is not None and m is not None
+    ]
+    return pd.concat(frames, ignore_index=True) if frames else None
 
 
 def peak_memory_mb(children: bool = False) -> float | None:

@@ -32,6 +32,8 @@ class SwarmState:
     importance: np.ndarray  # (nx, ny): T^k
     visited: np.ndarray  # (nx, ny) bool: cells stood on at steps 0..k
     feasible: np.ndarray  # (N, 5) bool: U_d(p) at P_k
+    #: (N,) bool: the drones whose arrival at P_k was recorded (None: all; see twin.faults)
+    recorded: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -69,12 +71,18 @@ def step(
     next_importance: np.ndarray,
     grid: Grid,
     params: ScoreParams,
+    recorded: np.ndarray | None = None,
 ) -> tuple[SwarmState, StepOutcome]:
     """Advance the swarm one step: ``P_{k+1} = P_k + u^k``, ``r^k`` (the headline reward), ``I^{k+1}``.
 
+    ``recorded`` ``(N,)`` bool: the drones whose arrival at ``P_{k+1}`` counts (a scripted
+    fault, :mod:`twin.faults`: a lost drone, a missed sighting); the others are paid nothing
+    and reset no idleness. None: every drone's.
     Raises :class:`InfeasibleActionError` when an action is not in ``U_d(p)``.
     """
     actions = check_actions(state, actions)
+    if recorded is not None:
+        return _step_recorded(state, actions, next_importance, grid, params, recorded)
     nxt = grid.move(state.positions, actions)
     parts = reward_parts(
         grid, params, state.idleness, state.importance, next_importance, state.positions, nxt
@@ -86,6 +94,30 @@ def step(
     return (
         SwarmState(state.k + 1, nxt, idle, next_importance, visited, feasible),
         StepOutcome(parts.total, parts.importance, parts.idleness, parts.paper, feasible),
+    )
+
+
+def _step_recorded(state, actions, next_importance, grid, params, recorded):
+    """:func:`step` with only the ``recorded`` drones' arrivals paid and visited."""
+    nxt = grid.move(state.positions, actions)
+    rec = np.asarray(recorded, dtype=bool)
+    zero = np.zeros(len(nxt))
+    total, importance, idleness, paper = zero, zero.copy(), zero.copy(), zero.copy()
+    if rec.any():
+        parts = reward_parts(
+            grid, params, state.idleness, state.importance, next_importance,
+            state.positions[rec], nxt[rec],
+        )  # fmt: skip
+        total, importance, idleness, paper = (zero.copy() for _ in range(4))
+        total[rec], importance[rec] = parts.total, parts.importance
+        idleness[rec], paper[rec] = parts.idleness, parts.paper
+    idle = update_idleness(state.idleness, nxt[rec], grid, params.eta, params.delta)
+    visited = state.visited.copy()
+    visited[nxt[rec, 0], nxt[rec, 1]] = True
+    feasible = grid.feasible_actions(nxt)
+    return (
+        SwarmState(state.k + 1, nxt, idle, next_importance, visited, feasible, rec.copy()),
+        StepOutcome(total, importance, idleness, paper, feasible),
     )
 
 

@@ -575,6 +575,18 @@ class ToursPolicy(CoordinatedPolicy):
         self.survey_fresh = False  # a survey has ended since the last plan
         self.surveys = 0
 
+    def drones_changed(self, before: np.ndarray, after: np.ndarray) -> None:
+        """Tours planned again for the live drones at the next step (what was seen is kept); a
+        survey under way keeps each live drone's stretch (a lost drone's stays unflown)."""
+        super().drones_changed(before, after)
+        if self.planned_at is not None:
+            self.planned_at = None
+            self.approach = []
+        if self.survey_left is not None:
+            stretch = dict(zip(np.flatnonzero(before), self.survey_left, strict=True))
+            empty = np.zeros((0, 2), dtype=np.int64)
+            self.survey_left = [stretch.get(d, empty) for d in np.flatnonzero(after)]
+
     # -- what the swarm knows ---------------------------------------------------------------
 
     def _see(self, view: SwarmView) -> None:
@@ -819,9 +831,7 @@ class ToursPolicy(CoordinatedPolicy):
             has = planned >= 0
             scores[np.flatnonzero(has), planned[has]] += self.bonus
         scores = scores + _jitter(scores, view.feasible, self.rng)
-        from twin.coordinator import coordinate
-
-        actions = coordinate(scores, view.positions, view.feasible, view.grid)
+        actions = self.joint_action(scores, view)
         if surveying:
             for d in np.flatnonzero((planned == actions) & (planned >= 0)):
                 self.survey_left[d] = self.survey_left[d][1:]

@@ -8,6 +8,7 @@ import sys
 from twin.cli import add_worker_arguments, check_count, check_seeds, path_arg
 from twin.cli.recording import (
     print_beliefs,
+    print_degradation,
     print_tables,
     render_report,
     run_and_record,
@@ -85,12 +86,20 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument("--no-report", action="store_true", help="do not render the HTML report")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--help-config", action="store_true",
+                   help="list every table and key of a scenario config with its default, "
+                   "then exit")  # fmt: skip
     p.set_defaults(func=main)
 
 
 def main(args: argparse.Namespace) -> int:
     from twin.boundary import hold_notices
 
+    if args.help_config:
+        from twin.config import config_help
+
+        print(config_help())
+        return 0
     limit_threads()
     hold_notices()  # printed once the simulation has started; a refusal is one line
     config = load_config(shipped_config(args.config or DEFAULT_CONFIG))
@@ -144,6 +153,7 @@ def main(args: argparse.Namespace) -> int:
     label = f"{seeds} seed{'s' if seeds > 1 else ''} from {first}"
     title = f"Table 2 analog ({config.path.name}, {label}, T = {horizon})"
     print_tables(recorded, title)
+    print_degradation(run_dir)
     print_beliefs(recorded.beliefs, args.history, label)
     if not args.no_report and done.completed_steps > 0:
         render_report(run_dir)

@@ -136,3 +136,14 @@ def print_beliefs(beliefs, path: Path | None, label: str) -> None:
 
         title = f"Belief models (history {path}, {label}): {BELIEF_FILE}"
         print(format_belief_table(beliefs, title))
+
+
+def print_degradation(run_dir: Path) -> None:
+    """The degradation table's headline when the run had ``[faults]``."""
+    path = Path(run_dir) / "degradation.csv"
+    if path.exists():
+        import pandas as pd
+
+        from twin.faults import format_degradation
+
+        print(format_degradation(pd.read_csv(path)))

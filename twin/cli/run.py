@@ -109,6 +109,9 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument("--no-report", action="store_true", help="do not render the HTML report")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--help-config", action="store_true",
+                   help="list every table and key of a scenario config with its default, "
+                   "then exit")  # fmt: skip
     add_gui_arguments(p)
     p.set_defaults(func=main)
 
@@ -230,8 +233,20 @@ def build_experiment(args: argparse.Namespace):
 
 
 def main(args: argparse.Namespace) -> int:
+    if args.help_config:
+        from twin.config import config_help
+
+        print(config_help())
+        return 0
+
     from twin.boundary import hold_notices, notify
-    from twin.cli.recording import print_beliefs, print_tables, render_report, run_and_record
+    from twin.cli.recording import (
+        print_beliefs,
+        print_degradation,
+        print_tables,
+        render_report,
+        run_and_record,
+    )
     from twin.experiment import limit_threads
 
     limit_threads()
@@ -291,6 +306,7 @@ def main(args: argparse.Namespace) -> int:
         f"T = {outcome.results[0].completed_steps})"
     )
     print_tables(recorded, title)
+    print_degradation(run_dir)
     print(
         f"MFD ({mfd['form']}, SUMO seed {first_source.scenario.seed}): a = {mfd['a']:.3f}, "
         f"k_c = {mfd['k_c']:.1f} veh/lane-km, R2 = {mfd.get('r2', float('nan')):.3f}, "

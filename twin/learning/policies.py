@@ -143,10 +143,38 @@ class RLPolicy(Policy):
     def nets(self):
         return self.learner.nets if self.learner is not None else [self.net]
 
+    def drones_changed(self, before: np.ndarray, after: np.ndarray) -> None:
+        """A drone lost or back (:mod:`twin.faults`): the maps, the positions heard and the
+        online learner's buffer are rebuilt for the live drones at the next step; own maps held
+        during an outage are pooled (merged, then copied to each live drone); the learner's
+        network and optimizer are kept."""
+        super().drones_changed(before, after)
+        n = self.n_drones
+        if self.maps.own is not None:
+            self.maps.own = OwnMaps(self.maps.own.merged(), n)
+        self.maps.n_drones = n
+        self.regroup = True
+        if self.learner is not None:
+            old = self.learner
+            self.learner = OnlineLearner(self.net, n, per_drone=self.decentralized, rng=old.rng,
+                                         **self.learning)  # fmt: skip
+            if len(old.nets) == 1:
+                self.learner.nets, self.learner.targets = old.nets, old.targets
+                self.learner.optimizers, self.learner.updates = old.optimizers, old.updates
+
     def observe(self, view: SwarmView) -> np.ndarray:
         """The ``(N, 13)`` states of the drones at ``view.k`` (advances the maps)."""
         maps = self.maps
-        maps.advance(view.k, view.positions, view.idleness, view.grid, view.params)
+        if getattr(self, "regroup", False):
+            maps.heard = view.positions.copy()
+            self.regroup = False
+        maps.advance(view.k, view.positions, view.idleness, view.grid, view.params,
+                     view.recorded_visits())  # fmt: skip
+        return self.local_states(view)
+
+    def local_states(self, view: SwarmView) -> np.ndarray:
+        """The states of the drones at ``view.k`` from the maps as they stand."""
+        maps = self.maps
         if maps.own is None:
             return drone_states(view.grid, maps.shared, view.importance, view.positions)
         return local_drone_states(
@@ -169,6 +197,10 @@ class RLPolicy(Policy):
             if view.k != self.maps.k + 1:
                 raise RuntimeError(f"swarm {self.name} saw step {view.k} after step {self.maps.k}")
             self.states = self.observe(view)
+        elif getattr(self, "regroup", False):  # the live drones changed since learn() observed
+            self.maps.heard = view.positions.copy()
+            self.regroup = False
+            self.states = self.local_states(view)
         q = self.q_values(self.states)
         if self.maps.own is None:
             return coordinate(q, view.positions, view.feasible, view.grid)

@@ -106,6 +106,55 @@ class Section:
     caption: str
 
 
+DEGRADATION_HEADER = [
+    "swarm", "phase", "steps", "R̂ with faults", "R̂ fault-free", "change %", "events",
+    "% seen with faults", "% seen fault-free", "latency (steps) with faults",
+    "latency (steps) fault-free", "% congested observed with faults",
+    "% congested observed fault-free",
+]  # fmt: skip
+
+
+def degradation_rows(rf: RunFiles) -> list[list[str]]:
+    """degradation.csv averaged over seeds: per swarm and phase, the score per step and the
+    monitoring with the faults and in the fault-free twin."""
+    frame = rf.degradation
+    keys = ["swarm", "phase", "label", "start", "stop"]
+    means = frame.groupby(keys, sort=False).mean(numeric_only=True).reset_index()
+
+    def num(value: float, decimals: int) -> str:
+        return "–" if value is None or not np.isfinite(value) else f"{value:.{decimals}f}"
+
+    rows = []
+    for _, r in means.iterrows():
+        change = 100.0 * (r["R_hat"] - r["R_hat_fault_free"]) / r["R_hat_fault_free"]
+        rows.append(
+            [str(r["swarm"]), str(r["label"]), f"{int(r['start'])}–{int(r['stop'])}",
+             num(r["R_hat"], 4), num(r["R_hat_fault_free"], 4), num(change, 1),
+             num(r["events"], 1), num(r["pct_events_seen"], 1),
+             num(r["pct_events_seen_fault_free"], 1), num(r["latency_median_steps"], 1),
+             num(r["latency_median_steps_fault_free"], 1),
+             num(r["pct_congested_observed"], 1), num(r["pct_congested_observed_fault_free"], 1)]
+        )  # fmt: skip
+    return rows
+
+
+def degradation_caption(rf: RunFiles) -> str:
+    seeds = sorted(set(rf.degradation["seed"].tolist()))
+    faults = json.dumps(rf.run.get("faults", {}))
+    return (
+        "From degradation.csv, means over seeds "
+        + ", ".join(map(str, seeds))
+        + ". Each swarm ran under the scripted faults and, in the same pass over the same "
+        "traffic with the same seed, without them (its fault-free twin). A phase is a stretch "
+        "of steps between two changes of the faults; R̂ is the mean score per step R^k over "
+        "its steps; events are the congestion events that last into it, cut to it: the share "
+        "seen in the phase, the median latency (steps from the event's start in the phase to "
+        "its first sighting that counts) and the share of their cell-steps in view. Faults: "
+        + faults
+        + "."
+    )
+
+
 def format_cell(row: pd.Series, column: str, decimals: int) -> str:
     """``mean``, or ``mean ± half-width`` over several seeds, as printed in both tables; ``-``
     when there is no value (e.g. no latency: no event was seen)."""
@@ -259,6 +308,20 @@ def build_sections(
             "cells are important and long unvisited. " + idleness_check(rf),
         )
     )
+    if rf.live() is not None:
+        sections.append(
+            Section(
+                "Surviving drones' paths",
+                timed(
+                    "faults",
+                    lambda: _save(figures.figure_surviving_paths(rf), out / "surviving.png"),
+                ),
+                "Each row a phase of the run with drones lost (run.json faults), each panel a "
+                "swarm: the live drones' paths over the phase's first steps on the importance "
+                "map at its start; grey crosses are the lost drones, which stay where they were "
+                "lost.",
+            )
+        )
     if animation:
         sections.append(
             Section(
@@ -367,6 +430,12 @@ def render_html(
             "<h2>Monitoring against ground truth</h2>",
             html_table(m_header, m_rows, "monitoring"),
             f'<p class="caption">{html.escape(_monitoring_caption(rf))}</p>',
+        ]
+    if rf.degradation is not None:
+        parts += [
+            "<h2>Faults: degradation against the fault-free twin</h2>",
+            html_table(DEGRADATION_HEADER, degradation_rows(rf), "degradation"),
+            f'<p class="caption">{html.escape(degradation_caption(rf))}</p>',
         ]
     if rf.beliefs is not None:
         b_header, b_rows = belief_rows(rf.beliefs)
@@ -637,6 +706,15 @@ def render_markdown(rf: RunFiles, sections: list[Section], report_seconds: float
             markdown_table(m_header, m_rows),
             "",
             md_escape(_monitoring_caption(rf)),
+            "",
+        ]
+    if rf.degradation is not None:
+        lines += [
+            "## Faults: degradation against the fault-free twin",
+            "",
+            markdown_table(DEGRADATION_HEADER, degradation_rows(rf)),
+            "",
+            md_escape(degradation_caption(rf)),
             "",
         ]
     if rf.beliefs is not None:

@@ -546,3 +546,44 @@ def figure_mfd(rf: RunFiles) -> tuple[Figure, str]:
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="upper right")
     return fig, note
+
+
+def figure_surviving_paths(rf: RunFiles, trail: int = 60) -> Figure:
+    """The live drones' paths over the first ``trail`` steps of each phase with drones lost
+    (run.json ``faults``), one row per swarm and one column per phase, over ``T^k`` at the
+    phase's first step; a lost drone is a grey cross where it stands."""
+    plan = rf.faults
+    live = rf.live()
+    horizon = len(live) - 1
+    phases = [p for p in plan.phases(horizon, live.shape[1]) if not live[p[0]].all()]
+    swarms = rf.swarms
+    fig = Figure(figsize=(3.6 * len(phases) + 1.2, 2.9 * len(swarms) + 0.8), layout="constrained")
+    axes = fig.subplots(len(swarms), len(phases), squeeze=False)
+    colours = drone_colours(live.shape[1])
+    image = None
+    for col, (a, b, label) in enumerate(phases):
+        stop = min(b, a + trail, horizon)
+        alive = np.flatnonzero(live[a])
+        for row, swarm in enumerate(swarms):
+            ax = axes[row][col]
+            pos = rf.positions(swarm)
+            image = draw_map(ax, rf.importance[a], rf.obstacles, "viridis", rf.importance_vmax)
+            path = pos[a : stop + 1][:, alive]
+            segments = np.transpose(path[:, :, ::-1], (1, 0, 2)).astype(float)
+            live_colours = [colours[d] for d in alive]
+            ax.add_collection(
+                LineCollection(segments, colors=live_colours, linewidths=1.4, alpha=0.9),
+                autolim=False,
+            )
+            ax.scatter(path[-1, :, 1], path[-1, :, 0], c=live_colours, edgecolors="white", s=40,
+                       zorder=3)  # fmt: skip
+            lost = pos[a][~live[a]]
+            ax.scatter(lost[:, 1], lost[:, 0], marker="x", c="0.6", s=60, linewidths=2, zorder=4)
+            ax.set_title(f"{swarm}, {label}: k = {a}..{stop}", fontsize=8)
+    fig.colorbar(image, ax=axes.ravel().tolist(), shrink=0.6, label=importance_label(rf))
+    fig.suptitle(
+        f"Surviving drones' paths, first {trail} steps of each phase with drones lost "
+        f"(crosses: lost drones; seed {rf.first_seed})",
+        fontsize=11,
+    )
+    return fig

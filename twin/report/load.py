@@ -66,6 +66,7 @@ class RunFiles:
     events: pd.DataFrame | None = None  # events.parquet
     incidents: list[dict[str, Any]] | None = None  # incidents.json (scheduled SUMO incidents)
     timing: pd.DataFrame | None = None  # timing.csv (wall time per stage)
+    degradation: pd.DataFrame | None = None  # degradation.csv (runs with [faults])
     manifest: dict[str, Any] = field(default_factory=dict)  # manifest.json
     _idleness: dict[tuple[int, str], np.ndarray] = field(default_factory=dict, repr=False)
 
@@ -141,6 +142,22 @@ class RunFiles:
         n_drones = int(rows["drone"].max()) + 1
         return rows[["i", "j"]].to_numpy(dtype=np.int64).reshape(n_steps, n_drones, 2)
 
+    @property
+    def faults(self):
+        """The run's :class:`twin.faults.FaultPlan` (run.json ``faults``), None without."""
+        from twin.faults import FaultPlan
+
+        return FaultPlan.from_record(self.run.get("faults"))
+
+    def live(self, seed: int | None = None) -> np.ndarray | None:
+        """``(T+1, N)`` bool: the drones live at each step under the run's faults (None
+        without drone losses)."""
+        plan = self.faults
+        if plan is None or not plan.drone_loss:
+            return None
+        pos = self.positions(self.swarms[0], seed)
+        return plan.live_steps(len(pos), pos.shape[1])
+
     def score_params(self) -> tuple[ScoreParams, str]:
         """The run's ``eta``/``delta`` and where they came from (run.json, or the defaults)."""
         for where in (("params",), ("score_params",), ("config", "params"), ("config", "score")):
@@ -165,10 +182,13 @@ class RunFiles:
         if key not in self._idleness:
             params, _ = self.score_params()
             grid, pos = self.grid, self.positions(swarm, seed)
+            plan = self.faults
+            recorded = None if plan is None else plan.recorded(seed, len(pos), pos.shape[1])
             maps = np.empty((len(pos), *grid.shape))
             maps[0] = initial_idleness(grid)
             for k in range(1, len(pos)):
-                maps[k] = update_idleness(maps[k - 1], pos[k], grid, params.eta, params.delta)
+                visits = pos[k] if recorded is None else pos[k][recorded[k, :, 0]]
+                maps[k] = update_idleness(maps[k - 1], visits, grid, params.eta, params.delta)
             self._idleness[key] = maps
         return self._idleness[key]
 
@@ -251,6 +271,10 @@ def load_run(run_dir: str | Path) -> RunFiles:
     events = optional("events.parquet", EVENT_COLUMNS)
     beliefs = optional("belief_models.csv", {"swarm": TEXT, "model": TEXT}, ("swarm", "model"))
     timing = optional("timing.csv", TIMING_COLUMNS)
+    degradation = optional(
+        "degradation.csv", {"seed": INT, "swarm": TEXT, "phase": INT, "label": TEXT},
+        ("swarm", "label"),
+    )  # fmt: skip
     if timing is not None:
         for name, kind in (("process", TEXT), ("share", NUMBER)):
             if name in timing.columns:
@@ -285,6 +309,7 @@ def load_run(run_dir: str | Path) -> RunFiles:
         events=events,
         incidents=incidents,
         timing=timing,
+        degradation=degradation,
         manifest=manifest,
     )
 
