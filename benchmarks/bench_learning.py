@@ -7,7 +7,7 @@ call; the medians of the per-call times are reported):
 
 - ``plain``: a reference update as a single-file DQN writes it: every gradient step computes
   its Double DQN target, default ``torch.optim.Adam``, no tricks;
-- ``ours``: :func:`twin.learning.pretrain.train_epoch` (fused Adam; the target once per epoch),
+- ``ours``: :func:`twin.training.pretrain.train_epoch` (fused Adam; the target once per epoch),
   for the shipped schedule (N_iter = 1) and the paper's (N_iter = 30);
 - ``own shapes``: the matmuls the update itself needs, timed as plain ``torch.mm`` calls of
   the same shapes on random data: for each layer ``n_in -> n_out`` at batch 32 the forward
@@ -46,9 +46,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from twin.learning.pretrain import flush_subnormals, make_optimizer, train_epoch
 from twin.learning.qnet import TABLE1_LAYERS, QNetwork, masked_argmax
 from twin.learning.replay import ReplayBuffer
+from twin.training.pretrain import flush_subnormals, make_optimizer, train_epoch
 
 BATCH = 32
 PAPER_UPDATES = 30000 * 30

@@ -9,9 +9,9 @@ from pathlib import Path
 
 import pytest
 
-import twin.learning.pretrain
 import twin.sumo.scenario
 import twin.sweep
+import twin.training.pretrain
 from twin.cli import main
 from twin.config import load_config
 
@@ -328,7 +328,7 @@ def test_bad_pretrain(tmp_path, capsys, monkeypatch, section, key, value):
     def no_training(*args, **kwargs):
         raise AssertionError("a bad config trained")
 
-    monkeypatch.setattr(twin.learning.pretrain, "pretrain", no_training)
+    monkeypatch.setattr(twin.training.pretrain, "pretrain", no_training)
     path = tmp_path / "bad.toml"
     path.write_text(toml_text(PRETRAIN, section, key, value))
     _one_line(capsys, main(["pretrain", "--config", str(path), "--quiet"]), path, key)
@@ -336,8 +336,8 @@ def test_bad_pretrain(tmp_path, capsys, monkeypatch, section, key, value):
 
 def test_bases_are_valid(tmp_path, monkeypatch):
     """The table's base files pass: each case fails because of its one change."""
-    from twin.learning.pretrain import load_config as load_pretrain
     from twin.sweep import load_sweep_config
+    from twin.training.pretrain import load_config as load_pretrain
 
     for name, base in (("syn.toml", SYNTHETIC), ("sumo.toml", SUMO)):
         (tmp_path / name).write_text(toml_text(base, "grid", "nx", base["grid"]["nx"]))

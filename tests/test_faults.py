@@ -144,8 +144,8 @@ def test_diverging_pretraining_stops_with_one_line_and_writes_no_model(tmp_path:
 def test_divergence_keeps_the_last_good_checkpoint(tmp_path: Path, monkeypatch) -> None:
     torch = pytest.importorskip("torch")
     from twin.errors import UserError
-    from twin.learning import pretrain as pt
     from twin.learning.checkpoint import read_checkpoint
+    from twin.training import pretrain as pt
 
     path = tmp_path / "tiny.toml"
     path.write_text(TINY_PRETRAIN.format(epochs=10))

@@ -157,16 +157,17 @@ LAYERS: list[tuple[str, list[str]]] = [
     ("traffic kinds", ["twin.traffic_kinds"]),
     ("the experiment runner", ["twin.experiment"]),
     ("the run folder", ["twin.runs"]),
-    ("training", ["twin.env", "twin.learning.pretrain", "twin.learning.curve"]),
+    ("training", ["twin.env", "twin.training", "twin.training."]),
     ("report", ["twin.report", "twin.report."]),
     ("sweep", ["twin.sweep", "twin.sweep."]),
     ("transfer experiments", ["twin.transfer", "twin.transfer."]),
     ("command line", ["twin.cli", "twin.cli.", "twin.__main__"]),
 ]
 
-#: The simulator's packages, imported only under twin/sumo/, and torch, only under twin/learning/.
+#: The simulator's packages, imported only under twin/sumo/, and torch, only under twin/learning/
+#: and twin/training/.
 SIMULATOR = {"libsumo", "sumolib", "traci"}
-HEAVY = {"twin.sumo.": SIMULATOR, "twin.learning.": {"torch"}}
+HEAVY = {"twin.sumo.": SIMULATOR, "twin.learning.": {"torch"}, "twin.training.": {"torch"}}
 
 
 def layer_of(module: str, layers=LAYERS) -> int | None:

@@ -13,8 +13,8 @@ import pytest
 import torch
 
 from twin.errors import UserError
-from twin.learning.pretrain import double_dqn_target, load_config, pretrain
 from twin.learning.qnet import QNetwork
+from twin.training.pretrain import double_dqn_target, load_config, pretrain
 
 TINY = """
 layers = [13, 16, 5]
@@ -212,7 +212,7 @@ def test_out_with_a_checkpoint_of_other_settings_is_refused_before_collecting(tm
 
 def test_a_damaged_log_row_is_one_line_naming_the_file(tmp_path):
     from twin.errors import UserError
-    from twin.learning.pretrain import _truncate_log
+    from twin.training.pretrain import _truncate_log
 
     log = tmp_path / "train_log.csv"
     log.write_text("epoch,updates,loss\n1000,1000,0.02\ngarbage,,,\n")
@@ -229,7 +229,7 @@ def test_recipes_collect_on_their_traffic_and_record_curve_and_provenance(tmp_pa
 
     from helpers import random_tape
 
-    from twin.learning.pretrain import collect_buffer
+    from twin.training.pretrain import collect_buffer
 
     tape_a, tape_b = tmp_path / "a.parquet", tmp_path / "b.parquet"
     random_tape(seed=1, nx=6, ny=6, horizon=30).write(tape_a)

@@ -42,14 +42,14 @@ def main(args: argparse.Namespace) -> int:
     from twin.boundary import hold_notices, release_notices, set_run_folder
     from twin.cli import check_count
     from twin.config import shipped_config
-    from twin.learning.pretrain import (
+    from twin.outputs import check_output_dir
+    from twin.training.pretrain import (
         PretrainConfig,
         check_out_folder,
         check_pretrain_memory,
         load_config,
         pretrain,
     )
-    from twin.outputs import check_output_dir
 
     if args.help_config:
         for name, f in PretrainConfig.model_fields.items():

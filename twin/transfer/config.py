@@ -245,7 +245,7 @@ ROW_KEYS = ("out", "traffic", "tapes", "init")
 
 
 def _check_schedule(schedule: dict[str, Any], where: str) -> dict[str, Any]:
-    from twin.learning.pretrain import PretrainConfig
+    from twin.training.pretrain import PretrainConfig
 
     for key in schedule:
         if key in ROW_KEYS:

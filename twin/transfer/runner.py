@@ -129,7 +129,7 @@ def row_pretrain_config(config: TransferConfig, row, out: Path, checkpoints: dic
     from pydantic import ValidationError
 
     from twin.config import validation_error
-    from twin.learning.pretrain import PretrainConfig
+    from twin.training.pretrain import PretrainConfig
 
     raw = {**config.schedule, **row.schedule, "traffic": row.traffic, "out": str(out)}
     if row.traffic == "tapes":
@@ -147,7 +147,7 @@ def row_pretrain_config(config: TransferConfig, row, out: Path, checkpoints: dic
 def train_row(task: dict[str, Any]) -> dict[str, Any]:
     """Train one row (a worker task), or reuse its folder when its provenance matches."""
     from twin.experiment import limit_threads
-    from twin.learning.pretrain import PretrainConfig, pretrain
+    from twin.training.pretrain import PretrainConfig, pretrain
 
     limit_threads()
     cfg = PretrainConfig.model_validate(task["pretrain"])
@@ -159,7 +159,7 @@ def train_row(task: dict[str, Any]) -> dict[str, Any]:
 
 def provenance_matches(out: Path, cfg) -> bool:
     """Whether ``out`` holds a finished model whose provenance records ``cfg``'s settings."""
-    from twin.learning.pretrain import file_sha256
+    from twin.training.pretrain import file_sha256
 
     path, model = out / "provenance.json", out / "qnet.pt"
     if not (path.is_file() and model.is_file()):
@@ -179,7 +179,7 @@ def loaded_provenance(row, out: Path) -> dict[str, Any]:
     """``provenance.json`` of a row loaded from a checkpoint: what the checkpoint says of its
     training (its own recipe, epochs, wall time), its hash and path."""
     from twin.learning.checkpoint import read_checkpoint
-    from twin.learning.pretrain import SCHEDULE_KEYS, file_sha256
+    from twin.training.pretrain import SCHEDULE_KEYS, file_sha256
 
     meta = read_checkpoint(row.checkpoint)["meta"]
     config = meta.get("config") if isinstance(meta.get("config"), dict) else {}

@@ -1,6 +1,6 @@
 """R_hat_T against training epochs: evaluate a folder of weight snapshots on a scenario.
 
-``python -m twin.learning.curve runs/pretrain/snapshots --config configs/synthetic.toml``
+``python -m twin.training.curve runs/pretrain/snapshots --config configs/synthetic.toml``
 runs, for every snapshot and seed, the "rl" swarm beside the comparison swarms (greedy by
 default) on the same traffic, and writes one row per (snapshot, seed, swarm) to a CSV plus a
 printed summary (mean and 95% half-width over seeds). This is how the pretraining schedule of
@@ -44,7 +44,7 @@ def evaluate_snapshots(snapshots, config_path, seeds, first_seed=0, others=("gre
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m twin.learning.curve", description=__doc__)
+    p = argparse.ArgumentParser(prog="python -m twin.training.curve", description=__doc__)
     p.add_argument("snapshots", type=Path, nargs="+", help="snapshot files or folders of them")
     p.add_argument(
         "--config", default="synthetic", help="scenario config (default: shipped synthetic)"
