@@ -81,7 +81,8 @@ def section(name: str, run_dir: Path) -> str:
         f"## {SECTIONS[name]}",
         "",
         "```bash",
-        re.sub(r" --out \S+", "", meta["command"]),  # where it was written is not the recipe
+        # where it was written and what it printed are not the recipe
+        re.sub(r" --out \S+| --quiet| --no-report", "", meta["command"]),
         "```",
         "",
         f"Seeds {seeds[0]}-{seeds[-1]} ({len(seeds)}); {meta.get('horizon')} steps; "
