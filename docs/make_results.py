@@ -22,6 +22,9 @@ import pandas as pd
 from twin.metrics import paired_difference
 from twin.swarms import is_learned
 
+#: the repository: a config given by its absolute path is shown relative to it
+ROOT = Path(__file__).resolve().parents[1]
+
 #: (column, header, decimals, with interval) of the results tables.
 COLUMNS = (
     ("R_hat_T", "R_hat_T", 3, True),
@@ -82,7 +85,7 @@ def section(name: str, run_dir: Path) -> str:
         "",
         "```bash",
         # where it was written and what it printed are not the recipe
-        re.sub(r" --out \S+| --quiet| --no-report", "", meta["command"]),
+        re.sub(r" --out \S+| --quiet| --no-report", "", meta["command"]).replace(f"{ROOT}/", ""),
         "```",
         "",
         f"Seeds {seeds[0]}-{seeds[-1]} ({len(seeds)}); {meta.get('horizon')} steps; "
