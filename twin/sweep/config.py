@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Annotated, Any
 
 from pydantic import (
+    AfterValidator,
     BeforeValidator,
     Field,
     PrivateAttr,
@@ -47,6 +48,24 @@ def _relative(value: Any, info: ValidationInfo) -> Any:
 
 
 RelPath = Annotated[Path, BeforeValidator(_relative)]
+
+
+def _existing(path: Path) -> Path:
+    if not path.is_file():
+        raise ValueError(f"names {path}, which does not exist; fix the path")
+    return path
+
+
+def _dotted_keys(overrides: dict[str, Any]) -> dict[str, Any]:
+    for key in overrides:
+        check_dotted(key)
+    return overrides
+
+
+#: a scenario config file, relative to the sweep's (or transfer's) config, that exists
+ScenarioFile = Annotated[RelPath, AfterValidator(_existing)]
+#: dotted-key overrides of a scenario config (``{"swarm.n_drones": 2}``)
+Overrides = Annotated[dict[str, Any], AfterValidator(_dotted_keys)]
 
 
 class SweepSection(StrictModel):
@@ -100,28 +119,14 @@ class ScenarioSpec(StrictModel):
     """One scenario of a sweep: a scenario config file and overrides of its keys."""
 
     name: str
-    config: RelPath
-    overrides: dict[str, Any] = Field(default_factory=dict)
+    config: ScenarioFile
+    overrides: Overrides = Field(default_factory=dict)
     tape: RelPath | None = None  # replay a recorded traffic tape instead of the config's traffic
 
     @field_validator("name")
     @classmethod
     def _name(cls, value: str) -> str:
         return check_name(value)
-
-    @field_validator("config")
-    @classmethod
-    def _config(cls, path: Path) -> Path:
-        if not path.is_file():
-            raise ValueError(f"names {path}, which does not exist; fix the path")
-        return path
-
-    @field_validator("overrides")
-    @classmethod
-    def _overrides(cls, overrides: dict[str, Any]) -> dict[str, Any]:
-        for key in overrides:
-            check_dotted(key)
-        return overrides
 
 
 def _same_value(value: Any) -> Any:
