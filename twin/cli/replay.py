@@ -249,7 +249,7 @@ def check_input_files(run_dir: Path, recorded, source) -> None:
     file recorded under another name (another folder) must have the sha256 of one the run
     recorded in the same role. A run that records no file hashes (an older run), or none in a
     role, is not checked."""
-    from twin.sumo.source import file_sha256
+    from twin.files import file_sha256
 
     if recorded is None:
         return

@@ -27,6 +27,7 @@ import torch
 
 from twin.coordinator import coordinate
 from twin.errors import UserError
+from twin.files import file_sha256
 from twin.grid import Grid
 from twin.idleness_maps import OwnMaps, SwarmMaps, parse_outages
 from twin.learning.checkpoint import default_checkpoint, load_qnet
@@ -39,14 +40,6 @@ from twin.scores import assemble_states, directional_means, drone_states
 @lru_cache(maxsize=4)
 def _cached_qnet(path: str, mtime: float) -> tuple[QNetwork, dict]:
     return load_qnet(path)
-
-
-@lru_cache(maxsize=8)
-def _file_sha256(path: str, mtime: float) -> str:
-    import hashlib
-
-    with open(path, "rb") as f:
-        return hashlib.sha256(f.read()).hexdigest()
 
 
 def shared_qnet(checkpoint: str | Path | None) -> tuple[QNetwork, dict]:
@@ -116,7 +109,7 @@ class RLPolicy(Policy):
         path = Path(self.checkpoint) if self.checkpoint is not None else default_checkpoint()
         return {
             "checkpoint": str(path),
-            "sha256": _file_sha256(str(path.resolve()), path.stat().st_mtime),
+            "sha256": file_sha256(path.resolve()),
             "trained_epochs": self.meta.get("epoch"),
             "layers": self.meta.get("layers"),
             "coordination": "decentralized" if self.decentralized else "central",

@@ -26,6 +26,7 @@ import numpy as np
 
 from twin.clock import clock_label
 from twin.errors import UserError
+from twin.files import file_sha256
 from twin.grid import Grid
 from twin.mfd import MFD, MFDImportance
 from twin.sumo.cells import CellGeometry
@@ -466,25 +467,6 @@ class SumoTraffic(TrafficSource):
 #: Columns of ``detectors.parquet``.
 DETECTOR_COLUMNS = ["seed", "step", "detector", "kind", "virtual", "lane", "i", "j", "vehicles",
                     "occupancy_pct", "speed", "importance"]  # fmt: skip
-
-_HASHES: dict[tuple[str, int, int], str] = {}
-
-
-def file_sha256(path: Path) -> str:
-    """The sha256 of a file, read in blocks; remembered per path, size and modification time
-    (a run's seeds hash each input once)."""
-    import hashlib
-    import os
-
-    st = os.stat(path)
-    key = (os.path.abspath(path), st.st_size, st.st_mtime_ns)
-    if key not in _HASHES:
-        h = hashlib.sha256()
-        with open(path, "rb") as fh:
-            for block in iter(lambda: fh.read(1 << 20), b""):
-                h.update(block)
-        _HASHES[key] = h.hexdigest()
-    return _HASHES[key]
 
 
 def _remove(folder: Path | None) -> None:

@@ -19,7 +19,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from twin.files import atomic_write
+from twin.files import atomic_write, file_sha256
 from twin.sweep.config import SweepConfig
 from twin.sweep.store import CELLS_DIR, write_cell_record
 
@@ -36,14 +36,6 @@ def parameter_combinations(parameters: dict[str, list[Any]]) -> list[dict[str, A
 DEFINING_KEYS = (
     "scenario", "config", "overrides", "tape", "seed", "swarms", "swarm_options", "checkpoints",
 )  # fmt: skip
-
-
-def file_sha256(path: str | Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def cell_id(cell: dict[str, Any]) -> str:

@@ -27,6 +27,7 @@ from pydantic import Field, ValidationError, ValidationInfo, field_validator, mo
 
 from twin.config import DisturbanceConfig, StrictModel, read_toml, validation_error
 from twin.errors import UserError
+from twin.files import file_sha256
 from twin.grid import Grid
 from twin.learning.checkpoint import atomic_save, model_metadata, read_checkpoint, save_model
 from twin.learning.data import random_swarm_episode
@@ -336,14 +337,6 @@ def collect_buffer(cfg: PretrainConfig, progress: bool = False) -> ReplayBuffer:
         ep = random_swarm_episode(sources[e], cfg.n_drones, params, rng)
         buffer.add_steps(ep.states, ep.actions, ep.rewards, ep.next_states, ep.next_feasible)
     return buffer
-
-
-def file_sha256(path: str | Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def buffer_digest(buffer: ReplayBuffer) -> str:

@@ -159,7 +159,7 @@ def train_row(task: dict[str, Any]) -> dict[str, Any]:
 
 def provenance_matches(out: Path, cfg) -> bool:
     """Whether ``out`` holds a finished model whose provenance records ``cfg``'s settings."""
-    from twin.training.pretrain import file_sha256
+    from twin.files import file_sha256
 
     path, model = out / "provenance.json", out / "qnet.pt"
     if not (path.is_file() and model.is_file()):
@@ -178,8 +178,9 @@ def provenance_matches(out: Path, cfg) -> bool:
 def loaded_provenance(row, out: Path) -> dict[str, Any]:
     """``provenance.json`` of a row loaded from a checkpoint: what the checkpoint says of its
     training (its own recipe, epochs, wall time), its hash and path."""
+    from twin.files import file_sha256
     from twin.learning.checkpoint import read_checkpoint
-    from twin.training.pretrain import SCHEDULE_KEYS, file_sha256
+    from twin.training.pretrain import SCHEDULE_KEYS
 
     meta = read_checkpoint(row.checkpoint)["meta"]
     config = meta.get("config") if isinstance(meta.get("config"), dict) else {}
