@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SCHEDULE = """
 [schedule]
 episodes = 1
-horizon = 40
+scenario_overrides = { "traffic.horizon" = 40 }
 epochs = 12
 target_update_epochs = 4
 log_every = 4

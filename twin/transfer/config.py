@@ -21,9 +21,16 @@ from pydantic import (
     model_validator,
 )
 
-from twin.config import StrictModel, check_name, read_toml, validation_error
+from twin.config import (
+    Overrides,
+    RelPath,
+    ScenarioFile,
+    StrictModel,
+    check_name,
+    read_toml,
+    validation_error,
+)
 from twin.errors import UserError
-from twin.sweep.config import Overrides, RelPath, ScenarioFile
 
 #: Seeds that evaluation uses; tapes and validation curves must stay off them.
 EVALUATION_SEEDS = range(0, 10)
@@ -217,11 +224,16 @@ ROW_KEYS = ("out", "traffic", "tapes", "init")
 
 
 def _check_schedule(schedule: dict[str, Any], where: str) -> dict[str, Any]:
-    from twin.training.pretrain import PretrainConfig
+    from twin.training.pretrain import SCENARIO_KEYS, PretrainConfig
 
     for key in schedule:
         if key in ROW_KEYS:
             raise ValueError(f"{where}.{key}: set per row ([[row]] traffic, init), not here")
+        if key in SCENARIO_KEYS:
+            raise ValueError(
+                f"{where}.{key} is the scenario's {SCENARIO_KEYS[key]} now; set it as "
+                f'scenario_overrides = {{ "{SCENARIO_KEYS[key]}" = ... }}'
+            )
         if key not in PretrainConfig.model_fields:
             raise ValueError(
                 f"{where}.{key} is not a pretraining key; see `twin pretrain --help-config`"
