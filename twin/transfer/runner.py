@@ -130,11 +130,11 @@ def row_pretrain_config(config: TransferConfig, row, out: Path, checkpoints: dic
     by its key in the transfer config; paths relative to the transfer config."""
     from twin.config import with_overrides
     from twin.training.pretrain import PretrainConfig
+    from twin.transfer.config import row_schedule
 
     where = f"{config.path}: [[row]] {row.name}"
-    overrides = {**config.schedule, **row.schedule, "traffic": row.traffic, "out": str(out)}
-    labels = {k: f"{config.path}: [schedule].{k}" for k in config.schedule}
-    labels |= {k: f"{where}.schedule.{k}" for k in row.schedule}
+    overrides, labels = row_schedule(config, row)
+    overrides |= {"traffic": row.traffic, "out": str(out)}
     labels |= {"traffic": f"{where}.traffic", "out": f"{where} (its folder {out})"}
     if row.traffic == "tapes":
         overrides["tapes"] = [t["path"] for t in tape_tasks(config, out.parents[1])]
