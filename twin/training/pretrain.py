@@ -1,6 +1,8 @@
 """Pretraining of the universal Q-function (Sec. III-A), one file read top to bottom.
 
 1. hyper-parameters: :class:`PretrainConfig`, every one named once with its default and help;
+   the training map, the swarm and the reward's weights are a scenario config's
+   (``configs/training-map.toml`` by default);
 2. data: episodes of a randomly moving swarm on the training map (:mod:`twin.learning.data`),
    pooled into one replay buffer;
 3. network: the Table 1 MLP and its target copy;
