@@ -295,7 +295,7 @@ CASES = {
     ),
     "pretrain out empty": (
         lambda t: ["pretrain", "--out", "", "--epochs", "1"],
-        "--out '': string should have at least 1 character",
+        "--out = '': string should have at least 1 character",
     ),
     "z_lo above every z of the map": (
         lambda t: ["evaluate", "--config", str(_edited_config(t, "z_lo = 0.0", "z_lo = 5.0"))],

@@ -71,18 +71,7 @@ PRETRAIN = {
     "": {
         "seed": "0",
         "out": '"runs/x"',
-        "nx": "6",
-        "ny": "8",
-        "horizon": "5",
-        "beta1": "0.7",
-        "beta2": "5.0",
-        "disturbances": '[{ kind = "big", i = 2, j = 2, amplitude = 1.0, sigma = 2.0 }]',
-        "n_drones": "2",
         "episodes": "1",
-        "eta": "0.1",
-        "delta": "0.025",
-        "alpha_T": "1.0",
-        "alpha_I": "0.5",
         "layers": "[13, 8, 5]",
         "epochs": "1",
         "iters_per_epoch": "1",
@@ -296,18 +285,9 @@ def test_sweep_sections_are_required(tmp_path, capsys, missing):
 PRETRAIN_BAD = {
     ("", "seed"): [*WHOLE, "-1"],
     ("", "out"): ["3", '""'],
-    ("", "nx"): [*WHOLE, "0"],
-    ("", "ny"): ["0"],
-    ("", "horizon"): [*WHOLE, "0"],
-    ("", "beta1"): [*NUMBER, "0"],
-    ("", "beta2"): [*NUMBER, "-1.0"],
-    ("", "disturbances"): ["3", '[{ kind = "x" }]', "[{ sigma = nan }]", "[{ i = inf }]"],
-    ("", "n_drones"): [*WHOLE, "0"],
     ("", "episodes"): ["0", '"1"'],
-    ("", "eta"): [*NUMBER, "0", "1"],
-    ("", "delta"): [*NUMBER, "1.5"],
-    ("", "alpha_T"): [*NUMBER, "-1.0"],
-    ("", "alpha_I"): [*NUMBER, "-0.5"],
+    ("", "scenario"): ["3", '"nowhere.toml"', '""'],
+    ("", "scenario_overrides"): ["3", "{ nx = 6 }", '{ "grid" = 6 }'],
     ("", "layers"): ["[12, 5]", "[13, 0, 5]", '"x"', "[13, 8.5, 5]"],
     ("", "epochs"): [*WHOLE, '"many"', "0"],
     ("", "iters_per_epoch"): ["0", "1.5"],
@@ -334,6 +314,66 @@ def test_bad_pretrain(tmp_path, capsys, monkeypatch, section, key, value):
     _one_line(capsys, main(["pretrain", "--config", str(path), "--quiet"]), path, key)
 
 
+#: The scenario's keys that a pretraining config sets through scenario_overrides.
+PRETRAIN_SCENARIO = {
+    "grid.nx": "6",
+    "grid.ny": "8",
+    "traffic.horizon": "5",
+    "traffic.beta1": "0.7",
+    "traffic.beta2": "5.0",
+    "traffic.disturbances": '[{ kind = "big", i = 2, j = 2, amplitude = 1.0, sigma = 2.0 }]',
+    "swarm.n_drones": "2",
+    "swarm.eta": "0.1",
+    "swarm.delta": "0.025",
+    "swarm.alpha_T": "1.0",
+    "swarm.alpha_I": "0.5",
+}
+PRETRAIN_SCENARIO_BAD = {
+    "grid.nx": [*WHOLE, "0"],
+    "grid.ny": ["0"],
+    "traffic.horizon": [*WHOLE, "0"],
+    "traffic.beta1": [*NUMBER, "0"],
+    "traffic.beta2": [*NUMBER, "-1.0"],
+    "traffic.disturbances": ["3", '[{ kind = "x" }]', "[{ sigma = nan }]", "[{ i = inf }]"],
+    "swarm.n_drones": [*WHOLE, "0", "49"],
+    "swarm.eta": [*NUMBER, "0", "1"],
+    "swarm.delta": [*NUMBER, "1.5"],
+    "swarm.alpha_T": [*NUMBER, "-1.0"],
+    "swarm.alpha_I": [*NUMBER, "-0.5"],
+    "grid.colour": ["1"],
+}
+
+
+def pretrain_text(key: str | None = None, value: str | None = None) -> str:
+    """The pretraining base with ``scenario_overrides`` of the scenario's keys (``key`` set to
+    ``value``)."""
+    table = {**PRETRAIN_SCENARIO, **({key: value} if key else {})}
+    inline = ", ".join(f'"{k}" = {v}' for k, v in table.items())
+    return toml_text(PRETRAIN, "", "scenario_overrides", f"{{ {inline} }}")
+
+
+@pytest.mark.parametrize(
+    ("key", "value"),
+    [pytest.param(k, v, id=f"{k}={v}") for k, vs in PRETRAIN_SCENARIO_BAD.items() for v in vs],
+)
+def test_bad_pretrain_scenario_override(tmp_path, capsys, monkeypatch, key, value):
+    """A bad value of the scenario's key in a pretraining config: one line naming the
+    pretraining file and the override, not the scenario file."""
+    monkeypatch.setattr(twin.training.pretrain, "pretrain", None)
+    path = tmp_path / "bad.toml"
+    path.write_text(pretrain_text(key, value))
+    code = main(["pretrain", "--config", str(path), "--quiet"])
+    _one_line(capsys, code, path, f"scenario_overrides {key!r}")
+
+
+@pytest.mark.parametrize(("old", "new"), list(twin.training.pretrain.SCENARIO_KEYS.items()))
+def test_a_pretraining_key_now_the_scenarios_names_its_new_key(tmp_path, capsys, old, new):
+    path = tmp_path / "old.toml"
+    path.write_text(toml_text(PRETRAIN, "", old, "6"))
+    code = main(["pretrain", "--config", str(path), "--quiet"])
+    _one_line(capsys, code, path, f'scenario_overrides = {{ "{new}" = 6 }}')
+
+
 def test_bases_are_valid(tmp_path, monkeypatch):
     """The table's base files pass: each case fails because of its one change."""
     from twin.sweep import load_sweep_config
@@ -345,8 +385,8 @@ def test_bases_are_valid(tmp_path, monkeypatch):
     (tmp_path / "scenario.toml").write_text(toml_text(SYNTHETIC, "grid", "nx", "6"))
     (tmp_path / "sweep.toml").write_text(toml_text(SWEEP, "sweep", "seed", "0"))
     load_sweep_config(tmp_path / "sweep.toml")
-    (tmp_path / "pre.toml").write_text(toml_text(PRETRAIN, "", "seed", "0"))
-    load_pretrain(tmp_path / "pre.toml")
+    (tmp_path / "pre.toml").write_text(pretrain_text())
+    assert load_pretrain(tmp_path / "pre.toml").training_map.grid.nx == 6
 
 
 def _one_line(capsys, code: int, path: Path, needle: str) -> None:

@@ -112,23 +112,21 @@ def test_sweep_workers_exit_when_the_sweep_is_killed(tmp_path: Path) -> None:
 # ----------------------------------------------------------------------------- pretraining
 TINY_PRETRAIN = """
 layers = [13, 16, 5]
-nx = 6
-ny = 6
-horizon = 50
 episodes = 2
 epochs = {epochs}
 iters_per_epoch = 2
 batch_size = 16
 log_every = 5
 checkpoint_every = 5
-disturbances = [{{kind = "big", i = 2, j = 2, amplitude = 1.0, sigma = 2.0}}]
+scenario_overrides = {{ "grid.nx" = 6, "grid.ny" = 6, "traffic.horizon" = 50, \
+"traffic.disturbances" = [{{kind = "big", i = 2, j = 2, amplitude = 1.0, sigma = 2.0}}]{extra} }}
 """
 
 
 def test_diverging_pretraining_stops_with_one_line_and_writes_no_model(tmp_path: Path) -> None:
     # rewards of 1e30 square to inf in float32: the first loss is not finite
     path = tmp_path / "diverge.toml"
-    path.write_text(TINY_PRETRAIN.format(epochs=40) + "alpha_T = 1e30\n")
+    path.write_text(TINY_PRETRAIN.format(epochs=40, extra=', "swarm.alpha_T" = 1e30'))
     out = tmp_path / "out"
     proc = subprocess.run(
         [sys.executable, "-m", "twin", "pretrain", "--config", str(path), "--out", str(out),
@@ -148,7 +146,7 @@ def test_divergence_keeps_the_last_good_checkpoint(tmp_path: Path, monkeypatch) 
     from twin.training import pretrain as pt
 
     path = tmp_path / "tiny.toml"
-    path.write_text(TINY_PRETRAIN.format(epochs=10))
+    path.write_text(TINY_PRETRAIN.format(epochs=10, extra=""))
     out = tmp_path / "out"
     pt.pretrain(pt.load_config(path, out=str(out)), progress=False)
     before = {name: (out / name).read_bytes() for name in ("state.pt", "qnet.pt")}

@@ -2,6 +2,7 @@
 
 import csv
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -18,7 +19,7 @@ from twin.training.pretrain import double_dqn_target, load_config, pretrain
 
 TINY = """
 layers = [13, 16, 5]
-horizon = 60
+scenario_overrides = {{ "traffic.horizon" = 60 }}
 episodes = 2
 epochs = {epochs}
 iters_per_epoch = 2
@@ -26,6 +27,13 @@ target_update_epochs = 5
 log_every = 5
 checkpoint_every = {every}
 """
+
+
+def _grid(nx, ny, n_drones=4):
+    return (
+        f'scenario_overrides = {{ "grid.nx" = {nx}, "grid.ny" = {ny}, '
+        f'"swarm.n_drones" = {n_drones} }}'
+    )
 
 
 def _config(tmp_path, epochs=40, every=10, name="tiny.toml", out="out"):
@@ -150,10 +158,10 @@ def _run_cli(argv, capsys):
         ("layers = [13, 100000000, 5]", "lower batch_size or layers"),
         ("layers = [13, 20000, 20000, 5]", "(network: "),
         ("batch_size = 100000000000", "lower batch_size"),
-        ("episodes = 100000000", "lower episodes, horizon or n_drones"),
-        ("nx = 100000\nny = 100000", "nx, ny"),
-        ("nx = 3000\nny = 3000", "lower nx, ny"),
-        ("n_drones = 1000\nnx = 10\nny = 10", "n_drones = 1000 do not fit on the 10 x 10"),
+        ("episodes = 100000000", "lower episodes, traffic.horizon or swarm.n_drones"),
+        (_grid(100000, 100000), "scenario_overrides 'grid.nx': a 100000 x 100000 grid"),
+        (_grid(3000, 3000), "lower grid.nx, grid.ny"),
+        (_grid(10, 10, n_drones=1000), "'swarm.n_drones' 1000 exceeds the 100 free cells"),
     ],
 )
 def test_pretraining_past_memory_or_map_is_refused(tmp_path, capsys, text, words):
@@ -288,3 +296,111 @@ def test_init_of_other_layers_is_refused(tmp_path):
     config = load_config(path, init=str(tmp_path / "small/qnet.pt"))
     with pytest.raises(UserError, match="layers"):
         pretrain(config, progress=False)
+
+
+# ----------------------------------------------------------------------------- the scenario
+def test_the_shipped_config_trains_on_the_shipped_models_settings():
+    """configs/pretrain.toml on the training map scenario gives the settings recorded in
+    data/qnet.pt, key for key (keys the checkpoint predates are at their defaults), so the
+    command its README names still trains that model."""
+    from twin.learning.checkpoint import read_checkpoint
+    from twin.resources import shipped_checkpoint, shipped_config
+    from twin.training.pretrain import PretrainConfig
+
+    saved = read_checkpoint(shipped_checkpoint())["meta"]["config"]
+    now = load_config(shipped_config("pretrain"), out=saved["out"]).training_dict()
+    defaults = PretrainConfig().training_dict()
+    assert {k: saved.get(k, defaults[k]) for k in now} == now
+    assert [k for k in now if k in saved] == list(saved)  # the same order: the same pickle
+    assert (now["nx"], now["ny"], now["n_drones"], len(now["disturbances"])) == (20, 30, 4, 7)
+
+
+def test_a_scenario_of_another_grid_trains_end_to_end(tmp_path, capsys):
+    """A pretraining config naming its own scenario (a 7 x 9 map with an obstacle, 3 drones):
+    the random swarm collects on that map, and the model records its settings."""
+    import json
+
+    from twin.training.pretrain import collect_buffer, training_source
+
+    (tmp_path / "small-map.toml").write_text(
+        "[grid]\nnx = 7\nny = 9\nobstacles = [[3, 4]]\n[swarm]\nn_drones = 3\neta = 0.2\n"
+        '[traffic]\nhorizon = 30\ndisturbances = [{ kind = "big", i = 2, j = 3, '
+        "amplitude = 1.0, sigma = 2.0 }]\n"
+    )
+    path = _config(tmp_path, epochs=10)
+    path.write_text(path.read_text().replace('"traffic.horizon" = 60', '"traffic.horizon" = 25'))
+    path.write_text(path.read_text() + 'scenario = "small-map.toml"\n')
+    cfg = load_config(path)
+    assert training_source(cfg).grid.shape == (7, 9)
+    assert not training_source(cfg).grid.free[3, 4]
+    assert collect_buffer(cfg).steps == 2 * 25  # 2 episodes of the overridden horizon
+    code, err = _run_cli(["pretrain", "--config", str(path), "--quiet", "--epochs", "5"], capsys)
+    assert code == 0, err
+    meta = torch.load(tmp_path / "out/qnet.pt", weights_only=True)["meta"]
+    settings = meta["config"]
+    assert (settings["nx"], settings["ny"], settings["n_drones"], settings["eta"]) == (7, 9, 3, 0.2)
+    assert settings["horizon"] == 25 and settings["obstacles"] == [[3, 4]]
+    assert settings["epochs"] == 5
+    record = json.loads((tmp_path / "out/provenance.json").read_text())
+    assert record["recipe"]["scenario"]["path"] == str(tmp_path / "small-map.toml")
+    assert record["recipe"]["scenario"]["overrides"] == {"traffic.horizon": 25}
+
+
+def test_the_same_map_declared_two_ways_trains_the_same_network(tmp_path):
+    """The training map with its horizon overridden, and a copy of its file with that horizon
+    written in: the same settings, the same weights bit for bit."""
+    from twin.resources import shipped_config
+
+    text = shipped_config("training-map").read_text().replace("horizon = 2000", "horizon = 60")
+    (tmp_path / "map60.toml").write_text(text)
+    overridden = load_config(_config(tmp_path, epochs=10, out="a"))
+    copied = _config(tmp_path, epochs=10, name="b.toml", out="b")
+    copied.write_text(
+        copied.read_text().replace('{ "traffic.horizon" = 60 }', "{}") + 'scenario = "map60.toml"\n'
+    )
+    copied = load_config(copied)
+    assert {**overridden.training_dict(), "out": ""} == {**copied.training_dict(), "out": ""}
+    pretrain(overridden, progress=False)
+    pretrain(copied, progress=False)
+    a, b = _weights(tmp_path / "a/qnet.pt"), _weights(tmp_path / "b/qnet.pt")
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+@pytest.mark.parametrize(
+    ("argv", "words"),
+    [
+        (["--epochs", "0"], "--epochs = 0 must be >= 1"),
+        (["--out", ""], "--out = '': "),
+        (["--traffic", "nowhere.parquet"], "--traffic = ["),
+    ],
+)
+def test_a_bad_flag_is_one_line_naming_it(tmp_path, capsys, argv, words):
+    code, err = _run_cli(["pretrain", "--config", str(_config(tmp_path)), *argv], capsys)
+    assert code == 2 and err.count("\n") == 0 and err.startswith(f"twin: error: {words}"), err
+
+
+def test_a_flag_supplies_what_the_file_lacks(tmp_path):
+    """traffic = "tapes" in the file, the tapes from --traffic: one validation of both."""
+    from helpers import random_tape
+
+    tape = tmp_path / "a.parquet"
+    random_tape(seed=1, nx=6, ny=6, horizon=30).write(tape)
+    path = _config(tmp_path)
+    path.write_text(path.read_text() + 'traffic = "tapes"\n')
+    assert load_config(path, tapes=[str(tape)]).tapes == [str(tape)]
+
+
+@pytest.mark.parametrize(
+    ("text", "words"),
+    [
+        ('scenario = "shenzhen"\n', 'has [traffic] kind = "sumo"'),
+        ('scenario = "drone-loss"\n', "scripts faults"),
+        ('scenario = "nowhere.toml"\n', "nowhere.toml, which does not exist"),
+    ],
+)
+def test_a_scenario_pretraining_cannot_collect_on_is_refused(tmp_path, text, words):
+    path = _config(tmp_path)
+    path.write_text(path.read_text().replace('{ "traffic.horizon" = 60 }', "{}") + text)
+    with pytest.raises(UserError, match=re.escape(words)) as info:
+        load_config(path)
+    assert "\n" not in str(info.value) and str(path) in str(info.value)

@@ -1,4 +1,5 @@
-"""The shipped scenario configs load, and the city-scale one is what the docs say."""
+"""The shipped scenario and pretraining configs load, and the city-scale one is what the docs
+say."""
 
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ SCENARIOS = [
     "shenzhen-detectors.toml",
     "drone-loss.toml",
     "coordinator-down.toml",
+    "training-map.toml",
 ]
 
 
@@ -25,6 +27,15 @@ SCENARIOS = [
 def test_shipped_scenario_configs_load(name):
     config = load_config(ROOT / "configs" / name)
     assert config.evaluate.swarms
+
+
+@pytest.mark.parametrize("name", ["pretrain.toml", "pretrain-paper.toml"])
+def test_shipped_pretraining_configs_train_on_the_training_map(name):
+    from twin.training.pretrain import load_config as load_pretrain
+
+    config = load_pretrain(ROOT / "configs" / name)
+    assert config.scenario.name == "training-map.toml" and config.scenario_overrides == {}
+    assert (config.nx, config.ny, config.n_drones, config.horizon) == (20, 30, 4, 2000)
 
 
 def test_city_scale_config_is_200_drones_on_100_m_cells_for_3_hours():

@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SCHEDULE = """
 [schedule]
 episodes = 1
-horizon = 40
+scenario_overrides = { "traffic.horizon" = 40 }
 epochs = 12
 target_update_epochs = 4
 log_every = 4
@@ -145,6 +145,10 @@ BAD = [
     ("[transfer]\nseeds = 0\n", "seeds"),
     ("[schedule]\nepocs = 3\n", "epocs is not a pretraining key"),
     ('[schedule]\nout = "x"\n', "set per row"),
+    ("[schedule]\nlr = -1.0\n", "[schedule].lr = -1.0 must be > 0"),
+    ("[schedule]\nhorizon = 40\n", 'scenario_overrides = { "traffic.horizon" = ... }'),
+    ('[schedule]\nscenario_overrides = {{ "grid.nx" = 0 }}\n', "'grid.nx' = 0 must be >= 1"),
+    ('[[row]]\nname = "x"\nschedule = {{ epochs = 0 }}\n', "[[row]] x.schedule.epochs = 0"),
     ('[tapes]\nconfig = "{synthetic}"\nseeds = [3]\n', "evaluation seed 3"),
     ('[[row]]\nname = "tuned"\ninit = "later"\n', "neither a row nor a checkpoint"),
     ('[[row]]\nname = "t"\ntraffic = "tapes"\n', "needs a [tapes] section"),

@@ -6,9 +6,10 @@ A config has the sections ``[grid]``, ``[swarm]``, ``[traffic]``, ``[evaluate]``
 Types are strict (no ``"500"`` for a number, no ``"false"`` for a bool), numbers finite, unknown
 keys refused. Every problem is reported as one :class:`ConfigError` line naming the file, the
 key, the value and the fix (:func:`validation_error` serves every config kind: scenario, sweep,
-pretraining). Command-line flags and sweep keys change a scenario by one path, dotted keys
-applied to its tables and validated by the same models (:func:`with_overrides`); an error then
-names the flag or the key.
+pretraining). Command-line flags, sweep keys and a transfer's schedule change a config
+(:class:`SourcedConfig`: a scenario, a pretraining) by one path, dotted keys applied to its
+tables and validated by the same models (:func:`with_overrides`); an error then names the flag
+or the key.
 """
 
 from __future__ import annotations
@@ -21,15 +22,18 @@ import types
 import typing
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, ClassVar, Literal, Self, TypeVar
 
 import numpy as np
 from pydantic import (
+    AfterValidator,
     BaseModel,
+    BeforeValidator,
     ConfigDict,
     Field,
     PrivateAttr,
     ValidationError,
+    ValidationInfo,
     field_validator,
     model_validator,
 )
@@ -49,6 +53,102 @@ class StrictModel(BaseModel):
     """Base of every config table: strict types, finite numbers, no unknown keys."""
 
     model_config = ConfigDict(strict=True, extra="forbid", allow_inf_nan=False)
+
+
+class SourcedConfig(StrictModel):
+    """A config that keeps the tables it was validated from (:meth:`from_data`), so that
+    dotted-key overrides can be set in them and validated again (:func:`with_overrides`)."""
+
+    #: the file's top level holds tables (``[grid]``...) or plain keys (pretraining)
+    FILE_TABLES: ClassVar[bool] = True
+
+    _path: Path = PrivateAttr(default=Path("config.toml"))
+    _tables: dict[str, Any] | None = PrivateAttr(default=None)  # as read, overrides applied
+    _flags: dict[str, str] = PrivateAttr(default_factory=dict)  # dotted key -> its flag
+
+    @classmethod
+    def from_data(
+        cls,
+        path: str | Path,
+        data: dict[str, Any],
+        labels: Mapping[str, str] | None = None,
+        flags: Mapping[str, str] | None = None,
+    ) -> Self:
+        """Validate the tables read from ``path`` (paths in them are relative to it);
+        ``labels`` names the flag or key that set a dotted key, named in an error instead of
+        the file; ``flags`` the command-line flags among them (:func:`with_overrides`)."""
+        cls.check_data(path, data)
+        try:
+            config = cls.model_validate(data, context={"path": Path(path)})
+        except ValidationError as exc:
+            raise validation_error(
+                path, exc, data, cls, sections=cls.FILE_TABLES, labels=labels
+            ) from None
+        config._path = Path(path)
+        config._tables = copy.deepcopy(data)
+        config._flags = dict(flags or {})
+        config.check()
+        return config
+
+    @classmethod
+    def check_data(cls, path: str | Path, data: dict[str, Any]) -> None:
+        """Checks of the tables before the models see them (e.g. a key that moved)."""
+
+    def check(self) -> None:
+        """Checks after the models, across tables (e.g. the drones fit the grid)."""
+
+    @property
+    def path(self) -> Path:
+        return self._path
+
+    def flag_of(self, key: str) -> str | None:
+        """The command-line flag that set the dotted ``key`` (:func:`with_overrides`), or None
+        when the file (or a sweep key, or the default) did."""
+        return self._flags.get(key)
+
+
+def _relative(value: Any, info: ValidationInfo) -> Any:
+    """A path relative to the folder of the config being read (``context["path"]``)."""
+    if not isinstance(value, (str, Path)):
+        raise ValueError("must be a file name (a string)")
+    p = Path(value)
+    base = Path((info.context or {}).get("path", "config.toml")).parent
+    return p if p.is_absolute() else (base / p).resolve()
+
+
+def _existing(path: Path) -> Path:
+    if not path.is_file():
+        raise ValueError(f"names {path}, which does not exist; fix the path")
+    return path
+
+
+C = TypeVar("C", bound=SourcedConfig)
+
+#: The tables of a scenario config that dotted-key overrides reach.
+SECTIONS = ("grid", "swarm", "traffic", "evaluate")
+
+
+def check_dotted(key: str) -> str:
+    parts = key.split(".")
+    if len(parts) < 2 or parts[0] not in SECTIONS or "" in parts:
+        raise ValueError(
+            f"key {key!r} must be a dotted key into a scenario config; e.g. 'swarm.n_drones'"
+        )
+    return key
+
+
+def _dotted_keys(overrides: dict[str, Any]) -> dict[str, Any]:
+    for key in overrides:
+        check_dotted(key)
+    return overrides
+
+
+#: a path relative to the folder of the config that names it
+RelPath = Annotated[Path, BeforeValidator(_relative)]
+#: a scenario config file, relative to the config that names it, that exists
+ScenarioFile = Annotated[RelPath, AfterValidator(_existing)]
+#: dotted-key overrides of a scenario config (``{"swarm.n_drones": 2}``)
+Overrides = Annotated[dict[str, Any], AfterValidator(_dotted_keys)]
 
 
 #: A ``[row, column]`` cell of the grid.
@@ -320,7 +420,7 @@ def _finite_options(options: dict[str, dict[str, Any]]) -> dict[str, dict[str, A
     return options
 
 
-class ScenarioConfig(StrictModel):
+class ScenarioConfig(SourcedConfig):
     """A scenario config; ``path`` is the file it was read from (paths in it are relative)."""
 
     grid: GridConfig = GridConfig()
@@ -330,10 +430,6 @@ class ScenarioConfig(StrictModel):
     #: ``[swarm_options.<name>]``: keyword options of ``make_policy(name, ...)``
     swarm_options: dict[str, dict[str, Any]] = {}
     faults: FaultsConfig = FaultsConfig()
-
-    _path: Path = PrivateAttr(default=Path("config.toml"))
-    _tables: dict[str, Any] | None = PrivateAttr(default=None)  # as read, overrides applied
-    _flags: dict[str, str] = PrivateAttr(default_factory=dict)  # dotted key -> its flag
 
     @model_validator(mode="before")
     @classmethod
@@ -362,14 +458,8 @@ class ScenarioConfig(StrictModel):
         plan = self.faults.plan()
         return plan if plan.active else None
 
-    @property
-    def path(self) -> Path:
-        return self._path
-
-    def flag_of(self, key: str) -> str | None:
-        """The command-line flag that set the dotted ``key`` (:func:`with_overrides`), or None
-        when the file (or a sweep key, or the default) did."""
-        return self._flags.get(key)
+    def check(self) -> None:
+        validate(self)
 
     def explicit_shape(self) -> tuple[int, int] | None:
         """``[grid] nx, ny`` if the config (or an override) sets them, else None."""
@@ -565,14 +655,13 @@ def validation_error(
     data: Any,
     model: type[BaseModel],
     sections: bool = True,
-    flags: dict[str, str] | None = None,
     labels: Mapping[str, str] | None = None,
 ) -> ConfigError:
     """The first error of ``exc`` as one line: ``<file>: <key> = <value> <problem>; <fix>``.
 
     ``sections``: the file's top level holds tables (scenario, sweep) or plain keys (pretrain);
-    ``flags`` maps a top-level key to the command-line flag that set it; ``labels`` maps a
-    dotted key to the flag or sweep key that overrode it (``<label> = <value> <problem>``).
+    ``labels`` maps a dotted key to the flag or sweep key that overrode it
+    (``<label> = <value> <problem>``).
     """
     err = exc.errors(include_url=False)[0]
     loc = tuple(err["loc"])
@@ -617,9 +706,6 @@ def validation_error(
     if kind in ("dict_type", "model_type", "model_attributes_type"):
         dotted = ".".join(p for p in loc if isinstance(p, str))
         fix = f"write it as a table, [{dotted}] or {{ key = value }}"
-    if flags and loc and loc[0] in flags:  # set by a command-line flag, not by the file
-        value = problem.removeprefix("= ")
-        return ConfigError(f"{flags[loc[0]]} {value}; {fix}")
     return ConfigError(f"{at} {problem}; {fix}")
 
 
@@ -673,28 +759,20 @@ def config_from_data(
     labels: Mapping[str, str] | None = None,
     flags: Mapping[str, str] | None = None,
 ) -> ScenarioConfig:
-    """Validate the tables of a scenario config read from ``path``; ``labels`` names the flag
-    or sweep key that set a dotted key, named in an error instead of the file; ``flags`` the
-    command-line flags among them (:func:`with_overrides`)."""
-    try:
-        config = ScenarioConfig.model_validate(data)
-    except ValidationError as exc:
-        raise validation_error(path, exc, data, ScenarioConfig, labels=labels) from None
-    config._path = Path(path)
-    config._tables = copy.deepcopy(data)
-    config._flags = dict(flags or {})
-    validate(config)
-    return config
+    """Validate the tables of a scenario config read from ``path``
+    (:meth:`SourcedConfig.from_data`)."""
+    return ScenarioConfig.from_data(path, data, labels, flags)
 
 
 def with_overrides(
-    config: ScenarioConfig, overrides: Mapping[str, Any], flags: Mapping[str, str] | None = None
-) -> ScenarioConfig:
+    config: C, overrides: Mapping[str, Any], flags: Mapping[str, str] | None = None
+) -> C:
     """``config`` with dotted-key ``overrides`` (``{"swarm.n_drones": 2}``) set in its tables
-    and validated again by the same models: the one path by which command-line flags and sweep
-    keys change a scenario. ``flags`` names the command-line flag that set a key
+    and validated again by the same models: the one path by which command-line flags, sweep
+    keys and a transfer's schedule change a config (a scenario, a pretraining). ``flags``
+    names the command-line flag (or the key of another file) that set a key
     (``{"swarm.n_drones": "--drones"}``): a one-line error names it instead of the file, and
-    :meth:`ScenarioConfig.flag_of` tells it later; other keys are named as overrides. The
+    :meth:`SourcedConfig.flag_of` tells it later; other keys are named as overrides. The
     tables are those the config was validated from: change a config by this function, not by
     ``model_copy``."""
     flags = {**config._flags, **(flags or {})}
@@ -702,9 +780,33 @@ def with_overrides(
         data = config.model_dump(exclude_unset=True)
     else:
         data = copy.deepcopy(config._tables)
+    named = set_dotted(data, overrides, flags, config.path)
+    return type(config).from_data(config.path, data, named, flags)
+
+
+def read_with_overrides(
+    cls: type[C],
+    path: str | Path,
+    overrides: Mapping[str, Any],
+    flags: Mapping[str, str] | None = None,
+) -> C:
+    """The config of class ``cls`` read from ``path`` with ``overrides`` set in its tables
+    before one validation (:func:`with_overrides` validates the file alone first): a value the
+    file lacks may come from a flag (``traffic = "tapes"`` in the file, ``--traffic TAPE``)."""
+    flags = dict(flags or {})
+    data = read_toml(path)
+    named = set_dotted(data, overrides, flags, Path(path))
+    return cls.from_data(path, data, named, flags)
+
+
+def set_dotted(
+    data: dict[str, Any], overrides: Mapping[str, Any], flags: Mapping[str, str], path: Path
+) -> dict[str, str]:
+    """Set each dotted key of ``overrides`` in the tables ``data`` (in place); returns every
+    key's label for errors: its flag, else ``<path>: override '<key>'``."""
     named = dict(flags)
     for key, value in overrides.items():
-        label = flags.get(key) or f"{config.path}: override {key!r}"
+        label = flags.get(key) or f"{path}: override {key!r}"
         node = data
         *parents, last = key.split(".")
         for part in parents:
@@ -713,7 +815,7 @@ def with_overrides(
                 raise UserError(f"{label} goes through {part!r}, which is not a table")
         node[last] = value
         named[key] = label
-    return config_from_data(config.path, data, named, flags)
+    return named
 
 
 def validate(config: ScenarioConfig) -> None:
@@ -758,7 +860,8 @@ def make_grid(config: ScenarioConfig) -> Grid:
     from twin.resources import check_grid_size
 
     path, g = config.path, config.grid
-    check_grid_size(g.nx, g.ny, f"{path}: [grid]", "give fewer cells (nx, ny)")
+    where = config.flag_of("grid.nx") or config.flag_of("grid.ny") or f"{path}: [grid]"
+    check_grid_size(g.nx, g.ny, where, "give fewer cells (nx, ny)")
     obstacles = np.zeros((g.nx, g.ny), dtype=bool)
     cells = _cell_list(g.obstacles)
     if len(cells):

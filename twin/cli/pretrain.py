@@ -40,11 +40,9 @@ def add_parser(subparsers) -> None:
 
 def main(args: argparse.Namespace) -> int:
     from twin.boundary import hold_notices, release_notices, set_run_folder
-    from twin.cli import check_count
     from twin.config import shipped_config
     from twin.outputs import check_output_dir
     from twin.training.pretrain import (
-        PretrainConfig,
         check_out_folder,
         check_pretrain_memory,
         load_config,
@@ -52,26 +50,15 @@ def main(args: argparse.Namespace) -> int:
     )
 
     if args.help_config:
-        for name, f in PretrainConfig.model_fields.items():
-            default = f.get_default(call_default_factory=True)
-            if name == "disturbances":
-                default = f"{len(default)} disturbances (4 big, 3 small)"
-            print(f"{name:22s} {default!s:24s} {f.description or ''}")
-        print(
-            "\nRecipes: traffic = paper | dynamics | tapes (--traffic TAPE ...); init = a "
-            "checkpoint to fine-tune (--init); the state is always the paper's 13 values. "
-            "curve_every > 0 writes curve.csv (R_hat_T on curve_seeds against updates); "
-            "provenance.json records command, recipe, seeds, schedule, wall time and curve."
-        )
+        print(pretrain_config_help())
         return 0
     hold_notices()  # printed once training starts; a refusal is one line
-    check_count("--epochs", args.epochs)
-    config = load_config(
+    config = load_config(  # the flags are overrides of the config's keys, named in an error
         shipped_config(args.config or DEFAULT_CONFIG),
         out=args.out,
         epochs=args.epochs,
-        tapes=args.traffic,
-        init=args.init,
+        tapes=None if args.traffic is None else [str(Path(t).absolute()) for t in args.traffic],
+        init=None if args.init is None else str(Path(args.init).absolute()),
     )
     where = str(args.config or DEFAULT_CONFIG)
     check_pretrain_memory(config, where, args.max_memory_gb)
@@ -85,3 +72,34 @@ def main(args: argparse.Namespace) -> int:
     print(f"model: {path}")
     print(f"log: {Path(config.out) / 'train_log.csv'}")
     return 0
+
+
+def pretrain_config_help() -> str:
+    """Every key of a pretraining config with its default and meaning, then the scenario's
+    keys pretraining reads (with the training map's values): what ``--help-config`` prints."""
+    from twin.training.pretrain import SCENARIO_KEYS, TRAINING_MAP, PretrainConfig
+
+    lines = []
+    for name, f in PretrainConfig.model_fields.items():
+        default = f.get_default(call_default_factory=True)
+        lines.append(f"{name:22s} {default!s:24s} {f.description or ''}")
+    scenario = PretrainConfig().training_map
+    lines.append(
+        f"\nThe scenario's keys pretraining reads (values of {TRAINING_MAP}, the default "
+        "`scenario`; change them there or in scenario_overrides; obstacles, z_lo, z_hi too):"
+    )
+    for key in SCENARIO_KEYS.values():
+        table, name = key.split(".")
+        value = getattr(getattr(scenario, table), name)
+        if name == "disturbances":
+            value = f"{len(value)} disturbances (4 big, 3 small)"
+        lines.append(f"{key:22s} {value!s}")
+    lines.append(
+        "\nRecipes: traffic = paper | dynamics | tapes (--traffic TAPE ...); init = a "
+        "checkpoint to fine-tune (--init); the state is always the paper's 13 values. "
+        "curve_every > 0 writes curve.csv (R_hat_T on curve_seeds against updates); "
+        "provenance.json records command, recipe, scenario, seeds, schedule, wall time and "
+        "curve. --out, --epochs, --traffic and --init set the keys out, epochs, tapes (with "
+        "traffic) and init."
+    )
+    return "\n".join(lines)

@@ -13,8 +13,6 @@ from pathlib import Path
 from typing import Annotated, Any
 
 from pydantic import (
-    AfterValidator,
-    BeforeValidator,
     Field,
     PrivateAttr,
     ValidationError,
@@ -23,49 +21,17 @@ from pydantic import (
     model_validator,
 )
 
-from twin.config import StrictModel, check_name, read_toml, validation_error
+from twin.config import (
+    Overrides,
+    RelPath,
+    ScenarioFile,
+    StrictModel,
+    check_dotted,
+    check_name,
+    read_toml,
+    validation_error,
+)
 from twin.errors import UserError
-
-SECTIONS = ("grid", "swarm", "traffic", "evaluate")
-
-
-def check_dotted(key: str) -> str:
-    parts = key.split(".")
-    if len(parts) < 2 or parts[0] not in SECTIONS or "" in parts:
-        raise ValueError(
-            f"key {key!r} must be a dotted key into a scenario config; e.g. 'swarm.n_drones'"
-        )
-    return key
-
-
-def _relative(value: Any, info: ValidationInfo) -> Any:
-    """A path relative to the sweep config's folder (``context["path"]``)."""
-    if not isinstance(value, str):
-        raise ValueError("must be a file name (a string)")
-    p = Path(value)
-    base = Path((info.context or {}).get("path", "sweep.toml")).parent
-    return p if p.is_absolute() else (base / p).resolve()
-
-
-RelPath = Annotated[Path, BeforeValidator(_relative)]
-
-
-def _existing(path: Path) -> Path:
-    if not path.is_file():
-        raise ValueError(f"names {path}, which does not exist; fix the path")
-    return path
-
-
-def _dotted_keys(overrides: dict[str, Any]) -> dict[str, Any]:
-    for key in overrides:
-        check_dotted(key)
-    return overrides
-
-
-#: a scenario config file, relative to the sweep's (or transfer's) config, that exists
-ScenarioFile = Annotated[RelPath, AfterValidator(_existing)]
-#: dotted-key overrides of a scenario config (``{"swarm.n_drones": 2}``)
-Overrides = Annotated[dict[str, Any], AfterValidator(_dotted_keys)]
 
 
 class SweepSection(StrictModel):

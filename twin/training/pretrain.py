@@ -1,6 +1,8 @@
 """Pretraining of the universal Q-function (Sec. III-A), one file read top to bottom.
 
 1. hyper-parameters: :class:`PretrainConfig`, every one named once with its default and help;
+   the training map, the swarm and the reward's weights are a scenario config's
+   (``configs/training-map.toml`` by default);
 2. data: episodes of a randomly moving swarm on the training map (:mod:`twin.learning.data`),
    pooled into one replay buffer;
 3. network: the Table 1 MLP and its target copy;
@@ -17,18 +19,36 @@ from __future__ import annotations
 import csv
 import hashlib
 import itertools
+import json
 import time
 from pathlib import Path
 from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
 import torch
-from pydantic import Field, ValidationError, ValidationInfo, field_validator, model_validator
+from pydantic import (
+    BeforeValidator,
+    Field,
+    PrivateAttr,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 
-from twin.config import DisturbanceConfig, StrictModel, read_toml, validation_error
+from twin.config import (
+    ConfigError,
+    Overrides,
+    ScenarioConfig,
+    SourcedConfig,
+    make_grid,
+    read_with_overrides,
+    synthetic_config,
+    synthetic_source,
+    with_overrides,
+)
+from twin.config import load_config as load_scenario
 from twin.errors import UserError
 from twin.files import file_sha256
-from twin.grid import Grid
 from twin.learning.checkpoint import atomic_save, model_metadata, read_checkpoint, save_model
 from twin.learning.data import random_swarm_episode
 from twin.learning.dqn import (  # noqa: F401  (double_dqn_target re-exported for tests)
@@ -40,33 +60,55 @@ from twin.learning.dqn import (  # noqa: F401  (double_dqn_target re-exported fo
 )
 from twin.learning.qnet import TABLE1_LAYERS, QNetwork
 from twin.learning.replay import ReplayBuffer
-from twin.scores import ScoreParams
-from twin.traffic.synthetic import Disturbance, SyntheticTraffic
-
-# The training map: 4 big and 3 small disturbances (Sec. III-A), placed away from the
-# evaluation map's 2 big + 3 small of configs/synthetic.toml.
-TRAINING_DISTURBANCES: list[dict[str, Any]] = [
-    {"kind": "big", "i": 3, "j": 3, "amplitude": 1.0, "sigma": 3.0},
-    {"kind": "big", "i": 17, "j": 12, "amplitude": 1.0, "sigma": 3.0},
-    {"kind": "big", "i": 6, "j": 18, "amplitude": 1.0, "sigma": 3.0},
-    {"kind": "big", "i": 15, "j": 27, "amplitude": 1.0, "sigma": 3.0},
-    {"kind": "small", "i": 10, "j": 9, "amplitude": 0.5, "sigma": 1.0},
-    {"kind": "small", "i": 1, "j": 14, "amplitude": 0.5, "sigma": 1.0},
-    {"kind": "small", "i": 8, "j": 27, "amplitude": 0.5, "sigma": 1.0},
-]
-
+from twin.traffic.synthetic import SyntheticTraffic
 
 PositiveInt = Annotated[int, Field(ge=1)]
 PositiveFloat = Annotated[float, Field(gt=0)]
+
+#: The scenario pretraining collects on by default: the paper's training map (Sec. III-A),
+#: ``configs/training-map.toml`` (20 x 30, 4 drones, T = 2000, 4 big and 3 small disturbances
+#: placed away from the evaluation map's).
+TRAINING_MAP = "training-map"
+
+#: Keys that pretraining configs once had and that the scenario declares now: old -> new.
+SCENARIO_KEYS = {
+    "nx": "grid.nx", "ny": "grid.ny", "n_drones": "swarm.n_drones", "eta": "swarm.eta",
+    "delta": "swarm.delta", "alpha_T": "swarm.alpha_T", "alpha_I": "swarm.alpha_I",
+    "horizon": "traffic.horizon", "beta1": "traffic.beta1", "beta2": "traffic.beta2",
+    "disturbances": "traffic.disturbances",
+}  # fmt: skip
 
 
 def _help(text: str, **bounds: Any) -> Any:
     return Field(description=text, **bounds)
 
 
+def _scenario_file(value: Any, info: ValidationInfo) -> Path:
+    """A scenario config relative to the pretraining config's folder, else a shipped one."""
+    from twin.resources import shipped_config_named
+
+    if not isinstance(value, (str, Path)) or not str(value):
+        raise ValueError('must be a scenario config file; e.g. "training-map.toml"')
+    base = Path((info.context or {}).get("path", "pretrain.toml")).parent
+    path = Path(value) if Path(value).is_absolute() else (base / value).resolve()
+    if path.is_file():
+        return path
+    shipped = shipped_config_named(value)
+    if shipped is not None:
+        return shipped
+    raise ValueError(
+        f"names {path}, which does not exist; give a scenario config (relative to this file) "
+        'or a shipped one, e.g. "training-map" (the default) or "synthetic"'
+    )
+
+
 # ----------------------------------------------------------------------------- 1. parameters
-class PretrainConfig(StrictModel):
-    """Every knob of pretraining; a TOML file sets any subset of them (same names)."""
+class PretrainConfig(SourcedConfig):
+    """Every knob of pretraining; a TOML file sets any subset of them (same names). The
+    training map, the swarm and the reward's weights are a scenario's (``scenario``, its
+    ``[grid]``, ``[swarm]`` and synthetic ``[traffic]``), with ``scenario_overrides`` on top."""
+
+    FILE_TABLES: ClassVar[bool] = False
 
     seed: int = _help(
         "seed of the data, the network initialisation and the batches", default=0, ge=0
@@ -77,21 +119,20 @@ class PretrainConfig(StrictModel):
         min_length=1,
     )
     # data: the training map and the random swarm
-    nx: PositiveInt = _help("grid rows of the training map", default=20)
-    ny: PositiveInt = _help("grid columns of the training map", default=30)
-    horizon: PositiveInt = _help("steps per random-swarm episode", default=2000)
-    beta1: PositiveFloat = _help(
-        "decay of the big disturbances (fraction of the horizon)", default=0.7
+    scenario: Annotated[Path, BeforeValidator(_scenario_file)] = _help(
+        "scenario config of the training map: its grid, drones (n_drones), idleness and reward "
+        "weights (eta, delta, alpha_T, alpha_I) and synthetic traffic (horizon = steps per "
+        "episode, disturbances); relative to this file, or a shipped name",
+        default=Path(TRAINING_MAP),
+        validate_default=True,
     )
-    beta2: PositiveFloat = _help("periods of the small disturbances over the horizon", default=5.0)
-    disturbances: list[DisturbanceConfig] = _help(
-        "training map: kind, i, j, amplitude, sigma",
-        default_factory=lambda: [DisturbanceConfig(**d) for d in TRAINING_DISTURBANCES],
+    scenario_overrides: Overrides = _help(
+        'dotted keys set in the scenario, e.g. { "grid.nx" = 10, "traffic.horizon" = 500 }',
+        default_factory=dict,
     )
-    n_drones: PositiveInt = _help("drones in the random swarm", default=4)
     # the learning recipe: which traffic the random swarm collects on, where training starts
     traffic: Literal["paper", "dynamics", "tapes"] = _help(
-        'training traffic: "paper" (the fixed map of Sec. III-A, `disturbances`), "dynamics" '
+        'training traffic: "paper" (the scenario\'s fixed map, Sec. III-A), "dynamics" '
         "(a fresh map per episode: disturbances that move, grow and fade under a rush-hour "
         'wave, twin/traffic/dynamic.py), "tapes" (recorded SUMO runs, `tapes`; also --traffic)',
         default="paper",
@@ -108,12 +149,6 @@ class PretrainConfig(StrictModel):
         default=None,
     )
     episodes: PositiveInt = _help("random-swarm episodes in the replay buffer", default=10)
-    eta: float = _help("idleness kept by a visited cell (Def. 3)", default=0.1, gt=0, lt=1)
-    delta: float = _help("idleness recovery per step (Def. 3)", default=0.025, gt=0, lt=1)
-    alpha_T: float = _help(
-        "reward weight of importance-weighted idleness (Def. 4)", default=1.0, ge=0
-    )
-    alpha_I: float = _help("reward weight of idleness (Def. 4)", default=0.5, ge=0)
     # network
     layers: list[PositiveInt] = _help(
         "layer sizes, 13 in and 5 out (Table 1)", default_factory=lambda: list(TABLE1_LAYERS)
@@ -151,11 +186,24 @@ class PretrainConfig(StrictModel):
     )
     curve_horizon: PositiveInt = _help("steps of each curve evaluation", default=200)
 
+    _scenario: ScenarioConfig | None = PrivateAttr(default=None)
+
     # Fields that may change between a run and its resumption without invalidating it.
     RESUMABLE_CHANGES: ClassVar[tuple[str, ...]] = (
         "epochs", "out", "log_every", "checkpoint_every", "snapshot_every",
         "curve_every", "curve_seeds", "curve_config", "curve_horizon",
     )  # fmt: skip
+
+    @classmethod
+    def check_data(cls, path: str | Path, data: dict[str, Any]) -> None:
+        for old, new in SCENARIO_KEYS.items():
+            if old in data:
+                value = data[old]
+                shown = json.dumps(value) if len(json.dumps(value, default=str)) < 20 else "..."
+                raise ConfigError(
+                    f"{path}: {old} is the scenario's {new} now; set it in the scenario config "
+                    f'(key `scenario`) or as scenario_overrides = {{ "{new}" = {shown} }}'
+                )
 
     @field_validator("layers")
     @classmethod
@@ -165,17 +213,6 @@ class PretrainConfig(StrictModel):
                 f"must run from {TABLE1_LAYERS[0]} to {TABLE1_LAYERS[-1]} (the state and actions)"
             )
         return layers
-
-    @field_validator("n_drones")
-    @classmethod
-    def _fits(cls, n_drones: int, info: ValidationInfo) -> int:
-        nx, ny = info.data.get("nx"), info.data.get("ny")
-        if nx is not None and ny is not None and n_drones > nx * ny:
-            raise ValueError(
-                f"do not fit on the {nx} x {ny} training map ({nx * ny} cells, one drone per "
-                f"cell); use at most {nx * ny} drones or a larger map (nx, ny)"
-            )
-        return n_drones
 
     @field_validator("curve_seeds")
     @classmethod
@@ -187,13 +224,17 @@ class PretrainConfig(StrictModel):
             )
         return seeds
 
-    @model_validator(mode="after")
-    def _tapes_given(self) -> PretrainConfig:
-        if self.traffic == "tapes" and not self.tapes:
-            raise ValueError(
-                '[tapes] is empty; traffic = "tapes" needs tape files (or --traffic TAPE)'
-            )
-        return self
+    @field_validator("init", mode="before")
+    @classmethod
+    def _init_relative(cls, value: Any, info: ValidationInfo) -> Any:
+        return _relative_file(value, info)
+
+    @field_validator("tapes", mode="before")
+    @classmethod
+    def _tapes_relative(cls, value: Any, info: ValidationInfo) -> Any:
+        if isinstance(value, list):
+            return [_relative_file(t, info) for t in value]
+        return value
 
     @field_validator("tapes")
     @classmethod
@@ -203,9 +244,115 @@ class PretrainConfig(StrictModel):
                 raise ValueError(f"names {tape}, which does not exist; give tape.parquet files")
         return tapes
 
+    @model_validator(mode="after")
+    def _tapes_given(self, info: ValidationInfo) -> PretrainConfig:
+        if self.traffic == "tapes" and not self.tapes:
+            raise ValueError(
+                '[tapes] is empty; traffic = "tapes" needs tape files (or --traffic TAPE)'
+            )
+        self._scenario = training_scenario(
+            self.scenario,
+            self.scenario_overrides,
+            Path((info.context or {}).get("path", "pretrain.toml")),
+        )
+        return self
+
+    @property
+    def training_map(self) -> ScenarioConfig:
+        """The scenario of the training map, its overrides applied (validated on load)."""
+        if self._scenario is None:  # built by model_copy: the scenario is the same
+            self._scenario = training_scenario(self.scenario, self.scenario_overrides)
+        return self._scenario
+
+    @property
+    def nx(self) -> int:
+        return self.training_map.grid.nx
+
+    @property
+    def ny(self) -> int:
+        return self.training_map.grid.ny
+
+    @property
+    def n_drones(self) -> int:
+        return self.training_map.swarm.n_drones
+
+    @property
+    def horizon(self) -> int:
+        """Steps per random-swarm episode on a synthetic map (tapes: their own)."""
+        return self.training_map.traffic.horizon
+
     def training_dict(self) -> dict[str, Any]:
-        """The config as plain python types (stored in every checkpoint)."""
-        return self.model_dump()
+        """The config as plain python types (stored in every checkpoint): the settings that
+        shape training, the scenario's among them by their old flat names (nx, ny, horizon,
+        ..., eta ...) in their old order, so that checkpoints of the same settings compare
+        equal whichever file declared them. The scenario's keys that older pretraining could
+        not set (obstacles, z_lo, z_hi) follow when they are not their defaults."""
+        own = self.model_dump(exclude={"scenario", "scenario_overrides"})
+        s = self.training_map
+        t = synthetic_config(s)
+        values = {
+            **own,
+            "nx": s.grid.nx, "ny": s.grid.ny, "horizon": t.horizon, "beta1": t.beta1,
+            "beta2": t.beta2, "disturbances": [d.model_dump() for d in t.disturbances],
+            "n_drones": s.swarm.n_drones, "eta": s.swarm.eta, "delta": s.swarm.delta,
+            "alpha_T": s.swarm.alpha_T, "alpha_I": s.swarm.alpha_I,
+        }  # fmt: skip
+        record = {k: values.pop(k) for k in TRAINING_KEYS}
+        record.update(values)  # none today: a new key of the config's own
+        if s.grid.obstacles:
+            record["obstacles"] = s.grid.obstacles
+        if t.z_lo != 0.0:
+            record["z_lo"] = t.z_lo
+        if t.z_hi is not None:
+            record["z_hi"] = t.z_hi
+        return record
+
+
+#: The keys of :meth:`PretrainConfig.training_dict`, in the order checkpoints store them.
+TRAINING_KEYS = (
+    "seed", "out", "nx", "ny", "horizon", "beta1", "beta2", "disturbances", "n_drones",
+    "traffic", "tapes", "dynamics_disturbances", "init", "episodes", "eta", "delta", "alpha_T",
+    "alpha_I", "layers", "epochs", "iters_per_epoch", "batch_size", "gamma", "lr",
+    "target_update_epochs", "adam_fused", "threads", "log_every", "checkpoint_every",
+    "snapshot_every", "curve_every", "curve_seeds", "curve_config", "curve_horizon",
+)  # fmt: skip
+
+
+def _relative_file(value: Any, info: ValidationInfo) -> Any:
+    """A file named in a pretraining config, relative to the config's folder (a flag's is
+    made absolute by the command line first)."""
+    if not isinstance(value, str) or not value or info.context is None:
+        return value
+    path = Path(value)
+    return value if path.is_absolute() else str(Path(info.context["path"]).resolve().parent / path)
+
+
+def training_scenario(
+    path: Path, overrides: dict[str, Any], where: Path = Path("pretrain.toml")
+) -> ScenarioConfig:
+    """The scenario config at ``path`` with ``overrides`` (a pretraining config's
+    ``scenario_overrides``, named in errors as keys of ``where``), refused (one line) unless
+    pretraining can collect on it: synthetic traffic, random starts, no scripted faults."""
+    labels = {key: f"{where}: scenario_overrides {key!r}" for key in overrides}
+    config = with_overrides(load_scenario(path), overrides, labels)
+    fix = f"{where}: scenario = {path}"
+    if config.traffic.kind != "synthetic":
+        raise ConfigError(
+            f'{fix} has [traffic] kind = "{config.traffic.kind}"; pretraining collects on a '
+            "synthetic map: name a synthetic scenario, or train on tapes of SUMO runs "
+            "(--traffic TAPE)"
+        )
+    if config.swarm.starts != "random":
+        raise ConfigError(
+            f"{fix} gives [swarm].starts; the random swarm starts on random cells in every "
+            'episode: set "swarm.starts" = "random" in scenario_overrides'
+        )
+    if config.fault_plan() is not None:
+        raise ConfigError(
+            f"{fix} scripts faults ([faults]); pretraining collects without faults: name a "
+            "scenario without them"
+        )
+    return config
 
 
 #: Command-line flags that override config keys.
@@ -213,27 +360,14 @@ FLAGS = {"out": "--out", "epochs": "--epochs", "tapes": "--traffic", "init": "--
 
 
 def load_config(path: str | Path, **overrides: Any) -> PretrainConfig:
-    """Read and validate a pretraining TOML file; ``overrides`` (from flags) that are not None
-    replace its keys. Every problem is one :class:`UserError` line."""
-    path = Path(path)
-    raw = read_toml(path)
-    try:
-        PretrainConfig.model_validate(raw)
-    except ValidationError as exc:
-        raise validation_error(path, exc, raw, PretrainConfig, sections=False) from None
-    raw.update({k: v for k, v in overrides.items() if v is not None})
-    if overrides.get("tapes"):  # --traffic TAPE [TAPE ...]
-        raw["traffic"] = "tapes"
-    base = path.resolve().parent
-    for key in ("init",):  # a file named in the config is relative to it
-        if isinstance(raw.get(key), str) and overrides.get(key) is None:
-            raw[key] = str(base / raw[key])
-    if isinstance(raw.get("tapes"), list) and overrides.get("tapes") is None:
-        raw["tapes"] = [str(base / t) if isinstance(t, str) else t for t in raw["tapes"]]
-    try:
-        return PretrainConfig.model_validate(raw)
-    except ValidationError as exc:
-        raise validation_error(path, exc, raw, PretrainConfig, False, FLAGS) from None
+    """Read and validate a pretraining TOML file; ``overrides`` (from flags, :data:`FLAGS`)
+    that are not None are set by :func:`twin.config.with_overrides`, named by their flag in
+    an error. Every problem is one :class:`UserError` line."""
+    given = {k: v for k, v in overrides.items() if v is not None}
+    if given.get("tapes"):  # --traffic TAPE [TAPE ...]
+        given["traffic"] = "tapes"
+    flags = {k: FLAGS.get(k, FLAGS["tapes"] if k == "traffic" else f"--{k}") for k in given}
+    return read_with_overrides(PretrainConfig, path, given, flags)
 
 
 # ----------------------------------------------------------------------------- memory
@@ -257,16 +391,18 @@ def estimate_pretrain_memory(cfg: PretrainConfig) -> dict[str, float]:
         "buffer": float((cfg.episodes + 1) * cfg.horizon * cfg.n_drones * TRANSITION_BYTES),
         "network": float(params * 4 * PARAMETER_COPIES),
         "batch": float(cfg.batch_size * (sum(layers) * 4 * 8 + 200)),
-        "map": float(cells * 8 * (len(cfg.disturbances) + 3 * 256 + 16)),
+        "map": float(
+            cells * 8 * (len(synthetic_config(cfg.training_map).disturbances) + 3 * 256 + 16)
+        ),
     }
 
 
 #: The keys that size each part of the estimate, for the refusal's hint.
 MEMORY_FIELDS = {
-    "buffer": "episodes, horizon or n_drones",
+    "buffer": "episodes, traffic.horizon or swarm.n_drones",
     "network": "layers",
     "batch": "batch_size or layers",
-    "map": "nx, ny",
+    "map": "grid.nx, grid.ny",
 }
 
 
@@ -278,7 +414,7 @@ def check_pretrain_memory(
     from twin.experiment import MEMORY_ENV, memory_limit_gb
     from twin.resources import check_grid_size
 
-    check_grid_size(cfg.nx, cfg.ny, f"{where}: nx, ny", "use a smaller training map")
+    check_grid_size(cfg.nx, cfg.ny, f"{where}: grid.nx, grid.ny", "use a smaller training map")
     limit = memory_limit_gb(limit_gb)
     parts = estimate_pretrain_memory(cfg)
     need = sum(parts.values())
@@ -294,11 +430,9 @@ def check_pretrain_memory(
 
 # ----------------------------------------------------------------------------- 2. data
 def training_source(cfg: PretrainConfig) -> SyntheticTraffic:
-    """The training map (open grid, 4 big + 3 small disturbances by default)."""
-    disturbances = [Disturbance(**d.model_dump()) for d in cfg.disturbances]
-    grid = Grid.open(cfg.nx, cfg.ny)
-    # z_hi defaults to the largest z over the map and the horizon (Def. 2)
-    return SyntheticTraffic(grid, disturbances, cfg.horizon, beta1=cfg.beta1, beta2=cfg.beta2)
+    """The training map: the scenario's synthetic traffic (by default the paper's, an open
+    20 x 30 grid with 4 big + 3 small disturbances, ``configs/training-map.toml``)."""
+    return synthetic_source(cfg.training_map)
 
 
 def episode_sources(cfg: PretrainConfig) -> list:
@@ -308,7 +442,7 @@ def episode_sources(cfg: PretrainConfig) -> list:
     if cfg.traffic == "dynamics":
         from twin.traffic.dynamic import DynamicTraffic
 
-        grid = Grid.open(cfg.nx, cfg.ny)
+        grid = make_grid(cfg.training_map)
         return [
             DynamicTraffic(grid, cfg.horizon, cfg.dynamics_disturbances, seed=cfg.seed * 100003 + e)
             for e in range(cfg.episodes)
@@ -325,7 +459,7 @@ def episode_sources(cfg: PretrainConfig) -> list:
 def collect_buffer(cfg: PretrainConfig, progress: bool = False) -> ReplayBuffer:
     """``episodes`` random-swarm episodes, pooled; a function of the config alone (seeded)."""
     sources = episode_sources(cfg)
-    params = ScoreParams(cfg.eta, cfg.delta, cfg.alpha_T, cfg.alpha_I)
+    params = cfg.training_map.params
     buffer = ReplayBuffer(sum(s.horizon for s in sources), cfg.n_drones)
     episodes = range(cfg.episodes)
     if progress:
@@ -470,6 +604,7 @@ def write_provenance(cfg: PretrainConfig, out: Path, meta: dict[str, Any]) -> Pa
 
     from twin.files import atomic_write
 
+    training = cfg.training_dict()
     curve_path = out / "curve.csv"
     curve = []
     if curve_path.exists():
@@ -487,19 +622,24 @@ def write_provenance(cfg: PretrainConfig, out: Path, meta: dict[str, Any]) -> Pa
             if cfg.traffic == "dynamics"
             else None,
             "init": {"path": cfg.init, "sha256": file_sha256(cfg.init)} if cfg.init else None,
+            "scenario": {
+                "path": str(cfg.scenario),
+                "sha256": file_sha256(cfg.scenario),
+                "overrides": cfg.scenario_overrides,
+            },
             "state": "the paper's 13 values (eq. s)",
         },
         "seeds": {
             "training": cfg.seed,
             "validation_curve": cfg.curve_seeds if cfg.curve_every else [],
         },
-        "schedule": {k: getattr(cfg, k) for k in SCHEDULE_KEYS},
+        "schedule": {k: training[k] for k in SCHEDULE_KEYS},
         "updates": cfg.epochs * cfg.iters_per_epoch,
         "wall_s": meta.get("wall_s"),
         "qnet_sha256": file_sha256(out / "qnet.pt"),
         "buffer_digest": meta.get("buffer_digest"),
         "curve": {"config": cfg.curve_config, "horizon": cfg.curve_horizon, "points": curve},
-        "config": cfg.training_dict(),
+        "config": training,
     }
     path = out / "provenance.json"
     text = json.dumps(record, indent=1, default=str)
@@ -525,12 +665,10 @@ CURVE_COLUMNS = ("epoch", "updates", "seed", "R_hat_T", "wall_s")
 
 def curve_scenario(cfg: PretrainConfig):
     """The scenario config the curve is measured on, at ``curve_horizon`` steps."""
-    from twin.config import config_from_data, shipped_config
+    from twin.config import shipped_config
 
-    path = shipped_config(cfg.curve_config)
-    data = read_toml(path)
-    data.setdefault("traffic", {})["horizon"] = cfg.curve_horizon
-    return config_from_data(path, data)
+    config = load_scenario(shipped_config(cfg.curve_config))
+    return with_overrides(config, {"traffic.horizon": cfg.curve_horizon}, {})
 
 
 def write_curve(cfg: PretrainConfig, out: Path) -> Path:

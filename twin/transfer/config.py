@@ -21,9 +21,16 @@ from pydantic import (
     model_validator,
 )
 
-from twin.config import StrictModel, check_name, read_toml, validation_error
+from twin.config import (
+    Overrides,
+    RelPath,
+    ScenarioFile,
+    StrictModel,
+    check_name,
+    read_toml,
+    validation_error,
+)
 from twin.errors import UserError
-from twin.sweep.config import Overrides, RelPath, ScenarioFile
 
 #: Seeds that evaluation uses; tapes and validation curves must stay off them.
 EVALUATION_SEEDS = range(0, 10)
@@ -217,11 +224,16 @@ ROW_KEYS = ("out", "traffic", "tapes", "init")
 
 
 def _check_schedule(schedule: dict[str, Any], where: str) -> dict[str, Any]:
-    from twin.training.pretrain import PretrainConfig
+    from twin.training.pretrain import SCENARIO_KEYS, PretrainConfig
 
     for key in schedule:
         if key in ROW_KEYS:
             raise ValueError(f"{where}.{key}: set per row ([[row]] traffic, init), not here")
+        if key in SCENARIO_KEYS:
+            raise ValueError(
+                f"{where}.{key} is the scenario's {SCENARIO_KEYS[key]} now; set it as "
+                f'scenario_overrides = {{ "{SCENARIO_KEYS[key]}" = ... }}'
+            )
         if key not in PretrainConfig.model_fields:
             raise ValueError(
                 f"{where}.{key} is not a pretraining key; see `twin pretrain --help-config`"
@@ -229,8 +241,23 @@ def _check_schedule(schedule: dict[str, Any], where: str) -> dict[str, Any]:
     return schedule
 
 
+def row_schedule(config: TransferConfig, row: RowSpec) -> tuple[dict[str, Any], dict[str, str]]:
+    """A trained row's pretraining keys, ``[schedule]`` with the row's own ``schedule`` over
+    it, and each key's label for errors (``<config>: [schedule].lr``)."""
+    overrides = {**config.schedule, **row.schedule}
+    labels = {k: f"{config.path}: [schedule].{k}" for k in config.schedule}
+    labels |= {k: f"{config.path}: [[row]] {row.name}.schedule.{k}" for k in row.schedule}
+    return overrides, labels
+
+
 def load_transfer_config(path: str | Path) -> TransferConfig:
-    """Read and validate a transfer config; every problem is one line naming the key."""
+    """Read and validate a transfer config; every problem is one line naming the key. Each
+    trained row's schedule is validated here as pretraining keys (before any tape is
+    recorded); its traffic, tapes and init join it when the row trains
+    (:func:`twin.transfer.runner.row_pretrain_config`)."""
+    from twin.config import with_overrides
+    from twin.training.pretrain import PretrainConfig
+
     path = Path(path)
     data = read_toml(path)
     try:
@@ -238,4 +265,8 @@ def load_transfer_config(path: str | Path) -> TransferConfig:
     except ValidationError as exc:
         raise validation_error(path, exc, data, TransferConfig) from None
     config._path = path
+    defaults = PretrainConfig.from_data(path, {})
+    for row in config.row:
+        if row.checkpoint is None:
+            with_overrides(defaults, *row_schedule(config, row))
     return config

@@ -124,24 +124,25 @@ def tape_stem(tapes) -> str:
 
 # ----------------------------------------------------------------------------- 2. rows
 def row_pretrain_config(config: TransferConfig, row, out: Path, checkpoints: dict[str, str]):
-    """The :class:`PretrainConfig` of a trained row: ``[schedule]``, the row's own schedule
-    keys, its traffic, tapes and init (a row's name resolved to that row's checkpoint)."""
-    from pydantic import ValidationError
-
-    from twin.config import validation_error
+    """The :class:`PretrainConfig` of a trained row: the defaults with ``[schedule]``, the
+    row's own schedule keys, its traffic, tapes and init (a row's name resolved to that row's
+    checkpoint) set as overrides (:func:`twin.config.with_overrides`), each named in an error
+    by its key in the transfer config; paths relative to the transfer config."""
+    from twin.config import with_overrides
     from twin.training.pretrain import PretrainConfig
+    from twin.transfer.config import row_schedule
 
-    raw = {**config.schedule, **row.schedule, "traffic": row.traffic, "out": str(out)}
+    where = f"{config.path}: [[row]] {row.name}"
+    overrides, labels = row_schedule(config, row)
+    overrides |= {"traffic": row.traffic, "out": str(out)}
+    labels |= {"traffic": f"{where}.traffic", "out": f"{where} (its folder {out})"}
     if row.traffic == "tapes":
-        raw["tapes"] = [t["path"] for t in tape_tasks(config, out.parents[1])]
+        overrides["tapes"] = [t["path"] for t in tape_tasks(config, out.parents[1])]
+        labels["tapes"] = f"{config.path}: [tapes]"
     if row.init is not None:
-        raw["init"] = checkpoints.get(row.init, row.init)
-    try:
-        return PretrainConfig.model_validate(raw)
-    except ValidationError as exc:
-        raise validation_error(
-            f"{config.path}: [[row]] {row.name}", exc, raw, PretrainConfig, sections=False
-        ) from None
+        overrides["init"] = checkpoints.get(row.init, row.init)
+        labels["init"] = f"{where}.init"
+    return with_overrides(PretrainConfig.from_data(config.path, {}), overrides, labels)
 
 
 def train_row(task: dict[str, Any]) -> dict[str, Any]:
@@ -150,7 +151,7 @@ def train_row(task: dict[str, Any]) -> dict[str, Any]:
     from twin.training.pretrain import PretrainConfig, pretrain
 
     limit_threads()
-    cfg = PretrainConfig.model_validate(task["pretrain"])
+    cfg = PretrainConfig.from_data(task["where"], task["pretrain"])
     out = Path(cfg.out)
     if not provenance_matches(out, cfg):
         pretrain(cfg, progress=False)
@@ -222,7 +223,8 @@ def train_rows(
                 "what": f"row {r.name!r}",
                 "pretrain": row_pretrain_config(
                     config, r, out / "rows" / r.name, checkpoints
-                ).model_dump(),
+                ).model_dump(mode="json"),
+                "where": str(config.path),
             }
             for r in ready
         ]
