@@ -373,3 +373,19 @@ def test_departure_span_of_flows_and_clock_times(tmp_path):
         )
     )
     assert departure_span([routes]) == (50.0, 800.0)
+
+
+def test_departures_in_included_route_files_are_the_demand(tmp_path):
+    """A route file that only includes another (as SUMO reads it) holds that file's demand, so
+    twin does not add its own rush hour beside it (SUMO would refuse the duplicate ids)."""
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "sub" / "trips.xml").write_text(
+        '<routes><trip id="0" depart="30" from="a" to="b"/>'
+        '<trip id="1" depart="90" from="a" to="b"/></routes>'
+    )
+    (tmp_path / "inc.rou.xml").write_text('<routes><include href="sub/trips.xml"/></routes>')
+    counts: dict[str, int] = {}
+    assert departure_span([tmp_path / "inc.rou.xml"], counts) == (30.0, 90.0)
+    assert counts == {"trip": 2}
+    (tmp_path / "lost.rou.xml").write_text('<routes><include href="nowhere.xml"/></routes>')
+    assert departure_span([tmp_path / "lost.rou.xml"]) is None  # SUMO names the missing file
