@@ -15,6 +15,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from twin.boundary import EXIT_BUG, EXIT_INTERRUPTED, EXIT_REFUSED, LOG_NAME, run_command
 from twin.cli import main
@@ -697,6 +699,23 @@ def test_clock_labels_show_days(t, seconds, label) -> None:
     from twin.clock import clock_label
 
     assert clock_label(t, seconds) == label
+
+
+@given(st.integers(0, 999 * 86400 + 86399), st.booleans())
+def test_clock_labels_read_back_as_written(t, seconds) -> None:
+    """Every label twin writes (run.json's begin past midnight of a later day too) reads back."""
+    from twin.clock import clock_label, clock_seconds
+
+    back = clock_seconds(clock_label(t, seconds))
+    assert back == (t if seconds else t - t % 60)
+
+
+@pytest.mark.parametrize("text", ["", "7", "07:60", "1d", "d 07:00", "-1d 07:00", "07:00:61"])
+def test_text_that_is_not_a_clock_time_is_refused(text) -> None:
+    from twin.clock import parse_clock
+
+    with pytest.raises(UserError, match="must be a clock time"):
+        parse_clock(text, "--begin")
 
 
 def test_ray_address_that_does_not_answer_fails_fast() -> None:
