@@ -550,6 +550,14 @@ READ_BACK = {
         ),
         "the bound (ceiling) row's R_hat_T = 0.001 lies below a swarm's",
     ),
+    "cumulative reward off its rewards": (
+        _edit_table("series.parquet", _set("cumulative_reward", 1e6, 3)),
+        "cumulative_reward = 1e+06 at step 3 of seed 0",
+    ),
+    "run.json grid other than the maps": (
+        _json("run.json", ("grid", "nx"), 99),
+        "grid = 99 x",
+    ),
     "run.json seeds without results": (
         _json("run.json", ("seeds",), [0, 1, 2]),
         "seeds = [0, 1, 2] differ from those with results in series.parquet, [0, 1]",

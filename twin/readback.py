@@ -498,7 +498,8 @@ def check_trajectories(
 
 
 def check_series(path: Path, frame: pd.DataFrame) -> None:
-    """One row per (seed, swarm, step), steps ``0..T-1`` complete for each seed and swarm."""
+    """One row per (seed, swarm, step), steps ``0..T-1`` complete for each seed and swarm, and
+    ``cumulative_reward`` the running sum of ``reward``."""
     check_columns(path, frame, SERIES_COLUMNS)
     if "belief_error" in frame.columns:
         check_column(path, frame, "belief_error", NUMBER)
@@ -515,6 +516,17 @@ def check_series(path: Path, frame: pd.DataFrame) -> None:
                 f"{path}: steps of seed {seed}, swarm {swarm} are not 0..{len(rows) - 1} "
                 f"(rows missing); {RERUN}"
             )
+    ordered = frame.sort_values(["seed", "swarm", "step"], kind="stable")
+    running = ordered.groupby(["seed", "swarm"], sort=False)["reward"].cumsum()
+    given = ordered["cumulative_reward"]
+    off = (given - running).abs() > 1e-9 * np.maximum(1.0, running.abs())
+    if off.any():
+        r = ordered[off].iloc[0]
+        raise UserError(
+            f"{path}: cumulative_reward = {r['cumulative_reward']:.6g} at step {r['step']} of "
+            f"seed {r['seed']}, swarm {r['swarm']} is not the sum of its rewards "
+            f"({running[off].iloc[0]:.6g}); {RERUN}"
+        )
 
 
 def read_maps(path: Path) -> tuple[np.ndarray, np.ndarray]:
