@@ -380,6 +380,8 @@ SERIES_COLUMNS = {
     "coverage": FINITE,
     "visited_share": FINITE,
 }
+#: Columns of a sweep cell's per-step series (``cells/<id>.parquet``) that the sweep reads back.
+CELL_SERIES_COLUMNS = {"swarm": TEXT, "step": INT, "seed": INT, "cumulative_reward": FINITE}
 TIMING_COLUMNS = {"seed": INT, "stage": TEXT, "seconds": FINITE, "ms_per_step": FINITE}
 EVENT_COLUMNS = {
     "seed": INT,
