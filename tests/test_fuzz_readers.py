@@ -525,3 +525,22 @@ def test_a_hostile_checkpoint_is_refused_in_one_line_and_never_run(tmp_path) -> 
     assert "is corrupt or not a torch file" in err
     assert not marker.exists()
     assert [str(w.message)[:80] for w in caught] == []  # torch's own warning is not printed
+
+
+def test_layers_far_larger_than_the_weights_are_refused_before_allocation(
+    checkpoint_blob, tmp_path
+) -> None:
+    """meta.layers of 160 GB against the stored few kB: refused by counting, not by torch
+    failing to allocate."""
+    import copy
+
+    import torch
+
+    from twin.errors import UserError
+    from twin.learning.checkpoint import load_qnet
+
+    blob = copy.deepcopy(checkpoint_blob)
+    blob["meta"]["layers"] = [13, 200_000, 200_000, 5]
+    torch.save(blob, tmp_path / "qnet.pt")
+    with pytest.raises(UserError, match=r"needs 40,004,000,005 weights, the file holds"):
+        load_qnet(tmp_path / "qnet.pt")

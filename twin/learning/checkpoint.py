@@ -118,6 +118,15 @@ def load_qnet(path: str | Path):
             f"checkpoint {path}: meta.layers = {str(layers)[:60]} is not a list of layer "
             "widths (whole numbers >= 1); re-create it with `twin pretrain`"
         )
+    # the layers' parameters are counted before any is allocated: a meta.layers far larger
+    # than the stored weights is refused here, not after asking for gigabytes
+    wanted = sum(a * b + b for a, b in zip(layers[:-1], layers[1:], strict=False))
+    stored = sum(v.numel() for v in blob["weights"].values() if isinstance(v, torch.Tensor))
+    if wanted != stored:
+        raise UserError(
+            f"checkpoint {path}: meta.layers = {str(layers)[:60]} needs {wanted:,} weights, the "
+            f"file holds {stored:,}; re-create it with `twin pretrain`"
+        )
     try:
         net = QNetwork(meta["layers"])
         net.load_state_dict(blob["weights"])
