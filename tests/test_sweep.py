@@ -261,6 +261,12 @@ def test_killed_sweep_resumes(tmp_path: Path) -> None:
         ('[sweep]\nswarms = ["greedy"]\nseeds = 0\n', "[sweep].seeds = 0 must be at least 1"),
         ('[sweep]\nswarms = ["greedy"]\n', "[[scenario]] is missing"),
         (
+            '[sweep]\nswarms = ["greedy"]\nseeds = 100000000\n[[scenario]]\nname = "a"\n'
+            'config = "scenario.toml"\n',
+            "the sweep expands to 100,000,000 cells (1 scenarios x 1 parameter combinations x "
+            "100,000,000 seeds), over the 100,000 one sweep folder holds",
+        ),
+        (
             '[sweep]\nswarms = ["greedy"]\n[[scenario]]\nname = "a"\nconfig = "missing.toml"\n',
             "does not exist",
         ),

@@ -13,6 +13,7 @@ Anything wrong with a file reaches the user as one :class:`~twin.errors.UserErro
 
 from __future__ import annotations
 
+import itertools
 import warnings
 from pathlib import Path
 from typing import Any
@@ -120,7 +121,7 @@ def load_qnet(path: str | Path):
         )
     # the layers' parameters are counted before any is allocated: a meta.layers far larger
     # than the stored weights is refused here, not after asking for gigabytes
-    wanted = sum(a * b + b for a, b in zip(layers[:-1], layers[1:], strict=False))
+    wanted = sum(a * b + b for a, b in itertools.pairwise(layers))
     stored = sum(v.numel() for v in blob["weights"].values() if isinstance(v, torch.Tensor))
     if wanted != stored:
         raise UserError(

@@ -80,7 +80,9 @@ def done_cells(out_dir: Path) -> set[str]:
                 read_table(series, CELL_SERIES_COLUMNS)
         except UserError as exc:
             reason = str(exc).split("; ")[0]
-            notify(f"twin: notice: sweep cell {path.stem} is damaged ({reason}); computing it again")
+            notify(
+                f"twin: notice: sweep cell {path.stem} is damaged ({reason}); computing it again"
+            )
             continue
         done.add(path.stem)
     return done
