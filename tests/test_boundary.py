@@ -456,6 +456,17 @@ def _set(column, value, row=0):
     return edit
 
 
+def _jump(frame):
+    """Drone 0 of the first swarm and seed two cells away at step 2 (a diagonal move of one
+    cell each way)."""
+    first = frame[(frame["drone"] == 0) & (frame["swarm"] == frame["swarm"].iloc[0])]
+    row = first[(first["seed"] == first["seed"].min()) & (first["step"] == 2)].index[0]
+    before = first[(first["seed"] == first["seed"].min()) & (first["step"] == 1)].iloc[0]
+    frame.loc[row, "i"] = before["i"] + (1 if before["i"] == 0 else -1)
+    frame.loc[row, "j"] = before["j"] + (1 if before["j"] == 0 else -1)
+    return frame
+
+
 def _maps(**arrays):
     def apply(run: Path) -> None:
         with np.load(run / "importance.npz") as npz:
@@ -488,6 +499,10 @@ READ_BACK = {
         "twice",
     ),
     "cell off the grid": (_edit_table("trajectories.parquet", _set("i", 99)), "off the"),
+    "drone jumps two cells": (
+        _edit_table("trajectories.parquet", _jump),
+        "more than one cell from where it was",
+    ),
     "NaN in trajectories": (_edit_table("trajectories.parquet", _set("j", np.nan)), "'j'"),
     "string in trajectories": (
         _edit_table("trajectories.parquet", lambda f: f.astype({"i": str})),

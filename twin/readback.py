@@ -497,6 +497,18 @@ def check_trajectories(
                 f"{path}: rows of seed {seed}, swarm {swarm} are incomplete ({len(rows)} rows, "
                 f"steps {rows['step'].min()}..{rows['step'].max()}, {drones} drones); {RERUN}"
             )
+    ordered = frame.sort_values(["seed", "swarm", "drone", "step"], kind="stable")
+    same = (ordered[["seed", "swarm", "drone"]] == ordered[["seed", "swarm", "drone"]].shift()).all(
+        axis=1
+    )
+    jump = same & ((ordered["i"].diff().abs() + ordered["j"].diff().abs()) > 1)
+    if jump.any():
+        r = ordered[jump].iloc[0]
+        raise UserError(
+            f"{path}: swarm {r['swarm']} drone {r['drone']} of seed {r['seed']} reaches cell "
+            f"({r['i']}, {r['j']}) at step {r['step']}, more than one cell from where it was "
+            f"(a drone moves one cell per step); {RERUN}"
+        )
 
 
 def check_series(path: Path, frame: pd.DataFrame) -> None:
