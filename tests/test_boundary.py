@@ -540,6 +540,7 @@ READ_BACK = {
         _maps(importance=lambda d: np.full(d["importance"].shape, np.nan)),
         "NaN",
     ),
+    "importance below 0": (_maps(importance=lambda d: d["importance"] - 5.0), "outside 0 .. 1"),
     "obstacles everywhere": (_maps(obstacles=lambda d: np.ones_like(d["obstacles"])), "obstacle"),
     "npz truncated": (
         lambda run: (run / "importance.npz").write_bytes(

@@ -574,6 +574,11 @@ def read_maps(path: Path) -> tuple[np.ndarray, np.ndarray]:
     importance = np.asarray(importance, dtype=np.float64)
     if not np.isfinite(importance).all():
         raise UserError(f"{path}: importance holds NaN or infinite values; {RERUN}")
+    if importance.min() < 0.0 or importance.max() > 1.0:
+        low, high = float(importance.min()), float(importance.max())
+        raise UserError(
+            f"{path}: importance spans {low:.3g} .. {high:.3g}, outside 0 .. 1 (Def. 2); {RERUN}"
+        )
     if obstacles.dtype != bool and not np.isin(obstacles, (0, 1)).all():
         raise UserError(f"{path}: obstacles must hold true/false (or 0/1) per cell; {RERUN}")
     obstacles = np.asarray(obstacles, dtype=bool)
