@@ -15,6 +15,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from twin.boundary import EXIT_BUG, EXIT_INTERRUPTED, EXIT_REFUSED, LOG_NAME, run_command
 from twin.cli import main
@@ -454,6 +456,17 @@ def _set(column, value, row=0):
     return edit
 
 
+def _jump(frame):
+    """Drone 0 of the first swarm and seed two cells away at step 2 (a diagonal move of one
+    cell each way)."""
+    first = frame[(frame["drone"] == 0) & (frame["swarm"] == frame["swarm"].iloc[0])]
+    row = first[(first["seed"] == first["seed"].min()) & (first["step"] == 2)].index[0]
+    before = first[(first["seed"] == first["seed"].min()) & (first["step"] == 1)].iloc[0]
+    frame.loc[row, "i"] = before["i"] + (1 if before["i"] == 0 else -1)
+    frame.loc[row, "j"] = before["j"] + (1 if before["j"] == 0 else -1)
+    return frame
+
+
 def _maps(**arrays):
     def apply(run: Path) -> None:
         with np.load(run / "importance.npz") as npz:
@@ -486,6 +499,10 @@ READ_BACK = {
         "twice",
     ),
     "cell off the grid": (_edit_table("trajectories.parquet", _set("i", 99)), "off the"),
+    "drone jumps two cells": (
+        _edit_table("trajectories.parquet", _jump),
+        "more than one cell from where it was",
+    ),
     "NaN in trajectories": (_edit_table("trajectories.parquet", _set("j", np.nan)), "'j'"),
     "string in trajectories": (
         _edit_table("trajectories.parquet", lambda f: f.astype({"i": str})),
@@ -523,6 +540,7 @@ READ_BACK = {
         _maps(importance=lambda d: np.full(d["importance"].shape, np.nan)),
         "NaN",
     ),
+    "importance below 0": (_maps(importance=lambda d: d["importance"] - 5.0), "outside 0 .. 1"),
     "obstacles everywhere": (_maps(obstacles=lambda d: np.ones_like(d["obstacles"])), "obstacle"),
     "npz truncated": (
         lambda run: (run / "importance.npz").write_bytes(
@@ -547,6 +565,14 @@ READ_BACK = {
             lambda f: f.assign(R_hat_T=f["R_hat_T"].where(f["swarm"] != "bound (ceiling)", 1e-3)),
         ),
         "the bound (ceiling) row's R_hat_T = 0.001 lies below a swarm's",
+    ),
+    "cumulative reward off its rewards": (
+        _edit_table("series.parquet", _set("cumulative_reward", 1e6, 3)),
+        "cumulative_reward = 1e+06 at step 3 of seed 0",
+    ),
+    "run.json grid other than the maps": (
+        _json("run.json", ("grid", "nx"), 99),
+        "grid = 99 x",
     ),
     "run.json seeds without results": (
         _json("run.json", ("seeds",), [0, 1, 2]),
@@ -697,6 +723,23 @@ def test_clock_labels_show_days(t, seconds, label) -> None:
     from twin.clock import clock_label
 
     assert clock_label(t, seconds) == label
+
+
+@given(st.integers(0, 999 * 86400 + 86399), st.booleans())
+def test_clock_labels_read_back_as_written(t, seconds) -> None:
+    """Every label twin writes (run.json's begin past midnight of a later day too) reads back."""
+    from twin.clock import clock_label, clock_seconds
+
+    back = clock_seconds(clock_label(t, seconds))
+    assert back == (t if seconds else t - t % 60)
+
+
+@pytest.mark.parametrize("text", ["", "7", "07:60", "1d", "d 07:00", "-1d 07:00", "07:00:61"])
+def test_text_that_is_not_a_clock_time_is_refused(text) -> None:
+    from twin.clock import parse_clock
+
+    with pytest.raises(UserError, match="must be a clock time"):
+        parse_clock(text, "--begin")
 
 
 def test_ray_address_that_does_not_answer_fails_fast() -> None:

@@ -177,3 +177,18 @@ def test_make_env_refuses_bad_options_in_one_line(joint):
         assert "\n" not in str(info.value)
     with pytest.raises(TypeError, match="colour"):  # Python's own message names the keyword
         make_env("synthetic", joint=joint, colour="red")
+
+
+@pytest.mark.parametrize("infeasible", ["raise", "stay"])
+@pytest.mark.parametrize("action", [[9, 0, 0], [0, -5, 0], [0, 0, 5]])
+def test_joint_env_refuses_actions_out_of_range_in_either_mode(infeasible, action):
+    """ "stay" replaces a move off the map or into an obstacle, never a number that is no
+    action at all."""
+    from twin.env import EnvInputError
+
+    env = SwarmGymEnv(_synthetic(), n_drones=3, infeasible=infeasible)
+    env.reset(seed=0)
+    with pytest.raises(EnvInputError, match=r"is out of range 0 \.\. 4") as info:
+        env.step(np.array(action))
+    assert "\n" not in str(info.value)
+    env.step(np.zeros(3, np.int64))  # the env is still usable

@@ -496,3 +496,51 @@ def test_damaged_checkpoint_never_tracebacks(checkpoint_blob, data) -> None:
         code, err = run_twin([*argv, "--out", str(run), "--no-report", "--quiet"])
         assert_clean(code, err, allowed=(0, 1, 2))
         assert tree_hash(folder, skip=run) == before
+
+
+class _Hostile:
+    """A pickle that would create a file when unpickled."""
+
+    def __init__(self, marker: Path) -> None:
+        self.marker = marker
+
+    def __reduce__(self):
+        return (Path.touch, (self.marker,))
+
+
+def test_a_hostile_checkpoint_is_refused_in_one_line_and_never_run(tmp_path) -> None:
+    import pickle
+    import warnings
+
+    marker = tmp_path / "was-run"
+    path = tmp_path / "qnet.pt"
+    path.write_bytes(pickle.dumps({"meta": {}, "weights": _Hostile(marker)}, protocol=4))
+    config = small_config(tmp_path, horizon=4)
+    config.write_text(config.read_text() + '\n[swarm_options.rl]\ncheckpoint = "qnet.pt"\n')
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        code, err = run_twin(["evaluate", "--config", str(config), "--swarms", "rl", "--out",
+                              str(tmp_path / "run"), "--no-report", "--quiet"])  # fmt: skip
+    assert_clean(code, err, allowed=(2,))
+    assert "is corrupt or not a torch file" in err
+    assert not marker.exists()
+    assert [str(w.message)[:80] for w in caught] == []  # torch's own warning is not printed
+
+
+def test_layers_far_larger_than_the_weights_are_refused_before_allocation(
+    checkpoint_blob, tmp_path
+) -> None:
+    """meta.layers of 160 GB against the stored few kB: refused by counting, not by torch
+    failing to allocate."""
+    import copy
+
+    import torch
+
+    from twin.errors import UserError
+    from twin.learning.checkpoint import load_qnet
+
+    blob = copy.deepcopy(checkpoint_blob)
+    blob["meta"]["layers"] = [13, 200_000, 200_000, 5]
+    torch.save(blob, tmp_path / "qnet.pt")
+    with pytest.raises(UserError, match=r"needs 40,004,000,005 weights, the file holds"):
+        load_qnet(tmp_path / "qnet.pt")

@@ -71,6 +71,34 @@ def _off_grid(run: Path) -> None:
     write_manifest(run)
 
 
+def _rename_swarm(old: str, new: str) -> Callable[[Path], None]:
+    """Rows of a recorded swarm under another name (the manifest agrees)."""
+
+    def edit(run: Path) -> None:
+        path = run / "trajectories.parquet"
+        rows = pd.read_parquet(path)
+        rows["swarm"] = rows["swarm"].replace(old, new)
+        rows.to_parquet(path, index=False)
+        write_manifest(run)
+
+    return edit
+
+
+def _drop_swarm(run: Path) -> None:
+    path = run / "trajectories.parquet"
+    rows = pd.read_parquet(path)
+    rows[rows["swarm"] != "random"].to_parquet(path, index=False)
+    write_manifest(run)
+
+
+def _add_swarm(run: Path) -> None:
+    path = run / "trajectories.parquet"
+    rows = pd.read_parquet(path)
+    extra = rows[rows["swarm"] == "greedy"].assign(swarm="foo")
+    pd.concat([rows, extra]).to_parquet(path, index=False)
+    write_manifest(run)
+
+
 def _edit_net(run: Path) -> None:
     with open(run.parent / "small.net.xml", "a") as fh:
         fh.write("<!-- edited after the run -->\n")
@@ -110,6 +138,21 @@ CASES = {
         "the grid (nx, ny) was [9, 9], now",
     ),
     "cell off the grid": (_off_grid, None, "on cell (99, "),
+    "swarm renamed in trajectories": (
+        _rename_swarm("random", "foo"),
+        None,
+        "trajectories.parquet: seed 0 has no rows of swarm 'random', which run.json lists",
+    ),
+    "swarm missing from trajectories": (
+        _drop_swarm,
+        None,
+        "trajectories.parquet: seed 0 has no rows of swarm 'random', which run.json lists",
+    ),
+    "unknown swarm in trajectories": (
+        _add_swarm,
+        None,
+        "trajectories.parquet: seed 0 has rows of swarm 'foo', which run.json does not list",
+    ),
     "route file edited": (
         _edit_routes,
         None,

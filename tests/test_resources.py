@@ -150,6 +150,14 @@ BROKEN_ENTRIES = {
         "a.net.xml is not a SUMO <net> file",
     ),
     "not XML at all": (lambda d: (d / "a.trips.xml").write_text("hello"), "a.trips.xml is not"),
+    "another well-formed file": (
+        lambda d: (d / "a.trips.xml").write_text("<routes>\n  <trip id='7'/>\n</routes>\n"),
+        "a.trips.xml changed since it was built",
+    ),
+    "its record of the files removed": (
+        lambda d: (d / resources.SEAL).unlink(),
+        f"{resources.SEAL}, the record of its files, is missing",
+    ),
 }
 
 

@@ -373,3 +373,50 @@ def test_departure_span_of_flows_and_clock_times(tmp_path):
         )
     )
     assert departure_span([routes]) == (50.0, 800.0)
+
+
+def test_departures_in_included_route_files_are_the_demand(tmp_path):
+    """A route file that only includes another (as SUMO reads it) holds that file's demand, so
+    twin does not add its own rush hour beside it (SUMO would refuse the duplicate ids)."""
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "sub" / "trips.xml").write_text(
+        '<routes><trip id="0" depart="30" from="a" to="b"/>'
+        '<trip id="1" depart="90" from="a" to="b"/></routes>'
+    )
+    (tmp_path / "inc.rou.xml").write_text('<routes><include href="sub/trips.xml"/></routes>')
+    counts: dict[str, int] = {}
+    assert departure_span([tmp_path / "inc.rou.xml"], counts) == (30.0, 90.0)
+    assert counts == {"trip": 2}
+    (tmp_path / "lost.rou.xml").write_text('<routes><include href="nowhere.xml"/></routes>')
+    assert departure_span([tmp_path / "lost.rou.xml"]) is None  # SUMO names the missing file
+
+
+def test_a_demand_on_a_later_day_runs_and_its_run_folder_reads_back(city, capsys):
+    """Departures past 24 h: the run's clock shows the day ("1d 00:..."), and the run folder
+    it wrote is read back by `twin report` (clock labels with days parse as they are written)."""
+    data = city / "data"
+    later = data / "later.rou.xml"
+    text = (data / "grid.rou.xml").read_text()
+    later.write_text(re.sub(r'depart="([\d.]+)"', lambda m: f'depart="{float(m[1]) + 86400}"',
+                            text))  # fmt: skip
+    code, err = _run(city, "later", "--net", str(data / "grid.net.xml"), "--routes", str(later),
+                     "--additional", str(data / "vtypes.add.xml"), "--horizon", "3",
+                     capsys=capsys)  # fmt: skip
+    assert code == 0, err
+    run = json.loads((city / "later" / "run.json").read_text())
+    assert run["traffic"]["begin"].startswith("1d "), run["traffic"]
+    assert twin_main(["report", "--no-animation", str(city / "later")]) == 0
+    assert "Traceback" not in capsys.readouterr().err
+
+
+def test_an_end_before_the_begin_is_refused(city, capsys):
+    cfg = city / "scenario" / "ends.toml"
+    window = 'net = "../data/grid.net.xml"\nroutes = ["../data/grid.rou.xml"]\n'
+    window += 'begin = "00:15"\nend = "00:10"\n'
+    cfg.write_text(CONFIG.replace("[evaluate]", window + "[evaluate]"))
+    code = twin_main(["run", "--config", str(cfg), "--quiet", "--no-report", "--out",
+                      str(city / "ends")])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1, err
+    assert "[traffic].end = '00:10' is not after the begin (00:15:00)" in err
+    assert not (city / "ends").exists()

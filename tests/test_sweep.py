@@ -201,6 +201,33 @@ def test_restart_runs_only_missing_cells(tmp_path: Path) -> None:
     assert nothing.ran == [] and len(nothing.skipped) == 3
 
 
+DAMAGED_CELLS = {
+    "JSON cut short": (".json", lambda b: b[: len(b) // 2], "not valid JSON"),
+    "series cut short": (".parquet", lambda b: b[: len(b) // 2], ".parquet"),
+    "series of another kind": (".parquet", lambda b: b"not parquet", ".parquet"),
+}
+
+
+@pytest.mark.parametrize("case", list(DAMAGED_CELLS))
+def test_a_damaged_cell_is_reported_and_computed_again(tmp_path: Path, capsys, case) -> None:
+    """A cell whose files were damaged after it finished is not taken as done: the rerun says
+    so in one line and computes it again, with the numbers of the first run."""
+    suffix, damage, words = DAMAGED_CELLS[case]
+    config = load_sweep_config(sweep_file(tmp_path, seeds=2))
+    first = run_sweep(config, tmp_path / "s", workers=1, report=False)
+    before = numbers(tmp_path / "s")
+    victim = sorted(first.ran)[0]
+    path = tmp_path / "s" / "cells" / f"{victim}{suffix}"
+    path.write_bytes(damage(path.read_bytes()))
+    capsys.readouterr()
+    again = run_sweep(config, tmp_path / "s", workers=1, report=False)
+    notes = [x for x in capsys.readouterr().err.splitlines() if "damaged" in x]
+    assert again.ran == [victim], notes
+    assert len(notes) == 1 and f"sweep cell {victim} is damaged" in notes[0], notes
+    assert words in notes[0] and notes[0].endswith("computing it again")
+    pd.testing.assert_frame_equal(numbers(tmp_path / "s"), before)
+
+
 def test_killed_sweep_resumes(tmp_path: Path) -> None:
     path = sweep_file(tmp_path, seeds=6, horizon=400)
     out = tmp_path / "s"
@@ -233,6 +260,12 @@ def test_killed_sweep_resumes(tmp_path: Path) -> None:
         ('[sweep]\nname = "x"\nswarms = ["nope"]\n', "unknown swarm 'nope'"),
         ('[sweep]\nswarms = ["greedy"]\nseeds = 0\n', "[sweep].seeds = 0 must be at least 1"),
         ('[sweep]\nswarms = ["greedy"]\n', "[[scenario]] is missing"),
+        (
+            '[sweep]\nswarms = ["greedy"]\nseeds = 100000000\n[[scenario]]\nname = "a"\n'
+            'config = "scenario.toml"\n',
+            "the sweep expands to 100,000,000 cells (1 scenarios x 1 parameter combinations x "
+            "100,000,000 seeds), over the 100,000 one sweep folder holds",
+        ),
         (
             '[sweep]\nswarms = ["greedy"]\n[[scenario]]\nname = "a"\nconfig = "missing.toml"\n',
             "does not exist",

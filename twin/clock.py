@@ -18,11 +18,26 @@ def clock_label(t: float, seconds: bool = True) -> str:
     return f"{sign}{days}d {label}" if days else f"{sign}{label}"
 
 
+#: ``HH:MM[:SS]``, after the days past the first when there are any (``1d 02:15``), as
+#: :func:`clock_label` writes it.
+_CLOCK = re.compile(r"(?:(\d{1,3})d\s+)?(\d{1,2}):(\d{2})(?::(\d{2}))?")
+CLOCK_HINT = 'must be a clock time like "07:00" (or "1d 02:15" on a later day)'
+
+
+def clock_seconds(text: str) -> float | None:
+    """``"07:00"``, ``"07:00:30"`` or ``"1d 02:15"`` -> seconds since the first midnight; None
+    when ``text`` is not such a time."""
+    m = _CLOCK.fullmatch(str(text).strip())
+    if not m or int(m[3]) > 59 or int(m[4] or 0) > 59:
+        return None
+    days, h, mi, s = int(m[1] or 0), int(m[2]), int(m[3]), int(m[4] or 0)
+    return float(days * 86400 + h * 3600 + mi * 60 + s)
+
+
 def parse_clock(text: str, where: str) -> float:
-    """``"07:00"`` or ``"07:00:30"`` -> seconds since midnight; ``where`` names the source of a
-    bad value in the one-line error."""
-    m = re.fullmatch(r"(\d{1,2}):(\d{2})(?::(\d{2}))?", str(text).strip())
-    if not m or int(m[2]) > 59 or int(m[3] or 0) > 59:
-        raise UserError(f'{where} = {text!r} must be a clock time like "07:00"')
-    h, mi, s = int(m[1]), int(m[2]), int(m[3] or 0)
-    return float(h * 3600 + mi * 60 + s)
+    """:func:`clock_seconds` of ``text``; ``where`` names the source of a bad value in the
+    one-line error."""
+    t = clock_seconds(text)
+    if t is None:
+        raise UserError(f"{where} = {text!r} {CLOCK_HINT}")
+    return t

@@ -38,6 +38,7 @@ from pydantic import (
     model_validator,
 )
 
+from twin.clock import CLOCK_HINT, clock_seconds
 from twin.errors import UserError
 from twin.grid import Grid
 from twin.resources import shipped_config as shipped_config  # re-export (moved there)
@@ -170,14 +171,10 @@ def check_name(value: str) -> str:
     return value
 
 
-_CLOCK = re.compile(r"(\d{1,2}):(\d{2})(?::(\d{2}))?")
-
-
 def check_clock(text: str) -> str:
-    """A clock time ``HH:MM`` or ``HH:MM:SS``."""
-    m = _CLOCK.fullmatch(text.strip())
-    if not m or int(m[2]) > 59 or int(m[3] or 0) > 59:
-        raise ValueError('must be a clock time like "07:00"')
+    """A clock time ``HH:MM`` or ``HH:MM:SS``, after ``Nd`` on a later day."""
+    if clock_seconds(text) is None:
+        raise ValueError(CLOCK_HINT)
     return text
 
 

@@ -335,8 +335,7 @@ class SwarmGymEnv(gymnasium.Env):
         env = self.swarm_env
         action = _joint_action(action, env.n_drones)
         if self.infeasible == "stay" and env.swarm is not None and action.shape == (env.n_drones,):
-            ok = (action >= 0) & (action < N_ACTIONS)
-            ok[ok] = env.swarm.feasible[np.flatnonzero(ok), action[ok]]
+            ok = env.swarm.feasible[np.arange(env.n_drones), action]
             action = np.where(ok, action, 0)
         out = env._advance(action)
         info = self._info()
@@ -367,6 +366,13 @@ def _joint_action(action: Any, n: int) -> np.ndarray:
         raise EnvInputError(
             f"action must be {n} whole numbers 0 .. {N_ACTIONS - 1} (one per drone), got "
             f"{raw.dtype} of shape {raw.shape}"
+        )
+    out = (raw < 0) | (raw >= N_ACTIONS)
+    if out.any():
+        d = int(np.flatnonzero(out)[0])
+        raise EnvInputError(
+            f"drone {d}: action {raw[d]} is out of range 0 .. {N_ACTIONS - 1} (0 stay, 1 up, "
+            "2 down, 3 left, 4 right)"
         )
     return raw.astype(np.int64)
 

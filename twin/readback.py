@@ -380,6 +380,8 @@ SERIES_COLUMNS = {
     "coverage": FINITE,
     "visited_share": FINITE,
 }
+#: Columns of a sweep cell's per-step series (``cells/<id>.parquet``) that the sweep reads back.
+CELL_SERIES_COLUMNS = {"swarm": TEXT, "step": INT, "seed": INT, "cumulative_reward": FINITE}
 TIMING_COLUMNS = {"seed": INT, "stage": TEXT, "seconds": FINITE, "ms_per_step": FINITE}
 EVENT_COLUMNS = {
     "seed": INT,
@@ -495,10 +497,23 @@ def check_trajectories(
                 f"{path}: rows of seed {seed}, swarm {swarm} are incomplete ({len(rows)} rows, "
                 f"steps {rows['step'].min()}..{rows['step'].max()}, {drones} drones); {RERUN}"
             )
+    ordered = frame.sort_values(["seed", "swarm", "drone", "step"], kind="stable")
+    same = (ordered[["seed", "swarm", "drone"]] == ordered[["seed", "swarm", "drone"]].shift()).all(
+        axis=1
+    )
+    jump = same & ((ordered["i"].diff().abs() + ordered["j"].diff().abs()) > 1)
+    if jump.any():
+        r = ordered[jump].iloc[0]
+        raise UserError(
+            f"{path}: swarm {r['swarm']} drone {r['drone']} of seed {r['seed']} reaches cell "
+            f"({r['i']}, {r['j']}) at step {r['step']}, more than one cell from where it was "
+            f"(a drone moves one cell per step); {RERUN}"
+        )
 
 
 def check_series(path: Path, frame: pd.DataFrame) -> None:
-    """One row per (seed, swarm, step), steps ``0..T-1`` complete for each seed and swarm."""
+    """One row per (seed, swarm, step), steps ``0..T-1`` complete for each seed and swarm, and
+    ``cumulative_reward`` the running sum of ``reward``."""
     check_columns(path, frame, SERIES_COLUMNS)
     if "belief_error" in frame.columns:
         check_column(path, frame, "belief_error", NUMBER)
@@ -515,6 +530,17 @@ def check_series(path: Path, frame: pd.DataFrame) -> None:
                 f"{path}: steps of seed {seed}, swarm {swarm} are not 0..{len(rows) - 1} "
                 f"(rows missing); {RERUN}"
             )
+    ordered = frame.sort_values(["seed", "swarm", "step"], kind="stable")
+    running = ordered.groupby(["seed", "swarm"], sort=False)["reward"].cumsum()
+    given = ordered["cumulative_reward"]
+    off = (given - running).abs() > 1e-9 * np.maximum(1.0, running.abs())
+    if off.any():
+        r = ordered[off].iloc[0]
+        raise UserError(
+            f"{path}: cumulative_reward = {r['cumulative_reward']:.6g} at step {r['step']} of "
+            f"seed {r['seed']}, swarm {r['swarm']} is not the sum of its rewards "
+            f"({running[off].iloc[0]:.6g}); {RERUN}"
+        )
 
 
 def read_maps(path: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -548,6 +574,11 @@ def read_maps(path: Path) -> tuple[np.ndarray, np.ndarray]:
     importance = np.asarray(importance, dtype=np.float64)
     if not np.isfinite(importance).all():
         raise UserError(f"{path}: importance holds NaN or infinite values; {RERUN}")
+    if importance.min() < 0.0 or importance.max() > 1.0:
+        low, high = float(importance.min()), float(importance.max())
+        raise UserError(
+            f"{path}: importance spans {low:.3g} .. {high:.3g}, outside 0 .. 1 (Def. 2); {RERUN}"
+        )
     if obstacles.dtype != bool and not np.isin(obstacles, (0, 1)).all():
         raise UserError(f"{path}: obstacles must hold true/false (or 0/1) per cell; {RERUN}")
     obstacles = np.asarray(obstacles, dtype=bool)

@@ -146,6 +146,43 @@ class BrokenEntry(Exception):
     """A cache entry that fails its check (a missing, empty or unparseable file)."""
 
 
+#: The file in a cache entry that records the sha256 of each of the entry's other files.
+SEAL = ".twin-seal.json"
+
+
+def _entry_files(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.rglob("*") if p.is_file() and p.name != SEAL)
+
+
+def write_seal(folder: Path) -> None:
+    """Record the sha256 of every file of a built cache entry (before it is committed)."""
+    import json
+
+    from twin.files import file_sha256
+
+    sums = {p.relative_to(folder).as_posix(): file_sha256(p) for p in _entry_files(folder)}
+    (folder / SEAL).write_text(json.dumps(sums, indent=1))
+
+
+def check_seal(folder: Path) -> None:
+    """Raise :class:`BrokenEntry` when a file the entry's seal lists is gone or changed (or the
+    entry has no seal: it was not committed by this version of twin)."""
+    import json
+
+    from twin.files import file_sha256
+
+    try:
+        sums = json.loads((folder / SEAL).read_text())
+    except (OSError, ValueError) as exc:
+        raise BrokenEntry(f"{SEAL}, the record of its files, is missing or damaged") from exc
+    if not isinstance(sums, dict) or not sums:
+        raise BrokenEntry(f"{SEAL}, the record of its files, is damaged")
+    for name, digest in sums.items():
+        path = folder / str(name)
+        if not path.is_file() or file_sha256(path) != digest:
+            raise BrokenEntry(f"{name} changed since it was built")
+
+
 def build_once(
     target: Path,
     make: Callable[[Path], None],
@@ -162,13 +199,15 @@ def build_once(
     ``verify(folder)`` raises :class:`BrokenEntry` (or OSError) when an entry is not usable (a
     file missing, empty or unparseable): a new build is checked before it is renamed in (a
     broken build is a one-line :class:`UserError`); an existing entry that fails the check
-    (deleted or damaged files) is reported in one line on stderr and rebuilt.
+    (deleted or damaged files) is reported in one line on stderr and rebuilt. A committed entry
+    holds the sha256 of each of its files (:data:`SEAL`): an entry whose files changed since,
+    even into other well-formed files, is rebuilt the same way.
     """
     if target.is_dir() and not force:
-        if verify is None:
-            return target
         try:
-            verify(target)
+            if verify is not None:
+                verify(target)
+            check_seal(target)
             return target
         except (BrokenEntry, OSError) as exc:
             from twin.notices import notify
@@ -190,6 +229,7 @@ def build_once(
                     f"{target}: the build produced a broken entry ({_reason(exc)}); nothing "
                     "was cached, see the message of the tool above or report it"
                 ) from None
+        write_seal(tmp)
         if force and target.is_dir():
             old = Path(tempfile.mkdtemp(prefix=f".{target.name}.old-", dir=target.parent))
             with contextlib.suppress(FileNotFoundError):  # removed meanwhile

@@ -140,7 +140,7 @@ def main(args: argparse.Namespace) -> int:
     from twin.boundary import hold_notices, notify, release_notices
     from twin.cli.run import build_experiment, finish_video, gui_drawer
     from twin.experiment import build_source, limit_threads
-    from twin.readback import TRAJECTORY_COLUMNS, check_trajectories, read_table
+    from twin.readback import RERUN, TRAJECTORY_COLUMNS, check_trajectories, read_table
     from twin.runs import check_run_folder
     from twin.sumo.gui import display
 
@@ -161,9 +161,19 @@ def main(args: argparse.Namespace) -> int:
     recorded = _recorded_shape(run_dir)
     if recorded is not None:  # checked before SUMO starts; the source's grid is checked below
         check_trajectories(path, rows, recorded)
-    swarms = [s for s in experiment.swarms if s in set(rows["swarm"])]
-    if not swarms:
+    if rows.empty:
         raise UserError(f"{path}: no trajectory of seed {seed}")
+    swarms = list(experiment.swarms)
+    present = set(rows["swarm"])
+    missing = [s for s in swarms if s not in present]
+    unknown = sorted(map(str, present - set(swarms)))
+    if missing or unknown:
+        what = (
+            f"no rows of swarm {missing[0]!r}, which run.json lists"
+            if missing
+            else f"rows of swarm {unknown[0]!r}, which run.json does not list"
+        )
+        raise UserError(f"{path}: seed {seed} has {what}; {RERUN}")
     args.gui = True
     drawer = gui_drawer(args, swarms)  # its flags are checked before the scenario loads
     source = build_source(experiment, seeds.index(seed))

@@ -13,6 +13,8 @@ Anything wrong with a file reaches the user as one :class:`~twin.errors.UserErro
 
 from __future__ import annotations
 
+import itertools
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -63,7 +65,9 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     if not path.is_file():
         raise UserError(f"checkpoint {path} does not exist; {hint}")
     try:
-        blob = torch.load(path, map_location="cpu", weights_only=True)
+        with warnings.catch_warnings():  # the one-line error below says it all
+            warnings.simplefilter("ignore")
+            blob = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises many types for truncated/corrupt/unsafe files
         first = str(exc).strip().splitlines()[0][:120] if str(exc).strip() else ""
         raise UserError(
@@ -114,6 +118,15 @@ def load_qnet(path: str | Path):
         raise UserError(
             f"checkpoint {path}: meta.layers = {str(layers)[:60]} is not a list of layer "
             "widths (whole numbers >= 1); re-create it with `twin pretrain`"
+        )
+    # the layers' parameters are counted before any is allocated: a meta.layers far larger
+    # than the stored weights is refused here, not after asking for gigabytes
+    wanted = sum(a * b + b for a, b in itertools.pairwise(layers))
+    stored = sum(v.numel() for v in blob["weights"].values() if isinstance(v, torch.Tensor))
+    if wanted != stored:
+        raise UserError(
+            f"checkpoint {path}: meta.layers = {str(layers)[:60]} needs {wanted:,} weights, the "
+            f"file holds {stored:,}; re-create it with `twin pretrain`"
         )
     try:
         net = QNetwork(meta["layers"])

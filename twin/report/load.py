@@ -377,6 +377,12 @@ def check_consistent(
                 f"{run_dir / 'series.parquet'}: swarm {swarm!r} has {n} steps in seed {first}, "
                 f"not {importance.shape[0] - 1}; {RERUN}"
             )
+    grid = run.get("grid")
+    if isinstance(grid, dict) and [grid.get("nx"), grid.get("ny")] != list(importance.shape[1:]):
+        raise UserError(
+            f"{run_dir / 'run.json'}: grid = {grid.get('nx')} x {grid.get('ny')}, but "
+            f"importance.npz holds {importance.shape[1]} x {importance.shape[2]} maps; {RERUN}"
+        )
     recorded = run.get("seeds")
     if isinstance(recorded, list) and sorted(set(recorded)) != seeds:
         raise UserError(

@@ -14,7 +14,7 @@ from matplotlib.figure import Figure
 
 from twin.errors import UserError
 from twin.files import atomic_write, staged_folder
-from twin.readback import FINITE, INT, TEXT, read_json, read_table
+from twin.readback import CELL_SERIES_COLUMNS, TEXT, read_json, read_table
 from twin.report.document import (
     CSS,
     PAPER_TABLE_COLUMNS,
@@ -102,7 +102,7 @@ def figure_curves(out_dir: Path, results: pd.DataFrame) -> Figure | None:
         frames = [
             read_table(
                 out_dir / "cells" / f"{cid}.parquet",
-                {"swarm": TEXT, "step": INT, "seed": INT, "cumulative_reward": FINITE},
+                CELL_SERIES_COLUMNS,
             )
             for cid in group["cell"]
             if (out_dir / "cells" / f"{cid}.parquet").exists()

@@ -300,10 +300,16 @@ def departure_span(
 ) -> tuple[float, float] | None:
     """First and last numeric departure of the demand (``depart`` of vehicles, trips and persons,
     ``begin`` .. ``end`` of flows); None when the files hold no vehicle (e.g. only vTypes).
-    ``counts``, when given, gets the number of departing elements of each tag."""
+    ``counts``, when given, gets the number of departing elements of each tag. Files pulled in
+    with ``<include href>`` count, as SUMO loads them."""
     first = last = None
     counts = {} if counts is None else counts
+    read: list[Path] = []
     for path in route_files:
+        for p in (Path(path), *included_files(Path(path))):
+            if p not in read and (p == Path(path) or p.is_file()):
+                read.append(p)
+    for path in read:
         try:
             with open_xml(path) as fh:
                 for _, elem in ET.iterparse(fh, events=("end",)):

@@ -525,6 +525,11 @@ def sumo_source(
     files = _scenario_files(s)
     if s.end is not None and not swapped:
         files.window[1] = parse_clock(s.end, f"{config.path}: [traffic].end")
+        if begin_given and files.window[1] <= t0:
+            raise UserError(
+                f"{config.path}: [traffic].end = {s.end!r} is not after the begin "
+                f"({clock_label(t0)}); give an end after the begin, or leave it out"
+            )
     with _named_in(files.sumocfg, files.listed):
         check_net_file(files.net_file)
         lanes = read_lanes(files.net_file)

@@ -9,6 +9,7 @@ sweep folder, so they are plain (no ``/``, no ``..``).
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -81,6 +82,10 @@ class SweepSection(StrictModel):
         return seeds
 
 
+#: The most cells one sweep may expand to (each is a file in its folder and a run).
+MAX_SWEEP_CELLS = 100_000
+
+
 class ScenarioSpec(StrictModel):
     """One scenario of a sweep: a scenario config file and overrides of its keys."""
 
@@ -143,6 +148,15 @@ class SweepConfig(StrictModel):
                 raise ValueError(
                     f"[[scenario]] #{n + 1}.name = {name!r} is taken; give distinct names"
                 )
+        seeds = self.sweep.seeds if isinstance(self.sweep.seeds, int) else len(self.sweep.seeds)
+        combinations = math.prod(len(v) for v in self.parameters.values())
+        cells = len(self.scenario) * combinations * seeds
+        if cells > MAX_SWEEP_CELLS:
+            raise ValueError(
+                f"the sweep expands to {cells:,} cells ({len(self.scenario)} scenarios x "
+                f"{combinations:,} parameter combinations x {seeds:,} seeds), over the "
+                f"{MAX_SWEEP_CELLS:,} one sweep folder holds; sweep fewer seeds or values"
+            )
         base = Path((info.context or {}).get("path", "sweep.toml")).parent
         for swarm, table in self.swarm_options.items():
             if swarm not in self.sweep.swarms:

@@ -14,6 +14,7 @@ import pandas as pd
 
 from twin.errors import UserError
 from twin.files import atomic_write
+from twin.readback import CELL_SERIES_COLUMNS
 
 if TYPE_CHECKING:
     from twin.sweep.config import SweepConfig
@@ -62,8 +63,29 @@ def _json_default(value: Any) -> Any:
 
 
 def done_cells(out_dir: Path) -> set[str]:
-    """Ids of the cells whose result JSON exists (the JSON is written last)."""
-    return {p.stem for p in (out_dir / CELLS_DIR).glob("*.json") if not p.name.startswith(".")}
+    """Ids of the cells whose result JSON exists (the JSON is written last) and reads back
+    whole, with its series; a damaged cell is reported in one line and is not done, so the
+    sweep computes it again."""
+    from twin.notices import notify
+    from twin.readback import read_table
+
+    done = set()
+    for path in sorted((out_dir / CELLS_DIR).glob("*.json")):
+        if path.name.startswith("."):
+            continue
+        series = path.with_suffix(".parquet")
+        try:
+            read_cell(path)
+            if series.exists():
+                read_table(series, CELL_SERIES_COLUMNS)
+        except UserError as exc:
+            reason = str(exc).split("; ")[0]
+            notify(
+                f"twin: notice: sweep cell {path.stem} is damaged ({reason}); computing it again"
+            )
+            continue
+        done.add(path.stem)
+    return done
 
 
 def _write_manifest(
