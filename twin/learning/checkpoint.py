@@ -125,8 +125,9 @@ def load_qnet(path: str | Path):
     stored = sum(v.numel() for v in blob["weights"].values() if isinstance(v, torch.Tensor))
     if wanted != stored:
         raise UserError(
-            f"checkpoint {path}: meta.layers = {str(layers)[:60]} needs {wanted:,} weights, the "
-            f"file holds {stored:,}; re-create it with `twin pretrain`"
+            f"checkpoint {path}: weights do not match meta.layers = {str(layers)[:60]} (it "
+            f"needs {wanted:,} weights, the file holds {stored:,}); re-create it with `twin "
+            "pretrain`"
         )
     try:
         net = QNetwork(meta["layers"])
