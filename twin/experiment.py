@@ -558,9 +558,9 @@ def estimate_memory(
     fault-free twin counts as one more swarm.
 
     Seeds run at once on W workers (:func:`parallel`): each worker holds one simulation with its
-    swarms (:data:`WORKER_BYTES`: an interpreter, SUMO and its process), its seed's result and
-    tape while it runs, and the copy it sends back (twice those 8 + 8 B per cell and step),
-    beside the parent, which gathers every seed's.
+    swarms (:data:`WORKER_BYTES`: an interpreter and the traffic simulator's process), its
+    seed's result and tape while it runs, and the copy it sends back (twice those 8 + 8 B per
+    cell and step), beside the parent, which gathers every seed's.
     """
     cells = shape[0] * shape[1]
     steps = horizon + 1
@@ -594,8 +594,8 @@ def estimate_memory(
 
 
 #: A worker of a parallel run beside its parent: a Python interpreter with twin's modules and
-#: one SUMO simulation in its own process (peak resident memory on the default scenario: about
-#: 0.4 GB for the runner plus 0.4 GB for SUMO's process; docs/benchmarks.md).
+#: one live traffic simulation in its own process (peak resident memory on the default
+#: scenario: about 0.4 GB for the runner plus 0.4 GB for the simulator; docs/benchmarks.md).
 WORKER_BYTES = 0.8e9
 
 
