@@ -497,11 +497,13 @@ def _pretrain(cfg, progress, out, state_path, model_path, log_path) -> Path:
     torch.manual_seed(cfg.seed)
 
     collector = CoordinatedCollector(cfg) if cfg.collector == "coordinated" else None
+    collect_start = time.perf_counter()
     if collector is None:
         buffer = collect_buffer(cfg, progress=progress)
         digest = buffer_digest(buffer)
     else:  # collected while training; a checkpoint holds the buffer as it stands
         buffer, digest = collector.buffer, None
+    collect_s = time.perf_counter() - collect_start
     kept = buffer if collector is not None else None  # saved by a checkpoint, then restored
 
     net = QNetwork(cfg.layers)
@@ -584,6 +586,7 @@ def _pretrain(cfg, progress, out, state_path, model_path, log_path) -> Path:
     meta = model_metadata(cfg.layers, cfg.training_dict(), cfg.seed, epoch)
     meta["wall_s"] = round(time.perf_counter() - t_start, 1)
     meta["buffer_digest"] = digest if kept is None else buffer_digest(buffer)
+    meta["collect_s"] = round(collect_s, 1)  # the data collected before the loop (random)
     save_model(model_path, net.state_dict(), meta)
     if cfg.curve_every:
         write_curve(cfg, out)
@@ -644,6 +647,7 @@ def write_provenance(cfg: PretrainConfig, out: Path, meta: dict[str, Any]) -> Pa
         "schedule": {k: getattr(cfg, k) for k in SCHEDULE_KEYS},
         "updates": cfg.epochs * cfg.iters_per_epoch,
         "wall_s": meta.get("wall_s"),
+        "collect_s": meta.get("collect_s"),
         "qnet_sha256": file_sha256(out / "qnet.pt"),
         "buffer_digest": meta.get("buffer_digest"),
         "curve": {"config": cfg.curve_config, "horizon": cfg.curve_horizon, "points": curve},
