@@ -59,7 +59,10 @@ def main(args: argparse.Namespace) -> int:
             print(f"{name:22s} {default!s:24s} {f.description or ''}")
         print(
             "\nRecipes: traffic = paper | dynamics | tapes (--traffic TAPE ...); init = a "
-            "checkpoint to fine-tune (--init); the state is always the paper's 13 values. "
+            "checkpoint to fine-tune (--init); collector = random (the paper) | coordinated "
+            "(the rl swarm being learned, epsilon-greedy: collect_every, epsilon_start, "
+            "epsilon_end, epsilon_decay_epochs); n_step with gamma (1: the paper's 1-step "
+            "target); the state is always the paper's 13 values. "
             "curve_every > 0 writes curve.csv (R_hat_T on curve_seeds against updates); "
             "provenance.json records command, recipe, seeds, schedule, wall time and curve."
         )
