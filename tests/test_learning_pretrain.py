@@ -410,3 +410,24 @@ def test_recipe_is_recorded_in_provenance(tmp_path):
     recipe = json.loads((tmp_path / "a/provenance.json").read_text())["recipe"]
     assert recipe["collector"] == "coordinated" and recipe["n_step"] == 2
     assert recipe["exploration"]["epsilon_decay_epochs"] == 30
+
+
+def test_coordinated_collector_on_tapes_and_dynamic_maps(tmp_path):
+    from helpers import random_tape
+
+    from twin.training.pretrain import CoordinatedCollector
+
+    tape_a, tape_b = tmp_path / "a.parquet", tmp_path / "b.parquet"
+    random_tape(seed=1, nx=6, ny=6, horizon=30).write(tape_a)
+    random_tape(seed=2, nx=6, ny=6, horizon=25).write(tape_b)
+    tapes = _coordinated(tmp_path, "t", traffic="tapes", tapes=[str(tape_a), str(tape_b)])
+    collector = CoordinatedCollector(tapes)
+    assert collector.buffer.capacity == 2 * 30  # the last 2 episodes, as long as the longest
+    net = QNetwork(tapes.layers)
+    for epoch in (0, 15):
+        collector.collect(epoch, net)
+    assert collector.buffer.steps == 30 + 25
+    dyn = CoordinatedCollector(_coordinated(tmp_path, "d", traffic="dynamics"))
+    assert dyn.source(0) is not dyn.source(1)
+    dyn.collect(0, net)
+    assert dyn.buffer.steps == 60

@@ -351,25 +351,30 @@ def training_source(cfg: PretrainConfig) -> SyntheticTraffic:
 
 
 def episode_sources(cfg: PretrainConfig, count: int | None = None) -> list:
-    """The traffic of each of ``count`` episodes (default ``episodes``), by the recipe's
-    ``traffic``: the one paper map for all, a fresh dynamic map per episode (seeded by ``seed``
-    and the episode), or the tapes in turn."""
-    count = cfg.episodes if count is None else count
+    """The traffic of each of ``count`` episodes (default ``episodes``): see
+    :func:`episode_source`."""
+    source = episode_source(cfg)
+    return [source(e) for e in range(cfg.episodes if count is None else count)]
+
+
+def episode_source(cfg: PretrainConfig):
+    """A function from an episode's index to its traffic, by the recipe's ``traffic``: the one
+    paper map for all, a fresh dynamic map per episode (seeded by ``seed`` and the episode,
+    made when asked for), or the tapes in turn."""
     if cfg.traffic == "dynamics":
         from twin.traffic.dynamic import DynamicTraffic
 
         grid = Grid.open(cfg.nx, cfg.ny)
-        return [
-            DynamicTraffic(grid, cfg.horizon, cfg.dynamics_disturbances, seed=cfg.seed * 100003 + e)
-            for e in range(count)
-        ]
+        return lambda e: DynamicTraffic(
+            grid, cfg.horizon, cfg.dynamics_disturbances, seed=cfg.seed * 100003 + e
+        )
     if cfg.traffic == "tapes":
         from twin.traffic.tape import TapeTraffic
 
         tapes = [TapeTraffic.from_file(t) for t in cfg.tapes]
-        return [tapes[e % len(tapes)] for e in range(count)]
+        return lambda e: tapes[e % len(tapes)]
     source = training_source(cfg)
-    return [source] * count
+    return lambda e: source
 
 
 def score_params(cfg: PretrainConfig) -> ScoreParams:
@@ -412,11 +417,12 @@ class CoordinatedCollector:
 
     def __init__(self, cfg: PretrainConfig) -> None:
         self.cfg = cfg
-        total = -(-cfg.epochs // cfg.collect_every)
-        self.sources = episode_sources(cfg, max(total, 1))
+        self.source = episode_source(cfg)
         self.params = score_params(cfg)
-        horizon = max(s.horizon for s in self.sources)
-        self.buffer = ReplayBuffer(cfg.episodes * horizon, cfg.n_drones, discounted=cfg.n_step > 1)
+        horizons = [self.source(e).horizon for e in range(len(cfg.tapes))] or [cfg.horizon]
+        self.buffer = ReplayBuffer(
+            cfg.episodes * max(horizons), cfg.n_drones, discounted=cfg.n_step > 1
+        )
 
     def epsilon(self, epoch: int) -> float:
         """Linear from ``epsilon_start`` at epoch 0 to ``epsilon_end`` at
@@ -434,11 +440,9 @@ class CoordinatedCollector:
         """The episode due at ``epoch``, driven by ``net``, into the buffer."""
         cfg = self.cfg
         e = epoch // cfg.collect_every
-        if e >= len(self.sources):  # epochs raised on resumption
-            self.sources += episode_sources(cfg, e + 1)[len(self.sources) :]
         rng = np.random.default_rng([cfg.seed, 3, e])
         ep = coordinated_swarm_episode(
-            self.sources[e], cfg.n_drones, self.params, rng, net, self.epsilon(epoch)
+            self.source(e), cfg.n_drones, self.params, rng, net, self.epsilon(epoch)
         )
         add_episode(self.buffer, ep, cfg)
 
