@@ -279,6 +279,11 @@ def test_recipes_collect_on_their_traffic_and_record_curve_and_provenance(tmp_pa
         ('traffic = "tapes"\n', "needs tape files"),
         ('traffic = "tapes"\ntapes = ["nowhere.parquet"]\n', "does not exist"),
         ('traffic = "weather"\n', "traffic"),
+        ("n_step = 0\n", "n_step"),
+        ('collector = "greedy"\n', "collector"),
+        ("epsilon_start = 1.5\n", "epsilon_start"),
+        ("epsilon_start = 0.1\nepsilon_end = 0.5\n", "epsilon_end = 0.5 is above"),
+        ("collect_every = 0\n", "collect_every"),
     ],
 )
 def test_bad_recipes_are_one_line_errors(tmp_path, text, match):
@@ -404,3 +409,141 @@ def test_a_scenario_pretraining_cannot_collect_on_is_refused(tmp_path, text, wor
     with pytest.raises(UserError, match=re.escape(words)) as info:
         load_config(path)
     assert "\n" not in str(info.value) and str(path) in str(info.value)
+
+
+# ----------------------------------------------------------------------------- n-step, collector
+def test_n_step_transitions_match_a_hand_computed_episode():
+    from twin.learning.replay import n_step_transitions
+
+    rewards = np.array([[1, 10], [2, 20], [3, 30], [4, 40]], np.float32)  # (T = 4, N = 2)
+    next_states = np.arange(4 * 2 * 13, dtype=np.float32).reshape(4, 2, 13)
+    next_feasible = np.zeros((4, 2, 5), bool)
+    next_feasible[np.arange(4), :, np.arange(4)] = True  # step t's mask marks action t
+    ret, s1, f1, disc = n_step_transitions(rewards, next_states, next_feasible, 0.5, 3)
+    # t = 0: 1 + .5 * 2 + .25 * 3; t = 1: 2 + .5 * 3 + .25 * 4; then cut by the episode's end
+    assert ret[:, 0].tolist() == [2.75, 4.5, 5.0, 4.0]
+    assert ret[:, 1].tolist() == [27.5, 45.0, 50.0, 40.0]
+    assert disc.tolist() == [0.125, 0.125, 0.25, 0.5]  # gamma^m, m = 3, 3, 2, 1
+    assert np.array_equal(s1, next_states[[2, 3, 3, 3]])
+    assert np.array_equal(f1.argmax(axis=2)[:, 0], [2, 3, 3, 3])
+    one = n_step_transitions(rewards, next_states, next_feasible, 0.5, 1)
+    assert np.array_equal(one[0], rewards) and np.array_equal(one[1], next_states)
+    assert one[3].tolist() == [0.5] * 4
+
+
+def test_n_step_batches_bootstrap_with_their_own_discounts():
+    from twin.learning.dqn import train_epoch
+    from twin.learning.replay import Batch
+
+    torch.manual_seed(0)
+    net, target = QNetwork([13, 8, 5]), QNetwork([13, 8, 5])
+    rng = np.random.default_rng(0)
+    s, s1 = rng.random((4, 13), np.float32), rng.random((4, 13), np.float32)
+    feasible = np.ones((4, 5), bool)
+    r = np.array([1.0, 2.0, 3.0, 4.0], np.float32)
+    disc = np.array([0.729, 0.729, 0.81, 0.9], np.float32)
+    expected = double_dqn_target(
+        net, target, torch.from_numpy(r), torch.from_numpy(s1), torch.from_numpy(feasible),
+        torch.from_numpy(disc),
+    )  # fmt: skip
+    with torch.no_grad():
+        best = net(torch.from_numpy(s1)).argmax(1)
+        hand = r + disc * target(torch.from_numpy(s1)).numpy()[np.arange(4), best.numpy()]
+    assert np.allclose(expected.numpy(), hand, atol=1e-6)
+    # train_epoch uses the batch's discounts, not gamma: with lr = 0 nothing moves, so the
+    # loss it reports is the one towards the hand-computed targets
+    opt = torch.optim.Adam(net.parameters(), lr=0.0)
+    batch = Batch(s, np.zeros(4, np.int64), r, s1, feasible, disc)
+    loss, _ = train_epoch(net, target, opt, batch, gamma=0.0, iters=1)
+    with torch.no_grad():
+        q = net(torch.from_numpy(s))[:, 0].numpy()
+    assert np.isclose(float(loss), np.mean((hand - q) ** 2), rtol=1e-5)
+
+
+def test_n_step_buffer_holds_the_random_swarms_n_step_returns(tmp_path):
+    from twin.learning.replay import n_step_transitions
+    from twin.training.pretrain import collect_buffer
+
+    one = load_config(_config(tmp_path))
+    three = one.model_copy(update={"n_step": 3})
+    a, b = collect_buffer(one), collect_buffer(three)
+    assert a.discounts is None and np.array_equal(a.states, b.states)
+    for e in range(one.episodes):  # each episode cut at its own end
+        rows = slice(e * one.horizon, (e + 1) * one.horizon)
+        ret, s1, f1, disc = n_step_transitions(
+            a.rewards[rows], a.next_states[rows], a.next_feasible[rows], one.gamma, 3
+        )
+        assert np.array_equal(b.rewards[rows], ret) and np.array_equal(b.next_states[rows], s1)
+        assert np.array_equal(b.next_feasible[rows], f1) and np.array_equal(b.discounts[rows], disc)
+    assert np.isclose(b.discounts[0], 0.9**3) and np.isclose(b.discounts[one.horizon - 1], 0.9)
+
+
+def _coordinated(tmp_path, out, **update):
+    cfg = load_config(_config(tmp_path, epochs=40, every=20, out=out))
+    update = {"collector": "coordinated", "collect_every": 15, "epsilon_decay_epochs": 30,
+              "n_step": 2, **update}  # fmt: skip
+    return cfg.model_copy(update=update)
+
+
+def test_coordinated_collector_is_deterministic_and_collects_the_learned_swarm(tmp_path):
+    from twin.training.pretrain import CoordinatedCollector
+
+    cfg = _coordinated(tmp_path, "a")
+    collector = CoordinatedCollector(cfg)
+    assert [collector.epsilon(e) for e in (0, 15, 30, 40)] == [1.0, 0.525, 0.05, 0.05]
+    net = QNetwork(cfg.layers)
+    for epoch in (0, 15, 30):  # episodes 0, 1, 2 into a buffer of the last 2 (episodes = 2)
+        assert collector.due(epoch)
+        collector.collect(epoch, net)
+    buf = collector.buffer
+    assert buf.steps == buf.capacity == 2 * cfg.horizon and buf.states.shape[1:] == (4, 13)
+    assert buf.next_feasible.shape[1:] == (4, 5) and buf.discounts.shape == (buf.capacity,)
+    # the coordinator never puts two drones on one cell (the random swarm does)
+    cells = np.round(buf.next_states[: buf.steps, :, :2] * [cfg.nx, cfg.ny]).astype(int)
+    flat = cells[..., 0] * cfg.ny + cells[..., 1]
+    assert all(len(set(row)) == cfg.n_drones for row in flat)
+    # same seed, same run: the whole training twice, and once stopped and resumed
+    pretrain(cfg, progress=False)
+    pretrain(_coordinated(tmp_path, "b"), progress=False)
+    split = tmp_path / "split"
+    pretrain(_coordinated(tmp_path, "split", epochs=20), progress=False)
+    pretrain(_coordinated(tmp_path, "split"), progress=False)
+    a = _weights(tmp_path / "a/qnet.pt")
+    for other in ("b", "split"):
+        b = _weights(tmp_path / other / "qnet.pt")
+        assert all(torch.equal(a[k], b[k]) for k in a), other
+    assert _logged_epochs(split / "train_log.csv") == list(range(5, 41, 5))
+    # another seed, other data
+    pretrain(_coordinated(tmp_path, "c", seed=1), progress=False)
+    c = _weights(tmp_path / "c/qnet.pt")
+    assert not all(torch.equal(a[k], c[k]) for k in a)
+
+
+def test_recipe_is_recorded_in_provenance(tmp_path):
+    import json
+
+    pretrain(_coordinated(tmp_path, "a"), progress=False)
+    recipe = json.loads((tmp_path / "a/provenance.json").read_text())["recipe"]
+    assert recipe["collector"] == "coordinated" and recipe["n_step"] == 2
+    assert recipe["exploration"]["epsilon_decay_epochs"] == 30
+
+
+def test_coordinated_collector_on_tapes_and_dynamic_maps(tmp_path):
+    from helpers import random_tape
+
+    from twin.training.pretrain import CoordinatedCollector
+
+    tape_a, tape_b = tmp_path / "a.parquet", tmp_path / "b.parquet"
+    random_tape(seed=1, nx=6, ny=6, horizon=30).write(tape_a)
+    random_tape(seed=2, nx=6, ny=6, horizon=25).write(tape_b)
+    tapes = _coordinated(tmp_path, "t", traffic="tapes", tapes=[str(tape_a), str(tape_b)])
+    collector = CoordinatedCollector(tapes)
+    assert collector.buffer.capacity == 2 * 30  # the last 2 episodes, as long as the longest
+    net = QNetwork(tapes.layers)
+    for epoch in (0, 15):
+        collector.collect(epoch, net)
+    assert collector.buffer.steps == 30 + 25
+    dyn = CoordinatedCollector(_coordinated(tmp_path, "d", traffic="dynamics"))
+    assert dyn.source(0) is not dyn.source(1)
+    dyn.collect(0, net)
+    assert dyn.buffer.steps == 60

@@ -96,7 +96,10 @@ def pretrain_config_help() -> str:
         lines.append(f"{key:22s} {value!s}")
     lines.append(
         "\nRecipes: traffic = paper | dynamics | tapes (--traffic TAPE ...); init = a "
-        "checkpoint to fine-tune (--init); the state is always the paper's 13 values. "
+        "checkpoint to fine-tune (--init); collector = random (the paper) | coordinated "
+        "(the rl swarm being learned, epsilon-greedy: collect_every, epsilon_start, "
+        "epsilon_end, epsilon_decay_epochs); n_step with gamma (1: the paper's 1-step "
+        "target); the state is always the paper's 13 values. "
         "curve_every > 0 writes curve.csv (R_hat_T on curve_seeds against updates); "
         "provenance.json records command, recipe, scenario, seeds, schedule, wall time and "
         "curve. --out, --epochs, --traffic and --init set the keys out, epochs, tapes (with "

@@ -1,7 +1,9 @@
-"""Pretraining data (Sec. III-A): transitions of a randomly moving swarm on a synthetic map.
+"""Pretraining data (Sec. III-A): transitions of a swarm on a training map.
 
-The swarm takes uniform feasible actions and advances with :func:`twin.swarm.step`, the step of
-the patrol loop: idleness per Def. 3, every drone's reward read on arrival (Def. 4).
+Two collectors: the paper's randomly moving swarm (uniform feasible actions), and the swarm
+being learned, ``rl`` (the coordinator's joint action on the network's Q values, eq.
+maxi:op2) with epsilon-greedy exploration. Both advance with :func:`twin.swarm.step`, the step
+of the patrol loop: idleness per Def. 3, every drone's reward read on arrival (Def. 4).
 """
 
 from __future__ import annotations
@@ -9,14 +11,20 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
+from twin.coordinator import coordinate
 from twin.grid import N_ACTIONS
 from twin.policies import random_feasible
 from twin.scores import STATE_SIZE, ScoreParams, drone_states
 from twin.swarm import initial_state, random_starts, step
 from twin.traffic.base import TrafficSource
 
-__all__ = ["Episode", "random_starts", "random_swarm_episode"]
+__all__ = ["Episode", "coordinated_swarm_episode", "random_starts", "random_swarm_episode"]
+
+#: Q value given to an exploring drone's random action, far above any learned Q, so that the
+#: coordinator grants it unless another drone takes that cell.
+EXPLORE_Q = 1e6
 
 
 @dataclass
@@ -34,6 +42,41 @@ def random_swarm_episode(
     source: TrafficSource, n_drones: int, params: ScoreParams, rng: np.random.Generator
 ) -> Episode:
     """Run a random swarm over the whole horizon of ``source`` and record every transition."""
+    return _swarm_episode(
+        source, n_drones, params, rng, lambda state, states: random_feasible(state.feasible, rng)
+    )
+
+
+def coordinated_swarm_episode(
+    source: TrafficSource,
+    n_drones: int,
+    params: ScoreParams,
+    rng: np.random.Generator,
+    net: torch.nn.Module,
+    epsilon: float,
+) -> Episode:
+    """Run the coordinated learned swarm (``rl``: the joint action with the largest sum of
+    ``Q(s_d; theta)`` and all next cells distinct, eq. maxi:op2) over the horizon of
+    ``source``, exploring: each step each drone, with probability ``epsilon``, asks for a
+    uniform feasible action instead of its Q values (granted unless another drone takes that
+    cell). ``net`` is held fixed for the episode."""
+    grid = source.grid
+
+    def choose(state, states):
+        with torch.no_grad():
+            q = net(torch.from_numpy(np.asarray(states, np.float32))).double().numpy()
+        explore = rng.random(n_drones) < epsilon
+        random_actions = random_feasible(state.feasible, rng)
+        if explore.any():
+            q[explore] = 0.0
+            q[explore, random_actions[explore]] = EXPLORE_Q
+        return coordinate(q, state.positions, state.feasible, grid)
+
+    return _swarm_episode(source, n_drones, params, rng, choose)
+
+
+def _swarm_episode(source, n_drones, params, rng, choose) -> Episode:
+    """Every transition of a swarm whose actions are ``choose(state, drone_states)``."""
     grid = source.grid
     horizon = source.horizon
     shape = (horizon, n_drones)
@@ -48,7 +91,7 @@ def random_swarm_episode(
     state = initial_state(grid, random_starts(grid, n_drones, rng), next(maps))
     states = drone_states(grid, state.idleness, state.importance, state.positions)
     for k in range(horizon):
-        actions = random_feasible(state.feasible, rng)
+        actions = choose(state, states)
         state, out = step(state, actions, next(maps), grid, params)
         next_states = drone_states(grid, state.idleness, state.importance, state.positions)
         ep.states[k], ep.actions[k], ep.rewards[k] = states, actions, out.rewards

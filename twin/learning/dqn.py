@@ -25,7 +25,8 @@ def to_tensors(batch: Batch) -> tuple[torch.Tensor, ...]:
 
 
 def double_dqn_target(net, target, rewards, next_states, next_feasible, gamma):
-    """``Y = r + gamma Q(s', argmax_{u' in U(s')} Q(s', u'; theta); theta_-)``."""
+    """``Y = r + gamma Q(s', argmax_{u' in U(s')} Q(s', u'; theta); theta_-)``; ``gamma`` a
+    number, or a ``(B,)`` tensor of per-transition discounts (``gamma^m`` of n-step returns)."""
     with torch.no_grad():
         best = masked_argmax(net(next_states), next_feasible)
         return rewards + gamma * target(next_states).gather(1, best[:, None]).squeeze(1)
@@ -45,8 +46,11 @@ def flush_subnormals() -> bool:
 
 def train_epoch(net, target, optimizer, batch: Batch, gamma: float, iters: int):
     """One epoch: the batch's Double DQN targets, then ``iters`` gradient steps on
-    ``L = mean (Y - Q(s, u; theta))^2``. Returns the last loss and mean Q (tensors)."""
+    ``L = mean (Y - Q(s, u; theta))^2``. Returns the last loss and mean Q (tensors).
+    A batch of n-step transitions bootstraps with its own discounts ``gamma^m``."""
     s, a, r, s1, feasible1 = to_tensors(batch)
+    if batch.discounts is not None:
+        gamma = torch.from_numpy(batch.discounts)
     y = double_dqn_target(net, target, r, s1, feasible1, gamma)
     a = a[:, None]
     linears = [m for m in net.net if isinstance(m, nn.Linear)]

@@ -4,11 +4,14 @@
    the training map, the swarm and the reward's weights are a scenario config's
    (``configs/training-map.toml`` by default);
 2. data: episodes of a randomly moving swarm on the training map (:mod:`twin.learning.data`),
-   pooled into one replay buffer;
+   pooled into one replay buffer; or (``collector = "coordinated"``) episodes of the swarm
+   being learned, epsilon-greedy, collected every ``collect_every`` epochs into a buffer of
+   the last ``episodes``; 1-step transitions, or ``n_step`` returns of each drone's rewards;
 3. network: the Table 1 MLP and its target copy;
 4. the loop (the update itself: :mod:`twin.learning.dqn`): epoch ``m`` samples one batch from the pooled buffers and takes ``N_iter``
    gradient steps on it towards the Double DQN target
-   ``Y = r + gamma Q(s', argmax_{u' feasible} Q(s', u'; theta^m); theta^m_-)``;
+   ``Y = r + gamma Q(s', argmax_{u' feasible} Q(s', u'; theta^m); theta^m_-)`` (n-step:
+   ``r`` the n-step return, ``gamma^n`` and the state n steps later);
    the target copy is hard-updated every ``target_update_epochs`` epochs;
 5. logging (CSV: loss and mean Q), atomic checkpoints every ``checkpoint_every`` epochs, and
    resumption from the last one when the same command is run again.
@@ -50,7 +53,7 @@ from twin.config import load_config as load_scenario
 from twin.errors import UserError
 from twin.files import file_sha256
 from twin.learning.checkpoint import atomic_save, model_metadata, read_checkpoint, save_model
-from twin.learning.data import random_swarm_episode
+from twin.learning.data import coordinated_swarm_episode, random_swarm_episode
 from twin.learning.dqn import (  # noqa: F401  (double_dqn_target re-exported for tests)
     double_dqn_target,
     flush_subnormals,
@@ -59,7 +62,7 @@ from twin.learning.dqn import (  # noqa: F401  (double_dqn_target re-exported fo
     train_epoch,
 )
 from twin.learning.qnet import TABLE1_LAYERS, QNetwork
-from twin.learning.replay import ReplayBuffer
+from twin.learning.replay import ReplayBuffer, n_step_transitions
 from twin.traffic.synthetic import SyntheticTraffic
 
 PositiveInt = Annotated[int, Field(ge=1)]
@@ -148,7 +151,37 @@ class PretrainConfig(SourcedConfig):
         "a model checkpoint (qnet.pt) to start from: fine-tuning (default: a fresh network)",
         default=None,
     )
-    episodes: PositiveInt = _help("random-swarm episodes in the replay buffer", default=10)
+    episodes: PositiveInt = _help(
+        'episodes in the replay buffer: collected before training (collector = "random"), '
+        'or the last ones kept of those collected while training (collector = "coordinated")',
+        default=10,
+    )
+    collector: Literal["random", "coordinated"] = _help(
+        'who collects the data: "random" (the paper: a randomly moving swarm, every episode '
+        'before training), "coordinated" (the swarm being learned, rl: the coordinator on the '
+        "network's Q values, epsilon-greedy; an episode every `collect_every` epochs)",
+        default="random",
+    )
+    collect_every: PositiveInt = _help(
+        'collector = "coordinated": epochs between collected episodes (the first at epoch 0)',
+        default=400,
+    )
+    epsilon_start: float = _help(
+        'collector = "coordinated": exploration at epoch 0 (a drone\'s chance to ask for a '
+        "uniform feasible action)",
+        default=1.0,
+        ge=0,
+        le=1,
+    )
+    epsilon_end: float = _help(
+        'collector = "coordinated": exploration after `epsilon_decay_epochs`', default=0.05,
+        ge=0, le=1,
+    )  # fmt: skip
+    epsilon_decay_epochs: PositiveInt = _help(
+        'collector = "coordinated": epochs over which exploration falls linearly from '
+        "epsilon_start to epsilon_end",
+        default=10000,
+    )
     # network
     layers: list[PositiveInt] = _help(
         "layer sizes, 13 in and 5 out (Table 1)", default_factory=lambda: list(TABLE1_LAYERS)
@@ -160,6 +193,12 @@ class PretrainConfig(SourcedConfig):
     )
     batch_size: PositiveInt = _help("transitions per batch", default=32)
     gamma: float = _help("discount factor", default=0.9, ge=0, lt=1)
+    n_step: PositiveInt = _help(
+        "n of the n-step returns: each drone's own rewards over n steps (truncated at the "
+        "episode's end), bootstrapped with gamma^n (1: the paper's 1-step target)",
+        default=1,
+        le=100,
+    )
     lr: float = _help("Adam learning rate", default=1e-4, gt=0, le=1)
     target_update_epochs: PositiveInt = _help(
         "epochs between hard updates of the target network", default=100
@@ -235,6 +274,16 @@ class PretrainConfig(SourcedConfig):
         if isinstance(value, list):
             return [_relative_file(t, info) for t in value]
         return value
+
+    @model_validator(mode="after")
+    def _exploration_falls(self) -> PretrainConfig:
+        if self.epsilon_end > self.epsilon_start:
+            raise ValueError(
+                f"epsilon_end = {self.epsilon_end:g} is above epsilon_start = "
+                f"{self.epsilon_start:g}; exploration falls during training, give "
+                "epsilon_end <= epsilon_start"
+            )
+        return self
 
     @field_validator("tapes")
     @classmethod
@@ -435,32 +484,50 @@ def training_source(cfg: PretrainConfig) -> SyntheticTraffic:
     return synthetic_source(cfg.training_map)
 
 
-def episode_sources(cfg: PretrainConfig) -> list:
-    """The traffic of each episode, by the recipe's ``traffic``: the one paper map for all,
-    a fresh dynamic map per episode (seeded by ``seed`` and the episode), or the tapes in
-    turn."""
+def episode_sources(cfg: PretrainConfig, count: int | None = None) -> list:
+    """The traffic of each of ``count`` episodes (default ``episodes``): see
+    :func:`episode_source`."""
+    source = episode_source(cfg)
+    return [source(e) for e in range(cfg.episodes if count is None else count)]
+
+
+def episode_source(cfg: PretrainConfig):
+    """A function from an episode's index to its traffic, by the recipe's ``traffic``: the one
+    paper map for all, a fresh dynamic map per episode (seeded by ``seed`` and the episode,
+    made when asked for), or the tapes in turn."""
     if cfg.traffic == "dynamics":
         from twin.traffic.dynamic import DynamicTraffic
 
         grid = make_grid(cfg.training_map)
-        return [
-            DynamicTraffic(grid, cfg.horizon, cfg.dynamics_disturbances, seed=cfg.seed * 100003 + e)
-            for e in range(cfg.episodes)
-        ]
+        return lambda e: DynamicTraffic(
+            grid, cfg.horizon, cfg.dynamics_disturbances, seed=cfg.seed * 100003 + e
+        )
     if cfg.traffic == "tapes":
         from twin.traffic.tape import TapeTraffic
 
         tapes = [TapeTraffic.from_file(t) for t in cfg.tapes]
-        return [tapes[e % len(tapes)] for e in range(cfg.episodes)]
+        return lambda e: tapes[e % len(tapes)]
     source = training_source(cfg)
-    return [source] * cfg.episodes
+    return lambda e: source
+
+
+def add_episode(buffer: ReplayBuffer, ep, cfg: PretrainConfig) -> None:
+    """One episode into the buffer: its 1-step transitions (``n_step = 1``), or its n-step
+    transitions with their discounts (:func:`twin.learning.replay.n_step_transitions`)."""
+    if cfg.n_step == 1:
+        buffer.add_steps(ep.states, ep.actions, ep.rewards, ep.next_states, ep.next_feasible)
+        return
+    returns, next_states, next_feasible, discounts = n_step_transitions(
+        ep.rewards, ep.next_states, ep.next_feasible, cfg.gamma, cfg.n_step
+    )
+    buffer.add_steps(ep.states, ep.actions, returns, next_states, next_feasible, discounts)
 
 
 def collect_buffer(cfg: PretrainConfig, progress: bool = False) -> ReplayBuffer:
     """``episodes`` random-swarm episodes, pooled; a function of the config alone (seeded)."""
     sources = episode_sources(cfg)
     params = cfg.training_map.params
-    buffer = ReplayBuffer(sum(s.horizon for s in sources), cfg.n_drones)
+    buffer = ReplayBuffer(sum(s.horizon for s in sources), cfg.n_drones, discounted=cfg.n_step > 1)
     episodes = range(cfg.episodes)
     if progress:
         from tqdm.auto import tqdm
@@ -468,15 +535,75 @@ def collect_buffer(cfg: PretrainConfig, progress: bool = False) -> ReplayBuffer:
         episodes = tqdm(episodes, desc="random swarm", unit="episode", leave=False)
     for e in episodes:
         rng = np.random.default_rng([cfg.seed, 1, e])
-        ep = random_swarm_episode(sources[e], cfg.n_drones, params, rng)
-        buffer.add_steps(ep.states, ep.actions, ep.rewards, ep.next_states, ep.next_feasible)
+        add_episode(buffer, random_swarm_episode(sources[e], cfg.n_drones, params, rng), cfg)
     return buffer
+
+
+class CoordinatedCollector:
+    """The data of ``collector = "coordinated"``: an episode of the swarm being learned every
+    ``collect_every`` epochs (the first at epoch 0), epsilon-greedy on a linear schedule, into
+    a ring buffer of the last ``episodes`` episodes. Episode ``e`` is seeded by ``seed`` and
+    ``e`` and driven by the network as it stands, so a run is a function of its config."""
+
+    def __init__(self, cfg: PretrainConfig) -> None:
+        self.cfg = cfg
+        self.source = episode_source(cfg)
+        self.params = cfg.training_map.params
+        horizons = [self.source(e).horizon for e in range(len(cfg.tapes))] or [cfg.horizon]
+        self.buffer = ReplayBuffer(
+            cfg.episodes * max(horizons), cfg.n_drones, discounted=cfg.n_step > 1
+        )
+
+    def epsilon(self, epoch: int) -> float:
+        """Linear from ``epsilon_start`` at epoch 0 to ``epsilon_end`` at
+        ``epsilon_decay_epochs``, constant after."""
+        cfg = self.cfg
+        if epoch >= cfg.epsilon_decay_epochs:
+            return cfg.epsilon_end
+        frac = epoch / cfg.epsilon_decay_epochs
+        return cfg.epsilon_start + frac * (cfg.epsilon_end - cfg.epsilon_start)
+
+    def due(self, epoch: int) -> bool:
+        return epoch % self.cfg.collect_every == 0
+
+    def collect(self, epoch: int, net: QNetwork) -> None:
+        """The episode due at ``epoch``, driven by ``net``, into the buffer."""
+        cfg = self.cfg
+        e = epoch // cfg.collect_every
+        rng = np.random.default_rng([cfg.seed, 3, e])
+        ep = coordinated_swarm_episode(
+            self.source(e), cfg.n_drones, self.params, rng, net, self.epsilon(epoch)
+        )
+        add_episode(self.buffer, ep, cfg)
+
+
+BUFFER_FIELDS = ("states", "actions", "rewards", "next_states", "next_feasible", "discounts")
+
+
+def buffer_arrays(buffer: ReplayBuffer) -> dict[str, Any]:
+    """The buffer's contents as tensors (for a checkpoint read with ``weights_only``)."""
+    blob: dict[str, Any] = {"cursor": buffer.cursor, "steps": buffer.steps}
+    for name in BUFFER_FIELDS:
+        arr = getattr(buffer, name)
+        if arr is not None:
+            blob[name] = torch.from_numpy(np.ascontiguousarray(arr[: buffer.steps]))
+    return blob
+
+
+def restore_buffer(buffer: ReplayBuffer, blob: dict[str, Any]) -> None:
+    """Put :func:`buffer_arrays`'s contents back into ``buffer``."""
+    steps = int(blob["steps"])
+    for name in BUFFER_FIELDS:
+        if getattr(buffer, name) is not None:
+            getattr(buffer, name)[:steps] = blob[name].numpy()
+    buffer.cursor, buffer.steps = int(blob["cursor"]), steps
 
 
 def buffer_digest(buffer: ReplayBuffer) -> str:
     """Short hash of the buffer's contents: a resumed run must train on the same data."""
     h = hashlib.sha256()
-    for arr in (buffer.states, buffer.actions, buffer.rewards, buffer.next_feasible):
+    arrays = [buffer.states, buffer.actions, buffer.rewards, buffer.next_feasible]
+    for arr in arrays + ([buffer.discounts] if buffer.discounts is not None else []):
         h.update(np.ascontiguousarray(arr[: buffer.steps]).tobytes())
     return h.hexdigest()[:16]
 
@@ -503,8 +630,15 @@ def _pretrain(cfg, progress, out, state_path, model_path, log_path) -> Path:
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
 
-    buffer = collect_buffer(cfg, progress=progress)
-    digest = buffer_digest(buffer)
+    collector = CoordinatedCollector(cfg) if cfg.collector == "coordinated" else None
+    collect_start = time.perf_counter()
+    if collector is None:
+        buffer = collect_buffer(cfg, progress=progress)
+        digest = buffer_digest(buffer)
+    else:  # collected while training; a checkpoint holds the buffer as it stands
+        buffer, digest = collector.buffer, None
+    collect_s = time.perf_counter() - collect_start
+    kept = buffer if collector is not None else None  # saved by a checkpoint, then restored
 
     net = QNetwork(cfg.layers)
     target = QNetwork(cfg.layers)
@@ -514,7 +648,7 @@ def _pretrain(cfg, progress, out, state_path, model_path, log_path) -> Path:
     epoch, wall = 0, 0.0
 
     if state_path.exists():
-        epoch, wall = _resume(state_path, cfg, digest, net, target, optimizer, batch_rng)
+        epoch, wall = _resume(state_path, cfg, digest, net, target, optimizer, batch_rng, kept)
         _truncate_log(log_path, epoch)
     elif cfg.init is not None:  # fine-tuning: start from the given network's weights
         load_initial_weights(cfg, net)
@@ -539,6 +673,8 @@ def _pretrain(cfg, progress, out, state_path, model_path, log_path) -> Path:
     losses, qs = [], []
     try:
         while epoch < cfg.epochs:
+            if collector is not None and collector.due(epoch):
+                collector.collect(epoch, net)
             batch = buffer.sample(cfg.batch_size, batch_rng)
             loss, mean_q = train_epoch(
                 net, target, optimizer, batch, cfg.gamma, cfg.iters_per_epoch
@@ -567,7 +703,10 @@ def _pretrain(cfg, progress, out, state_path, model_path, log_path) -> Path:
                 losses, qs, logged_wall, logged_epoch = [], [], wall, epoch
             if save:
                 wall = time.perf_counter() - t_start
-                _save_state(state_path, cfg, digest, net, target, optimizer, batch_rng, epoch, wall)
+                if kept is not None:
+                    digest = buffer_digest(buffer)
+                _save_state(state_path, cfg, digest, net, target, optimizer, batch_rng, epoch,
+                            wall, kept)  # fmt: skip
                 saved = epoch
             if snapshot:
                 meta = model_metadata(cfg.layers, cfg.training_dict(), cfg.seed, epoch)
@@ -580,7 +719,8 @@ def _pretrain(cfg, progress, out, state_path, model_path, log_path) -> Path:
             bar.close()
     meta = model_metadata(cfg.layers, cfg.training_dict(), cfg.seed, epoch)
     meta["wall_s"] = round(time.perf_counter() - t_start, 1)
-    meta["buffer_digest"] = digest
+    meta["buffer_digest"] = digest if kept is None else buffer_digest(buffer)
+    meta["collect_s"] = round(collect_s, 1)  # the data collected before the loop (random)
     save_model(model_path, net.state_dict(), meta)
     if cfg.curve_every:
         write_curve(cfg, out)
@@ -591,7 +731,7 @@ def _pretrain(cfg, progress, out, state_path, model_path, log_path) -> Path:
 #: The keys of a recipe's schedule that its provenance lists.
 SCHEDULE_KEYS = (
     "episodes", "horizon", "n_drones", "epochs", "iters_per_epoch", "batch_size", "gamma", "lr",
-    "target_update_epochs", "layers",
+    "target_update_epochs", "layers", "n_step", "collector",
 )  # fmt: skip
 
 
@@ -628,6 +768,17 @@ def write_provenance(cfg: PretrainConfig, out: Path, meta: dict[str, Any]) -> Pa
                 "overrides": cfg.scenario_overrides,
             },
             "state": "the paper's 13 values (eq. s)",
+            "collector": cfg.collector,
+            "n_step": cfg.n_step,
+            "gamma": cfg.gamma,
+            "exploration": {
+                "collect_every": cfg.collect_every,
+                "epsilon_start": cfg.epsilon_start,
+                "epsilon_end": cfg.epsilon_end,
+                "epsilon_decay_epochs": cfg.epsilon_decay_epochs,
+            }
+            if cfg.collector == "coordinated"
+            else None,
         },
         "seeds": {
             "training": cfg.seed,
@@ -636,6 +787,7 @@ def write_provenance(cfg: PretrainConfig, out: Path, meta: dict[str, Any]) -> Pa
         "schedule": {k: training[k] for k in SCHEDULE_KEYS},
         "updates": cfg.epochs * cfg.iters_per_epoch,
         "wall_s": meta.get("wall_s"),
+        "collect_s": meta.get("collect_s"),
         "qnet_sha256": file_sha256(out / "qnet.pt"),
         "buffer_digest": meta.get("buffer_digest"),
         "curve": {"config": cfg.curve_config, "horizon": cfg.curve_horizon, "points": curve},
@@ -723,8 +875,13 @@ def _check_finite(cfg, net, losses, epoch, state_path, saved) -> None:
 
 
 # ----------------------------------------------------------------------------- 5. checkpoints
-def _save_state(path, cfg, digest, net, target, optimizer, batch_rng, epoch, wall) -> None:
+def _save_state(path, cfg, digest, net, target, optimizer, batch_rng, epoch, wall,
+                buffer=None) -> None:  # fmt: skip
+    """The training state; ``buffer``: replay data collected while training, saved whole."""
     meta = model_metadata(cfg.layers, cfg.training_dict(), cfg.seed, epoch)
+    data = {"seed": cfg.seed, "digest": digest}
+    if buffer is not None:
+        data["data"] = buffer_arrays(buffer)
     atomic_save(
         {
             "meta": meta,
@@ -733,7 +890,7 @@ def _save_state(path, cfg, digest, net, target, optimizer, batch_rng, epoch, wal
             "optimizer": optimizer.state_dict(),
             "batch_rng": batch_rng.bit_generator.state,
             "torch_rng": torch.get_rng_state(),
-            "buffer": {"seed": cfg.seed, "digest": digest},
+            "buffer": data,
             "epoch": epoch,
             "wall_s": wall,
         },
@@ -833,8 +990,16 @@ def _check_settings(path: Path, cfg: PretrainConfig) -> dict[str, Any]:
     return blob
 
 
-def _resume(path, cfg, digest, net, target, optimizer, batch_rng) -> tuple[int, float]:
+def _resume(path, cfg, digest, net, target, optimizer, batch_rng, buffer=None):
+    """Load the state at ``path`` into the training objects; returns (epoch, wall_s).
+    ``buffer``: replay data collected while training, restored from the state."""
     blob = _check_settings(path, cfg)
+    if buffer is not None:
+        try:
+            restore_buffer(buffer, blob["buffer"]["data"])
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+            raise UserError(f"{path} is incomplete ({type(exc).__name__}); delete it") from None
+        digest = buffer_digest(buffer)
     if blob["buffer"].get("digest") != digest:
         raise UserError(f"{path}: the replay data differ from the saved run's; delete it")
     try:

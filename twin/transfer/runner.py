@@ -188,7 +188,11 @@ def loaded_provenance(row, out: Path) -> dict[str, Any]:
     record = {
         "loaded": str(row.checkpoint),
         "qnet_sha256": file_sha256(row.checkpoint),
-        "recipe": {"traffic": config.get("traffic", "paper")},
+        "recipe": {
+            "traffic": config.get("traffic", "paper"),
+            "collector": config.get("collector", "random"),
+            "n_step": config.get("n_step", 1),
+        },
         "schedule": {k: config.get(k) for k in SCHEDULE_KEYS},
         "seeds": {"training": meta.get("seed")},
         "updates": int(meta.get("epoch") or 0) * int(config.get("iters_per_epoch") or 1),
