@@ -174,7 +174,9 @@ def check_seal(folder: Path) -> None:
     try:
         sums = json.loads((folder / SEAL).read_text())
     except (OSError, ValueError) as exc:
-        raise BrokenEntry(f"{SEAL}, the record of its files, is missing or damaged") from exc
+        raise BrokenEntry(
+            f"{SEAL}, the record of its files, is missing (an earlier twin built it) or damaged"
+        ) from exc
     if not isinstance(sums, dict) or not sums:
         raise BrokenEntry(f"{SEAL}, the record of its files, is damaged")
     for name, digest in sums.items():
