@@ -393,6 +393,63 @@ def nowcast(
     return mean, std
 
 
+class NowcastFilter:
+    """The ``nowcast`` filter step by step, for a swarm that plans on it (:func:`nowcast` runs
+    the same arithmetic over a whole run, without coupling or detectors).
+
+    :meth:`advance` moves to step ``k`` (the prior of step 0, else the prediction ``d <- rho
+    d``, ``P <- rho^2 P + (1 - rho^2) var^k``); :meth:`observe` updates the cells in view with
+    their observed importance; :meth:`predicted` is the prior of step ``k + 1``.
+    """
+
+    def __init__(self, history: History, meas_var: float = DEFAULT_MEAS_VAR):
+        steps = history.mean.shape[0]
+        self.mu = history.mean.reshape(steps, -1)
+        self.var = np.maximum(history.var.reshape(steps, -1), VAR_FLOOR)
+        self.rho = history.rho.ravel()
+        self.rho2 = self.rho * self.rho
+        self.meas_var = float(meas_var)
+        self.k = -1
+        self.d = np.zeros(self.mu.shape[1])
+        self.p = self.var[0].copy()
+
+    def advance(self, k: int) -> None:
+        """Predict forward to step ``k`` (one step at a time; ``k = 0``: the prior)."""
+        if k == 0:
+            self.d[:] = 0.0
+            self.p = self.var[0].copy()
+        else:
+            if k != self.k + 1:
+                raise ValueError(f"nowcast filter at step {self.k} cannot move to step {k}")
+            self.d = self.rho * self.d
+            self.p = self.rho2 * self.p + (1.0 - self.rho2) * self.var[k]
+        self.k = k
+
+    def observe(self, cells: np.ndarray, values: np.ndarray) -> None:
+        """Update the (distinct, free) flat ``cells`` on their observed importance ``values``."""
+        if not len(cells):
+            return
+        z = values - self.mu[self.k, cells]
+        innovation = z - self.d[cells]
+        gain = self.p[cells] / (self.p[cells] + self.meas_var)
+        self.d[cells] += gain * innovation
+        self.p[cells] *= 1.0 - gain
+
+    def mean(self) -> np.ndarray:
+        """``(nx*ny,)`` the belief of step ``k``, clipped to [0, 1]."""
+        return np.clip(self.mu[self.k] + self.d, 0.0, 1.0)
+
+    def std(self) -> np.ndarray:
+        return np.sqrt(self.p)
+
+    def predicted(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(mean, var)`` of step ``k + 1`` before any sighting (the mean clipped)."""
+        k = self.k + 1
+        d = self.rho * self.d
+        p = self.rho2 * self.p + (1.0 - self.rho2) * self.var[k]
+        return np.clip(self.mu[k] + d, 0.0, 1.0), p
+
+
 def error_curve(mean: np.ndarray, truth: np.ndarray, grid: Grid, floor: float) -> np.ndarray:
     """``(T+1,)`` importance-weighted MAE over free cells (as :mod:`twin.monitoring`)."""
     free = grid.free.ravel()

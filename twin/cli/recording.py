@@ -59,9 +59,11 @@ def run_and_record(
     """Run ``experiment`` for ``twin <command>`` and write its run folder (``args.out``, else
     ``runs/<command>-<time>``): resources checked before any folder is made, a refusal while
     it runs discards the folder; ``args.ceiling`` adds the ceiling rows unless interrupted,
-    ``history`` the belief models. ``outputs_folder``: where in the run folder a live source
+    ``history`` the belief models (and goes to the swarms that plan on one). ``outputs_folder``: where in the run folder a live source
     writes its scenario's configured outputs; ``around`` is entered while the experiment runs
     (a display); ``run_options`` go to :func:`twin.experiment.run_experiment`."""
+    if history is not None:
+        hand_history(experiment, history)
     check_resources(experiment, args.out or Path("runs"))  # before any folder is made
     run_dir = prepare_run_dir(args.out or new_run_dir("runs", command), invocation(command, args))
     if outputs_folder is not None:
@@ -88,6 +90,18 @@ def run_and_record(
         more_files=belief_writer(beliefs),
     )
     return Recorded(run_dir, outcome, summary, comparison, beliefs)
+
+
+def hand_history(experiment: Experiment, history) -> None:
+    """Give the run's history (``--history``) to every swarm that plans on one, over what its
+    ``[swarm_options]`` say."""
+    from twin.swarms import needs_history
+
+    options = dict(experiment.swarm_options)
+    for name in experiment.swarms:
+        if needs_history(name):
+            options[name] = {**options.get(name, {}), "history": history}
+    experiment.swarm_options = options
 
 
 def print_tables(recorded: Recorded, title: str) -> None:
