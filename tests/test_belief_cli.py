@@ -131,6 +131,21 @@ def test_nowcast_gain_runs_on_the_history_and_is_scored_by_the_belief_table(
     assert not mine.duplicated(["seed", "step", "i", "j"]).any()  # no two drones on one cell
     run = json.loads((out / "run.json").read_text())
     assert run["policies"]["nowcast-gain"]["history_seeds"] == [10, 11]
+    with np.load(out / "belief_maps.npz") as maps:
+        assert json.loads(str(maps["swarms"])) == ["visit-gain", "nowcast-gain"]
+        assert maps["mean"].shape == (2, len(maps["steps"]), *maps["truth"].shape[1:])
+        known = maps["known_at"]
+        assert ((known == -1) | (known >= maps["event_onset"])).all()
+    known_share = 100.0 * (known >= 0).mean(axis=1) if known.shape[1] else None
+    if known_share is not None:  # the timeline's marks are the belief table's % known
+        nowcast_rows = table[table["model"] == "nowcast"].set_index("swarm")
+        for s, swarm in enumerate(["visit-gain", "nowcast-gain"]):
+            assert known_share[s] == pytest.approx(nowcast_rows.loc[swarm, "pct_events_known"])
+    assert twin_main(["report", str(out), "--no-animation"]) == 0
+    report = (out / "report" / "report.md").read_text()
+    assert "Believed against true importance (nowcast)" in report
+    assert (out / "report" / "belief_maps.png").exists()
+    assert (out / "report" / "belief_timeline.png").exists()
     replay = tmp_path / "replay"
     code = twin_main(
         ["evaluate", "--config", str(small / "small.toml"), "--traffic", str(out / "tape.parquet"),

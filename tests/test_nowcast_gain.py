@@ -196,3 +196,29 @@ def test_a_history_of_another_grid_is_refused():
 def test_bad_options_are_refused(key, value):
     with pytest.raises(UserError, match=key):
         NowcastGainPolicy(flat_history(), **{key: value})
+
+
+def test_belief_maps_of_a_run_and_a_damaged_file(tmp_path):
+    """belief_maps of a patrol: the swarm's nowcast at the snapshot steps; the report's reader
+    takes it back and refuses a damaged one in one line."""
+    from twin.belief import belief_maps
+    from twin.report.load import read_belief_maps
+
+    grid, history, truth, starts = synthetic_case()
+    result = patrol(NowcastGainPolicy(history), grid, truth, starts)
+    maps = belief_maps(result, history)
+    mean, std = nowcast(grid, result.positions[0], result.importance, history)
+    at = maps["steps"]
+    assert at.min() >= 1 and at.max() <= truth.shape[0] - 1
+    np.testing.assert_allclose(maps["mean"][0], mean[at].reshape(len(at), *grid.shape), atol=1e-6)
+    np.testing.assert_allclose(maps["std"][0], std[at].reshape(len(at), *grid.shape), rtol=1e-6)
+    path = tmp_path / "belief_maps.npz"
+    np.savez(path, **maps)
+    back = read_belief_maps(path, grid.shape)
+    assert back["swarms"] == ["nowcast-gain"] and back["known_at"].shape[0] == 1
+    with pytest.raises(UserError, match="truth has shape") as exc:
+        read_belief_maps(path, (grid.nx + 1, grid.ny))
+    assert "\n" not in str(exc.value)
+    path.write_bytes(b"PK\x03\x04 not really")
+    with pytest.raises(UserError, match=r"not a readable belief_maps\.npz"):
+        read_belief_maps(path, grid.shape)

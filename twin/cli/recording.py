@@ -23,6 +23,7 @@ from twin.experiment import (
 from twin.runs import discard_run_dir, invocation, new_run_dir, prepare_run_dir, record
 
 BELIEF_FILE = "belief_models.csv"
+BELIEF_MAPS_FILE = "belief_maps.npz"
 
 
 def with_flags(config: ScenarioConfig, flags: Mapping[str, tuple[str, Any]]) -> ScenarioConfig:
@@ -82,12 +83,17 @@ def run_and_record(
         raise
     meta = run_metadata(outcome, command, **(extra_meta(outcome) if extra_meta else {}))
     beliefs = belief_models(outcome, history, meta)
+    maps = None
+    if beliefs is not None:
+        from twin.belief import belief_maps
+
+        maps = belief_maps(outcome.results[0], history)
     summary, comparison = record(
         run_dir,
         outcome,
         meta,
         ceilings=args.ceiling and not outcome.interrupted,
-        more_files=belief_writer(beliefs),
+        more_files=belief_writer(beliefs, maps),
     )
     return Recorded(run_dir, outcome, summary, comparison, beliefs)
 
@@ -132,14 +138,23 @@ def belief_models(outcome, history, meta):
     return run_beliefs(outcome.results, history, step_seconds_of(meta))
 
 
-def belief_writer(beliefs):
-    """The ``more_files`` of :func:`twin.runs.record` writing ``belief_models.csv``."""
+def belief_writer(beliefs, maps=None):
+    """The ``more_files`` of :func:`twin.runs.record` writing ``belief_models.csv`` and, for
+    the report, the first seed's ``belief_maps.npz`` (:func:`twin.belief.belief_maps`)."""
     if beliefs is None:
         return None
+    import numpy as np
+
     from twin.files import atomic_write
+
+    def save_maps(path: Path) -> None:
+        with open(path, "wb") as fh:
+            np.savez_compressed(fh, **maps)
 
     def write(folder: Path) -> None:
         atomic_write(folder / BELIEF_FILE, lambda p: beliefs.to_csv(p, index=False))
+        if maps is not None:
+            atomic_write(folder / BELIEF_MAPS_FILE, save_maps)
 
     return write
 
