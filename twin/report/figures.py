@@ -691,7 +691,7 @@ def figure_belief_timeline(rf: RunFiles) -> Figure:
     ax.set_ylabel("cell (i, j) of the event")
     ax.grid(alpha=0.3, axis="x")
     if len(order):
-        ax.legend(fontsize=7, ncol=min(3, len(rows)), loc="lower right")
+        ax.legend(fontsize=7, ncol=min(3, len(rows)), loc="upper right")
     fig.suptitle(
         f"When the nowcast knew each congestion event (seed {maps['seed']}, {len(onset)} events, "
         f"nowcast >= {maps['threshold']:g} while it lasts)",
