@@ -222,3 +222,18 @@ def test_belief_maps_of_a_run_and_a_damaged_file(tmp_path):
     path.write_bytes(b"PK\x03\x04 not really")
     with pytest.raises(UserError, match=r"not a readable belief_maps\.npz"):
         read_belief_maps(path, grid.shape)
+
+
+def test_filter_predicts_through_steps_without_sightings():
+    history = synthetic_case()[1]
+    a, b = NowcastFilter(history), NowcastFilter(history)
+    for f in (a, b):
+        f.advance(0)
+        f.observe(np.array([5, 6]), np.array([0.9, 0.8]))
+    a.advance(3)
+    for k in (1, 2, 3):
+        b.advance(k)
+    np.testing.assert_array_equal(a.mean(), b.mean())
+    np.testing.assert_array_equal(a.std(), b.std())
+    with pytest.raises(ValueError, match="back"):
+        a.advance(2)

@@ -414,15 +414,18 @@ class NowcastFilter:
         self.p = self.var[0].copy()
 
     def advance(self, k: int) -> None:
-        """Predict forward to step ``k`` (one step at a time; ``k = 0``: the prior)."""
+        """Predict forward to step ``k`` (``k = 0``: the prior; steps skipped, with no
+        sighting, are predicted one by one)."""
         if k == 0:
             self.d[:] = 0.0
             self.p = self.var[0].copy()
-        else:
-            if k != self.k + 1:
-                raise ValueError(f"nowcast filter at step {self.k} cannot move to step {k}")
+            self.k = 0
+            return
+        if k <= self.k:
+            raise ValueError(f"nowcast filter at step {self.k} cannot move back to step {k}")
+        for step in range(self.k + 1, k + 1):
             self.d = self.rho * self.d
-            self.p = self.rho2 * self.p + (1.0 - self.rho2) * self.var[k]
+            self.p = self.rho2 * self.p + (1.0 - self.rho2) * self.var[step]
         self.k = k
 
     def observe(self, cells: np.ndarray, values: np.ndarray) -> None:
