@@ -237,3 +237,17 @@ def test_filter_predicts_through_steps_without_sightings():
     np.testing.assert_array_equal(a.std(), b.std())
     with pytest.raises(ValueError, match="back"):
         a.advance(2)
+
+
+def test_history_from_the_config_relative_to_it(tmp_path):
+    from twin.config import load_config
+
+    flat_history().save(tmp_path / "h.npz")
+    (tmp_path / "c.toml").write_text(
+        '[swarm_options.nowcast-gain]\nhistory = "h.npz"\nweight = 0.5\n'
+    )
+    policy = load_config(tmp_path / "c.toml").make_swarm("nowcast-gain")
+    assert policy.weight == 0.5 and policy.history.n_runs == 3
+    (tmp_path / "d.toml").write_text('[swarm_options.nowcast-gain]\nhistory = "none.npz"\n')
+    with pytest.raises(UserError, match=r"none\.npz: no such history file"):
+        load_config(tmp_path / "d.toml").make_swarm("nowcast-gain")
