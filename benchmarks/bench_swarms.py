@@ -34,7 +34,7 @@ from twin.patrol import random_starts, swarm_rng
 from twin.planners import LookaheadPolicy
 from twin.policies import SwarmView, boustrophedon_tour
 from twin.scores import ScoreParams, update_idleness, visit_gain
-from twin.swarms import make_policy
+from twin.swarms import make_policy, needs_history
 
 SWARMS = ("random", "greedy", "sweeping", "greedy-coordinated", "visit-gain", "lookahead")
 UNCOORDINATED = ("random", "greedy", "sweeping")  # may put two drones on one cell
@@ -62,6 +62,15 @@ def view_of(grid, positions, idleness, importance, k=0) -> SwarmView:
         feasible=grid.feasible_actions(positions),
         params=ScoreParams(),
     )
+
+
+def flat_history(grid, horizon: int = 1000):
+    """A history for the swarms that plan on one: mean 0.3, std 0.02, rho 0.5 everywhere."""
+    from twin.belief import History
+
+    shape = (horizon + 1, *grid.shape)
+    rho = np.full(grid.shape, 0.5)
+    return History(np.full(shape, 0.3), np.full(shape, 4e-4), rho, grid.obstacles.copy(), 3)
 
 
 def ms_per_decision(name: str, grid, positions, idleness, importance, repeats: int, **options):
@@ -120,7 +129,8 @@ def check_collision_free(steps: int = 30) -> bool:
     for seed, (nx, ny, n) in enumerate([(6, 7, 8), (10, 12, 20), (20, 30, 4)]):
         for name in SWARMS:
             grid, pos, idle, imp = scene(nx, ny, n, seed, obstacles=0.2)
-            policy = make_policy(name)
+            options = {"history": flat_history(grid)} if needs_history(name) else {}
+            policy = make_policy(name, **options)
             policy.reset(grid, n, swarm_rng(seed, name))
             rng = np.random.default_rng(seed)
             for k in range(steps):

@@ -113,6 +113,59 @@ def test_mismatched_history_is_one_line_and_exit_2(small, history, tmp_path, cap
     assert code == 2 and str(broken) in err and "\n" not in err
 
 
+def test_nowcast_gain_runs_on_the_history_and_is_scored_by_the_belief_table(
+    small, history, tmp_path, capsys
+):
+    """The swarm that plans on the nowcast gets ``--history``; its rows are in the belief
+    table, its drones never share a cell; the tape replayed gives the same run."""
+    out = tmp_path / "nowcast"
+    args = ["run", "--config", str(small / "small.toml"), "--swarms", "visit-gain,nowcast-gain",
+            "--no-ceiling", "--no-report", "--quiet", "--out", str(out), "--history", str(history)]  # fmt: skip
+    assert twin_main(args) == 0
+    table = pd.read_csv(out / "belief_models.csv")
+    rows = table[table["swarm"] == "nowcast-gain"]
+    assert list(rows["model"]) == ["last-seen", "nowcast"]
+    assert rows["belief_error"].notna().all()
+    traj = pd.read_parquet(out / "trajectories.parquet")
+    mine = traj[traj["swarm"] == "nowcast-gain"]
+    assert not mine.duplicated(["seed", "step", "i", "j"]).any()  # no two drones on one cell
+    run = json.loads((out / "run.json").read_text())
+    assert run["policies"]["nowcast-gain"]["history_seeds"] == [10, 11]
+    with np.load(out / "belief_maps.npz") as maps:
+        assert json.loads(str(maps["swarms"])) == ["visit-gain", "nowcast-gain"]
+        assert maps["mean"].shape == (2, len(maps["steps"]), *maps["truth"].shape[1:])
+        known = maps["known_at"]
+        assert ((known == -1) | (known >= maps["event_onset"])).all()
+    known_share = 100.0 * (known >= 0).mean(axis=1) if known.shape[1] else None
+    if known_share is not None:  # the timeline's marks are the belief table's % known
+        nowcast_rows = table[table["model"] == "nowcast"].set_index("swarm")
+        for s, swarm in enumerate(["visit-gain", "nowcast-gain"]):
+            assert known_share[s] == pytest.approx(nowcast_rows.loc[swarm, "pct_events_known"])
+    assert twin_main(["report", str(out), "--no-animation"]) == 0
+    report = (out / "report" / "report.md").read_text()
+    assert "Believed against true importance (nowcast)" in report
+    assert (out / "report" / "belief_maps.png").exists()
+    assert (out / "report" / "belief_timeline.png").exists()
+    replay = tmp_path / "replay"
+    code = twin_main(
+        ["evaluate", "--config", str(small / "small.toml"), "--traffic", str(out / "tape.parquet"),
+         "--swarms", "visit-gain,nowcast-gain", "--no-ceiling", "--no-report", "--quiet",
+         "--history", str(history), "--out", str(replay)]
+    )  # fmt: skip
+    assert code == 0
+    pd.testing.assert_frame_equal(pd.read_csv(replay / "belief_models.csv"), table)
+
+
+def test_nowcast_gain_without_history_is_one_line_and_exit_2(small, tmp_path, capsys):
+    out = tmp_path / "refused"
+    code = twin_main(["run", "--config", str(small / "small.toml"), "--swarms", "nowcast-gain",
+                      "--no-ceiling", "--no-report", "--quiet", "--out", str(out)])  # fmt: skip
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "Traceback" not in err
+    assert err.splitlines()[-1].startswith("twin: error: ") and "--history FILE" in err
+    assert not out.exists()
+
+
 def test_history_needs_two_distinct_simulations(small, history, tmp_path, capsys):
     days = history.parent / "days"
     one = days / "tapes" / "seed-0.parquet"

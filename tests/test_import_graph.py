@@ -133,6 +133,7 @@ LAYERS: list[tuple[str, list[str]]] = [
             "twin.planners",
             "twin.tours",
             "twin.belief",
+            "twin.nowcast_gain",
             "twin.faults",
         ],
     ),

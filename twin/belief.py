@@ -393,6 +393,66 @@ def nowcast(
     return mean, std
 
 
+class NowcastFilter:
+    """The ``nowcast`` filter step by step, for a swarm that plans on it (:func:`nowcast` runs
+    the same arithmetic over a whole run, without coupling or detectors).
+
+    :meth:`advance` moves to step ``k`` (the prior of step 0, else the prediction ``d <- rho
+    d``, ``P <- rho^2 P + (1 - rho^2) var^k``); :meth:`observe` updates the cells in view with
+    their observed importance; :meth:`predicted` is the prior of step ``k + 1``.
+    """
+
+    def __init__(self, history: History, meas_var: float = DEFAULT_MEAS_VAR):
+        steps = history.mean.shape[0]
+        self.mu = history.mean.reshape(steps, -1)
+        self.var = np.maximum(history.var.reshape(steps, -1), VAR_FLOOR)
+        self.rho = history.rho.ravel()
+        self.rho2 = self.rho * self.rho
+        self.meas_var = float(meas_var)
+        self.k = -1
+        self.d = np.zeros(self.mu.shape[1])
+        self.p = self.var[0].copy()
+
+    def advance(self, k: int) -> None:
+        """Predict forward to step ``k`` (``k = 0``: the prior; steps skipped, with no
+        sighting, are predicted one by one)."""
+        if k == 0:
+            self.d[:] = 0.0
+            self.p = self.var[0].copy()
+            self.k = 0
+            return
+        if k <= self.k:
+            raise ValueError(f"nowcast filter at step {self.k} cannot move back to step {k}")
+        for step in range(self.k + 1, k + 1):
+            self.d = self.rho * self.d
+            self.p = self.rho2 * self.p + (1.0 - self.rho2) * self.var[step]
+        self.k = k
+
+    def observe(self, cells: np.ndarray, values: np.ndarray) -> None:
+        """Update the (distinct, free) flat ``cells`` on their observed importance ``values``."""
+        if not len(cells):
+            return
+        z = values - self.mu[self.k, cells]
+        innovation = z - self.d[cells]
+        gain = self.p[cells] / (self.p[cells] + self.meas_var)
+        self.d[cells] += gain * innovation
+        self.p[cells] *= 1.0 - gain
+
+    def mean(self) -> np.ndarray:
+        """``(nx*ny,)`` the belief of step ``k``, clipped to [0, 1]."""
+        return np.clip(self.mu[self.k] + self.d, 0.0, 1.0)
+
+    def std(self) -> np.ndarray:
+        return np.sqrt(self.p)
+
+    def predicted(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(mean, var)`` of step ``k + 1`` before any sighting (the mean clipped)."""
+        k = self.k + 1
+        d = self.rho * self.d
+        p = self.rho2 * self.p + (1.0 - self.rho2) * self.var[k]
+        return np.clip(self.mu[k] + d, 0.0, 1.0), p
+
+
 def error_curve(mean: np.ndarray, truth: np.ndarray, grid: Grid, floor: float) -> np.ndarray:
     """``(T+1,)`` importance-weighted MAE over free cells (as :mod:`twin.monitoring`)."""
     free = grid.free.ravel()
@@ -587,6 +647,75 @@ def check_source(history: History, where: Path | str, source) -> None:
         begin if isinstance(begin, str) else None,
         [seed] if isinstance(seed, int) and not isinstance(seed, bool) else [],
     )
+
+
+def snapshot_steps(truth: np.ndarray, grid: Grid) -> list[int]:
+    """Steps worth a look at the believed map: the peak of the mean true importance over the
+    free cells (k >= 1), and half-way from the start to it and from it to the end."""
+    horizon = truth.shape[0] - 1
+    if horizon < 1:
+        return [0]
+    level = truth[1:, grid.free].mean(axis=1) if grid.free.any() else np.zeros(horizon)
+    peak = 1 + int(np.argmax(level))
+    return sorted({max(1, (1 + peak) // 2), peak, (peak + horizon + 1) // 2})
+
+
+def belief_maps(
+    result,
+    history: History,
+    settings: MonitorSettings | None = None,
+    meas_var: float = DEFAULT_MEAS_VAR,
+) -> dict[str, np.ndarray]:
+    """What the report draws of one seed's nowcast (``belief_maps.npz``): the true map and
+    every swarm's nowcast mean and std at :func:`snapshot_steps`, and for each congestion event
+    the first step at which the history alone and each swarm's nowcast knew it (belief >=
+    threshold while it lasts; -1: never), as :func:`belief_scores` counts them."""
+    settings = settings or MonitorSettings()
+    observed = result.importance
+    if observed is None:
+        raise ValueError("belief maps need the run's importance maps (keep_importance=True)")
+    grid = result.grid
+    steps = result.positions.shape[1]
+    truth = np.asarray((observed if result.truth is None else result.truth)[:steps])
+    observed = observed[:steps]
+    events = congestion_events(truth, grid, settings.threshold, settings.min_duration)
+    cell = events["i"].to_numpy(np.int64) * grid.ny + events["j"].to_numpy(np.int64)
+    onset = events["onset"].to_numpy(np.int64)
+    duration = events["duration"].to_numpy(np.int64)
+
+    def known_at(mean: np.ndarray) -> np.ndarray:
+        hot = mean >= settings.threshold
+        out = np.full(len(cell), -1, dtype=np.int64)
+        for e, (c, a, n) in enumerate(zip(cell, onset, duration, strict=True)):
+            hit = np.flatnonzero(hot[a : a + n, c])
+            if len(hit):
+                out[e] = a + int(hit[0])
+        return out
+
+    at = np.array(snapshot_steps(truth, grid), dtype=np.int64)
+    shape = (len(result.swarms), len(at), *grid.shape)
+    means, stds = np.zeros(shape, np.float32), np.zeros(shape, np.float32)
+    known = np.zeros((len(result.swarms), len(cell)), dtype=np.int64)
+    for s in range(len(result.swarms)):
+        mean, std = nowcast(grid, result.positions[s], observed, history, meas_var)
+        means[s] = mean[at].reshape(len(at), *grid.shape)
+        stds[s] = std[at].reshape(len(at), *grid.shape)
+        known[s] = known_at(mean)
+    return {
+        "seed": np.array(result.seed),
+        "swarms": np.array(json.dumps(list(result.swarms))),
+        "steps": at,
+        "truth": truth[at].astype(np.float32),
+        "mean": means,
+        "std": stds,
+        "threshold": np.array(settings.threshold),
+        "event_i": events["i"].to_numpy(np.int64),
+        "event_j": events["j"].to_numpy(np.int64),
+        "event_onset": onset,
+        "event_duration": duration,
+        "known_at": known,
+        "history_known_at": known_at(history_belief(history, steps)[0]),
+    }
 
 
 def run_beliefs(results, history: History, step_s: float | None) -> pd.DataFrame:

@@ -467,8 +467,9 @@ class ScenarioConfig(SourcedConfig):
     def make_swarm(self, name: str, **overrides: Any):
         """The swarm ``name`` with this config's options for it, ``overrides`` on top."""
         options = {**self.swarm_options.get(name, {}), **overrides}
-        if isinstance(options.get("checkpoint"), str):  # relative to the config, as in sweeps
-            options["checkpoint"] = self.path.parent / options["checkpoint"]
+        for key in ("checkpoint", "history"):  # relative to the config, as in sweeps
+            if isinstance(options.get(key), str):
+                options[key] = self.path.parent / options[key]
         try:
             return make_policy(name, **options)
         except TypeError as exc:

@@ -107,6 +107,7 @@ RUN_FILES = (
     RunFile("monitoring.csv", "run, evaluate", "report"),
     RunFile("events.parquet", "run, evaluate", "report"),
     RunFile("belief_models.csv", "run, evaluate (--history)", "report"),
+    RunFile("belief_maps.npz", "run, evaluate (--history)", "report"),
     RunFile("importance.npz", "run, evaluate", "report", required=True),
     RunFile("network.json", "run (SUMO)", "report, replay"),
     RunFile("mfd.json", "run (SUMO)", "report"),

@@ -1,7 +1,7 @@
 """The swarm registry: every swarm twin can run, by name, and how to build it.
 
 The baselines come from :mod:`twin.policies`, the coordinated classical swarms from
-:mod:`twin.planners` and :mod:`twin.tours`, the learned swarms from
+:mod:`twin.planners`, :mod:`twin.tours` and :mod:`twin.nowcast_gain`, the learned swarms from
 :mod:`twin.learning.policies`. The registry stands above all of them; the learned swarms are
 imported only when one is built, so that importing the registry loads no torch.
 """
@@ -12,6 +12,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from twin.errors import UserError
+from twin.nowcast_gain import NowcastGainPolicy
 from twin.planners import PLANNERS
 from twin.policies import GreedyPolicy, Policy, RandomPolicy, SweepingPolicy
 from twin.tours import ToursPolicy
@@ -25,6 +26,8 @@ class SwarmKind:
     build: Callable[..., Policy]  # keyword options -> a fresh policy
     summary: str
     learned: bool = False  # driven by a trained Q-network (needs torch and a checkpoint)
+    #: plans on a history of earlier days (``twin run --history FILE`` hands it over)
+    needs_history: bool = False
 
 
 def _learned(name: str) -> Callable[..., Policy]:
@@ -71,6 +74,13 @@ SWARMS: dict[str, SwarmKind] = {
             ToursPolicy,
             "drones spaced evenly along closed tours over the cells worth patrolling",
         ),
+        SwarmKind(
+            "nowcast-gain",
+            NowcastGainPolicy,
+            "the visit gain on its own nowcast plus the importance-weighted uncertainty the "
+            "sighting removes, by the coordinator (needs --history)",
+            needs_history=True,
+        ),
         SwarmKind("rl", _learned("rl"), "the Q-network with the central coordinator", True),
         SwarmKind(
             "rl-decentralized",
@@ -101,6 +111,12 @@ LABEL_SEPARATOR = "@"
 def base_name(name: str) -> str:
     """The registered swarm of a (perhaps labelled) name: ``rl@paper`` -> ``rl``."""
     return name.split(LABEL_SEPARATOR, 1)[0]
+
+
+def needs_history(name: str) -> bool:
+    """Whether the swarm ``name`` plans on a history of earlier days."""
+    base = base_name(name)
+    return base in SWARMS and SWARMS[base].needs_history
 
 
 def is_learned(name: str) -> bool:

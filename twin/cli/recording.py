@@ -23,6 +23,7 @@ from twin.experiment import (
 from twin.runs import discard_run_dir, invocation, new_run_dir, prepare_run_dir, record
 
 BELIEF_FILE = "belief_models.csv"
+BELIEF_MAPS_FILE = "belief_maps.npz"
 
 
 def with_flags(config: ScenarioConfig, flags: Mapping[str, tuple[str, Any]]) -> ScenarioConfig:
@@ -59,9 +60,11 @@ def run_and_record(
     """Run ``experiment`` for ``twin <command>`` and write its run folder (``args.out``, else
     ``runs/<command>-<time>``): resources checked before any folder is made, a refusal while
     it runs discards the folder; ``args.ceiling`` adds the ceiling rows unless interrupted,
-    ``history`` the belief models. ``outputs_folder``: where in the run folder a live source
+    ``history`` the belief models (and goes to the swarms that plan on one). ``outputs_folder``: where in the run folder a live source
     writes its scenario's configured outputs; ``around`` is entered while the experiment runs
     (a display); ``run_options`` go to :func:`twin.experiment.run_experiment`."""
+    if history is not None:
+        hand_history(experiment, history)
     check_resources(experiment, args.out or Path("runs"))  # before any folder is made
     run_dir = prepare_run_dir(args.out or new_run_dir("runs", command), invocation(command, args))
     if outputs_folder is not None:
@@ -80,14 +83,31 @@ def run_and_record(
         raise
     meta = run_metadata(outcome, command, **(extra_meta(outcome) if extra_meta else {}))
     beliefs = belief_models(outcome, history, meta)
+    maps = None
+    if beliefs is not None:
+        from twin.belief import belief_maps
+
+        maps = belief_maps(outcome.results[0], history)
     summary, comparison = record(
         run_dir,
         outcome,
         meta,
         ceilings=args.ceiling and not outcome.interrupted,
-        more_files=belief_writer(beliefs),
+        more_files=belief_writer(beliefs, maps),
     )
     return Recorded(run_dir, outcome, summary, comparison, beliefs)
+
+
+def hand_history(experiment: Experiment, history) -> None:
+    """Give the run's history (``--history``) to every swarm that plans on one, over what its
+    ``[swarm_options]`` say."""
+    from twin.swarms import needs_history
+
+    options = dict(experiment.swarm_options)
+    for name in experiment.swarms:
+        if needs_history(name):
+            options[name] = {**options.get(name, {}), "history": history}
+    experiment.swarm_options = options
 
 
 def print_tables(recorded: Recorded, title: str) -> None:
@@ -118,14 +138,23 @@ def belief_models(outcome, history, meta):
     return run_beliefs(outcome.results, history, step_seconds_of(meta))
 
 
-def belief_writer(beliefs):
-    """The ``more_files`` of :func:`twin.runs.record` writing ``belief_models.csv``."""
+def belief_writer(beliefs, maps=None):
+    """The ``more_files`` of :func:`twin.runs.record` writing ``belief_models.csv`` and, for
+    the report, the first seed's ``belief_maps.npz`` (:func:`twin.belief.belief_maps`)."""
     if beliefs is None:
         return None
+    import numpy as np
+
     from twin.files import atomic_write
+
+    def save_maps(path: Path) -> None:
+        with open(path, "wb") as fh:
+            np.savez_compressed(fh, **maps)
 
     def write(folder: Path) -> None:
         atomic_write(folder / BELIEF_FILE, lambda p: beliefs.to_csv(p, index=False))
+        if maps is not None:
+            atomic_write(folder / BELIEF_MAPS_FILE, save_maps)
 
     return write
 

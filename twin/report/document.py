@@ -374,6 +374,39 @@ def build_sections(
                 "belief_error); lower is better.",
             )
         )
+    if rf.belief_maps is not None and figures.belief_map_swarms(rf):
+        drawn = figures.belief_map_swarms(rf)
+        who = " and ".join(drawn)
+        sections.append(
+            Section(
+                "Believed against true importance (nowcast)",
+                timed(
+                    "belief maps",
+                    lambda: _save(figures.figure_belief_maps(rf), out / "belief_maps.png"),
+                ),
+                f"From belief_maps.npz (twin run --history), seed {rf.belief_maps['seed']}: the "
+                "true importance, then for "
+                + who
+                + " (the best swarm by R_hat_T, and the swarm that plans on its nowcast when the "
+                "run has it) the nowcast's mean (the history fused with the drones' sightings) "
+                "and its standard deviation, with the drones and their last 3 steps, half-way "
+                "to the peak of the mean true importance, at the peak, and half-way after it.",
+            )
+        )
+        sections.append(
+            Section(
+                "When the nowcast knew each congestion event",
+                timed(
+                    "belief timeline",
+                    lambda: _save(figures.figure_belief_timeline(rf), out / "belief_timeline.png"),
+                ),
+                "Each bar is a congestion event (true importance at or above the threshold, "
+                "onset to end); a mark at the first step at which the belief (the history "
+                "alone, or each drawn swarm's nowcast) reached the threshold while it lasted, a "
+                "cross at the bar's end for an event it never knew: the belief table's "
+                "% events known and latency, event by event.",
+            )
+        )
     if rf.mfd is not None:
         fig, note = timed("mfd", lambda: figures.figure_mfd(rf))
         sections.append(

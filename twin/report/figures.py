@@ -587,3 +587,114 @@ def figure_surviving_paths(rf: RunFiles, trail: int = 60) -> Figure:
         fontsize=11,
     )
     return fig
+
+
+#: The swarm that plans on its own nowcast, drawn beside the best swarm by R_hat_T.
+NOWCAST_SWARM = "nowcast-gain"
+
+
+def belief_map_swarms(rf: RunFiles) -> list[str]:
+    """The swarms whose nowcast the belief figures draw: the best by R_hat_T among those in
+    ``belief_maps.npz``, and the swarm that plans on the nowcast when the run has it."""
+    from twin.metrics import swarm_rows
+
+    maps = rf.belief_maps or {}
+    inside = list(maps.get("swarms", []))
+    rows = swarm_rows(rf.summary)
+    rows = rows[rows["swarm"].isin(inside)]
+    chosen = [] if rows.empty else [str(rows.loc[rows["R_hat_T"].idxmax(), "swarm"])]
+    if NOWCAST_SWARM in inside and NOWCAST_SWARM not in chosen:
+        chosen.append(NOWCAST_SWARM)
+    return chosen
+
+
+def figure_belief_maps(rf: RunFiles) -> Figure:
+    """True importance, then for each drawn swarm its nowcast's mean and std, at the steps of
+    ``belief_maps.npz`` (columns), with the swarm's drones where they stood."""
+    maps = rf.belief_maps
+    swarms = belief_map_swarms(rf)
+    steps = [int(k) for k in maps["steps"]]
+    n_rows, n_cols = 1 + 2 * len(swarms), len(steps)
+    vmax = rf.importance_vmax
+    std_max = max(float(maps["std"][:, :, ~rf.obstacles].max(initial=0.0)), 1e-6)
+    fig = Figure(figsize=(3.3 * n_cols + 1.2, 2.4 * n_rows + 0.6), layout="constrained")
+    axes = np.atleast_2d(fig.subplots(n_rows, n_cols, squeeze=False))
+    seed = maps["seed"]
+
+    def label(k: int) -> str:
+        clock = rf.clock(k)
+        return f"k = {k}" + (f" ({clock})" if clock else "")
+
+    images = {}
+    for c, k in enumerate(steps):
+        images["truth"] = draw_map(
+            axes[0, c], maps["truth"][c], rf.obstacles, IMPORTANCE_CMAP, vmax
+        )
+        axes[0, c].set_title(f"true importance, {label(k)}", fontsize=9)
+        for r, swarm in enumerate(swarms):
+            s = maps["swarms"].index(swarm)
+            ax_mean, ax_std = axes[1 + 2 * r, c], axes[2 + 2 * r, c]
+            images["mean"] = draw_map(ax_mean, maps["mean"][s, c], rf.obstacles, IMPORTANCE_CMAP,
+                                      vmax)  # fmt: skip
+            images["std"] = draw_map(ax_std, maps["std"][s, c], rf.obstacles, "viridis", std_max)
+            ax_mean.set_title(f"{swarm}: nowcast mean", fontsize=9)
+            ax_std.set_title(f"{swarm}: nowcast std", fontsize=9)
+            try:
+                pos = rf.positions(swarm, seed)
+            except Exception:  # a swarm without trajectories of this seed: maps alone
+                continue
+            if k < len(pos):
+                colours = drone_colours(pos.shape[1])
+                for ax in (ax_mean, ax_std):
+                    draw_drones(ax, pos, k, 3, colours)
+    fig.colorbar(images["truth"], ax=list(axes[: n_rows, -1]), shrink=0.5,
+                 label="importance (truth and nowcast mean)")  # fmt: skip
+    if "std" in images:
+        fig.colorbar(images["std"], ax=list(axes[2::2, 0]), shrink=0.6, location="left",
+                     label="nowcast std")  # fmt: skip
+    fig.suptitle(f"Believed (nowcast) against true importance (seed {seed})", fontsize=11)
+    return fig
+
+
+def figure_belief_timeline(rf: RunFiles) -> Figure:
+    """Each congestion event of ``belief_maps.npz`` as a bar over time; per drawn swarm (and the
+    history alone) a mark at the step its nowcast first knew the event, a cross at the bar's end
+    for one it never knew."""
+    maps = rf.belief_maps
+    swarms = belief_map_swarms(rf)
+    onset, duration = maps["event_onset"], maps["event_duration"]
+    order = np.lexsort((maps["event_j"], maps["event_i"], onset))[:MAX_EVENTS_DRAWN]
+    n = max(len(order), 1)
+    fig = Figure(figsize=(11, min(2.5 + 0.2 * n, 14)), layout="constrained")
+    ax = fig.subplots()
+    for y, e in enumerate(order):
+        ax.barh(y, duration[e], left=onset[e], height=0.7, color="#f5b7b1", edgecolor="#7b241c",
+                lw=0.4)  # fmt: skip
+    rows = [("history alone", maps["history_known_at"], "#555555", "s")]
+    colours = swarm_colours(rf.swarms)
+    rows += [(s, maps["known_at"][maps["swarms"].index(s)], colours.get(s), "o") for s in swarms]
+    for r, (name, known, colour, marker) in enumerate(rows):
+        y = np.arange(len(order)) + (r - (len(rows) - 1) / 2) * 0.6 / len(rows)
+        at = known[order]
+        hit = at >= 0
+        end = (onset + duration)[order]
+        share = f"{100.0 * hit.mean():.0f}%" if len(order) else "-"
+        ax.plot(at[hit], y[hit], marker, color=colour, ms=4, ls="none",
+                label=f"{name}: known ({share})")  # fmt: skip
+        ax.plot(end[~hit], y[~hit], "x", color=colour, ms=4, ls="none", label=f"{name}: never")
+    ax.set_yticks(range(len(order)))
+    ax.set_yticklabels([f"({maps['event_i'][e]}, {maps['event_j'][e]})" for e in order],
+                       fontsize=6)  # fmt: skip
+    ax.invert_yaxis()
+    ax.set_xlim(0, rf.horizon + 1)
+    ax.set_xlabel("step k" + _clock_note(rf))
+    ax.set_ylabel("cell (i, j) of the event")
+    ax.grid(alpha=0.3, axis="x")
+    if len(order):
+        ax.legend(fontsize=7, ncol=min(3, len(rows)), loc="upper right")
+    fig.suptitle(
+        f"When the nowcast knew each congestion event (seed {maps['seed']}, {len(onset)} events, "
+        f"nowcast >= {maps['threshold']:g} while it lasts)",
+        fontsize=11,
+    )
+    return fig

@@ -63,6 +63,7 @@ class RunFiles:
     mfd_samples: pd.DataFrame | None = None
     monitoring: pd.DataFrame | None = None  # monitoring.csv
     beliefs: pd.DataFrame | None = None  # belief_models.csv (twin run --history)
+    belief_maps: dict[str, Any] | None = None  # belief_maps.npz (twin run --history)
     events: pd.DataFrame | None = None  # events.parquet
     incidents: list[dict[str, Any]] | None = None  # incidents.json (scheduled SUMO incidents)
     timing: pd.DataFrame | None = None  # timing.csv (wall time per stage)
@@ -193,6 +194,48 @@ class RunFiles:
         return self._idleness[key]
 
 
+def read_belief_maps(path: Path, shape: tuple[int, int]) -> dict[str, Any] | None:
+    """``belief_maps.npz`` (:func:`twin.belief.belief_maps`) checked, or None when the run has
+    none; a damaged file is one :class:`UserError` line naming it."""
+    import json
+
+    if not path.exists():
+        return None
+    keys = ("seed", "swarms", "steps", "truth", "mean", "std", "threshold", "event_i",
+            "event_j", "event_onset", "event_duration", "known_at", "history_known_at")  # fmt: skip
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            missing = [k for k in keys if k not in npz.files]
+            if missing:
+                raise UserError(f"{path}: no array {missing[0]!r}; {RERUN}")
+            data = {k: npz[k] for k in keys}
+        swarms = json.loads(str(data["swarms"]))
+        assert isinstance(swarms, list) and all(isinstance(s, str) for s in swarms)
+    except UserError:
+        raise
+    except Exception as exc:  # zip, JSON and format errors of a damaged file
+        why = type(exc).__name__
+        raise UserError(f"{path}: not a readable belief_maps.npz ({why}); {RERUN}") from None
+    n_steps, n_events = len(data["steps"]), len(data["event_i"])
+    expected = {
+        "truth": (n_steps, *shape),
+        "mean": (len(swarms), n_steps, *shape),
+        "std": (len(swarms), n_steps, *shape),
+        "known_at": (len(swarms), n_events),
+        "history_known_at": (n_events,),
+    }
+    for key in ("event_j", "event_onset", "event_duration"):
+        expected[key] = (n_events,)
+    for key, want in expected.items():
+        if tuple(data[key].shape) != want:
+            raise UserError(f"{path}: {key} has shape {data[key].shape}, not {want}; {RERUN}")
+    for key in ("truth", "mean", "std"):
+        if not np.isfinite(data[key]).all():
+            raise UserError(f"{path}: {key} holds NaN or infinite values; {RERUN}")
+    return {**data, "swarms": swarms, "seed": int(data["seed"]),
+            "threshold": float(data["threshold"])}  # fmt: skip
+
+
 #: Text columns of the results tables: the row's name, whether it is a swarm or a ceiling, and
 #: which oracle swarm gave the oracle row.
 TABLE_TEXT = ("swarm", "role", "oracle_swarm")
@@ -270,6 +313,7 @@ def load_run(run_dir: str | Path) -> RunFiles:
     monitoring = optional("monitoring.csv", {"swarm": TEXT}, TABLE_TEXT)
     events = optional("events.parquet", EVENT_COLUMNS)
     beliefs = optional("belief_models.csv", {"swarm": TEXT, "model": TEXT}, ("swarm", "model"))
+    belief_maps = read_belief_maps(run_dir / "belief_maps.npz", obstacles.shape)
     timing = optional("timing.csv", TIMING_COLUMNS)
     degradation = optional(
         "degradation.csv", {"seed": INT, "swarm": TEXT, "phase": INT, "label": TEXT},
@@ -306,6 +350,7 @@ def load_run(run_dir: str | Path) -> RunFiles:
         mfd_samples=samples,
         monitoring=monitoring,
         beliefs=beliefs,
+        belief_maps=belief_maps,
         events=events,
         incidents=incidents,
         timing=timing,
