@@ -492,6 +492,24 @@ def _json(name, key, value):
     return apply
 
 
+def _network_json(**grid):
+    """A network.json (as a SUMO run writes it) whose grid is changed by ``grid``."""
+
+    def apply(run: Path) -> None:
+        import json
+
+        with np.load(run / "importance.npz") as npz:
+            nx, ny = npz["obstacles"].shape
+        network = {
+            "name": "n", "net_file": "n.net.xml", "route_files": [],
+            "grid": {"x0": 0.0, "y_top": 0.0, "cell_m": 500.0, "nx": nx, "ny": ny,
+                     "bbox": [0, 0, 1, 1], "lane_km_total": 1.0, **grid},
+        }  # fmt: skip
+        (run / "network.json").write_text(json.dumps(network))
+
+    return apply
+
+
 READ_BACK = {
     "row deleted": (_edit_table("trajectories.parquet", lambda f: f.drop(f.index[5])), "rows"),
     "row duplicated": (
@@ -574,6 +592,27 @@ READ_BACK = {
         _json("run.json", ("grid", "nx"), 99),
         "grid = 99 x",
     ),
+    "coverage above 1": (_edit_table("series.parquet", _set("coverage", 5.0, 2)), "outside 0 .. 1"),
+    "map covered above 100%": (
+        _edit_table("summary.csv", _set("pct_map_covered", 250.0)),
+        "column 'pct_map_covered' row 0 is 250, outside 0 .. 100",
+    ),
+    "per_seed seed without results": (
+        _edit_table("per_seed.csv", lambda f: pd.concat([f, f.iloc[[0]].assign(seed=7)])),
+        "per_seed.csv: seed 7 has rows but no results in series.parquet",
+    ),
+    "run.json horizon other than the steps": (
+        _json("run.json", ("horizon",), 99),
+        "horizon = 99, but seed 0 ran 12 steps",
+    ),
+    "run.json free cells other than the maps": (
+        _json("run.json", ("grid", "n_free"), 3),
+        "grid.n_free = 3, but importance.npz has",
+    ),
+    "network.json grid other than the maps": (
+        _network_json(nx=3),
+        "network.json: grid = 3 x 30, but importance.npz holds 20 x 30 maps",
+    ),
     "run.json seeds without results": (
         _json("run.json", ("seeds",), [0, 1, 2]),
         "seeds = [0, 1, 2] differ from those with results in series.parquet, [0, 1]",
@@ -621,8 +660,9 @@ def test_damaged_run_folder_is_one_line(name, command, run_copy: Path, capsys) -
     line = one_line(capsys)
     if command == "report":
         assert words in line
-    else:  # replay checks the manifest, then run.json: an evaluate folder is not replayable
-        assert "run.json" in line or "manifest.json" in line
+    else:  # replay reads the folder back as report does, then finds an evaluate folder's
+        # run.json not replayable
+        assert words in line or ("run.json" in line and "not" in line), line
     assert tree_hash(parent, skip=run_copy) == before
 
 

@@ -141,17 +141,17 @@ CASES = {
     "swarm renamed in trajectories": (
         _rename_swarm("random", "foo"),
         None,
-        "trajectories.parquet: seed 0 has no rows of swarm 'random', which run.json lists",
+        "summary.csv: no row for swarm 'foo', which trajectories.parquet holds",
     ),
     "swarm missing from trajectories": (
         _drop_swarm,
         None,
-        "trajectories.parquet: seed 0 has no rows of swarm 'random', which run.json lists",
+        "trajectories.parquet: no rows for swarm 'random' (summary.csv), seed 0",
     ),
     "unknown swarm in trajectories": (
         _add_swarm,
         None,
-        "trajectories.parquet: seed 0 has rows of swarm 'foo', which run.json does not list",
+        "summary.csv: no row for swarm 'foo', which trajectories.parquet holds",
     ),
     "route file edited": (
         _edit_routes,
@@ -358,3 +358,26 @@ def test_a_shipped_config_named_relatively_stays_the_shipped_one(tmp_path, monke
     made_in = tmp_path / "where-the-run-was-made"
     got = _from_folder("config", Path("configs/shenzhen.toml"), made_in)
     assert got == shipped("configs", "shenzhen.toml") and got.is_file()
+
+
+def test_replay_refuses_a_changed_file_that_a_route_file_includes(tmp_path, capsys):
+    """A route file that only includes the trips: the included file is part of the run's
+    identity, as the route file itself is."""
+    from twin.sumo.network import generate_grid_scenario
+
+    generate_grid_scenario(tmp_path, blocks=3, block_m=300, end_s=300, period_s=5.0, seed=1)
+    (tmp_path / "inc.rou.xml").write_text('<routes><include href="small.trips.xml"/></routes>')
+    (tmp_path / "c.toml").write_text(CONFIG.replace('"small.trips.xml"', '"inc.rou.xml"'))
+    run = tmp_path / "run"
+    argv = ["run", "--config", str(tmp_path / "c.toml"), "--out", str(run), "--no-report",
+            "--quiet"]  # fmt: skip
+    assert main(argv) == 0
+    capsys.readouterr()
+    roles = {
+        f["role"]
+        for f in json.loads((run / "run.json").read_text())["traffic"]["identity"]["files"]
+    }
+    assert "included file" in roles
+    _edit_routes(run)
+    run_case(capsys, tmp_path, ["replay", str(run)], None, 2,
+             "small.trips.xml: the included file changed since the run (sha256 ")  # fmt: skip

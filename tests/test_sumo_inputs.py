@@ -420,3 +420,17 @@ def test_an_end_before_the_begin_is_refused(city, capsys):
     assert code == 2 and err.count("\n") == 1, err
     assert "[traffic].end = '00:10' is not after the begin (00:15:00)" in err
     assert not (city / "ends").exists()
+
+
+def test_an_obstacle_off_the_grid_over_the_network_is_refused(city, capsys):
+    cfg = city / "scenario" / "obstacle.toml"
+    table = 'net = "../data/grid.net.xml"\nroutes = ["../data/grid.rou.xml"]\n'
+    cfg.write_text(
+        CONFIG.replace("[evaluate]", table + "[grid]\nobstacles = [[99, 99]]\n[evaluate]")
+    )
+    code = twin_main(["run", "--config", str(cfg), "--quiet", "--no-report", "--out",
+                      str(city / "obstacle")])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1, err
+    assert "obstacle.toml: [grid].obstacles has [99, 99], off the" in err
+    assert not (city / "obstacle").exists()

@@ -442,11 +442,44 @@ def check_headline(path: Path, frame: pd.DataFrame) -> None:
             )
 
 
+#: The range of each number column twin writes (NaN, where allowed, is left to the column's
+#: kind): shares of the map and of time, errors of importances in 0 .. 1 (Def. 2), the headline
+#: score's visit gains and counts never below 0 (Def. 4 as printed can be: not bounded here).
+BOUNDS: dict[str, tuple[float, float]] = {
+    **dict.fromkeys(("reward", "cumulative_reward", "R_hat_T", "R_hat_T_importance",
+                     "R_hat_T_idleness", "events", "latency_median_steps",
+                     "latency_p90_steps", "latency_median_min", "latency_p90_min",
+                     "seconds", "ms_per_step"), (0.0, np.inf)),
+    **dict.fromkeys(("coverage", "visited_share", "belief_error", "C_hat_T", "C_hat_T_ceiling"),
+                    (0.0, 1.0)),
+    **dict.fromkeys(("pct_time_max_C", "pct_map_covered", "pct_events_seen",
+                     "pct_congested_observed"), (0.0, 100.0)),
+}  # fmt: skip
+
+
+def check_bounds(path: Path, frame: pd.DataFrame) -> None:
+    """Every column of ``frame`` named in :data:`BOUNDS` lies in its range (NaN passes)."""
+    for name, (low, high) in BOUNDS.items():
+        if name not in frame.columns:
+            continue
+        values = pd.to_numeric(frame[name], errors="coerce").to_numpy(dtype=np.float64)
+        slack = 1e-9 * np.maximum(1.0, np.abs(values))
+        off = (values < low - slack) | (values > high + slack)
+        if off.any():
+            n = int(np.flatnonzero(off)[0])
+            raise UserError(
+                f"{path}: column {name!r} row {n} is {values[n]:.6g}, outside {low:g} .. "
+                f"{high:g}; {RERUN}"
+            )
+
+
 def numeric_columns(path: Path, frame: pd.DataFrame, text: tuple[str, ...]) -> None:
-    """Every column of ``frame`` but ``text`` holds numbers (NaN allowed)."""
+    """Every column of ``frame`` but ``text`` holds numbers (NaN allowed), each within its
+    :data:`BOUNDS`."""
     for name in frame.columns:
         if name not in text:
             check_column(path, frame, str(name), NUMBER)
+    check_bounds(path, frame)
 
 
 def check_trajectories(
@@ -515,6 +548,7 @@ def check_series(path: Path, frame: pd.DataFrame) -> None:
     """One row per (seed, swarm, step), steps ``0..T-1`` complete for each seed and swarm, and
     ``cumulative_reward`` the running sum of ``reward``."""
     check_columns(path, frame, SERIES_COLUMNS)
+    check_bounds(path, frame)
     if "belief_error" in frame.columns:
         check_column(path, frame, "belief_error", NUMBER)
     dup = frame.duplicated(["seed", "swarm", "step"])

@@ -141,6 +141,7 @@ def main(args: argparse.Namespace) -> int:
     from twin.cli.run import build_experiment, finish_video, gui_drawer
     from twin.experiment import build_source, limit_threads
     from twin.readback import RERUN, TRAJECTORY_COLUMNS, check_trajectories, read_table
+    from twin.report.load import load_run
     from twin.runs import check_run_folder
     from twin.sumo.gui import display
 
@@ -150,6 +151,7 @@ def main(args: argparse.Namespace) -> int:
     if not run_dir.is_dir():
         raise UserError(f"{run_dir}: no such run folder")
     check_run_folder(run_dir)
+    load_run(run_dir)  # every file read back and checked against the others, as for a report
     experiment = build_experiment(run_arguments(run_dir))
     path = run_dir / "trajectories.parquet"
     trajectories = read_table(path, TRAJECTORY_COLUMNS)

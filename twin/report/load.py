@@ -335,7 +335,7 @@ def load_run(run_dir: str | Path) -> RunFiles:
         check_fields(run_dir / "mfd.json", mfd, MFD_FIELDS)
     if incidents is not None:
         check_incidents(run_dir / "incidents.json", incidents)
-    check_consistent(run_dir, run, series, trajectories, summary, importance)
+    check_consistent(run_dir, run, series, trajectories, summary, importance, obstacles, per_seed)
     return RunFiles(
         run_dir=run_dir,
         series=series,
@@ -366,6 +366,8 @@ def check_consistent(
     trajectories: pd.DataFrame,
     summary: pd.DataFrame,
     importance: np.ndarray,
+    obstacles: np.ndarray,
+    per_seed: pd.DataFrame | None,
 ) -> None:
     """The run folder's files describe one run: the same seeds and swarms, and the first
     seed's trajectories as long as its importance maps."""
@@ -428,6 +430,33 @@ def check_consistent(
             f"{run_dir / 'run.json'}: grid = {grid.get('nx')} x {grid.get('ny')}, but "
             f"importance.npz holds {importance.shape[1]} x {importance.shape[2]} maps; {RERUN}"
         )
+    if isinstance(grid, dict) and grid.get("n_free") not in (None, int((~obstacles).sum())):
+        raise UserError(
+            f"{run_dir / 'run.json'}: grid.n_free = {grid.get('n_free')}, but importance.npz "
+            f"has {int((~obstacles).sum())} free cells; {RERUN}"
+        )
+    horizon = run.get("horizon")
+    if isinstance(horizon, int) and horizon != importance.shape[0] - 1:
+        raise UserError(
+            f"{run_dir / 'run.json'}: horizon = {horizon}, but seed {first} ran "
+            f"{importance.shape[0] - 1} steps (importance.npz, series.parquet); {RERUN}"
+        )
+    network = read_json(run_dir / "network.json")
+    net_grid = network.get("grid") if isinstance(network, dict) else None
+    if isinstance(net_grid, dict) and [net_grid.get("nx"), net_grid.get("ny")] != list(
+        importance.shape[1:]
+    ):
+        raise UserError(
+            f"{run_dir / 'network.json'}: grid = {net_grid.get('nx')} x {net_grid.get('ny')}, "
+            f"but importance.npz holds {importance.shape[1]} x {importance.shape[2]} maps; {RERUN}"
+        )
+    if per_seed is not None:
+        extra = sorted(set(int(s) for s in per_seed["seed"]) - set(seeds))
+        if extra:
+            raise UserError(
+                f"{run_dir / 'per_seed.csv'}: seed {extra[0]} has rows but no results in "
+                f"series.parquet (seeds {seeds}); {RERUN}"
+            )
     recorded = run.get("seeds")
     if isinstance(recorded, list) and sorted(set(recorded)) != seeds:
         raise UserError(

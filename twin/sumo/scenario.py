@@ -397,8 +397,12 @@ def _grid_and_notices(
     geometry = grid_over(lanes, s.cell_m, shape, where=where)
     obstacles = geometry.obstacles(s.min_lane_km)
     for i, j in getattr(config.grid, "obstacles", []) or []:
-        if 0 <= i < geometry.nx and 0 <= j < geometry.ny:
-            obstacles[i, j] = True
+        if not (0 <= i < geometry.nx and 0 <= j < geometry.ny):
+            raise UserError(
+                f"{config.path}: [grid].obstacles has [{i}, {j}], off the {geometry.nx} x "
+                f"{geometry.ny} grid over the network ({s.cell_m:g} m cells); give cells on it"
+            )
+        obstacles[i, j] = True
     if obstacles.all():
         raise UserError(
             f"{files.net_file}: no cell of the {geometry.nx} x {geometry.ny} grid has a lane"

@@ -396,7 +396,9 @@ class SumoTraffic(TrafficSource):
         another folder finds the same names)."""
         s = self.scenario
         files = [("network", Path(s.net_file))]
-        files += [("route file", Path(r)) for r in s.route_files]
+        for r in s.route_files:
+            files.append(("route file", Path(r)))
+            files += [("included file", p) for p in included_files(Path(r)) if p.is_file()]
         for a in s.extra.get("additional_files", []):
             files.append(("additional file", Path(a)))
             files += [("included file", p) for p in included_files(Path(a)) if p.is_file()]
