@@ -303,6 +303,19 @@ def test_init_of_other_layers_is_refused(tmp_path):
         pretrain(config, progress=False)
 
 
+def test_init_whose_weights_do_not_fit_its_layers_is_one_line(tmp_path):
+    """A checkpoint whose meta.layers match but one weight has another shape: refused in
+    one line, not an internal error of torch's loader."""
+    pretrain(load_config(_config(tmp_path, out="small")), progress=False)
+    blob = torch.load(tmp_path / "small/qnet.pt", weights_only=True)
+    blob["weights"]["net.0.weight"] = blob["weights"]["net.0.weight"][:3]
+    torch.save(blob, tmp_path / "bent.pt")
+    config = load_config(_config(tmp_path, out="again"), init=str(tmp_path / "bent.pt"))
+    with pytest.raises(UserError, match="weights do not match") as info:
+        pretrain(config, progress=False)
+    assert "\n" not in str(info.value)
+
+
 # ----------------------------------------------------------------------------- the scenario
 def test_the_shipped_config_trains_on_the_shipped_models_settings():
     """configs/pretrain.toml on the training map scenario gives the settings recorded in

@@ -52,7 +52,13 @@ from twin.config import (
 from twin.config import load_config as load_scenario
 from twin.errors import UserError
 from twin.files import file_sha256
-from twin.learning.checkpoint import atomic_save, model_metadata, read_checkpoint, save_model
+from twin.learning.checkpoint import (
+    atomic_save,
+    load_qnet,
+    model_metadata,
+    read_checkpoint,
+    save_model,
+)
 from twin.learning.data import coordinated_swarm_episode, random_swarm_episode
 from twin.learning.dqn import (  # noqa: F401  (double_dqn_target re-exported for tests)
     double_dqn_target,
@@ -801,14 +807,14 @@ def write_provenance(cfg: PretrainConfig, out: Path, meta: dict[str, Any]) -> Pa
 
 def load_initial_weights(cfg: PretrainConfig, net: QNetwork) -> None:
     """The weights of ``cfg.init`` into ``net``; refused (one line) when its layers differ."""
-    blob = read_checkpoint(cfg.init)
-    layers = blob["meta"].get("layers")
+    layers = read_checkpoint(cfg.init)["meta"].get("layers")
     if layers != list(cfg.layers):
         raise UserError(
             f"init = {cfg.init}: its layers {layers} differ from `layers` {list(cfg.layers)}; "
             "give a checkpoint of the same network or set `layers` to match"
         )
-    net.load_state_dict(blob["weights"])
+    loaded, _ = load_qnet(cfg.init)  # its weights checked against its layers (one line)
+    net.load_state_dict(loaded.state_dict())
 
 
 # ----------------------------------------------------------------------------- 6. the curve
