@@ -154,8 +154,8 @@ BROKEN_ENTRIES = {
         lambda d: (d / "a.trips.xml").write_text("<routes>\n  <trip id='7'/>\n</routes>\n"),
         "a.trips.xml changed since it was built",
     ),
-    "its record of the files removed": (
-        lambda d: (d / resources.SEAL).unlink(),
+    "its record of the files damaged": (
+        lambda d: (d / resources.SEAL).write_text("{"),
         f"{resources.SEAL}, the record of its files, is missing",
     ),
 }
@@ -181,6 +181,52 @@ def test_a_broken_cache_entry_is_rebuilt_and_reported(tmp_path, capsys, case):
     assert needle in err and "rebuilding it" in err
     _verify(target)  # whole again
     assert sorted(p.name for p in target.parent.iterdir()) == ["entry"]  # no temporary left
+
+
+def test_an_entry_of_an_earlier_twin_is_sealed_as_it_is(tmp_path, capsys):
+    """An entry without a record of its files (built before twin kept one) that passes its
+    check is kept and sealed, not rebuilt: runs recorded on it still replay."""
+    target = tmp_path / "cache" / "entry"
+    calls = []
+
+    def make(d: Path) -> None:
+        calls.append(d)
+        _xml_entry(d)
+
+    resources.build_once(target, make, verify=_verify)
+    (target / resources.SEAL).unlink()
+    before = (target / "a.net.xml").read_bytes()
+    assert resources.build_once(target, make, verify=_verify) == target
+    assert len(calls) == 1 and capsys.readouterr().err == ""
+    assert (target / resources.SEAL).is_file() and (target / "a.net.xml").read_bytes() == before
+    (target / "a.net.xml").write_text('<net version="2">\n</net>\n')  # now sealed: noticed
+    resources.build_once(target, make, verify=_verify)
+    assert len(calls) == 2 and "a.net.xml changed since it was built" in capsys.readouterr().err
+
+
+def test_two_builds_of_an_entry_are_the_same_bytes(tmp_path):
+    """The "generated on" comment SUMO's tools write (time, command, temporary folder) is
+    dropped from a build, so a rebuilt entry equals the first one."""
+
+    def make(d: Path) -> None:
+        head = f'<?xml version="1.0"?>\n\n<!-- generated on {d.name} by netconvert\n<c/>\n-->\n\n'
+        (d / "a.net.xml").write_text(head + '<net version="1">\n</net>\n')
+        (d / "a.trips.xml").write_text("<routes>\n  <trip id='0'/>\n</routes>\n")
+
+    one = resources.build_once(tmp_path / "one", make, verify=_verify)
+    two = resources.build_once(tmp_path / "two", make, verify=_verify)
+    assert (one / "a.net.xml").read_bytes() == (two / "a.net.xml").read_bytes()
+    assert (one / "a.net.xml").read_text() == '<?xml version="1.0"?>\n\n<net version="1">\n</net>\n'
+
+
+def test_a_file_where_an_entry_belongs_is_replaced_by_the_entry(tmp_path, capsys):
+    target = tmp_path / "cache" / "entry"
+    target.parent.mkdir()
+    target.write_text("not a folder")
+    assert resources.build_once(target, _xml_entry, verify=_verify) == target
+    _verify(target)
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "is a file, not a folder; rebuilding it" in err
 
 
 def test_a_broken_build_is_not_committed(tmp_path):

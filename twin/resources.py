@@ -154,6 +154,24 @@ def _entry_files(folder: Path) -> list[Path]:
     return sorted(p for p in folder.rglob("*") if p.is_file() and p.name != SEAL)
 
 
+#: The comment SUMO's tools put at the head of what they write: the time and the command
+#: line, with the temporary folder of the build in it.
+_GENERATOR_COMMENT = re.compile(rb"\A(<\?xml[^>]*\?>\s*)?<!-- generated on .*?-->\s*", re.DOTALL)
+
+
+def strip_generator_comments(folder: Path) -> None:
+    """Drop the "generated on" comment from the head of each XML file of a build, so that two
+    builds of one entry are the same bytes (and a run's recorded sha256 of a cached input still
+    holds after the cache is rebuilt)."""
+    for path in _entry_files(folder):
+        if not path.name.endswith(".xml"):
+            continue
+        data = path.read_bytes()
+        stripped = _GENERATOR_COMMENT.sub(rb"\1", data, count=1)
+        if stripped != data:
+            path.write_bytes(stripped)
+
+
 def write_seal(folder: Path) -> None:
     """Record the sha256 of every file of a built cache entry (before it is committed)."""
     import json
@@ -209,6 +227,8 @@ def build_once(
         try:
             if verify is not None:
                 verify(target)
+            if not (target / SEAL).exists():  # built by an earlier twin: sealed as it is
+                write_seal(target)
             check_seal(target)
             return target
         except (BrokenEntry, OSError) as exc:
@@ -218,6 +238,11 @@ def build_once(
             force = True
     from twin.outputs import check_output_dir
 
+    if target.exists() and not target.is_dir():  # a file where the entry's folder belongs
+        from twin.notices import notify
+
+        notify(f"twin: notice: cache entry {target} is a file, not a folder; rebuilding it")
+        target.unlink()
     check_output_dir(target.parent, f"the cache (${CACHE_ENV} moves it)")
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=target.parent))
@@ -231,6 +256,7 @@ def build_once(
                     f"{target}: the build produced a broken entry ({_reason(exc)}); nothing "
                     "was cached, see the message of the tool above or report it"
                 ) from None
+        strip_generator_comments(tmp)
         write_seal(tmp)
         if force and target.is_dir():
             old = Path(tempfile.mkdtemp(prefix=f".{target.name}.old-", dir=target.parent))
