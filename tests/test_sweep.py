@@ -201,10 +201,44 @@ def test_restart_runs_only_missing_cells(tmp_path: Path) -> None:
     assert nothing.ran == [] and len(nothing.skipped) == 3
 
 
+def _record(change):
+    """A cell JSON edited by ``change(record)``, still well-formed."""
+
+    def damage(data: bytes) -> bytes:
+        record = json.loads(data)
+        change(record)
+        return json.dumps(record).encode()
+
+    return damage
+
+
+def _series(data: bytes) -> bytes:
+    import io
+
+    frame = pd.read_parquet(io.BytesIO(data))
+    frame["reward"] *= 2
+    out = io.BytesIO()
+    frame.to_parquet(out, index=False)
+    return out.getvalue()
+
+
 DAMAGED_CELLS = {
     "JSON cut short": (".json", lambda b: b[: len(b) // 2], "not valid JSON"),
     "series cut short": (".parquet", lambda b: b[: len(b) // 2], ".parquet"),
     "series of another kind": (".parquet", lambda b: b"not parquet", ".parquet"),
+    "a score edited": (
+        ".json",
+        _record(lambda r: r["rows"][0].update(R_hat_T=99.0)),
+        "has R_hat_T = 99, its series",
+    ),
+    "a score not a number": (
+        ".json",
+        _record(lambda r: r["rows"][0].update(R_hat_T="x")),
+        "an R_hat_T is not a finite number",
+    ),
+    "another seed": (".json", _record(lambda r: r["cell"].update(seed=7)), "its id"),
+    "a swarm's row gone": (".json", _record(lambda r: r["rows"].pop()), "rows of swarms"),
+    "rewards of the series changed": (".parquet", _series, "its series"),
 }
 
 

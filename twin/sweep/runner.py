@@ -57,7 +57,7 @@ def run_sweep(
     out_dir = Path(out_dir)
     (out_dir / CELLS_DIR).mkdir(parents=True, exist_ok=True)
     cells = expand_cells(config, out_dir)
-    done = done_cells(out_dir)
+    done = done_cells(out_dir, {c["id"]: c for c in cells})
     todo = [c for c in cells if c["id"] not in done]
     skipped = [c["id"] for c in cells if c["id"] in done]
     _write_manifest(out_dir, config, cells)

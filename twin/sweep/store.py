@@ -62,22 +62,19 @@ def _json_default(value: Any) -> Any:
     raise TypeError(f"not JSON serialisable: {type(value).__name__}")
 
 
-def done_cells(out_dir: Path) -> set[str]:
+def done_cells(out_dir: Path, expected: dict[str, dict[str, Any]] | None = None) -> set[str]:
     """Ids of the cells whose result JSON exists (the JSON is written last) and reads back
-    whole, with its series; a damaged cell is reported in one line and is not done, so the
-    sweep computes it again."""
+    whole with its series, agreeing with it (and with the ``expected`` cell of its id, when
+    given); a damaged cell is reported in one line and is not done, so the sweep computes it
+    again."""
     from twin.notices import notify
-    from twin.readback import read_table
 
     done = set()
     for path in sorted((out_dir / CELLS_DIR).glob("*.json")):
         if path.name.startswith("."):
             continue
-        series = path.with_suffix(".parquet")
         try:
-            read_cell(path)
-            if series.exists():
-                read_table(series, CELL_SERIES_COLUMNS)
+            check_cell(path, read_cell(path), (expected or {}).get(path.stem))
         except UserError as exc:
             reason = str(exc).split("; ")[0]
             notify(
@@ -111,6 +108,43 @@ def _write_manifest(
     }
     text = json.dumps(manifest, indent=2, default=str)
     atomic_write(path, lambda p: p.write_text(text))
+
+
+def check_cell(path: Path, record: dict[str, Any], expected: dict[str, Any] | None) -> None:
+    """A finished cell agrees with itself: its id, seed, scenario and parameters those of the
+    cell it was run for, one row per swarm of the cell with a finite ``R_hat_T`` >= 0 equal to
+    its series' mean reward (Def. 4) in ``cells/<id>.parquet``."""
+    from twin.readback import FINITE, check_bounds, read_table
+
+    cell = record["cell"]
+    if record.get("id") != path.stem or not path.stem.startswith(
+        f"{cell['scenario']}-s{cell['seed']}-"
+    ):
+        raise UserError(f"{path}: its id, scenario or seed is not the file's ({path.stem})")
+    if expected is not None:
+        for key in ("scenario", "seed", "parameters"):
+            if cell.get(key) != expected.get(key):
+                raise UserError(f"{path}: cell.{key} = {cell.get(key)!r} is not the cell's")
+    rows = pd.DataFrame(record["rows"])
+    if "R_hat_T" not in rows.columns or "swarm" not in rows.columns:
+        raise UserError(f"{path}: rows without swarm or R_hat_T")
+    swarm_rows = rows[rows["role"] != "ceiling"] if "role" in rows.columns else rows
+    swarms = [str(s) for s in swarm_rows["swarm"]]
+    if sorted(swarms) != sorted(map(str, cell.get("swarms", swarms))):
+        raise UserError(f"{path}: rows of swarms {swarms}, the cell runs {cell.get('swarms')}")
+    values = pd.to_numeric(swarm_rows["R_hat_T"], errors="coerce").to_numpy(dtype=float)
+    if not np.isfinite(values).all():
+        raise UserError(f"{path}: an R_hat_T is not a finite number")
+    check_bounds(path, swarm_rows)
+    series_path = path.with_suffix(".parquet")
+    if not series_path.is_file():
+        raise UserError(f"{series_path}: missing")
+    series = read_table(series_path, {**CELL_SERIES_COLUMNS, "reward": FINITE})
+    means = series.groupby(series["swarm"].astype(str))["reward"].mean()
+    for swarm, value in zip(swarms, values, strict=True):
+        want = means.get(swarm)
+        if want is None or abs(value - want) > 1e-9 * max(1.0, abs(want)):
+            raise UserError(f"{path}: swarm {swarm!r} has R_hat_T = {value:.6g}, its series {want}")
 
 
 CELL_FIELDS: dict[str, Any] = {
