@@ -381,3 +381,33 @@ def test_replay_refuses_a_changed_file_that_a_route_file_includes(tmp_path, caps
     _edit_routes(run)
     run_case(capsys, tmp_path, ["replay", str(run)], None, 2,
              "small.trips.xml: the included file changed since the run (sha256 ")  # fmt: skip
+
+
+def test_replay_refuses_a_changed_saved_state_the_sumocfg_loads(tmp_path, capsys):
+    """A sumocfg's <load-state> file is an input like the network: changed, replay refuses."""
+    from twin.sumo.network import generate_grid_scenario
+    from twin.sumo.tools import binary, run_sumo_program
+
+    generate_grid_scenario(tmp_path, blocks=3, block_m=300, end_s=300, period_s=5.0, seed=1)
+    run_sumo_program(
+        [binary("sumo"), "-n", str(tmp_path / "small.net.xml"), "-r",
+         str(tmp_path / "small.trips.xml"), "--save-state.times", "60", "--save-state.files",
+         str(tmp_path / "state.xml"), "--end", "61", "--no-step-log", "true"],
+        what="sumo",
+    )  # fmt: skip
+    (tmp_path / "c.sumocfg").write_text(
+        '<configuration><input><net-file value="small.net.xml"/>'
+        '<route-files value="small.trips.xml"/><load-state value="state.xml"/></input>'
+        '<time><begin value="60"/><end value="300"/></time></configuration>'
+    )
+    run = tmp_path / "run"
+    argv = ["run", "--sumocfg", str(tmp_path / "c.sumocfg"), "--cell-m", "200", "--drones", "1",
+            "--swarms", "random", "--no-ceiling", "--out", str(run), "--no-report", "--quiet"]  # fmt: skip
+    assert main(argv) == 0, capsys.readouterr().err
+    capsys.readouterr()
+    files = json.loads((run / "run.json").read_text())["traffic"]["identity"]["files"]
+    assert "load-state" in {f["role"] for f in files}
+    with open(tmp_path / "state.xml", "a") as fh:
+        fh.write("<!-- another day -->\n")
+    run_case(capsys, tmp_path, ["replay", str(run)], None, 2,
+             "state.xml: the load-state changed since the run (sha256 ")  # fmt: skip

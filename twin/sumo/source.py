@@ -31,7 +31,7 @@ from twin.grid import Grid
 from twin.mfd import MFD, MFDImportance
 from twin.sumo.cells import CellGeometry
 from twin.sumo.detectors import DetectorPlan
-from twin.sumo.readers import included_files, naming_the_sumocfg
+from twin.sumo.readers import file_list, included_files, naming_the_sumocfg, read_sumocfg
 from twin.sumo.session import ANTI_GRIDLOCK_OPTIONS, SumoRunError, SumoSession
 from twin.timing import (
     DETECTOR_READS,
@@ -83,6 +83,11 @@ class SumoScenario:
         """Seconds before each sample time of its read instants, whole SUMO steps, last 0."""
         r = self.reads_per_step
         return [float(round(self.step_s * (r - 1 - m) / r)) for m in range(r)]
+
+
+#: Options of a sumocfg that name further input files SUMO reads (a saved state, edge weights):
+#: part of a run's identity.
+SUMOCFG_INPUTS = ("load-state", "weight-files")
 
 
 class SumoTraffic(TrafficSource):
@@ -404,6 +409,11 @@ class SumoTraffic(TrafficSource):
             files += [("included file", p) for p in included_files(Path(a)) if p.is_file()]
         if s.sumocfg is not None:
             files.append(("sumocfg", Path(s.sumocfg)))
+            options = read_sumocfg(Path(s.sumocfg)).options
+            for name in SUMOCFG_INPUTS:  # other files the config makes SUMO read
+                for p in file_list(options.get(name), Path(s.sumocfg).parent, Path(s.sumocfg)):
+                    if p.is_file():
+                        files.append((name, p))
         return [(role, Path(os.path.abspath(path))) for role, path in files]
 
     def input_hashes(self) -> list[dict[str, str]]:
