@@ -510,6 +510,95 @@ def _network_json(**grid):
     return apply
 
 
+def _write(name, make):
+    """A file the fixture run lacks, as twin writes it, built from the run by ``make`` (a table
+    or JSON)."""
+
+    def apply(run: Path) -> None:
+        import json
+
+        data = make(run)
+        if isinstance(data, pd.DataFrame):
+            if name.endswith(".parquet"):
+                data.to_parquet(run / name, index=False)
+            else:
+                data.to_csv(run / name, index=False)
+        else:
+            (run / name).write_text(json.dumps(data))
+
+    return apply
+
+
+def _degradation(run: Path, **changes) -> pd.DataFrame:
+    """A degradation.csv (twin.faults.degradation_frame) of the run's seeds and swarms: a drone
+    lost at step 6 of 12, then the whole run; ``changes`` set columns of row 0."""
+    rows = []
+    for seed in (0, 1):
+        for swarm in ("random", "greedy"):
+            for phase, (start, stop, label) in enumerate(
+                [(0, 6, "no drone lost"), (6, 12, "1 of 3 drones lost"), (0, 12, "whole run")]
+            ):
+                rows.append(
+                    {"seed": seed, "swarm": swarm, "phase": phase + 1, "label": label,
+                     "start": start, "stop": stop, "R_hat": 0.4, "R_hat_fault_free": 0.5,
+                     "events": 2, "pct_events_seen": 50.0, "pct_events_seen_fault_free": 100.0,
+                     "latency_median_steps": 1.0, "latency_median_steps_fault_free": 0.0,
+                     "pct_congested_observed": 20.0, "pct_congested_observed_fault_free": 30.0}
+                )  # fmt: skip
+    frame = pd.DataFrame(rows)
+    for column, value in changes.items():
+        frame[column] = frame[column].astype(object)
+        frame.loc[0, column] = value
+    return frame
+
+
+def _beliefs(run: Path, **changes) -> pd.DataFrame:
+    """A belief_models.csv (twin.belief.run_beliefs) of the run's swarms and the history-only
+    reference row; ``changes`` set columns of row 1."""
+    rows = [("(no drones)", "history")] + [
+        (swarm, model) for swarm in ("random", "greedy") for model in ("last-seen", "nowcast")
+    ]
+    frame = pd.DataFrame(rows, columns=["swarm", "model"]).assign(
+        belief_error=0.1, calibration_90=0.9, events=2.0, pct_events_known=50.0,
+        latency_median_steps=1.0, latency_median_min=0.5, false_alarms=1.0,
+        false_alarms_per_hour=2.0, n_seeds=2,
+    )  # fmt: skip
+    for column, value in changes.items():
+        frame[column] = frame[column].astype(object)
+        frame.loc[1, column] = value
+    return frame
+
+
+def _events(run: Path, **changes) -> pd.DataFrame:
+    """An events.parquet (twin.runs) of one event per seed and swarm; ``changes`` set row 0."""
+    frame = pd.DataFrame(
+        [{"seed": seed, "event": 0, "i": 3, "j": 4, "onset": 2, "duration": 5, "peak": 0.8,
+          "swarm": swarm, "seen": True, "first_seen": 3, "latency_steps": 1}
+         for seed in (0, 1) for swarm in ("random", "greedy")]
+    )  # fmt: skip
+    for column, value in changes.items():
+        frame.loc[0, column] = value
+    return frame
+
+
+def _mfd(**changes) -> dict:
+    """An mfd.json (twin.mfd) of a fit; ``changes`` replace its fields."""
+    return {"form": "underwood", "a": 0.7, "k_c": 40.0, "fit": "online", "used": "fit",
+            "why": "ok", "n_samples": 100, "r2": 0.5, "rmse_kmh": 5.0, **changes}  # fmt: skip
+
+
+def _network(run: Path, **changes) -> dict:
+    """A network.json as a SUMO run writes it; ``changes`` replace its fields."""
+    with np.load(run / "importance.npz") as npz:
+        nx, ny = npz["obstacles"].shape
+    return {
+        "name": "n", "net_file": "n.net.xml", "route_files": [],
+        "grid": {"x0": 0.0, "y_top": 0.0, "cell_m": 500.0, "nx": nx, "ny": ny,
+                 "bbox": [0, 0, 1, 1], "lane_km_total": 1.0},
+        "n_obstacles": 0, "row_0": "north", **changes,
+    }  # fmt: skip
+
+
 READ_BACK = {
     "row deleted": (_edit_table("trajectories.parquet", lambda f: f.drop(f.index[5])), "rows"),
     "row duplicated": (
@@ -643,7 +732,112 @@ READ_BACK = {
         "monitoring.threshold = 0",
     ),
     "run.json folder not text": (_json("run.json", ("invocation", "cwd"), 5), "invocation.cwd"),
+    "degradation infinite score": (
+        _write("degradation.csv", lambda run: _degradation(run, R_hat=np.inf)),
+        "degradation.csv: column 'R_hat' row 0 is inf, not a finite number",
+    ),
+    "degradation share above 100%": (
+        _write("degradation.csv", lambda run: _degradation(run, pct_events_seen_fault_free=400)),
+        "degradation.csv: column 'pct_events_seen_fault_free' row 0 is 400, outside 0 .. 100",
+    ),
+    "degradation row twice": (
+        _write("degradation.csv", lambda run: _degradation(run, phase=2)),
+        "degradation.csv: the row of seed 0, swarm 'random', phase 2 appears twice",
+    ),
+    "degradation swarm not in summary": (
+        _write("degradation.csv", lambda run: _degradation(run, swarm="tours")),
+        "degradation.csv: swarm 'tours' has no row in summary.csv",
+    ),
+    "degradation phase stops before it starts": (
+        _write("degradation.csv", lambda run: _degradation(run, stop=-3)),
+        "degradation.csv: phase 1 (row 0) runs from start = 0 to stop = -3",
+    ),
+    "degradation phase past the horizon": (
+        _write("degradation.csv", lambda run: _degradation(run, stop=99)),
+        "stop = 99, not phase >= 1 and 0 <= start <= stop <= 12",
+    ),
+    "belief error above 1": (
+        _write("belief_models.csv", lambda run: _beliefs(run, belief_error=7.5)),
+        "belief_models.csv: column 'belief_error' row 1 is 7.5, outside 0 .. 1",
+    ),
+    "belief error NaN": (
+        _write("belief_models.csv", lambda run: _beliefs(run, belief_error=np.nan)),
+        "belief_models.csv: column 'belief_error' row 1 is nan, not a finite number",
+    ),
+    "belief calibration above 1": (
+        _write("belief_models.csv", lambda run: _beliefs(run, calibration_90=1.5)),
+        "column 'calibration_90' row 1 is 1.5, outside 0 .. 1",
+    ),
+    "belief events known above 100%": (
+        _write("belief_models.csv", lambda run: _beliefs(run, pct_events_known=-4)),
+        "column 'pct_events_known' row 1 is -4, outside 0 .. 100",
+    ),
+    "belief swarm not in summary": (
+        _write("belief_models.csv", lambda run: _beliefs(run, swarm="tours")),
+        "belief_models.csv: swarm 'tours' has no row in summary.csv",
+    ),
+    "per_seed headline off its series": (
+        _edit_table("per_seed.csv", _set("R_hat_T", 77.0, 1)),
+        "has R_hat_T = 77, its series in series.parquet gives",
+    ),
+    "run.json seed twice": (
+        _json("run.json", ("seeds",), [0, 1, 1]),
+        "run.json: seeds = [0, 1, 1] lists seed 1 twice",
+    ),
+    "run.json partial, the manifest not": (
+        _json("run.json", ("partial",), True),
+        "manifest.json: partial = false, but run.json has partial = true",
+    ),
+    "event off the grid": (
+        _write("events.parquet", lambda run: _events(run, i=99)),
+        "events.parquet: event 0 of seed 0 is on cell (99, 4), off the 20 x 30 grid",
+    ),
+    "event past the horizon": (
+        _write("events.parquet", lambda run: _events(run, onset=11)),
+        "events.parquet: event 0 of seed 0 has onset = 11, duration = 5, not within steps 0 .. 12",
+    ),
+    "event before step 0": (
+        _write("events.parquet", lambda run: _events(run, onset=-4)),
+        "has onset = -4, duration = 5",
+    ),
+    "events seen without events": (
+        _edit_table(
+            "monitoring.csv", lambda f: f.assign(events=0.0, pct_events_seen=f["events"] * 0 + 40)
+        ),
+        "monitoring.csv: column 'pct_events_seen' of swarm 'random' (row 0) is 40, but the row "
+        "has 0 events",
+    ),
+    "mfd.json free-flow share below 0": (
+        _write("mfd.json", lambda run: _mfd(a=-0.5)),
+        "mfd.json: a = -0.5 must be above 0",
+    ),
+    "mfd.json critical density 0": (
+        _write("mfd.json", lambda run: _mfd(k_c=0)),
+        "mfd.json: k_c = 0 must be above 0",
+    ),
+    "network.json row_0 unknown": (
+        _write("network.json", lambda run: _network(run, row_0="sideways")),
+        "network.json: row_0 = 'sideways' must be 'north'",
+    ),
+    "timing seconds below 0": (
+        _edit_table("timing.csv", _set("seconds", -3.0)),
+        "timing.csv: column 'seconds' row 0 is -3, outside 0 .. inf",
+    ),
 }
+
+
+def test_the_files_the_cases_build_read_back_whole(run_copy: Path) -> None:
+    # undamaged, the files the cases above add to the run are accepted: only the damage is not
+    from twin.report.load import load_run
+
+    _write("degradation.csv", _degradation)(run_copy)
+    _write("belief_models.csv", _beliefs)(run_copy)
+    _write("events.parquet", _events)(run_copy)
+    _write("mfd.json", lambda run: _mfd())(run_copy)
+    _write("network.json", _network)(run_copy)
+    refresh_manifest(run_copy)
+    rf = load_run(run_copy)
+    assert len(rf.degradation) == 12 and len(rf.beliefs) == 5 and rf.network["row_0"] == "north"
 
 
 @pytest.mark.parametrize("name", list(READ_BACK))

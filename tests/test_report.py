@@ -16,6 +16,7 @@ import pytest
 
 from twin.errors import UserError
 from twin.grid import Grid
+from twin.readback import BOUNDS
 from twin.report import load_run, write_report
 from twin.report.document import MONITORING_TABLE_COLUMNS, TABLE_COLUMNS
 from twin.runs import write_manifest
@@ -118,8 +119,8 @@ def write_fixture_run(
     run.mkdir(parents=True)
     # monitoring: any numbers in the documented format (twin/runs.py) will do
     monitoring = pd.DataFrame({"swarm": list(SWARMS)})
-    for col, _, _ in MONITORING_TABLE_COLUMNS:
-        monitoring[col] = rng.uniform(0, 50, len(SWARMS))
+    for col, _, _ in MONITORING_TABLE_COLUMNS:  # within each column's range
+        monitoring[col] = rng.uniform(0, min(50.0, BOUNDS.get(col, (0, 50))[1]), len(SWARMS))
         monitoring[f"{col}_ci95"] = rng.uniform(0, 5, len(SWARMS))
     monitoring.loc[1, "latency_p90_steps"] = np.nan  # a swarm that saw no event
     monitoring["n_seeds"] = len(seeds)

@@ -249,6 +249,19 @@ MFD_FIELDS: dict[str, Any] = {
     "importance": str,
 }
 
+#: The plausible values of ``mfd.json``'s numbers: the free-flow share ``a`` and the critical
+#: density ``k_c`` of the Underwood curve above 0, a detection probability in (0, 1].
+MFD_RANGES: dict[str, tuple[Any, str]] = {
+    "a": _POSITIVE,
+    "k_c": _POSITIVE,
+    "rejected_fit.a": _POSITIVE,
+    "rejected_fit.k_c": _POSITIVE,
+    "detection_p": ((lambda v: 0 < v <= 1), "above 0 and at most 1"),
+    "reads_per_step": _at_least(0),
+    "n_samples": _at_least(0),
+    "rmse_kmh": _at_least(0),
+    "online_rmse_kmh": _at_least(0),
+}
 
 #: One scheduled incident of ``incidents.json``.
 INCIDENT_FIELDS: dict[str, Any] = {
@@ -396,6 +409,22 @@ EVENT_COLUMNS = {
     "first_seen": INT,
     "latency_steps": INT,
 }
+#: Columns of ``degradation.csv`` (:func:`twin.faults.degradation_frame`): the phase's steps,
+#: its scores (means over its steps, finite) and its monitoring (NaN without events).
+DEGRADATION_COLUMNS = {
+    "seed": INT,
+    "swarm": TEXT,
+    "phase": INT,
+    "label": TEXT,
+    "start": INT,
+    "stop": INT,
+    "R_hat": FINITE,
+    "R_hat_fault_free": FINITE,
+    "events": INT,
+}
+#: Columns of ``belief_models.csv`` (:func:`twin.belief.run_beliefs`): every row's belief error
+#: is a number (the run has steps), the other scores may be NaN (no events, no interval).
+BELIEF_MODEL_COLUMNS = {"swarm": TEXT, "model": TEXT, "belief_error": FINITE}
 
 
 #: The headline columns of a results table (``summary.csv``, ``per_seed.csv``): every swarm row
@@ -449,11 +478,14 @@ BOUNDS: dict[str, tuple[float, float]] = {
     **dict.fromkeys(("reward", "cumulative_reward", "R_hat_T", "R_hat_T_importance",
                      "R_hat_T_idleness", "events", "latency_median_steps",
                      "latency_p90_steps", "latency_median_min", "latency_p90_min",
-                     "seconds", "ms_per_step"), (0.0, np.inf)),
-    **dict.fromkeys(("coverage", "visited_share", "belief_error", "C_hat_T", "C_hat_T_ceiling"),
-                    (0.0, 1.0)),
+                     "seconds", "ms_per_step", "R_hat", "R_hat_fault_free",
+                     "latency_median_steps_fault_free", "false_alarms",
+                     "false_alarms_per_hour"), (0.0, np.inf)),
+    **dict.fromkeys(("coverage", "visited_share", "belief_error", "C_hat_T", "C_hat_T_ceiling",
+                     "calibration_90"), (0.0, 1.0)),
     **dict.fromkeys(("pct_time_max_C", "pct_map_covered", "pct_events_seen",
-                     "pct_congested_observed"), (0.0, 100.0)),
+                     "pct_congested_observed", "pct_events_seen_fault_free",
+                     "pct_congested_observed_fault_free", "pct_events_known"), (0.0, 100.0)),
 }  # fmt: skip
 
 

@@ -19,9 +19,12 @@ from twin.errors import UserError
 from twin.grid import Grid
 from twin.metrics import BOUND
 from twin.readback import (
+    BELIEF_MODEL_COLUMNS,
+    DEGRADATION_COLUMNS,
     EVENT_COLUMNS,
     INT,
     MFD_FIELDS,
+    MFD_RANGES,
     MFD_SAMPLE_COLUMNS,
     NETWORK_FIELDS,
     NETWORK_RANGES,
@@ -29,6 +32,7 @@ from twin.readback import (
     RERUN,
     TEXT,
     TIMING_COLUMNS,
+    check_bounds,
     check_column,
     check_fields,
     check_headline,
@@ -312,17 +316,15 @@ def load_run(run_dir: str | Path) -> RunFiles:
             )
     monitoring = optional("monitoring.csv", {"swarm": TEXT}, TABLE_TEXT)
     events = optional("events.parquet", EVENT_COLUMNS)
-    beliefs = optional("belief_models.csv", {"swarm": TEXT, "model": TEXT}, ("swarm", "model"))
+    beliefs = optional("belief_models.csv", BELIEF_MODEL_COLUMNS, ("swarm", "model"))
     belief_maps = read_belief_maps(run_dir / "belief_maps.npz", obstacles.shape)
     timing = optional("timing.csv", TIMING_COLUMNS)
-    degradation = optional(
-        "degradation.csv", {"seed": INT, "swarm": TEXT, "phase": INT, "label": TEXT},
-        ("swarm", "label"),
-    )  # fmt: skip
+    degradation = optional("degradation.csv", DEGRADATION_COLUMNS, ("swarm", "label"))
     if timing is not None:
         for name, kind in (("process", TEXT), ("share", NUMBER)):
             if name in timing.columns:
                 check_column(run_dir / "timing.csv", timing, name, kind)
+        check_bounds(run_dir / "timing.csv", timing)
     samples = optional("mfd_samples.parquet", MFD_SAMPLE_COLUMNS)
     if samples is not None and "speed_limit" in samples.columns:
         check_column(run_dir / "mfd_samples.parquet", samples, "speed_limit", NUMBER)
@@ -331,11 +333,29 @@ def load_run(run_dir: str | Path) -> RunFiles:
     if network is not None:
         check_fields(run_dir / "network.json", network, NETWORK_FIELDS)
         check_ranges(run_dir / "network.json", network, NETWORK_RANGES)
+    if network is not None and network.get("row_0") not in (None, *ROW_0):
+        raise UserError(
+            f"{run_dir / 'network.json'}: row_0 = {str(network['row_0'])[:40]!r} must be "
+            f"{' or '.join(repr(r) for r in ROW_0)}; {RERUN}"
+        )
     if mfd is not None:
         check_fields(run_dir / "mfd.json", mfd, MFD_FIELDS)
+        check_ranges(run_dir / "mfd.json", mfd, MFD_RANGES)
     if incidents is not None:
         check_incidents(run_dir / "incidents.json", incidents)
     check_consistent(run_dir, run, series, trajectories, summary, importance, obstacles, per_seed)
+    check_partial(run_dir, run, manifest)
+    if per_seed is not None:
+        check_per_seed_scores(run_dir, series, per_seed)
+    swarms = {str(s) for s in summary["swarm"]}
+    if degradation is not None:
+        check_degradation(run_dir / "degradation.csv", degradation, swarms, series)
+    if beliefs is not None:
+        check_beliefs(run_dir / "belief_models.csv", beliefs, swarms)
+    if events is not None:
+        check_events(run_dir / "events.parquet", events, obstacles.shape, series)
+    if monitoring is not None:
+        check_monitoring(run_dir / "monitoring.csv", monitoring)
     return RunFiles(
         run_dir=run_dir,
         series=series,
@@ -458,6 +478,12 @@ def check_consistent(
                 f"series.parquet (seeds {seeds}); {RERUN}"
             )
     recorded = run.get("seeds")
+    if isinstance(recorded, list) and len(set(recorded)) != len(recorded):
+        twice = next(s for n, s in enumerate(recorded) if s in recorded[:n])
+        raise UserError(
+            f"{run_dir / 'run.json'}: seeds = {str(recorded)[:60]} lists seed {twice} twice; "
+            f"{RERUN}"
+        )
     if isinstance(recorded, list) and sorted(set(recorded)) != seeds:
         raise UserError(
             f"{run_dir / 'run.json'}: seeds = {str(recorded)[:60]} differ from those with "
@@ -499,3 +525,155 @@ def check_scores(run_dir: Path, series: pd.DataFrame, summary: pd.DataFrame) -> 
             f"{path}: the {BOUND} row's R_hat_T = {limit:.6g} lies below a swarm's "
             f"{best:.6g}, which no swarm can exceed; {RERUN}"
         )
+
+
+#: The values ``network.json``'s ``row_0`` takes (:meth:`twin.sumo.source.SumoSource.network_info`):
+#: the side of the map that row ``j = 0`` of the grid lies on.
+ROW_0 = ("north",)
+
+
+def check_partial(run_dir: Path, run: dict[str, Any], manifest: dict[str, Any]) -> None:
+    """``manifest.json`` and ``run.json`` say alike whether the run is partial (both are
+    written from the same outcome, :func:`twin.runs.record`)."""
+    said, recorded = manifest.get("partial"), run.get("partial")
+    if isinstance(said, bool) and isinstance(recorded, bool) and said != recorded:
+        raise UserError(
+            f"{run_dir / 'manifest.json'}: partial = {str(said).lower()}, but run.json has "
+            f"partial = {str(recorded).lower()}; {RERUN}"
+        )
+
+
+def check_per_seed_scores(run_dir: Path, series: pd.DataFrame, per_seed: pd.DataFrame) -> None:
+    """``per_seed.csv``'s ``R_hat_T`` of each seed and swarm is the mean ``R^k`` of that seed
+    and swarm in ``series.parquet`` (Def. 4)."""
+    path = run_dir / "per_seed.csv"
+    if "R_hat_T" not in per_seed.columns:
+        return
+    series = series.assign(swarm=series["swarm"].astype(str), seed=series["seed"].astype(int))
+    expected = series.groupby(["seed", "swarm"])["reward"].mean()
+    roles = per_seed["role"] if "role" in per_seed.columns else pd.Series("swarm", per_seed.index)
+    for (_, row), role in zip(per_seed.iterrows(), roles, strict=True):
+        key = (int(row["seed"]), str(row["swarm"]))
+        value = float(row["R_hat_T"])
+        if role == "ceiling" or key not in expected.index or not np.isfinite(value):
+            continue
+        want = float(expected[key])
+        if abs(value - want) > SCORE_TOLERANCE * max(1.0, abs(want)):
+            raise UserError(
+                f"{path}: seed {key[0]}, swarm {key[1]!r} has R_hat_T = {value:.6g}, its series "
+                f"in series.parquet gives {want:.6g}; {RERUN}"
+            )
+
+
+def _steps_per_seed(series: pd.DataFrame) -> pd.Series:
+    """The steps ``T`` each seed ran (its longest swarm's rows in ``series.parquet``)."""
+    counts = series.groupby(["seed", "swarm"]).size()
+    return counts.groupby(level="seed").max()
+
+
+def check_degradation(
+    path: Path, frame: pd.DataFrame, swarms: set[str], series: pd.DataFrame
+) -> None:
+    """``degradation.csv``: one row per seed, swarm and phase, of swarms of ``summary.csv`` and
+    seeds with results, each phase's steps ``0 <= start <= stop <= T``."""
+    dup = frame.duplicated(["seed", "swarm", "phase"])
+    if dup.any():
+        r = frame[dup].iloc[0]
+        raise UserError(
+            f"{path}: the row of seed {r['seed']}, swarm {r['swarm']!r}, phase {r['phase']} "
+            f"appears twice; {RERUN}"
+        )
+    extra = [str(s) for s in frame["swarm"].unique() if str(s) not in swarms]
+    if extra:
+        raise UserError(f"{path}: swarm {extra[0]!r} has no row in summary.csv; {RERUN}")
+    steps = _steps_per_seed(series)
+    for n, r in enumerate(frame.itertuples(index=False)):
+        seed, start, stop = int(r.seed), int(r.start), int(r.stop)
+        if seed not in steps.index:
+            raise UserError(
+                f"{path}: seed {seed} (row {n}) has no results in series.parquet; {RERUN}"
+            )
+        if r.phase < 1 or start < 0 or stop < start or stop > int(steps[seed]):
+            raise UserError(
+                f"{path}: phase {r.phase} (row {n}) runs from start = {start} to stop = {stop}, "
+                f"not phase >= 1 and 0 <= start <= stop <= {int(steps[seed])} (the steps seed "
+                f"{seed} ran); {RERUN}"
+            )
+
+
+#: The reference rows of ``belief_models.csv`` besides the swarms (:mod:`twin.belief`).
+def _belief_references() -> tuple[str, ...]:
+    from twin.belief import DETECTORS_ONLY, NO_DRONES
+
+    return (NO_DRONES, DETECTORS_ONLY)
+
+
+def check_beliefs(path: Path, frame: pd.DataFrame, swarms: set[str]) -> None:
+    """``belief_models.csv``: rows of the swarms of ``summary.csv`` and of twin's reference rows,
+    each (swarm, model) once."""
+    known = swarms | set(_belief_references())
+    extra = [str(s) for s in frame["swarm"].unique() if str(s) not in known]
+    if extra:
+        raise UserError(
+            f"{path}: swarm {extra[0]!r} has no row in summary.csv (nor is it "
+            f"{' or '.join(repr(r) for r in _belief_references())}); {RERUN}"
+        )
+    dup = frame.duplicated(["swarm", "model"])
+    if dup.any():
+        r = frame[dup].iloc[0]
+        raise UserError(
+            f"{path}: the row of swarm {r['swarm']!r}, model {r['model']!r} appears twice; {RERUN}"
+        )
+
+
+def check_events(
+    path: Path, frame: pd.DataFrame, shape: tuple[int, int], series: pd.DataFrame
+) -> None:
+    """``events.parquet``: every event on a cell of the grid, between steps 0 and the ``T``
+    its seed ran (onset, last step), at least one step long."""
+    nx, ny = shape
+    i, j = frame["i"].to_numpy(), frame["j"].to_numpy()
+    off = (i < 0) | (i >= nx) | (j < 0) | (j >= ny)
+    if off.any():
+        r = frame[off].iloc[0]
+        raise UserError(
+            f"{path}: event {r['event']} of seed {r['seed']} is on cell ({r['i']}, {r['j']}), "
+            f"off the {nx} x {ny} grid; {RERUN}"
+        )
+    steps = _steps_per_seed(series)
+    for r in frame.itertuples(index=False):
+        seed, onset, duration = int(r.seed), int(r.onset), int(r.duration)
+        horizon = int(steps.get(seed, -1))
+        if horizon < 0:
+            raise UserError(
+                f"{path}: event {r.event} is of seed {seed}, which has no results in "
+                f"series.parquet; {RERUN}"
+            )
+        if onset < 0 or duration < 1 or onset + duration - 1 > horizon:
+            raise UserError(
+                f"{path}: event {r.event} of seed {seed} has onset = {onset}, duration = "
+                f"{duration}, not within steps 0 .. {horizon} (the steps the seed ran); {RERUN}"
+            )
+
+
+#: Columns of ``monitoring.csv`` that are NaN for a swarm with no event to see
+#: (:meth:`twin.monitoring.Monitoring.table`).
+EVENT_SHARES = ("pct_events_seen", "pct_congested_observed")
+
+
+def check_monitoring(path: Path, frame: pd.DataFrame) -> None:
+    """``monitoring.csv``: a row with no event has no share of events seen (NaN, or 0)."""
+    if "events" not in frame.columns:
+        return
+    none = frame["events"].to_numpy(dtype=np.float64) == 0
+    for name in EVENT_SHARES:
+        if name not in frame.columns:
+            continue
+        values = frame[name].to_numpy(dtype=np.float64)
+        off = none & np.isfinite(values) & (values != 0)
+        if off.any():
+            n = int(np.flatnonzero(off)[0])
+            raise UserError(
+                f"{path}: column {name!r} of swarm {frame['swarm'].iloc[n]!r} (row {n}) is "
+                f"{values[n]:.6g}, but the row has 0 events; {RERUN}"
+            )
