@@ -409,7 +409,7 @@ class SumoTraffic(TrafficSource):
             files += [("included file", p) for p in included_files(Path(a)) if p.is_file()]
         if s.sumocfg is not None:
             files.append(("sumocfg", Path(s.sumocfg)))
-            options = read_sumocfg(Path(s.sumocfg)).options
+            options = read_sumocfg(Path(s.sumocfg), own_net=False).options
             for name in SUMOCFG_INPUTS:  # other files the config makes SUMO read
                 for p in file_list(options.get(name), Path(s.sumocfg).parent, Path(s.sumocfg)):
                     if p.is_file():
