@@ -510,7 +510,7 @@ def _network_json(**grid):
     return apply
 
 
-def _write(name, make):
+def _built_file(name, make):
     """A file the fixture run lacks, as twin writes it, built from the run by ``make`` (a table
     or JSON)."""
 
@@ -733,47 +733,49 @@ READ_BACK = {
     ),
     "run.json folder not text": (_json("run.json", ("invocation", "cwd"), 5), "invocation.cwd"),
     "degradation infinite score": (
-        _write("degradation.csv", lambda run: _degradation(run, R_hat=np.inf)),
+        _built_file("degradation.csv", lambda run: _degradation(run, R_hat=np.inf)),
         "degradation.csv: column 'R_hat' row 0 is inf, not a finite number",
     ),
     "degradation share above 100%": (
-        _write("degradation.csv", lambda run: _degradation(run, pct_events_seen_fault_free=400)),
+        _built_file(
+            "degradation.csv", lambda run: _degradation(run, pct_events_seen_fault_free=400)
+        ),
         "degradation.csv: column 'pct_events_seen_fault_free' row 0 is 400, outside 0 .. 100",
     ),
     "degradation row twice": (
-        _write("degradation.csv", lambda run: _degradation(run, phase=2)),
+        _built_file("degradation.csv", lambda run: _degradation(run, phase=2)),
         "degradation.csv: the row of seed 0, swarm 'random', phase 2 appears twice",
     ),
     "degradation swarm not in summary": (
-        _write("degradation.csv", lambda run: _degradation(run, swarm="tours")),
+        _built_file("degradation.csv", lambda run: _degradation(run, swarm="tours")),
         "degradation.csv: swarm 'tours' has no row in summary.csv",
     ),
     "degradation phase stops before it starts": (
-        _write("degradation.csv", lambda run: _degradation(run, stop=-3)),
+        _built_file("degradation.csv", lambda run: _degradation(run, stop=-3)),
         "degradation.csv: phase 1 (row 0) runs from start = 0 to stop = -3",
     ),
     "degradation phase past the horizon": (
-        _write("degradation.csv", lambda run: _degradation(run, stop=99)),
+        _built_file("degradation.csv", lambda run: _degradation(run, stop=99)),
         "stop = 99, not phase >= 1 and 0 <= start <= stop <= 12",
     ),
     "belief error above 1": (
-        _write("belief_models.csv", lambda run: _beliefs(run, belief_error=7.5)),
+        _built_file("belief_models.csv", lambda run: _beliefs(run, belief_error=7.5)),
         "belief_models.csv: column 'belief_error' row 1 is 7.5, outside 0 .. 1",
     ),
     "belief error NaN": (
-        _write("belief_models.csv", lambda run: _beliefs(run, belief_error=np.nan)),
+        _built_file("belief_models.csv", lambda run: _beliefs(run, belief_error=np.nan)),
         "belief_models.csv: column 'belief_error' row 1 is nan, not a finite number",
     ),
     "belief calibration above 1": (
-        _write("belief_models.csv", lambda run: _beliefs(run, calibration_90=1.5)),
+        _built_file("belief_models.csv", lambda run: _beliefs(run, calibration_90=1.5)),
         "column 'calibration_90' row 1 is 1.5, outside 0 .. 1",
     ),
     "belief events known above 100%": (
-        _write("belief_models.csv", lambda run: _beliefs(run, pct_events_known=-4)),
+        _built_file("belief_models.csv", lambda run: _beliefs(run, pct_events_known=-4)),
         "column 'pct_events_known' row 1 is -4, outside 0 .. 100",
     ),
     "belief swarm not in summary": (
-        _write("belief_models.csv", lambda run: _beliefs(run, swarm="tours")),
+        _built_file("belief_models.csv", lambda run: _beliefs(run, swarm="tours")),
         "belief_models.csv: swarm 'tours' has no row in summary.csv",
     ),
     "per_seed headline off its series": (
@@ -789,15 +791,15 @@ READ_BACK = {
         "manifest.json: partial = false, but run.json has partial = true",
     ),
     "event off the grid": (
-        _write("events.parquet", lambda run: _events(run, i=99)),
+        _built_file("events.parquet", lambda run: _events(run, i=99)),
         "events.parquet: event 0 of seed 0 is on cell (99, 4), off the 20 x 30 grid",
     ),
     "event past the horizon": (
-        _write("events.parquet", lambda run: _events(run, onset=11)),
+        _built_file("events.parquet", lambda run: _events(run, onset=11)),
         "events.parquet: event 0 of seed 0 has onset = 11, duration = 5, not within steps 0 .. 12",
     ),
     "event before step 0": (
-        _write("events.parquet", lambda run: _events(run, onset=-4)),
+        _built_file("events.parquet", lambda run: _events(run, onset=-4)),
         "has onset = -4, duration = 5",
     ),
     "events seen without events": (
@@ -808,15 +810,15 @@ READ_BACK = {
         "has 0 events",
     ),
     "mfd.json free-flow share below 0": (
-        _write("mfd.json", lambda run: _mfd(a=-0.5)),
+        _built_file("mfd.json", lambda run: _mfd(a=-0.5)),
         "mfd.json: a = -0.5 must be above 0",
     ),
     "mfd.json critical density 0": (
-        _write("mfd.json", lambda run: _mfd(k_c=0)),
+        _built_file("mfd.json", lambda run: _mfd(k_c=0)),
         "mfd.json: k_c = 0 must be above 0",
     ),
     "network.json row_0 unknown": (
-        _write("network.json", lambda run: _network(run, row_0="sideways")),
+        _built_file("network.json", lambda run: _network(run, row_0="sideways")),
         "network.json: row_0 = 'sideways' must be 'north'",
     ),
     "timing seconds below 0": (
@@ -830,11 +832,11 @@ def test_the_files_the_cases_build_read_back_whole(run_copy: Path) -> None:
     # undamaged, the files the cases above add to the run are accepted: only the damage is not
     from twin.report.load import load_run
 
-    _write("degradation.csv", _degradation)(run_copy)
-    _write("belief_models.csv", _beliefs)(run_copy)
-    _write("events.parquet", _events)(run_copy)
-    _write("mfd.json", lambda run: _mfd())(run_copy)
-    _write("network.json", _network)(run_copy)
+    _built_file("degradation.csv", _degradation)(run_copy)
+    _built_file("belief_models.csv", _beliefs)(run_copy)
+    _built_file("events.parquet", _events)(run_copy)
+    _built_file("mfd.json", lambda run: _mfd())(run_copy)
+    _built_file("network.json", _network)(run_copy)
     refresh_manifest(run_copy)
     rf = load_run(run_copy)
     assert len(rf.degradation) == 12 and len(rf.beliefs) == 5 and rf.network["row_0"] == "north"
