@@ -514,6 +514,12 @@ def numeric_columns(path: Path, frame: pd.DataFrame, text: tuple[str, ...]) -> N
     check_bounds(path, frame)
 
 
+def off_grid(frame: pd.DataFrame, shape: tuple[int, int]) -> np.ndarray:
+    """Rows of ``frame`` whose cell (columns ``i``, ``j``) is off an ``(nx, ny)`` grid."""
+    i, j = frame["i"].to_numpy(), frame["j"].to_numpy()
+    return (i < 0) | (i >= shape[0]) | (j < 0) | (j >= shape[1])
+
+
 def check_trajectories(
     path: Path, frame: pd.DataFrame, shape: tuple[int, int], obstacles: np.ndarray | None = None
 ) -> None:
@@ -532,7 +538,7 @@ def check_trajectories(
         )
     nx, ny = shape
     i, j = frame["i"].to_numpy(), frame["j"].to_numpy()
-    off = (i < 0) | (i >= nx) | (j < 0) | (j >= ny)
+    off = off_grid(frame, shape)
     if off.any():
         r = frame[off].iloc[0]
         raise UserError(

@@ -42,6 +42,7 @@ from twin.readback import (
     check_series,
     check_trajectories,
     numeric_columns,
+    off_grid,
     read_json,
     read_maps,
     read_table,
@@ -632,8 +633,7 @@ def check_events(
     """``events.parquet``: every event on a cell of the grid, between steps 0 and the ``T``
     its seed ran (onset, last step), at least one step long."""
     nx, ny = shape
-    i, j = frame["i"].to_numpy(), frame["j"].to_numpy()
-    off = (i < 0) | (i >= nx) | (j < 0) | (j >= ny)
+    off = off_grid(frame, shape)
     if off.any():
         r = frame[off].iloc[0]
         raise UserError(
