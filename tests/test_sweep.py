@@ -492,3 +492,21 @@ def test_a_folder_a_sweep_did_not_write_is_refused(tmp_path: Path, capsys, forei
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "no twin sweep" in err
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+@pytest.mark.parametrize("damage", ["{not json", '{"invocations": 3}', "[]"])
+def test_a_damaged_sweep_record_is_kept_aside_not_overwritten(tmp_path: Path, capsys, damage):
+    """A sweep.json that does not read back is renamed sweep.json.damaged (one notice), the
+    sweep resumes with its cells, and a second damage goes to sweep.json.damaged.1."""
+    config = load_sweep_config(sweep_file(tmp_path, seeds=1, horizon=4))
+    out = tmp_path / "s"
+    run_sweep(config, out, workers=1, report=False)
+    capsys.readouterr()
+    for kept in ("sweep.json.damaged", "sweep.json.damaged.1"):
+        (out / "sweep.json").write_text(damage)
+        again = run_sweep(config, out, workers=1, report=False)
+        assert again.ran == []
+        assert (out / kept).read_text() == damage
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and f"kept as {kept}" in err
+        assert len(json.loads((out / "sweep.json").read_text())["invocations"]) == 1

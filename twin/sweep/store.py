@@ -24,6 +24,8 @@ CELLS_DIR = "cells"
 SWEEP_FILE_NAMES = frozenset(
     {CELLS_DIR, "sweep.json", "results.csv", "summary.csv", "failed.json", "report", "error.log"}
 )
+#: A damaged sweep.json is kept under this name (``.1``, ``.2``... when taken), not overwritten.
+DAMAGED_RECORD = "sweep.json.damaged"
 #: Columns of results.csv that identify a cell (plus one column per swept parameter).
 KEY_COLUMNS = ("cell", "scenario", "seed", "swarm")
 
@@ -37,7 +39,9 @@ def check_sweep_folder(out_dir: Path) -> None:
     foreign = sorted(
         p.name
         for p in out_dir.iterdir()
-        if p.name not in SWEEP_FILE_NAMES and not (p.name.startswith(".") and ".tmp" in p.name)
+        if p.name not in SWEEP_FILE_NAMES
+        and not (p.name.startswith(".") and ".tmp" in p.name)
+        and not p.name.startswith(DAMAGED_RECORD)
     )
     fix = "give an empty or new folder, or the folder of the sweep to resume"
     if foreign:
@@ -93,8 +97,18 @@ def _write_manifest(
     history = []
     if path.exists():
         try:
-            history = json.loads(path.read_text()).get("invocations", [])
-        except json.JSONDecodeError:
+            history = json.loads(path.read_text(encoding="utf-8"))["invocations"]
+            if not isinstance(history, list):
+                raise TypeError("invocations is not a list")
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            from twin.notices import notify
+
+            kept = _free_name(path.with_name(DAMAGED_RECORD))
+            path.rename(kept)
+            notify(
+                f"twin: notice: {path} was damaged ({type(exc).__name__}); kept as {kept.name}, "
+                "and a new record of the sweep's invocations is started"
+            )
             history = []
     manifest = {
         "name": config.name,
@@ -108,6 +122,15 @@ def _write_manifest(
     }
     text = json.dumps(manifest, indent=2, default=str)
     atomic_write(path, lambda p: p.write_text(text))
+
+
+def _free_name(path: Path) -> Path:
+    """``path``, or ``path.1``, ``path.2``... : the first name not taken."""
+    candidate, n = path, 0
+    while candidate.exists():
+        n += 1
+        candidate = path.with_name(f"{path.name}.{n}")
+    return candidate
 
 
 def check_cell(path: Path, record: dict[str, Any], expected: dict[str, Any] | None) -> None:
