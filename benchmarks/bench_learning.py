@@ -55,7 +55,7 @@ PAPER_UPDATES = 30000 * 30
 
 
 def synthetic_buffer(rng: np.random.Generator, steps: int = 5000) -> ReplayBuffer:
-    buffer = ReplayBuffer(steps, 4)
+    buffer = ReplayBuffer(steps, 4, state_size=13)
     feasible = rng.random((steps, 4, 5)) < 0.8
     feasible[..., 0] = True
     buffer.add_steps(rng.random((steps, 4, 13), dtype=np.float32), rng.integers(0, 5, (steps, 4)),

@@ -1,5 +1,6 @@
 """How the transfer matrix's learning recipe was chosen: each recipe variant of ``twin
-pretrain`` (paper traffic; collector random or coordinated; 1-step or 3-step returns) trained
+pretrain`` (paper traffic; collector random or coordinated; 1-step or 3-step returns; the
+state variant ``window`` against the paper's state) trained
 at one affordable schedule, and R_hat_T of the learned coordinated swarm ``rl`` at the end of
 its curve on validation seeds 100-104 (never the evaluation seeds 0-9), each seed paired with
 the default recipe's (random collector, n_step 1) on the same traffic and starts.
@@ -66,6 +67,8 @@ VARIANTS = {
     "random n3": {"collector": "random", "n_step": 3},
     "coordinated n1": {"collector": "coordinated", "n_step": 1},
     "coordinated n3": {"collector": "coordinated", "n_step": 3},
+    # the default recipe on another state variant (twin/states.py): I*T over 5 x 5 cells
+    "random n1 window": {"collector": "random", "n_step": 1, "state": "window"},
 }
 
 

@@ -36,6 +36,9 @@ SLOW_TESTS = {
     "test_policies::test_a_swarm_does_not_depend_on_which_others_run",
     "test_policies::test_paper_pattern_on_the_evaluation_map",
     "test_policies::test_same_seed_same_numbers_and_other_seed_differs",
+    "test_states::test_a_tiny_pretraining_per_variant_saves_reloads_and_evaluates",
+    "test_states::test_a_bad_state_is_one_line_naming_the_key",
+    "test_states::test_fine_tuning_from_a_checkpoint_of_another_state_is_refused",
 }
 
 

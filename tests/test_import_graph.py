@@ -125,6 +125,7 @@ LAYERS: list[tuple[str, list[str]]] = [
             "twin.mfd",
             "twin.paths",
             "twin.scores",
+            "twin.states",
             "twin.coordinator",
             "twin.swarm",
             "twin.monitoring",

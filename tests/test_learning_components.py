@@ -29,8 +29,11 @@ def test_table1_network_shape_and_size():
 
 
 def test_network_rejects_wrong_ends():
-    with pytest.raises(ValueError):
-        QNetwork([12, 8, 5])
+    """Any state size in (the state variant's, twin/states.py), the 5 actions out."""
+    assert QNetwork([33, 8, 5])(torch.zeros(2, 33)).shape == (2, 5)
+    for layers in ([13, 8, 4], [0, 8, 5], [5]):
+        with pytest.raises(ValueError):
+            QNetwork(layers)
 
 
 def test_masked_argmax_ignores_infeasible():
@@ -53,7 +56,7 @@ def _fill(buffer, steps, rng):
 
 def test_replay_buffer_ring_pooled_and_per_drone_views():
     rng = np.random.default_rng(0)
-    buffer = ReplayBuffer(capacity=5, n_drones=3)
+    buffer = ReplayBuffer(capacity=5, n_drones=3, state_size=13)
     _fill(buffer, 7, rng)  # wraps: steps 2..6 kept
     assert len(buffer) == 15
     kept = set(buffer.states[:, 0, 0].astype(int))
@@ -69,7 +72,7 @@ def test_replay_buffer_ring_pooled_and_per_drone_views():
 
 def test_replay_buffer_add_steps_equals_add():
     rng = np.random.default_rng(1)
-    a, b = ReplayBuffer(10, 2), ReplayBuffer(10, 2)
+    a, b = ReplayBuffer(10, 2, state_size=13), ReplayBuffer(10, 2, state_size=13)
     s = rng.random((4, 2, 13), dtype=np.float32)
     act = rng.integers(0, 5, (4, 2))
     r = rng.random((4, 2), dtype=np.float32)

@@ -5,7 +5,8 @@ The environment owns no dynamics of its own: it advances with :func:`twin.swarm.
 of the patrol loop, so a policy scores the same here as in ``run_patrol``.
 
 - agents ``drone_0 .. drone_{N-1}``; per agent the observation is a dict with ``observation``,
-  the 13 values of eq. (s) (:data:`twin.scores.STATE_LAYOUT`), and ``action_mask``, the feasible
+  the 13 values of eq. (s) (:data:`twin.scores.STATE_LAYOUT`; another state variant of
+  :mod:`twin.states` with ``state=``), and ``action_mask``, the feasible
   actions ``U_d(p)`` as 0/1 (PettingZoo's convention);
 - actions ``Discrete(5)`` in the order of :data:`twin.grid.ACTIONS`: 0 stay, 1 up, 2 down,
   3 left, 4 right; an infeasible action raises :class:`twin.swarm.InfeasibleActionError`, an
@@ -42,7 +43,8 @@ except ImportError:  # pragma: no cover - depends on the install
 
 from twin.errors import UserError
 from twin.grid import N_ACTIONS
-from twin.scores import STATE_SIZE, ScoreParams, drone_states
+from twin.scores import ScoreParams
+from twin.states import DEFAULT_STATE, state_variant
 from twin.swarm import StepOutcome, SwarmState, check_actions, initial_state, random_starts, step
 from twin.traffic.base import TrafficSource
 
@@ -99,11 +101,14 @@ class SwarmParallelEnv(ParallelEnv):
         n_drones: int | None = None,
         params: ScoreParams | None = None,
         starts: np.ndarray | None = None,
+        state: str = DEFAULT_STATE,
     ) -> None:
         """``source`` is a traffic source or a callable that builds one (``source_factory``).
 
         Give ``n_drones`` (random starts drawn at each reset) or fixed ``starts`` ``(N, 2)``.
+        ``state`` names the observations' state variant (:mod:`twin.states`).
         """
+        self.variant = state_variant(state)
         self._factory = None if isinstance(source, TrafficSource) else source
         self.source: TrafficSource = source if self._factory is None else self._factory()
         self.grid, self.horizon = self.source.grid, self.source.horizon
@@ -128,7 +133,7 @@ class SwarmParallelEnv(ParallelEnv):
         self._observation_spaces = {
             a: spaces.Dict(
                 {
-                    "observation": spaces.Box(0.0, 1.0, (STATE_SIZE,), np.float32),
+                    "observation": spaces.Box(0.0, 1.0, (self.variant.size,), np.float32),
                     "action_mask": spaces.MultiBinary(N_ACTIONS),
                 }
             )
@@ -248,7 +253,8 @@ class SwarmParallelEnv(ParallelEnv):
 
     def _states(self) -> np.ndarray:
         s = self.swarm
-        return drone_states(self.grid, s.idleness, s.importance, s.positions).astype(np.float32)
+        states = self.variant.states(self.grid, s.idleness, s.importance, s.positions)
+        return states.astype(np.float32)
 
     def _observations(self) -> dict[str, dict[str, np.ndarray]]:
         if not self.agents:
@@ -298,9 +304,9 @@ class SwarmParallelEnv(ParallelEnv):
 
 
 class SwarmGymEnv(gymnasium.Env):
-    """The joint swarm as one Gymnasium agent: ``MultiDiscrete([5] * N)`` actions, ``(N, 13)``
-    observations, reward ``R^k`` (Def. 4, summed over drones); ``info["action_mask"]`` is the
-    ``(N, 5)`` feasible mask.
+    """The joint swarm as one Gymnasium agent: ``MultiDiscrete([5] * N)`` actions, ``(N, S)``
+    observations (S = 13 for the paper state), reward ``R^k`` (Def. 4, summed over drones);
+    ``info["action_mask"]`` is the ``(N, 5)`` feasible mask.
 
     ``infeasible="stay"`` turns an infeasible action into "stay" (for algorithms that cannot
     mask actions); the default raises.
@@ -315,14 +321,16 @@ class SwarmGymEnv(gymnasium.Env):
         params: ScoreParams | None = None,
         starts: np.ndarray | None = None,
         infeasible: Literal["raise", "stay"] = "raise",
+        state: str = DEFAULT_STATE,
     ) -> None:
         if infeasible not in ("raise", "stay"):
             raise ValueError(f'infeasible = {infeasible!r}: use "raise" or "stay"')
-        self.swarm_env = SwarmParallelEnv(source, n_drones, params, starts)
+        self.swarm_env = SwarmParallelEnv(source, n_drones, params, starts, state)
         n = self.swarm_env.n_drones
         self.infeasible = infeasible
         self.action_space = spaces.MultiDiscrete([N_ACTIONS] * n)
-        self.observation_space = spaces.Box(0.0, 1.0, (n, STATE_SIZE), np.float32)
+        size = self.swarm_env.variant.size
+        self.observation_space = spaces.Box(0.0, 1.0, (n, size), np.float32)
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(

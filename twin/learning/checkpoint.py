@@ -24,20 +24,24 @@ from twin import __version__
 from twin.errors import UserError
 from twin.files import atomic_write
 from twin.grid import ACTIONS
-from twin.scores import STATE_LAYOUT
+from twin.states import DEFAULT_STATE, STATE_VARIANTS, StateVariant
 
 FORMAT = "twin-qnet"
 FORMAT_VERSION = 1
 
 
-def model_metadata(layers, config: dict[str, Any], seed: int, epoch: int) -> dict[str, Any]:
-    """The metadata every checkpoint carries (plain python types only)."""
+def model_metadata(
+    layers, config: dict[str, Any], seed: int, epoch: int, state: str = DEFAULT_STATE
+) -> dict[str, Any]:
+    """The metadata every checkpoint carries (plain python types only); ``state`` names the
+    state variant (:mod:`twin.states`) the network reads."""
     return {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
         "layers": [int(n) for n in layers],
         "actions": list(ACTIONS),
-        "state_layout": list(STATE_LAYOUT),
+        "state": state,
+        "state_layout": list(STATE_VARIANTS[state].layout),
         "config": config,
         "seed": int(seed),
         "epoch": int(epoch),
@@ -91,8 +95,11 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
             f"checkpoint {path} uses action order {meta.get('actions')}, this version "
             f"{list(ACTIONS)}; {hint}"
         )
-    if list(meta.get("state_layout", [])) != list(STATE_LAYOUT):
-        raise UserError(f"checkpoint {path} was trained on another state layout; {hint}")
+    variant = checkpoint_state(path, meta)
+    if list(meta.get("state_layout", [])) != list(variant.layout):
+        raise UserError(
+            f"checkpoint {path} was trained on another layout of state {variant.name!r}; {hint}"
+        )
     for part in ("weights", "target"):
         for name, value in (blob.get(part) or {}).items():
             if isinstance(value, torch.Tensor) and not bool(torch.isfinite(value).all()):
@@ -101,6 +108,19 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
                     f"a diverged training); {hint}"
                 )
     return blob
+
+
+def checkpoint_state(path: str | Path, meta: dict[str, Any]) -> StateVariant:
+    """The state variant a checkpoint's network reads: ``meta["state"]``, ``"paper"`` for a
+    checkpoint written before variants existed; an unknown one is refused in one line."""
+    name = meta.get("state", DEFAULT_STATE)
+    if not isinstance(name, str) or name not in STATE_VARIANTS:
+        known = ", ".join(repr(n) for n in STATE_VARIANTS)
+        raise UserError(
+            f"checkpoint {path}: state variant {str(name)[:40]!r} is not one this version "
+            f"builds ({known}); re-create it with `twin pretrain`"
+        )
+    return STATE_VARIANTS[name]
 
 
 def load_qnet(path: str | Path):
@@ -118,6 +138,12 @@ def load_qnet(path: str | Path):
         raise UserError(
             f"checkpoint {path}: meta.layers = {str(layers)[:60]} is not a list of layer "
             "widths (whole numbers >= 1); re-create it with `twin pretrain`"
+        )
+    variant = checkpoint_state(path, meta)
+    if layers[0] != variant.size:
+        raise UserError(
+            f"checkpoint {path}: its first layer takes {layers[0]} values but its state "
+            f"variant {variant.name!r} has {variant.size}; re-create it with `twin pretrain`"
         )
     # the layers' parameters are counted before any is allocated: a meta.layers far larger
     # than the stored weights is refused here, not after asking for gigabytes

@@ -2,7 +2,8 @@
 
 Two collectors: the paper's randomly moving swarm (uniform feasible actions), and the swarm
 being learned, ``rl`` (the coordinator's joint action on the network's Q values, eq.
-maxi:op2) with epsilon-greedy exploration. Both advance with :func:`twin.swarm.step`, the step
+maxi:op2) with epsilon-greedy exploration. The drones' states are those of a state variant
+(:mod:`twin.states`; the paper's 13 values by default). Both advance with :func:`twin.swarm.step`, the step
 of the patrol loop: idleness per Def. 3, every drone's reward read on arrival (Def. 4).
 """
 
@@ -16,7 +17,8 @@ import torch
 from twin.coordinator import coordinate
 from twin.grid import N_ACTIONS
 from twin.policies import random_feasible
-from twin.scores import STATE_SIZE, ScoreParams, drone_states
+from twin.scores import ScoreParams
+from twin.states import STATE_VARIANTS, StateVariant
 from twin.swarm import initial_state, random_starts, step
 from twin.traffic.base import TrafficSource
 
@@ -38,13 +40,22 @@ class Episode:
     next_feasible: np.ndarray
 
 
+PAPER = STATE_VARIANTS["paper"]
+
+
 def random_swarm_episode(
-    source: TrafficSource, n_drones: int, params: ScoreParams, rng: np.random.Generator
+    source: TrafficSource,
+    n_drones: int,
+    params: ScoreParams,
+    rng: np.random.Generator,
+    variant: StateVariant = PAPER,
 ) -> Episode:
-    """Run a random swarm over the whole horizon of ``source`` and record every transition."""
+    """Run a random swarm over the whole horizon of ``source`` and record every transition,
+    its states those of ``variant``."""
     return _swarm_episode(
-        source, n_drones, params, rng, lambda state, states: random_feasible(state.feasible, rng)
-    )
+        source, n_drones, params, rng,
+        lambda state, states: random_feasible(state.feasible, rng), variant,
+    )  # fmt: skip
 
 
 def coordinated_swarm_episode(
@@ -54,12 +65,13 @@ def coordinated_swarm_episode(
     rng: np.random.Generator,
     net: torch.nn.Module,
     epsilon: float,
+    variant: StateVariant = PAPER,
 ) -> Episode:
     """Run the coordinated learned swarm (``rl``: the joint action with the largest sum of
     ``Q(s_d; theta)`` and all next cells distinct, eq. maxi:op2) over the horizon of
     ``source``, exploring: each step each drone, with probability ``epsilon``, asks for a
     uniform feasible action instead of its Q values (granted unless another drone takes that
-    cell). ``net`` is held fixed for the episode."""
+    cell). ``net`` is held fixed for the episode and reads the states of ``variant``."""
     grid = source.grid
 
     def choose(state, states):
@@ -72,28 +84,29 @@ def coordinated_swarm_episode(
             q[explore, random_actions[explore]] = EXPLORE_Q
         return coordinate(q, state.positions, state.feasible, grid)
 
-    return _swarm_episode(source, n_drones, params, rng, choose)
+    return _swarm_episode(source, n_drones, params, rng, choose, variant)
 
 
-def _swarm_episode(source, n_drones, params, rng, choose) -> Episode:
-    """Every transition of a swarm whose actions are ``choose(state, drone_states)``."""
+def _swarm_episode(source, n_drones, params, rng, choose, variant: StateVariant) -> Episode:
+    """Every transition of a swarm whose actions are ``choose(state, drone_states)``, the
+    drones' states built by ``variant``."""
     grid = source.grid
     horizon = source.horizon
     shape = (horizon, n_drones)
     ep = Episode(
-        np.empty((*shape, STATE_SIZE), np.float32),
+        np.empty((*shape, variant.size), np.float32),
         np.empty(shape, np.int64),
         np.empty(shape, np.float32),
-        np.empty((*shape, STATE_SIZE), np.float32),
+        np.empty((*shape, variant.size), np.float32),
         np.empty((*shape, N_ACTIONS), bool),
     )
     maps = source.importance_maps()
     state = initial_state(grid, random_starts(grid, n_drones, rng), next(maps))
-    states = drone_states(grid, state.idleness, state.importance, state.positions)
+    states = variant.states(grid, state.idleness, state.importance, state.positions)
     for k in range(horizon):
         actions = choose(state, states)
         state, out = step(state, actions, next(maps), grid, params)
-        next_states = drone_states(grid, state.idleness, state.importance, state.positions)
+        next_states = variant.states(grid, state.idleness, state.importance, state.positions)
         ep.states[k], ep.actions[k], ep.rewards[k] = states, actions, out.rewards
         ep.next_states[k], ep.next_feasible[k] = next_states, out.feasible
         states = next_states

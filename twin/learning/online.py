@@ -26,7 +26,7 @@ class OnlineLearner:
         self.nets = [copy.deepcopy(net) for _ in range(n_nets)]
         self.targets = [copy.deepcopy(net) for _ in range(n_nets)]
         self.optimizers = [torch.optim.Adam(n.parameters(), lr=lr) for n in self.nets]
-        self.buffer = ReplayBuffer(buffer_steps, n_drones)
+        self.buffer = ReplayBuffer(buffer_steps, n_drones, state_size=net.layers[0])
         self.rng = rng
         self.batch_size, self.gamma, self.iters = batch_size, gamma, iters
         self.target_every = target_every

@@ -30,11 +30,11 @@ from twin.errors import UserError
 from twin.files import file_sha256
 from twin.grid import Grid
 from twin.idleness_maps import OwnMaps, SwarmMaps, parse_outages
-from twin.learning.checkpoint import default_checkpoint, load_qnet
+from twin.learning.checkpoint import checkpoint_state, default_checkpoint, load_qnet
 from twin.learning.online import OnlineLearner
 from twin.learning.qnet import QNetwork
 from twin.policies import Policy, SwarmView, Transition, random_feasible
-from twin.scores import assemble_states, directional_means, drone_states
+from twin.states import paper_states, state_variant
 
 
 @lru_cache(maxsize=4)
@@ -57,20 +57,17 @@ def local_drone_states(
 ) -> np.ndarray:
     """:func:`twin.scores.drone_states` with one idleness map per drone: :class:`OwnMaps`
     (read at each drone's view, row and column only) or dense ``(N, nx, ny)``."""
-    if isinstance(maps, np.ndarray):
-        return drone_states(grid, maps, importance, positions, others)
-    view = grid.view_index(positions)
-    flat, valid = view
-    idle_seen = np.where(valid, maps.at(flat), 0.0)
-    rows, cols = maps.rows_and_columns(positions)
-    directional = directional_means(rows, cols, grid, positions)
-    return assemble_states(grid, importance, positions, view, idle_seen, directional, others)
+    return paper_states(grid, maps, importance, positions, others)
 
 
 class RLPolicy(Policy):
     """A swarm driven by the universal Q-function; see the module docstring for the modes.
 
-    Options: ``checkpoint`` (default: the shipped ``data/qnet.pt``), ``decentralized``
+    The drones' states are those of the checkpoint's state variant (:mod:`twin.states`,
+    ``meta["state"]``; the paper's 13 values for a checkpoint without it).
+
+    Options: ``checkpoint`` (default: the shipped ``data/qnet.pt``), ``state`` (the state
+    variant the swarm expects: refused in one line unless it is the checkpoint's), ``decentralized``
     (never coordinate), ``eps`` (exploration of decentralized drones), ``outages`` (step
     windows without coordinator), ``online`` (learn while patrolling), ``online_iters``
     (gradient steps per step), ``batch_size``, ``gamma``, ``lr``, ``buffer_steps``.
@@ -82,6 +79,7 @@ class RLPolicy(Policy):
     def __init__(
         self,
         checkpoint: str | Path | None = None,
+        state: str | None = None,
         decentralized: bool = False,
         eps: float = 0.1,
         outages: Sequence[Sequence[int]] = (),
@@ -96,6 +94,16 @@ class RLPolicy(Policy):
             raise UserError(f"eps must lie in [0, 1], got {eps}")
         self.net, self.meta = shared_qnet(checkpoint)
         self.checkpoint = checkpoint
+        path = Path(checkpoint) if checkpoint is not None else default_checkpoint()
+        self.variant = checkpoint_state(path, self.meta)
+        if state is not None and state_variant(state, "swarm option state").name != (
+            self.variant.name
+        ):
+            raise UserError(
+                f"checkpoint {path} reads state {self.variant.name!r}, not {state!r} (swarm "
+                f"option state); give a checkpoint pretrained with state = {state!r} or drop "
+                "the option"
+            )
         self.decentralized = bool(decentralized)
         self.eps = float(eps)
         self.outages = parse_outages(outages)
@@ -112,6 +120,7 @@ class RLPolicy(Policy):
             "sha256": file_sha256(path.resolve()),
             "trained_epochs": self.meta.get("epoch"),
             "layers": self.meta.get("layers"),
+            "state": self.variant.name,
             "coordination": "decentralized" if self.decentralized else "central",
             "eps": self.eps if self.decentralized or self.outages else None,
             "outages": [list(w) for w in self.outages],
@@ -156,7 +165,7 @@ class RLPolicy(Policy):
                 self.learner.optimizers, self.learner.updates = old.optimizers, old.updates
 
     def observe(self, view: SwarmView) -> np.ndarray:
-        """The ``(N, 13)`` states of the drones at ``view.k`` (advances the maps)."""
+        """The ``(N, size)`` states of the drones at ``view.k`` (advances the maps)."""
         maps = self.maps
         if getattr(self, "regroup", False):
             maps.heard = view.positions.copy()
@@ -169,8 +178,8 @@ class RLPolicy(Policy):
         """The states of the drones at ``view.k`` from the maps as they stand."""
         maps = self.maps
         if maps.own is None:
-            return drone_states(view.grid, maps.shared, view.importance, view.positions)
-        return local_drone_states(
+            return self.variant.states(view.grid, maps.shared, view.importance, view.positions)
+        return self.variant.states(
             view.grid, maps.own, view.importance, view.positions,
             maps.others_centre_of_mass(view.positions),
         )  # fmt: skip

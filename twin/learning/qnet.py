@@ -1,6 +1,7 @@
 """The universal Q-function of Sec. III-A, Table 1: one MLP shared by every drone.
 
-``Q(s, .; theta)``: 13 state values in, one Q value per action out, in the action order of
+``Q(s, .; theta)``: the state values in (13 for the paper's state; the first layer is sized to
+the state variant, :mod:`twin.states`), one Q value per action out, in the action order of
 :data:`twin.grid.ACTIONS` (network output index = action).
 """
 
@@ -20,14 +21,15 @@ TABLE1_LAYERS: tuple[int, ...] = (STATE_SIZE, 2048, 1024, 256, 64, N_ACTIONS)
 
 
 class QNetwork(nn.Module):
-    """Fully connected ReLU network with a linear output layer; sizes from ``layers``."""
+    """Fully connected ReLU network with a linear output layer; sizes from ``layers`` (the
+    first: the state variant's size)."""
 
     def __init__(self, layers: Sequence[int] = TABLE1_LAYERS) -> None:
         super().__init__()
         layers = tuple(int(n) for n in layers)
-        if len(layers) < 2 or layers[0] != STATE_SIZE or layers[-1] != N_ACTIONS:
+        if len(layers) < 2 or min(layers) < 1 or layers[-1] != N_ACTIONS:
             raise ValueError(
-                f"layer sizes must run from {STATE_SIZE} to {N_ACTIONS}, got {list(layers)}"
+                f"layer sizes must run from the state's size to {N_ACTIONS}, got {list(layers)}"
             )
         self.layers = layers
         modules: list[nn.Module] = []
@@ -37,7 +39,7 @@ class QNetwork(nn.Module):
         self.net = nn.Sequential(*modules)
 
     def forward(self, states: torch.Tensor) -> torch.Tensor:
-        """``(B, 13)`` states -> ``(B, 5)`` Q values."""
+        """``(B, state size)`` states -> ``(B, 5)`` Q values."""
         return self.net(states)
 
 

@@ -16,17 +16,16 @@ from dataclasses import dataclass
 import numpy as np
 
 from twin.grid import N_ACTIONS
-from twin.scores import STATE_SIZE
 
 
 @dataclass
 class Batch:
     """A sample of transitions, numpy arrays with a leading batch axis."""
 
-    states: np.ndarray  # (B, 13) float32
+    states: np.ndarray  # (B, S) float32, S the state variant's size
     actions: np.ndarray  # (B,) int64
     rewards: np.ndarray  # (B,) float32
-    next_states: np.ndarray  # (B, 13) float32
+    next_states: np.ndarray  # (B, S) float32
     next_feasible: np.ndarray  # (B, 5) bool
     #: (B,) float32 discount of the bootstrap term, ``gamma^m`` (None: the scalar ``gamma``)
     discounts: np.ndarray | None = None
@@ -62,13 +61,17 @@ def n_step_transitions(
 
 
 class ReplayBuffer:
-    """Ring buffer of ``capacity`` swarm steps of ``n_drones`` transitions each."""
+    """Ring buffer of ``capacity`` swarm steps of ``n_drones`` transitions each, of states of
+    ``state_size`` values (the state variant's, :mod:`twin.states`)."""
 
     def __init__(
-        self, capacity: int, n_drones: int, state_size: int = STATE_SIZE, discounted: bool = False
+        self, capacity: int, n_drones: int, *, state_size: int, discounted: bool = False
     ) -> None:
-        if capacity < 1 or n_drones < 1:
-            raise ValueError(f"capacity and n_drones must be positive, got {capacity}, {n_drones}")
+        if capacity < 1 or n_drones < 1 or state_size < 1:
+            raise ValueError(
+                f"capacity, n_drones and state_size must be positive, got {capacity}, "
+                f"{n_drones}, {state_size}"
+            )
         self.capacity, self.n_drones = int(capacity), int(n_drones)
         shape = (self.capacity, self.n_drones)
         self.states = np.zeros((*shape, state_size), dtype=np.float32)

@@ -7,7 +7,8 @@
    pooled into one replay buffer; or (``collector = "coordinated"``) episodes of the swarm
    being learned, epsilon-greedy, collected every ``collect_every`` epochs into a buffer of
    the last ``episodes``; 1-step transitions, or ``n_step`` returns of each drone's rewards;
-3. network: the Table 1 MLP and its target copy;
+3. network: the Table 1 MLP and its target copy, its first layer sized to the state variant
+   ``state`` (:mod:`twin.states`: the paper's 13 values by default);
 4. the loop (the update itself: :mod:`twin.learning.dqn`): epoch ``m`` samples one batch from the pooled buffers and takes ``N_iter``
    gradient steps on it towards the Double DQN target
    ``Y = r + gamma Q(s', argmax_{u' feasible} Q(s', u'; theta^m); theta^m_-)`` (n-step:
@@ -54,6 +55,7 @@ from twin.errors import UserError
 from twin.files import file_sha256
 from twin.learning.checkpoint import (
     atomic_save,
+    checkpoint_state,
     load_qnet,
     model_metadata,
     read_checkpoint,
@@ -69,6 +71,7 @@ from twin.learning.dqn import (  # noqa: F401  (double_dqn_target re-exported fo
 )
 from twin.learning.qnet import TABLE1_LAYERS, QNetwork
 from twin.learning.replay import ReplayBuffer, n_step_transitions
+from twin.states import DEFAULT_STATE, STATE_NAMES, STATE_VARIANTS, UNAVAILABLE, StateVariant
 from twin.traffic.synthetic import SyntheticTraffic
 
 PositiveInt = Annotated[int, Field(ge=1)]
@@ -189,8 +192,17 @@ class PretrainConfig(SourcedConfig):
         default=10000,
     )
     # network
+    state: str = _help(
+        "state variant the network reads (twin/states.py): "
+        + ", ".join(f'"{n}"' for n in STATE_NAMES)
+        + ' ("paper": the 13 values of eq. s; "window": I*T over the 5 x 5 cells around the '
+        'drone, 33 values; "nowcast" is refused: it needs a history the training map lacks)',
+        default=DEFAULT_STATE,
+    )
     layers: list[PositiveInt] = _help(
-        "layer sizes, 13 in and 5 out (Table 1)", default_factory=lambda: list(TABLE1_LAYERS)
+        "layer sizes, the state's size in and 5 out (Table 1: 13 -> 2048 -> 1024 -> 256 -> 64 "
+        "-> 5); unset, Table 1's with the first layer sized to `state`",
+        default_factory=lambda: list(TABLE1_LAYERS),
     )
     # learning
     epochs: PositiveInt = _help("N_ep: epochs, each one sampled batch", default=30000)
@@ -250,14 +262,42 @@ class PretrainConfig(SourcedConfig):
                     f'(key `scenario`) or as scenario_overrides = {{ "{new}" = {shown} }}'
                 )
 
+    @field_validator("state")
+    @classmethod
+    def _state(cls, state: str) -> str:
+        if state in UNAVAILABLE:
+            raise ValueError(f'{UNAVAILABLE[state]}; use "paper" or "window"')
+        if state not in STATE_VARIANTS:
+            raise ValueError(
+                "is not a state variant; use one of " + ", ".join(f'"{n}"' for n in STATE_VARIANTS)
+            )
+        return state
+
     @field_validator("layers")
     @classmethod
-    def _layers(cls, layers: list[int]) -> list[int]:
-        if len(layers) < 2 or layers[0] != TABLE1_LAYERS[0] or layers[-1] != TABLE1_LAYERS[-1]:
+    def _layers(cls, layers: list[int], info: ValidationInfo) -> list[int]:
+        if len(layers) < 2 or layers[-1] != TABLE1_LAYERS[-1]:
+            raise ValueError(f"must run from the state's size to {TABLE1_LAYERS[-1]} (actions)")
+        state = info.data.get("state")
+        if state in STATE_VARIANTS and layers[0] != STATE_VARIANTS[state].size:
+            size = STATE_VARIANTS[state].size
             raise ValueError(
-                f"must run from {TABLE1_LAYERS[0]} to {TABLE1_LAYERS[-1]} (the state and actions)"
+                f"starts with {layers[0]} but state = {state!r} has {size} values; start "
+                f"layers with {size} (or leave layers unset)"
             )
         return layers
+
+    @model_validator(mode="after")
+    def _layers_fit_state(self) -> PretrainConfig:
+        """Unset ``layers``: Table 1's, the first sized to the state."""
+        if "layers" not in self.model_fields_set:
+            self.layers = [STATE_VARIANTS[self.state].size, *TABLE1_LAYERS[1:]]
+        return self
+
+    @property
+    def variant(self) -> StateVariant:
+        """The state variant the network reads (:mod:`twin.states`)."""
+        return STATE_VARIANTS[self.state]
 
     @field_validator("curve_seeds")
     @classmethod
@@ -341,8 +381,9 @@ class PretrainConfig(SourcedConfig):
         shape training, the scenario's among them by their old flat names (nx, ny, horizon,
         ..., eta ...) in their old order, so that checkpoints of the same settings compare
         equal whichever file declared them. The scenario's keys that older pretraining could
-        not set (obstacles, z_lo, z_hi) follow when they are not their defaults."""
-        own = self.model_dump(exclude={"scenario", "scenario_overrides"})
+        not set (obstacles, z_lo, z_hi) and the state variant follow when they are not their
+        defaults."""
+        own = self.model_dump(exclude={"scenario", "scenario_overrides", "state"})
         s = self.training_map
         t = synthetic_config(s)
         values = {
@@ -360,6 +401,8 @@ class PretrainConfig(SourcedConfig):
             record["z_lo"] = t.z_lo
         if t.z_hi is not None:
             record["z_hi"] = t.z_hi
+        if self.state != DEFAULT_STATE:
+            record["state"] = self.state
         return record
 
 
@@ -426,9 +469,13 @@ def load_config(path: str | Path, **overrides: Any) -> PretrainConfig:
 
 
 # ----------------------------------------------------------------------------- memory
-#: Bytes per stored transition: the buffer's state, next state, action, reward and feasible
-#: mask (121 B), and the copies the buffer's digest makes of them (69 B).
-TRANSITION_BYTES = 190
+def transition_bytes(state_size: int) -> int:
+    """Bytes per stored transition: the buffer's state, next state, action, reward and feasible
+    mask (121 B for the paper's 13 values), and the copies the buffer's digest makes of them
+    (69 B)."""
+    return (8 * state_size + 17) + (4 * state_size + 17)
+
+
 #: Copies of the network's float32 parameters: online, target, gradient, Adam's two moments,
 #: and the copies a checkpoint holds while it is written.
 PARAMETER_COPIES = 9
@@ -443,7 +490,9 @@ def estimate_pretrain_memory(cfg: PretrainConfig) -> dict[str, float]:
     params = sum(a * b + b for a, b in itertools.pairwise(layers))
     cells = cfg.nx * cfg.ny
     return {
-        "buffer": float((cfg.episodes + 1) * cfg.horizon * cfg.n_drones * TRANSITION_BYTES),
+        "buffer": float(
+            (cfg.episodes + 1) * cfg.horizon * cfg.n_drones * transition_bytes(cfg.variant.size)
+        ),
         "network": float(params * 4 * PARAMETER_COPIES),
         "batch": float(cfg.batch_size * (sum(layers) * 4 * 8 + 200)),
         "map": float(
@@ -533,7 +582,8 @@ def collect_buffer(cfg: PretrainConfig, progress: bool = False) -> ReplayBuffer:
     """``episodes`` random-swarm episodes, pooled; a function of the config alone (seeded)."""
     sources = episode_sources(cfg)
     params = cfg.training_map.params
-    buffer = ReplayBuffer(sum(s.horizon for s in sources), cfg.n_drones, discounted=cfg.n_step > 1)
+    buffer = ReplayBuffer(sum(s.horizon for s in sources), cfg.n_drones,
+                          state_size=cfg.variant.size, discounted=cfg.n_step > 1)  # fmt: skip
     episodes = range(cfg.episodes)
     if progress:
         from tqdm.auto import tqdm
@@ -541,7 +591,8 @@ def collect_buffer(cfg: PretrainConfig, progress: bool = False) -> ReplayBuffer:
         episodes = tqdm(episodes, desc="random swarm", unit="episode", leave=False)
     for e in episodes:
         rng = np.random.default_rng([cfg.seed, 1, e])
-        add_episode(buffer, random_swarm_episode(sources[e], cfg.n_drones, params, rng), cfg)
+        ep = random_swarm_episode(sources[e], cfg.n_drones, params, rng, cfg.variant)
+        add_episode(buffer, ep, cfg)
     return buffer
 
 
@@ -556,9 +607,9 @@ class CoordinatedCollector:
         self.source = episode_source(cfg)
         self.params = cfg.training_map.params
         horizons = [self.source(e).horizon for e in range(len(cfg.tapes))] or [cfg.horizon]
-        self.buffer = ReplayBuffer(
-            cfg.episodes * max(horizons), cfg.n_drones, discounted=cfg.n_step > 1
-        )
+        self.buffer = ReplayBuffer(cfg.episodes * max(horizons), cfg.n_drones,
+                                   state_size=cfg.variant.size,
+                                   discounted=cfg.n_step > 1)  # fmt: skip
 
     def epsilon(self, epoch: int) -> float:
         """Linear from ``epsilon_start`` at epoch 0 to ``epsilon_end`` at
@@ -578,7 +629,7 @@ class CoordinatedCollector:
         e = epoch // cfg.collect_every
         rng = np.random.default_rng([cfg.seed, 3, e])
         ep = coordinated_swarm_episode(
-            self.source(e), cfg.n_drones, self.params, rng, net, self.epsilon(epoch)
+            self.source(e), cfg.n_drones, self.params, rng, net, self.epsilon(epoch), cfg.variant
         )
         add_episode(self.buffer, ep, cfg)
 
@@ -660,7 +711,7 @@ def _pretrain(cfg, progress, out, state_path, model_path, log_path) -> Path:
         load_initial_weights(cfg, net)
         sync_target(net, target)
     if epoch == 0 and cfg.curve_every:  # the curve's first point: the starting network
-        meta = model_metadata(cfg.layers, cfg.training_dict(), cfg.seed, 0)
+        meta = model_metadata(cfg.layers, cfg.training_dict(), cfg.seed, 0, cfg.state)
         meta["wall_s"] = 0.0
         save_model(out / "snapshots" / f"qnet_e{0:07d}.pt", net.state_dict(), meta)
     if epoch == 0:
@@ -715,7 +766,7 @@ def _pretrain(cfg, progress, out, state_path, model_path, log_path) -> Path:
                             wall, kept)  # fmt: skip
                 saved = epoch
             if snapshot:
-                meta = model_metadata(cfg.layers, cfg.training_dict(), cfg.seed, epoch)
+                meta = model_metadata(cfg.layers, cfg.training_dict(), cfg.seed, epoch, cfg.state)
                 meta["wall_s"] = round(time.perf_counter() - t_start, 2)
                 save_model(out / "snapshots" / f"qnet_e{epoch:07d}.pt", net.state_dict(), meta)
             if bar is not None:
@@ -723,7 +774,7 @@ def _pretrain(cfg, progress, out, state_path, model_path, log_path) -> Path:
     finally:
         if bar is not None:
             bar.close()
-    meta = model_metadata(cfg.layers, cfg.training_dict(), cfg.seed, epoch)
+    meta = model_metadata(cfg.layers, cfg.training_dict(), cfg.seed, epoch, cfg.state)
     meta["wall_s"] = round(time.perf_counter() - t_start, 1)
     meta["buffer_digest"] = digest if kept is None else buffer_digest(buffer)
     meta["collect_s"] = round(collect_s, 1)  # the data collected before the loop (random)
@@ -773,7 +824,7 @@ def write_provenance(cfg: PretrainConfig, out: Path, meta: dict[str, Any]) -> Pa
                 "sha256": file_sha256(cfg.scenario),
                 "overrides": cfg.scenario_overrides,
             },
-            "state": "the paper's 13 values (eq. s)",
+            "state": cfg.variant.summary,
             "collector": cfg.collector,
             "n_step": cfg.n_step,
             "gamma": cfg.gamma,
@@ -806,8 +857,16 @@ def write_provenance(cfg: PretrainConfig, out: Path, meta: dict[str, Any]) -> Pa
 
 
 def load_initial_weights(cfg: PretrainConfig, net: QNetwork) -> None:
-    """The weights of ``cfg.init`` into ``net``; refused (one line) when its layers differ."""
-    layers = read_checkpoint(cfg.init)["meta"].get("layers")
+    """The weights of ``cfg.init`` into ``net``; refused (one line) when its state variant or
+    its layers differ."""
+    meta = read_checkpoint(cfg.init)["meta"]
+    state = checkpoint_state(cfg.init, meta).name
+    if state != cfg.state:
+        raise UserError(
+            f"init = {cfg.init}: it reads state {state!r}, this pretraining state = "
+            f'{cfg.state!r}; give a checkpoint of the same state or set `state = "{state}"`'
+        )
+    layers = meta.get("layers")
     if layers != list(cfg.layers):
         raise UserError(
             f"init = {cfg.init}: its layers {layers} differ from `layers` {list(cfg.layers)}; "
@@ -884,7 +943,7 @@ def _check_finite(cfg, net, losses, epoch, state_path, saved) -> None:
 def _save_state(path, cfg, digest, net, target, optimizer, batch_rng, epoch, wall,
                 buffer=None) -> None:  # fmt: skip
     """The training state; ``buffer``: replay data collected while training, saved whole."""
-    meta = model_metadata(cfg.layers, cfg.training_dict(), cfg.seed, epoch)
+    meta = model_metadata(cfg.layers, cfg.training_dict(), cfg.seed, epoch, cfg.state)
     data = {"seed": cfg.seed, "digest": digest}
     if buffer is not None:
         data["data"] = buffer_arrays(buffer)
