@@ -281,7 +281,8 @@ def compare(
             if _same(have, want):
                 continue
             raise UserError(
-                f"{path}: {column} = {_show(have)} for {who}, but {source} gives "
+                f"{path}: {column} = {_show(have)} for {who}, but {source} "
+                f"{'give' if ' and ' in source else 'gives'} "
                 f"{_show(want)}; {RERUN}"
             )
 
@@ -312,6 +313,8 @@ def _same(have: Any, want: Any) -> bool:
 
 
 def _show(value: Any) -> str:
+    if isinstance(value, (bool, np.bool_)):
+        return str(bool(value)).lower()
     try:
         return f"{float(value):.6g}"
     except (TypeError, ValueError):
