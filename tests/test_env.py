@@ -198,7 +198,7 @@ def test_joint_env_refuses_actions_out_of_range_in_either_mode(infeasible, actio
 def test_step_after_close_is_one_line_asking_for_reset(joint):
     from twin.env import EnvInputError
 
-    env = SwarmGymEnv(_synthetic(), n_drones=3) if joint else SwarmParallelEnv(_synthetic())
+    env = (SwarmGymEnv if joint else SwarmParallelEnv)(_synthetic(), n_drones=3)
     obs, _ = env.reset(seed=0)
     env.close()
     action = np.zeros(3, np.int64) if joint else {a: 0 for a in obs}
