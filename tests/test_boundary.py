@@ -805,8 +805,8 @@ READ_BACK = {
         "events.parquet: event 0 of seed 0 is on cell (99, ",
     ),
     "event past the horizon": (
-        _built_file("events.parquet", lambda run: _events(run, onset=11)),
-        "events.parquet: event 0 of seed 0 has onset = 11, duration = ",
+        _built_file("events.parquet", lambda run: _events(run, onset=11, duration=5)),
+        "events.parquet: event 0 of seed 0 has onset = 11, duration = 5, not within steps 0 .. 12",
     ),
     "event before step 0": (
         _built_file("events.parquet", lambda run: _events(run, onset=-4)),
