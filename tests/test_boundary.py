@@ -570,12 +570,8 @@ def _beliefs(run: Path, **changes) -> pd.DataFrame:
 
 
 def _events(run: Path, **changes) -> pd.DataFrame:
-    """An events.parquet (twin.runs) of one event per seed and swarm; ``changes`` set row 0."""
-    frame = pd.DataFrame(
-        [{"seed": seed, "event": 0, "i": 3, "j": 4, "onset": 2, "duration": 5, "peak": 0.8,
-          "swarm": swarm, "seen": True, "first_seen": 3, "latency_steps": 1}
-         for seed in (0, 1) for swarm in ("random", "greedy")]
-    )  # fmt: skip
+    """The run's events.parquet (twin.runs); ``changes`` set row 0."""
+    frame = pd.read_parquet(run / "events.parquet")
     for column, value in changes.items():
         frame.loc[0, column] = value
     return frame
@@ -597,6 +593,20 @@ def _network(run: Path, **changes) -> dict:
                  "bbox": [0, 0, 1, 1], "lane_km_total": 1.0},
         "n_obstacles": 0, "row_0": "north", **changes,
     }  # fmt: skip
+
+
+def _all(*damages):
+    def apply(run: Path) -> None:
+        for damage in damages:
+            damage(run)
+
+    return apply
+
+
+def _samples(run: Path) -> pd.DataFrame:
+    """An mfd_samples.parquet (twin.mfd) of three cell samples."""
+    return pd.DataFrame({"step": [0, 1, 2], "count": [1.0, 4.0, 9.0], "speed": [12.0, 9.0, 4.0],
+                         "density": [5.0, 20.0, 60.0], "speed_limit": [13.9] * 3})  # fmt: skip
 
 
 READ_BACK = {
@@ -663,8 +673,8 @@ READ_BACK = {
         "summary.csv",
     ),
     "summary headline off its series": (
-        _edit_table("summary.csv", _set("R_hat_T", 123.456)),
-        "has R_hat_T = 123.456, its series in series.parquet gives",
+        _edit_table("summary.csv", _set("R_hat_T", 0.123456)),
+        "summary.csv: R_hat_T = 0.123456 for swarm 'random', but per_seed.csv gives",
     ),
     "bound below a swarm": (
         _edit_table(
@@ -780,7 +790,7 @@ READ_BACK = {
     ),
     "per_seed headline off its series": (
         _edit_table("per_seed.csv", _set("R_hat_T", 77.0, 1)),
-        "has R_hat_T = 77, its series in series.parquet gives",
+        "per_seed.csv: R_hat_T = 77 for seed ",
     ),
     "run.json seed twice": (
         _json("run.json", ("seeds",), [0, 1, 1]),
@@ -792,15 +802,15 @@ READ_BACK = {
     ),
     "event off the grid": (
         _built_file("events.parquet", lambda run: _events(run, i=99)),
-        "events.parquet: event 0 of seed 0 is on cell (99, 4), off the 20 x 30 grid",
+        "events.parquet: event 0 of seed 0 is on cell (99, ",
     ),
     "event past the horizon": (
-        _built_file("events.parquet", lambda run: _events(run, onset=11)),
+        _built_file("events.parquet", lambda run: _events(run, onset=11, duration=5)),
         "events.parquet: event 0 of seed 0 has onset = 11, duration = 5, not within steps 0 .. 12",
     ),
     "event before step 0": (
         _built_file("events.parquet", lambda run: _events(run, onset=-4)),
-        "has onset = -4, duration = 5",
+        "has onset = -4, duration = ",
     ),
     "events seen without events": (
         _edit_table(
@@ -824,6 +834,102 @@ READ_BACK = {
     "timing seconds below 0": (
         _edit_table("timing.csv", _set("seconds", -3.0)),
         "timing.csv: column 'seconds' row 0 is -3, outside 0 .. inf",
+    ),
+    # a derived file edited to contradict the primary files it was computed from
+    "summary coverage off its seeds": (
+        _edit_table("summary.csv", _set("C_hat_T", 0.9)),
+        "summary.csv: C_hat_T = 0.9 for swarm 'random', but per_seed.csv gives",
+    ),
+    "summary reward part off its seeds": (
+        _edit_table("summary.csv", _set("R_hat_T_importance", 0.1)),
+        "summary.csv: R_hat_T_importance = 0.1 for swarm 'random', but per_seed.csv gives",
+    ),
+    "summary time at max coverage off its seeds": (
+        _edit_table("summary.csv", _set("pct_time_max_C", 90.0)),
+        "summary.csv: pct_time_max_C = 90 for swarm 'random', but per_seed.csv gives",
+    ),
+    "summary paper reward off its seeds": (
+        _edit_table("summary.csv", _set("R_hat_T_paper", 3.0)),
+        "summary.csv: R_hat_T_paper = 3 for swarm 'random', but per_seed.csv gives",
+    ),
+    "summary seed count off its seeds": (
+        _edit_table("summary.csv", lambda f: f.assign(n_seeds=5)),
+        "summary.csv: n_seeds = 5 for swarm 'random', but per_seed.csv gives 2",
+    ),
+    "per_seed coverage off its series": (
+        _edit_table("per_seed.csv", _set("C_hat_T", 0.9)),
+        "per_seed.csv: C_hat_T = 0.9 for seed 0, swarm 'random', but series.parquet gives",
+    ),
+    "per_seed map covered off its series": (
+        _edit_table(
+            "series.parquet",
+            lambda f: f.assign(
+                visited_share=f["visited_share"].where(
+                    f["swarm"] != "random", f["visited_share"] / 2
+                )
+            ),
+        ),
+        "per_seed.csv: pct_map_covered = ",
+    ),
+    "per_seed reward parts not adding up": (
+        _edit_table("per_seed.csv", _set("R_hat_T_idleness", 0.0)),
+        "per_seed.csv: R_hat_T = ",
+    ),
+    "per_seed belief error off its series": (
+        _edit_table("per_seed.csv", _set("belief_error", 0.01)),
+        "per_seed.csv: belief_error = 0.01 for seed 0, swarm 'random', but events.parquet, "
+        "trajectories.parquet and series.parquet give",
+    ),
+    "per_seed coverage ceiling off the run's grid": (
+        _edit_table("per_seed.csv", _set("C_hat_T_ceiling", 0.5)),
+        "per_seed.csv: C_hat_T_ceiling = 0.5 for seed 0, swarm 'random', but importance.npz "
+        "and run.json give",
+    ),
+    "monitoring belief error off the summary": (
+        _edit_table("monitoring.csv", _set("belief_error", 0.01)),
+        "monitoring.csv: belief_error = 0.01 for swarm 'random', but summary.csv gives",
+    ),
+    "monitoring events off the summary": (
+        _edit_table("monitoring.csv", _set("events", 3)),
+        "monitoring.csv: events = 3 for swarm 'random', but summary.csv gives",
+    ),
+    "events of one swarm missing": (
+        _edit_table("events.parquet", lambda f: f[~((f["swarm"] == "greedy") & (f["event"] < 2))]),
+        "events.parquet: no row for seed 0, event 0, swarm 'greedy', which trajectories.parquet",
+    ),
+    "event seen flag flipped": (
+        _edit_table("events.parquet", lambda f: f.assign(seen=f["seen"] ^ (f.index == 0))),
+        "events.parquet: seen = ",
+    ),
+    "event first sighting moved": (
+        _edit_table("events.parquet", _set("first_seen", 99)),
+        "events.parquet: first_seen = 99 for seed 0, event 0, swarm 'random', but "
+        "trajectories.parquet",
+    ),
+    "run.json drones other than the trajectories": (
+        _json("run.json", ("n_drones",), 3),
+        "run.json: n_drones = 3, but trajectories.parquet has 4 drones",
+    ),
+    "network.json cell size other than the run's": (
+        _all(
+            _built_file("network.json", _network),
+            _json("run.json", ("traffic", "identity", "cell_m"), 200.0),
+        ),
+        "network.json: grid.cell_m = 500, but run.json has traffic.identity.cell_m = 200",
+    ),
+    "mfd.json prior other than the run's": (
+        _all(
+            _built_file("mfd.json", lambda run: _mfd(used="prior", a=0.3)),
+            _json("run.json", ("traffic", "mfd_prior"), [0.7, 40.0]),
+        ),
+        'mfd.json: a = 0.3 with used = "prior", but run.json has traffic.mfd_prior = [0.7, 40.0]',
+    ),
+    "mfd.json fit quality other than its samples": (
+        _all(
+            _built_file("mfd.json", lambda run: _mfd()),
+            _built_file("mfd_samples.parquet", _samples),
+        ),
+        "mfd.json: r2 = 0.5 of a = 0.7, k_c = 40, but mfd_samples.parquet gives",
     ),
 }
 
@@ -854,6 +960,7 @@ def test_damaged_run_folder_is_one_line(name, command, run_copy: Path, capsys) -
     argv = [command, str(run_copy)] + (["--no-animation"] if command == "report" else [])
     assert main(argv) == EXIT_REFUSED
     line = one_line(capsys)
+    assert not (run_copy / "report").exists()
     if command == "report":
         assert words in line
     else:  # replay reads the folder back as report does, then finds an evaluate folder's

@@ -229,6 +229,8 @@ class SwarmParallelEnv(ParallelEnv):
         self.agents = list(self.possible_agents)
 
     def _advance(self, actions: np.ndarray) -> StepOutcome:
+        if self._maps is None and self.swarm is not None and self.swarm.k < self.horizon:
+            raise EnvInputError("step() after close(): call reset() to start a new episode")
         if self.swarm is None or self.swarm.k >= self.horizon:
             raise RuntimeError("the episode is over (or not started): call reset()")
         actions = check_actions(self.swarm, actions)  # before the source moves on

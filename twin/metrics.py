@@ -126,21 +126,11 @@ def table2(result: PatrolResult, params: ScoreParams | None = None) -> pd.DataFr
     ``reward_idleness`` and ``reward_paper``; the ceiling
     needs ``eta`` and ``delta``: ``params``, else ``result.params``, else NaN.
     """
-    cov = result.coverage
-    n_swarms, horizon = cov.shape
-    if horizon:
-        best = cov >= cov.max(axis=0, keepdims=True) - 1e-12
-        pct_max = 100.0 * best.mean(axis=1)
-        final_visit = 100.0 * result.visited_share[:, -1]
-    else:
-        pct_max = final_visit = np.full(n_swarms, np.nan)
+    horizon = result.coverage.shape[1]
     frame = pd.DataFrame(
         {
             "swarm": result.swarms,
-            "R_hat_T": result.rewards.mean(axis=1) if horizon else np.nan,
-            "C_hat_T": cov.mean(axis=1) if horizon else np.nan,
-            "pct_time_max_C": pct_max,
-            "pct_map_covered": final_visit,
+            **series_columns(result.rewards, result.coverage, result.visited_share),
         }
     )
     for column, name in (
@@ -157,6 +147,25 @@ def table2(result: PatrolResult, params: ScoreParams | None = None) -> pd.DataFr
     else:
         frame["C_hat_T_ceiling"] = np.nan
     return frame
+
+
+def series_columns(
+    rewards: np.ndarray, coverage: np.ndarray, visited_share: np.ndarray
+) -> dict[str, np.ndarray]:
+    """``R_hat_T``, ``C_hat_T`` (Def. 4, Def. 5), ``pct_time_max_C`` and ``pct_map_covered`` of
+    the swarms run side by side, from their ``(S, T)`` per-step ``R^k``, ``C^{k+1}`` and share
+    of free cells visited (NaN when no step ran)."""
+    n_swarms, horizon = coverage.shape
+    if not horizon:
+        nan = np.full(n_swarms, np.nan)
+        return dict.fromkeys(("R_hat_T", "C_hat_T", "pct_time_max_C", "pct_map_covered"), nan)
+    best = coverage >= coverage.max(axis=0, keepdims=True) - 1e-12
+    return {
+        "R_hat_T": rewards.mean(axis=1),
+        "C_hat_T": coverage.mean(axis=1),
+        "pct_time_max_C": 100.0 * best.mean(axis=1),
+        "pct_map_covered": 100.0 * visited_share[:, -1],
+    }
 
 
 def is_ceiling_row(frame: pd.DataFrame) -> pd.Series:

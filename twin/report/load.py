@@ -17,7 +17,7 @@ import pandas as pd
 from twin.clock import clock_label, parse_clock
 from twin.errors import UserError
 from twin.grid import Grid
-from twin.metrics import BOUND
+from twin.metrics import BOUND, is_ceiling_row, swarm_rows
 from twin.readback import (
     BELIEF_MODEL_COLUMNS,
     DEGRADATION_COLUMNS,
@@ -47,6 +47,7 @@ from twin.readback import (
     read_maps,
     read_table,
 )
+from twin.report.derived import Primary, check_derived
 from twin.runs import REQUIRED_FILES
 from twin.scores import ScoreParams, initial_idleness, update_idleness
 
@@ -346,8 +347,6 @@ def load_run(run_dir: str | Path) -> RunFiles:
         check_incidents(run_dir / "incidents.json", incidents)
     check_consistent(run_dir, run, series, trajectories, summary, importance, obstacles, per_seed)
     check_partial(run_dir, run, manifest)
-    if per_seed is not None:
-        check_per_seed_scores(run_dir, series, per_seed)
     swarms = {str(s) for s in summary["swarm"]}
     if degradation is not None:
         check_degradation(run_dir / "degradation.csv", degradation, swarms, series)
@@ -357,6 +356,16 @@ def load_run(run_dir: str | Path) -> RunFiles:
         check_events(run_dir / "events.parquet", events, obstacles.shape, series)
     if monitoring is not None:
         check_monitoring(run_dir / "monitoring.csv", monitoring)
+    check_sumo_files(run_dir, run, network, mfd, samples)
+    primary = Primary(
+        run_dir, series, trajectories, events, obstacles, run, [str(s) for s in
+        summary.loc[~is_ceiling_row(summary), "swarm"]],
+    )  # fmt: skip
+    check_derived(
+        primary,
+        {"events.parquet": events, "per_seed.csv": per_seed, "summary.csv": summary,
+         "monitoring.csv": monitoring},
+    )  # fmt: skip
     return RunFiles(
         run_dir=run_dir,
         series=series,
@@ -456,6 +465,16 @@ def check_consistent(
             f"{run_dir / 'run.json'}: grid.n_free = {grid.get('n_free')}, but importance.npz "
             f"has {int((~obstacles).sum())} free cells; {RERUN}"
         )
+    n_drones = run.get("n_drones")
+    if isinstance(n_drones, int):
+        flying = trajectories.groupby(["seed", "swarm"])["drone"].max() + 1
+        off = flying[flying != n_drones]
+        if len(off):
+            (seed, swarm), n = off.index[0], int(off.iloc[0])
+            raise UserError(
+                f"{run_dir / 'run.json'}: n_drones = {n_drones}, but trajectories.parquet has "
+                f"{n} drones for swarm {swarm!r}, seed {seed}; {RERUN}"
+            )
     horizon = run.get("horizon")
     if isinstance(horizon, int) and horizon != importance.shape[0] - 1:
         raise UserError(
@@ -493,32 +512,20 @@ def check_consistent(
     check_scores(run_dir, series, summary)
 
 
-#: How far summary.csv's R_hat_T may lie from the one series.parquet gives (float rounding).
+#: How far a swarm's R_hat_T may lie above the bound row's (float rounding).
 SCORE_TOLERANCE = 1e-9
 
 
 def check_scores(run_dir: Path, series: pd.DataFrame, summary: pd.DataFrame) -> None:
-    """``summary.csv``'s headline is the series' own: each swarm's ``R_hat_T`` is the mean
-    over seeds of its mean ``R^k`` in ``series.parquet`` (Def. 4), and no swarm lies above the
-    bound row (the bound is an upper bound of every swarm, :mod:`twin.ceilings`)."""
+    """No swarm of ``summary.csv`` lies above its bound row (the bound is an upper bound of
+    every swarm, :mod:`twin.ceilings`); the swarms' own figures are checked against their
+    series by :func:`twin.report.derived.check_derived`."""
     path = run_dir / "summary.csv"
     if "R_hat_T" not in summary.columns:
         return
-    by_seed = series.assign(swarm=series["swarm"].astype(str)).groupby(["swarm", "seed"])
-    expected = by_seed["reward"].mean().groupby(level="swarm").mean()
-    roles = summary["role"] if "role" in summary.columns else pd.Series("swarm", summary.index)
-    best = None
-    for (_, row), role in zip(summary.iterrows(), roles, strict=True):
-        swarm, value = str(row["swarm"]), float(row["R_hat_T"])
-        if role == "ceiling" or swarm not in expected.index or not np.isfinite(value):
-            continue
-        want = float(expected[swarm])
-        if abs(value - want) > SCORE_TOLERANCE * max(1.0, abs(want)):
-            raise UserError(
-                f"{path}: swarm {swarm!r} has R_hat_T = {value:.6g}, its series in "
-                f"series.parquet gives {want:.6g}; {RERUN}"
-            )
-        best = value if best is None else max(best, value)
+    values = swarm_rows(summary)["R_hat_T"].to_numpy(np.float64)
+    values = values[np.isfinite(values)]
+    best = float(values.max()) if len(values) else None
     bound = summary.loc[summary["swarm"].astype(str) == BOUND, "R_hat_T"].astype(float)
     limit = float(bound.iloc[0]) if len(bound) else np.nan
     if best is not None and best > limit + SCORE_TOLERANCE * max(1.0, abs(best)):
@@ -526,6 +533,75 @@ def check_scores(run_dir: Path, series: pd.DataFrame, summary: pd.DataFrame) -> 
             f"{path}: the {BOUND} row's R_hat_T = {limit:.6g} lies below a swarm's "
             f"{best:.6g}, which no swarm can exceed; {RERUN}"
         )
+
+
+def check_sumo_files(
+    run_dir: Path,
+    run: dict[str, Any],
+    network: dict[str, Any] | None,
+    mfd: dict[str, Any] | None,
+    samples: pd.DataFrame | None,
+) -> None:
+    """A live SUMO run's ``network.json`` and ``mfd.json`` agree with what the run used: the
+    cell size of run.json ``traffic.identity``, the prior MFD of run.json ``traffic.mfd_prior``
+    when mfd.json says the prior was used, and the fit's R2 and RMSE recomputed from
+    ``mfd_samples.parquet`` with mfd.json's ``a`` and ``k_c`` (:func:`twin.mfd.fit_quality`)."""
+    from twin.mfd import MFD, fit_quality
+
+    traffic = run.get("traffic") if isinstance(run.get("traffic"), dict) else {}
+    cell = _dotted_get(traffic, "identity", "cell_m")
+    net_cell = _dotted_get(network, "grid", "cell_m")
+    if (
+        isinstance(cell, (int, float))
+        and isinstance(net_cell, (int, float))
+        and not _close(net_cell, cell)
+    ):
+        raise UserError(
+            f"{run_dir / 'network.json'}: grid.cell_m = {net_cell:g}, but run.json has "
+            f"traffic.identity.cell_m = {cell:g}; {RERUN}"
+        )
+    if not isinstance(mfd, dict):
+        return
+    prior = traffic.get("mfd_prior")
+    if mfd.get("used") == "prior" and isinstance(prior, list) and len(prior) == 2:
+        for name, want in zip(("a", "k_c"), prior, strict=True):
+            have = mfd.get(name)
+            numbers = isinstance(have, (int, float)) and isinstance(want, (int, float))
+            if numbers and not _close(have, want):
+                raise UserError(
+                    f'{run_dir / "mfd.json"}: {name} = {have:g} with used = "prior", but '
+                    f"run.json has traffic.mfd_prior = {prior}; {RERUN}"
+                )
+    a, k_c = mfd.get("a"), mfd.get("k_c")
+    need = {"density", "speed", "speed_limit"}
+    if samples is None or not need <= set(samples.columns) or not len(samples):
+        return
+    if not (isinstance(a, (int, float)) and isinstance(k_c, (int, float))):
+        return
+    quality = fit_quality(MFD(float(a), float(k_c)), samples["density"], samples["speed"],
+                          samples["speed_limit"])  # fmt: skip
+    for name, key in (("r2", "r2"), ("rmse_kmh", "rmse_kmh")):
+        have = mfd.get(name)
+        want = quality[key]
+        if not isinstance(have, (int, float)):
+            continue
+        if np.isnan(want) and np.isnan(have):
+            continue
+        if np.isnan(want) or np.isnan(have) or not _close(have, want, 1e-6):
+            raise UserError(
+                f"{run_dir / 'mfd.json'}: {name} = {have:.6g} of a = {a:g}, k_c = {k_c:g}, but "
+                f"mfd_samples.parquet gives {want:.6g} for that curve; {RERUN}"
+            )
+
+
+def _dotted_get(node: Any, *keys: str) -> Any:
+    for key in keys:
+        node = node.get(key) if isinstance(node, dict) else None
+    return node
+
+
+def _close(have: float, want: float, tolerance: float = SCORE_TOLERANCE) -> bool:
+    return abs(float(have) - float(want)) <= tolerance * max(1.0, abs(float(want)))
 
 
 #: The values ``network.json``'s ``row_0`` takes (:meth:`twin.sumo.source.SumoSource.network_info`):
@@ -542,28 +618,6 @@ def check_partial(run_dir: Path, run: dict[str, Any], manifest: dict[str, Any]) 
             f"{run_dir / 'manifest.json'}: partial = {str(said).lower()}, but run.json has "
             f"partial = {str(recorded).lower()}; {RERUN}"
         )
-
-
-def check_per_seed_scores(run_dir: Path, series: pd.DataFrame, per_seed: pd.DataFrame) -> None:
-    """``per_seed.csv``'s ``R_hat_T`` of each seed and swarm is the mean ``R^k`` of that seed
-    and swarm in ``series.parquet`` (Def. 4)."""
-    path = run_dir / "per_seed.csv"
-    if "R_hat_T" not in per_seed.columns:
-        return
-    series = series.assign(swarm=series["swarm"].astype(str), seed=series["seed"].astype(int))
-    expected = series.groupby(["seed", "swarm"])["reward"].mean()
-    roles = per_seed["role"] if "role" in per_seed.columns else pd.Series("swarm", per_seed.index)
-    for (_, row), role in zip(per_seed.iterrows(), roles, strict=True):
-        key = (int(row["seed"]), str(row["swarm"]))
-        value = float(row["R_hat_T"])
-        if role == "ceiling" or key not in expected.index or not np.isfinite(value):
-            continue
-        want = float(expected[key])
-        if abs(value - want) > SCORE_TOLERANCE * max(1.0, abs(want)):
-            raise UserError(
-                f"{path}: seed {key[0]}, swarm {key[1]!r} has R_hat_T = {value:.6g}, its series "
-                f"in series.parquet gives {want:.6g}; {RERUN}"
-            )
 
 
 def _steps_per_seed(series: pd.DataFrame) -> pd.Series:
