@@ -16,6 +16,7 @@ import pytest
 
 from twin.errors import UserError
 from twin.grid import Grid
+from twin.mfd import MFD, fit_quality
 from twin.readback import BOUNDS
 from twin.report import load_run, write_report
 from twin.report.document import MONITORING_TABLE_COLUMNS, TABLE_COLUMNS
@@ -179,14 +180,57 @@ def write_fixture_run(
              "j": rng.integers(0, ny, n), "count": count, "lane_km": 0.5, "density": density,
              "speed": speed, "speed_limit": limit}
         ).to_parquet(run / "mfd_samples.parquet", index=False)  # fmt: skip
+        quality = fit_quality(MFD(0.7013, 39.87), density, speed, limit)
         mfd = {"form": "underwood: v(k) = a * v_lim * exp(-k / k_c)", "a": 0.7013, "k_c": 39.87,
-               "fit": "online", "n_samples": n, "r2": 0.913, "rmse_kmh": 1.82,
+               "fit": "online", "n_samples": n, "r2": quality["r2"],
+               "rmse_kmh": quality["rmse_kmh"],
                "density_unit": "veh per lane-km", "speed_unit": "m/s"}  # fmt: skip
         (run / "mfd.json").write_text(json.dumps(mfd))
         meta["traffic"] = {"kind": "sumo", "begin": "07:00:00", "step_s": 75.0}
         (run / "run.json").write_text(json.dumps(meta))
+    _derive_files(run, obstacles)
     write_manifest(run)  # the last file of a finished run folder
     return run
+
+
+def _derive_files(run: Path, obstacles: np.ndarray) -> None:
+    """events.parquet's sightings, per_seed.csv, summary.csv and monitoring.csv made from the
+    fixture's primary files as twin makes them, so the folder agrees with itself (the report
+    refuses derived files that contradict their sources)."""
+    from twin.metrics import aggregate
+    from twin.report.derived import (
+        Primary,
+        ceiling_scores,
+        event_rows,
+        monitoring_scores,
+        series_scores,
+    )
+
+    read = pd.read_parquet
+    primary = Primary(run, read(run / "series.parquet"), read(run / "trajectories.parquet"),
+                      read(run / "events.parquet"), obstacles,
+                      json.loads((run / "run.json").read_text()), list(SWARMS))  # fmt: skip
+    events = event_rows(primary, pd.DataFrame())
+    events.to_parquet(run / "events.parquet", index=False)
+    primary.events = events
+    forged = pd.read_csv(run / "per_seed.csv")
+    per_seed = series_scores(primary, forged)
+    for part in (ceiling_scores(primary, forged), monitoring_scores(primary, forged)):
+        per_seed = per_seed.merge(part, on=["seed", "swarm"], how="left")
+    split = forged[["seed", "swarm", "R_hat_T_paper"]].copy()
+    per_seed = per_seed.merge(split, on=["seed", "swarm"], how="left")
+    per_seed["R_hat_T_importance"] = 0.4 * per_seed["R_hat_T"]
+    per_seed["R_hat_T_idleness"] = per_seed["R_hat_T"] - per_seed["R_hat_T_importance"]
+    order = per_seed["swarm"].map(SWARMS.index)
+    per_seed = per_seed.assign(order=order).sort_values(["seed", "order"]).drop(columns="order")
+    per_seed.to_csv(run / "per_seed.csv", index=False)
+    summary = aggregate(per_seed)
+    summary.to_csv(run / "summary.csv", index=False)
+    columns = ["swarm"] + [
+        c for col, _, _ in MONITORING_TABLE_COLUMNS for c in (col, f"{col}_ci95")
+        if c in summary.columns
+    ] + ["n_seeds"]  # fmt: skip
+    summary[columns].to_csv(run / "monitoring.csv", index=False)
 
 
 @pytest.fixture(scope="module")
