@@ -110,3 +110,18 @@ def test_prior_pseudo_samples_hold_k_c_until_dense_data_arrives():
     density, r = _samples(rng, n=20000, a=0.6, k_c=20.0, noise=0.02)
     held.add(np.full(len(density), 5), density, r)
     assert abs(held.fit().k_c - 20.0) < 1.0  # plenty of data outweighs the prior
+
+
+def test_samples_of_a_run_without_vehicles_keep_their_columns() -> None:
+    """No cell ever held a vehicle: the samples are empty but keep the columns and types of a
+    run that had some, so mfd_samples.parquet reads back like any other."""
+    free = np.ones((2, 2), dtype=bool)
+    lane_km, limit = np.ones((2, 2)), np.full((2, 2), 14.0)
+    empty = MFDImportance(free, lane_km, limit)
+    empty.observe(0, np.zeros((2, 2)), np.zeros((2, 2)))
+    busy = MFDImportance(free, lane_km, limit)
+    busy.observe(0, np.full((2, 2), 3), np.full((2, 2), 9.0))
+    got, want = empty.samples(), busy.samples()
+    assert list(got) == list(want) and all(len(v) == 0 for v in got.values())
+    assert {k: v.dtype for k, v in got.items()} == {k: v.dtype for k, v in want.items()}
+    assert empty.report()["n_samples"] == 0

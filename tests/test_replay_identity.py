@@ -130,7 +130,7 @@ CASES = {
     "other cell size": (
         _edit_run_json(lambda m: m["traffic"]["identity"].update(cell_m=100.0)),
         None,
-        "the cell size (m) was 100.0, now 200.0",
+        "grid.cell_m = 200, but run.json has traffic.identity.cell_m = 100",
     ),
     "other grid": (
         _edit_run_json(lambda m: m["traffic"]["identity"].update(grid=[9, 9])),

@@ -231,6 +231,14 @@ def density_from_counts(count: np.ndarray, lane_km: np.ndarray, p: float = 1.0) 
         )
 
 
+#: The columns of the MFD's samples (``mfd_samples.parquet``), with their types when empty.
+EMPTY_SAMPLE_COLUMNS = {
+    "step": np.int64, "i": np.int64, "j": np.int64, "count": np.int64, "lane_km": np.float64,
+    "density": np.float64, "speed": np.float64, "speed_limit": np.float64,
+    "speed_mfd_online": np.float64,
+}  # fmt: skip
+
+
 class MFDImportance:
     """Snapshot by snapshot, per-cell counts and ground-truth speeds -> importance ``T^k``.
 
@@ -335,7 +343,9 @@ class MFDImportance:
 
     def samples(self) -> dict[str, np.ndarray]:
         """Every (cell, snapshot) sample with vehicles: the MFD's data (``mfd_samples``)."""
-        keys = self._samples[0].keys() if self._samples else ()
+        if not self._samples:  # the same columns, empty: a run folder's file keeps its shape
+            return {k: np.empty(0, dtype) for k, dtype in EMPTY_SAMPLE_COLUMNS.items()}
+        keys = self._samples[0].keys()
         return {k: np.concatenate([s[k] for s in self._samples]) for k in keys}
 
     def report(self) -> dict:
@@ -345,7 +355,7 @@ class MFDImportance:
         if self.fit_mode == "online" and self.used == "prior" and self.online.n_samples:
             fit = self.online.fit()
             used["rejected_fit"] = {"a": fit.a, "k_c": fit.k_c}
-        if not s:
+        if not len(s["step"]):
             return {**self.mfd.to_json(), "fit": self.fit_mode, **used, "n_samples": 0}
         final = fit_quality(self.mfd, s["density"], s["speed"], s["speed_limit"])
         online = {"r2": float("nan"), "rmse_kmh": float("nan")}
