@@ -34,7 +34,7 @@ def tree_hash(folder: Path, skip: Path | None = None) -> str:
     for p in sorted(folder.rglob("*")):
         if skip is not None and (p == skip or skip in p.parents):
             continue
-        digest.update(str(p.relative_to(folder)).encode())
+        digest.update(os.fsencode(p.relative_to(folder)))
         if p.is_file() and not p.is_symlink():
             digest.update(p.read_bytes())
     return digest.hexdigest()
@@ -254,6 +254,22 @@ CASES = {
             os.fsdecode(bytes(t) + b"/\xff\xfe"),
         ],
         "not valid UTF-8",
+    ),
+    "network file not UTF-8": (
+        lambda t: ["run", "--net", str(_write(t / os.fsdecode(b"city\xff.net.xml"), "<net/>"))],
+        "city\\xff.net.xml': the name is not valid UTF-8; give a name in UTF-8 (rename",
+    ),
+    "config in a folder not UTF-8": (
+        lambda t: ["evaluate", "--config", os.fsdecode(bytes(t) + b"/\xfe/small.toml")],
+        "\\xfe/small.toml': the name is not valid UTF-8",
+    ),
+    "one of several tapes not UTF-8": (
+        lambda t: ["pretrain", "--traffic", "a.parquet", os.fsdecode(b"b\xff.parquet")],
+        "--traffic 'b\\xff.parquet': the name is not valid UTF-8",
+    ),
+    "run folder not UTF-8": (
+        lambda t: ["report", os.fsdecode(bytes(t) + b"/run\xff")],
+        "run\\xff': the name is not valid UTF-8",
     ),
     "sweep out not UTF-8": (
         lambda t: ["sweep", "--config", "sweep-demo", "--out", os.fsdecode(bytes(t) + b"/x\xff")],
