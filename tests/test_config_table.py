@@ -389,6 +389,42 @@ def test_bases_are_valid(tmp_path, monkeypatch):
     assert load_pretrain(tmp_path / "pre.toml").training_map.grid.nx == 6
 
 
+BOM = b"\xef\xbb\xbf"  # the UTF-8 byte order mark editors on Windows put first
+
+
+@pytest.mark.parametrize("kind", ["scenario", "sweep", "pretrain"])
+def test_a_byte_order_mark_is_read_past(tmp_path, kind):
+    """TOML forbids the mark; twin reads the file as the same file without it."""
+    from twin.sweep import load_sweep_config
+    from twin.training.pretrain import load_config as load_pretrain
+
+    def both(name: str, text: str) -> tuple[Path, Path]:
+        (tmp_path / "plain").mkdir(exist_ok=True)
+        (tmp_path / "bom").mkdir(exist_ok=True)
+        (tmp_path / "plain" / name).write_text(text)
+        (tmp_path / "bom" / name).write_bytes(BOM + text.encode())
+        return tmp_path / "plain" / name, tmp_path / "bom" / name
+
+    scenario = toml_text(SYNTHETIC, "grid", "nx", "6")
+    plain, bom = both("scenario.toml", scenario)
+    if kind == "sweep":
+        plain, bom = both("sweep.toml", toml_text(SWEEP, "sweep", "seed", "0"))
+    load = {"scenario": load_config, "sweep": load_sweep_config, "pretrain": load_pretrain}[kind]
+    if kind == "pretrain":
+        plain, bom = both("pre.toml", pretrain_text())
+    got = repr(load(bom).model_dump(exclude={"path"}))  # the sweep names its scenario's path
+    assert got.replace(str(bom.parent), str(plain.parent)) == repr(
+        load(plain).model_dump(exclude={"path"})
+    )
+
+
+def test_a_bad_key_after_a_byte_order_mark_is_one_line(tmp_path, capsys):
+    path = tmp_path / "bad.toml"
+    path.write_bytes(BOM + toml_text(SYNTHETIC, "swarm", "eta", "nan").encode())
+    code = main(["evaluate", "--config", str(path), "--quiet", "--no-report"])
+    _one_line(capsys, code, path, "[swarm].eta")
+
+
 def _one_line(capsys, code: int, path: Path, needle: str) -> None:
     err = capsys.readouterr().err
     assert code == 2, err

@@ -14,6 +14,7 @@ or the key.
 
 from __future__ import annotations
 
+import codecs
 import copy
 import math
 import re
@@ -729,10 +730,13 @@ def _toml(value: Any) -> str:
 
 # ------------------------------------------------------------------------------- reading
 def read_toml(path: str | Path) -> dict[str, Any]:
+    """The tables of the TOML file ``path``; a UTF-8 byte order mark at its start (as editors
+    on Windows write it, and TOML does not allow) is skipped."""
     path = Path(path)
     try:
         with open(path, "rb") as fh:
-            return tomllib.load(fh)
+            raw = fh.read()
+        return tomllib.loads(raw.removeprefix(codecs.BOM_UTF8).decode("utf-8"))
     except FileNotFoundError:
         raise UserError(f"{path}: config file not found; check the path") from None
     except IsADirectoryError:
