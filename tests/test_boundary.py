@@ -283,6 +283,26 @@ CASES = {
         lambda t: ["evaluate", "--config", str(small_config(t)), "--swarms", " , "],
         "--swarms is empty",
     ),
+    "swarms with an empty name": (
+        lambda t: ["evaluate", "--config", str(small_config(t)), "--swarms", "random,,greedy"],
+        "--swarms 'random,,greedy': name 2 of 3 is empty (two commas in a row, or one at an end)",
+    ),
+    "swarms with a trailing comma": (
+        lambda t: ["run", "--swarms", "random, greedy,"],
+        "--swarms 'random, greedy,': name 3 of 3 is empty",
+    ),
+    "gui swarms with an empty name": (
+        lambda t: ["run", "--gui-swarms", ",random"],
+        "--gui-swarms ',random': name 1 of 2 is empty",
+    ),
+    "config swarms with an empty name": (
+        lambda t: [
+            "evaluate",
+            "--config",
+            str(_edited_config(t, 'swarms = ["random",', 'swarms = ["", "random",')),
+        ],
+        "small.toml: [evaluate].swarms = ['', 'random', ",
+    ),
     "record over an existing file": (
         lambda t: ["run", "--record", str(_write(t / "mine.mp4", "my video"))],
         "the file exists, and --record never overwrites a file",

@@ -156,7 +156,15 @@ SYNTHETIC_BAD = {
         "[{ j = nan }]",
         "[{ colour = 1 }]",
     ],
-    ("evaluate", "swarms"): ["[]", '"greedy"', "[1]"],
+    ("evaluate", "swarms"): [
+        "[]",
+        '"greedy"',
+        "[1]",
+        '["greedy", ""]',
+        '["greedy", " "]',
+        '["greedy", "greedy"]',
+        '["nope"]',
+    ],
     ("evaluate", "seeds"): [*WHOLE, "0"],
     ("evaluate", "seed"): [*WHOLE, "-1"],
     ("swarm_options.greedy", "speed"): ["3"],
@@ -235,7 +243,14 @@ def test_sumo_grid_needs_both_sides(tmp_path, capsys):
 
 SWEEP_BAD = {
     ("sweep", "name"): ['"../x"', '"a/b"', '".."', '""', '".hidden"', "3"],
-    ("sweep", "swarms"): ["[]", '["nope"]', '"greedy"', '["greedy", "greedy"]', "[1]"],
+    ("sweep", "swarms"): [
+        "[]",
+        '["nope"]',
+        '"greedy"',
+        '["greedy", "greedy"]',
+        "[1]",
+        '["", "greedy"]',
+    ],
     ("sweep", "seeds"): ["0", "-1", "[]", "[1, 1]", "[-1]", "2.5", "true", '"3"', "nan"],
     ("sweep", "seed"): [*WHOLE, "-1"],
     ("scenario", "name"): ['"../evil"', '"a/b"', '".."', '"a\\\\b"', "3"],

@@ -356,6 +356,14 @@ class EvaluateConfig(StrictModel):
     seeds: Count = 1
     seed: Seed = 0
 
+    @field_validator("swarms")
+    @classmethod
+    def _swarms(cls, swarms: list[str]) -> list[str]:
+        from twin.swarms import check_swarm_list
+
+        check_swarm_list(swarms)
+        return swarms
+
 
 class DroneLossConfig(StrictModel):
     """``[[faults.drone_loss]]``: drone ``drone`` (0-based) lost at ``step``, back at ``back``."""
