@@ -7,6 +7,7 @@ from __future__ import annotations
 import errno
 import hashlib
 import os
+import re
 import shutil
 import sys
 import time
@@ -1216,7 +1217,13 @@ def test_env_refuses_bad_options(env, options, words, joint) -> None:
 
 @pytest.mark.parametrize(
     ("seed", "words"),
-    [("abc", "seed = 'abc' is not a whole number"), (-1, "seed = -1 is negative"), (1.5, "1.5")],
+    [
+        ("abc", "seed = 'abc' is not a whole number"),
+        (-1, "seed = -1 is negative"),
+        (1.5, "1.5"),
+        (True, "seed = True is not a whole number"),
+        ([3], r"seed = \[3\] is not a whole number"),
+    ],
 )
 @pytest.mark.parametrize("joint", [False, True])
 def test_env_refuses_bad_reset_seeds(env, seed, words, joint) -> None:
@@ -1227,6 +1234,49 @@ def test_env_refuses_bad_reset_seeds(env, seed, words, joint) -> None:
     with pytest.raises(EnvInputError, match=words):
         e.reset(seed=seed)
     e.reset(seed=np.int64(3))
+
+
+def _steps(e, joint: bool, n: int) -> None:
+    for _ in range(n):
+        e.step([0, 0] if joint else {"drone_0": 0, "drone_1": 0})
+
+
+# a call out of order -> what is done before it, the call, words of the one-line error
+CALL_ORDER = {
+    "step before reset": (lambda e, joint: None, "step", "step() before reset(): call env.reset"),
+    "step after the episode": (
+        lambda e, joint: (e.reset(seed=0), _steps(e, joint, 5)),
+        "step",
+        "step() after the episode ended (truncated after 5 steps): call env.reset() to start",
+    ),
+    "step after close": (lambda e, joint: (e.reset(seed=0), e.close()), "step", "after close()"),
+    "reset after close": (lambda e, joint: e.close(), "reset", "reset() after close(): the env"),
+}
+
+
+@pytest.mark.parametrize("name", list(CALL_ORDER))
+@pytest.mark.parametrize("joint", [False, True])
+def test_env_calls_out_of_order_say_what_to_call_first(env, name, joint) -> None:
+    """twin's error (a UserError, also Gymnasium's ResetNeeded and a RuntimeError, as
+    PettingZoo and Gymnasium users catch), one line, not a bare RuntimeError; the env works
+    again after reset() unless closed."""
+    from gymnasium.error import ResetNeeded
+
+    from twin.env import EnvCallOrderError, SwarmGymEnv
+
+    cls, source = env
+    e = (SwarmGymEnv if joint else cls)(source, n_drones=2)
+    before, call, words = CALL_ORDER[name]
+    before(e, joint)
+    with pytest.raises(EnvCallOrderError, match=re.escape(words)) as info:
+        e.step([0, 0] if joint else {"drone_0": 0, "drone_1": 0}) if call == "step" else e.reset()
+    assert all(isinstance(info.value, kind) for kind in (UserError, ResetNeeded, RuntimeError))
+    assert "\n" not in str(info.value)
+    if "close" not in name:
+        e.reset(seed=1)
+        _steps(e, joint, 1)
+    e.close()
+    e.close()  # twice: nothing happens
 
 
 def test_error_log_never_follows_a_link(tmp_path: Path, monkeypatch) -> None:
