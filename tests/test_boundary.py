@@ -441,6 +441,8 @@ EMPTY_PATHS = {
     "run --net": ["run", "--net", ""],
     "run --record": ["run", "--record", ""],
     "evaluate --traffic": ["evaluate", "--traffic", ""],
+    "pretrain --traffic, one of two": ["pretrain", "--traffic", "a.parquet", ""],
+    "pretrain --init": ["pretrain", "--init", ""],
     "report RUN_DIR": ["report", ""],
     "replay RUN_DIR": ["replay", ""],
 }

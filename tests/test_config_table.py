@@ -315,6 +315,7 @@ PRETRAIN_BAD = {
     ("", "log_every"): ["0"],
     ("", "checkpoint_every"): ["0"],
     ("", "snapshot_every"): ["-1", "nan"],
+    ("", "tapes"): ['[""]', '[" "]', '["nowhere.parquet"]'],
 }
 
 
