@@ -195,10 +195,11 @@ def test_bad_synthetic_scenario(tmp_path, capsys, section, key, value):
 
 SUMO_BAD = {
     ("traffic", "network"): ["3", "true", '"../../etc"', '"a/b"'],
-    ("traffic", "net"): ["3"],
-    ("traffic", "routes"): ["3", "[1]"],
-    ("traffic", "sumocfg"): ["true"],
-    ("traffic", "osm"): ["1.0"],
+    ("traffic", "net"): ["3", '""'],
+    ("traffic", "routes"): ["3", "[1]", '""', '["a.rou.xml", ""]'],
+    ("traffic", "additional"): ['[" "]'],
+    ("traffic", "sumocfg"): ["true", '" "'],
+    ("traffic", "osm"): ["1.0", '""'],
     ("traffic", "cell_m"): [*NUMBER, '"500"', "0", "-1.0"],
     ("traffic", "drone_speed_kmh"): [*NUMBER, "0"],
     ("traffic", "begin"): ['"07:75"', '"7"', "700", '"seven"'],

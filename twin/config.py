@@ -344,6 +344,16 @@ class SumoSettings(StrictModel):
         value = [value] if isinstance(value, str) else value
         if not isinstance(value, list) or not all(isinstance(r, str) for r in value):
             raise ValueError("must be a file or a list of them")
+        empty = [n for n, r in enumerate(value) if not r.strip()]
+        if empty:
+            raise ValueError(f"has an empty file name (entry {empty[0] + 1}); remove it")
+        return value
+
+    @field_validator("net", "sumocfg", "osm")
+    @classmethod
+    def _file(cls, value: str | None) -> str | None:
+        if value is not None and not value.strip():
+            raise ValueError("is an empty file name; give a file or leave the key out")
         return value
 
     @property
