@@ -202,6 +202,48 @@ TAPE_CASES: dict[str, tuple[Callable[[Path], Path], str]] = {
 }
 
 
+def _step_time(f: pd.DataFrame, step: int, time_s: float) -> pd.DataFrame:
+    return f.assign(time_s=np.where(f["step"] == step, time_s, f["time_s"]))
+
+
+def _settings(**more) -> Callable[[dict], dict]:
+    return lambda m: {**m, "settings": {**m["settings"], **more}}
+
+
+#: tapes whose rows are well-formed but absurd, or disagree with their metadata
+ABSURD_TAPES: dict[str, tuple[Callable[[Path], Path], str]] = {
+    "a huge vehicle count": (
+        lambda p: write_tape(p, lambda f: _set(f, "count", 2**31 - 1)),
+        "column count = 2147483647 at step -2, cell (0, 0) is more vehicles than its",
+    ),
+    "time going backwards": (
+        lambda p: write_tape(p, lambda f: _step_time(f, 2, 25200.0)),
+        "column time_s goes from 25275.0 at step 1 to 25200.0 at step 2, not forward",
+    ),
+    "a time repeated": (
+        lambda p: write_tape(p, lambda f: _step_time(f, 2, 25275.0)),
+        "column time_s goes from 25275.0 at step 1 to 25275.0 at step 2, not forward",
+    ),
+    "a whole step duplicated": (
+        lambda p: write_tape(p, lambda f: pd.concat([f, f[f["step"] == 3]], ignore_index=True)),
+        "step 3 has cell (0, 0) twice",
+    ),
+    "steps past the horizon": (
+        lambda p: write_tape(p, meta=lambda m: {**m, "horizon": 4}),
+        "steps go to 6, past the metadata's horizon = 4",
+    ),
+    "times apart from the step length": (
+        lambda p: write_tape(p, meta=_settings(step_s=60.0)),
+        "column time_s advances 75 s from step -2 to -1, the metadata's step_s = 60",
+    ),
+    "more warm-up than recorded": (
+        lambda p: write_tape(p, meta=_settings(step_s=75.0, warmup_s=75.0)),
+        "steps start at -2, before the metadata's warm-up of 1 steps",
+    ),
+}
+TAPE_CASES.update(ABSURD_TAPES)
+
+
 def snapshot(root: Path, skip: Path | None = None) -> dict[str, tuple[str, int]]:
     """sha256 and mtime of every file under ``root`` (``skip``: the run's own folder)."""
     out = {}
@@ -246,6 +288,25 @@ def test_bad_tape(tmp_path, capsys, cfg, case):
     err = run_case(capsys, tmp_path, [*argv, "--quiet", "--no-report"], out, 2, needle)
     assert str(tape) in err
     assert not out.exists()  # refused before anything was written
+
+
+@pytest.mark.parametrize("command", ["history", "pretrain"])
+@pytest.mark.parametrize("case", list(ABSURD_TAPES))
+def test_an_absurd_tape_is_refused_by_every_reader(tmp_path, capsys, command, case):
+    """`twin history --from TAPE` and `twin pretrain --traffic TAPE` refuse what `twin
+    evaluate --traffic TAPE` does (the same reader): one line naming the tape and the field."""
+    make, needle = ABSURD_TAPES[case]
+    tape = make(tmp_path / "tape.parquet")
+    if command == "history":
+        good_tape().write(tmp_path / "good.parquet")
+        out = tmp_path / "history.npz"
+        argv = ["history", "--from", str(tmp_path / "good.parquet"), str(tape), "--out", str(out)]
+    else:
+        out = tmp_path / "pretrained"
+        argv = ["pretrain", "--traffic", str(tape), "--epochs", "1", "--out", str(out), "--quiet"]
+    err = run_case(capsys, tmp_path, argv, out, 2, needle)
+    assert str(tape) in err
+    assert not out.exists()
 
 
 def test_tape_grid_against_the_config(tmp_path, capsys):

@@ -7,9 +7,11 @@ from __future__ import annotations
 import errno
 import hashlib
 import os
+import re
 import shutil
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +35,7 @@ def tree_hash(folder: Path, skip: Path | None = None) -> str:
     for p in sorted(folder.rglob("*")):
         if skip is not None and (p == skip or skip in p.parents):
             continue
-        digest.update(str(p.relative_to(folder)).encode())
+        digest.update(os.fsencode(p.relative_to(folder)))
         if p.is_file() and not p.is_symlink():
             digest.update(p.read_bytes())
     return digest.hexdigest()
@@ -254,6 +256,22 @@ CASES = {
         ],
         "not valid UTF-8",
     ),
+    "network file not UTF-8": (
+        lambda t: ["run", "--net", str(_write(t / os.fsdecode(b"city\xff.net.xml"), "<net/>"))],
+        "city\\xff.net.xml': the name is not valid UTF-8; give a name in UTF-8 (rename",
+    ),
+    "config in a folder not UTF-8": (
+        lambda t: ["evaluate", "--config", os.fsdecode(bytes(t) + b"/\xfe/small.toml")],
+        "\\xfe/small.toml': the name is not valid UTF-8",
+    ),
+    "one of several tapes not UTF-8": (
+        lambda t: ["pretrain", "--traffic", "a.parquet", os.fsdecode(b"b\xff.parquet")],
+        "--traffic 'b\\xff.parquet': the name is not valid UTF-8",
+    ),
+    "run folder not UTF-8": (
+        lambda t: ["report", os.fsdecode(bytes(t) + b"/run\xff")],
+        "run\\xff': the name is not valid UTF-8",
+    ),
     "sweep out not UTF-8": (
         lambda t: ["sweep", "--config", "sweep-demo", "--out", os.fsdecode(bytes(t) + b"/x\xff")],
         "not valid UTF-8",
@@ -265,6 +283,26 @@ CASES = {
     "swarms only commas": (
         lambda t: ["evaluate", "--config", str(small_config(t)), "--swarms", " , "],
         "--swarms is empty",
+    ),
+    "swarms with an empty name": (
+        lambda t: ["evaluate", "--config", str(small_config(t)), "--swarms", "random,,greedy"],
+        "--swarms 'random,,greedy': name 2 of 3 is empty (two commas in a row, or one at an end)",
+    ),
+    "swarms with a trailing comma": (
+        lambda t: ["run", "--swarms", "random, greedy,"],
+        "--swarms 'random, greedy,': name 3 of 3 is empty",
+    ),
+    "gui swarms with an empty name": (
+        lambda t: ["run", "--gui-swarms", ",random"],
+        "--gui-swarms ',random': name 1 of 2 is empty",
+    ),
+    "config swarms with an empty name": (
+        lambda t: [
+            "evaluate",
+            "--config",
+            str(_edited_config(t, 'swarms = ["random",', 'swarms = ["", "random",')),
+        ],
+        "small.toml: [evaluate].swarms = ['', 'random', ",
     ),
     "record over an existing file": (
         lambda t: ["run", "--record", str(_write(t / "mine.mp4", "my video"))],
@@ -403,6 +441,8 @@ EMPTY_PATHS = {
     "run --net": ["run", "--net", ""],
     "run --record": ["run", "--record", ""],
     "evaluate --traffic": ["evaluate", "--traffic", ""],
+    "pretrain --traffic, one of two": ["pretrain", "--traffic", "a.parquet", ""],
+    "pretrain --init": ["pretrain", "--init", ""],
     "report RUN_DIR": ["report", ""],
     "replay RUN_DIR": ["replay", ""],
 }
@@ -1096,24 +1136,99 @@ def test_ray_address_that_does_not_answer_fails_fast() -> None:
     assert time.monotonic() - start < 60
 
 
-def test_ray_cluster_that_does_not_let_twin_join_fails_within_the_timeout(monkeypatch) -> None:
+def _listen(answer: bytes | None) -> tuple[int, Callable[[], None]]:
+    """A TCP listener on a free local port that sends ``answer`` to each connection (None:
+    says nothing); its port and a function that stops it."""
+    import socket
+    import threading
+
+    server = socket.create_server(("127.0.0.1", 0))
+    server.settimeout(0.2)
+    stop = threading.Event()
+    held = []
+
+    def serve() -> None:
+        while not stop.is_set():
+            try:
+                conn, _ = server.accept()
+            except OSError:
+                continue
+            held.append(conn)
+            if answer == b"":
+                conn.close()
+            elif answer is not None:
+                conn.sendall(answer)
+
+    thread = threading.Thread(target=serve, daemon=True)
+    thread.start()
+
+    def close() -> None:
+        stop.set()
+        thread.join(5)
+        for conn in held:
+            conn.close()
+        server.close()
+
+    return server.getsockname()[1], close
+
+
+#: what listens on a Ray address -> its first bytes (None: nothing), words of the refusal
+NOT_RAY = {
+    "a silent listener": (None, "it said nothing within 2 s, not gRPC"),
+    "a web server": (b"HTTP/1.0 400 Bad Request\r\n\r\n", "answered 'HTTP/1.0 400 Bad Request'"),
+    "an HTML page": (b"<!DOCTYPE HTML>\n<html>", "answered '<!DOCTYPE HTML>'"),
+    "a listener that hangs up": (b"", "it closed the connection, not gRPC"),
+}
+
+
+@pytest.mark.parametrize("name", list(NOT_RAY))
+def test_an_address_where_no_ray_listens_is_one_line(name, tmp_path, capfd, monkeypatch) -> None:
+    """Refused before ``ray.init`` (whose C++ log lines would surround twin's): the address,
+    what answered, and where the right address is found."""
+    pytest.importorskip("ray", reason="Ray not installed (pip install 'twin[ray]')")
     from twin import executors
 
-    class SlowRay:
-        def init(self, **kwargs):
-            time.sleep(30)
+    monkeypatch.setattr(executors, "RAY_PROBE_S", 2.0)
+    monkeypatch.setenv("TWIN_CACHE_DIR", str(tmp_path / "cache"))
+    answer, words = NOT_RAY[name]
+    port, close = _listen(answer)
+    out = tmp_path / "sweep"
+    argv = ["sweep", "--config", "sweep-demo", "--executor", "ray", "--quiet", "--no-report"]
+    before = tree_hash(tmp_path, skip=out)
+    try:
+        assert main([*argv, "--address", f"127.0.0.1:{port}", "--out", str(out)]) == EXIT_REFUSED
+    finally:
+        close()
+    err = capfd.readouterr().err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in err, err
+    assert f"Ray address 127.0.0.1:{port}: something listens there but it is not a Ray" in err
+    assert words in err and "ray status" in err
+    assert tree_hash(tmp_path, skip=out) == before
 
-    class FailingRay:
-        def init(self, **kwargs):
-            raise ConnectionError("could not connect\nmore detail")
 
+def test_what_ray_prints_while_joining_goes_to_a_log(tmp_path, capfd, monkeypatch) -> None:
+    """Ray's C++ core writes its retries straight to file descriptor 2: while twin joins a
+    cluster they go to the cache's log, and the refusal is the one line on stderr, naming it
+    (and the token a cluster with token authentication wants)."""
+    from twin import executors
+
+    class NoisyRay:
+        def init(self, **kwargs):
+            for _ in range(3):
+                os.write(2, b"[W gcs_client.cc:210] Unauthenticated: InvalidAuthToken\n")
+            raise ConnectionError("Failed to connect to Ray cluster at 10.0.0.1:6379")
+
+    monkeypatch.setenv("TWIN_CACHE_DIR", str(tmp_path / "cache"))
     monkeypatch.setattr(executors, "_probe_address", lambda address: None)
-    start = time.monotonic()
-    with pytest.raises(UserError, match="no cluster joined within 1 s"):
-        executors._connect_ray(SlowRay(), "10.0.0.1:6379", timeout=1)
-    assert time.monotonic() - start < 10
-    with pytest.raises(UserError, match="ConnectionError: could not connect more detail"):
-        executors._connect_ray(FailingRay(), "10.0.0.1:6379", timeout=5)
+    assert run_command(lambda a: executors._connect_ray(NoisyRay(), "10.0.0.1:6379"), None) == 2
+    err = capfd.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "gcs_client" not in err, err
+    log = tmp_path / "cache" / executors.RAY_LOG_NAME
+    assert f"(Ray's log: {log})" in err and "RAY_AUTH_MODE=token" in err
+    assert log.read_text().count("InvalidAuthToken") == 3
+    os.write(2, b"after\n")  # stderr is the terminal's again
+    assert capfd.readouterr().err == "after\n"
 
 
 @pytest.fixture(scope="module")
@@ -1211,7 +1326,13 @@ def test_env_refuses_bad_options(env, options, words, joint) -> None:
 
 @pytest.mark.parametrize(
     ("seed", "words"),
-    [("abc", "seed = 'abc' is not a whole number"), (-1, "seed = -1 is negative"), (1.5, "1.5")],
+    [
+        ("abc", "seed = 'abc' is not a whole number"),
+        (-1, "seed = -1 is negative"),
+        (1.5, "1.5"),
+        (True, "seed = True is not a whole number"),
+        ([3], r"seed = \[3\] is not a whole number"),
+    ],
 )
 @pytest.mark.parametrize("joint", [False, True])
 def test_env_refuses_bad_reset_seeds(env, seed, words, joint) -> None:
@@ -1222,6 +1343,49 @@ def test_env_refuses_bad_reset_seeds(env, seed, words, joint) -> None:
     with pytest.raises(EnvInputError, match=words):
         e.reset(seed=seed)
     e.reset(seed=np.int64(3))
+
+
+def _steps(e, joint: bool, n: int) -> None:
+    for _ in range(n):
+        e.step([0, 0] if joint else {"drone_0": 0, "drone_1": 0})
+
+
+# a call out of order -> what is done before it, the call, words of the one-line error
+CALL_ORDER = {
+    "step before reset": (lambda e, joint: None, "step", "step() before reset(): call env.reset"),
+    "step after the episode": (
+        lambda e, joint: (e.reset(seed=0), _steps(e, joint, 5)),
+        "step",
+        "step() after the episode ended (truncated after 5 steps): call env.reset() to start",
+    ),
+    "step after close": (lambda e, joint: (e.reset(seed=0), e.close()), "step", "after close()"),
+    "reset after close": (lambda e, joint: e.close(), "reset", "reset() after close(): the env"),
+}
+
+
+@pytest.mark.parametrize("name", list(CALL_ORDER))
+@pytest.mark.parametrize("joint", [False, True])
+def test_env_calls_out_of_order_say_what_to_call_first(env, name, joint) -> None:
+    """twin's error (a UserError, also Gymnasium's ResetNeeded and a RuntimeError, as
+    PettingZoo and Gymnasium users catch), one line, not a bare RuntimeError; the env works
+    again after reset() unless closed."""
+    from gymnasium.error import ResetNeeded
+
+    from twin.env import EnvCallOrderError, SwarmGymEnv
+
+    cls, source = env
+    e = (SwarmGymEnv if joint else cls)(source, n_drones=2)
+    before, call, words = CALL_ORDER[name]
+    before(e, joint)
+    with pytest.raises(EnvCallOrderError, match=re.escape(words)) as info:
+        e.step([0, 0] if joint else {"drone_0": 0, "drone_1": 0}) if call == "step" else e.reset()
+    assert all(isinstance(info.value, kind) for kind in (UserError, ResetNeeded, RuntimeError))
+    assert "\n" not in str(info.value)
+    if "close" not in name:
+        e.reset(seed=1)
+        _steps(e, joint, 1)
+    e.close()
+    e.close()  # twice: nothing happens
 
 
 def test_error_log_never_follows_a_link(tmp_path: Path, monkeypatch) -> None:

@@ -156,7 +156,15 @@ SYNTHETIC_BAD = {
         "[{ j = nan }]",
         "[{ colour = 1 }]",
     ],
-    ("evaluate", "swarms"): ["[]", '"greedy"', "[1]"],
+    ("evaluate", "swarms"): [
+        "[]",
+        '"greedy"',
+        "[1]",
+        '["greedy", ""]',
+        '["greedy", " "]',
+        '["greedy", "greedy"]',
+        '["nope"]',
+    ],
     ("evaluate", "seeds"): [*WHOLE, "0"],
     ("evaluate", "seed"): [*WHOLE, "-1"],
     ("swarm_options.greedy", "speed"): ["3"],
@@ -187,10 +195,11 @@ def test_bad_synthetic_scenario(tmp_path, capsys, section, key, value):
 
 SUMO_BAD = {
     ("traffic", "network"): ["3", "true", '"../../etc"', '"a/b"'],
-    ("traffic", "net"): ["3"],
-    ("traffic", "routes"): ["3", "[1]"],
-    ("traffic", "sumocfg"): ["true"],
-    ("traffic", "osm"): ["1.0"],
+    ("traffic", "net"): ["3", '""'],
+    ("traffic", "routes"): ["3", "[1]", '""', '["a.rou.xml", ""]'],
+    ("traffic", "additional"): ['[" "]'],
+    ("traffic", "sumocfg"): ["true", '" "'],
+    ("traffic", "osm"): ["1.0", '""'],
     ("traffic", "cell_m"): [*NUMBER, '"500"', "0", "-1.0"],
     ("traffic", "drone_speed_kmh"): [*NUMBER, "0"],
     ("traffic", "begin"): ['"07:75"', '"7"', "700", '"seven"'],
@@ -235,7 +244,14 @@ def test_sumo_grid_needs_both_sides(tmp_path, capsys):
 
 SWEEP_BAD = {
     ("sweep", "name"): ['"../x"', '"a/b"', '".."', '""', '".hidden"', "3"],
-    ("sweep", "swarms"): ["[]", '["nope"]', '"greedy"', '["greedy", "greedy"]', "[1]"],
+    ("sweep", "swarms"): [
+        "[]",
+        '["nope"]',
+        '"greedy"',
+        '["greedy", "greedy"]',
+        "[1]",
+        '["", "greedy"]',
+    ],
     ("sweep", "seeds"): ["0", "-1", "[]", "[1, 1]", "[-1]", "2.5", "true", '"3"', "nan"],
     ("sweep", "seed"): [*WHOLE, "-1"],
     ("scenario", "name"): ['"../evil"', '"a/b"', '".."', '"a\\\\b"', "3"],
@@ -300,6 +316,7 @@ PRETRAIN_BAD = {
     ("", "log_every"): ["0"],
     ("", "checkpoint_every"): ["0"],
     ("", "snapshot_every"): ["-1", "nan"],
+    ("", "tapes"): ['[""]', '[" "]', '["nowhere.parquet"]'],
 }
 
 
@@ -387,6 +404,42 @@ def test_bases_are_valid(tmp_path, monkeypatch):
     load_sweep_config(tmp_path / "sweep.toml")
     (tmp_path / "pre.toml").write_text(pretrain_text())
     assert load_pretrain(tmp_path / "pre.toml").training_map.grid.nx == 6
+
+
+BOM = b"\xef\xbb\xbf"  # the UTF-8 byte order mark editors on Windows put first
+
+
+@pytest.mark.parametrize("kind", ["scenario", "sweep", "pretrain"])
+def test_a_byte_order_mark_is_read_past(tmp_path, kind):
+    """TOML forbids the mark; twin reads the file as the same file without it."""
+    from twin.sweep import load_sweep_config
+    from twin.training.pretrain import load_config as load_pretrain
+
+    def both(name: str, text: str) -> tuple[Path, Path]:
+        (tmp_path / "plain").mkdir(exist_ok=True)
+        (tmp_path / "bom").mkdir(exist_ok=True)
+        (tmp_path / "plain" / name).write_text(text)
+        (tmp_path / "bom" / name).write_bytes(BOM + text.encode())
+        return tmp_path / "plain" / name, tmp_path / "bom" / name
+
+    scenario = toml_text(SYNTHETIC, "grid", "nx", "6")
+    plain, bom = both("scenario.toml", scenario)
+    if kind == "sweep":
+        plain, bom = both("sweep.toml", toml_text(SWEEP, "sweep", "seed", "0"))
+    load = {"scenario": load_config, "sweep": load_sweep_config, "pretrain": load_pretrain}[kind]
+    if kind == "pretrain":
+        plain, bom = both("pre.toml", pretrain_text())
+    got = repr(load(bom).model_dump(exclude={"path"}))  # the sweep names its scenario's path
+    assert got.replace(str(bom.parent), str(plain.parent)) == repr(
+        load(plain).model_dump(exclude={"path"})
+    )
+
+
+def test_a_bad_key_after_a_byte_order_mark_is_one_line(tmp_path, capsys):
+    path = tmp_path / "bad.toml"
+    path.write_bytes(BOM + toml_text(SYNTHETIC, "swarm", "eta", "nan").encode())
+    code = main(["evaluate", "--config", str(path), "--quiet", "--no-report"])
+    _one_line(capsys, code, path, "[swarm].eta")
 
 
 def _one_line(capsys, code: int, path: Path, needle: str) -> None:

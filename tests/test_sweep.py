@@ -386,6 +386,57 @@ def test_failing_cells_are_reported_and_rerun(tmp_path: Path, capsys) -> None:
     assert set(pd.read_csv(tmp_path / "s" / "results.csv")["swarm"]) >= {"rl"}
 
 
+def test_a_cell_whose_run_did_not_finish_is_failed_not_done(tmp_path: Path, capsys) -> None:
+    """A cell whose traffic ends early (a tape short of its horizon) is a failed cell: one
+    line naming it, failed.json and the report list it, no row of it in results.csv, and a
+    rerun computes it again. A record of such a run left by an earlier version counts as
+    neither done nor a result."""
+    import dataclasses
+
+    from helpers import random_tape
+
+    from twin.sweep.store import merge
+
+    tape = random_tape(horizon=6)
+    keep = tape.steps <= 3  # the traffic stops at step 3 of 6
+    short = dataclasses.replace(
+        tape, steps=tape.steps[keep], times=tape.times[keep], counts=tape.counts[keep],
+        speeds=tape.speeds[keep],
+    )  # fmt: skip
+    short.write(tmp_path / "short.parquet")
+    random_tape(horizon=6).write(tmp_path / "whole.parquet")
+    path = sweep_file(tmp_path, seeds=1, horizon=6)
+    text = path.read_text().replace(
+        'config = "scenario.toml"', 'config = "scenario.toml"\ntape = "short.parquet"'
+    )
+    text += '\n[[scenario]]\nname = "whole"\nconfig = "scenario.toml"\ntape = "whole.parquet"\n'
+    path.write_text(text)
+    out = tmp_path / "s"
+    args = ["sweep", "--config", str(path), "--out", str(out), "--workers", "1", "--quiet"]
+    assert cli(args) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+    assert "1 of 2 cells failed (first: syn-s0-" in err
+    assert "its run did not finish: traffic source ended after 3 of 6 steps" in err
+    failed = json.loads((out / "failed.json").read_text())
+    assert list(failed) == [c for c in failed if c.startswith("syn-")] and len(failed) == 1
+    assert set(pd.read_csv(out / "results.csv")["scenario"]) == {"whole"}
+    assert (
+        f"cells FAILED in the last invocation and are not in the tables (failed.json): {next(iter(failed))}"
+        in (out / "report" / "sweep.md").read_text()
+    )
+    assert not (out / "cells" / f"{next(iter(failed))}.json").exists()
+    assert cli(args) == 2  # rerun: the failed cell again, the finished one skipped
+    assert "1 of 1 cells failed" in capsys.readouterr().err
+    # a record of a partial run (as an earlier version wrote them): neither done nor merged
+    (done,) = done_cells(out)
+    record = json.loads((out / "cells" / f"{done}.json").read_text())
+    (out / "cells" / f"{done}.json").write_text(json.dumps({**record, "error": "cut short"}))
+    assert done_cells(out) == set()
+    results, _ = merge(out, [done])
+    assert results.empty
+
+
 #: (dotted key, the line of configs/synthetic.toml it replaces, the new line) for every key a
 #: sweep override can reach in a synthetic scenario.
 OVERRIDES = [

@@ -14,6 +14,7 @@ or the key.
 
 from __future__ import annotations
 
+import codecs
 import copy
 import math
 import re
@@ -343,6 +344,16 @@ class SumoSettings(StrictModel):
         value = [value] if isinstance(value, str) else value
         if not isinstance(value, list) or not all(isinstance(r, str) for r in value):
             raise ValueError("must be a file or a list of them")
+        empty = [n for n, r in enumerate(value) if not r.strip()]
+        if empty:
+            raise ValueError(f"has an empty file name (entry {empty[0] + 1}); remove it")
+        return value
+
+    @field_validator("net", "sumocfg", "osm")
+    @classmethod
+    def _file(cls, value: str | None) -> str | None:
+        if value is not None and not value.strip():
+            raise ValueError("is an empty file name; give a file or leave the key out")
         return value
 
     @property
@@ -354,6 +365,14 @@ class EvaluateConfig(StrictModel):
     swarms: Annotated[list[str], Field(min_length=1)] = ["random", "greedy", "sweeping"]
     seeds: Count = 1
     seed: Seed = 0
+
+    @field_validator("swarms")
+    @classmethod
+    def _swarms(cls, swarms: list[str]) -> list[str]:
+        from twin.swarms import check_swarm_list
+
+        check_swarm_list(swarms)
+        return swarms
 
 
 class DroneLossConfig(StrictModel):
@@ -729,10 +748,13 @@ def _toml(value: Any) -> str:
 
 # ------------------------------------------------------------------------------- reading
 def read_toml(path: str | Path) -> dict[str, Any]:
+    """The tables of the TOML file ``path``; a UTF-8 byte order mark at its start (as editors
+    on Windows write it, and TOML does not allow) is skipped."""
     path = Path(path)
     try:
         with open(path, "rb") as fh:
-            return tomllib.load(fh)
+            raw = fh.read()
+        return tomllib.loads(raw.removeprefix(codecs.BOM_UTF8).decode("utf-8"))
     except FileNotFoundError:
         raise UserError(f"{path}: config file not found; check the path") from None
     except IsADirectoryError:

@@ -13,7 +13,10 @@ of the patrol loop, so a policy scores the same here as in ``run_patrol``.
   unknown agent name, an action that is not a whole number in 0..4 (in either env: ``1.0`` is
   not an action), a fractional or off-grid start, an ``n_drones`` that is not a whole number
   in 1..free cells or disagrees with ``starts``, a reset seed that is not a whole number >= 0
-  :class:`EnvInputError` (both :class:`~twin.errors.UserError` and ``ValueError``);
+  :class:`EnvInputError` (both :class:`~twin.errors.UserError` and ``ValueError``); ``step()``
+  before ``reset()`` or after the episode ended, and any call after ``close()``, raise
+  :class:`EnvCallOrderError` (a UserError, Gymnasium's ``ResetNeeded``, a ``RuntimeError``),
+  saying what to call first; ``close()`` twice does nothing the second time;
 - reward per drone: the headline reward :func:`twin.scores.rewards_on_arrival`, the gain of
   the cell the drone visits (split evenly among drones on one cell), so the drones' rewards sum
   to the swarm's ``R^k``; the infos carry its parts ``reward_importance`` (alpha_T) and
@@ -53,6 +56,28 @@ SourceLike = TrafficSource | Callable[[], TrafficSource]
 
 class EnvInputError(UserError, ValueError):
     """A bad argument to an env (agent name, action, start cell): one line naming it."""
+
+
+class EnvCallOrderError(UserError, gymnasium.error.ResetNeeded, RuntimeError):
+    """A call out of order (``step()`` before ``reset()`` or after the episode ended, any
+    call but ``close()`` after ``close()``): one line saying what to call first. Gymnasium's
+    ``ResetNeeded`` (what its order-enforcing wrapper raises) and a ``RuntimeError``."""
+
+
+def _check_order(env: SwarmParallelEnv, call: str) -> None:
+    """Refuse ``call`` (``"step()"``, ``"reset()"``) on a closed env, and a step outside an
+    episode."""
+    if env._closed:
+        raise EnvCallOrderError(f"{call} after close(): the env is closed; make a new one")
+    if call != "step()":
+        return
+    if env.swarm is None:
+        raise EnvCallOrderError("step() before reset(): call env.reset() first")
+    if env.swarm.k >= env.horizon:
+        raise EnvCallOrderError(
+            f"step() after the episode ended (truncated after {env.horizon} steps): call "
+            "env.reset() to start a new episode"
+        )
 
 
 def _action(agent: str, value: Any) -> int:
@@ -143,6 +168,7 @@ class SwarmParallelEnv(ParallelEnv):
         self._rng = np.random.default_rng()
         self._maps = None
         self._used = False
+        self._closed = False
         self.swarm: SwarmState | None = None
 
     def observation_space(self, agent: str) -> spaces.Space:
@@ -160,6 +186,7 @@ class SwarmParallelEnv(ParallelEnv):
         return agent
 
     def reset(self, seed: int | None = None, options: dict | None = None):
+        _check_order(self, "reset()")
         if seed is not None:
             self._rng = np.random.default_rng(_seed(seed))
         self._restart(self._rng)
@@ -167,6 +194,7 @@ class SwarmParallelEnv(ParallelEnv):
         return obs, {a: {} for a in self.agents}
 
     def step(self, actions: dict[str, int]):
+        _check_order(self, "step()")
         if not isinstance(actions, dict):
             raise EnvInputError(
                 f"actions must be a dict {{agent: action}}, got {type(actions).__name__}"
@@ -205,6 +233,10 @@ class SwarmParallelEnv(ParallelEnv):
         )
 
     def close(self) -> None:
+        """Close the traffic source (a live simulation ends); a second call does nothing."""
+        if self._closed:
+            return
+        self._closed = True
         self._close_maps()
         self.source.close()
 
@@ -229,10 +261,7 @@ class SwarmParallelEnv(ParallelEnv):
         self.agents = list(self.possible_agents)
 
     def _advance(self, actions: np.ndarray) -> StepOutcome:
-        if self._maps is None and self.swarm is not None and self.swarm.k < self.horizon:
-            raise EnvInputError("step() after close(): call reset() to start a new episode")
-        if self.swarm is None or self.swarm.k >= self.horizon:
-            raise RuntimeError("the episode is over (or not started): call reset()")
+        _check_order(self, "step()")
         actions = check_actions(self.swarm, actions)  # before the source moves on
         self.swarm, out = step(self.swarm, actions, self._next_map(), self.grid, self.params)
         if self.swarm.k >= self.horizon:
@@ -335,6 +364,7 @@ class SwarmGymEnv(gymnasium.Env):
         self.observation_space = spaces.Box(0.0, 1.0, (n, size), np.float32)
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
+        _check_order(self.swarm_env, "reset()")
         super().reset(
             seed=None if seed is None else _seed(seed)
         )  # np_random from seed: the stream of default_rng(seed)
@@ -343,6 +373,7 @@ class SwarmGymEnv(gymnasium.Env):
 
     def step(self, action):
         env = self.swarm_env
+        _check_order(env, "step()")
         action = _joint_action(action, env.n_drones)
         if self.infeasible == "stay" and env.swarm is not None and action.shape == (env.n_drones,):
             ok = env.swarm.feasible[np.arange(env.n_drones), action]

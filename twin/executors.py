@@ -3,13 +3,16 @@ on Ray, yielding each one's outcome as it finishes."""
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import multiprocessing
 import os
+import sys
 import threading
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
+from pathlib import Path
 from typing import Any
 
 from twin.errors import UserError
@@ -81,29 +84,71 @@ def _local_executor(cells: list[dict], workers: int, fn: Callable) -> Iterable[O
 
 #: Seconds to wait for a Ray cluster's address to answer (TCP), then for ``ray.init`` to join.
 RAY_PROBE_S, RAY_CONNECT_S = 10.0, 40.0
+#: An HTTP/2 client's connection preface and an empty SETTINGS frame (RFC 9113, 3.4 and 6.5):
+#: Ray's GCS and its client server speak gRPC, whose servers answer with a SETTINGS frame.
+_HTTP2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + bytes([0, 0, 0, 4, 0, 0, 0, 0, 0])
+_HTTP2_SETTINGS = 4
 
 
-def _probe_address(address: str, timeout: float = RAY_PROBE_S) -> None:
+def _probe_address(address: str, timeout: float | None = None) -> None:
     """Refuse (one line) a ``host:port`` Ray address on which nothing answers within
-    ``timeout`` seconds; ``auto``/``local`` and addresses without a port are left to Ray."""
+    ``timeout`` seconds, or something that does not speak gRPC (Ray's protocol): a web server,
+    a silent listener. Checked before ``ray.init``, whose own C++ log lines would otherwise
+    surround twin's line while it retries. ``auto``/``local``, addresses without a port and
+    clusters with TLS (``RAY_USE_TLS``) are left to Ray. ``timeout``: :data:`RAY_PROBE_S`."""
     import socket
 
+    timeout = RAY_PROBE_S if timeout is None else timeout
     rest = address.split("://", 1)[-1]
     host, sep, port = rest.rpartition(":")
     if not sep or not host or not port.isdigit():
         return
     fix = "start the cluster (ray start --head) or give its address: --address HOST:PORT"
     try:
-        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout):
-            pass
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout) as sock:
+            if os.environ.get("RAY_USE_TLS", "0").lower() in ("1", "true"):
+                return
+            answer = _http2_answer(sock, timeout)
     except OSError as exc:
         why = "no answer" if isinstance(exc, TimeoutError) else (exc.strerror or str(exc))
         raise UserError(f"Ray address {address}: {why} (waited {timeout:.0f} s); {fix}") from None
+    if answer is not None and len(answer) >= 9 and answer[3] == _HTTP2_SETTINGS:
+        return
+    if answer is None:
+        said = f"said nothing within {timeout:.0f} s"
+    elif not answer:
+        said = "closed the connection"
+    else:
+        first = answer.decode("ascii", "replace").splitlines()[0][:60]
+        said = f"answered {first!r}"
+    raise UserError(
+        f"Ray address {address}: something listens there but it is not a Ray cluster (it "
+        f"{said}, not gRPC); give the address of the cluster's head (ray status prints it)"
+    )
+
+
+def _http2_answer(sock: Any, timeout: float) -> bytes | None:
+    """The first bytes a server sends back to an HTTP/2 connection preface (None: nothing
+    within ``timeout`` seconds; empty: it closed the connection)."""
+    sock.settimeout(timeout)
+    try:
+        sock.sendall(_HTTP2_PREFACE)
+        return sock.recv(64)
+    except TimeoutError:
+        return None
+    except ConnectionError:
+        return b""
+
+
+#: The file in twin's cache that takes what Ray prints while twin joins a cluster.
+RAY_LOG_NAME = "ray-connect.log"
 
 
 def _connect_ray(ray: Any, address: str, timeout: float = RAY_CONNECT_S) -> None:
     """``ray.init(address)``, refused (one line) when the address does not answer or the
-    cluster does not let twin join within ``timeout`` seconds."""
+    cluster does not let twin join within ``timeout`` seconds. What Ray's C++ core prints
+    meanwhile (its retries, one line a second) goes to :data:`RAY_LOG_NAME` in twin's cache,
+    named by the refusal; lines it prints after a join that timed out still reach stderr."""
     _probe_address(address)
     outcome: dict[str, BaseException | None] = {}
 
@@ -115,15 +160,63 @@ def _connect_ray(ray: Any, address: str, timeout: float = RAY_CONNECT_S) -> None
             outcome["error"] = exc
 
     thread = threading.Thread(target=join, name="ray-connect", daemon=True)
-    thread.start()
-    thread.join(timeout)
+    with _stderr_into_log() as log:
+        thread.start()
+        thread.join(timeout)
     fix = "check that the cluster runs (ray status) and that the address is its head's"
+    said = _read_tail(log)
+    if "InvalidAuthToken" in said or "Unauthenticated" in said:
+        fix = (
+            "the cluster asks for its authentication token: run with RAY_AUTH_MODE=token (and "
+            "RAY_AUTH_TOKEN or RAY_AUTH_TOKEN_PATH if the token is not in ~/.ray/auth_token)"
+        )
+    see = f" (Ray's log: {log})" if said else ""
     if "error" not in outcome:
-        raise UserError(f"Ray address {address}: no cluster joined within {timeout:.0f} s; {fix}")
+        raise UserError(
+            f"Ray address {address}: no cluster joined within {timeout:.0f} s; {fix}{see}"
+        )
     error = outcome["error"]
     if error is not None:
         line = " ".join(str(error).split())[:200]
-        raise UserError(f"Ray address {address}: {type(error).__name__}: {line}; {fix}")
+        raise UserError(f"Ray address {address}: {type(error).__name__}: {line}; {fix}{see}")
+
+
+@contextlib.contextmanager
+def _stderr_into_log() -> Iterator[Path | None]:
+    """File descriptor 2 (where Ray's C++ core logs) into :data:`RAY_LOG_NAME` in twin's cache
+    while the block runs; yields the log's path (None, and stderr left alone, when the cache
+    cannot take it)."""
+    from twin.resources import cache_dir
+
+    try:
+        path = cache_dir() / RAY_LOG_NAME
+        path.parent.mkdir(parents=True, exist_ok=True)
+        log = open(path, "wb")  # noqa: SIM115 (closed below, after its descriptor is copied)
+    except OSError:
+        yield None
+        return
+    with contextlib.suppress(Exception):
+        sys.stderr.flush()
+    saved = os.dup(2)
+    try:
+        os.dup2(log.fileno(), 2)
+        log.close()
+        yield path
+    finally:
+        with contextlib.suppress(Exception):
+            sys.stderr.flush()
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+def _read_tail(path: Path | None, limit: int = 65536) -> str:
+    """The last ``limit`` bytes of ``path`` as text ('' when there is none)."""
+    try:
+        with open(path, "rb") as fh:  # type: ignore[arg-type]
+            fh.seek(max(0, fh.seek(0, 2) - limit))
+            return fh.read().decode("utf-8", "replace")
+    except (OSError, TypeError):
+        return ""
 
 
 def ray_tasks(

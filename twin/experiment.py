@@ -100,9 +100,23 @@ def limit_threads(n: int = 1) -> None:
         sys.modules["torch"].set_num_threads(n)
 
 
+def comma_names(text: str, flag: str) -> list[str]:
+    """The names of a comma-separated flag, blanks around each dropped (none: the flag names
+    nothing); an empty name between names (``a,,b``, ``a,``) is refused naming the flag."""
+    names = [s.strip() for s in text.split(",")]
+    if not any(names):
+        return []
+    if "" in names:
+        raise UserError(
+            f"{flag} {text!r}: name {names.index('') + 1} of {len(names)} is empty (two commas "
+            "in a row, or one at an end); separate the names by single commas, e.g. random,greedy"
+        )
+    return names
+
+
 def parse_swarm_names(text: str | None, default: Sequence[str], flag: str = "--swarms"):
     """Swarm names from a comma-separated flag (or ``default``), checked against the registry."""
-    names = [s.strip() for s in text.split(",") if s.strip()] if text is not None else list(default)
+    names = comma_names(text, flag) if text is not None else list(default)
     if not names:
         raise UserError(f"{flag} is empty; name at least one swarm")
     for name in names:

@@ -142,6 +142,22 @@ def check_swarm_name(name: str) -> None:
             )
 
 
+def check_swarm_list(swarms: list[str], known: Callable[[], list[str]] | None = None) -> None:
+    """Raise :class:`ValueError` (a config model's validator turns it into one line naming the
+    file and key) for an empty name, a swarm listed twice or an unknown swarm (``known``: the
+    names offered instead, default every registered swarm)."""
+    if any(not name.strip() for name in swarms):
+        raise ValueError("has an empty name; remove it (list each swarm once, by name)")
+    if len(set(swarms)) != len(swarms):
+        raise ValueError("lists a swarm twice; list each once")
+    for swarm in swarms:
+        try:
+            check_swarm_name(swarm)
+        except UserError:
+            offered = ", ".join((known or available_policies)())
+            raise ValueError(f"has unknown swarm {swarm!r}; use {offered}") from None
+
+
 def make_policy(name: str, **options) -> Policy:
     """Build the swarm registered under ``name`` (a labelled one under its base name)."""
     check_swarm_name(name)

@@ -122,7 +122,49 @@ def _dispatch(argv: list[str] | None) -> int:
     if not hasattr(args, "func"):
         parser.print_help()
         return 2
+    check_utf8_arguments(parser, args)
     return int(args.func(args) or 0)
+
+
+def check_utf8_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """Refuse (one line naming the argument) a file name or other argument that is not valid
+    UTF-8 (bytes such as 0xff, which Python holds as surrogates): libsumo cannot take it, nor
+    twin's JSON files and reports. SUMO's own programs open such files, but twin runs SUMO
+    through libsumo."""
+    names = _argument_names(parser)
+    for dest, value in vars(args).items():
+        for item in value if isinstance(value, (list, tuple)) else [value]:
+            if not isinstance(item, (str, Path)) or _is_utf8(str(item)):
+                continue
+            shown = os.fsencode(str(item)).decode("utf-8", "backslashreplace")
+            raise UserError(
+                f"{names.get(dest, dest)} '{shown}': the name is not valid UTF-8; give a name "
+                "in UTF-8 (rename the file or folder, or link to it under such a name: ln -s)"
+            )
+
+
+def _is_utf8(text: str) -> bool:
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        return False
+    return True
+
+
+def _argument_names(parser: argparse.ArgumentParser) -> dict[str, str]:
+    """Each argument's destination -> its name on the command line (``--net``, ``RUN_DIR``),
+    over the parser and its subcommands."""
+    names: dict[str, str] = {}
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                for dest, name in _argument_names(sub).items():
+                    names.setdefault(dest, name)
+        elif action.option_strings:
+            names.setdefault(action.dest, max(action.option_strings, key=len))
+        else:
+            names.setdefault(action.dest, action.metavar or action.dest.upper())
+    return names
 
 
 if __name__ == "__main__":

@@ -24,11 +24,11 @@ def add_parser(subparsers) -> None:
                    help=f"pretraining config (TOML); default {DEFAULT_CONFIG}")  # fmt: skip
     p.add_argument("--out", default=None, help="output folder (overrides the config's `out`)")
     p.add_argument("--epochs", type=int, default=None, help="overrides the config's `epochs`")
-    p.add_argument("--traffic", nargs="+", default=None, metavar="TAPE",
+    p.add_argument("--traffic", type=path_arg, nargs="+", default=None, metavar="TAPE",
                    help='train on these SUMO tapes (tape.parquet of `twin run`): the recipe '
                    'traffic = "tapes" (other recipes: the config key `traffic`, see '
                    "--help-config)")  # fmt: skip
-    p.add_argument("--init", default=None, metavar="QNET",
+    p.add_argument("--init", type=path_arg, default=None, metavar="QNET",
                    help="start from this model checkpoint (fine-tuning); the config key `init`")  # fmt: skip
     p.add_argument("--max-memory-gb", type=float, default=None,
                    help="memory limit in GB (default $TWIN_MAX_MEMORY_GB, else 8)")  # fmt: skip

@@ -148,11 +148,10 @@ def add_gui_arguments(p) -> None:
 def gui_drawer(args: argparse.Namespace, swarms):
     """The per-step drawer of ``--gui`` (None without it), its settings checked (the
     ``--gui-*`` flags are checked without ``--gui`` too: a typo is refused, not ignored)."""
+    from twin.experiment import comma_names
     from twin.sumo.gui import GuiDrawer, GuiSettings, check_settings
 
-    shown = (
-        [s.strip() for s in args.gui_swarms.split(",") if s.strip()] if args.gui_swarms else None
-    )
+    shown = comma_names(args.gui_swarms, "--gui-swarms") if args.gui_swarms else None
     if args.gui_swarms is not None and not shown:
         raise UserError(
             f"--gui-swarms {args.gui_swarms!r}: names no swarm; give comma-separated swarms of "

@@ -132,6 +132,20 @@ def figure_curves(out_dir: Path, results: pd.DataFrame) -> Figure | None:
     return fig
 
 
+def _failed_cells(out_dir: Path) -> dict[str, str]:
+    """``failed.json``: the cells the last invocation could not compute, and why."""
+    failed = read_json(out_dir / "failed.json")
+    if failed is None:
+        return {}
+    if not isinstance(failed, dict) or not all(
+        isinstance(k, str) and isinstance(v, str) for k, v in failed.items()
+    ):
+        raise UserError(
+            f"{out_dir / 'failed.json'}: not a table of cell ids and errors; rerun the sweep"
+        )
+    return failed
+
+
 def write_sweep_report(out_dir: Path) -> Path:
     """Write ``out_dir/report/sweep.html``, ``sweep.md`` and the PNGs; return the HTML path.
 
@@ -177,6 +191,12 @@ def _draw_sweep_report(
             f"({', '.join(codes)}, column 'code' of results.csv); delete the cells of the old "
             "version and rerun to make the table consistent."
         )
+    failed = _failed_cells(out_dir)
+    if failed:
+        lede += (
+            f" {len(failed)} cells FAILED in the last invocation and are not in the tables "
+            f"(failed.json): {', '.join(failed)}; fix the cause and rerun the sweep."
+        )
     runs = manifest.get("invocations", [])
     run_rows = [
         [
@@ -220,6 +240,10 @@ def _draw_sweep_report(
             f'<img src="{_data_uri(out / name)}" alt="{html.escape(title)}">',
         ]
         md += [f"## {md_escape(title)}", "", f"![{md_escape(title)}]({name})", ""]
+    if failed:
+        fail_rows = [[cid, error] for cid, error in failed.items()]
+        parts += ["<h2>Failed cells</h2>", html_table(["cell", "error"], fail_rows, "failed")]
+        md += ["## Failed cells", "", markdown_table(["cell", "error"], fail_rows), ""]
     if run_rows:
         parts += ["<h2>Invocations</h2>", html_table(run_header, run_rows, "runs")]
         md += ["## Invocations", "", markdown_table(run_header, run_rows), ""]

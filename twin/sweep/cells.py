@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from twin.errors import UserError
 from twin.files import atomic_write, file_sha256
 from twin.sweep.config import SweepConfig
 from twin.sweep.store import CELLS_DIR, write_cell_record
@@ -128,6 +129,8 @@ def _run_cell(cell: dict[str, Any]) -> dict[str, Any]:
     )
     outcome = run_experiment(experiment)
     result = outcome.results[0]
+    if result.error:  # a partial run is no cell's result: nothing written, the cell is failed
+        raise UserError(f"its run did not finish: {result.error}")
     meta = run_metadata(outcome, "sweep-cell")
     rows = seed_table(result, config.params, step_seconds_of(meta), monitor_run(result))
     if cell.get("ceilings"):  # the oracle and the bound on this cell's true maps

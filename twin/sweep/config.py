@@ -32,7 +32,6 @@ from twin.config import (
     read_toml,
     validation_error,
 )
-from twin.errors import UserError
 
 
 class SweepSection(StrictModel):
@@ -51,16 +50,9 @@ class SweepSection(StrictModel):
     @field_validator("swarms")
     @classmethod
     def _swarms(cls, swarms: list[str]) -> list[str]:
-        from twin.swarms import available_policies, check_swarm_name
+        from twin.swarms import check_swarm_list
 
-        if len(set(swarms)) != len(swarms):
-            raise ValueError("lists a swarm twice; list each once")
-        for swarm in swarms:
-            try:
-                check_swarm_name(swarm)
-            except UserError:
-                known = ", ".join(available_policies())
-                raise ValueError(f"has unknown swarm {swarm!r}; use {known}") from None
+        check_swarm_list(swarms)
         return swarms
 
     @field_validator("seeds", mode="plain")

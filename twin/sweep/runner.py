@@ -114,8 +114,9 @@ def run_sweep(
     if failed:
         cid, error = next(iter(failed.items()))
         raise UserError(
-            f"{len(failed)} of {len(todo)} cells failed (first: {cid}: {error}); the other cells "
-            f"are saved in {out_dir}, fix the cause and rerun to run only the missing ones"
+            f"{len(failed)} of {len(todo)} cells failed (first: {cid}: {error}; all in "
+            f"{failed_path}); the other cells are saved in {out_dir}, fix the cause and rerun "
+            "to run only the missing ones"
         )
     return SweepOutcome(out_dir, ran, skipped, seconds, summary, failed)
 

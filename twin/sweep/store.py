@@ -78,11 +78,18 @@ def done_cells(out_dir: Path, expected: dict[str, dict[str, Any]] | None = None)
         if path.name.startswith("."):
             continue
         try:
-            check_cell(path, read_cell(path), (expected or {}).get(path.stem))
+            record = read_cell(path)
+            check_cell(path, record, (expected or {}).get(path.stem))
         except UserError as exc:
             reason = str(exc).split("; ")[0]
             notify(
                 f"twin: notice: sweep cell {path.stem} is damaged ({reason}); computing it again"
+            )
+            continue
+        if record.get("error"):  # a partial run: failed, not done
+            notify(
+                f"twin: notice: sweep cell {path.stem} did not finish last time "
+                f"({record['error']}); computing it again"
             )
             continue
         done.add(path.stem)
@@ -237,6 +244,8 @@ def merge(
         if not path.exists():
             continue
         record = read_cell(path)
+        if record.get("error"):  # a partial run's numbers are no cell's result
+            continue
         cell = record["cell"]
         for row in record["rows"]:
             rows.append(

@@ -182,6 +182,7 @@ class Tape:
         speeds = df["speed"].to_numpy(dtype=float).reshape(-1, nx, ny)
         _check_values(path, steps, times, counts, speeds)
         times = times[:, 0, 0]
+        _check_against_meta(path, steps, times, counts, meta)
         return cls(
             steps=steps.astype(np.int64),
             times=times,
@@ -247,6 +248,71 @@ def _check_values(path: Path, steps, times, counts, speeds) -> None:
         idx = tuple(int(x) for x in np.argwhere(bad)[0])
         problem = "is negative" if speeds[idx] < 0 else "is not finite where vehicles are"
         fail("speed", idx, speeds[idx], problem)
+
+
+#: The most vehicles per lane-km a tape's cell may hold at one instant: a car every metre,
+#: about seven times a jam's density (some 140 veh/lane-km); more is a corrupt count.
+MAX_DENSITY = 1000.0
+#: The lane length (km) a cell counts as at least in that cap: a cell of little lane (a few
+#: metres of a lane, vehicles on a junction) may still hold up to 100 vehicles.
+MIN_CAP_LANE_KM = 0.1
+
+
+def _check_against_meta(path: Path, steps, times, counts, meta: dict[str, Any]) -> None:
+    """What the rows must agree with besides their types: times that increase step by step
+    (by the metadata's ``step_s`` when it has one), no step after the metadata's horizon (nor,
+    given ``warmup_s``, before its warm-up), counts a lane can hold (:data:`MAX_DENSITY`)."""
+    fix = "the tape is corrupt, record it again"
+    back = np.flatnonzero(np.diff(times) <= 0)
+    if len(back):
+        s = int(back[0])
+        raise UserError(
+            f"{path}: column time_s goes from {times[s]} at step {int(steps[s])} to "
+            f"{times[s + 1]} at step {int(steps[s + 1])}, not forward; {fix}"
+        )
+    horizon = meta["horizon"]
+    if int(steps[-1]) > horizon:
+        raise UserError(
+            f"{path}: steps go to {int(steps[-1])}, past the metadata's horizon = {horizon}; {fix}"
+        )
+    settings = meta["settings"]
+    step_s, warmup_s = (_positive(settings.get(k)) for k in ("step_s", "warmup_s"))
+    if step_s is not None:
+        off = np.flatnonzero(np.abs(np.diff(times) - step_s) > 0.01)
+        if len(off):
+            s = int(off[0])
+            raise UserError(
+                f"{path}: column time_s advances {times[s + 1] - times[s]:g} s from step "
+                f"{int(steps[s])} to {int(steps[s + 1])}, the metadata's step_s = {step_s:g}; "
+                f"{fix}"
+            )
+        if warmup_s is not None and int(steps[0]) < -int(warmup_s / step_s + 1e-9):
+            raise UserError(
+                f"{path}: steps start at {int(steps[0])}, before the metadata's warm-up of "
+                f"{int(warmup_s / step_s + 1e-9)} steps (warmup_s = {warmup_s:g}, step_s = "
+                f"{step_s:g}); {fix}"
+            )
+    reads = settings.get("reads_per_step", 1)
+    reads = reads if isinstance(reads, int) and not isinstance(reads, bool) and reads >= 1 else 1
+    cap = MAX_DENSITY * reads * np.maximum(meta["lane_km"], MIN_CAP_LANE_KM)
+    over = counts > cap
+    if over.any():
+        s, i, j = (int(x) for x in np.argwhere(over)[0])
+        raise UserError(
+            f"{path}: column count = {int(counts[s, i, j])} at step {int(steps[s])}, cell "
+            f"({i}, {j}) is more vehicles than its {meta['lane_km'][i, j]:.3g} lane-km hold "
+            f"(at most {cap[i, j]:.0f}: {MAX_DENSITY:.0f} per lane-km"
+            + (f" x {reads} reads" if reads > 1 else "")
+            + f"); {fix}"
+        )
+
+
+def _positive(value: Any) -> float | None:
+    """``value`` as a finite number > 0, else None (a setting left out or of no use)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return None
+    value = float(value)
+    return value if np.isfinite(value) and value > 0 else None
 
 
 def _tape_meta(path: Path, schema_meta: dict) -> dict[str, Any]:

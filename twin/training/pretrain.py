@@ -334,7 +334,9 @@ class PretrainConfig(SourcedConfig):
     @field_validator("tapes")
     @classmethod
     def _tapes(cls, tapes: list[str]) -> list[str]:
-        for tape in tapes:
+        for n, tape in enumerate(tapes):
+            if not tape.strip():
+                raise ValueError(f"has an empty name (entry {n + 1}); remove it")
             if not Path(tape).is_file():
                 raise ValueError(f"names {tape}, which does not exist; give tape.parquet files")
         return tapes

@@ -30,7 +30,6 @@ from twin.config import (
     read_toml,
     validation_error,
 )
-from twin.errors import UserError
 
 #: Seeds that evaluation uses; tapes and validation curves must stay off them.
 EVALUATION_SEEDS = range(0, 10)
@@ -72,16 +71,10 @@ class TransferSection(StrictModel):
     @field_validator("classical")
     @classmethod
     def _classical(cls, swarms: list[str]) -> list[str]:
-        from twin.swarms import available_policies, check_swarm_name, is_learned
+        from twin.swarms import available_policies, check_swarm_list, is_learned
 
-        if len(set(swarms)) != len(swarms):
-            raise ValueError("lists a swarm twice; list each once")
+        check_swarm_list(swarms, lambda: [s for s in available_policies() if not is_learned(s)])
         for swarm in swarms:
-            try:
-                check_swarm_name(swarm)
-            except UserError:
-                known = ", ".join(s for s in available_policies() if not is_learned(s))
-                raise ValueError(f"has unknown swarm {swarm!r}; use {known}") from None
             if is_learned(swarm):
                 raise ValueError(f"has {swarm!r}, a learned swarm; list classical swarms only")
         return swarms
