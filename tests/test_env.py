@@ -192,18 +192,3 @@ def test_joint_env_refuses_actions_out_of_range_in_either_mode(infeasible, actio
         env.step(np.array(action))
     assert "\n" not in str(info.value)
     env.step(np.zeros(3, np.int64))  # the env is still usable
-
-
-@pytest.mark.parametrize("joint", [False, True])
-def test_step_after_close_is_one_line_asking_for_reset(joint):
-    from twin.env import EnvInputError
-
-    env = (SwarmGymEnv if joint else SwarmParallelEnv)(_synthetic(), n_drones=3)
-    obs, _ = env.reset(seed=0)
-    env.close()
-    action = np.zeros(3, np.int64) if joint else {a: 0 for a in obs}
-    with pytest.raises(EnvInputError, match=r"call reset\(\)") as info:
-        env.step(action)
-    assert "\n" not in str(info.value)
-    env.reset(seed=0)  # a reset starts afresh
-    env.step(np.zeros(3, np.int64) if joint else {a: 0 for a in env.agents})
