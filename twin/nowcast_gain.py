@@ -24,8 +24,8 @@ from twin.scores import visit_gain
 #: Default weight of the information term against the visit gain (see
 #: :class:`NowcastGainPolicy`): chosen on validation SUMO seeds 100 and 101 of the default rush
 #: hour (docs/beliefs.md) as the weight with the lowest nowcast belief error among those that
-#: keep R_hat_T at 90% of visit-gain's or more.
-DEFAULT_INFO_WEIGHT = 0.03
+#: keep R_hat_T at 90% of visit-gain's or more, with the filter's sighting model (exact counts).
+DEFAULT_INFO_WEIGHT = 0.05
 #: Default width, in standard deviations, of the importance quantile the information term uses
 #: (1.645: the upper end of the nowcast's 90% interval).
 DEFAULT_QUANTILE_Z = Z90
