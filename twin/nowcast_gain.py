@@ -13,12 +13,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from scipy.special import ndtr
 
 from twin.belief import EXACT_SIGHTINGS, Z90, History, NowcastFilter, SightingModel
 from twin.errors import UserError
 from twin.grid import ACTION_DELTAS, Grid
-from twin.monitoring import DEFAULT_THRESHOLD
 from twin.planners import CoordinatedPolicy
 from twin.policies import SwarmView
 from twin.scores import visit_gain
@@ -196,74 +194,3 @@ class NowcastGainPolicy(CoordinatedPolicy):
         pos = np.asarray(view.positions, dtype=np.int64)
         cells = pos[:, None, :] + ACTION_DELTAS[None, :, :] + 2  # padded coordinates
         return sums[cells[..., 0], cells[..., 1]]
-
-
-class NowcastEventsPolicy(NowcastGainPolicy):
-    """:class:`NowcastGainPolicy` aimed at congestion events: the move to ``p'`` is scored
-
-    ``S(p') = g(p') + w * sum_{c in Adj(p')} e_c``,
-    ``e_c = P(T_c^{k+1} >= theta) [That_c < theta] (1 - known_c)``:
-
-    the chance, under the nowcast's prediction of step ``k + 1`` (mean ``That``, std
-    ``sigma^-``, normal), that the cell is congested (``theta`` the monitoring threshold) and
-    the swarm does not know it yet: its belief is below ``theta`` (a belief at or above it
-    already knows the event) and its last sighting of the cell read below ``theta``
-    (``known_c``: an event it has seen and not seen end; the filter alone forgets it within a
-    step when ``rho`` is small). ``e_c`` is a probability: ``w`` is the visit gain one expected
-    unknown event is worth. ``g`` is :class:`NowcastGainPolicy`'s visit gain on ``That``.
-    """
-
-    name = "nowcast-events"
-
-    def __init__(
-        self,
-        history: History | str | Path | None = None,
-        weight: float = 1.0,
-        threshold: float = DEFAULT_THRESHOLD,
-        meas_var: float | None = None,
-    ):
-        super().__init__(history, weight, DEFAULT_QUANTILE_Z, meas_var)
-        if isinstance(threshold, bool) or not isinstance(threshold, int | float | np.floating):
-            raise UserError(f"nowcast-events: threshold = {threshold!r} must be a number")
-        if not 0.0 < float(threshold) <= 1.0:
-            raise UserError(f"nowcast-events: threshold = {threshold} must lie in (0, 1]")
-        self.threshold = float(threshold)
-
-    def reset(self, grid: Grid, n_drones: int, rng: np.random.Generator) -> None:
-        super().reset(grid, n_drones, rng)
-        self.known = np.zeros(grid.nx * grid.ny, dtype=bool)
-
-    def describe(self) -> dict:
-        out = super().describe()
-        del out["quantile_z"]
-        return {**out, "threshold": self.threshold}
-
-    def sight(self, view: SwarmView) -> None:
-        super().sight(view)
-        flat, valid = view.grid.view_index(view.positions)
-        cells = np.unique(flat[valid])
-        cells = cells[self.free[cells]]
-        seen = np.asarray(view.importance, dtype=np.float64).ravel()[cells]
-        self.known[cells] = seen >= self.threshold
-
-    def event_values(self) -> np.ndarray:
-        """``(nx*ny,)`` ``e_c``: the chance of an unknown congestion event at step ``k + 1``."""
-        mean, prior_var = self.filter.predicted()
-        std = np.sqrt(np.maximum(prior_var, 0.0))
-        with np.errstate(divide="ignore", invalid="ignore"):
-            above = np.where(
-                std > 0, ndtr((mean - self.threshold) / np.where(std > 0, std, 1.0)), 0.0
-            )
-        above = np.where(mean >= self.threshold, 0.0, above)
-        return np.where(self.free & ~self.known, above, 0.0)
-
-    def scores(self, view: SwarmView) -> np.ndarray:
-        self.sight(view)
-        grid, p = view.grid, view.params
-        mean, _ = self.filter.predicted()
-        fov = grid.view_index(view.positions)
-        weight = p.alpha_T * grid.values_in_view(mean, None, fov) + p.alpha_I
-        gain = visit_gain(weight, grid.values_in_view(view.idleness, None, fov), p)
-        if self.weight == 0.0:
-            return gain
-        return gain + self.weight * self.view_sums(self.event_values(), view)

@@ -12,7 +12,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from twin.errors import UserError
-from twin.nowcast_gain import NowcastEventsPolicy, NowcastGainPolicy
+from twin.nowcast_gain import NowcastGainPolicy
 from twin.planners import PLANNERS
 from twin.policies import GreedyPolicy, Policy, RandomPolicy, SweepingPolicy
 from twin.tours import ToursPolicy
@@ -79,13 +79,6 @@ SWARMS: dict[str, SwarmKind] = {
             NowcastGainPolicy,
             "the visit gain on its own nowcast plus the importance-weighted uncertainty the "
             "sighting removes, by the coordinator (needs --history)",
-            needs_history=True,
-        ),
-        SwarmKind(
-            "nowcast-events",
-            NowcastEventsPolicy,
-            "the visit gain on its own nowcast plus the chance of a congestion event it does not "
-            "know yet in the view, by the coordinator (needs --history)",
             needs_history=True,
         ),
         SwarmKind("rl", _learned("rl"), "the Q-network with the central coordinator", True),
