@@ -15,9 +15,10 @@ readings lie from their cells' true importance (bias, variance, RMSE over all re
 measurement variance of the detectors, to be chosen on validation seeds. ``--ideal-stations
 N`` replaces the run's detectors by N stations at the cells of the placement rule
 (:func:`twin.sumo.detectors.station_cells` on the tape's lane-km; every free cell with lanes
-counts) that read their cell's true importance exactly, filtered with the drones' measurement
-variance: a bound on what stations at those cells could add, rows ``(ideal stations only)``
-and ``nowcast+ideal``.
+counts) that read their cell's true importance exactly, filtered with the variance of an exact
+sighting (``--meas-var`` when given): a bound on what stations at those cells could add, rows
+``(ideal stations only)`` and ``nowcast+ideal``. The drones' sightings have the variance of the
+tape's sighting model (:class:`twin.belief.SightingModel`), or ``--meas-var``.
 """
 
 from __future__ import annotations
@@ -31,8 +32,8 @@ import pandas as pd
 
 from twin.belief import (
     DEFAULT_DETECTOR_VAR,
-    DEFAULT_MEAS_VAR,
     DETECTORS_ONLY,
+    SIGHTING_VAR_FLOOR,
     DetectorObservations,
     History,
     belief_table,
@@ -63,7 +64,7 @@ def seed_results(run_dir: Path, ideal_stations: int = 0, detector_bias: float = 
         for s, swarm in enumerate(swarms):
             f = frame[frame["swarm"] == swarm]
             positions[s, f["step"], f["drone"]] = f[["i", "j"]].to_numpy()
-        extra = {}
+        extra = {"sighting": source.sighting_model()}
         if ideal_stations:
             from twin.sumo.detectors import station_cells
 
@@ -126,7 +127,9 @@ def main() -> None:
     parser.add_argument("--ideal-stations", type=int, default=0)
     parser.add_argument("--detector-bias", type=float, default=0.0, help="subtracted from readings")
     parser.add_argument("--spatial", action="store_true")
-    parser.add_argument("--meas-var", type=float, default=DEFAULT_MEAS_VAR)
+    parser.add_argument(
+        "--meas-var", type=float, help="one variance for every sighting (default: sighting model)"
+    )
     parser.add_argument("--csv", type=Path, help="also write the table here")
     args = parser.parse_args()
     if args.detector_error:
@@ -146,7 +149,9 @@ def main() -> None:
                     step_s=r.step_s,
                     meas_var=args.meas_var,
                     spatial=args.spatial,
-                    detector_var=args.meas_var if args.ideal_stations else args.detector_var,
+                    detector_var=(args.meas_var or SIGHTING_VAR_FLOOR)
+                    if args.ideal_stations
+                    else args.detector_var,
                 )
             )
     table = summarize(pd.concat(tables, ignore_index=True))

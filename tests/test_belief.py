@@ -9,8 +9,10 @@ from hypothesis import strategies as st
 
 from twin.belief import (
     NO_DRONES,
+    SIGHTING_VAR_FLOOR,
     VAR_FLOOR,
     History,
+    SightingModel,
     belief_scores,
     belief_table,
     fit_history,
@@ -275,3 +277,106 @@ def test_fit_history_neighbour_correlation():
     assert fit_history(maps, np.zeros((3, 3), bool)).neighbour_corr > 0.9
     independent = list(rng.random((20, 30, 3, 3)))
     assert fit_history(independent, np.zeros((3, 3), bool)).neighbour_corr < 0.1
+
+
+def scenario_history(steps, nx=1, ny=9, var=1.7e-4, rho=0.1):
+    """A flat history with the default scenario's typical variance per cell and step."""
+    return History(
+        mean=np.full((steps, nx, ny), 0.1),
+        var=np.full((steps, nx, ny), var),
+        rho=np.full((nx, ny), rho),
+        obstacles=np.zeros((nx, ny), bool),
+        n_runs=3,
+    )
+
+
+def test_an_exact_sighting_collapses_the_uncertainty_of_the_seen_cell():
+    """By default a drone counts every vehicle of a cell: it reads the true importance, and the
+    nowcast of the cells it sees is that reading, with a std of the numeric floor."""
+    grid = Grid.open(1, 9)
+    steps = 6
+    history = scenario_history(steps)
+    positions = np.zeros((steps, 1, 2), np.int64)  # sees cells 0 and 1 at every step
+    observed = np.random.default_rng(0).uniform(0.0, 0.9, (steps, 1, 9))
+    mean, std = nowcast(grid, positions, observed, history)
+    seen, unseen = [0, 1], [4, 8]
+    innovation = np.abs(observed[:, 0, seen] - 0.1)
+    assert (np.abs(mean[:, seen] - observed[:, 0, seen]) <= 0.01 * innovation + 1e-12).all()
+    assert (std[:, seen] <= np.sqrt(SIGHTING_VAR_FLOOR)).all()
+    assert np.allclose(std[:, unseen], np.sqrt(1.7e-4)) and np.allclose(mean[:, unseen], 0.1)
+    # the variance 1e-3 the filter used before: a first sighting moves it ~15% of the way
+    old, _ = nowcast(grid, positions, observed, history, meas_var=1e-3)
+    assert (np.abs(old[0, seen] - 0.1) < 0.2 * innovation[0]).all()
+
+
+def test_a_thinned_count_has_the_binomial_variance_and_keeps_some_uncertainty():
+    """Each vehicle seen with probability p: the importance the count gives varies as the
+    sighting model says (Monte Carlo of the MFD observation model's thinning), and one sighting
+    leaves the seen cell part of its uncertainty."""
+    from twin.mfd import MFD, density_from_counts
+
+    p, reads, lane_km = 0.6, 3, 1.2
+    model = SightingModel(p, np.full(9, lane_km), MFD().k_c, reads)
+    rng = np.random.default_rng(1)
+    for vehicles in (40, 120, 300):  # vehicle-instants over the reads
+        true = MFD().importance(density_from_counts(vehicles, lane_km, reads))
+        seen = rng.binomial(vehicles, p, 100_000)
+        sampled = MFD().importance(density_from_counts(seen, lane_km, p * reads))
+        stated = model.variance(np.array([true]), np.array([0]))[0] - SIGHTING_VAR_FLOOR
+        assert stated == pytest.approx(sampled.var(), rel=0.1)
+    assert SightingModel().variance(np.array([0.3]), np.array([0]))[0] == SIGHTING_VAR_FLOOR
+
+    grid = Grid.open(1, 9)
+    steps = 3
+    history = scenario_history(steps, var=0.01)
+    positions = np.zeros((steps, 1, 2), np.int64)
+    observed = np.full((steps, 1, 9), 0.5)
+    _, exact = nowcast(grid, positions, observed, history)
+    _, thinned = nowcast(grid, positions, observed, history, sighting=model)
+    stated = model.variance(np.array([0.5]), np.array([0]))[0]
+    assert stated > 100 * SIGHTING_VAR_FLOOR
+    assert (thinned[1:, :2] > 10 * exact[1:, :2]).all()  # some uncertainty kept ...
+    assert (thinned[1:, :2] < 0.5 * np.sqrt(0.01)).all()  # ... less than the prior's
+    with pytest.raises(ValueError, match="lane_km"):
+        SightingModel(0.5)
+
+
+def test_a_sighting_lost_to_a_fault_updates_nothing():
+    """A sighting the faults did not record is no measurement; the belief table scores what
+    was recorded, and its last-seen belief is monitoring's."""
+    from twin.faults import FaultPlan
+
+    grid = Grid.open(1, 9)
+    steps = 5
+    history = scenario_history(steps)
+    positions = np.zeros((steps, 1, 2), np.int64)
+    observed = np.full((steps, 1, 9), 0.6)
+    recorded = np.ones((steps, 1, 5), bool)
+    recorded[3] = False  # nothing recorded at step 3
+    mean, std = nowcast(grid, positions, observed, history, recorded=recorded)
+    rho2 = 0.1**2
+    prior = np.sqrt(rho2 * std[2, 0] ** 2 + (1 - rho2) * 1.7e-4)
+    assert std[3, 0] == pytest.approx(prior) and std[3, 0] > 10 * std[2, 0]
+    assert mean[3, 0] == pytest.approx(0.1 + 0.1 * (mean[2, 0] - 0.1))
+    assert std[4, 0] <= np.sqrt(SIGHTING_VAR_FLOOR)
+
+    rng = np.random.default_rng(5)
+    maps = days(4, steps=30)
+    grid = Grid.open(4, 5)
+    history = fit_history(maps[:3], grid.obstacles)
+    positions = walk(grid, 30, 2, 3)[None]
+    result = make_result(grid, positions, maps[3], ["a"], seed=int(rng.integers(100)))
+    result.faults = FaultPlan(detection_p=0.4)
+    kept = result.faults.recorded(result.seed, 30, 2)
+    table = belief_table(result, history).set_index("model")
+    expected = belief_error_curve(grid, positions[0], maps[3], maps[3], 0.05, kept)[1:].mean()
+    assert table.loc["last-seen", "belief_error"] == pytest.approx(expected)
+    mean, std = nowcast(grid, positions[0], maps[3], history, recorded=kept)
+    assert table.loc["nowcast", "belief_error"] == pytest.approx(
+        belief_scores(mean, std, maps[3], grid)["belief_error"]
+    )
+    result.faults = None
+    assert (
+        belief_table(result, history).set_index("model").loc["nowcast", "belief_error"]
+        < (table.loc["nowcast", "belief_error"])
+    )

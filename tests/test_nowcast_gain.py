@@ -251,3 +251,43 @@ def test_history_from_the_config_relative_to_it(tmp_path):
     (tmp_path / "d.toml").write_text('[swarm_options.nowcast-gain]\nhistory = "none.npz"\n')
     with pytest.raises(UserError, match=r"none\.npz: no such history file"):
         load_config(tmp_path / "d.toml").make_swarm("nowcast-gain")
+
+
+def test_a_run_hands_its_sighting_model_to_the_swarm_and_the_belief_table(tmp_path):
+    """A tape whose drones see each vehicle with probability 0.7: the run's sighting model (its
+    detection probability, lane-km, MFD prior and reads) reaches the swarm's filter and the
+    result the belief table scores."""
+    from helpers import random_tape
+
+    from twin.belief import SIGHTING_VAR_FLOOR, run_sensing
+    from twin.config import load_config
+    from twin.experiment import Experiment, run_experiment
+    from twin.traffic.tape import TapeTraffic
+
+    tape = random_tape(seed=2, nx=4, ny=5, warmup=2, horizon=6, obstacle=(1, 1))
+    tape.settings["detection_p"] = 0.7
+    tape.write(tmp_path / "tape.parquet")
+    model = TapeTraffic.from_file(tmp_path / "tape.parquet").sighting_model()
+    assert model.count_p == 0.7 and model.k_c == 40.0 and model.reads == 1
+    np.testing.assert_array_equal(model.lane_km, tape.lane_km.ravel())
+    assert (model.variance(np.full(20, 0.5), np.arange(20))[tape.lane_km.ravel() > 0] > (
+        100 * SIGHTING_VAR_FLOOR
+    )).all()  # fmt: skip
+
+    history = flat_history(4, 5, horizon=6)
+    obstacles = np.zeros((4, 5), bool)
+    obstacles[1, 1] = True
+    history = History(history.mean, history.var, history.rho, obstacles, 3)
+    (tmp_path / "c.toml").write_text("[swarm]\nn_drones = 2\n")
+    experiment = Experiment(
+        load_config(tmp_path / "c.toml"),
+        ["nowcast-gain"],
+        [0],
+        tape=tmp_path / "tape.parquet",
+        swarm_options={"nowcast-gain": {"history": history}},
+    )
+    out = run_experiment(experiment)
+    assert out.policies["nowcast-gain"]["sighting_count_p"] == 0.7
+    sighting, recorded = run_sensing(out.results[0])
+    assert recorded is None and (sighting.count_p, sighting.reads) == (0.7, 1)
+    np.testing.assert_array_equal(sighting.lane_km, model.lane_km)

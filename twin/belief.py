@@ -10,7 +10,9 @@ Three models over one run, for one swarm (numpy only):
   deviation from the history mean, ``d^{k+1} = rho d^k + w`` with
   ``Var(w) = (1 - rho^2) var^{k+1}`` (the prior stays near the history's variance), ``rho``
   the history's lag-1 autocorrelation of deviations, and a measurement ``z = observed - mean``
-  of variance ``meas_var`` on every cell in a drone's field of view.
+  on every cell a drone's recorded sighting covers, of the variance the way the sighting is
+  made gives (:class:`SightingModel`: a drone that counts every vehicle of a cell reads its
+  true importance, variance 0 but for a floor).
 - ``nowcast+detectors``: the same filter also updated, at every step, on each cell that fixed
   detectors read (:class:`DetectorObservations`, the importance of a station's reading by the
   MFD), a measurement of variance ``detector_var``. Without drones (swarm
@@ -35,6 +37,7 @@ import pandas as pd
 
 from twin.errors import UserError
 from twin.grid import Grid
+from twin.mfd import PRIOR_K_C
 from twin.monitoring import MonitorSettings, congestion_events
 
 MODELS = ("last-seen", "history", "nowcast", "nowcast+detectors")
@@ -42,8 +45,10 @@ MODELS = ("last-seen", "history", "nowcast", "nowcast+detectors")
 NO_DRONES = "(no drones)"
 #: Row name of the detectors-only reference (history and fixed detectors, no drones).
 DETECTORS_ONLY = "(detectors only)"
-#: Variance of a drone's reading of a cell's importance (std 0.03).
-DEFAULT_MEAS_VAR = 1e-3
+#: Variance of a sighting that reads the cell's true importance (a drone that counts every
+#: vehicle of the cell): 0 but for numerics, std 0.001, a tenth of the smallest history std the
+#: filter uses (VAR_FLOOR), so that a sighting moves the belief 99% of the way or more.
+SIGHTING_VAR_FLOOR = 1e-6
 #: Variance of a detector station's reading of its cell's importance: the mean square error of
 #: the readings of 48 virtual loop stations against their cells' true importance on validation
 #: SUMO seed 100 of the default rush hour (0.0029, bias -0.027 included; docs/beliefs.md).
@@ -214,6 +219,64 @@ class History:
             )
 
 
+@dataclass(frozen=True, eq=False)
+class SightingModel:
+    """How a drone's sighting of a cell is made, and so the variance of the importance it reads.
+
+    A drone counts the vehicles of each cell of its field of view over the step's ``reads``
+    instants; the density ``k = n / (reads L)`` (``L`` the cell's lane-km) gives the importance
+    by the MFD, ``T = 1 - exp(-k / k_c)`` (Def. 2 on Underwood's curve, :mod:`twin.mfd`).
+
+    - Every vehicle counted (``count_p = 1``): the sighting is the true importance, variance 0,
+      kept at ``floor`` for numerics.
+    - Each vehicle seen with probability ``p = count_p`` (``[traffic.mfd] detection_p``: the
+      count is binomially thinned and scaled by ``1 / p``): ``Var(k^) = k (1 - p) / (p reads
+      L)``, and by the delta method (``dT/dk = (1 - T) / k_c``)
+
+      ``Var(T^) = (1 - T)^2 (-ln(1 - T)) (1 - p) / (p k_c reads L)``,
+
+      evaluated at the reading itself (plug-in), plus ``floor``. ``k_c`` is the MFD prior's
+      (the online fit moves it: a first-order model).
+
+    A sighting lost whole (``[faults] detection_p``, :mod:`twin.faults`) is no measurement: the
+    filter is not updated on it (the ``recorded`` sightings of :func:`nowcast`), and those that
+    are recorded are as exact as the count.
+    """
+
+    count_p: float = 1.0
+    lane_km: np.ndarray | None = None  # (nx*ny,) lane-km per flat cell; needed when count_p < 1
+    k_c: float = PRIOR_K_C
+    reads: int = 1
+    floor: float = SIGHTING_VAR_FLOOR
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.count_p <= 1.0:
+            raise ValueError(f"count_p must lie in (0, 1], got {self.count_p}")
+        if self.count_p < 1.0 and self.lane_km is None:
+            raise ValueError("a thinned count (count_p < 1) needs the cells' lane_km")
+
+    @property
+    def exact(self) -> bool:
+        """Whether every sighting reads the true importance (variance ``floor``)."""
+        return self.count_p >= 1.0
+
+    def variance(self, values: np.ndarray, cells: np.ndarray) -> np.ndarray:
+        """Measurement variance of sightings reading ``values`` on the flat ``cells``."""
+        values = np.asarray(values, dtype=np.float64)
+        if self.exact:
+            return np.full(values.shape, self.floor)
+        p = self.count_p
+        t = np.clip(values, 0.0, 1.0 - 1e-9)
+        lane_km = np.asarray(self.lane_km, dtype=np.float64)[cells]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            var = (1 - t) ** 2 * -np.log1p(-t) * (1 - p) / (p * self.k_c * self.reads * lane_km)
+        return self.floor + np.where(lane_km > 0, var, 0.0)
+
+
+#: How the sightings of a source that gives the drones the true map are made.
+EXACT_SIGHTINGS = SightingModel()
+
+
 @dataclass(frozen=True)
 class DetectorObservations:
     """What fixed detectors read: per step ``k = 0..T`` and station cell, the importance of
@@ -298,21 +361,28 @@ def neighbour_pairs(grid: Grid) -> tuple[np.ndarray, np.ndarray]:
     return np.concatenate(src), np.concatenate(dst)
 
 
-def _view_cells(grid: Grid, positions_k: np.ndarray) -> np.ndarray:
-    """Flat indices of the free cells in the drones' fields of view at one step."""
+def _view_cells(
+    grid: Grid, positions_k: np.ndarray, recorded_k: np.ndarray | None = None
+) -> np.ndarray:
+    """Flat indices of the free cells in the drones' fields of view at one step (``recorded_k``
+    ``(N, 5)``: only the sightings that count)."""
     flat, valid = grid.view_index(positions_k)
-    cells = flat[valid]
+    cells = flat[valid if recorded_k is None else valid & recorded_k]
     return np.unique(cells[grid.free.ravel()[cells]])
 
 
-def last_seen(grid: Grid, positions: np.ndarray, observed: np.ndarray):
-    """``(mean, std)`` of the last-seen belief: the last observed value, 0 before; std NaN."""
+def last_seen(
+    grid: Grid, positions: np.ndarray, observed: np.ndarray, recorded: np.ndarray | None = None
+):
+    """``(mean, std)`` of the last-seen belief: the last observed value, 0 before; std NaN.
+    ``recorded`` ``(T+1, N, 5)``: the sightings that count (:meth:`twin.faults.FaultPlan.
+    recorded`, as monitoring counts them); None: all."""
     steps = positions.shape[0]
     belief = np.zeros(grid.nx * grid.ny)
     out = np.empty((steps, grid.nx * grid.ny))
     for k in range(steps):
         flat, valid = grid.view_index(positions[k])
-        cells = flat[valid]
+        cells = flat[valid if recorded is None else valid & recorded[k]]
         belief[cells] = observed[k].ravel()[cells]
         out[k] = belief
     return out, np.full_like(out, np.nan)
@@ -330,10 +400,12 @@ def nowcast(
     positions: np.ndarray,
     observed: np.ndarray,
     history: History,
-    meas_var: float = DEFAULT_MEAS_VAR,
+    meas_var: float | None = None,
     coupling: float = 0.0,
     detectors: DetectorObservations | None = None,
     detector_var: float = DEFAULT_DETECTOR_VAR,
+    sighting: SightingModel = EXACT_SIGHTINGS,
+    recorded: np.ndarray | None = None,
 ):
     """``(mean, std)`` of the history fused with the drones' sightings (module docstring),
     and with ``detectors``' readings (variance ``detector_var``) when given; ``positions``
@@ -341,7 +413,9 @@ def nowcast(
 
     The filter starts from the history's prior at step 0 (deviation 0, variance ``var^0``),
     predicts ``d <- rho d``, ``P <- rho^2 P + (1 - rho^2) var^k`` and updates every cell in
-    view with ``z = observed^k - mean^k`` of variance ``meas_var``; vectorised over cells.
+    view with ``z = observed^k - mean^k`` of the variance ``sighting`` gives
+    (:class:`SightingModel`), or ``meas_var`` when given; vectorised over cells. ``recorded``
+    ``(T+1, N, 5)``: only these sightings update it (a sighting lost to a fault is none).
     With ``coupling = r > 0`` each observed cell's innovation also updates its unobserved
     4-neighbours, as if their deviations had correlation ``r`` (cross-covariance
     ``r sqrt(P_n P_c)``, one neighbour at a time).
@@ -356,26 +430,27 @@ def nowcast(
     mean = np.empty_like(mu)
     std = np.empty_like(mu)
     src, dst = neighbour_pairs(grid) if coupling > 0 else (None, None)
-    seen = np.zeros(mu.shape[1], dtype=bool)
+    in_view = np.zeros(mu.shape[1], dtype=bool)
     for k in range(steps):
         if k:
             d = rho * d
             p = rho2 * p + (1.0 - rho2) * var[k]
-        cells = _view_cells(grid, positions[k])
+        cells = _view_cells(grid, positions[k], None if recorded is None else recorded[k])
         if len(cells):
-            z = observed[k].ravel()[cells] - mu[k, cells]
-            innovation = z - d[cells]
-            s = p[cells] + meas_var
+            seen = observed[k].ravel()[cells]
+            r = sighting.variance(seen, cells) if meas_var is None else meas_var
+            innovation = seen - mu[k, cells] - d[cells]
+            s = p[cells] + r
             p_before = p[cells].copy()
             gain = p[cells] / s
             d[cells] += gain * innovation
             p[cells] *= 1.0 - gain
             if src is not None:
-                seen[:] = False
-                seen[cells] = True
+                in_view[:] = False
+                in_view[cells] = True
                 at = np.full(mu.shape[1], -1)
                 at[cells] = np.arange(len(cells))
-                pick = seen[src] & ~seen[dst]
+                pick = in_view[src] & ~in_view[dst]
                 for a, b in zip(src[pick], dst[pick], strict=True):  # few pairs per step
                     c = at[a]
                     cov = coupling * np.sqrt(p[b] * p_before[c])
@@ -399,16 +474,23 @@ class NowcastFilter:
 
     :meth:`advance` moves to step ``k`` (the prior of step 0, else the prediction ``d <- rho
     d``, ``P <- rho^2 P + (1 - rho^2) var^k``); :meth:`observe` updates the cells in view with
-    their observed importance; :meth:`predicted` is the prior of step ``k + 1``.
+    their observed importance, of the variance ``sighting`` gives (``meas_var`` when given);
+    :meth:`predicted` is the prior of step ``k + 1``.
     """
 
-    def __init__(self, history: History, meas_var: float = DEFAULT_MEAS_VAR):
+    def __init__(
+        self,
+        history: History,
+        meas_var: float | None = None,
+        sighting: SightingModel = EXACT_SIGHTINGS,
+    ):
         steps = history.mean.shape[0]
         self.mu = history.mean.reshape(steps, -1)
         self.var = np.maximum(history.var.reshape(steps, -1), VAR_FLOOR)
         self.rho = history.rho.ravel()
         self.rho2 = self.rho * self.rho
-        self.meas_var = float(meas_var)
+        self.meas_var = None if meas_var is None else float(meas_var)
+        self.sighting = sighting
         self.k = -1
         self.d = np.zeros(self.mu.shape[1])
         self.p = self.var[0].copy()
@@ -432,11 +514,16 @@ class NowcastFilter:
         """Update the (distinct, free) flat ``cells`` on their observed importance ``values``."""
         if not len(cells):
             return
-        z = values - self.mu[self.k, cells]
-        innovation = z - self.d[cells]
-        gain = self.p[cells] / (self.p[cells] + self.meas_var)
+        innovation = values - self.mu[self.k, cells] - self.d[cells]
+        gain = self.p[cells] / (self.p[cells] + self.measurement_variance(values, cells))
         self.d[cells] += gain * innovation
         self.p[cells] *= 1.0 - gain
+
+    def measurement_variance(self, values: np.ndarray, cells: np.ndarray) -> np.ndarray:
+        """Variance of sightings reading ``values`` on the flat ``cells``."""
+        if self.meas_var is not None:
+            return np.full(np.shape(values), self.meas_var)
+        return self.sighting.variance(values, cells)
 
     def mean(self) -> np.ndarray:
         """``(nx*ny,)`` the belief of step ``k``, clipped to [0, 1]."""
@@ -531,22 +618,34 @@ BELIEF_COLUMNS = (
 )
 
 
+def run_sensing(result) -> tuple[SightingModel, np.ndarray | None]:
+    """How a run's sightings were made (``result.extra["sighting"]``, set by the experiment
+    from its traffic source; exact when absent) and which of them count (``(T+1, N, 5)``, the
+    run's scripted faults, :meth:`twin.faults.FaultPlan.recorded`; None: all)."""
+    sighting = (getattr(result, "extra", None) or {}).get("sighting") or EXACT_SIGHTINGS
+    faults = getattr(result, "faults", None)
+    positions = result.positions
+    recorded = None if faults is None else faults.recorded(result.seed, *positions.shape[1:3])
+    return sighting, recorded
+
+
 def belief_table(
     result,
     history: History,
     settings: MonitorSettings | None = None,
     step_s: float | None = None,
-    meas_var: float = DEFAULT_MEAS_VAR,
+    meas_var: float | None = None,
     spatial: bool = False,
     detector_var: float = DEFAULT_DETECTOR_VAR,
 ) -> pd.DataFrame:
     """One row per swarm x model (last-seen, nowcast) of one seed, plus the history-only
     reference row (swarm ``(no drones)``, model ``history``), scored against the run's truth
-    (``result.truth``, else what the drones observed). ``spatial`` adds the model
-    ``nowcast-spatial``: the nowcast with the 4-neighbour coupling ``history.neighbour_corr``.
-    When the run read fixed detectors (``result.extra["detectors"]``), the detectors-only
-    reference row (swarm ``(detectors only)``, model ``nowcast``) and a ``nowcast+detectors``
-    row per swarm are added."""
+    (``result.truth``, else what the drones observed). The drones' sightings are those that
+    count (:func:`run_sensing`), of the variance their :class:`SightingModel` gives, or
+    ``meas_var`` when given. ``spatial`` adds the model ``nowcast-spatial``: the nowcast with
+    the 4-neighbour coupling ``history.neighbour_corr``. When the run read fixed detectors
+    (``result.extra["detectors"]``), the detectors-only reference row (swarm ``(detectors
+    only)``, model ``nowcast``) and a ``nowcast+detectors`` row per swarm are added."""
     settings = settings or MonitorSettings()
     observed = result.importance
     if observed is None:
@@ -555,6 +654,8 @@ def belief_table(
     grid = result.grid
     steps = result.positions.shape[1]
     observed, truth = observed[:steps], truth[:steps]
+    sighting, recorded = run_sensing(result)
+    sensing = {"sighting": sighting, "recorded": recorded}
     events = congestion_events(truth, grid, settings.threshold, settings.min_duration)
     rows = []
     mean, std = history_belief(history, steps)
@@ -576,19 +677,14 @@ def belief_table(
         couplings = [("nowcast", 0.0)] + (
             [("nowcast-spatial", history.neighbour_corr)] if spatial else []
         )
-        models = [("last-seen", last_seen(grid, positions, observed))] + [
-            (name, nowcast(grid, positions, observed, history, meas_var, c))
+        models = [("last-seen", last_seen(grid, positions, observed, recorded))] + [
+            (name, nowcast(grid, positions, observed, history, meas_var, c, **sensing))
             for name, c in couplings
         ]
         if detectors is not None:
-            models.append(
-                (
-                    "nowcast+detectors",
-                    nowcast(
-                        grid, positions, observed, history, meas_var, 0.0, detectors, detector_var
-                    ),
-                )
-            )
+            with_detectors = {"detectors": detectors, "detector_var": detector_var, **sensing}
+            fused = nowcast(grid, positions, observed, history, meas_var, **with_detectors)
+            models.append(("nowcast+detectors", fused))
         for model, (mean, std) in models:
             rows.append(
                 {"swarm": swarm, "model": model}
@@ -664,7 +760,7 @@ def belief_maps(
     result,
     history: History,
     settings: MonitorSettings | None = None,
-    meas_var: float = DEFAULT_MEAS_VAR,
+    meas_var: float | None = None,
 ) -> dict[str, np.ndarray]:
     """What the report draws of one seed's nowcast (``belief_maps.npz``): the true map and
     every swarm's nowcast mean and std at :func:`snapshot_steps`, and for each congestion event
@@ -682,6 +778,7 @@ def belief_maps(
     cell = events["i"].to_numpy(np.int64) * grid.ny + events["j"].to_numpy(np.int64)
     onset = events["onset"].to_numpy(np.int64)
     duration = events["duration"].to_numpy(np.int64)
+    sighting, recorded = run_sensing(result)
 
     def known_at(mean: np.ndarray) -> np.ndarray:
         hot = mean >= settings.threshold
@@ -697,7 +794,8 @@ def belief_maps(
     means, stds = np.zeros(shape, np.float32), np.zeros(shape, np.float32)
     known = np.zeros((len(result.swarms), len(cell)), dtype=np.int64)
     for s in range(len(result.swarms)):
-        mean, std = nowcast(grid, result.positions[s], observed, history, meas_var)
+        mean, std = nowcast(grid, result.positions[s], observed, history, meas_var,
+                            sighting=sighting, recorded=recorded)  # fmt: skip
         means[s] = mean[at].reshape(len(at), *grid.shape)
         stds[s] = std[at].reshape(len(at), *grid.shape)
         known[s] = known_at(mean)

@@ -303,6 +303,10 @@ def _run_seed(experiment, n, seed, source, stop, progress=False, on_source=None,
     swarms = build_swarms(experiment)
     faults = config.fault_plan()
     twins = build_swarms(experiment) if faults is not None and config.faults.compare else None
+    sighting = source.sighting_model()  # how the drones' sightings are made: a filter's noise
+    for policy in [*swarms.values(), *(twins or {}).values()]:
+        if hasattr(policy, "use_sighting_model"):
+            policy.use_sighting_model(sighting)
     starts = start_positions(experiment.config, source.grid, np.random.default_rng(seed))
     result = run_patrol(
         source,
@@ -317,6 +321,7 @@ def _run_seed(experiment, n, seed, source, stop, progress=False, on_source=None,
         faults=faults,
         fault_free=twins,
     )
+    result.extra["sighting"] = sighting  # the belief models' measurement variance
     detectors = source.detector_observations()
     if detectors is not None:
         result.extra["detectors"] = detectors  # a belief model's observations

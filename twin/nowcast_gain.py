@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from twin.belief import DEFAULT_MEAS_VAR, Z90, History, NowcastFilter
+from twin.belief import EXACT_SIGHTINGS, Z90, History, NowcastFilter, SightingModel
 from twin.errors import UserError
 from twin.grid import ACTION_DELTAS, Grid
 from twin.planners import CoordinatedPolicy
@@ -24,8 +24,8 @@ from twin.scores import visit_gain
 #: Default weight of the information term against the visit gain (see
 #: :class:`NowcastGainPolicy`): chosen on validation SUMO seeds 100 and 101 of the default rush
 #: hour (docs/beliefs.md) as the weight with the lowest nowcast belief error among those that
-#: keep R_hat_T at 90% of visit-gain's or more.
-DEFAULT_INFO_WEIGHT = 0.03
+#: keep R_hat_T at 90% of visit-gain's or more, with the filter's sighting model (exact counts).
+DEFAULT_INFO_WEIGHT = 0.05
 #: Default width, in standard deviations, of the importance quantile the information term uses
 #: (1.645: the upper end of the nowcast's 90% interval).
 DEFAULT_QUANTILE_Z = Z90
@@ -39,16 +39,20 @@ NEEDS_HISTORY = (
 
 
 def information_values(
-    quantile: np.ndarray, prior_var: np.ndarray, rho: np.ndarray, meas_var: float, steps_left: int
+    quantile: np.ndarray,
+    prior_var: np.ndarray,
+    rho: np.ndarray,
+    meas_var: float | np.ndarray,
+    steps_left: int,
 ) -> np.ndarray:
     """Per cell, the importance-weighted variance a sighting at the next step removes, over
     the steps it lasts: ``Tq (P^- - P^+) (1 - rho^(2 L)) / (1 - rho^2)``.
 
     ``P^- - P^+ = P^-^2 / (P^- + meas_var)`` is the Kalman reduction of the prior variance
-    ``P^-``; what it tells of the deviation fades by ``rho^2`` per step (the filter's
-    prediction), so it is summed over the ``L = steps_left`` steps up to the horizon
-    (``sum_{j < L} rho^(2j)``: 1 when ``rho = 0``); ``Tq`` is the believed importance (a
-    quantile of the nowcast).
+    ``P^-`` (``meas_var`` per cell or one for all); what it tells of the deviation fades by
+    ``rho^2`` per step (the filter's prediction), so it is summed over the ``L = steps_left``
+    steps up to the horizon (``sum_{j < L} rho^(2j)``: 1 when ``rho = 0``); ``Tq`` is the
+    believed importance (a quantile of the nowcast).
     """
     removed = prior_var * prior_var / (prior_var + meas_var)
     rho2 = rho * rho
@@ -95,7 +99,7 @@ class NowcastGainPolicy(CoordinatedPolicy):
         history: History | str | Path | None = None,
         weight: float = DEFAULT_INFO_WEIGHT,
         quantile_z: float = DEFAULT_QUANTILE_Z,
-        meas_var: float = DEFAULT_MEAS_VAR,
+        meas_var: float | None = None,
     ):
         if history is None:
             raise UserError(NEEDS_HISTORY)
@@ -104,7 +108,7 @@ class NowcastGainPolicy(CoordinatedPolicy):
         for key, value, lo, hi in (
             ("weight", weight, 0.0, 1e6),
             ("quantile_z", quantile_z, 0.0, 10.0),
-            ("meas_var", meas_var, 1e-12, 1.0),
+            *([("meas_var", meas_var, 1e-12, 1.0)] if meas_var is not None else []),
         ):
             if isinstance(value, bool) or not isinstance(value, int | float | np.floating):
                 raise UserError(f"nowcast-gain: {key} = {value!r} must be a number")
@@ -113,7 +117,13 @@ class NowcastGainPolicy(CoordinatedPolicy):
         self.history = history
         self.weight = float(weight)
         self.quantile_z = float(quantile_z)
-        self.meas_var = float(meas_var)
+        self.meas_var = None if meas_var is None else float(meas_var)
+        self.sighting = EXACT_SIGHTINGS
+
+    def use_sighting_model(self, sighting: SightingModel) -> None:
+        """How the run's sightings are made (the experiment hands its traffic source's): the
+        filter's measurement variance when no ``meas_var`` is given."""
+        self.sighting = sighting
 
     def reset(self, grid: Grid, n_drones: int, rng: np.random.Generator) -> None:
         super().reset(grid, n_drones, rng)
@@ -123,14 +133,15 @@ class NowcastGainPolicy(CoordinatedPolicy):
                 f"nowcast-gain: the history's grid {h.shape[0]} x {h.shape[1]} (or obstacles) "
                 f"differs from the run's {grid.nx} x {grid.ny}; build it from runs of this scenario"
             )
-        self.filter = NowcastFilter(h, self.meas_var)
+        self.filter = NowcastFilter(h, self.meas_var, self.sighting)
         self.free = grid.free.ravel()
 
     def describe(self) -> dict:
         return {
             "weight": self.weight,
             "quantile_z": self.quantile_z,
-            "meas_var": self.meas_var,
+            "meas_var": self.meas_var,  # None: the sighting model's
+            "sighting_count_p": self.sighting.count_p,
             "history_runs": self.history.n_runs,
             "history_seeds": list(self.history.traffic_seeds),
         }
@@ -154,8 +165,10 @@ class NowcastGainPolicy(CoordinatedPolicy):
         grid, p = view.grid, view.params
         mean, prior_var = self.filter.predicted()
         quantile = np.minimum(1.0, mean + self.quantile_z * np.sqrt(prior_var))
+        cells = np.arange(len(mean))
+        meas_var = self.filter.measurement_variance(mean, cells)
         values = information_values(
-            quantile, prior_var, self.filter.rho, self.meas_var, view.horizon - view.k
+            quantile, prior_var, self.filter.rho, meas_var, view.horizon - view.k
         )
         values = np.where(self.free, values, 0.0)
         fov = grid.view_index(view.positions)  # the cells each action leads to

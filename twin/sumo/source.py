@@ -182,6 +182,19 @@ class SumoTraffic(TrafficSource):
         times = [(k, round(s.begin_s + k * s.step_s, 3)) for k in range(-w, s.horizon + 1)]
         return [(k, t) for k, t in times if t > s.sim_begin]  # nothing to read at the start
 
+    def sighting_model(self):
+        """The drones count the vehicles of each cell's lanes through the scenario's detection
+        probability, reads per step and MFD prior (:class:`twin.belief.SightingModel`)."""
+        from twin.belief import SightingModel
+
+        s = self.scenario
+        return SightingModel(
+            s.detection_p,
+            np.asarray(self.geometry.lane_km, dtype=float).ravel(),
+            float(s.mfd_prior[1]),
+            int(s.reads_per_step),
+        )
+
     def truth_map(self):
         """The true ``T^k`` of the map last yielded, when vehicles may be missed (detection
         probability below 1): the same MFD on every vehicle."""

@@ -59,6 +59,14 @@ class TrafficSource(ABC):
         ``None`` (the default): the source has no detectors."""
         return None
 
+    def sighting_model(self):
+        """How a drone's sighting of this source's maps is made (a
+        :class:`twin.belief.SightingModel`, the nowcast's measurement variance); by default the
+        drones read the map exactly."""
+        from twin.belief import EXACT_SIGHTINGS
+
+        return EXACT_SIGHTINGS
+
     def truth_map(self) -> np.ndarray | None:
         """The true ``T^k`` of the map last yielded, when the source observes traffic through a
         model that may err and knows the truth; ``None`` (the default): no separate truth."""

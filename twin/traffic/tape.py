@@ -410,6 +410,19 @@ class TapeTraffic(TrafficSource):
             int(s.get("reads_per_step", 1)),  # counts are vehicle-instants over the reads
         )
 
+    def sighting_model(self):
+        """The drones count the tape's vehicles through its detection probability, reads per
+        step and MFD prior (:class:`twin.belief.SightingModel`)."""
+        from twin.belief import SightingModel
+
+        s = self.tape.settings
+        return SightingModel(
+            self.detection_p,
+            np.asarray(self.tape.lane_km, dtype=float).ravel(),
+            float(s.get("mfd_prior", (MFD().a, MFD().k_c))[1]),
+            int(s.get("reads_per_step", 1)),
+        )
+
     def truth_map(self):
         """The true ``T^k`` of the map last yielded, when vehicles may be missed (detection
         probability below 1): the same MFD on every vehicle."""
