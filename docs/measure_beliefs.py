@@ -1,7 +1,8 @@
 """Score the belief models of a finished `twin run` folder against a history, after the run.
 
     python docs/measure_beliefs.py --history HISTORY.npz RUN_DIR [RUN_DIR ...] [--spatial] \
-        [--meas-var V] [--detector-var V] [--detector-bias B] [--csv OUT.csv]
+        [--meas-var V] [--detector-var V] [--detector-bias B] [--csv OUT.csv] \
+        [--per-seed OUT.csv]
     python docs/measure_beliefs.py --detector-error RUN_DIR [RUN_DIR ...]
     python docs/measure_beliefs.py --history HISTORY.npz RUN_DIR --ideal-stations N
 
@@ -10,7 +11,9 @@ the observed and true maps, reads the swarms' positions from ``trajectories.parq
 prints :func:`twin.belief.run_beliefs`' table (mean over seeds), the same numbers as
 ``twin run --history``; ``--spatial`` adds the nowcast with 4-neighbour coupling. A run that
 read fixed detectors (``detectors.parquet``) adds the detectors-only row and each swarm's
-``nowcast+detectors``. ``--detector-error`` prints instead how far the detector stations'
+``nowcast+detectors``. ``--per-seed`` writes every seed's rows and prints, per swarm and model,
+the 95% interval over seeds of the error, calibration and events known (Student's t, as the
+Table 2 intervals). ``--detector-error`` prints instead how far the detector stations'
 readings lie from their cells' true importance (bias, variance, RMSE over all readings): the
 measurement variance of the detectors, to be chosen on validation seeds. ``--ideal-stations
 N`` replaces the run's detectors by N stations at the cells of the placement rule
@@ -40,6 +43,7 @@ from twin.belief import (
     format_belief_table,
     summarize,
 )
+from twin.metrics import ci95_halfwidth
 from twin.traffic.tape import Tape, TapeTraffic
 
 
@@ -131,6 +135,7 @@ def main() -> None:
         "--meas-var", type=float, help="one variance for every sighting (default: sighting model)"
     )
     parser.add_argument("--csv", type=Path, help="also write the table here")
+    parser.add_argument("--per-seed", type=Path, help="write every seed's rows here")
     args = parser.parse_args()
     if args.detector_error:
         detector_error(args.run_dirs)
@@ -154,7 +159,8 @@ def main() -> None:
                     else args.detector_var,
                 )
             )
-    table = summarize(pd.concat(tables, ignore_index=True))
+    per_seed = pd.concat(tables, ignore_index=True)
+    table = summarize(per_seed)
     if args.ideal_stations:
         table["swarm"] = table["swarm"].replace(DETECTORS_ONLY, "(ideal stations only)")
         table["model"] = table["model"].replace("nowcast+detectors", "nowcast+ideal")
@@ -165,6 +171,30 @@ def main() -> None:
     print(format_belief_table(table))
     if args.csv:
         table.to_csv(args.csv, index=False)
+    if args.per_seed:
+        per_seed.to_csv(args.per_seed, index=False)
+        print(format_intervals(per_seed))
+
+
+def format_intervals(per_seed: pd.DataFrame) -> str:
+    """Mean ± 95% half-width over seeds of the error, calibration and % events known."""
+    lines = ["mean ± 95% interval over seeds (error, calib90, % events known, FA/h):"]
+    for (swarm, model), rows in per_seed.groupby(["swarm", "model"], sort=False):
+        cells = []
+        for column, fmt in [
+            ("belief_error", ".4f"),
+            ("calibration_90", ".3f"),
+            ("pct_events_known", ".1f"),
+            ("false_alarms_per_hour", ".1f"),
+        ]:
+            values = rows[column].dropna().to_numpy(float)
+            if len(values) == 0:
+                cells.append("-")
+                continue
+            half = ci95_halfwidth(values) if len(values) > 1 else float("nan")
+            cells.append(f"{values.mean():{fmt}} ± {half:{fmt}}")
+        lines.append(f"  {swarm:<22} {model:<17} " + "  ".join(cells) + f"  ({len(rows)} seeds)")
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":

@@ -186,6 +186,8 @@ class SwarmParallelEnv(ParallelEnv):
         return agent
 
     def reset(self, seed: int | None = None, options: dict | None = None):
+        """A new episode; ``options`` are accepted and not used (PettingZoo's API test passes
+        arbitrary ones): starts and drones are set when the env is made."""
         _check_order(self, "reset()")
         if seed is not None:
             self._rng = np.random.default_rng(_seed(seed))
