@@ -177,6 +177,9 @@ def test_make_env_refuses_bad_options_in_one_line(joint):
         assert "\n" not in str(info.value)
     with pytest.raises(TypeError, match="colour"):  # Python's own message names the keyword
         make_env("synthetic", joint=joint, colour="red")
+    if joint:
+        with pytest.raises(EnvInputError, match='infeasible = .maybe.: use "raise" or "stay"'):
+            make_env("synthetic", joint=True, infeasible="maybe")
 
 
 @pytest.mark.parametrize("infeasible", ["raise", "stay"])

@@ -183,9 +183,13 @@ def test_a_broken_cache_entry_is_rebuilt_and_reported(tmp_path, capsys, case):
     assert sorted(p.name for p in target.parent.iterdir()) == ["entry"]  # no temporary left
 
 
-def test_an_entry_of_an_earlier_twin_is_sealed_as_it_is(tmp_path, capsys):
-    """An entry without a record of its files (built before twin kept one) that passes its
-    check is kept and sealed, not rebuilt: runs recorded on it still replay."""
+@pytest.mark.parametrize("generated_comment", [False, True])
+def test_an_entry_of_an_earlier_twin_is_kept_when_a_fresh_build_agrees(
+    tmp_path, capsys, generated_comment
+):
+    """An entry without a record of its files (built before twin kept one) is built again
+    beside it; when the files agree (SUMO's "generated on" comment aside) the entry is kept as
+    it is and sealed, not replaced: runs recorded on it still replay."""
     target = tmp_path / "cache" / "entry"
     calls = []
 
@@ -195,13 +199,39 @@ def test_an_entry_of_an_earlier_twin_is_sealed_as_it_is(tmp_path, capsys):
 
     resources.build_once(target, make, verify=_verify)
     (target / resources.SEAL).unlink()
+    if generated_comment:  # as SUMO's tools wrote it before twin dropped the comment
+        net = target / "a.net.xml"
+        head, rest = net.read_bytes().split(b"\n", 1)
+        net.write_bytes(head + b"\n<!-- generated on 2026-01-01 by netconvert -->\n" + rest)
     before = (target / "a.net.xml").read_bytes()
     assert resources.build_once(target, make, verify=_verify) == target
-    assert len(calls) == 1 and capsys.readouterr().err == ""
+    assert len(calls) == 2 and capsys.readouterr().err == ""
     assert (target / resources.SEAL).is_file() and (target / "a.net.xml").read_bytes() == before
+    assert sorted(p.name for p in target.parent.iterdir()) == ["entry"]  # no temporary left
     (target / "a.net.xml").write_text('<net version="2">\n</net>\n')  # now sealed: noticed
     resources.build_once(target, make, verify=_verify)
-    assert len(calls) == 2 and "a.net.xml changed since it was built" in capsys.readouterr().err
+    assert len(calls) == 3 and "a.net.xml changed since it was built" in capsys.readouterr().err
+
+
+def test_an_entry_without_its_seal_and_altered_is_reported_and_replaced(tmp_path, capsys):
+    """Removing the seal does not make altered files trusted: the fresh build beside the entry
+    differs, the entry is reported in one line and replaced by the build."""
+    target = tmp_path / "cache" / "entry"
+
+    def make(d: Path) -> None:
+        _xml_entry(d)
+
+    resources.build_once(target, make, verify=_verify)
+    good = (target / "a.trips.xml").read_bytes()
+    (target / resources.SEAL).unlink()
+    (target / "a.trips.xml").write_text("<routes>\n  <trip id='7'/>\n</routes>\n")
+    assert resources.build_once(target, make, verify=_verify) == target
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and err.startswith("twin: notice: cache entry")
+    assert "a.trips.xml differs from a fresh build; replacing it" in err
+    assert (target / "a.trips.xml").read_bytes() == good
+    resources.check_seal(target)
+    assert sorted(p.name for p in target.parent.iterdir()) == ["entry"]
 
 
 def test_two_builds_of_an_entry_are_the_same_bytes(tmp_path):

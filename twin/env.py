@@ -357,7 +357,7 @@ class SwarmGymEnv(gymnasium.Env):
         state: str = DEFAULT_STATE,
     ) -> None:
         if infeasible not in ("raise", "stay"):
-            raise ValueError(f'infeasible = {infeasible!r}: use "raise" or "stay"')
+            raise EnvInputError(f'infeasible = {infeasible!r}: use "raise" or "stay"')
         self.swarm_env = SwarmParallelEnv(source, n_drones, params, starts, state)
         n = self.swarm_env.n_drones
         self.infeasible = infeasible

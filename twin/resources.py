@@ -221,16 +221,20 @@ def build_once(
     broken build is a one-line :class:`UserError`); an existing entry that fails the check
     (deleted or damaged files) is reported in one line on stderr and rebuilt. A committed entry
     holds the sha256 of each of its files (:data:`SEAL`): an entry whose files changed since,
-    even into other well-formed files, is rebuilt the same way.
+    even into other well-formed files, is rebuilt the same way. An entry without a seal (built
+    by an earlier twin, or its seal removed) is built again beside it and kept, then sealed, only
+    when its files are those of the new build (SUMO's "generated on" comments aside), so runs
+    recorded on an earlier twin's entry still replay; otherwise it is reported and replaced.
     """
+    unsealed = False
     if target.is_dir() and not force:
         try:
             if verify is not None:
                 verify(target)
-            if not (target / SEAL).exists():  # built by an earlier twin: sealed as it is
-                write_seal(target)
-            check_seal(target)
-            return target
+            if (target / SEAL).exists():
+                check_seal(target)
+                return target
+            unsealed = True
         except (BrokenEntry, OSError) as exc:
             from twin.notices import notify
 
@@ -257,6 +261,18 @@ def build_once(
                     "was cached, see the message of the tool above or report it"
                 ) from None
         strip_generator_comments(tmp)
+        if unsealed:
+            differs = _differing_file(target, tmp)
+            if differs is None:  # an earlier twin's entry, as this one builds it: kept
+                write_seal(target)
+                return target
+            from twin.notices import notify
+
+            notify(
+                f"twin: notice: cache entry {target} has no {SEAL} (the record of its files) "
+                f"and {differs} differs from a fresh build; replacing it"
+            )
+            force = True
         write_seal(tmp)
         if force and target.is_dir():
             old = Path(tempfile.mkdtemp(prefix=f".{target.name}.old-", dir=target.parent))
@@ -272,6 +288,23 @@ def build_once(
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return target
+
+
+def _differing_file(entry: Path, build: Path) -> str | None:
+    """The first file (relative name) in which ``entry`` and a fresh ``build`` of it differ,
+    SUMO's "generated on" comments aside; None when they hold the same files."""
+    names = {p.relative_to(entry).as_posix() for p in _entry_files(entry)}
+    built = {p.relative_to(build).as_posix() for p in _entry_files(build)}
+    extra = sorted(names ^ built)
+    if extra:
+        return extra[0]
+    for name in sorted(names):
+        data = (entry / name).read_bytes()
+        if name.endswith(".xml"):
+            data = _GENERATOR_COMMENT.sub(rb"\1", data, count=1)
+        if data != (build / name).read_bytes():
+            return name
+    return None
 
 
 def _reason(exc: BaseException) -> str:
