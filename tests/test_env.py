@@ -178,7 +178,7 @@ def test_make_env_refuses_bad_options_in_one_line(joint):
     with pytest.raises(TypeError, match="colour"):  # Python's own message names the keyword
         make_env("synthetic", joint=joint, colour="red")
     if joint:
-        with pytest.raises(EnvInputError, match='infeasible = .maybe.: use "raise" or "stay"'):
+        with pytest.raises(EnvInputError, match=r'infeasible = .maybe.: use "raise" or "stay"'):
             make_env("synthetic", joint=True, infeasible="maybe")
 
 
