@@ -161,3 +161,11 @@ def test_swarm_options_reach_the_swarm_and_bad_ones_get_one_line(tmp_path, capsy
     bad = write(tmp_path, name="bad.toml", extra="[swarm_options.greedy]\nspeed = 3\n")
     assert main(["evaluate", "--config", str(bad), "--quiet", "--out", str(tmp_path / "b")]) == 2
     assert "[swarm_options.greedy]" in capsys.readouterr().err
+    # options of a swarm that does not exist would be silently unused: refused
+    for name in ("nosuch", "greedy@x"):
+        bad = write(tmp_path, name="bad.toml", extra=f'[swarm_options."{name}"]\nweight = 1\n')
+        out = tmp_path / f"b-{name}"
+        assert main(["evaluate", "--config", str(bad), "--quiet", "--out", str(out)]) == 2
+        err = capsys.readouterr().err.strip()
+        assert "\n" not in err and f"[swarm_options.{name}]:" in err and "swarm" in err
+        assert not out.exists()

@@ -44,7 +44,7 @@ from twin.errors import UserError
 from twin.grid import Grid
 from twin.resources import shipped_config as shipped_config  # re-export (moved there)
 from twin.scores import ScoreParams
-from twin.swarms import make_policy
+from twin.swarms import check_swarm_name, make_policy
 
 
 class ConfigError(UserError):
@@ -427,6 +427,13 @@ TrafficConfig = Annotated[SyntheticConfig | SumoSettings, Field(discriminator="k
 
 
 def _finite_options(options: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Options of registered swarms only (a table for an unknown swarm would be silently
+    unused), and finite numbers."""
+    for name in options:
+        try:
+            check_swarm_name(name)
+        except UserError as exc:
+            raise ValueError(f"[swarm_options.{name}]: {exc}") from None
     for name, table in options.items():
         for key, value in table.items():
             if isinstance(value, float) and not math.isfinite(value):
