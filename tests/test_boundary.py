@@ -1601,3 +1601,34 @@ def test_a_notice_said_again_by_the_next_seed_is_printed_once(capsys) -> None:
     ]
     assert run_command(command, None) == 0  # the next command says them again
     assert len(capsys.readouterr().err.splitlines()) == 3
+
+
+def test_a_run_folder_in_use_by_another_command_is_refused(tmp_path: Path, capsys) -> None:
+    """Two commands writing into one --out at once would mix their files: while one holds
+    the folder (another process), the second is refused in one line and writes nothing; once
+    the first has ended, the folder is free again."""
+    import subprocess
+
+    out = tmp_path / "run"
+    out.mkdir()
+    holder = subprocess.Popen(
+        [sys.executable, "-c",
+         "import sys, time; from twin.boundary import claim_run_folder; "
+         "claim_run_folder(sys.argv[1]); print('held', flush=True); time.sleep(120)",
+         str(out)],
+        stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        cfg = small_config(tmp_path, horizon=3)
+        args = ["evaluate", "--config", str(cfg), "--seeds", "1", "--swarms", "random"]
+        assert main([*args, "--out", str(out), "--no-report", "--quiet"]) == EXIT_REFUSED
+        err = capsys.readouterr().err.strip()
+        assert "\n" not in err and "Traceback" not in err
+        assert "another twin command is writing into this folder now" in err
+        assert list(out.iterdir()) == []
+    finally:
+        holder.kill()
+        holder.wait()
+    assert main([*args, "--out", str(out), "--no-report", "--quiet"]) == 0
+    assert (out / "manifest.json").is_file()

@@ -54,13 +54,47 @@ LOG_NAME = "error.log"
 #: the longest message printed (a huge value quoted in an exception stays on one screen line)
 MAX_MESSAGE = 600
 
-_state: dict[str, Path | None] = {"run_folder": None}
+_state: dict[str, Any] = {"run_folder": None, "lock": None}
 
 
 def set_run_folder(path: Path | None) -> None:
-    """The folder the current command owns and writes into (None: none yet); an unexpected
-    error's traceback goes to its ``error.log``."""
+    """The folder the current command owns and writes into (None: none yet, and the folder
+    :func:`claim_run_folder` locked is released); an unexpected error's traceback goes to its
+    ``error.log``."""
     _state["run_folder"] = None if path is None else Path(path)
+    if path is None:
+        _release_lock()
+
+
+def claim_run_folder(path: Path, flag: str = "--out") -> None:
+    """Lock the existing folder ``path`` for the current command (an exclusive ``flock`` on
+    the folder itself, held until the command ends or its process exits): a second command
+    writing into the same folder at once is refused in one line instead of mixing its files
+    with the first's. Claiming the folder already held does nothing."""
+    import fcntl
+
+    path = Path(path)
+    held = _state["lock"]
+    if held is not None and held[0] == path.resolve():
+        return
+    _release_lock()
+    fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        os.close(fd)
+        raise UserError(
+            f"{flag} {path}: another twin command is writing into this folder now; wait for it "
+            f"to end or pass another {flag}"
+        ) from None
+    _state["lock"] = (path.resolve(), fd)
+
+
+def _release_lock() -> None:
+    held, _state["lock"] = _state["lock"], None
+    if held is not None:
+        with contextlib.suppress(OSError):
+            os.close(held[1])
 
 
 def run_folder() -> Path | None:

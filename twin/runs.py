@@ -56,7 +56,7 @@ import numpy as np
 import pandas as pd
 
 from twin import __version__
-from twin.boundary import LOG_NAME, set_run_folder
+from twin.boundary import LOG_NAME, claim_run_folder, set_run_folder
 from twin.ceilings import ceiling_table
 from twin.errors import UserError
 from twin.files import atomic_write, write_json
@@ -196,17 +196,18 @@ def prepare_run_dir(path: str | Path, started: dict[str, Any] | None = None) -> 
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise UserError(f"--out {path}: is a file, not a folder; pass a new or empty folder")
-    if path.is_dir() and any(path.iterdir()):
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"--out {path}: cannot create the folder ({exc.strerror})") from exc
+    claim_run_folder(path)  # one command at a time writes into a run folder
+    if any(path.iterdir()):
         _replaceable(path, started)
         for entry in path.iterdir():
             if entry.is_dir() and not entry.is_symlink():
                 shutil.rmtree(entry)
             else:
                 entry.unlink()
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise UserError(f"--out {path}: cannot create the folder ({exc.strerror})") from exc
     marker = {
         "created": datetime.now(UTC).isoformat(timespec="seconds"),
         "invocation": started,
