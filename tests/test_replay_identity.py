@@ -411,3 +411,30 @@ def test_replay_refuses_a_changed_saved_state_the_sumocfg_loads(tmp_path, capsys
         fh.write("<!-- another day -->\n")
     run_case(capsys, tmp_path, ["replay", str(run)], None, 2,
              "state.xml: the load-state changed since the run (sha256 ")  # fmt: skip
+
+
+def test_replay_refuses_traffic_other_than_the_recorded_one(recorded, tmp_path, capsys):
+    """run.json edited to name another route file, with that file's sha256 (a determined
+    forgery that every hash check passes): the replayed simulation is compared step by step
+    with the run's tape, and the first step that differs is refused in one line."""
+    import hashlib
+    import re
+
+    trips = (tmp_path / "small.trips.xml").read_text()
+    fewer = re.sub(r"(<trip [^>]*/>\s*)(<trip [^>]*/>)", r"\1", trips)  # every other trip
+    assert fewer != trips
+    other = tmp_path / "other.trips.xml"
+    other.write_text(fewer)
+    config = tmp_path / "c.toml"
+    config.write_text(config.read_text().replace("small.trips.xml", "other.trips.xml"))
+
+    def forge(meta: dict) -> None:
+        for entry in meta["traffic"]["identity"]["files"]:
+            if entry["role"] == "route file":
+                entry["path"] = str(other)
+                entry["sha256"] = hashlib.sha256(other.read_bytes()).hexdigest()
+        meta["traffic"]["route_files"] = [str(other)]
+
+    _edit_run_json(forge)(recorded)
+    run_case(capsys, tmp_path, ["replay", str(recorded)], None, 2,
+             "tape.parquet: the replayed simulation's importance at step ")  # fmt: skip

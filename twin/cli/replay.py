@@ -184,16 +184,19 @@ def main(args: argparse.Namespace) -> int:
     check_trajectories(path, rows, source.grid.shape, source.grid.obstacles)
     positions = {s: _positions(rows[rows["swarm"] == s]) for s in swarms}
     steps = min(len(p) for p in positions.values())
+    tape_path = run_dir / ("tape.parquet" if seed == seeds[0] else f"tapes/seed-{seed}.parquet")
+    recorded_maps = recorded_importance(tape_path, source.grid.shape)
     drawer.attach(source)
     notify(drawer.legend())
     with display():
         maps = source.importance_maps()
         try:
             for k, importance in enumerate(maps):
-                if k == 0:
-                    release_notices()  # the simulation started
                 if k >= steps:
                     break
+                check_same_traffic(tape_path, k, importance, next(recorded_maps, None))
+                if k == 0:
+                    release_notices()  # the simulation started as recorded
                 drawer(k, {s: p[k] for s, p in positions.items()}, importance)
             drawer.flush()  # a partial run ends before the source's horizon
         finally:
@@ -201,6 +204,35 @@ def main(args: argparse.Namespace) -> int:
     ok = not args.record or finish_video(drawer)
     print(f"replayed {steps - 1} steps of seed {seed} from {run_dir}")
     return 0 if ok else 1
+
+
+def recorded_importance(tape_path: Path, shape: tuple[int, int]):
+    """The seed's recorded importance maps, step by step: its tape replayed through the MFD
+    as ``twin evaluate --traffic`` does (the same maps the run scored); nothing without a
+    tape (a run recorded before tapes were kept)."""
+    from twin.traffic.tape import Tape, TapeTraffic
+
+    if not tape_path.is_file():
+        return iter(())
+    return TapeTraffic(Tape.read(tape_path, shape), source_name=str(tape_path)).importance_maps()
+
+
+def check_same_traffic(tape_path: Path, k: int, replayed: np.ndarray, recorded) -> None:
+    """Refuse (one line) a replay whose simulation, rebuilt from ``run.json``, gives other
+    importance at step ``k`` than the run recorded: its files, hashes and versions may all be
+    as recorded and the traffic still not (a run.json edited to name other files)."""
+    if recorded is None:
+        return
+    diff = np.abs(np.asarray(replayed, float) - np.asarray(recorded, float))
+    if diff.max() <= 1e-9:
+        return
+    i, j = np.unravel_index(int(diff.argmax()), diff.shape)
+    raise UserError(
+        f"{tape_path}: the replayed simulation's importance at step {k} differs from the "
+        f"recorded run's (cell ({i}, {j}): {float(replayed[i, j]):.4f} against "
+        f"{float(recorded[i, j]):.4f}); the scenario rebuilt from run.json is not the one "
+        "recorded: replay with the run's files and versions, or rerun `twin run`"
+    )
 
 
 def _recorded_shape(run_dir: Path) -> tuple[int, int] | None:
