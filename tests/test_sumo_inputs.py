@@ -231,6 +231,25 @@ def test_a_demand_of_persons_alone_gets_a_notice(city, tmp_path, capsys):
     assert code == 0 and "no vehicle" not in err, err
 
 
+@pytest.mark.parametrize(
+    ("element", "expected"),
+    [
+        ('<personFlow id="f" begin="60" end="3600" period="10"><walk from="A0A1" to="C2C3"/>'
+         "</personFlow>", (60.0, 3600.0)),
+        ('<personFlow id="f" begin="60" number="10" period="30"><walk from="A0A1" to="C2C3"/>'
+         "</personFlow>", (60.0, 360.0)),
+        ('<containerFlow id="f" begin="0" end="1:00:00" period="10"><transport from="A0A1" '
+         'to="C2C3"/></containerFlow>', (0.0, 3600.0)),
+    ],
+)  # fmt: skip
+def test_person_and_container_flows_span_their_begin_to_their_end(tmp_path, element, expected):
+    """A flow of persons or containers departs from its begin to its end, as a vehicle flow:
+    a demand of them alone gets that window, not its begin alone (an empty window)."""
+    path = tmp_path / "flows.rou.xml"
+    path.write_text(f"<routes>{element}</routes>")
+    assert departure_span([path]) == pytest.approx(expected)
+
+
 # flags -> words of the one-line refusal: a step SUMO cannot take, one it would take for ever,
 # or a run outside the demand (every step empty)
 STEP_CASES = {

@@ -299,7 +299,7 @@ def departure_span(
     route_files: list[Path], counts: dict[str, int] | None = None
 ) -> tuple[float, float] | None:
     """First and last numeric departure of the demand (``depart`` of vehicles, trips and persons,
-    ``begin`` .. ``end`` of flows); None when the files hold no vehicle (e.g. only vTypes).
+    ``begin`` .. ``end`` of flows, person and container flows); None when the files hold no vehicle (e.g. only vTypes).
     ``counts``, when given, gets the number of departing elements of each tag. Files pulled in
     with ``<include href>`` count, as SUMO loads them."""
     first = last = None
@@ -318,7 +318,7 @@ def departure_span(
                     if t is not None:
                         counts[elem.tag] = counts.get(elem.tag, 0) + 1
                         end = t
-                        if elem.tag == "flow":
+                        if elem.tag.endswith(("flow", "Flow")):  # flow, personFlow, ...
                             end = _flow_end(elem, t)
                         first = t if first is None else min(first, t)
                         last = end if last is None else max(last, end)
