@@ -118,6 +118,33 @@ def _edit_recorded_route_hash(run: Path) -> None:
     _edit_run_json(change)(run)
 
 
+def _maps_rewritten(run: Path) -> None:
+    """importance.npz with every free cell at 0.9 (the manifest agrees)."""
+    import numpy as np
+
+    with np.load(run / "importance.npz") as npz:
+        data = dict(npz)
+    data["importance"] = (
+        np.where(data["obstacles"], 0.0, 0.9)
+        .astype(np.float32)[None]
+        .repeat(len(data["importance"]), axis=0)
+    )
+    np.savez(run / "importance.npz", **data)
+    write_manifest(run)
+
+
+def _tape_counts_scaled(run: Path) -> None:
+    """tape.parquet with every count ten times what SUMO had, its metadata kept."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    table = pq.read_table(run / "tape.parquet")
+    at = table.schema.get_field_index("count")
+    counts = pa.compute.multiply(table.column("count"), pa.scalar(10, table.column("count").type))
+    pq.write_table(table.set_column(at, table.schema.field(at), counts), run / "tape.parquet")
+    write_manifest(run)
+
+
 # name -> (what to change, monkeypatched (module, attribute, value) or None, expected words)
 CASES = {
     "network edited": (_edit_net, None, "the network file (sha256) was"),
@@ -178,6 +205,16 @@ CASES = {
         None,
         "traffic.identity.cell_m = 0 must be above 0",
     ),
+    "maps other than the tape's": (
+        _maps_rewritten,
+        None,
+        "importance.npz: importance at step 0, cell (",
+    ),
+    "tape other than the maps": (
+        _tape_counts_scaled,
+        None,
+        "but tape.parquet replayed through its MFD gives",
+    ),
     "route hash differs": (
         _edit_recorded_route_hash,
         None,
@@ -196,6 +233,14 @@ def test_replay_refuses_another_scenario(recorded, tmp_path, capsys, monkeypatch
         monkeypatch.setattr(importlib.import_module(module), name, value)
     err = run_case(capsys, tmp_path, ["replay", str(recorded)], None, 2, needle)
     assert "\n" not in err
+
+
+def test_a_recorded_run_reads_back_whole(recorded, capsys):
+    """The live run's maps are its tape's replay, its scores its trajectories' over them."""
+    from twin.report.load import load_run
+
+    load_run(recorded)
+    assert main(["report", str(recorded), "--no-animation"]) == 0
 
 
 def test_run_json_records_the_identity(recorded):
