@@ -1041,6 +1041,10 @@ READ_BACK = {
         _swap_swarms("trajectories.parquet", "random", "greedy"),
         "swarm 'random', step 0, but trajectories.parquet and importance.npz give",
     ),
+    "trajectories of the other seed": (
+        _edit_table("trajectories.parquet", lambda f: f.assign(seed=1 - f["seed"])),
+        "series.parquet: reward = ",
+    ),
     "reward split moved between its parts": (
         _shifted("greedy", R_hat_T_importance=-0.1, R_hat_T_idleness=0.1),
         "per_seed.csv: R_hat_T_importance = ",

@@ -145,6 +145,23 @@ def _tape_counts_scaled(run: Path) -> None:
     write_manifest(run)
 
 
+def _tape_of_sumo_seed(seed: int) -> Callable[[Path], None]:
+    """tape.parquet as if SUMO had run with another seed (its metadata says so)."""
+
+    def edit(run: Path) -> None:
+        import pyarrow.parquet as pq
+
+        table = pq.read_table(run / "tape.parquet")
+        meta = dict(table.schema.metadata)
+        tape = json.loads(meta[b"twin_tape"])
+        tape["settings"]["seed"] = seed
+        meta[b"twin_tape"] = json.dumps(tape).encode()
+        pq.write_table(table.replace_schema_metadata(meta), run / "tape.parquet")
+        write_manifest(run)
+
+    return edit
+
+
 # name -> (what to change, monkeypatched (module, attribute, value) or None, expected words)
 CASES = {
     "network edited": (_edit_net, None, "the network file (sha256) was"),
@@ -214,6 +231,11 @@ CASES = {
         _tape_counts_scaled,
         None,
         "but tape.parquet replayed through its MFD gives",
+    ),
+    "tape of another SUMO seed": (
+        _tape_of_sumo_seed(7),
+        None,
+        "tape.parquet: recorded with SUMO seed 7, but run.json has seed 0 run with SUMO seed",
     ),
     "route hash differs": (
         _edit_recorded_route_hash,

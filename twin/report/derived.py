@@ -442,15 +442,50 @@ PER_SEED_PARTS = (series_scores, ceiling_scores, monitoring_scores)
 TAPE_REPLAY_ROWS = 1_000_000
 
 
+def check_tape_seeds(primary: Primary) -> None:
+    """Each tape of a live SUMO run (``tape.parquet``: the first seed's, ``tapes/seed-<s>``:
+    seed ``s``'s) was recorded with the SUMO seed that run.json records for its seed
+    (``traffic_by_seed``, in the order of ``seeds``; ``traffic.seed`` with one seed). Reads the
+    tapes' metadata only."""
+    from twin.traffic.tape import read_tape_meta
+
+    run = primary.run
+    seeds = run.get("seeds")
+    by_seed = run.get("traffic_by_seed")
+    if not isinstance(seeds, list):
+        return
+    if not isinstance(by_seed, list):
+        by_seed = [run.get("traffic")] if len(seeds) == 1 else []
+    sumo_seeds = {
+        seed: node.get("seed")
+        for seed, node in zip(seeds, by_seed, strict=False)
+        if isinstance(node, dict) and isinstance(node.get("seed"), int)
+    }
+    tapes = [(primary.run_dir / "tape.parquet", primary.first_seed)]
+    tapes += [(primary.run_dir / "tapes" / f"seed-{s}.parquet", s) for s in seeds]
+    for path, seed in tapes:
+        want = sumo_seeds.get(seed)
+        if want is None or not path.is_file():
+            continue
+        got = (read_tape_meta(path).get("settings") or {}).get("seed")
+        if got != want:
+            raise UserError(
+                f"{path}: recorded with SUMO seed {got}, but run.json has seed {seed} run with "
+                f"SUMO seed {want}; {RERUN}"
+            )
+
+
 def check_tape_maps(primary: Primary) -> None:
     """A live SUMO run's ``importance.npz`` holds the maps its first seed's ``tape.parquet``
     gives when replayed through the run's MFD observation (:class:`twin.traffic.tape.TapeTraffic`:
-    the counts and speeds the live source observed, bit for bit). Skipped for a tape of more
-    than :data:`TAPE_REPLAY_ROWS` rows."""
+    the counts and speeds the live source observed, bit for bit), and each tape is of its seed
+    (:func:`check_tape_seeds`). The replay is skipped for a tape of more than
+    :data:`TAPE_REPLAY_ROWS` rows."""
     import pyarrow.parquet as pq
 
     from twin.traffic.tape import Tape, TapeTraffic
 
+    check_tape_seeds(primary)
     path = primary.run_dir / "tape.parquet"
     maps = primary.importance
     if maps is None or not path.is_file():
