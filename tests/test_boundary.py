@@ -638,8 +638,8 @@ def _network(run: Path, **changes) -> dict:
 def _shifted(swarm, **shifts):
     """``swarm``'s figures moved in both seeds, consistently in every file made of them: each
     ``series.parquet`` column of ``shifts`` (with ``cumulative_reward`` its running sum again)
-    and each ``per_seed.csv``/``summary.csv`` column (their means over seeds; the intervals
-    do not change). Only the trajectories and maps they were scored on disagree."""
+    and each ``per_seed.csv``/``summary.csv``/``monitoring.csv`` column (their means over seeds;
+    the intervals do not change). Only the trajectories and maps they were scored on disagree."""
 
     def apply(run: Path) -> None:
         series = pd.read_parquet(run / "series.parquet")
@@ -649,7 +649,7 @@ def _shifted(swarm, **shifts):
                 series.loc[mine, column] += by
         series["cumulative_reward"] = series.groupby(["seed", "swarm"])["reward"].cumsum()
         series.to_parquet(run / "series.parquet", index=False)
-        for name in ("per_seed.csv", "summary.csv"):
+        for name in ("per_seed.csv", "summary.csv", "monitoring.csv"):
             frame = pd.read_csv(run / name)
             rows = frame["swarm"] == swarm
             for column, by in shifts.items():
@@ -1040,6 +1040,10 @@ READ_BACK = {
     "series rewards named after the other swarm": (
         _swap_swarms("trajectories.parquet", "random", "greedy"),
         "swarm 'random', step 0, but trajectories.parquet and importance.npz give",
+    ),
+    "belief error lowered with its tables": (
+        _shifted("greedy", belief_error=-0.05),
+        "series.parquet: belief_error = ",
     ),
     "trajectories of the other seed": (
         _edit_table("trajectories.parquet", lambda f: f.assign(seed=1 - f["seed"])),

@@ -219,6 +219,40 @@ def replayed_series(primary: Primary, frame: pd.DataFrame) -> pd.DataFrame:
     return pd.concat(frames, ignore_index=True)
 
 
+def replayed_belief(primary: Primary, frame: pd.DataFrame) -> pd.DataFrame:
+    """The first seed's ``belief_error`` of ``series.parquet``: each swarm's belief replayed
+    from its trajectory over ``importance.npz``'s maps by
+    :func:`twin.monitoring.belief_error_curve`, when the run scored it against those maps
+    (run.json ``monitoring.truth``); not recomputed otherwise."""
+    from twin.faults import FaultPlan
+    from twin.monitoring import DEFAULT_WEIGHT_FLOOR, belief_error_curve
+
+    monitoring = primary.run.get("monitoring")
+    seed = primary.first_seed
+    if (
+        "belief_error" not in frame.columns
+        or not isinstance(monitoring, dict)
+        or monitoring.get("truth") != OBSERVED_TRUTH
+        or primary.importance is None
+        or seed is None
+    ):
+        return pd.DataFrame()
+    floor = float(monitoring.get("weight_floor", DEFAULT_WEIGHT_FLOOR))
+    maps = primary.importance.astype(np.float32)  # as the run held them
+    grid = Grid(primary.obstacles)
+    plan = FaultPlan.from_record(primary.run.get("faults"))
+    frames = []
+    for swarm in primary.swarms:
+        pos = primary.positions(seed, swarm)
+        recorded = None if plan is None else plan.recorded(seed, len(pos), pos.shape[1])
+        curve = belief_error_curve(grid, pos, maps[: len(pos)], maps[: len(pos)], floor, recorded)
+        steps = np.arange(len(pos) - 1)
+        frames.append(
+            pd.DataFrame({"seed": seed, "swarm": swarm, "step": steps, "belief_error": curve[1:]})
+        )
+    return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+
+
 def replayed_split(primary: Primary, frame: pd.DataFrame) -> pd.DataFrame:
     """The first seed's reward split ``R_hat_T_importance``, ``R_hat_T_idleness`` (the means
     of ``R^k``'s parts) replayed like :func:`replayed_series`."""
@@ -403,6 +437,12 @@ DERIVED: tuple[Derivation, ...] = (
         "trajectories.parquet and importance.npz",
         ("seed", "swarm", "step"),
         replayed_series,
+    ),
+    Derivation(
+        "series.parquet",
+        "trajectories.parquet and importance.npz",
+        ("seed", "swarm", "step"),
+        replayed_belief,
     ),
     Derivation("events.parquet", "importance.npz", ("seed", "event"), map_events, complete=True),
     Derivation(
