@@ -162,6 +162,28 @@ def _tape_of_sumo_seed(seed: int) -> Callable[[Path], None]:
     return edit
 
 
+def _edit_table(name: str, change: Callable[[pd.DataFrame], pd.DataFrame]) -> Callable:
+    """A table of the run changed (the manifest agrees)."""
+
+    def edit(run: Path) -> None:
+        change(pd.read_parquet(run / name)).to_parquet(run / name, index=False)
+        write_manifest(run)
+
+    return edit
+
+
+def _edit_json(name: str, change: Callable[[dict], None]) -> Callable[[Path], None]:
+    """A JSON file of the run changed in place (the manifest agrees)."""
+
+    def edit(run: Path) -> None:
+        data = json.loads((run / name).read_text())
+        change(data)
+        (run / name).write_text(json.dumps(data))
+        write_manifest(run)
+
+    return edit
+
+
 # name -> (what to change, monkeypatched (module, attribute, value) or None, expected words)
 CASES = {
     "network edited": (_edit_net, None, "the network file (sha256) was"),
@@ -231,6 +253,16 @@ CASES = {
         _tape_counts_scaled,
         None,
         "but tape.parquet replayed through its MFD gives",
+    ),
+    "MFD samples other than the tape's": (
+        _edit_table("mfd_samples.parquet", lambda f: f.assign(count=f["count"] * 10)),
+        None,
+        "mfd_samples.parquet: count = ",
+    ),
+    "MFD fit of more samples than the tape's": (
+        _edit_json("mfd.json", lambda m: m.update(n_samples=m["n_samples"] + 5)),
+        None,
+        "mfd.json: n_samples = ",
     ),
     "tape of another SUMO seed": (
         _tape_of_sumo_seed(7),

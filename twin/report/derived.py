@@ -542,7 +542,7 @@ def check_tape_maps(primary: Primary) -> None:
     k = -1
     for k, replayed in enumerate(source.importance_maps()):
         if k >= len(kept):
-            break
+            continue  # the MFD observed every snapshot of the tape
         replayed = np.asarray(replayed, dtype=np.float32)
         off = replayed != kept[k]
         if off.any():
@@ -557,6 +557,43 @@ def check_tape_maps(primary: Primary) -> None:
             f"{npz}: holds {len(kept)} maps of seed {primary.first_seed}, but tape.parquet "
             f"replays {k + 1}; {RERUN}"
         )
+    check_mfd_files(primary.run_dir, source.model_observed())
+
+
+def check_mfd_files(run_dir: Path, model) -> None:
+    """``mfd_samples.parquet`` and ``mfd.json`` as the MFD observation ``model``
+    (:class:`twin.mfd.MFDImportance`, having observed the first seed's tape) writes them
+    (:meth:`~twin.mfd.MFDImportance.samples`, :meth:`~twin.mfd.MFDImportance.report`)."""
+    import json
+
+    from twin.readback import read_json
+
+    replay = "tape.parquet replayed through its MFD gives"
+    path = run_dir / "mfd_samples.parquet"
+    if path.is_file():
+        mine = pd.read_parquet(path)
+        theirs = pd.DataFrame(model.samples())
+        if len(mine) != len(theirs):
+            raise UserError(f"{path}: {len(mine)} samples, but {replay} {len(theirs)}; {RERUN}")
+        for column in theirs.columns:
+            if column not in mine.columns:
+                continue
+            off = _differ(mine[column].reset_index(drop=True), theirs[column], None)
+            if off.any():
+                n = int(np.flatnonzero(off)[0])
+                raise UserError(
+                    f"{path}: {column} = {_show(mine[column].iloc[n])} in row {n}, but {replay} "
+                    f"{_show(theirs[column].iloc[n])}; {RERUN}"
+                )
+    fit = read_json(run_dir / "mfd.json")
+    if isinstance(fit, dict):
+        report = json.loads(json.dumps(model.report(), default=float))
+        for name, want in report.items():
+            if name in fit and not isinstance(want, (dict, list)) and not _same(fit[name], want):
+                raise UserError(
+                    f"{run_dir / 'mfd.json'}: {name} = {_show(fit[name])}, but {replay} "
+                    f"{_show(want)}; {RERUN}"
+                )
 
 
 def check_derived(primary: Primary, tables: dict[str, pd.DataFrame | None]) -> None:

@@ -443,6 +443,10 @@ class TapeTraffic(TrafficSource):
         observer = getattr(self, "_observer", None)
         return observer.truth if observer is not None and self.detection_p < 1.0 else None
 
+    def model_observed(self) -> MFDImportance | None:
+        """The MFD observation of the last replay (its fit and samples), None before one."""
+        return getattr(self, "_observer", None)
+
     def importance_maps(self) -> Generator[np.ndarray, None, None]:
         model = self._observer = self.model()
         for step, count, speed in zip(
