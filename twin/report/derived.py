@@ -82,6 +82,7 @@ class Primary:
     #: ``(T+1, nx, ny)`` importance maps of ``importance.npz`` and the seed they are of
     importance: np.ndarray | None = None
     first_seed: int | None = None
+    incidents: list[dict[str, Any]] | None = None  # incidents.json (the first seed's)
     #: the first seed's swarms replayed over those maps (:func:`_replays`), once computed
     replayed: dict[str, dict[str, np.ndarray]] | None = field(default=None, repr=False)
     #: each seed's :func:`run_monitoring`, by seed and the events table it was made of
@@ -251,6 +252,80 @@ def replayed_belief(primary: Primary, frame: pd.DataFrame) -> pd.DataFrame:
             pd.DataFrame({"seed": seed, "swarm": swarm, "step": steps, "belief_error": curve[1:]})
         )
     return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+
+
+#: The incident columns of ``per_seed.csv`` (:func:`twin.monitoring.incident_scores`).
+INCIDENT_COLUMNS = ("incidents", "pct_incidents_seen", "incident_latency_steps",
+                    "incident_latency_min")  # fmt: skip
+
+
+def replayed_incidents(primary: Primary, frame: pd.DataFrame) -> pd.DataFrame:
+    """The first seed's incident columns: each swarm's sightings of ``incidents.json``'s
+    incidents (the first seed's, as applied) replayed from its trajectory
+    (:func:`twin.monitoring.incident_sightings`, :func:`twin.monitoring.incident_scores`); NaN
+    when the folder has none (the run scheduled none, or none was applied). Their onset and
+    last steps are checked against their times first (:func:`check_incident_steps`)."""
+    from twin.faults import FaultPlan
+    from twin.monitoring import incident_scores, incident_sightings
+    from twin.runs import step_seconds_of
+
+    seed, incidents = primary.first_seed, primary.incidents or []
+    columns = [c for c in INCIDENT_COLUMNS if c in frame.columns]
+    if seed is None or not columns:
+        return pd.DataFrame()
+    cells = [inc.get("cell") for inc in incidents]
+    if not all(isinstance(c, list) and len(c) == 2 for c in cells):
+        return pd.DataFrame()  # an incident never applied has no cell to be seen at
+    check_incident_steps(primary)
+    grid = Grid(primary.obstacles)
+    plan = FaultPlan.from_record(primary.run.get("faults"))
+    step_s = step_seconds_of(primary.run)
+    rows = []
+    for swarm in primary.swarms:
+        row = dict.fromkeys(columns, np.nan)
+        if incidents:
+            pos = primary.positions(seed, swarm)
+            recorded = None if plan is None else plan.recorded(seed, len(pos), pos.shape[1])
+            first, latency = incident_sightings(grid, pos, incidents, recorded)
+            scores = incident_scores(first, latency, step_s)
+            row.update({c: scores[c] for c in columns if c in scores})
+        rows.append({"seed": seed, "swarm": swarm, **row})
+    return pd.DataFrame(rows)
+
+
+def check_incident_steps(primary: Primary) -> None:
+    """Each incident's ``onset_step`` and ``end_step`` are the steps its ``begin_s`` ..
+    ``end_s`` meet (:func:`twin.sumo.incidents.onset_and_end_steps`, with run.json's
+    ``traffic.begin``, ``step_s`` and ``horizon``), and ``end_s`` its ``begin_s`` plus its
+    ``duration_min``."""
+    from twin.clock import clock_seconds
+    from twin.sumo.incidents import onset_and_end_steps
+
+    traffic = primary.run.get("traffic")
+    traffic = traffic if isinstance(traffic, dict) else {}
+    begin, step_s, horizon = traffic.get("begin"), traffic.get("step_s"), traffic.get("horizon")
+    t0 = clock_seconds(begin) if isinstance(begin, str) else None
+    number = (int, float)
+    if t0 is None or not isinstance(step_s, number) or not isinstance(horizon, int):
+        return
+    path = primary.run_dir / "incidents.json"
+    for n, inc in enumerate(primary.incidents or []):
+        start, end = inc.get("begin_s"), inc.get("end_s")
+        if not (isinstance(start, number) and isinstance(end, number)):
+            continue
+        duration = inc.get("duration_min")
+        if isinstance(duration, number) and not _same(end, start + 60.0 * duration):
+            raise UserError(
+                f"{path}: [{n}].end_s = {_show(end)}, but its begin_s and duration_min give "
+                f"{_show(start + 60.0 * duration)}; {RERUN}"
+            )
+        onset, last = onset_and_end_steps(start, end, t0, step_s)
+        for name, want in (("onset_step", onset), ("end_step", min(last, horizon))):
+            if name in inc and inc[name] != want:
+                raise UserError(
+                    f"{path}: [{n}].{name} = {inc[name]}, but its begin_s and end_s give step "
+                    f"{want} (run.json traffic.begin, step_s); {RERUN}"
+                )
 
 
 def replayed_split(primary: Primary, frame: pd.DataFrame) -> pd.DataFrame:
@@ -458,6 +533,12 @@ DERIVED: tuple[Derivation, ...] = (
         "events.parquet, trajectories.parquet and series.parquet",
         ("seed", "swarm"),
         monitoring_scores,
+    ),
+    Derivation(
+        "per_seed.csv",
+        "incidents.json and trajectories.parquet",
+        ("seed", "swarm"),
+        replayed_incidents,
     ),
     Derivation("per_seed.csv", "its reward split", ("seed", "swarm"), reward_split),
     Derivation(

@@ -362,6 +362,7 @@ def load_run(run_dir: str | Path) -> RunFiles:
         run_dir, series, trajectories, events, obstacles, run, [str(s) for s in
         summary.loc[~is_ceiling_row(summary), "swarm"]], importance=importance,
         first_seed=int(first) if first is not None else int(series["seed"].min()),
+        incidents=incidents,
     )  # fmt: skip
     comparison = optional(
         "comparison.csv",
