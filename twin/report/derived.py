@@ -1,30 +1,34 @@
 """A run folder's derived files checked against its primary files before a report shows them.
 
 ``twin run`` and ``twin evaluate`` score each swarm by stepping it through
-:func:`twin.swarm.step` over the maps of ``importance.npz`` (kept for the first seed), write
-``series.parquet`` of those scores, find the congestion events of ``events.parquet`` on the
-maps, compute ``per_seed.csv`` from what ``series.parquet``, ``trajectories.parquet`` and
-``events.parquet`` record, ``summary.csv`` from ``per_seed.csv``, ``monitoring.csv`` from
+:func:`twin.swarm.step` over the maps that ``importance.npz`` keeps for the first seed (a live
+run's maps being its ``tape.parquet`` seen through the MFD), write ``series.parquet`` of those
+scores, find the congestion events of ``events.parquet`` on the maps, compute ``per_seed.csv``
+from what ``series.parquet``, ``trajectories.parquet``, ``events.parquet`` and
+``incidents.json`` record, ``summary.csv`` from ``per_seed.csv``, ``monitoring.csv`` from
 ``summary.csv`` and ``comparison.csv`` from ``per_seed.csv``. :data:`DERIVED` lists, for each
 derived file, the columns that its sources determine and how they are recomputed, with the
 functions that computed them at run time (:func:`twin.swarm.step`,
-:func:`twin.monitoring.congestion_events`, :func:`twin.metrics.series_columns`,
+:func:`twin.monitoring.belief_error_curve`, :func:`twin.monitoring.congestion_events`,
+:func:`twin.monitoring.incident_sightings`, :func:`twin.metrics.series_columns`,
 :func:`twin.monitoring.ceiling_coverage`, :class:`twin.monitoring.RunMonitoring`,
-:func:`twin.metrics.aggregate`, :func:`twin.metrics.learned_against_best_classical`). A value
+:func:`twin.metrics.aggregate`, :func:`twin.metrics.learned_against_best_classical`);
+:func:`check_tape_maps` replays the tape (:class:`twin.traffic.tape.TapeTraffic`). A value
 further than :data:`TOLERANCE` from its recomputation (and, for what the importance maps
 weigh, their float32 rounding, :data:`MAP_ROUNDING`) is one :class:`UserError` line naming
 both files, the column, the swarm and the seed: the report never shows a figure its run's
 files contradict.
 
-Not recomputed (their inputs are not all in the folder): the scores of seeds other than the
-first (their importance maps are not kept: their per-step scores are checked only to add up,
-their reward split to add up to ``R_hat_T``); the paper's accounting ``R_hat_T_paper`` (Def. 4
-as printed, shown for comparison only); the events when the run found them on a recorded truth
-(run.json ``monitoring.truth``: vehicles missed by the drones), which the folder does not keep,
-or when run.json does not say which maps it found them on; ``importance.npz`` of a live run
-whose ``tape.parquet`` has more than :data:`TAPE_REPLAY_ROWS` rows (a city-scale tape takes
-longer to read back than the report to draw); the ceiling rows (:mod:`twin.ceilings`) and the
-incident columns.
+Not recomputed (their inputs are not all in the folder): the per-step scores, belief error,
+reward split and incident columns of seeds other than the first (their maps and incidents are
+not kept: their scores are checked only to add up to the per-seed figures, their reward split
+to add up to ``R_hat_T``); the paper's accounting ``R_hat_T_paper`` (Def. 4 as printed, shown
+for comparison only); the events and belief error when the run scored them on a recorded
+truth (run.json ``monitoring.truth``: vehicles the drones missed), which the folder does not
+keep, or when run.json does not say which; ``importance.npz``, ``mfd_samples.parquet`` and
+``mfd.json`` of a live run whose ``tape.parquet`` has more than :data:`TAPE_REPLAY_ROWS` rows
+(a city-scale tape takes longer to read back than the report to draw; its tapes' SUMO seeds
+are still checked); the ceiling rows (:mod:`twin.ceilings`).
 """
 
 from __future__ import annotations
