@@ -264,6 +264,11 @@ CASES = {
         None,
         "mfd.json: n_samples = ",
     ),
+    "network placed elsewhere than the tape's": (
+        _edit_json("network.json", lambda m: m["grid"].update(x0=m["grid"]["x0"] + 5000.0)),
+        None,
+        "network.json: grid.x0 = ",
+    ),
     "tape of another SUMO seed": (
         _tape_of_sumo_seed(7),
         None,

@@ -28,7 +28,8 @@ truth (run.json ``monitoring.truth``: vehicles the drones missed), which the fol
 keep, or when run.json does not say which; ``importance.npz``, ``mfd_samples.parquet`` and
 ``mfd.json`` of a live run whose ``tape.parquet`` has more than :data:`TAPE_REPLAY_ROWS` rows
 (a city-scale tape takes longer to read back than the report to draw; its tapes' SUMO seeds
-are still checked); the ceiling rows (:mod:`twin.ceilings`).
+and ``network.json`` are still checked against the tapes' metadata); the ceiling rows
+(:mod:`twin.ceilings`).
 """
 
 from __future__ import annotations
@@ -600,17 +601,72 @@ def check_tape_seeds(primary: Primary) -> None:
             )
 
 
+def check_tape_network(primary: Primary) -> None:
+    """A live run's ``network.json`` is the network record its first seed's ``tape.parquet``
+    keeps (both are :meth:`twin.sumo.source.SumoTraffic.network_info`): the grid's place on
+    the network, its lane-km, its obstacles. Reads the tape's metadata only."""
+    from twin.readback import read_json
+    from twin.traffic.tape import read_tape_meta
+
+    path = primary.run_dir / "tape.parquet"
+    network = read_json(primary.run_dir / "network.json")
+    if not isinstance(network, dict) or not path.is_file():
+        return
+    recorded = (read_tape_meta(path).get("settings") or {}).get("network")
+    if not isinstance(recorded, dict):
+        return
+    at = _first_difference(network, recorded)
+    if at is not None:
+        name, have, want = at
+        raise UserError(
+            f"{primary.run_dir / 'network.json'}: {name} = {have}, but tape.parquet records "
+            f"{want} (the network the run used); {RERUN}"
+        )
+
+
+def _first_difference(have: Any, want: Any, name: str = "") -> tuple[str, str, str] | None:
+    """The first dotted key at which the JSON values differ (numbers within
+    :data:`TOLERANCE`), with both values shown; None when they agree."""
+    if isinstance(have, dict) and isinstance(want, dict):
+        for key in [*want, *(k for k in have if k not in want)]:
+            at = _first_difference(have.get(key), want.get(key), f"{name}.{key}" if name else key)
+            if at is not None:
+                return at
+        return None
+    if isinstance(have, list) and isinstance(want, list) and len(have) == len(want):
+        for n, (h, w) in enumerate(zip(have, want, strict=True)):
+            at = _first_difference(h, w, f"{name}[{n}]")
+            if at is not None:
+                return at
+        return None
+    numbers = (int, float)
+    both = isinstance(have, numbers) and isinstance(want, numbers)
+    if both and not isinstance(have, bool) and not isinstance(want, bool):
+        same = _same(have, want)
+    else:
+        same = have == want
+    return None if same else (name, _json_text(have), _json_text(want))
+
+
+def _json_text(value: Any) -> str:
+    import json
+
+    return json.dumps(value)[:60]
+
+
 def check_tape_maps(primary: Primary) -> None:
     """A live SUMO run's ``importance.npz`` holds the maps its first seed's ``tape.parquet``
     gives when replayed through the run's MFD observation (:class:`twin.traffic.tape.TapeTraffic`:
-    the counts and speeds the live source observed, bit for bit), and each tape is of its seed
-    (:func:`check_tape_seeds`). The replay is skipped for a tape of more than
+    the counts and speeds the live source observed, bit for bit), each tape is of its seed
+    (:func:`check_tape_seeds`) and ``network.json`` the tape's network
+    (:func:`check_tape_network`). The replay is skipped for a tape of more than
     :data:`TAPE_REPLAY_ROWS` rows."""
     import pyarrow.parquet as pq
 
     from twin.traffic.tape import Tape, TapeTraffic
 
     check_tape_seeds(primary)
+    check_tape_network(primary)
     path = primary.run_dir / "tape.parquet"
     maps = primary.importance
     if maps is None or not path.is_file():
