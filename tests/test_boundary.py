@@ -837,6 +837,10 @@ READ_BACK = {
         _json("run.json", ("monitoring", "threshold"), 0),
         "monitoring.threshold = 0",
     ),
+    "run.json faults of the wrong kind": (
+        _json("run.json", ("faults",), {"drone_loss": [{"drone": 1, "step": "soon"}]}),
+        "run.json: faults = {'drone_loss': [{'drone': 1, 'step': 'soon'}]} is not a fault record",
+    ),
     "run.json folder not text": (_json("run.json", ("invocation", "cwd"), 5), "invocation.cwd"),
     "degradation infinite score": (
         _built_file("degradation.csv", lambda run: _degradation(run, R_hat=np.inf)),

@@ -127,6 +127,25 @@ class Derivation:
     complete: bool = False
 
 
+def fault_plan(primary: Primary):
+    """The run's scripted faults (:class:`twin.faults.FaultPlan`, run.json ``faults``), None
+    without; a record that is not one is a :class:`UserError` line."""
+    from twin.faults import FaultPlan
+
+    record = primary.run.get("faults")
+    try:
+        plan = FaultPlan.from_record(record)
+        if plan is not None:
+            plan.recorded(0, 2, 1)  # every field of the right kind
+            plan.phases(2, 1)
+    except (TypeError, ValueError, AttributeError) as exc:
+        raise UserError(
+            f"{primary.run_dir / 'run.json'}: faults = {str(record)[:60]} is not a fault "
+            f"record ({type(exc).__name__}); {RERUN}"
+        ) from None
+    return plan
+
+
 #: The action (:data:`twin.grid.ACTIONS`) of each move ``(di, dj)``, at ``3 (di + 1) + dj + 1``.
 _ACTION_OF_MOVE = np.full(9, -1, np.int64)
 _ACTION_OF_MOVE[3 * (ACTION_DELTAS[:, 0] + 1) + ACTION_DELTAS[:, 1] + 1] = np.arange(
@@ -174,15 +193,13 @@ def _replays(primary: Primary) -> dict[str, dict[str, np.ndarray]]:
     """:func:`replay_scores` of every swarm of the first seed over ``importance.npz``'s maps,
     with the run's score parameters and scripted faults (empty when run.json records no
     parameters); computed once."""
-    from twin.faults import FaultPlan
-
     if primary.replayed is not None:
         return primary.replayed
     params, maps, seed = primary.params(), primary.importance, primary.first_seed
     replays: dict[str, dict[str, np.ndarray]] = {}
     if params is not None and maps is not None and seed is not None:
         grid = Grid(primary.obstacles)
-        plan = FaultPlan.from_record(primary.run.get("faults"))
+        plan = fault_plan(primary)
         plan = plan if plan is not None and plan.active else None
         for swarm in primary.swarms:
             pos = primary.positions(seed, swarm)
@@ -230,7 +247,6 @@ def replayed_belief(primary: Primary, frame: pd.DataFrame) -> pd.DataFrame:
     from its trajectory over ``importance.npz``'s maps by
     :func:`twin.monitoring.belief_error_curve`, when the run scored it against those maps
     (run.json ``monitoring.truth``); not recomputed otherwise."""
-    from twin.faults import FaultPlan
     from twin.monitoring import DEFAULT_WEIGHT_FLOOR, belief_error_curve
 
     monitoring = primary.run.get("monitoring")
@@ -246,7 +262,7 @@ def replayed_belief(primary: Primary, frame: pd.DataFrame) -> pd.DataFrame:
     floor = float(monitoring.get("weight_floor", DEFAULT_WEIGHT_FLOOR))
     maps = primary.importance.astype(np.float32)  # as the run held them
     grid = Grid(primary.obstacles)
-    plan = FaultPlan.from_record(primary.run.get("faults"))
+    plan = fault_plan(primary)
     frames = []
     for swarm in primary.swarms:
         pos = primary.positions(seed, swarm)
@@ -270,7 +286,6 @@ def replayed_incidents(primary: Primary, frame: pd.DataFrame) -> pd.DataFrame:
     (:func:`twin.monitoring.incident_sightings`, :func:`twin.monitoring.incident_scores`); NaN
     when the folder has none (the run scheduled none, or none was applied). Their onset and
     last steps are checked against their times first (:func:`check_incident_steps`)."""
-    from twin.faults import FaultPlan
     from twin.monitoring import incident_scores, incident_sightings
     from twin.runs import step_seconds_of
 
@@ -281,9 +296,15 @@ def replayed_incidents(primary: Primary, frame: pd.DataFrame) -> pd.DataFrame:
     cells = [inc.get("cell") for inc in incidents]
     if not all(isinstance(c, list) and len(c) == 2 for c in cells):
         return pd.DataFrame()  # an incident never applied has no cell to be seen at
+    for n, inc in enumerate(incidents):
+        for name in ("onset_step", "end_step"):
+            if not isinstance(inc.get(name), int) or isinstance(inc.get(name), bool):
+                raise UserError(
+                    f"{primary.run_dir / 'incidents.json'}: [{n}] has no {name}; {RERUN}"
+                )
     check_incident_steps(primary)
     grid = Grid(primary.obstacles)
-    plan = FaultPlan.from_record(primary.run.get("faults"))
+    plan = fault_plan(primary)
     step_s = step_seconds_of(primary.run)
     rows = []
     for swarm in primary.swarms:
@@ -318,6 +339,8 @@ def check_incident_steps(primary: Primary) -> None:
         start, end = inc.get("begin_s"), inc.get("end_s")
         if not (isinstance(start, number) and isinstance(end, number)):
             continue
+        if not (np.isfinite(start) and np.isfinite(end)):
+            raise UserError(f"{path}: [{n}].begin_s or end_s is not a finite time; {RERUN}")
         duration = inc.get("duration_min")
         if isinstance(duration, number) and not _same(end, start + 60.0 * duration):
             raise UserError(
@@ -434,11 +457,9 @@ def run_monitoring(primary: Primary, seed: int) -> RunMonitoring:
 
 
 def _run_monitoring(primary: Primary, seed: int) -> RunMonitoring:
-    from twin.faults import FaultPlan
-
     grid = Grid(primary.obstacles)
     events = seed_events(primary, seed)
-    plan = FaultPlan.from_record(primary.run.get("faults"))
+    plan = fault_plan(primary)
     s = primary.series
     n = len(primary.swarms)
     belief = []
@@ -593,7 +614,8 @@ def check_tape_seeds(primary: Primary) -> None:
         want = sumo_seeds.get(seed)
         if want is None or not path.is_file():
             continue
-        got = (read_tape_meta(path).get("settings") or {}).get("seed")
+        settings = read_tape_meta(path).get("settings")
+        got = settings.get("seed") if isinstance(settings, dict) else None
         if got != want:
             raise UserError(
                 f"{path}: recorded with SUMO seed {got}, but run.json has seed {seed} run with "
@@ -612,7 +634,8 @@ def check_tape_network(primary: Primary) -> None:
     network = read_json(primary.run_dir / "network.json")
     if not isinstance(network, dict) or not path.is_file():
         return
-    recorded = (read_tape_meta(path).get("settings") or {}).get("network")
+    settings = read_tape_meta(path).get("settings")
+    recorded = settings.get("network") if isinstance(settings, dict) else None
     if not isinstance(recorded, dict):
         return
     at = _first_difference(network, recorded)
