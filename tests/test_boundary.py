@@ -1045,6 +1045,10 @@ READ_BACK = {
         _swap_swarms("trajectories.parquet", "random", "greedy"),
         "swarm 'random', step 0, but trajectories.parquet and importance.npz give",
     ),
+    "paper reward raised with its tables": (
+        _shifted("greedy", R_hat_T_paper=0.1),
+        "per_seed.csv: R_hat_T_paper = ",
+    ),
     "belief error lowered with its tables": (
         _shifted("greedy", belief_error=-0.05),
         "series.parquet: belief_error = ",

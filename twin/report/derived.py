@@ -22,8 +22,7 @@ files contradict.
 Not recomputed (their inputs are not all in the folder): the per-step scores, belief error,
 reward split and incident columns of seeds other than the first (their maps and incidents are
 not kept: their scores are checked only to add up to the per-seed figures, their reward split
-to add up to ``R_hat_T``); the paper's accounting ``R_hat_T_paper`` (Def. 4 as printed, shown
-for comparison only); the events and belief error when the run scored them on a recorded
+to add up to ``R_hat_T``); the events and belief error when the run scored them on a recorded
 truth (run.json ``monitoring.truth``: vehicles the drones missed), which the folder does not
 keep, or when run.json does not say which; ``importance.npz``, ``mfd_samples.parquet`` and
 ``mfd.json`` of a live run whose ``tape.parquet`` has more than :data:`TAPE_REPLAY_ROWS` rows
@@ -54,7 +53,7 @@ from twin.monitoring import (
     sightings,
 )
 from twin.readback import RERUN
-from twin.scores import ScoreParams, coverage
+from twin.scores import ScoreParams, coverage, paper_rewards
 from twin.swarm import InfeasibleActionError, initial_state, step
 
 #: How far a derived figure may lie from its recomputation (relative, at least absolute):
@@ -163,7 +162,9 @@ def replay_scores(
     """One swarm's per-step scores ``k = 0 .. T-1`` replayed from its cells ``P_0 .. P_T``
     (``(T+1, N, 2)``) over the maps ``T^0 .. T^T``, stepped through :func:`twin.swarm.step`
     from :func:`twin.swarm.initial_state` as :func:`twin.patrol.run_patrol` stepped it:
-    ``reward`` (``R^k``), its ``importance`` and ``idleness`` parts, ``coverage``
+    ``reward`` (``R^k``), its ``importance`` and ``idleness`` parts, ``paper`` (Def. 4 as
+    printed) with ``paper_weight``, the sum of its alpha_T-weighted terms ``alpha_T (A_T + B_T)``
+    (:func:`twin.scores.paper_rewards`: how far the maps' rounding can move it), ``coverage``
     (``C^{k+1}``, Def. 5) and ``visited_share``. ``recorded`` ``(T+1, N, 5)``: the sightings
     that count under scripted faults (:meth:`twin.faults.FaultPlan.recorded`; slot 0 is the
     drone's own cell, whose arrival then counts); None: all.
@@ -174,16 +175,24 @@ def replay_scores(
     valid = (np.abs(moves) <= 1).all(axis=-1)
     actions = np.where(valid, _ACTION_OF_MOVE[np.where(valid, code, 0)], -1)
     steps = len(moves)
-    out = {key: np.empty(steps) for key in ("reward", "importance", "idleness", "coverage",
-                                            "visited_share")}  # fmt: skip
+    out = {key: np.empty(steps) for key in ("reward", "importance", "idleness", "paper",
+                                            "paper_weight", "coverage", "visited_share")}  # fmt: skip
+    # paper_rewards with alpha_T = 1, alpha_I = 0 and T^k negated: A_T + B_T
+    weights = ScoreParams(params.eta, params.delta, 1.0, 0.0)
     state = initial_state(grid, positions[0], maps[0])
     free = grid.free
     for k in range(steps):
         arrived = None if recorded is None else recorded[k + 1, :, 0]
+        before = state
         state, outcome = step(state, actions[k], maps[k + 1], grid, params, arrived)
         out["reward"][k] = outcome.rewards.sum()
         out["importance"][k] = outcome.importance.sum()
         out["idleness"][k] = outcome.idleness.sum()
+        out["paper"][k] = outcome.paper.sum()
+        movers = slice(None) if arrived is None else np.asarray(arrived, dtype=bool)
+        terms = paper_rewards(grid, weights, before.idleness, -before.importance, maps[k + 1],
+                              before.positions[movers], state.positions[movers])  # fmt: skip
+        out["paper_weight"][k] = params.alpha_T * terms.sum()
         out["coverage"][k] = coverage(state.idleness, grid)
         out["visited_share"][k] = state.visited[free].mean()
     return out
@@ -358,7 +367,8 @@ def check_incident_steps(primary: Primary) -> None:
 
 def replayed_split(primary: Primary, frame: pd.DataFrame) -> pd.DataFrame:
     """The first seed's reward split ``R_hat_T_importance``, ``R_hat_T_idleness`` (the means
-    of ``R^k``'s parts) replayed like :func:`replayed_series`."""
+    of ``R^k``'s parts) and the paper's accounting ``R_hat_T_paper`` replayed like
+    :func:`replayed_series`."""
     rows = [
         {
             "seed": primary.first_seed,
@@ -366,6 +376,8 @@ def replayed_split(primary: Primary, frame: pd.DataFrame) -> pd.DataFrame:
             "R_hat_T_importance": r["importance"].mean(),
             "R_hat_T_importance" + SLACK: MAP_ROUNDING * r["importance"].mean(),
             "R_hat_T_idleness": r["idleness"].mean(),
+            "R_hat_T_paper": r["paper"].mean(),
+            "R_hat_T_paper" + SLACK: MAP_ROUNDING * r["paper_weight"].mean(),
         }
         for swarm, r in _replays(primary).items()
         if len(r["reward"])
