@@ -73,11 +73,12 @@ def write_fixture_run(
                 idle = update_idleness(idle, pos[k + 1], grid, params.eta, params.delta)
                 visited[pos[k + 1, :, 0], pos[k + 1, :, 1]] = True
                 rows.append(
-                    (k, parts.total.sum(), parts.importance.sum(), coverage(idle, grid),
-                     visited[grid.free].mean())
+                    (k, parts.total.sum(), parts.importance.sum(), parts.paper.sum(),
+                     coverage(idle, grid), visited[grid.free].mean())
                 )  # fmt: skip
             frame = pd.DataFrame(
-                rows, columns=["step", "reward", "importance", "coverage", "visited_share"]
+                rows,
+                columns=["step", "reward", "importance", "paper", "coverage", "visited_share"],
             )
             frame["cumulative_reward"] = frame["reward"].cumsum()
             frame["belief_error"] = rng.uniform(0.0, 0.3, horizon)
@@ -106,7 +107,7 @@ def write_fixture_run(
                     "R_hat_T": f["reward"].mean(),
                     "R_hat_T_importance": f["importance"].mean(),
                     "R_hat_T_idleness": (f["reward"] - f["importance"]).mean(),
-                    "R_hat_T_paper": 1.1 * f["reward"].mean(),
+                    "R_hat_T_paper": f["paper"].mean(),
                     "C_hat_T": f["coverage"].mean(),
                     "C_hat_T_ceiling": 0.2,
                     "pct_time_max_C": 100.0 * np.mean(covs[swarm] >= best),
@@ -145,7 +146,8 @@ def write_fixture_run(
                      "first_seen": first, "latency_steps": first - onset if seen else -1}
                 )  # fmt: skip
     pd.DataFrame(events).to_parquet(run / "events.parquet", index=False)
-    pd.concat(series).drop(columns="importance").to_parquet(run / "series.parquet", index=False)
+    series = pd.concat(series).drop(columns=["importance", "paper"])
+    series.to_parquet(run / "series.parquet", index=False)
     pd.concat(trajectories).to_parquet(run / "trajectories.parquet", index=False)
     per_seed.to_csv(run / "per_seed.csv", index=False)
     out.to_csv(run / "summary.csv", index=False)
