@@ -635,6 +635,62 @@ def _network(run: Path, **changes) -> dict:
     }  # fmt: skip
 
 
+def _shifted(swarm, **shifts):
+    """``swarm``'s figures moved in both seeds, consistently in every file made of them: each
+    ``series.parquet`` column of ``shifts`` (with ``cumulative_reward`` its running sum again)
+    and each ``per_seed.csv``/``summary.csv``/``monitoring.csv`` column (their means over seeds;
+    the intervals do not change). Only the trajectories and maps they were scored on disagree."""
+
+    def apply(run: Path) -> None:
+        series = pd.read_parquet(run / "series.parquet")
+        mine = series["swarm"] == swarm
+        for column, by in shifts.items():
+            if column in series.columns:
+                series.loc[mine, column] += by
+        series["cumulative_reward"] = series.groupby(["seed", "swarm"])["reward"].cumsum()
+        series.to_parquet(run / "series.parquet", index=False)
+        for name in ("per_seed.csv", "summary.csv", "monitoring.csv"):
+            frame = pd.read_csv(run / name)
+            rows = frame["swarm"] == swarm
+            for column, by in shifts.items():
+                if column in frame.columns:
+                    frame.loc[rows, column] += by
+            frame.to_csv(run / name, index=False)
+
+    return apply
+
+
+def _swap_swarms(name, a, b):
+    """The rows of swarms ``a`` and ``b`` of ``name`` under each other's name."""
+
+    def edit(frame):
+        swarm = frame["swarm"].astype(str)
+        frame["swarm"] = swarm.mask(swarm == a, b).mask(swarm == b, a)
+        return frame
+
+    return _edit_table(name, edit)
+
+
+def _event_rows(edit):
+    """events.parquet with every swarm's row of its events changed alike by ``edit``."""
+    return _edit_table("events.parquet", edit)
+
+
+def _extra_event(frame):
+    """Event 77 of seed 0 on the cell of event 0, a step later, for every swarm."""
+    rows = frame[(frame["seed"] == 0) & (frame["event"] == 0)]
+    more = rows.assign(event=77, onset=rows["onset"] + 1, seen=False, first_seen=-1,
+                       latency_steps=-1)  # fmt: skip
+    return pd.concat([frame, more], ignore_index=True)
+
+
+def _comparison(**changes) -> pd.DataFrame:
+    """A comparison.csv (twin.metrics.learned_against_best_classical) of a learned swarm."""
+    return pd.DataFrame([{"swarm": "rl", "against": "greedy", "column": "R_hat_T",
+                          "difference": 0.5, "difference_ci95": 0.1, "ratio": 1.2, "n_seeds": 2,
+                          **changes}])  # fmt: skip
+
+
 def _all(*damages):
     def apply(run: Path) -> None:
         for damage in damages:
@@ -781,6 +837,10 @@ READ_BACK = {
         _json("run.json", ("monitoring", "threshold"), 0),
         "monitoring.threshold = 0",
     ),
+    "run.json faults of the wrong kind": (
+        _json("run.json", ("faults",), {"drone_loss": [{"drone": 1, "step": "soon"}]}),
+        "run.json: faults = {'drone_loss': [{'drone': 1, 'step': 'soon'}]} is not a fault record",
+    ),
     "run.json folder not text": (_json("run.json", ("invocation", "cwd"), 5), "invocation.cwd"),
     "degradation infinite score": (
         _built_file("degradation.csv", lambda run: _degradation(run, R_hat=np.inf)),
@@ -900,16 +960,28 @@ READ_BACK = {
         _edit_table("per_seed.csv", _set("C_hat_T", 0.9)),
         "per_seed.csv: C_hat_T = 0.9 for seed 0, swarm 'random', but series.parquet gives",
     ),
-    "per_seed map covered off its series": (
+    "per_seed map covered off its series": (  # seed 1: its maps are not kept, nor replayed
         _edit_table(
             "series.parquet",
             lambda f: f.assign(
                 visited_share=f["visited_share"].where(
-                    f["swarm"] != "random", f["visited_share"] / 2
+                    (f["swarm"] != "random") | (f["seed"] != 1), f["visited_share"] / 2
                 )
             ),
         ),
         "per_seed.csv: pct_map_covered = ",
+    ),
+    "series map covered off its trajectories": (
+        _edit_table(
+            "series.parquet",
+            lambda f: f.assign(
+                visited_share=f["visited_share"].where(
+                    (f["swarm"] != "random") | (f["seed"] != 0), f["visited_share"] / 2
+                )
+            ),
+        ),
+        "series.parquet: visited_share = 0.005 for seed 0, swarm 'random', step 0, but "
+        "trajectories.parquet and importance.npz give 0.01",
     ),
     "per_seed reward parts not adding up": (
         _edit_table("per_seed.csv", _set("R_hat_T_idleness", 0.0)),
@@ -963,6 +1035,47 @@ READ_BACK = {
             _json("run.json", ("traffic", "mfd_prior"), [0.7, 40.0]),
         ),
         'mfd.json: a = 0.3 with used = "prior", but run.json has traffic.mfd_prior = [0.7, 40.0]',
+    ),
+    # a file edited to contradict the trajectories and maps the run was scored on
+    "series rewards raised with their tables": (
+        _shifted("random", reward=0.2, R_hat_T=0.2, R_hat_T_idleness=0.2),
+        "series.parquet: reward = ",
+    ),
+    "series rewards named after the other swarm": (
+        _swap_swarms("trajectories.parquet", "random", "greedy"),
+        "swarm 'random', step 0, but trajectories.parquet and importance.npz give",
+    ),
+    "paper reward raised with its tables": (
+        _shifted("greedy", R_hat_T_paper=0.1),
+        "per_seed.csv: R_hat_T_paper = ",
+    ),
+    "belief error lowered with its tables": (
+        _shifted("greedy", belief_error=-0.05),
+        "series.parquet: belief_error = ",
+    ),
+    "trajectories of the other seed": (
+        _edit_table("trajectories.parquet", lambda f: f.assign(seed=1 - f["seed"])),
+        "series.parquet: reward = ",
+    ),
+    "reward split moved between its parts": (
+        _shifted("greedy", R_hat_T_importance=-0.1, R_hat_T_idleness=0.1),
+        "per_seed.csv: R_hat_T_importance = ",
+    ),
+    "event peaks raised": (
+        _event_rows(lambda f: f.assign(peak=0.99)),
+        "events.parquet: peak = 0.99 for seed 0, event 0, but importance.npz gives",
+    ),
+    "event moved to another cell": (
+        _event_rows(lambda f: f.assign(i=f["i"].where(f["event"] != 0, (f["i"] + 3) % 20))),
+        "events.parquet: i = ",
+    ),
+    "event the maps do not hold": (
+        _event_rows(_extra_event),
+        "events.parquet: holds a row for seed 0, event 77, which importance.npz does not give",
+    ),
+    "comparison of a learned swarm the run lacks": (
+        _built_file("comparison.csv", lambda run: _comparison()),
+        "comparison.csv: holds a row for swarm 'rl', which per_seed.csv does not give",
     ),
     "mfd.json fit quality other than its samples": (
         _all(

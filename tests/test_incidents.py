@@ -148,6 +148,71 @@ def test_run_writes_incidents_json_and_scores_them(tmp_path):
     assert "## Incidents" in markdown and "% incidents seen" in markdown
 
 
+@pytest.fixture(scope="module")
+def incident_run(tmp_path_factory):
+    """A small `twin run` with the two incidents above, made once."""
+    pytest.importorskip("libsumo")
+    from helpers import small_sumo_scenario
+
+    from twin.cli import main as twin_main
+
+    folder = tmp_path_factory.mktemp("incidents")
+    small_sumo_scenario(folder, horizon=10)
+    with open(folder / "small.toml", "a") as fh:
+        fh.write(INCIDENTS)
+    argv = ["run", "--config", str(folder / "small.toml"), "--out", str(folder / "run"),
+            "--no-report", "--quiet"]  # fmt: skip
+    assert twin_main(argv) == 0
+    return folder / "run"
+
+
+def _incidents_edited(change):
+    def edit(run):
+        incidents = json.loads((run / "incidents.json").read_text())
+        (run / "incidents.json").write_text(json.dumps(change(incidents)))
+
+    return edit
+
+
+def _shift_onset(incidents):
+    incidents[0]["onset_step"] -= 2
+    return incidents
+
+
+# a forged incidents.json -> the words of the one-line refusal
+FORGED_INCIDENTS = {
+    "onset other than its time": (
+        _incidents_edited(_shift_onset),
+        "incidents.json: [0].onset_step = 1, but its begin_s and end_s give step 3",
+    ),
+    "incidents emptied": (
+        _incidents_edited(lambda incidents: []),
+        "per_seed.csv: incidents = 2 for seed 0, swarm ",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", list(FORGED_INCIDENTS))
+def test_a_forged_incidents_json_is_refused(incident_run, tmp_path, capsys, case):
+    import shutil
+
+    from twin.cli import main as twin_main
+    from twin.report.load import load_run
+    from twin.runs import write_manifest
+
+    run = tmp_path / "run"
+    shutil.copytree(incident_run, run)
+    load_run(run)  # as written, the incidents read back
+    change, words = FORGED_INCIDENTS[case]
+    change(run)
+    write_manifest(run)
+    capsys.readouterr()
+    assert twin_main(["report", str(run), "--no-animation"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert words in err and err.count("\n") == 0 and "Traceback" not in err, err
+    assert not (run / "report").exists()
+
+
 # ------------------------------------------------- checked before the run; overlapping closures
 def _small(tmp_path, incidents: str):
     from helpers import small_sumo_scenario

@@ -118,6 +118,72 @@ def _edit_recorded_route_hash(run: Path) -> None:
     _edit_run_json(change)(run)
 
 
+def _maps_rewritten(run: Path) -> None:
+    """importance.npz with every free cell at 0.9 (the manifest agrees)."""
+    import numpy as np
+
+    with np.load(run / "importance.npz") as npz:
+        data = dict(npz)
+    data["importance"] = (
+        np.where(data["obstacles"], 0.0, 0.9)
+        .astype(np.float32)[None]
+        .repeat(len(data["importance"]), axis=0)
+    )
+    np.savez(run / "importance.npz", **data)
+    write_manifest(run)
+
+
+def _tape_counts_scaled(run: Path) -> None:
+    """tape.parquet with every count ten times what SUMO had, its metadata kept."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    table = pq.read_table(run / "tape.parquet")
+    at = table.schema.get_field_index("count")
+    counts = pa.compute.multiply(table.column("count"), pa.scalar(10, table.column("count").type))
+    pq.write_table(table.set_column(at, table.schema.field(at), counts), run / "tape.parquet")
+    write_manifest(run)
+
+
+def _tape_of_sumo_seed(seed: int) -> Callable[[Path], None]:
+    """tape.parquet as if SUMO had run with another seed (its metadata says so)."""
+
+    def edit(run: Path) -> None:
+        import pyarrow.parquet as pq
+
+        table = pq.read_table(run / "tape.parquet")
+        meta = dict(table.schema.metadata)
+        tape = json.loads(meta[b"twin_tape"])
+        tape["settings"]["seed"] = seed
+        meta[b"twin_tape"] = json.dumps(tape).encode()
+        pq.write_table(table.replace_schema_metadata(meta), run / "tape.parquet")
+        write_manifest(run)
+
+    return edit
+
+
+def _edit_table(name: str, change: Callable[[pd.DataFrame], pd.DataFrame]) -> Callable:
+    """A table of the run changed (the manifest agrees)."""
+
+    def edit(run: Path) -> None:
+        change(pd.read_parquet(run / name)).to_parquet(run / name, index=False)
+        write_manifest(run)
+
+    return edit
+
+
+def _edit_json(name: str, change: Callable[[dict], None]) -> Callable[[Path], None]:
+    """A JSON file of the run changed in place (the manifest agrees)."""
+
+    def edit(run: Path) -> None:
+        data = json.loads((run / name).read_text())
+        change(data)
+        (run / name).write_text(json.dumps(data))
+        write_manifest(run)
+
+    return edit
+
+
 # name -> (what to change, monkeypatched (module, attribute, value) or None, expected words)
 CASES = {
     "network edited": (_edit_net, None, "the network file (sha256) was"),
@@ -178,6 +244,36 @@ CASES = {
         None,
         "traffic.identity.cell_m = 0 must be above 0",
     ),
+    "maps other than the tape's": (
+        _maps_rewritten,
+        None,
+        "importance.npz: importance at step 0, cell (",
+    ),
+    "tape other than the maps": (
+        _tape_counts_scaled,
+        None,
+        "but tape.parquet replayed through its MFD gives",
+    ),
+    "MFD samples other than the tape's": (
+        _edit_table("mfd_samples.parquet", lambda f: f.assign(count=f["count"] * 10)),
+        None,
+        "mfd_samples.parquet: count = ",
+    ),
+    "MFD fit of more samples than the tape's": (
+        _edit_json("mfd.json", lambda m: m.update(n_samples=m["n_samples"] + 5)),
+        None,
+        "mfd.json: n_samples = ",
+    ),
+    "network placed elsewhere than the tape's": (
+        _edit_json("network.json", lambda m: m["grid"].update(x0=m["grid"]["x0"] + 5000.0)),
+        None,
+        "network.json: grid.x0 = ",
+    ),
+    "tape of another SUMO seed": (
+        _tape_of_sumo_seed(7),
+        None,
+        "tape.parquet: recorded with SUMO seed 7, but run.json has seed 0 run with SUMO seed",
+    ),
     "route hash differs": (
         _edit_recorded_route_hash,
         None,
@@ -196,6 +292,14 @@ def test_replay_refuses_another_scenario(recorded, tmp_path, capsys, monkeypatch
         monkeypatch.setattr(importlib.import_module(module), name, value)
     err = run_case(capsys, tmp_path, ["replay", str(recorded)], None, 2, needle)
     assert "\n" not in err
+
+
+def test_a_recorded_run_reads_back_whole(recorded, capsys):
+    """The live run's maps are its tape's replay, its scores its trajectories' over them."""
+    from twin.report.load import load_run
+
+    load_run(recorded)
+    assert main(["report", str(recorded), "--no-animation"]) == 0
 
 
 def test_run_json_records_the_identity(recorded):

@@ -21,7 +21,7 @@ from twin.readback import BOUNDS
 from twin.report import load_run, write_report
 from twin.report.document import MONITORING_TABLE_COLUMNS, TABLE_COLUMNS
 from twin.runs import write_manifest
-from twin.scores import ScoreParams, coverage, initial_idleness, update_idleness
+from twin.scores import ScoreParams, coverage, initial_idleness, reward_parts, update_idleness
 
 SWARMS = ("random", "greedy", "sweeping", "rl")
 
@@ -68,12 +68,18 @@ def write_fixture_run(
                 feasible = grid.feasible_actions(pos[k])
                 actions = np.array([rng.choice(np.flatnonzero(f)) for f in feasible])
                 pos[k + 1] = grid.move(pos[k], actions)
+                parts = reward_parts(grid, params, idle, importance[k], importance[k + 1],
+                                     pos[k], pos[k + 1])  # fmt: skip
                 idle = update_idleness(idle, pos[k + 1], grid, params.eta, params.delta)
                 visited[pos[k + 1, :, 0], pos[k + 1, :, 1]] = True
                 rows.append(
-                    (k, rng.normal(1.0, 0.3), coverage(idle, grid), visited[grid.free].mean())
-                )
-            frame = pd.DataFrame(rows, columns=["step", "reward", "coverage", "visited_share"])
+                    (k, parts.total.sum(), parts.importance.sum(), parts.paper.sum(),
+                     coverage(idle, grid), visited[grid.free].mean())
+                )  # fmt: skip
+            frame = pd.DataFrame(
+                rows,
+                columns=["step", "reward", "importance", "paper", "coverage", "visited_share"],
+            )
             frame["cumulative_reward"] = frame["reward"].cumsum()
             frame["belief_error"] = rng.uniform(0.0, 0.3, horizon)
             series.append(frame.assign(seed=seed, swarm=swarm))
@@ -99,9 +105,9 @@ def write_fixture_run(
                     "seed": seed,
                     "swarm": swarm,
                     "R_hat_T": f["reward"].mean(),
-                    "R_hat_T_importance": 0.4 * f["reward"].mean(),
-                    "R_hat_T_idleness": 0.6 * f["reward"].mean(),
-                    "R_hat_T_paper": 1.1 * f["reward"].mean(),
+                    "R_hat_T_importance": f["importance"].mean(),
+                    "R_hat_T_idleness": (f["reward"] - f["importance"]).mean(),
+                    "R_hat_T_paper": f["paper"].mean(),
                     "C_hat_T": f["coverage"].mean(),
                     "C_hat_T_ceiling": 0.2,
                     "pct_time_max_C": 100.0 * np.mean(covs[swarm] >= best),
@@ -140,7 +146,8 @@ def write_fixture_run(
                      "first_seen": first, "latency_steps": first - onset if seen else -1}
                 )  # fmt: skip
     pd.DataFrame(events).to_parquet(run / "events.parquet", index=False)
-    pd.concat(series).to_parquet(run / "series.parquet", index=False)
+    series = pd.concat(series).drop(columns=["importance", "paper"])
+    series.to_parquet(run / "series.parquet", index=False)
     pd.concat(trajectories).to_parquet(run / "trajectories.parquet", index=False)
     per_seed.to_csv(run / "per_seed.csv", index=False)
     out.to_csv(run / "summary.csv", index=False)
@@ -197,7 +204,7 @@ def _derive_files(run: Path, obstacles: np.ndarray) -> None:
     """events.parquet's sightings, per_seed.csv, summary.csv and monitoring.csv made from the
     fixture's primary files as twin makes them, so the folder agrees with itself (the report
     refuses derived files that contradict their sources)."""
-    from twin.metrics import aggregate
+    from twin.metrics import aggregate, learned_against_best_classical
     from twin.report.derived import (
         Primary,
         ceiling_scores,
@@ -217,13 +224,13 @@ def _derive_files(run: Path, obstacles: np.ndarray) -> None:
     per_seed = series_scores(primary, forged)
     for part in (ceiling_scores(primary, forged), monitoring_scores(primary, forged)):
         per_seed = per_seed.merge(part, on=["seed", "swarm"], how="left")
-    split = forged[["seed", "swarm", "R_hat_T_paper"]].copy()
+    split = forged[["seed", "swarm", "R_hat_T_importance", "R_hat_T_paper"]].copy()
     per_seed = per_seed.merge(split, on=["seed", "swarm"], how="left")
-    per_seed["R_hat_T_importance"] = 0.4 * per_seed["R_hat_T"]
     per_seed["R_hat_T_idleness"] = per_seed["R_hat_T"] - per_seed["R_hat_T_importance"]
     order = per_seed["swarm"].map(SWARMS.index)
     per_seed = per_seed.assign(order=order).sort_values(["seed", "order"]).drop(columns="order")
     per_seed.to_csv(run / "per_seed.csv", index=False)
+    learned_against_best_classical(per_seed).to_csv(run / "comparison.csv", index=False)
     summary = aggregate(per_seed)
     summary.to_csv(run / "summary.csv", index=False)
     columns = ["swarm"] + [
@@ -379,6 +386,25 @@ def test_missing_files_are_one_line_errors(tmp_path: Path, capsys) -> None:
     assert main(["report", str(tmp_path / "nope")]) == 2
     err = capsys.readouterr().err
     assert err.startswith("twin: error:") and err.count("\n") == 1
+
+
+@pytest.mark.parametrize(
+    "column, value, words",
+    [
+        ("difference", 9.0, "comparison.csv: difference = 9 for swarm 'rl', but per_seed.csv"),
+        ("against", "random", "comparison.csv: against = 'random' for swarm 'rl', but per_seed"),
+        ("n_seeds", 5, "comparison.csv: n_seeds = 5 for swarm 'rl', but per_seed.csv gives 2"),
+    ],
+)
+def test_a_comparison_its_seeds_contradict_is_refused(tmp_path, column, value, words) -> None:
+    run = write_fixture_run(tmp_path, sumo=False)
+    load_run(run)  # as written, the learned swarm against the best classical one reads back
+    frame = pd.read_csv(run / "comparison.csv")
+    frame[column] = value
+    frame.to_csv(run / "comparison.csv", index=False)
+    write_manifest(run)
+    with pytest.raises(UserError, match=re.escape(words)):
+        load_run(run)
 
 
 def test_report_of_a_real_patrol_run(tmp_path: Path) -> None:

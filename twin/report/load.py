@@ -357,14 +357,22 @@ def load_run(run_dir: str | Path) -> RunFiles:
     if monitoring is not None:
         check_monitoring(run_dir / "monitoring.csv", monitoring)
     check_sumo_files(run_dir, run, network, mfd, samples)
+    first = run.get("importance_seed")
     primary = Primary(
         run_dir, series, trajectories, events, obstacles, run, [str(s) for s in
-        summary.loc[~is_ceiling_row(summary), "swarm"]],
+        summary.loc[~is_ceiling_row(summary), "swarm"]], importance=importance,
+        first_seed=int(first) if first is not None else int(series["seed"].min()),
+        incidents=incidents,
     )  # fmt: skip
+    comparison = optional(
+        "comparison.csv",
+        {"swarm": TEXT, "against": TEXT, "column": TEXT},
+        ("swarm", "against", "column"),
+    )
     check_derived(
         primary,
-        {"events.parquet": events, "per_seed.csv": per_seed, "summary.csv": summary,
-         "monitoring.csv": monitoring},
+        {"series.parquet": series, "events.parquet": events, "per_seed.csv": per_seed,
+         "summary.csv": summary, "monitoring.csv": monitoring, "comparison.csv": comparison},
     )  # fmt: skip
     return RunFiles(
         run_dir=run_dir,

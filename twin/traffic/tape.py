@@ -315,6 +315,20 @@ def _positive(value: Any) -> float | None:
     return value if np.isfinite(value) and value > 0 else None
 
 
+def read_tape_meta(path: Path) -> dict[str, Any]:
+    """The metadata of the tape at ``path``, checked, without reading its rows."""
+    import pyarrow.parquet as pq
+
+    try:
+        schema = pq.read_schema(path)
+    except Exception as exc:  # pyarrow raises several types on a broken file
+        raise UserError(
+            f"{path}: not a parquet file or truncated ({type(exc).__name__}); "
+            "pass the tape.parquet of a finished `twin run`"
+        ) from None
+    return _tape_meta(path, schema.metadata or {})
+
+
 def _tape_meta(path: Path, schema_meta: dict) -> dict[str, Any]:
     """The tape's metadata, checked: version, grid, per-cell maps and horizon."""
     raw = schema_meta.get(_META_KEY)
@@ -428,6 +442,10 @@ class TapeTraffic(TrafficSource):
         probability below 1): the same MFD on every vehicle."""
         observer = getattr(self, "_observer", None)
         return observer.truth if observer is not None and self.detection_p < 1.0 else None
+
+    def model_observed(self) -> MFDImportance | None:
+        """The MFD observation of the last replay (its fit and samples), None before one."""
+        return getattr(self, "_observer", None)
 
     def importance_maps(self) -> Generator[np.ndarray, None, None]:
         model = self._observer = self.model()
