@@ -89,18 +89,20 @@ def maps_from_child(source: WorksAhead) -> Iterator[np.ndarray]:
         raise RuntimeError(source.error) from None
     finally:
         if not ended:
-            _stop(source, here, child)
+            ended = _stop(source, here, child)
         here.close()
-        child.join(timeout=30)
+        child.join(timeout=None if ended else 30)  # after its end state: SUMO closing
         if child.is_alive():
             child.kill()
             child.join()
 
 
-def _stop(source: WorksAhead, here, child) -> None:
+def _stop(source: WorksAhead, here, child) -> bool:
     """Ask the child to stop after its current snapshot (it may have ended already) and take
-    its end state; the snapshots of maps the parent never used are dropped."""
+    its end state (False when it died without one); the snapshots of maps the parent never
+    used are dropped."""
     used = len(source.snapshots)
+    got_end = False
     with contextlib.suppress(OSError):
         here.send("stop")
     try:
@@ -108,6 +110,7 @@ def _stop(source: WorksAhead, here, child) -> None:
             message = here.recv()
             if message[0] == "end":
                 _take_end(source, message)
+                got_end = True
                 break
     except (EOFError, OSError):
         child.kill()
@@ -115,6 +118,7 @@ def _stop(source: WorksAhead, here, child) -> None:
     del source.vehicles_seen[used:]
     last = source.snapshots[-1][0] if source.snapshots else -1
     source.detector_readings[:] = [r for r in source.detector_readings if r[0] <= last]
+    return got_end
 
 
 def _take_end(source: WorksAhead, message) -> None:
@@ -148,9 +152,10 @@ def _produce(source: WorksAhead, conn, parent: int) -> None:
                 break
     except BaseException as exc:  # sent to the parent, which raises it
         failure = exc if _picklable(exc) else RuntimeError(f"{type(exc).__name__}: {exc}")
-    finally:
-        with contextlib.suppress(BaseException):
-            maps.close()  # closes SUMO, which writes out its configured outputs
+    # The end state goes to the parent before SUMO is closed: what the run keeps (the MFD
+    # model, stage times, incidents, detector readings) never depends on SUMO's teardown, which
+    # can crash in a process forked from one that ran libsumo before. The parent waits for this
+    # process to end before it collects SUMO's configured outputs, written when SUMO closes.
     try:
         conn.send(
             (
@@ -169,6 +174,8 @@ def _produce(source: WorksAhead, conn, parent: int) -> None:
     except (BrokenPipeError, OSError):
         pass
     finally:
+        with contextlib.suppress(BaseException):
+            maps.close()  # closes SUMO, which writes out its configured outputs
         conn.close()
         os._exit(0)  # no atexit handlers of the parent's modules in the child
 
