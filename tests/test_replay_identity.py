@@ -184,8 +184,20 @@ def _edit_json(name: str, change: Callable[[dict], None]) -> Callable[[Path], No
     return edit
 
 
+def _additional_never_loaded(run: Path) -> None:
+    """run.json names an additional file the run never loaded (a vType, harmless to SUMO)."""
+    extra = run.parent / "extra.add.xml"
+    extra.write_text('<additional><vType id="extra"/></additional>\n')
+    _edit_run_json(lambda m: m["invocation"]["options"].update(additional=[str(extra)]))(run)
+
+
 # name -> (what to change, monkeypatched (module, attribute, value) or None, expected words)
 CASES = {
+    "additional file the run never loaded": (
+        _additional_never_loaded,
+        None,
+        "extra.add.xml: this additional file is not one the run loaded",
+    ),
     "network edited": (_edit_net, None, "the network file (sha256) was"),
     "other twin": (None, ("twin", "__version__", "9.9.9"), "the twin version was 0.1.0, now 9.9.9"),
     "other SUMO": (

@@ -287,6 +287,11 @@ def check_identity(run_dir: Path, source) -> None:
     check_input_files(run_dir, recorded.get("files"), source)
 
 
+#: Roles of input files that every run recording its inputs' hashes records when it loads
+#: one (later roles, such as included files, are not checked against older runs).
+ALWAYS_RECORDED = ("network", "route file", "additional file", "sumocfg")
+
+
 def check_input_files(run_dir: Path, recorded, source) -> None:
     """Refuse (one line) to replay a run one of whose SUMO input files (network, route,
     additional files, sumocfg) changed since the run, or that loads a file the run did not: a
@@ -307,10 +312,16 @@ def check_input_files(run_dir: Path, recorded, source) -> None:
         for f in recorded
         if isinstance(f, dict) and isinstance(f.get("sha256"), str)
     }
+    hashed = any(r == "network" for r, _ in was)  # the run recorded its inputs' hashes
     for role, path in source.input_files():
         before = was.get((role, str(path)))
         same_role = {(p, h) for (r, p), h in was.items() if r == role}
         if before is None and not same_role:
+            if hashed and role in ALWAYS_RECORDED:
+                raise UserError(
+                    f"{path}: this {role} is not one the run loaded ({run_dir / 'run.json'} "
+                    f"records no {role}); replay with the run's files, or rerun `twin run`"
+                )
             continue
         try:
             now = file_sha256(path)
