@@ -453,3 +453,25 @@ def test_an_obstacle_off_the_grid_over_the_network_is_refused(city, capsys):
     assert code == 2 and err.count("\n") == 1, err
     assert "obstacle.toml: [grid].obstacles has [99, 99], off the" in err
     assert not (city / "obstacle").exists()
+
+
+def test_sumocfg_options_in_sumos_short_form_are_read(tmp_path):
+    """SUMO reads an option's value from ``value=`` or its short form ``v=``: twin reads both,
+    so the network, demand, additional files, window and outputs it sees (and redirects into
+    the run folder) are those SUMO loads."""
+    (tmp_path / "sub").mkdir()
+    for name in ("grid.net.xml", "trips.rou.xml", "sub/det.add.xml"):
+        (tmp_path / name).write_text("<x/>")
+    cfg = tmp_path / "s.sumocfg"
+    cfg.write_text(
+        '<configuration><input><net-file v="grid.net.xml"/><route-files v="trips.rou.xml"/>'
+        '<additional-files v="sub/det.add.xml"/></input><output>'
+        '<tripinfo-output v="../out.xml"/></output><time><begin v="60"/><end v="900"/>'
+        "</time></configuration>"
+    )
+    read = read_sumocfg(cfg)
+    assert read.net == tmp_path / "grid.net.xml"
+    assert read.routes == [tmp_path / "trips.rou.xml"]
+    assert read.additional == [tmp_path / "sub" / "det.add.xml"]
+    assert (read.begin, read.end) == (60.0, 900.0)
+    assert read.options["tripinfo-output"] == "../out.xml"

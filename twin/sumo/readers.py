@@ -129,14 +129,14 @@ SUMOCFG_ROOTS = ("configuration", "sumoConfiguration")
 
 def sumocfg_options(root: ET.Element) -> dict[str, str]:
     """The options a SUMO config sets, as SUMO reads them: any element with a ``value``
-    attribute or, without children, a text, whether in a section (``<input><net-file
-    value="..."/></input>``) or right under the root; element name -> value (the last one wins,
-    as in SUMO)."""
+    attribute (or its short form ``v``) or, without children, a text, whether in a section
+    (``<input><net-file value="..."/></input>``) or right under the root; element name ->
+    value (the last one wins, as in SUMO)."""
     options: dict[str, str] = {}
     for elem in root.iter():
         if elem is root or not isinstance(elem.tag, str):
             continue
-        value = elem.get("value")
+        value = elem.get("value", elem.get("v"))
         if value is None and len(elem) == 0 and elem.text is not None and elem.text.strip():
             value = elem.text.strip()
         if value is not None:
