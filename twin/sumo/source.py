@@ -116,6 +116,10 @@ class SumoTraffic(TrafficSource):
         #: run SUMO (and the observation model) in a child process that works ahead while the
         #: swarms decide, on the other core (set by the experiment runner for live runs)
         self.separate_process = False
+        #: keep SUMO open when the maps end, for :meth:`close_deferred` (the SUMO child sends
+        #: the run's end state first)
+        self.defer_close = False
+        self._closing: tuple[Any, Path | None] | None = None
         self._truth: np.ndarray | None = None
         self._incidents: list[dict[str, Any]] | None = None
         #: where SUMO's configured outputs go (the run folder's ``sumo/``); None: a temporary
@@ -305,6 +309,18 @@ class SumoTraffic(TrafficSource):
                     timer.add(OBSERVATION, clock() - t3)
                     yield importance
         finally:
+            if self.defer_close:  # the SUMO child closes it after sending its end state
+                self._closing = (session, scratch)
+            else:
+                session.close()
+                _remove(scratch)
+
+    def close_deferred(self) -> None:
+        """Close SUMO after a run whose maps ended with :attr:`defer_close` set (the SUMO
+        child sends the run's end state first: a crash in SUMO's teardown loses nothing)."""
+        session, scratch = self._closing or (None, None)
+        self._closing = None
+        if session is not None:
             session.close()
             _remove(scratch)
 

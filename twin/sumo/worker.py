@@ -44,6 +44,7 @@ class WorksAhead(Protocol):
     timer: StageTimer
     read_seconds: float
     separate_process: bool
+    defer_close: bool
     _truth: np.ndarray | None
     _incidents: list[dict[str, Any]] | None
 
@@ -52,6 +53,8 @@ class WorksAhead(Protocol):
     def truth_map(self) -> np.ndarray | None: ...
 
     def incidents_info(self) -> list[dict[str, Any]]: ...
+
+    def close_deferred(self) -> None: ...
 
 
 def maps_from_child(source: WorksAhead) -> Iterator[np.ndarray]:
@@ -136,6 +139,7 @@ def _produce(source: WorksAhead, conn, parent: int) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     exit_with_parent(parent)
     source.separate_process = False
+    source.defer_close = True  # SUMO is closed after the end state is sent (below)
     sent_snapshots = sent_seen = sent_readings = 0
     failure: BaseException | None = None
     maps = source.maps_here()
@@ -175,7 +179,9 @@ def _produce(source: WorksAhead, conn, parent: int) -> None:
         pass
     finally:
         with contextlib.suppress(BaseException):
-            maps.close()  # closes SUMO, which writes out its configured outputs
+            maps.close()  # ends the maps; SUMO stays open until it is closed here:
+        with contextlib.suppress(BaseException):
+            source.close_deferred()  # SUMO writes out its configured outputs as it closes
         conn.close()
         os._exit(0)  # no atexit handlers of the parent's modules in the child
 
