@@ -1519,6 +1519,26 @@ def test_error_log_never_follows_a_link(tmp_path: Path, monkeypatch) -> None:
     assert os.path.getsize(log) > 0
 
 
+def test_an_error_log_that_is_a_link_is_not_written_through(tmp_path: Path, monkeypatch) -> None:
+    """A run folder's error.log that links to a user's file outside it: the traceback goes to
+    the cache's log, and the user's file is left as it was."""
+    from twin import boundary
+
+    monkeypatch.setenv("TWIN_CACHE_DIR", str(tmp_path / "cache"))
+    run = tmp_path / "run"
+    run.mkdir()
+    precious = tmp_path / "precious.txt"
+    precious.write_text("the user's own words\n")
+    (run / LOG_NAME).symlink_to(precious)
+    boundary.set_run_folder(run)
+    try:
+        log = boundary.log_traceback(RuntimeError("x"))
+    finally:
+        boundary.set_run_folder(None)
+    assert log == tmp_path / "cache" / LOG_NAME
+    assert precious.read_text() == "the user's own words\n"
+
+
 def test_disk_full_while_writing_is_one_line_and_the_rerun_replaces_it(
     tmp_path: Path, monkeypatch, capsys
 ) -> None:

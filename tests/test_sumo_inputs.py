@@ -475,3 +475,19 @@ def test_sumocfg_options_in_sumos_short_form_are_read(tmp_path):
     assert read.additional == [tmp_path / "sub" / "det.add.xml"]
     assert (read.begin, read.end) == (60.0, 900.0)
     assert read.options["tripinfo-output"] == "../out.xml"
+
+
+def test_sumocfg_options_by_their_long_synonyms_are_read(tmp_path):
+    """SUMO takes ``<net>``, ``<routes>`` and ``<additional>`` for the net, route and
+    additional files (``sumo -c`` runs such a config): twin reads the same files."""
+    for name in ("grid.net.xml", "trips.rou.xml", "det.add.xml"):
+        (tmp_path / name).write_text("<x/>")
+    cfg = tmp_path / "s.sumocfg"
+    cfg.write_text(
+        '<configuration><input><net value="grid.net.xml"/><routes value="trips.rou.xml"/>'
+        '<additional value="det.add.xml"/></input></configuration>'
+    )
+    read = read_sumocfg(cfg)
+    assert read.net == tmp_path / "grid.net.xml"
+    assert read.routes == [tmp_path / "trips.rou.xml"]
+    assert read.additional == [tmp_path / "det.add.xml"]

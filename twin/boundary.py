@@ -166,7 +166,9 @@ def log_traceback(exc: BaseException) -> Path | None:
         try:
             folder.mkdir(parents=True, exist_ok=True)
             path = folder / LOG_NAME
-            with open(path, "w", encoding="utf-8", errors="backslashreplace") as fh:
+            # never through a link: an error.log that points elsewhere is not written
+            fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NOFOLLOW, 0o644)
+            with open(fd, "w", encoding="utf-8", errors="backslashreplace") as fh:
                 fh.write(body)
             return path
         except (OSError, ValueError):

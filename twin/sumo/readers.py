@@ -189,7 +189,7 @@ def read_sumocfg(path: Path, own_net: bool = True) -> SumoConfigFile:
                 return options[name]
         return None
 
-    net = file_list(value("net-file", "n"), path.parent, path)
+    net = file_list(value("net-file", "n", "net"), path.parent, path)
     if not own_net:
         net = net[:1] or [Path()]
     if not net:
@@ -250,8 +250,8 @@ def read_sumocfg(path: Path, own_net: bool = True) -> SumoConfigFile:
         )
     return SumoConfigFile(
         net=net[0],
-        routes=file_list(value("route-files", "r"), path.parent, path),
-        additional=file_list(value("additional-files", "a"), path.parent, path),
+        routes=file_list(value("route-files", "r", "routes"), path.parent, path),
+        additional=file_list(value("additional-files", "a", "additional"), path.parent, path),
         begin=window[0],
         end=window[1],
         options=options,
