@@ -455,39 +455,35 @@ def test_an_obstacle_off_the_grid_over_the_network_is_refused(city, capsys):
     assert not (city / "obstacle").exists()
 
 
-def test_sumocfg_options_in_sumos_short_form_are_read(tmp_path):
-    """SUMO reads an option's value from ``value=`` or its short form ``v=``: twin reads both,
-    so the network, demand, additional files, window and outputs it sees (and redirects into
-    the run folder) are those SUMO loads."""
+# how a sumocfg names its options -> its <input> (and <output>, <time>) as SUMO reads them
+SUMOCFG_OPTION_FORMS = {
+    "short form v=": (
+        '<input><net-file v="grid.net.xml"/><route-files v="trips.rou.xml"/>'
+        '<additional-files v="sub/det.add.xml"/></input><output><tripinfo-output '
+        'v="../out.xml"/></output><time><begin v="60"/><end v="900"/></time>'
+    ),
+    "long synonyms": (
+        '<input><net value="grid.net.xml"/><routes value="trips.rou.xml"/>'
+        '<additional value="sub/det.add.xml"/></input><output><tripinfo-output '
+        'value="../out.xml"/></output><time><begin value="60"/><end value="900"/></time>'
+    ),
+}
+
+
+@pytest.mark.parametrize("form", list(SUMOCFG_OPTION_FORMS))
+def test_sumocfg_options_in_every_form_sumo_reads_are_read(tmp_path, form):
+    """SUMO reads an option's value from ``value=`` or its short form ``v=``, and takes
+    ``<net>``, ``<routes>``, ``<additional>`` for the net, route and additional files (``sumo
+    -c`` runs such configs): twin reads the same network, demand, additional files, window and
+    outputs (which it redirects into the run folder)."""
     (tmp_path / "sub").mkdir()
     for name in ("grid.net.xml", "trips.rou.xml", "sub/det.add.xml"):
         (tmp_path / name).write_text("<x/>")
     cfg = tmp_path / "s.sumocfg"
-    cfg.write_text(
-        '<configuration><input><net-file v="grid.net.xml"/><route-files v="trips.rou.xml"/>'
-        '<additional-files v="sub/det.add.xml"/></input><output>'
-        '<tripinfo-output v="../out.xml"/></output><time><begin v="60"/><end v="900"/>'
-        "</time></configuration>"
-    )
+    cfg.write_text(f"<configuration>{SUMOCFG_OPTION_FORMS[form]}</configuration>")
     read = read_sumocfg(cfg)
     assert read.net == tmp_path / "grid.net.xml"
     assert read.routes == [tmp_path / "trips.rou.xml"]
     assert read.additional == [tmp_path / "sub" / "det.add.xml"]
     assert (read.begin, read.end) == (60.0, 900.0)
     assert read.options["tripinfo-output"] == "../out.xml"
-
-
-def test_sumocfg_options_by_their_long_synonyms_are_read(tmp_path):
-    """SUMO takes ``<net>``, ``<routes>`` and ``<additional>`` for the net, route and
-    additional files (``sumo -c`` runs such a config): twin reads the same files."""
-    for name in ("grid.net.xml", "trips.rou.xml", "det.add.xml"):
-        (tmp_path / name).write_text("<x/>")
-    cfg = tmp_path / "s.sumocfg"
-    cfg.write_text(
-        '<configuration><input><net value="grid.net.xml"/><routes value="trips.rou.xml"/>'
-        '<additional value="det.add.xml"/></input></configuration>'
-    )
-    read = read_sumocfg(cfg)
-    assert read.net == tmp_path / "grid.net.xml"
-    assert read.routes == [tmp_path / "trips.rou.xml"]
-    assert read.additional == [tmp_path / "det.add.xml"]
