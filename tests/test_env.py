@@ -171,15 +171,55 @@ def test_make_env_refuses_bad_options_in_one_line(joint):
         ({"n_drones": "3"}, "n_drones = '3'"),
         ({"n_drones": 601}, "n_drones = 601"),
         ({"starts": [[0, 0], [1, 1]], "n_drones": 4}, "starts gives 2 cells"),
+        ({"colour": "red"}, r"make_env\(colour=\.\.\.\) is not an option"),
+        ({"params": {"eta": 2}}, r"params = \{'eta': 2\} is not a ScoreParams"),
+        (
+            {"params": ScoreParams(eta=5.0)},
+            r"params.eta = 5.0 is out of range; give a number in \(0, 1\)",
+        ),
+        ({"params": ScoreParams(delta=-1.0)}, r"params.delta = -1.0 is out of range"),
+        ({"params": ScoreParams(delta=1.0)}, r"params.delta = 1.0 is out of range"),
+        ({"params": ScoreParams(alpha_T=float("nan"))}, r"params.alpha_T = nan is out of range"),
+        ({"params": ScoreParams(alpha_I=float("inf"))}, r"params.alpha_I = inf is out of range"),
+        ({"params": ScoreParams(alpha_I=-0.5)}, r"params.alpha_I = -0.5 is out of range"),
+        ({"params": ScoreParams(alpha_T="1")}, r"params.alpha_T = '1' is out of range"),
     ):
         with pytest.raises(EnvInputError, match=words) as info:
             make_env("synthetic", joint=joint, **options)
         assert "\n" not in str(info.value)
-    with pytest.raises(TypeError, match="colour"):  # Python's own message names the keyword
-        make_env("synthetic", joint=joint, colour="red")
+    make_env("synthetic", joint=joint, params=ScoreParams(eta=0.2, alpha_I=0.0))  # in range
+    if not joint:
+        with pytest.raises(EnvInputError, match=r"infeasible=\.\.\.\) is not an option of the"):
+            make_env("synthetic", infeasible="stay")
     if joint:
         with pytest.raises(EnvInputError, match=r'infeasible = .maybe.: use "raise" or "stay"'):
             make_env("synthetic", joint=True, infeasible="maybe")
+
+
+@pytest.mark.parametrize(
+    "source, words",
+    [
+        (42, "source is int, not a traffic source"),
+        (lambda: None, r"source\(\) is NoneType, not a traffic source"),
+        (lambda: "tape.parquet", r"source\(\) is str, not a traffic source"),
+    ],
+)
+def test_env_refuses_what_is_no_traffic_source_in_one_line(source, words):
+    from twin.env import EnvInputError
+
+    with pytest.raises(EnvInputError, match=words) as info:
+        SwarmParallelEnv(source, n_drones=2)
+    assert "\n" not in str(info.value)
+
+
+def test_a_factory_that_changes_its_scenario_is_refused_at_reset():
+    from twin.env import EnvInputError
+
+    sources = iter([_synthetic(), _synthetic(horizon=5)])
+    env = SwarmParallelEnv(lambda: next(sources), n_drones=2)
+    env.reset(seed=0)
+    with pytest.raises(EnvInputError, match="another grid or horizon"):
+        env.reset(seed=1)
 
 
 @pytest.mark.parametrize("infeasible", ["raise", "stay"])

@@ -55,7 +55,8 @@ SourceLike = TrafficSource | Callable[[], TrafficSource]
 
 
 class EnvInputError(UserError, ValueError):
-    """A bad argument to an env (agent name, action, start cell): one line naming it."""
+    """A bad argument to an env (agent name, action, start cell, reward parameter, source,
+    option): one line naming it."""
 
 
 class EnvCallOrderError(UserError, gymnasium.error.ResetNeeded, RuntimeError):
@@ -111,6 +112,51 @@ def _seed(seed: Any) -> int:
     return seed
 
 
+#: Each reward parameter's allowed range (the config's): ``(low, high, low_open, high_open)``.
+PARAM_RANGES: dict[str, tuple[float, float, bool, bool]] = {
+    "eta": (0.0, 1.0, True, True),
+    "delta": (0.0, 1.0, True, True),
+    "alpha_T": (0.0, np.inf, False, True),
+    "alpha_I": (0.0, np.inf, False, True),
+}
+
+
+def _params(params: Any) -> ScoreParams:
+    """``params`` as :class:`ScoreParams` with every value finite and in the config's range
+    (Def. 3's ``eta, delta`` in (0, 1), Def. 4's weights >= 0); else one line naming it."""
+    if params is None:
+        return ScoreParams()
+    if not isinstance(params, ScoreParams):
+        raise EnvInputError(
+            f"params = {params!r} is not a ScoreParams; give "
+            "twin.scores.ScoreParams(eta=..., delta=..., alpha_T=..., alpha_I=...)"
+        )
+    for name, (low, high, low_open, high_open) in PARAM_RANGES.items():
+        value = getattr(params, name)
+        ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
+            value, (bool, np.bool_)
+        )
+        ok = ok and np.isfinite(value)
+        ok = ok and (value > low if low_open else value >= low)
+        ok = ok and (value < high if high_open else value <= high)
+        if not ok:
+            bounds = f"{'(' if low_open else '['}{low:g}, {high:g})"
+            raise EnvInputError(
+                f"params.{name} = {value!r} is out of range; give a number in {bounds}"
+            )
+    return params
+
+
+def _built_source(source: Any, where: str) -> TrafficSource:
+    """``source`` when it is a traffic source, else one line naming ``where``."""
+    if not isinstance(source, TrafficSource):
+        raise EnvInputError(
+            f"{where} is {type(source).__name__}, not a traffic source; give a "
+            "twin.traffic.base.TrafficSource or a callable that returns one"
+        )
+    return source
+
+
 class SwarmParallelEnv(ParallelEnv):
     """PettingZoo ``ParallelEnv``: one agent per drone over a traffic source."""
 
@@ -134,10 +180,14 @@ class SwarmParallelEnv(ParallelEnv):
         ``state`` names the observations' state variant (:mod:`twin.states`).
         """
         self.variant = state_variant(state)
+        self.params = _params(params)
+        if not isinstance(source, TrafficSource) and not callable(source):
+            _built_source(source, "source")
         self._factory = None if isinstance(source, TrafficSource) else source
-        self.source: TrafficSource = source if self._factory is None else self._factory()
+        self.source: TrafficSource = (
+            source if self._factory is None else _built_source(self._factory(), "source()")
+        )
         self.grid, self.horizon = self.source.grid, self.source.horizon
-        self.params = params or ScoreParams()
         self._starts = None if starts is None else self._check_starts(starts)
         if n_drones is not None:
             n_drones = _whole("n_drones", n_drones)
@@ -249,9 +299,12 @@ class SwarmParallelEnv(ParallelEnv):
         self._close_maps()
         if self._used and self._factory is not None:
             self.source.close()
-            self.source = self._factory()
+            self.source = _built_source(self._factory(), "source()")
             if self.source.grid.shape != self.grid.shape or self.source.horizon != self.horizon:
-                raise ValueError("source_factory built a source with another grid or horizon")
+                raise EnvInputError(
+                    "source() built a source with another grid or horizon than its first; "
+                    "make the factory build the same scenario at every call"
+                )
             self.grid = self.source.grid
         self._used = True
         self._maps = self.source.importance_maps()
@@ -420,6 +473,11 @@ def _joint_action(action: Any, n: int) -> np.ndarray:
     return raw.astype(np.int64)
 
 
+#: The keywords ``make_env`` passes to the env's constructor (the joint env also takes
+#: ``infeasible``).
+ENV_OPTIONS = ("n_drones", "params", "starts", "state")
+
+
 def make_env(
     config: str | Path,
     *,
@@ -434,6 +492,17 @@ def make_env(
     """
     from twin.config import load_config, shipped_config
     from twin.experiment import Experiment, build_source, is_live
+
+    allowed = (*ENV_OPTIONS, "infeasible") if joint else ENV_OPTIONS
+    unknown = sorted(set(options) - set(allowed))
+    if unknown:
+        raise EnvInputError(
+            f"make_env({unknown[0]}=...) is not an option"
+            + (" of the parallel env" if unknown[0] == "infeasible" else "")
+            + "; give "
+            + ", ".join(allowed)
+            + ", tape or joint"
+        )
 
     path = Path(config)
     if not path.exists() and path.suffix != ".toml":
