@@ -12,8 +12,11 @@ import pytest
 
 from twin.belief import (
     DETECTORS_ONLY,
+    DetectorCalibration,
     DetectorObservations,
+    History,
     error_curve,
+    fit_detector_calibration,
     fit_history,
     history_belief,
     nowcast,
@@ -90,6 +93,108 @@ def test_observations_average_a_station_and_leave_gaps():
     assert list(obs.cells) == [3, 7]
     np.testing.assert_allclose(obs.values[:, 1], [0.3, np.nan, 0.1])
     np.testing.assert_allclose(obs.values[:, 0], [np.nan, 0.9, np.nan])
+
+
+# ------------------------------------------------------------- stations' calibration
+def _biased_stations(rng, day, cells, bias, std):
+    """A day's readings of stations at ``cells``: the truth plus each one's bias and noise."""
+    flat = day.reshape(len(day), -1)[:, cells]
+    return DetectorObservations(cells, flat + bias + rng.normal(0, std, flat.shape))
+
+
+def test_calibration_recovers_each_stations_bias_and_variance():
+    rng = np.random.default_rng(3)
+    shape, steps = (6, 7), 60
+    days = _days(rng, 8, steps, shape)
+    cells = np.array([4, 17, 30])
+    bias, std = np.array([-0.08, 0.0, 0.05]), np.array([0.01, 0.04, 0.02])
+    c = fit_detector_calibration([(_biased_stations(rng, d, cells, bias, std), d) for d in days])
+    np.testing.assert_array_equal(c.cells, cells)
+    np.testing.assert_allclose(c.bias, bias, atol=0.006)
+    np.testing.assert_allclose(np.sqrt(c.var), std, rtol=0.1)
+    assert list(c.n_readings) == [8 * steps] * 3
+    lone = DetectorObservations(np.array([5]), np.full((steps, 1), np.nan))
+    lone.values[3] = 0.4  # one reading: no variance, left out
+    assert fit_detector_calibration([(lone, days[0])]) is None
+    b, v = c.at(np.array([4, 5, 30]), 0.003)  # 5: a station the days did not have
+    np.testing.assert_allclose(b, [c.bias[0], 0.0, c.bias[2]])
+    np.testing.assert_allclose(v, [c.var[0], 0.003, c.var[2]])
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_calibrated_stations_beat_the_default_error_model(seed):
+    """Stations with a bias of their own: the nowcast with the calibration learned on earlier
+    days is closer to the truth than with the default variance and no bias, with and without
+    drones."""
+    rng = np.random.default_rng(seed)
+    shape, steps = (8, 10), 40
+    obstacles = np.zeros(shape, bool)
+    grid = Grid(obstacles)
+    *earlier, today = _days(rng, 10, steps, shape)
+    cells = np.sort(rng.choice(80, 10, replace=False))
+    bias = rng.uniform(-0.1, 0.1, len(cells))
+    std = rng.uniform(0.005, 0.05, len(cells))
+    calibration = fit_detector_calibration(
+        [(_biased_stations(rng, d, cells, bias, std), d) for d in earlier]
+    )
+    plain = fit_history(earlier, obstacles)
+    calibrated = fit_history(earlier, obstacles, detectors=calibration)
+    detectors = _biased_stations(rng, today, cells, bias, std)
+    positions = np.stack([rng.integers(0, [8, 10], (2, 2)) for _ in range(steps)])
+    for pos in (positions, positions[:, :0]):
+        error = {}
+        for name, history in (("plain", plain), ("calibrated", calibrated)):
+            mean, _ = nowcast(grid, pos, today, history, 1e-3, 0.0, detectors, 3e-3)
+            error[name] = error_curve(mean, today, grid, 0.1)[1:].mean()
+        assert error["calibrated"] < error["plain"]
+
+
+def test_a_history_keeps_its_calibration_and_refuses_a_broken_one(tmp_path):
+    rng = np.random.default_rng(0)
+    obstacles = np.zeros((4, 5), bool)
+    calibration = DetectorCalibration(
+        np.array([2, 9]), np.array([-0.02, 0.03]), np.array([1e-3, 4e-3]), np.array([40, 38])
+    )
+    history = fit_history(_days(rng, 3, 6, (4, 5)), obstacles, detectors=calibration)
+    path = tmp_path / "h.npz"
+    history.save(path)
+    back = History.load(path).detectors
+    for name in ("cells", "bias", "var", "n_readings"):
+        np.testing.assert_allclose(getattr(back, name), getattr(calibration, name))
+    assert (
+        History.load(_saved(fit_history(_days(rng, 3, 6, (4, 5)), obstacles), tmp_path)).detectors
+        is None
+    )
+    with np.load(path) as data:
+        arrays = dict(data)
+    for edit, needle in (
+        (
+            {"detector_cells": np.array([2, 20])},
+            r"detector_cells\[1\] = 20 is not a cell index in 0 .. 19",
+        ),
+        ({"detector_cells": np.array([9, 2])}, "not distinct and sorted"),
+        ({"detector_bias": np.array([0.0, np.nan])}, r"detector_bias\[1\] = nan"),
+        (
+            {"detector_var": np.array([0.0, 1e-3])},
+            r"detector_var\[0\] = 0.0 is not a number in \(0, 1\]",
+        ),
+        ({"detector_n_readings": np.array([1, 3])}, r"detector_n_readings\[0\] = 1"),
+        ({"detector_var": np.array([1e-3])}, "not of one length"),
+        ({"detector_bias": np.array(["a", "b"])}, "not numbers"),
+        ({"detector_var": None}, "without detector_var"),
+    ):
+        broken = {k: v for k, v in (arrays | edit).items() if v is not None}
+        bad = tmp_path / "bad.npz"
+        np.savez(bad, **broken)
+        with pytest.raises(UserError, match=needle) as info:
+            History.load(bad)
+        assert "\n" not in str(info.value) and str(bad) in str(info.value)
+
+
+def _saved(history, folder):
+    path = folder / "plain.npz"
+    history.save(path)
+    return path
 
 
 # ---------------------------------------------------------------- SUMO: placement, reading
@@ -255,6 +360,51 @@ def test_run_with_detectors_writes_them_and_the_reference_row(small, tmp_path):
     pairs = list(zip(table["swarm"], table["model"], strict=True))
     assert (DETECTORS_ONLY, "nowcast") in pairs
     assert ("random", "nowcast+detectors") in pairs and ("greedy", "nowcast+detectors") in pairs
+
+
+def test_history_of_days_with_detectors_calibrates_their_stations(small, tmp_path, capsys):
+    """`twin history` of runs that read detectors keeps each station cell's bias and variance
+    of its readings against the replayed truth; the run with that history filters with them.
+    A reading off the grid in detectors.parquet is one line."""
+    from twin.cli.history import replay_truth
+
+    config = _with_detectors(small, "cal.toml", "virtual_loops = 3\n")
+    args = ["--no-ceiling", "--no-report", "--quiet"]
+    days = tmp_path / "days"
+    assert twin_main(["run", "--config", str(config), "--sumo-seed", "20", "--seeds", "2",
+                      "--swarms", "random", *args, "--out", str(days)]) == 0  # fmt: skip
+    history = tmp_path / "history.npz"
+    assert twin_main(["history", "--from", str(days), "--out", str(history)]) == 0
+    assert "detector calibration: " in capsys.readouterr().out
+    calibration = History.load(history).detectors
+    readings = pd.read_parquet(days / "detectors.parquet")
+    residuals = {}
+    for seed in (0, 1):
+        truth, obstacles, _ = replay_truth(days / "tapes" / f"seed-{seed}.parquet")
+        ny = obstacles.shape[1]
+        rows = readings[readings["seed"] == seed]
+        station = rows.groupby(["step", "i", "j"])["importance"].mean().reset_index()
+        for k, i, j, v in station.itertuples(index=False):
+            residuals.setdefault(i * ny + j, []).append(v - truth[k, i, j])
+    assert list(calibration.cells) == sorted(residuals)
+    for c, cell in enumerate(calibration.cells):
+        r = np.array(residuals[cell])
+        assert calibration.bias[c] == pytest.approx(r.mean())
+        assert calibration.var[c] == pytest.approx(max(r.var(ddof=1), 1e-6))
+    out = tmp_path / "eval"
+    assert twin_main(["run", "--config", str(config), "--swarms", "random", *args,
+                      "--history", str(history), "--out", str(out)]) == 0  # fmt: skip
+    assert (DETECTORS_ONLY, "nowcast") in set(
+        pd.read_csv(out / "belief_models.csv")[["swarm", "model"]].itertuples(index=False)
+    )
+    readings.loc[3, "i"] = 99
+    readings.to_parquet(days / "detectors.parquet", index=False)
+    capsys.readouterr()
+    assert twin_main(["history", "--from", str(days), "--out", str(tmp_path / "h2.npz")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+    assert "detectors.parquet: seed 0" in err and "off the" in err, err
+    assert not (tmp_path / "h2.npz").exists()
 
 
 @pytest.mark.parametrize(

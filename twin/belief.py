@@ -15,8 +15,10 @@ Three models over one run, for one swarm (numpy only):
   true importance, variance 0 but for a floor).
 - ``nowcast+detectors``: the same filter also updated, at every step, on each cell that fixed
   detectors read (:class:`DetectorObservations`, the importance of a station's reading by the
-  MFD), a measurement of variance ``detector_var``. Without drones (swarm
-  :data:`DETECTORS_ONLY`) it is the reference for what the drones add.
+  MFD), less the station's bias, a measurement of the station's variance: both learned from
+  earlier days' runs with the same stations (:class:`DetectorCalibration`, kept in the
+  history), else bias 0 and ``detector_var``. Without drones (swarm :data:`DETECTORS_ONLY`)
+  it is the reference for what the drones add.
 
 Each model gives a mean and a standard deviation per step and cell (``(T+1, nx*ny)``; NaN
 std: none stated), the mean clipped to [0, 1]. :func:`belief_scores` scores one against the
@@ -49,9 +51,10 @@ DETECTORS_ONLY = "(detectors only)"
 #: vehicle of the cell): 0 but for numerics, std 0.001, a tenth of the smallest history std the
 #: filter uses (VAR_FLOOR), so that a sighting moves the belief 99% of the way or more.
 SIGHTING_VAR_FLOOR = 1e-6
-#: Variance of a detector station's reading of its cell's importance: the mean square error of
-#: the readings of 48 virtual loop stations against their cells' true importance on validation
-#: SUMO seed 100 of the default rush hour (0.0029, bias -0.027 included; docs/beliefs.md).
+#: Variance of a detector station's reading of its cell's importance when the history has no
+#: calibration of it: the mean square error of the readings of 48 virtual loop stations against
+#: their cells' true importance on validation SUMO seed 100 of the default rush hour (0.0029,
+#: bias -0.027 included; docs/beliefs.md).
 DEFAULT_DETECTOR_VAR = 3e-3
 #: Smallest per-cell history variance used by the filter (std 0.01).
 VAR_FLOOR = 1e-4
@@ -62,6 +65,92 @@ CORR_MAX = 0.95
 #: Half-width of the 90% interval in standard deviations.
 Z90 = 1.6448536269514722
 HISTORY_VERSION = 1
+
+
+@dataclass(frozen=True, eq=False)
+class DetectorCalibration:
+    """Per detector station (its cell, flat index): the bias and variance of its readings of
+    the cell's importance against the cell's true importance on earlier days, and how many
+    readings gave them (:func:`fit_detector_calibration`)."""
+
+    cells: np.ndarray  # (n,) flat cell indices, distinct, sorted, n >= 1
+    bias: np.ndarray  # (n,)
+    var: np.ndarray  # (n,) >= SIGHTING_VAR_FLOOR
+    n_readings: np.ndarray  # (n,)
+
+    def at(self, cells: np.ndarray, default_var: float) -> tuple[np.ndarray, np.ndarray]:
+        """``(bias, var)`` of the stations at ``cells``: the calibrated ones', else bias 0
+        and ``default_var`` (a station the earlier days did not have)."""
+        cells = np.asarray(cells, dtype=np.int64)
+        at = np.minimum(np.searchsorted(self.cells, cells), len(self.cells) - 1)
+        known = self.cells[at] == cells
+        bias = np.where(known, self.bias[at], 0.0)
+        var = np.where(known, self.var[at], default_var)
+        return bias, var
+
+
+def fit_detector_calibration(days) -> DetectorCalibration | None:
+    """Each station cell's bias (mean of reading minus truth) and variance (``ddof = 1``, at
+    least :data:`SIGHTING_VAR_FLOOR`) over earlier days: ``days`` gives
+    ``(DetectorObservations, truth (T+1, nx, ny))`` pairs. Cells with fewer than 2 readings
+    are left out; None when no cell has 2."""
+    residuals: dict[int, list[np.ndarray]] = {}
+    for observations, truth in days:
+        t = np.asarray(truth, dtype=np.float64).reshape(len(truth), -1)
+        steps = min(len(t), len(observations.values))
+        r = observations.values[:steps] - t[:steps, observations.cells]
+        for col, cell in enumerate(observations.cells):
+            residuals.setdefault(int(cell), []).append(r[:, col][np.isfinite(r[:, col])])
+    cells, bias, var, count = [], [], [], []
+    for cell in sorted(residuals):
+        r = np.concatenate(residuals[cell])
+        if len(r) < 2:
+            continue
+        cells.append(cell)
+        bias.append(r.mean())
+        var.append(max(r.var(ddof=1), SIGHTING_VAR_FLOOR))
+        count.append(len(r))
+    if not cells:
+        return None
+    return DetectorCalibration(
+        np.array(cells, dtype=np.int64), np.array(bias), np.array(var), np.array(count)
+    )
+
+
+#: The arrays of a :class:`DetectorCalibration` in a history file (``detector_<name>``).
+CALIBRATION_KEYS = ("cells", "bias", "var", "n_readings")
+
+
+def _calibration(path: Path, arrays: dict, n_cells: int, fix: str) -> DetectorCalibration | None:
+    """The calibration read from a history file's ``detector_*`` arrays (None when it has
+    none); anything inconsistent is one :class:`UserError` line."""
+    if not arrays:
+        return None
+    if set(arrays) != set(CALIBRATION_KEYS):
+        missing = sorted(set(CALIBRATION_KEYS) - set(arrays))[0]
+        raise UserError(f"{path}: detector calibration without detector_{missing}; {fix}")
+    shapes = {a.shape for a in arrays.values()}
+    if len(shapes) != 1 or len(next(iter(shapes))) != 1 or not next(iter(shapes))[0]:
+        raise UserError(f"{path}: detector calibration arrays are not of one length n >= 1; {fix}")
+    if any(a.dtype.kind not in "fiu" for a in arrays.values()):
+        raise UserError(f"{path}: detector calibration holds values that are not numbers; {fix}")
+    cells, n = arrays["cells"], arrays["n_readings"]
+    bias, var = (np.asarray(arrays[k], dtype=np.float64) for k in ("bias", "var"))
+    checks = (
+        ("detector_cells", cells, (cells == np.round(cells)) & (cells >= 0) & (cells < n_cells),
+         f"a cell index in 0 .. {n_cells - 1}"),
+        ("detector_bias", bias, np.isfinite(bias) & (np.abs(bias) <= 1), "a number in [-1, 1]"),
+        ("detector_var", var, np.isfinite(var) & (var > 0) & (var <= 1), "a number in (0, 1]"),
+        ("detector_n_readings", n, (n == np.round(n)) & (n >= 2), "a whole number >= 2"),
+    )  # fmt: skip
+    for name, values, ok, want in checks:
+        if not ok.all():
+            at = int(np.flatnonzero(~ok)[0])
+            raise UserError(f"{path}: {name}[{at}] = {values[at]} is not {want}; {fix}")
+    cells = cells.astype(np.int64)
+    if np.any(np.diff(cells) <= 0):
+        raise UserError(f"{path}: detector_cells are not distinct and sorted; {fix}")
+    return DetectorCalibration(cells, bias, var, n.astype(np.int64))
 
 
 @dataclass(frozen=True)
@@ -79,6 +168,8 @@ class History:
     sources: tuple[str, ...] = ()
     #: correlation of deviations between 4-neighbour free cells (same step), pooled
     neighbour_corr: float = 0.0
+    #: the detector stations' calibration on these days (None: runs without detectors)
+    detectors: DetectorCalibration | None = None
 
     @property
     def horizon(self) -> int:
@@ -99,6 +190,9 @@ class History:
             "sources": list(self.sources),
             "neighbour_corr": self.neighbour_corr,
         }
+        stations = {}
+        if self.detectors is not None:
+            stations = {f"detector_{k}": getattr(self.detectors, k) for k in CALIBRATION_KEYS}
         with open(path, "wb") as fh:
             np.savez_compressed(
                 fh,
@@ -107,6 +201,7 @@ class History:
                 rho=self.rho.astype(np.float32),
                 obstacles=self.obstacles,
                 info=np.array(json.dumps(info)),
+                **stations,
             )
 
     @classmethod
@@ -119,6 +214,8 @@ class History:
         try:
             with np.load(path, allow_pickle=False) as data:
                 arrays = {k: data[k] for k in ("mean", "var", "rho", "obstacles", "info")}
+                stations = {k: data[f"detector_{k}"] for k in CALIBRATION_KEYS if
+                            f"detector_{k}" in data.files}  # fmt: skip
         except KeyError as exc:
             raise UserError(f"{path}: not a twin history (no {exc.args[0]!r}); {fix}") from None
         except Exception as exc:
@@ -173,6 +270,7 @@ class History:
             tuple(int(s) for s in info.get("traffic_seeds") or () if isinstance(s, int)),
             tuple(str(s) for s in info.get("sources") or ()),
             float(corr),
+            _calibration(path, stations, obstacles.size, fix),
         )
 
     def check_matches(
@@ -310,6 +408,7 @@ def fit_history(
     begin: str | None = None,
     traffic_seeds: Sequence[int] = (),
     sources: Sequence[str] = (),
+    detectors: DetectorCalibration | None = None,
 ) -> History:
     """The :class:`History` of ``maps`` (each ``(T+1, nx, ny)``, one per earlier day).
 
@@ -346,6 +445,7 @@ def fit_history(
         tuple(int(s) for s in traffic_seeds),
         tuple(str(s) for s in sources),
         corr,
+        detectors,
     )
 
 
@@ -408,8 +508,10 @@ def nowcast(
     recorded: np.ndarray | None = None,
 ):
     """``(mean, std)`` of the history fused with the drones' sightings (module docstring),
-    and with ``detectors``' readings (variance ``detector_var``) when given; ``positions``
-    may hold no drone (``(T+1, 0, 2)``): history and detectors alone.
+    and with ``detectors``' readings when given: each station's reading less its bias, of its
+    variance, as the history's :class:`DetectorCalibration` gives them (a station it does not
+    know, or a history without one: bias 0, variance ``detector_var``); ``positions`` may
+    hold no drone (``(T+1, 0, 2)``): history and detectors alone.
 
     The filter starts from the history's prior at step 0 (deviation 0, variance ``var^0``),
     predicts ``d <- rho d``, ``P <- rho^2 P + (1 - rho^2) var^k`` and updates every cell in
@@ -431,6 +533,12 @@ def nowcast(
     std = np.empty_like(mu)
     src, dst = neighbour_pairs(grid) if coupling > 0 else (None, None)
     in_view = np.zeros(mu.shape[1], dtype=bool)
+    if detectors is not None:
+        station_bias, station_var = (
+            (np.zeros(len(detectors.cells)), np.full(len(detectors.cells), detector_var))
+            if history.detectors is None
+            else history.detectors.at(detectors.cells, detector_var)
+        )
     for k in range(steps):
         if k:
             d = rho * d
@@ -459,8 +567,8 @@ def nowcast(
         if detectors is not None and k < len(detectors.values):
             read = np.isfinite(detectors.values[k])
             cells = detectors.cells[read]
-            innovation = detectors.values[k, read] - mu[k, cells] - d[cells]
-            gain = p[cells] / (p[cells] + detector_var)
+            innovation = detectors.values[k, read] - station_bias[read] - mu[k, cells] - d[cells]
+            gain = p[cells] / (p[cells] + station_var[read])
             d[cells] += gain * innovation
             p[cells] *= 1.0 - gain
         mean[k] = np.clip(mu[k] + d, 0.0, 1.0)

@@ -4,7 +4,8 @@ Each tape (``tape.parquet``, ``tapes/seed-<s>.parquet`` of a ``twin run`` folder
 file) is replayed without SUMO through the run's own MFD observation model
 (:class:`twin.traffic.tape.TapeTraffic`); the true maps ``T^0..T^T`` of all of them give the
 mean, variance and autocorrelation of :class:`twin.belief.History`, written as ``.npz`` for
-``twin run --history``.
+``twin run --history``. Runs that read fixed detectors add each station's calibration (its
+readings against the replayed truth, :func:`twin.belief.fit_detector_calibration`).
 """
 
 from __future__ import annotations
@@ -23,7 +24,9 @@ def add_parser(subparsers) -> None:
         description="Replay the traffic tapes of earlier `twin run` folders (every seed's) "
         "without SUMO and write, per step and cell, the mean and variance of the true "
         "importance and, per cell, the lag-1 autocorrelation of its deviations: the history "
-        "that `twin run --history FILE` scores its belief models with. Use SUMO seeds that "
+        "that `twin run --history FILE` scores its belief models with. Runs that read fixed "
+        "detectors (detectors.parquet) also give each station's bias and variance against "
+        "the truth, with which the nowcast takes that station's readings. Use SUMO seeds that "
         "the runs you evaluate do not use (e.g. `twin run --sumo-seed 100 --seeds 3`).",
     )
     p.add_argument(
@@ -76,10 +79,43 @@ def replay_truth(path: Path):
     return np.stack(maps), source.grid.obstacles, source.tape.settings
 
 
+#: The columns of ``detectors.parquet`` a history's detector calibration reads.
+READING_COLUMNS = {"seed": "int", "step": "int", "i": "int", "j": "int", "importance": "finite"}
+
+
+def detector_readings(tape: Path, obstacles, horizon: int):
+    """The fixed detectors' readings of the day a run folder's tape recorded
+    (``detectors.parquet`` beside ``tape.parquet`` or above ``tapes/``, rows of the tape's
+    seed) as :class:`twin.belief.DetectorObservations`; None for a run without detectors. A
+    reading off the grid, on an obstacle, outside ``0..horizon`` or outside [0, 1] is refused
+    in one line."""
+    from twin.belief import DetectorObservations
+    from twin.readback import RERUN, read_table
+
+    per_seed = tape.parent.name == "tapes" and tape.name.startswith("seed-")
+    path = (tape.parent.parent if per_seed else tape.parent) / "detectors.parquet"
+    if not path.is_file():
+        return None
+    rows = read_table(path, READING_COLUMNS)
+    seed = int(tape.stem.removeprefix("seed-")) if per_seed else rows["seed"].min()
+    rows = rows[rows["seed"] == seed]
+    nx, ny = obstacles.shape
+    i, j, k, v = (rows[c].to_numpy() for c in ("i", "j", "step", "importance"))
+    bad = (i < 0) | (i >= nx) | (j < 0) | (j >= ny) | (k < 0) | (k > horizon) | (v < 0) | (v > 1)
+    bad |= ~bad & obstacles[i.clip(0, nx - 1), j.clip(0, ny - 1)]
+    if bad.any():
+        n = int(bad.argmax())
+        raise UserError(
+            f"{path}: seed {seed}, step {k[n]}: a reading {v[n]} at cell ({i[n]}, {j[n]}) is off "
+            f"the {nx} x {ny} grid's free cells, steps 0..{horizon} or [0, 1]; {RERUN}"
+        )
+    return DetectorObservations.from_readings(zip(k, i * ny + j, v, strict=True), horizon)
+
+
 def main(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from twin.belief import fit_history
+    from twin.belief import fit_detector_calibration, fit_history
     from twin.files import atomic_write
     from twin.outputs import check_output_file, make_parent
 
@@ -96,9 +132,12 @@ def main(args: argparse.Namespace) -> int:
             f"--from gives {len(paths)} simulation; a history needs at least 2 (variance "
             "across days): run more seeds, e.g. `twin run --sumo-seed 100 --seeds 3`"
         )
-    maps, seeds, first = [], {}, None
+    maps, seeds, first, stations = [], {}, None, []
     for path in paths:
         truth, obstacles, settings = replay_truth(path)
+        readings = detector_readings(path, obstacles, truth.shape[0] - 1)
+        if readings is not None:
+            stations.append((readings, truth))
         seed = settings.get("seed")
         key = (truth.shape[0] - 1, settings.get("step_s"), settings.get("begin"))
         if first is None:
@@ -129,6 +168,7 @@ def main(args: argparse.Namespace) -> int:
         begin if isinstance(begin, str) else None,
         list(seeds),
         [str(p) for p in paths],
+        fit_detector_calibration(stations),
     )
     atomic_write(make_parent(args.out, "--out"), history.save)
     free = ~history.obstacles
@@ -139,5 +179,12 @@ def main(args: argparse.Namespace) -> int:
         f"{history.mean[:, free].mean():.3f}, mean std {np.sqrt(history.var[:, free]).mean():.3f}"
         f", median rho {np.median(history.rho[free]):.2f}"
     )
+    if history.detectors is not None:
+        c = history.detectors
+        print(
+            f"detector calibration: {len(c.cells)} station cells from {len(stations)} "
+            f"simulations with detectors; bias {c.bias.min():+.3f} .. {c.bias.max():+.3f}, "
+            f"std {np.sqrt(c.var).min():.3f} .. {np.sqrt(c.var).max():.3f}"
+        )
     print(f"written: {args.out}")
     return 0
