@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -165,6 +167,16 @@ def test_history_file_roundtrip_and_mismatches(tmp_path):
         History.load(tmp_path / "bad.npz")
     with pytest.raises(UserError, match="no such history"):
         History.load(tmp_path / "missing.npz")
+    with np.load(path) as data:
+        arrays = dict(data)
+    info = json.loads(str(arrays["info"]))
+    for seeds in ("missing", None, [100, "101"], [100.0], [True], "100"):
+        edited = {k: v for k, v in info.items() if k != "traffic_seeds"}
+        if seeds != "missing":
+            edited["traffic_seeds"] = seeds
+        np.savez(tmp_path / "seeds.npz", **(arrays | {"info": np.array(json.dumps(edited))}))
+        with pytest.raises(UserError, match=r"traffic_seeds = .* is not a list of the SUMO seeds"):
+            History.load(tmp_path / "seeds.npz")
 
 
 def test_belief_table_has_every_swarm_and_model_and_the_history_row():

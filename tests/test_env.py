@@ -188,6 +188,9 @@ def test_make_env_refuses_bad_options_in_one_line(joint):
             make_env("synthetic", joint=joint, **options)
         assert "\n" not in str(info.value)
     make_env("synthetic", joint=joint, params=ScoreParams(eta=0.2, alpha_I=0.0))  # in range
+    for config in (123, None, ["synthetic"]):
+        with pytest.raises(EnvInputError, match="give a scenario config's path"):
+            make_env(config, joint=joint)
     if not joint:
         with pytest.raises(EnvInputError, match=r"infeasible=\.\.\.\) is not an option of the"):
             make_env("synthetic", infeasible="stay")

@@ -411,6 +411,77 @@ def test_device_outputs_of_vehicle_types_go_into_the_run_folder(scenario, tmp_pa
     assert sorted(run["traffic"]["sumo_outputs"]) == want
 
 
+def _utf16_routes_with_ssm(d: Path) -> None:
+    """``small.trips.xml`` again in UTF-16, with a vehicle type whose SSM device writes a file."""
+    trips = d / "small.trips.xml"
+    text = trips.read_text().replace("<trip ", SSM_TYPE.replace("../ssm", "ssm") + "<trip ", 1)
+    text = text.replace('encoding="UTF-8"', 'encoding="UTF-16"')
+    trips.write_bytes(text.encode("utf-16"))
+
+
+# name -> (output options of the sumocfg, how to change the case's files, what RUN/sumo/ holds)
+ESCAPES = {
+    "outputs named by SUMO's synonyms": (
+        '<statistics-output value="stats.xml"/><log-file value="sumo.log"/>'
+        '<tripinfo v="trips.out.xml"/>',
+        None,
+        ["det.add.xml", "det.xml", "stats.xml", "sumo.log", "trips.out.xml"],
+    ),
+    "an additional file in SUMO's namespace": (
+        "",
+        lambda d: (d / "det.add.xml").write_text(
+            (d / "det.add.xml")
+            .read_text()
+            .replace(
+                "<additional>", '<additional xmlns="http://sumo.dlr.de/xsd/additional_file.xsd">'
+            )
+            .replace("</e1Detector>", "")
+            .replace("/>", '/><edgeData id="e" file="ed.xml"/>', 1)
+        ),
+        ["det.add.xml", "det.xml", "ed.xml"],
+    ),
+    "a UTF-16 route file with a device output": (
+        "",
+        _utf16_routes_with_ssm,
+        ["det.add.xml", "det.xml", "small.trips.xml", "ssm.xml"],
+    ),
+}
+
+
+@pytest.mark.parametrize("case", list(ESCAPES))
+def test_outputs_in_every_form_sumo_reads_go_into_the_run_folder(scenario, tmp_path, capsys, case):
+    """Outputs named as SUMO also reads them (an option's synonym, an element in SUMO's XML
+    namespace, a device parameter in a UTF-16 file) land in RUN/sumo/, never beside the
+    scenario's files."""
+    output, change, want = ESCAPES[case]
+    cfg = _detector_case(scenario, tmp_path / "case", output)
+    if change is not None:
+        change(tmp_path / "case")
+    before = tree_hash(tmp_path / "case")
+    out = tmp_path / "run"
+    code = _run(scenario, out, "--sumocfg", str(cfg))
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert tree_hash(tmp_path / "case") == before
+    assert sorted(p.name for p in (out / "sumo").iterdir()) == want
+
+
+@pytest.mark.parametrize("option", ["save-config", "C", "save-configuration"])
+def test_save_configuration_by_any_name_is_refused_before_sumo_starts(
+    scenario, tmp_path, capsys, option
+):
+    cfg = _detector_case(scenario, tmp_path / "case")
+    text = cfg.read_text().replace("<output>", f'<configuration><{option} value="saved.sumocfg"/>'
+                                   "</configuration><output>")  # fmt: skip
+    cfg.write_text(text)
+    before = tree_hash(tmp_path / "case")
+    code = _run(scenario, tmp_path / "run", "--sumocfg", str(cfg))
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "Traceback" not in err, err
+    assert f"<{option} value='saved.sumocfg'> makes SUMO write that file and quit" in err, err
+    assert tree_hash(tmp_path / "case") == before and not (tmp_path / "run").exists()
+
+
 TIME = r"\d{4}(-\d\d){5}"  # SUMO replaces TIME in a prefix or suffix by the date and time
 # <option value> of the sumocfg ({root}: the folder holding the scenario's folder) -> the pattern
 # of the names SUMO writes in RUN/sumo/ for det.xml and trips.xml (NAME: det or trips)

@@ -394,6 +394,26 @@ def test_departure_span_of_flows_and_clock_times(tmp_path):
     assert departure_span([routes]) == (50.0, 800.0)
 
 
+@pytest.mark.parametrize(
+    "flow, end",
+    [
+        ('begin="10" vehsPerHour="600"', 86400.0),  # SUMO's default end: 24 hours
+        ('begin="10" period="5"', 86400.0),
+        ('begin="10" probability="0.1"', 86400.0),
+        ('begin="10" number="30" vehsPerHour="600"', 190.0),
+        ('begin="10" number="30" headway="2"', 70.0),
+        ('begin="90000" vehsPerHour="600"', 90000.0),
+    ],
+)
+def test_a_flow_without_end_departs_as_long_as_sumo_lets_it(tmp_path, flow, end):
+    routes = tmp_path / "open.rou.xml"
+    routes.write_text(f'<routes xmlns="http://sumo.dlr.de/xsd/routes_file.xsd"><flow id="f" '
+                      f'from="a" to="b" {flow}/></routes>')  # fmt: skip
+    counts: dict[str, int] = {}
+    assert departure_span([routes], counts) == (float(flow.split('"')[1]), end)
+    assert counts == {"flow": 1}
+
+
 def test_departures_in_included_route_files_are_the_demand(tmp_path):
     """A route file that only includes another (as SUMO reads it) holds that file's demand, so
     twin does not add its own rush hour beside it (SUMO would refuse the duplicate ids)."""

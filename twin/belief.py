@@ -255,6 +255,14 @@ class History:
                 raise UserError(
                     f"{path}: {name} = {arr[at]} at {at} is not a number in [{lo}, {hi}]; {fix}"
                 )
+        seeds = info.get("traffic_seeds")
+        if not isinstance(seeds, list) or not all(
+            isinstance(x, int) and not isinstance(x, bool) for x in seeds
+        ):
+            raise UserError(
+                f"{path}: traffic_seeds = {seeds!r} is not a list of the SUMO seeds it was built "
+                f"from (needed to refuse a history that holds an evaluated day); {fix}"
+            )
         step_s = info.get("step_s")
         corr = info.get("neighbour_corr", 0.0)
         if not isinstance(corr, (int, float)) or not 0.0 <= corr <= 1.0:
@@ -267,7 +275,7 @@ class History:
             int(info.get("n_runs", 0)),
             float(step_s) if isinstance(step_s, (int, float)) else None,
             info.get("begin") if isinstance(info.get("begin"), str) else None,
-            tuple(int(s) for s in info.get("traffic_seeds") or () if isinstance(s, int)),
+            tuple(seeds),
             tuple(str(s) for s in info.get("sources") or ()),
             float(corr),
             _calibration(path, stations, obstacles.size, fix),

@@ -493,6 +493,11 @@ def make_env(
     from twin.config import load_config, shipped_config
     from twin.experiment import Experiment, build_source, is_live
 
+    if not isinstance(config, (str, Path)):
+        raise EnvInputError(
+            f"make_env({config!r}): give a scenario config's path or a shipped config's name "
+            'such as "synthetic"'
+        )
     allowed = (*ENV_OPTIONS, "infeasible") if joint else ENV_OPTIONS
     unknown = sorted(set(options) - set(allowed))
     if unknown:

@@ -37,35 +37,9 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 from twin.errors import UserError
-from twin.sumo.readers import file_list, open_xml, read_sumocfg
+from twin.sumo.options import output_options
+from twin.sumo.readers import file_list, local_name, open_xml, read_sumocfg
 
-#: SUMO's output options (and their synonyms) -> the canonical name to override.
-OUTPUT_OPTIONS = {
-    **{
-        name: name
-        for name in (
-            "netstate-dump", "emission-output", "battery-output", "elechybrid-output",
-            "chargingstations-output", "overheadwiresegments-output", "substations-output",
-            "fcd-output", "person-fcd-output", "full-output", "queue-output", "vtk-output",
-            "amitran-output", "summary-output", "person-summary-output", "tripinfo-output",
-            "personinfo-output", "vehroute-output", "personroute-output", "link-output",
-            "railsignal-block-output", "railsignal-vehicle-output", "bt-output",
-            "lanechange-output", "stop-output", "collision-output", "edgedata-output",
-            "lanedata-output", "statistic-output", "deadlock-output", "save-state.files",
-            "save-state.prefix", "device.rerouting.output", "device.ssm.file",
-            "device.toc.file", "device.taxi.dispatch-algorithm.output",
-            "device.taxi.idle-algorithm.output", "log", "message-log", "error-log",
-            "pedestrian.jupedsim.wkt", "pedestrian.jupedsim.py", "gui-testing.setting-output",
-        )
-    },
-    "ndump": "netstate-dump",
-    "netstate": "netstate-dump",
-    "netstate-output": "netstate-dump",
-    "summary": "summary-output",
-    "tripinfo": "tripinfo-output",
-    "vehroutes": "vehroute-output",
-    "l": "log",
-}  # fmt: skip
 #: Options that add to every output's name (kept to their name part, :func:`name_part`).
 NAMING_OPTIONS = ("output-prefix", "output-suffix")
 #: Options whose value is a list of files.
@@ -88,7 +62,12 @@ OUTPUT_ELEMENTS = {
     "timedEvent": "dest",
 }  # fmt: skip
 #: Device parameters of vehicle types and vehicles that name output files (``<param key=...>``).
-DEVICE_OUTPUTS = {name for name in OUTPUT_OPTIONS if name.startswith("device.")}
+DEVICE_OUTPUTS = frozenset(
+    (
+        "device.ssm.file", "device.toc.file", "device.rerouting.output",
+        "device.taxi.dispatch-algorithm.output", "device.taxi.idle-algorithm.output",
+    )
+)  # fmt: skip
 #: Attributes of additional files that name input files (made absolute in a rewritten copy).
 INPUT_ATTRIBUTES = ("href", "file", "imgFile", "osgFile")
 
@@ -143,29 +122,34 @@ class OutputPlan:
             return path  # SUMO will say what is wrong with it
         root, base, changed = tree.getroot(), path.parent, False
         for elem in root.iter():
-            attr = OUTPUT_ELEMENTS.get(elem.tag) if isinstance(elem.tag, str) else None
-            if elem.tag == "param" and elem.get("key") in DEVICE_OUTPUTS:
+            tag = local_name(elem)
+            attr = OUTPUT_ELEMENTS.get(tag)
+            if tag == "param" and elem.get("key") in DEVICE_OUTPUTS:
                 attr = "value"
             value = elem.get(attr) if attr else None
             if value is not None and _is_file(value):
                 elem.set(attr, str(self.target(base / value)))
                 changed = True
-        for elem in root.iter("include"):
-            href = elem.get("href")
+        for elem in root.iter():
+            href = elem.get("href") if local_name(elem) == "include" else None
             if href and self.additional(base / href) != _absolute(base / href):
                 changed = True
         if changed:
             for elem in root.iter():
-                if not isinstance(elem.tag, str):
+                tag = local_name(elem)
+                if not tag:
                     continue
                 for name in INPUT_ATTRIBUTES:
                     value = elem.get(name)
-                    if value is None or name == OUTPUT_ELEMENTS.get(elem.tag):
+                    if value is None or name == OUTPUT_ELEMENTS.get(tag):
                         continue
-                    if name == "href" and elem.tag == "include":
+                    if name == "href" and tag == "include":
                         elem.set(name, str(self.additional(base / value)))
                     elif _is_file(value) and not Path(value).is_absolute():
                         elem.set(name, str(_absolute(base / value)))
+            for elem in root.iter():  # SUMO reads names as written: no ns0: prefixes
+                if local_name(elem):
+                    elem.tag = local_name(elem)
             name = path.name[:-3] if path.name.endswith(".gz") else path.name
             copy = self._fresh(name)
             ET.indent(tree)
@@ -175,17 +159,27 @@ class OutputPlan:
 
     def routes(self, path: Path) -> Path:
         """``path``, or a rewritten copy in ``out_dir`` if device parameters in it name output
-        files (read in full only when it mentions ``device.``: route files may be large)."""
+        files. Route files may be large: one is parsed only when its bytes hold ``param`` (an
+        element's name is never a character reference), or always when its encoding is not
+        ASCII-compatible (UTF-16, UTF-32)."""
         tail = b""
         try:
             with open_xml(path) as fh:
                 while chunk := fh.read(1 << 24):
-                    if b"device." in tail + chunk[:16] or b"device." in chunk:
+                    if not tail and not _ascii_compatible(chunk[:4]):
                         return self.additional(path)
-                    tail = chunk[-16:]
+                    if b"param" in tail + chunk:
+                        return self.additional(path)
+                    tail = chunk[-8:]
         except (OSError, EOFError):
             pass  # SUMO will say what is wrong with it
         return path
+
+
+def _ascii_compatible(head: bytes) -> bool:
+    """Whether an XML file's first bytes are those of an ASCII-compatible encoding (no UTF-16
+    or UTF-32 byte order mark, no NUL byte)."""
+    return not head.startswith((b"\xff\xfe", b"\xfe\xff")) and b"\x00" not in head
 
 
 def name_part(value: str) -> str:
@@ -220,7 +214,7 @@ def redirect_outputs(
             if value and f"--{name}" not in out:
                 extra += [f"--{name}", name_part(value)]
         base = Path(sumocfg).resolve().parent
-        given = {OUTPUT_OPTIONS[k]: v for k, v in cfg.options.items() if k in OUTPUT_OPTIONS}
+        given = {k: v for k, v in cfg.options.items() if k in output_options()}
         state_times = any(cfg.options.get(k) for k in ("save-state.times", "save-state.period"))
         if state_times and not given.get("save-state.files") and "save-state.prefix" not in given:
             given["save-state.prefix"] = "state"  # SUMO's default prefix, in its working folder

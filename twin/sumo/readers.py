@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import IO
 
 from twin.errors import UserError
+from twin.sumo.options import canonical
 
 
 def open_xml(path: Path) -> IO[bytes]:
@@ -51,14 +52,22 @@ def missing(path: Path, what: str) -> UserError:
     return UserError(f"{path}: no such {what}")
 
 
+def local_name(elem: ET.Element) -> str:
+    """An element's name without its namespace (``{uri}edgeData`` -> ``edgeData``), as SUMO
+    matches names; ``""`` for a comment or processing instruction."""
+    tag = elem.tag
+    return tag.rpartition("}")[2] if isinstance(tag, str) else ""
+
+
 def root_tag(path: Path, what: str) -> str:
-    """The root element of a SUMO XML file (compressed or not); one-line errors."""
+    """The root element of a SUMO XML file (compressed or not), without its namespace;
+    one-line errors."""
     path = Path(path)
     if not path.exists():
         raise missing(path, what)
     try:
         with open_xml(path) as fh:
-            return next(ET.iterparse(fh, events=("start",)))[1].tag
+            return local_name(next(ET.iterparse(fh, events=("start",)))[1])
     except (ET.ParseError, OSError, EOFError, StopIteration) as exc:
         raise UserError(f"{path}: not valid XML ({exc or 'empty file'})") from exc
 
@@ -127,25 +136,29 @@ def parse_time(value: str | None) -> float | None:
 SUMOCFG_ROOTS = ("configuration", "sumoConfiguration")
 
 
-def sumocfg_options(root: ET.Element) -> dict[str, str]:
+def sumocfg_options(root: ET.Element) -> tuple[dict[str, str], dict[str, str]]:
     """The options a SUMO config sets, as SUMO reads them: any element with a ``value``
     attribute (or its short form ``v``) or, without children, a text, whether in a section
-    (``<input><net-file value="..."/></input>``) or right under the root; element name ->
-    value (the last one wins, as in SUMO)."""
+    (``<input><net-file value="..."/></input>``) or right under the root, named by any of
+    SUMO's synonyms (:func:`twin.sumo.options.canonical`): canonical name -> value (the last
+    one wins, as in SUMO), and canonical name -> the name the config wrote."""
     options: dict[str, str] = {}
+    written: dict[str, str] = {}
     for elem in root.iter():
-        if elem is root or not isinstance(elem.tag, str):
+        name = local_name(elem)
+        if elem is root or not name:
             continue
         value = elem.get("value", elem.get("v"))
         if value is None and len(elem) == 0 and elem.text is not None and elem.text.strip():
             value = elem.text.strip()
         if value is not None:
-            options[elem.tag] = value
-    return options
+            options[canonical(name)] = value
+            written[canonical(name)] = name
+    return options, written
 
 
 #: Options that make SUMO write a file (beside the user's files) and quit without simulating.
-_SAVE_AND_QUIT = ("save-configuration", "C", "save-template", "save-schema")
+_SAVE_AND_QUIT = ("save-configuration", "save-template", "save-schema")
 #: Switches that make SUMO print something and quit without simulating.
 _PRINT_AND_QUIT = ("help", "version")
 #: Options that make SUMO wait for a client on a socket before it simulates.
@@ -181,15 +194,12 @@ def read_sumocfg(path: Path, own_net: bool = True) -> SumoConfigFile:
             root = ET.parse(fh).getroot()
     except (ET.ParseError, OSError, EOFError) as exc:
         raise UserError(f"{path}: not valid XML ({exc})") from exc
-    options = sumocfg_options(root)
+    options, written = sumocfg_options(root)
 
-    def value(*names: str) -> str | None:
-        for name in names:
-            if options.get(name):
-                return options[name]
-        return None
+    def value(name: str) -> str | None:
+        return options.get(name) or None
 
-    net = file_list(value("net-file", "n", "net"), path.parent, path)
+    net = file_list(value("net-file"), path.parent, path)
     if not own_net:
         net = net[:1] or [Path()]
     if not net:
@@ -200,58 +210,59 @@ def read_sumocfg(path: Path, own_net: bool = True) -> SumoConfigFile:
     for name in _SAVE_AND_QUIT:
         if options.get(name):
             raise UserError(
-                f"{path}: <{name} value={options[name]!r}> makes SUMO write that file and quit "
-                "instead of simulating; remove it (twin runs the simulation)"
+                f"{path}: <{written[name]} value={options[name]!r}> makes SUMO write that file "
+                "and quit instead of simulating; remove it (twin runs the simulation)"
             )
     for name in _WAIT_FOR_CLIENT:
         if options.get(name):
             raise UserError(
-                f"{path}: <{name} value={options[name]!r}> makes SUMO wait for a TraCI client "
-                "instead of simulating; remove it (twin drives SUMO itself)"
+                f"{path}: <{written[name]} value={options[name]!r}> makes SUMO wait for a TraCI "
+                "client instead of simulating; remove it (twin drives SUMO itself)"
             )
     for name in _PRINT_AND_QUIT:
         if options.get(name, "false").strip().lower() not in ("false", "0", "no", "off", ""):
             raise UserError(
-                f"{path}: <{name} value={options[name]!r}> makes SUMO print its {name} and quit "
-                "instead of simulating; remove it"
+                f"{path}: <{written[name]} value={options[name]!r}> makes SUMO print its {name} "
+                "and quit instead of simulating; remove it"
             )
     if len(set(net)) < len(net):
         raise UserError(
-            f"{path}: <net-file value={value('net-file', 'n')!r}> names a network twice, which "
-            "SUMO refuses (each junction would exist twice); name it once"
+            f"{path}: <{written['net-file']} value={value('net-file')!r}> names a network twice, "
+            "which SUMO refuses (each junction would exist twice); name it once"
         )
     if len(net) > 1:
         raise UserError(
-            f"{path}: <net-file value={value('net-file', 'n')!r}> names {len(net)} networks; "
+            f"{path}: <{written['net-file']} value={value('net-file')!r}> names {len(net)} "
+            "networks; "
             "twin lays its grid over one: merge them (netconvert -s a.net.xml,b.net.xml -o "
             "merged.net.xml) and name that"
         )
     window = []
     for key in ("begin", "end"):
-        text = value(key, "b" if key == "begin" else "e")
+        text = value(key)
         t = parse_time(text)
         if text is not None and t is None:
             raise UserError(
-                f"{path}: <{key} value={text!r}> is not a finite time; give seconds "
+                f"{path}: <{written[key]} value={text!r}> is not a finite time; give seconds "
                 "(e.g. 3600) or a clock (1:00:00)"
             )
         if key == "end" and t is not None and t < 0:  # SUMO's default -1: no end
             t = None
         if key == "begin" and t is not None and t < 0:
             raise UserError(
-                f"{path}: <begin value={text!r}> is negative, which SUMO refuses; give seconds "
+                f"{path}: <{written[key]} value={text!r}> is negative, which SUMO refuses; give seconds "
                 "from 0 (e.g. 3600) or a clock (1:00:00)"
             )
         window.append(t)
     if None not in window and window[1] <= window[0]:
         raise UserError(
-            f"{path}: <end value={value('end', 'e')!r}> is not after <begin "
-            f"value={value('begin', 'b')!r}>; give an end after the begin"
+            f"{path}: <{written['end']} value={value('end')!r}> is not after "
+            f"<{written['begin']} value={value('begin')!r}>; give an end after the begin"
         )
     return SumoConfigFile(
         net=net[0],
-        routes=file_list(value("route-files", "r", "routes"), path.parent, path),
-        additional=file_list(value("additional-files", "a", "additional"), path.parent, path),
+        routes=file_list(value("route-files"), path.parent, path),
+        additional=file_list(value("additional-files"), path.parent, path),
         begin=window[0],
         end=window[1],
         options=options,
@@ -285,7 +296,7 @@ def _check_departure(path: Path, elem: ET.Element, key: str) -> float | None:
     if number is not None and (t is None or t < 0):
         what = "negative" if number < 0 else "not a finite number"
         raise UserError(
-            f"{path}: <{elem.tag} id={elem.get('id')!r} {key}={text!r}>: the time is {what}, "
+            f"{path}: <{local_name(elem)} id={elem.get('id')!r} {key}={text!r}>: the time is {what}, "
             "which SUMO refuses; give seconds from 0 (e.g. 3600) or a clock (1:00:00)"
         )
     return t
@@ -313,31 +324,47 @@ def departure_span(
         try:
             with open_xml(path) as fh:
                 for _, elem in ET.iterparse(fh, events=("end",)):
-                    key = _DEPARTING.get(elem.tag)
+                    tag = local_name(elem)
+                    key = _DEPARTING.get(tag)
                     t = _check_departure(path, elem, key) if key else None
                     if t is not None:
-                        counts[elem.tag] = counts.get(elem.tag, 0) + 1
+                        counts[tag] = counts.get(tag, 0) + 1
                         end = t
-                        if elem.tag.endswith(("flow", "Flow")):  # flow, personFlow, ...
+                        if tag.endswith(("flow", "Flow")):  # flow, personFlow, ...
                             end = _flow_end(elem, t)
                         first = t if first is None else min(first, t)
                         last = end if last is None else max(last, end)
-                    if elem.tag in _DEPARTING or elem.tag in ("route", "vType"):
+                    if tag in _DEPARTING or tag in ("route", "vType"):
                         elem.clear()
         except (ET.ParseError, OSError, EOFError) as exc:
             raise UserError(f"{path}: not valid XML ({exc})") from exc
     return None if first is None else (first, last)
 
 
+#: The end of a flow that gives neither ``end`` nor a number it stops after: SUMO's default,
+#: 24 hours.
+FLOW_DEFAULT_END = 86400.0
+
+
 def _flow_end(elem: ET.Element, begin: float) -> float:
+    """When a flow's departures end: its ``end``, else after ``number`` departures at its
+    ``period``/``headway`` or ``vehsPerHour`` (``personsPerHour``, ``containersPerHour``,
+    ``perHour``), else SUMO's default end of 24 hours."""
     end = parse_time(elem.get("end"))
     if end is not None:
         return end
     number = elem.get("number")
     step = parse_time(elem.get("period")) or parse_time(elem.get("headway"))
+    for rate in ("vehsPerHour", "personsPerHour", "containersPerHour", "perHour"):
+        per_hour = parse_time(elem.get(rate))
+        if step is None and per_hour:
+            step = 3600.0 / per_hour
     if number is not None and step is not None:
-        return begin + float(number) * step
-    return begin + 3600.0  # SUMO's default flow end is its --end; assume an hour
+        try:
+            return begin + float(number) * step
+        except ValueError:
+            pass  # SUMO will say what is wrong with it
+    return max(begin, FLOW_DEFAULT_END)
 
 
 def included_files(path: Path) -> list[Path]:
@@ -350,7 +377,8 @@ def included_files(path: Path) -> list[Path]:
         current = todo.pop(0)
         try:
             with open_xml(current) as fh:
-                hrefs = [e.get("href") for e in ET.parse(fh).getroot().iter("include")]
+                root = ET.parse(fh).getroot()
+                hrefs = [e.get("href") for e in root.iter() if local_name(e) == "include"]
         except (ET.ParseError, OSError, EOFError, UserError):
             continue
         for href in hrefs:
