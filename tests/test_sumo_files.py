@@ -22,6 +22,7 @@ import shutil
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
+import pandas as pd
 import pytest
 
 pytest.importorskip("libsumo")
@@ -480,6 +481,21 @@ def test_save_configuration_by_any_name_is_refused_before_sumo_starts(
     assert code == 2 and err.count("\n") == 1 and "Traceback" not in err, err
     assert f"<{option} value='saved.sumocfg'> makes SUMO write that file and quit" in err, err
     assert tree_hash(tmp_path / "case") == before and not (tmp_path / "run").exists()
+
+
+def test_a_config_seeding_sumo_from_the_clock_still_repeats(scenario, tmp_path, capsys):
+    """``<random value="true"/>`` (SUMO's seed from the clock) is overridden with a notice:
+    two runs of one SUMO seed record the same traffic."""
+    cfg = _detector_case(scenario, tmp_path / "case")
+    cfg.write_text(cfg.read_text().replace("<output>", '<random_number><random value="true"/>'
+                                           "</random_number><output>"))  # fmt: skip
+    tapes = []
+    for name in ("a", "b"):
+        assert _run(scenario, tmp_path / name, "--sumocfg", str(cfg)) == 0
+        err = capsys.readouterr().err
+        assert "<random value='true'> (a seed from the clock) is overridden" in err, err
+        tapes.append(pd.read_parquet(tmp_path / name / "tape.parquet"))
+    pd.testing.assert_frame_equal(tapes[0], tapes[1])
 
 
 TIME = r"\d{4}(-\d\d){5}"  # SUMO replaces TIME in a prefix or suffix by the date and time

@@ -252,6 +252,11 @@ def _scenario_files(s: SumoSettings) -> _ScenarioFiles:
         return files
     if sumocfg_path is not None:
         cfg = read_sumocfg(sumocfg_path, own_net=not s.net)
+        if cfg.options.get("random", "false").strip().lower() in ("true", "1", "yes", "on"):
+            notice(
+                f"{sumocfg_path}: <random value={cfg.options['random']!r}> (a seed from the "
+                "clock) is overridden: twin seeds SUMO with --sumo-seed so that runs repeat"
+            )
         # a network given besides the sumocfg replaces its own, as `sumo -c ... -n` does
         files = _ScenarioFiles(
             Path(s.net) if s.net else cfg.net,

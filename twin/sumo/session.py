@@ -89,6 +89,7 @@ class SumoSession:
             "--begin", f"{self.begin:g}",
             "--end", f"{self.end:g}",
             "--seed", str(self.seed),
+            "--random", "false",  # a config's clock seed would make runs unrepeatable
             "--step-length", f"{self.step_length:g}",
             "--no-step-log", "true",
             "--no-warnings", "true",
