@@ -240,6 +240,24 @@ ABSURD_TAPES: dict[str, tuple[Callable[[Path], Path], str]] = {
         lambda p: write_tape(p, meta=_settings(step_s=75.0, warmup_s=75.0)),
         "steps start at -2, before the metadata's warm-up of 1 steps",
     ),
+    **{
+        f"observation setting {key} = {value!r}": (
+            lambda p, key=key, value=value: write_tape(p, meta=_settings(**{key: value})),
+            f"tape metadata {key} = ",
+        )
+        for key, value in (
+            ("mfd_prior", [-1, 0]),
+            ("mfd_prior", [0.7, float("nan")]),
+            ("mfd_prior", [0.7]),
+            ("mfd_prior", "x"),
+            ("mfd_prior", [1.5, 40]),
+            ("mfd_fit", "bogus"),
+            ("detection_p", 0.0),
+            ("detection_p", 1.5),
+            ("detection_p", "x"),
+            ("detection_p", float("nan")),
+        )
+    },
 }
 TAPE_CASES.update(ABSURD_TAPES)
 

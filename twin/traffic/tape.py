@@ -11,6 +11,7 @@ observation settings. :class:`TapeTraffic` feeds the snapshots through the same
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Generator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -378,7 +379,36 @@ def _tape_meta(path: Path, schema_meta: dict) -> dict[str, Any]:
         out[key] = arr.astype(dtype)
     settings = meta.get("settings", {})
     out["settings"] = settings if isinstance(settings, dict) else {}
+    _check_observation_settings(path, out["settings"])
     return out
+
+
+def _number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _check_observation_settings(path: Path, settings: dict[str, Any]) -> None:
+    """The settings a replay observes the tape with, in the ranges of ``[traffic.mfd]``:
+    ``mfd_fit`` online or fixed, ``mfd_prior`` ``[a, k_c]`` with ``0 < a <= 1`` and
+    ``k_c > 0``, ``detection_p`` in (0, 1]; each left out takes the live run's default."""
+    fix = "the tape is corrupt, record it again"
+    fit = settings.get("mfd_fit", "online")
+    if fit not in ("online", "fixed"):
+        raise UserError(
+            f'{path}: tape metadata mfd_fit = {str(fit)[:40]!r} is not "online" or "fixed"; {fix}'
+        )
+    prior = settings.get("mfd_prior", [MFD().a, MFD().k_c])
+    ok = isinstance(prior, list) and len(prior) == 2 and all(_number(x) for x in prior)
+    if not ok or not (0 < prior[0] <= 1 and prior[1] > 0):
+        raise UserError(
+            f"{path}: tape metadata mfd_prior = {str(prior)[:40]} is not [a, k_c] with "
+            f"0 < a <= 1 and k_c > 0 (finite); {fix}"
+        )
+    p = settings.get("detection_p", 1.0)
+    if not _number(p) or not 0 < p <= 1:
+        raise UserError(
+            f"{path}: tape metadata detection_p = {str(p)[:40]!r} is not a number in (0, 1]; {fix}"
+        )
 
 
 class TapeTraffic(TrafficSource):
