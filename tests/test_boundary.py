@@ -935,6 +935,18 @@ READ_BACK = {
         _edit_table("timing.csv", _set("seconds", -3.0)),
         "timing.csv: column 'seconds' row 0 is -3, outside 0 .. inf",
     ),
+    "timing ms per step off its seconds": (
+        _edit_table("timing.csv", lambda f: f.assign(ms_per_step=f["ms_per_step"] * 50)),
+        "timing.csv: row 0 (seed 0, ",
+    ),
+    "timing share off its seconds": (
+        _edit_table("timing.csv", lambda f: f.assign(share=f["share"] / 2)),
+        "has share = ",
+    ),
+    "timing seconds off its ms per step": (
+        _edit_table("timing.csv", lambda f: f.assign(seconds=f["seconds"] * 100)),
+        "has ms_per_step = ",
+    ),
     # a derived file edited to contradict the primary files it was computed from
     "summary coverage off its seeds": (
         _edit_table("summary.csv", _set("C_hat_T", 0.9)),

@@ -505,6 +505,31 @@ def check_bounds(path: Path, frame: pd.DataFrame) -> None:
             )
 
 
+def check_timing(path: Path, timing: pd.DataFrame, series: pd.DataFrame) -> None:
+    """``timing.csv``'s derived columns follow from its seconds: ``ms_per_step`` is the
+    stage's seconds over the steps its seed completed (its rows per swarm in ``series``), and
+    ``share`` its part of its process's total for that seed (both as rounded when written)."""
+    steps = series.groupby(["seed", "swarm"]).size().groupby(level=0).max()
+    process = timing["process"] if "process" in timing.columns else pd.Series("main", timing.index)
+    totals = timing.groupby([timing["seed"], process])["seconds"].transform("sum")
+    for n, row in enumerate(timing.itertuples(index=False)):
+        done = max(int(steps.get(row.seed, 0)), 1)
+        want = 1000.0 * row.seconds / done
+        if abs(row.ms_per_step - want) > 1e-4 + 1e-6 * abs(want):
+            raise UserError(
+                f"{path}: row {n} (seed {row.seed}, {row.stage}) has ms_per_step = "
+                f"{row.ms_per_step:g}, but {row.seconds:g} s over the seed's {done} steps is "
+                f"{want:.4f}; {RERUN}"
+            )
+        if "share" in timing.columns and totals.iloc[n] > 0:
+            share = row.seconds / totals.iloc[n]
+            if abs(row.share - share) > 1e-4 + 1e-6:
+                raise UserError(
+                    f"{path}: row {n} (seed {row.seed}, {row.stage}) has share = {row.share:g}, "
+                    f"but its seconds are {share:.4f} of its process's; {RERUN}"
+                )
+
+
 def numeric_columns(path: Path, frame: pd.DataFrame, text: tuple[str, ...]) -> None:
     """Every column of ``frame`` but ``text`` holds numbers (NaN allowed), each within its
     :data:`BOUNDS`."""

@@ -40,6 +40,7 @@ from twin.readback import (
     check_ranges,
     check_run_json,
     check_series,
+    check_timing,
     check_trajectories,
     numeric_columns,
     off_grid,
@@ -327,6 +328,7 @@ def load_run(run_dir: str | Path) -> RunFiles:
             if name in timing.columns:
                 check_column(run_dir / "timing.csv", timing, name, kind)
         check_bounds(run_dir / "timing.csv", timing)
+        check_timing(run_dir / "timing.csv", timing, series)
     samples = optional("mfd_samples.parquet", MFD_SAMPLE_COLUMNS)
     if samples is not None and "speed_limit" in samples.columns:
         check_column(run_dir / "mfd_samples.parquet", samples, "speed_limit", NUMBER)
