@@ -117,3 +117,41 @@ def test_with_missed_vehicles_the_run_keeps_the_truth_apart():
     result = run_patrol(blurred, {"g": make_policy("greedy")}, [[0, 1]], ScoreParams())
     np.testing.assert_allclose(result.truth, exact.importance, atol=1e-6)
     assert not np.allclose(result.importance, exact.importance)
+
+
+def test_a_seed_stopped_midway_is_left_out_of_the_tables(synthetic, tmp_path, monkeypatch, capsys):
+    """Ctrl-C in the second seed's pass, the first having run every step: the run folder
+    holds the first seed alone (R_hat_T over 40 steps is not averaged with one over a few) and
+    says which seed it left out."""
+    import contextlib
+
+    import twin.experiment as experiment_module
+
+    calls = {"n": 0}
+
+    @contextlib.contextmanager
+    def stop_in_the_second_seed(enabled=True, on_stop=None):
+        def stop() -> bool:
+            calls["n"] += 1
+            return calls["n"] > 45  # seed 4 polls 40 times, seed 5 stops after a few steps
+
+        yield stop
+
+    monkeypatch.setattr(experiment_module, "stop_on_interrupt", stop_in_the_second_seed)
+    out = tmp_path / "run"
+    code = twin_main(["evaluate", "--config", str(synthetic), "--seeds", "3", "--seed", "4",
+                      "--no-report", "--quiet", "--out", str(out)])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 130, err
+    assert "seed 5: interrupted after " in err and "left out, the tables hold seed 4" in err, err
+    run = json.loads((out / "run.json").read_text())
+    assert run["seeds"] == [4] and run["partial"] is True
+    assert run["partial_reason"].startswith("seed 5: interrupted after ")
+    assert run["partial_reason"].endswith(
+        "of 40 steps; left out, the tables hold seed 4 (every step)"
+    )
+    assert set(pd.read_csv(out / "per_seed.csv")["seed"]) == {4}
+    assert set(pd.read_parquet(out / "series.parquet")["seed"]) == {4}
+    assert twin_main(["report", str(out), "--no-animation"]) == 0, capsys.readouterr().err
+    head = (out / "report" / "report.md").read_text()
+    assert "PARTIAL RUN (40 of 40 steps): seed 5: interrupted after" in head

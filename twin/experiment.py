@@ -80,10 +80,46 @@ class ExperimentResult:
     sources: list[TrafficSource] = field(default_factory=list)
     #: stopped by Ctrl-C (:func:`stop_on_interrupt`): the results hold the steps done so far
     interrupted: bool = False
+    #: a later seed that stopped before its last step (Ctrl-C, a simulation that failed): left
+    #: out of ``results`` (:func:`leave_out_unfinished_seed`)
+    left_out: PatrolResult | None = None
 
     @property
     def partial(self) -> bool:
-        return self.interrupted or any(r.error for r in self.results)
+        return self.interrupted or self.left_out is not None or any(r.error for r in self.results)
+
+    @property
+    def stopped(self) -> PatrolResult:
+        """The seed the run ended with: the one left out, else the last."""
+        return self.left_out or self.results[-1]
+
+    def partial_reason(self) -> str | None:
+        """Why a seed is missing from the results, for ``run.json``."""
+        r = self.left_out
+        if r is None:
+            return None
+        planned = self.results[0].completed_steps
+        why = r.error or f"stopped after {r.completed_steps} of {planned} steps"
+        kept = ", ".join(str(k.seed) for k in self.results)
+        seeds = f"seed{'s' if len(self.results) > 1 else ''} {kept}"
+        return f"seed {r.seed}: {why}; left out, the tables hold {seeds} (every step)"
+
+
+def leave_out_unfinished_seed(outcome: ExperimentResult) -> None:
+    """When the first seed ran every step, drop the later seeds that stopped before (Ctrl-C in
+    their pass, or their simulation failed): averaged with whole seeds, an R_hat_T over fewer
+    steps would pass for one like theirs. The run stays partial and says which seed is left
+    out."""
+    results = outcome.results
+    whole = results[0].completed_steps
+    if results[0].error:  # the first seed stopped too (seeds run at once): all kept
+        return
+    while len(results) > 1 and results[-1].completed_steps < whole:
+        outcome.left_out = results.pop()
+        if len(outcome.traffic) > len(results):
+            outcome.traffic.pop()
+        if len(outcome.sources) > len(results):
+            outcome.sources.pop().close()
 
 
 def limit_threads(n: int = 1) -> None:
@@ -247,6 +283,7 @@ def run_experiment(
     outcome.interrupted = stop() or any(
         (r.error or "").startswith(INTERRUPTED) for r in outcome.results
     )
+    leave_out_unfinished_seed(outcome)
     return outcome
 
 
@@ -717,6 +754,7 @@ def run_metadata(outcome: ExperimentResult, kind: str, **extra: Any) -> dict[str
         "n_drones": config.swarm.n_drones,
         "wall_seconds": round(outcome.seconds, 3),
         "partial": outcome.partial,
+        **({"partial_reason": outcome.partial_reason()} if outcome.left_out else {}),
         "policies": outcome.policies,
         **extra,
     }

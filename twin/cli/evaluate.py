@@ -140,22 +140,26 @@ def main(args: argparse.Namespace) -> int:
 
     recorded = run_and_record("evaluate", args, experiment, history, on_source)
     outcome, run_dir = recorded.outcome, recorded.run_dir
-    done = outcome.results[-1]
+    done = outcome.stopped
     planned = (outcome.traffic[-1] or {}).get("horizon", done.horizon)
     partial = outcome.partial or done.completed_steps < planned
-    if partial:
+    if outcome.left_out is not None:
+        print(
+            f"twin: partial run: {outcome.partial_reason()}; written to {run_dir}", file=sys.stderr
+        )
+    elif partial:
         print(
             f"twin: partial run: {done.error or 'the traffic ended early'}; "
             f"{done.completed_steps} of {planned} steps written to {run_dir}",
             file=sys.stderr,
         )
-    horizon = done.completed_steps
+    horizon = outcome.results[0].completed_steps
     label = f"{seeds} seed{'s' if seeds > 1 else ''} from {first}"
     title = f"Table 2 analog ({config.path.name}, {label}, T = {horizon})"
     print_tables(recorded, title)
     print_degradation(run_dir)
     print_beliefs(recorded.beliefs, args.history, label)
-    if not args.no_report and done.completed_steps > 0:
+    if not args.no_report and outcome.results[0].completed_steps > 0:
         render_report(run_dir)
     print(f"run folder: {run_dir}")
     if outcome.interrupted:

@@ -290,8 +290,12 @@ def main(args: argparse.Namespace) -> int:
     outcome, run_dir = recorded.outcome, recorded.run_dir
     first_source = outcome.sources[0]
     video_failed = drawer is not None and args.record and not finish_video(drawer, run_dir)
-    done = outcome.results[-1]
-    if (done.error or done.completed_steps == 0) and not outcome.interrupted:
+    done = outcome.stopped
+    if outcome.left_out is not None and not outcome.interrupted:
+        print(
+            f"twin: partial run: {outcome.partial_reason()}; written to {run_dir}", file=sys.stderr
+        )
+    elif (done.error or done.completed_steps == 0) and not outcome.interrupted:
         print(
             f"twin: partial run: SUMO stopped early ({done.error or 'no step ran'}); results of "
             f"{done.completed_steps} of {first_source.horizon} steps written to {run_dir}",
@@ -325,11 +329,13 @@ def main(args: argparse.Namespace) -> int:
         render_report(run_dir)
     print(f"run folder: {run_dir}")
     if outcome.interrupted:
-        print(
-            f"twin: interrupted; partial run of {done.completed_steps} steps (seed {done.seed}) "
-            f"written to {run_dir}",
-            file=sys.stderr,
+        what = (
+            f"seed {done.seed} stopped after {done.completed_steps} steps is left out, the "
+            f"seeds that finished are"
+            if outcome.left_out is not None
+            else f"partial run of {done.completed_steps} steps (seed {done.seed})"
         )
+        print(f"twin: interrupted; {what} written to {run_dir}", file=sys.stderr)
         return 130
     return 1 if outcome.partial or done.completed_steps == 0 or video_failed else 0
 
