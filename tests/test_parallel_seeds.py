@@ -102,8 +102,9 @@ def test_gui_with_workers_is_refused(small, tmp_path, capsys):
 
 
 def test_a_failed_seed_stops_the_seeds_after_it_as_one_after_another(small, monkeypatch):
-    """Seed 1's simulation fails mid-run: kept are seeds 0 and 1 (partial), as sequentially,
-    whatever order the workers finish in (here the last seed first)."""
+    """Seed 1's simulation fails mid-run: kept is seed 0, seed 1 is left out of the tables
+    (stopped before its last step) and seed 2 never counts, as sequentially, whatever order
+    the workers finish in (here the last seed first)."""
     from twin import executors
     from twin.config import load_config
     from twin.experiment import Experiment, run_experiment
@@ -128,8 +129,9 @@ def test_a_failed_seed_stops_the_seeds_after_it_as_one_after_another(small, monk
         return Experiment(config, ["random", "greedy"], range(3), workers=workers)
 
     one, two = run_experiment(experiment(1)), run_experiment(experiment(3))
-    assert [r.seed for r in one.results] == [r.seed for r in two.results] == [0, 1]
-    assert two.results[1].error and "simulated crash" in two.results[1].error
+    assert [r.seed for r in one.results] == [r.seed for r in two.results] == [0]
+    assert one.left_out.seed == two.left_out.seed == 1
+    assert "simulated crash" in two.left_out.error
     assert two.partial and not two.interrupted
     for a, b in zip(one.results, two.results, strict=True):
         np.testing.assert_array_equal(a.rewards, b.rewards)
