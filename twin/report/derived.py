@@ -19,10 +19,14 @@ weigh, their float32 rounding, :data:`MAP_ROUNDING`) is one :class:`UserError` l
 both files, the column, the swarm and the seed: the report never shows a figure its run's
 files contradict.
 
+A live run of several seeds keeps every seed's tape in ``tapes/``: the first seed's must be
+``tape.parquet``, and each later seed's per-step scores, belief error and events are replayed
+over its tape's maps (:func:`check_seed_tapes`).
+
 Not recomputed (their inputs are not all in the folder): the per-step scores, belief error,
-reward split and incident columns of seeds other than the first (their maps and incidents are
-not kept: their scores are checked only to add up to the per-seed figures, their reward split
-to add up to ``R_hat_T``); the events and belief error when the run scored them on a recorded
+reward split and incident columns of seeds other than the first when their maps are not kept
+(a synthetic run's, or without ``tapes/``: their scores are checked only to add up to the
+per-seed figures, their reward split to add up to ``R_hat_T``), their incident columns; the events and belief error when the run scored them on a recorded
 truth (run.json ``monitoring.truth``: vehicles the drones missed), which the folder does not
 keep, or when run.json does not say which; ``importance.npz``, ``mfd_samples.parquet`` and
 ``mfd.json`` of a live run whose ``tape.parquet`` has more than :data:`TAPE_REPLAY_ROWS` rows
@@ -736,6 +740,100 @@ def check_tape_maps(primary: Primary) -> None:
     check_mfd_files(primary.run_dir, source.model_observed())
 
 
+def check_same_tape(have: Path, want: Path) -> None:
+    """``have`` holds the same tape as ``want`` (rows and metadata): the first seed's copy in
+    ``tapes/`` is ``tape.parquet``."""
+    import pyarrow.parquet as pq
+
+    from twin.traffic.tape import read_tape_meta
+
+    try:
+        a, b = pq.read_table(have), pq.read_table(want)
+    except Exception as exc:  # a damaged tape: Tape.read says what is wrong with it
+        from twin.traffic.tape import Tape
+
+        Tape.read(have)
+        Tape.read(want)
+        raise UserError(f"{have}: unreadable ({type(exc).__name__}); {RERUN}") from None
+    if a.equals(b):
+        at = _first_difference(read_tape_meta(have), read_tape_meta(want))
+        if at is None:
+            return
+        name, mine, theirs = at
+        raise UserError(
+            f"{have}: metadata {name} = {mine}, but {want.name} (the same seed's tape) has "
+            f"{theirs}; {RERUN}"
+        )
+    if a.num_rows != b.num_rows or a.column_names != b.column_names:
+        raise UserError(
+            f"{have}: {a.num_rows} rows of {a.column_names}, but {want.name} (the same seed's "
+            f"tape) has {b.num_rows} of {b.column_names}; {RERUN}"
+        )
+    for column in a.column_names:
+        x, y = a[column].to_numpy(), b[column].to_numpy()
+        off = ~((x == y) | (pd.isna(x) & pd.isna(y)))
+        if off.any():
+            n = int(np.flatnonzero(off)[0])
+            raise UserError(
+                f"{have}: {column} = {_show(x[n])} in row {n}, but {want.name} (the same "
+                f"seed's tape) has {_show(y[n])}; {RERUN}"
+            )
+
+
+def check_seed_tapes(primary: Primary) -> None:
+    """Each seed's tape in ``tapes/`` of a several-seed live run: the first seed's is
+    ``tape.parquet`` (:func:`check_same_tape`); every later seed's, replayed through its MFD
+    (:class:`twin.traffic.tape.TapeTraffic`), gives the maps on which that seed's rows of
+    ``series.parquet`` (rewards, coverage, visited shares, belief error) and ``events.parquet``
+    (its events) replay from ``trajectories.parquet``, as :data:`DERIVED` checks the first
+    seed's over ``importance.npz``. A tape of more than :data:`TAPE_REPLAY_ROWS` rows is not
+    replayed. Costs a tape replay and one score replay per swarm and later seed."""
+    import dataclasses
+
+    import pyarrow.parquet as pq
+
+    from twin.traffic.tape import Tape, TapeTraffic
+
+    folder = primary.run_dir / "tapes"
+    seeds = primary.run.get("seeds")
+    if not folder.is_dir() or not isinstance(seeds, list):
+        return
+    first = folder / f"seed-{primary.first_seed}.parquet"
+    if first.is_file() and (primary.run_dir / "tape.parquet").is_file():
+        check_same_tape(first, primary.run_dir / "tape.parquet")
+    for seed in seeds:
+        path = folder / f"seed-{seed}.parquet"
+        if seed == primary.first_seed or not isinstance(seed, int) or not path.is_file():
+            continue
+        try:
+            rows = pq.read_metadata(path).num_rows
+        except Exception:  # a damaged tape: Tape.read says what is wrong with it
+            rows = 0
+        if rows > TAPE_REPLAY_ROWS:
+            continue
+        source = TapeTraffic(Tape.read(path), source_name=str(path))
+        maps = [np.asarray(m, dtype=np.float64) for m in source.importance_maps()]
+        steps = int(primary.series.loc[primary.series["seed"] == seed, "step"].max()) + 1
+        if len(maps) < steps + 1:
+            raise UserError(
+                f"{path}: replays {len(maps)} maps, but series.parquet scores seed {seed} over "
+                f"{steps} steps ({steps + 1} maps); {RERUN}"
+            )
+        of_seed = dataclasses.replace(
+            primary, importance=np.stack(maps), first_seed=seed, incidents=None,
+            replayed=None, monitored={},
+        )  # fmt: skip
+        name = f"trajectories.parquet and tapes/{path.name}"
+        checks = [("series.parquet", primary.series, ("seed", "swarm", "step"), replayed_series),
+                  ("series.parquet", primary.series, ("seed", "swarm", "step"), replayed_belief),
+                  ("events.parquet", primary.events, ("seed", "event"), map_events)]  # fmt: skip
+        for file, frame, key, recompute in checks:
+            if frame is not None:
+                complete = recompute is map_events
+                expected = recompute(of_seed, frame)
+                compare(primary.run_dir, file, frame, expected, key, name, complete)
+
+
 def check_mfd_files(run_dir: Path, model) -> None:
     """``mfd_samples.parquet`` and ``mfd.json`` as the MFD observation ``model``
     (:class:`twin.mfd.MFDImportance`, having observed the first seed's tape) writes them
@@ -778,6 +876,7 @@ def check_derived(primary: Primary, tables: dict[str, pd.DataFrame | None]) -> N
     (:func:`check_tape_maps`). Without ``per_seed.csv``, ``summary.csv`` is checked against the
     per-seed figures the primary files give."""
     check_tape_maps(primary)
+    check_seed_tapes(primary)
     per_seed = tables.get("per_seed.csv")
     if per_seed is None:  # summary.csv is then checked against the primary files themselves
         parts = [part(primary, pd.DataFrame()) for part in PER_SEED_PARTS]
