@@ -78,6 +78,22 @@ SUMO_READ_BACK: dict[str, tuple[Callable[[Path], None], str, tuple[str, ...]]] =
         "but trajectories.parquet and tapes/seed-1.parquet give",
         ("report", "history"),
     ),
+    "run.json begins at another time than the tape": (
+        _run_json(lambda r: r["traffic"].update(begin="00:06:00")),
+        'run.json: traffic.begin = "00:06:00", but tape.parquet (seed 0\'s tape) records '
+        '"00:05:00"',
+        ("report",),
+    ),
+    "run.json reads fewer times a step than the tape": (
+        _run_json(lambda r: r["traffic"].update(reads_per_step=1, read_offsets_s=[0.0])),
+        "run.json: traffic.reads_per_step = 1, but tape.parquet (seed 0's tape) records 3",
+        ("report",),
+    ),
+    "a later seed's reads in run.json are not its tape's": (
+        _run_json(lambda r: r["traffic_by_seed"][1].update(read_offsets_s=[30.0, 15.0, 0.0])),
+        "run.json: traffic_by_seed[1].read_offsets_s[0] = 30.0, but tapes/seed-1.parquet",
+        ("report",),
+    ),
 }
 
 

@@ -605,11 +605,20 @@ PER_SEED_PARTS = (series_scores, ceiling_scores, monitoring_scores)
 TAPE_REPLAY_ROWS = 1_000_000
 
 
+#: The settings of a SUMO run's traffic that its tapes record (:meth:`twin.sumo.source.
+#: SumoTraffic.metadata`) and run.json repeats: its timing (step 0 at ``begin``, the reads of
+#: a step) and its MFD observation.
+TAPE_SETTINGS = ("begin", "warmup_s", "step_s", "horizon", "reads_per_step", "read_offsets_s",
+                 "mesoscopic", "mfd_fit", "mfd_prior", "detection_p")  # fmt: skip
+
+
 def check_tape_seeds(primary: Primary) -> None:
     """Each tape of a live SUMO run (``tape.parquet``: the first seed's, ``tapes/seed-<s>``:
     seed ``s``'s) was recorded with the SUMO seed that run.json records for its seed
-    (``traffic_by_seed``, in the order of ``seeds``; ``traffic.seed`` with one seed). Reads the
-    tapes' metadata only."""
+    (``traffic_by_seed``, in the order of ``seeds``; ``traffic.seed`` with one seed) and with
+    the :data:`TAPE_SETTINGS` that run.json records for it (the tape's own times are checked
+    against these when it is read, :meth:`twin.traffic.tape.Tape.read`). Reads the tapes'
+    metadata only."""
     from twin.traffic.tape import read_tape_meta
 
     run = primary.run
@@ -624,19 +633,39 @@ def check_tape_seeds(primary: Primary) -> None:
         for seed, node in zip(seeds, by_seed, strict=False)
         if isinstance(node, dict) and isinstance(node.get("seed"), int)
     }
-    tapes = [(primary.run_dir / "tape.parquet", primary.first_seed)]
-    tapes += [(primary.run_dir / "tapes" / f"seed-{s}.parquet", s) for s in seeds]
-    for path, seed in tapes:
-        want = sumo_seeds.get(seed)
-        if want is None or not path.is_file():
+    records = dict(zip(seeds, by_seed, strict=False))
+    first = primary.first_seed
+    tapes = [(primary.run_dir / "tape.parquet", first, run.get("traffic"), "traffic")]
+    tapes += [
+        (primary.run_dir / "tapes" / f"seed-{s}.parquet", s, records.get(s),
+         f"traffic_by_seed[{n}]" if len(seeds) > 1 else "traffic")
+        for n, s in enumerate(seeds)
+    ]  # fmt: skip
+    for path, seed, record, where in tapes:
+        if not path.is_file():
             continue
         settings = read_tape_meta(path).get("settings")
-        got = settings.get("seed") if isinstance(settings, dict) else None
-        if got != want:
+        settings = settings if isinstance(settings, dict) else {}
+        want = sumo_seeds.get(seed)
+        got = settings.get("seed")
+        if want is not None and got != want:
             raise UserError(
                 f"{path}: recorded with SUMO seed {got}, but run.json has seed {seed} run with "
                 f"SUMO seed {want}; {RERUN}"
             )
+        if not isinstance(record, dict) or record.get("kind") != "sumo":
+            continue
+        for name in TAPE_SETTINGS:
+            if name not in record or name not in settings:
+                continue
+            at = _first_difference(record[name], settings[name], name)
+            if at is not None:
+                field, have, recorded = at
+                raise UserError(
+                    f"{primary.run_dir / 'run.json'}: {where}.{field} = {have}, but "
+                    f"{path.relative_to(primary.run_dir)} (seed {seed}'s tape) records "
+                    f"{recorded}; {RERUN}"
+                )
 
 
 def check_tape_network(primary: Primary) -> None:
