@@ -66,6 +66,15 @@ def _run_json(edit: Callable[[dict], None]) -> Callable[[Path], None]:
     return damage
 
 
+def _mfd_json(edit: Callable[[dict], None]) -> Callable[[Path], None]:
+    def damage(run: Path) -> None:
+        record = json.loads((run / "mfd.json").read_text())
+        edit(record)
+        (run / "mfd.json").write_text(json.dumps(record, indent=2))
+
+    return damage
+
+
 #: name -> (damage, words the one line holds, commands that refuse it)
 SUMO_READ_BACK: dict[str, tuple[Callable[[Path], None], str, tuple[str, ...]]] = {
     "first seed's copy in tapes/ is not tape.parquet": (
@@ -92,6 +101,16 @@ SUMO_READ_BACK: dict[str, tuple[Callable[[Path], None], str, tuple[str, ...]]] =
     "a later seed's reads in run.json are not its tape's": (
         _run_json(lambda r: r["traffic_by_seed"][1].update(read_offsets_s=[30.0, 15.0, 0.0])),
         "run.json: traffic_by_seed[1].read_offsets_s[0] = 30.0, but tapes/seed-1.parquet",
+        ("report",),
+    ),
+    "mfd.json's rejected fit is not the samples' fit": (
+        _mfd_json(lambda m: m["rejected_fit"].update(a=0.5)),
+        "mfd.json: rejected_fit.a = 0.5, but tape.parquet replayed through its MFD gives 0.",
+        ("report",),
+    ),
+    "mfd.json leaves out the fit the run rejected": (
+        _mfd_json(lambda m: m.pop("rejected_fit")),
+        'mfd.json: rejected_fit = null, but tape.parquet replayed through its MFD gives {"a": ',
         ("report",),
     ),
 }

@@ -897,6 +897,20 @@ def check_mfd_files(run_dir: Path, model) -> None:
                     f"{run_dir / 'mfd.json'}: {name} = {_show(fit[name])}, but {replay} "
                     f"{_show(want)}; {RERUN}"
                 )
+            if name in fit and isinstance(want, (dict, list)):
+                at = _first_difference(fit[name], want, name)
+                if at is not None:
+                    field, have, theirs = at
+                    raise UserError(
+                        f"{run_dir / 'mfd.json'}: {field} = {have}, but {replay} {theirs}; {RERUN}"
+                    )
+        # the online fit the run rejected for its prior: there exactly when the replay has one
+        if ("rejected_fit" in fit) != ("rejected_fit" in report):
+            have = _json_text(fit.get("rejected_fit"))
+            want = _json_text(report.get("rejected_fit"))
+            raise UserError(
+                f"{run_dir / 'mfd.json'}: rejected_fit = {have}, but {replay} {want}; {RERUN}"
+            )
 
 
 def check_derived(primary: Primary, tables: dict[str, pd.DataFrame | None]) -> None:
