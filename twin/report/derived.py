@@ -19,7 +19,8 @@ weigh, their float32 rounding, :data:`MAP_ROUNDING`) is one :class:`UserError` l
 both files, the column, the swarm and the seed: the report never shows a figure its run's
 files contradict.
 
-A live run of several seeds keeps every seed's tape in ``tapes/``: the first seed's must be
+A synthetic run's ``importance.npz`` is what run.json's ``traffic`` generates
+(:func:`check_synthetic_maps`). A live run of several seeds keeps every seed's tape in ``tapes/``: the first seed's must be
 ``tape.parquet``, and each later seed's per-step scores, belief error and events are replayed
 over its tape's maps (:func:`check_seed_tapes`).
 
@@ -769,6 +770,62 @@ def check_tape_maps(primary: Primary) -> None:
     check_mfd_files(primary.run_dir, source.model_observed())
 
 
+def check_synthetic_maps(primary: Primary) -> None:
+    """A synthetic run's ``importance.npz`` holds the maps that run.json's ``traffic`` (its
+    disturbances, ``beta1``, ``beta2``, ``z_lo``, ``z_hi``: Sec. IV's ``z^k`` normalised by Def.
+    2) generates on the kept grid, within float32 rounding; every seed shares them, so each
+    ``traffic_by_seed`` record is that ``traffic``. Costs one generation of the maps."""
+    from twin.traffic.synthetic import Disturbance, SyntheticTraffic
+
+    traffic, maps = primary.run.get("traffic"), primary.importance
+    if not isinstance(traffic, dict) or traffic.get("kind") != "synthetic" or maps is None:
+        return
+    path = primary.run_dir / "run.json"
+    for n, record in enumerate(primary.run.get("traffic_by_seed") or []):
+        at = _first_difference(record, traffic)
+        if at is not None:
+            name, have, want = at
+            raise UserError(
+                f"{path}: traffic_by_seed[{n}].{name} = {have}, but traffic.{name} = {want} "
+                f"(synthetic traffic is the same for every seed); {RERUN}"
+            )
+    disturbances = traffic.get("disturbances")
+    try:
+        source = SyntheticTraffic(
+            Grid(primary.obstacles),
+            [Disturbance(**d) for d in disturbances],
+            int(traffic["horizon"]),
+            float(traffic["beta1"]),
+            float(traffic["beta2"]),
+            float(traffic["z_lo"]),
+            float(traffic["z_hi"]),
+        )
+    except (TypeError, ValueError, KeyError) as exc:
+        raise UserError(
+            f"{path}: traffic = {_json_text(traffic)} is not a synthetic traffic record "
+            f"({type(exc).__name__}: {str(exc)[:60]}); {RERUN}"
+        ) from None
+    kept = maps.astype(np.float32)
+    k = -1
+    for k, generated in enumerate(source.importance_maps()):
+        if k >= len(kept):
+            break
+        generated = np.asarray(generated, dtype=np.float32)
+        off = ~(np.abs(generated - kept[k]) <= MAP_ROUNDING * np.maximum(1.0, np.abs(kept[k])))
+        if off.any():
+            i, j = (int(v) for v in np.argwhere(off)[0])
+            raise UserError(
+                f"{path}: traffic (disturbances, beta1, beta2, z_lo, z_hi) generates importance "
+                f"{_show(generated[i, j])} at step {k}, cell ({i}, {j}), but importance.npz "
+                f"holds {_show(kept[k, i, j])}; {RERUN}"
+            )
+    if k + 1 < len(kept):
+        raise UserError(
+            f"{path}: traffic.horizon = {traffic['horizon']} generates {k + 1} maps, but "
+            f"importance.npz holds {len(kept)}; {RERUN}"
+        )
+
+
 def check_same_tape(have: Path, want: Path) -> None:
     """``have`` holds the same tape as ``want`` (rows and metadata): the first seed's copy in
     ``tapes/`` is ``tape.parquet``."""
@@ -920,6 +977,7 @@ def check_derived(primary: Primary, tables: dict[str, pd.DataFrame | None]) -> N
     per-seed figures the primary files give."""
     check_tape_maps(primary)
     check_seed_tapes(primary)
+    check_synthetic_maps(primary)
     per_seed = tables.get("per_seed.csv")
     if per_seed is None:  # summary.csv is then checked against the primary files themselves
         parts = [part(primary, pd.DataFrame()) for part in PER_SEED_PARTS]
