@@ -20,7 +20,8 @@ both files, the column, the swarm and the seed: the report never shows a figure 
 files contradict.
 
 A synthetic run's ``importance.npz`` is what run.json's ``traffic`` generates
-(:func:`check_synthetic_maps`). A live run of several seeds keeps every seed's tape in ``tapes/``: the first seed's must be
+(:func:`check_synthetic_maps`); a live run's ``incidents.json`` is what its schedule records,
+on its network when that is still at hand (:func:`check_incident_records`). A live run of several seeds keeps every seed's tape in ``tapes/``: the first seed's must be
 ``tape.parquet``, and each later seed's per-step scores, belief error and events are replayed
 over its tape's maps (:func:`check_seed_tapes`).
 
@@ -367,6 +368,119 @@ def check_incident_steps(primary: Primary) -> None:
                 raise UserError(
                     f"{path}: [{n}].{name} = {inc[name]}, but its begin_s and end_s give step "
                     f"{want} (run.json traffic.begin, step_s); {RERUN}"
+                )
+
+
+#: The kinds of incident a run applies (:class:`twin.config.IncidentSettings`).
+INCIDENT_KINDS = ("lane_closed", "edge_closed", "vehicle_stopped")
+
+
+def check_incident_records(primary: Primary) -> None:
+    """Each incident of ``incidents.json`` is one :class:`twin.sumo.incidents.IncidentSchedule`
+    records: a known kind; a lane for ``lane_closed`` only; a vehicle exactly when a stopped
+    vehicle was applied; ``begin`` the clock of ``begin_s``; applied (``applied_s``) at the
+    first SUMO step from ``begin_s`` (a vehicle stop: or a retry every 10 s while no vehicle
+    is on the edge), before ``end_s``. When the network file run.json records (``traffic.
+    net_file``) is present with the recorded ``identity.net_sha256``, an applied incident's
+    edge is an edge of it, its lane one the edge has and its cell one the edge's lane 0 passes
+    through (on the grid of ``network.json``; ``[-1, -1]``: an edge whose middle is off the
+    grid); without the network these are not checked."""
+    from twin.clock import clock_label
+    from twin.readback import read_json
+    from twin.sumo.session import SumoSession
+
+    path = primary.run_dir / "incidents.json"
+    step = SumoSession.step_length  # every SUMO step of a run (time advances in whole steps)
+    number = (int, float)
+    applied = []
+    for n, inc in enumerate(primary.incidents or []):
+        kind, lane, vehicle = inc.get("kind"), inc.get("lane"), inc.get("vehicle")
+        start, end, when = inc.get("begin_s"), inc.get("end_s"), inc.get("applied_s")
+        if kind not in INCIDENT_KINDS:
+            raise UserError(
+                f"{path}: [{n}].kind = {kind!r} is none of {', '.join(INCIDENT_KINDS)}; {RERUN}"
+            )
+        if (lane is not None) != (kind == "lane_closed") or (lane is not None and lane < 0):
+            want = "a lane index >= 0" if kind == "lane_closed" else "null"
+            raise UserError(
+                f"{path}: [{n}].lane = {_json_text(lane)}, but kind {kind} records {want}; {RERUN}"
+            )
+        if not (isinstance(start, number) and isinstance(end, number)):
+            continue
+        if not (np.isfinite(start) and np.isfinite(end)):
+            continue  # refused with its steps (check_incident_steps)
+        if isinstance(inc.get("begin"), str) and inc["begin"] != clock_label(start):
+            raise UserError(
+                f"{path}: [{n}].begin = {inc['begin']!r}, but its begin_s = {_show(start)} is "
+                f"{clock_label(start)!r}; {RERUN}"
+            )
+        stopped = kind == "vehicle_stopped" and when is not None
+        if (vehicle is not None) != stopped:
+            want = "the vehicle it stopped" if stopped else "null (no vehicle stopped)"
+            raise UserError(
+                f"{path}: [{n}].vehicle = {_json_text(vehicle)}, but kind {kind} applied at "
+                f"applied_s = {_json_text(when)} records {want}; {RERUN}"
+            )
+        if when is None:
+            continue
+        first = np.ceil(start / step - 1e-9) * step
+        # a stop with no vehicle on the edge is retried every 10 s: 0, 10, 20 ... s late
+        if isinstance(when, bool) or not isinstance(when, number):
+            raise UserError(f"{path}: [{n}].applied_s = {_json_text(when)} is no time; {RERUN}")
+        retries = (when - first) / 10.0 if stopped else when - first
+        on_time = abs(retries - round(retries)) < 1e-6 and round(retries) >= 0
+        if not (on_time and (stopped or round(retries) == 0) and when < end):
+            retry = " (or every 10 s after, while no vehicle is on the edge)" * stopped
+            raise UserError(
+                f"{path}: [{n}].applied_s = {_show(when)}, but an incident from begin_s = "
+                f"{_show(start)} to end_s = {_show(end)} is applied at {_show(first)}{retry}; "
+                f"{RERUN}"
+            )
+        applied.append((n, inc))
+    traffic = primary.run.get("traffic")
+    traffic = traffic if isinstance(traffic, dict) else {}
+    net_file, identity = traffic.get("net_file"), traffic.get("identity")
+    sha = identity.get("net_sha256") if isinstance(identity, dict) else None
+    if not applied or not isinstance(net_file, str) or not isinstance(sha, str):
+        return
+    from twin.files import file_sha256
+
+    try:
+        if not Path(net_file).is_file() or file_sha256(net_file) != sha:
+            return  # the network is gone or changed: its edges are not checked
+    except OSError:
+        return
+    from twin.sumo.cells import CellGeometry
+    from twin.sumo.incidents import edge_cells, edge_lanes
+
+    edges = edge_lanes(net_file, {str(inc.get("edge")) for _, inc in applied})
+    network = read_json(primary.run_dir / "network.json")
+    grid = network.get("grid") if isinstance(network, dict) else None
+    geometry = None
+    if isinstance(grid, dict) and all(isinstance(grid.get(k), number)
+                                      for k in ("x0", "y_top", "cell_m", "nx", "ny")):  # fmt: skip
+        nx, ny = int(grid["nx"]), int(grid["ny"])
+        geometry = CellGeometry(float(grid["x0"]), float(grid["y_top"]), float(grid["cell_m"]),
+                                nx, ny, np.zeros((nx, ny)), np.zeros((nx, ny)), (0, 0, 0, 0))  # fmt: skip
+    for n, inc in applied:
+        edge, lane, cell = inc.get("edge"), inc.get("lane"), inc.get("cell")
+        if edge not in edges:
+            raise UserError(
+                f"{path}: [{n}].edge = {_json_text(edge)} is not an edge of {net_file} (the "
+                f"network run.json records); {RERUN}"
+            )
+        lanes, shape = edges[edge]
+        if lane is not None and lane >= lanes:
+            raise UserError(
+                f"{path}: [{n}].lane = {lane}, but edge {edge!r} of {net_file} has {lanes} "
+                f"lanes; {RERUN}"
+            )
+        if geometry is not None and isinstance(cell, list) and cell != [-1, -1]:
+            through = edge_cells(shape, geometry)
+            if tuple(cell) not in through:
+                raise UserError(
+                    f"{path}: [{n}].cell = {cell}, but edge {edge!r} of {net_file} passes "
+                    f"through cells {sorted(through)[:6]} (network.json's grid); {RERUN}"
                 )
 
 
@@ -978,6 +1092,7 @@ def check_derived(primary: Primary, tables: dict[str, pd.DataFrame | None]) -> N
     check_tape_maps(primary)
     check_seed_tapes(primary)
     check_synthetic_maps(primary)
+    check_incident_records(primary)
     per_seed = tables.get("per_seed.csv")
     if per_seed is None:  # summary.csv is then checked against the primary files themselves
         parts = [part(primary, pd.DataFrame()) for part in PER_SEED_PARTS]
