@@ -143,3 +143,20 @@ def test_the_intact_sumo_run_reads_back(sumo_copy: Path, capsys) -> None:
     out = sumo_copy.parent / "h.npz"
     assert main(["history", "--from", str(sumo_copy), "--out", str(out)]) == 0
     assert out.is_file()
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_replay_checks_each_step_against_the_tape_as_read_back(
+    seed, sumo_copy: Path, capsys, monkeypatch
+) -> None:
+    # the read-back replays every seed's tape once; the per-step check uses those maps
+    import twin.cli.replay
+
+    def replayed_again(*args):
+        raise AssertionError("the tape was replayed a second time")
+
+    monkeypatch.setattr(twin.cli.replay, "recorded_importance", replayed_again)
+    assert main(["replay", str(sumo_copy), "--seed", str(seed)]) == 0
+    captured = capsys.readouterr()
+    assert f"replayed 6 steps of seed {seed}" in captured.out, captured.out + captured.err
+    assert "Traceback" not in captured.err

@@ -97,6 +97,9 @@ class Primary:
     replayed: dict[str, dict[str, np.ndarray]] | None = field(default=None, repr=False)
     #: each seed's :func:`run_monitoring`, by seed and the events table it was made of
     monitored: dict[tuple[int, int], RunMonitoring] = field(default_factory=dict, repr=False)
+    #: ``(steps, nx, ny)`` maps of each seed's tape replayed through its MFD, by seed, once
+    #: replayed (:func:`check_tape_maps`, :func:`check_seed_tapes`)
+    tape_maps: dict[int, np.ndarray] = field(default_factory=dict, repr=False)
 
     def positions(self, seed: int, swarm: str) -> np.ndarray:
         """``(T+1, N, 2)`` drone cells of one swarm and seed."""
@@ -864,7 +867,9 @@ def check_tape_maps(primary: Primary) -> None:
     npz = primary.run_dir / "importance.npz"
     kept = maps.astype(np.float32)  # as kept: float32
     k = -1
+    replays = []
     for k, replayed in enumerate(source.importance_maps()):
+        replays.append(np.array(replayed, dtype=np.float64))
         if k >= len(kept):
             continue  # the MFD observed every snapshot of the tape
         replayed = np.asarray(replayed, dtype=np.float32)
@@ -882,6 +887,8 @@ def check_tape_maps(primary: Primary) -> None:
             f"replays {k + 1}; {RERUN}"
         )
     check_mfd_files(primary.run_dir, source.model_observed())
+    if primary.first_seed is not None and replays:
+        primary.tape_maps[primary.first_seed] = np.stack(replays)
 
 
 def check_synthetic_maps(primary: Primary) -> None:
@@ -1012,7 +1019,7 @@ def check_seed_tapes(primary: Primary) -> None:
         if rows > TAPE_REPLAY_ROWS:
             continue
         source = TapeTraffic(Tape.read(path), source_name=str(path))
-        maps = [np.asarray(m, dtype=np.float64) for m in source.importance_maps()]
+        maps = [np.array(m, dtype=np.float64) for m in source.importance_maps()]
         steps = int(primary.series.loc[primary.series["seed"] == seed, "step"].max()) + 1
         if len(maps) < steps + 1:
             raise UserError(
@@ -1032,6 +1039,7 @@ def check_seed_tapes(primary: Primary) -> None:
                 complete = recompute is map_events
                 expected = recompute(of_seed, frame)
                 compare(primary.run_dir, file, frame, expected, key, name, complete)
+        primary.tape_maps[seed] = of_seed.importance
 
 
 def check_mfd_files(run_dir: Path, model) -> None:
