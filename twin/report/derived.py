@@ -1020,7 +1020,10 @@ def check_seed_tapes(primary: Primary) -> None:
             continue
         source = TapeTraffic(Tape.read(path), source_name=str(path))
         maps = [np.array(m, dtype=np.float64) for m in source.importance_maps()]
-        steps = int(primary.series.loc[primary.series["seed"] == seed, "step"].max()) + 1
+        scored = primary.series.loc[primary.series["seed"] == seed, "step"]
+        if scored.empty:
+            continue  # a seed without results (refused with run.json's seeds)
+        steps = int(scored.max()) + 1
         if len(maps) < steps + 1:
             raise UserError(
                 f"{path}: replays {len(maps)} maps, but series.parquet scores seed {seed} over "
