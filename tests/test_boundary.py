@@ -532,6 +532,21 @@ def _json(name, key, value):
     return apply
 
 
+def _synthetic_traffic(edit, seeds_only: bool = False):
+    """run.json's synthetic traffic record (and each seed's copy of it) passed through ``edit``;
+    with ``seeds_only``, the seeds' copies only."""
+
+    def apply(run: Path) -> None:
+        import json
+
+        data = json.loads((run / "run.json").read_text())
+        for record in ([] if seeds_only else [data["traffic"]]) + data["traffic_by_seed"]:
+            edit(record)
+        (run / "run.json").write_text(json.dumps(data))
+
+    return apply
+
+
 def _network_json(**grid):
     """A network.json (as a SUMO run writes it) whose grid is changed by ``grid``."""
 
@@ -803,6 +818,14 @@ READ_BACK = {
     "run.json free cells other than the maps": (
         _json("run.json", ("grid", "n_free"), 3),
         "grid.n_free = 3, but importance.npz has",
+    ),
+    "run.json synthetic traffic other than the maps": (
+        _synthetic_traffic(lambda t: t["disturbances"][0].update(amplitude=0.3)),
+        "run.json: traffic (disturbances, beta1, beta2, z_lo, z_hi) generates importance",
+    ),
+    "run.json synthetic traffic of one seed not the run's": (
+        _synthetic_traffic(lambda t: t.update(beta2=2.0), seeds_only=True),
+        "run.json: traffic_by_seed[0].beta2 = 2.0, but traffic.beta2 = 5.0",
     ),
     "network.json grid other than the maps": (
         _network_json(nx=3),

@@ -44,11 +44,17 @@ def add_parser(subparsers) -> None:
 
 
 def tapes_of(path: Path) -> list[Path]:
-    """The tapes of a run folder (every seed's, else ``tape.parquet``) or a tape file."""
+    """The tapes of a run folder (every seed's, else ``tape.parquet``), once the folder reads
+    back (:func:`twin.report.load.load_run`: its tapes agree with its results), or a tape
+    file."""
     if path.is_file():
         return [path]
     if not path.is_dir():
         raise UserError(f"{path}: no such run folder or tape; pass `twin run` folders")
+    if (path / "run.json").is_file():  # a run folder: its tapes agree with its results
+        from twin.report.load import load_run
+
+        load_run(path)
     per_seed = sorted((path / "tapes").glob("seed-*.parquet"))
     if per_seed:
         return per_seed
