@@ -131,9 +131,15 @@ class SwarmParallelEnv(ParallelEnv):
         """``source`` is a traffic source or a callable that builds one (``source_factory``).
 
         Give ``n_drones`` (random starts drawn at each reset) or fixed ``starts`` ``(N, 2)``.
-        ``state`` names the observations' state variant (:mod:`twin.states`).
+        ``state`` names the observations' state variant (:mod:`twin.states`); ``nowcast`` is
+        refused: the envs carry no history for its belief.
         """
         self.variant = state_variant(state)
+        if self.variant.needs_belief:
+            raise UserError(
+                f"state = {state!r} reads the nowcast of a history of earlier days, which the "
+                'envs do not carry; use state = "paper" or "window" (or `twin pretrain`)'
+            )
         self._factory = None if isinstance(source, TrafficSource) else source
         self.source: TrafficSource = source if self._factory is None else self._factory()
         self.grid, self.horizon = self.source.grid, self.source.horizon
