@@ -433,9 +433,9 @@ def test_the_collected_nowcast_features_are_the_runs_nowcast():
     """Data collection updates the filter on the swarm's sightings each step, as a run does:
     the mean and std read in the recorded states are :func:`twin.belief.nowcast` of the
     episode's trajectory on the same history, on each drone's view cells."""
-    from twin.belief import dynamics_history, nowcast
+    from twin.belief import nowcast
     from twin.learning.data import random_swarm_episode
-    from twin.traffic.dynamic import DynamicTraffic
+    from twin.traffic.dynamic import DynamicTraffic, dynamics_history
 
     grid, horizon = Grid.open(6, 7), 12
     history = dynamics_history(grid, horizon, [50, 51, 52], disturbances=3)

@@ -358,15 +358,6 @@ def days_history(days: Sequence, seeds: Sequence[int] = (), sources: Sequence[st
     return fit_history(maps, days[0].grid.obstacles, traffic_seeds=seeds, sources=sources)
 
 
-def dynamics_history(grid: Grid, horizon: int, seeds: Sequence[int], disturbances: int = 8):
-    """The history of the dynamic generator's days (:class:`twin.traffic.dynamic.
-    DynamicTraffic`, one day per seed in ``seeds``) on ``grid`` over ``horizon`` steps."""
-    from twin.traffic.dynamic import DynamicTraffic
-
-    days = [DynamicTraffic(grid, horizon, disturbances, seed=int(s)) for s in seeds]
-    return days_history(days, [int(s) for s in seeds], [f"dynamics seed {int(s)}" for s in seeds])
-
-
 def neighbour_pairs(grid: Grid) -> tuple[np.ndarray, np.ndarray]:
     """Flat indices ``(src, dst)`` of every ordered pair of 4-neighbour free cells."""
     free = grid.free

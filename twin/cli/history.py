@@ -61,8 +61,8 @@ def add_parser(subparsers) -> None:
 
 def dynamics_days(args):
     """The history of ``--days`` days of the dynamic generator on ``--dynamics``' grid."""
-    from twin.belief import dynamics_history
     from twin.config import load_config, make_grid, shipped_config
+    from twin.traffic.dynamic import dynamics_history
 
     config = load_config(shipped_config(args.dynamics))
     if config.traffic.kind != "synthetic":

@@ -39,7 +39,7 @@ from pydantic import (
     model_validator,
 )
 
-from twin.belief import History, days_history, dynamics_history
+from twin.belief import History, days_history
 from twin.config import (
     ConfigError,
     Overrides,
@@ -73,6 +73,7 @@ from twin.learning.dqn import (  # noqa: F401  (double_dqn_target re-exported fo
 from twin.learning.qnet import TABLE1_LAYERS, QNetwork
 from twin.learning.replay import ReplayBuffer, n_step_transitions
 from twin.states import DEFAULT_STATE, STATE_NAMES, STATE_VARIANTS, UNAVAILABLE, StateVariant
+from twin.traffic.dynamic import dynamics_history
 from twin.traffic.synthetic import SyntheticTraffic
 
 PositiveInt = Annotated[int, Field(ge=1)]
