@@ -468,6 +468,11 @@ def test_nowcast_refusals_are_one_line(tmp_path, capsys):
         with pytest.raises(UserError, match="runs with the coordinator only") as info:
             RLPolicy(checkpoint=path, history=history, **options)
         assert str(path) in str(info.value) and "\n" not in str(info.value)
+    policy = RLPolicy(checkpoint=path, history=history)
+    policy.outages = ((1, 2),)  # as a scripted coordinator outage ([faults]) sets them
+    with pytest.raises(UserError, match="coordinator_down") as info:
+        policy.reset(Grid.open(20, 30), 2, np.random.default_rng(0))
+    assert str(path) in str(info.value) and "\n" not in str(info.value)
     with pytest.raises(UserError, match="envs do not carry") as info:
         SwarmParallelEnv(DynamicTraffic(Grid.open(4, 4), 5), 2, state="nowcast")
     assert "\n" not in str(info.value)

@@ -169,6 +169,12 @@ class RLPolicy(Policy):
 
     def reset(self, grid: Grid, n_drones: int, rng: np.random.Generator) -> None:
         super().reset(grid, n_drones, rng)
+        if self.history is not None and self.outages:  # set by [faults] coordinator_down
+            raise UserError(
+                f"swarm {self.name}: checkpoint {self.checkpoint} reads state "
+                f"{self.variant.name!r}, the swarm's shared nowcast, which runs with the "
+                "coordinator only; drop [faults] coordinator_down for this swarm"
+            )
         self.maps = SwarmMaps(n_drones, self.decentralized, self.outages)
         self.states = None
         self.belief = self.seen = None
