@@ -42,6 +42,7 @@ SLOW_TESTS = {
     "test_states::test_a_tiny_nowcast_pretraining_saves_reloads_resumes_and_evaluates",
     "test_states::test_nowcast_refusals_are_one_line",
     "test_states::test_nowcast_pretraining_on_tapes_is_refused_in_one_line",
+    "test_states::test_a_bad_dynamics_history_is_one_line",
 }
 
 

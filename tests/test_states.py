@@ -497,3 +497,17 @@ def test_nowcast_pretraining_on_tapes_is_refused_in_one_line(tmp_path, capsys):
     path = _nowcast_config(tmp_path, "tapes", extra=f'tapes = ["{tape}"]\n')
     code, err = _cli(["pretrain", "--config", str(path), "--quiet"], capsys)
     assert code == 2 and 'traffic = "tapes" needs a history' in err and "\n" not in err, err
+
+
+@pytest.mark.parametrize(
+    ("argv", "words"),
+    [
+        (["--dynamics", "synthetic", "--days", "1"], "--days 1: give a whole number >= 2"),
+        (["--dynamics", "shenzhen"], "[traffic].kind = 'sumo'; give a synthetic scenario"),
+    ],
+)
+def test_a_bad_dynamics_history_is_one_line(tmp_path, capsys, argv, words):
+    out = tmp_path / "h.npz"
+    code, err = _cli(["history", *argv, "--out", str(out)], capsys)
+    assert code == 2 and words in err and "\n" not in err, err
+    assert not out.exists()
