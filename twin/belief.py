@@ -457,6 +457,15 @@ def fit_history(
     )
 
 
+def days_history(days: Sequence, seeds: Sequence[int] = (), sources: Sequence[str] = ()) -> History:
+    """The :class:`History` of synthetic days: each traffic source's maps ``T^0 .. T^T`` (one
+    source per day, all of one grid and horizon), fitted by :func:`fit_history`. ``seeds``:
+    the generator's seed of each day (recorded as the history's ``traffic_seeds``)."""
+    maps = [np.stack([np.array(m, dtype=np.float64) for m in day.importance_maps()])
+            for day in days]  # fmt: skip
+    return fit_history(maps, days[0].grid.obstacles, traffic_seeds=seeds, sources=sources)
+
+
 def neighbour_pairs(grid: Grid) -> tuple[np.ndarray, np.ndarray]:
     """Flat indices ``(src, dst)`` of every ordered pair of 4-neighbour free cells."""
     free = grid.free
