@@ -367,6 +367,7 @@ def test_history_of_days_with_detectors_calibrates_their_stations(small, tmp_pat
     of its readings against the replayed truth; the run with that history filters with them.
     A reading off the grid in detectors.parquet is one line."""
     from twin.cli.history import replay_truth
+    from twin.runs import write_manifest
 
     config = _with_detectors(small, "cal.toml", "virtual_loops = 3\n")
     args = ["--no-ceiling", "--no-report", "--quiet"]
@@ -399,6 +400,7 @@ def test_history_of_days_with_detectors_calibrates_their_stations(small, tmp_pat
     )
     readings.loc[3, "i"] = 99
     readings.to_parquet(days / "detectors.parquet", index=False)
+    write_manifest(days, False, None)  # a damaged file the manifest agrees with
     capsys.readouterr()
     assert twin_main(["history", "--from", str(days), "--out", str(tmp_path / "h2.npz")]) == 2
     err = capsys.readouterr().err
