@@ -1045,6 +1045,43 @@ def check_seed_tapes(primary: Primary) -> None:
         primary.tape_maps[seed] = of_seed.importance
 
 
+def check_shared_traffic_seeds(primary: Primary) -> None:
+    """A run whose seeds all run on one traffic (synthetic maps, or one tape replayed for every
+    seed; run.json records one ``traffic``): each later seed's rows of ``series.parquet``
+    (rewards, coverage, visited shares, belief error) and ``events.parquet`` replay from its
+    trajectories over ``importance.npz``'s maps, as the first seed's do. Costs one score
+    replay per swarm and later seed."""
+    import dataclasses
+
+    traffic, maps = primary.run.get("traffic"), primary.importance
+    if maps is None or not isinstance(traffic, dict) or traffic.get("kind") not in SHARED:
+        return
+    records = primary.run.get("traffic_by_seed") or []
+    if any(_first_difference(record, traffic) is not None for record in records):
+        return  # not one traffic (a synthetic run's records are checked to be one)
+    for seed in primary.run.get("seeds") or []:
+        if seed == primary.first_seed or not isinstance(seed, int):
+            continue
+        scored = primary.series.loc[primary.series["seed"] == seed, "step"]
+        if scored.empty or int(scored.max()) + 2 > len(maps):
+            continue  # a seed without results, or longer than the maps: other checks say so
+        of_seed = dataclasses.replace(
+            primary, first_seed=seed, incidents=None, replayed=None, monitored={}
+        )
+        name = "trajectories.parquet and importance.npz"
+        checks = [("series.parquet", primary.series, ("seed", "swarm", "step"), replayed_series),
+                  ("series.parquet", primary.series, ("seed", "swarm", "step"), replayed_belief),
+                  ("events.parquet", primary.events, ("seed", "event"), map_events)]  # fmt: skip
+        for file, frame, key, recompute in checks:
+            if frame is not None:
+                expected = recompute(of_seed, frame)
+                compare(primary.run_dir, file, frame, expected, key, name, recompute is map_events)
+
+
+#: Traffic kinds whose every seed runs on the same maps.
+SHARED = ("synthetic", "tape")
+
+
 def check_mfd_files(run_dir: Path, model) -> None:
     """``mfd_samples.parquet`` and ``mfd.json`` as the MFD observation ``model``
     (:class:`twin.mfd.MFDImportance`, having observed the first seed's tape) writes them
@@ -1103,6 +1140,7 @@ def check_derived(primary: Primary, tables: dict[str, pd.DataFrame | None]) -> N
     check_tape_maps(primary)
     check_seed_tapes(primary)
     check_synthetic_maps(primary)
+    check_shared_traffic_seeds(primary)
     check_incident_records(primary)
     per_seed = tables.get("per_seed.csv")
     if per_seed is None:  # summary.csv is then checked against the primary files themselves
