@@ -429,6 +429,19 @@ def test_bad_detector_settings_are_one_line(small, tmp_path, capsys, text, needl
     assert not (out / "summary.csv").exists()
 
 
+@pytest.mark.parametrize("text", ["virtual_loops = 3", "scenario = true", "cells = [[1, 1]]"])
+def test_detectors_under_the_mesoscopic_model_are_refused(small, tmp_path, capsys, text):
+    """SUMO's mesoscopic model has no loops to read: refused before SUMO starts."""
+    config = _with_detectors(small, "meso.toml", text + "\n")
+    out = tmp_path / "out"
+    code = twin_main(["run", "--config", str(config), "--meso", "--quiet", "--no-report",
+                      "--out", str(out)])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "Traceback" not in err, err
+    assert "[traffic.detectors] with --meso" in err and str(config) in err, err
+    assert not out.exists()
+
+
 def test_a_cell_without_road_is_refused(small):
     """An obstacle cell (listed in [grid].obstacles here) takes no station."""
     text = (
