@@ -860,6 +860,12 @@ def check_source(history: History, where: Path | str, source) -> None:
     meta = source.metadata() or {}
     meta = meta.get("recorded") or meta if meta.get("kind") == "tape" else meta
     step_s, begin, seed = meta.get("step_s"), meta.get("begin"), meta.get("seed")
+    if meta.get("kind") in ("synthetic", "dynamic") and (history.step_s or history.begin):
+        raise UserError(
+            f"{where}: a history of SUMO days (from {history.begin or 'an unknown time'}) for "
+            f"{meta['kind']} traffic, which has no clock; give a history of the same traffic "
+            "(`twin history --dynamics` for generated days)"
+        )
     history.check_matches(
         where,
         source.grid.obstacles,
