@@ -39,6 +39,10 @@ SLOW_TESTS = {
     "test_states::test_a_tiny_pretraining_per_variant_saves_reloads_and_evaluates",
     "test_states::test_a_bad_state_is_one_line_naming_the_key",
     "test_states::test_fine_tuning_from_a_checkpoint_of_another_state_is_refused",
+    "test_states::test_a_tiny_nowcast_pretraining_saves_reloads_resumes_and_evaluates",
+    "test_states::test_nowcast_refusals_are_one_line",
+    "test_states::test_nowcast_pretraining_on_tapes_is_refused_in_one_line",
+    "test_states::test_a_bad_dynamics_history_is_one_line",
 }
 
 

@@ -258,6 +258,19 @@ ABSURD_TAPES: dict[str, tuple[Callable[[Path], Path], str]] = {
             ("detection_p", float("nan")),
         )
     },
+    "times shifted against the recorded begin": (
+        lambda p: write_tape(
+            p, lambda f: f.assign(time_s=f["time_s"] + 7.0), _settings(step_s=75.0, begin="07:00")
+        ),
+        "column time_s = 25057 at step -2, but the metadata's begin = 07:00 (step 0) and "
+        "step_s = 75 put it at 25050",
+    ),
+    "reads at other offsets than their number gives": (
+        lambda p: write_tape(
+            p, meta=_settings(step_s=75.0, reads_per_step=1, read_offsets_s=[50.0, 25.0, 0.0])
+        ),
+        "metadata read_offsets_s = [50.0, 25.0, 0.0], but reads_per_step = 1 reads",
+    ),
 }
 TAPE_CASES.update(ABSURD_TAPES)
 

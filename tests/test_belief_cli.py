@@ -211,3 +211,13 @@ def test_a_history_of_other_than_real_numbers_is_refused(history, tmp_path, dtyp
     np.savez(bad, **arrays)
     with pytest.raises(UserError, match=r"mean holds .* not real numbers"):
         History.load(bad)
+
+
+def test_a_history_of_sumo_days_is_refused_for_synthetic_traffic(history, tmp_path, capsys):
+    out = tmp_path / "out"
+    code = twin_main(["evaluate", "--config", "synthetic", "--history", str(history), "--seeds",
+                      "1", "--swarms", "random", "--quiet", "--no-report", "--out", str(out)])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "Traceback" not in err, err
+    assert "a history of SUMO days (from 00:05:00) for synthetic traffic" in err, err
+    assert not out.exists()

@@ -532,6 +532,21 @@ def _json(name, key, value):
     return apply
 
 
+def _synthetic_traffic(edit, seeds_only: bool = False):
+    """run.json's synthetic traffic record (and each seed's copy of it) passed through ``edit``;
+    with ``seeds_only``, the seeds' copies only."""
+
+    def apply(run: Path) -> None:
+        import json
+
+        data = json.loads((run / "run.json").read_text())
+        for record in ([] if seeds_only else [data["traffic"]]) + data["traffic_by_seed"]:
+            edit(record)
+        (run / "run.json").write_text(json.dumps(data))
+
+    return apply
+
+
 def _network_json(**grid):
     """A network.json (as a SUMO run writes it) whose grid is changed by ``grid``."""
 
@@ -803,6 +818,14 @@ READ_BACK = {
     "run.json free cells other than the maps": (
         _json("run.json", ("grid", "n_free"), 3),
         "grid.n_free = 3, but importance.npz has",
+    ),
+    "run.json synthetic traffic other than the maps": (
+        _synthetic_traffic(lambda t: t["disturbances"][0].update(amplitude=0.3)),
+        "run.json: traffic (disturbances, beta1, beta2, z_lo, z_hi) generates importance",
+    ),
+    "run.json synthetic traffic of one seed not the run's": (
+        _synthetic_traffic(lambda t: t.update(beta2=2.0), seeds_only=True),
+        "run.json: traffic_by_seed[0].beta2 = 2.0, but traffic.beta2 = 5.0",
     ),
     "network.json grid other than the maps": (
         _network_json(nx=3),
@@ -1132,6 +1155,54 @@ def test_damaged_run_folder_is_one_line(name, command, run_copy: Path, capsys) -
         # run.json not replayable
         assert words in line or ("run.json" in line and "not" in line), line
     assert tree_hash(parent, skip=run_copy) == before
+
+
+@pytest.mark.parametrize("traffic", ["synthetic", "tape"])
+def test_a_later_seeds_rewards_are_replayed_on_the_shared_traffic(tmp_path, capsys, traffic):
+    """Seeds that share one traffic (synthetic maps, one tape): a later seed's rewards raised
+    alike in series.parquet, per_seed.csv and summary.csv, its trajectories untouched, are
+    refused (they replay over importance.npz as the first seed's do)."""
+    from helpers import random_tape
+    from scipy import stats
+
+    config = tmp_path / "c.toml"
+    config.write_text(
+        '[grid]\nnx = 8\nny = 10\n[swarm]\nn_drones = 3\n[traffic]\nkind = "synthetic"\n'
+        'horizon = 30\n[evaluate]\nswarms = ["random", "greedy"]\n'
+    )
+    out = tmp_path / "run"
+    argv = ["evaluate", "--config", str(config), "--seeds", "2", "--out", str(out), "--quiet",
+            "--no-report"]  # fmt: skip
+    if traffic == "tape":
+        tape = random_tape(seed=1, nx=8, ny=10, warmup=2, horizon=30, obstacle=(1, 1))
+        tape.write(tmp_path / "tape.parquet")
+        argv += ["--traffic", str(tmp_path / "tape.parquet")]
+    assert main(argv) == 0, capsys.readouterr().err
+    assert main(["report", str(out), "--no-animation"]) == 0, capsys.readouterr().err
+    shutil.rmtree(out / "report")
+    series = pd.read_parquet(out / "series.parquet")
+    at = (series["seed"] == 1) & (series["swarm"] == "greedy")
+    series.loc[at, "reward"] += 0.05
+    series.loc[at, "cumulative_reward"] = series.loc[at, "reward"].cumsum()
+    series.to_parquet(out / "series.parquet")
+    per_seed = pd.read_csv(out / "per_seed.csv")
+    row = (per_seed["seed"] == 1) & (per_seed["swarm"] == "greedy")
+    per_seed.loc[row, ["R_hat_T", "R_hat_T_idleness"]] += 0.05
+    per_seed.to_csv(out / "per_seed.csv", index=False)
+    summary = pd.read_csv(out / "summary.csv")
+    for column in ("R_hat_T", "R_hat_T_idleness"):
+        values = per_seed.loc[per_seed["swarm"] == "greedy", column].to_numpy()
+        half = stats.t.ppf(0.975, len(values) - 1) * values.std(ddof=1) / np.sqrt(len(values))
+        summary.loc[summary["swarm"] == "greedy", [column, column + "_ci95"]] = [
+            values.mean(),
+            half,
+        ]
+    summary.to_csv(out / "summary.csv", index=False)
+    refresh_manifest(out)
+    capsys.readouterr()
+    assert main(["report", str(out), "--no-animation"]) == EXIT_REFUSED
+    line = one_line(capsys)
+    assert "series.parquet: reward = " in line and "for seed 1, swarm 'greedy'" in line, line
 
 
 def test_report_refuses_a_report_link_out_of_the_run_folder(run_copy: Path, capsys) -> None:

@@ -367,6 +367,7 @@ def test_history_of_days_with_detectors_calibrates_their_stations(small, tmp_pat
     of its readings against the replayed truth; the run with that history filters with them.
     A reading off the grid in detectors.parquet is one line."""
     from twin.cli.history import replay_truth
+    from twin.runs import write_manifest
 
     config = _with_detectors(small, "cal.toml", "virtual_loops = 3\n")
     args = ["--no-ceiling", "--no-report", "--quiet"]
@@ -399,6 +400,7 @@ def test_history_of_days_with_detectors_calibrates_their_stations(small, tmp_pat
     )
     readings.loc[3, "i"] = 99
     readings.to_parquet(days / "detectors.parquet", index=False)
+    write_manifest(days, False, None)  # a damaged file the manifest agrees with
     capsys.readouterr()
     assert twin_main(["history", "--from", str(days), "--out", str(tmp_path / "h2.npz")]) == 2
     err = capsys.readouterr().err
@@ -425,6 +427,19 @@ def test_bad_detector_settings_are_one_line(small, tmp_path, capsys, text, needl
     assert err.count("\n") == 1 and "Traceback" not in err and needle in err, err
     assert "detectors" in err and str(config) in err, err
     assert not (out / "summary.csv").exists()
+
+
+@pytest.mark.parametrize("text", ["virtual_loops = 3", "scenario = true", "cells = [[1, 1]]"])
+def test_detectors_under_the_mesoscopic_model_are_refused(small, tmp_path, capsys, text):
+    """SUMO's mesoscopic model has no loops to read: refused before SUMO starts."""
+    config = _with_detectors(small, "meso.toml", text + "\n")
+    out = tmp_path / "out"
+    code = twin_main(["run", "--config", str(config), "--meso", "--quiet", "--no-report",
+                      "--out", str(out)])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "Traceback" not in err, err
+    assert "[traffic.detectors] with --meso" in err and str(config) in err, err
+    assert not out.exists()
 
 
 def test_a_cell_without_road_is_refused(small):

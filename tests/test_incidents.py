@@ -174,6 +174,11 @@ def _incidents_edited(change):
     return edit
 
 
+def _update(incidents, n, **fields):
+    incidents[n].update(fields)
+    return incidents
+
+
 def _shift_onset(incidents):
     incidents[0]["onset_step"] -= 2
     return incidents
@@ -188,6 +193,34 @@ FORGED_INCIDENTS = {
     "incidents emptied": (
         _incidents_edited(lambda incidents: []),
         "per_seed.csv: incidents = 2 for seed 0, swarm ",
+    ),
+    "edge moved out of its cell": (
+        _incidents_edited(lambda x: _update(x, 0, edge="A0A1")),
+        "incidents.json: [0].cell = [2, 2], but edge 'A0A1' of ",
+    ),
+    "an edge the network lacks": (
+        _incidents_edited(lambda x: _update(x, 0, edge="nowhere")),
+        'incidents.json: [0].edge = "nowhere" is not an edge of ',
+    ),
+    "a stopped vehicle that names none": (
+        _incidents_edited(lambda x: _update(x, 0, kind="vehicle_stopped")),
+        "incidents.json: [0].vehicle = null, but kind vehicle_stopped applied at",
+    ),
+    "a lane on an edge closure": (
+        _incidents_edited(lambda x: _update(x, 0, lane=3)),
+        "incidents.json: [0].lane = 3, but kind edge_closed records null",
+    ),
+    "a lane the edge lacks": (
+        _incidents_edited(lambda x: _update(x, 0, kind="lane_closed", lane=9)),
+        "incidents.json: [0].lane = 9, but edge ",
+    ),
+    "applied later than its begin": (
+        _incidents_edited(lambda x: _update(x, 0, applied_s=x[0]["begin_s"] + 40.0)),
+        "incidents.json: [0].applied_s = ",
+    ),
+    "an unknown kind": (
+        _incidents_edited(lambda x: _update(x, 0, kind="flood")),
+        "incidents.json: [0].kind = 'flood' is none of",
     ),
 }
 

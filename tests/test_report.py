@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import html.parser
 import json
+import os
 import re
 import shutil
 import subprocess
@@ -542,3 +543,23 @@ def test_report_replaces_an_earlier_report(tmp_path: Path) -> None:
     assert out == run / "report" / "report.html" and out.is_file()
     assert not (run / "report" / "stale.txt").exists()
     assert sorted(p.name for p in run.iterdir() if p.name.startswith(".")) == []
+
+
+def test_matplotlib_keeps_its_cache_in_twins_cache_not_the_home(tmp_path):
+    """Drawing a report writes matplotlib's font cache and config into twin's cache (unless
+    MPLCONFIGDIR is set), never into the user's home."""
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k not in ("MPLCONFIGDIR", "XDG_CACHE_HOME",
+                                                             "XDG_CONFIG_HOME")}  # fmt: skip
+    env |= {"HOME": str(tmp_path / "home"), "TWIN_CACHE_DIR": str(tmp_path / "cache")}
+    (tmp_path / "home").mkdir()
+    code = (
+        "import twin.report, matplotlib, matplotlib.font_manager; "
+        "print(matplotlib.get_configdir()); print(matplotlib.get_cachedir())"
+    )
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == [str(tmp_path / "cache" / "matplotlib")] * 2
+    assert not any((tmp_path / "home").iterdir())

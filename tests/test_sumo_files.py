@@ -420,6 +420,15 @@ def _utf16_routes_with_ssm(d: Path) -> None:
     trips.write_bytes(text.encode("utf-16"))
 
 
+def _included_ssm_type(d: Path) -> None:
+    """``small.trips.xml`` includes ``types.xml``, whose vehicle type writes an SSM file."""
+    (d / "types.xml").write_text(f"<routes>{SSM_TYPE.replace('../ssm', 'ssm')}</routes>")
+    trips = d / "small.trips.xml"
+    text = trips.read_text()
+    start = text.index(">", text.index("<routes")) + 1
+    trips.write_text(text[:start] + '<include href="types.xml"/>' + text[start:])
+
+
 # name -> (output options of the sumocfg, how to change the case's files, what RUN/sumo/ holds)
 ESCAPES = {
     "outputs named by SUMO's synonyms": (
@@ -440,6 +449,11 @@ ESCAPES = {
             .replace("/>", '/><edgeData id="e" file="ed.xml"/>', 1)
         ),
         ["det.add.xml", "det.xml", "ed.xml"],
+    ),
+    "a route file including a vehicle type with a device output": (
+        "",
+        _included_ssm_type,
+        ["det.add.xml", "det.xml", "small.trips.xml", "ssm.xml", "types.xml"],
     ),
     "a UTF-16 route file with a device output": (
         "",

@@ -457,6 +457,15 @@ def fit_history(
     )
 
 
+def days_history(days: Sequence, seeds: Sequence[int] = (), sources: Sequence[str] = ()) -> History:
+    """The :class:`History` of synthetic days: each traffic source's maps ``T^0 .. T^T`` (one
+    source per day, all of one grid and horizon), fitted by :func:`fit_history`. ``seeds``:
+    the generator's seed of each day (recorded as the history's ``traffic_seeds``)."""
+    maps = [np.stack([np.array(m, dtype=np.float64) for m in day.importance_maps()])
+            for day in days]  # fmt: skip
+    return fit_history(maps, days[0].grid.obstacles, traffic_seeds=seeds, sources=sources)
+
+
 def neighbour_pairs(grid: Grid) -> tuple[np.ndarray, np.ndarray]:
     """Flat indices ``(src, dst)`` of every ordered pair of 4-neighbour free cells."""
     free = grid.free
@@ -851,6 +860,12 @@ def check_source(history: History, where: Path | str, source) -> None:
     meta = source.metadata() or {}
     meta = meta.get("recorded") or meta if meta.get("kind") == "tape" else meta
     step_s, begin, seed = meta.get("step_s"), meta.get("begin"), meta.get("seed")
+    if meta.get("kind") in ("synthetic", "dynamic") and (history.step_s or history.begin):
+        raise UserError(
+            f"{where}: a history of SUMO days (from {history.begin or 'an unknown time'}) for "
+            f"{meta['kind']} traffic, which has no clock; give a history of the same traffic "
+            "(`twin history --dynamics` for generated days)"
+        )
     history.check_matches(
         where,
         source.grid.obstacles,

@@ -177,9 +177,15 @@ class SwarmParallelEnv(ParallelEnv):
         """``source`` is a traffic source or a callable that builds one (``source_factory``).
 
         Give ``n_drones`` (random starts drawn at each reset) or fixed ``starts`` ``(N, 2)``.
-        ``state`` names the observations' state variant (:mod:`twin.states`).
+        ``state`` names the observations' state variant (:mod:`twin.states`); ``nowcast`` is
+        refused: the envs carry no history for its belief.
         """
         self.variant = state_variant(state)
+        if self.variant.needs_belief:
+            raise EnvInputError(
+                f"state = {state!r} reads the nowcast of a history of earlier days, which the "
+                'envs do not carry; use state = "paper" or "window" (or `twin pretrain`)'
+            )
         self.params = _params(params)
         if not isinstance(source, TrafficSource) and not callable(source):
             _built_source(source, "source")

@@ -515,7 +515,8 @@ def check_timing(path: Path, timing: pd.DataFrame, series: pd.DataFrame) -> None
     for n, row in enumerate(timing.itertuples(index=False)):
         done = max(int(steps.get(row.seed, 0)), 1)
         want = 1000.0 * row.seconds / done
-        if abs(row.ms_per_step - want) > 1e-4 + 1e-6 * abs(want):
+        # written rounded: ms_per_step to 4 decimals, seconds to 6 (1000 / done times that)
+        if abs(row.ms_per_step - want) > 1e-4 + 1e-3 / done + 1e-6 * abs(want):
             raise UserError(
                 f"{path}: row {n} (seed {row.seed}, {row.stage}) has ms_per_step = "
                 f"{row.ms_per_step:g}, but {row.seconds:g} s over the seed's {done} steps is "
@@ -523,7 +524,8 @@ def check_timing(path: Path, timing: pd.DataFrame, series: pd.DataFrame) -> None
             )
         if "share" in timing.columns and totals.iloc[n] > 0:
             share = row.seconds / totals.iloc[n]
-            if abs(row.share - share) > 1e-4 + 1e-6:
+            rounding = 1e-6 * (1 + len(timing)) / totals.iloc[n]  # of the seconds written
+            if abs(row.share - share) > 1e-4 + rounding:
                 raise UserError(
                     f"{path}: row {n} (seed {row.seed}, {row.stage}) has share = {row.share:g}, "
                     f"but its seconds are {share:.4f} of its process's; {RERUN}"

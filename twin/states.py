@@ -11,10 +11,12 @@ that variant's states.
 - ``paper`` (the default): the 13 values of eq. (s), :func:`twin.scores.drone_states`.
 - ``window``: the same quantities over a wider window: ``I*T`` on the 5 x 5 cells around the
   drone instead of its field of view (33 values).
-- ``nowcast`` (not available): the paper's values plus the nowcast belief's mean and std on the
-  5 cells seen. The nowcast (:mod:`twin.belief`) fuses sightings with a history of earlier
-  days' runs, which the synthetic training map has none of; asking for it is refused in one
-  line.
+- ``nowcast``: the paper's 13 values plus the nowcast belief's mean and std on the drone's 5
+  view cells (23 values). The nowcast (:mod:`twin.belief` ``NowcastFilter``) fuses the
+  swarm's sightings with a history of earlier days; its builder takes that belief
+  (``belief=(mean, std)``, flat ``(nx*ny,)``, as the filter gives them). Pretraining builds
+  the history from the training map's generator on other days (docs/beliefs.md); a learned
+  swarm whose checkpoint reads it needs the run's history (``--history``).
 """
 
 from __future__ import annotations
@@ -37,6 +39,8 @@ from twin.scores import (
 
 #: Half-width of the ``window`` variant's square: 2 gives the 5 x 5 cells around the drone.
 WINDOW_RADIUS = 2
+#: The view cells' names in :func:`twin.grid.Grid.view_index`'s order.
+VIEW_CELLS = ("centre", "up", "down", "left", "right")
 
 Builder = Callable[..., np.ndarray]
 
@@ -44,12 +48,15 @@ Builder = Callable[..., np.ndarray]
 @dataclass(frozen=True)
 class StateVariant:
     """A named state: its values' names in order (``layout``) and the function that builds
-    ``(N, len(layout))`` states as ``build(grid, idleness, importance, positions, others)``."""
+    ``(N, len(layout))`` states as ``build(grid, idleness, importance, positions, others)``,
+    with a last argument ``belief`` when ``needs_belief``."""
 
     name: str
     layout: tuple[str, ...]
     build: Builder
     summary: str
+    #: the builder also reads the nowcast belief ``(mean, std)`` (:mod:`twin.belief`)
+    needs_belief: bool = False
 
     @property
     def size(self) -> int:
@@ -62,9 +69,16 @@ class StateVariant:
         importance: np.ndarray,
         positions: np.ndarray,
         others: np.ndarray | None = None,
+        belief: tuple[np.ndarray, np.ndarray] | None = None,
     ) -> np.ndarray:
-        """The ``(N, size)`` states; ``idleness`` a map, a map per drone, or ``OwnMaps``."""
-        return self.build(grid, idleness, importance, positions, others)
+        """The ``(N, size)`` states; ``idleness`` a map, a map per drone, or ``OwnMaps``;
+        ``belief`` the nowcast's ``(mean, std)`` per flat cell (read only by a variant that
+        ``needs_belief``, which refuses to build without it)."""
+        if not self.needs_belief:
+            return self.build(grid, idleness, importance, positions, others)
+        if belief is None:
+            raise ValueError(f"state {self.name!r} needs the nowcast belief (mean, std)")
+        return self.build(grid, idleness, importance, positions, others, belief)
 
 
 def paper_states(
@@ -131,13 +145,40 @@ def _window_layout(radius: int = WINDOW_RADIUS) -> tuple[str, ...]:
     return (*STATE_LAYOUT[:2], *cells, *STATE_LAYOUT[7:])
 
 
-#: Variants that can be named but not built, with the reason (one line each).
-UNAVAILABLE: dict[str, str] = {
-    "nowcast": (
-        "needs the nowcast belief's per-cell mean and std, which need a history of earlier "
-        "days' runs (`twin history`); the synthetic training map has none"
-    ),
-}
+def nowcast_states(
+    grid: Grid,
+    idleness,
+    importance: np.ndarray,
+    positions: np.ndarray,
+    others,
+    belief: tuple[np.ndarray, np.ndarray],
+) -> np.ndarray:
+    """``nowcast``: the 13 values of eq. (s) (:func:`paper_states`), then the nowcast's mean
+    on the drone's 5 view cells (:data:`VIEW_CELLS` order), then its std there scaled as
+    ``min(1, 2 std)``; 0 off the map and on obstacles. ``belief``: ``(mean, std)``, flat
+    ``(nx*ny,)``. The mean is an importance, in [0, 1]; an importance in [0, 1] has a std of
+    at most 1/2 (Popoviciu's bound), so ``2 std`` lies in [0, 1] for any belief that knows
+    the value's range (the filter's prior is the history's spread of such values; the clip
+    guards the rest). All 23 values in [0, 1]."""
+    positions = np.asarray(positions)
+    mean, std = (np.asarray(a, dtype=np.float64).ravel() for a in belief)
+    flat, valid = grid.view_index(positions)
+    seen = valid & grid.free.ravel()[flat]
+    m = np.where(seen, np.clip(mean[flat], 0.0, 1.0), 0.0)
+    s = np.where(seen, np.clip(2.0 * std[flat], 0.0, 1.0), 0.0)
+    paper = paper_states(grid, idleness, importance, positions, others)
+    return np.concatenate([paper, m, s], axis=1)
+
+
+#: ``nowcast``'s values: eq. (s)'s, then the belief's mean and scaled std per view cell.
+NOWCAST_LAYOUT: tuple[str, ...] = (
+    *STATE_LAYOUT,
+    *(f"mean_{c}" for c in VIEW_CELLS),
+    *(f"2std_{c}" for c in VIEW_CELLS),
+)
+
+#: Variants that can be named but not built, with the reason (one line each); none today.
+UNAVAILABLE: dict[str, str] = {}
 
 STATE_VARIANTS: dict[str, StateVariant] = {
     v.name: v
@@ -148,6 +189,13 @@ STATE_VARIANTS: dict[str, StateVariant] = {
             _window_layout(),
             window_states,
             "eq. (s) with I*T over the 5 x 5 cells around the drone (33 values)",
+        ),
+        StateVariant(
+            "nowcast",
+            NOWCAST_LAYOUT,
+            nowcast_states,
+            "eq. (s) plus the nowcast's mean and 2 std on the 5 view cells (23 values)",
+            needs_belief=True,
         ),
     )
 }

@@ -29,26 +29,70 @@ def add_parser(subparsers) -> None:
         "the truth, with which the nowcast takes that station's readings. Use SUMO seeds that "
         "the runs you evaluate do not use (e.g. `twin run --sumo-seed 100 --seeds 3`).",
     )
-    p.add_argument(
+    origin = p.add_mutually_exclusive_group(required=True)
+    origin.add_argument(
         "--from",
         dest="sources",
         type=path_arg,
         nargs="+",
-        required=True,
         metavar="RUN_DIR",
         help="`twin run` folders (all their seeds' tapes) or tape.parquet files; at least 2 "
         "simulations in all",
+    )
+    origin.add_argument(
+        "--dynamics",
+        type=path_arg,
+        metavar="CONFIG",
+        help="instead of SUMO runs, --days days of the dynamic synthetic generator "
+        "(twin/traffic/dynamic.py, seeds --seed, --seed + 1, ...) on a synthetic scenario "
+        "config's grid and horizon: the history of a synthetic map",
+    )
+    p.add_argument("--days", type=int, default=8, help="--dynamics: days (default 8, >= 2)")
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=2_000_000,
+        help="--dynamics: seed of the first day (default 2000000; keep it apart from the "
+        "seeds a pretraining used, recorded in its checkpoint)",
+    )
+    p.add_argument(
+        "--disturbances", type=int, default=8, help="--dynamics: disturbances per day (default 8)"
     )
     p.add_argument("--out", type=path_arg, required=True, help="history file to write (.npz)")
     p.set_defaults(func=main)
 
 
+def dynamics_days(args):
+    """The history of ``--days`` days of the dynamic generator on ``--dynamics``' grid."""
+    from twin.config import load_config, make_grid, shipped_config
+    from twin.traffic.dynamic import dynamics_history
+
+    config = load_config(shipped_config(args.dynamics))
+    if config.traffic.kind != "synthetic":
+        raise UserError(
+            f"--dynamics {args.dynamics}: [traffic].kind = {config.traffic.kind!r}; give a "
+            "synthetic scenario config (its grid and horizon)"
+        )
+    for flag, value, low in (("--days", args.days, 2), ("--seed", args.seed, 0),
+                             ("--disturbances", args.disturbances, 1)):  # fmt: skip
+        if value < low:
+            raise UserError(f"{flag} {value}: give a whole number >= {low}")
+    seeds = range(args.seed, args.seed + args.days)
+    return dynamics_history(make_grid(config), config.traffic.horizon, seeds, args.disturbances)
+
+
 def tapes_of(path: Path) -> list[Path]:
-    """The tapes of a run folder (every seed's, else ``tape.parquet``) or a tape file."""
+    """The tapes of a run folder (every seed's, else ``tape.parquet``), once the folder reads
+    back (:func:`twin.report.load.load_run`: its tapes agree with its results), or a tape
+    file."""
     if path.is_file():
         return [path]
     if not path.is_dir():
         raise UserError(f"{path}: no such run folder or tape; pass `twin run` folders")
+    if (path / "run.json").is_file():  # a run folder: its tapes agree with its results
+        from twin.report.load import load_run
+
+        load_run(path)
     per_seed = sorted((path / "tapes").glob("seed-*.parquet"))
     if per_seed:
         return per_seed
@@ -126,6 +170,18 @@ def main(args: argparse.Namespace) -> int:
         raise UserError(
             f"--out {args.out}: exists; give a new file name (twin history never overwrites a file)"
         )
+    if args.dynamics is not None:
+        history = dynamics_days(args)
+        atomic_write(make_parent(args.out, "--out"), history.save)
+        free = ~history.obstacles
+        print(
+            f"history: {history.n_runs} days of the dynamic generator (seeds "
+            f"{args.seed}-{args.seed + args.days - 1}), {free.shape[0]} x {free.shape[1]} "
+            f"cells, T = {history.horizon}; mean importance {history.mean[:, free].mean():.3f}, "
+            f"mean std {np.sqrt(history.var[:, free]).mean():.3f}"
+        )
+        print(f"history file: {args.out}")
+        return 0
     paths = [t for p in args.sources for t in tapes_of(p)]
     if len(paths) < 2:
         raise UserError(

@@ -100,12 +100,14 @@ def run_and_record(
 
 def hand_history(experiment: Experiment, history) -> None:
     """Give the run's history (``--history``) to every swarm that plans on one, over what its
-    ``[swarm_options]`` say."""
-    from twin.swarms import needs_history
+    ``[swarm_options]`` say, and to every learned swarm (read when its checkpoint's state is
+    the nowcast)."""
+    from twin.swarms import SWARMS, base_name, needs_history
 
     options = dict(experiment.swarm_options)
     for name in experiment.swarms:
-        if needs_history(name):
+        kind = SWARMS.get(base_name(name))
+        if needs_history(name) or (kind is not None and kind.learned):
             options[name] = {**options.get(name, {}), "history": history}
     experiment.swarm_options = options
 

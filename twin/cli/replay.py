@@ -151,7 +151,8 @@ def main(args: argparse.Namespace) -> int:
     if not run_dir.is_dir():
         raise UserError(f"{run_dir}: no such run folder")
     check_run_folder(run_dir)
-    load_run(run_dir)  # every file read back and checked against the others, as for a report
+    # every file read back and checked against the others, as for a report
+    replayed_tapes = load_run(run_dir).tape_maps
     experiment = build_experiment(run_arguments(run_dir))
     path = run_dir / "trajectories.parquet"
     trajectories = read_table(path, TRAJECTORY_COLUMNS)
@@ -185,7 +186,11 @@ def main(args: argparse.Namespace) -> int:
     positions = {s: _positions(rows[rows["swarm"] == s]) for s in swarms}
     steps = min(len(p) for p in positions.values())
     tape_path = run_dir / ("tape.parquet" if seed == seeds[0] else f"tapes/seed-{seed}.parquet")
-    recorded_maps = recorded_importance(tape_path, source.grid.shape)
+    kept = replayed_tapes.get(seed)
+    if kept is not None and kept.shape[1:] == source.grid.shape:
+        recorded_maps = iter(kept)  # the tape as read back: not replayed twice
+    else:
+        recorded_maps = recorded_importance(tape_path, source.grid.shape)
     drawer.attach(source)
     notify(drawer.legend())
     with display():

@@ -31,11 +31,17 @@ FORMAT_VERSION = 1
 
 
 def model_metadata(
-    layers, config: dict[str, Any], seed: int, epoch: int, state: str = DEFAULT_STATE
+    layers,
+    config: dict[str, Any],
+    seed: int,
+    epoch: int,
+    state: str = DEFAULT_STATE,
+    history: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """The metadata every checkpoint carries (plain python types only); ``state`` names the
-    state variant (:mod:`twin.states`) the network reads."""
-    return {
+    state variant (:mod:`twin.states`) the network reads; ``history`` (a state that reads the
+    nowcast): how its training history was made (generator, days, seeds)."""
+    meta = {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
         "layers": [int(n) for n in layers],
@@ -48,6 +54,9 @@ def model_metadata(
         "twin_version": __version__,
         "torch_version": str(torch.__version__),
     }
+    if history is not None:
+        meta["history"] = history
+    return meta
 
 
 def atomic_save(obj: Any, path: str | Path) -> None:

@@ -3,7 +3,9 @@
 Two collectors: the paper's randomly moving swarm (uniform feasible actions), and the swarm
 being learned, ``rl`` (the coordinator's joint action on the network's Q values, eq.
 maxi:op2) with epsilon-greedy exploration. The drones' states are those of a state variant
-(:mod:`twin.states`; the paper's 13 values by default). Both advance with :func:`twin.swarm.step`, the step
+(:mod:`twin.states`; the paper's 13 values by default); a variant that reads the nowcast
+belief gets it from a :class:`~twin.belief.NowcastFilter` on the episode's ``history``, updated
+each step on the cells the drones see, as in a run. Both advance with :func:`twin.swarm.step`, the step
 of the patrol loop: idleness per Def. 3, every drone's reward read on arrival (Def. 4).
 """
 
@@ -14,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from twin.belief import EXACT_SIGHTINGS, History, NowcastFilter, SightingModel
 from twin.coordinator import coordinate
 from twin.grid import N_ACTIONS
 from twin.policies import random_feasible
@@ -49,12 +52,13 @@ def random_swarm_episode(
     params: ScoreParams,
     rng: np.random.Generator,
     variant: StateVariant = PAPER,
+    history: History | None = None,
 ) -> Episode:
     """Run a random swarm over the whole horizon of ``source`` and record every transition,
-    its states those of ``variant``."""
+    its states those of ``variant`` (``history``: the nowcast's, for a variant that reads it)."""
     return _swarm_episode(
         source, n_drones, params, rng,
-        lambda state, states: random_feasible(state.feasible, rng), variant,
+        lambda state, states: random_feasible(state.feasible, rng), variant, history,
     )  # fmt: skip
 
 
@@ -66,12 +70,14 @@ def coordinated_swarm_episode(
     net: torch.nn.Module,
     epsilon: float,
     variant: StateVariant = PAPER,
+    history: History | None = None,
 ) -> Episode:
     """Run the coordinated learned swarm (``rl``: the joint action with the largest sum of
     ``Q(s_d; theta)`` and all next cells distinct, eq. maxi:op2) over the horizon of
     ``source``, exploring: each step each drone, with probability ``epsilon``, asks for a
     uniform feasible action instead of its Q values (granted unless another drone takes that
-    cell). ``net`` is held fixed for the episode and reads the states of ``variant``."""
+    cell). ``net`` is held fixed for the episode and reads the states of ``variant`` (``history``:
+    the nowcast's, for a variant that reads it)."""
     grid = source.grid
 
     def choose(state, states):
@@ -84,12 +90,33 @@ def coordinated_swarm_episode(
             q[explore, random_actions[explore]] = EXPLORE_Q
         return coordinate(q, state.positions, state.feasible, grid)
 
-    return _swarm_episode(source, n_drones, params, rng, choose, variant)
+    return _swarm_episode(source, n_drones, params, rng, choose, variant, history)
 
 
-def _swarm_episode(source, n_drones, params, rng, choose, variant: StateVariant) -> Episode:
+class SightedBelief:
+    """The nowcast of an episode: the filter on ``history``, advanced to each step and updated
+    on the free cells in the drones' fields of view with the importance seen there, of the
+    variance ``sighting`` gives (as :class:`twin.nowcast_gain.NowcastGainPolicy` sights)."""
+
+    def __init__(self, history: History, grid, sighting: SightingModel = EXACT_SIGHTINGS):
+        self.filter = NowcastFilter(history, sighting=sighting)
+        self.grid = grid
+        self.free = grid.free.ravel()
+
+    def at(self, k: int, positions: np.ndarray, importance: np.ndarray):
+        """``(mean, std)`` at step ``k`` once the drones at ``positions`` saw ``importance``."""
+        self.filter.advance(k)
+        flat, valid = self.grid.view_index(positions)
+        cells = np.unique(flat[valid])
+        cells = cells[self.free[cells]]
+        self.filter.observe(cells, np.asarray(importance, dtype=np.float64).ravel()[cells])
+        return self.filter.mean(), self.filter.std()
+
+
+def _swarm_episode(source, n_drones, params, rng, choose, variant: StateVariant,
+                   history: History | None = None) -> Episode:  # fmt: skip
     """Every transition of a swarm whose actions are ``choose(state, drone_states)``, the
-    drones' states built by ``variant``."""
+    drones' states built by ``variant`` (on the nowcast of ``history`` when it reads one)."""
     grid = source.grid
     horizon = source.horizon
     shape = (horizon, n_drones)
@@ -100,13 +127,24 @@ def _swarm_episode(source, n_drones, params, rng, choose, variant: StateVariant)
         np.empty((*shape, variant.size), np.float32),
         np.empty((*shape, N_ACTIONS), bool),
     )
+    belief = None
+    if variant.needs_belief:
+        if history is None:
+            raise ValueError(f"state {variant.name!r} needs a history for its nowcast")
+        belief = SightedBelief(history, grid)
+
+    def states_of(state, k):
+        seen = None if belief is None else belief.at(k, state.positions, state.importance)
+        return variant.states(grid, state.idleness, state.importance, state.positions,
+                              belief=seen)  # fmt: skip
+
     maps = source.importance_maps()
     state = initial_state(grid, random_starts(grid, n_drones, rng), next(maps))
-    states = variant.states(grid, state.idleness, state.importance, state.positions)
+    states = states_of(state, 0)
     for k in range(horizon):
         actions = choose(state, states)
         state, out = step(state, actions, next(maps), grid, params)
-        next_states = variant.states(grid, state.idleness, state.importance, state.positions)
+        next_states = states_of(state, k + 1)
         ep.states[k], ep.actions[k], ep.rewards[k] = states, actions, out.rewards
         ep.next_states[k], ep.next_feasible[k] = next_states, out.feasible
         states = next_states

@@ -14,6 +14,12 @@ Communication outages (``outages=[(start, stop), ...]``, steps ``start <= k < st
 the coordinator is down, the swarm runs decentralized from the shared map it last had; when it
 comes back, the drones' maps merge (each cell takes the smallest idleness any drone holds)
 and coordination resumes.
+
+A checkpoint whose state reads the nowcast (``nowcast``, :mod:`twin.states`) needs the run's
+history of earlier days (``history``: ``twin run --history FILE`` hands it over); the swarm's
+nowcast filter is updated each step on the cells its drones see. It runs with the central
+coordinator (``rl``, ``rl-online``); without coordination each drone would need a nowcast of
+its own sightings, which it does not keep, so ``decentralized`` and ``outages`` are refused.
 """
 
 from __future__ import annotations
@@ -25,12 +31,14 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from twin.belief import EXACT_SIGHTINGS, History, SightingModel
 from twin.coordinator import coordinate
 from twin.errors import UserError
 from twin.files import file_sha256
 from twin.grid import Grid
 from twin.idleness_maps import OwnMaps, SwarmMaps, parse_outages
 from twin.learning.checkpoint import checkpoint_state, default_checkpoint, load_qnet
+from twin.learning.data import SightedBelief
 from twin.learning.online import OnlineLearner
 from twin.learning.qnet import QNetwork
 from twin.policies import Policy, SwarmView, Transition, random_feasible
@@ -67,7 +75,9 @@ class RLPolicy(Policy):
     ``meta["state"]``; the paper's 13 values for a checkpoint without it).
 
     Options: ``checkpoint`` (default: the shipped ``data/qnet.pt``), ``state`` (the state
-    variant the swarm expects: refused in one line unless it is the checkpoint's), ``decentralized``
+    variant the swarm expects: refused in one line unless it is the checkpoint's), ``history``
+    (a :class:`~twin.belief.History` or its file: the nowcast's prior, read only by a
+    checkpoint whose state needs it), ``decentralized``
     (never coordinate), ``eps`` (exploration of decentralized drones), ``outages`` (step
     windows without coordinator), ``online`` (learn while patrolling), ``online_iters``
     (gradient steps per step), ``batch_size``, ``gamma``, ``lr``, ``buffer_steps``.
@@ -89,6 +99,7 @@ class RLPolicy(Policy):
         gamma: float = 0.9,
         lr: float = 1e-4,
         buffer_steps: int = 5000,
+        history: History | str | Path | None = None,
     ) -> None:
         if not 0.0 <= eps <= 1.0:
             raise UserError(f"eps must lie in [0, 1], got {eps}")
@@ -107,6 +118,22 @@ class RLPolicy(Policy):
         self.decentralized = bool(decentralized)
         self.eps = float(eps)
         self.outages = parse_outages(outages)
+        self.history = None
+        self.sighting = EXACT_SIGHTINGS
+        if self.variant.needs_belief:
+            name = self.variant.name
+            if history is None:
+                raise UserError(
+                    f"checkpoint {path} reads state {name!r}, the nowcast of a history of "
+                    "earlier days: give --history FILE (`twin history`) or the swarm option "
+                    "history"
+                )
+            if self.decentralized or self.outages:
+                raise UserError(
+                    f"checkpoint {path} reads state {name!r}, the swarm's shared nowcast: it "
+                    "runs with the coordinator only; drop decentralized and outages (or use rl)"
+                )
+            self.history = history if isinstance(history, History) else History.load(history)
         self.online = bool(online)
         self.learning = {"iters": int(online_iters), "batch_size": int(batch_size),
                          "gamma": float(gamma), "lr": float(lr),
@@ -121,16 +148,45 @@ class RLPolicy(Policy):
             "trained_epochs": self.meta.get("epoch"),
             "layers": self.meta.get("layers"),
             "state": self.variant.name,
+            **(
+                {
+                    "history_runs": self.history.n_runs,
+                    "history_seeds": list(self.history.traffic_seeds),
+                }
+                if self.history is not None
+                else {}
+            ),
             "coordination": "decentralized" if self.decentralized else "central",
             "eps": self.eps if self.decentralized or self.outages else None,
             "outages": [list(w) for w in self.outages],
             "online": self.online,
         }
 
+    def use_sighting_model(self, sighting: SightingModel) -> None:
+        """How the run's sightings are made (the experiment hands its traffic source's): the
+        nowcast filter's measurement variance."""
+        self.sighting = sighting
+
     def reset(self, grid: Grid, n_drones: int, rng: np.random.Generator) -> None:
         super().reset(grid, n_drones, rng)
+        if self.history is not None and self.outages:  # set by [faults] coordinator_down
+            raise UserError(
+                f"swarm {self.name}: checkpoint {self.checkpoint} reads state "
+                f"{self.variant.name!r}, the swarm's shared nowcast, which runs with the "
+                "coordinator only; drop [faults] coordinator_down for this swarm"
+            )
         self.maps = SwarmMaps(n_drones, self.decentralized, self.outages)
         self.states = None
+        self.belief = self.seen = None
+        if self.history is not None:
+            h = self.history
+            if h.shape != grid.shape or not np.array_equal(h.obstacles, grid.obstacles):
+                raise UserError(
+                    f"swarm {self.name}: the history's grid {h.shape[0]} x {h.shape[1]} (or "
+                    f"obstacles) differs from the run's {grid.nx} x {grid.ny}; build it on "
+                    "this scenario's grid"
+                )
+            self.belief = SightedBelief(h, grid, self.sighting)
         self.learner = None
         if self.online:
             self.learner = OnlineLearner(
@@ -172,13 +228,21 @@ class RLPolicy(Policy):
             self.regroup = False
         maps.advance(view.k, view.positions, view.idleness, view.grid, view.params,
                      view.recorded_visits())  # fmt: skip
+        if self.belief is not None:
+            if view.horizon != self.history.horizon:
+                raise UserError(
+                    f"swarm {self.name}: the history's horizon T = {self.history.horizon} "
+                    f"differs from the run's T = {view.horizon}; build it over this horizon"
+                )
+            self.seen = self.belief.at(view.k, view.positions, view.importance)
         return self.local_states(view)
 
     def local_states(self, view: SwarmView) -> np.ndarray:
         """The states of the drones at ``view.k`` from the maps as they stand."""
         maps = self.maps
         if maps.own is None:
-            return self.variant.states(view.grid, maps.shared, view.importance, view.positions)
+            return self.variant.states(view.grid, maps.shared, view.importance, view.positions,
+                                       belief=self.seen)  # fmt: skip
         return self.variant.states(
             view.grid, maps.own, view.importance, view.positions,
             maps.others_centre_of_mass(view.positions),

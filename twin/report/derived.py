@@ -19,10 +19,16 @@ weigh, their float32 rounding, :data:`MAP_ROUNDING`) is one :class:`UserError` l
 both files, the column, the swarm and the seed: the report never shows a figure its run's
 files contradict.
 
+A synthetic run's ``importance.npz`` is what run.json's ``traffic`` generates
+(:func:`check_synthetic_maps`); a live run's ``incidents.json`` is what its schedule records,
+on its network when that is still at hand (:func:`check_incident_records`). A live run of several seeds keeps every seed's tape in ``tapes/``: the first seed's must be
+``tape.parquet``, and each later seed's per-step scores, belief error and events are replayed
+over its tape's maps (:func:`check_seed_tapes`).
+
 Not recomputed (their inputs are not all in the folder): the per-step scores, belief error,
-reward split and incident columns of seeds other than the first (their maps and incidents are
-not kept: their scores are checked only to add up to the per-seed figures, their reward split
-to add up to ``R_hat_T``); the events and belief error when the run scored them on a recorded
+reward split and incident columns of seeds other than the first when their maps are not kept
+(a synthetic run's, or without ``tapes/``: their scores are checked only to add up to the
+per-seed figures, their reward split to add up to ``R_hat_T``), their incident columns; the events and belief error when the run scored them on a recorded
 truth (run.json ``monitoring.truth``: vehicles the drones missed), which the folder does not
 keep, or when run.json does not say which; ``importance.npz``, ``mfd_samples.parquet`` and
 ``mfd.json`` of a live run whose ``tape.parquet`` has more than :data:`TAPE_REPLAY_ROWS` rows
@@ -91,6 +97,9 @@ class Primary:
     replayed: dict[str, dict[str, np.ndarray]] | None = field(default=None, repr=False)
     #: each seed's :func:`run_monitoring`, by seed and the events table it was made of
     monitored: dict[tuple[int, int], RunMonitoring] = field(default_factory=dict, repr=False)
+    #: ``(steps, nx, ny)`` maps of each seed's tape replayed through its MFD, by seed, once
+    #: replayed (:func:`check_tape_maps`, :func:`check_seed_tapes`)
+    tape_maps: dict[int, np.ndarray] = field(default_factory=dict, repr=False)
 
     def positions(self, seed: int, swarm: str) -> np.ndarray:
         """``(T+1, N, 2)`` drone cells of one swarm and seed."""
@@ -365,6 +374,119 @@ def check_incident_steps(primary: Primary) -> None:
                 )
 
 
+#: The kinds of incident a run applies (:class:`twin.config.IncidentSettings`).
+INCIDENT_KINDS = ("lane_closed", "edge_closed", "vehicle_stopped")
+
+
+def check_incident_records(primary: Primary) -> None:
+    """Each incident of ``incidents.json`` is one :class:`twin.sumo.incidents.IncidentSchedule`
+    records: a known kind; a lane for ``lane_closed`` only; a vehicle exactly when a stopped
+    vehicle was applied; ``begin`` the clock of ``begin_s``; applied (``applied_s``) at the
+    first SUMO step from ``begin_s`` (a vehicle stop: or a retry every 10 s while no vehicle
+    is on the edge), before ``end_s``. When the network file run.json records (``traffic.
+    net_file``) is present with the recorded ``identity.net_sha256``, an applied incident's
+    edge is an edge of it, its lane one the edge has and its cell one the edge's lane 0 passes
+    through (on the grid of ``network.json``; ``[-1, -1]``: an edge whose middle is off the
+    grid); without the network these are not checked."""
+    from twin.clock import clock_label
+    from twin.readback import read_json
+    from twin.sumo.session import SumoSession
+
+    path = primary.run_dir / "incidents.json"
+    step = SumoSession.step_length  # every SUMO step of a run (time advances in whole steps)
+    number = (int, float)
+    applied = []
+    for n, inc in enumerate(primary.incidents or []):
+        kind, lane, vehicle = inc.get("kind"), inc.get("lane"), inc.get("vehicle")
+        start, end, when = inc.get("begin_s"), inc.get("end_s"), inc.get("applied_s")
+        if kind not in INCIDENT_KINDS:
+            raise UserError(
+                f"{path}: [{n}].kind = {kind!r} is none of {', '.join(INCIDENT_KINDS)}; {RERUN}"
+            )
+        if (lane is not None) != (kind == "lane_closed") or (lane is not None and lane < 0):
+            want = "a lane index >= 0" if kind == "lane_closed" else "null"
+            raise UserError(
+                f"{path}: [{n}].lane = {_json_text(lane)}, but kind {kind} records {want}; {RERUN}"
+            )
+        if not (isinstance(start, number) and isinstance(end, number)):
+            continue
+        if not (np.isfinite(start) and np.isfinite(end)):
+            continue  # refused with its steps (check_incident_steps)
+        if isinstance(inc.get("begin"), str) and inc["begin"] != clock_label(start):
+            raise UserError(
+                f"{path}: [{n}].begin = {inc['begin']!r}, but its begin_s = {_show(start)} is "
+                f"{clock_label(start)!r}; {RERUN}"
+            )
+        stopped = kind == "vehicle_stopped" and when is not None
+        if (vehicle is not None) != stopped:
+            want = "the vehicle it stopped" if stopped else "null (no vehicle stopped)"
+            raise UserError(
+                f"{path}: [{n}].vehicle = {_json_text(vehicle)}, but kind {kind} applied at "
+                f"applied_s = {_json_text(when)} records {want}; {RERUN}"
+            )
+        if when is None:
+            continue
+        first = np.ceil(start / step - 1e-9) * step
+        # a stop with no vehicle on the edge is retried every 10 s: 0, 10, 20 ... s late
+        if isinstance(when, bool) or not isinstance(when, number):
+            raise UserError(f"{path}: [{n}].applied_s = {_json_text(when)} is no time; {RERUN}")
+        retries = (when - first) / 10.0 if stopped else when - first
+        on_time = abs(retries - round(retries)) < 1e-6 and round(retries) >= 0
+        if not (on_time and (stopped or round(retries) == 0) and when < end):
+            retry = " (or every 10 s after, while no vehicle is on the edge)" * stopped
+            raise UserError(
+                f"{path}: [{n}].applied_s = {_show(when)}, but an incident from begin_s = "
+                f"{_show(start)} to end_s = {_show(end)} is applied at {_show(first)}{retry}; "
+                f"{RERUN}"
+            )
+        applied.append((n, inc))
+    traffic = primary.run.get("traffic")
+    traffic = traffic if isinstance(traffic, dict) else {}
+    net_file, identity = traffic.get("net_file"), traffic.get("identity")
+    sha = identity.get("net_sha256") if isinstance(identity, dict) else None
+    if not applied or not isinstance(net_file, str) or not isinstance(sha, str):
+        return
+    from twin.files import file_sha256
+
+    try:
+        if not Path(net_file).is_file() or file_sha256(net_file) != sha:
+            return  # the network is gone or changed: its edges are not checked
+    except OSError:
+        return
+    from twin.sumo.cells import CellGeometry
+    from twin.sumo.incidents import edge_cells, edge_lanes
+
+    edges = edge_lanes(net_file, {str(inc.get("edge")) for _, inc in applied})
+    network = read_json(primary.run_dir / "network.json")
+    grid = network.get("grid") if isinstance(network, dict) else None
+    geometry = None
+    if isinstance(grid, dict) and all(isinstance(grid.get(k), number)
+                                      for k in ("x0", "y_top", "cell_m", "nx", "ny")):  # fmt: skip
+        nx, ny = int(grid["nx"]), int(grid["ny"])
+        geometry = CellGeometry(float(grid["x0"]), float(grid["y_top"]), float(grid["cell_m"]),
+                                nx, ny, np.zeros((nx, ny)), np.zeros((nx, ny)), (0, 0, 0, 0))  # fmt: skip
+    for n, inc in applied:
+        edge, lane, cell = inc.get("edge"), inc.get("lane"), inc.get("cell")
+        if edge not in edges:
+            raise UserError(
+                f"{path}: [{n}].edge = {_json_text(edge)} is not an edge of {net_file} (the "
+                f"network run.json records); {RERUN}"
+            )
+        lanes, shape = edges[edge]
+        if lane is not None and lane >= lanes:
+            raise UserError(
+                f"{path}: [{n}].lane = {lane}, but edge {edge!r} of {net_file} has {lanes} "
+                f"lanes; {RERUN}"
+            )
+        if geometry is not None and isinstance(cell, list) and cell != [-1, -1]:
+            through = edge_cells(shape, geometry)
+            if tuple(cell) not in through:
+                raise UserError(
+                    f"{path}: [{n}].cell = {cell}, but edge {edge!r} of {net_file} passes "
+                    f"through cells {sorted(through)[:6]} (network.json's grid); {RERUN}"
+                )
+
+
 def replayed_split(primary: Primary, frame: pd.DataFrame) -> pd.DataFrame:
     """The first seed's reward split ``R_hat_T_importance``, ``R_hat_T_idleness`` (the means
     of ``R^k``'s parts) and the paper's accounting ``R_hat_T_paper`` replayed like
@@ -601,11 +723,20 @@ PER_SEED_PARTS = (series_scores, ceiling_scores, monitoring_scores)
 TAPE_REPLAY_ROWS = 1_000_000
 
 
+#: The settings of a SUMO run's traffic that its tapes record (:meth:`twin.sumo.source.
+#: SumoTraffic.metadata`) and run.json repeats: its timing (step 0 at ``begin``, the reads of
+#: a step) and its MFD observation.
+TAPE_SETTINGS = ("begin", "warmup_s", "step_s", "horizon", "reads_per_step", "read_offsets_s",
+                 "mesoscopic", "mfd_fit", "mfd_prior", "detection_p")  # fmt: skip
+
+
 def check_tape_seeds(primary: Primary) -> None:
     """Each tape of a live SUMO run (``tape.parquet``: the first seed's, ``tapes/seed-<s>``:
     seed ``s``'s) was recorded with the SUMO seed that run.json records for its seed
-    (``traffic_by_seed``, in the order of ``seeds``; ``traffic.seed`` with one seed). Reads the
-    tapes' metadata only."""
+    (``traffic_by_seed``, in the order of ``seeds``; ``traffic.seed`` with one seed) and with
+    the :data:`TAPE_SETTINGS` that run.json records for it (the tape's own times are checked
+    against these when it is read, :meth:`twin.traffic.tape.Tape.read`). Reads the tapes'
+    metadata only."""
     from twin.traffic.tape import read_tape_meta
 
     run = primary.run
@@ -620,19 +751,39 @@ def check_tape_seeds(primary: Primary) -> None:
         for seed, node in zip(seeds, by_seed, strict=False)
         if isinstance(node, dict) and isinstance(node.get("seed"), int)
     }
-    tapes = [(primary.run_dir / "tape.parquet", primary.first_seed)]
-    tapes += [(primary.run_dir / "tapes" / f"seed-{s}.parquet", s) for s in seeds]
-    for path, seed in tapes:
-        want = sumo_seeds.get(seed)
-        if want is None or not path.is_file():
+    records = dict(zip(seeds, by_seed, strict=False))
+    first = primary.first_seed
+    tapes = [(primary.run_dir / "tape.parquet", first, run.get("traffic"), "traffic")]
+    tapes += [
+        (primary.run_dir / "tapes" / f"seed-{s}.parquet", s, records.get(s),
+         f"traffic_by_seed[{n}]" if len(seeds) > 1 else "traffic")
+        for n, s in enumerate(seeds)
+    ]  # fmt: skip
+    for path, seed, record, where in tapes:
+        if not path.is_file():
             continue
         settings = read_tape_meta(path).get("settings")
-        got = settings.get("seed") if isinstance(settings, dict) else None
-        if got != want:
+        settings = settings if isinstance(settings, dict) else {}
+        want = sumo_seeds.get(seed)
+        got = settings.get("seed")
+        if want is not None and got != want:
             raise UserError(
                 f"{path}: recorded with SUMO seed {got}, but run.json has seed {seed} run with "
                 f"SUMO seed {want}; {RERUN}"
             )
+        if not isinstance(record, dict) or record.get("kind") != "sumo":
+            continue
+        for name in TAPE_SETTINGS:
+            if name not in record or name not in settings:
+                continue
+            at = _first_difference(record[name], settings[name], name)
+            if at is not None:
+                field, have, recorded = at
+                raise UserError(
+                    f"{primary.run_dir / 'run.json'}: {where}.{field} = {have}, but "
+                    f"{path.relative_to(primary.run_dir)} (seed {seed}'s tape) records "
+                    f"{recorded}; {RERUN}"
+                )
 
 
 def check_tape_network(primary: Primary) -> None:
@@ -716,7 +867,9 @@ def check_tape_maps(primary: Primary) -> None:
     npz = primary.run_dir / "importance.npz"
     kept = maps.astype(np.float32)  # as kept: float32
     k = -1
+    replays = []
     for k, replayed in enumerate(source.importance_maps()):
+        replays.append(np.array(replayed, dtype=np.float64))
         if k >= len(kept):
             continue  # the MFD observed every snapshot of the tape
         replayed = np.asarray(replayed, dtype=np.float32)
@@ -734,6 +887,199 @@ def check_tape_maps(primary: Primary) -> None:
             f"replays {k + 1}; {RERUN}"
         )
     check_mfd_files(primary.run_dir, source.model_observed())
+    if primary.first_seed is not None and replays:
+        primary.tape_maps[primary.first_seed] = np.stack(replays)
+
+
+def check_synthetic_maps(primary: Primary) -> None:
+    """A synthetic run's ``importance.npz`` holds the maps that run.json's ``traffic`` (its
+    disturbances, ``beta1``, ``beta2``, ``z_lo``, ``z_hi``: Sec. IV's ``z^k`` normalised by Def.
+    2) generates on the kept grid, within float32 rounding; every seed shares them, so each
+    ``traffic_by_seed`` record is that ``traffic``. Costs one generation of the maps."""
+    from twin.traffic.synthetic import Disturbance, SyntheticTraffic
+
+    traffic, maps = primary.run.get("traffic"), primary.importance
+    if not isinstance(traffic, dict) or traffic.get("kind") != "synthetic" or maps is None:
+        return
+    path = primary.run_dir / "run.json"
+    for n, record in enumerate(primary.run.get("traffic_by_seed") or []):
+        at = _first_difference(record, traffic)
+        if at is not None:
+            name, have, want = at
+            raise UserError(
+                f"{path}: traffic_by_seed[{n}].{name} = {have}, but traffic.{name} = {want} "
+                f"(synthetic traffic is the same for every seed); {RERUN}"
+            )
+    disturbances = traffic.get("disturbances")
+    try:
+        source = SyntheticTraffic(
+            Grid(primary.obstacles),
+            [Disturbance(**d) for d in disturbances],
+            int(traffic["horizon"]),
+            float(traffic["beta1"]),
+            float(traffic["beta2"]),
+            float(traffic["z_lo"]),
+            float(traffic["z_hi"]),
+        )
+    except (TypeError, ValueError, KeyError) as exc:
+        raise UserError(
+            f"{path}: traffic = {_json_text(traffic)} is not a synthetic traffic record "
+            f"({type(exc).__name__}: {str(exc)[:60]}); {RERUN}"
+        ) from None
+    kept = maps.astype(np.float32)
+    k = -1
+    for k, generated in enumerate(source.importance_maps()):
+        if k >= len(kept):
+            break
+        generated = np.asarray(generated, dtype=np.float32)
+        off = ~(np.abs(generated - kept[k]) <= MAP_ROUNDING * np.maximum(1.0, np.abs(kept[k])))
+        if off.any():
+            i, j = (int(v) for v in np.argwhere(off)[0])
+            raise UserError(
+                f"{path}: traffic (disturbances, beta1, beta2, z_lo, z_hi) generates importance "
+                f"{_show(generated[i, j])} at step {k}, cell ({i}, {j}), but importance.npz "
+                f"holds {_show(kept[k, i, j])}; {RERUN}"
+            )
+    if k + 1 < len(kept):
+        raise UserError(
+            f"{path}: traffic.horizon = {traffic['horizon']} generates {k + 1} maps, but "
+            f"importance.npz holds {len(kept)}; {RERUN}"
+        )
+
+
+def check_same_tape(have: Path, want: Path) -> None:
+    """``have`` holds the same tape as ``want`` (rows and metadata): the first seed's copy in
+    ``tapes/`` is ``tape.parquet``."""
+    import pyarrow.parquet as pq
+
+    from twin.traffic.tape import read_tape_meta
+
+    try:
+        a, b = pq.read_table(have), pq.read_table(want)
+    except Exception as exc:  # a damaged tape: Tape.read says what is wrong with it
+        from twin.traffic.tape import Tape
+
+        Tape.read(have)
+        Tape.read(want)
+        raise UserError(f"{have}: unreadable ({type(exc).__name__}); {RERUN}") from None
+    if a.equals(b):
+        at = _first_difference(read_tape_meta(have), read_tape_meta(want))
+        if at is None:
+            return
+        name, mine, theirs = at
+        raise UserError(
+            f"{have}: metadata {name} = {mine}, but {want.name} (the same seed's tape) has "
+            f"{theirs}; {RERUN}"
+        )
+    if a.num_rows != b.num_rows or a.column_names != b.column_names:
+        raise UserError(
+            f"{have}: {a.num_rows} rows of {a.column_names}, but {want.name} (the same seed's "
+            f"tape) has {b.num_rows} of {b.column_names}; {RERUN}"
+        )
+    for column in a.column_names:
+        x, y = a[column].to_numpy(), b[column].to_numpy()
+        off = ~((x == y) | (pd.isna(x) & pd.isna(y)))
+        if off.any():
+            n = int(np.flatnonzero(off)[0])
+            raise UserError(
+                f"{have}: {column} = {_show(x[n])} in row {n}, but {want.name} (the same "
+                f"seed's tape) has {_show(y[n])}; {RERUN}"
+            )
+
+
+def check_seed_tapes(primary: Primary) -> None:
+    """Each seed's tape in ``tapes/`` of a several-seed live run: the first seed's is
+    ``tape.parquet`` (:func:`check_same_tape`); every later seed's, replayed through its MFD
+    (:class:`twin.traffic.tape.TapeTraffic`), gives the maps on which that seed's rows of
+    ``series.parquet`` (rewards, coverage, visited shares, belief error) and ``events.parquet``
+    (its events) replay from ``trajectories.parquet``, as :data:`DERIVED` checks the first
+    seed's over ``importance.npz``. A tape of more than :data:`TAPE_REPLAY_ROWS` rows is not
+    replayed. Costs a tape replay and one score replay per swarm and later seed."""
+    import dataclasses
+
+    import pyarrow.parquet as pq
+
+    from twin.traffic.tape import Tape, TapeTraffic
+
+    folder = primary.run_dir / "tapes"
+    seeds = primary.run.get("seeds")
+    if not folder.is_dir() or not isinstance(seeds, list):
+        return
+    first = folder / f"seed-{primary.first_seed}.parquet"
+    if first.is_file() and (primary.run_dir / "tape.parquet").is_file():
+        check_same_tape(first, primary.run_dir / "tape.parquet")
+    for seed in seeds:
+        path = folder / f"seed-{seed}.parquet"
+        if seed == primary.first_seed or not isinstance(seed, int) or not path.is_file():
+            continue
+        try:
+            rows = pq.read_metadata(path).num_rows
+        except Exception:  # a damaged tape: Tape.read says what is wrong with it
+            rows = 0
+        if rows > TAPE_REPLAY_ROWS:
+            continue
+        source = TapeTraffic(Tape.read(path), source_name=str(path))
+        maps = [np.array(m, dtype=np.float64) for m in source.importance_maps()]
+        scored = primary.series.loc[primary.series["seed"] == seed, "step"]
+        if scored.empty:
+            continue  # a seed without results (refused with run.json's seeds)
+        steps = int(scored.max()) + 1
+        if len(maps) < steps + 1:
+            raise UserError(
+                f"{path}: replays {len(maps)} maps, but series.parquet scores seed {seed} over "
+                f"{steps} steps ({steps + 1} maps); {RERUN}"
+            )
+        of_seed = dataclasses.replace(
+            primary, importance=np.stack(maps), first_seed=seed, incidents=None,
+            replayed=None, monitored={},
+        )  # fmt: skip
+        name = f"trajectories.parquet and tapes/{path.name}"
+        checks = [("series.parquet", primary.series, ("seed", "swarm", "step"), replayed_series),
+                  ("series.parquet", primary.series, ("seed", "swarm", "step"), replayed_belief),
+                  ("events.parquet", primary.events, ("seed", "event"), map_events)]  # fmt: skip
+        for file, frame, key, recompute in checks:
+            if frame is not None:
+                complete = recompute is map_events
+                expected = recompute(of_seed, frame)
+                compare(primary.run_dir, file, frame, expected, key, name, complete)
+        primary.tape_maps[seed] = of_seed.importance
+
+
+def check_shared_traffic_seeds(primary: Primary) -> None:
+    """A run whose seeds all run on one traffic (synthetic maps, or one tape replayed for every
+    seed; run.json records one ``traffic``): each later seed's rows of ``series.parquet``
+    (rewards, coverage, visited shares, belief error) and ``events.parquet`` replay from its
+    trajectories over ``importance.npz``'s maps, as the first seed's do. Costs one score
+    replay per swarm and later seed."""
+    import dataclasses
+
+    traffic, maps = primary.run.get("traffic"), primary.importance
+    if maps is None or not isinstance(traffic, dict) or traffic.get("kind") not in SHARED:
+        return
+    records = primary.run.get("traffic_by_seed") or []
+    if any(_first_difference(record, traffic) is not None for record in records):
+        return  # not one traffic (a synthetic run's records are checked to be one)
+    for seed in primary.run.get("seeds") or []:
+        if seed == primary.first_seed or not isinstance(seed, int):
+            continue
+        scored = primary.series.loc[primary.series["seed"] == seed, "step"]
+        if scored.empty or int(scored.max()) + 2 > len(maps):
+            continue  # a seed without results, or longer than the maps: other checks say so
+        of_seed = dataclasses.replace(
+            primary, first_seed=seed, incidents=None, replayed=None, monitored={}
+        )
+        name = "trajectories.parquet and importance.npz"
+        checks = [("series.parquet", primary.series, ("seed", "swarm", "step"), replayed_series),
+                  ("series.parquet", primary.series, ("seed", "swarm", "step"), replayed_belief),
+                  ("events.parquet", primary.events, ("seed", "event"), map_events)]  # fmt: skip
+        for file, frame, key, recompute in checks:
+            if frame is not None:
+                expected = recompute(of_seed, frame)
+                compare(primary.run_dir, file, frame, expected, key, name, recompute is map_events)
+
+
+#: Traffic kinds whose every seed runs on the same maps.
+SHARED = ("synthetic", "tape")
 
 
 def check_mfd_files(run_dir: Path, model) -> None:
@@ -770,6 +1116,20 @@ def check_mfd_files(run_dir: Path, model) -> None:
                     f"{run_dir / 'mfd.json'}: {name} = {_show(fit[name])}, but {replay} "
                     f"{_show(want)}; {RERUN}"
                 )
+            if name in fit and isinstance(want, (dict, list)):
+                at = _first_difference(fit[name], want, name)
+                if at is not None:
+                    field, have, theirs = at
+                    raise UserError(
+                        f"{run_dir / 'mfd.json'}: {field} = {have}, but {replay} {theirs}; {RERUN}"
+                    )
+        # the online fit the run rejected for its prior: there exactly when the replay has one
+        if ("rejected_fit" in fit) != ("rejected_fit" in report):
+            have = _json_text(fit.get("rejected_fit"))
+            want = _json_text(report.get("rejected_fit"))
+            raise UserError(
+                f"{run_dir / 'mfd.json'}: rejected_fit = {have}, but {replay} {want}; {RERUN}"
+            )
 
 
 def check_derived(primary: Primary, tables: dict[str, pd.DataFrame | None]) -> None:
@@ -778,6 +1138,10 @@ def check_derived(primary: Primary, tables: dict[str, pd.DataFrame | None]) -> N
     (:func:`check_tape_maps`). Without ``per_seed.csv``, ``summary.csv`` is checked against the
     per-seed figures the primary files give."""
     check_tape_maps(primary)
+    check_seed_tapes(primary)
+    check_synthetic_maps(primary)
+    check_shared_traffic_seeds(primary)
+    check_incident_records(primary)
     per_seed = tables.get("per_seed.csv")
     if per_seed is None:  # summary.csv is then checked against the primary files themselves
         parts = [part(primary, pd.DataFrame()) for part in PER_SEED_PARTS]

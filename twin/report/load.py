@@ -76,6 +76,9 @@ class RunFiles:
     timing: pd.DataFrame | None = None  # timing.csv (wall time per stage)
     degradation: pd.DataFrame | None = None  # degradation.csv (runs with [faults])
     manifest: dict[str, Any] = field(default_factory=dict)  # manifest.json
+    #: each seed's tape replayed through its MFD on read-back (by seed; a tape too large to
+    #: replay on read-back is not here): the maps the run scored
+    tape_maps: dict[int, np.ndarray] = field(default_factory=dict, repr=False)
     _idleness: dict[tuple[int, str], np.ndarray] = field(default_factory=dict, repr=False)
 
     @property
@@ -396,6 +399,7 @@ def load_run(run_dir: str | Path) -> RunFiles:
         timing=timing,
         degradation=degradation,
         manifest=manifest,
+        tape_maps=primary.tape_maps,
     )
 
 

@@ -69,6 +69,37 @@ def net_edges(net_file) -> dict[str, int]:
     return edges
 
 
+def edge_lanes(net_file, wanted: set[str]) -> dict[str, tuple[int, np.ndarray]]:
+    """Of the non-internal edges ``wanted`` of a network: their number of lanes and the shape
+    ``(n, 2)`` of their lane 0 (an edge the network lacks is left out)."""
+    import xml.etree.ElementTree as ET
+
+    out: dict[str, tuple[int, np.ndarray]] = {}
+    with open_xml(net_file) as fh:
+        for _, elem in ET.iterparse(fh, events=("end",)):
+            if elem.tag != "edge":
+                continue
+            if elem.get("function") != "internal" and elem.get("id") in wanted:
+                lanes = elem.findall("lane")
+                first = next((la for la in lanes if la.get("index") == "0"), None)
+                points = (first.get("shape") or "").split() if first is not None else []
+                shape = np.array([[float(v) for v in p.split(",")[:2]] for p in points])
+                out[elem.get("id")] = (len(lanes), shape.reshape(-1, 2))
+            elem.clear()
+    return out
+
+
+def edge_cells(shape: np.ndarray, geometry) -> set[tuple[int, int]]:
+    """The cells (i, j) of ``geometry`` (:class:`twin.sumo.cells.CellGeometry`, or any with
+    its ``cell_index``) that a lane of ``shape`` passes through, sampled as
+    :meth:`IncidentSchedule._edge_cells` samples it (its middle and every 10 m)."""
+    if not len(shape):
+        return set()
+    points = np.vstack([_midpoint(shape), _along(shape, 10.0)])
+    row, col, inside = geometry.cell_index(points)
+    return {(int(r), int(c)) for r, c, ok in zip(row, col, inside, strict=True) if ok}
+
+
 def check_incidents(incidents: list[Any], scenario, geometry, where: str = "") -> list[str]:
     """Refuse (one line) an incident outside the scenario's simulated window (warm-up
     included), on a cell off the grid or without a road, on an edge or lane the network lacks;

@@ -38,7 +38,7 @@ from pathlib import Path
 
 from twin.errors import UserError
 from twin.sumo.options import output_options
-from twin.sumo.readers import file_list, local_name, open_xml, read_sumocfg
+from twin.sumo.readers import file_list, included_files, local_name, open_xml, read_sumocfg
 
 #: Options that add to every output's name (kept to their name part, :func:`name_part`).
 NAMING_OPTIONS = ("output-prefix", "output-suffix")
@@ -158,22 +158,32 @@ class OutputPlan:
         return self.copies[path]
 
     def routes(self, path: Path) -> Path:
-        """``path``, or a rewritten copy in ``out_dir`` if device parameters in it name output
-        files. Route files may be large: one is parsed only when its bytes hold ``param`` (an
-        element's name is never a character reference), or always when its encoding is not
-        ASCII-compatible (UTF-16, UTF-32)."""
-        tail = b""
-        try:
-            with open_xml(path) as fh:
-                while chunk := fh.read(1 << 24):
-                    if not tail and not _ascii_compatible(chunk[:4]):
-                        return self.additional(path)
-                    if b"param" in tail + chunk:
-                        return self.additional(path)
-                    tail = chunk[-8:]
-        except (OSError, EOFError):
-            pass  # SUMO will say what is wrong with it
+        """``path``, or a rewritten copy in ``out_dir`` if device parameters in it or in a file
+        it includes name output files. Route files may be large: one is parsed only when its
+        bytes, or an included file's, hold ``param`` (an element's name is never a character
+        reference), or always when its encoding is not ASCII-compatible (UTF-16, UTF-32)."""
+        for file in (path, *included_files(path)):
+            if _may_hold_params(file):
+                return self.additional(path)
         return path
+
+
+def _may_hold_params(path: Path) -> bool:
+    """Whether an XML file may hold a ``<param>`` (its bytes hold ``param``, or it is in an
+    encoding that is not ASCII-compatible); False for a file that cannot be read (SUMO will
+    say what is wrong with it)."""
+    tail = b""
+    try:
+        with open_xml(path) as fh:
+            while chunk := fh.read(1 << 24):
+                if not tail and not _ascii_compatible(chunk[:4]):
+                    return True
+                if b"param" in tail + chunk:
+                    return True
+                tail = chunk[-8:]
+    except (OSError, EOFError):
+        pass
+    return False
 
 
 def _ascii_compatible(head: bytes) -> bool:

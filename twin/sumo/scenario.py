@@ -604,6 +604,12 @@ def detector_plan(settings, scenario, geometry, obstacles, where):
         station_cells,
     )
 
+    if scenario.mesoscopic and (settings.scenario or settings.cells or settings.virtual_loops):
+        raise UserError(
+            f"{where}: [traffic.detectors] with --meso: SUMO's mesoscopic model has no "
+            "induction loops or lane-area detectors to read; run without --meso, or without "
+            "[traffic.detectors]"
+        )
     if not (settings.cells or settings.virtual_loops):
         return DetectorPlan(scenario=settings.scenario)
     free = ~np.asarray(obstacles, dtype=bool)

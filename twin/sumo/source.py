@@ -81,8 +81,9 @@ class SumoScenario:
 
     def read_offsets(self) -> list[float]:
         """Seconds before each sample time of its read instants, whole SUMO steps, last 0."""
-        r = self.reads_per_step
-        return [float(round(self.step_s * (r - 1 - m) / r)) for m in range(r)]
+        from twin.traffic.tape import read_offsets
+
+        return read_offsets(self.step_s, self.reads_per_step)
 
 
 #: Options of a sumocfg that name further input files SUMO reads (a saved state, edge weights):

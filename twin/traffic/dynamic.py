@@ -12,11 +12,12 @@ one seed.
 
 from __future__ import annotations
 
-from collections.abc import Generator
+from collections.abc import Generator, Sequence
 from typing import Any
 
 import numpy as np
 
+from twin.belief import History, days_history
 from twin.grid import Grid
 from twin.traffic.base import TrafficSource, normalise_importance
 
@@ -89,3 +90,12 @@ class DynamicTraffic(TrafficSource):
             "disturbances": len(self.amplitudes),
             "z_hi": self.z_hi,
         }
+
+
+def dynamics_history(
+    grid: Grid, horizon: int, seeds: Sequence[int], disturbances: int = 8
+) -> History:
+    """The :class:`~twin.belief.History` of the dynamic generator's days (one
+    :class:`DynamicTraffic` per seed in ``seeds``) on ``grid`` over ``horizon`` steps."""
+    days = [DynamicTraffic(grid, horizon, disturbances, seed=int(s)) for s in seeds]
+    return days_history(days, [int(s) for s in seeds], [f"dynamics seed {int(s)}" for s in seeds])

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from twin.clock import clock_label
+from twin.clock import clock_label, clock_seconds
 from twin.errors import UserError
 from twin.grid import Grid
 from twin.mfd import MFD, MFDImportance
@@ -261,8 +261,10 @@ MIN_CAP_LANE_KM = 0.1
 
 def _check_against_meta(path: Path, steps, times, counts, meta: dict[str, Any]) -> None:
     """What the rows must agree with besides their types: times that increase step by step
-    (by the metadata's ``step_s`` when it has one), no step after the metadata's horizon (nor,
-    given ``warmup_s``, before its warm-up), counts a lane can hold (:data:`MAX_DENSITY`)."""
+    (by the metadata's ``step_s`` when it has one, step 0 at its ``begin``), no step after the
+    metadata's horizon (nor, given ``warmup_s``, before its warm-up), ``read_offsets_s`` those
+    of its ``reads_per_step`` (:func:`read_offsets`), counts a lane can hold
+    (:data:`MAX_DENSITY`)."""
     fix = "the tape is corrupt, record it again"
     back = np.flatnonzero(np.diff(times) <= 0)
     if len(back):
@@ -293,8 +295,32 @@ def _check_against_meta(path: Path, steps, times, counts, meta: dict[str, Any]) 
                 f"{int(warmup_s / step_s + 1e-9)} steps (warmup_s = {warmup_s:g}, step_s = "
                 f"{step_s:g}); {fix}"
             )
+    begin = settings.get("begin")
+    if step_s is not None and isinstance(begin, str):
+        t0 = clock_seconds(begin)
+        if t0 is None:
+            raise UserError(f"{path}: metadata begin = {begin[:40]!r} is not a clock time; {fix}")
+        want = t0 + steps * step_s
+        off = np.flatnonzero(np.abs(times - want) > 0.01)
+        if len(off):
+            s = int(off[0])
+            raise UserError(
+                f"{path}: column time_s = {times[s]:g} at step {int(steps[s])}, but the "
+                f"metadata's begin = {begin} (step 0) and step_s = {step_s:g} put it at "
+                f"{want[s]:g}; {fix}"
+            )
     reads = settings.get("reads_per_step", 1)
     reads = reads if isinstance(reads, int) and not isinstance(reads, bool) and reads >= 1 else 1
+    offsets = settings.get("read_offsets_s")
+    if step_s is not None and isinstance(offsets, list) and "reads_per_step" in settings:
+        want = read_offsets(step_s, reads)
+        numbers = all(isinstance(o, (int, float)) and not isinstance(o, bool) for o in offsets)
+        if not (numbers and len(offsets) == len(want) and np.allclose(offsets, want, atol=0.01)):
+            raise UserError(
+                f"{path}: metadata read_offsets_s = {str(offsets)[:60]}, but reads_per_step = "
+                f"{reads} reads in a step of {step_s:g} s are at "
+                f"{want} s before its end; {fix}"
+            )
     cap = MAX_DENSITY * reads * np.maximum(meta["lane_km"], MIN_CAP_LANE_KM)
     over = counts > cap
     if over.any():
@@ -306,6 +332,12 @@ def _check_against_meta(path: Path, steps, times, counts, meta: dict[str, Any]) 
             + (f" x {reads} reads" if reads > 1 else "")
             + f"); {fix}"
         )
+
+
+def read_offsets(step_s: float, reads: int) -> list[float]:
+    """Seconds before a step's sample time of its ``reads`` read instants, evenly spread over
+    the step in whole SUMO steps, the last at the sample time."""
+    return [float(round(step_s * (reads - 1 - m) / reads)) for m in range(reads)]
 
 
 def _positive(value: Any) -> float | None:

@@ -39,6 +39,7 @@ from pydantic import (
     model_validator,
 )
 
+from twin.belief import History, days_history
 from twin.config import (
     ConfigError,
     Overrides,
@@ -72,6 +73,7 @@ from twin.learning.dqn import (  # noqa: F401  (double_dqn_target re-exported fo
 from twin.learning.qnet import TABLE1_LAYERS, QNetwork
 from twin.learning.replay import ReplayBuffer, n_step_transitions
 from twin.states import DEFAULT_STATE, STATE_NAMES, STATE_VARIANTS, UNAVAILABLE, StateVariant
+from twin.traffic.dynamic import dynamics_history
 from twin.traffic.synthetic import SyntheticTraffic
 
 PositiveInt = Annotated[int, Field(ge=1)]
@@ -196,8 +198,23 @@ class PretrainConfig(SourcedConfig):
         "state variant the network reads (twin/states.py): "
         + ", ".join(f'"{n}"' for n in STATE_NAMES)
         + ' ("paper": the 13 values of eq. s; "window": I*T over the 5 x 5 cells around the '
-        'drone, 33 values; "nowcast" is refused: it needs a history the training map lacks)',
+        'drone, 33 values; "nowcast": eq. s plus the nowcast\'s mean and 2 std on the 5 view '
+        "cells, 23 values, its history the training map's generator on `history_days` other "
+        "days)",
         default=DEFAULT_STATE,
+    )
+    history_days: int = _help(
+        'state = "nowcast": days in the nowcast\'s history (built once per run from the '
+        'training traffic\'s generator: for traffic = "dynamics", seeds history_seed, '
+        'history_seed + 1, ...; for traffic = "paper", the fixed map, the same every day)',
+        default=8,
+        ge=2,
+    )
+    history_seed: int = _help(
+        'state = "nowcast", traffic = "dynamics": seed of the history\'s first day (its seeds '
+        "must differ from the training episodes')",
+        default=1_000_000,
+        ge=0,
     )
     layers: list[PositiveInt] = _help(
         "layer sizes, the state's size in and 5 out (Table 1: 13 -> 2048 -> 1024 -> 256 -> 64 "
@@ -266,7 +283,8 @@ class PretrainConfig(SourcedConfig):
     @classmethod
     def _state(cls, state: str) -> str:
         if state in UNAVAILABLE:
-            raise ValueError(f'{UNAVAILABLE[state]}; use "paper" or "window"')
+            buildable = ", ".join(f'"{n}"' for n in STATE_VARIANTS)
+            raise ValueError(f"{UNAVAILABLE[state]}; use one of {buildable}")
         if state not in STATE_VARIANTS:
             raise ValueError(
                 "is not a state variant; use one of " + ", ".join(f'"{n}"' for n in STATE_VARIANTS)
@@ -298,6 +316,34 @@ class PretrainConfig(SourcedConfig):
     def variant(self) -> StateVariant:
         """The state variant the network reads (:mod:`twin.states`)."""
         return STATE_VARIANTS[self.state]
+
+    @model_validator(mode="after")
+    def _history_can_be_built(self) -> PretrainConfig:
+        """``state = "nowcast"``: its history needs a generator of days (refused on tapes), of
+        seeds that no training episode uses."""
+        if not self.variant.needs_belief:
+            return self
+        if self.traffic == "tapes":
+            raise ValueError(
+                'state = "nowcast" with traffic = "tapes" needs a history of other SUMO days, '
+                'which pretraining does not build; use traffic = "dynamics" or "paper"'
+            )
+        used = set(history_seeds(self)) & set(training_seeds(self))
+        if used:
+            raise ValueError(
+                f"history_seed = {self.history_seed}: the history's day {min(used)} is also a "
+                "training episode's seed; give a history_seed outside the training seeds "
+                f"(seed * 100003 + episode), e.g. {self.history_seed + 10**7}"
+            )
+        return self
+
+    def history_record(self) -> dict[str, Any] | None:
+        """What a checkpoint records of the nowcast's history (None: the state reads none)."""
+        if not self.variant.needs_belief:
+            return None
+        generator = "dynamics" if self.traffic == "dynamics" else "the training map (fixed)"
+        return {"generator": generator, "days": self.history_days,
+                "seeds": history_seeds(self)}  # fmt: skip
 
     @field_validator("curve_seeds")
     @classmethod
@@ -405,6 +451,9 @@ class PretrainConfig(SourcedConfig):
             record["z_hi"] = t.z_hi
         if self.state != DEFAULT_STATE:
             record["state"] = self.state
+        if self.variant.needs_belief:
+            record["history_days"] = self.history_days
+            record["history_seed"] = self.history_seed
         return record
 
 
@@ -568,6 +617,37 @@ def episode_source(cfg: PretrainConfig):
     return lambda e: source
 
 
+def training_seeds(cfg: PretrainConfig) -> list[int]:
+    """The dynamic generator's seeds of the training episodes (traffic = "dynamics"; none
+    otherwise): ``seed * 100003 + e`` for every episode ``e`` collected."""
+    if cfg.traffic != "dynamics":
+        return []
+    count = cfg.episodes if cfg.collector == "random" else cfg.epochs // cfg.collect_every + 1
+    return [cfg.seed * 100003 + e for e in range(count)]
+
+
+def history_seeds(cfg: PretrainConfig) -> list[int]:
+    """The seeds of the nowcast history's days (traffic = "dynamics"; the fixed map of
+    traffic = "paper" has none: every day is the same)."""
+    if cfg.traffic != "dynamics":
+        return []
+    return list(range(cfg.history_seed, cfg.history_seed + cfg.history_days))
+
+
+def training_history(cfg: PretrainConfig) -> History | None:
+    """The nowcast's history of a ``state = "nowcast"`` run (None for other states): the
+    training traffic's generator on ``history_days`` other days, on the training map's grid
+    and horizon. The dynamic generator's days differ (seeds :func:`history_seeds`); the paper's
+    fixed map is the same every day, so its history is that map with no spread (the filter's
+    variance floor)."""
+    if not cfg.variant.needs_belief:
+        return None
+    if cfg.traffic == "dynamics":
+        grid = make_grid(cfg.training_map)
+        return dynamics_history(grid, cfg.horizon, history_seeds(cfg), cfg.dynamics_disturbances)
+    return days_history([training_source(cfg)] * cfg.history_days)
+
+
 def add_episode(buffer: ReplayBuffer, ep, cfg: PretrainConfig) -> None:
     """One episode into the buffer: its 1-step transitions (``n_step = 1``), or its n-step
     transitions with their discounts (:func:`twin.learning.replay.n_step_transitions`)."""
@@ -580,8 +660,11 @@ def add_episode(buffer: ReplayBuffer, ep, cfg: PretrainConfig) -> None:
     buffer.add_steps(ep.states, ep.actions, returns, next_states, next_feasible, discounts)
 
 
-def collect_buffer(cfg: PretrainConfig, progress: bool = False) -> ReplayBuffer:
-    """``episodes`` random-swarm episodes, pooled; a function of the config alone (seeded)."""
+def collect_buffer(
+    cfg: PretrainConfig, progress: bool = False, history: History | None = None
+) -> ReplayBuffer:
+    """``episodes`` random-swarm episodes, pooled; a function of the config alone (seeded).
+    ``history``: the nowcast's (:func:`training_history`), for a state that reads it."""
     sources = episode_sources(cfg)
     params = cfg.training_map.params
     buffer = ReplayBuffer(sum(s.horizon for s in sources), cfg.n_drones,
@@ -593,7 +676,7 @@ def collect_buffer(cfg: PretrainConfig, progress: bool = False) -> ReplayBuffer:
         episodes = tqdm(episodes, desc="random swarm", unit="episode", leave=False)
     for e in episodes:
         rng = np.random.default_rng([cfg.seed, 1, e])
-        ep = random_swarm_episode(sources[e], cfg.n_drones, params, rng, cfg.variant)
+        ep = random_swarm_episode(sources[e], cfg.n_drones, params, rng, cfg.variant, history)
         add_episode(buffer, ep, cfg)
     return buffer
 
@@ -604,8 +687,9 @@ class CoordinatedCollector:
     a ring buffer of the last ``episodes`` episodes. Episode ``e`` is seeded by ``seed`` and
     ``e`` and driven by the network as it stands, so a run is a function of its config."""
 
-    def __init__(self, cfg: PretrainConfig) -> None:
+    def __init__(self, cfg: PretrainConfig, history: History | None = None) -> None:
         self.cfg = cfg
+        self.history = history
         self.source = episode_source(cfg)
         self.params = cfg.training_map.params
         horizons = [self.source(e).horizon for e in range(len(cfg.tapes))] or [cfg.horizon]
@@ -631,7 +715,14 @@ class CoordinatedCollector:
         e = epoch // cfg.collect_every
         rng = np.random.default_rng([cfg.seed, 3, e])
         ep = coordinated_swarm_episode(
-            self.source(e), cfg.n_drones, self.params, rng, net, self.epsilon(epoch), cfg.variant
+            self.source(e),
+            cfg.n_drones,
+            self.params,
+            rng,
+            net,
+            self.epsilon(epoch),
+            cfg.variant,
+            self.history,
         )
         add_episode(self.buffer, ep, cfg)
 
@@ -689,10 +780,11 @@ def _pretrain(cfg, progress, out, state_path, model_path, log_path) -> Path:
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
 
-    collector = CoordinatedCollector(cfg) if cfg.collector == "coordinated" else None
+    history = training_history(cfg)  # the nowcast's, built once per run (None: not read)
+    collector = CoordinatedCollector(cfg, history) if cfg.collector == "coordinated" else None
     collect_start = time.perf_counter()
     if collector is None:
-        buffer = collect_buffer(cfg, progress=progress)
+        buffer = collect_buffer(cfg, progress=progress, history=history)
         digest = buffer_digest(buffer)
     else:  # collected while training; a checkpoint holds the buffer as it stands
         buffer, digest = collector.buffer, None
@@ -713,7 +805,7 @@ def _pretrain(cfg, progress, out, state_path, model_path, log_path) -> Path:
         load_initial_weights(cfg, net)
         sync_target(net, target)
     if epoch == 0 and cfg.curve_every:  # the curve's first point: the starting network
-        meta = model_metadata(cfg.layers, cfg.training_dict(), cfg.seed, 0, cfg.state)
+        meta = checkpoint_meta(cfg, 0)
         meta["wall_s"] = 0.0
         save_model(out / "snapshots" / f"qnet_e{0:07d}.pt", net.state_dict(), meta)
     if epoch == 0:
@@ -768,7 +860,7 @@ def _pretrain(cfg, progress, out, state_path, model_path, log_path) -> Path:
                             wall, kept)  # fmt: skip
                 saved = epoch
             if snapshot:
-                meta = model_metadata(cfg.layers, cfg.training_dict(), cfg.seed, epoch, cfg.state)
+                meta = checkpoint_meta(cfg, epoch)
                 meta["wall_s"] = round(time.perf_counter() - t_start, 2)
                 save_model(out / "snapshots" / f"qnet_e{epoch:07d}.pt", net.state_dict(), meta)
             if bar is not None:
@@ -776,7 +868,7 @@ def _pretrain(cfg, progress, out, state_path, model_path, log_path) -> Path:
     finally:
         if bar is not None:
             bar.close()
-    meta = model_metadata(cfg.layers, cfg.training_dict(), cfg.seed, epoch, cfg.state)
+    meta = checkpoint_meta(cfg, epoch)
     meta["wall_s"] = round(time.perf_counter() - t_start, 1)
     meta["buffer_digest"] = digest if kept is None else buffer_digest(buffer)
     meta["collect_s"] = round(collect_s, 1)  # the data collected before the loop (random)
@@ -792,6 +884,12 @@ SCHEDULE_KEYS = (
     "episodes", "horizon", "n_drones", "epochs", "iters_per_epoch", "batch_size", "gamma", "lr",
     "target_update_epochs", "layers", "n_step", "collector",
 )  # fmt: skip
+
+
+def checkpoint_meta(cfg: PretrainConfig, epoch: int) -> dict[str, Any]:
+    """The metadata of a checkpoint of ``cfg`` at ``epoch`` (with the nowcast's history)."""
+    return model_metadata(cfg.layers, cfg.training_dict(), cfg.seed, epoch, cfg.state,
+                          history=cfg.history_record())  # fmt: skip
 
 
 def write_provenance(cfg: PretrainConfig, out: Path, meta: dict[str, Any]) -> Path:
@@ -827,6 +925,7 @@ def write_provenance(cfg: PretrainConfig, out: Path, meta: dict[str, Any]) -> Pa
                 "overrides": cfg.scenario_overrides,
             },
             "state": cfg.variant.summary,
+            **({"history": cfg.history_record()} if cfg.variant.needs_belief else {}),
             "collector": cfg.collector,
             "n_step": cfg.n_step,
             "gamma": cfg.gamma,
@@ -892,7 +991,9 @@ def curve_scenario(cfg: PretrainConfig):
 
 def write_curve(cfg: PretrainConfig, out: Path) -> Path:
     """``curve.csv``: R_hat_T of the "rl" swarm driven by each curve snapshot (every
-    ``curve_every`` epochs, and the final model) on the validation seeds ``curve_seeds``."""
+    ``curve_every`` epochs, and the final model) on the validation seeds ``curve_seeds``; a
+    nowcast state's swarm reads the history of ``history_days`` days of the dynamic generator
+    on the curve map's grid (seeds from ``history_seed``)."""
     from twin.experiment import Experiment, run_experiment
     from twin.metrics import table2
 
@@ -905,12 +1006,18 @@ def write_curve(cfg: PretrainConfig, out: Path) -> Path:
     files = [(e, out / "snapshots" / f"qnet_e{e:07d}.pt") for e in points]
     if cfg.epochs not in points:
         files.append((cfg.epochs, out / "qnet.pt"))
+    options = {}
+    if cfg.variant.needs_belief:  # the curve map's history: the dynamic generator's days
+        options["history"] = dynamics_history(
+            make_grid(config), cfg.curve_horizon, range(cfg.history_seed,
+            cfg.history_seed + cfg.history_days), cfg.dynamics_disturbances,
+        )  # fmt: skip
     rows = []
     for epoch, path in files:
         wall = read_checkpoint(path)["meta"].get("wall_s")
         experiment = Experiment(
             config, swarms=["rl"], seeds=cfg.curve_seeds,
-            swarm_options={"rl": {"checkpoint": path}}, keep_importance=False,
+            swarm_options={"rl": {"checkpoint": path, **options}}, keep_importance=False,
         )  # fmt: skip
         for result in run_experiment(experiment).results:
             value = float(table2(result, config.params)["R_hat_T"].iloc[0])
@@ -945,7 +1052,7 @@ def _check_finite(cfg, net, losses, epoch, state_path, saved) -> None:
 def _save_state(path, cfg, digest, net, target, optimizer, batch_rng, epoch, wall,
                 buffer=None) -> None:  # fmt: skip
     """The training state; ``buffer``: replay data collected while training, saved whole."""
-    meta = model_metadata(cfg.layers, cfg.training_dict(), cfg.seed, epoch, cfg.state)
+    meta = checkpoint_meta(cfg, epoch)
     data = {"seed": cfg.seed, "digest": digest}
     if buffer is not None:
         data["data"] = buffer_arrays(buffer)
