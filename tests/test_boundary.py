@@ -995,7 +995,7 @@ READ_BACK = {
         _edit_table("per_seed.csv", _set("C_hat_T", 0.9)),
         "per_seed.csv: C_hat_T = 0.9 for seed 0, swarm 'random', but series.parquet gives",
     ),
-    "per_seed map covered off its series": (  # seed 1: its maps are not kept, nor replayed
+    "per_seed map covered off its series": (  # seed 1 (its series replays after per_seed)
         _edit_table(
             "series.parquet",
             lambda f: f.assign(

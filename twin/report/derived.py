@@ -1135,12 +1135,12 @@ def check_mfd_files(run_dir: Path, model) -> None:
 def check_derived(primary: Primary, tables: dict[str, pd.DataFrame | None]) -> None:
     """Every derived file of ``tables`` (name -> its table, None when absent) agrees with what
     its sources give (:data:`DERIVED`), after ``importance.npz`` with its tape
-    (:func:`check_tape_maps`). Without ``per_seed.csv``, ``summary.csv`` is checked against the
+    (:func:`check_tape_maps`); then the later seeds of a run on one traffic
+    (:func:`check_shared_traffic_seeds`). Without ``per_seed.csv``, ``summary.csv`` is checked against the
     per-seed figures the primary files give."""
     check_tape_maps(primary)
     check_seed_tapes(primary)
     check_synthetic_maps(primary)
-    check_shared_traffic_seeds(primary)
     check_incident_records(primary)
     per_seed = tables.get("per_seed.csv")
     if per_seed is None:  # summary.csv is then checked against the primary files themselves
@@ -1164,6 +1164,7 @@ def check_derived(primary: Primary, tables: dict[str, pd.DataFrame | None]) -> N
             source = "series.parquet, events.parquet and trajectories.parquet"
         expected = d.recompute(primary, frame)
         compare(primary.run_dir, d.file, frame, expected, d.key, source, d.complete)
+    check_shared_traffic_seeds(primary)  # after the first seed's, which are said first
 
 
 def compare(
