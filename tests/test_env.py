@@ -182,6 +182,9 @@ def test_make_env_refuses_bad_options_in_one_line(joint):
         ({"params": ScoreParams(alpha_T=float("nan"))}, r"params.alpha_T = nan is out of range"),
         ({"params": ScoreParams(alpha_I=float("inf"))}, r"params.alpha_I = inf is out of range"),
         ({"params": ScoreParams(alpha_I=-0.5)}, r"params.alpha_I = -0.5 is out of range"),
+        ({"params": ScoreParams(alpha_T=1e308)}, r"params.alpha_T = 1e\+308 is out of range"),
+        ({"params": ScoreParams(delta=1e-320)}, r"params.delta = 1e-320 is out of range"),
+        ({"params": ScoreParams(alpha_T=0.0, alpha_I=0.0)}, "are both 0"),
         ({"params": ScoreParams(alpha_T="1")}, r"params.alpha_T = '1' is out of range"),
     ):
         with pytest.raises(EnvInputError, match=words) as info:

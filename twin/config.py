@@ -156,6 +156,13 @@ Overrides = Annotated[dict[str, Any], AfterValidator(_dotted_keys)]
 #: A ``[row, column]`` cell of the grid.
 Cell = Annotated[list[int], Field(min_length=2, max_length=2)]
 Count = Annotated[int, Field(ge=1)]
+#: The most steps a run may have: ten million (the memory estimate refuses far fewer on any
+#: real grid; beyond it arrays cannot even be shaped).
+MAX_HORIZON = 10_000_000
+Horizon = Annotated[int, Field(ge=1, le=MAX_HORIZON)]
+#: The largest reward weight (Def. 4): sums of a run's rewards stay finite.
+MAX_WEIGHT = 1e6
+Weight = Annotated[float, Field(ge=0, le=MAX_WEIGHT)]
 Seed = Annotated[int, Field(ge=0)]
 Unit = Annotated[float, Field(gt=0, lt=1)]
 
@@ -202,9 +209,10 @@ class SwarmConfig(StrictModel):
     n_drones: Count = 4
     starts: Any = "random"  # "random" or [[i, j], ...]
     eta: Unit = 0.1
-    delta: Unit = 0.025
-    alpha_T: Annotated[float, Field(ge=0)] = 1.0
-    alpha_I: Annotated[float, Field(ge=0)] = 0.5
+    #: at least 1e-9: a smaller recovery is 0 in the steps' arithmetic (and no run is that long)
+    delta: Annotated[float, Field(ge=1e-9, lt=1)] = 0.025
+    alpha_T: Weight = 1.0
+    alpha_I: Weight = 0.5
 
     @field_validator("starts", mode="plain")
     @classmethod
@@ -215,18 +223,25 @@ class SwarmConfig(StrictModel):
             return value
         return _cells(value)
 
+    @field_validator("alpha_I")
+    @classmethod
+    def _some_weight(cls, value: float, info) -> float:
+        if value == 0 and info.data.get("alpha_T") == 0:
+            raise ValueError("and alpha_T are both 0: every reward would be 0; give one above 0")
+        return value
+
 
 class DisturbanceConfig(StrictModel):
     kind: Literal["big", "small"] = "big"
     i: float = 0.0
     j: float = 0.0
     amplitude: float = 1.0
-    sigma: Annotated[float, Field(gt=0)] = 1.0
+    sigma: Annotated[float, Field(ge=1e-3)] = 1.0  # cells
 
 
 class SyntheticConfig(StrictModel):
     kind: Literal["synthetic"] = "synthetic"
-    horizon: Count = 2000
+    horizon: Horizon = 2000
     beta1: Annotated[float, Field(gt=0)] = 0.7
     beta2: Annotated[float, Field(gt=0)] = 5.0
     z_lo: float = 0.0
@@ -312,7 +327,7 @@ class SumoSettings(StrictModel):
     drone_speed_kmh: Annotated[float, Field(gt=0)] = 24.0
     begin: str = "07:00"
     end: str | None = None  # end of the scenario's window (clock); default: its demand's
-    horizon: Count = 144
+    horizon: Horizon = 144
     warmup_min: Annotated[float, Field(ge=0)] = 30.0
     seed: Seed = 0
     mesoscopic: bool = False

@@ -44,6 +44,7 @@ try:
 except ImportError:  # pragma: no cover - depends on the install
     raise ImportError("twin.env needs gymnasium and pettingzoo: pip install 'twin[env]'") from None
 
+from twin.config import MAX_WEIGHT
 from twin.errors import UserError
 from twin.grid import N_ACTIONS
 from twin.scores import ScoreParams
@@ -112,12 +113,12 @@ def _seed(seed: Any) -> int:
     return seed
 
 
-#: Each reward parameter's allowed range (the config's): ``(low, high, low_open, high_open)``.
+#: Each reward parameter's allowed range (``[swarm]``'s): ``(low, high, low_open, high_open)``.
 PARAM_RANGES: dict[str, tuple[float, float, bool, bool]] = {
     "eta": (0.0, 1.0, True, True),
-    "delta": (0.0, 1.0, True, True),
-    "alpha_T": (0.0, np.inf, False, True),
-    "alpha_I": (0.0, np.inf, False, True),
+    "delta": (1e-9, 1.0, False, True),
+    "alpha_T": (0.0, MAX_WEIGHT, False, False),
+    "alpha_I": (0.0, MAX_WEIGHT, False, False),
 }
 
 
@@ -140,10 +141,12 @@ def _params(params: Any) -> ScoreParams:
         ok = ok and (value > low if low_open else value >= low)
         ok = ok and (value < high if high_open else value <= high)
         if not ok:
-            bounds = f"{'(' if low_open else '['}{low:g}, {high:g})"
+            bounds = f"{'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
             raise EnvInputError(
                 f"params.{name} = {value!r} is out of range; give a number in {bounds}"
             )
+    if params.alpha_T == 0 and params.alpha_I == 0:
+        raise EnvInputError("params.alpha_T and alpha_I are both 0: every reward would be 0")
     return params
 
 
