@@ -256,6 +256,11 @@ ABSURD_TAPES: dict[str, tuple[Callable[[Path], Path], str]] = {
             ("detection_p", 1.5),
             ("detection_p", "x"),
             ("detection_p", float("nan")),
+            ("step_s", -30.0),
+            ("step_s", 0),
+            ("warmup_s", -1.0),
+            ("reads_per_step", 0),
+            ("reads_per_step", 1.5),
         )
     },
     "times shifted against the recorded begin": (

@@ -110,3 +110,32 @@ def test_sweeper_covers_an_open_map_in_one_pass():
 def test_sweeping_roles(n, roles):
     assert sweeping_roles(n) == roles
     assert sum(roles) == n
+
+
+def test_free_paths_between_separate_areas_end_and_leave_them_out():
+    """A map split in two by a wall of obstacles: a path to the other area does not exist,
+    and the search ends (it searched forever once); paths within an area are found."""
+    obstacles = np.zeros((5, 5), bool)
+    obstacles[2] = True
+    grid = Grid(obstacles)
+    starts = np.array([[0, 0], [0, 0], [4, 4]])
+    ends = np.array([[4, 4], [1, 4], [0, 0]])
+    paths = free_paths(grid, starts, ends)
+    assert set(paths) == {1}
+    assert paths[1][0] == (0, 0) and paths[1][-1] == (1, 4) and len(paths[1]) == 6
+
+
+def test_every_swarm_and_the_ceilings_end_on_a_split_map(tmp_path, capsys):
+    from twin.cli import main
+
+    config = tmp_path / "split.toml"
+    config.write_text(
+        "[grid]\nnx = 5\nny = 5\nobstacles = [[2, 0], [2, 1], [2, 2], [2, 3], [2, 4]]\n"
+        '[swarm]\nn_drones = 2\n[traffic]\nkind = "synthetic"\nhorizon = 8\n'
+        'disturbances = [{ kind = "big", i = 1, j = 1, amplitude = 1.0, sigma = 1.5 }]\n'
+    )
+    out = tmp_path / "out"
+    argv = ["evaluate", "--config", str(config), "--out", str(out), "--quiet", "--no-report",
+            "--swarms", "random,greedy,sweeping,greedy-coordinated,visit-gain,lookahead,tours"]  # fmt: skip
+    assert main(argv) == 0, capsys.readouterr().err
+    assert "oracle (ceiling)" in set(pd.read_csv(out / "summary.csv")["swarm"])

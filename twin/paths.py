@@ -38,8 +38,8 @@ _ROOTS_PER_CALL = 256
 
 
 def free_paths(grid: Grid, starts: np.ndarray, ends: np.ndarray) -> dict[int, list]:
-    """Cells of a shortest free path from each ``starts[n]`` to ``ends[n]`` (both in one
-    connected area), keyed by ``n``: walked back from the start along Dijkstra's tree rooted
+    """Cells of a shortest free path from each ``starts[n]`` to ``ends[n]``, keyed by ``n``
+    (left out when they lie in different connected areas): walked back from the start along Dijkstra's tree rooted
     at the end (``scipy.sparse.csgraph.dijkstra``, unweighted).
 
     The search from each root stops at a distance ``limit`` (tried at 8, then x4 until the
@@ -69,6 +69,8 @@ def free_paths(grid: Grid, starts: np.ndarray, ends: np.ndarray) -> dict[int, li
                 if path is not None:
                     paths[int(n)] = path
         todo = np.array([n for n in todo if int(n) not in paths], dtype=np.int64)
+        if limit == np.inf:  # searched without a limit: the rest lie in another area
+            break
         limit *= 4
     return paths
 

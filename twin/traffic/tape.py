@@ -422,7 +422,8 @@ def _number(value: Any) -> bool:
 def _check_observation_settings(path: Path, settings: dict[str, Any]) -> None:
     """The settings a replay observes the tape with, in the ranges of ``[traffic.mfd]``:
     ``mfd_fit`` online or fixed, ``mfd_prior`` ``[a, k_c]`` with ``0 < a <= 1`` and
-    ``k_c > 0``, ``detection_p`` in (0, 1]; each left out takes the live run's default."""
+    ``k_c > 0``, ``detection_p`` in (0, 1]; its clock: ``step_s`` above 0, ``warmup_s`` >= 0,
+    ``reads_per_step`` a whole number >= 1; each left out takes the live run's default."""
     fix = "the tape is corrupt, record it again"
     fit = settings.get("mfd_fit", "online")
     if fit not in ("online", "fixed"):
@@ -435,6 +436,21 @@ def _check_observation_settings(path: Path, settings: dict[str, Any]) -> None:
         raise UserError(
             f"{path}: tape metadata mfd_prior = {str(prior)[:40]} is not [a, k_c] with "
             f"0 < a <= 1 and k_c > 0 (finite); {fix}"
+        )
+    for key, low in (("step_s", 0.0), ("warmup_s", None)):
+        value = settings.get(key)
+        if value is None:
+            continue
+        if not _number(value) or (value <= low if low is not None else value < 0):
+            want = "above 0" if low is not None else ">= 0"
+            raise UserError(
+                f"{path}: tape metadata {key} = {str(value)[:40]!r} is not a number {want}; {fix}"
+            )
+    reads = settings.get("reads_per_step", 1)
+    if not isinstance(reads, int) or isinstance(reads, bool) or reads < 1:
+        raise UserError(
+            f"{path}: tape metadata reads_per_step = {str(reads)[:40]!r} is not a whole number "
+            f">= 1; {fix}"
         )
     p = settings.get("detection_p", 1.0)
     if not _number(p) or not 0 < p <= 1:
