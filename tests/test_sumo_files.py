@@ -497,6 +497,27 @@ def test_save_configuration_by_any_name_is_refused_before_sumo_starts(
     assert tree_hash(tmp_path / "case") == before and not (tmp_path / "run").exists()
 
 
+@pytest.mark.parametrize("role", ["route-files", "additional-files"])
+def test_files_that_include_each_other_are_refused_before_sumo(scenario, tmp_path, capsys, role):
+    """``a.xml`` includes ``b.xml``, which includes ``a.xml``: SUMO crashes on it without a
+    message; twin names the chain in one line before SUMO starts."""
+    root = "routes" if role == "route-files" else "additional"
+    files = {"a.xml": f'<{root}><include href="b.xml"/></{root}>',
+             "b.xml": f'<{root}><include href="a.xml"/></{root}>'}  # fmt: skip
+    input_ = '<net-file value="small.net.xml"/><route-files value="small.trips.xml"/>'
+    if role == "route-files":
+        input_ = '<net-file value="small.net.xml"/><route-files value="small.trips.xml,a.xml"/>'
+    else:
+        input_ += '<additional-files value="a.xml"/>'
+    cfg = _write_case(scenario, tmp_path / "case", _cfg(f"<input>{input_}</input>"), files)
+    out = tmp_path / "run"
+    code = _run(scenario, out, "--sumocfg", str(cfg))
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "Traceback" not in err, err
+    assert "include each other (a.xml -> b.xml -> a.xml)" in err, err
+    assert not out.exists()
+
+
 def test_a_config_seeding_sumo_from_the_clock_still_repeats(scenario, tmp_path, capsys):
     """``<random value="true"/>`` (SUMO's seed from the clock) is overridden with a notice:
     two runs of one SUMO seed record the same traffic."""

@@ -38,7 +38,14 @@ from pathlib import Path
 
 from twin.errors import UserError
 from twin.sumo.options import output_options
-from twin.sumo.readers import file_list, included_files, local_name, open_xml, read_sumocfg
+from twin.sumo.readers import (
+    file_list,
+    included_files,
+    local_name,
+    may_hold,
+    open_xml,
+    read_sumocfg,
+)
 
 #: Options that add to every output's name (kept to their name part, :func:`name_part`).
 NAMING_OPTIONS = ("output-prefix", "output-suffix")
@@ -163,33 +170,9 @@ class OutputPlan:
         bytes, or an included file's, hold ``param`` (an element's name is never a character
         reference), or always when its encoding is not ASCII-compatible (UTF-16, UTF-32)."""
         for file in (path, *included_files(path)):
-            if _may_hold_params(file):
+            if may_hold(file, b"param"):
                 return self.additional(path)
         return path
-
-
-def _may_hold_params(path: Path) -> bool:
-    """Whether an XML file may hold a ``<param>`` (its bytes hold ``param``, or it is in an
-    encoding that is not ASCII-compatible); False for a file that cannot be read (SUMO will
-    say what is wrong with it)."""
-    tail = b""
-    try:
-        with open_xml(path) as fh:
-            while chunk := fh.read(1 << 24):
-                if not tail and not _ascii_compatible(chunk[:4]):
-                    return True
-                if b"param" in tail + chunk:
-                    return True
-                tail = chunk[-8:]
-    except (OSError, EOFError):
-        pass
-    return False
-
-
-def _ascii_compatible(head: bytes) -> bool:
-    """Whether an XML file's first bytes are those of an ASCII-compatible encoding (no UTF-16
-    or UTF-32 byte order mark, no NUL byte)."""
-    return not head.startswith((b"\xff\xfe", b"\xfe\xff")) and b"\x00" not in head
 
 
 def name_part(value: str) -> str:

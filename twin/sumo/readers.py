@@ -367,6 +367,52 @@ def _flow_end(elem: ET.Element, begin: float) -> float:
     return max(begin, FLOW_DEFAULT_END)
 
 
+def may_hold(path: Path, word: bytes) -> bool:
+    """Whether an XML file's bytes may hold ``word`` (an element name: never a character
+    reference): they do, or its encoding is not ASCII-compatible (UTF-16, UTF-32); False for
+    a file that cannot be read."""
+    tail = b""
+    try:
+        with open_xml(path) as fh:
+            while chunk := fh.read(1 << 24):
+                if not tail and (
+                    chunk.startswith((b"\xff\xfe", b"\xfe\xff")) or b"\x00" in chunk[:4]
+                ):
+                    return True
+                if word in tail + chunk:
+                    return True
+                tail = chunk[-len(word) :]
+    except (OSError, EOFError):
+        pass
+    return False
+
+
+def include_cycle(path: Path) -> list[Path] | None:
+    """The files of an ``<include href>`` chain from ``path`` that comes back to a file on it
+    (``a -> b -> a``: SUMO crashes on it without a message), else None."""
+
+    def hrefs(current: Path) -> list[Path]:
+        if not may_hold(current, b"include"):  # a large route file is not parsed for nothing
+            return []
+        try:
+            with open_xml(current) as fh:
+                root = ET.parse(fh).getroot()
+        except (ET.ParseError, OSError, EOFError, UserError):
+            return []
+        found = [e.get("href") for e in root.iter() if local_name(e) == "include"]
+        return [Path(os.path.normpath((current.parent / h).absolute())) for h in found if h]
+
+    def walk(chain: list[Path]) -> list[Path] | None:
+        for child in hrefs(chain[-1]):
+            if child in chain:
+                return [*chain, child]
+            if len(chain) < 50 and (cycle := walk([*chain, child])) is not None:
+                return cycle
+        return None
+
+    return walk([Path(os.path.normpath(Path(path).absolute()))])
+
+
 def included_files(path: Path) -> list[Path]:
     """The files an additional file pulls in with ``<include href="...">`` (relative to the
     including file, as SUMO reads them), and theirs in turn; a file SUMO could not read or a

@@ -40,6 +40,7 @@ from twin.sumo.readers import (
     SUMOCFG_ROOTS,
     VEHICLE_DEMAND,
     departure_span,
+    include_cycle,
     naming_the_sumocfg,
     read_sumocfg,
     resolved,
@@ -94,6 +95,7 @@ def _check_routes(route_files: list[Path]) -> None:
         tag = root_tag(path, "route file")
         if tag in _OTHER_KINDS:
             raise UserError(f"{path}: not a route file but {_OTHER_KINDS[tag]}")
+        _check_includes(path)
 
 
 def _check_additional(files: list[Path]) -> None:
@@ -103,6 +105,19 @@ def _check_additional(files: list[Path]) -> None:
         tag = root_tag(path, "additional file")
         if tag in _OTHER_KINDS:
             raise UserError(f"{path}: not an additional file but {_OTHER_KINDS[tag]}")
+        _check_includes(path)
+
+
+def _check_includes(path: Path) -> None:
+    """Refuse (one line) ``<include href>`` files that include each other, on which SUMO
+    crashes without a message."""
+    cycle = include_cycle(path)
+    if cycle is not None:
+        chain = " -> ".join(p.name for p in cycle)
+        raise UserError(
+            f"{path}: its <include href> files include each other ({chain}), which SUMO cannot "
+            "load; include each file once, from one side"
+        )
 
 
 #: Fewer free cells per drone than this, and every swarm covers nearly all cells: the comparison
