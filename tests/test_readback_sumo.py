@@ -108,6 +108,16 @@ SUMO_READ_BACK: dict[str, tuple[Callable[[Path], None], str, tuple[str, ...]]] =
         "mfd.json: rejected_fit.a = 0.5, but tape.parquet replayed through its MFD gives 0.",
         ("report",),
     ),
+    "run.json's monitoring step is not its traffic's": (
+        _run_json(lambda r: r["monitoring"].update(step_s=99.0)),
+        "run.json: monitoring.step_s = 99.0, but traffic.step_s = ",
+        ("report",),
+    ),
+    "run.json's network sha256 is not its network file's": (
+        _run_json(lambda r: r["traffic"]["identity"].update(net_sha256="0" * 64)),
+        "run.json: traffic.identity.net_sha256 = 0000000000000000..., but its files record",
+        ("report",),
+    ),
     "mfd.json leaves out the fit the run rejected": (
         _mfd_json(lambda m: m.pop("rejected_fit")),
         'mfd.json: rejected_fit = null, but tape.parquet replayed through its MFD gives {"a": ',

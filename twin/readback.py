@@ -348,7 +348,38 @@ def check_run_json(path: Path, run: Any) -> dict[str, Any]:
             f"{path}: traffic.identity.grid = {str(grid)[:40]} must be [nx, ny], whole numbers "
             f"of at least 1; {RERUN}"
         )
+    check_same_fields(path, run)
     return run
+
+
+#: Fields of run.json that record one thing twice: each pair must agree.
+SAME_FIELDS = (
+    ("monitoring.step_s", "traffic.step_s"),
+    ("traffic.identity.cell_m", "traffic.cell_m"),
+)
+
+
+def check_same_fields(path: Path, run: dict[str, Any]) -> None:
+    """run.json's fields that record one thing twice agree (:data:`SAME_FIELDS`), and its
+    network's sha256 in ``traffic.identity`` is the one of the network among its files."""
+    for a, b in SAME_FIELDS:
+        x, y = _dotted(run, a), _dotted(run, b)
+        if x is not None and y is not None and x != y:
+            raise UserError(f"{path}: {a} = {str(x)[:40]}, but {b} = {str(y)[:40]}; {RERUN}")
+    identity = _dotted(run, "traffic.identity")
+    if not isinstance(identity, dict) or not isinstance(identity.get("files"), list):
+        return
+    nets = {
+        f.get("sha256")
+        for f in identity["files"]
+        if isinstance(f, dict) and f.get("role") == "network"
+    }
+    net = identity.get("net_sha256")
+    if nets and net is not None and net not in nets:
+        raise UserError(
+            f"{path}: traffic.identity.net_sha256 = {str(net)[:16]}..., but its files record "
+            f"the network's as {str(sorted(nets)[0])[:16]}...; {RERUN}"
+        )
 
 
 def check_ranges(path: Path, node: Any, ranges: Mapping[str, tuple[Any, str]]) -> None:
