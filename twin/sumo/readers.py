@@ -402,12 +402,15 @@ def include_cycle(path: Path) -> list[Path] | None:
         found = [e.get("href") for e in root.iter() if local_name(e) == "include"]
         return [Path(os.path.normpath((current.parent / h).absolute())) for h in found if h]
 
+    done: set[Path] = set()  # files whose includes hold no cycle: each searched once
+
     def walk(chain: list[Path]) -> list[Path] | None:
-        for child in hrefs(chain[-1]):
+        for child in dict.fromkeys(hrefs(chain[-1])):
             if child in chain:
                 return [*chain, child]
-            if len(chain) < 50 and (cycle := walk([*chain, child])) is not None:
+            if child not in done and len(chain) < 50 and (cycle := walk([*chain, child])):
                 return cycle
+        done.add(chain[-1])
         return None
 
     return walk([Path(os.path.normpath(Path(path).absolute()))])
