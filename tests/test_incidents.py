@@ -192,7 +192,15 @@ FORGED_INCIDENTS = {
     ),
     "incidents emptied": (
         _incidents_edited(lambda incidents: []),
-        "per_seed.csv: incidents = 2 for seed 0, swarm ",
+        "incidents.json: 0 incidents, but run.json's traffic.incidents schedules 2",
+    ),
+    "a configured cell moved": (
+        _incidents_edited(lambda x: _update(x, 1, cell=[0, 2])),
+        "incidents.json: [1].cell = [0, 2], but run.json's traffic.incidents[1] schedules [1, 2]",
+    ),
+    "a longer duration with its end": (
+        _incidents_edited(lambda x: _update(x, 1, duration_min=3.0, end_s=x[1]["end_s"] + 60.0)),
+        "incidents.json: [1].end_s = ",
     ),
     "edge moved out of its cell": (
         _incidents_edited(lambda x: _update(x, 0, edge="A0A1")),
@@ -237,6 +245,82 @@ def test_a_forged_incidents_json_is_refused(incident_run, tmp_path, capsys, case
     shutil.copytree(incident_run, run)
     load_run(run)  # as written, the incidents read back
     change, words = FORGED_INCIDENTS[case]
+    change(run)
+    write_manifest(run)
+    capsys.readouterr()
+    assert twin_main(["report", str(run), "--no-animation"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert words in err and err.count("\n") == 0 and "Traceback" not in err, err
+    assert not (run / "report").exists()
+
+
+@pytest.fixture(scope="module")
+def edge_incident_run(tmp_path_factory):
+    """A small `twin run` with one closure of a named edge."""
+    pytest.importorskip("libsumo")
+    from helpers import small_sumo_scenario
+
+    from twin.cli import main as twin_main
+
+    folder = tmp_path_factory.mktemp("edge-incident")
+    small_sumo_scenario(folder, horizon=8)
+    with open(folder / "small.toml", "a") as fh:
+        fh.write(_incident(where='edge = "B1B2"', when="step = 2", minutes=2.0))
+    argv = ["run", "--config", str(folder / "small.toml"), "--out", str(folder / "run"),
+            "--no-report", "--quiet", "--swarms", "random,greedy"]  # fmt: skip
+    assert twin_main(argv) == 0
+    return folder / "run"
+
+
+def _run_json_edited(change):
+    def edit(run):
+        meta = json.loads((run / "run.json").read_text())
+        change(meta["traffic"])
+        (run / "run.json").write_text(json.dumps(meta))
+
+    return edit
+
+
+# an edge-closure run whose incidents.json or run.json was forged -> the refusal's words
+FORGED_SCHEDULE = {
+    "the edge swapped for another through its cell": (
+        _incidents_edited(lambda x: _update(x, 0, edge="C1B1")),
+        'incidents.json: [0].edge = "C1B1", but run.json\'s traffic.incidents[0] schedules "B1B2"',
+    ),
+    "the schedule left out of run.json": (
+        _run_json_edited(lambda traffic: traffic.pop("incidents")),
+        "run.json: traffic.incidents (the configured schedule) is missing, but ",
+    ),
+    "the schedule's edge forged alone": (
+        _run_json_edited(lambda traffic: traffic["incidents"][0].update(edge="B2B1")),
+        'incidents.json: [0].edge = "B1B2", but run.json\'s traffic.incidents[0] schedules "B2B1"',
+    ),
+    "a schedule that is no incident": (
+        _run_json_edited(lambda traffic: traffic["incidents"][0].update(kind="flood")),
+        "run.json: traffic.incidents[0] is no incident (",
+    ),
+    "a second incident scheduled": (
+        _run_json_edited(lambda traffic: traffic["incidents"].append(traffic["incidents"][0])),
+        "incidents.json: 1 incidents, but run.json's traffic.incidents schedules 2",
+    ),
+}
+
+
+@pytest.mark.parametrize("case", list(FORGED_SCHEDULE))
+def test_incidents_json_holds_the_schedule_run_json_records(
+    edge_incident_run, tmp_path, capsys, case
+):
+    import shutil
+
+    from twin.cli import main as twin_main
+    from twin.report.load import load_run
+    from twin.runs import write_manifest
+
+    run = tmp_path / "run"
+    shutil.copytree(edge_incident_run, run)
+    assert json.loads((run / "run.json").read_text())["traffic"]["incidents"][0]["edge"] == "B1B2"
+    load_run(run)  # as written, the incidents read back
+    change, words = FORGED_SCHEDULE[case]
     change(run)
     write_manifest(run)
     capsys.readouterr()

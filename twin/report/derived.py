@@ -374,6 +374,75 @@ def check_incident_steps(primary: Primary) -> None:
                 )
 
 
+def check_incident_schedule(primary: Primary) -> None:
+    """``incidents.json`` holds, in order, the incidents run.json's ``traffic.incidents``
+    schedules (``[[traffic.incidents]]`` as configured,
+    :func:`twin.sumo.incidents.configured_schedule`): each one's kind, lane, window
+    (:func:`twin.sumo.incidents.incident_window`, with run.json's ``traffic.begin`` and
+    ``step_s``) and its edge or cell as configured (an edge chosen from a cell at the onset is
+    checked against the network by :func:`check_incident_records`, which runs first)."""
+    from pydantic import ValidationError
+
+    from twin.clock import clock_seconds
+    from twin.config import IncidentSettings
+    from twin.sumo.incidents import incident_window
+
+    traffic = primary.run.get("traffic")
+    if not isinstance(traffic, dict) or traffic.get("kind") != "sumo":
+        return
+    run_json, path = primary.run_dir / "run.json", primary.run_dir / "incidents.json"
+    recorded = primary.incidents or []
+    if "incidents" not in traffic:
+        if recorded:
+            raise UserError(
+                f"{run_json}: traffic.incidents (the configured schedule) is missing, but "
+                f"{path} records {len(recorded)} incidents; {RERUN}"
+            )
+        return
+    configured = traffic["incidents"]
+    if not isinstance(configured, list):
+        raise UserError(f"{run_json}: traffic.incidents is no list of incidents; {RERUN}")
+    settings = []
+    for n, item in enumerate(configured):
+        try:
+            settings.append(IncidentSettings.model_validate(item))
+        except ValidationError as exc:
+            why = exc.errors()[0]["msg"] if exc.errors() else str(exc)
+            raise UserError(
+                f"{run_json}: traffic.incidents[{n}] is no incident ({why}); {RERUN}"
+            ) from None
+    if len(settings) != len(recorded):
+        raise UserError(
+            f"{path}: {len(recorded)} incidents, but run.json's traffic.incidents schedules "
+            f"{len(settings)}; {RERUN}"
+        )
+    begin, step_s = traffic.get("begin"), traffic.get("step_s")
+    t0 = clock_seconds(begin) if isinstance(begin, str) else None
+    if t0 is None or isinstance(step_s, bool) or not isinstance(step_s, (int, float)):
+        return  # run.json's own checks refuse these
+    for n, (want, inc) in enumerate(zip(settings, recorded, strict=True)):
+        start, end = incident_window(want, n, t0, step_s)
+        expected = {
+            "kind": want.kind,
+            "lane": want.lane if want.kind == "lane_closed" else None,
+            "begin_s": start,
+            "end_s": end,
+            "duration_min": want.duration_min,
+        }
+        if want.edge is not None:
+            expected["edge"] = want.edge
+        if want.cell is not None:
+            expected["cell"] = list(want.cell)
+        for name, value in expected.items():
+            have = inc.get(name)
+            same = _same(have, value) if isinstance(value, float) else have == value
+            if not same:
+                raise UserError(
+                    f"{path}: [{n}].{name} = {_json_text(have)}, but run.json's "
+                    f"traffic.incidents[{n}] schedules {_json_text(value)}; {RERUN}"
+                )
+
+
 #: The kinds of incident a run applies (:class:`twin.config.IncidentSettings`).
 INCIDENT_KINDS = ("lane_closed", "edge_closed", "vehicle_stopped")
 
@@ -1142,6 +1211,7 @@ def check_derived(primary: Primary, tables: dict[str, pd.DataFrame | None]) -> N
     check_seed_tapes(primary)
     check_synthetic_maps(primary)
     check_incident_records(primary)
+    check_incident_schedule(primary)
     per_seed = tables.get("per_seed.csv")
     if per_seed is None:  # summary.csv is then checked against the primary files themselves
         parts = [part(primary, pd.DataFrame()) for part in PER_SEED_PARTS]

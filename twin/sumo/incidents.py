@@ -55,6 +55,13 @@ def incident_window(inc, n: int, begin_s: float, step_s: float) -> tuple[float, 
     return begin, begin + 60.0 * inc.duration_min
 
 
+def configured_schedule(incidents: list[Any]) -> list[dict[str, Any]]:
+    """``[[traffic.incidents]]`` as configured (run.json ``traffic.incidents``): what an
+    ``incidents.json`` of the run must hold, read back by
+    :func:`twin.report.derived.check_incident_schedule`."""
+    return [inc.model_dump(mode="json") for inc in incidents]
+
+
 def net_edges(net_file) -> dict[str, int]:
     """Non-internal edges of a network and their number of lanes."""
     import xml.etree.ElementTree as ET

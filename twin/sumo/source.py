@@ -31,6 +31,7 @@ from twin.grid import Grid
 from twin.mfd import MFD, MFDImportance
 from twin.sumo.cells import CellGeometry
 from twin.sumo.detectors import DetectorPlan
+from twin.sumo.incidents import configured_schedule
 from twin.sumo.readers import file_list, included_files, naming_the_sumocfg, read_sumocfg
 from twin.sumo.session import ANTI_GRIDLOCK_OPTIONS, SumoRunError, SumoSession
 from twin.timing import (
@@ -404,6 +405,7 @@ class SumoTraffic(TrafficSource):
             "read_offsets_s": s.read_offsets(),
             "error": self.error,
             "sumo_outputs": self.output_files(),
+            "incidents": configured_schedule(s.incidents),
             "identity": self.identity(),
         }
 
