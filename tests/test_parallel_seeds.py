@@ -101,6 +101,54 @@ def test_gui_with_workers_is_refused(small, tmp_path, capsys):
     assert code == 2 and "--workers" in err and err.count("\n") == 0, err
 
 
+def _twin_process(small: Path, out: Path, *extra: str) -> subprocess.CompletedProcess:
+    """``twin run`` on the small scenario over 2 seeds in its own process (the workers' output
+    reaches its stderr)."""
+    argv = [
+        sys.executable,
+        "-m",
+        "twin",
+        "run",
+        "--config",
+        str(small / "small.toml"),
+        "--seeds",
+        "2",
+        "--out",
+        str(out),
+        "--no-report",
+        "--quiet",
+        "--cell-m",
+        "400",
+        *extra,
+    ]  # fmt: skip (coarse cells: a notice of each seed)
+    return subprocess.run(argv, capture_output=True, text=True, timeout=600, cwd=small)
+
+
+def test_workers_say_what_one_after_another_says(small, tmp_path):
+    """With --workers, a refusal that comes when a seed's simulation starts is its one line
+    (the workers' notices are dropped with it), and a run's notices are those of the same run
+    without workers, each once."""
+    bad = tmp_path / "bad.add.xml"
+    bad.write_text(
+        '<additional><inductionLoop id="x" lane="nolane_0" pos="1" period="60" file="x.xml"/>'
+        "</additional>"
+    )
+    for extra in ((), ("--workers", "2")):
+        done = _twin_process(small, tmp_path / f"bad{len(extra)}", "--additional", str(bad), *extra)
+        err = done.stderr.strip()
+        assert done.returncode == 2 and err.count("\n") == 0, (extra, err)
+        assert "nolane_0" in err and "Traceback" not in err, err
+        assert "notice" not in err, err
+    said = {}
+    for extra in ((), ("--workers", "2")):
+        done = _twin_process(small, tmp_path / f"good{len(extra)}", *extra)
+        assert done.returncode == 0, done.stderr
+        said[extra] = sorted(done.stderr.strip().splitlines())
+    assert said[()] == said[("--workers", "2")]
+    assert len(said[()]) == len(set(said[()])), said[()]  # each notice once
+    assert any("notice: " in line for line in said[()]), said[()]
+
+
 def test_a_failed_seed_stops_the_seeds_after_it_as_one_after_another(small, monkeypatch):
     """Seed 1's simulation fails mid-run: kept is seed 0, seed 1 is left out of the tables
     (stopped before its last step) and seed 2 never counts, as sequentially, whatever order

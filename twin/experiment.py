@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from twin.boundary import notify, release_notices
+from twin.boundary import count_said, drop_notices, hold_notices, notify, release_notices
 from twin.config import ScenarioConfig, check_faults, check_swarm_fits, start_positions
 from twin.errors import UserError
 from twin.patrol import INTERRUPTED, PatrolResult, run_patrol
@@ -417,6 +417,7 @@ class SeedOutcome:
     traffic: dict[str, Any]
     policies: dict[str, dict[str, Any]]
     source: TrafficSource | None  # the source as the run left it, when the caller keeps sources
+    notices: list[str] = field(default_factory=list)  # said in the worker, said here in order
 
 
 def run_seed_in_worker(
@@ -438,12 +439,21 @@ def run_seed_in_worker(
     if stop():
         return None
     seed = list(experiment.seeds)[index]
-    source = build_source(experiment, index)
+    # the seed's notices go back with its outcome and are said by the parent (once per
+    # command); a seed that fails is its error alone, as without workers
+    count_said(False)
+    drop_notices()
+    hold_notices(to_end=True)
     try:
-        result, traffic, policies = _run_seed(experiment, index, seed, source, stop)
+        source = build_source(experiment, index)
+        try:
+            result, traffic, policies = _run_seed(experiment, index, seed, source, stop)
+        finally:
+            source.close()
     finally:
-        source.close()
-    return SeedOutcome(index, result, traffic, policies, source if keep_source else None)
+        notices = drop_notices()
+    kept = source if keep_source else None
+    return SeedOutcome(index, result, traffic, policies, kept, notices)
 
 
 def _run_seeds_in_workers(
@@ -494,6 +504,8 @@ def _run_seeds_in_workers(
                 raise _worker_error(error, seeds[n])
             if bar is not None:
                 bar.update(1)
+            for line in value.notices if value is not None else []:
+                notify(line)
             done[n] = value  # None: stopped before it started
             if value is not None and value.result.error and not stop():
                 signal_file.request(n)  # the seeds after a failed one stop
