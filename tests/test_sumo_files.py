@@ -429,8 +429,33 @@ def _included_ssm_type(d: Path) -> None:
     trips.write_text(text[:start] + '<include href="types.xml"/>' + text[start:])
 
 
+def _ssm_type_without_file(d: Path) -> None:
+    """``small.trips.xml``'s default vehicle type has an SSM device and names no file (SUMO
+    would write one ``ssm_<vehicle>.xml`` per vehicle into its working folder)."""
+    trips = d / "small.trips.xml"
+    text = trips.read_text()
+    start = text.index(">", text.index("<routes")) + 1
+    kind = '<vType id="DEFAULT_VEHTYPE"><param key="has.ssm.device" value="true"/></vType>'
+    trips.write_text(text[:start] + kind + text[start:])
+
+
 # name -> (output options of the sumocfg, how to change the case's files, what RUN/sumo/ holds)
 ESCAPES = {
+    "SSM's file named by a device option (SUMO types it a string, not a file)": (
+        '<device.ssm.probability value="1"/><device.ssm.file value="ssm.out.xml"/>',
+        None,
+        ["det.add.xml", "det.xml", "ssm.out.xml"],
+    ),
+    "SSM devices of a device option without a file": (
+        '<device.ssm.probability value="1"/>',
+        None,
+        ["det.add.xml", "det.xml", "ssm.xml"],
+    ),
+    "SSM devices of a vehicle type without a file": (
+        "",
+        _ssm_type_without_file,
+        ["det.add.xml", "det.xml", "ssm.xml"],
+    ),
     "outputs named by SUMO's synonyms": (
         '<statistics-output value="stats.xml"/><log-file value="sumo.log"/>'
         '<tripinfo v="trips.out.xml"/>',
@@ -464,20 +489,25 @@ ESCAPES = {
 
 
 @pytest.mark.parametrize("case", list(ESCAPES))
-def test_outputs_in_every_form_sumo_reads_go_into_the_run_folder(scenario, tmp_path, capsys, case):
+def test_outputs_in_every_form_sumo_reads_go_into_the_run_folder(
+    scenario, tmp_path, capsys, monkeypatch, case
+):
     """Outputs named as SUMO also reads them (an option's synonym, an element in SUMO's XML
-    namespace, a device parameter in a UTF-16 file) land in RUN/sumo/, never beside the
-    scenario's files."""
+    namespace, a device parameter in a UTF-16 file, SSM devices with or without a file) land
+    in RUN/sumo/, never beside the scenario's files nor in the working folder."""
     output, change, want = ESCAPES[case]
     cfg = _detector_case(scenario, tmp_path / "case", output)
     if change is not None:
         change(tmp_path / "case")
     before = tree_hash(tmp_path / "case")
+    (tmp_path / "cwd").mkdir()
+    monkeypatch.chdir(tmp_path / "cwd")
     out = tmp_path / "run"
     code = _run(scenario, out, "--sumocfg", str(cfg))
     err = capsys.readouterr().err
     assert code == 0, err
     assert tree_hash(tmp_path / "case") == before
+    assert list((tmp_path / "cwd").iterdir()) == []
     assert sorted(p.name for p in (out / "sumo").iterdir()) == want
 
 

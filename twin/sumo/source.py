@@ -159,6 +159,7 @@ class SumoTraffic(TrafficSource):
 
             options, plan = redirect_outputs(s.sumocfg, options, output_dir)
             route_files = [plan.routes(r) for r in route_files]
+            options = plan.device_defaults(options)
             self._copies = {c: o for o, c in plan.copies.items() if c != o}
             self.outputs = [*plan.targets.values(), *self._copies]
             if s.detectors.loops:
