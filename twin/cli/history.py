@@ -173,14 +173,8 @@ def main(args: argparse.Namespace) -> int:
     if args.dynamics is not None:
         history = dynamics_days(args)
         atomic_write(make_parent(args.out, "--out"), history.save)
-        free = ~history.obstacles
-        print(
-            f"history: {history.n_runs} days of the dynamic generator (seeds "
-            f"{args.seed}-{args.seed + args.days - 1}), {free.shape[0]} x {free.shape[1]} "
-            f"cells, T = {history.horizon}; mean importance {history.mean[:, free].mean():.3f}, "
-            f"mean std {np.sqrt(history.var[:, free]).mean():.3f}"
-        )
-        print(f"history file: {args.out}")
+        days = f"days of the dynamic generator (seeds {args.seed}-{args.seed + args.days - 1})"
+        _say_written(history, days, args.out)
         return 0
     paths = [t for p in args.sources for t in tapes_of(p)]
     if len(paths) < 2:
@@ -216,7 +210,7 @@ def main(args: argparse.Namespace) -> int:
                 )
             seeds[seed] = path
         maps.append(truth)
-    _, obstacles, (horizon, step_s, begin) = first
+    _, obstacles, (_, step_s, begin) = first
     history = fit_history(
         maps,
         obstacles,
@@ -227,20 +221,29 @@ def main(args: argparse.Namespace) -> int:
         fit_detector_calibration(stations),
     )
     atomic_write(make_parent(args.out, "--out"), history.save)
+    simulations = f"simulations (SUMO seeds {', '.join(map(str, seeds)) or 'unknown'})"
+    _say_written(history, simulations, args.out, f", from {begin or '?'}", len(stations))
+    return 0
+
+
+def _say_written(history, days: str, out: Path, start: str = "", with_detectors: int = 0) -> None:
+    """What ``twin history`` wrote: its days, grid, steps and spread (mean and standard
+    deviation over days, the median autocorrelation rho), the detector calibration when there
+    is one, and the file."""
+    import numpy as np
+
     free = ~history.obstacles
     print(
-        f"history: {history.n_runs} simulations (SUMO seeds "
-        f"{', '.join(map(str, seeds)) or 'unknown'}), {obstacles.shape[0]} x "
-        f"{obstacles.shape[1]} cells, T = {horizon}, from {begin or '?'}; mean importance "
-        f"{history.mean[:, free].mean():.3f}, mean std {np.sqrt(history.var[:, free]).mean():.3f}"
-        f", median rho {np.median(history.rho[free]):.2f}"
+        f"history: {history.n_runs} {days}, {free.shape[0]} x {free.shape[1]} cells, "
+        f"T = {history.horizon}{start}; mean importance {history.mean[:, free].mean():.3f}, "
+        f"mean std {np.sqrt(history.var[:, free]).mean():.3f}, "
+        f"median rho {np.median(history.rho[free]):.2f}"
     )
     if history.detectors is not None:
         c = history.detectors
         print(
-            f"detector calibration: {len(c.cells)} station cells from {len(stations)} "
+            f"detector calibration: {len(c.cells)} station cells from {with_detectors} "
             f"simulations with detectors; bias {c.bias.min():+.3f} .. {c.bias.max():+.3f}, "
             f"std {np.sqrt(c.var).min():.3f} .. {np.sqrt(c.var).max():.3f}"
         )
-    print(f"written: {args.out}")
-    return 0
+    print(f"written: {out}")
