@@ -39,7 +39,7 @@ and ``network.json`` are still checked against the tapes' metadata); the ceiling
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -935,25 +935,19 @@ def check_tape_maps(primary: Primary) -> None:
     source = TapeTraffic(Tape.read(path), source_name=str(path))
     npz = primary.run_dir / "importance.npz"
     kept = maps.astype(np.float32)  # as kept: float32
-    k = -1
-    replays = []
-    for k, replayed in enumerate(source.importance_maps()):
-        replays.append(np.array(replayed, dtype=np.float64))
-        if k >= len(kept):
-            continue  # the MFD observed every snapshot of the tape
-        replayed = np.asarray(replayed, dtype=np.float32)
-        off = replayed != kept[k]
-        if off.any():
-            i, j = (int(v) for v in np.argwhere(off)[0])
-            raise UserError(
-                f"{npz}: importance at step {k}, cell ({i}, {j}) of seed {primary.first_seed} "
-                f"is {_show(kept[k, i, j])}, but tape.parquet replayed through its MFD gives "
-                f"{_show(replayed[i, j])}; {RERUN}"
-            )
-    if k + 1 < len(kept):
+    replays: list[np.ndarray] = []  # the MFD observes every snapshot of the tape
+    given, off = _first_differing_map(source.importance_maps(), kept, collect=replays)
+    if off is not None:
+        k, i, j, replayed = off
+        raise UserError(
+            f"{npz}: importance at step {k}, cell ({i}, {j}) of seed {primary.first_seed} "
+            f"is {_show(kept[k, i, j])}, but tape.parquet replayed through its MFD gives "
+            f"{_show(replayed)}; {RERUN}"
+        )
+    if given < len(kept):
         raise UserError(
             f"{npz}: holds {len(kept)} maps of seed {primary.first_seed}, but tape.parquet "
-            f"replays {k + 1}; {RERUN}"
+            f"replays {given}; {RERUN}"
         )
     check_mfd_files(primary.run_dir, source.model_observed())
     if primary.first_seed is not None and replays:
@@ -996,24 +990,46 @@ def check_synthetic_maps(primary: Primary) -> None:
             f"({type(exc).__name__}: {str(exc)[:60]}); {RERUN}"
         ) from None
     kept = maps.astype(np.float32)
-    k = -1
-    for k, generated in enumerate(source.importance_maps()):
-        if k >= len(kept):
-            break
-        generated = np.asarray(generated, dtype=np.float32)
-        off = ~(np.abs(generated - kept[k]) <= MAP_ROUNDING * np.maximum(1.0, np.abs(kept[k])))
-        if off.any():
-            i, j = (int(v) for v in np.argwhere(off)[0])
-            raise UserError(
-                f"{path}: traffic (disturbances, beta1, beta2, z_lo, z_hi) generates importance "
-                f"{_show(generated[i, j])} at step {k}, cell ({i}, {j}), but importance.npz "
-                f"holds {_show(kept[k, i, j])}; {RERUN}"
-            )
-    if k + 1 < len(kept):
+    given, off = _first_differing_map(source.importance_maps(), kept, MAP_ROUNDING)
+    if off is not None:
+        k, i, j, generated = off
         raise UserError(
-            f"{path}: traffic.horizon = {traffic['horizon']} generates {k + 1} maps, but "
+            f"{path}: traffic (disturbances, beta1, beta2, z_lo, z_hi) generates importance "
+            f"{_show(generated)} at step {k}, cell ({i}, {j}), but importance.npz "
+            f"holds {_show(kept[k, i, j])}; {RERUN}"
+        )
+    if given < len(kept):
+        raise UserError(
+            f"{path}: traffic.horizon = {traffic['horizon']} generates {given} maps, but "
             f"importance.npz holds {len(kept)}; {RERUN}"
         )
+
+
+def _first_differing_map(
+    maps: Iterable[np.ndarray],
+    kept: np.ndarray,
+    rounding: float = 0.0,
+    collect: list[np.ndarray] | None = None,
+) -> tuple[int, tuple[int, int, int, float] | None]:
+    """Walk ``maps`` step by step against ``kept`` (float32, as ``importance.npz`` keeps them;
+    a difference over ``rounding`` relative, or any NaN, counts): how many maps were walked,
+    and the first differing ``(k, i, j, value given)`` or None. With ``collect``, every map
+    given (also those past the kept ones) is appended there as float64; without it the walk
+    ends one map past the kept ones."""
+    k = -1
+    for k, given in enumerate(maps):
+        if collect is not None:
+            collect.append(np.array(given, dtype=np.float64))
+        if k >= len(kept):
+            if collect is None:
+                break
+            continue
+        given = np.asarray(given, dtype=np.float32)
+        off = ~(np.abs(given - kept[k]) <= rounding * np.maximum(1.0, np.abs(kept[k])))
+        if off.any():
+            i, j = (int(v) for v in np.argwhere(off)[0])
+            return k + 1, (k, i, j, float(given[i, j]))
+    return k + 1, None
 
 
 def check_same_tape(have: Path, want: Path) -> None:
