@@ -61,7 +61,13 @@ def good_tape(horizon: int = HORIZON, last: int | None = None) -> Tape:
         lane_km=rng.uniform(0.5, 3.0, (NX, NY)),
         speed_limit=np.full((NX, NY), 13.9),
         horizon=horizon,
-        settings={"mfd_fit": "online", "detection_p": 1.0, "seed": 1},
+        settings={
+            "mfd_fit": "online",
+            "detection_p": 1.0,
+            "seed": 1,
+            "mfd_prior": [0.7, 40.0],
+            "reads_per_step": 1,
+        },
     )
 
 
@@ -263,6 +269,23 @@ ABSURD_TAPES: dict[str, tuple[Callable[[Path], Path], str]] = {
             ("reads_per_step", 1.5),
         )
     },
+    **{
+        f"observation setting {key} left out": (
+            lambda p, key=key: write_tape(
+                p,
+                meta=lambda m, key=key: {
+                    **m,
+                    "settings": {k: v for k, v in m["settings"].items() if k != key},
+                },
+            ),
+            f"tape metadata settings lack {key} (a tape records every setting",
+        )
+        for key in ("reads_per_step", "mfd_prior", "mfd_fit", "detection_p")
+    },
+    "no settings at all": (
+        lambda p: write_tape(p, meta=lambda m: {k: v for k, v in m.items() if k != "settings"}),
+        "tape metadata settings lack mfd_fit, mfd_prior, detection_p, reads_per_step",
+    ),
     "times shifted against the recorded begin": (
         lambda p: write_tape(
             p, lambda f: f.assign(time_s=f["time_s"] + 7.0), _settings(step_s=75.0, begin="07:00")

@@ -419,12 +419,24 @@ def _number(value: Any) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
+#: The settings a replay observes a tape with, which every tape records: left out, a replay
+#: would observe other maps than the run (``reads_per_step`` divides the counts).
+REPLAY_SETTINGS = ("mfd_fit", "mfd_prior", "detection_p", "reads_per_step")
+
+
 def _check_observation_settings(path: Path, settings: dict[str, Any]) -> None:
-    """The settings a replay observes the tape with, in the ranges of ``[traffic.mfd]``:
-    ``mfd_fit`` online or fixed, ``mfd_prior`` ``[a, k_c]`` with ``0 < a <= 1`` and
-    ``k_c > 0``, ``detection_p`` in (0, 1]; its clock: ``step_s`` above 0, ``warmup_s`` >= 0,
-    ``reads_per_step`` a whole number >= 1; each left out takes the live run's default."""
+    """The settings a replay observes the tape with (:data:`REPLAY_SETTINGS`, each recorded),
+    in the ranges of ``[traffic.mfd]``: ``mfd_fit`` online or fixed, ``mfd_prior`` ``[a, k_c]``
+    with ``0 < a <= 1`` and ``k_c > 0``, ``detection_p`` in (0, 1]; its clock: ``step_s``
+    above 0, ``warmup_s`` >= 0 (each optional: they only label the steps),
+    ``reads_per_step`` a whole number >= 1."""
     fix = "the tape is corrupt, record it again"
+    missing = [key for key in REPLAY_SETTINGS if key not in settings]
+    if missing:
+        raise UserError(
+            f"{path}: tape metadata settings lack {', '.join(missing)} (a tape records every "
+            f"setting its replay observes with: {', '.join(REPLAY_SETTINGS)}); {fix}"
+        )
     fit = settings.get("mfd_fit", "online")
     if fit not in ("online", "fixed"):
         raise UserError(
