@@ -793,10 +793,11 @@ TAPE_REPLAY_ROWS = 1_000_000
 
 
 #: The settings of a SUMO run's traffic that its tapes record (:meth:`twin.sumo.source.
-#: SumoTraffic.metadata`) and run.json repeats: its timing (step 0 at ``begin``, the reads of
-#: a step) and its MFD observation.
-TAPE_SETTINGS = ("begin", "warmup_s", "step_s", "horizon", "reads_per_step", "read_offsets_s",
-                 "mesoscopic", "mfd_fit", "mfd_prior", "detection_p")  # fmt: skip
+#: SumoTraffic.metadata`) and run.json repeats: its scenario (name, files, incidents), its
+#: timing (step 0 at ``begin``, the reads of a step) and its MFD observation.
+TAPE_SETTINGS = ("name", "net_file", "route_files", "sumocfg", "begin", "warmup_s", "step_s",
+                 "horizon", "reads_per_step", "read_offsets_s", "mesoscopic", "mfd_fit",
+                 "mfd_prior", "detection_p", "incidents")  # fmt: skip
 
 
 def check_tape_seeds(primary: Primary) -> None:
