@@ -118,6 +118,11 @@ SUMO_READ_BACK: dict[str, tuple[Callable[[Path], None], str, tuple[str, ...]]] =
         "run.json: monitoring.step_s = 99.0, but traffic.step_s = ",
         ("report",),
     ),
+    "run.json's versions name another SUMO than its traffic's identity": (
+        _run_json(lambda r: r["versions"].update({"eclipse-sumo": "1.0"})),
+        "run.json: versions.eclipse-sumo = 1.0, but traffic.identity.sumo = ",
+        ("report",),
+    ),
     "run.json's network sha256 is not its network file's": (
         _run_json(lambda r: r["traffic"]["identity"].update(net_sha256="0" * 64)),
         "run.json: traffic.identity.net_sha256 = 0000000000000000..., but its files record",
