@@ -212,6 +212,12 @@ def _step_time(f: pd.DataFrame, step: int, time_s: float) -> pd.DataFrame:
     return f.assign(time_s=np.where(f["step"] == step, time_s, f["time_s"]))
 
 
+def _zero_at(rows: list[list[float]], i: int, j: int) -> list[list[float]]:
+    rows = [list(r) for r in rows]
+    rows[i][j] = 0.0
+    return rows
+
+
 def _settings(**more) -> Callable[[dict], dict]:
     return lambda m: {**m, "settings": {**m["settings"], **more}}
 
@@ -267,8 +273,16 @@ ABSURD_TAPES: dict[str, tuple[Callable[[Path], Path], str]] = {
             ("warmup_s", -1.0),
             ("reads_per_step", 0),
             ("reads_per_step", 1.5),
+            ("mfd_prior", [1e-300, 40.0]),
+            ("mfd_prior", [0.7, 1e-300]),
+            ("mfd_prior", [0.7, 1e300]),
+            ("detection_p", 1e-300),
         )
     },
+    "a free cell without lanes": (
+        lambda p: write_tape(p, meta=lambda m: {**m, "lane_km": _zero_at(m["lane_km"], 1, 2)}),
+        "tape metadata lane_km = 0 at cell (1, 2), which its obstacles leave free",
+    ),
     **{
         f"observation setting {key} left out": (
             lambda p, key=key: write_tape(

@@ -42,6 +42,7 @@ from pydantic import (
 from twin.clock import CLOCK_HINT, clock_seconds
 from twin.errors import UserError
 from twin.grid import Grid
+from twin.mfd import SETTING_RANGES as MFD_SETTING_RANGES
 from twin.resources import shipped_config as shipped_config  # re-export (moved there)
 from twin.scores import ScoreParams
 from twin.swarms import check_swarm_name, make_policy
@@ -257,11 +258,19 @@ class SyntheticConfig(StrictModel):
         return value
 
 
+def _setting_range(name: str) -> Any:
+    low, high = MFD_SETTING_RANGES[name]
+    return Annotated[float, Field(ge=low, le=high)]
+
+
 class MFDSettings(StrictModel):
+    """``[traffic.mfd]``: the MFD's form ``v(k) = a v_lim exp(-k / k_c)`` (prior, or fixed)
+    and the share of vehicles a drone sees, in :data:`twin.mfd.SETTING_RANGES`."""
+
     fit: Literal["online", "fixed"] = "online"
-    a: Annotated[float, Field(gt=0, le=1)] = 0.7
-    k_c: Annotated[float, Field(gt=0)] = 40.0
-    detection_p: Annotated[float, Field(gt=0, le=1)] = 1.0
+    a: _setting_range("a") = 0.7
+    k_c: _setting_range("k_c") = 40.0
+    detection_p: _setting_range("detection_p") = 1.0
 
 
 class IncidentSettings(StrictModel):
