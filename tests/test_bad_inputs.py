@@ -733,3 +733,25 @@ def test_routes_naming_unknown_edges_are_refused(tmp_path, capsys, grid_net):
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1].startswith("twin: error:") and "'nowhere'" in err[-1]
     assert not out.exists()
+
+
+@pytest.mark.parametrize("reader", ["history", "tape", "checkpoint"])
+def test_a_pipe_given_as_a_file_twin_seeks_in_is_named_as_a_pipe(tmp_path, reader):
+    """``--history <(cat h.npz)``, a tape or a checkpoint through a FIFO: refused as a pipe
+    (the file itself is wanted), never as a file that does not exist; nothing blocks on it."""
+    import os
+
+    from twin.belief import History
+    from twin.errors import UserError
+    from twin.traffic.tape import Tape
+
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    if reader == "checkpoint":
+        pytest.importorskip("torch")
+        from twin.learning.checkpoint import load_qnet as read
+    else:
+        read = {"history": History.load, "tape": Tape.read}[reader]
+    with pytest.raises(UserError, match="is a pipe or device, not a regular file") as caught:
+        read(fifo)
+    assert "\n" not in str(caught.value) and "no such" not in str(caught.value)

@@ -38,6 +38,7 @@ import numpy as np
 import pandas as pd
 
 from twin.errors import UserError
+from twin.files import not_a_file
 from twin.grid import Grid
 from twin.mfd import PRIOR_K_C
 from twin.monitoring import MonitorSettings, congestion_events
@@ -209,8 +210,11 @@ class History:
         """Read and check a history file; any problem is one :class:`UserError` line."""
         path = Path(path)
         fix = "build it again with `twin history --from RUN_DIR ... --out FILE`"
-        if not path.is_file():
+        why = not_a_file(path)
+        if why == "does not exist":
             raise UserError(f"{path}: no such history file; {fix}")
+        if why is not None:
+            raise UserError(f"{path}: {why} (a history file of `twin history`)")
         try:
             with np.load(path, allow_pickle=False) as data:
                 arrays = {k: data[k] for k in ("mean", "var", "rho", "obstacles", "info")}

@@ -22,7 +22,7 @@ import torch
 
 from twin import __version__
 from twin.errors import UserError
-from twin.files import atomic_write
+from twin.files import atomic_write, not_a_file
 from twin.grid import ACTIONS
 from twin.states import DEFAULT_STATE, STATE_VARIANTS, StateVariant
 
@@ -75,8 +75,9 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     """Load and check a checkpoint file; every failure is a one-line :class:`UserError`."""
     path = Path(path)
     hint = "re-create it with `twin pretrain` or point to another checkpoint"
-    if not path.is_file():
-        raise UserError(f"checkpoint {path} does not exist; {hint}")
+    why = not_a_file(path)
+    if why is not None:
+        raise UserError(f"checkpoint {path} {why}; {hint}")
     try:
         with warnings.catch_warnings():  # the one-line error below says it all
             warnings.simplefilter("ignore")

@@ -21,6 +21,7 @@ import numpy as np
 
 from twin.clock import clock_label, clock_seconds
 from twin.errors import UserError
+from twin.files import not_a_file
 from twin.grid import Grid
 from twin.mfd import MFD, SETTING_RANGES, MFDImportance
 from twin.traffic.base import TrafficSource
@@ -126,8 +127,11 @@ class Tape:
         import pyarrow.parquet as pq
 
         path = Path(path)
-        if not path.is_file():
+        why = not_a_file(path)
+        if why == "does not exist":
             raise UserError(f"{path}: no such traffic tape; pass the tape.parquet of a `twin run`")
+        if why is not None:
+            raise UserError(f"{path}: {why} (a traffic tape: the tape.parquet of a `twin run`)")
         try:
             table = pq.read_table(path)
             df = table.to_pandas()
