@@ -175,14 +175,21 @@ def test_the_vehicle_types_come_from_the_additional_file(city, capsys):
     _assert_window_matches_demand(city / "types", d / "grid.rou.xml")
 
 
-def test_sumo_refusal_names_the_file(city, tmp_path, capsys):
+@pytest.mark.parametrize(
+    ("element", "words"),
+    [
+        ('<vType id="car2" vClass="flyingcar"/>', "flyingcar"),  # SUMO quotes it
+        ('<timedEvent type="SaveTLSStates" source="B1" dest="tls.xml"/>', "(B1)"),  # in ( )
+    ],
+)
+def test_sumo_refusal_names_the_file(city, tmp_path, capsys, element, words):
     bad = tmp_path / "bad.add.xml"
-    bad.write_text('<additional><vType id="car2" vClass="flyingcar"/></additional>')
+    bad.write_text(f"<additional>{element}</additional>")
     code, err = _run(city, "bad", "--sumocfg", str(city / "scenario" / "plain.sumocfg"),
                      "--additional", str(bad), capsys=capsys)  # fmt: skip
     lines = err.strip().splitlines()
     assert code == 2 and len([x for x in lines if x.startswith("twin: error:")]) == 1
-    assert str(bad) in lines[-1] and "flyingcar" in lines[-1]
+    assert str(bad) in lines[-1] and words in lines[-1], lines[-1]
 
 
 @pytest.mark.parametrize("kind", ["spider", "random"])

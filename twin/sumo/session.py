@@ -207,8 +207,8 @@ def sumo_refusal(text: str, files: list[Path]) -> tuple[Path | str, str]:
     """The file SUMO refused and its reason, from what SUMO wrote on failing to start.
 
     SUMO names the file of an XML error (``In file '...'``, ``At line/column``); for other
-    errors (an unknown vehicle class, edge, type ...) the file is the first one that names the
-    quoted object, else the sumocfg or network.
+    errors (an unknown vehicle class, edge, type, traffic light ...) the file is the first one
+    that names the object SUMO quotes (or puts in parentheses), else the sumocfg or network.
     """
     reason = re.sub(r"^Error:\s*", "", _first_line(text))
     lines = [line.strip() for line in text.splitlines()]
@@ -219,7 +219,8 @@ def sumo_refusal(text: str, files: list[Path]) -> tuple[Path | str, str]:
         if place:
             reason += f" (line {place[0][1]}, column {place[0][2]})"
         return where, reason
-    quoted = re.findall(r"'([^']+)'", reason)
+    # the object SUMO names: quoted ('nolane_0'), or in parentheses ("to save (B1)")
+    quoted = re.findall(r"'([^']+)'", reason) + re.findall(r"\(([^()\s]+)\)", reason)
     for path in files:
         if any(Path(token).name == Path(path).name for token in quoted):
             return path, reason
