@@ -511,6 +511,23 @@ def test_outputs_in_every_form_sumo_reads_go_into_the_run_folder(
     assert sorted(p.name for p in (out / "sumo").iterdir()) == want
 
 
+@pytest.mark.parametrize("stream", ["stdout", "stderr", "-"])
+def test_an_output_sent_to_a_stream_goes_to_a_file_in_the_run_folder(
+    scenario, tmp_path, capfd, stream
+):
+    """``<fcd-output value="stdout"/>``: SUMO would write its XML into twin's tables (stdout)
+    or among its notices and errors (stderr); it goes to RUN/sumo/fcd-output.xml."""
+    cfg = _detector_case(scenario, tmp_path / "case", f'<fcd-output value="{stream}"/>')
+    out = tmp_path / "run"
+    code = _run(scenario, out, "--sumocfg", str(cfg))
+    captured = capfd.readouterr()
+    assert code == 0, captured.err
+    assert "<fcd-export" not in captured.out + captured.err
+    assert "<fcd-export" in (out / "sumo" / "fcd-output.xml").read_text()
+    run = json.loads((out / "run.json").read_text())
+    assert "fcd-output.xml" in run["traffic"]["sumo_outputs"]
+
+
 @pytest.mark.parametrize("option", ["save-config", "C", "save-configuration"])
 def test_save_configuration_by_any_name_is_refused_before_sumo_starts(
     scenario, tmp_path, capsys, option

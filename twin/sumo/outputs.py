@@ -15,6 +15,10 @@ into its run folder, so when it starts SUMO it
   rerouter's definitions, images) are made absolute so they resolve as before (the same for a
   route file whose device parameters name files).
 
+An output the sumocfg sends to ``stdout`` or ``stderr`` (``-``) goes to ``RUN/sumo/<option>.xml``
+instead (listed in run.json's ``traffic.sumo_outputs``): twin's tables and its one-line
+errors are on those streams.
+
 SSM devices equipped without a file (``device.ssm.probability``, a vehicle type's
 ``has.ssm.device``) would write one ``ssm_<vehicle>.xml`` per vehicle into SUMO's working
 folder: twin then names their file, ``RUN/sumo/ssm.xml``.
@@ -55,6 +59,8 @@ from twin.sumo.readers import (
 NAMING_OPTIONS = ("output-prefix", "output-suffix")
 #: Options whose value is a list of files.
 _FILE_LISTS = {"save-state.files"}
+#: Output names SUMO writes to its process's streams (twin's own: sent to a file instead).
+_STREAMS = {"stdout", "stderr", "-"}
 #: Output names SUMO does not take as files.
 _NOT_FILES = {"", "nul", "/dev/null", "stdout", "stderr", "-"}
 
@@ -238,7 +244,9 @@ def redirect_outputs(
         if state_times and not given.get("save-state.files") and "save-state.prefix" not in given:
             given["save-state.prefix"] = "state"  # SUMO's default prefix, in its working folder
         for name, value in given.items():
-            if name in _FILE_LISTS:
+            if value.strip().lower() in _STREAMS:  # twin's tables and errors are there
+                extra += [f"--{name}", str(plan.target(base / f"{name}.xml"))]
+            elif name in _FILE_LISTS:
                 files = file_list(value, base)
                 if files:
                     extra += [f"--{name}", ",".join(str(plan.target(f)) for f in files)]
