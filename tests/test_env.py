@@ -193,6 +193,8 @@ def test_make_env_refuses_bad_options_in_one_line(joint):
         ({"params": ScoreParams(alpha_T=0.0, alpha_I=0.0)}, "are both 0"),
         ({"params": ScoreParams(alpha_T="1")}, r"params.alpha_T = '1' must be a number"),
         ({"params": ScoreParams(eta=True)}, r"params.eta = True must be a number"),
+        ({"tape": ""}, r"make_env\(tape=''\): give a tape.parquet's path"),
+        ({"tape": 3}, r"make_env\(tape=3\): give a tape.parquet's path"),
     ):
         with pytest.raises(EnvInputError, match=words) as info:
             make_env("synthetic", joint=joint, **options)

@@ -508,11 +508,16 @@ def make_env(
             + ", tape or joint"
         )
 
+    if tape is not None and (not isinstance(tape, (str, Path)) or str(tape) == ""):
+        raise EnvInputError(
+            f"make_env(tape={tape!r}): give a tape.parquet's path, or leave tape out for the "
+            "config's own traffic"
+        )
     path = Path(config)
     if not path.exists() and path.suffix != ".toml":
         path = shipped_config(f"configs/{config}.toml")
     cfg = load_config(path)
-    experiment = Experiment(cfg, swarms=(), seeds=(0,), tape=Path(tape) if tape else None)
+    experiment = Experiment(cfg, swarms=(), seeds=(0,), tape=None if tape is None else Path(tape))
     if is_live(experiment):
 
         def source() -> TrafficSource:  # a fresh simulation at every reset
