@@ -291,17 +291,19 @@ FORGED_SCHEDULE = {
         _run_json_edited(lambda traffic: traffic.pop("incidents")),
         "run.json: traffic.incidents (the configured schedule) is missing, but ",
     ),
+    # run.json's schedule forged alone: the tape's record of it refuses it first
     "the schedule's edge forged alone": (
         _run_json_edited(lambda traffic: traffic["incidents"][0].update(edge="B2B1")),
-        'incidents.json: [0].edge = "B1B2", but run.json\'s traffic.incidents[0] schedules "B2B1"',
+        'run.json: traffic.incidents[0].edge = "B2B1", but tape.parquet (seed 0\'s tape) '
+        'records "B1B2"',
     ),
     "a schedule that is no incident": (
         _run_json_edited(lambda traffic: traffic["incidents"][0].update(kind="flood")),
-        "run.json: traffic.incidents[0] is no incident (",
+        'run.json: traffic.incidents[0].kind = "flood", but tape.parquet (seed 0\'s tape)',
     ),
     "a second incident scheduled": (
         _run_json_edited(lambda traffic: traffic["incidents"].append(traffic["incidents"][0])),
-        "incidents.json: 1 incidents, but run.json's traffic.incidents schedules 2",
+        "run.json: traffic.incidents = [{",
     ),
 }
 
