@@ -1848,3 +1848,27 @@ def test_a_run_folder_in_use_by_another_command_is_refused(tmp_path: Path, capsy
         holder.wait()
     assert main([*args, "--out", str(out), "--no-report", "--quiet"]) == 0
     assert (out / "manifest.json").is_file()
+
+
+@pytest.mark.parametrize("cache", ["a file", "under a file"])
+def test_an_unusable_cache_is_refused_before_a_report_is_drawn(
+    tmp_path, capsys, monkeypatch, cache
+):
+    """The report's figures keep their font cache in twin's cache: a file in its place is one
+    line before the run (never matplotlib's own warnings after it); without a report the run
+    needs no cache."""
+    blocker = tmp_path / "cachefile"
+    blocker.write_text("")
+    monkeypatch.setenv("TWIN_CACHE_DIR", str(blocker if cache == "a file" else blocker / "sub"))
+    config = str(small_config(tmp_path))
+    out = tmp_path / "run"
+    assert main(["evaluate", "--config", config, "--out", str(out), "--quiet"]) == EXIT_REFUSED
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "twin's cache ($TWIN_CACHE_DIR" in err, err
+    assert "matplotlib" not in err.lower() and not out.exists()
+    assert main(["evaluate", "--config", config, "--out", str(out), "--quiet", "--no-report"]) == 0
+    capsys.readouterr()
+    assert main(["report", str(out)]) == EXIT_REFUSED
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "twin's cache ($TWIN_CACHE_DIR" in err, err
+    assert not (out / "report").exists()
