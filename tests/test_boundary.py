@@ -720,8 +720,31 @@ def _samples(run: Path) -> pd.DataFrame:
                          "density": [5.0, 20.0, 60.0], "speed_limit": [13.9] * 3})  # fmt: skip
 
 
+def _relabel_seeds(run: Path) -> None:
+    """Every seed of the folder relabelled as seed + 7, in every table and in run.json."""
+    import json
+
+    for path in [*run.glob("*.csv"), *run.glob("*.parquet")]:
+        frame = pd.read_parquet(path) if path.suffix == ".parquet" else pd.read_csv(path)
+        if "seed" in frame.columns and pd.api.types.is_integer_dtype(frame["seed"]):
+            frame["seed"] = frame["seed"] + 7
+            if path.suffix == ".parquet":
+                frame.to_parquet(path, index=False)
+            else:
+                frame.to_csv(path, index=False)
+    meta = json.loads((run / "run.json").read_text())
+    meta["seeds"] = [s + 7 for s in meta["seeds"]]
+    (run / "run.json").write_text(json.dumps(meta))
+
+
 READ_BACK = {
     "row deleted": (_edit_table("trajectories.parquet", lambda f: f.drop(f.index[5])), "rows"),
+    "every file relabelled to other seeds": (_relabel_seeds, "random starts on this map are"),
+    "starts other than the drones'": (
+        _json("run.json", ("starts",), [[0, 0], [0, 1], [0, 2]]),
+        "run.json's starts are [[0, 0], [0, 1], [0, 2]]",
+    ),
+    "starts that are no cells": (_json("run.json", ("starts",), "line"), 'is neither "random"'),
     "row duplicated": (
         _edit_table("trajectories.parquet", lambda f: pd.concat([f, f.iloc[[3]]])),
         "twice",

@@ -764,6 +764,7 @@ def run_metadata(outcome: ExperimentResult, kind: str, **extra: Any) -> dict[str
         **({"traffic_by_seed": outcome.traffic} if len(outcome.traffic) > 1 else {}),
         "params": vars(config.params),
         "n_drones": config.swarm.n_drones,
+        "starts": config.swarm.starts,  # "random" (each seed's draw) or the cells
         "wall_seconds": round(outcome.seconds, 3),
         "partial": outcome.partial,
         **({"partial_reason": outcome.partial_reason()} if outcome.left_out else {}),

@@ -1218,12 +1218,53 @@ def check_mfd_files(run_dir: Path, model) -> None:
             )
 
 
+def check_starts(primary: Primary) -> None:
+    """Every swarm of every seed starts where run.json's ``starts`` put its drones: the cells
+    it lists, or (``"random"``) the seed's own draw on the map
+    (:func:`twin.config.start_positions` with the drone seed): a folder relabelled to another
+    seed is refused. Skipped for a run.json without ``starts``."""
+    from twin.swarm import random_starts
+
+    starts, n = primary.run.get("starts"), primary.run.get("n_drones")
+    if starts is None or not isinstance(n, int) or isinstance(n, bool):
+        return
+    cells = isinstance(starts, list) and all(
+        isinstance(c, list) and len(c) == 2 and all(type(v) is int for v in c) for c in starts
+    )
+    if starts != "random" and not cells:
+        raise UserError(
+            f"{primary.run_dir / 'run.json'}: starts = {_json_text(starts)} is neither "
+            f'"random" nor a list of [i, j] cells; {RERUN}'
+        )
+    path = primary.run_dir / "trajectories.parquet"
+    grid = Grid(primary.obstacles)
+    t = primary.trajectories
+    first = t[t["step"] == 0]
+    for seed, rows in first.groupby("seed", sort=True):
+        if starts == "random":
+            if n > grid.n_free:
+                return  # refused with run.json's drones
+            want = random_starts(grid, n, np.random.default_rng(int(seed)))
+            said = f"seed {int(seed)}'s random starts on this map are"
+        else:
+            want = np.asarray(starts)
+            said = "run.json's starts are"
+        for swarm, cells in rows.groupby("swarm", observed=True, sort=False):
+            got = cells.sort_values("drone")[["i", "j"]].to_numpy()
+            if got.shape != np.shape(want) or not np.array_equal(got, want):
+                raise UserError(
+                    f"{path}: swarm {str(swarm)!r}, seed {int(seed)} starts at "
+                    f"{got.tolist()[:4]}, but {said} {np.asarray(want).tolist()[:4]}; {RERUN}"
+                )
+
+
 def check_derived(primary: Primary, tables: dict[str, pd.DataFrame | None]) -> None:
     """Every derived file of ``tables`` (name -> its table, None when absent) agrees with what
     its sources give (:data:`DERIVED`), after ``importance.npz`` with its tape
     (:func:`check_tape_maps`); then the later seeds of a run on one traffic
     (:func:`check_shared_traffic_seeds`). Without ``per_seed.csv``, ``summary.csv`` is checked against the
     per-seed figures the primary files give."""
+    check_starts(primary)
     check_tape_maps(primary)
     check_seed_tapes(primary)
     check_synthetic_maps(primary)
