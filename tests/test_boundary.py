@@ -210,6 +210,14 @@ def _edited_config(folder: Path, old: str, new: str) -> Path:
     return path
 
 
+def _without_disturbances(folder: Path) -> Path:
+    """The small synthetic config with ``disturbances = []``."""
+    path = small_config(folder)
+    head, rest = path.read_text().split("disturbances = [", 1)
+    path.write_text(head + "disturbances = []\n\n[evaluate]" + rest.split("[evaluate]", 1)[1])
+    return path
+
+
 def _write(path: Path, text: str) -> Path:
     path.write_text(text)
     return path
@@ -336,6 +344,10 @@ CASES = {
     "pretrain out empty": (
         lambda t: ["pretrain", "--out", "", "--epochs", "1"],
         "--out = '': string should have at least 1 character",
+    ),
+    "no disturbance on the map": (
+        lambda t: ["evaluate", "--config", str(_without_disturbances(t))],
+        "[traffic].disturbances is empty: the map has no z^k (Sec. IV)",
     ),
     "z_lo above every z of the map": (
         lambda t: ["evaluate", "--config", str(_edited_config(t, "z_lo = 0.0", "z_lo = 5.0"))],

@@ -1026,8 +1026,15 @@ def synthetic_source(config: ScenarioConfig, grid: Grid | None = None):
     t = synthetic_config(config)
     grid = grid or make_grid(config)
     disturbances = [Disturbance(**d.model_dump()) for d in t.disturbances]
+    if not disturbances:
+        raise _fail(
+            config.path,
+            "[traffic].disturbances",
+            "is empty: the map has no z^k (Sec. IV) and every importance would be 0; add a "
+            '[[traffic.disturbances]] (kind = "big", i, j, amplitude, sigma)',
+        )
     source = SyntheticTraffic(grid, disturbances, t.horizon, t.beta1, t.beta2, t.z_lo, t.z_hi)
-    if disturbances and source.peak_z() <= t.z_lo:
+    if source.peak_z() <= t.z_lo:
         raise _fail(
             config.path,
             "[traffic].z_lo",
