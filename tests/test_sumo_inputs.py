@@ -514,3 +514,13 @@ def test_sumocfg_options_in_every_form_sumo_reads_are_read(tmp_path, form):
     assert read.additional == [tmp_path / "sub" / "det.add.xml"]
     assert (read.begin, read.end) == (60.0, 900.0)
     assert read.options["tripinfo-output"] == "../out.xml"
+
+
+def test_cells_too_large_for_the_drones_name_the_cell_size_flag(city, capsys):
+    """--cell-m leaves fewer free cells than the config's drones: the line names the flag the
+    user gave (and the config the drones come from), not the config alone."""
+    code, err = _run(city, "huge-cells", "--cell-m", "50000", capsys=capsys)
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1, err
+    assert lines[0].startswith("twin: error: --cell-m 50000 leaves 1 free cells"), lines[0]
+    assert "[swarm].n_drones" in lines[0] and "--drones" in lines[0]

@@ -974,6 +974,13 @@ def check_swarm_fits(config: ScenarioConfig, grid: Grid) -> None:
             f"{drones_flag} {s.n_drones} exceeds the {grid.n_free} free cells of the "
             f"{grid.shape[0]} x {grid.shape[1]} grid; give at most {grid.n_free}"
         )
+    cell_flag = config.flag_of("traffic.cell_m")
+    if s.n_drones > grid.n_free and cell_flag:
+        raise ConfigError(
+            f"{cell_flag} {config.traffic.cell_m:g} leaves {grid.n_free} free cells of the "
+            f"{grid.shape[0]} x {grid.shape[1]} grid for the {s.n_drones} drones of {path} "
+            "([swarm].n_drones); give smaller cells, or fewer drones with --drones"
+        )
     if s.n_drones > grid.n_free:
         raise _fail(
             path,
