@@ -1907,3 +1907,14 @@ def test_an_unusable_cache_is_refused_before_a_report_is_drawn(
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "twin's cache ($TWIN_CACHE_DIR" in err, err
     assert not (out / "report").exists()
+
+
+def test_a_figure_rounded_on_a_save_is_shown_apart_from_the_one_it_contradicts(run_copy, capsys):
+    """per_seed.csv rounded to 6 decimals (a spreadsheet's save) is refused, and the line shows
+    the two figures with the digits that tell them apart."""
+    _edit_table("per_seed.csv", lambda f: f.round(6))(run_copy)
+    refresh_manifest(run_copy)
+    assert main(["report", str(run_copy), "--no-animation"]) == EXIT_REFUSED
+    line = one_line(capsys)
+    have, want = re.search(r" = (\S+) for .*, but .* gives (\S+);", line).groups()
+    assert have != want and float(have) != float(want), line

@@ -1199,8 +1199,8 @@ def check_mfd_files(run_dir: Path, model) -> None:
         for name, want in report.items():
             if name in fit and not isinstance(want, (dict, list)) and not _same(fit[name], want):
                 raise UserError(
-                    f"{run_dir / 'mfd.json'}: {name} = {_show(fit[name])}, but {replay} "
-                    f"{_show(want)}; {RERUN}"
+                    f"{run_dir / 'mfd.json'}: {name} = {_show(fit[name], want)}, but {replay} "
+                    f"{_show(want, fit[name])}; {RERUN}"
                 )
             if name in fit and isinstance(want, (dict, list)):
                 at = _first_difference(fit[name], want, name)
@@ -1347,8 +1347,8 @@ def compare(
     column = columns[int(np.flatnonzero(bad[n])[0])]
     have, want = got[column].iloc[n], theirs[column].iloc[n]
     raise UserError(
-        f"{path}: {column} = {_show(have)} for {_who(key, theirs.index[n])}, but {source} "
-        f"{give} {_show(want)}; {RERUN}"
+        f"{path}: {column} = {_show(have, want)} for {_who(key, theirs.index[n])}, but {source} "
+        f"{give} {_show(want, have)}; {RERUN}"
     )
 
 
@@ -1396,10 +1396,21 @@ def _same(have: Any, want: Any, slack: float = 0.0) -> bool:
     return abs(h - w) <= TOLERANCE * max(1.0, abs(w)) + slack
 
 
-def _show(value: Any) -> str:
+def _show(value: Any, other: Any = None) -> str:
+    """``value`` in 6 significant digits, or as many more as it takes to tell it from
+    ``other`` (a figure rounded on a spreadsheet's save differs past the sixth)."""
     if isinstance(value, (bool, np.bool_)):
         return str(bool(value)).lower()
     try:
-        return f"{float(value):.6g}"
+        number = float(value)
     except (TypeError, ValueError):
         return repr(value)
+    try:
+        against = float(other) if other is not None else None
+    except (TypeError, ValueError):
+        against = None
+    for digits in (6, 9, 12, 17):
+        text = f"{number:.{digits}g}"
+        if against is None or number == against or text != f"{against:.{digits}g}":
+            return text
+    return text
