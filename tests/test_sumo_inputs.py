@@ -524,3 +524,21 @@ def test_cells_too_large_for_the_drones_name_the_cell_size_flag(city, capsys):
     assert code == 2 and len(lines) == 1, err
     assert lines[0].startswith("twin: error: --cell-m 50000 leaves 1 free cells"), lines[0]
     assert "[swarm].n_drones" in lines[0] and "--drones" in lines[0]
+
+
+def test_a_sumocfgs_own_processing_options_are_kept(tmp_path):
+    """twin's anti-gridlock defaults fill in only where the scenario's sumocfg says nothing:
+    its own teleport and rerouting settings (by any of SUMO's names) stay."""
+    from twin.sumo.session import ANTI_GRIDLOCK_OPTIONS, gridlock_defaults
+
+    cfg = tmp_path / "own.sumocfg"
+    cfg.write_text(
+        '<configuration><input><net-file value="n.net.xml"/></input><processing>'
+        '<time-to-teleport value="-1"/></processing><routing>'
+        '<device.rerouting.probability value="0"/></routing></configuration>'
+    )
+    kept = gridlock_defaults(cfg)
+    flags = kept[::2]
+    assert "--time-to-teleport" not in flags and "--device.rerouting.probability" not in flags
+    assert "--max-depart-delay" in flags and len(kept) == len(ANTI_GRIDLOCK_OPTIONS) - 4
+    assert gridlock_defaults(None) == ANTI_GRIDLOCK_OPTIONS

@@ -272,6 +272,20 @@ def _scenario_files(s: SumoSettings) -> _ScenarioFiles:
                 f"{sumocfg_path}: <random value={cfg.options['random']!r}> (a seed from the "
                 "clock) is overridden: twin seeds SUMO with --sumo-seed so that runs repeat"
             )
+        mesosim = cfg.options.get("mesosim", "false").strip().lower()
+        if not s.mesoscopic and mesosim in ("true", "1", "yes", "on", "x"):
+            s.mesoscopic = True  # SUMO runs it so: recorded, and its detectors refused
+            notice(
+                f"{sumocfg_path}: <mesosim value={cfg.options['mesosim']!r}> runs SUMO's "
+                "mesoscopic model, as --meso does"
+            )
+        step = cfg.options.get("step-length")
+        with contextlib.suppress(TypeError, ValueError):
+            if step is not None and float(step) != SUMO_STEP_S:
+                notice(
+                    f"{sumocfg_path}: <step-length value={step!r}> is run as SUMO steps of "
+                    f"{SUMO_STEP_S:g} s (twin's clock; its other options are kept)"
+                )
         # a network given besides the sumocfg replaces its own, as `sumo -c ... -n` does
         files = _ScenarioFiles(
             Path(s.net) if s.net else cfg.net,
@@ -621,9 +635,9 @@ def detector_plan(settings, scenario, geometry, obstacles, where):
 
     if scenario.mesoscopic and (settings.scenario or settings.cells or settings.virtual_loops):
         raise UserError(
-            f"{where}: [traffic.detectors] with --meso: SUMO's mesoscopic model has no "
-            "induction loops or lane-area detectors to read; run without --meso, or without "
-            "[traffic.detectors]"
+            f"{where}: [traffic.detectors] with SUMO's mesoscopic model (--meso, or the "
+            "sumocfg's mesosim), which has no induction loops or lane-area detectors to read; "
+            "run it microscopic, or without [traffic.detectors]"
         )
     if not (settings.cells or settings.virtual_loops):
         return DetectorPlan(scenario=settings.scenario)

@@ -30,7 +30,8 @@ from twin.sumo.readers import missing
 
 #: SUMO options that keep a congested run moving in rush hour:
 #: a vehicle blocked for 300 s jumps ahead (teleport), a vehicle that cannot enter the network
-#: for 15 min is dropped, a share of vehicles reroute around congestion every 5 min.
+#: for 15 min is dropped, a share of vehicles reroute around congestion every 5 min (each one
+#: a scenario's sumocfg sets is its own, :func:`gridlock_defaults`).
 ANTI_GRIDLOCK_OPTIONS = (
     "--time-to-teleport", "300",
     "--max-depart-delay", "900",
@@ -39,6 +40,19 @@ ANTI_GRIDLOCK_OPTIONS = (
     "--device.rerouting.period", "300",
     "--device.rerouting.adaptation-steps", "18",
 )  # fmt: skip
+
+
+def gridlock_defaults(sumocfg: Path | None) -> tuple[str, ...]:
+    """:data:`ANTI_GRIDLOCK_OPTIONS` but those a scenario's sumocfg sets itself: its own
+    settings (no teleports, no rerouting ...) are kept, twin's only fill in where it says
+    nothing."""
+    if sumocfg is None:
+        return ANTI_GRIDLOCK_OPTIONS
+    from twin.sumo.readers import read_sumocfg
+
+    own = set(read_sumocfg(sumocfg, own_net=False).options)
+    pairs = zip(ANTI_GRIDLOCK_OPTIONS[::2], ANTI_GRIDLOCK_OPTIONS[1::2], strict=True)
+    return tuple(part for flag, value in pairs if flag[2:] not in own for part in (flag, value))
 
 
 class SumoRunError(RuntimeError):

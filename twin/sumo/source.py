@@ -33,7 +33,7 @@ from twin.sumo.cells import CellGeometry
 from twin.sumo.detectors import DetectorPlan
 from twin.sumo.incidents import configured_schedule
 from twin.sumo.readers import file_list, included_files, naming_the_sumocfg, read_sumocfg
-from twin.sumo.session import ANTI_GRIDLOCK_OPTIONS, SumoRunError, SumoSession
+from twin.sumo.session import SumoRunError, SumoSession, gridlock_defaults
 from twin.timing import (
     DETECTOR_READS,
     OBSERVATION,
@@ -178,7 +178,7 @@ class SumoTraffic(TrafficSource):
             seed=s.seed,
             mesoscopic=s.mesoscopic,
             config_file=s.sumocfg,
-            extra_options=(*ANTI_GRIDLOCK_OPTIONS, *options),
+            extra_options=(*gridlock_defaults(s.sumocfg), *options),
             gui=self.gui,
         )
 
