@@ -121,6 +121,16 @@ class RowSpec(StrictModel):
             raise ValueError(f"names {path}, which does not exist; run `twin pretrain` or fix it")
         return path
 
+    @model_validator(mode="after")
+    def _loaded_rows_train_nothing(self) -> RowSpec:
+        recipe = sorted({"traffic", "init", "schedule"} & self.model_fields_set)
+        if self.checkpoint is not None and recipe:
+            raise ValueError(
+                f"loads its checkpoint as it is, so its {', '.join(recipe)} would train nothing; "
+                "drop them, or the checkpoint to train the row"
+            )
+        return self
+
 
 class ColumnSpec(StrictModel):
     """A column, evaluated on: a scenario config with overrides; ``generate`` builds a SUMO
