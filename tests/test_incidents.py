@@ -351,6 +351,10 @@ BAD_INCIDENTS = {
     "late in the evening": (_incident(when='begin = "23:00"'), "outside the scenario's window"),
     "after the end": (_incident(when='begin = "00:15"'), "00:00:00 - 00:15:00"),
     "a step past the horizon": (_incident(when="step = 11"), "step = 11 (00:16:00) is outside"),
+    "over in the warm-up": (
+        _incident(when='begin = "00:01"', minutes=2.0),
+        "ends at 00:03:00, by the run's first step T^0 = 00:05:00 (it lies in the warm-up)",
+    ),
     "a cell off the grid": (_incident(where="cell = [40, 1]"), "cell = [40, 1] is off the"),
     "a cell without road": (  # a grid larger than the network: its border has no road
         _incident(where="cell = [0, 0]") + "[grid]\nnx = 12\nny = 12\n",
