@@ -203,7 +203,7 @@ TAPE_CASES: dict[str, tuple[Callable[[Path], Path], str]] = {
         "not a parquet file",
     ),
     "empty file": (lambda p: (p.write_bytes(b""), p)[1], "not a parquet file"),
-    "a folder": (lambda p: (p.mkdir(), p)[1], "no such traffic tape"),
+    "a folder": (lambda p: (p.mkdir(), p)[1], "is a folder, not a file (a traffic tape"),
     "missing file": (lambda p: p, "no such traffic tape"),
 }
 

@@ -53,14 +53,6 @@ def check_output_dir(path: str | Path, flag: str = "--out", need_mb: float = MIN
     return path
 
 
-def check_cache(why: str) -> Path:
-    """Refuse (one line) a cache twin cannot write in (a file in its place, a read-only
-    disk) before work that needs it starts; ``why`` says what needs it."""
-    from twin.resources import CACHE_ENV, cache_dir
-
-    return check_output_dir(cache_dir(), f"twin's cache (${CACHE_ENV}; {why})")
-
-
 def check_output_file(path: str | Path, flag: str, need_mb: float = 1) -> Path:
     """Refuse an output file ``path`` twin cannot write (one line naming ``flag``): a folder
     in its place, a parent that is a file or cannot be created, no write permission, no space."""

@@ -67,7 +67,7 @@ def run_and_record(
         hand_history(experiment, history)
     check_resources(experiment, args.out or Path("runs"))  # before any folder is made
     if not getattr(args, "no_report", True):
-        from twin.outputs import check_cache
+        from twin.resources import check_cache
 
         check_cache("the report's figures keep their font cache there")
     run_dir = prepare_run_dir(args.out or new_run_dir("runs", command), invocation(command, args))

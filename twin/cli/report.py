@@ -26,7 +26,7 @@ def add_parser(subparsers) -> None:
 
 def main(args: argparse.Namespace) -> int:
     from twin.boundary import set_run_folder
-    from twin.outputs import check_cache
+    from twin.resources import check_cache
 
     if args.run_dir.is_dir() and not args.run_dir.is_symlink():
         set_run_folder(args.run_dir)  # an unexpected error's traceback goes to its error.log

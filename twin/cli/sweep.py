@@ -52,8 +52,8 @@ def main(args: argparse.Namespace) -> int:
     from twin.cli import check_count
     from twin.errors import UserError
     from twin.metrics import format_table2
-    from twin.outputs import check_cache, check_output_dir
-    from twin.resources import shipped_config
+    from twin.outputs import check_output_dir
+    from twin.resources import check_cache, shipped_config
     from twin.sweep import load_sweep_config, run_sweep
     from twin.sweep.store import check_sweep_folder
 

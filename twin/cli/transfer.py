@@ -40,8 +40,8 @@ def main(args: argparse.Namespace) -> int:
     from twin.boundary import set_run_folder
     from twin.cli import check_count
     from twin.errors import UserError
-    from twin.outputs import check_cache, check_output_dir
-    from twin.resources import shipped_config
+    from twin.outputs import check_output_dir
+    from twin.resources import check_cache, shipped_config
     from twin.transfer.config import load_transfer_config
     from twin.transfer.runner import check_transfer_folder, run_transfer
 
