@@ -1258,6 +1258,84 @@ def check_starts(primary: Primary) -> None:
                 )
 
 
+#: How far a replayed bound may differ from its row (relative): the folder keeps the maps in
+#: float32, the run bounded them in float64.
+BOUND_TOLERANCE = 1e-5
+
+
+def _maps_by_seed(primary: Primary) -> dict[int, np.ndarray]:
+    """The maps of each seed the folder holds: the first seed's (its tape replayed, else
+    ``importance.npz``), every seed's of a run on one traffic, the later seeds' tapes
+    replayed (:func:`check_seed_tapes`)."""
+    maps = dict(primary.tape_maps)
+    if primary.importance is not None and primary.first_seed is not None:
+        maps.setdefault(primary.first_seed, primary.importance)
+        traffic = primary.run.get("traffic")
+        records = primary.run.get("traffic_by_seed") or []
+        shared = isinstance(traffic, dict) and traffic.get("kind") in SHARED
+        if shared and not any(_first_difference(r, traffic) is not None for r in records):
+            for seed in primary.run.get("seeds") or []:
+                if isinstance(seed, int):
+                    maps.setdefault(seed, primary.importance)
+    return maps
+
+
+def check_bound(primary: Primary, per_seed: pd.DataFrame | None) -> None:
+    """Each ``bound (ceiling)`` row of ``per_seed.csv`` is ``L(lambda) / T`` of the Lagrangian
+    relaxation (:func:`twin.ceilings.bound_at`) at the prices ``bound.npz`` keeps for its seed,
+    on that seed's maps, wherever the folder holds them (one DP pass per seed); and no
+    ``oracle (ceiling)`` row lies above its seed's bound."""
+    from twin.ceilings import bound_at
+    from twin.metrics import BOUND, ORACLE
+    from twin.runs import score_params_of
+
+    if per_seed is None or not {"swarm", "seed", "R_hat_T"} <= set(per_seed.columns):
+        return
+    table = primary.run_dir / "per_seed.csv"
+    names = per_seed["swarm"].astype(str)
+    bounds = per_seed[names == BOUND]
+    if bounds.empty:
+        return
+    path = primary.run_dir / "bound.npz"
+    if not path.is_file():
+        raise UserError(
+            f"{table}: holds {BOUND} rows, but the folder has no bound.npz (their prices); {RERUN}"
+        )
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            prices = {key: np.asarray(data[key], dtype=float) for key in data.files}
+    except Exception as exc:  # numpy raises several types on a damaged file
+        raise UserError(f"{path}: not a readable .npz ({type(exc).__name__}); {RERUN}") from None
+    params, n = score_params_of(primary.run), primary.run.get("n_drones")
+    if params is None or not isinstance(n, int) or isinstance(n, bool):
+        return  # run.json's own checks say what is wrong
+    grid, maps = Grid(primary.obstacles), _maps_by_seed(primary)
+    oracles = per_seed[names == ORACLE].set_index("seed")["R_hat_T"]
+    for seed, recorded in zip(bounds["seed"], bounds["R_hat_T"], strict=True):
+        seed, recorded = int(seed), float(recorded)
+        if seed in oracles.index and float(oracles.loc[seed]) > recorded * (1 + BOUND_TOLERANCE):
+            raise UserError(
+                f"{table}: the {ORACLE} row of seed {seed} has R_hat_T = "
+                f"{_show(oracles.loc[seed], recorded)}, above its {BOUND} row's "
+                f"{_show(recorded, oracles.loc[seed])}; {RERUN}"
+            )
+        if seed not in maps:
+            continue
+        key = f"seed_{seed}"
+        if key not in prices:
+            raise UserError(f"{path}: no prices {key} for seed {seed}'s {BOUND} row; {RERUN}")
+        try:
+            value = bound_at(maps[seed], grid, n, params, prices[key])
+        except ValueError as exc:
+            raise UserError(f"{path}: {key} holds {exc}; {RERUN}") from None
+        if not abs(value - recorded) <= BOUND_TOLERANCE * max(1.0, abs(value)):
+            raise UserError(
+                f"{table}: R_hat_T = {_show(recorded, value)} for seed {seed}, swarm {BOUND!r}, "
+                f"but bound.npz's prices on the seed's maps give {_show(value, recorded)}; "
+                f"{RERUN}"
+            )
+
+
 def check_derived(primary: Primary, tables: dict[str, pd.DataFrame | None]) -> None:
     """Every derived file of ``tables`` (name -> its table, None when absent) agrees with what
     its sources give (:data:`DERIVED`), after ``importance.npz`` with its tape
@@ -1279,6 +1357,7 @@ def check_derived(primary: Primary, tables: dict[str, pd.DataFrame | None]) -> N
                 per_seed = per_seed.merge(part, on=["seed", "swarm"], how="left")
         per_seed = per_seed[per_seed["swarm"].isin(primary.swarms)]
     primary.per_seed, primary.summary = per_seed, tables.get("summary.csv")
+    check_bound(primary, tables.get("per_seed.csv"))
     for d in DERIVED:
         frame = tables.get(d.file)
         if frame is None:
