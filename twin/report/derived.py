@@ -33,8 +33,9 @@ truth (run.json ``monitoring.truth``: vehicles the drones missed), which the fol
 keep, or when run.json does not say which; ``importance.npz``, ``mfd_samples.parquet`` and
 ``mfd.json`` of a live run whose ``tape.parquet`` has more than :data:`TAPE_REPLAY_ROWS` rows
 (a city-scale tape takes longer to read back than the report to draw; its tapes' SUMO seeds
-and ``network.json`` are still checked against the tapes' metadata); the ceiling rows
-(:mod:`twin.ceilings`).
+and ``network.json`` are still checked against the tapes' metadata); the oracle row
+(:mod:`twin.ceilings`: its trajectories are not kept; it is checked to lie below its seed's
+bound row, which is replayed at ``bound.npz``'s prices, :func:`check_bound`).
 """
 
 from __future__ import annotations
