@@ -542,3 +542,19 @@ def test_a_sumocfgs_own_processing_options_are_kept(tmp_path):
     assert "--time-to-teleport" not in flags and "--device.rerouting.probability" not in flags
     assert "--max-depart-delay" in flags and len(kept) == len(ANTI_GRIDLOCK_OPTIONS) - 4
     assert gridlock_defaults(None) == ANTI_GRIDLOCK_OPTIONS
+
+
+def test_a_route_sumo_cannot_follow_stops_the_run_as_it_stops_sumo(city, tmp_path, capsys):
+    """A user's route file with a route whose edges do not connect: SUMO stops on it, and so
+    does twin (its own demand alone skips such vehicles), saying SUMO's reason; twin never
+    simulates it as if it were valid."""
+    net = city / "data" / "grid.net.xml"
+    edges = [e.get("id") for e in ET.parse(net).getroot().iter("edge") if not e.get("function")]
+    bad = tmp_path / "bad.rou.xml"
+    bad.write_text(
+        f'<routes><route id="r" edges="{edges[0]} {edges[-1]}"/>'
+        f'<flow id="f" route="r" begin="{FIRST_DEPART}" end="{FIRST_DEPART + 600}" '
+        'vehsPerHour="600"/></routes>'
+    )
+    code, err = _run(city, "bad-route", "--net", str(net), "--routes", str(bad), capsys=capsys)
+    assert code != 0 and "has no valid route" in err and "Traceback" not in err, err

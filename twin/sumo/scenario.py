@@ -607,6 +607,7 @@ def sumo_source(
             "sumocfg_files": [str(f) for f in files.listed],
             "window": window,
             "departures": list(files.span) if files.span else None,
+            "twin_demand": files.span is None,  # built-in or generated: route errors skipped
             "n_drones": config.swarm.n_drones,
             "n_free": int((~obstacles).sum()),
             "notices": notices,

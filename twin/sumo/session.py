@@ -86,6 +86,9 @@ class SumoSession:
     extra_options: Sequence[str] = ANTI_GRIDLOCK_OPTIONS
     additional_files: Sequence[Path] = ()
     config_file: Path | None = None
+    #: skip a vehicle whose route cannot be followed (twin's own demand, which is its to keep
+    #: moving); a scenario's own demand is taken as SUMO takes it: such a vehicle stops SUMO
+    ignore_route_errors: bool = True
     #: run under sumo-gui through traci (a :class:`twin.sumo.gui.GuiSettings`); None: libsumo.
     #: The simulation is the same, so are the results.
     gui: Any = None
@@ -108,9 +111,10 @@ class SumoSession:
             "--no-step-log", "true",
             "--no-warnings", "true",
             "--duration-log.disable", "true",
-            "--ignore-route-errors", "true",
             "--threads", "1",
         ]  # fmt: skip
+        if self.ignore_route_errors:
+            cmd += ["--ignore-route-errors", "true"]
         if self.route_files:
             cmd += ["--route-files", ",".join(str(p) for p in self.route_files)]
         if self.additional_files:

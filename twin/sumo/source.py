@@ -178,6 +178,7 @@ class SumoTraffic(TrafficSource):
             seed=s.seed,
             mesoscopic=s.mesoscopic,
             config_file=s.sumocfg,
+            ignore_route_errors=bool(s.extra.get("twin_demand", True)),
             extra_options=(*gridlock_defaults(s.sumocfg), *options),
             gui=self.gui,
         )
