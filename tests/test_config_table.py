@@ -195,7 +195,7 @@ def test_bad_synthetic_scenario(tmp_path, capsys, section, key, value):
 
 
 SUMO_BAD = {
-    ("traffic", "network"): ["3", "true", '"../../etc"', '"a/b"'],
+    ("traffic", "network"): ["3", "true", '"../../etc"', '"a/b"', '"atlantis"'],
     ("traffic", "net"): ["3", '""'],
     ("traffic", "routes"): ["3", "[1]", '""', '["a.rou.xml", ""]'],
     ("traffic", "additional"): ['[" "]'],

@@ -558,3 +558,13 @@ def test_a_route_sumo_cannot_follow_stops_the_run_as_it_stops_sumo(city, tmp_pat
     )
     code, err = _run(city, "bad-route", "--net", str(net), "--routes", str(bad), capsys=capsys)
     assert code != 0 and "has no valid route" in err and "Traceback" not in err, err
+
+
+def test_a_config_with_osm_and_a_sumocfg_is_refused(tmp_path, capsys):
+    """The config's keys as the flags: osm alone, or net and/or sumocfg (one would be ignored)."""
+    config = tmp_path / "c.toml"
+    config.write_text('[traffic]\nkind = "sumo"\nsumocfg = "a.sumocfg"\nosm = "b.osm"\n')
+    code = twin_main(["run", "--config", str(config), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1, err
+    assert "[traffic].osm with net or sumocfg: give osm alone" in err and str(config) in err

@@ -350,7 +350,23 @@ class SumoSettings(StrictModel):
     @field_validator("network")
     @classmethod
     def _network(cls, value: str | None) -> str | None:
-        return None if value is None else check_name(value)
+        if value is None:
+            return None
+        from twin.resources import network_names
+
+        known = network_names()
+        if check_name(value) not in known:
+            raise ValueError(f"is not a built-in network; use one of: {', '.join(known)}")
+        return value
+
+    @model_validator(mode="after")
+    def _one_source_of_files(self) -> SumoSettings:
+        if self.osm is not None and (self.net is not None or self.sumocfg is not None):
+            raise ValueError(
+                "[traffic].osm with net or sumocfg: give osm alone (twin imports it), or net "
+                "and/or sumocfg"
+            )
+        return self
 
     @field_validator("begin")
     @classmethod
