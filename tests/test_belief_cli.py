@@ -248,3 +248,20 @@ def test_a_history_of_sumo_days_is_refused_for_synthetic_traffic(history, tmp_pa
     assert code == 2 and err.count("\n") == 1 and "Traceback" not in err, err
     assert "a history of SUMO days (from 00:05:00) for synthetic traffic" in err, err
     assert not out.exists()
+
+
+def test_history_out_is_claimed_for_one_command_and_freed_on_a_refusal(history, tmp_path, capsys):
+    """Two `twin history` into one --out at once: the file is claimed (created exclusively)
+    before the work, so the second is refused rather than both ending well; a refusal after
+    the claim leaves no file."""
+    from twin.cli.history import _claim
+
+    out = tmp_path / "h.npz"
+    assert _claim(out) and out.exists()
+    with pytest.raises(UserError, match="another command is writing it now"):
+        _claim(out)
+    one_day = history.parent / "days" / "tape.parquet"
+    lonely = tmp_path / "lonely.npz"
+    assert twin_main(["history", "--from", str(one_day), "--out", str(lonely)]) == 2
+    assert "a history needs at least 2" in capsys.readouterr().err
+    assert not lonely.exists()

@@ -11,6 +11,8 @@ readings against the replayed truth, :func:`twin.belief.fit_detector_calibration
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
 from pathlib import Path
 
 from twin.cli import path_arg
@@ -157,11 +159,7 @@ def detector_readings(tape: Path, obstacles, horizon: int):
 
 
 def main(args: argparse.Namespace) -> int:
-    import numpy as np
-
-    from twin.belief import fit_detector_calibration, fit_history
-    from twin.files import atomic_write
-    from twin.outputs import check_output_file, make_parent
+    from twin.outputs import check_output_file
 
     if args.out.suffix != ".npz":
         raise UserError(f"--out {args.out}: give a file name ending in .npz")
@@ -170,6 +168,42 @@ def main(args: argparse.Namespace) -> int:
         raise UserError(
             f"--out {args.out}: exists; give a new file name (twin history never overwrites a file)"
         )
+    claim = _claim(args.out)  # two commands at once into one --out: the second is refused
+    try:
+        return _write_history(args)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            if claim and args.out.stat().st_size == 0:
+                args.out.unlink()  # the empty claim, never a history written meanwhile
+        raise
+
+
+def _claim(out: Path) -> bool:
+    """Create ``out`` empty and exclusively (the history replaces it when written); a file
+    made there since the check above is another command's. Its folder is made only when the
+    history is written (a refusal leaves no folder behind)."""
+    if not out.parent.is_dir():
+        return False
+    try:
+        fd = os.open(out, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+    except FileExistsError:
+        raise UserError(
+            f"--out {out}: another command is writing it now; give a new file name (twin "
+            "history never overwrites a file)"
+        ) from None
+    except OSError:
+        return False  # the write itself says what is wrong with the folder
+    os.close(fd)
+    return True
+
+
+def _write_history(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from twin.belief import fit_detector_calibration, fit_history
+    from twin.files import atomic_write
+    from twin.outputs import make_parent
+
     if args.dynamics is not None:
         history = dynamics_days(args)
         atomic_write(make_parent(args.out, "--out"), history.save)
