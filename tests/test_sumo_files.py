@@ -580,6 +580,16 @@ def test_a_config_seeding_sumo_from_the_clock_still_repeats(scenario, tmp_path, 
     pd.testing.assert_frame_equal(tapes[0], tapes[1])
 
 
+def test_a_config_seed_replaced_by_twins_is_said(scenario, tmp_path, capsys):
+    """``<seed value="42"/>``: twin seeds SUMO itself (one seed per run seed) and says so."""
+    cfg = _detector_case(scenario, tmp_path / "case")
+    cfg.write_text(cfg.read_text().replace("<output>", '<random_number><seed value="42"/>'
+                                           "</random_number><output>"))  # fmt: skip
+    assert _run(scenario, tmp_path / "run", "--sumocfg", str(cfg)) == 0
+    err = capsys.readouterr().err
+    assert "<seed value='42'> is replaced by twin's SUMO seed" in err, err
+
+
 TIME = r"\d{4}(-\d\d){5}"  # SUMO replaces TIME in a prefix or suffix by the date and time
 # <option value> of the sumocfg ({root}: the folder holding the scenario's folder) -> the pattern
 # of the names SUMO writes in RUN/sumo/ for det.xml and trips.xml (NAME: det or trips)

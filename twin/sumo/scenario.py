@@ -272,6 +272,12 @@ def _scenario_files(s: SumoSettings) -> _ScenarioFiles:
                 f"{sumocfg_path}: <random value={cfg.options['random']!r}> (a seed from the "
                 "clock) is overridden: twin seeds SUMO with --sumo-seed so that runs repeat"
             )
+        if cfg.options.get("seed") is not None:
+            notice(
+                f"{sumocfg_path}: <seed value={cfg.options['seed']!r}> is replaced by twin's "
+                "SUMO seed (--sumo-seed, [traffic].seed: one per run seed), so that runs repeat "
+                "by it"
+            )
         mesosim = cfg.options.get("mesosim", "false").strip().lower()
         if not s.mesoscopic and mesosim in ("true", "1", "yes", "on", "x"):
             s.mesoscopic = True  # SUMO runs it so: recorded, and its detectors refused
