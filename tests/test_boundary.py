@@ -218,6 +218,13 @@ def _without_disturbances(folder: Path) -> Path:
     return path
 
 
+def _sparse(path: Path, size: int) -> Path:
+    """A file of ``size`` bytes that takes no disk (a hole)."""
+    with open(path, "wb") as fh:
+        fh.truncate(size)
+    return path
+
+
 def _write(path: Path, text: str) -> Path:
     path.write_text(text)
     return path
@@ -226,6 +233,14 @@ def _write(path: Path, text: str) -> Path:
 CASES = {
     # name: (argv builder(tmp) -> argv, words expected in the line)
     "missing config": (lambda t: ["evaluate", "--config", str(t / "nope.toml")], "nope.toml"),
+    "config read from a device": (
+        lambda t: ["evaluate", "--config", "/dev/zero"],
+        "/dev/zero: over 16 MB, larger than any config",
+    ),
+    "a huge config": (
+        lambda t: ["sweep", "--config", str(_sparse(t / "huge.toml", 2**30))],
+        "huge.toml: over 16 MB, larger than any config",
+    ),
     "config not TOML": (
         lambda t: ["evaluate", "--config", str(_write(t / "bad.toml", "[grid\nnx = 1"))],
         "bad.toml",

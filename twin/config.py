@@ -794,13 +794,22 @@ def _toml(value: Any) -> str:
 
 
 # ------------------------------------------------------------------------------- reading
+#: The largest config twin reads (a sweep's or transfer's tables are a few kB).
+MAX_CONFIG_BYTES = 16 * 2**20
+
+
 def read_toml(path: str | Path) -> dict[str, Any]:
     """The tables of the TOML file ``path``; a UTF-8 byte order mark at its start (as editors
     on Windows write it, and TOML does not allow) is skipped."""
     path = Path(path)
     try:
         with open(path, "rb") as fh:
-            raw = fh.read()
+            raw = fh.read(MAX_CONFIG_BYTES + 1)  # /dev/zero, a huge file: never read whole
+        if len(raw) > MAX_CONFIG_BYTES:
+            raise UserError(
+                f"{path}: over {MAX_CONFIG_BYTES // 2**20} MB, larger than any config; give the "
+                "scenario's TOML file"
+            )
         return tomllib.loads(raw.removeprefix(codecs.BOM_UTF8).decode("utf-8"))
     except FileNotFoundError:
         raise UserError(f"{path}: config file not found; check the path") from None
