@@ -1238,7 +1238,8 @@ def test_a_later_seeds_rewards_are_replayed_on_the_shared_traffic(tmp_path, caps
     config = tmp_path / "c.toml"
     config.write_text(
         '[grid]\nnx = 8\nny = 10\n[swarm]\nn_drones = 3\n[traffic]\nkind = "synthetic"\n'
-        'horizon = 30\n[evaluate]\nswarms = ["random", "greedy"]\n'
+        'horizon = 30\ndisturbances = [{ kind = "big", i = 3, j = 4, amplitude = 1.0, '
+        'sigma = 2.0 }]\n[evaluate]\nswarms = ["random", "greedy"]\n'
     )
     out = tmp_path / "run"
     argv = ["evaluate", "--config", str(config), "--seeds", "2", "--out", str(out), "--quiet",
