@@ -568,3 +568,21 @@ def test_a_config_with_osm_and_a_sumocfg_is_refused(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1, err
     assert "[traffic].osm with net or sumocfg: give osm alone" in err and str(config) in err
+
+
+def test_a_run_without_warm_up_reads_t0_as_the_network_begins(tmp_path, capsys):
+    """``warmup_min = 0``: ``T^0`` is the simulation's first instant (the network as it
+    begins); the run has every step, not one short taken for SUMO stopping early, and its
+    folder reads back."""
+    from helpers import small_sumo_scenario
+
+    small_sumo_scenario(tmp_path, horizon=5)
+    config = tmp_path / "small.toml"
+    config.write_text(config.read_text().replace("warmup_min = 5.0", "warmup_min = 0.0"))
+    out = tmp_path / "run"
+    code = twin_main(["run", "--config", str(config), "--swarms", "random", "--no-ceiling",
+                      "--quiet", "--no-report", "--out", str(out)])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 0 and "stopped early" not in err, err
+    assert json.loads((out / "run.json").read_text())["partial"] is False
+    assert twin_main(["report", str(out), "--no-animation"]) == 0, capsys.readouterr().err

@@ -188,7 +188,8 @@ class SumoTraffic(TrafficSource):
         s = self.scenario
         w = s.warmup_steps()
         times = [(k, round(s.begin_s + k * s.step_s, 3)) for k in range(-w, s.horizon + 1)]
-        return [(k, t) for k, t in times if t > s.sim_begin]  # nothing to read at the start
+        # nothing to read at the start, but T^0 itself (no warm-up: the network as it begins)
+        return [(k, t) for k, t in times if t > s.sim_begin or k == 0]
 
     def sighting_model(self):
         """The drones count the vehicles of each cell's lanes through the scenario's detection
