@@ -786,6 +786,10 @@ READ_BACK = {
         "the oracle (ceiling) row of seed 0 has R_hat_T = ",
     ),
     "bound prices left out": (lambda run: (run / "bound.npz").unlink(), "no bound.npz"),
+    "run.json lists fewer swarms than the tables hold": (
+        _json("run.json", ("swarms",), ["random"]),
+        "holds swarm 'greedy', which run.json's swarms ['random'] does not list",
+    ),
     "every file relabelled to other seeds": (_relabel_seeds, "random starts on this map are"),
     "starts other than the drones'": (
         _json("run.json", ("starts",), [[0, 0], [0, 1], [0, 2]]),
