@@ -160,6 +160,10 @@ BAD = [
     ('[[column]]\nname = "c"\nconfig = "{synthetic}"\noverrides = {{ "x" = 1 }}\n', "dotted"),
     ('[[row]]\nname = "a/b"\n', "plain name"),
     (
+        '[[column]]\nname = "g"\nconfig = "{synthetic}"\ngenerate = "spider"\n',
+        "builds a SUMO network, but its config",
+    ),
+    (
         '[[row]]\nname = "x"\ncheckpoint = "{qnet}"\ntraffic = "dynamics"\n',
         "loads its checkpoint as it is, so its traffic would train nothing",
     ),

@@ -27,9 +27,11 @@ from twin.config import (
     ScenarioFile,
     StrictModel,
     check_name,
+    load_config,
     read_toml,
     validation_error,
 )
+from twin.errors import UserError
 
 #: Seeds that evaluation uses; tapes and validation curves must stay off them.
 EVALUATION_SEEDS = range(0, 10)
@@ -272,4 +274,11 @@ def load_transfer_config(path: str | Path) -> TransferConfig:
     for row in config.row:
         if row.checkpoint is None:
             with_overrides(defaults, *row_schedule(config, row))
+    for n, column in enumerate(config.column):
+        if column.generate is not None and load_config(column.config).traffic.kind != "sumo":
+            raise UserError(
+                f"{path}: [[column]] #{n + 1} ({column.name}).generate = {column.generate!r} "
+                f"builds a SUMO network, but its config {column.config} has synthetic traffic; "
+                "give a SUMO scenario config, or leave generate out"
+            )
     return config
