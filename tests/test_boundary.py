@@ -1839,7 +1839,8 @@ def test_a_cache_rebuild_notice_is_held_behind_a_refusal(tmp_path: Path, capsys)
 
 
 def test_a_sweep_cell_that_fails_leaves_no_notice_to_the_next(monkeypatch, capsys) -> None:
-    """A worker runs cell after cell: a failed cell's held notices never print with the next."""
+    """A worker runs cell after cell: a failed cell's held notices never go with the next; a
+    good cell's go back with its record (the sweep says each once, whichever cells said it)."""
     import twin.sweep.cells as cells
     from twin.boundary import notify, release_notices
 
@@ -1856,8 +1857,8 @@ def test_a_sweep_cell_that_fails_leaves_no_notice_to_the_next(monkeypatch, capsy
     with pytest.raises(UserError):
         cells.run_cell({"id": "a"})
     monkeypatch.setattr(cells, "_run_cell", starting)
-    assert cells.run_cell({"id": "b"}) == {"id": "b"}
-    assert capsys.readouterr().err == "twin: notice: of the good cell\n"
+    assert cells.run_cell({"id": "b"}) == {"id": "b", "notices": ["twin: notice: of the good cell"]}
+    assert capsys.readouterr().err == ""
 
 
 def test_a_write_into_a_missing_folder_names_the_file_not_a_temporary_one(tmp_path: Path) -> None:
