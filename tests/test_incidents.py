@@ -414,3 +414,18 @@ def test_overlapping_closures_reopen_when_the_last_lifts(tmp_path, capsys):
     records = source.incidents_info()
     assert [r["lifted_s"] for r in records] == [660.0, 780.0, 600.0]
     assert "lanes" not in records[0]
+
+
+def test_route_errors_are_skipped_with_closures_and_twins_own_demand_only(tmp_path):
+    """A scenario's own demand is run as SUMO runs it (a route it cannot follow stops it); with
+    scheduled closures, which leave routes unfollowable, and in twin's own demand, such a
+    vehicle is skipped."""
+    pytest.importorskip("libsumo")
+    from twin.config import load_config
+    from twin.sumo.scenario import sumo_source
+
+    plain = _small(tmp_path, "")
+    assert "--ignore-route-errors" not in sumo_source(load_config(plain)).session().command()
+    (tmp_path / "closed").mkdir()
+    closed = _small(tmp_path / "closed", _incident())
+    assert "--ignore-route-errors" in sumo_source(load_config(closed)).session().command()

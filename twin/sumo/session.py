@@ -87,7 +87,8 @@ class SumoSession:
     additional_files: Sequence[Path] = ()
     config_file: Path | None = None
     #: skip a vehicle whose route cannot be followed (twin's own demand, which is its to keep
-    #: moving); a scenario's own demand is taken as SUMO takes it: such a vehicle stops SUMO
+    #: moving, or a run with scheduled closures); a scenario's own demand is otherwise taken as
+    #: SUMO takes it: such a vehicle stops SUMO
     ignore_route_errors: bool = True
     #: run under sumo-gui through traci (a :class:`twin.sumo.gui.GuiSettings`); None: libsumo.
     #: The simulation is the same, so are the results.

@@ -178,7 +178,8 @@ class SumoTraffic(TrafficSource):
             seed=s.seed,
             mesoscopic=s.mesoscopic,
             config_file=s.sumocfg,
-            ignore_route_errors=bool(s.extra.get("twin_demand", True)),
+            # twin's own demand, or closures it schedules, which leave routes unfollowable
+            ignore_route_errors=bool(s.extra.get("twin_demand", True) or s.incidents),
             extra_options=(*gridlock_defaults(s.sumocfg), *options),
             gui=self.gui,
         )
