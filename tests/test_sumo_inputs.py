@@ -586,3 +586,19 @@ def test_a_run_without_warm_up_reads_t0_as_the_network_begins(tmp_path, capsys):
     assert code == 0 and "stopped early" not in err, err
     assert json.loads((out / "run.json").read_text())["partial"] is False
     assert twin_main(["report", str(out), "--no-animation"]) == 0, capsys.readouterr().err
+
+
+def test_a_small_network_at_the_configs_cells_points_to_the_cell_size(city, capsys):
+    """A network with fewer free cells than drones at the config's cell size: the line says so
+    and gives the fixes (--cell-m, --drones), not only "fewer drones"."""
+    config = city / "scenario" / "twin.toml"
+    coarse = city / "scenario" / "coarse.toml"
+    coarse.write_text(config.read_text() + "\n")
+    text = coarse.read_text()
+    coarse.write_text(re.sub(r"cell_m = [0-9.]+", "cell_m = 50000.0", text))
+    code = twin_main(["run", "--config", str(coarse), "--quiet", "--no-report", "--out",
+                      str(city / "coarse-run")])  # fmt: skip
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(lines) == 1, lines
+    assert "free cells of 50000 m for " in lines[0] and str(coarse) in lines[0], lines[0]
+    assert "give smaller cells with --cell-m" in lines[0] and "--drones" in lines[0]

@@ -1006,6 +1006,16 @@ def check_swarm_fits(config: ScenarioConfig, grid: Grid) -> None:
             f"{grid.shape[0]} x {grid.shape[1]} grid for the {s.n_drones} drones of {path} "
             "([swarm].n_drones); give smaller cells, or fewer drones with --drones"
         )
+    if s.n_drones > grid.n_free and config.traffic.kind == "sumo":  # a network's cells
+        from twin.resources import shipped
+
+        cell = config.traffic.cell_m
+        own = not Path(path).resolve().is_relative_to(shipped("configs").resolve())
+        source = f"[traffic].cell_m and [swarm].n_drones of {path}" if own else "twin's defaults"
+        raise ConfigError(
+            f"{grid.n_free} free cells of {cell:g} m for {s.n_drones} drones ({source}); give "
+            f"smaller cells with --cell-m (e.g. {cell / 4:g}), or fewer drones with --drones"
+        )
     if s.n_drones > grid.n_free:
         raise _fail(
             path,
