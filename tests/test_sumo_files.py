@@ -907,3 +907,26 @@ def test_included_files_are_found_through_nested_includes_and_cycles(tmp_path):
     (tmp_path / "sub" / "c.add.xml").write_text("<additional/>")
     found = included_files(tmp_path / "a.add.xml")
     assert [p.name for p in found] == ["b.add.xml", "c.add.xml"]
+
+
+def test_a_run_in_the_scenarios_own_window_past_its_departures_gets_a_notice(
+    scenario, tmp_path, capsys
+):
+    """A sumocfg whose own window runs long past its departures (a looping scenario's rerouters
+    keep its vehicles on the road): the run, begun in that window after the warm-up, is not
+    refused as empty (twin cannot tell); a notice says it starts past the last departure."""
+    d = scenario / "scenario"
+    cfg = tmp_path / "loop.sumocfg"
+    cfg.write_text(
+        f'<configuration><input><net-file value="{d / "small.net.xml"}"/><route-files '
+        f'value="{d / "small.trips.xml"}"/></input><time><begin value="0"/><end '
+        'value="100000"/></time></configuration>'
+    )
+    config = tmp_path / "late.toml"  # a warm-up past the 10 min of departures and their clearing
+    config.write_text(CONFIG.replace("warmup_min = 1.0", "warmup_min = 40.0"))
+    code = main(["run", "--config", str(config), "--sumocfg", str(cfg), "--horizon", "2",
+                 "--swarms", "random", "--no-ceiling", "--quiet", "--no-report", "--out",
+                 str(tmp_path / "run")])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert "begins past the last departure" in err, err

@@ -421,6 +421,7 @@ def _grid_and_notices(
     begin: float,
     step_s: float,
     window_given: bool,
+    begin_given: bool = True,
 ):
     """The grid over the network's lanes (the config's ``[grid]`` shape and obstacles for the
     configured network), and the notices of a grid too small for the drones or a run that
@@ -464,14 +465,21 @@ def _grid_and_notices(
     if files.span is not None and window_given:
         clear = clearing_time(geometry)
         end = begin + s.horizon * step_s
-        if begin >= files.span[1] + clear or end <= files.span[0]:
+        outside = begin >= files.span[1] + clear or end <= files.span[0]
+        if outside and not begin_given:  # the scenario's own window: vehicles may circulate
+            notices.append(  # (rerouters keep a loop scenario's vehicles on the road)
+                f"{files.name}: the run ({clock_label(begin)} - {clock_label(end)}) begins past "
+                f"the last departure ({clock_label(files.span[1])}) plus {clear / 60:.0f} min to "
+                "clear the network: its steps hold only vehicles that are still driving"
+            )
+        elif outside:
             raise UserError(
                 f"{files.name}: the run ({clock_label(begin)} - {clock_label(end)}) lies outside "
                 f"the demand (departures {clock_label(files.span[0])} - "
                 f"{clock_label(files.span[1])}, plus {clear / 60:.0f} min to clear the "
                 "network): every step would be empty; give a --begin (and --horizon) within it"
             )
-        if end > files.span[1] + clear:
+        if end > files.span[1] + clear and not outside:
             notices.append(
                 f"{files.name}: the run ends at {clock_label(end)}, past the last departure "
                 f"({clock_label(files.span[1])}) plus {clear / 60:.0f} min to clear the network; "
@@ -582,7 +590,7 @@ def sumo_source(
         s, files, step_s, t0, s.warmup_min * 60.0, begin_given, horizon_given, begin_where
     )
     geometry, obstacles, notices = _grid_and_notices(
-        s, config, inputs, files, lanes, t0, step_s, begin_given or horizon_given
+        s, config, inputs, files, lanes, t0, step_s, begin_given or horizon_given, begin_given
     )
     route_files = list(files.route_files)
     if files.span is None and not s.network:  # no demand given: twin generates it
