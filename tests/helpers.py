@@ -26,7 +26,13 @@ def random_tape(seed=0, nx=3, ny=4, warmup=2, horizon=5, obstacle=(0, 0)) -> Tap
         lane_km=rng.uniform(0.5, 3.0, (nx, ny)) * ~obstacles,
         speed_limit=np.where(obstacles, 0.0, 13.9),
         horizon=horizon,
-        settings={"mfd_fit": "online", "detection_p": 1.0, "seed": 4, "mfd_prior": [0.7, 40.0]},
+        settings={
+            "mfd_fit": "online",
+            "detection_p": 1.0,
+            "seed": 4,
+            "mfd_prior": [0.7, 40.0],
+            "reads_per_step": 1,
+        },
     )
 
 

@@ -61,7 +61,13 @@ def good_tape(horizon: int = HORIZON, last: int | None = None) -> Tape:
         lane_km=rng.uniform(0.5, 3.0, (NX, NY)),
         speed_limit=np.full((NX, NY), 13.9),
         horizon=horizon,
-        settings={"mfd_fit": "online", "detection_p": 1.0, "seed": 1},
+        settings={
+            "mfd_fit": "online",
+            "detection_p": 1.0,
+            "seed": 1,
+            "mfd_prior": [0.7, 40.0],
+            "reads_per_step": 1,
+        },
     )
 
 
@@ -197,13 +203,19 @@ TAPE_CASES: dict[str, tuple[Callable[[Path], Path], str]] = {
         "not a parquet file",
     ),
     "empty file": (lambda p: (p.write_bytes(b""), p)[1], "not a parquet file"),
-    "a folder": (lambda p: (p.mkdir(), p)[1], "no such traffic tape"),
+    "a folder": (lambda p: (p.mkdir(), p)[1], "is a folder, not a file (a traffic tape"),
     "missing file": (lambda p: p, "no such traffic tape"),
 }
 
 
 def _step_time(f: pd.DataFrame, step: int, time_s: float) -> pd.DataFrame:
     return f.assign(time_s=np.where(f["step"] == step, time_s, f["time_s"]))
+
+
+def _zero_at(rows: list[list[float]], i: int, j: int) -> list[list[float]]:
+    rows = [list(r) for r in rows]
+    rows[i][j] = 0.0
+    return rows
 
 
 def _settings(**more) -> Callable[[dict], dict]:
@@ -261,8 +273,33 @@ ABSURD_TAPES: dict[str, tuple[Callable[[Path], Path], str]] = {
             ("warmup_s", -1.0),
             ("reads_per_step", 0),
             ("reads_per_step", 1.5),
+            ("mfd_prior", [1e-300, 40.0]),
+            ("mfd_prior", [0.7, 1e-300]),
+            ("mfd_prior", [0.7, 1e300]),
+            ("detection_p", 1e-300),
         )
     },
+    "a free cell without lanes": (
+        lambda p: write_tape(p, meta=lambda m: {**m, "lane_km": _zero_at(m["lane_km"], 1, 2)}),
+        "tape metadata lane_km = 0 at cell (1, 2), which its obstacles leave free",
+    ),
+    **{
+        f"observation setting {key} left out": (
+            lambda p, key=key: write_tape(
+                p,
+                meta=lambda m, key=key: {
+                    **m,
+                    "settings": {k: v for k, v in m["settings"].items() if k != key},
+                },
+            ),
+            f"tape metadata settings lack {key} (a tape records every setting",
+        )
+        for key in ("reads_per_step", "mfd_prior", "mfd_fit", "detection_p")
+    },
+    "no settings at all": (
+        lambda p: write_tape(p, meta=lambda m: {k: v for k, v in m.items() if k != "settings"}),
+        "tape metadata settings lack mfd_fit, mfd_prior, detection_p, reads_per_step",
+    ),
     "times shifted against the recorded begin": (
         lambda p: write_tape(
             p, lambda f: f.assign(time_s=f["time_s"] + 7.0), _settings(step_s=75.0, begin="07:00")
@@ -696,3 +733,25 @@ def test_routes_naming_unknown_edges_are_refused(tmp_path, capsys, grid_net):
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1].startswith("twin: error:") and "'nowhere'" in err[-1]
     assert not out.exists()
+
+
+@pytest.mark.parametrize("reader", ["history", "tape", "checkpoint"])
+def test_a_pipe_given_as_a_file_twin_seeks_in_is_named_as_a_pipe(tmp_path, reader):
+    """``--history <(cat h.npz)``, a tape or a checkpoint through a FIFO: refused as a pipe
+    (the file itself is wanted), never as a file that does not exist; nothing blocks on it."""
+    import os
+
+    from twin.belief import History
+    from twin.errors import UserError
+    from twin.traffic.tape import Tape
+
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    if reader == "checkpoint":
+        pytest.importorskip("torch")
+        from twin.learning.checkpoint import load_qnet as read
+    else:
+        read = {"history": History.load, "tape": Tape.read}[reader]
+    with pytest.raises(UserError, match="is a pipe or device, not a regular file") as caught:
+        read(fifo)
+    assert "\n" not in str(caught.value) and "no such" not in str(caught.value)

@@ -213,6 +213,33 @@ def test_a_history_of_other_than_real_numbers_is_refused(history, tmp_path, dtyp
         History.load(bad)
 
 
+@pytest.mark.parametrize(
+    ("edit", "words"),
+    [
+        ({"n_runs": 1}, r"traffic_seeds = \[10, 11\] are not distinct seeds of its n_runs = 1"),
+        ({"n_runs": 0}, r"n_runs = 0 is not a whole number >= 1"),
+        ({"n_runs": "2"}, r"n_runs = '2' is not a whole number"),
+        ({"traffic_seeds": [10, 10]}, r"traffic_seeds = \[10, 10\] are not distinct"),
+        ({"sources": ["a"]}, r"sources = \['a'\] do not name its n_runs = 2 days"),
+    ],
+)
+def test_a_history_whose_info_contradicts_itself_is_refused(history, tmp_path, edit, words):
+    """Its days, their seeds and their sources are counted alike (a history built from two
+    SUMO seeds says n_runs = 2, two distinct seeds, two sources)."""
+    import json
+
+    with np.load(history) as data:
+        arrays = dict(data)
+    info = json.loads(str(arrays["info"]))
+    assert info["n_runs"] == 2 and info["traffic_seeds"] == [10, 11] and len(info["sources"]) == 2
+    arrays["info"] = np.array(json.dumps({**info, **edit}))
+    bad = tmp_path / "bad.npz"
+    np.savez(bad, **arrays)
+    with pytest.raises(UserError, match=words) as caught:
+        History.load(bad)
+    assert "\n" not in str(caught.value)
+
+
 def test_a_history_of_sumo_days_is_refused_for_synthetic_traffic(history, tmp_path, capsys):
     out = tmp_path / "out"
     code = twin_main(["evaluate", "--config", "synthetic", "--history", str(history), "--seeds",
@@ -221,3 +248,20 @@ def test_a_history_of_sumo_days_is_refused_for_synthetic_traffic(history, tmp_pa
     assert code == 2 and err.count("\n") == 1 and "Traceback" not in err, err
     assert "a history of SUMO days (from 00:05:00) for synthetic traffic" in err, err
     assert not out.exists()
+
+
+def test_history_out_is_claimed_for_one_command_and_freed_on_a_refusal(history, tmp_path, capsys):
+    """Two `twin history` into one --out at once: the file is claimed (created exclusively)
+    before the work, so the second is refused rather than both ending well; a refusal after
+    the claim leaves no file."""
+    from twin.cli.history import _claim
+
+    out = tmp_path / "h.npz"
+    assert _claim(out) and out.exists()
+    with pytest.raises(UserError, match="another command is writing it now"):
+        _claim(out)
+    one_day = history.parent / "days" / "tape.parquet"
+    lonely = tmp_path / "lonely.npz"
+    assert twin_main(["history", "--from", str(one_day), "--out", str(lonely)]) == 2
+    assert "a history needs at least 2" in capsys.readouterr().err
+    assert not lonely.exists()

@@ -210,6 +210,21 @@ def _edited_config(folder: Path, old: str, new: str) -> Path:
     return path
 
 
+def _without_disturbances(folder: Path) -> Path:
+    """The small synthetic config with ``disturbances = []``."""
+    path = small_config(folder)
+    head, rest = path.read_text().split("disturbances = [", 1)
+    path.write_text(head + "disturbances = []\n\n[evaluate]" + rest.split("[evaluate]", 1)[1])
+    return path
+
+
+def _sparse(path: Path, size: int) -> Path:
+    """A file of ``size`` bytes that takes no disk (a hole)."""
+    with open(path, "wb") as fh:
+        fh.truncate(size)
+    return path
+
+
 def _write(path: Path, text: str) -> Path:
     path.write_text(text)
     return path
@@ -218,6 +233,14 @@ def _write(path: Path, text: str) -> Path:
 CASES = {
     # name: (argv builder(tmp) -> argv, words expected in the line)
     "missing config": (lambda t: ["evaluate", "--config", str(t / "nope.toml")], "nope.toml"),
+    "config read from a device": (
+        lambda t: ["evaluate", "--config", "/dev/zero"],
+        "/dev/zero: over 16 MB, larger than any config",
+    ),
+    "a huge config": (
+        lambda t: ["sweep", "--config", str(_sparse(t / "huge.toml", 2**30))],
+        "huge.toml: over 16 MB, larger than any config",
+    ),
     "config not TOML": (
         lambda t: ["evaluate", "--config", str(_write(t / "bad.toml", "[grid\nnx = 1"))],
         "bad.toml",
@@ -336,6 +359,10 @@ CASES = {
     "pretrain out empty": (
         lambda t: ["pretrain", "--out", "", "--epochs", "1"],
         "--out = '': string should have at least 1 character",
+    ),
+    "no disturbance on the map": (
+        lambda t: ["evaluate", "--config", str(_without_disturbances(t))],
+        "[traffic].disturbances is empty: the map has no z^k (Sec. IV)",
     ),
     "z_lo above every z of the map": (
         lambda t: ["evaluate", "--config", str(_edited_config(t, "z_lo = 0.0", "z_lo = 5.0"))],
@@ -720,8 +747,55 @@ def _samples(run: Path) -> pd.DataFrame:
                          "density": [5.0, 20.0, 60.0], "speed_limit": [13.9] * 3})  # fmt: skip
 
 
+def _relabel_seeds(run: Path) -> None:
+    """Every seed of the folder relabelled as seed + 7, in every table and in run.json."""
+    import json
+
+    for path in [*run.glob("*.csv"), *run.glob("*.parquet")]:
+        frame = pd.read_parquet(path) if path.suffix == ".parquet" else pd.read_csv(path)
+        if "seed" in frame.columns and pd.api.types.is_integer_dtype(frame["seed"]):
+            frame["seed"] = frame["seed"] + 7
+            if path.suffix == ".parquet":
+                frame.to_parquet(path, index=False)
+            else:
+                frame.to_csv(path, index=False)
+    meta = json.loads((run / "run.json").read_text())
+    meta["seeds"] = [s + 7 for s in meta["seeds"]]
+    (run / "run.json").write_text(json.dumps(meta))
+
+
+def _ceiling_scaled(swarm: str, factor: float):
+    """A ceiling row's R_hat_T scaled alike in per_seed.csv and summary.csv."""
+
+    def scale(frame: pd.DataFrame) -> pd.DataFrame:
+        frame = frame.copy()
+        frame.loc[frame["swarm"] == swarm, "R_hat_T"] *= factor
+        return frame
+
+    return _all(_edit_table("per_seed.csv", scale), _edit_table("summary.csv", scale))
+
+
 READ_BACK = {
     "row deleted": (_edit_table("trajectories.parquet", lambda f: f.drop(f.index[5])), "rows"),
+    "bound inflated alike in per_seed and summary": (
+        _ceiling_scaled("bound (ceiling)", 1.5),
+        "swarm 'bound (ceiling)', but bound.npz's prices on the seed's maps give",
+    ),
+    "oracle above the bound alike in per_seed and summary": (
+        _ceiling_scaled("oracle (ceiling)", 3.0),
+        "the oracle (ceiling) row of seed 0 has R_hat_T = ",
+    ),
+    "bound prices left out": (lambda run: (run / "bound.npz").unlink(), "no bound.npz"),
+    "run.json lists fewer swarms than the tables hold": (
+        _json("run.json", ("swarms",), ["random"]),
+        "holds swarm 'greedy', which run.json's swarms ['random'] does not list",
+    ),
+    "every file relabelled to other seeds": (_relabel_seeds, "random starts on this map are"),
+    "starts other than the drones'": (
+        _json("run.json", ("starts",), [[0, 0], [0, 1], [0, 2]]),
+        "run.json's starts are [[0, 0], [0, 1], [0, 2]]",
+    ),
+    "starts that are no cells": (_json("run.json", ("starts",), "line"), 'is neither "random"'),
     "row duplicated": (
         _edit_table("trajectories.parquet", lambda f: pd.concat([f, f.iloc[[3]]])),
         "twice",
@@ -1090,7 +1164,7 @@ READ_BACK = {
     ),
     "trajectories of the other seed": (
         _edit_table("trajectories.parquet", lambda f: f.assign(seed=1 - f["seed"])),
-        "series.parquet: reward = ",
+        "random starts on this map are",  # each seed's drones start where its seed put them
     ),
     "reward split moved between its parts": (
         _shifted("greedy", R_hat_T_importance=-0.1, R_hat_T_idleness=0.1),
@@ -1168,7 +1242,8 @@ def test_a_later_seeds_rewards_are_replayed_on_the_shared_traffic(tmp_path, caps
     config = tmp_path / "c.toml"
     config.write_text(
         '[grid]\nnx = 8\nny = 10\n[swarm]\nn_drones = 3\n[traffic]\nkind = "synthetic"\n'
-        'horizon = 30\n[evaluate]\nswarms = ["random", "greedy"]\n'
+        'horizon = 30\ndisturbances = [{ kind = "big", i = 3, j = 4, amplitude = 1.0, '
+        'sigma = 2.0 }]\n[evaluate]\nswarms = ["random", "greedy"]\n'
     )
     out = tmp_path / "run"
     argv = ["evaluate", "--config", str(config), "--seeds", "2", "--out", str(out), "--quiet",
@@ -1764,7 +1839,8 @@ def test_a_cache_rebuild_notice_is_held_behind_a_refusal(tmp_path: Path, capsys)
 
 
 def test_a_sweep_cell_that_fails_leaves_no_notice_to_the_next(monkeypatch, capsys) -> None:
-    """A worker runs cell after cell: a failed cell's held notices never print with the next."""
+    """A worker runs cell after cell: a failed cell's held notices never go with the next; a
+    good cell's go back with its record (the sweep says each once, whichever cells said it)."""
     import twin.sweep.cells as cells
     from twin.boundary import notify, release_notices
 
@@ -1781,8 +1857,8 @@ def test_a_sweep_cell_that_fails_leaves_no_notice_to_the_next(monkeypatch, capsy
     with pytest.raises(UserError):
         cells.run_cell({"id": "a"})
     monkeypatch.setattr(cells, "_run_cell", starting)
-    assert cells.run_cell({"id": "b"}) == {"id": "b"}
-    assert capsys.readouterr().err == "twin: notice: of the good cell\n"
+    assert cells.run_cell({"id": "b"}) == {"id": "b", "notices": ["twin: notice: of the good cell"]}
+    assert capsys.readouterr().err == ""
 
 
 def test_a_write_into_a_missing_folder_names_the_file_not_a_temporary_one(tmp_path: Path) -> None:
@@ -1848,3 +1924,38 @@ def test_a_run_folder_in_use_by_another_command_is_refused(tmp_path: Path, capsy
         holder.wait()
     assert main([*args, "--out", str(out), "--no-report", "--quiet"]) == 0
     assert (out / "manifest.json").is_file()
+
+
+@pytest.mark.parametrize("cache", ["a file", "under a file"])
+def test_an_unusable_cache_is_refused_before_a_report_is_drawn(
+    tmp_path, capsys, monkeypatch, cache
+):
+    """The report's figures keep their font cache in twin's cache: a file in its place is one
+    line before the run (never matplotlib's own warnings after it); without a report the run
+    needs no cache."""
+    blocker = tmp_path / "cachefile"
+    blocker.write_text("")
+    monkeypatch.setenv("TWIN_CACHE_DIR", str(blocker if cache == "a file" else blocker / "sub"))
+    config = str(small_config(tmp_path))
+    out = tmp_path / "run"
+    assert main(["evaluate", "--config", config, "--out", str(out), "--quiet"]) == EXIT_REFUSED
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "twin's cache ($TWIN_CACHE_DIR" in err, err
+    assert "matplotlib" not in err.lower() and not out.exists()
+    assert main(["evaluate", "--config", config, "--out", str(out), "--quiet", "--no-report"]) == 0
+    capsys.readouterr()
+    assert main(["report", str(out)]) == EXIT_REFUSED
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "twin's cache ($TWIN_CACHE_DIR" in err, err
+    assert not (out / "report").exists()
+
+
+def test_a_figure_rounded_on_a_save_is_shown_apart_from_the_one_it_contradicts(run_copy, capsys):
+    """per_seed.csv rounded to 6 decimals (a spreadsheet's save) is refused, and the line shows
+    the two figures with the digits that tell them apart."""
+    _edit_table("per_seed.csv", lambda f: f.round(6))(run_copy)
+    refresh_manifest(run_copy)
+    assert main(["report", str(run_copy), "--no-animation"]) == EXIT_REFUSED
+    line = one_line(capsys)
+    have, want = re.search(r" = (\S+) for .*, but .* gives (\S+);", line).groups()
+    assert have != want and float(have) != float(want), line

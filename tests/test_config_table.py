@@ -195,7 +195,7 @@ def test_bad_synthetic_scenario(tmp_path, capsys, section, key, value):
 
 
 SUMO_BAD = {
-    ("traffic", "network"): ["3", "true", '"../../etc"', '"a/b"'],
+    ("traffic", "network"): ["3", "true", '"../../etc"', '"a/b"', '"atlantis"'],
     ("traffic", "net"): ["3", '""'],
     ("traffic", "routes"): ["3", "[1]", '""', '["a.rou.xml", ""]'],
     ("traffic", "additional"): ['[" "]'],
@@ -211,9 +211,9 @@ SUMO_BAD = {
     ("traffic", "min_lane_km"): [*NUMBER, "-0.5"],
     ("traffic", "demand_scale"): [*NUMBER, "0", "-2.0"],
     ("traffic.mfd", "fit"): ['"x"', "1"],
-    ("traffic.mfd", "a"): [*NUMBER, "0", "1.5"],
-    ("traffic.mfd", "k_c"): [*NUMBER, '"40"', "0"],
-    ("traffic.mfd", "detection_p"): [*NUMBER, "0", "1.5"],
+    ("traffic.mfd", "a"): [*NUMBER, "0", "1.5", "1e-300"],
+    ("traffic.mfd", "k_c"): [*NUMBER, '"40"', "0", "1e-300", "1e300"],
+    ("traffic.mfd", "detection_p"): [*NUMBER, "0", "1.5", "1e-300"],
     ("traffic.detectors", "scenario"): ['"yes"', "1"],
     ("traffic.detectors", "virtual_loops"): [*WHOLE, "-1", "100000"],
     ("traffic.detectors", "cells"): ['"x"', "[[1]]", '[["a", 1]]', "[[1, 2, 3]]"],

@@ -4,6 +4,7 @@ loops, the nowcast fed by detectors, bad detector settings."""
 from __future__ import annotations
 
 import itertools
+import json
 from pathlib import Path
 
 import numpy as np
@@ -429,17 +430,43 @@ def test_bad_detector_settings_are_one_line(small, tmp_path, capsys, text, needl
     assert not (out / "summary.csv").exists()
 
 
+def _meso_sumocfg(small: Path) -> Path:
+    """A sumocfg of the small scenario that asks SUMO for its mesoscopic model."""
+    path = small / "meso.sumocfg"
+    path.write_text(
+        '<configuration><input><net-file value="small.net.xml"/><route-files '
+        'value="small.trips.xml"/></input><mesoscopic><mesosim value="true"/></mesoscopic>'
+        "</configuration>"
+    )
+    return path
+
+
+@pytest.mark.parametrize("asked", ["--meso", "the sumocfg's mesosim"])
 @pytest.mark.parametrize("text", ["virtual_loops = 3", "scenario = true", "cells = [[1, 1]]"])
-def test_detectors_under_the_mesoscopic_model_are_refused(small, tmp_path, capsys, text):
-    """SUMO's mesoscopic model has no loops to read: refused before SUMO starts."""
+def test_detectors_under_the_mesoscopic_model_are_refused(small, tmp_path, capsys, text, asked):
+    """SUMO's mesoscopic model has no loops to read: refused before SUMO starts, whether the
+    flag or the scenario's sumocfg asks for it."""
     config = _with_detectors(small, "meso.toml", text + "\n")
     out = tmp_path / "out"
-    code = twin_main(["run", "--config", str(config), "--meso", "--quiet", "--no-report",
+    how = ["--meso"] if asked == "--meso" else ["--sumocfg", str(_meso_sumocfg(small))]
+    code = twin_main(["run", "--config", str(config), *how, "--quiet", "--no-report",
                       "--out", str(out)])  # fmt: skip
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and "Traceback" not in err, err
-    assert "[traffic.detectors] with --meso" in err and str(config) in err, err
+    assert "[traffic.detectors] with SUMO's mesoscopic model" in err and str(config) in err, err
     assert not out.exists()
+
+
+def test_a_sumocfg_that_asks_for_the_mesoscopic_model_is_recorded_so(small, tmp_path, capsys):
+    """SUMO runs a sumocfg's ``mesosim`` as asked; run.json and the tape say mesoscopic."""
+    out = tmp_path / "out"
+    code = twin_main(["run", "--config", str(small / "small.toml"), "--sumocfg",
+                      str(_meso_sumocfg(small)), "--swarms", "random", "--no-ceiling", "--quiet",
+                      "--no-report", "--out", str(out)])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert "mesosim" in err and "mesoscopic model, as --meso does" in err, err
+    assert json.loads((out / "run.json").read_text())["traffic"]["mesoscopic"] is True
 
 
 def test_a_cell_without_road_is_refused(small):

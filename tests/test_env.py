@@ -175,22 +175,32 @@ def test_make_env_refuses_bad_options_in_one_line(joint):
         ({"params": {"eta": 2}}, r"params = \{'eta': 2\} is not a ScoreParams"),
         (
             {"params": ScoreParams(eta=5.0)},
-            r"params.eta = 5.0 is out of range; give a number in \(0, 1\)",
+            r"params.eta = 5.0 must be < 1.0; e.g. 0.1 \(the default\)",
         ),
-        ({"params": ScoreParams(delta=-1.0)}, r"params.delta = -1.0 is out of range"),
-        ({"params": ScoreParams(delta=1.0)}, r"params.delta = 1.0 is out of range"),
-        ({"params": ScoreParams(alpha_T=float("nan"))}, r"params.alpha_T = nan is out of range"),
-        ({"params": ScoreParams(alpha_I=float("inf"))}, r"params.alpha_I = inf is out of range"),
-        ({"params": ScoreParams(alpha_I=-0.5)}, r"params.alpha_I = -0.5 is out of range"),
-        ({"params": ScoreParams(alpha_T=1e308)}, r"params.alpha_T = 1e\+308 is out of range"),
-        ({"params": ScoreParams(delta=1e-320)}, r"params.delta = 1e-320 is out of range"),
+        ({"params": ScoreParams(delta=-1.0)}, r"params.delta = -1.0 must be >= 1e-09"),
+        ({"params": ScoreParams(delta=1.0)}, r"params.delta = 1.0 must be < 1"),
+        (
+            {"params": ScoreParams(alpha_T=float("nan"))},
+            r"params.alpha_T = nan must be a finite number",
+        ),
+        (
+            {"params": ScoreParams(alpha_I=float("inf"))},
+            r"params.alpha_I = inf must be a finite number",
+        ),
+        ({"params": ScoreParams(alpha_I=-0.5)}, r"params.alpha_I = -0.5 must be >= 0"),
+        ({"params": ScoreParams(alpha_T=1e308)}, r"params.alpha_T = 1e\+308 must be <= 1000000"),
+        ({"params": ScoreParams(delta=1e-320)}, r"params.delta = 1e-320 must be >= 1e-09"),
         ({"params": ScoreParams(alpha_T=0.0, alpha_I=0.0)}, "are both 0"),
-        ({"params": ScoreParams(alpha_T="1")}, r"params.alpha_T = '1' is out of range"),
+        ({"params": ScoreParams(alpha_T="1")}, r"params.alpha_T = '1' must be a number"),
+        ({"params": ScoreParams(eta=True)}, r"params.eta = True must be a number"),
+        ({"tape": ""}, r"make_env\(tape=''\): give a tape.parquet's path"),
+        ({"tape": 3}, r"make_env\(tape=3\): give a tape.parquet's path"),
     ):
         with pytest.raises(EnvInputError, match=words) as info:
             make_env("synthetic", joint=joint, **options)
         assert "\n" not in str(info.value)
     make_env("synthetic", joint=joint, params=ScoreParams(eta=0.2, alpha_I=0.0))  # in range
+    make_env("synthetic", joint=joint, params=ScoreParams(eta=np.float32(0.2), alpha_I=np.int64(2)))
     for config in (123, None, ["synthetic"]):
         with pytest.raises(EnvInputError, match="give a scenario config's path"):
             make_env(config, joint=joint)

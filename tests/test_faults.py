@@ -201,6 +201,39 @@ def test_a_checkpoint_with_nan_weights_is_refused_on_load(tmp_path: Path) -> Non
     assert "\n" not in str(info.value)
 
 
+def _scaled(weights, factor):
+    return {k: v * factor for k, v in weights.items()}
+
+
+@pytest.mark.parametrize(
+    ("change", "words"),
+    [
+        (lambda w, m: (_scaled(w, 1e38), m), r"huge\.pt: its Q-values overflow to inf or NaN"),
+        (lambda w, m: (w, {**m, "epoch": -1}), r"huge\.pt: meta\.epoch = -1 is not a whole"),
+        (lambda w, m: (w, {**m, "seed": -5}), r"huge\.pt: meta\.seed = -5 is not a whole"),
+        (lambda w, m: (w, {**m, "seed": True}), r"huge\.pt: meta\.seed = True is not a whole"),
+    ],
+)
+def test_a_checkpoint_whose_q_values_overflow_or_meta_is_absurd_is_refused(
+    tmp_path: Path, change, words
+) -> None:
+    """Finite weights scaled by 1e38 give inf or NaN Q-values (the argmax then picks no action);
+    a negative epoch or seed is no training's."""
+    pytest.importorskip("torch")
+    from twin.errors import UserError
+    from twin.learning.checkpoint import load_qnet, model_metadata, save_model
+    from twin.learning.qnet import QNetwork
+
+    weights = QNetwork([13, 16, 5]).state_dict()
+    path = tmp_path / "huge.pt"
+    save_model(path, *change(weights, model_metadata([13, 16, 5], {}, 0, 1)))
+    with pytest.raises(UserError, match=words) as info:
+        load_qnet(path)
+    assert "\n" not in str(info.value)
+    save_model(path, weights, model_metadata([13, 16, 5], {}, 0, 1))
+    load_qnet(path)  # the same network as trained loads
+
+
 # ----------------------------------------------------------------------------- bad numbers
 BIG = str(2**63)
 
@@ -210,7 +243,10 @@ BIG = str(2**63)
     [
         (["evaluate", "--seed", "-1"], "--seed = -1"),
         (["evaluate", "--seed", BIG], f"--seed = {BIG}"),
-        (["evaluate", "--seed", "2147483647", "--seeds", "2"], "--seed = 2147483647"),
+        (["evaluate", "--seed", "2147483647", "--seeds", "2"], "--seeds = 2 runs seeds"),
+        (["evaluate", "--seeds", "3000000000"], "--seeds = 3000000000 runs seeds 0 .. 2999999999"),
+        (["run", "--net", "n.net.xml", "--seeds", "10" + "0" * 14], "--seeds = 1000000000000000"),
+        (["run", "--sumo-seed", "2147483647", "--seeds", "2"], "--seeds = 2 runs seeds"),
         (["evaluate", "--seeds", "0"], "--seeds = 0"),
         (["evaluate", "--seeds", "-3"], "--seeds = -3"),
         (["run", "--seed", "-1"], "--seed = -1"),

@@ -291,17 +291,19 @@ FORGED_SCHEDULE = {
         _run_json_edited(lambda traffic: traffic.pop("incidents")),
         "run.json: traffic.incidents (the configured schedule) is missing, but ",
     ),
+    # run.json's schedule forged alone: the tape's record of it refuses it first
     "the schedule's edge forged alone": (
         _run_json_edited(lambda traffic: traffic["incidents"][0].update(edge="B2B1")),
-        'incidents.json: [0].edge = "B1B2", but run.json\'s traffic.incidents[0] schedules "B2B1"',
+        'run.json: traffic.incidents[0].edge = "B2B1", but tape.parquet (seed 0\'s tape) '
+        'records "B1B2"',
     ),
     "a schedule that is no incident": (
         _run_json_edited(lambda traffic: traffic["incidents"][0].update(kind="flood")),
-        "run.json: traffic.incidents[0] is no incident (",
+        'run.json: traffic.incidents[0].kind = "flood", but tape.parquet (seed 0\'s tape)',
     ),
     "a second incident scheduled": (
         _run_json_edited(lambda traffic: traffic["incidents"].append(traffic["incidents"][0])),
-        "incidents.json: 1 incidents, but run.json's traffic.incidents schedules 2",
+        "run.json: traffic.incidents = [{",
     ),
 }
 
@@ -349,6 +351,10 @@ BAD_INCIDENTS = {
     "late in the evening": (_incident(when='begin = "23:00"'), "outside the scenario's window"),
     "after the end": (_incident(when='begin = "00:15"'), "00:00:00 - 00:15:00"),
     "a step past the horizon": (_incident(when="step = 11"), "step = 11 (00:16:00) is outside"),
+    "over in the warm-up": (
+        _incident(when='begin = "00:01"', minutes=2.0),
+        "ends at 00:03:00, by the run's first step T^0 = 00:05:00 (it lies in the warm-up)",
+    ),
     "a cell off the grid": (_incident(where="cell = [40, 1]"), "cell = [40, 1] is off the"),
     "a cell without road": (  # a grid larger than the network: its border has no road
         _incident(where="cell = [0, 0]") + "[grid]\nnx = 12\nny = 12\n",
@@ -408,3 +414,18 @@ def test_overlapping_closures_reopen_when_the_last_lifts(tmp_path, capsys):
     records = source.incidents_info()
     assert [r["lifted_s"] for r in records] == [660.0, 780.0, 600.0]
     assert "lanes" not in records[0]
+
+
+def test_route_errors_are_skipped_with_closures_and_twins_own_demand_only(tmp_path):
+    """A scenario's own demand is run as SUMO runs it (a route it cannot follow stops it); with
+    scheduled closures, which leave routes unfollowable, and in twin's own demand, such a
+    vehicle is skipped."""
+    pytest.importorskip("libsumo")
+    from twin.config import load_config
+    from twin.sumo.scenario import sumo_source
+
+    plain = _small(tmp_path, "")
+    assert "--ignore-route-errors" not in sumo_source(load_config(plain)).session().command()
+    (tmp_path / "closed").mkdir()
+    closed = _small(tmp_path / "closed", _incident())
+    assert "--ignore-route-errors" in sumo_source(load_config(closed)).session().command()

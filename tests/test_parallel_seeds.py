@@ -337,3 +337,15 @@ def test_one_progress_bar_over_the_seeds(tmp_path, capsys):
     assert "seeds" in err and "/3 [" in err and "patrol" not in err, err
     run_experiment(experiment, progress=False)
     assert capsys.readouterr().err == ""
+
+
+def test_more_live_workers_than_the_memory_holds_are_refused_before_any_starts(
+    small, tmp_path, capsys
+):
+    """Each live worker holds a simulation (the grid is known only inside it): workers past the
+    memory limit are one line before any worker process starts."""
+    code = _run(small, tmp_path / "out", "--workers", "64", "--max-memory-gb", "2")
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and err.count("\n") == 0, err
+    assert "--workers 64: 3 live simulations at once need at least 2.4 GB" in err, err
+    assert not (tmp_path / "out").exists()

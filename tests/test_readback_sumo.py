@@ -93,6 +93,11 @@ SUMO_READ_BACK: dict[str, tuple[Callable[[Path], None], str, tuple[str, ...]]] =
         '"00:05:00"',
         ("report",),
     ),
+    "run.json names another scenario than the tape": (
+        _run_json(lambda r: r["traffic"].update(name="other.sumocfg")),
+        'run.json: traffic.name = "other.sumocfg", but tape.parquet (seed 0\'s tape) records ',
+        ("report",),
+    ),
     "run.json reads fewer times a step than the tape": (
         _run_json(lambda r: r["traffic"].update(reads_per_step=1, read_offsets_s=[0.0])),
         "run.json: traffic.reads_per_step = 1, but tape.parquet (seed 0's tape) records 3",
@@ -111,6 +116,11 @@ SUMO_READ_BACK: dict[str, tuple[Callable[[Path], None], str, tuple[str, ...]]] =
     "run.json's monitoring step is not its traffic's": (
         _run_json(lambda r: r["monitoring"].update(step_s=99.0)),
         "run.json: monitoring.step_s = 99.0, but traffic.step_s = ",
+        ("report",),
+    ),
+    "run.json's versions name another SUMO than its traffic's identity": (
+        _run_json(lambda r: r["versions"].update({"eclipse-sumo": "1.0"})),
+        "run.json: versions.eclipse-sumo = 1.0, but traffic.identity.sumo = ",
         ("report",),
     ),
     "run.json's network sha256 is not its network file's": (

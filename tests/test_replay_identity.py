@@ -536,8 +536,9 @@ def test_replay_refuses_a_changed_saved_state_the_sumocfg_loads(tmp_path, capsys
 
 
 def test_replay_refuses_traffic_other_than_the_recorded_one(recorded, tmp_path, capsys):
-    """run.json edited to name another route file, with that file's sha256 (a determined
-    forgery that every hash check passes): the replayed simulation is compared step by step
+    """run.json and the tape's record of the scenario edited alike to name another route
+    file, with that file's sha256 (a determined forgery that every hash check and every
+    cross-check of the folder passes): the replayed simulation is compared step by step
     with the run's tape, and the first step that differs is refused in one line."""
     import hashlib
     import re
@@ -557,6 +558,22 @@ def test_replay_refuses_traffic_other_than_the_recorded_one(recorded, tmp_path, 
                 entry["sha256"] = hashlib.sha256(other.read_bytes()).hexdigest()
         meta["traffic"]["route_files"] = [str(other)]
 
+    def forge_tape(run: Path) -> None:  # the tape's record of the scenario, alike
+        import pyarrow.parquet as pq
+
+        table = pq.read_table(run / "tape.parquet")
+        meta = dict(table.schema.metadata)
+        tape = json.loads(meta[b"twin_tape"])
+        tape["settings"]["route_files"] = [str(other)]
+        for entry in tape["settings"]["identity"]["files"]:
+            if entry["role"] == "route file":
+                entry["path"] = str(other)
+                entry["sha256"] = hashlib.sha256(other.read_bytes()).hexdigest()
+        meta[b"twin_tape"] = json.dumps(tape).encode()
+        pq.write_table(table.replace_schema_metadata(meta), run / "tape.parquet")
+        write_manifest(run)
+
     _edit_run_json(forge)(recorded)
+    forge_tape(recorded)
     run_case(capsys, tmp_path, ["replay", str(recorded)], None, 2,
              "tape.parquet: the replayed simulation's importance at step ")  # fmt: skip

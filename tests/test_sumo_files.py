@@ -429,8 +429,33 @@ def _included_ssm_type(d: Path) -> None:
     trips.write_text(text[:start] + '<include href="types.xml"/>' + text[start:])
 
 
+def _ssm_type_without_file(d: Path) -> None:
+    """``small.trips.xml``'s default vehicle type has an SSM device and names no file (SUMO
+    would write one ``ssm_<vehicle>.xml`` per vehicle into its working folder)."""
+    trips = d / "small.trips.xml"
+    text = trips.read_text()
+    start = text.index(">", text.index("<routes")) + 1
+    kind = '<vType id="DEFAULT_VEHTYPE"><param key="has.ssm.device" value="true"/></vType>'
+    trips.write_text(text[:start] + kind + text[start:])
+
+
 # name -> (output options of the sumocfg, how to change the case's files, what RUN/sumo/ holds)
 ESCAPES = {
+    "SSM's file named by a device option (SUMO types it a string, not a file)": (
+        '<device.ssm.probability value="1"/><device.ssm.file value="ssm.out.xml"/>',
+        None,
+        ["det.add.xml", "det.xml", "ssm.out.xml"],
+    ),
+    "SSM devices of a device option without a file": (
+        '<device.ssm.probability value="1"/>',
+        None,
+        ["det.add.xml", "det.xml", "ssm.xml"],
+    ),
+    "SSM devices of a vehicle type without a file": (
+        "",
+        _ssm_type_without_file,
+        ["det.add.xml", "det.xml", "ssm.xml"],
+    ),
     "outputs named by SUMO's synonyms": (
         '<statistics-output value="stats.xml"/><log-file value="sumo.log"/>'
         '<tripinfo v="trips.out.xml"/>',
@@ -464,21 +489,43 @@ ESCAPES = {
 
 
 @pytest.mark.parametrize("case", list(ESCAPES))
-def test_outputs_in_every_form_sumo_reads_go_into_the_run_folder(scenario, tmp_path, capsys, case):
+def test_outputs_in_every_form_sumo_reads_go_into_the_run_folder(
+    scenario, tmp_path, capsys, monkeypatch, case
+):
     """Outputs named as SUMO also reads them (an option's synonym, an element in SUMO's XML
-    namespace, a device parameter in a UTF-16 file) land in RUN/sumo/, never beside the
-    scenario's files."""
+    namespace, a device parameter in a UTF-16 file, SSM devices with or without a file) land
+    in RUN/sumo/, never beside the scenario's files nor in the working folder."""
     output, change, want = ESCAPES[case]
     cfg = _detector_case(scenario, tmp_path / "case", output)
     if change is not None:
         change(tmp_path / "case")
     before = tree_hash(tmp_path / "case")
+    (tmp_path / "cwd").mkdir()
+    monkeypatch.chdir(tmp_path / "cwd")
     out = tmp_path / "run"
     code = _run(scenario, out, "--sumocfg", str(cfg))
     err = capsys.readouterr().err
     assert code == 0, err
     assert tree_hash(tmp_path / "case") == before
+    assert list((tmp_path / "cwd").iterdir()) == []
     assert sorted(p.name for p in (out / "sumo").iterdir()) == want
+
+
+@pytest.mark.parametrize("stream", ["stdout", "stderr", "-"])
+def test_an_output_sent_to_a_stream_goes_to_a_file_in_the_run_folder(
+    scenario, tmp_path, capfd, stream
+):
+    """``<fcd-output value="stdout"/>``: SUMO would write its XML into twin's tables (stdout)
+    or among its notices and errors (stderr); it goes to RUN/sumo/fcd-output.xml."""
+    cfg = _detector_case(scenario, tmp_path / "case", f'<fcd-output value="{stream}"/>')
+    out = tmp_path / "run"
+    code = _run(scenario, out, "--sumocfg", str(cfg))
+    captured = capfd.readouterr()
+    assert code == 0, captured.err
+    assert "<fcd-export" not in captured.out + captured.err
+    assert "<fcd-export" in (out / "sumo" / "fcd-output.xml").read_text()
+    run = json.loads((out / "run.json").read_text())
+    assert "fcd-output.xml" in run["traffic"]["sumo_outputs"]
 
 
 @pytest.mark.parametrize("option", ["save-config", "C", "save-configuration"])
@@ -531,6 +578,16 @@ def test_a_config_seeding_sumo_from_the_clock_still_repeats(scenario, tmp_path, 
         assert "<random value='true'> (a seed from the clock) is overridden" in err, err
         tapes.append(pd.read_parquet(tmp_path / name / "tape.parquet"))
     pd.testing.assert_frame_equal(tapes[0], tapes[1])
+
+
+def test_a_config_seed_replaced_by_twins_is_said(scenario, tmp_path, capsys):
+    """``<seed value="42"/>``: twin seeds SUMO itself (one seed per run seed) and says so."""
+    cfg = _detector_case(scenario, tmp_path / "case")
+    cfg.write_text(cfg.read_text().replace("<output>", '<random_number><seed value="42"/>'
+                                           "</random_number><output>"))  # fmt: skip
+    assert _run(scenario, tmp_path / "run", "--sumocfg", str(cfg)) == 0
+    err = capsys.readouterr().err
+    assert "<seed value='42'> is replaced by twin's SUMO seed" in err, err
 
 
 TIME = r"\d{4}(-\d\d){5}"  # SUMO replaces TIME in a prefix or suffix by the date and time
@@ -850,3 +907,26 @@ def test_included_files_are_found_through_nested_includes_and_cycles(tmp_path):
     (tmp_path / "sub" / "c.add.xml").write_text("<additional/>")
     found = included_files(tmp_path / "a.add.xml")
     assert [p.name for p in found] == ["b.add.xml", "c.add.xml"]
+
+
+def test_a_run_in_the_scenarios_own_window_past_its_departures_gets_a_notice(
+    scenario, tmp_path, capsys
+):
+    """A sumocfg whose own window runs long past its departures (a looping scenario's rerouters
+    keep its vehicles on the road): the run, begun in that window after the warm-up, is not
+    refused as empty (twin cannot tell); a notice says it starts past the last departure."""
+    d = scenario / "scenario"
+    cfg = tmp_path / "loop.sumocfg"
+    cfg.write_text(
+        f'<configuration><input><net-file value="{d / "small.net.xml"}"/><route-files '
+        f'value="{d / "small.trips.xml"}"/></input><time><begin value="0"/><end '
+        'value="100000"/></time></configuration>'
+    )
+    config = tmp_path / "late.toml"  # a warm-up past the 10 min of departures and their clearing
+    config.write_text(CONFIG.replace("warmup_min = 1.0", "warmup_min = 40.0"))
+    code = main(["run", "--config", str(config), "--sumocfg", str(cfg), "--horizon", "2",
+                 "--swarms", "random", "--no-ceiling", "--quiet", "--no-report", "--out",
+                 str(tmp_path / "run")])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert "begins past the last departure" in err, err

@@ -175,14 +175,21 @@ def test_the_vehicle_types_come_from_the_additional_file(city, capsys):
     _assert_window_matches_demand(city / "types", d / "grid.rou.xml")
 
 
-def test_sumo_refusal_names_the_file(city, tmp_path, capsys):
+@pytest.mark.parametrize(
+    ("element", "words"),
+    [
+        ('<vType id="car2" vClass="flyingcar"/>', "flyingcar"),  # SUMO quotes it
+        ('<timedEvent type="SaveTLSStates" source="B1" dest="tls.xml"/>', "(B1)"),  # in ( )
+    ],
+)
+def test_sumo_refusal_names_the_file(city, tmp_path, capsys, element, words):
     bad = tmp_path / "bad.add.xml"
-    bad.write_text('<additional><vType id="car2" vClass="flyingcar"/></additional>')
+    bad.write_text(f"<additional>{element}</additional>")
     code, err = _run(city, "bad", "--sumocfg", str(city / "scenario" / "plain.sumocfg"),
                      "--additional", str(bad), capsys=capsys)  # fmt: skip
     lines = err.strip().splitlines()
     assert code == 2 and len([x for x in lines if x.startswith("twin: error:")]) == 1
-    assert str(bad) in lines[-1] and "flyingcar" in lines[-1]
+    assert str(bad) in lines[-1] and words in lines[-1], lines[-1]
 
 
 @pytest.mark.parametrize("kind", ["spider", "random"])
@@ -507,3 +514,91 @@ def test_sumocfg_options_in_every_form_sumo_reads_are_read(tmp_path, form):
     assert read.additional == [tmp_path / "sub" / "det.add.xml"]
     assert (read.begin, read.end) == (60.0, 900.0)
     assert read.options["tripinfo-output"] == "../out.xml"
+
+
+def test_cells_too_large_for_the_drones_name_the_cell_size_flag(city, capsys):
+    """--cell-m leaves fewer free cells than the config's drones: the line names the flag the
+    user gave (and the config the drones come from), not the config alone."""
+    code, err = _run(city, "huge-cells", "--cell-m", "50000", capsys=capsys)
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1, err
+    assert lines[0].startswith("twin: error: --cell-m 50000 leaves 1 free cells"), lines[0]
+    assert "[swarm].n_drones" in lines[0] and "--drones" in lines[0]
+
+
+def test_a_sumocfgs_own_processing_options_are_kept(tmp_path):
+    """twin's anti-gridlock defaults fill in only where the scenario's sumocfg says nothing:
+    its own teleport and rerouting settings (by any of SUMO's names) stay."""
+    from twin.sumo.session import ANTI_GRIDLOCK_OPTIONS, gridlock_defaults
+
+    cfg = tmp_path / "own.sumocfg"
+    cfg.write_text(
+        '<configuration><input><net-file value="n.net.xml"/></input><processing>'
+        '<time-to-teleport value="-1"/></processing><routing>'
+        '<device.rerouting.probability value="0"/></routing></configuration>'
+    )
+    kept = gridlock_defaults(cfg)
+    flags = kept[::2]
+    assert "--time-to-teleport" not in flags and "--device.rerouting.probability" not in flags
+    assert "--max-depart-delay" in flags and len(kept) == len(ANTI_GRIDLOCK_OPTIONS) - 4
+    assert gridlock_defaults(None) == ANTI_GRIDLOCK_OPTIONS
+
+
+def test_a_route_sumo_cannot_follow_stops_the_run_as_it_stops_sumo(city, tmp_path, capsys):
+    """A user's route file with a route whose edges do not connect: SUMO stops on it, and so
+    does twin (its own demand alone skips such vehicles), saying SUMO's reason; twin never
+    simulates it as if it were valid."""
+    net = city / "data" / "grid.net.xml"
+    edges = [e.get("id") for e in ET.parse(net).getroot().iter("edge") if not e.get("function")]
+    bad = tmp_path / "bad.rou.xml"
+    bad.write_text(
+        f'<routes><route id="r" edges="{edges[0]} {edges[-1]}"/>'
+        f'<flow id="f" route="r" begin="{FIRST_DEPART}" end="{FIRST_DEPART + 600}" '
+        'vehsPerHour="600"/></routes>'
+    )
+    code, err = _run(city, "bad-route", "--net", str(net), "--routes", str(bad), capsys=capsys)
+    assert code != 0 and "has no valid route" in err and "Traceback" not in err, err
+
+
+def test_a_config_with_osm_and_a_sumocfg_is_refused(tmp_path, capsys):
+    """The config's keys as the flags: osm alone, or net and/or sumocfg (one would be ignored)."""
+    config = tmp_path / "c.toml"
+    config.write_text('[traffic]\nkind = "sumo"\nsumocfg = "a.sumocfg"\nosm = "b.osm"\n')
+    code = twin_main(["run", "--config", str(config), "--out", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1, err
+    assert "[traffic].osm with net or sumocfg: give osm alone" in err and str(config) in err
+
+
+def test_a_run_without_warm_up_reads_t0_as_the_network_begins(tmp_path, capsys):
+    """``warmup_min = 0``: ``T^0`` is the simulation's first instant (the network as it
+    begins); the run has every step, not one short taken for SUMO stopping early, and its
+    folder reads back."""
+    from helpers import small_sumo_scenario
+
+    small_sumo_scenario(tmp_path, horizon=5)
+    config = tmp_path / "small.toml"
+    config.write_text(config.read_text().replace("warmup_min = 5.0", "warmup_min = 0.0"))
+    out = tmp_path / "run"
+    code = twin_main(["run", "--config", str(config), "--swarms", "random", "--no-ceiling",
+                      "--quiet", "--no-report", "--out", str(out)])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 0 and "stopped early" not in err, err
+    assert json.loads((out / "run.json").read_text())["partial"] is False
+    assert twin_main(["report", str(out), "--no-animation"]) == 0, capsys.readouterr().err
+
+
+def test_a_small_network_at_the_configs_cells_points_to_the_cell_size(city, capsys):
+    """A network with fewer free cells than drones at the config's cell size: the line says so
+    and gives the fixes (--cell-m, --drones), not only "fewer drones"."""
+    config = city / "scenario" / "twin.toml"
+    coarse = city / "scenario" / "coarse.toml"
+    coarse.write_text(config.read_text() + "\n")
+    text = coarse.read_text()
+    coarse.write_text(re.sub(r"cell_m = [0-9.]+", "cell_m = 50000.0", text))
+    code = twin_main(["run", "--config", str(coarse), "--quiet", "--no-report", "--out",
+                      str(city / "coarse-run")])  # fmt: skip
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(lines) == 1, lines
+    assert "free cells of 50000 m for " in lines[0] and str(coarse) in lines[0], lines[0]
+    assert "give smaller cells with --cell-m" in lines[0] and "--drones" in lines[0]

@@ -159,6 +159,14 @@ BAD = [
     ('[[column]]\nname = "c"\nconfig = "{synthetic}"\ngenerate = "moon"\n', "spider"),
     ('[[column]]\nname = "c"\nconfig = "{synthetic}"\noverrides = {{ "x" = 1 }}\n', "dotted"),
     ('[[row]]\nname = "a/b"\n', "plain name"),
+    (
+        '[[column]]\nname = "g"\nconfig = "{synthetic}"\ngenerate = "spider"\n',
+        "builds a SUMO network, but its config",
+    ),
+    (
+        '[[row]]\nname = "x"\ncheckpoint = "{qnet}"\ntraffic = "dynamics"\n',
+        "loads its checkpoint as it is, so its traffic would train nothing",
+    ),
 ]
 
 
@@ -166,7 +174,7 @@ BAD = [
 def test_bad_transfer_configs_are_one_line_errors(tmp_path: Path, extra: str, message, capsys):
     synthetic = ROOT / "configs" / "synthetic.toml"
     text = GOOD.format(synthetic=synthetic)
-    extra = extra.format(synthetic=synthetic)
+    extra = extra.format(synthetic=synthetic, qnet=ROOT / "data" / "qnet.pt")
     if extra.startswith("[transfer]"):  # replaces the section
         text = text.replace("[transfer]\nseeds = [0]\n", "")
     path = tmp_path / "bad.toml"
@@ -177,6 +185,28 @@ def test_bad_transfer_configs_are_one_line_errors(tmp_path: Path, extra: str, me
     assert cli(["transfer", "--config", str(path), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "Traceback" not in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_row_checkpoint_that_cannot_load_is_refused_before_any_stage(tmp_path, capsys):
+    """A row's checkpoint is loaded before the tapes and rows start: a broken one is the
+    command's one line, nothing said before it and no folder made."""
+    torch = pytest.importorskip("torch")
+    from twin.learning.checkpoint import model_metadata, save_model
+    from twin.learning.qnet import QNetwork
+
+    weights = QNetwork([13, 16, 5]).state_dict()
+    weights = {k: v * torch.nan for k, v in weights.items()}
+    broken = tmp_path / "broken.pt"
+    save_model(broken, weights, model_metadata([13, 16, 5], {}, 0, 1))
+    path = tmp_path / "t.toml"
+    synthetic = ROOT / "configs" / "synthetic.toml"
+    path.write_text(
+        GOOD.format(synthetic=synthetic) + f'[[row]]\nname = "loaded"\ncheckpoint = "{broken}"\n'
+    )
+    assert cli(["transfer", "--config", str(path), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "broken.pt" in err and "non-finite" in err, err
     assert not (tmp_path / "o").exists()
 
 

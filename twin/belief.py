@@ -38,6 +38,7 @@ import numpy as np
 import pandas as pd
 
 from twin.errors import UserError
+from twin.files import not_a_file
 from twin.grid import Grid
 from twin.mfd import PRIOR_K_C
 from twin.monitoring import MonitorSettings, congestion_events
@@ -209,8 +210,11 @@ class History:
         """Read and check a history file; any problem is one :class:`UserError` line."""
         path = Path(path)
         fix = "build it again with `twin history --from RUN_DIR ... --out FILE`"
-        if not path.is_file():
+        why = not_a_file(path)
+        if why == "does not exist":
             raise UserError(f"{path}: no such history file; {fix}")
+        if why is not None:
+            raise UserError(f"{path}: {why} (a history file of `twin history`)")
         try:
             with np.load(path, allow_pickle=False) as data:
                 arrays = {k: data[k] for k in ("mean", "var", "rho", "obstacles", "info")}
@@ -263,6 +267,19 @@ class History:
                 f"{path}: traffic_seeds = {seeds!r} is not a list of the SUMO seeds it was built "
                 f"from (needed to refuse a history that holds an evaluated day); {fix}"
             )
+        n_runs, sources = info.get("n_runs"), info.get("sources") or []
+        if not isinstance(n_runs, int) or isinstance(n_runs, bool) or n_runs < 1:
+            raise UserError(f"{path}: n_runs = {n_runs!r} is not a whole number >= 1; {fix}")
+        if len(set(seeds)) != len(seeds) or len(seeds) > n_runs:
+            raise UserError(
+                f"{path}: traffic_seeds = {str(seeds)[:60]} are not distinct seeds of its "
+                f"n_runs = {n_runs} days; {fix}"
+            )
+        if not isinstance(sources, list) or (sources and len(sources) != n_runs):
+            raise UserError(
+                f"{path}: sources = {str(sources)[:60]} do not name its n_runs = {n_runs} days "
+                f"(one each, or none); {fix}"
+            )
         step_s = info.get("step_s")
         corr = info.get("neighbour_corr", 0.0)
         if not isinstance(corr, (int, float)) or not 0.0 <= corr <= 1.0:
@@ -272,7 +289,7 @@ class History:
             var,
             rho,
             obstacles,
-            int(info.get("n_runs", 0)),
+            n_runs,
             float(step_s) if isinstance(step_s, (int, float)) else None,
             info.get("begin") if isinstance(info.get("begin"), str) else None,
             tuple(seeds),

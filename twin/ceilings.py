@@ -281,6 +281,21 @@ def lagrangian_bound(
     return Bound(best / horizon, best_prices, history, time.perf_counter() - t0)
 
 
+def bound_at(
+    maps: np.ndarray, grid: Grid, n_drones: int, params: ScoreParams, prices: np.ndarray
+) -> float:
+    """``L(prices) / T`` of :func:`lagrangian_bound` on ``maps`` (any prices bound ``R_hat_T``
+    from above; at the prices a run found, its bound row): one DP pass, what a run folder's
+    read-back replays of its ``bound (ceiling)`` row."""
+    weights = cell_weights(np.asarray(maps, dtype=np.float64), grid, params)
+    horizon, n_cells = weights.shape
+    if np.shape(prices) != (horizon,):
+        raise ValueError(f"{np.shape(prices)} prices for {horizon} steps")
+    factors = CellStates.build(params, horizon, DEFAULT_LEVELS)
+    value, _ = _dual(weights, factors, min(n_drones, n_cells))(np.asarray(prices, dtype=float))
+    return value / horizon
+
+
 def soft_dual(
     prices: np.ndarray, weights: np.ndarray, states: CellStates, n: int, tau: float
 ) -> tuple[float, np.ndarray]:
@@ -544,6 +559,8 @@ def ceiling_table(
         rows.append({"swarm": BOUND, "R_hat_T": bound.value})
     table = pd.DataFrame(rows)
     table["role"] = CEILING_ROLE
+    if bound is not None:
+        table.attrs["bound_prices"] = bound.prices  # kept in bound.npz: the row is replayed
     return table
 
 

@@ -42,6 +42,7 @@ from pydantic import (
 from twin.clock import CLOCK_HINT, clock_seconds
 from twin.errors import UserError
 from twin.grid import Grid
+from twin.mfd import SETTING_RANGES as MFD_SETTING_RANGES
 from twin.resources import shipped_config as shipped_config  # re-export (moved there)
 from twin.scores import ScoreParams
 from twin.swarms import check_swarm_name, make_policy
@@ -257,11 +258,19 @@ class SyntheticConfig(StrictModel):
         return value
 
 
+def _setting_range(name: str) -> Any:
+    low, high = MFD_SETTING_RANGES[name]
+    return Annotated[float, Field(ge=low, le=high)]
+
+
 class MFDSettings(StrictModel):
+    """``[traffic.mfd]``: the MFD's form ``v(k) = a v_lim exp(-k / k_c)`` (prior, or fixed)
+    and the share of vehicles a drone sees, in :data:`twin.mfd.SETTING_RANGES`."""
+
     fit: Literal["online", "fixed"] = "online"
-    a: Annotated[float, Field(gt=0, le=1)] = 0.7
-    k_c: Annotated[float, Field(gt=0)] = 40.0
-    detection_p: Annotated[float, Field(gt=0, le=1)] = 1.0
+    a: _setting_range("a") = 0.7
+    k_c: _setting_range("k_c") = 40.0
+    detection_p: _setting_range("detection_p") = 1.0
 
 
 class IncidentSettings(StrictModel):
@@ -341,7 +350,23 @@ class SumoSettings(StrictModel):
     @field_validator("network")
     @classmethod
     def _network(cls, value: str | None) -> str | None:
-        return None if value is None else check_name(value)
+        if value is None:
+            return None
+        from twin.resources import network_names
+
+        known = network_names()
+        if check_name(value) not in known:
+            raise ValueError(f"is not a built-in network; use one of: {', '.join(known)}")
+        return value
+
+    @model_validator(mode="after")
+    def _one_source_of_files(self) -> SumoSettings:
+        if self.osm is not None and (self.net is not None or self.sumocfg is not None):
+            raise ValueError(
+                "[traffic].osm with net or sumocfg: give osm alone (twin imports it), or net "
+                "and/or sumocfg"
+            )
+        return self
 
     @field_validator("begin")
     @classmethod
@@ -769,13 +794,22 @@ def _toml(value: Any) -> str:
 
 
 # ------------------------------------------------------------------------------- reading
+#: The largest config twin reads (a sweep's or transfer's tables are a few kB).
+MAX_CONFIG_BYTES = 16 * 2**20
+
+
 def read_toml(path: str | Path) -> dict[str, Any]:
     """The tables of the TOML file ``path``; a UTF-8 byte order mark at its start (as editors
     on Windows write it, and TOML does not allow) is skipped."""
     path = Path(path)
     try:
         with open(path, "rb") as fh:
-            raw = fh.read()
+            raw = fh.read(MAX_CONFIG_BYTES + 1)  # /dev/zero, a huge file: never read whole
+        if len(raw) > MAX_CONFIG_BYTES:
+            raise UserError(
+                f"{path}: over {MAX_CONFIG_BYTES // 2**20} MB, larger than any config; give the "
+                "scenario's TOML file"
+            )
         return tomllib.loads(raw.removeprefix(codecs.BOM_UTF8).decode("utf-8"))
     except FileNotFoundError:
         raise UserError(f"{path}: config file not found; check the path") from None
@@ -965,6 +999,23 @@ def check_swarm_fits(config: ScenarioConfig, grid: Grid) -> None:
             f"{drones_flag} {s.n_drones} exceeds the {grid.n_free} free cells of the "
             f"{grid.shape[0]} x {grid.shape[1]} grid; give at most {grid.n_free}"
         )
+    cell_flag = config.flag_of("traffic.cell_m")
+    if s.n_drones > grid.n_free and cell_flag:
+        raise ConfigError(
+            f"{cell_flag} {config.traffic.cell_m:g} leaves {grid.n_free} free cells of the "
+            f"{grid.shape[0]} x {grid.shape[1]} grid for the {s.n_drones} drones of {path} "
+            "([swarm].n_drones); give smaller cells, or fewer drones with --drones"
+        )
+    if s.n_drones > grid.n_free and config.traffic.kind == "sumo":  # a network's cells
+        from twin.resources import shipped
+
+        cell = config.traffic.cell_m
+        own = not Path(path).resolve().is_relative_to(shipped("configs").resolve())
+        source = f"[traffic].cell_m and [swarm].n_drones of {path}" if own else "twin's defaults"
+        raise ConfigError(
+            f"{grid.n_free} free cells of {cell:g} m for {s.n_drones} drones ({source}); give "
+            f"smaller cells with --cell-m (e.g. {cell / 4:g}), or fewer drones with --drones"
+        )
     if s.n_drones > grid.n_free:
         raise _fail(
             path,
@@ -1017,8 +1068,15 @@ def synthetic_source(config: ScenarioConfig, grid: Grid | None = None):
     t = synthetic_config(config)
     grid = grid or make_grid(config)
     disturbances = [Disturbance(**d.model_dump()) for d in t.disturbances]
+    if not disturbances:
+        raise _fail(
+            config.path,
+            "[traffic].disturbances",
+            "is empty: the map has no z^k (Sec. IV) and every importance would be 0; add a "
+            '[[traffic.disturbances]] (kind = "big", i, j, amplitude, sigma)',
+        )
     source = SyntheticTraffic(grid, disturbances, t.horizon, t.beta1, t.beta2, t.z_lo, t.z_hi)
-    if disturbances and source.peak_z() <= t.z_lo:
+    if source.peak_z() <= t.z_lo:
         raise _fail(
             config.path,
             "[traffic].z_lo",

@@ -36,6 +36,7 @@ from pathlib import Path
 from typing import Any, ClassVar, Literal
 
 import numpy as np
+from pydantic import ValidationError
 
 try:
     import gymnasium
@@ -44,7 +45,7 @@ try:
 except ImportError:  # pragma: no cover - depends on the install
     raise ImportError("twin.env needs gymnasium and pettingzoo: pip install 'twin[env]'") from None
 
-from twin.config import MAX_WEIGHT
+from twin.config import SwarmConfig, validation_error
 from twin.errors import UserError
 from twin.grid import N_ACTIONS
 from twin.scores import ScoreParams
@@ -113,18 +114,10 @@ def _seed(seed: Any) -> int:
     return seed
 
 
-#: Each reward parameter's allowed range (``[swarm]``'s): ``(low, high, low_open, high_open)``.
-PARAM_RANGES: dict[str, tuple[float, float, bool, bool]] = {
-    "eta": (0.0, 1.0, True, True),
-    "delta": (1e-9, 1.0, False, True),
-    "alpha_T": (0.0, MAX_WEIGHT, False, False),
-    "alpha_I": (0.0, MAX_WEIGHT, False, False),
-}
-
-
 def _params(params: Any) -> ScoreParams:
-    """``params`` as :class:`ScoreParams` with every value finite and in the config's range
-    (Def. 3's ``eta, delta`` in (0, 1), Def. 4's weights >= 0); else one line naming it."""
+    """``params`` as :class:`ScoreParams` with every value in ``[swarm]``'s range (checked by
+    :class:`twin.config.SwarmConfig`: Def. 3's ``eta, delta`` in (0, 1), Def. 4's weights in
+    [0, 1e6], not both 0); else one line naming it."""
     if params is None:
         return ScoreParams()
     if not isinstance(params, ScoreParams):
@@ -132,21 +125,18 @@ def _params(params: Any) -> ScoreParams:
             f"params = {params!r} is not a ScoreParams; give "
             "twin.scores.ScoreParams(eta=..., delta=..., alpha_T=..., alpha_I=...)"
         )
-    for name, (low, high, low_open, high_open) in PARAM_RANGES.items():
-        value = getattr(params, name)
-        ok = isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(
-            value, (bool, np.bool_)
-        )
-        ok = ok and np.isfinite(value)
-        ok = ok and (value > low if low_open else value >= low)
-        ok = ok and (value < high if high_open else value <= high)
-        if not ok:
-            bounds = f"{'(' if low_open else '['}{low:g}, {high:g}{')' if high_open else ']'}"
-            raise EnvInputError(
-                f"params.{name} = {value!r} is out of range; give a number in {bounds}"
-            )
-    if params.alpha_T == 0 and params.alpha_I == 0:
-        raise EnvInputError("params.alpha_T and alpha_I are both 0: every reward would be 0")
+    names = ("eta", "delta", "alpha_T", "alpha_I")
+    values = {name: getattr(params, name) for name in names}
+    values = {  # numpy's numbers as Python's (a numpy bool stays refused)
+        name: float(v) if isinstance(v, (np.integer, np.floating)) else v
+        for name, v in values.items()
+    }
+    try:
+        SwarmConfig.model_validate(values)
+    except ValidationError as exc:
+        labels = {name: f"params.{name}" for name in names}
+        line = validation_error("params", exc, values, SwarmConfig, sections=False, labels=labels)
+        raise EnvInputError(str(line)) from None
     return params
 
 
@@ -518,11 +508,16 @@ def make_env(
             + ", tape or joint"
         )
 
+    if tape is not None and (not isinstance(tape, (str, Path)) or str(tape) == ""):
+        raise EnvInputError(
+            f"make_env(tape={tape!r}): give a tape.parquet's path, or leave tape out for the "
+            "config's own traffic"
+        )
     path = Path(config)
     if not path.exists() and path.suffix != ".toml":
         path = shipped_config(f"configs/{config}.toml")
     cfg = load_config(path)
-    experiment = Experiment(cfg, swarms=(), seeds=(0,), tape=Path(tape) if tape else None)
+    experiment = Experiment(cfg, swarms=(), seeds=(0,), tape=None if tape is None else Path(tape))
     if is_live(experiment):
 
         def source() -> TrafficSource:  # a fresh simulation at every reset

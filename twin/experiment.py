@@ -473,10 +473,19 @@ def _run_seeds_in_workers(
     if experiment.executor not in EXECUTORS:
         raise UserError(f"--executor {experiment.executor!r}: choose from {', '.join(EXECUTORS)}")
     t0 = time.perf_counter()
-    if not is_live(experiment):
-        check_memory(experiment, *planned_shape(experiment))
     seeds = list(experiment.seeds)
     workers = min(experiment.workers, len(seeds))
+    if not is_live(experiment):
+        check_memory(experiment, *planned_shape(experiment))
+    else:  # the grid is known only in the workers: at least a simulation each, up front
+        limit = max_memory_gb(experiment)
+        if workers * WORKER_BYTES > limit * 1e9:
+            raise UserError(
+                f"--workers {experiment.workers}: {workers} live simulations at once need at "
+                f"least {_gb(workers * WORKER_BYTES)} GB ({_gb(WORKER_BYTES)} GB each), over the "
+                f"{limit:g} GB limit; use at most {max(1, int(limit * 1e9 // WORKER_BYTES))} "
+                f"--workers (this machine has {os.cpu_count()} CPUs), or raise --max-memory-gb"
+            )
     tasks = [(experiment, n, str(signal_file.path), keep_sources) for n in range(len(seeds))]
     if experiment.executor == "ray":
         outcomes = ray_tasks(run_seed_in_worker, tasks, workers)
@@ -764,6 +773,7 @@ def run_metadata(outcome: ExperimentResult, kind: str, **extra: Any) -> dict[str
         **({"traffic_by_seed": outcome.traffic} if len(outcome.traffic) > 1 else {}),
         "params": vars(config.params),
         "n_drones": config.swarm.n_drones,
+        "starts": config.swarm.starts,  # "random" (each seed's draw) or the cells
         "wall_seconds": round(outcome.seconds, 3),
         "partial": outcome.partial,
         **({"partial_reason": outcome.partial_reason()} if outcome.left_out else {}),

@@ -18,6 +18,20 @@ from typing import Any
 import numpy as np
 
 
+def not_a_file(path: str | Path) -> str | None:
+    """Why ``path`` cannot be read as a file twin seeks in (an ``.npz``, a parquet tape, a
+    checkpoint), or None when it can: it does not exist, is a folder, or is a pipe or device
+    (``<(...)``, a FIFO), which cannot be read twice or out of order."""
+    path = Path(path)
+    if path.is_file():
+        return None
+    if path.is_dir():
+        return "is a folder, not a file"
+    if path.exists():
+        return "is a pipe or device, not a regular file; give the file itself"
+    return "does not exist"
+
+
 def atomic_write(path: str | Path, write: Callable[[Path], None]) -> None:
     """Call ``write(tmp)`` on a fresh temporary file beside ``path``, flush it to disk, then
     rename it to ``path``. The file gets the usual permissions (``0666`` less the umask), not

@@ -51,6 +51,11 @@ FORM = "underwood: v(k) = a * v_lim * exp(-k / k_c)"
 PRIOR_A, PRIOR_K_C = 0.7, 40.0
 #: Weight (in vehicles) of the prior's pseudo-samples, spread over 0..PRIOR_MAX_DENSITY.
 PRIOR_WEIGHT, PRIOR_MAX_DENSITY = 1000.0, 80.0
+#: The ranges a configured MFD (``[traffic.mfd]``) and a tape's recorded one lie in: a
+#: free-flow share ``a`` under 1% or a critical density ``k_c`` outside 1-1000 veh/lane-km (1000:
+#: a car every metre) makes every cell empty or jammed, and a drone that sees under 1 vehicle in
+#: 100 (``detection_p``) sees nothing.
+SETTING_RANGES = {"a": (0.01, 1.0), "k_c": (1.0, 1000.0), "detection_p": (0.01, 1.0)}
 #: Bounds that keep an early, thin fit sane.
 A_BOUNDS, K_C_BOUNDS = (0.05, 1.5), (2.0, 1000.0)
 #: A fit is used only on at least this many (cell, snapshot) samples with vehicles ...

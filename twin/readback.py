@@ -356,6 +356,8 @@ def check_run_json(path: Path, run: Any) -> dict[str, Any]:
 SAME_FIELDS = (
     ("monitoring.step_s", "traffic.step_s"),
     ("traffic.identity.cell_m", "traffic.cell_m"),
+    ("versions.eclipse-sumo", "traffic.identity.sumo"),
+    ("versions.twin", "traffic.identity.twin"),
 )
 
 

@@ -111,6 +111,14 @@ def cache_dir() -> Path:
     return Path(platformdirs.user_cache_dir("twin", appauthor=False))
 
 
+def check_cache(why: str) -> Path:
+    """Refuse (one line) a cache twin cannot write in (a file in its place, a read-only
+    disk) before work that needs it starts; ``why`` says what needs it."""
+    from twin.outputs import check_output_dir
+
+    return check_output_dir(cache_dir(), f"twin's cache (${CACHE_ENV}; {why})")
+
+
 #: The most cells a grid may have: 25 million (a 5000 x 5000 grid), whose maps alone need GBs
 #: per swarm and step; checked before any array of that size is allocated.
 MAX_CELLS = 25_000_000

@@ -117,6 +117,7 @@ RUN_FILES = (
     RunFile("incidents.json", "run (SUMO, incidents)", "report"),
     RunFile("detectors.parquet", "run (SUMO, [traffic.detectors])", "docs/measure_beliefs.py"),
     RunFile("degradation.csv", "run, evaluate ([faults])", "report"),
+    RunFile("bound.npz", "run, evaluate (ceilings)", "report"),
     RunFile("sumo", "run (SUMO outputs of the scenario)", "the user", folder=True),
     RunFile("timing.csv", "run, evaluate", "report"),
     RunFile("run.json", "run, evaluate", "report, replay, the rerun check of --out"),
@@ -453,12 +454,15 @@ def write_run(
         ignore_index=True,
     )
     per_seed["role"] = SWARM_ROLE
+    prices: dict[str, np.ndarray] = {}  # bound.npz: each seed's bound prices
     if ceilings:
         cache: dict = {}
         tables = []
         for r in results:
             table = ceiling_table(r, params, cache) if r.rewards.shape[1] > 0 else None
             if table is not None and len(table):
+                if "bound_prices" in table.attrs:
+                    prices[f"seed_{r.seed}"] = np.asarray(table.attrs["bound_prices"])
                 tables.append(table.assign(seed=r.seed))
         if tables:
             per_seed = pd.concat([per_seed, *tables], ignore_index=True)
@@ -488,6 +492,13 @@ def write_run(
         atomic_write(run_dir / "events.parquet", lambda p: events.to_parquet(p, index=False))
     if degradation is not None:
         atomic_write(run_dir / "degradation.csv", lambda p: degradation.to_csv(p, index=False))
+    if prices:
+
+        def save_prices(p: Path) -> None:
+            with open(p, "wb") as fh:
+                np.savez_compressed(fh, **prices)
+
+        atomic_write(run_dir / "bound.npz", save_prices)
     first = results[0]
     if first.importance is not None:
 

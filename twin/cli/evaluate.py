@@ -114,7 +114,9 @@ def main(args: argparse.Namespace) -> int:
     )
     check_count("--workers", args.workers)
     seeds, first = config.evaluate.seeds, config.evaluate.seed
-    check_seeds(config.flag_of("evaluate.seed") or f"{config.path}: [evaluate].seed", first, seeds)
+    count = config.flag_of("evaluate.seeds") or f"{config.path}: [evaluate].seeds"
+    check_seeds(config.flag_of("evaluate.seed") or f"{config.path}: [evaluate].seed", first, seeds,
+                count)  # fmt: skip
     experiment = Experiment(
         config=config,
         swarms=config.evaluate.swarms,

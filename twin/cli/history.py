@@ -11,6 +11,8 @@ readings against the replayed truth, :func:`twin.belief.fit_detector_calibration
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
 from pathlib import Path
 
 from twin.cli import path_arg
@@ -157,11 +159,7 @@ def detector_readings(tape: Path, obstacles, horizon: int):
 
 
 def main(args: argparse.Namespace) -> int:
-    import numpy as np
-
-    from twin.belief import fit_detector_calibration, fit_history
-    from twin.files import atomic_write
-    from twin.outputs import check_output_file, make_parent
+    from twin.outputs import check_output_file
 
     if args.out.suffix != ".npz":
         raise UserError(f"--out {args.out}: give a file name ending in .npz")
@@ -170,17 +168,47 @@ def main(args: argparse.Namespace) -> int:
         raise UserError(
             f"--out {args.out}: exists; give a new file name (twin history never overwrites a file)"
         )
+    claim = _claim(args.out)  # two commands at once into one --out: the second is refused
+    try:
+        return _write_history(args)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            if claim and args.out.stat().st_size == 0:
+                args.out.unlink()  # the empty claim, never a history written meanwhile
+        raise
+
+
+def _claim(out: Path) -> bool:
+    """Create ``out`` empty and exclusively (the history replaces it when written); a file
+    made there since the check above is another command's. Its folder is made only when the
+    history is written (a refusal leaves no folder behind)."""
+    if not out.parent.is_dir():
+        return False
+    try:
+        fd = os.open(out, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+    except FileExistsError:
+        raise UserError(
+            f"--out {out}: another command is writing it now; give a new file name (twin "
+            "history never overwrites a file)"
+        ) from None
+    except OSError:
+        return False  # the write itself says what is wrong with the folder
+    os.close(fd)
+    return True
+
+
+def _write_history(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from twin.belief import fit_detector_calibration, fit_history
+    from twin.files import atomic_write
+    from twin.outputs import make_parent
+
     if args.dynamics is not None:
         history = dynamics_days(args)
         atomic_write(make_parent(args.out, "--out"), history.save)
-        free = ~history.obstacles
-        print(
-            f"history: {history.n_runs} days of the dynamic generator (seeds "
-            f"{args.seed}-{args.seed + args.days - 1}), {free.shape[0]} x {free.shape[1]} "
-            f"cells, T = {history.horizon}; mean importance {history.mean[:, free].mean():.3f}, "
-            f"mean std {np.sqrt(history.var[:, free]).mean():.3f}"
-        )
-        print(f"history file: {args.out}")
+        days = f"days of the dynamic generator (seeds {args.seed}-{args.seed + args.days - 1})"
+        _say_written(history, days, args.out)
         return 0
     paths = [t for p in args.sources for t in tapes_of(p)]
     if len(paths) < 2:
@@ -216,7 +244,7 @@ def main(args: argparse.Namespace) -> int:
                 )
             seeds[seed] = path
         maps.append(truth)
-    _, obstacles, (horizon, step_s, begin) = first
+    _, obstacles, (_, step_s, begin) = first
     history = fit_history(
         maps,
         obstacles,
@@ -227,20 +255,29 @@ def main(args: argparse.Namespace) -> int:
         fit_detector_calibration(stations),
     )
     atomic_write(make_parent(args.out, "--out"), history.save)
+    simulations = f"simulations (SUMO seeds {', '.join(map(str, seeds)) or 'unknown'})"
+    _say_written(history, simulations, args.out, f", from {begin or '?'}", len(stations))
+    return 0
+
+
+def _say_written(history, days: str, out: Path, start: str = "", with_detectors: int = 0) -> None:
+    """What ``twin history`` wrote: its days, grid, steps and spread (mean and standard
+    deviation over days, the median autocorrelation rho), the detector calibration when there
+    is one, and the file."""
+    import numpy as np
+
     free = ~history.obstacles
     print(
-        f"history: {history.n_runs} simulations (SUMO seeds "
-        f"{', '.join(map(str, seeds)) or 'unknown'}), {obstacles.shape[0]} x "
-        f"{obstacles.shape[1]} cells, T = {horizon}, from {begin or '?'}; mean importance "
-        f"{history.mean[:, free].mean():.3f}, mean std {np.sqrt(history.var[:, free]).mean():.3f}"
-        f", median rho {np.median(history.rho[free]):.2f}"
+        f"history: {history.n_runs} {days}, {free.shape[0]} x {free.shape[1]} cells, "
+        f"T = {history.horizon}{start}; mean importance {history.mean[:, free].mean():.3f}, "
+        f"mean std {np.sqrt(history.var[:, free]).mean():.3f}, "
+        f"median rho {np.median(history.rho[free]):.2f}"
     )
     if history.detectors is not None:
         c = history.detectors
         print(
-            f"detector calibration: {len(c.cells)} station cells from {len(stations)} "
+            f"detector calibration: {len(c.cells)} station cells from {with_detectors} "
             f"simulations with detectors; bias {c.bias.min():+.3f} .. {c.bias.max():+.3f}, "
             f"std {np.sqrt(c.var).min():.3f} .. {np.sqrt(c.var).max():.3f}"
         )
-    print(f"written: {args.out}")
-    return 0
+    print(f"written: {out}")

@@ -66,6 +66,10 @@ def run_and_record(
     if history is not None:
         hand_history(experiment, history)
     check_resources(experiment, args.out or Path("runs"))  # before any folder is made
+    if not getattr(args, "no_report", True):
+        from twin.resources import check_cache
+
+        check_cache("the report's figures keep their font cache there")
     run_dir = prepare_run_dir(args.out or new_run_dir("runs", command), invocation(command, args))
     if outputs_folder is not None:
         experiment.outputs_dir = run_dir / outputs_folder

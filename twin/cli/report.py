@@ -26,10 +26,13 @@ def add_parser(subparsers) -> None:
 
 def main(args: argparse.Namespace) -> int:
     from twin.boundary import set_run_folder
-    from twin.report import write_report
+    from twin.resources import check_cache
 
     if args.run_dir.is_dir() and not args.run_dir.is_symlink():
         set_run_folder(args.run_dir)  # an unexpected error's traceback goes to its error.log
+    check_cache("the report's figures keep their font cache there")
+    from twin.report import write_report  # after the check: it sets up matplotlib there
+
     start = time.perf_counter()
     path = write_report(args.run_dir, animation=not args.no_animation)
     print(f"report: {path} ({time.perf_counter() - start:.1f} s)")

@@ -210,9 +210,11 @@ def build_experiment(args: argparse.Namespace):
     if args.workers > 1 and (args.gui or args.record):
         raise UserError("--gui and --record draw one simulation at a time; drop --workers")
     seeds, first = config.evaluate.seeds, config.evaluate.seed
-    check_seeds(config.flag_of("evaluate.seed") or f"{config.path}: [evaluate].seed", first, seeds)
+    count = config.flag_of("evaluate.seeds") or f"{config.path}: [evaluate].seeds"
+    check_seeds(config.flag_of("evaluate.seed") or f"{config.path}: [evaluate].seed", first, seeds,
+                count)  # fmt: skip
     check_seeds(config.flag_of("traffic.seed") or f"{config.path}: [traffic].seed",
-                config.traffic.seed, seeds)  # fmt: skip
+                config.traffic.seed, seeds, count)  # fmt: skip
     return Experiment(
         config=config,
         swarms=config.evaluate.swarms,

@@ -53,7 +53,7 @@ def main(args: argparse.Namespace) -> int:
     from twin.errors import UserError
     from twin.metrics import format_table2
     from twin.outputs import check_output_dir
-    from twin.resources import shipped_config
+    from twin.resources import check_cache, shipped_config
     from twin.sweep import load_sweep_config, run_sweep
     from twin.sweep.store import check_sweep_folder
 
@@ -64,6 +64,8 @@ def main(args: argparse.Namespace) -> int:
     config = load_sweep_config(shipped_config(args.config))
     out = args.out or Path("runs") / f"sweep-{config.name}"
     check_output_dir(out, "--out")
+    if not args.no_report:
+        check_cache("the report's figures keep their font cache there")
     check_sweep_folder(out)
     set_run_folder(out)  # an unexpected error's traceback goes to its error.log
     progress = not args.quiet and sys.stderr.isatty()

@@ -41,7 +41,7 @@ def main(args: argparse.Namespace) -> int:
     from twin.cli import check_count
     from twin.errors import UserError
     from twin.outputs import check_output_dir
-    from twin.resources import shipped_config
+    from twin.resources import check_cache, shipped_config
     from twin.transfer.config import load_transfer_config
     from twin.transfer.runner import check_transfer_folder, run_transfer
 
@@ -51,6 +51,7 @@ def main(args: argparse.Namespace) -> int:
     config = load_transfer_config(shipped_config(args.config or DEFAULT_CONFIG))
     out = args.out or Path("runs") / f"transfer-{config.name}"
     check_output_dir(out, "--out")
+    check_cache("the report's figures keep their font cache there")
     check_transfer_folder(out)
     set_run_folder(out)  # an unexpected error's traceback goes to its error.log
 

@@ -22,7 +22,7 @@ import torch
 
 from twin import __version__
 from twin.errors import UserError
-from twin.files import atomic_write
+from twin.files import atomic_write, not_a_file
 from twin.grid import ACTIONS
 from twin.states import DEFAULT_STATE, STATE_VARIANTS, StateVariant
 
@@ -75,8 +75,9 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
     """Load and check a checkpoint file; every failure is a one-line :class:`UserError`."""
     path = Path(path)
     hint = "re-create it with `twin pretrain` or point to another checkpoint"
-    if not path.is_file():
-        raise UserError(f"checkpoint {path} does not exist; {hint}")
+    why = not_a_file(path)
+    if why is not None:
+        raise UserError(f"checkpoint {path} {why}; {hint}")
     try:
         with warnings.catch_warnings():  # the one-line error below says it all
             warnings.simplefilter("ignore")
@@ -104,6 +105,13 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
             f"checkpoint {path} uses action order {meta.get('actions')}, this version "
             f"{list(ACTIONS)}; {hint}"
         )
+    for key in ("seed", "epoch"):
+        value = meta.get(key)
+        if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+            raise UserError(
+                f"checkpoint {path}: meta.{key} = {str(value)[:40]} is not a whole number >= 0; "
+                f"{hint}"
+            )
     variant = checkpoint_state(path, meta)
     if list(meta.get("state_layout", [])) != list(variant.layout):
         raise UserError(
@@ -174,7 +182,25 @@ def load_qnet(path: str | Path):
             f"({type(exc).__name__}: {first}); re-create it with `twin pretrain`"
         ) from None
     net.eval()
+    _check_finite_q(net, variant.size, path)
     return net, meta
+
+
+def _check_finite_q(net, size: int, path) -> None:
+    """The network's Q-values are finite on states in [0, 1] (eq. (s)'s values): weights that
+    are finite but huge overflow to inf or NaN, and the argmax then picks no action at all."""
+    generator = torch.Generator().manual_seed(0)
+    states = torch.cat([torch.zeros(1, size), torch.ones(1, size),
+                        torch.rand(62, size, generator=generator)])  # fmt: skip
+    with torch.no_grad():
+        q = net(states)
+    if not bool(torch.isfinite(q).all()):
+        biggest = max(float(p.abs().max()) for p in net.parameters())
+        raise UserError(
+            f"checkpoint {path}: its Q-values overflow to inf or NaN on states in [0, 1] "
+            f"(weights up to {biggest:.3g}: a diverged training); re-create it with `twin "
+            "pretrain` or point to another checkpoint"
+        )
 
 
 def default_checkpoint() -> Path:

@@ -33,13 +33,14 @@ truth (run.json ``monitoring.truth``: vehicles the drones missed), which the fol
 keep, or when run.json does not say which; ``importance.npz``, ``mfd_samples.parquet`` and
 ``mfd.json`` of a live run whose ``tape.parquet`` has more than :data:`TAPE_REPLAY_ROWS` rows
 (a city-scale tape takes longer to read back than the report to draw; its tapes' SUMO seeds
-and ``network.json`` are still checked against the tapes' metadata); the ceiling rows
-(:mod:`twin.ceilings`).
+and ``network.json`` are still checked against the tapes' metadata); the oracle row
+(:mod:`twin.ceilings`: its trajectories are not kept; it is checked to lie below its seed's
+bound row, which is replayed at ``bound.npz``'s prices, :func:`check_bound`).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -793,10 +794,11 @@ TAPE_REPLAY_ROWS = 1_000_000
 
 
 #: The settings of a SUMO run's traffic that its tapes record (:meth:`twin.sumo.source.
-#: SumoTraffic.metadata`) and run.json repeats: its timing (step 0 at ``begin``, the reads of
-#: a step) and its MFD observation.
-TAPE_SETTINGS = ("begin", "warmup_s", "step_s", "horizon", "reads_per_step", "read_offsets_s",
-                 "mesoscopic", "mfd_fit", "mfd_prior", "detection_p")  # fmt: skip
+#: SumoTraffic.metadata`) and run.json repeats: its scenario (name, files, incidents), its
+#: timing (step 0 at ``begin``, the reads of a step) and its MFD observation.
+TAPE_SETTINGS = ("name", "net_file", "route_files", "sumocfg", "begin", "warmup_s", "step_s",
+                 "horizon", "reads_per_step", "read_offsets_s", "mesoscopic", "mfd_fit",
+                 "mfd_prior", "detection_p", "incidents")  # fmt: skip
 
 
 def check_tape_seeds(primary: Primary) -> None:
@@ -935,25 +937,19 @@ def check_tape_maps(primary: Primary) -> None:
     source = TapeTraffic(Tape.read(path), source_name=str(path))
     npz = primary.run_dir / "importance.npz"
     kept = maps.astype(np.float32)  # as kept: float32
-    k = -1
-    replays = []
-    for k, replayed in enumerate(source.importance_maps()):
-        replays.append(np.array(replayed, dtype=np.float64))
-        if k >= len(kept):
-            continue  # the MFD observed every snapshot of the tape
-        replayed = np.asarray(replayed, dtype=np.float32)
-        off = replayed != kept[k]
-        if off.any():
-            i, j = (int(v) for v in np.argwhere(off)[0])
-            raise UserError(
-                f"{npz}: importance at step {k}, cell ({i}, {j}) of seed {primary.first_seed} "
-                f"is {_show(kept[k, i, j])}, but tape.parquet replayed through its MFD gives "
-                f"{_show(replayed[i, j])}; {RERUN}"
-            )
-    if k + 1 < len(kept):
+    replays: list[np.ndarray] = []  # the MFD observes every snapshot of the tape
+    given, off = _first_differing_map(source.importance_maps(), kept, collect=replays)
+    if off is not None:
+        k, i, j, replayed = off
+        raise UserError(
+            f"{npz}: importance at step {k}, cell ({i}, {j}) of seed {primary.first_seed} "
+            f"is {_show(kept[k, i, j])}, but tape.parquet replayed through its MFD gives "
+            f"{_show(replayed)}; {RERUN}"
+        )
+    if given < len(kept):
         raise UserError(
             f"{npz}: holds {len(kept)} maps of seed {primary.first_seed}, but tape.parquet "
-            f"replays {k + 1}; {RERUN}"
+            f"replays {given}; {RERUN}"
         )
     check_mfd_files(primary.run_dir, source.model_observed())
     if primary.first_seed is not None and replays:
@@ -996,24 +992,46 @@ def check_synthetic_maps(primary: Primary) -> None:
             f"({type(exc).__name__}: {str(exc)[:60]}); {RERUN}"
         ) from None
     kept = maps.astype(np.float32)
-    k = -1
-    for k, generated in enumerate(source.importance_maps()):
-        if k >= len(kept):
-            break
-        generated = np.asarray(generated, dtype=np.float32)
-        off = ~(np.abs(generated - kept[k]) <= MAP_ROUNDING * np.maximum(1.0, np.abs(kept[k])))
-        if off.any():
-            i, j = (int(v) for v in np.argwhere(off)[0])
-            raise UserError(
-                f"{path}: traffic (disturbances, beta1, beta2, z_lo, z_hi) generates importance "
-                f"{_show(generated[i, j])} at step {k}, cell ({i}, {j}), but importance.npz "
-                f"holds {_show(kept[k, i, j])}; {RERUN}"
-            )
-    if k + 1 < len(kept):
+    given, off = _first_differing_map(source.importance_maps(), kept, MAP_ROUNDING)
+    if off is not None:
+        k, i, j, generated = off
         raise UserError(
-            f"{path}: traffic.horizon = {traffic['horizon']} generates {k + 1} maps, but "
+            f"{path}: traffic (disturbances, beta1, beta2, z_lo, z_hi) generates importance "
+            f"{_show(generated)} at step {k}, cell ({i}, {j}), but importance.npz "
+            f"holds {_show(kept[k, i, j])}; {RERUN}"
+        )
+    if given < len(kept):
+        raise UserError(
+            f"{path}: traffic.horizon = {traffic['horizon']} generates {given} maps, but "
             f"importance.npz holds {len(kept)}; {RERUN}"
         )
+
+
+def _first_differing_map(
+    maps: Iterable[np.ndarray],
+    kept: np.ndarray,
+    rounding: float = 0.0,
+    collect: list[np.ndarray] | None = None,
+) -> tuple[int, tuple[int, int, int, float] | None]:
+    """Walk ``maps`` step by step against ``kept`` (float32, as ``importance.npz`` keeps them;
+    a difference over ``rounding`` relative, or any NaN, counts): how many maps were walked,
+    and the first differing ``(k, i, j, value given)`` or None. With ``collect``, every map
+    given (also those past the kept ones) is appended there as float64; without it the walk
+    ends one map past the kept ones."""
+    k = -1
+    for k, given in enumerate(maps):
+        if collect is not None:
+            collect.append(np.array(given, dtype=np.float64))
+        if k >= len(kept):
+            if collect is None:
+                break
+            continue
+        given = np.asarray(given, dtype=np.float32)
+        off = ~(np.abs(given - kept[k]) <= rounding * np.maximum(1.0, np.abs(kept[k])))
+        if off.any():
+            i, j = (int(v) for v in np.argwhere(off)[0])
+            return k + 1, (k, i, j, float(given[i, j]))
+    return k + 1, None
 
 
 def check_same_tape(have: Path, want: Path) -> None:
@@ -1182,8 +1200,8 @@ def check_mfd_files(run_dir: Path, model) -> None:
         for name, want in report.items():
             if name in fit and not isinstance(want, (dict, list)) and not _same(fit[name], want):
                 raise UserError(
-                    f"{run_dir / 'mfd.json'}: {name} = {_show(fit[name])}, but {replay} "
-                    f"{_show(want)}; {RERUN}"
+                    f"{run_dir / 'mfd.json'}: {name} = {_show(fit[name], want)}, but {replay} "
+                    f"{_show(want, fit[name])}; {RERUN}"
                 )
             if name in fit and isinstance(want, (dict, list)):
                 at = _first_difference(fit[name], want, name)
@@ -1201,12 +1219,131 @@ def check_mfd_files(run_dir: Path, model) -> None:
             )
 
 
+def check_starts(primary: Primary) -> None:
+    """Every swarm of every seed starts where run.json's ``starts`` put its drones: the cells
+    it lists, or (``"random"``) the seed's own draw on the map
+    (:func:`twin.config.start_positions` with the drone seed): a folder relabelled to another
+    seed is refused. Skipped for a run.json without ``starts``."""
+    from twin.swarm import random_starts
+
+    starts, n = primary.run.get("starts"), primary.run.get("n_drones")
+    if starts is None or not isinstance(n, int) or isinstance(n, bool):
+        return
+    cells = isinstance(starts, list) and all(
+        isinstance(c, list) and len(c) == 2 and all(type(v) is int for v in c) for c in starts
+    )
+    if starts != "random" and not cells:
+        raise UserError(
+            f"{primary.run_dir / 'run.json'}: starts = {_json_text(starts)} is neither "
+            f'"random" nor a list of [i, j] cells; {RERUN}'
+        )
+    path = primary.run_dir / "trajectories.parquet"
+    grid = Grid(primary.obstacles)
+    t = primary.trajectories
+    first = t[t["step"] == 0]
+    for seed, rows in first.groupby("seed", sort=True):
+        if starts == "random":
+            if n > grid.n_free:
+                return  # refused with run.json's drones
+            want = random_starts(grid, n, np.random.default_rng(int(seed)))
+            said = f"seed {int(seed)}'s random starts on this map are"
+        else:
+            want = np.asarray(starts)
+            said = "run.json's starts are"
+        for swarm, cells in rows.groupby("swarm", observed=True, sort=False):
+            got = cells.sort_values("drone")[["i", "j"]].to_numpy()
+            if got.shape != np.shape(want) or not np.array_equal(got, want):
+                raise UserError(
+                    f"{path}: swarm {str(swarm)!r}, seed {int(seed)} starts at "
+                    f"{got.tolist()[:4]}, but {said} {np.asarray(want).tolist()[:4]}; {RERUN}"
+                )
+
+
+#: How far a replayed bound may differ from its row (relative): the folder keeps the maps in
+#: float32, the run bounded them in float64.
+BOUND_TOLERANCE = 1e-5
+
+
+def _maps_by_seed(primary: Primary) -> dict[int, np.ndarray]:
+    """The maps of each seed the folder holds: the first seed's (its tape replayed, else
+    ``importance.npz``), every seed's of a run on one traffic, the later seeds' tapes
+    replayed (:func:`check_seed_tapes`)."""
+    maps = dict(primary.tape_maps)
+    if primary.importance is not None and primary.first_seed is not None:
+        maps.setdefault(primary.first_seed, primary.importance)
+        traffic = primary.run.get("traffic")
+        records = primary.run.get("traffic_by_seed") or []
+        shared = isinstance(traffic, dict) and traffic.get("kind") in SHARED
+        if shared and not any(_first_difference(r, traffic) is not None for r in records):
+            for seed in primary.run.get("seeds") or []:
+                if isinstance(seed, int):
+                    maps.setdefault(seed, primary.importance)
+    return maps
+
+
+def check_bound(primary: Primary, per_seed: pd.DataFrame | None) -> None:
+    """Each ``bound (ceiling)`` row of ``per_seed.csv`` is ``L(lambda) / T`` of the Lagrangian
+    relaxation (:func:`twin.ceilings.bound_at`) at the prices ``bound.npz`` keeps for its seed,
+    on that seed's maps, wherever the folder holds them (one DP pass per seed); and no
+    ``oracle (ceiling)`` row lies above its seed's bound."""
+    from twin.ceilings import bound_at
+    from twin.metrics import BOUND, ORACLE
+    from twin.runs import score_params_of
+
+    if per_seed is None or not {"swarm", "seed", "R_hat_T"} <= set(per_seed.columns):
+        return
+    table = primary.run_dir / "per_seed.csv"
+    names = per_seed["swarm"].astype(str)
+    bounds = per_seed[names == BOUND]
+    if bounds.empty:
+        return
+    path = primary.run_dir / "bound.npz"
+    if not path.is_file():
+        raise UserError(
+            f"{table}: holds {BOUND} rows, but the folder has no bound.npz (their prices); {RERUN}"
+        )
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            prices = {key: np.asarray(data[key], dtype=float) for key in data.files}
+    except Exception as exc:  # numpy raises several types on a damaged file
+        raise UserError(f"{path}: not a readable .npz ({type(exc).__name__}); {RERUN}") from None
+    params, n = score_params_of(primary.run), primary.run.get("n_drones")
+    if params is None or not isinstance(n, int) or isinstance(n, bool):
+        return  # run.json's own checks say what is wrong
+    grid, maps = Grid(primary.obstacles), _maps_by_seed(primary)
+    oracles = per_seed[names == ORACLE].set_index("seed")["R_hat_T"]
+    for seed, recorded in zip(bounds["seed"], bounds["R_hat_T"], strict=True):
+        seed, recorded = int(seed), float(recorded)
+        if seed in oracles.index and float(oracles.loc[seed]) > recorded * (1 + BOUND_TOLERANCE):
+            raise UserError(
+                f"{table}: the {ORACLE} row of seed {seed} has R_hat_T = "
+                f"{_show(oracles.loc[seed], recorded)}, above its {BOUND} row's "
+                f"{_show(recorded, oracles.loc[seed])}; {RERUN}"
+            )
+        if seed not in maps:
+            continue
+        key = f"seed_{seed}"
+        if key not in prices:
+            raise UserError(f"{path}: no prices {key} for seed {seed}'s {BOUND} row; {RERUN}")
+        try:
+            value = bound_at(maps[seed], grid, n, params, prices[key])
+        except ValueError as exc:
+            raise UserError(f"{path}: {key} holds {exc}; {RERUN}") from None
+        if not abs(value - recorded) <= BOUND_TOLERANCE * max(1.0, abs(value)):
+            raise UserError(
+                f"{table}: R_hat_T = {_show(recorded, value)} for seed {seed}, swarm {BOUND!r}, "
+                f"but bound.npz's prices on the seed's maps give {_show(value, recorded)}; "
+                f"{RERUN}"
+            )
+
+
 def check_derived(primary: Primary, tables: dict[str, pd.DataFrame | None]) -> None:
     """Every derived file of ``tables`` (name -> its table, None when absent) agrees with what
     its sources give (:data:`DERIVED`), after ``importance.npz`` with its tape
     (:func:`check_tape_maps`); then the later seeds of a run on one traffic
     (:func:`check_shared_traffic_seeds`). Without ``per_seed.csv``, ``summary.csv`` is checked against the
     per-seed figures the primary files give."""
+    check_starts(primary)
     check_tape_maps(primary)
     check_seed_tapes(primary)
     check_synthetic_maps(primary)
@@ -1221,6 +1358,7 @@ def check_derived(primary: Primary, tables: dict[str, pd.DataFrame | None]) -> N
                 per_seed = per_seed.merge(part, on=["seed", "swarm"], how="left")
         per_seed = per_seed[per_seed["swarm"].isin(primary.swarms)]
     primary.per_seed, primary.summary = per_seed, tables.get("summary.csv")
+    check_bound(primary, tables.get("per_seed.csv"))
     for d in DERIVED:
         frame = tables.get(d.file)
         if frame is None:
@@ -1289,8 +1427,8 @@ def compare(
     column = columns[int(np.flatnonzero(bad[n])[0])]
     have, want = got[column].iloc[n], theirs[column].iloc[n]
     raise UserError(
-        f"{path}: {column} = {_show(have)} for {_who(key, theirs.index[n])}, but {source} "
-        f"{give} {_show(want)}; {RERUN}"
+        f"{path}: {column} = {_show(have, want)} for {_who(key, theirs.index[n])}, but {source} "
+        f"{give} {_show(want, have)}; {RERUN}"
     )
 
 
@@ -1338,10 +1476,21 @@ def _same(have: Any, want: Any, slack: float = 0.0) -> bool:
     return abs(h - w) <= TOLERANCE * max(1.0, abs(w)) + slack
 
 
-def _show(value: Any) -> str:
+def _show(value: Any, other: Any = None) -> str:
+    """``value`` in 6 significant digits, or as many more as it takes to tell it from
+    ``other`` (a figure rounded on a spreadsheet's save differs past the sixth)."""
     if isinstance(value, (bool, np.bool_)):
         return str(bool(value)).lower()
     try:
-        return f"{float(value):.6g}"
+        number = float(value)
     except (TypeError, ValueError):
         return repr(value)
+    try:
+        against = float(other) if other is not None else None
+    except (TypeError, ValueError):
+        against = None
+    for digits in (6, 9, 12, 17):
+        text = f"{number:.{digits}g}"
+        if against is None or number == against or text != f"{against:.{digits}g}":
+            return text
+    return text

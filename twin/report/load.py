@@ -441,6 +441,14 @@ def check_consistent(
                 f"{run_dir / 'summary.csv'}: no row for swarm {extra[0]!r}, which {name} "
                 f"holds; {RERUN}"
             )
+    ran = run.get("swarms")
+    if isinstance(ran, list):  # and every swarm with a row is one the run ran
+        unknown = [s for s in swarms if s not in {str(r) for r in ran}]
+        if unknown:
+            raise UserError(
+                f"{run_dir / 'summary.csv'}: holds swarm {unknown[0]!r}, which run.json's "
+                f"swarms {[str(r) for r in ran][:8]} does not list; {RERUN}"
+            )
     first = run.get("importance_seed")
     first = int(first) if first is not None else seeds[0]
     if first not in seeds:

@@ -109,7 +109,7 @@ def edge_cells(shape: np.ndarray, geometry) -> set[tuple[int, int]]:
 
 def check_incidents(incidents: list[Any], scenario, geometry, where: str = "") -> list[str]:
     """Refuse (one line) an incident outside the scenario's simulated window (warm-up
-    included), on a cell off the grid or without a road, on an edge or lane the network lacks;
+    included) or over before its first step ``T^0``, on a cell off the grid or without a road, on an edge or lane the network lacks;
     return notices for incidents that overlap in time on one edge or cell (they are applied
     together: a lane reopens when the last incident closing it lifts)."""
     prefix = f"{where}: " if where else ""
@@ -124,6 +124,12 @@ def check_incidents(incidents: list[Any], scenario, geometry, where: str = "") -
             raise UserError(
                 f"{field}.{given} ({clock_label(begin)}) is outside the scenario's window "
                 f"{clock_label(lo)} - {clock_label(hi)} (warm-up included); give a time inside it"
+            )
+        if end <= scenario.begin_s + 1e-6:
+            raise UserError(
+                f"{field} ends at {clock_label(end)}, by the run's first step T^0 = "
+                f"{clock_label(scenario.begin_s)} (it lies in the warm-up): no drone could see "
+                "it; give a begin or duration that reaches past T^0"
             )
         if inc.cell is not None:
             i, j = inc.cell

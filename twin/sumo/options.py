@@ -33,7 +33,10 @@ class SumoOption:
     @property
     def writes_file(self) -> bool:
         """An option naming a file SUMO writes: a file option of the output and report
-        sections (not an ``*.input-file`` filter SUMO reads), or any ``...output`` file."""
+        sections (not an ``*.input-file`` filter SUMO reads), any ``...output`` file, or a
+        device's output file (``device.ssm.file``, ``device.toc.file``: typed STR)."""
+        if self.name.startswith("device.") and self.name.endswith(".file"):
+            return True
         if self.type != "FILE":
             return False
         if self.name.endswith("input-file"):

@@ -15,6 +15,14 @@ into its run folder, so when it starts SUMO it
   rerouter's definitions, images) are made absolute so they resolve as before (the same for a
   route file whose device parameters name files).
 
+An output the sumocfg sends to ``stdout`` or ``stderr`` (``-``) goes to ``RUN/sumo/<option>.xml``
+instead (listed in run.json's ``traffic.sumo_outputs``): twin's tables and its one-line
+errors are on those streams.
+
+SSM devices equipped without a file (``device.ssm.probability``, a vehicle type's
+``has.ssm.device``) would write one ``ssm_<vehicle>.xml`` per vehicle into SUMO's working
+folder: twin then names their file, ``RUN/sumo/ssm.xml``.
+
 Files are named by their base name; two outputs of the same base name from different folders
 get ``-2``, ``-3`` ... One output file shared by several detectors stays shared. Every path
 handed to SUMO is absolute: SUMO reads an additional file's outputs relative to that file, so a
@@ -51,6 +59,8 @@ from twin.sumo.readers import (
 NAMING_OPTIONS = ("output-prefix", "output-suffix")
 #: Options whose value is a list of files.
 _FILE_LISTS = {"save-state.files"}
+#: Output names SUMO writes to its process's streams (twin's own: sent to a file instead).
+_STREAMS = {"stdout", "stderr", "-"}
 #: Output names SUMO does not take as files.
 _NOT_FILES = {"", "nul", "/dev/null", "stdout", "stderr", "-"}
 
@@ -97,6 +107,9 @@ class OutputPlan:
         self.targets: dict[Path, Path] = {}
         self.copies: dict[Path, Path] = {}
         self._names: set[str] = set()
+        #: SSM devices may be equipped (a ``device.ssm.*`` option or parameter): without a
+        #: file, SUMO writes one ``ssm_<vehicle>.xml`` per vehicle into its working folder
+        self.ssm_devices = False
 
     def _fresh(self, name: str) -> Path:
         stem, dot, suffix = name.partition(".")
@@ -133,6 +146,8 @@ class OutputPlan:
             attr = OUTPUT_ELEMENTS.get(tag)
             if tag == "param" and elem.get("key") in DEVICE_OUTPUTS:
                 attr = "value"
+            if tag == "param" and _names_ssm(elem.get("key")):
+                self.ssm_devices = True
             value = elem.get(attr) if attr else None
             if value is not None and _is_file(value):
                 elem.set(attr, str(self.target(base / value)))
@@ -174,6 +189,22 @@ class OutputPlan:
                 return self.additional(path)
         return path
 
+    def device_defaults(self, options: tuple[str, ...]) -> tuple[str, ...]:
+        """``options`` with SSM's output file in ``out_dir`` when SSM devices may be equipped
+        and no option names their file (one file for every vehicle, instead of one per
+        vehicle in SUMO's working folder)."""
+        ssm = self.ssm_devices or any(
+            o.startswith("--device.ssm.") and not o.endswith(".input-file") for o in options
+        )
+        if not ssm or "--device.ssm.file" in options:
+            return options
+        return (*options, "--device.ssm.file", str(self.target(self.out_dir / "ssm.xml")))
+
+
+def _names_ssm(key: str | None) -> bool:
+    """A device parameter that may equip SSM devices (``has.ssm.device``, ``device.ssm.*``)."""
+    return bool(key) and (key == "has.ssm.device" or key.startswith("device.ssm."))
+
 
 def name_part(value: str) -> str:
     """The part of an ``output-prefix`` (``output-suffix``) that names files, without its folders
@@ -207,12 +238,15 @@ def redirect_outputs(
             if value and f"--{name}" not in out:
                 extra += [f"--{name}", name_part(value)]
         base = Path(sumocfg).resolve().parent
+        plan.ssm_devices = any(k.startswith("device.ssm.") for k in cfg.options)
         given = {k: v for k, v in cfg.options.items() if k in output_options()}
         state_times = any(cfg.options.get(k) for k in ("save-state.times", "save-state.period"))
         if state_times and not given.get("save-state.files") and "save-state.prefix" not in given:
             given["save-state.prefix"] = "state"  # SUMO's default prefix, in its working folder
         for name, value in given.items():
-            if name in _FILE_LISTS:
+            if value.strip().lower() in _STREAMS:  # twin's tables and errors are there
+                extra += [f"--{name}", str(plan.target(base / f"{name}.xml"))]
+            elif name in _FILE_LISTS:
                 files = file_list(value, base)
                 if files:
                     extra += [f"--{name}", ",".join(str(plan.target(f)) for f in files)]

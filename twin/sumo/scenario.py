@@ -272,6 +272,26 @@ def _scenario_files(s: SumoSettings) -> _ScenarioFiles:
                 f"{sumocfg_path}: <random value={cfg.options['random']!r}> (a seed from the "
                 "clock) is overridden: twin seeds SUMO with --sumo-seed so that runs repeat"
             )
+        if cfg.options.get("seed") is not None:
+            notice(
+                f"{sumocfg_path}: <seed value={cfg.options['seed']!r}> is replaced by twin's "
+                "SUMO seed (--sumo-seed, [traffic].seed: one per run seed), so that runs repeat "
+                "by it"
+            )
+        mesosim = cfg.options.get("mesosim", "false").strip().lower()
+        if not s.mesoscopic and mesosim in ("true", "1", "yes", "on", "x"):
+            s.mesoscopic = True  # SUMO runs it so: recorded, and its detectors refused
+            notice(
+                f"{sumocfg_path}: <mesosim value={cfg.options['mesosim']!r}> runs SUMO's "
+                "mesoscopic model, as --meso does"
+            )
+        step = cfg.options.get("step-length")
+        with contextlib.suppress(TypeError, ValueError):
+            if step is not None and float(step) != SUMO_STEP_S:
+                notice(
+                    f"{sumocfg_path}: <step-length value={step!r}> is run as SUMO steps of "
+                    f"{SUMO_STEP_S:g} s (twin's clock; its other options are kept)"
+                )
         # a network given besides the sumocfg replaces its own, as `sumo -c ... -n` does
         files = _ScenarioFiles(
             Path(s.net) if s.net else cfg.net,
@@ -401,6 +421,7 @@ def _grid_and_notices(
     begin: float,
     step_s: float,
     window_given: bool,
+    begin_given: bool = True,
 ):
     """The grid over the network's lanes (the config's ``[grid]`` shape and obstacles for the
     configured network), and the notices of a grid too small for the drones or a run that
@@ -444,14 +465,21 @@ def _grid_and_notices(
     if files.span is not None and window_given:
         clear = clearing_time(geometry)
         end = begin + s.horizon * step_s
-        if begin >= files.span[1] + clear or end <= files.span[0]:
+        outside = begin >= files.span[1] + clear or end <= files.span[0]
+        if outside and not begin_given:  # the scenario's own window: vehicles may circulate
+            notices.append(  # (rerouters keep a loop scenario's vehicles on the road)
+                f"{files.name}: the run ({clock_label(begin)} - {clock_label(end)}) begins past "
+                f"the last departure ({clock_label(files.span[1])}) plus {clear / 60:.0f} min to "
+                "clear the network: its steps hold only vehicles that are still driving"
+            )
+        elif outside:
             raise UserError(
                 f"{files.name}: the run ({clock_label(begin)} - {clock_label(end)}) lies outside "
                 f"the demand (departures {clock_label(files.span[0])} - "
                 f"{clock_label(files.span[1])}, plus {clear / 60:.0f} min to clear the "
                 "network): every step would be empty; give a --begin (and --horizon) within it"
             )
-        if end > files.span[1] + clear:
+        if end > files.span[1] + clear and not outside:
             notices.append(
                 f"{files.name}: the run ends at {clock_label(end)}, past the last departure "
                 f"({clock_label(files.span[1])}) plus {clear / 60:.0f} min to clear the network; "
@@ -562,7 +590,7 @@ def sumo_source(
         s, files, step_s, t0, s.warmup_min * 60.0, begin_given, horizon_given, begin_where
     )
     geometry, obstacles, notices = _grid_and_notices(
-        s, config, inputs, files, lanes, t0, step_s, begin_given or horizon_given
+        s, config, inputs, files, lanes, t0, step_s, begin_given or horizon_given, begin_given
     )
     route_files = list(files.route_files)
     if files.span is None and not s.network:  # no demand given: twin generates it
@@ -593,6 +621,7 @@ def sumo_source(
             "sumocfg_files": [str(f) for f in files.listed],
             "window": window,
             "departures": list(files.span) if files.span else None,
+            "twin_demand": files.span is None,  # built-in or generated: route errors skipped
             "n_drones": config.swarm.n_drones,
             "n_free": int((~obstacles).sum()),
             "notices": notices,
@@ -621,9 +650,9 @@ def detector_plan(settings, scenario, geometry, obstacles, where):
 
     if scenario.mesoscopic and (settings.scenario or settings.cells or settings.virtual_loops):
         raise UserError(
-            f"{where}: [traffic.detectors] with --meso: SUMO's mesoscopic model has no "
-            "induction loops or lane-area detectors to read; run without --meso, or without "
-            "[traffic.detectors]"
+            f"{where}: [traffic.detectors] with SUMO's mesoscopic model (--meso, or the "
+            "sumocfg's mesosim), which has no induction loops or lane-area detectors to read; "
+            "run it microscopic, or without [traffic.detectors]"
         )
     if not (settings.cells or settings.virtual_loops):
         return DetectorPlan(scenario=settings.scenario)

@@ -30,7 +30,8 @@ from twin.sumo.readers import missing
 
 #: SUMO options that keep a congested run moving in rush hour:
 #: a vehicle blocked for 300 s jumps ahead (teleport), a vehicle that cannot enter the network
-#: for 15 min is dropped, a share of vehicles reroute around congestion every 5 min.
+#: for 15 min is dropped, a share of vehicles reroute around congestion every 5 min (each one
+#: a scenario's sumocfg sets is its own, :func:`gridlock_defaults`).
 ANTI_GRIDLOCK_OPTIONS = (
     "--time-to-teleport", "300",
     "--max-depart-delay", "900",
@@ -39,6 +40,19 @@ ANTI_GRIDLOCK_OPTIONS = (
     "--device.rerouting.period", "300",
     "--device.rerouting.adaptation-steps", "18",
 )  # fmt: skip
+
+
+def gridlock_defaults(sumocfg: Path | None) -> tuple[str, ...]:
+    """:data:`ANTI_GRIDLOCK_OPTIONS` but those a scenario's sumocfg sets itself: its own
+    settings (no teleports, no rerouting ...) are kept, twin's only fill in where it says
+    nothing."""
+    if sumocfg is None:
+        return ANTI_GRIDLOCK_OPTIONS
+    from twin.sumo.readers import read_sumocfg
+
+    own = set(read_sumocfg(sumocfg, own_net=False).options)
+    pairs = zip(ANTI_GRIDLOCK_OPTIONS[::2], ANTI_GRIDLOCK_OPTIONS[1::2], strict=True)
+    return tuple(part for flag, value in pairs if flag[2:] not in own for part in (flag, value))
 
 
 class SumoRunError(RuntimeError):
@@ -72,6 +86,10 @@ class SumoSession:
     extra_options: Sequence[str] = ANTI_GRIDLOCK_OPTIONS
     additional_files: Sequence[Path] = ()
     config_file: Path | None = None
+    #: skip a vehicle whose route cannot be followed (twin's own demand, which is its to keep
+    #: moving, or a run with scheduled closures); a scenario's own demand is otherwise taken as
+    #: SUMO takes it: such a vehicle stops SUMO
+    ignore_route_errors: bool = True
     #: run under sumo-gui through traci (a :class:`twin.sumo.gui.GuiSettings`); None: libsumo.
     #: The simulation is the same, so are the results.
     gui: Any = None
@@ -94,9 +112,10 @@ class SumoSession:
             "--no-step-log", "true",
             "--no-warnings", "true",
             "--duration-log.disable", "true",
-            "--ignore-route-errors", "true",
             "--threads", "1",
         ]  # fmt: skip
+        if self.ignore_route_errors:
+            cmd += ["--ignore-route-errors", "true"]
         if self.route_files:
             cmd += ["--route-files", ",".join(str(p) for p in self.route_files)]
         if self.additional_files:
@@ -207,8 +226,8 @@ def sumo_refusal(text: str, files: list[Path]) -> tuple[Path | str, str]:
     """The file SUMO refused and its reason, from what SUMO wrote on failing to start.
 
     SUMO names the file of an XML error (``In file '...'``, ``At line/column``); for other
-    errors (an unknown vehicle class, edge, type ...) the file is the first one that names the
-    quoted object, else the sumocfg or network.
+    errors (an unknown vehicle class, edge, type, traffic light ...) the file is the first one
+    that names the object SUMO quotes (or puts in parentheses), else the sumocfg or network.
     """
     reason = re.sub(r"^Error:\s*", "", _first_line(text))
     lines = [line.strip() for line in text.splitlines()]
@@ -219,7 +238,8 @@ def sumo_refusal(text: str, files: list[Path]) -> tuple[Path | str, str]:
         if place:
             reason += f" (line {place[0][1]}, column {place[0][2]})"
         return where, reason
-    quoted = re.findall(r"'([^']+)'", reason)
+    # the object SUMO names: quoted ('nolane_0'), or in parentheses ("to save (B1)")
+    quoted = re.findall(r"'([^']+)'", reason) + re.findall(r"\(([^()\s]+)\)", reason)
     for path in files:
         if any(Path(token).name == Path(path).name for token in quoted):
             return path, reason

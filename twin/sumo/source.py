@@ -33,7 +33,7 @@ from twin.sumo.cells import CellGeometry
 from twin.sumo.detectors import DetectorPlan
 from twin.sumo.incidents import configured_schedule
 from twin.sumo.readers import file_list, included_files, naming_the_sumocfg, read_sumocfg
-from twin.sumo.session import ANTI_GRIDLOCK_OPTIONS, SumoRunError, SumoSession
+from twin.sumo.session import SumoRunError, SumoSession, gridlock_defaults
 from twin.timing import (
     DETECTOR_READS,
     OBSERVATION,
@@ -159,6 +159,7 @@ class SumoTraffic(TrafficSource):
 
             options, plan = redirect_outputs(s.sumocfg, options, output_dir)
             route_files = [plan.routes(r) for r in route_files]
+            options = plan.device_defaults(options)
             self._copies = {c: o for o, c in plan.copies.items() if c != o}
             self.outputs = [*plan.targets.values(), *self._copies]
             if s.detectors.loops:
@@ -177,7 +178,9 @@ class SumoTraffic(TrafficSource):
             seed=s.seed,
             mesoscopic=s.mesoscopic,
             config_file=s.sumocfg,
-            extra_options=(*ANTI_GRIDLOCK_OPTIONS, *options),
+            # twin's own demand, or closures it schedules, which leave routes unfollowable
+            ignore_route_errors=bool(s.extra.get("twin_demand", True) or s.incidents),
+            extra_options=(*gridlock_defaults(s.sumocfg), *options),
             gui=self.gui,
         )
 
@@ -186,7 +189,8 @@ class SumoTraffic(TrafficSource):
         s = self.scenario
         w = s.warmup_steps()
         times = [(k, round(s.begin_s + k * s.step_s, 3)) for k in range(-w, s.horizon + 1)]
-        return [(k, t) for k, t in times if t > s.sim_begin]  # nothing to read at the start
+        # nothing to read at the start, but T^0 itself (no warm-up: the network as it begins)
+        return [(k, t) for k, t in times if t > s.sim_begin or k == 0]
 
     def sighting_model(self):
         """The drones count the vehicles of each cell's lanes through the scenario's detection

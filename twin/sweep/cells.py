@@ -96,17 +96,15 @@ def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
     Returns ``{"id", "seconds", "rows": [one dict per swarm: Table 2 and monitoring columns],
     "error", ...}``.
     """
-    from twin.boundary import drop_notices, hold_notices, release_notices
+    from twin.boundary import drop_notices, hold_notices
 
     drop_notices()  # a worker's earlier cell that failed keeps none of its notices
-    hold_notices()  # printed once the cell's simulation starts; a failing cell is its error
-    try:
+    hold_notices(to_end=True)  # sent back with the record and said once by the sweep; a
+    try:  # failing cell is its error alone
         record = _run_cell(cell)
-    except BaseException:
-        drop_notices()
-        raise
-    release_notices()
-    return record
+    finally:
+        notices = drop_notices()
+    return {**record, "notices": notices}
 
 
 def _run_cell(cell: dict[str, Any]) -> dict[str, Any]:

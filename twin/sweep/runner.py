@@ -13,7 +13,7 @@ from typing import Any
 
 import pandas as pd
 
-from twin.boundary import release_notices
+from twin.boundary import notify, release_notices
 from twin.errors import UserError
 from twin.executors import EXECUTORS, _local_executor, _ray_executor
 from twin.sweep.cells import expand_cells, run_cell, scenario_config
@@ -79,6 +79,8 @@ def run_sweep(
                 if record is None:
                     failed[cid] = error or "unknown error"
                 else:
+                    for line in record.pop("notices", []):
+                        notify(line)  # each once, whichever cells said it
                     if not (out_dir / CELLS_DIR / f"{cid}.json").exists():
                         write_cell_record(out_dir / CELLS_DIR, record)  # a worker without our disk
                     ran.append(cid)

@@ -21,8 +21,9 @@ import numpy as np
 
 from twin.clock import clock_label, clock_seconds
 from twin.errors import UserError
+from twin.files import not_a_file
 from twin.grid import Grid
-from twin.mfd import MFD, MFDImportance
+from twin.mfd import MFD, SETTING_RANGES, MFDImportance
 from twin.traffic.base import TrafficSource
 
 TAPE_VERSION = 1
@@ -126,8 +127,11 @@ class Tape:
         import pyarrow.parquet as pq
 
         path = Path(path)
-        if not path.is_file():
+        why = not_a_file(path)
+        if why == "does not exist":
             raise UserError(f"{path}: no such traffic tape; pass the tape.parquet of a `twin run`")
+        if why is not None:
+            raise UserError(f"{path}: {why} (a traffic tape: the tape.parquet of a `twin run`)")
         try:
             table = pq.read_table(path)
             df = table.to_pandas()
@@ -409,6 +413,13 @@ def _tape_meta(path: Path, schema_meta: dict) -> dict[str, Any]:
                 "number >= 0; the tape is corrupt, record it again"
             )
         out[key] = arr.astype(dtype)
+    roadless = ~out["obstacles"] & (out["lane_km"] <= 0)
+    if roadless.any():  # a cell without lanes is an obstacle (twin.sumo.cells)
+        i, j = (int(x) for x in np.argwhere(roadless)[0])
+        raise UserError(
+            f"{path}: tape metadata lane_km = 0 at cell ({i}, {j}), which its obstacles leave "
+            "free (a cell without lanes is an obstacle); the tape is corrupt, record it again"
+        )
     settings = meta.get("settings", {})
     out["settings"] = settings if isinstance(settings, dict) else {}
     _check_observation_settings(path, out["settings"])
@@ -419,24 +430,42 @@ def _number(value: Any) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
+#: The settings a replay observes a tape with, which every tape records: left out, a replay
+#: would observe other maps than the run (``reads_per_step`` divides the counts).
+REPLAY_SETTINGS = ("mfd_fit", "mfd_prior", "detection_p", "reads_per_step")
+
+
 def _check_observation_settings(path: Path, settings: dict[str, Any]) -> None:
-    """The settings a replay observes the tape with, in the ranges of ``[traffic.mfd]``:
-    ``mfd_fit`` online or fixed, ``mfd_prior`` ``[a, k_c]`` with ``0 < a <= 1`` and
-    ``k_c > 0``, ``detection_p`` in (0, 1]; its clock: ``step_s`` above 0, ``warmup_s`` >= 0,
-    ``reads_per_step`` a whole number >= 1; each left out takes the live run's default."""
+    """The settings a replay observes the tape with (:data:`REPLAY_SETTINGS`, each recorded),
+    in the ranges of ``[traffic.mfd]`` (``mfd_fit``, ``mfd_prior`` ``[a, k_c]`` and
+    ``detection_p`` in :data:`twin.mfd.SETTING_RANGES`); its clock: ``step_s`` above 0, ``warmup_s``
+    >= 0 (each optional: they only label the steps), ``reads_per_step`` a whole number >= 1."""
     fix = "the tape is corrupt, record it again"
-    fit = settings.get("mfd_fit", "online")
+    missing = [key for key in REPLAY_SETTINGS if key not in settings]
+    if missing:
+        raise UserError(
+            f"{path}: tape metadata settings lack {', '.join(missing)} (a tape records every "
+            f"setting its replay observes with: {', '.join(REPLAY_SETTINGS)}); {fix}"
+        )
+    prior = settings["mfd_prior"]
+    if not (isinstance(prior, list) and len(prior) == 2):
+        raise UserError(
+            f"{path}: tape metadata mfd_prior = {str(prior)[:40]} is not [a, k_c]; {fix}"
+        )
+    fit, p = settings["mfd_fit"], settings["detection_p"]
     if fit not in ("online", "fixed"):
         raise UserError(
             f'{path}: tape metadata mfd_fit = {str(fit)[:40]!r} is not "online" or "fixed"; {fix}'
         )
-    prior = settings.get("mfd_prior", [MFD().a, MFD().k_c])
-    ok = isinstance(prior, list) and len(prior) == 2 and all(_number(x) for x in prior)
-    if not ok or not (0 < prior[0] <= 1 and prior[1] > 0):
-        raise UserError(
-            f"{path}: tape metadata mfd_prior = {str(prior)[:40]} is not [a, k_c] with "
-            f"0 < a <= 1 and k_c > 0 (finite); {fix}"
-        )
+    for key, name, value in (("mfd_prior", "a", prior[0]), ("mfd_prior", "k_c", prior[1]),
+                             ("detection_p", "detection_p", p)):  # fmt: skip
+        low, high = SETTING_RANGES[name]
+        if not (_number(value) and low <= value <= high):
+            raise UserError(
+                f"{path}: tape metadata {key} = {str(settings[key])[:40]} holds {name} = "
+                f"{str(value)[:20]}, not a number in [{low:g}, {high:g}] ([traffic.mfd]'s "
+                f"range); {fix}"
+            )
     for key, low in (("step_s", 0.0), ("warmup_s", None)):
         value = settings.get(key)
         if value is None:
@@ -451,11 +480,6 @@ def _check_observation_settings(path: Path, settings: dict[str, Any]) -> None:
         raise UserError(
             f"{path}: tape metadata reads_per_step = {str(reads)[:40]!r} is not a whole number "
             f">= 1; {fix}"
-        )
-    p = settings.get("detection_p", 1.0)
-    if not _number(p) or not 0 < p <= 1:
-        raise UserError(
-            f"{path}: tape metadata detection_p = {str(p)[:40]!r} is not a number in (0, 1]; {fix}"
         )
 
 

@@ -27,9 +27,11 @@ from twin.config import (
     ScenarioFile,
     StrictModel,
     check_name,
+    load_config,
     read_toml,
     validation_error,
 )
+from twin.errors import UserError
 
 #: Seeds that evaluation uses; tapes and validation curves must stay off them.
 EVALUATION_SEEDS = range(0, 10)
@@ -120,6 +122,16 @@ class RowSpec(StrictModel):
         if path is not None and not path.is_file():
             raise ValueError(f"names {path}, which does not exist; run `twin pretrain` or fix it")
         return path
+
+    @model_validator(mode="after")
+    def _loaded_rows_train_nothing(self) -> RowSpec:
+        recipe = sorted({"traffic", "init", "schedule"} & self.model_fields_set)
+        if self.checkpoint is not None and recipe:
+            raise ValueError(
+                f"loads its checkpoint as it is, so its {', '.join(recipe)} would train nothing; "
+                "drop them, or the checkpoint to train the row"
+            )
+        return self
 
 
 class ColumnSpec(StrictModel):
@@ -262,4 +274,11 @@ def load_transfer_config(path: str | Path) -> TransferConfig:
     for row in config.row:
         if row.checkpoint is None:
             with_overrides(defaults, *row_schedule(config, row))
+    for n, column in enumerate(config.column):
+        if column.generate is not None and load_config(column.config).traffic.kind != "sumo":
+            raise UserError(
+                f"{path}: [[column]] #{n + 1} ({column.name}).generate = {column.generate!r} "
+                f"builds a SUMO network, but its config {column.config} has synthetic traffic; "
+                "give a SUMO scenario config, or leave generate out"
+            )
     return config

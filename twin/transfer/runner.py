@@ -293,10 +293,14 @@ def run_transfer(
     say: Callable[[str], None] = lambda text: None,
 ) -> Path:
     """All the stages; returns the report's path."""
+    from twin.learning.checkpoint import load_qnet
     from twin.sweep import run_sweep
     from twin.transfer.matrix import transfer_matrix
     from twin.transfer.report import write_transfer_report
 
+    for row in config.row:  # a checkpoint the rows load is refused before any stage starts
+        if row.checkpoint is not None:
+            load_qnet(row.checkpoint)
     out.mkdir(parents=True, exist_ok=True)
     out = out.resolve()  # the rows' provenance names files the same from any folder
     timings: dict[str, float] = {}
