@@ -568,9 +568,14 @@ def sumo_source(
     seed = s.seed if seed is None else seed
     begin_flag = config.flag_of("traffic.begin")
     begin_where = begin_flag or f"{config.path}: [traffic].begin"
-    begin_given = begin_flag is not None or (not swapped and "begin" in fields)
+    # a begin or horizon the user's own config sets holds for files swapped in by flags too; a
+    # shipped config's (the built-in network's rush hour) only for its own network
+    from twin.resources import shipped
+
+    own = not Path(config.path).resolve().is_relative_to(shipped("configs").resolve())
+    begin_given = begin_flag is not None or ((not swapped or own) and "begin" in fields)
     horizon_given = config.flag_of("traffic.horizon") is not None or (
-        not swapped and "horizon" in fields
+        (not swapped or own) and "horizon" in fields
     )
     t0 = parse_clock(s.begin, begin_where)
 
