@@ -221,6 +221,7 @@ def test_a_history_of_other_than_real_numbers_is_refused(history, tmp_path, dtyp
         ({"n_runs": "2"}, r"n_runs = '2' is not a whole number"),
         ({"traffic_seeds": [10, 10]}, r"traffic_seeds = \[10, 10\] are not distinct"),
         ({"sources": ["a"]}, r"sources = \['a'\] do not name its n_runs = 2 days"),
+        ({"sources": []}, r"sources = \[\] do not name its n_runs = 2 days"),
     ],
 )
 def test_a_history_whose_info_contradicts_itself_is_refused(history, tmp_path, edit, words):
