@@ -466,7 +466,9 @@ def _grid_and_notices(
         clear = clearing_time(geometry)
         end = begin + s.horizon * step_s
         outside = begin >= files.span[1] + clear or end <= files.span[0]
-        if outside and not begin_given:  # the scenario's own window: vehicles may circulate
+        # in the sumocfg's own window (given or derived), its vehicles may still circulate
+        in_window = files.window[1] is not None and files.span[0] <= begin < files.window[1]
+        if outside and (not begin_given or in_window):
             notices.append(  # (rerouters keep a loop scenario's vehicles on the road)
                 f"{files.name}: the run ({clock_label(begin)} - {clock_label(end)}) begins past "
                 f"the last departure ({clock_label(files.span[1])}) plus {clear / 60:.0f} min to "
