@@ -221,6 +221,7 @@ def test_a_history_of_other_than_real_numbers_is_refused(history, tmp_path, dtyp
         ({"n_runs": "2"}, r"n_runs = '2' is not a whole number"),
         ({"traffic_seeds": [10, 10]}, r"traffic_seeds = \[10, 10\] are not distinct"),
         ({"sources": ["a"]}, r"sources = \['a'\] do not name its n_runs = 2 days"),
+        ({"sources": []}, r"sources = \[\] do not name its n_runs = 2 days"),
     ],
 )
 def test_a_history_whose_info_contradicts_itself_is_refused(history, tmp_path, edit, words):
@@ -251,14 +252,22 @@ def test_a_history_of_sumo_days_is_refused_for_synthetic_traffic(history, tmp_pa
 
 
 def test_history_out_is_claimed_for_one_command_and_freed_on_a_refusal(history, tmp_path, capsys):
-    """Two `twin history` into one --out at once: the file is claimed (created exclusively)
-    before the work, so the second is refused rather than both ending well; a refusal after
-    the claim leaves no file."""
+    """Two `twin history` into one --out at once: the file is claimed (created and locked)
+    before the work, so the second is refused rather than both ending well; a claim left by a
+    killed command is taken over; a refusal after the claim leaves no file."""
+    import os
+
     from twin.cli.history import _claim
 
     out = tmp_path / "h.npz"
-    assert _claim(out) and out.exists()
+    held = _claim(out)
+    assert held is not None and out.exists()
     with pytest.raises(UserError, match="another command is writing it now"):
+        _claim(out)
+    os.close(held)  # the command was killed: its empty claim is taken over, not in the way
+    os.close(_claim(out))
+    out.write_bytes(b"a history")
+    with pytest.raises(UserError, match="exists; give a new file name"):
         _claim(out)
     one_day = history.parent / "days" / "tape.parquet"
     lonely = tmp_path / "lonely.npz"

@@ -1959,3 +1959,24 @@ def test_a_figure_rounded_on_a_save_is_shown_apart_from_the_one_it_contradicts(r
     line = one_line(capsys)
     have, want = re.search(r" = (\S+) for .*, but .* gives (\S+);", line).groups()
     assert have != want and float(have) != float(want), line
+
+
+def test_a_folder_of_an_earlier_format_reads_back_with_a_notice(run_copy, capsys):
+    """A folder an earlier twin wrote (no folder_format: format 1, no bound.npz) reads back,
+    saying what it cannot replay; a format later than this twin's is refused."""
+    import json
+
+    meta = json.loads((run_copy / "run.json").read_text())
+    assert meta["folder_format"] == 2
+    (run_copy / "bound.npz").unlink()
+    del meta["folder_format"], meta["starts"]
+    (run_copy / "run.json").write_text(json.dumps(meta))
+    refresh_manifest(run_copy)
+    assert main(["report", str(run_copy), "--no-animation"]) == 0
+    err = capsys.readouterr().err
+    assert "written by an earlier twin (folder format 1)" in err, err
+    meta["folder_format"] = 3
+    (run_copy / "run.json").write_text(json.dumps(meta))
+    refresh_manifest(run_copy)
+    assert main(["report", str(run_copy), "--no-animation"]) == EXIT_REFUSED
+    assert "a run folder of format 3, written by a later twin" in one_line(capsys)

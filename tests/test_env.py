@@ -251,3 +251,25 @@ def test_joint_env_refuses_actions_out_of_range_in_either_mode(infeasible, actio
         env.step(np.array(action))
     assert "\n" not in str(info.value)
     env.step(np.zeros(3, np.int64))  # the env is still usable
+
+
+def test_a_tape_that_stopped_early_is_refused_when_the_env_is_made(tmp_path):
+    """An env's episode runs every step of its tape's horizon: a tape cut short (a run that
+    stopped early) is one EnvInputError line at make_env, not a RuntimeError mid-episode."""
+    import dataclasses
+
+    from helpers import random_tape
+
+    from twin.env import EnvInputError
+
+    full = random_tape(seed=1, nx=6, ny=6, horizon=10)
+    keep = full.steps < 7
+    short = dataclasses.replace(
+        full, steps=full.steps[keep], times=full.times[keep], counts=full.counts[keep],
+        speeds=full.speeds[keep],
+    )  # fmt: skip
+    short.write(tmp_path / "short.parquet")
+    full.write(tmp_path / "full.parquet")
+    make_env("synthetic", tape=tmp_path / "full.parquet")
+    with pytest.raises(EnvInputError, match=r"short\.parquet: holds steps to 6 of its horizon"):
+        make_env("synthetic", tape=tmp_path / "short.parquet")

@@ -930,3 +930,8 @@ def test_a_run_in_the_scenarios_own_window_past_its_departures_gets_a_notice(
     err = capsys.readouterr().err
     assert code == 0, err
     assert "begins past the last departure" in err, err
+    code = main(["run", "--config", str(config), "--sumocfg", str(cfg), "--horizon", "2",
+                 "--begin", "05:00", "--swarms", "random", "--no-ceiling", "--quiet",
+                 "--no-report", "--out", str(tmp_path / "run-begun")])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 0 and "begins past the last departure" in err, err  # a begin in its window

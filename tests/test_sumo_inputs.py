@@ -602,3 +602,19 @@ def test_a_small_network_at_the_configs_cells_points_to_the_cell_size(city, caps
     assert code == 2 and len(lines) == 1, lines
     assert "free cells of 50000 m for " in lines[0] and str(coarse) in lines[0], lines[0]
     assert "give smaller cells with --cell-m" in lines[0] and "--drones" in lines[0]
+
+
+def test_a_users_config_horizon_holds_for_a_sumocfg_given_by_flag(city, tmp_path, capsys):
+    """``[traffic] horizon`` in the user's own config is given as --horizon would be, also when
+    the network comes from --sumocfg (a shipped config's horizon is its own network's)."""
+    config = tmp_path / "mine.toml"
+    config.write_text(
+        '[swarm]\nn_drones = 2\n[traffic]\nkind = "sumo"\ncell_m = 200.0\n'
+        'drone_speed_kmh = 12.0\nhorizon = 3\n[evaluate]\nswarms = ["random"]\n'
+    )
+    out = tmp_path / "run"
+    code = twin_main(["run", "--config", str(config), "--sumocfg",
+                      str(city / "scenario" / "plain.sumocfg"), "--no-ceiling", "--quiet",
+                      "--no-report", "--out", str(out)])  # fmt: skip
+    assert code == 0, capsys.readouterr().err
+    assert json.loads((out / "run.json").read_text())["horizon"] == 3

@@ -275,10 +275,10 @@ class History:
                 f"{path}: traffic_seeds = {str(seeds)[:60]} are not distinct seeds of its "
                 f"n_runs = {n_runs} days; {fix}"
             )
-        if not isinstance(sources, list) or (sources and len(sources) != n_runs):
+        if not isinstance(sources, list) or len(sources) != (n_runs if sources or seeds else 0):
             raise UserError(
                 f"{path}: sources = {str(sources)[:60]} do not name its n_runs = {n_runs} days "
-                f"(one each, or none); {fix}"
+                f"(one each; none only in a history without traffic seeds); {fix}"
             )
         step_s = info.get("step_s")
         corr = info.get("neighbour_corr", 0.0)

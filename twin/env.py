@@ -525,6 +525,11 @@ def make_env(
 
     else:
         source = build_source(experiment)
+        if tape is not None:
+            try:  # an episode runs every step of the tape's horizon
+                source.check_complete("an env")
+            except UserError as exc:
+                raise EnvInputError(str(exc)) from None
     options.setdefault("params", cfg.params)
     if not isinstance(cfg.swarm.starts, str):
         options.setdefault("starts", cfg.swarm.starts)

@@ -94,6 +94,12 @@ class RunFile:
     folder: bool = False
 
 
+#: The run folder's format (run.json ``folder_format``; 1 when absent): 2 adds the bound's
+#: prices (``bound.npz``), the drones' starts and the configured incident schedule, which the
+#: read-back of a folder of format 1 cannot replay.
+FOLDER_FORMAT = 2
+
+
 #: The run folder's schema: every name twin writes into a run folder. It drives the manifest
 #: (:data:`UNLISTED`), the check that a partial run may be replaced (:data:`RUN_FILE_NAMES`),
 #: the files ``twin report`` requires (:data:`REQUIRED_FILES`); a test checks the guide's table
@@ -545,6 +551,7 @@ def write_run(
             ),
         },
         **({"faults": first.faults.describe()} if first.faults is not None else {}),
+        "folder_format": FOLDER_FORMAT,
         "versions": package_versions(),
         "invocation": started.get("invocation") if isinstance(started, dict) else None,
         **metadata,

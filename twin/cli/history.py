@@ -164,37 +164,52 @@ def main(args: argparse.Namespace) -> int:
     if args.out.suffix != ".npz":
         raise UserError(f"--out {args.out}: give a file name ending in .npz")
     check_output_file(args.out, "--out")
-    if args.out.exists():
-        raise UserError(
-            f"--out {args.out}: exists; give a new file name (twin history never overwrites a file)"
-        )
+    if os.path.islink(args.out) and not args.out.exists():
+        raise UserError(f"--out {args.out}: a link to nothing; give a new file name")
     claim = _claim(args.out)  # two commands at once into one --out: the second is refused
     try:
         return _write_history(args)
     except BaseException:
         with contextlib.suppress(OSError):
-            if claim and args.out.stat().st_size == 0:
+            if claim is not None and args.out.stat().st_size == 0:
                 args.out.unlink()  # the empty claim, never a history written meanwhile
         raise
+    finally:
+        if claim is not None:
+            os.close(claim)
 
 
-def _claim(out: Path) -> bool:
-    """Create ``out`` empty and exclusively (the history replaces it when written); a file
-    made there since the check above is another command's. Its folder is made only when the
-    history is written (a refusal leaves no folder behind)."""
+def _claim(out: Path) -> int | None:
+    """Claim ``out`` for this command: create it empty and hold a lock on it while the history
+    is computed (the written history replaces it). A file there with content is refused (twin
+    history never overwrites one), an empty one held by another command too; an empty one no
+    command holds (left by a command that was killed) is taken over. Its folder is made only
+    when the history is written (a refusal leaves no folder behind): None then."""
+    import fcntl
+
     if not out.parent.is_dir():
-        return False
+        return None
+    exists = f"--out {out}: exists; give a new file name (twin history never overwrites a file)"
     try:
         fd = os.open(out, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
     except FileExistsError:
+        if not out.is_file() or out.stat().st_size > 0:
+            raise UserError(exists) from None
+        fd = os.open(out, os.O_WRONLY)
+    except OSError:
+        return None  # the write itself says what is wrong with the folder
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
         raise UserError(
             f"--out {out}: another command is writing it now; give a new file name (twin "
             "history never overwrites a file)"
         ) from None
-    except OSError:
-        return False  # the write itself says what is wrong with the folder
-    os.close(fd)
-    return True
+    if os.fstat(fd).st_size > 0:  # written in between: a history now
+        os.close(fd)
+        raise UserError(exists)
+    return fd
 
 
 def _write_history(args: argparse.Namespace) -> int:

@@ -195,7 +195,8 @@ def _check_finite_q(net, size: int, path) -> None:
     with torch.no_grad():
         q = net(states)
     if not bool(torch.isfinite(q).all()):
-        biggest = max(float(p.abs().max()) for p in net.parameters())
+        with torch.no_grad():
+            biggest = max(float(p.abs().max()) for p in net.parameters())
         raise UserError(
             f"checkpoint {path}: its Q-values overflow to inf or NaN on states in [0, 1] "
             f"(weights up to {biggest:.3g}: a diverged training); re-create it with `twin "

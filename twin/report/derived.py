@@ -394,7 +394,7 @@ def check_incident_schedule(primary: Primary) -> None:
     run_json, path = primary.run_dir / "run.json", primary.run_dir / "incidents.json"
     recorded = primary.incidents or []
     if "incidents" not in traffic:
-        if recorded:
+        if recorded and folder_format(primary) >= 2:
             raise UserError(
                 f"{run_json}: traffic.incidents (the configured schedule) is missing, but "
                 f"{path} records {len(recorded)} incidents; {RERUN}"
@@ -1259,6 +1259,13 @@ def check_starts(primary: Primary) -> None:
                 )
 
 
+def folder_format(primary: Primary) -> int:
+    """run.json's ``folder_format`` (:data:`twin.runs.FOLDER_FORMAT`; 1 when absent: a folder
+    an earlier twin wrote, without the bound's prices and the incident schedule)."""
+    value = primary.run.get("folder_format", 1)
+    return value if isinstance(value, int) and not isinstance(value, bool) else 1
+
+
 #: How far a replayed bound may differ from its row (relative): the folder keeps the maps in
 #: float32, the run bounded them in float64.
 BOUND_TOLERANCE = 1e-5
@@ -1298,6 +1305,8 @@ def check_bound(primary: Primary, per_seed: pd.DataFrame | None) -> None:
     if bounds.empty:
         return
     path = primary.run_dir / "bound.npz"
+    if not path.is_file() and folder_format(primary) < 2:
+        return  # an earlier twin kept no prices (said once by load_run)
     if not path.is_file():
         raise UserError(
             f"{table}: holds {BOUND} rows, but the folder has no bound.npz (their prices); {RERUN}"

@@ -256,6 +256,27 @@ def _read_json(path: Path) -> Any:
     return read_json(path)
 
 
+def _say_folder_format(run_dir: Path, run: dict[str, Any]) -> None:
+    """A folder of an earlier format (:data:`twin.runs.FOLDER_FORMAT`) reads back, with a
+    notice of what its read-back cannot replay; a later format than this twin's is refused."""
+    from twin.boundary import notify
+    from twin.runs import FOLDER_FORMAT
+
+    found = run.get("folder_format", 1)
+    if not isinstance(found, int) or isinstance(found, bool) or found < 1:
+        raise UserError(f"{run_dir / 'run.json'}: folder_format = {found!r} is no format; {RERUN}")
+    if found > FOLDER_FORMAT:
+        raise UserError(
+            f"{run_dir}: a run folder of format {found}, written by a later twin (this one reads "
+            f"up to {FOLDER_FORMAT}); update twin"
+        )
+    if found < FOLDER_FORMAT:
+        notify(
+            f"twin: notice: {run_dir}: written by an earlier twin (folder format {found}): its "
+            "bound row and incident schedule are not replayed; rerun it for every check"
+        )
+
+
 def load_run(run_dir: str | Path) -> RunFiles:
     """Read a finished run folder: its ``manifest.json`` must be there and agree with the files
     (:func:`twin.runs.check_run_folder`); a missing required file, an incomplete folder, a
@@ -280,6 +301,7 @@ def load_run(run_dir: str | Path) -> RunFiles:
     manifest = check_run_folder(run_dir)
     run_path = run_dir / "run.json"
     run = check_run_json(run_path, read_json(run_path) or {})
+    _say_folder_format(run_dir, run)
     importance, obstacles = read_maps(run_dir / "importance.npz")
     if importance.shape[0] < 2:
         raise UserError(

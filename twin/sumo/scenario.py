@@ -466,7 +466,9 @@ def _grid_and_notices(
         clear = clearing_time(geometry)
         end = begin + s.horizon * step_s
         outside = begin >= files.span[1] + clear or end <= files.span[0]
-        if outside and not begin_given:  # the scenario's own window: vehicles may circulate
+        # in the sumocfg's own window (given or derived), its vehicles may still circulate
+        in_window = files.window[1] is not None and files.span[0] <= begin < files.window[1]
+        if outside and (not begin_given or in_window):
             notices.append(  # (rerouters keep a loop scenario's vehicles on the road)
                 f"{files.name}: the run ({clock_label(begin)} - {clock_label(end)}) begins past "
                 f"the last departure ({clock_label(files.span[1])}) plus {clear / 60:.0f} min to "
@@ -568,9 +570,14 @@ def sumo_source(
     seed = s.seed if seed is None else seed
     begin_flag = config.flag_of("traffic.begin")
     begin_where = begin_flag or f"{config.path}: [traffic].begin"
-    begin_given = begin_flag is not None or (not swapped and "begin" in fields)
+    # a begin or horizon the user's own config sets holds for files swapped in by flags too; a
+    # shipped config's (the built-in network's rush hour) only for its own network
+    from twin.resources import shipped
+
+    own = not Path(config.path).resolve().is_relative_to(shipped("configs").resolve())
+    begin_given = begin_flag is not None or ((not swapped or own) and "begin" in fields)
     horizon_given = config.flag_of("traffic.horizon") is not None or (
-        not swapped and "horizon" in fields
+        (not swapped or own) and "horizon" in fields
     )
     t0 = parse_clock(s.begin, begin_where)
 

@@ -513,6 +513,17 @@ class TapeTraffic(TrafficSource):
             shape = config.explicit_shape()
         return cls(Tape.read(Path(path), shape), p, source_name=str(path))
 
+    def check_complete(self, what: str) -> None:
+        """Refuse (one line) a tape that stopped before its horizon for ``what`` (pretraining,
+        an env), whose episodes run every step of ``T``."""
+        last = int(self.tape.steps.max()) if len(self.tape.steps) else -1
+        if last < self.horizon:
+            raise UserError(
+                f"{self.source_name}: holds steps to {last} of its horizon T = {self.horizon} "
+                f"(a run that stopped early); {what} needs every step: give a finished run's "
+                "tape"
+            )
+
     def model(self) -> MFDImportance:
         s = self.tape.settings
         return MFDImportance(

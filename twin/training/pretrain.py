@@ -612,14 +612,8 @@ def episode_source(cfg: PretrainConfig):
         from twin.traffic.tape import TapeTraffic
 
         tapes = [TapeTraffic.from_file(t) for t in cfg.tapes]
-        for path, tape in zip(cfg.tapes, tapes, strict=True):
-            last = int(tape.tape.steps.max()) if len(tape.tape.steps) else -1
-            if last < tape.horizon:  # an episode runs every step of T
-                raise UserError(
-                    f"{path}: holds steps to {last} of its horizon T = {tape.horizon} (a run "
-                    "that stopped early); pretraining needs every step: give a finished "
-                    "run's tape"
-                )
+        for tape in tapes:
+            tape.check_complete("pretraining")
         return lambda e: tapes[e % len(tapes)]
     source = training_source(cfg)
     return lambda e: source
