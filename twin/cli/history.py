@@ -159,7 +159,10 @@ def detector_readings(tape: Path, obstacles, horizon: int):
 
 
 def main(args: argparse.Namespace) -> int:
+    from twin.boundary import hold_notices
     from twin.outputs import check_output_file
+
+    hold_notices(to_end=True)  # said when the history is written; a refusal is its one line
 
     if args.out.suffix != ".npz":
         raise UserError(f"--out {args.out}: give a file name ending in .npz")

@@ -25,8 +25,10 @@ def add_parser(subparsers) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from twin.boundary import set_run_folder
+    from twin.boundary import hold_notices, set_run_folder
     from twin.resources import check_cache
+
+    hold_notices(to_end=True)  # said when the report is written; a refusal is its one line
 
     if args.run_dir.is_dir() and not args.run_dir.is_symlink():
         set_run_folder(args.run_dir)  # an unexpected error's traceback goes to its error.log
