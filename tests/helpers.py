@@ -36,6 +36,15 @@ def random_tape(seed=0, nx=3, ny=4, warmup=2, horizon=5, obstacle=(0, 0)) -> Tap
     )
 
 
+def cut_tape(tape: Tape, last: int) -> Tape:
+    """``tape`` as a run that stopped after step ``last`` leaves it (its horizon unchanged)."""
+    import dataclasses
+
+    keep = tape.steps <= last
+    return dataclasses.replace(tape, steps=tape.steps[keep], times=tape.times[keep],
+                               counts=tape.counts[keep], speeds=tape.speeds[keep])  # fmt: skip
+
+
 SMALL_SUMO_CONFIG = """
 [swarm]
 n_drones = 2

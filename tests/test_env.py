@@ -256,18 +256,12 @@ def test_joint_env_refuses_actions_out_of_range_in_either_mode(infeasible, actio
 def test_a_tape_that_stopped_early_is_refused_when_the_env_is_made(tmp_path):
     """An env's episode runs every step of its tape's horizon: a tape cut short (a run that
     stopped early) is one EnvInputError line at make_env, not a RuntimeError mid-episode."""
-    import dataclasses
-
-    from helpers import random_tape
+    from helpers import cut_tape, random_tape
 
     from twin.env import EnvInputError
 
     full = random_tape(seed=1, nx=6, ny=6, horizon=10)
-    keep = full.steps < 7
-    short = dataclasses.replace(
-        full, steps=full.steps[keep], times=full.times[keep], counts=full.counts[keep],
-        speeds=full.speeds[keep],
-    )  # fmt: skip
+    short = cut_tape(full, 6)
     short.write(tmp_path / "short.parquet")
     full.write(tmp_path / "full.parquet")
     make_env("synthetic", tape=tmp_path / "full.parquet")

@@ -565,18 +565,11 @@ def test_coordinated_collector_on_tapes_and_dynamic_maps(tmp_path):
 def test_a_tape_that_stopped_early_is_refused_for_training(tmp_path):
     """A tape whose run stopped before its horizon: an episode runs every step of T, so the
     tape is refused in one line naming it (it ended in an internal StopIteration)."""
-    import dataclasses
-
-    from helpers import random_tape
+    from helpers import cut_tape, random_tape
 
     from twin.training.pretrain import episode_source
 
-    full = random_tape(seed=1, nx=6, ny=6, horizon=30)
-    keep = full.steps < 30
-    short = dataclasses.replace(
-        full, steps=full.steps[keep], times=full.times[keep], counts=full.counts[keep],
-        speeds=full.speeds[keep],
-    )  # fmt: skip
+    short = cut_tape(random_tape(seed=1, nx=6, ny=6, horizon=30), 29)
     tape = tmp_path / "short.parquet"
     short.write(tape)
     path = _config(tmp_path)

@@ -943,8 +943,8 @@ def check_tape_maps(primary: Primary) -> None:
         k, i, j, replayed = off
         raise UserError(
             f"{npz}: importance at step {k}, cell ({i}, {j}) of seed {primary.first_seed} "
-            f"is {_show(kept[k, i, j])}, but tape.parquet replayed through its MFD gives "
-            f"{_show(replayed)}; {RERUN}"
+            f"is {_show(kept[k, i, j], replayed)}, but tape.parquet replayed through its MFD "
+            f"gives {_show(replayed, kept[k, i, j])}; {RERUN}"
         )
     if given < len(kept):
         raise UserError(
@@ -997,8 +997,8 @@ def check_synthetic_maps(primary: Primary) -> None:
         k, i, j, generated = off
         raise UserError(
             f"{path}: traffic (disturbances, beta1, beta2, z_lo, z_hi) generates importance "
-            f"{_show(generated)} at step {k}, cell ({i}, {j}), but importance.npz "
-            f"holds {_show(kept[k, i, j])}; {RERUN}"
+            f"{_show(generated, kept[k, i, j])} at step {k}, cell ({i}, {j}), but "
+            f"importance.npz holds {_show(kept[k, i, j], generated)}; {RERUN}"
         )
     if given < len(kept):
         raise UserError(
