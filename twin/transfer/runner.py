@@ -145,6 +145,35 @@ def row_pretrain_config(config: TransferConfig, row, out: Path, checkpoints: dic
     return with_overrides(PretrainConfig.from_data(config.path, {}), overrides, labels)
 
 
+def check_row_starts(config: TransferConfig, out: Path) -> None:
+    """Each fine-tuned row's start fits it (state and layers) before any stage runs: a
+    checkpoint file is loaded, a row trained before is compared by its pretraining config."""
+    from twin.learning.checkpoint import checkpoint_state, read_checkpoint
+    from twin.training.pretrain import check_initial_fit, initial_network
+
+    names = {r.name: r for r in config.row}
+    for row in config.row:
+        if row.checkpoint is not None or row.init is None:
+            continue
+        where = f"{config.path}: [[row]] {row.name}.init = {row.init}"
+        start = names.get(row.init)
+        if start is None:  # a checkpoint file
+            cfg = row_pretrain_config(config, row, out / "rows" / row.name, {})
+            try:
+                initial_network(cfg)
+            except UserError as exc:
+                raise UserError(f"{config.path}: [[row]] {row.name}: {exc}") from None
+            continue
+        cfg = row_pretrain_config(config, row, out / "rows" / row.name, {row.init: "start"})
+        if start.checkpoint is not None:
+            meta = read_checkpoint(start.checkpoint)["meta"]
+            state, layers = checkpoint_state(start.checkpoint, meta).name, meta.get("layers")
+        else:
+            before = row_pretrain_config(config, start, out / "rows" / start.name, {})
+            state, layers = before.state, list(before.layers)
+        check_initial_fit(cfg, where, state, layers)
+
+
 def train_row(task: dict[str, Any]) -> dict[str, Any]:
     """Train one row (a worker task), or reuse its folder when its provenance matches."""
     from twin.experiment import limit_threads
@@ -301,6 +330,7 @@ def run_transfer(
     for row in config.row:  # a checkpoint the rows load is refused before any stage starts
         if row.checkpoint is not None:
             load_qnet(row.checkpoint)
+    check_row_starts(config, out)
     out.mkdir(parents=True, exist_ok=True)
     out = out.resolve()  # the rows' provenance names files the same from any folder
     timings: dict[str, float] = {}
