@@ -303,10 +303,7 @@ class SwarmParallelEnv(ParallelEnv):
             if self._used and self._factory is not None:
                 self.source.close()
                 self.source = _built_source(self._factory(), "source()")
-                if (
-                    self.source.grid.shape != self.grid.shape
-                    or self.source.horizon != self.horizon
-                ):
+                if self.source.grid.shape != self.grid.shape or self.source.horizon != self.horizon:
                     raise EnvInputError(
                         "source() built a source with another grid or horizon than its first; "
                         "make the factory build the same scenario at every call"
