@@ -64,11 +64,11 @@ class Command:
                 pytest.fail("timed out")
             time.sleep(0.05)
 
-    def interrupt(self, times: int = 1, gap: float = 0.0) -> int:
+    def interrupt(self, times: int = 1, gap: float = 0.0, signum=signal.SIGINT) -> int:
         for n in range(times):
             if n:
                 time.sleep(gap)
-            self.proc.send_signal(signal.SIGINT)
+            self.proc.send_signal(signum)
         try:
             return self.proc.wait(timeout=120)
         finally:
@@ -98,7 +98,13 @@ def test_stop_flag_is_off_when_not_asked_for() -> None:
         assert not stop()
 
 
-def test_ctrl_c_on_evaluate_writes_a_partial_run(tmp_path: Path) -> None:
+# SIGTERM (`kill`, a batch scheduler's stop, `timeout`) stops a command as Ctrl-C does; it
+# used to end the process at once, leaving a run folder with run.json alone
+STOPS = pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["int", "term"])
+
+
+@STOPS
+def test_ctrl_c_on_evaluate_writes_a_partial_run(tmp_path: Path, signum) -> None:
     config = scenario_file(tmp_path, horizon=200_000)
     out = tmp_path / "run"
     cmd = Command(
@@ -108,7 +114,7 @@ def test_ctrl_c_on_evaluate_writes_a_partial_run(tmp_path: Path) -> None:
     )  # fmt: skip
     cmd.wait_for((out / "run.json").exists)  # past the imports: the run is starting
     time.sleep(2)  # the synthetic maps, then some steps
-    assert cmd.interrupt() == 130, cmd.stderr()
+    assert cmd.interrupt(signum=signum) == 130, cmd.stderr()
     stderr = cmd.stderr()
     assert "Traceback" not in stderr
     assert "partial run written" in stderr
@@ -123,7 +129,8 @@ def test_ctrl_c_on_evaluate_writes_a_partial_run(tmp_path: Path) -> None:
     assert meta["seeds"] == [0]  # stopped within the first seed: no other seed was run
 
 
-def test_second_ctrl_c_stops_at_once(tmp_path: Path) -> None:
+@STOPS
+def test_second_ctrl_c_stops_at_once(tmp_path: Path, signum) -> None:
     config = scenario_file(tmp_path, horizon=200_000)
     out = tmp_path / "run"
     cmd = Command(
@@ -133,7 +140,7 @@ def test_second_ctrl_c_stops_at_once(tmp_path: Path) -> None:
     )  # fmt: skip
     cmd.wait_for((out / "run.json").exists)  # past the imports: the run is starting
     time.sleep(2)
-    assert cmd.interrupt(times=2, gap=0.3) == 130
+    assert cmd.interrupt(times=2, gap=0.3, signum=signum) == 130
     assert "Traceback" not in cmd.stderr()
     # whatever was written is whole: no temporary file is left behind
     assert not [p for p in out.rglob("*") if p.name.endswith(".tmp")]
@@ -146,7 +153,10 @@ def small(tmp_path_factory) -> Path:
     return small_sumo_scenario(tmp_path_factory.mktemp("small"), horizon=5000)
 
 
-def test_ctrl_c_on_run_writes_a_partial_run_with_its_tape(small: Path, tmp_path: Path) -> None:
+@STOPS
+def test_ctrl_c_on_run_writes_a_partial_run_with_its_tape(
+    small: Path, tmp_path: Path, signum
+) -> None:
     from twin.traffic.tape import Tape
 
     out = tmp_path / "run"
@@ -156,7 +166,7 @@ def test_ctrl_c_on_run_writes_a_partial_run_with_its_tape(small: Path, tmp_path:
     )  # fmt: skip
     cmd.wait_for(lambda: "SUMO:" in cmd.stderr())  # the simulation is built and warming up
     time.sleep(2.0)
-    assert cmd.interrupt() == 130, cmd.stderr()
+    assert cmd.interrupt(signum=signum) == 130, cmd.stderr()
     stderr = cmd.stderr()
     assert "Traceback" not in stderr
     done = int(re.search(r"partial run of (\d+) steps", stderr).group(1))

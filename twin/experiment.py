@@ -34,6 +34,7 @@ from twin.config import ScenarioConfig, check_faults, check_swarm_fits, start_po
 from twin.errors import UserError
 from twin.patrol import INTERRUPTED, PatrolResult, run_patrol
 from twin.policies import Policy
+from twin.processes import interrupt_on_terminate
 from twin.swarms import check_swarm_name, is_learned
 from twin.traffic.base import TrafficSource
 from twin.traffic_kinds import build_traffic, is_live_kind
@@ -210,40 +211,50 @@ def build_swarms(experiment: Experiment) -> dict[str, Policy]:
 def stop_on_interrupt(
     enabled: bool = True, on_stop: Callable[[], None] | None = None
 ) -> Iterator[Callable[[], bool]]:
-    """Within the block, a first Ctrl-C (SIGINT) only sets a flag (the yielded callable turns
-    true) so the run can stop after its current step and keep what it did, and calls
-    ``on_stop()`` (which passes the word to worker processes); a second Ctrl-C raises
-    :class:`KeyboardInterrupt` at once. The previous handler is restored on exit.
+    """Within the block, a first Ctrl-C (SIGINT) or SIGTERM only sets a flag (the yielded
+    callable turns true) so the run can stop after its current step and keep what it did, and
+    calls ``on_stop()`` (which passes the word to worker processes); a second one raises
+    :class:`KeyboardInterrupt` at once. The previous handlers are restored on exit.
 
-    Nothing is installed off the main thread, or when SIGINT is not Python's default handler
-    (ignored, as in a background job, or handled by the caller): the flag then stays false.
+    Nothing is installed off the main thread, or for a signal whose handler is not the one
+    that raises :class:`KeyboardInterrupt` (ignored, as SIGINT in a background job, or handled
+    by the caller): the flag then stays false.
     """
     flag = threading.Event()
-    usable = (
-        enabled
+    at_once = {
+        signal.SIGINT: signal.default_int_handler,
+        signal.SIGTERM: interrupt_on_terminate,  # twin's command boundary installs it
+    }
+    usable = [
+        signum
+        for signum, handler in at_once.items()
+        if enabled
         and threading.current_thread() is threading.main_thread()
-        and signal.getsignal(signal.SIGINT) is signal.default_int_handler
-    )
+        and signal.getsignal(signum) is handler
+    ]
     if not usable:
         yield flag.is_set
         return
 
     def first(signum, frame) -> None:
         flag.set()
-        signal.signal(signal.SIGINT, signal.default_int_handler)  # the next one stops at once
+        for each in usable:  # the next one stops at once
+            signal.signal(each, at_once[each])
         if on_stop is not None:
             on_stop()
+        how = "interrupted" if signum == signal.SIGINT else "terminated"
         print(
-            "\ntwin: interrupted; stopping after the current step and writing a partial run "
+            f"\ntwin: {how}; stopping after the current step and writing a partial run "
             "(Ctrl-C again to stop at once)",
             file=sys.stderr,
         )
 
-    previous = signal.signal(signal.SIGINT, first)
+    previous = {signum: signal.signal(signum, first) for signum in usable}
     try:
         yield flag.is_set
     finally:
-        signal.signal(signal.SIGINT, previous)
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
 
 
 def run_experiment(

@@ -22,7 +22,6 @@ import contextlib
 import multiprocessing
 import os
 import pickle
-import signal
 from collections.abc import Iterator
 from typing import Any, Protocol
 
@@ -136,8 +135,7 @@ def _take_end(source: WorksAhead, message) -> None:
 
 def _produce(source: WorksAhead, conn, parent: int) -> None:
     """The child: every map with the snapshots behind it, then ``end``."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    exit_with_parent(parent)
+    exit_with_parent(parent, ignore_sigint=True)
     source.separate_process = False
     source.defer_close = True  # SUMO is closed after the end state is sent (below)
     sent_snapshots = sent_seen = sent_readings = 0
