@@ -439,8 +439,66 @@ def _ssm_type_without_file(d: Path) -> None:
     trips.write_text(text[:start] + kind + text[start:])
 
 
+def _actuated(program: ET.Element, output: str) -> str:
+    """``program`` (a ``<tlLogic>``) as an actuated light whose detectors write ``output``."""
+    program.set("type", "actuated")
+    for phase in program.iter("phase"):  # a green phase of variable length has detectors
+        if "G" in phase.get("state", "") or "g" in phase.get("state", ""):
+            phase.set("minDur", "5")
+            phase.set("maxDur", "50")
+    for key, value in (("freq", "60"), ("file", output)):
+        param = ET.Element("param", key=key, value=value)
+        program.insert(0, param)
+    return ET.tostring(program, encoding="unicode")
+
+
+def _actuated_program_in_additional(d: Path) -> None:
+    """tls.add.xml (no other output) loads another program of the first light: actuated,
+    writing its detectors' output to ``tlsdet.xml`` (SUMO: beside tls.add.xml)."""
+    with open(d / "small.net.xml", "rb") as fh:
+        program = ET.parse(fh).getroot().find("tlLogic")
+    program.set("programID", "actuated")
+    (d / "tls.add.xml").write_text(f"<additional>{_actuated(program, 'tlsdet.xml')}</additional>")
+    cfg = d / "case.sumocfg"
+    cfg.write_text(cfg.read_text().replace('"det.add.xml"', '"det.add.xml,tls.add.xml"'))
+
+
+def _actuated_program_in_network(d: Path) -> None:
+    """The network's first light is actuated and writes ``netdet.xml`` (SUMO: beside the
+    network file)."""
+    net = d / "small.net.xml"
+    text = net.read_text()
+    start = text.index("<tlLogic ")
+    end = text.index("</tlLogic>", start) + len("</tlLogic>")
+    program = ET.fromstring(text[start:end])
+    net.write_text(text[:start] + _actuated(program, "netdet.xml") + text[end:])
+
+
+def _environment_variables(d: Path) -> None:
+    """The sumocfg names its network through ``${TWIN_TEST_NET}`` and prefixes its outputs
+    with ``${TWIN_TEST_PREFIX}`` = ``../../escape_`` (SUMO substitutes both)."""
+    cfg = d / "case.sumocfg"
+    text = cfg.read_text().replace('"small.net.xml"', '"${TWIN_TEST_NET}"')
+    cfg.write_text(text.replace("<output>", '<output><output-prefix value="${TWIN_TEST_PREFIX}"/>'))
+
+
 # name -> (output options of the sumocfg, how to change the case's files, what RUN/sumo/ holds)
 ESCAPES = {
+    "an actuated light's detector output in an additional file": (
+        "",
+        _actuated_program_in_additional,
+        ["det.add.xml", "det.xml", "tls.add.xml", "tlsdet.xml"],
+    ),
+    "an actuated light's detector output in the network": (
+        "",
+        _actuated_program_in_network,
+        ["det.add.xml", "det.xml", "netdet.xml", "small.net.xml"],
+    ),
+    "environment variables in the sumocfg": (
+        "",
+        _environment_variables,
+        ["det.add.xml", "escape_det.xml"],
+    ),
     "SSM's file named by a device option (SUMO types it a string, not a file)": (
         '<device.ssm.probability value="1"/><device.ssm.file value="ssm.out.xml"/>',
         None,
@@ -497,6 +555,8 @@ def test_outputs_in_every_form_sumo_reads_go_into_the_run_folder(
     in RUN/sumo/, never beside the scenario's files nor in the working folder."""
     output, change, want = ESCAPES[case]
     cfg = _detector_case(scenario, tmp_path / "case", output)
+    monkeypatch.setenv("TWIN_TEST_NET", str(tmp_path / "case" / "small.net.xml"))
+    monkeypatch.setenv("TWIN_TEST_PREFIX", "../../escape_")
     if change is not None:
         change(tmp_path / "case")
     before = tree_hash(tmp_path / "case")

@@ -7,8 +7,10 @@ import errno
 import gzip
 import math
 import os
+import re
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import IO
 
@@ -136,12 +138,33 @@ def parse_time(value: str | None) -> float | None:
 SUMOCFG_ROOTS = ("configuration", "sumoConfiguration")
 
 
+_VARIABLE = re.compile(r"\$\{(.+?)\}")
+
+
+def substitute_environment(value: str) -> str:
+    """An option value as SUMO reads it: ``${NAME}`` replaced by the environment variable
+    (empty when unset), ``${PID}`` by the process id, ``${LOCALTIME}``/``${UTC}`` by the
+    time, and a leading ``~`` (of the value or of a list item) by ``${HOME}``
+    (SUMO's ``StringUtils::substituteEnvironment``)."""
+    if "$" not in value and "~" not in value:
+        return value
+    now = datetime.now(UTC)
+    s = value.replace("${LOCALTIME}", now.astimezone().strftime("%Y-%m-%d-%H-%M-%S.%f"), 1)
+    s = s.replace("${UTC}", now.strftime("%Y-%m-%d-%H-%M-%S.%f"), 1)
+    s = s.replace("${PID}", str(os.getpid()), 1)
+    if s.startswith("~"):
+        s = "${HOME}" + s[1:]
+    s = s.replace(",~", ",${HOME}")
+    return _VARIABLE.sub(lambda m: os.environ.get(m.group(1), ""), s)
+
+
 def sumocfg_options(root: ET.Element) -> tuple[dict[str, str], dict[str, str]]:
     """The options a SUMO config sets, as SUMO reads them: any element with a ``value``
     attribute (or its short form ``v``) or, without children, a text, whether in a section
     (``<input><net-file value="..."/></input>``) or right under the root, named by any of
     SUMO's synonyms (:func:`twin.sumo.options.canonical`): canonical name -> value (the last
-    one wins, as in SUMO), and canonical name -> the name the config wrote."""
+    one wins, as in SUMO; environment variables substituted, :func:`substitute_environment`),
+    and canonical name -> the name the config wrote."""
     options: dict[str, str] = {}
     written: dict[str, str] = {}
     for elem in root.iter():
@@ -152,7 +175,7 @@ def sumocfg_options(root: ET.Element) -> tuple[dict[str, str], dict[str, str]]:
         if value is None and len(elem) == 0 and elem.text is not None and elem.text.strip():
             value = elem.text.strip()
         if value is not None:
-            options[canonical(name)] = value
+            options[canonical(name)] = substitute_environment(value)
             written[canonical(name)] = name
     return options, written
 

@@ -154,11 +154,13 @@ class SumoTraffic(TrafficSource):
         (:mod:`twin.sumo.outputs`)."""
         s = self.scenario
         options, route_files = tuple(s.sumo_options), list(s.route_files)
+        net_file = s.net_file
         if output_dir is not None:
             from twin.sumo.outputs import redirect_outputs
 
             options, plan = redirect_outputs(s.sumocfg, options, output_dir)
             route_files = [plan.routes(r) for r in route_files]
+            net_file = plan.network(net_file)
             options = plan.device_defaults(options)
             self._copies = {c: o for o, c in plan.copies.items() if c != o}
             self.outputs = [*plan.targets.values(), *self._copies]
@@ -171,7 +173,7 @@ class SumoTraffic(TrafficSource):
                 options = with_additional(options, loops)
                 self.outputs.append(loops)
         return SumoSession(
-            net_file=s.net_file,
+            net_file=net_file,
             route_files=route_files,
             begin=s.sim_begin,
             end=s.sim_end + 1.0,
