@@ -1980,3 +1980,61 @@ def test_a_folder_of_an_earlier_format_reads_back_with_a_notice(run_copy, capsys
     refresh_manifest(run_copy)
     assert main(["report", str(run_copy), "--no-animation"]) == EXIT_REFUSED
     assert "a run folder of format 3, written by a later twin" in one_line(capsys)
+
+
+# ----------------------------------------------------------------- records that are no files
+def _twin(args: list[str], cwd: Path) -> tuple[int, str]:
+    """``python -m twin ARGS`` in a subprocess, stopped after 90 s (a read that blocks on a
+    FIFO would hang the test run otherwise)."""
+    import subprocess
+
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    try:
+        done = subprocess.run([sys.executable, "-m", "twin", *args], cwd=cwd, env=env,
+                              capture_output=True, text=True, timeout=90)  # fmt: skip
+    except subprocess.TimeoutExpired:
+        pytest.fail(f"twin {' '.join(args)} blocked for 90 s")
+    return done.returncode, done.stderr
+
+
+RECORDS_NO_FILES = {
+    "report, manifest.json a FIFO": ("manifest.json", "fifo", ["report", "{run}"]),
+    "report, run.json a FIFO": ("run.json", "fifo", ["report", "{run}"]),
+    "report, manifest.json linked to /dev/zero": ("manifest.json", "zero", ["report", "{run}"]),
+    "history --from, manifest.json a FIFO": (
+        "manifest.json", "fifo", ["history", "--from", "{run}", "--out", "{tmp}/h.npz"],
+    ),
+    "evaluate --out, run.json a FIFO": (
+        "run.json", "fifo",
+        ["evaluate", "--config", "{config}", "--swarms", "random", "--out", "{run}", "--quiet"],
+    ),
+    "evaluate --out, manifest.json a FIFO": (
+        "manifest.json", "fifo",
+        ["evaluate", "--config", "{config}", "--swarms", "random", "--out", "{run}", "--quiet"],
+    ),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("case", list(RECORDS_NO_FILES))
+def test_a_record_of_a_run_folder_that_is_no_file_is_refused_without_blocking(
+    run_folder, tmp_path, case
+):
+    """A run folder's manifest.json or run.json replaced by a FIFO (reading it blocks until a
+    writer comes, which never does) or linked to /dev/zero (read whole: the memory fills):
+    one line naming the file, exit 2, within seconds (probe 12's rf1, rf2)."""
+    name, kind, args = RECORDS_NO_FILES[case]
+    run = tmp_path / "run"
+    shutil.copytree(run_folder, run)
+    (run / name).unlink()
+    if kind == "fifo":
+        os.mkfifo(run / name)
+    else:
+        (run / name).symlink_to("/dev/zero")
+    config = small_config(tmp_path)
+    argv = [a.format(run=run, tmp=tmp_path, config=config) for a in args]
+    code, err = _twin(argv, tmp_path)
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and "Traceback" not in err, err
+    assert name in lines[0] or str(run) in lines[0], err
+    assert "memory" not in lines[0], err

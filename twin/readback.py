@@ -17,6 +17,7 @@ import numpy as np
 import pandas as pd
 
 from twin.errors import UserError
+from twin.files import NotARecord, read_record
 
 RERUN = "rerun the command that wrote it"
 
@@ -112,7 +113,9 @@ def read_json(path: Path, required: bool = False) -> Any:
             raise UserError(f"{path}: missing; {RERUN}")
         return None
     try:
-        text = path.read_text(encoding="utf-8")
+        text = read_record(path)
+    except NotARecord as exc:
+        raise UserError(f"{path}: {exc.strerror}; {RERUN}") from None
     except (OSError, UnicodeError) as exc:
         raise UserError(f"{path}: cannot read it ({_why(exc)}); {RERUN}") from None
     try:

@@ -19,6 +19,7 @@ from typing import Any
 
 from twin import resources
 from twin.errors import UserError
+from twin.files import read_record
 from twin.sumo.readers import missing, root_tag
 from twin.sumo.tools import binary, run_sumo_program
 
@@ -139,7 +140,7 @@ def build_named_network(name: str, force: bool = False, progress: bool = False) 
     def verify(out: Path) -> None:
         resources.check_xml_files(out, {f"{name}.net.xml": "net", f"{name}.trips.xml": "routes"})
         try:
-            stamp = json.loads((out / "build.json").read_text())
+            stamp = json.loads(read_record(out / "build.json"))
         except (OSError, ValueError) as exc:
             raise resources.BrokenEntry("build.json is missing or not JSON") from exc
         if not isinstance(stamp, dict) or stamp.get("spec_hash") != digest:

@@ -53,7 +53,7 @@ from twin.config import (
 )
 from twin.config import load_config as load_scenario
 from twin.errors import UserError
-from twin.files import file_sha256
+from twin.files import file_sha256, not_a_file
 from twin.learning.checkpoint import (
     atomic_save,
     checkpoint_state,
@@ -1145,6 +1145,8 @@ def _snapshot_name(entry: Path) -> bool:
 
 
 def _own_log(path: Path) -> bool:
+    if not_a_file(path) is not None:  # a FIFO would block forever
+        return False
     try:
         with open(path, newline="", encoding="utf-8") as f:
             header = next(csv.reader(f), [])

@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from twin.errors import UserError
-from twin.files import atomic_write
+from twin.files import atomic_write, read_record
 from twin.transfer.config import TransferConfig
 
 #: What a transfer writes into its folder (and the boundary's error.log).
@@ -184,7 +184,7 @@ def train_row(task: dict[str, Any]) -> dict[str, Any]:
     out = Path(cfg.out)
     if not provenance_matches(out, cfg):
         pretrain(cfg, progress=False)
-    return json.loads((out / "provenance.json").read_text())
+    return json.loads(read_record(out / "provenance.json"))
 
 
 def provenance_matches(out: Path, cfg) -> bool:
@@ -195,7 +195,7 @@ def provenance_matches(out: Path, cfg) -> bool:
     if not (path.is_file() and model.is_file()):
         return False
     try:
-        record = json.loads(path.read_text())
+        record = json.loads(read_record(path))
     except (OSError, ValueError):
         return False
     return (
@@ -369,7 +369,7 @@ def run_transfer(
     atomic_write(out / "matrix.csv", lambda p: matrix.to_csv(p, index=False))
     history = []
     try:  # earlier invocations of this transfer (a resumed run skips what they did)
-        history = json.loads((out / "transfer.json").read_text()).get("invocations", [])
+        history = json.loads(read_record(out / "transfer.json")).get("invocations", [])
     except (OSError, ValueError, AttributeError):
         history = []
     invocation = {
