@@ -376,6 +376,14 @@ CASES = {
         ],
         "[traffic].disturbances[0] is centred at (i, j) = (500, 8), 481 cells off the 20 x 30 map",
     ),
+    "a disturbance wider than ten maps": (
+        lambda t: ["evaluate", "--config", str(_edited_config(t, "sigma = 3.0", "sigma = 301.0"))],
+        "[traffic].disturbances[0].sigma = 301 cells is more than 10 x the 20 x 30 map's side",
+    ),
+    "a disturbance whose width overflows": (
+        lambda t: ["evaluate", "--config", str(_edited_config(t, "sigma = 3.0", "sigma = 1e200"))],
+        "sigma = 1e+200 must be <= 1000000",
+    ),
     "gui swarms without --gui": (
         lambda t: ["run", "--gui-swarms", "nosuch"],
         "--gui-swarms: 'nosuch' is not among the run's swarms",
