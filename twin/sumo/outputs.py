@@ -13,7 +13,11 @@ into its run folder, so when it starts SUMO it
 - loads, instead of an additional file that writes outputs, a copy in the output folder whose
   outputs point into that folder and whose other relative paths (``<include href>``, a
   rerouter's definitions, images) are made absolute so they resolve as before (the same for a
-  route file whose device parameters name files).
+  route file whose device parameters name files, and a network whose traffic lights' programs
+  do: an actuated light's detector ``file``).
+
+A file that declares entities in its own DTD is loaded as such a copy too, its entities
+expanded: SUMO's program reads them, libsumo does not.
 
 An output the sumocfg sends to ``stdout`` or ``stderr`` (``-``) goes to ``RUN/sumo/<option>.xml``
 instead (listed in run.json's ``traffic.sumo_outputs``): twin's tables and its one-line
@@ -88,6 +92,9 @@ DEVICE_OUTPUTS = frozenset(
 #: Parameters of a traffic light's program (``<tlLogic>`` of a network or an additional file)
 #: that name output files: an actuated, delay-based or NEMA light's detector output.
 PROGRAM_OUTPUTS = frozenset(("file",))
+#: An entity declared in a file's own DTD (``<!DOCTYPE routes [<!ENTITY e "...">]>``), which
+#: libsumo cannot read: the file is loaded as a copy with its entities expanded.
+ENTITY = b"<!ENTITY"
 #: Attributes of additional files that name input files (made absolute in a rewritten copy).
 INPUT_ATTRIBUTES = ("href", "file", "imgFile", "osgFile")
 
@@ -144,7 +151,9 @@ class OutputPlan:
                 tree = ET.parse(fh)
         except (ET.ParseError, OSError, EOFError):
             return path  # SUMO will say what is wrong with it
-        root, base, changed = tree.getroot(), path.parent, False
+        # entities declared in the file's own DTD: SUMO's program expands them, libsumo
+        # refuses them ("entity not found"); the copy holds them expanded
+        root, base, changed = tree.getroot(), path.parent, may_hold(path, ENTITY)
         program_outputs = {
             id(param)
             for program in root.iter()
@@ -196,7 +205,9 @@ class OutputPlan:
         """``path``, or a rewritten copy in ``out_dir`` if a traffic light's program in it names
         an output file (:data:`PROGRAM_OUTPUTS`). A network is parsed only when its bytes hold
         both ``tlLogic`` and ``param``."""
-        if may_hold(path, b"tlLogic") and may_hold(path, b"param") and _program_output(path):
+        if may_hold(path, ENTITY) or (
+            may_hold(path, b"tlLogic") and may_hold(path, b"param") and _program_output(path)
+        ):
             return self.additional(path)
         return path
 
@@ -206,7 +217,7 @@ class OutputPlan:
         bytes, or an included file's, hold ``param`` (an element's name is never a character
         reference), or always when its encoding is not ASCII-compatible (UTF-16, UTF-32)."""
         for file in (path, *included_files(path)):
-            if may_hold(file, b"param"):
+            if may_hold(file, b"param") or may_hold(file, ENTITY):
                 return self.additional(path)
         return path
 
