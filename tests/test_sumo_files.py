@@ -1012,3 +1012,74 @@ def test_a_run_in_the_scenarios_own_window_past_its_departures_gets_a_notice(
                  "--no-report", "--out", str(tmp_path / "run-begun")])  # fmt: skip
     err = capsys.readouterr().err
     assert code == 0 and "begins past the last departure" in err, err  # a begin in its window
+
+
+@pytest.fixture(scope="module")
+def saved_state(scenario, tmp_path_factory) -> Path:
+    """``state/``: the scenario's network and trips, a state SUMO saved at 300 s (with SUMO's
+    default options) and a sumocfg that loads it."""
+    import subprocess
+
+    d = tmp_path_factory.mktemp("state")
+    for name in ("small.net.xml", "small.trips.xml"):
+        shutil.copy(scenario / "scenario" / name, d / name)
+    cfg = _cfg('<input><net-file value="small.net.xml"/><route-files value="small.trips.xml"/>'
+               "</input>")  # fmt: skip
+    (d / "plain.sumocfg").write_text(cfg)
+    subprocess.run([binary("sumo"), "-c", str(d / "plain.sumocfg"), "--end", "400",
+                    "--save-state.times", "300", "--save-state.files", str(d / "st300.xml"),
+                    "--no-step-log", "true"], check=True, capture_output=True)  # fmt: skip
+    (d / "state.sumocfg").write_text(
+        cfg.replace("</input>", '<load-state value="st300.xml"/></input>')
+    )
+    return d
+
+
+def test_a_sumocfg_loading_a_saved_state_runs_from_the_state_s_time(
+    scenario, saved_state, tmp_path, capsys
+):
+    """``<load-state>``: SUMO's clock starts at the state's time whatever the begin, so the
+    scenario's window does too; every snapshot is read after it, none is the state frozen
+    and relabelled as earlier steps (probe 12's a04). twin's rerouting defaults leave the
+    state's own speeds alone (another count crashed libsumo)."""
+    before = tree_hash(saved_state)
+    out = tmp_path / "run"
+    code = _run(scenario, out, "--sumocfg", str(saved_state / "state.sumocfg"))
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert tree_hash(saved_state) == before
+    tape = pd.read_parquet(out / "tape.parquet")
+    times = tape.groupby("step")["time_s"].first()
+    assert times.min() > 300 and times.is_monotonic_increasing
+    assert tape.groupby("step")["count"].sum().nunique() > 1  # the traffic moves
+
+
+def _binary_state(d: Path) -> list[str]:
+    (d / "st300.xml").rename(d / "st300.sbx")
+    cfg = d / "state.sumocfg"
+    cfg.write_text(cfg.read_text().replace("st300.xml", "st300.sbx"))
+    return []
+
+
+def _not_a_state(d: Path) -> list[str]:
+    (d / "st300.xml").write_text("<routes/>")
+    return []
+
+
+@pytest.mark.parametrize(
+    ("change", "words"),
+    [
+        (lambda d: ["--begin", "00:04:00"], "loads a state saved at 00:05:00, where SUMO starts"),
+        (_binary_state, "a binary saved state, whose time twin cannot read"),
+        (_not_a_state, "not a state SUMO saved"),
+    ],
+    ids=["begin before the state", "binary state", "not a state"],
+)
+def test_a_saved_state_twin_cannot_honour_is_one_line(
+    scenario, saved_state, tmp_path, capsys, change, words
+):
+    d = tmp_path / "state"
+    shutil.copytree(saved_state, d)
+    code = _run(scenario, tmp_path / "run", "--sumocfg", str(d / "state.sumocfg"), *change(d))
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and words in err, err

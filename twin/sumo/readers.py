@@ -86,6 +86,8 @@ class SumoConfigFile:
     #: every option the file sets (element name -> value, as written), e.g. its outputs
     options: dict[str, str] = field(default_factory=dict)
     path: Path | None = None
+    #: the time of the state its ``load-state`` loads: SUMO starts there, whatever the begin
+    state_time: float | None = None
 
     def files(self) -> list[Path]:
         """The network, route and additional files it names."""
@@ -282,6 +284,15 @@ def read_sumocfg(path: Path, own_net: bool = True) -> SumoConfigFile:
             f"{path}: <{written['end']} value={value('end')!r}> is not after "
             f"<{written['begin']} value={value('begin')!r}>; give an end after the begin"
         )
+    states = file_list(value("load-state"), path.parent, path)
+    state = saved_state_time(states[0], path) if states else None
+    if state is not None and (window[0] is None or window[0] < state):
+        window[0] = state  # SUMO's clock starts at the state's time
+        if window[1] is not None and window[1] <= state:
+            raise UserError(
+                f"{path}: <{written['end']} value={value('end')!r}> is not after the time "
+                f"{state:g} s of the state its <{written['load-state']}> loads; give a later end"
+            )
     return SumoConfigFile(
         net=net[0],
         routes=file_list(value("route-files"), path.parent, path),
@@ -290,7 +301,33 @@ def read_sumocfg(path: Path, own_net: bool = True) -> SumoConfigFile:
         end=window[1],
         options=options,
         path=path,
+        state_time=state,
     )
+
+
+def saved_state_time(path: Path, named_in: Path) -> float:
+    """The time of a state SUMO saved (``--save-state.files``): its root's ``time``; a binary
+    state (``.sbx``), which twin cannot read, is a one-line error."""
+    where = f"{path} (named in {named_in}'s load-state)"
+    if path.name.endswith(".sbx"):
+        raise UserError(
+            f"{where}: a binary saved state, whose time twin cannot read; save the state as XML "
+            "(--save-state.suffix .xml) and load that"
+        )
+    if not path.is_file():
+        raise UserError(f"{where}: {'does not exist' if not path.exists() else 'not a file'}")
+    try:
+        with open_xml(path) as fh:
+            root = next(ET.iterparse(fh, events=("start",)))[1]
+    except (ET.ParseError, OSError, EOFError, StopIteration) as exc:
+        raise UserError(f"{where}: not valid XML ({exc or 'empty file'})") from None
+    t = parse_time(root.get("time"))
+    if local_name(root) != "snapshot" or t is None or t < 0:
+        raise UserError(
+            f"{where}: not a state SUMO saved (a <snapshot> with its time); give the file "
+            "SUMO's --save-state.files wrote"
+        )
+    return t
 
 
 #: Elements that put vehicles on the road, and the attribute of their departure.

@@ -227,6 +227,7 @@ class _ScenarioFiles:
     listed_as: dict[str, list[Path]] = field(default_factory=dict)
     window: list[float | None] = field(default_factory=lambda: [None, None])  # <time> of it
     span: tuple[float, float] | None = None  # first and last departure of the given demand
+    state_time: float | None = None  # the time of the state the sumocfg loads: SUMO starts there
 
     @property
     def own_window(self) -> bool:
@@ -310,6 +311,7 @@ def _scenario_files(s: SumoSettings) -> _ScenarioFiles:
                 "additional": list(cfg.additional),
             },
             window=[cfg.begin, cfg.end],
+            state_time=cfg.state_time,
         )
     elif s.osm:
         osm_path = Path(s.osm)
@@ -403,6 +405,13 @@ def _time_window(
             begin = w0 + warmup
         if not horizon_given:
             s.horizon = max(1, int((w1 - begin) / step_s + 1e-9))
+    if files.state_time is not None and begin - warmup < files.state_time - 1e-9:
+        raise UserError(
+            f"{begin_where} = {clock_label(begin)}: {files.name} loads a state saved at "
+            f"{clock_label(files.state_time)}, where SUMO starts; with the "
+            f"{warmup / 60:g} min warm-up give a begin of at least "
+            f"{clock_label(files.state_time + warmup)}"
+        )
     if begin < warmup:
         raise UserError(
             f"{begin_where} = {clock_label(begin)}: the {warmup / 60:g} min warm-up "
