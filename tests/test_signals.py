@@ -208,3 +208,56 @@ def test_the_same_command_completes_a_run_stopped_by_ctrl_c(tmp_path: Path) -> N
     assert meta["partial"] is False
     series = pd.read_parquet(out / "series.parquet")
     assert series["step"].max() + 1 == 20_000
+
+
+def test_a_source_stopped_while_sumo_works_ahead_keeps_the_mfd_of_its_used_maps(small: Path):
+    """SUMO's process works ahead of slow swarms; the run stops (Ctrl-C) after the maps it
+    used. The MFD's samples and fit are those of the kept snapshots, as a replay of the tape
+    gives them (they held the steps SUMO computed ahead, so the folder's own read-back
+    refused it: probe 12's i01)."""
+    from twin.config import load_config
+    from twin.traffic_kinds import build_traffic
+
+    config = load_config(small / "small.toml")
+    source = build_traffic(config, separate_process=True)
+    maps = source.importance_maps()
+    for _ in range(3):
+        next(maps)
+        time.sleep(1.0)  # the child computes the maps after these meanwhile
+    maps.close()
+    kept = source.snapshots[-1][0]
+    assert kept == 2
+    samples = source.model.samples()
+    assert samples["step"].max() <= kept
+    replayed = source.model_after(source.snapshots)
+    assert len(replayed.samples()["step"]) == len(samples["step"])
+    assert json.dumps(replayed.report(), sort_keys=True) == json.dumps(
+        source.model.report(), sort_keys=True
+    )
+
+
+def test_ctrl_c_while_a_finished_run_is_written_finishes_the_folder(tmp_path, monkeypatch, capsys):
+    """A Ctrl-C after the last step, while the run folder is written: the folder is finished
+    (every file, its manifest), then the command stops with exit 130; it lost every result
+    before, leaving run.json alone (probe 12's i02)."""
+    import twin.cli.recording as recording
+    from twin.cli import main
+    from twin.runs import check_run_folder
+
+    if signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        pytest.skip("SIGINT is not Python's default handler here")
+    real = recording.record
+
+    def interrupted_record(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.2)  # the handler runs: the old one raised KeyboardInterrupt here
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(recording, "record", interrupted_record)
+    out = tmp_path / "run"
+    argv = ["evaluate", "--config", str(scenario_file(tmp_path, horizon=20)), "--seeds", "1",
+            "--swarms", "random", "--out", str(out), "--no-report", "--quiet"]  # fmt: skip
+    assert main(argv) == 130
+    assert "finishing the run folder first" in capsys.readouterr().err
+    manifest = check_run_folder(out)
+    assert not manifest["partial"] and "per_seed.csv" in manifest["files"]

@@ -209,12 +209,15 @@ def build_swarms(experiment: Experiment) -> dict[str, Policy]:
 
 @contextlib.contextmanager
 def stop_on_interrupt(
-    enabled: bool = True, on_stop: Callable[[], None] | None = None
+    enabled: bool = True,
+    on_stop: Callable[[], None] | None = None,
+    doing: str = "stopping after the current step and writing a partial run",
 ) -> Iterator[Callable[[], bool]]:
     """Within the block, a first Ctrl-C (SIGINT) or SIGTERM only sets a flag (the yielded
     callable turns true) so the run can stop after its current step and keep what it did, and
-    calls ``on_stop()`` (which passes the word to worker processes); a second one raises
-    :class:`KeyboardInterrupt` at once. The previous handlers are restored on exit.
+    calls ``on_stop()`` (which passes the word to worker processes) and says it is ``doing``
+    so; a second one raises :class:`KeyboardInterrupt` at once. The previous handlers are
+    restored on exit.
 
     Nothing is installed off the main thread, or for a signal whose handler is not the one
     that raises :class:`KeyboardInterrupt` (ignored, as SIGINT in a background job, or handled
@@ -243,11 +246,8 @@ def stop_on_interrupt(
         if on_stop is not None:
             on_stop()
         how = "interrupted" if signum == signal.SIGINT else "terminated"
-        print(
-            f"\ntwin: {how}; stopping after the current step and writing a partial run "
-            "(Ctrl-C again to stop at once)",
-            file=sys.stderr,
-        )
+        start = "\n" if sys.stderr.isatty() else ""  # off a progress bar's line
+        print(f"{start}twin: {how}; {doing} (Ctrl-C again to stop at once)", file=sys.stderr)
 
     previous = {signum: signal.signal(signum, first) for signum in usable}
     try:

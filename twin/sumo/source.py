@@ -148,6 +148,14 @@ class SumoTraffic(TrafficSource):
             s.reads_per_step,
         )
 
+    def model_after(self, snapshots: list) -> MFDImportance:
+        """The MFD model as it stood after ``snapshots`` (a run stopped while its SUMO child
+        worked ahead): a fresh model fed them again, as a replay of the tape does."""
+        model = self._model()
+        for k, _, count, speed in snapshots:
+            model.observe(k, count, speed.astype(float))
+        return model
+
     def session(self, output_dir: Path | None = None) -> SumoSession:
         """The SUMO session of a run; with ``output_dir``, the scenario's configured outputs
         (sumocfg options, additional files' detectors ...) are written there

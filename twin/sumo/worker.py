@@ -55,6 +55,8 @@ class WorksAhead(Protocol):
 
     def close_deferred(self) -> None: ...
 
+    def model_after(self, snapshots: list) -> Any: ...
+
 
 def maps_from_child(source: WorksAhead) -> Iterator[np.ndarray]:
     """The source's maps computed in a forked child process (see the module docstring)."""
@@ -118,6 +120,8 @@ def _stop(source: WorksAhead, here, child) -> bool:
         child.kill()
     del source.snapshots[used:]  # one vehicle count per snapshot
     del source.vehicles_seen[used:]
+    if got_end:  # the child's MFD saw snapshots the run never used (sent, or not yet)
+        source.model = source.model_after(source.snapshots)
     last = source.snapshots[-1][0] if source.snapshots else -1
     source.detector_readings[:] = [r for r in source.detector_readings if r[0] <= last]
     return got_end
