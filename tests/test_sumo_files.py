@@ -1083,3 +1083,34 @@ def test_a_saved_state_twin_cannot_honour_is_one_line(
     code = _run(scenario, tmp_path / "run", "--sumocfg", str(d / "state.sumocfg"), *change(d))
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and words in err, err
+
+
+def test_sumo_s_own_demo_runs_with_its_messages_kept_out_of_twin_s_lines(
+    scenario, tmp_path, capfd, monkeypatch
+):
+    """SUMO's demo fokr_bs_demo (shipped in the eclipse-sumo wheel: cars, bicycles,
+    pedestrians, 0.05 s steps) run with its sumocfg alone: SUMO's errors while it runs (at
+    twin's 1 s steps some vehicles cannot depart) go to RUN/sumo/sumo-messages.log with one
+    notice, never as raw lines among twin's (probe 12's g01); its folder stays as it was."""
+    import sumo
+
+    demo = Path(sumo.__file__).parent / "tools" / "game"
+    d = tmp_path / "demo"
+    d.mkdir()
+    shutil.copytree(demo / "fokr_bs_demo", d / "fokr_bs_demo")
+    shutil.copy(demo / "fokr_bs_demo.sumocfg", d)
+    before = tree_hash(d)
+    (tmp_path / "cwd").mkdir()
+    monkeypatch.chdir(tmp_path / "cwd")
+    out = tmp_path / "run"
+    code = main(["run", "--sumocfg", str(d / "fokr_bs_demo.sumocfg"), "--cell-m", "100",
+                 "--horizon", "2", "--swarms", "random", "--quiet", "--no-report",
+                 "--no-ceiling", "--out", str(out)])  # fmt: skip
+    err = capfd.readouterr().err
+    assert code == 0, err
+    assert not [line for line in err.splitlines() if not line.startswith(("twin:", "SUMO:"))]
+    log = out / "sumo" / "sumo-messages.log"
+    assert "SUMO reported" in err and str(log) in err
+    assert "will not be able to depart" in log.read_text()
+    assert tree_hash(d) == before and list((tmp_path / "cwd").iterdir()) == []
+    assert "sumo/sumo-messages.log" in check_run_folder(out)["files"]

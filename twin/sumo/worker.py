@@ -22,7 +22,9 @@ import contextlib
 import multiprocessing
 import os
 import pickle
+import tempfile
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
@@ -128,7 +130,8 @@ def _stop(source: WorksAhead, here, child) -> bool:
 
 
 def _take_end(source: WorksAhead, message) -> None:
-    _, _, snapshots, seen, model, timer, read_seconds, error, incidents, det = message
+    _, _, snapshots, seen, model, timer, read_seconds, error, incidents, det, said = message
+    _say_sumo_errors(source, *said)
     source.snapshots.extend(snapshots)
     source.vehicles_seen.extend(seen)
     source.detectors = det[0]
@@ -137,9 +140,54 @@ def _take_end(source: WorksAhead, message) -> None:
     source.error, source._incidents = error, incidents
 
 
+#: SUMO's own messages while it runs (its warnings are off; errors such as a vehicle that
+#: cannot depart), kept in this file of SUMO's output folder instead of twin's stderr.
+MESSAGES_NAME = "sumo-messages.log"
+
+
+def _messages_to_file(source: WorksAhead) -> tuple[Path, bool]:
+    """Send this process's stderr (SUMO writes its messages there) to a file: in the run's
+    SUMO output folder (kept) when it has one, else a temporary file; ``(path, kept)``."""
+    path, kept = None, False
+    if getattr(source, "output_dir", None) is not None:
+        with contextlib.suppress(OSError):
+            Path(source.output_dir).mkdir(parents=True, exist_ok=True)
+            path, kept = Path(source.output_dir) / MESSAGES_NAME, True
+    if path is None:
+        fd, name = tempfile.mkstemp(prefix="twin-sumo-", suffix=".log")
+        os.close(fd)
+        path = Path(name)
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o666 & ~_umask())
+    os.dup2(fd, 2)
+    os.close(fd)
+    return path, kept
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _sumo_said(path: Path, kept: bool) -> tuple[int, str, str | None]:
+    """SUMO's errors in its messages file: how many, the first, and the file when it is kept
+    (an empty file is removed)."""
+    errors, first = 0, ""
+    with contextlib.suppress(OSError), open(path, errors="replace") as fh:
+        for line in fh:
+            if line.startswith("Error:"):
+                errors += 1
+                first = first or line[len("Error:") :].strip()
+    empty = not path.exists() or path.stat().st_size == 0
+    if empty or not kept:
+        path.unlink(missing_ok=True)
+    return errors, first, str(path) if kept and not empty else None
+
+
 def _produce(source: WorksAhead, conn, parent: int) -> None:
     """The child: every map with the snapshots behind it, then ``end``."""
     exit_with_parent(parent, ignore_sigint=True)
+    messages, kept = _messages_to_file(source)
     source.separate_process = False
     source.defer_close = True  # SUMO is closed after the end state is sent (below)
     sent_snapshots = sent_seen = sent_readings = 0
@@ -175,6 +223,7 @@ def _produce(source: WorksAhead, conn, parent: int) -> None:
                 source.error,
                 source.incidents_info(),
                 (source.detectors, source.detector_readings[sent_readings:]),
+                _sumo_said(messages, kept),
             )
         )
     except (BrokenPipeError, OSError):
@@ -186,6 +235,20 @@ def _produce(source: WorksAhead, conn, parent: int) -> None:
             source.close_deferred()  # SUMO writes out its configured outputs as it closes
         conn.close()
         os._exit(0)  # no atexit handlers of the parent's modules in the child
+
+
+def _say_sumo_errors(source: WorksAhead, errors: int, first: str, kept: str | None) -> None:
+    """One notice for SUMO's errors while it ran (none: nothing said)."""
+    if not errors:
+        return
+    from twin.boundary import notify
+
+    where = f"all in {kept}" if kept else "not kept: the run has no folder"
+    name = getattr(getattr(source, "scenario", None), "name", "SUMO")
+    notify(
+        f"twin: notice: {name}: SUMO reported {errors} error{'s' * (errors != 1)} while "
+        f"running, which it did not stop for (first: {first[:160]}); {where}"
+    )
 
 
 def _picklable(exc: BaseException) -> bool:
