@@ -1114,3 +1114,21 @@ def test_sumo_s_own_demo_runs_with_its_messages_kept_out_of_twin_s_lines(
     assert "will not be able to depart" in log.read_text()
     assert tree_hash(d) == before and list((tmp_path / "cwd").iterdir()) == []
     assert "sumo/sumo-messages.log" in check_run_folder(out)["files"]
+
+
+def test_a_command_that_keeps_no_sumo_outputs_says_so(scenario, tmp_path, capsys):
+    """A simulation without a run folder (a sweep's cell, a transfer's, an env's) cannot keep
+    the outputs the scenario's files ask SUMO for: one notice names them (they vanished
+    silently: probe 11's sw20); nothing is written beside the scenario's files."""
+    from twin.config import load_config
+    from twin.sumo.scenario import sumo_source
+
+    cfg = _detector_case(scenario, tmp_path / "case", '<tripinfo-output value="trips.out.xml"/>')
+    before = tree_hash(tmp_path / "case")
+    source = sumo_source(load_config(scenario / "config.toml"), sumocfg=cfg)
+    maps = source.importance_maps()
+    next(maps)
+    maps.close()
+    err = capsys.readouterr().err
+    assert "(det.xml, trips.out.xml) are not kept by this command" in err, err
+    assert tree_hash(tmp_path / "case") == before

@@ -129,6 +129,8 @@ class SumoTraffic(TrafficSource):
         self.output_dir: Path | None = None
         #: the output files and rewritten additional files of the last run
         self.outputs: list[Path] = []
+        #: the names of the outputs the scenario's files ask SUMO for (the last run)
+        self.asked_outputs: list[str] = []
         self._copies: dict[Path, Path] = {}  # rewritten additional file -> the user's
         #: the fixed detectors read (:mod:`twin.sumo.detectors`) and their readings per step:
         #: ``(k, detector index, vehicles, occupancy %, mean speed, importance)``
@@ -172,6 +174,7 @@ class SumoTraffic(TrafficSource):
             options = plan.device_defaults(options)
             self._copies = {c: o for o, c in plan.copies.items() if c != o}
             self.outputs = [*plan.targets.values(), *self._copies]
+            self.asked_outputs = sorted(p.name for p in plan.targets.values())
             if s.detectors.loops:
                 from twin.sumo.detectors import with_additional, write_loops
 
@@ -270,6 +273,14 @@ class SumoTraffic(TrafficSource):
         except BaseException:
             _remove(scratch)
             raise
+        if scratch is not None and self.asked_outputs:
+            from twin.boundary import notify
+
+            notify(
+                f"twin: notice: {s.name}: the outputs its files ask SUMO for ({', '.join(self.asked_outputs[:4])}"
+                f"{' ...' if len(self.asked_outputs) > 4 else ''}) are not kept by this command "
+                "(it keeps no SUMO outputs); `twin run` keeps them in RUN/sumo/"
+            )
         timer.add(SUMO_WARMUP, clock() - t_start)
         reader = None
         self.detector_readings = []
