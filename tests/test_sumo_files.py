@@ -259,6 +259,10 @@ ACCEPTED = {
         _cfg(NET_AND_TRIPS + '<time><begin value="0"/><end value="-1"/></time>'),
         {}, 0.0, None,
     ),
+    "remote port 0, SUMO's default: no TraCI server": (
+        _cfg(NET_AND_TRIPS + '<traci_server><remote-port value="0"/></traci_server>'),
+        {}, None, None,
+    ),
 }  # fmt: skip
 
 

@@ -238,8 +238,8 @@ def read_sumocfg(path: Path, own_net: bool = True) -> SumoConfigFile:
                 f"{path}: <{written[name]} value={options[name]!r}> makes SUMO write that file "
                 "and quit instead of simulating; remove it (twin runs the simulation)"
             )
-    for name in _WAIT_FOR_CLIENT:
-        if options.get(name):
+    for name in _WAIT_FOR_CLIENT:  # a port of 0 (SUMO's default) opens no server
+        if options.get(name, "").strip() not in ("", "0"):
             raise UserError(
                 f"{path}: <{written[name]} value={options[name]!r}> makes SUMO wait for a TraCI "
                 "client instead of simulating; remove it (twin drives SUMO itself)"
