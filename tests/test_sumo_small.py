@@ -198,7 +198,7 @@ def test_osm_import_and_sumocfg(small, tmp_path, monkeypatch):  # writes only un
     net = import_osm(osm, tmp_path / "osm")
     assert net.exists() and "<edge" in net.read_text()
     net.write_text("mine")  # a file twin did not write is never replaced
-    with pytest.raises(UserError, match="tiny.net.xml exists there; twin never overwrites"):
+    with pytest.raises(UserError, match=r"tiny\.net\.xml exists there; twin never overwrites"):
         import_osm(osm, tmp_path / "osm")
     assert net.read_text() == "mine" and sorted(p.name for p in net.parent.iterdir()) == [
         "tiny.net.xml"
