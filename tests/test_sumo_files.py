@@ -1136,3 +1136,38 @@ def test_a_command_that_keeps_no_sumo_outputs_says_so(scenario, tmp_path, capsys
     err = capsys.readouterr().err
     assert "(det.xml, trips.out.xml) are not kept by this command" in err, err
     assert tree_hash(tmp_path / "case") == before
+
+
+@pytest.mark.parametrize(
+    "window",
+    ['<begin value="100.25"/>', '<begin value="0"/><end value="119"/>'],
+    ids=["fractional begin", "odd window: half of it warms up"],
+)
+def test_a_window_off_whole_seconds_gives_a_folder_that_reads_back(
+    scenario, tmp_path, capsys, window
+):
+    """A sumocfg's begin of 100.25 s, or a window of 119 s whose half warms up: T^0 falls on a
+    whole second, so the tape's clock labels agree with its times and the run's own read-back
+    accepts its folder (it refused it as a corrupt tape: probe 12's t01)."""
+    cfg = _write_case(
+        scenario, tmp_path / "case", _cfg(NET_AND_TRIPS + f"<time>{window}</time>"), {}
+    )
+    out = tmp_path / "run"
+    assert _run(scenario, out, "--sumocfg", str(cfg), "--horizon", "1") == 0, (
+        capsys.readouterr().err
+    )
+    assert main(["report", str(out), "--no-animation"]) == 0, capsys.readouterr().err
+    times = pd.read_parquet(out / "tape.parquet")["time_s"]
+    assert (times == times.round()).all()
+
+
+def test_a_begin_whose_warm_up_would_start_before_midnight_cuts_it(scenario, tmp_path, capsys):
+    """``--begin 00:00:30`` with a 1 min warm-up: cut to 30 s with a notice, as a window too
+    short for the warm-up is (the same begin twin picks itself was refused)."""
+    cfg = _write_case(scenario, tmp_path / "case", _cfg(NET_AND_TRIPS), {})
+    out = tmp_path / "run"
+    code = _run(scenario, out, "--sumocfg", str(cfg), "--begin", "00:00:30", "--horizon", "2")
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert "would start SUMO before 00:00; warm-up cut to 0.5 min" in err
+    assert json.loads((out / "run.json").read_text())["traffic"]["warmup_s"] == 30

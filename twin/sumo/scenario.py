@@ -395,14 +395,16 @@ def _time_window(
         window = [w0, w1]
         if not begin_given:
             if w1 - w0 < warmup + step_s:  # too short for the warm-up: half of it warms up
-                short = max(0.0, (w1 - w0) / 2)
+                short = max(0.0, float(math.floor((w1 - w0) / 2)))
                 notice(
                     f"{files.name}: the scenario's window {clock_label(w0)} - {clock_label(w1)} "
                     f"is shorter than the {warmup / 60:g} min warm-up plus a step; warm-up cut "
                     f"to {short / 60:.1f} min"
                 )
                 warmup = short
-            begin = w0 + warmup
+            # T^0 on a whole second (a window's begin may be fractional): the tape's clock
+            # labels, SUMO's begin and the read instants all fall on whole seconds
+            begin = float(math.ceil(w0 + warmup - 1e-9))
         if not horizon_given:
             s.horizon = max(1, int((w1 - begin) / step_s + 1e-9))
     if files.state_time is not None and begin - warmup < files.state_time - 1e-9:
@@ -412,12 +414,13 @@ def _time_window(
             f"{warmup / 60:g} min warm-up give a begin of at least "
             f"{clock_label(files.state_time + warmup)}"
         )
-    if begin < warmup:
-        raise UserError(
+    if begin < warmup:  # as for a window too short for it: SUMO starts at 00:00
+        notice(
             f"{begin_where} = {clock_label(begin)}: the {warmup / 60:g} min warm-up "
-            f"([traffic].warmup_min) would start SUMO before 00:00, which SUMO refuses; give a "
-            f"begin of at least {clock_label(warmup)} or a shorter warm-up"
+            f"([traffic].warmup_min) would start SUMO before 00:00; warm-up cut to "
+            f"{begin / 60:.1f} min"
         )
+        warmup = begin
     return begin, warmup, window
 
 
