@@ -42,6 +42,8 @@ class WorksAhead(Protocol):
     detector_readings: list
     error: str | None
     model: Any
+    scenario: Any
+    output_dir: Path | None  # SUMO's output folder in the run folder, if the run has one
     timer: StageTimer
     read_seconds: float
     separate_process: bool
@@ -90,8 +92,11 @@ def maps_from_child(source: WorksAhead) -> Iterator[np.ndarray]:
                 if message[1] is not None:
                     raise message[1]
                 return
-    except EOFError:  # the child died without a word (killed)
+    except EOFError:  # the child died without a word (killed, or SUMO crashed)
         source.error = "the SUMO process ended unexpectedly"
+        log = Path(source.output_dir) / MESSAGES_NAME if source.output_dir else None
+        if log is not None and log.is_file() and log.stat().st_size:
+            source.error += f" (its last words are in {log})"
         raise RuntimeError(source.error) from None
     finally:
         if not ended:
@@ -149,7 +154,7 @@ def _messages_to_file(source: WorksAhead) -> tuple[Path, bool]:
     """Send this process's stderr (SUMO writes its messages there) to a file: in the run's
     SUMO output folder (kept) when it has one, else a temporary file; ``(path, kept)``."""
     path, kept = None, False
-    if getattr(source, "output_dir", None) is not None:
+    if source.output_dir is not None:
         with contextlib.suppress(OSError):
             Path(source.output_dir).mkdir(parents=True, exist_ok=True)
             path, kept = Path(source.output_dir) / MESSAGES_NAME, True
@@ -157,16 +162,10 @@ def _messages_to_file(source: WorksAhead) -> tuple[Path, bool]:
         fd, name = tempfile.mkstemp(prefix="twin-sumo-", suffix=".log")
         os.close(fd)
         path = Path(name)
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o666 & ~_umask())
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o666)  # less the umask
     os.dup2(fd, 2)
     os.close(fd)
     return path, kept
-
-
-def _umask() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return mask
 
 
 def _sumo_said(path: Path, kept: bool) -> tuple[int, str, str | None]:
@@ -244,7 +243,7 @@ def _say_sumo_errors(source: WorksAhead, errors: int, first: str, kept: str | No
     from twin.boundary import notify
 
     where = f"all in {kept}" if kept else "not kept: the run has no folder"
-    name = getattr(getattr(source, "scenario", None), "name", "SUMO")
+    name = source.scenario.name
     notify(
         f"twin: notice: {name}: SUMO reported {errors} error{'s' * (errors != 1)} while "
         f"running, which it did not stop for (first: {first[:160]}); {where}"
