@@ -22,6 +22,7 @@ import contextlib
 import multiprocessing
 import os
 import pickle
+import shutil
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -66,9 +67,11 @@ def maps_from_child(source: WorksAhead) -> Iterator[np.ndarray]:
     """The source's maps computed in a forked child process (see the module docstring)."""
     context = multiprocessing.get_context("fork")
     here, there = context.Pipe(duplex=True)
+    messages = _messages_file()  # SUMO's stderr in the child: kept out of twin's lines
     child = context.Process(
-        target=_produce, args=(source, there, os.getpid()), name="twin-sumo", daemon=True
-    )
+        target=_produce, args=(source, there, os.getpid(), messages), name="twin-sumo",
+        daemon=True,
+    )  # fmt: skip
     source.snapshots, source.vehicles_seen, source.error = [], [], None
     source.detector_readings = []
     source.timer, source._truth, source._incidents = StageTimer(), None, None
@@ -93,10 +96,11 @@ def maps_from_child(source: WorksAhead) -> Iterator[np.ndarray]:
                     raise message[1]
                 return
     except EOFError:  # the child died without a word (killed, or SUMO crashed)
-        source.error = "the SUMO process ended unexpectedly"
-        log = Path(source.output_dir) / MESSAGES_NAME if source.output_dir else None
-        if log is not None and log.is_file() and log.stat().st_size:
-            source.error += f" (its last words are in {log})"
+        child.join(timeout=30)
+        kept = _keep_messages(source, messages)
+        source.error = "the SUMO process ended unexpectedly" + (
+            f" (its last words are in {kept})" if kept else ""
+        )
         raise RuntimeError(source.error) from None
     finally:
         if not ended:
@@ -106,6 +110,7 @@ def maps_from_child(source: WorksAhead) -> Iterator[np.ndarray]:
         if child.is_alive():
             child.kill()
             child.join()
+        _keep_messages(source, messages)
 
 
 def _stop(source: WorksAhead, here, child) -> bool:
@@ -135,8 +140,7 @@ def _stop(source: WorksAhead, here, child) -> bool:
 
 
 def _take_end(source: WorksAhead, message) -> None:
-    _, _, snapshots, seen, model, timer, read_seconds, error, incidents, det, said = message
-    _say_sumo_errors(source, *said)
+    _, _, snapshots, seen, model, timer, read_seconds, error, incidents, det = message
     source.snapshots.extend(snapshots)
     source.vehicles_seen.extend(seen)
     source.detectors = det[0]
@@ -150,43 +154,42 @@ def _take_end(source: WorksAhead, message) -> None:
 MESSAGES_NAME = "sumo-messages.log"
 
 
-def _messages_to_file(source: WorksAhead) -> tuple[Path, bool]:
-    """Send this process's stderr (SUMO writes its messages there) to a file: in the run's
-    SUMO output folder (kept) when it has one, else a temporary file; ``(path, kept)``."""
-    path, kept = None, False
-    if source.output_dir is not None:
-        with contextlib.suppress(OSError):
-            Path(source.output_dir).mkdir(parents=True, exist_ok=True)
-            path, kept = Path(source.output_dir) / MESSAGES_NAME, True
-    if path is None:
-        fd, name = tempfile.mkstemp(prefix="twin-sumo-", suffix=".log")
-        os.close(fd)
-        path = Path(name)
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o666)  # less the umask
-    os.dup2(fd, 2)
+def _messages_file() -> Path:
+    """A fresh temporary file for SUMO's messages (the child's stderr)."""
+    fd, name = tempfile.mkstemp(prefix="twin-sumo-", suffix=".log")
     os.close(fd)
-    return path, kept
+    return Path(name)
 
 
-def _sumo_said(path: Path, kept: bool) -> tuple[int, str, str | None]:
-    """SUMO's errors in its messages file: how many, the first, and the file when it is kept
-    (an empty file is removed)."""
+def _keep_messages(source: WorksAhead, path: Path) -> Path | None:
+    """SUMO's messages once its process ended: moved to ``RUN/sumo/sumo-messages.log`` when
+    there are any and the run has a folder (the path returned), one notice for its errors;
+    the temporary file is removed. A second call does nothing."""
+    if not path.exists():
+        return None
     errors, first = 0, ""
     with contextlib.suppress(OSError), open(path, errors="replace") as fh:
         for line in fh:
             if line.startswith("Error:"):
                 errors += 1
                 first = first or line[len("Error:") :].strip()
-    empty = not path.exists() or path.stat().st_size == 0
-    if empty or not kept:
-        path.unlink(missing_ok=True)
-    return errors, first, str(path) if kept and not empty else None
+    kept = None
+    if path.stat().st_size and source.output_dir is not None:
+        with contextlib.suppress(OSError):
+            Path(source.output_dir).mkdir(parents=True, exist_ok=True)
+            kept = shutil.move(path, Path(source.output_dir) / MESSAGES_NAME)
+    path.unlink(missing_ok=True)
+    _say_sumo_errors(source, errors, first, None if kept is None else str(kept))
+    return None if kept is None else Path(kept)
 
 
-def _produce(source: WorksAhead, conn, parent: int) -> None:
-    """The child: every map with the snapshots behind it, then ``end``."""
+def _produce(source: WorksAhead, conn, parent: int, messages: Path) -> None:
+    """The child: every map with the snapshots behind it, then ``end``; SUMO's messages
+    (this process's stderr) into the file ``messages``."""
     exit_with_parent(parent, ignore_sigint=True)
-    messages, kept = _messages_to_file(source)
+    fd = os.open(messages, os.O_WRONLY | os.O_APPEND)
+    os.dup2(fd, 2)
+    os.close(fd)
     source.separate_process = False
     source.defer_close = True  # SUMO is closed after the end state is sent (below)
     sent_snapshots = sent_seen = sent_readings = 0
@@ -222,7 +225,6 @@ def _produce(source: WorksAhead, conn, parent: int) -> None:
                 source.error,
                 source.incidents_info(),
                 (source.detectors, source.detector_readings[sent_readings:]),
-                _sumo_said(messages, kept),
             )
         )
     except (BrokenPipeError, OSError):
