@@ -384,6 +384,15 @@ CASES = {
         lambda t: ["evaluate", "--config", str(_edited_config(t, "sigma = 3.0", "sigma = 1e200"))],
         "sigma = 1e+200 must be <= 1000000",
     ),
+    "sweep workers past the memory limit": (
+        lambda t: ["sweep", "--config", "sweep-demo", "--workers", "64", "--max-memory-gb", "2",
+                   "--out", str(t / "sw")],  # fmt: skip
+        "--workers 64: 64 sweep cells at once need at least 51.2 GB",
+    ),
+    "transfer workers past the memory limit": (
+        lambda t: ["transfer", "--workers", "64", "--max-memory-gb", "2", "--out", str(t / "tr")],
+        "--workers 64: 64 tasks at once need at least 51.2 GB",
+    ),
     "gui swarms without --gui": (
         lambda t: ["run", "--gui-swarms", "nosuch"],
         "--gui-swarms: 'nosuch' is not among the run's swarms",

@@ -489,14 +489,7 @@ def _run_seeds_in_workers(
     if not is_live(experiment):
         check_memory(experiment, *planned_shape(experiment))
     else:  # the grid is known only in the workers: at least a simulation each, up front
-        limit = max_memory_gb(experiment)
-        if workers * WORKER_BYTES > limit * 1e9:
-            raise UserError(
-                f"--workers {experiment.workers}: {workers} live simulations at once need at "
-                f"least {_gb(workers * WORKER_BYTES)} GB ({_gb(WORKER_BYTES)} GB each), over the "
-                f"{limit:g} GB limit; use at most {max(1, int(limit * 1e9 // WORKER_BYTES))} "
-                f"--workers (this machine has {os.cpu_count()} CPUs), or raise --max-memory-gb"
-            )
+        check_workers_fit(experiment.workers, workers, max_memory_gb(experiment))
     tasks = [(experiment, n, str(signal_file.path), keep_sources) for n in range(len(seeds))]
     if experiment.executor == "ray":
         outcomes = ray_tasks(run_seed_in_worker, tasks, workers)
@@ -584,6 +577,20 @@ def max_memory_gb(experiment: Experiment) -> float:
     """The memory limit: the experiment's (``--max-memory-gb``), else ``$TWIN_MAX_MEMORY_GB``,
     else 8 GB."""
     return memory_limit_gb(experiment.max_memory_gb)
+
+
+def check_workers_fit(
+    given: int, workers: int, limit: float, what: str = "live simulations"
+) -> None:
+    """``workers`` processes at once (``--workers given``) fit the memory ``limit`` (GB) at
+    :data:`WORKER_BYTES` each, at least (an interpreter and a simulator); else one line."""
+    if workers * WORKER_BYTES > limit * 1e9:
+        raise UserError(
+            f"--workers {given}: {workers} {what} at once need at least "
+            f"{_gb(workers * WORKER_BYTES)} GB ({_gb(WORKER_BYTES)} GB each), over the {limit:g} "
+            f"GB limit; use at most {max(1, int(limit * 1e9 // WORKER_BYTES))} --workers (this "
+            f"machine has {os.cpu_count()} CPUs), or raise --max-memory-gb"
+        )
 
 
 def memory_limit_gb(value: float | None = None) -> float:
