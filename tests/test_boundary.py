@@ -385,8 +385,17 @@ CASES = {
         "sigma = 1e+200 must be <= 1000000",
     ),
     "sweep workers past the memory limit": (
-        lambda t: ["sweep", "--config", "sweep-demo", "--workers", "64", "--max-memory-gb", "2",
-                   "--out", str(t / "sw")],  # fmt: skip
+        lambda t: [
+            "sweep",
+            "--config",
+            "sweep-demo",
+            "--workers",
+            "64",
+            "--max-memory-gb",
+            "2",
+            "--out",
+            str(t / "sw"),
+        ],
         "--workers 64: 64 sweep cells at once need at least 51.2 GB",
     ),
     "transfer workers past the memory limit": (
