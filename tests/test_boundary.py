@@ -935,6 +935,10 @@ READ_BACK = {
         _json("run.json", ("seeds",), [0, 1, 2]),
         "seeds = [0, 1, 2] differ from those with results in series.parquet, [0, 1]",
     ),
+    "a swarm's stage in timing renamed to a swarm the run did not run": (
+        _edit_table("timing.csv", lambda f: f.replace({"stage": {"swarm greedy": "swarm rl"}})),
+        "times stage 'swarm rl', but series.parquet holds no swarm 'rl'",
+    ),
     "infinite seconds in timing": (
         _edit_table("timing.csv", _set("seconds", np.inf)),
         "column 'seconds' row 0 is inf, not a finite number",

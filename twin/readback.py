@@ -544,7 +544,15 @@ def check_bounds(path: Path, frame: pd.DataFrame) -> None:
 def check_timing(path: Path, timing: pd.DataFrame, series: pd.DataFrame) -> None:
     """``timing.csv``'s derived columns follow from its seconds: ``ms_per_step`` is the
     stage's seconds over the steps its seed completed (its rows per swarm in ``series``), and
-    ``share`` its part of its process's total for that seed (both as rounded when written)."""
+    ``share`` its part of its process's total for that seed (both as rounded when written);
+    a swarm's stage names a swarm of ``series``."""
+    swarms = set(series["swarm"].astype(str))
+    for n, stage in enumerate(timing["stage"].astype(str)):
+        if stage.startswith("swarm ") and stage[len("swarm ") :] not in swarms:
+            raise UserError(
+                f"{path}: row {n} times stage {stage!r}, but series.parquet holds no swarm "
+                f"{stage[len('swarm ') :]!r}; {RERUN}"
+            )
     steps = series.groupby(["seed", "swarm"]).size().groupby(level=0).max()
     process = timing["process"] if "process" in timing.columns else pd.Series("main", timing.index)
     totals = timing.groupby([timing["seed"], process])["seconds"].transform("sum")
