@@ -618,3 +618,26 @@ def test_a_users_config_horizon_holds_for_a_sumocfg_given_by_flag(city, tmp_path
                       "--no-report", "--out", str(out)])  # fmt: skip
     assert code == 0, capsys.readouterr().err
     assert json.loads((out / "run.json").read_text())["horizon"] == 3
+
+
+@pytest.mark.parametrize(("shape", "code"), [((8, 8), 0), ((2, 2), 2)], ids=["larger", "too small"])
+def test_a_users_config_grid_holds_for_a_sumocfg_given_by_flag(city, tmp_path, capsys, shape, code):
+    """``[grid] nx, ny`` of the user's own config fix the grid for a network given by
+    --sumocfg too, as when the config names the sumocfg (a larger grid is kept, one that
+    cannot cover the network refused); they were dropped without a word (probe 12's k01)."""
+    config = tmp_path / "mine.toml"
+    config.write_text(
+        f"[grid]\nnx = {shape[0]}\nny = {shape[1]}\n[swarm]\nn_drones = 2\n[traffic]\n"
+        'kind = "sumo"\ncell_m = 200.0\ndrone_speed_kmh = 12.0\nhorizon = 2\n'
+        '[evaluate]\nswarms = ["random"]\n'
+    )
+    out = tmp_path / "run"
+    got = twin_main(["run", "--config", str(config), "--sumocfg",
+                     str(city / "scenario" / "plain.sumocfg"), "--no-ceiling", "--quiet",
+                     "--no-report", "--out", str(out)])  # fmt: skip
+    err = capsys.readouterr().err
+    assert got == code, err
+    if code == 0:
+        assert json.loads((out / "network.json").read_text())["grid"]["nx"] == shape[0]
+    else:
+        assert "cannot cover the network" in err and err.count("\n") == 1, err

@@ -434,17 +434,20 @@ def _grid_and_notices(
     step_s: float,
     window_given: bool,
     begin_given: bool = True,
+    own_config: bool = False,
 ):
     """The grid over the network's lanes (the config's ``[grid]`` shape and obstacles for the
-    configured network), and the notices of a grid too small for the drones or a run that
-    outlasts the demand."""  # fmt: skip
+    configured network, or for any network with the user's ``own_config``), and the notices
+    of a grid too small for the drones or a run that outlasts the demand."""  # fmt: skip
     from twin.sumo.cells import grid_over
 
     # The grid: derived from the bounding box, or the config's [grid] nx, ny if it gives them
-    # (for the configured network only; a swapped-in network gets its own grid).
+    # (a shipped config's for its own network only: a swapped-in network gets its own grid;
+    # the user's own config's for any, like its begin and horizon).
     shape = None
     cell_flag = config.flag_of("traffic.cell_m")
-    if not (inputs.net or inputs.sumocfg or inputs.osm or cell_flag):
+    swapped = bool(inputs.net or inputs.sumocfg or inputs.osm)
+    if not cell_flag and (own_config or not swapped):
         shape = config.explicit_shape()  # set in the file or by an override
     where = f"{cell_flag} {s.cell_m:g}" if cell_flag else f"{config.path}: [grid]"
     geometry = grid_over(lanes, s.cell_m, shape, where=where)
@@ -609,8 +612,9 @@ def sumo_source(
         s, files, step_s, t0, s.warmup_min * 60.0, begin_given, horizon_given, begin_where
     )
     geometry, obstacles, notices = _grid_and_notices(
-        s, config, inputs, files, lanes, t0, step_s, begin_given or horizon_given, begin_given
-    )
+        s, config, inputs, files, lanes, t0, step_s, begin_given or horizon_given, begin_given,
+        own_config=own,
+    )  # fmt: skip
     route_files = list(files.route_files)
     if files.span is None and not s.network:  # no demand given: twin generates it
         route_files.append(_generated_demand(s, files, geometry, t0, warmup, step_s, seed))
