@@ -119,6 +119,14 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
         )
     for part in ("weights", "target"):
         for name, value in (blob.get(part) or {}).items():
+            if isinstance(value, torch.Tensor) and (
+                not value.is_floating_point() or value.layout != torch.strided
+            ):  # twin writes dense float tensors: integer weights are truncated ones
+                kind = str(value.dtype) if value.layout == torch.strided else str(value.layout)
+                raise UserError(
+                    f"checkpoint {path}: {part} {name!r} are {kind.replace('torch.', '')}, not "
+                    f"the dense floating-point tensors twin writes; {hint}"
+                )
             if isinstance(value, torch.Tensor) and not bool(torch.isfinite(value).all()):
                 raise UserError(
                     f"checkpoint {path}: {part} {name!r} holds non-finite values (NaN or inf: "
