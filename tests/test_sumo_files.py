@@ -867,8 +867,6 @@ REFUSED_FLAGS = {
     "a negative drone speed": ([*PUBLIC, "--drone-speed", "-3"], "--drone-speed = -3.0 must be > 0"),
     "a step shorter than SUMO's": ([*PUBLIC, "--drone-speed", "1e9"],
                                    "--drone-speed 1e+09: a step (200 m at 1e+09 km/h) lasts"),
-    "a begin inside the warm-up": ([*PUBLIC, "--begin", "00:00"],
-                                   "--begin = 00:00:00: the 1 min warm-up"),
     "a begin that is no clock": ([*PUBLIC, "--begin", "x"], "--begin = 'x' must be a clock"),
     "a negative departure": (["--net", "{net}", "--routes", "{tmp}/early.rou.xml"],
                              "{tmp}/early.rou.xml: <trip id='t' depart='-5'>: the time is"),

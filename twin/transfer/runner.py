@@ -145,33 +145,38 @@ def row_pretrain_config(config: TransferConfig, row, out: Path, checkpoints: dic
     return with_overrides(PretrainConfig.from_data(config.path, {}), overrides, labels)
 
 
-def check_row_starts(config: TransferConfig, out: Path) -> None:
+def check_row_starts(config: TransferConfig) -> None:
     """Each fine-tuned row's start fits it (state and layers) before any stage runs: a
-    checkpoint file is loaded, a row trained before is compared by its pretraining config."""
+    checkpoint file is loaded, a row trained before is compared by its schedule (its tapes
+    are not recorded yet: only the schedule's keys are read)."""
+    from twin.config import with_overrides
     from twin.learning.checkpoint import checkpoint_state, read_checkpoint
-    from twin.training.pretrain import check_initial_fit, initial_network
+    from twin.training.pretrain import PretrainConfig, check_initial_fit, initial_network
+    from twin.transfer.config import row_schedule
+
+    def schedule(row, **more: Any):
+        overrides, labels = row_schedule(config, row)
+        return with_overrides(PretrainConfig.from_data(config.path, {}), overrides | more, labels)
 
     names = {r.name: r for r in config.row}
     for row in config.row:
         if row.checkpoint is not None or row.init is None:
             continue
-        where = f"{config.path}: [[row]] {row.name}.init = {row.init}"
         start = names.get(row.init)
         if start is None:  # a checkpoint file
-            cfg = row_pretrain_config(config, row, out / "rows" / row.name, {})
             try:
-                initial_network(cfg)
+                initial_network(schedule(row, init=row.init))
             except UserError as exc:
                 raise UserError(f"{config.path}: [[row]] {row.name}: {exc}") from None
             continue
-        cfg = row_pretrain_config(config, row, out / "rows" / row.name, {row.init: "start"})
         if start.checkpoint is not None:
             meta = read_checkpoint(start.checkpoint)["meta"]
             state, layers = checkpoint_state(start.checkpoint, meta).name, meta.get("layers")
         else:
-            before = row_pretrain_config(config, start, out / "rows" / start.name, {})
+            before = schedule(start)
             state, layers = before.state, list(before.layers)
-        check_initial_fit(cfg, where, state, layers)
+        where = f"{config.path}: [[row]] {row.name}.init = {row.init}"
+        check_initial_fit(schedule(row), where, state, layers)
 
 
 def train_row(task: dict[str, Any]) -> dict[str, Any]:
@@ -330,7 +335,7 @@ def run_transfer(
     for row in config.row:  # a checkpoint the rows load is refused before any stage starts
         if row.checkpoint is not None:
             load_qnet(row.checkpoint)
-    check_row_starts(config, out)
+    check_row_starts(config)
     out.mkdir(parents=True, exist_ok=True)
     out = out.resolve()  # the rows' provenance names files the same from any folder
     timings: dict[str, float] = {}
