@@ -943,6 +943,26 @@ READ_BACK = {
         _edit_table("timing.csv", _set("seconds", np.inf)),
         "column 'seconds' row 0 is inf, not a finite number",
     ),
+    "run.json wall time not a number": (
+        _json("run.json", ("wall_seconds",), float("nan")),
+        "wall_seconds = NaN must be",
+    ),
+    "run.json negative peak memory": (
+        _json("run.json", ("timings", "peak_memory_mb"), -5),
+        "timings.peak_memory_mb = -5 must be a finite number of MB, at least 0",
+    ),
+    "run.json a seed's seconds not a number": (
+        _json("run.json", ("timings", "patrol_seconds"), [float("nan"), 1.0]),
+        "timings.patrol_seconds[0] = nan must be a finite number of seconds",
+    ),
+    "run.json kind of another command": (
+        _json("run.json", ("kind",), "run"),
+        "kind = 'run', but invocation.command = 'evaluate'",
+    ),
+    "run.json created not a time": (
+        _json("run.json", ("created",), "yesterday"),
+        "created = 'yesterday' is not a time",
+    ),
     "run.json negative horizon": (
         _json("run.json", ("horizon",), -5),
         "horizon = -5 must be at least 0",

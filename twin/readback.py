@@ -9,6 +9,7 @@ missing or duplicated row, a cell off the grid or an array of the wrong shape is
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -175,6 +176,7 @@ def _at_least(low: float) -> tuple[Any, str]:
 
 
 _POSITIVE = ((lambda v: v > 0), "above 0")
+_SECONDS = ((lambda v: math.isfinite(v) and v >= 0), "a finite number of seconds, at least 0")
 
 #: The fields of a run folder's ``run.json`` that its readers use, with their types.
 RUN_JSON_FIELDS: dict[str, Any] = {
@@ -198,7 +200,12 @@ RUN_JSON_FIELDS: dict[str, Any] = {
         "identity": {"net_sha256": str, "cell_m": NUM, "grid": list, "sumo": str, "twin": str},
         "recorded": {"step_s": NUM},
     },
-    "timings": {"peak_memory_mb": NUM, "peak_memory_sumo_process_mb": NUM},
+    "timings": {"peak_memory_mb": NUM, "peak_memory_sumo_process_mb": NUM, "patrol_seconds": list},
+    "wall_seconds": NUM,
+    "sumo_read_seconds": NUM,
+    "kind": str,
+    "command": str,
+    "created": str,
     "monitoring": {"threshold": NUM, "min_duration": NUM, "weight_floor": NUM, "truth": str},
     "invocation": {"command": str, "options": dict, "cwd": str},
     "config": (str, dict),
@@ -316,6 +323,10 @@ RUN_JSON_RANGES: dict[str, tuple[Any, str]] = {
     "monitoring.threshold": ((lambda v: 0 < v <= 1), "above 0 and at most 1"),
     "monitoring.min_duration": _at_least(1),
     "monitoring.weight_floor": _POSITIVE,
+    "wall_seconds": _SECONDS,
+    "sumo_read_seconds": _SECONDS,
+    "timings.peak_memory_mb": _SECONDS[:1] + ("a finite number of MB, at least 0",),
+    "timings.peak_memory_sumo_process_mb": _SECONDS[:1] + ("a finite number of MB, at least 0",),
     **{f"params.{k}": v for k, v in _SCORE_RANGES.items()},
     **{f"score_params.{k}": v for k, v in _SCORE_RANGES.items()},
 }
@@ -351,8 +362,36 @@ def check_run_json(path: Path, run: Any) -> dict[str, Any]:
             f"{path}: traffic.identity.grid = {str(grid)[:40]} must be [nx, ny], whole numbers "
             f"of at least 1; {RERUN}"
         )
+    for n, seconds in enumerate(_dotted(run, "timings.patrol_seconds") or []):
+        if not isinstance(seconds, NUM) or isinstance(seconds, bool) or not _SECONDS[0](seconds):
+            raise UserError(
+                f"{path}: timings.patrol_seconds[{n}] = {str(seconds)[:40]} must be {_SECONDS[1]}"
+                f"; {RERUN}"
+            )
     check_same_fields(path, run)
+    check_invocation(path, run)
     return run
+
+
+def check_invocation(path: Path, run: dict[str, Any]) -> None:
+    """run.json's command agrees with itself: ``kind`` is the invocation's command, and
+    ``created`` is a time."""
+    from datetime import datetime
+
+    kind, command = run.get("kind"), _dotted(run, "invocation.command")
+    if kind is not None and command is not None and kind != command:
+        raise UserError(
+            f"{path}: kind = {str(kind)[:40]!r}, but invocation.command = {str(command)[:40]!r}; "
+            f"{RERUN}"
+        )
+    created = run.get("created")
+    if created is not None:
+        try:
+            datetime.fromisoformat(created)
+        except ValueError:
+            raise UserError(
+                f"{path}: created = {created[:40]!r} is not a time (ISO 8601); {RERUN}"
+            ) from None
 
 
 #: Fields of run.json that record one thing twice: each pair must agree.
