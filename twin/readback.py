@@ -177,6 +177,7 @@ def _at_least(low: float) -> tuple[Any, str]:
 
 _POSITIVE = ((lambda v: v > 0), "above 0")
 _SECONDS = ((lambda v: math.isfinite(v) and v >= 0), "a finite number of seconds, at least 0")
+_MEGABYTES = (_SECONDS[0], "a finite number of MB, at least 0")
 
 #: The fields of a run folder's ``run.json`` that its readers use, with their types.
 RUN_JSON_FIELDS: dict[str, Any] = {
@@ -325,8 +326,8 @@ RUN_JSON_RANGES: dict[str, tuple[Any, str]] = {
     "monitoring.weight_floor": _POSITIVE,
     "wall_seconds": _SECONDS,
     "sumo_read_seconds": _SECONDS,
-    "timings.peak_memory_mb": _SECONDS[:1] + ("a finite number of MB, at least 0",),
-    "timings.peak_memory_sumo_process_mb": _SECONDS[:1] + ("a finite number of MB, at least 0",),
+    "timings.peak_memory_mb": _MEGABYTES,
+    "timings.peak_memory_sumo_process_mb": _MEGABYTES,
     **{f"params.{k}": v for k, v in _SCORE_RANGES.items()},
     **{f"score_params.{k}": v for k, v in _SCORE_RANGES.items()},
 }
