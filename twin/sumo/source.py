@@ -28,7 +28,7 @@ from twin.clock import clock_label
 from twin.errors import UserError
 from twin.files import file_sha256
 from twin.grid import Grid
-from twin.mfd import MFD, MFDImportance
+from twin.mfd import MFD, MFDImportance, density_from_occupancy
 from twin.sumo.cells import CellGeometry
 from twin.sumo.detectors import DetectorPlan
 from twin.sumo.incidents import configured_schedule
@@ -354,8 +354,6 @@ class SumoTraffic(TrafficSource):
     def _read_detectors(self, reader, k: int) -> None:
         """Step ``k``'s new detector readings, their importance by the MFD in effect (the one
         that observes this step's snapshot)."""
-        from twin.sumo.detectors import density_from_occupancy
-
         rows = reader.read()
         if rows:
             occupancy = np.array([r[2] for r in rows])
