@@ -423,11 +423,16 @@ def _set_all(column, value):
 #: stations' biases from them: probe 12's dt1), and words of the refusal.
 READING_EDITS = [
     (lambda f: f.__setitem__("i", f["i"].where(f.index != 3, 99)), "seed 0, step"),
-    (_set_all("occupancy_pct", 500.0), "occupancy_pct = 500, not a share of time in %, at most 100"),
+    (
+        _set_all("occupancy_pct", 500.0),
+        "occupancy_pct = 500, not a share of time in %, at most 100",
+    ),
     (_set_all("speed", -3.0), "speed = -3, not a speed in m/s"),
     (_set_all("importance", 0.99), "but the MFD in effect at that step"),
-    (lambda f: f.__setitem__("lane", f["lane"].where(f.index != 0, "elsewhere_0")),
-     "has more than one lane among its readings"),
+    (
+        lambda f: f.__setitem__("lane", f["lane"].where(f.index != 0, "elsewhere_0")),
+        "has more than one lane among its readings",
+    ),
 ]
 
 

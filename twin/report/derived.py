@@ -1251,7 +1251,9 @@ def check_detector_readings(primary: Primary, mfd_before: dict[int, Any]) -> Non
         bad = (value < low) | (value > high) | (np.isnan(value) & (column != "speed"))
         if bad.any():
             n = int(np.flatnonzero(bad)[0])
-            raise UserError(f"{path}: row {n} has {column} = {_show(value[n])}, not {what}; {RERUN}")
+            raise UserError(
+                f"{path}: row {n} has {column} = {_show(value[n])}, not {what}; {RERUN}"
+            )
     nx, ny = primary.obstacles.shape
     i, j = rows["i"].to_numpy(), rows["j"].to_numpy()
     off = (i < 0) | (i >= nx) | (j < 0) | (j >= ny)
@@ -1262,18 +1264,16 @@ def check_detector_readings(primary: Primary, mfd_before: dict[int, Any]) -> Non
             f"{path}: seed {rows['seed'].iloc[n]}, step {rows['step'].iloc[n]}: a reading at "
             f"cell ({i[n]}, {j[n]}) is off the {nx} x {ny} grid's free cells; {RERUN}"
         )
-    for field in (f for f in DETECTOR_FIELDS if f in rows.columns and "detector" in rows.columns):
-        spread = rows.groupby("detector", observed=True)[field].nunique(dropna=False)
+    for column in (c for c in DETECTOR_FIELDS if c in rows.columns and "detector" in rows.columns):
+        spread = rows.groupby("detector", observed=True)[column].nunique(dropna=False)
         if (spread > 1).any():
             name = spread.index[int(np.flatnonzero(spread.to_numpy() > 1)[0])]
             raise UserError(
-                f"{path}: detector {str(name)!r} has more than one {field} among its readings; "
-                f"{RERUN}"
+                f"{path}: detector {str(name)!r} has more than one {column} among its "
+                f"readings; {RERUN}"
             )
     mine = rows[rows["seed"] == primary.first_seed]
-    for n, (k, occ, imp) in enumerate(mine[["step", "occupancy_pct", "importance"]].itertuples(
-        index=False
-    )):  # fmt: skip
+    for k, occ, imp in mine[["step", "occupancy_pct", "importance"]].itertuples(index=False):
         mfd = mfd_before.get(int(k))
         if mfd is None:
             raise UserError(f"{path}: a reading at step {k}, which tape.parquet lacks; {RERUN}")

@@ -247,4 +247,3 @@ class DetectorReader:
             count, occupancy, speed = reading
             rows.append((n, count, occupancy, speed if speed >= 0 else float("nan")))
         return rows
-
