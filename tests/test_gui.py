@@ -230,9 +230,9 @@ def test_a_display_that_does_not_answer_is_one_line_at_once(monkeypatch):
     free = next(n for n in range(77, 200) if not Path(f"/tmp/.X11-unix/X{n}").exists())
     monkeypatch.setenv("DISPLAY", f":{free}")
     assert not display_answers(f":{free}") and not display_answers("no display")
-    with pytest.raises(UserError, match=rf"--gui: the display DISPLAY=:{free} does not answer"):
-        with display():
-            pass
+    words = rf"--gui: the display DISPLAY=:{free} does not answer"
+    with pytest.raises(UserError, match=words), display():
+        pass
 
 
 def test_bad_record_name_is_refused_before_the_run():
