@@ -384,6 +384,20 @@ CASES = {
         lambda t: ["evaluate", "--config", str(_edited_config(t, "sigma = 3.0", "sigma = 1e200"))],
         "sigma = 1e+200 must be <= 1000000",
     ),
+    "evaluate workers past the memory limit on a small grid": (  # only fewer workers help
+        lambda t: [
+            "evaluate",
+            "--config",
+            str(small_config(t, horizon=3)),
+            "--seeds",
+            "8",
+            "--workers",
+            "8",
+            "--max-memory-gb",
+            "2",
+        ],
+        "--workers 8: 8 worker processes at once need at least 6.4 GB",
+    ),
     "sweep workers past the memory limit": (
         lambda t: [
             "sweep",

@@ -761,11 +761,13 @@ def check_memory(
     need = estimate_memory(experiment, shape, horizon, warmup, live=live)
     if need <= limit * 1e9:
         return
+    workers = n_workers(experiment)
+    if workers > 1:  # the workers themselves past the limit: only fewer of them can help
+        check_workers_fit(experiment.workers, workers, limit, "worker processes")
     ratio = (need / (limit * 1e9)) ** 0.5
     hint = source.coarser_hint(ratio) if source is not None else None
     if hint is None:
         hint = f"a grid about {ratio:.1f} times coarser per side, fewer steps or fewer seeds"
-    workers = n_workers(experiment)
     on = f" on {workers} workers" if workers > 1 else ""
     fewer = ", fewer --workers" if workers > 1 else ""
     raise UserError(
