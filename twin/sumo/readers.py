@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import IO
 
 from twin.errors import UserError
+from twin.files import not_a_file
 from twin.sumo.options import canonical
 
 
@@ -36,8 +37,10 @@ def link_loop(path: Path, named_in: Path | None = None) -> str:
 
 
 def resolved(path: Path, named_in: Path | None = None) -> Path:
-    """``path`` made absolute, its links followed; a symbolic link loop is a one-line error
-    (``named_in``: the config that names the file)."""
+    """``path`` made absolute, its links followed; a symbolic link loop, a pipe or a device
+    is a one-line error (``named_in``: the config that names the file)."""
+    if not Path(path).is_dir():
+        check_regular(path)
     try:
         return Path(path).resolve()
     except (RuntimeError, OSError) as exc:  # Python 3.11 raises RuntimeError for a loop
@@ -61,12 +64,21 @@ def local_name(elem: ET.Element) -> str:
     return tag.rpartition("}")[2] if isinstance(tag, str) else ""
 
 
+def check_regular(path: Path) -> None:
+    """One line for a SUMO file given as a pipe or a device (``<(cat a.sumocfg)``, a FIFO):
+    SUMO reads its files more than once and by name, not as streams."""
+    why = not_a_file(path)
+    if why is not None and Path(path).exists():
+        raise UserError(f"{path}: {why} (SUMO reads files, not streams)")
+
+
 def root_tag(path: Path, what: str) -> str:
     """The root element of a SUMO XML file (compressed or not), without its namespace;
     one-line errors."""
     path = Path(path)
     if not path.exists():
         raise missing(path, what)
+    check_regular(path)
     try:
         with open_xml(path) as fh:
             return local_name(next(ET.iterparse(fh, events=("start",)))[1])
@@ -195,6 +207,7 @@ def read_sumocfg(path: Path, own_net: bool = True) -> SumoConfigFile:
     them), its ``<time>`` window, if it gives one, and all its options. Without ``own_net``
     (a network given besides it replaces its own, as with ``sumo -c ... -n``) its
     ``<net-file>`` is not checked."""
+    check_regular(path)
     path = resolved(path) if Path(path).exists() else Path(path)
     tag = root_tag(path, "SUMO config")
     if tag not in SUMOCFG_ROOTS:
