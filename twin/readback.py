@@ -588,10 +588,12 @@ def check_timing(path: Path, timing: pd.DataFrame, series: pd.DataFrame) -> None
     a swarm's stage names a swarm of ``series``."""
     swarms = set(series["swarm"].astype(str))
     for n, stage in enumerate(timing["stage"].astype(str)):
-        if stage.startswith("swarm ") and stage[len("swarm ") :] not in swarms:
+        # a swarm's stage, or its fault-free reference run's ("swarm greedy (fault-free)")
+        name = stage[len("swarm ") :].split(" (")[0]
+        if stage.startswith("swarm ") and name not in swarms:
             raise UserError(
                 f"{path}: row {n} times stage {stage!r}, but series.parquet holds no swarm "
-                f"{stage[len('swarm ') :]!r}; {RERUN}"
+                f"{name!r}; {RERUN}"
             )
     steps = series.groupby(["seed", "swarm"]).size().groupby(level=0).max()
     process = timing["process"] if "process" in timing.columns else pd.Series("main", timing.index)
