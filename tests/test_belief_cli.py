@@ -15,9 +15,9 @@ from helpers import small_sumo_scenario
 
 from twin.belief import NO_DRONES, History
 from twin.cli import main as twin_main
+from twin.errors import UserError
 
 ROOT = Path(__file__).resolve().parents[1]
-from twin.errors import UserError
 
 
 @pytest.fixture(scope="module")
