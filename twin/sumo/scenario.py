@@ -235,12 +235,14 @@ class _ScenarioFiles:
         return self.span is not None
 
 
-def _with_inputs(s: SumoSettings, inputs: SumoInputs) -> SumoSettings:
-    """The settings ``s`` with the swapped-in files and flags of ``inputs`` applied."""
+def _with_inputs(s: SumoSettings, inputs: SumoInputs, keep_end: bool = False) -> SumoSettings:
+    """The settings ``s`` with the swapped-in files and flags of ``inputs`` applied (a
+    shipped config's ``end`` is its own network's; the user's own config's, ``keep_end``,
+    holds for any)."""
     if inputs.net or inputs.sumocfg or inputs.osm:
         s.network, s.net, s.sumocfg, s.osm = None, None, None, None
         s.routes, s.additional = [], []
-        s.end = None
+        s.end = s.end if keep_end else None
     s.net = str(inputs.net) if inputs.net else s.net
     s.sumocfg = str(inputs.sumocfg) if inputs.sumocfg else s.sumocfg
     s.osm = str(inputs.osm) if inputs.osm else s.osm
@@ -578,18 +580,18 @@ def sumo_source(
     if given:
         flags = {f"traffic.{k}": flag for k, flag in SETTING_FLAGS.items()}
         config = with_overrides(config, given, {k: flags[k] for k in given})
+    # a begin, end, horizon or grid the user's own config sets holds for files swapped in by
+    # flags too; a shipped config's (the built-in network's rush hour) only for its own network
+    from twin.resources import shipped
+
+    own = not Path(config.path).resolve().is_relative_to(shipped("configs").resolve())
     inputs = SumoInputs(net=net, routes=routes, sumocfg=sumocfg, osm=osm, additional=additional)
-    s = _with_inputs(sumo_settings(config), inputs)
+    s = _with_inputs(sumo_settings(config), inputs, keep_end=own)
     fields = config.traffic.model_fields_set
     swapped = bool(net or sumocfg or osm or routes)
     seed = s.seed if seed is None else seed
     begin_flag = config.flag_of("traffic.begin")
     begin_where = begin_flag or f"{config.path}: [traffic].begin"
-    # a begin or horizon the user's own config sets holds for files swapped in by flags too; a
-    # shipped config's (the built-in network's rush hour) only for its own network
-    from twin.resources import shipped
-
-    own = not Path(config.path).resolve().is_relative_to(shipped("configs").resolve())
     begin_given = begin_flag is not None or ((not swapped or own) and "begin" in fields)
     horizon_given = config.flag_of("traffic.horizon") is not None or (
         (not swapped or own) and "horizon" in fields
@@ -597,7 +599,7 @@ def sumo_source(
     t0 = parse_clock(s.begin, begin_where)
 
     files = _scenario_files(s)
-    if s.end is not None and not swapped:
+    if s.end is not None and (not swapped or own):  # like its begin and horizon
         files.window[1] = parse_clock(s.end, f"{config.path}: [traffic].end")
         if begin_given and files.window[1] <= t0:
             raise UserError(
@@ -608,8 +610,9 @@ def sumo_source(
         check_net_file(files.net_file)
         lanes = read_lanes(files.net_file)
     step_s = _step_seconds(s, config)
+    warmup = float(math.ceil(s.warmup_min * 60.0 - 1e-9))  # SUMO starts on a whole second
     t0, warmup, window = _time_window(
-        s, files, step_s, t0, s.warmup_min * 60.0, begin_given, horizon_given, begin_where
+        s, files, step_s, t0, warmup, begin_given, horizon_given, begin_where
     )
     geometry, obstacles, notices = _grid_and_notices(
         s, config, inputs, files, lanes, t0, step_s, begin_given or horizon_given, begin_given,
