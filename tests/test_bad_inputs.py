@@ -755,3 +755,22 @@ def test_a_pipe_given_as_a_file_twin_seeks_in_is_named_as_a_pipe(tmp_path, reade
     with pytest.raises(UserError, match="is a pipe or device, not a regular file") as caught:
         read(fifo)
     assert "\n" not in str(caught.value) and "no such" not in str(caught.value)
+
+
+@pytest.mark.parametrize("flag", ["--sumocfg", "--net", "--routes", "--additional"])
+def test_a_sumo_file_given_as_a_pipe_is_named_as_a_pipe(grid_net, tmp_path, capsys, flag):
+    """``--routes <(cat r.rou.xml)`` or a FIFO: one line saying it is a pipe (SUMO reads files
+    by name, more than once), never "not valid XML" or "no such SUMO config" (probe 12's q12);
+    nothing blocks on it."""
+    import os
+
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    argv = ["run", "--config", str(grid_net / "c.toml"), flag, str(fifo),
+            "--out", str(tmp_path / "out"), "--quiet", "--no-report"]  # fmt: skip
+    if flag in ("--routes", "--additional"):
+        argv += ["--net", str(grid_net / "small.net.xml")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "is a pipe or device, not a regular file" in err[0], err
+    assert str(fifo) in err[0]

@@ -17,6 +17,8 @@ from twin.belief import NO_DRONES, History
 from twin.cli import main as twin_main
 from twin.errors import UserError
 
+ROOT = Path(__file__).resolve().parents[1]
+
 
 @pytest.fixture(scope="module")
 def small(tmp_path_factory) -> Path:
@@ -274,3 +276,22 @@ def test_history_out_is_claimed_for_one_command_and_freed_on_a_refusal(history, 
     assert twin_main(["history", "--from", str(one_day), "--out", str(lonely)]) == 2
     assert "a history needs at least 2" in capsys.readouterr().err
     assert not lonely.exists()
+
+
+def test_a_history_of_generated_days_is_refused_for_a_sumo_run(small, tmp_path, capsys):
+    """A history of generated days (`twin history --dynamics`, no clock) for a SUMO run of the
+    same grid size: refused in one line, as the converse is (it ran the synthetic days as
+    the network's prior: probe 12's h01)."""
+    config = tmp_path / "generated.toml"
+    config.write_text(
+        (ROOT / "configs" / "synthetic.toml").read_text().replace("horizon = 2000", "horizon = 8")
+    )
+    days = tmp_path / "generated.npz"
+    assert twin_main(["history", "--dynamics", str(config), "--days", "2", "--seed", "5",
+                      "--out", str(days)]) == 0  # fmt: skip
+    capsys.readouterr()
+    out = tmp_path / "out"
+    assert twin_main(run_args(small, out, "--history", str(days))) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "a history of generated days" in err, err
+    assert not out.exists()

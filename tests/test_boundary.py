@@ -376,6 +376,46 @@ CASES = {
         ],
         "[traffic].disturbances[0] is centred at (i, j) = (500, 8), 481 cells off the 20 x 30 map",
     ),
+    "a disturbance wider than ten maps": (
+        lambda t: ["evaluate", "--config", str(_edited_config(t, "sigma = 3.0", "sigma = 301.0"))],
+        "[traffic].disturbances[0].sigma = 301 cells is more than 10 x the 20 x 30 map's side",
+    ),
+    "a disturbance whose width overflows": (
+        lambda t: ["evaluate", "--config", str(_edited_config(t, "sigma = 3.0", "sigma = 1e200"))],
+        "sigma = 1e+200 must be <= 1000000",
+    ),
+    "evaluate workers past the memory limit on a small grid": (  # only fewer workers help
+        lambda t: [
+            "evaluate",
+            "--config",
+            str(small_config(t, horizon=3)),
+            "--seeds",
+            "8",
+            "--workers",
+            "8",
+            "--max-memory-gb",
+            "2",
+        ],
+        "--workers 8: 8 worker processes at once need at least 6.4 GB",
+    ),
+    "sweep workers past the memory limit": (
+        lambda t: [
+            "sweep",
+            "--config",
+            "sweep-demo",
+            "--workers",
+            "64",
+            "--max-memory-gb",
+            "2",
+            "--out",
+            str(t / "sw"),
+        ],
+        "--workers 64: 64 sweep cells at once need at least 51.2 GB",
+    ),
+    "transfer workers past the memory limit": (
+        lambda t: ["transfer", "--workers", "64", "--max-memory-gb", "2", "--out", str(t / "tr")],
+        "--workers 64: 64 tasks at once need at least 51.2 GB",
+    ),
     "gui swarms without --gui": (
         lambda t: ["run", "--gui-swarms", "nosuch"],
         "--gui-swarms: 'nosuch' is not among the run's swarms",
@@ -909,9 +949,33 @@ READ_BACK = {
         _json("run.json", ("seeds",), [0, 1, 2]),
         "seeds = [0, 1, 2] differ from those with results in series.parquet, [0, 1]",
     ),
+    "a swarm's stage in timing renamed to a swarm the run did not run": (
+        _edit_table("timing.csv", lambda f: f.replace({"stage": {"swarm greedy": "swarm rl"}})),
+        "times stage 'swarm rl', but series.parquet holds no swarm 'rl'",
+    ),
     "infinite seconds in timing": (
         _edit_table("timing.csv", _set("seconds", np.inf)),
         "column 'seconds' row 0 is inf, not a finite number",
+    ),
+    "run.json wall time not a number": (
+        _json("run.json", ("wall_seconds",), float("nan")),
+        "wall_seconds = NaN must be",
+    ),
+    "run.json negative peak memory": (
+        _json("run.json", ("timings", "peak_memory_mb"), -5),
+        "timings.peak_memory_mb = -5 must be a finite number of MB, at least 0",
+    ),
+    "run.json a seed's seconds not a number": (
+        _json("run.json", ("timings", "patrol_seconds"), [float("nan"), 1.0]),
+        "timings.patrol_seconds[0] = nan must be a finite number of seconds",
+    ),
+    "run.json kind of another command": (
+        _json("run.json", ("kind",), "run"),
+        "kind = 'run', but invocation.command = 'evaluate'",
+    ),
+    "run.json created not a time": (
+        _json("run.json", ("created",), "yesterday"),
+        "created = 'yesterday' is not a time",
     ),
     "run.json negative horizon": (
         _json("run.json", ("horizon",), -5),
@@ -1980,3 +2044,61 @@ def test_a_folder_of_an_earlier_format_reads_back_with_a_notice(run_copy, capsys
     refresh_manifest(run_copy)
     assert main(["report", str(run_copy), "--no-animation"]) == EXIT_REFUSED
     assert "a run folder of format 3, written by a later twin" in one_line(capsys)
+
+
+# ----------------------------------------------------------------- records that are no files
+def _twin(args: list[str], cwd: Path) -> tuple[int, str]:
+    """``python -m twin ARGS`` in a subprocess, stopped after 90 s (a read that blocks on a
+    FIFO would hang the test run otherwise)."""
+    import subprocess
+
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    try:
+        done = subprocess.run([sys.executable, "-m", "twin", *args], cwd=cwd, env=env,
+                              capture_output=True, text=True, timeout=90)  # fmt: skip
+    except subprocess.TimeoutExpired:
+        pytest.fail(f"twin {' '.join(args)} blocked for 90 s")
+    return done.returncode, done.stderr
+
+
+RECORDS_NO_FILES = {
+    "report, manifest.json a FIFO": ("manifest.json", "fifo", ["report", "{run}"]),
+    "report, run.json a FIFO": ("run.json", "fifo", ["report", "{run}"]),
+    "report, manifest.json linked to /dev/zero": ("manifest.json", "zero", ["report", "{run}"]),
+    "history --from, manifest.json a FIFO": (
+        "manifest.json", "fifo", ["history", "--from", "{run}", "--out", "{tmp}/h.npz"],
+    ),
+    "evaluate --out, run.json a FIFO": (
+        "run.json", "fifo",
+        ["evaluate", "--config", "{config}", "--swarms", "random", "--out", "{run}", "--quiet"],
+    ),
+    "evaluate --out, manifest.json a FIFO": (
+        "manifest.json", "fifo",
+        ["evaluate", "--config", "{config}", "--swarms", "random", "--out", "{run}", "--quiet"],
+    ),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("case", list(RECORDS_NO_FILES))
+def test_a_record_of_a_run_folder_that_is_no_file_is_refused_without_blocking(
+    run_folder, tmp_path, case
+):
+    """A run folder's manifest.json or run.json replaced by a FIFO (reading it blocks until a
+    writer comes, which never does) or linked to /dev/zero (read whole: the memory fills):
+    one line naming the file, exit 2, within seconds (probe 12's rf1, rf2)."""
+    name, kind, args = RECORDS_NO_FILES[case]
+    run = tmp_path / "run"
+    shutil.copytree(run_folder, run)
+    (run / name).unlink()
+    if kind == "fifo":
+        os.mkfifo(run / name)
+    else:
+        (run / name).symlink_to("/dev/zero")
+    config = small_config(tmp_path)
+    argv = [a.format(run=run, tmp=tmp_path, config=config) for a in args]
+    code, err = _twin(argv, tmp_path)
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and "Traceback" not in err, err
+    assert name in lines[0] or str(run) in lines[0], err
+    assert "memory" not in lines[0], err

@@ -399,15 +399,41 @@ def test_history_of_days_with_detectors_calibrates_their_stations(small, tmp_pat
     assert (DETECTORS_ONLY, "nowcast") in set(
         pd.read_csv(out / "belief_models.csv")[["swarm", "model"]].itertuples(index=False)
     )
-    readings.loc[3, "i"] = 99
-    readings.to_parquet(days / "detectors.parquet", index=False)
-    write_manifest(days, False, None)  # a damaged file the manifest agrees with
-    capsys.readouterr()
-    assert twin_main(["history", "--from", str(days), "--out", str(tmp_path / "h2.npz")]) == 2
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "Traceback" not in err, err
-    assert "detectors.parquet: seed 0" in err and "off the" in err, err
-    assert not (tmp_path / "h2.npz").exists()
+    for edit, words in READING_EDITS:
+        edited = readings.copy()
+        edit(edited)
+        edited.to_parquet(days / "detectors.parquet", index=False)
+        write_manifest(days, False, None)  # a damaged file the manifest agrees with
+        capsys.readouterr()
+        assert twin_main(["history", "--from", str(days), "--out", str(tmp_path / "h2.npz")]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "Traceback" not in err, err
+        assert "detectors.parquet: " in err and words in err, err
+        assert not (tmp_path / "h2.npz").exists()
+
+
+def _set_all(column, value):
+    def edit(frame):
+        frame[column] = value
+
+    return edit
+
+
+#: Edits of a run's detector readings its read-back refuses (a history would learn the
+#: stations' biases from them: probe 12's dt1), and words of the refusal.
+READING_EDITS = [
+    (lambda f: f.__setitem__("i", f["i"].where(f.index != 3, 99)), "seed 0, step"),
+    (
+        _set_all("occupancy_pct", 500.0),
+        "occupancy_pct = 500, not a share of time in %, at most 100",
+    ),
+    (_set_all("speed", -3.0), "speed = -3, not a speed in m/s"),
+    (_set_all("importance", 0.99), "but the MFD in effect at that step"),
+    (
+        lambda f: f.__setitem__("lane", f["lane"].where(f.index != 0, "elsewhere_0")),
+        "has more than one lane among its readings",
+    ),
+]
 
 
 @pytest.mark.parametrize(

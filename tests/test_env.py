@@ -267,3 +267,21 @@ def test_a_tape_that_stopped_early_is_refused_when_the_env_is_made(tmp_path):
     make_env("synthetic", tape=tmp_path / "full.parquet")
     with pytest.raises(EnvInputError, match=r"short\.parquet: holds steps to 6 of its horizon"):
         make_env("synthetic", tape=tmp_path / "short.parquet")
+
+
+def test_a_scenario_notice_is_said_once_per_env_not_at_every_episode(capsys):
+    """A factory builds the scenario again at every reset (a live SUMO env); its notices
+    (the same lines each time) are said once per env (probe 11's s04: two lines per episode)."""
+    from twin.notices import notify
+
+    def factory():
+        notify("twin: notice: few cells per drone")
+        return _synthetic()
+
+    env = SwarmParallelEnv(factory, n_drones=2)
+    for seed in range(3):
+        env.reset(seed=seed)
+    env.close()
+    assert capsys.readouterr().err.count("few cells per drone") == 1
+    SwarmParallelEnv(factory, n_drones=2).reset(seed=0)  # another env says it again
+    assert capsys.readouterr().err.count("few cells per drone") == 1

@@ -206,10 +206,33 @@ def _scaled(weights, factor):
     return {k: v * factor for k, v in weights.items()}
 
 
+def _as_int32(weights):
+    """Weights cast to integers (truncated: mostly 0), a kind of tensor twin never writes."""
+    import torch
+
+    return {k: v.to(torch.int32) for k, v in weights.items()}
+
+
+def _last_bias_plus(weights, shift):
+    """The output layer's bias shifted: finite Q-values whose differences float32 loses."""
+    last = [k for k in weights if k.endswith("bias")][-1]
+    return {**weights, last: weights[last] + shift}
+
+
 @pytest.mark.parametrize(
     ("change", "words"),
     [
         (lambda w, m: (_scaled(w, 1e38), m), r"huge\.pt: its Q-values overflow to inf or NaN"),
+        (lambda w, m: (_last_bias_plus(w, 1e30), m), r"huge\.pt: its Q-values are equal for"),
+        (lambda w, m: (_scaled(w, 0.0), m), r"huge\.pt: its Q-values are equal for every"),
+        (
+            lambda w, m: (_as_int32(w), m),
+            r"huge\.pt: weights 'net\.0\.weight' are int32, not the dense floating-point",
+        ),
+        (
+            lambda w, m: ({k: v.to_sparse() if v.dim() == 2 else v for k, v in w.items()}, m),
+            r"huge\.pt: weights 'net\.0\.weight' are sparse_coo, not the dense",
+        ),
         (lambda w, m: (w, {**m, "epoch": -1}), r"huge\.pt: meta\.epoch = -1 is not a whole"),
         (lambda w, m: (w, {**m, "seed": -5}), r"huge\.pt: meta\.seed = -5 is not a whole"),
         (lambda w, m: (w, {**m, "seed": True}), r"huge\.pt: meta\.seed = True is not a whole"),
@@ -219,7 +242,8 @@ def test_a_checkpoint_whose_q_values_overflow_or_meta_is_absurd_is_refused(
     tmp_path: Path, change, words
 ) -> None:
     """Finite weights scaled by 1e38 give inf or NaN Q-values (the argmax then picks no action);
-    a negative epoch or seed is no training's."""
+    an output bias of 1e30 or all-zero weights give one Q-value for every action (the argmax
+    always picks the first); a negative epoch or seed is no training's."""
     pytest.importorskip("torch")
     from twin.errors import UserError
     from twin.learning.checkpoint import load_qnet, model_metadata, save_model

@@ -222,6 +222,19 @@ def test_no_display_and_no_xvfb_is_one_line_naming_the_fix(monkeypatch, tmp_path
     assert "\n" not in str(info.value)
 
 
+def test_a_display_that_does_not_answer_is_one_line_at_once(monkeypatch):
+    """DISPLAY names an X server that is gone (after an ssh -X session): one line naming the
+    fix before sumo-gui starts (it retried for a minute, 180 lines: probe 12's gu1)."""
+    from twin.sumo.gui import display, display_answers
+
+    free = next(n for n in range(77, 200) if not Path(f"/tmp/.X11-unix/X{n}").exists())
+    monkeypatch.setenv("DISPLAY", f":{free}")
+    assert not display_answers(f":{free}") and not display_answers("no display")
+    words = rf"--gui: the display DISPLAY=:{free} does not answer"
+    with pytest.raises(UserError, match=words), display():
+        pass
+
+
 def test_bad_record_name_is_refused_before_the_run():
     from twin.sumo.gui import GuiSettings, check_settings
 

@@ -346,7 +346,8 @@ def _incident(kind="edge_closed", where='edge = "B1B2"', when='begin = "00:07"',
     return f'\n[[traffic.incidents]]\nkind = "{kind}"\n{where}\n{when}\nduration_min = {minutes}\n'
 
 
-# name -> (incidents, words of the one-line error); T^0 = 00:05, 10 steps of 60 s, warm-up 5 min
+# name -> (incidents, words of the one-line error[, a flag]); T^0 = 00:05, 10 steps of 60 s,
+# warm-up 5 min
 BAD_INCIDENTS = {
     "late in the evening": (_incident(when='begin = "23:00"'), "outside the scenario's window"),
     "after the end": (_incident(when='begin = "00:15"'), "00:00:00 - 00:15:00"),
@@ -365,6 +366,11 @@ BAD_INCIDENTS = {
         _incident(kind="lane_closed", where='edge = "B1B2"\nlane = 5'),
         "edge 'B1B2' has 2 lanes",
     ),
+    "a stopped vehicle in the mesoscopic model": (  # it blocked nothing, scored as seen
+        _incident(kind="vehicle_stopped"),
+        'kind = "vehicle_stopped" with SUMO\'s mesoscopic model',
+        "--meso",
+    ),
 }
 
 
@@ -373,10 +379,10 @@ def test_incidents_are_checked_before_the_run(tmp_path, capsys, case):
     pytest.importorskip("libsumo")
     from test_bad_inputs import run_case
 
-    incidents, needle = BAD_INCIDENTS[case]
+    incidents, needle, *flags = BAD_INCIDENTS[case]
     cfg = _small(tmp_path, incidents)
     out = tmp_path / "run"
-    argv = ["run", "--config", str(cfg), "--out", str(out), "--no-report", "--quiet"]
+    argv = ["run", "--config", str(cfg), "--out", str(out), "--no-report", "--quiet", *flags]
     err = run_case(capsys, tmp_path, argv, out, 2, needle)
     assert str(cfg) in err and "[traffic].incidents[0]" in err
     assert not out.exists()

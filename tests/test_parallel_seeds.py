@@ -209,6 +209,12 @@ def test_memory_estimate_counts_every_worker(small):
         Experiment(config, ["random"], range(4), max_memory_gb=limit), shape, horizon, source
     )
     experiment = Experiment(config, ["random"], range(4), workers=2, max_memory_gb=limit)
+    if limit * 1e9 < 2 * WORKER_BYTES:  # the workers alone: only fewer of them help
+        words = r"--workers 2: 2 worker processes at once need at least 1.6 GB"
+        with pytest.raises(UserError, match=words):
+            check_memory(experiment, shape, horizon, source)
+    limit = (max(2 * WORKER_BYTES, need(1)) + need(2)) / 2e9  # the workers fit, the run not
+    experiment = Experiment(config, ["random"], range(4), workers=2, max_memory_gb=limit)
     with pytest.raises(UserError, match=r"4 seeds on 2 workers need .* fewer --workers"):
         check_memory(experiment, shape, horizon, source)
 

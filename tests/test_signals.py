@@ -64,11 +64,11 @@ class Command:
                 pytest.fail("timed out")
             time.sleep(0.05)
 
-    def interrupt(self, times: int = 1, gap: float = 0.0) -> int:
+    def interrupt(self, times: int = 1, gap: float = 0.0, signum=signal.SIGINT) -> int:
         for n in range(times):
             if n:
                 time.sleep(gap)
-            self.proc.send_signal(signal.SIGINT)
+            self.proc.send_signal(signum)
         try:
             return self.proc.wait(timeout=120)
         finally:
@@ -98,7 +98,13 @@ def test_stop_flag_is_off_when_not_asked_for() -> None:
         assert not stop()
 
 
-def test_ctrl_c_on_evaluate_writes_a_partial_run(tmp_path: Path) -> None:
+# SIGTERM (`kill`, a batch scheduler's stop, `timeout`) stops a command as Ctrl-C does; it
+# used to end the process at once, leaving a run folder with run.json alone
+STOPS = pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["int", "term"])
+
+
+@STOPS
+def test_ctrl_c_on_evaluate_writes_a_partial_run(tmp_path: Path, signum) -> None:
     config = scenario_file(tmp_path, horizon=200_000)
     out = tmp_path / "run"
     cmd = Command(
@@ -108,7 +114,7 @@ def test_ctrl_c_on_evaluate_writes_a_partial_run(tmp_path: Path) -> None:
     )  # fmt: skip
     cmd.wait_for((out / "run.json").exists)  # past the imports: the run is starting
     time.sleep(2)  # the synthetic maps, then some steps
-    assert cmd.interrupt() == 130, cmd.stderr()
+    assert cmd.interrupt(signum=signum) == 130, cmd.stderr()
     stderr = cmd.stderr()
     assert "Traceback" not in stderr
     assert "partial run written" in stderr
@@ -123,7 +129,8 @@ def test_ctrl_c_on_evaluate_writes_a_partial_run(tmp_path: Path) -> None:
     assert meta["seeds"] == [0]  # stopped within the first seed: no other seed was run
 
 
-def test_second_ctrl_c_stops_at_once(tmp_path: Path) -> None:
+@STOPS
+def test_second_ctrl_c_stops_at_once(tmp_path: Path, signum) -> None:
     config = scenario_file(tmp_path, horizon=200_000)
     out = tmp_path / "run"
     cmd = Command(
@@ -133,7 +140,7 @@ def test_second_ctrl_c_stops_at_once(tmp_path: Path) -> None:
     )  # fmt: skip
     cmd.wait_for((out / "run.json").exists)  # past the imports: the run is starting
     time.sleep(2)
-    assert cmd.interrupt(times=2, gap=0.3) == 130
+    assert cmd.interrupt(times=2, gap=0.3, signum=signum) == 130
     assert "Traceback" not in cmd.stderr()
     # whatever was written is whole: no temporary file is left behind
     assert not [p for p in out.rglob("*") if p.name.endswith(".tmp")]
@@ -146,7 +153,10 @@ def small(tmp_path_factory) -> Path:
     return small_sumo_scenario(tmp_path_factory.mktemp("small"), horizon=5000)
 
 
-def test_ctrl_c_on_run_writes_a_partial_run_with_its_tape(small: Path, tmp_path: Path) -> None:
+@STOPS
+def test_ctrl_c_on_run_writes_a_partial_run_with_its_tape(
+    small: Path, tmp_path: Path, signum
+) -> None:
     from twin.traffic.tape import Tape
 
     out = tmp_path / "run"
@@ -156,7 +166,7 @@ def test_ctrl_c_on_run_writes_a_partial_run_with_its_tape(small: Path, tmp_path:
     )  # fmt: skip
     cmd.wait_for(lambda: "SUMO:" in cmd.stderr())  # the simulation is built and warming up
     time.sleep(2.0)
-    assert cmd.interrupt() == 130, cmd.stderr()
+    assert cmd.interrupt(signum=signum) == 130, cmd.stderr()
     stderr = cmd.stderr()
     assert "Traceback" not in stderr
     done = int(re.search(r"partial run of (\d+) steps", stderr).group(1))
@@ -198,3 +208,56 @@ def test_the_same_command_completes_a_run_stopped_by_ctrl_c(tmp_path: Path) -> N
     assert meta["partial"] is False
     series = pd.read_parquet(out / "series.parquet")
     assert series["step"].max() + 1 == 20_000
+
+
+def test_a_source_stopped_while_sumo_works_ahead_keeps_the_mfd_of_its_used_maps(small: Path):
+    """SUMO's process works ahead of slow swarms; the run stops (Ctrl-C) after the maps it
+    used. The MFD's samples and fit are those of the kept snapshots, as a replay of the tape
+    gives them (they held the steps SUMO computed ahead, so the folder's own read-back
+    refused it: probe 12's i01)."""
+    from twin.config import load_config
+    from twin.traffic_kinds import build_traffic
+
+    config = load_config(small / "small.toml")
+    source = build_traffic(config, separate_process=True)
+    maps = source.importance_maps()
+    for _ in range(3):
+        next(maps)
+        time.sleep(1.0)  # the child computes the maps after these meanwhile
+    maps.close()
+    kept = source.snapshots[-1][0]
+    assert kept == 2
+    samples = source.model.samples()
+    assert samples["step"].max() <= kept
+    replayed = source.model_after(source.snapshots)
+    assert len(replayed.samples()["step"]) == len(samples["step"])
+    assert json.dumps(replayed.report(), sort_keys=True) == json.dumps(
+        source.model.report(), sort_keys=True
+    )
+
+
+def test_ctrl_c_while_a_finished_run_is_written_finishes_the_folder(tmp_path, monkeypatch, capsys):
+    """A Ctrl-C after the last step, while the run folder is written: the folder is finished
+    (every file, its manifest), then the command stops with exit 130; it lost every result
+    before, leaving run.json alone (probe 12's i02)."""
+    import twin.cli.recording as recording
+    from twin.cli import main
+    from twin.runs import check_run_folder
+
+    if signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        pytest.skip("SIGINT is not Python's default handler here")
+    real = recording.record
+
+    def interrupted_record(*args, **kwargs):
+        os.kill(os.getpid(), signal.SIGINT)
+        time.sleep(0.2)  # the handler runs: the old one raised KeyboardInterrupt here
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(recording, "record", interrupted_record)
+    out = tmp_path / "run"
+    argv = ["evaluate", "--config", str(scenario_file(tmp_path, horizon=20)), "--seeds", "1",
+            "--swarms", "random", "--out", str(out), "--no-report", "--quiet"]  # fmt: skip
+    assert main(argv) == 130
+    assert "finishing the run folder first" in capsys.readouterr().err
+    manifest = check_run_folder(out)
+    assert not manifest["partial"] and "per_seed.csv" in manifest["files"]

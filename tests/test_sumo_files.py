@@ -18,6 +18,7 @@ from __future__ import annotations
 import gzip
 import hashlib
 import json
+import re
 import shutil
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -258,6 +259,10 @@ ACCEPTED = {
         _cfg(NET_AND_TRIPS + '<time><begin value="0"/><end value="-1"/></time>'),
         {}, 0.0, None,
     ),
+    "remote port 0, SUMO's default: no TraCI server": (
+        _cfg(NET_AND_TRIPS + '<traci_server><remote-port value="0"/></traci_server>'),
+        {}, None, None,
+    ),
 }  # fmt: skip
 
 
@@ -439,8 +444,82 @@ def _ssm_type_without_file(d: Path) -> None:
     trips.write_text(text[:start] + kind + text[start:])
 
 
+def _actuated(program: ET.Element, output: str) -> str:
+    """``program`` (a ``<tlLogic>``) as an actuated light whose detectors write ``output``."""
+    program.set("type", "actuated")
+    for phase in program.iter("phase"):  # a green phase of variable length has detectors
+        if "G" in phase.get("state", "") or "g" in phase.get("state", ""):
+            phase.set("minDur", "5")
+            phase.set("maxDur", "50")
+    for key, value in (("freq", "60"), ("file", output)):
+        param = ET.Element("param", key=key, value=value)
+        program.insert(0, param)
+    return ET.tostring(program, encoding="unicode")
+
+
+def _actuated_program_in_additional(d: Path) -> None:
+    """tls.add.xml (no other output) loads another program of the first light: actuated,
+    writing its detectors' output to ``tlsdet.xml`` (SUMO: beside tls.add.xml)."""
+    with open(d / "small.net.xml", "rb") as fh:
+        program = ET.parse(fh).getroot().find("tlLogic")
+    program.set("programID", "actuated")
+    (d / "tls.add.xml").write_text(f"<additional>{_actuated(program, 'tlsdet.xml')}</additional>")
+    cfg = d / "case.sumocfg"
+    cfg.write_text(cfg.read_text().replace('"det.add.xml"', '"det.add.xml,tls.add.xml"'))
+
+
+def _actuated_program_in_network(d: Path) -> None:
+    """The network's first light is actuated and writes ``netdet.xml`` (SUMO: beside the
+    network file)."""
+    net = d / "small.net.xml"
+    text = net.read_text()
+    start = text.index("<tlLogic ")
+    end = text.index("</tlLogic>", start) + len("</tlLogic>")
+    program = ET.fromstring(text[start:end])
+    net.write_text(text[:start] + _actuated(program, "netdet.xml") + text[end:])
+
+
+def _environment_variables(d: Path) -> None:
+    """The sumocfg names its network through ``${TWIN_TEST_NET}`` and prefixes its outputs
+    with ``${TWIN_TEST_PREFIX}`` = ``../../escape_`` (SUMO substitutes both)."""
+    cfg = d / "case.sumocfg"
+    text = cfg.read_text().replace('"small.net.xml"', '"${TWIN_TEST_NET}"')
+    cfg.write_text(text.replace("<output>", '<output><output-prefix value="${TWIN_TEST_PREFIX}"/>'))
+
+
+def _entity_in_routes(d: Path) -> None:
+    """small.trips.xml declares an entity in its own DTD and uses it for a trip's origin:
+    SUMO's program expands it, libsumo refuses it ("entity 'e1' not found")."""
+    trips = d / "small.trips.xml"
+    text = trips.read_text()
+    origin = re.search(r'<trip [^>]*from="([^"]+)"', text).group(1)
+    start = text.index("<routes")
+    text = text[:start] + f'<!DOCTYPE routes [<!ENTITY e1 "{origin}">]>\n' + text[start:]
+    trips.write_text(text.replace(f'from="{origin}"', 'from="&e1;"', 1))
+
+
 # name -> (output options of the sumocfg, how to change the case's files, what RUN/sumo/ holds)
 ESCAPES = {
+    "a route file with an entity of its own DTD (read as a copy, entities expanded)": (
+        "",
+        _entity_in_routes,
+        ["det.add.xml", "det.xml", "small.trips.xml"],
+    ),
+    "an actuated light's detector output in an additional file": (
+        "",
+        _actuated_program_in_additional,
+        ["det.add.xml", "det.xml", "tls.add.xml", "tlsdet.xml"],
+    ),
+    "an actuated light's detector output in the network": (
+        "",
+        _actuated_program_in_network,
+        ["det.add.xml", "det.xml", "netdet.xml", "small.net.xml"],
+    ),
+    "environment variables in the sumocfg": (
+        "",
+        _environment_variables,
+        ["det.add.xml", "escape_det.xml"],
+    ),
     "SSM's file named by a device option (SUMO types it a string, not a file)": (
         '<device.ssm.probability value="1"/><device.ssm.file value="ssm.out.xml"/>',
         None,
@@ -497,6 +576,8 @@ def test_outputs_in_every_form_sumo_reads_go_into_the_run_folder(
     in RUN/sumo/, never beside the scenario's files nor in the working folder."""
     output, change, want = ESCAPES[case]
     cfg = _detector_case(scenario, tmp_path / "case", output)
+    monkeypatch.setenv("TWIN_TEST_NET", str(tmp_path / "case" / "small.net.xml"))
+    monkeypatch.setenv("TWIN_TEST_PREFIX", "../../escape_")
     if change is not None:
         change(tmp_path / "case")
     before = tree_hash(tmp_path / "case")
@@ -786,8 +867,6 @@ REFUSED_FLAGS = {
     "a negative drone speed": ([*PUBLIC, "--drone-speed", "-3"], "--drone-speed = -3.0 must be > 0"),
     "a step shorter than SUMO's": ([*PUBLIC, "--drone-speed", "1e9"],
                                    "--drone-speed 1e+09: a step (200 m at 1e+09 km/h) lasts"),
-    "a begin inside the warm-up": ([*PUBLIC, "--begin", "00:00"],
-                                   "--begin = 00:00:00: the 1 min warm-up"),
     "a begin that is no clock": ([*PUBLIC, "--begin", "x"], "--begin = 'x' must be a clock"),
     "a negative departure": (["--net", "{net}", "--routes", "{tmp}/early.rou.xml"],
                              "{tmp}/early.rou.xml: <trip id='t' depart='-5'>: the time is"),
@@ -935,3 +1014,158 @@ def test_a_run_in_the_scenarios_own_window_past_its_departures_gets_a_notice(
                  "--no-report", "--out", str(tmp_path / "run-begun")])  # fmt: skip
     err = capsys.readouterr().err
     assert code == 0 and "begins past the last departure" in err, err  # a begin in its window
+
+
+@pytest.fixture(scope="module")
+def saved_state(scenario, tmp_path_factory) -> Path:
+    """``state/``: the scenario's network and trips, a state SUMO saved at 300 s (with SUMO's
+    default options) and a sumocfg that loads it."""
+    import subprocess
+
+    d = tmp_path_factory.mktemp("state")
+    for name in ("small.net.xml", "small.trips.xml"):
+        shutil.copy(scenario / "scenario" / name, d / name)
+    cfg = _cfg('<input><net-file value="small.net.xml"/><route-files value="small.trips.xml"/>'
+               "</input>")  # fmt: skip
+    (d / "plain.sumocfg").write_text(cfg)
+    subprocess.run([binary("sumo"), "-c", str(d / "plain.sumocfg"), "--end", "400",
+                    "--save-state.times", "300", "--save-state.files", str(d / "st300.xml"),
+                    "--no-step-log", "true"], check=True, capture_output=True)  # fmt: skip
+    (d / "state.sumocfg").write_text(
+        cfg.replace("</input>", '<load-state value="st300.xml"/></input>')
+    )
+    return d
+
+
+def test_a_sumocfg_loading_a_saved_state_runs_from_the_state_s_time(
+    scenario, saved_state, tmp_path, capsys
+):
+    """``<load-state>``: SUMO's clock starts at the state's time whatever the begin, so the
+    scenario's window does too; every snapshot is read after it, none is the state frozen
+    and relabelled as earlier steps (probe 12's a04). twin's rerouting defaults leave the
+    state's own speeds alone (another count crashed libsumo)."""
+    before = tree_hash(saved_state)
+    out = tmp_path / "run"
+    code = _run(scenario, out, "--sumocfg", str(saved_state / "state.sumocfg"))
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert tree_hash(saved_state) == before
+    tape = pd.read_parquet(out / "tape.parquet")
+    times = tape.groupby("step")["time_s"].first()
+    assert times.min() > 300 and times.is_monotonic_increasing
+    assert tape.groupby("step")["count"].sum().nunique() > 1  # the traffic moves
+
+
+def _binary_state(d: Path) -> list[str]:
+    (d / "st300.xml").rename(d / "st300.sbx")
+    cfg = d / "state.sumocfg"
+    cfg.write_text(cfg.read_text().replace("st300.xml", "st300.sbx"))
+    return []
+
+
+def _not_a_state(d: Path) -> list[str]:
+    (d / "st300.xml").write_text("<routes/>")
+    return []
+
+
+@pytest.mark.parametrize(
+    ("change", "words"),
+    [
+        (lambda d: ["--begin", "00:04:00"], "loads a state saved at 00:05:00, where SUMO starts"),
+        (_binary_state, "a binary saved state, whose time twin cannot read"),
+        (_not_a_state, "not a state SUMO saved"),
+    ],
+    ids=["begin before the state", "binary state", "not a state"],
+)
+def test_a_saved_state_twin_cannot_honour_is_one_line(
+    scenario, saved_state, tmp_path, capsys, change, words
+):
+    d = tmp_path / "state"
+    shutil.copytree(saved_state, d)
+    code = _run(scenario, tmp_path / "run", "--sumocfg", str(d / "state.sumocfg"), *change(d))
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and words in err, err
+
+
+def test_sumo_s_own_demo_runs_with_its_messages_kept_out_of_twin_s_lines(
+    scenario, tmp_path, capfd, monkeypatch
+):
+    """SUMO's demo fokr_bs_demo (shipped in the eclipse-sumo wheel: cars, bicycles,
+    pedestrians, 0.05 s steps) run with its sumocfg alone: SUMO's errors while it runs (at
+    twin's 1 s steps some vehicles cannot depart) go to RUN/sumo/sumo-messages.log with one
+    notice, never as raw lines among twin's (probe 12's g01); its folder stays as it was."""
+    import sumo
+
+    demo = Path(sumo.__file__).parent / "tools" / "game"
+    d = tmp_path / "demo"
+    d.mkdir()
+    shutil.copytree(demo / "fokr_bs_demo", d / "fokr_bs_demo")
+    shutil.copy(demo / "fokr_bs_demo.sumocfg", d)
+    before = tree_hash(d)
+    (tmp_path / "cwd").mkdir()
+    monkeypatch.chdir(tmp_path / "cwd")
+    out = tmp_path / "run"
+    code = main(["run", "--sumocfg", str(d / "fokr_bs_demo.sumocfg"), "--cell-m", "100",
+                 "--horizon", "2", "--swarms", "random", "--quiet", "--no-report",
+                 "--no-ceiling", "--out", str(out)])  # fmt: skip
+    err = capfd.readouterr().err
+    assert code == 0, err
+    assert not [line for line in err.splitlines() if not line.startswith(("twin:", "SUMO:"))]
+    log = out / "sumo" / "sumo-messages.log"
+    assert "SUMO reported" in err and str(log) in err
+    assert "will not be able to depart" in log.read_text()
+    assert tree_hash(d) == before and list((tmp_path / "cwd").iterdir()) == []
+    assert "sumo/sumo-messages.log" in check_run_folder(out)["files"]
+
+
+def test_a_command_that_keeps_no_sumo_outputs_says_so(scenario, tmp_path, capsys):
+    """A simulation without a run folder (a sweep's cell, a transfer's, an env's) cannot keep
+    the outputs the scenario's files ask SUMO for: one notice names them (they vanished
+    silently: probe 11's sw20); nothing is written beside the scenario's files."""
+    from twin.config import load_config
+    from twin.sumo.scenario import sumo_source
+
+    cfg = _detector_case(scenario, tmp_path / "case", '<tripinfo-output value="trips.out.xml"/>')
+    before = tree_hash(tmp_path / "case")
+    source = sumo_source(load_config(scenario / "config.toml"), sumocfg=cfg)
+    maps = source.importance_maps()
+    next(maps)
+    maps.close()
+    err = capsys.readouterr().err
+    assert "(det.xml, trips.out.xml) are not kept by this command" in err, err
+    assert tree_hash(tmp_path / "case") == before
+
+
+@pytest.mark.parametrize(
+    "window",
+    ['<begin value="100.25"/>', '<begin value="0"/><end value="119"/>'],
+    ids=["fractional begin", "odd window: half of it warms up"],
+)
+def test_a_window_off_whole_seconds_gives_a_folder_that_reads_back(
+    scenario, tmp_path, capsys, window
+):
+    """A sumocfg's begin of 100.25 s, or a window of 119 s whose half warms up: T^0 falls on a
+    whole second, so the tape's clock labels agree with its times and the run's own read-back
+    accepts its folder (it refused it as a corrupt tape: probe 12's t01)."""
+    cfg = _write_case(
+        scenario, tmp_path / "case", _cfg(NET_AND_TRIPS + f"<time>{window}</time>"), {}
+    )
+    out = tmp_path / "run"
+    assert _run(scenario, out, "--sumocfg", str(cfg), "--horizon", "1") == 0, (
+        capsys.readouterr().err
+    )
+    assert main(["report", str(out), "--no-animation"]) == 0, capsys.readouterr().err
+    times = pd.read_parquet(out / "tape.parquet")["time_s"]
+    assert (times == times.round()).all()
+
+
+def test_a_begin_whose_warm_up_would_start_before_midnight_cuts_it(scenario, tmp_path, capsys):
+    """``--begin 00:00:30`` with a 1 min warm-up: cut to 30 s with a notice, as a window too
+    short for the warm-up is (the same begin twin picks itself was refused)."""
+    cfg = _write_case(scenario, tmp_path / "case", _cfg(NET_AND_TRIPS), {})
+    out = tmp_path / "run"
+    code = _run(scenario, out, "--sumocfg", str(cfg), "--begin", "00:00:30", "--horizon", "2")
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert "would start SUMO before 00:00; warm-up cut to 0.5 min" in err
+    assert json.loads((out / "run.json").read_text())["traffic"]["warmup_s"] == 30

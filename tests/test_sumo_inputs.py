@@ -215,7 +215,7 @@ def test_route_files_with_only_vehicle_types(city, tmp_path, capsys):
 
 
 def test_a_demand_of_persons_alone_gets_a_notice(city, tmp_path, capsys):
-    """Persons walk and containers wait: a demand of them alone leaves the roads empty, and the
+    """Persons walk and containers : a demand of them alone leaves the roads empty, and the
     run says so rather than showing an empty twin without a word."""
     walkers = tmp_path / "walkers.rou.xml"
     persons = "".join(
@@ -618,3 +618,58 @@ def test_a_users_config_horizon_holds_for_a_sumocfg_given_by_flag(city, tmp_path
                       "--no-report", "--out", str(out)])  # fmt: skip
     assert code == 0, capsys.readouterr().err
     assert json.loads((out / "run.json").read_text())["horizon"] == 3
+
+
+@pytest.mark.parametrize(("shape", "code"), [((8, 8), 0), ((2, 2), 2)], ids=["larger", "too small"])
+def test_a_users_config_grid_holds_for_a_sumocfg_given_by_flag(city, tmp_path, capsys, shape, code):
+    """``[grid] nx, ny`` of the user's own config fix the grid for a network given by
+    --sumocfg too, as when the config names the sumocfg (a larger grid is kept, one that
+    cannot cover the network refused); they were dropped without a word (probe 12's k01)."""
+    config = tmp_path / "mine.toml"
+    config.write_text(
+        f"[grid]\nnx = {shape[0]}\nny = {shape[1]}\n[swarm]\nn_drones = 2\n[traffic]\n"
+        'kind = "sumo"\ncell_m = 200.0\ndrone_speed_kmh = 12.0\nhorizon = 2\n'
+        '[evaluate]\nswarms = ["random"]\n'
+    )
+    out = tmp_path / "run"
+    got = twin_main(["run", "--config", str(config), "--sumocfg",
+                     str(city / "scenario" / "plain.sumocfg"), "--no-ceiling", "--quiet",
+                     "--no-report", "--out", str(out)])  # fmt: skip
+    err = capsys.readouterr().err
+    assert got == code, err
+    if code == 0:
+        assert json.loads((out / "network.json").read_text())["grid"]["nx"] == shape[0]
+    else:
+        assert "cannot cover the network" in err and err.count("\n") == 1, err
+
+
+def test_a_users_config_end_holds_for_a_sumocfg_given_by_flag(city, tmp_path, capsys):
+    """``[traffic] end`` of the user's own config closes the window of a network given by
+    --sumocfg, as its begin, horizon and grid do (it was dropped: probe 12's k01)."""
+    config = tmp_path / "mine.toml"
+    config.write_text(
+        '[swarm]\nn_drones = 2\n[traffic]\nkind = "sumo"\ncell_m = 200.0\n'
+        'drone_speed_kmh = 12.0\nwarmup_min = 1.0\nbegin = "00:08"\nend = "00:11"\n'
+        '[evaluate]\nswarms = ["random"]\n'
+    )
+    out = tmp_path / "run"
+    code = twin_main(["run", "--config", str(config), "--sumocfg",
+                      str(city / "scenario" / "plain.sumocfg"), "--no-ceiling", "--quiet",
+                      "--no-report", "--out", str(out)])  # fmt: skip
+    assert code == 0, capsys.readouterr().err
+    assert json.loads((out / "run.json").read_text())["horizon"] == 3  # 00:08 .. 00:11, 60 s
+
+
+def test_a_warm_up_off_whole_seconds_gives_a_folder_that_reads_back(city, tmp_path, capsys):
+    """``warmup_min = 0.01`` (0.6 s): SUMO starts on a whole second, so the tape's times agree
+    with its clock labels and the run's read-back accepts its folder (probe 12's t01)."""
+    config = tmp_path / "mine.toml"
+    config.write_text(
+        '[swarm]\nn_drones = 2\n[traffic]\nkind = "sumo"\ncell_m = 200.0\n'
+        'drone_speed_kmh = 12.0\nwarmup_min = 0.01\nhorizon = 2\n[evaluate]\nswarms = ["random"]\n'
+    )
+    out = tmp_path / "run"
+    code = twin_main(["run", "--config", str(config), "--sumocfg",
+                      str(city / "scenario" / "plain.sumocfg"), "--no-ceiling", "--quiet",
+                      "--out", str(out)])  # fmt: skip
+    assert code == 0, capsys.readouterr().err

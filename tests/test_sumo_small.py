@@ -197,6 +197,12 @@ def test_osm_import_and_sumocfg(small, tmp_path, monkeypatch):  # writes only un
     osm.write_text(OSM)
     net = import_osm(osm, tmp_path / "osm")
     assert net.exists() and "<edge" in net.read_text()
+    net.write_text("mine")  # a file twin did not write is never replaced
+    with pytest.raises(UserError, match=r"tiny\.net\.xml exists there; twin never overwrites"):
+        import_osm(osm, tmp_path / "osm")
+    assert net.read_text() == "mine" and sorted(p.name for p in net.parent.iterdir()) == [
+        "tiny.net.xml"
+    ]
     cached = import_osm(osm)  # by default into the cache, converted once
     assert cached.parent.parent == tmp_path / "cache" / "imported"
     stamp = cached.stat().st_mtime_ns

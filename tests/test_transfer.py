@@ -210,6 +210,42 @@ def test_a_row_checkpoint_that_cannot_load_is_refused_before_any_stage(tmp_path,
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.parametrize(
+    ("rows", "words"),
+    [
+        ('[[row]]\nname = "tuned"\ninit = "{small}"\n', "small.pt: its layers [13, 16, 5]"),
+        (
+            '[[row]]\nname = "a"\nschedule = {{ layers = [13, 8, 5] }}\n'
+            '[[row]]\nname = "b"\ninit = "a"\n',
+            "[[row]] b.init = a: its layers [13, 8, 5] differ",
+        ),
+        (
+            '[[row]]\nname = "a"\ncheckpoint = "{small}"\n[[row]]\nname = "b"\ninit = "a"\n',
+            "[[row]] b.init = a: its layers [13, 16, 5] differ",
+        ),
+    ],
+)
+def test_a_fine_tuning_start_that_does_not_fit_is_refused_before_any_stage(
+    tmp_path, capsys, rows, words
+):
+    """A row's init (a checkpoint, a loaded row, a row trained before it) whose layers differ
+    from the row's is the command's one line before the tapes and rows start, no folder made
+    (it was refused when that row's training began, after the stage lines)."""
+    pytest.importorskip("torch")
+    from twin.learning.checkpoint import model_metadata, save_model
+    from twin.learning.qnet import QNetwork
+
+    small = tmp_path / "small.pt"
+    save_model(small, QNetwork([13, 16, 5]).state_dict(), model_metadata([13, 16, 5], {}, 0, 1))
+    path = tmp_path / "t.toml"
+    synthetic = ROOT / "configs" / "synthetic.toml"
+    path.write_text(GOOD.format(synthetic=synthetic) + rows.format(small=small))
+    assert cli(["transfer", "--config", str(path), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and words in err and str(path) in err, err
+    assert not (tmp_path / "o").exists()
+
+
 def test_a_foreign_out_folder_is_refused(tmp_path: Path, capsys) -> None:
     path = tmp_path / "t.toml"
     path.write_text(GOOD.format(synthetic=ROOT / "configs" / "synthetic.toml"))

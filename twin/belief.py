@@ -883,6 +883,13 @@ def check_source(history: History, where: Path | str, source) -> None:
             f"{meta['kind']} traffic, which has no clock; give a history of the same traffic "
             "(`twin history --dynamics` for generated days)"
         )
+    clocked = meta.get("kind") not in ("synthetic", "dynamic")
+    if clocked and not (history.step_s or history.begin):
+        raise UserError(
+            f"{where}: a history of generated days (no clock: `twin history --dynamics`) for "
+            f"{meta.get('kind', 'SUMO')} traffic of a SUMO network; give a history of its days "
+            "(`twin history --from` run folders of the same scenario)"
+        )
     history.check_matches(
         where,
         source.grid.obstacles,

@@ -24,7 +24,9 @@ from __future__ import annotations
 import contextlib
 import errno
 import os
+import signal
 import sys
+import threading
 import traceback
 from collections.abc import Callable
 from datetime import UTC, datetime
@@ -39,6 +41,7 @@ from twin.notices import (  # noqa: F401 (the notices are part of the boundary's
     notify,
     release_notices,
 )
+from twin.processes import interrupt_on_terminate
 
 EXIT_OK, EXIT_PARTIAL, EXIT_REFUSED, EXIT_BUG = 0, 1, 2, 3
 EXIT_INTERRUPTED, EXIT_PIPE = 130, 141
@@ -191,6 +194,7 @@ def _log_folders() -> list[Path]:
 def run_command(func: Callable[[Any], int | None], args: Any) -> int:
     """``func(args)`` with every escaping exception turned into one line and an exit code."""
     set_run_folder(None)
+    terminate = _terminate_as_interrupt()
     try:
         return int(_notices_held_on_failure(func, args) or 0)
     except UserError as exc:
@@ -228,6 +232,20 @@ def run_command(func: Callable[[Any], int | None], args: Any) -> int:
         return _unexpected(exc)
     finally:
         set_run_folder(None)
+        if terminate is not None:
+            signal.signal(signal.SIGTERM, terminate)
+
+
+def _terminate_as_interrupt():
+    """SIGTERM (``kill``, a batch scheduler, ``timeout``) stops the command as Ctrl-C does:
+    a run keeps its finished steps and files already written stay complete. Returns the
+    handler to restore (None when SIGTERM was handled by the caller, or off the main
+    thread)."""
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    if signal.getsignal(signal.SIGTERM) is not signal.SIG_DFL:
+        return None
+    return signal.signal(signal.SIGTERM, interrupt_on_terminate)
 
 
 def _notices_held_on_failure(func: Callable[[Any], int | None], args: Any) -> int | None:

@@ -237,7 +237,7 @@ class DisturbanceConfig(StrictModel):
     i: float = 0.0
     j: float = 0.0
     amplitude: float = 1.0
-    sigma: Annotated[float, Field(ge=1e-3)] = 1.0  # cells
+    sigma: Annotated[float, Field(ge=1e-3, le=1e6)] = 1.0  # cells (its square must not overflow)
 
 
 class SyntheticConfig(StrictModel):
@@ -904,6 +904,8 @@ def validate(config: ScenarioConfig) -> None:
 #: How far (in sigmas) a disturbance's centre may lie off the map: beyond, its kernel is below
 #: exp(-12.5) ~ 4e-6 on every cell.
 DISTURBANCE_REACH = 5.0
+#: The widest disturbance, in map sides: wider, its kernel varies by under 0.5% over the map.
+FLAT_SIGMAS = 10.0
 
 
 def check_disturbances(config: ScenarioConfig) -> None:
@@ -912,6 +914,14 @@ def check_disturbances(config: ScenarioConfig) -> None:
     centre just off the map, reaching in, is kept: a sweep may shrink the grid)."""
     g = config.grid
     for n, d in enumerate(config.traffic.disturbances):
+        if d.sigma > FLAT_SIGMAS * max(g.nx, g.ny):
+            raise _fail(
+                config.path,
+                f"[traffic].disturbances[{n}].sigma",
+                f"= {d.sigma:g} cells is more than {FLAT_SIGMAS:g} x the {g.nx} x {g.ny} map's "
+                "side: the disturbance is flat over the map (it changes no cell against "
+                f"another); give at most {FLAT_SIGMAS * max(g.nx, g.ny):g}",
+            )
         gap = math.hypot(d.i - min(max(d.i, 0), g.nx - 1), d.j - min(max(d.j, 0), g.ny - 1))
         if gap > DISTURBANCE_REACH * d.sigma:
             raise _fail(

@@ -48,6 +48,7 @@ except ImportError:  # pragma: no cover - depends on the install
 from twin.config import SwarmConfig, validation_error
 from twin.errors import UserError
 from twin.grid import N_ACTIONS
+from twin.notices import once_among
 from twin.scores import ScoreParams
 from twin.states import DEFAULT_STATE, state_variant
 from twin.swarm import StepOutcome, SwarmState, check_actions, initial_state, random_starts, step
@@ -183,9 +184,11 @@ class SwarmParallelEnv(ParallelEnv):
         if not isinstance(source, TrafficSource) and not callable(source):
             _built_source(source, "source")
         self._factory = None if isinstance(source, TrafficSource) else source
-        self.source: TrafficSource = (
-            source if self._factory is None else _built_source(self._factory(), "source()")
-        )
+        self._said: set[str] = set()  # the notices said, each once per env
+        with once_among(self._said):
+            self.source: TrafficSource = (
+                source if self._factory is None else _built_source(self._factory(), "source()")
+            )
         self.grid, self.horizon = self.source.grid, self.source.horizon
         self._starts = None if starts is None else self._check_starts(starts)
         if n_drones is not None:
@@ -296,18 +299,19 @@ class SwarmParallelEnv(ParallelEnv):
     def _restart(self, rng: np.random.Generator) -> None:
         """Start a new episode on a fresh pass of the source; the start cells from ``rng``."""
         self._close_maps()
-        if self._used and self._factory is not None:
-            self.source.close()
-            self.source = _built_source(self._factory(), "source()")
-            if self.source.grid.shape != self.grid.shape or self.source.horizon != self.horizon:
-                raise EnvInputError(
-                    "source() built a source with another grid or horizon than its first; "
-                    "make the factory build the same scenario at every call"
-                )
-            self.grid = self.source.grid
-        self._used = True
-        self._maps = self.source.importance_maps()
-        first = self._next_map()
+        with once_among(self._said):  # a scenario's notices once, not at every episode
+            if self._used and self._factory is not None:
+                self.source.close()
+                self.source = _built_source(self._factory(), "source()")
+                if self.source.grid.shape != self.grid.shape or self.source.horizon != self.horizon:
+                    raise EnvInputError(
+                        "source() built a source with another grid or horizon than its first; "
+                        "make the factory build the same scenario at every call"
+                    )
+                self.grid = self.source.grid
+            self._used = True
+            self._maps = self.source.importance_maps()
+            first = self._next_map()
         starts = self._starts
         if starts is None:
             starts = random_starts(self.grid, self.n_drones, rng)

@@ -34,6 +34,7 @@ from twin.config import ScenarioConfig, check_faults, check_swarm_fits, start_po
 from twin.errors import UserError
 from twin.patrol import INTERRUPTED, PatrolResult, run_patrol
 from twin.policies import Policy
+from twin.processes import interrupt_on_terminate
 from twin.swarms import check_swarm_name, is_learned
 from twin.traffic.base import TrafficSource
 from twin.traffic_kinds import build_traffic, is_live_kind
@@ -208,42 +209,52 @@ def build_swarms(experiment: Experiment) -> dict[str, Policy]:
 
 @contextlib.contextmanager
 def stop_on_interrupt(
-    enabled: bool = True, on_stop: Callable[[], None] | None = None
+    enabled: bool = True,
+    on_stop: Callable[[], None] | None = None,
+    doing: str = "stopping after the current step and writing a partial run",
 ) -> Iterator[Callable[[], bool]]:
-    """Within the block, a first Ctrl-C (SIGINT) only sets a flag (the yielded callable turns
-    true) so the run can stop after its current step and keep what it did, and calls
-    ``on_stop()`` (which passes the word to worker processes); a second Ctrl-C raises
-    :class:`KeyboardInterrupt` at once. The previous handler is restored on exit.
+    """Within the block, a first Ctrl-C (SIGINT) or SIGTERM only sets a flag (the yielded
+    callable turns true) so the run can stop after its current step and keep what it did, and
+    calls ``on_stop()`` (which passes the word to worker processes) and says it is ``doing``
+    so; a second one raises :class:`KeyboardInterrupt` at once. The previous handlers are
+    restored on exit.
 
-    Nothing is installed off the main thread, or when SIGINT is not Python's default handler
-    (ignored, as in a background job, or handled by the caller): the flag then stays false.
+    Nothing is installed off the main thread, or for a signal whose handler is not the one
+    that raises :class:`KeyboardInterrupt` (ignored, as SIGINT in a background job, or handled
+    by the caller): the flag then stays false.
     """
     flag = threading.Event()
-    usable = (
-        enabled
+    at_once = {
+        signal.SIGINT: signal.default_int_handler,
+        signal.SIGTERM: interrupt_on_terminate,  # twin's command boundary installs it
+    }
+    usable = [
+        signum
+        for signum, handler in at_once.items()
+        if enabled
         and threading.current_thread() is threading.main_thread()
-        and signal.getsignal(signal.SIGINT) is signal.default_int_handler
-    )
+        and signal.getsignal(signum) is handler
+    ]
     if not usable:
         yield flag.is_set
         return
 
     def first(signum, frame) -> None:
         flag.set()
-        signal.signal(signal.SIGINT, signal.default_int_handler)  # the next one stops at once
+        for each in usable:  # the next one stops at once
+            signal.signal(each, at_once[each])
         if on_stop is not None:
             on_stop()
-        print(
-            "\ntwin: interrupted; stopping after the current step and writing a partial run "
-            "(Ctrl-C again to stop at once)",
-            file=sys.stderr,
-        )
+        how = "interrupted" if signum == signal.SIGINT else "terminated"
+        start = "\n" if sys.stderr.isatty() else ""  # off a progress bar's line
+        print(f"{start}twin: {how}; {doing} (Ctrl-C again to stop at once)", file=sys.stderr)
 
-    previous = signal.signal(signal.SIGINT, first)
+    previous = {signum: signal.signal(signum, first) for signum in usable}
     try:
         yield flag.is_set
     finally:
-        signal.signal(signal.SIGINT, previous)
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
 
 
 def run_experiment(
@@ -478,14 +489,7 @@ def _run_seeds_in_workers(
     if not is_live(experiment):
         check_memory(experiment, *planned_shape(experiment))
     else:  # the grid is known only in the workers: at least a simulation each, up front
-        limit = max_memory_gb(experiment)
-        if workers * WORKER_BYTES > limit * 1e9:
-            raise UserError(
-                f"--workers {experiment.workers}: {workers} live simulations at once need at "
-                f"least {_gb(workers * WORKER_BYTES)} GB ({_gb(WORKER_BYTES)} GB each), over the "
-                f"{limit:g} GB limit; use at most {max(1, int(limit * 1e9 // WORKER_BYTES))} "
-                f"--workers (this machine has {os.cpu_count()} CPUs), or raise --max-memory-gb"
-            )
+        check_workers_fit(experiment.workers, workers, max_memory_gb(experiment))
     tasks = [(experiment, n, str(signal_file.path), keep_sources) for n in range(len(seeds))]
     if experiment.executor == "ray":
         outcomes = ray_tasks(run_seed_in_worker, tasks, workers)
@@ -573,6 +577,20 @@ def max_memory_gb(experiment: Experiment) -> float:
     """The memory limit: the experiment's (``--max-memory-gb``), else ``$TWIN_MAX_MEMORY_GB``,
     else 8 GB."""
     return memory_limit_gb(experiment.max_memory_gb)
+
+
+def check_workers_fit(
+    given: int, workers: int, limit: float, what: str = "live simulations"
+) -> None:
+    """``workers`` processes at once (``--workers given``) fit the memory ``limit`` (GB) at
+    :data:`WORKER_BYTES` each, at least (an interpreter and a simulator); else one line."""
+    if workers * WORKER_BYTES > limit * 1e9:
+        raise UserError(
+            f"--workers {given}: {workers} {what} at once need at least "
+            f"{_gb(workers * WORKER_BYTES)} GB ({_gb(WORKER_BYTES)} GB each), over the {limit:g} "
+            f"GB limit; use at most {max(1, int(limit * 1e9 // WORKER_BYTES))} --workers (this "
+            f"machine has {os.cpu_count()} CPUs), or raise --max-memory-gb"
+        )
 
 
 def memory_limit_gb(value: float | None = None) -> float:
@@ -743,11 +761,13 @@ def check_memory(
     need = estimate_memory(experiment, shape, horizon, warmup, live=live)
     if need <= limit * 1e9:
         return
+    workers = n_workers(experiment)
+    if workers > 1:  # the workers themselves past the limit: only fewer of them can help
+        check_workers_fit(experiment.workers, workers, limit, "worker processes")
     ratio = (need / (limit * 1e9)) ** 0.5
     hint = source.coarser_hint(ratio) if source is not None else None
     if hint is None:
         hint = f"a grid about {ratio:.1f} times coarser per side, fewer steps or fewer seeds"
-    workers = n_workers(experiment)
     on = f" on {workers} workers" if workers > 1 else ""
     fewer = ", fewer --workers" if workers > 1 else ""
     raise UserError(

@@ -6,6 +6,7 @@ One helper for every writer of twin (run folders, sweep cells, checkpoints, cach
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import json
 import os
@@ -30,6 +31,29 @@ def not_a_file(path: str | Path) -> str | None:
     if path.exists():
         return "is a pipe or device, not a regular file; give the file itself"
     return "does not exist"
+
+
+#: The largest record of twin's own folders read whole (a run's JSON files, a sweep's cell
+#: records, a training log): a city-scale run's manifest is well under 1 MB.
+MAX_RECORD_BYTES = 256 << 20
+
+
+class NotARecord(OSError):
+    """A record twin reads whole is a pipe, a device or a folder, or larger than any twin
+    writes (``/dev/zero`` would fill the memory)."""
+
+
+def read_record(path: str | Path, limit: int = MAX_RECORD_BYTES) -> str:
+    """The UTF-8 text of a file twin wrote and reads whole (a run folder's JSON, a sweep's
+    records); :class:`NotARecord` when it is no regular file (a FIFO would block forever) or
+    larger than ``limit``."""
+    path = Path(path)
+    why = not_a_file(path)
+    if why is None and path.stat().st_size > limit:
+        why = f"is {path.stat().st_size:,} bytes, more than any record twin writes"
+    if why is not None:
+        raise NotARecord(errno.EINVAL, why, str(path))
+    return path.read_text(encoding="utf-8")
 
 
 def atomic_write(path: str | Path, write: Callable[[Path], None]) -> None:

@@ -228,6 +228,16 @@ def detected_counts(count: np.ndarray, p: float, rng: np.random.Generator) -> np
     return rng.binomial(np.asarray(count, dtype=np.int64), p)
 
 
+#: Effective vehicle length (m) in ``density = occupancy / length`` of a fixed detector
+#: (:mod:`twin.sumo.detectors`): SUMO's default passenger car (5 m) seen by a point loop.
+VEHICLE_LENGTH_M = 5.0
+
+
+def density_from_occupancy(occupancy_pct: np.ndarray) -> np.ndarray:
+    """Vehicles per lane-km from a detector's occupancy (%): ``k = occ / L``."""
+    return np.asarray(occupancy_pct, dtype=float) / 100.0 * 1000.0 / VEHICLE_LENGTH_M
+
+
 def density_from_counts(count: np.ndarray, lane_km: np.ndarray, p: float = 1.0) -> np.ndarray:
     """Vehicles per lane-km; a count seen with probability ``p`` is scaled by ``1/p``."""
     with np.errstate(invalid="ignore", divide="ignore"):

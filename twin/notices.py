@@ -62,6 +62,20 @@ def drop_notices() -> list[str]:
     return held or []
 
 
+@contextlib.contextmanager
+def once_among(said: set[str]):
+    """Within: a notice already in ``said`` is not said again, outside a command too (an env
+    builds its scenario again at every episode); a command's own count comes first."""
+    if _said["lines"] is not None:
+        yield
+        return
+    _said["lines"] = said
+    try:
+        yield
+    finally:
+        _said["lines"] = None
+
+
 def count_said(on: bool) -> None:
     """From now on (``on``: a command starts) say each notice once; ``False`` when it ends."""
     _said["lines"] = set() if on else None

@@ -12,13 +12,26 @@ import time
 PARENT_POLL_S = 0.5
 
 
+def interrupt_on_terminate(signum, frame) -> None:
+    """A SIGTERM handler (``kill``, a batch scheduler's stop, ``timeout``): stop as Ctrl-C
+    does, so the files already written stay complete."""
+    raise KeyboardInterrupt
+
+
+def leave_stops_to_parent() -> None:
+    """Ignore Ctrl-C and SIGTERM, which may reach the whole process group: the parent
+    decides (it stops or kills this process)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+
+
 def exit_with_parent(parent: int, ignore_sigint: bool = False) -> None:
     """End this process when ``parent`` dies, even by ``kill -9`` (no cleanup runs there). On
     Linux the kernel sends SIGKILL on the parent's death (``PR_SET_PDEATHSIG``); everywhere a
     daemon thread checks ``os.getppid()`` twice a second. With ``ignore_sigint`` the process
-    ignores Ctrl-C, which reaches the whole terminal's process group: the parent decides."""
+    ignores Ctrl-C and SIGTERM (:func:`leave_stops_to_parent`)."""
     if ignore_sigint:
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        leave_stops_to_parent()
     if sys.platform.startswith("linux"):
         try:
             import ctypes

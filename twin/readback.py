@@ -9,6 +9,7 @@ missing or duplicated row, a cell off the grid or an array of the wrong shape is
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -17,6 +18,7 @@ import numpy as np
 import pandas as pd
 
 from twin.errors import UserError
+from twin.files import NotARecord, read_record
 
 RERUN = "rerun the command that wrote it"
 
@@ -112,7 +114,9 @@ def read_json(path: Path, required: bool = False) -> Any:
             raise UserError(f"{path}: missing; {RERUN}")
         return None
     try:
-        text = path.read_text(encoding="utf-8")
+        text = read_record(path)
+    except NotARecord as exc:
+        raise UserError(f"{path}: {exc.strerror}; {RERUN}") from None
     except (OSError, UnicodeError) as exc:
         raise UserError(f"{path}: cannot read it ({_why(exc)}); {RERUN}") from None
     try:
@@ -172,6 +176,8 @@ def _at_least(low: float) -> tuple[Any, str]:
 
 
 _POSITIVE = ((lambda v: v > 0), "above 0")
+_SECONDS = ((lambda v: math.isfinite(v) and v >= 0), "a finite number of seconds, at least 0")
+_MEGABYTES = (_SECONDS[0], "a finite number of MB, at least 0")
 
 #: The fields of a run folder's ``run.json`` that its readers use, with their types.
 RUN_JSON_FIELDS: dict[str, Any] = {
@@ -195,7 +201,12 @@ RUN_JSON_FIELDS: dict[str, Any] = {
         "identity": {"net_sha256": str, "cell_m": NUM, "grid": list, "sumo": str, "twin": str},
         "recorded": {"step_s": NUM},
     },
-    "timings": {"peak_memory_mb": NUM, "peak_memory_sumo_process_mb": NUM},
+    "timings": {"peak_memory_mb": NUM, "peak_memory_sumo_process_mb": NUM, "patrol_seconds": list},
+    "wall_seconds": NUM,
+    "sumo_read_seconds": NUM,
+    "kind": str,
+    "command": str,
+    "created": str,
     "monitoring": {"threshold": NUM, "min_duration": NUM, "weight_floor": NUM, "truth": str},
     "invocation": {"command": str, "options": dict, "cwd": str},
     "config": (str, dict),
@@ -313,6 +324,10 @@ RUN_JSON_RANGES: dict[str, tuple[Any, str]] = {
     "monitoring.threshold": ((lambda v: 0 < v <= 1), "above 0 and at most 1"),
     "monitoring.min_duration": _at_least(1),
     "monitoring.weight_floor": _POSITIVE,
+    "wall_seconds": _SECONDS,
+    "sumo_read_seconds": _SECONDS,
+    "timings.peak_memory_mb": _MEGABYTES,
+    "timings.peak_memory_sumo_process_mb": _MEGABYTES,
     **{f"params.{k}": v for k, v in _SCORE_RANGES.items()},
     **{f"score_params.{k}": v for k, v in _SCORE_RANGES.items()},
 }
@@ -348,8 +363,36 @@ def check_run_json(path: Path, run: Any) -> dict[str, Any]:
             f"{path}: traffic.identity.grid = {str(grid)[:40]} must be [nx, ny], whole numbers "
             f"of at least 1; {RERUN}"
         )
+    for n, seconds in enumerate(_dotted(run, "timings.patrol_seconds") or []):
+        if not isinstance(seconds, NUM) or isinstance(seconds, bool) or not _SECONDS[0](seconds):
+            raise UserError(
+                f"{path}: timings.patrol_seconds[{n}] = {str(seconds)[:40]} must be {_SECONDS[1]}"
+                f"; {RERUN}"
+            )
     check_same_fields(path, run)
+    check_invocation(path, run)
     return run
+
+
+def check_invocation(path: Path, run: dict[str, Any]) -> None:
+    """run.json's command agrees with itself: ``kind`` is the invocation's command, and
+    ``created`` is a time."""
+    from datetime import datetime
+
+    kind, command = run.get("kind"), _dotted(run, "invocation.command")
+    if kind is not None and command is not None and kind != command:
+        raise UserError(
+            f"{path}: kind = {str(kind)[:40]!r}, but invocation.command = {str(command)[:40]!r}; "
+            f"{RERUN}"
+        )
+    created = run.get("created")
+    if created is not None:
+        try:
+            datetime.fromisoformat(created)
+        except ValueError:
+            raise UserError(
+                f"{path}: created = {created[:40]!r} is not a time (ISO 8601); {RERUN}"
+            ) from None
 
 
 #: Fields of run.json that record one thing twice: each pair must agree.
@@ -541,7 +584,17 @@ def check_bounds(path: Path, frame: pd.DataFrame) -> None:
 def check_timing(path: Path, timing: pd.DataFrame, series: pd.DataFrame) -> None:
     """``timing.csv``'s derived columns follow from its seconds: ``ms_per_step`` is the
     stage's seconds over the steps its seed completed (its rows per swarm in ``series``), and
-    ``share`` its part of its process's total for that seed (both as rounded when written)."""
+    ``share`` its part of its process's total for that seed (both as rounded when written);
+    a swarm's stage names a swarm of ``series``."""
+    swarms = set(series["swarm"].astype(str))
+    for n, stage in enumerate(timing["stage"].astype(str)):
+        # a swarm's stage, or its fault-free reference run's ("swarm greedy (fault-free)")
+        name = stage[len("swarm ") :].split(" (")[0]
+        if stage.startswith("swarm ") and name not in swarms:
+            raise UserError(
+                f"{path}: row {n} times stage {stage!r}, but series.parquet holds no swarm "
+                f"{name!r}; {RERUN}"
+            )
     steps = series.groupby(["seed", "swarm"]).size().groupby(level=0).max()
     process = timing["process"] if "process" in timing.columns else pd.Series("main", timing.index)
     totals = timing.groupby([timing["seed"], process])["seconds"].transform("sum")

@@ -195,10 +195,10 @@ def check_seal(folder: Path) -> None:
     entry has no seal: it was not committed by this version of twin)."""
     import json
 
-    from twin.files import file_sha256
+    from twin.files import file_sha256, read_record
 
     try:
-        sums = json.loads((folder / SEAL).read_text())
+        sums = json.loads(read_record(folder / SEAL))
     except (OSError, ValueError) as exc:
         raise BrokenEntry(
             f"{SEAL}, the record of its files, is missing (an earlier twin built it) or damaged"

@@ -59,7 +59,7 @@ from twin import __version__
 from twin.boundary import LOG_NAME, claim_run_folder, set_run_folder
 from twin.ceilings import ceiling_table
 from twin.errors import UserError
-from twin.files import atomic_write, write_json
+from twin.files import NotARecord, atomic_write, not_a_file, read_record, write_json
 from twin.metrics import (
     MONITORING_COLUMNS,
     SWARM_ROLE,
@@ -298,9 +298,10 @@ def _is_temp(name: str) -> bool:
 
 
 def _read_json(path: Path) -> Any:
+    """The JSON at ``path``; None when it cannot be read (absent, damaged, a pipe: :func:`twin.files.read_record`)."""
     try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError):
+        return json.loads(read_record(path))
+    except (OSError, ValueError, RecursionError):
         return None
 
 
@@ -332,14 +333,23 @@ def check_run_folder(run_dir: str | Path) -> dict[str, Any]:
             f"{run_dir}: incomplete run folder, partial: no {MANIFEST} "
             f"({why or 'the run was interrupted or is still running'}); {rerun}"
         )
+    try:
+        read_record(manifest_path)
+    except NotARecord as exc:  # a FIFO would block forever, /dev/zero fill the memory
+        raise UserError(f"{manifest_path}: {exc.strerror}; {rerun}") from None
+    except (OSError, UnicodeError):
+        pass  # refused below as unreadable
     manifest = _read_json(manifest_path)
     if not isinstance(manifest, dict) or not isinstance(manifest.get("files"), dict):
         raise UserError(f"{manifest_path}: not a run manifest (unreadable JSON); {rerun}")
     check_manifest(manifest_path, manifest)
     for name, size in manifest["files"].items():
         p = run_dir / name
-        if not p.is_file():
+        if not p.exists():
             raise UserError(f"{run_dir}: {name} listed in {MANIFEST} is missing; {rerun}")
+        why = not_a_file(p)
+        if why is not None:
+            raise UserError(f"{run_dir}: {name} listed in {MANIFEST} {why}; {rerun}")
         actual = p.stat().st_size
         if actual != size:
             raise UserError(

@@ -19,6 +19,7 @@ from twin.experiment import (
     check_resources,
     run_experiment,
     run_metadata,
+    stop_on_interrupt,
 )
 from twin.runs import discard_run_dir, invocation, new_run_dir, prepare_run_dir, record
 
@@ -85,20 +86,25 @@ def run_and_record(
     except UserError:
         discard_run_dir(run_dir)
         raise
-    meta = run_metadata(outcome, command, **(extra_meta(outcome) if extra_meta else {}))
-    beliefs = belief_models(outcome, history, meta)
-    maps = None
-    if beliefs is not None:
-        from twin.belief import belief_maps
+    # a Ctrl-C while the finished run is written lets it finish (then stops the command): the
+    # run's results are not thrown away for a folder half written
+    with stop_on_interrupt(doing="finishing the run folder first") as stopped:
+        meta = run_metadata(outcome, command, **(extra_meta(outcome) if extra_meta else {}))
+        beliefs = belief_models(outcome, history, meta)
+        maps = None
+        if beliefs is not None:
+            from twin.belief import belief_maps
 
-        maps = belief_maps(outcome.results[0], history)
-    summary, comparison = record(
-        run_dir,
-        outcome,
-        meta,
-        ceilings=args.ceiling and not outcome.interrupted,
-        more_files=belief_writer(beliefs, maps),
-    )
+            maps = belief_maps(outcome.results[0], history)
+        summary, comparison = record(
+            run_dir,
+            outcome,
+            meta,
+            ceilings=args.ceiling and not outcome.interrupted,
+            more_files=belief_writer(beliefs, maps),
+        )
+    if stopped():
+        raise KeyboardInterrupt
     return Recorded(run_dir, outcome, summary, comparison, beliefs)
 
 

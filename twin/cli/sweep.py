@@ -42,6 +42,12 @@ def add_parser(subparsers) -> None:
     p.add_argument(
         "--address", default=None, help="Ray cluster address (default: start a local Ray)"
     )
+    p.add_argument(
+        "--max-memory-gb",
+        type=float,
+        default=None,
+        help="refuse more --workers than this memory holds (default $TWIN_MAX_MEMORY_GB or 8)",
+    )
     p.add_argument("--no-report", action="store_true", help="skip the HTML/Markdown report")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=main)
@@ -51,6 +57,7 @@ def main(args: argparse.Namespace) -> int:
     from twin.boundary import hold_notices, notify, set_run_folder
     from twin.cli import check_count
     from twin.errors import UserError
+    from twin.experiment import check_workers_fit, memory_limit_gb
     from twin.metrics import format_table2
     from twin.outputs import check_output_dir
     from twin.resources import check_cache, shipped_config
@@ -59,6 +66,9 @@ def main(args: argparse.Namespace) -> int:
 
     hold_notices()  # printed once the cells start; a refusal is one line
     check_count("--workers", args.workers)
+    if args.workers is not None:  # each worker runs a cell: an interpreter and its simulator
+        check_workers_fit(args.workers, args.workers, memory_limit_gb(args.max_memory_gb),
+                          "sweep cells")  # fmt: skip
     if args.address and args.executor != "ray":
         raise UserError("--address is for --executor ray")
     config = load_sweep_config(shipped_config(args.config))

@@ -32,6 +32,9 @@ def add_parser(subparsers) -> None:
                    help=f"tasks at once: tapes, rows, cells (default: CPU count, here "
                    f"{os.cpu_count()}); 1 runs them one after another in this process")  # fmt: skip
     p.add_argument("--address", default=None, help="Ray cluster address (default: a local Ray)")
+    p.add_argument("--max-memory-gb", type=float, default=None,
+                   help="refuse more --workers than this memory holds (default "
+                   "$TWIN_MAX_MEMORY_GB or 8)")  # fmt: skip
     p.add_argument("--quiet", action="store_true", help="no progress")
     p.set_defaults(func=main)
 
@@ -40,12 +43,16 @@ def main(args: argparse.Namespace) -> int:
     from twin.boundary import set_run_folder
     from twin.cli import check_count
     from twin.errors import UserError
+    from twin.experiment import check_workers_fit, memory_limit_gb
     from twin.outputs import check_output_dir
     from twin.resources import check_cache, shipped_config
     from twin.transfer.config import load_transfer_config
     from twin.transfer.runner import check_transfer_folder, run_transfer
 
     check_count("--workers", args.workers)
+    if args.workers is not None:  # each worker runs a task: an interpreter and its simulator
+        check_workers_fit(args.workers, args.workers, memory_limit_gb(args.max_memory_gb),
+                          "tasks")  # fmt: skip
     if args.address and args.executor != "ray":
         raise UserError("--address is for --executor ray")
     config = load_transfer_config(shipped_config(args.config or DEFAULT_CONFIG))

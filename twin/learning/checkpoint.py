@@ -119,6 +119,14 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
         )
     for part in ("weights", "target"):
         for name, value in (blob.get(part) or {}).items():
+            if isinstance(value, torch.Tensor) and (
+                not value.is_floating_point() or value.layout != torch.strided
+            ):  # twin writes dense float tensors: integer weights are truncated ones
+                kind = str(value.dtype) if value.layout == torch.strided else str(value.layout)
+                raise UserError(
+                    f"checkpoint {path}: {part} {name!r} are {kind.replace('torch.', '')}, not "
+                    f"the dense floating-point tensors twin writes; {hint}"
+                )
             if isinstance(value, torch.Tensor) and not bool(torch.isfinite(value).all()):
                 raise UserError(
                     f"checkpoint {path}: {part} {name!r} holds non-finite values (NaN or inf: "
@@ -187,8 +195,9 @@ def load_qnet(path: str | Path):
 
 
 def _check_finite_q(net, size: int, path) -> None:
-    """The network's Q-values are finite on states in [0, 1] (eq. (s)'s values): weights that
-    are finite but huge overflow to inf or NaN, and the argmax then picks no action at all."""
+    """The network's Q-values are finite on states in [0, 1] (eq. (s)'s values) and tell the
+    actions apart: weights that are finite but huge overflow to inf or NaN, and the argmax then
+    picks no action at all."""
     generator = torch.Generator().manual_seed(0)
     states = torch.cat([torch.zeros(1, size), torch.ones(1, size),
                         torch.rand(62, size, generator=generator)])  # fmt: skip
@@ -201,6 +210,14 @@ def _check_finite_q(net, size: int, path) -> None:
             f"checkpoint {path}: its Q-values overflow to inf or NaN on states in [0, 1] "
             f"(weights up to {biggest:.3g}: a diverged training); re-create it with `twin "
             "pretrain` or point to another checkpoint"
+        )
+    if not bool((q != q[:, :1]).any()):
+        # finite Q-values can still be useless: an output bias of 1e30 swallows every
+        # difference in float32, and the argmax then always picks the first action
+        raise UserError(
+            f"checkpoint {path}: its Q-values are equal for every action on every probe state "
+            f"(Q = {float(q[0, 0]):.3g}: the network cannot choose a move); re-create it with "
+            "`twin pretrain` or point to another checkpoint"
         )
 
 

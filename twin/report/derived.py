@@ -952,6 +952,7 @@ def check_tape_maps(primary: Primary) -> None:
             f"replays {given}; {RERUN}"
         )
     check_mfd_files(primary.run_dir, source.model_observed())
+    check_detector_readings(primary, source.mfd_before)
     if primary.first_seed is not None and replays:
         primary.tape_maps[primary.first_seed] = np.stack(replays)
 
@@ -1216,6 +1217,72 @@ def check_mfd_files(run_dir: Path, model) -> None:
             want = _json_text(report.get("rejected_fit"))
             raise UserError(
                 f"{run_dir / 'mfd.json'}: rejected_fit = {have}, but {replay} {want}; {RERUN}"
+            )
+
+
+#: What a fixed detector's reading can be: its columns' ranges in ``detectors.parquet``.
+READING_RANGES = {
+    "vehicles": (0.0, np.inf, "a count of vehicles, at least 0"),
+    # SUMO's own interval occupancy dips slightly below 0 at times: only its top is checked
+    "occupancy_pct": (-np.inf, 100.0, "a share of time in %, at most 100"),
+    "speed": (0.0, np.inf, "a speed in m/s, at least 0 (NaN: no vehicle)"),
+}
+#: A detector's fields, the same in each of its readings.
+DETECTOR_FIELDS = ("kind", "virtual", "lane", "i", "j")
+
+
+def check_detector_readings(primary: Primary, mfd_before: dict[int, Any]) -> None:
+    """``detectors.parquet``'s first-seed readings: in their ranges, each detector in one
+    place, and each importance the MFD in effect at its step (the tape's replay,
+    ``mfd_before``) of its occupancy, as the run computed it; a history learns the stations'
+    biases from them."""
+    from twin.mfd import density_from_occupancy
+
+    path = primary.run_dir / "detectors.parquet"
+    if not path.is_file():
+        return
+    from twin.readback import read_table
+
+    rows = read_table(path, {"seed": "int", "step": "int", "i": "int", "j": "int",
+                             "importance": "finite", "occupancy_pct": "number",
+                             "vehicles": "number", "speed": "number"})  # fmt: skip
+    for column, (low, high, what) in READING_RANGES.items():
+        value = rows[column].to_numpy(dtype=float)
+        bad = (value < low) | (value > high) | (np.isnan(value) & (column != "speed"))
+        if bad.any():
+            n = int(np.flatnonzero(bad)[0])
+            raise UserError(
+                f"{path}: row {n} has {column} = {_show(value[n])}, not {what}; {RERUN}"
+            )
+    nx, ny = primary.obstacles.shape
+    i, j = rows["i"].to_numpy(), rows["j"].to_numpy()
+    off = (i < 0) | (i >= nx) | (j < 0) | (j >= ny)
+    off |= ~off & primary.obstacles[i.clip(0, nx - 1), j.clip(0, ny - 1)]
+    if off.any():
+        n = int(np.flatnonzero(off)[0])
+        raise UserError(
+            f"{path}: seed {rows['seed'].iloc[n]}, step {rows['step'].iloc[n]}: a reading at "
+            f"cell ({i[n]}, {j[n]}) is off the {nx} x {ny} grid's free cells; {RERUN}"
+        )
+    for column in (c for c in DETECTOR_FIELDS if c in rows.columns and "detector" in rows.columns):
+        spread = rows.groupby("detector", observed=True)[column].nunique(dropna=False)
+        if (spread > 1).any():
+            name = spread.index[int(np.flatnonzero(spread.to_numpy() > 1)[0])]
+            raise UserError(
+                f"{path}: detector {str(name)!r} has more than one {column} among its "
+                f"readings; {RERUN}"
+            )
+    mine = rows[rows["seed"] == primary.first_seed]
+    for k, occ, imp in mine[["step", "occupancy_pct", "importance"]].itertuples(index=False):
+        mfd = mfd_before.get(int(k))
+        if mfd is None:
+            raise UserError(f"{path}: a reading at step {k}, which tape.parquet lacks; {RERUN}")
+        want = float(mfd.importance(density_from_occupancy(np.array([occ])))[0])
+        if abs(want - imp) > 1e-9 + 1e-6 * abs(want):
+            raise UserError(
+                f"{path}: seed {primary.first_seed}, step {k}: importance = {_show(imp, want)} "
+                f"for occupancy {occ:g} %, but the MFD in effect at that step (tape.parquet "
+                f"replayed) gives {_show(want, imp)}; {RERUN}"
             )
 
 

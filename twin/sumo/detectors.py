@@ -22,7 +22,7 @@ its file's period; its reading is passed on only when the interval changed (the 
 differs from the previous one), so a period longer than a step gives fewer readings, never the
 same one twice (an interval that repeats the previous one exactly is lost, which happens
 mostly when nothing passes). Density from occupancy, ``k = occ / L`` with ``L`` the effective
-vehicle length (:data:`VEHICLE_LENGTH_M`), per lane-km as the cells' density, then the
+vehicle length (:data:`twin.mfd.VEHICLE_LENGTH_M`), per lane-km as the cells' density, then the
 importance of :class:`twin.mfd.MFD` in effect at that step (the same mapping as the cells').
 """
 
@@ -38,9 +38,6 @@ from twin.errors import UserError
 
 #: Prefix of the ids of the loops twin places (told apart from the scenario's own).
 VIRTUAL_PREFIX = "twin-loop-"
-#: Effective vehicle length (m) in ``density = occupancy / length``: SUMO's default passenger
-#: car (5 m) seen by a point loop.
-VEHICLE_LENGTH_M = 5.0
 LOOP = "loop"
 AREA = "area"
 
@@ -250,8 +247,3 @@ class DetectorReader:
             count, occupancy, speed = reading
             rows.append((n, count, occupancy, speed if speed >= 0 else float("nan")))
         return rows
-
-
-def density_from_occupancy(occupancy_pct: np.ndarray) -> np.ndarray:
-    """Vehicles per lane-km from a detector's occupancy (%): ``k = occ / L``."""
-    return np.asarray(occupancy_pct, dtype=float) / 100.0 * 1000.0 / VEHICLE_LENGTH_M

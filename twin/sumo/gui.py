@@ -252,7 +252,14 @@ def check_settings(settings: GuiSettings, available: Sequence[str]) -> None:
 def display(flag: str = "--gui") -> Iterator[str]:
     """A display for sumo-gui: ``$DISPLAY`` if set, else an Xvfb started here (stopped on exit)."""
     if os.environ.get("DISPLAY"):
-        yield os.environ["DISPLAY"]
+        given = os.environ["DISPLAY"]
+        if not display_answers(given):  # sumo-gui would retry for a minute, in 180 lines
+            raise UserError(
+                f"{flag}: the display DISPLAY={given} does not answer (an X server gone, as "
+                "after an ssh -X session ended); unset DISPLAY to draw off-screen, or set it to "
+                "a running X server"
+            )
+        yield given
         return
     xvfb = shutil.which("Xvfb")
     if xvfb is None:
@@ -285,6 +292,31 @@ def display(flag: str = "--gui") -> Iterator[str]:
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait()
+
+
+def display_answers(name: str, timeout_s: float = 3.0) -> bool:
+    """Whether the X display ``name`` (``:0``, ``unix:1``, ``host:10.0``) accepts a
+    connection: its local socket ``/tmp/.X11-unix/X<n>`` (or abstract socket), else TCP port
+    ``6000 + n`` of its host."""
+    import re
+    import socket
+
+    found = re.fullmatch(r"(?P<host>[^:]*):(?P<n>\d+)(?:\.\d+)?", name.strip())
+    if found is None:
+        return False
+    host, n = found["host"], int(found["n"])
+    if host in ("", "unix"):
+        for address in (f"/tmp/.X11-unix/X{n}", f"\0/tmp/.X11-unix/X{n}"):
+            with contextlib.suppress(OSError), socket.socket(socket.AF_UNIX) as sock:
+                sock.settimeout(timeout_s)
+                sock.connect(address)
+                return True
+        if host == "unix":
+            return False
+        host = "localhost"
+    with contextlib.suppress(OSError), socket.create_connection((host, 6000 + n), timeout_s):
+        return True
+    return False
 
 
 def importance_rgba(value: float) -> tuple[int, int, int, int]:

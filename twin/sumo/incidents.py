@@ -109,7 +109,8 @@ def edge_cells(shape: np.ndarray, geometry) -> set[tuple[int, int]]:
 
 def check_incidents(incidents: list[Any], scenario, geometry, where: str = "") -> list[str]:
     """Refuse (one line) an incident outside the scenario's simulated window (warm-up
-    included) or over before its first step ``T^0``, on a cell off the grid or without a road, on an edge or lane the network lacks;
+    included) or over before its first step ``T^0``, on a cell off the grid or without a road,
+    on an edge or lane the network lacks, a stopped vehicle in the mesoscopic model;
     return notices for incidents that overlap in time on one edge or cell (they are applied
     together: a lane reopens when the last incident closing it lifts)."""
     prefix = f"{where}: " if where else ""
@@ -118,6 +119,12 @@ def check_incidents(incidents: list[Any], scenario, geometry, where: str = "") -
     places = []
     for n, inc in enumerate(incidents):
         field = f"{prefix}[traffic].incidents[{n}]"
+        if inc.kind == "vehicle_stopped" and scenario.mesoscopic:
+            raise UserError(
+                f'{field}.kind = "vehicle_stopped" with SUMO\'s mesoscopic model (--meso, or the '
+                "sumocfg's mesosim), whose queues a stopped vehicle does not block; run it "
+                'microscopic, or close the edge or a lane instead (kind = "edge_closed")'
+            )
         begin, end = incident_window(inc, n, scenario.begin_s, scenario.step_s)
         if not lo - 1e-6 <= begin < hi - 1e-6:  # (step times carry rounding errors)
             given = f"begin = {inc.begin!r}" if inc.begin is not None else f"step = {inc.step}"

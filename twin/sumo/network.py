@@ -19,6 +19,7 @@ from typing import Any
 
 from twin import resources
 from twin.errors import UserError
+from twin.files import read_record
 from twin.sumo.readers import missing, root_tag
 from twin.sumo.tools import binary, run_sumo_program
 
@@ -139,7 +140,7 @@ def build_named_network(name: str, force: bool = False, progress: bool = False) 
     def verify(out: Path) -> None:
         resources.check_xml_files(out, {f"{name}.net.xml": "net", f"{name}.trips.xml": "routes"})
         try:
-            stamp = json.loads((out / "build.json").read_text())
+            stamp = json.loads(read_record(out / "build.json"))
         except (OSError, ValueError) as exc:
             raise resources.BrokenEntry("build.json is missing or not JSON") from exc
         if not isinstance(stamp, dict) or stamp.get("spec_hash") != digest:
@@ -270,10 +271,10 @@ def import_osm(osm_file: Path, out_dir: Path | None = None) -> Path:
         raise missing(osm_file, "OSM file")
     name = osm_file.name.split(".")[0] + ".net.xml"
 
-    def make(out: Path) -> None:
+    def make(out: Path, file_name: str = name) -> None:
         run_sumo_program(
-            [binary("netconvert"), "--osm-files", str(osm_file), "--output-file", str(out / name),
-             *OSM_OPTIONS, "--no-warnings", "true"],
+            [binary("netconvert"), "--osm-files", str(osm_file), "--output-file",
+             str(out / file_name), *OSM_OPTIONS, "--no-warnings", "true"],
             what=f"netconvert on {osm_file}",
         )  # fmt: skip
 
@@ -281,9 +282,20 @@ def import_osm(osm_file: Path, out_dir: Path | None = None) -> Path:
         verify = lambda d: resources.check_xml_files(d, {name: "net"})  # noqa: E731
         return resources.build_once(imported_dir(osm_file), make, verify=verify) / name
     out_dir = Path(out_dir)
+    target = out_dir / name
+    if target.exists() or target.is_symlink():
+        raise UserError(
+            f"--out {out_dir}: {name} exists there; twin never overwrites a file: give "
+            "another folder, or move that file away"
+        )
     out_dir.mkdir(parents=True, exist_ok=True)
-    make(out_dir)
-    return out_dir / name
+    partial = f".{name}.tmp"  # a failed conversion leaves no half network under the name
+    try:
+        make(out_dir, partial)
+        (out_dir / partial).replace(target)
+    finally:
+        (out_dir / partial).unlink(missing_ok=True)
+    return target
 
 
 def check_net_file(net_file: Path) -> None:

@@ -13,7 +13,11 @@ into its run folder, so when it starts SUMO it
 - loads, instead of an additional file that writes outputs, a copy in the output folder whose
   outputs point into that folder and whose other relative paths (``<include href>``, a
   rerouter's definitions, images) are made absolute so they resolve as before (the same for a
-  route file whose device parameters name files).
+  route file whose device parameters name files, and a network whose traffic lights' programs
+  do: an actuated light's detector ``file``).
+
+A file that declares entities in its own DTD is loaded as such a copy too, its entities
+expanded: SUMO's program reads them, libsumo does not.
 
 An output the sumocfg sends to ``stdout`` or ``stderr`` (``-``) goes to ``RUN/sumo/<option>.xml``
 instead (listed in run.json's ``traffic.sumo_outputs``): twin's tables and its one-line
@@ -85,6 +89,12 @@ DEVICE_OUTPUTS = frozenset(
         "device.taxi.dispatch-algorithm.output", "device.taxi.idle-algorithm.output",
     )
 )  # fmt: skip
+#: Parameters of a traffic light's program (``<tlLogic>`` of a network or an additional file)
+#: that name output files: an actuated, delay-based or NEMA light's detector output.
+PROGRAM_OUTPUTS = frozenset(("file",))
+#: An entity declared in a file's own DTD (``<!DOCTYPE routes [<!ENTITY e "...">]>``), which
+#: libsumo cannot read: the file is loaded as a copy with its entities expanded.
+ENTITY = b"<!ENTITY"
 #: Attributes of additional files that name input files (made absolute in a rewritten copy).
 INPUT_ATTRIBUTES = ("href", "file", "imgFile", "osgFile")
 
@@ -112,6 +122,7 @@ class OutputPlan:
         self.ssm_devices = False
 
     def _fresh(self, name: str) -> Path:
+        name = literal(name)
         stem, dot, suffix = name.partition(".")
         for n in itertools.count(1):
             candidate = name if n == 1 else f"{stem}-{n}{dot}{suffix}"
@@ -140,11 +151,22 @@ class OutputPlan:
                 tree = ET.parse(fh)
         except (ET.ParseError, OSError, EOFError):
             return path  # SUMO will say what is wrong with it
-        root, base, changed = tree.getroot(), path.parent, False
+        # entities declared in the file's own DTD: SUMO's program expands them, libsumo
+        # refuses them ("entity not found"); the copy holds them expanded
+        root, base, changed = tree.getroot(), path.parent, may_hold(path, ENTITY)
+        program_outputs = {
+            id(param)
+            for program in root.iter()
+            if local_name(program) == "tlLogic"
+            for param in program
+            if local_name(param) == "param" and param.get("key") in PROGRAM_OUTPUTS
+        }
         for elem in root.iter():
             tag = local_name(elem)
             attr = OUTPUT_ELEMENTS.get(tag)
-            if tag == "param" and elem.get("key") in DEVICE_OUTPUTS:
+            if tag == "param" and (
+                elem.get("key") in DEVICE_OUTPUTS or id(elem) in program_outputs
+            ):
                 attr = "value"
             if tag == "param" and _names_ssm(elem.get("key")):
                 self.ssm_devices = True
@@ -179,13 +201,23 @@ class OutputPlan:
             self.copies[path] = copy
         return self.copies[path]
 
+    def network(self, path: Path) -> Path:
+        """``path``, or a rewritten copy in ``out_dir`` if a traffic light's program in it names
+        an output file (:data:`PROGRAM_OUTPUTS`). A network is parsed only when its bytes hold
+        both ``tlLogic`` and ``param``."""
+        if may_hold(path, ENTITY) or (
+            may_hold(path, b"tlLogic") and may_hold(path, b"param") and _program_output(path)
+        ):
+            return self.additional(path)
+        return path
+
     def routes(self, path: Path) -> Path:
         """``path``, or a rewritten copy in ``out_dir`` if device parameters in it or in a file
         it includes name output files. Route files may be large: one is parsed only when its
         bytes, or an included file's, hold ``param`` (an element's name is never a character
         reference), or always when its encoding is not ASCII-compatible (UTF-16, UTF-32)."""
         for file in (path, *included_files(path)):
-            if may_hold(file, b"param"):
+            if may_hold(file, b"param") or may_hold(file, ENTITY):
                 return self.additional(path)
         return path
 
@@ -201,6 +233,31 @@ class OutputPlan:
         return (*options, "--device.ssm.file", str(self.target(self.out_dir / "ssm.xml")))
 
 
+def _program_output(path: Path) -> bool:
+    """Whether a traffic light's program in the XML file ``path`` names an output file, read
+    as a stream (a network may be large)."""
+    program = 0
+    try:
+        with open_xml(path) as fh:
+            for event, elem in ET.iterparse(fh, events=("start", "end")):
+                tag = local_name(elem)
+                if tag == "tlLogic":
+                    program += 1 if event == "start" else -1
+                elif (
+                    event == "start"
+                    and program
+                    and tag == "param"
+                    and elem.get("key") in PROGRAM_OUTPUTS
+                    and _is_file(elem.get("value", ""))
+                ):
+                    return True
+                if event == "end" and not program:
+                    elem.clear()
+    except (ET.ParseError, OSError, EOFError):
+        return False  # SUMO will say what is wrong with it
+    return False
+
+
 def _names_ssm(key: str | None) -> bool:
     """A device parameter that may equip SSM devices (``has.ssm.device``, ``device.ssm.*``)."""
     return bool(key) and (key == "has.ssm.device" or key.startswith("device.ssm."))
@@ -209,7 +266,14 @@ def _names_ssm(key: str | None) -> bool:
 def name_part(value: str) -> str:
     """The part of an ``output-prefix`` (``output-suffix``) that names files, without its folders
     (SUMO splits at the last ``/`` or ``\\``): ``../escape_`` -> ``escape_``."""
-    return re.split(r"[\\/]", value)[-1]
+    return literal(re.split(r"[\\/]", value)[-1])
+
+
+def literal(name: str) -> str:
+    """A file name SUMO reads as it is: ``$`` (SUMO substitutes ``${NAME}`` on the command
+    line too, :func:`twin.sumo.readers.substitute_environment`) and ``,`` (a list of files)
+    replaced by ``_``."""
+    return name.replace("$", "_").replace(",", "_")
 
 
 def _absolute(path: Path) -> Path:

@@ -7,12 +7,15 @@ import errno
 import gzip
 import math
 import os
+import re
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import IO
 
 from twin.errors import UserError
+from twin.files import not_a_file
 from twin.sumo.options import canonical
 
 
@@ -34,8 +37,10 @@ def link_loop(path: Path, named_in: Path | None = None) -> str:
 
 
 def resolved(path: Path, named_in: Path | None = None) -> Path:
-    """``path`` made absolute, its links followed; a symbolic link loop is a one-line error
-    (``named_in``: the config that names the file)."""
+    """``path`` made absolute, its links followed; a symbolic link loop, a pipe or a device
+    is a one-line error (``named_in``: the config that names the file)."""
+    if not Path(path).is_dir():
+        check_regular(path)
     try:
         return Path(path).resolve()
     except (RuntimeError, OSError) as exc:  # Python 3.11 raises RuntimeError for a loop
@@ -59,12 +64,21 @@ def local_name(elem: ET.Element) -> str:
     return tag.rpartition("}")[2] if isinstance(tag, str) else ""
 
 
+def check_regular(path: Path) -> None:
+    """One line for a SUMO file given as a pipe or a device (``<(cat a.sumocfg)``, a FIFO):
+    SUMO reads its files more than once and by name, not as streams."""
+    why = not_a_file(path)
+    if why is not None and Path(path).exists():
+        raise UserError(f"{path}: {why} (SUMO reads files, not streams)")
+
+
 def root_tag(path: Path, what: str) -> str:
     """The root element of a SUMO XML file (compressed or not), without its namespace;
     one-line errors."""
     path = Path(path)
     if not path.exists():
         raise missing(path, what)
+    check_regular(path)
     try:
         with open_xml(path) as fh:
             return local_name(next(ET.iterparse(fh, events=("start",)))[1])
@@ -84,6 +98,8 @@ class SumoConfigFile:
     #: every option the file sets (element name -> value, as written), e.g. its outputs
     options: dict[str, str] = field(default_factory=dict)
     path: Path | None = None
+    #: the time of the state its ``load-state`` loads: SUMO starts there, whatever the begin
+    state_time: float | None = None
 
     def files(self) -> list[Path]:
         """The network, route and additional files it names."""
@@ -136,12 +152,33 @@ def parse_time(value: str | None) -> float | None:
 SUMOCFG_ROOTS = ("configuration", "sumoConfiguration")
 
 
+_VARIABLE = re.compile(r"\$\{(.+?)\}")
+
+
+def substitute_environment(value: str) -> str:
+    """An option value as SUMO reads it: ``${NAME}`` replaced by the environment variable
+    (empty when unset), ``${PID}`` by the process id, ``${LOCALTIME}``/``${UTC}`` by the
+    time, and a leading ``~`` (of the value or of a list item) by ``${HOME}``
+    (SUMO's ``StringUtils::substituteEnvironment``)."""
+    if "$" not in value and "~" not in value:
+        return value
+    now = datetime.now(UTC)
+    s = value.replace("${LOCALTIME}", now.astimezone().strftime("%Y-%m-%d-%H-%M-%S.%f"), 1)
+    s = s.replace("${UTC}", now.strftime("%Y-%m-%d-%H-%M-%S.%f"), 1)
+    s = s.replace("${PID}", str(os.getpid()), 1)
+    if s.startswith("~"):
+        s = "${HOME}" + s[1:]
+    s = s.replace(",~", ",${HOME}")
+    return _VARIABLE.sub(lambda m: os.environ.get(m.group(1), ""), s)
+
+
 def sumocfg_options(root: ET.Element) -> tuple[dict[str, str], dict[str, str]]:
     """The options a SUMO config sets, as SUMO reads them: any element with a ``value``
     attribute (or its short form ``v``) or, without children, a text, whether in a section
     (``<input><net-file value="..."/></input>``) or right under the root, named by any of
     SUMO's synonyms (:func:`twin.sumo.options.canonical`): canonical name -> value (the last
-    one wins, as in SUMO), and canonical name -> the name the config wrote."""
+    one wins, as in SUMO; environment variables substituted, :func:`substitute_environment`),
+    and canonical name -> the name the config wrote."""
     options: dict[str, str] = {}
     written: dict[str, str] = {}
     for elem in root.iter():
@@ -152,7 +189,7 @@ def sumocfg_options(root: ET.Element) -> tuple[dict[str, str], dict[str, str]]:
         if value is None and len(elem) == 0 and elem.text is not None and elem.text.strip():
             value = elem.text.strip()
         if value is not None:
-            options[canonical(name)] = value
+            options[canonical(name)] = substitute_environment(value)
             written[canonical(name)] = name
     return options, written
 
@@ -170,6 +207,7 @@ def read_sumocfg(path: Path, own_net: bool = True) -> SumoConfigFile:
     them), its ``<time>`` window, if it gives one, and all its options. Without ``own_net``
     (a network given besides it replaces its own, as with ``sumo -c ... -n``) its
     ``<net-file>`` is not checked."""
+    check_regular(path)
     path = resolved(path) if Path(path).exists() else Path(path)
     tag = root_tag(path, "SUMO config")
     if tag not in SUMOCFG_ROOTS:
@@ -213,8 +251,8 @@ def read_sumocfg(path: Path, own_net: bool = True) -> SumoConfigFile:
                 f"{path}: <{written[name]} value={options[name]!r}> makes SUMO write that file "
                 "and quit instead of simulating; remove it (twin runs the simulation)"
             )
-    for name in _WAIT_FOR_CLIENT:
-        if options.get(name):
+    for name in _WAIT_FOR_CLIENT:  # a port of 0 (SUMO's default) opens no server
+        if options.get(name, "").strip() not in ("", "0"):
             raise UserError(
                 f"{path}: <{written[name]} value={options[name]!r}> makes SUMO wait for a TraCI "
                 "client instead of simulating; remove it (twin drives SUMO itself)"
@@ -259,6 +297,15 @@ def read_sumocfg(path: Path, own_net: bool = True) -> SumoConfigFile:
             f"{path}: <{written['end']} value={value('end')!r}> is not after "
             f"<{written['begin']} value={value('begin')!r}>; give an end after the begin"
         )
+    states = file_list(value("load-state"), path.parent, path)
+    state = saved_state_time(states[0], path) if states else None
+    if state is not None and (window[0] is None or window[0] < state):
+        window[0] = state  # SUMO's clock starts at the state's time
+        if window[1] is not None and window[1] <= state:
+            raise UserError(
+                f"{path}: <{written['end']} value={value('end')!r}> is not after the time "
+                f"{state:g} s of the state its <{written['load-state']}> loads; give a later end"
+            )
     return SumoConfigFile(
         net=net[0],
         routes=file_list(value("route-files"), path.parent, path),
@@ -267,7 +314,33 @@ def read_sumocfg(path: Path, own_net: bool = True) -> SumoConfigFile:
         end=window[1],
         options=options,
         path=path,
+        state_time=state,
     )
+
+
+def saved_state_time(path: Path, named_in: Path) -> float:
+    """The time of a state SUMO saved (``--save-state.files``): its root's ``time``; a binary
+    state (``.sbx``), which twin cannot read, is a one-line error."""
+    where = f"{path} (named in {named_in}'s load-state)"
+    if path.name.endswith(".sbx"):
+        raise UserError(
+            f"{where}: a binary saved state, whose time twin cannot read; save the state as XML "
+            "(--save-state.suffix .xml) and load that"
+        )
+    if not path.is_file():
+        raise UserError(f"{where}: {'does not exist' if not path.exists() else 'not a file'}")
+    try:
+        with open_xml(path) as fh:
+            root = next(ET.iterparse(fh, events=("start",)))[1]
+    except (ET.ParseError, OSError, EOFError, StopIteration) as exc:
+        raise UserError(f"{where}: not valid XML ({exc or 'empty file'})") from None
+    t = parse_time(root.get("time"))
+    if local_name(root) != "snapshot" or t is None or t < 0:
+        raise UserError(
+            f"{where}: not a state SUMO saved (a <snapshot> with its time); give the file "
+            "SUMO's --save-state.files wrote"
+        )
+    return t
 
 
 #: Elements that put vehicles on the road, and the attribute of their departure.

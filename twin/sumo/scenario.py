@@ -227,6 +227,7 @@ class _ScenarioFiles:
     listed_as: dict[str, list[Path]] = field(default_factory=dict)
     window: list[float | None] = field(default_factory=lambda: [None, None])  # <time> of it
     span: tuple[float, float] | None = None  # first and last departure of the given demand
+    state_time: float | None = None  # the time of the state the sumocfg loads: SUMO starts there
 
     @property
     def own_window(self) -> bool:
@@ -234,12 +235,14 @@ class _ScenarioFiles:
         return self.span is not None
 
 
-def _with_inputs(s: SumoSettings, inputs: SumoInputs) -> SumoSettings:
-    """The settings ``s`` with the swapped-in files and flags of ``inputs`` applied."""
+def _with_inputs(s: SumoSettings, inputs: SumoInputs, keep_end: bool = False) -> SumoSettings:
+    """The settings ``s`` with the swapped-in files and flags of ``inputs`` applied (a
+    shipped config's ``end`` is its own network's; the user's own config's, ``keep_end``,
+    holds for any)."""
     if inputs.net or inputs.sumocfg or inputs.osm:
         s.network, s.net, s.sumocfg, s.osm = None, None, None, None
         s.routes, s.additional = [], []
-        s.end = None
+        s.end = s.end if keep_end else None
     s.net = str(inputs.net) if inputs.net else s.net
     s.sumocfg = str(inputs.sumocfg) if inputs.sumocfg else s.sumocfg
     s.osm = str(inputs.osm) if inputs.osm else s.osm
@@ -310,6 +313,7 @@ def _scenario_files(s: SumoSettings) -> _ScenarioFiles:
                 "additional": list(cfg.additional),
             },
             window=[cfg.begin, cfg.end],
+            state_time=cfg.state_time,
         )
     elif s.osm:
         osm_path = Path(s.osm)
@@ -393,22 +397,32 @@ def _time_window(
         window = [w0, w1]
         if not begin_given:
             if w1 - w0 < warmup + step_s:  # too short for the warm-up: half of it warms up
-                short = max(0.0, (w1 - w0) / 2)
+                short = max(0.0, float(math.floor((w1 - w0) / 2)))
                 notice(
                     f"{files.name}: the scenario's window {clock_label(w0)} - {clock_label(w1)} "
                     f"is shorter than the {warmup / 60:g} min warm-up plus a step; warm-up cut "
                     f"to {short / 60:.1f} min"
                 )
                 warmup = short
-            begin = w0 + warmup
+            # T^0 on a whole second (a window's begin may be fractional): the tape's clock
+            # labels, SUMO's begin and the read instants all fall on whole seconds
+            begin = float(math.ceil(w0 + warmup - 1e-9))
         if not horizon_given:
             s.horizon = max(1, int((w1 - begin) / step_s + 1e-9))
-    if begin < warmup:
+    if files.state_time is not None and begin - warmup < files.state_time - 1e-9:
         raise UserError(
-            f"{begin_where} = {clock_label(begin)}: the {warmup / 60:g} min warm-up "
-            f"([traffic].warmup_min) would start SUMO before 00:00, which SUMO refuses; give a "
-            f"begin of at least {clock_label(warmup)} or a shorter warm-up"
+            f"{begin_where} = {clock_label(begin)}: {files.name} loads a state saved at "
+            f"{clock_label(files.state_time)}, where SUMO starts; with the "
+            f"{warmup / 60:g} min warm-up give a begin of at least "
+            f"{clock_label(files.state_time + warmup)}"
         )
+    if begin < warmup:  # as for a window too short for it: SUMO starts at 00:00
+        notice(
+            f"{begin_where} = {clock_label(begin)}: the {warmup / 60:g} min warm-up "
+            f"([traffic].warmup_min) would start SUMO before 00:00; warm-up cut to "
+            f"{begin / 60:.1f} min"
+        )
+        warmup = begin
     return begin, warmup, window
 
 
@@ -422,17 +436,20 @@ def _grid_and_notices(
     step_s: float,
     window_given: bool,
     begin_given: bool = True,
+    own_config: bool = False,
 ):
     """The grid over the network's lanes (the config's ``[grid]`` shape and obstacles for the
-    configured network), and the notices of a grid too small for the drones or a run that
-    outlasts the demand."""  # fmt: skip
+    configured network, or for any network with the user's ``own_config``), and the notices
+    of a grid too small for the drones or a run that outlasts the demand."""  # fmt: skip
     from twin.sumo.cells import grid_over
 
     # The grid: derived from the bounding box, or the config's [grid] nx, ny if it gives them
-    # (for the configured network only; a swapped-in network gets its own grid).
+    # (a shipped config's for its own network only: a swapped-in network gets its own grid;
+    # the user's own config's for any, like its begin and horizon).
     shape = None
     cell_flag = config.flag_of("traffic.cell_m")
-    if not (inputs.net or inputs.sumocfg or inputs.osm or cell_flag):
+    swapped = bool(inputs.net or inputs.sumocfg or inputs.osm)
+    if not cell_flag and (own_config or not swapped):
         shape = config.explicit_shape()  # set in the file or by an override
     where = f"{cell_flag} {s.cell_m:g}" if cell_flag else f"{config.path}: [grid]"
     geometry = grid_over(lanes, s.cell_m, shape, where=where)
@@ -563,18 +580,18 @@ def sumo_source(
     if given:
         flags = {f"traffic.{k}": flag for k, flag in SETTING_FLAGS.items()}
         config = with_overrides(config, given, {k: flags[k] for k in given})
+    # a begin, end, horizon or grid the user's own config sets holds for files swapped in by
+    # flags too; a shipped config's (the built-in network's rush hour) only for its own network
+    from twin.resources import shipped
+
+    own = not Path(config.path).resolve().is_relative_to(shipped("configs").resolve())
     inputs = SumoInputs(net=net, routes=routes, sumocfg=sumocfg, osm=osm, additional=additional)
-    s = _with_inputs(sumo_settings(config), inputs)
+    s = _with_inputs(sumo_settings(config), inputs, keep_end=own)
     fields = config.traffic.model_fields_set
     swapped = bool(net or sumocfg or osm or routes)
     seed = s.seed if seed is None else seed
     begin_flag = config.flag_of("traffic.begin")
     begin_where = begin_flag or f"{config.path}: [traffic].begin"
-    # a begin or horizon the user's own config sets holds for files swapped in by flags too; a
-    # shipped config's (the built-in network's rush hour) only for its own network
-    from twin.resources import shipped
-
-    own = not Path(config.path).resolve().is_relative_to(shipped("configs").resolve())
     begin_given = begin_flag is not None or ((not swapped or own) and "begin" in fields)
     horizon_given = config.flag_of("traffic.horizon") is not None or (
         (not swapped or own) and "horizon" in fields
@@ -582,7 +599,7 @@ def sumo_source(
     t0 = parse_clock(s.begin, begin_where)
 
     files = _scenario_files(s)
-    if s.end is not None and not swapped:
+    if s.end is not None and (not swapped or own):  # like its begin and horizon
         files.window[1] = parse_clock(s.end, f"{config.path}: [traffic].end")
         if begin_given and files.window[1] <= t0:
             raise UserError(
@@ -593,12 +610,14 @@ def sumo_source(
         check_net_file(files.net_file)
         lanes = read_lanes(files.net_file)
     step_s = _step_seconds(s, config)
+    warmup = float(math.ceil(s.warmup_min * 60.0 - 1e-9))  # SUMO starts on a whole second
     t0, warmup, window = _time_window(
-        s, files, step_s, t0, s.warmup_min * 60.0, begin_given, horizon_given, begin_where
+        s, files, step_s, t0, warmup, begin_given, horizon_given, begin_where
     )
     geometry, obstacles, notices = _grid_and_notices(
-        s, config, inputs, files, lanes, t0, step_s, begin_given or horizon_given, begin_given
-    )
+        s, config, inputs, files, lanes, t0, step_s, begin_given or horizon_given, begin_given,
+        own_config=own,
+    )  # fmt: skip
     route_files = list(files.route_files)
     if files.span is None and not s.network:  # no demand given: twin generates it
         route_files.append(_generated_demand(s, files, geometry, t0, warmup, step_s, seed))

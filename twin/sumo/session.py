@@ -51,6 +51,8 @@ def gridlock_defaults(sumocfg: Path | None) -> tuple[str, ...]:
     from twin.sumo.readers import read_sumocfg
 
     own = set(read_sumocfg(sumocfg, own_net=False).options)
+    if "load-state" in own:  # the state holds rerouting's speeds: another count crashes SUMO
+        own.add("device.rerouting.adaptation-steps")
     pairs = zip(ANTI_GRIDLOCK_OPTIONS[::2], ANTI_GRIDLOCK_OPTIONS[1::2], strict=True)
     return tuple(part for flag, value in pairs if flag[2:] not in own for part in (flag, value))
 

@@ -28,7 +28,7 @@ from twin.clock import clock_label
 from twin.errors import UserError
 from twin.files import file_sha256
 from twin.grid import Grid
-from twin.mfd import MFD, MFDImportance
+from twin.mfd import MFD, MFDImportance, density_from_occupancy
 from twin.sumo.cells import CellGeometry
 from twin.sumo.detectors import DetectorPlan
 from twin.sumo.incidents import configured_schedule
@@ -129,6 +129,8 @@ class SumoTraffic(TrafficSource):
         self.output_dir: Path | None = None
         #: the output files and rewritten additional files of the last run
         self.outputs: list[Path] = []
+        #: the names of the outputs the scenario's files ask SUMO for (the last run)
+        self.asked_outputs: list[str] = []
         self._copies: dict[Path, Path] = {}  # rewritten additional file -> the user's
         #: the fixed detectors read (:mod:`twin.sumo.detectors`) and their readings per step:
         #: ``(k, detector index, vehicles, occupancy %, mean speed, importance)``
@@ -148,20 +150,31 @@ class SumoTraffic(TrafficSource):
             s.reads_per_step,
         )
 
+    def model_after(self, snapshots: list) -> MFDImportance:
+        """The MFD model as it stood after ``snapshots`` (a run stopped while its SUMO child
+        worked ahead): a fresh model fed them again, as a replay of the tape does."""
+        model = self._model()
+        for k, _, count, speed in snapshots:
+            model.observe(k, count, speed.astype(float))
+        return model
+
     def session(self, output_dir: Path | None = None) -> SumoSession:
         """The SUMO session of a run; with ``output_dir``, the scenario's configured outputs
         (sumocfg options, additional files' detectors ...) are written there
         (:mod:`twin.sumo.outputs`)."""
         s = self.scenario
         options, route_files = tuple(s.sumo_options), list(s.route_files)
+        net_file = s.net_file
         if output_dir is not None:
             from twin.sumo.outputs import redirect_outputs
 
             options, plan = redirect_outputs(s.sumocfg, options, output_dir)
             route_files = [plan.routes(r) for r in route_files]
+            net_file = plan.network(net_file)
             options = plan.device_defaults(options)
             self._copies = {c: o for o, c in plan.copies.items() if c != o}
             self.outputs = [*plan.targets.values(), *self._copies]
+            self.asked_outputs = sorted(p.name for p in plan.targets.values())
             if s.detectors.loops:
                 from twin.sumo.detectors import with_additional, write_loops
 
@@ -171,7 +184,7 @@ class SumoTraffic(TrafficSource):
                 options = with_additional(options, loops)
                 self.outputs.append(loops)
         return SumoSession(
-            net_file=s.net_file,
+            net_file=net_file,
             route_files=route_files,
             begin=s.sim_begin,
             end=s.sim_end + 1.0,
@@ -260,6 +273,14 @@ class SumoTraffic(TrafficSource):
         except BaseException:
             _remove(scratch)
             raise
+        if scratch is not None and self.asked_outputs:
+            from twin.boundary import notify
+
+            notify(
+                f"twin: notice: {s.name}: the outputs its files ask SUMO for ({', '.join(self.asked_outputs[:4])}"
+                f"{' ...' if len(self.asked_outputs) > 4 else ''}) are not kept by this command "
+                "(it keeps no SUMO outputs); `twin run` keeps them in RUN/sumo/"
+            )
         timer.add(SUMO_WARMUP, clock() - t_start)
         reader = None
         self.detector_readings = []
@@ -333,8 +354,6 @@ class SumoTraffic(TrafficSource):
     def _read_detectors(self, reader, k: int) -> None:
         """Step ``k``'s new detector readings, their importance by the MFD in effect (the one
         that observes this step's snapshot)."""
-        from twin.sumo.detectors import density_from_occupancy
-
         rows = reader.read()
         if rows:
             occupancy = np.array([r[2] for r in rows])

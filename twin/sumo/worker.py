@@ -22,8 +22,10 @@ import contextlib
 import multiprocessing
 import os
 import pickle
-import signal
+import shutil
+import tempfile
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
@@ -41,6 +43,8 @@ class WorksAhead(Protocol):
     detector_readings: list
     error: str | None
     model: Any
+    scenario: Any
+    output_dir: Path | None  # SUMO's output folder in the run folder, if the run has one
     timer: StageTimer
     read_seconds: float
     separate_process: bool
@@ -56,14 +60,18 @@ class WorksAhead(Protocol):
 
     def close_deferred(self) -> None: ...
 
+    def model_after(self, snapshots: list) -> Any: ...
+
 
 def maps_from_child(source: WorksAhead) -> Iterator[np.ndarray]:
     """The source's maps computed in a forked child process (see the module docstring)."""
     context = multiprocessing.get_context("fork")
     here, there = context.Pipe(duplex=True)
+    messages = _messages_file()  # SUMO's stderr in the child: kept out of twin's lines
     child = context.Process(
-        target=_produce, args=(source, there, os.getpid()), name="twin-sumo", daemon=True
-    )
+        target=_produce, args=(source, there, os.getpid(), messages), name="twin-sumo",
+        daemon=True,
+    )  # fmt: skip
     source.snapshots, source.vehicles_seen, source.error = [], [], None
     source.detector_readings = []
     source.timer, source._truth, source._incidents = StageTimer(), None, None
@@ -87,8 +95,12 @@ def maps_from_child(source: WorksAhead) -> Iterator[np.ndarray]:
                 if message[1] is not None:
                     raise message[1]
                 return
-    except EOFError:  # the child died without a word (killed)
-        source.error = "the SUMO process ended unexpectedly"
+    except EOFError:  # the child died without a word (killed, or SUMO crashed)
+        child.join(timeout=30)
+        kept = _keep_messages(source, messages)
+        source.error = "the SUMO process ended unexpectedly" + (
+            f" (its last words are in {kept})" if kept else ""
+        )
         raise RuntimeError(source.error) from None
     finally:
         if not ended:
@@ -98,6 +110,7 @@ def maps_from_child(source: WorksAhead) -> Iterator[np.ndarray]:
         if child.is_alive():
             child.kill()
             child.join()
+        _keep_messages(source, messages)
 
 
 def _stop(source: WorksAhead, here, child) -> bool:
@@ -119,6 +132,8 @@ def _stop(source: WorksAhead, here, child) -> bool:
         child.kill()
     del source.snapshots[used:]  # one vehicle count per snapshot
     del source.vehicles_seen[used:]
+    if got_end:  # the child's MFD saw snapshots the run never used (sent, or not yet)
+        source.model = source.model_after(source.snapshots)
     last = source.snapshots[-1][0] if source.snapshots else -1
     source.detector_readings[:] = [r for r in source.detector_readings if r[0] <= last]
     return got_end
@@ -134,10 +149,47 @@ def _take_end(source: WorksAhead, message) -> None:
     source.error, source._incidents = error, incidents
 
 
-def _produce(source: WorksAhead, conn, parent: int) -> None:
-    """The child: every map with the snapshots behind it, then ``end``."""
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    exit_with_parent(parent)
+#: SUMO's own messages while it runs (its warnings are off; errors such as a vehicle that
+#: cannot depart), kept in this file of SUMO's output folder instead of twin's stderr.
+MESSAGES_NAME = "sumo-messages.log"
+
+
+def _messages_file() -> Path:
+    """A fresh temporary file for SUMO's messages (the child's stderr)."""
+    fd, name = tempfile.mkstemp(prefix="twin-sumo-", suffix=".log")
+    os.close(fd)
+    return Path(name)
+
+
+def _keep_messages(source: WorksAhead, path: Path) -> Path | None:
+    """SUMO's messages once its process ended: moved to ``RUN/sumo/sumo-messages.log`` when
+    there are any and the run has a folder (the path returned), one notice for its errors;
+    the temporary file is removed. A second call does nothing."""
+    if not path.exists():
+        return None
+    errors, first = 0, ""
+    with contextlib.suppress(OSError), open(path, errors="replace") as fh:
+        for line in fh:
+            if line.startswith("Error:"):
+                errors += 1
+                first = first or line[len("Error:") :].strip()
+    kept = None
+    if path.stat().st_size and source.output_dir is not None:
+        with contextlib.suppress(OSError):
+            Path(source.output_dir).mkdir(parents=True, exist_ok=True)
+            kept = shutil.move(path, Path(source.output_dir) / MESSAGES_NAME)
+    path.unlink(missing_ok=True)
+    _say_sumo_errors(source, errors, first, None if kept is None else str(kept))
+    return None if kept is None else Path(kept)
+
+
+def _produce(source: WorksAhead, conn, parent: int, messages: Path) -> None:
+    """The child: every map with the snapshots behind it, then ``end``; SUMO's messages
+    (this process's stderr) into the file ``messages``."""
+    exit_with_parent(parent, ignore_sigint=True)
+    fd = os.open(messages, os.O_WRONLY | os.O_APPEND)
+    os.dup2(fd, 2)
+    os.close(fd)
     source.separate_process = False
     source.defer_close = True  # SUMO is closed after the end state is sent (below)
     sent_snapshots = sent_seen = sent_readings = 0
@@ -184,6 +236,20 @@ def _produce(source: WorksAhead, conn, parent: int) -> None:
             source.close_deferred()  # SUMO writes out its configured outputs as it closes
         conn.close()
         os._exit(0)  # no atexit handlers of the parent's modules in the child
+
+
+def _say_sumo_errors(source: WorksAhead, errors: int, first: str, kept: str | None) -> None:
+    """One notice for SUMO's errors while it ran (none: nothing said)."""
+    if not errors:
+        return
+    from twin.boundary import notify
+
+    where = f"all in {kept}" if kept else "not kept: the run has no folder"
+    name = source.scenario.name
+    notify(
+        f"twin: notice: {name}: SUMO reported {errors} error{'s' * (errors != 1)} while "
+        f"running, which it did not stop for (first: {first[:160]}); {where}"
+    )
 
 
 def _picklable(exc: BaseException) -> bool:

@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 
 from twin.errors import UserError
-from twin.files import atomic_write
+from twin.files import atomic_write, read_record
 from twin.readback import CELL_SERIES_COLUMNS
 
 if TYPE_CHECKING:
@@ -104,7 +104,7 @@ def _write_manifest(
     history = []
     if path.exists():
         try:
-            history = json.loads(path.read_text(encoding="utf-8"))["invocations"]
+            history = json.loads(read_record(path))["invocations"]
             if not isinstance(history, list):
                 raise TypeError("invocations is not a list")
         except (OSError, ValueError, KeyError, TypeError) as exc:

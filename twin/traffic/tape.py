@@ -562,9 +562,11 @@ class TapeTraffic(TrafficSource):
 
     def importance_maps(self) -> Generator[np.ndarray, None, None]:
         model = self._observer = self.model()
+        self.mfd_before: dict[int, Any] = {}  # the MFD in effect as each step was read
         for step, count, speed in zip(
             self.tape.steps, self.tape.counts, self.tape.speeds, strict=True
         ):
+            self.mfd_before[int(step)] = model.mfd
             importance = model.observe(int(step), count, speed.astype(float))
             if 0 <= step <= self.horizon:
                 yield importance

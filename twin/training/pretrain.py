@@ -53,7 +53,7 @@ from twin.config import (
 )
 from twin.config import load_config as load_scenario
 from twin.errors import UserError
-from twin.files import file_sha256
+from twin.files import file_sha256, not_a_file
 from twin.learning.checkpoint import (
     atomic_save,
     checkpoint_state,
@@ -959,24 +959,33 @@ def write_provenance(cfg: PretrainConfig, out: Path, meta: dict[str, Any]) -> Pa
     return path
 
 
-def load_initial_weights(cfg: PretrainConfig, net: QNetwork) -> None:
-    """The weights of ``cfg.init`` into ``net``; refused (one line) when its state variant or
-    its layers differ."""
+def initial_network(cfg: PretrainConfig) -> QNetwork:
+    """The network of ``cfg.init``; refused (one line) when its state variant or its layers
+    differ from ``cfg``'s, or its weights do not load."""
     meta = read_checkpoint(cfg.init)["meta"]
     state = checkpoint_state(cfg.init, meta).name
+    check_initial_fit(cfg, f"init = {cfg.init}", state, meta.get("layers"))
+    loaded, _ = load_qnet(cfg.init)  # its weights checked against its layers (one line)
+    return loaded
+
+
+def check_initial_fit(cfg: PretrainConfig, where: str, state: str, layers) -> None:
+    """A start (a checkpoint, or a row trained before) reads ``cfg``'s state with its layers."""
     if state != cfg.state:
         raise UserError(
-            f"init = {cfg.init}: it reads state {state!r}, this pretraining state = "
+            f"{where}: it reads state {state!r}, this pretraining state = "
             f'{cfg.state!r}; give a checkpoint of the same state or set `state = "{state}"`'
         )
-    layers = meta.get("layers")
     if layers != list(cfg.layers):
         raise UserError(
-            f"init = {cfg.init}: its layers {layers} differ from `layers` {list(cfg.layers)}; "
+            f"{where}: its layers {layers} differ from `layers` {list(cfg.layers)}; "
             "give a checkpoint of the same network or set `layers` to match"
         )
-    loaded, _ = load_qnet(cfg.init)  # its weights checked against its layers (one line)
-    net.load_state_dict(loaded.state_dict())
+
+
+def load_initial_weights(cfg: PretrainConfig, net: QNetwork) -> None:
+    """The weights of ``cfg.init`` into ``net`` (:func:`initial_network`)."""
+    net.load_state_dict(initial_network(cfg).state_dict())
 
 
 # ----------------------------------------------------------------------------- 6. the curve
@@ -1136,6 +1145,8 @@ def _snapshot_name(entry: Path) -> bool:
 
 
 def _own_log(path: Path) -> bool:
+    if not_a_file(path) is not None:  # a FIFO would block forever
+        return False
     try:
         with open(path, newline="", encoding="utf-8") as f:
             header = next(csv.reader(f), [])

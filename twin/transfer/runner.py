@@ -25,7 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from twin.errors import UserError
-from twin.files import atomic_write
+from twin.files import atomic_write, read_record
 from twin.transfer.config import TransferConfig
 
 #: What a transfer writes into its folder (and the boundary's error.log).
@@ -145,6 +145,40 @@ def row_pretrain_config(config: TransferConfig, row, out: Path, checkpoints: dic
     return with_overrides(PretrainConfig.from_data(config.path, {}), overrides, labels)
 
 
+def check_row_starts(config: TransferConfig) -> None:
+    """Each fine-tuned row's start fits it (state and layers) before any stage runs: a
+    checkpoint file is loaded, a row trained before is compared by its schedule (its tapes
+    are not recorded yet: only the schedule's keys are read)."""
+    from twin.config import with_overrides
+    from twin.learning.checkpoint import checkpoint_state, read_checkpoint
+    from twin.training.pretrain import PretrainConfig, check_initial_fit, initial_network
+    from twin.transfer.config import row_schedule
+
+    def schedule(row, **more: Any):
+        overrides, labels = row_schedule(config, row)
+        return with_overrides(PretrainConfig.from_data(config.path, {}), overrides | more, labels)
+
+    names = {r.name: r for r in config.row}
+    for row in config.row:
+        if row.checkpoint is not None or row.init is None:
+            continue
+        start = names.get(row.init)
+        if start is None:  # a checkpoint file
+            try:
+                initial_network(schedule(row, init=row.init))
+            except UserError as exc:
+                raise UserError(f"{config.path}: [[row]] {row.name}: {exc}") from None
+            continue
+        if start.checkpoint is not None:
+            meta = read_checkpoint(start.checkpoint)["meta"]
+            state, layers = checkpoint_state(start.checkpoint, meta).name, meta.get("layers")
+        else:
+            before = schedule(start)
+            state, layers = before.state, list(before.layers)
+        where = f"{config.path}: [[row]] {row.name}.init = {row.init}"
+        check_initial_fit(schedule(row), where, state, layers)
+
+
 def train_row(task: dict[str, Any]) -> dict[str, Any]:
     """Train one row (a worker task), or reuse its folder when its provenance matches."""
     from twin.experiment import limit_threads
@@ -155,7 +189,7 @@ def train_row(task: dict[str, Any]) -> dict[str, Any]:
     out = Path(cfg.out)
     if not provenance_matches(out, cfg):
         pretrain(cfg, progress=False)
-    return json.loads((out / "provenance.json").read_text())
+    return json.loads(read_record(out / "provenance.json"))
 
 
 def provenance_matches(out: Path, cfg) -> bool:
@@ -166,7 +200,7 @@ def provenance_matches(out: Path, cfg) -> bool:
     if not (path.is_file() and model.is_file()):
         return False
     try:
-        record = json.loads(path.read_text())
+        record = json.loads(read_record(path))
     except (OSError, ValueError):
         return False
     return (
@@ -301,6 +335,7 @@ def run_transfer(
     for row in config.row:  # a checkpoint the rows load is refused before any stage starts
         if row.checkpoint is not None:
             load_qnet(row.checkpoint)
+    check_row_starts(config)
     out.mkdir(parents=True, exist_ok=True)
     out = out.resolve()  # the rows' provenance names files the same from any folder
     timings: dict[str, float] = {}
@@ -339,7 +374,7 @@ def run_transfer(
     atomic_write(out / "matrix.csv", lambda p: matrix.to_csv(p, index=False))
     history = []
     try:  # earlier invocations of this transfer (a resumed run skips what they did)
-        history = json.loads((out / "transfer.json").read_text()).get("invocations", [])
+        history = json.loads(read_record(out / "transfer.json")).get("invocations", [])
     except (OSError, ValueError, AttributeError):
         history = []
     invocation = {
