@@ -2102,3 +2102,18 @@ def test_a_record_of_a_run_folder_that_is_no_file_is_refused_without_blocking(
     assert code == 2 and len(lines) == 1 and "Traceback" not in err, err
     assert name in lines[0] or str(run) in lines[0], err
     assert "memory" not in lines[0], err
+
+
+def test_run_json_records_the_command_line_that_was_run(tmp_path):
+    """`twin.cli.main(argv)` from Python (a notebook, a script) records its own arguments in
+    run.json, not the process's (a notebook kernel's or pytest's were recorded as the command
+    behind the run)."""
+    import json
+    import shlex
+
+    out = tmp_path / "my run"
+    argv = ["evaluate", "--config", str(small_config(tmp_path)), "--swarms", "random",
+            "--out", str(out), "--no-report", "--quiet"]  # fmt: skip
+    assert main(argv) == 0
+    command = json.loads((out / "run.json").read_text())["command"]
+    assert shlex.split(command) == ["twin", *argv]
