@@ -498,12 +498,12 @@ def _grid_and_notices(
                 f"{clock_label(files.span[1])}, plus {clear / 60:.0f} min to clear the "
                 "network): every step would be empty; give a --begin (and --horizon) within it"
             )
-        if end > files.span[1] + clear and not outside:
+        empty = min(s.horizon, int((end - files.span[1] - clear) / step_s))
+        if empty >= 1 and not outside:
             notices.append(
                 f"{files.name}: the run ends at {clock_label(end)}, past the last departure "
                 f"({clock_label(files.span[1])}) plus {clear / 60:.0f} min to clear the network; "
-                f"the last {min(s.horizon, int((end - files.span[1] - clear) / step_s))} steps "
-                "may have no vehicle"
+                f"the last {empty} step{'s' * (empty != 1)} may have no vehicle"
             )
     for text in notices:
         notice(text)
