@@ -398,6 +398,21 @@ CASES = {
         ],
         "--workers 8: 8 worker processes at once need at least 6.4 GB",
     ),
+    "a checkpoint that is a folder": (
+        lambda t: [
+            "evaluate",
+            "--swarms",
+            "rl",
+            "--config",
+            str(
+                _write(
+                    t / "ck.toml",
+                    small_config(t).read_text() + f'\n[swarm_options.rl]\ncheckpoint = "{t}"\n',
+                )
+            ),
+        ],
+        "is a folder, not a file; run `twin pretrain`",
+    ),
     "sweep workers past the memory limit": (
         lambda t: [
             "sweep",
