@@ -394,6 +394,8 @@ def _time_window(
     if files.own_window:
         w0 = files.window[0] if files.window[0] is not None else files.span[0]
         w1 = files.window[1] if files.window[1] is not None else files.span[1]
+        if files.state_time is not None:  # a state saved past the last departure: one step
+            w1 = max(w1, w0 + step_s)
         window = [w0, w1]
         if not begin_given:
             if w1 - w0 < warmup + step_s:  # too short for the warm-up: half of it warms up
@@ -409,13 +411,19 @@ def _time_window(
             begin = float(math.ceil(w0 + warmup - 1e-9))
         if not horizon_given:
             s.horizon = max(1, int((w1 - begin) / step_s + 1e-9))
-    if files.state_time is not None and begin - warmup < files.state_time - 1e-9:
+    if files.state_time is not None and begin < files.state_time - 1e-9:
         raise UserError(
             f"{begin_where} = {clock_label(begin)}: {files.name} loads a state saved at "
-            f"{clock_label(files.state_time)}, where SUMO starts; with the "
-            f"{warmup / 60:g} min warm-up give a begin of at least "
-            f"{clock_label(files.state_time + warmup)}"
+            f"{clock_label(files.state_time)}, where SUMO starts; give a begin of at least "
+            f"{clock_label(files.state_time)}"
         )
+    if files.state_time is not None and begin - warmup < files.state_time - 1e-9:
+        notice(  # as at midnight: the warm-up runs from the state on
+            f"{begin_where} = {clock_label(begin)}: {files.name} loads a state saved at "
+            f"{clock_label(files.state_time)}, where SUMO starts; warm-up cut to "
+            f"{(begin - files.state_time) / 60:.1f} min"
+        )
+        warmup = begin - files.state_time
     if begin < warmup:  # as for a window too short for it: SUMO starts at 00:00
         notice(
             f"{begin_where} = {clock_label(begin)}: the {warmup / 60:g} min warm-up "
