@@ -623,7 +623,7 @@ def sumo_source(
         s, files, step_s, t0, warmup, begin_given, horizon_given, begin_where
     )
     geometry, obstacles, notices = _grid_and_notices(
-        s, config, inputs, files, lanes, t0, step_s, begin_given or horizon_given, begin_given,
+        s, config, inputs, files, lanes, t0, step_s, begin_given or horizon_given or s.end is not None, begin_given,
         own_config=own,
     )  # fmt: skip
     route_files = list(files.route_files)
