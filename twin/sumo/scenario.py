@@ -622,10 +622,10 @@ def sumo_source(
     t0, warmup, window = _time_window(
         s, files, step_s, t0, warmup, begin_given, horizon_given, begin_where
     )
+    window_given = begin_given or horizon_given or s.end is not None
     geometry, obstacles, notices = _grid_and_notices(
-        s, config, inputs, files, lanes, t0, step_s, begin_given or horizon_given or s.end is not None, begin_given,
-        own_config=own,
-    )  # fmt: skip
+        s, config, inputs, files, lanes, t0, step_s, window_given, begin_given, own_config=own
+    )
     route_files = list(files.route_files)
     if files.span is None and not s.network:  # no demand given: twin generates it
         route_files.append(_generated_demand(s, files, geometry, t0, warmup, step_s, seed))
