@@ -398,6 +398,21 @@ CASES = {
         ],
         "--workers 8: 8 worker processes at once need at least 6.4 GB",
     ),
+    "a checkpoint that is a folder": (
+        lambda t: [
+            "evaluate",
+            "--swarms",
+            "rl",
+            "--config",
+            str(
+                _write(
+                    t / "ck.toml",
+                    small_config(t).read_text() + f'\n[swarm_options.rl]\ncheckpoint = "{t}"\n',
+                )
+            ),
+        ],
+        "is a folder, not a file; run `twin pretrain`",
+    ),
     "sweep workers past the memory limit": (
         lambda t: [
             "sweep",
@@ -2102,3 +2117,18 @@ def test_a_record_of_a_run_folder_that_is_no_file_is_refused_without_blocking(
     assert code == 2 and len(lines) == 1 and "Traceback" not in err, err
     assert name in lines[0] or str(run) in lines[0], err
     assert "memory" not in lines[0], err
+
+
+def test_run_json_records_the_command_line_that_was_run(tmp_path):
+    """`twin.cli.main(argv)` from Python (a notebook, a script) records its own arguments in
+    run.json, not the process's (a notebook kernel's or pytest's were recorded as the command
+    behind the run)."""
+    import json
+    import shlex
+
+    out = tmp_path / "my run"
+    argv = ["evaluate", "--config", str(small_config(tmp_path)), "--swarms", "random",
+            "--out", str(out), "--no-report", "--quiet"]  # fmt: skip
+    assert main(argv) == 0
+    command = json.loads((out / "run.json").read_text())["command"]
+    assert shlex.split(command) == ["twin", *argv]

@@ -261,3 +261,27 @@ def test_ctrl_c_while_a_finished_run_is_written_finishes_the_folder(tmp_path, mo
     assert "finishing the run folder first" in capsys.readouterr().err
     manifest = check_run_folder(out)
     assert not manifest["partial"] and "per_seed.csv" in manifest["files"]
+
+
+def test_a_stop_before_any_seed_started_is_exit_130_and_leaves_no_folder(
+    tmp_path, monkeypatch, capsys
+):
+    """Ctrl-C or SIGTERM while the workers start (no seed began: no result at all): exit 130,
+    the folder's start marker removed (an internal IndexError before: probe 12's w01)."""
+    import twin.cli.recording as recording
+    from twin.cli import main
+    from twin.experiment import ExperimentResult, leave_out_unfinished_seed
+
+    def nothing_done(experiment, **options):
+        outcome = ExperimentResult(experiment, [], [], {}, 0.0, interrupted=True)
+        leave_out_unfinished_seed(outcome)  # no seed to leave out: nothing to do
+        return outcome
+
+    monkeypatch.setattr(recording, "run_experiment", nothing_done)
+    out = tmp_path / "run"
+    argv = ["evaluate", "--config", str(scenario_file(tmp_path, horizon=20)), "--seeds", "2",
+            "--swarms", "random", "--out", str(out), "--no-report", "--quiet"]  # fmt: skip
+    assert main(argv) == 130
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "interrupted" in err[0], err
+    assert not out.exists()

@@ -1028,9 +1028,10 @@ def saved_state(scenario, tmp_path_factory) -> Path:
     cfg = _cfg('<input><net-file value="small.net.xml"/><route-files value="small.trips.xml"/>'
                "</input>")  # fmt: skip
     (d / "plain.sumocfg").write_text(cfg)
-    subprocess.run([binary("sumo"), "-c", str(d / "plain.sumocfg"), "--end", "400",
-                    "--save-state.times", "300", "--save-state.files", str(d / "st300.xml"),
-                    "--no-step-log", "true"], check=True, capture_output=True)  # fmt: skip
+    subprocess.run([binary("sumo"), "-c", str(d / "plain.sumocfg"), "--end", "700",
+                    "--save-state.times", "300,650", "--save-state.files",
+                    f"{d / 'st300.xml'},{d / 'st650.xml'}", "--no-step-log", "true"],
+                   check=True, capture_output=True)  # fmt: skip
     (d / "state.sumocfg").write_text(
         cfg.replace("</input>", '<load-state value="st300.xml"/></input>')
     )
@@ -1054,6 +1055,29 @@ def test_a_sumocfg_loading_a_saved_state_runs_from_the_state_s_time(
     times = tape.groupby("step")["time_s"].first()
     assert times.min() > 300 and times.is_monotonic_increasing
     assert tape.groupby("step")["count"].sum().nunique() > 1  # the traffic moves
+
+
+def test_a_begin_after_a_saved_state_cuts_the_warm_up_to_it(
+    scenario, saved_state, tmp_path, capsys
+):
+    """``--begin`` 30 s after the state's time with a 1 min warm-up: the warm-up runs from the
+    state on (cut to 0.5 min, with a notice), as it is at midnight; a state saved past the last
+    departure runs its one step (its window ended before it began: probe 12's P2-ls)."""
+    out = tmp_path / "run"
+    code = _run(scenario, out, "--sumocfg", str(saved_state / "state.sumocfg"), "--begin",
+                "00:05:30", "--horizon", "2")  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert "loads a state saved at 00:05:00, where SUMO starts; warm-up cut to 0.5 min" in err
+    late = tmp_path / "late.sumocfg"
+    late.write_text((saved_state / "state.sumocfg").read_text().replace("st300", "st650"))
+    shutil.copy(saved_state / "st650.xml", tmp_path)
+    for name in ("small.net.xml", "small.trips.xml"):
+        shutil.copy(saved_state / name, tmp_path)
+    code = _run(scenario, tmp_path / "late", "--sumocfg", str(late))
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert "window 00:10:50 - 00:11:50" in err, err  # not 00:10:50 - 00:09:58
 
 
 def _binary_state(d: Path) -> list[str]:

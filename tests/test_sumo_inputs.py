@@ -673,3 +673,21 @@ def test_a_warm_up_off_whole_seconds_gives_a_folder_that_reads_back(city, tmp_pa
                       str(city / "scenario" / "plain.sumocfg"), "--no-ceiling", "--quiet",
                       "--out", str(out)])  # fmt: skip
     assert code == 0, capsys.readouterr().err
+
+
+def test_a_users_config_end_past_the_demand_gets_the_notice(city, tmp_path, capsys):
+    """An ``end`` far past the demand (with --sumocfg) gets the notice a begin or horizon
+    there gets: its last steps hold no vehicle (probe 12's P2-end)."""
+    config = tmp_path / "mine.toml"
+    config.write_text(
+        '[swarm]\nn_drones = 2\n[traffic]\nkind = "sumo"\ncell_m = 200.0\n'
+        'drone_speed_kmh = 12.0\nwarmup_min = 1.0\nend = "01:30"\n'
+        '[evaluate]\nswarms = ["random"]\n'
+    )
+    out = tmp_path / "run"
+    code = twin_main(["run", "--config", str(config), "--sumocfg",
+                      str(city / "scenario" / "plain.sumocfg"), "--no-ceiling", "--quiet",
+                      "--no-report", "--out", str(out)])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert "the run ends at 01:30:00, past the last departure" in err, err

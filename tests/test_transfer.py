@@ -155,6 +155,7 @@ BAD = [
     ('[[row]]\nname = "paper"\n', "is taken"),
     ('[[row]]\nname = "x"\ntraffic = "weather"\n', "traffic"),
     ('[[row]]\nname = "x"\ncheckpoint = "missing.pt"\n', "does not exist"),
+    ('[[row]]\nname = "x"\ncheckpoint = "{data}"\n', "which is a folder, not a file"),
     ('[[column]]\nname = "c"\nconfig = "nowhere.toml"\n', "does not exist"),
     ('[[column]]\nname = "c"\nconfig = "{synthetic}"\ngenerate = "moon"\n', "spider"),
     ('[[column]]\nname = "c"\nconfig = "{synthetic}"\noverrides = {{ "x" = 1 }}\n', "dotted"),
@@ -174,7 +175,7 @@ BAD = [
 def test_bad_transfer_configs_are_one_line_errors(tmp_path: Path, extra: str, message, capsys):
     synthetic = ROOT / "configs" / "synthetic.toml"
     text = GOOD.format(synthetic=synthetic)
-    extra = extra.format(synthetic=synthetic, qnet=ROOT / "data" / "qnet.pt")
+    extra = extra.format(synthetic=synthetic, qnet=ROOT / "data" / "qnet.pt", data=ROOT / "data")
     if extra.startswith("[transfer]"):  # replaces the section
         text = text.replace("[transfer]\nseeds = [0]\n", "")
     path = tmp_path / "bad.toml"

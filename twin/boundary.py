@@ -57,7 +57,21 @@ LOG_NAME = "error.log"
 #: the longest message printed (a huge value quoted in an exception stays on one screen line)
 MAX_MESSAGE = 600
 
-_state: dict[str, Any] = {"run_folder": None, "lock": None}
+_state: dict[str, Any] = {"run_folder": None, "lock": None, "argv": None}
+
+
+def set_command_line(argv: list[str] | None) -> None:
+    """The arguments of the command being run (``twin.cli.main(argv)``; None: the process's
+    own, ``sys.argv[1:]``)."""
+    _state["argv"] = None if argv is None else [str(a) for a in argv]
+
+
+def command_line() -> str:
+    """``twin <arguments>`` of the command being run, as a shell would take it back."""
+    import shlex
+
+    argv = _state["argv"] if _state["argv"] is not None else sys.argv[1:]
+    return shlex.join(["twin", *argv])
 
 
 def set_run_folder(path: Path | None) -> None:
@@ -164,7 +178,7 @@ def log_traceback(exc: BaseException) -> Path | None:
     log's path, or None when it could not be written."""
     text = "".join(traceback.format_exception(exc))
     stamp = datetime.now(UTC).isoformat(timespec="seconds")
-    body = f"{stamp} twin {' '.join(sys.argv[1:])}\n{text}"
+    body = f"{stamp} {command_line()}\n{text}"
     for folder in _log_folders():
         try:
             folder.mkdir(parents=True, exist_ok=True)

@@ -112,6 +112,8 @@ def leave_out_unfinished_seed(outcome: ExperimentResult) -> None:
     steps would pass for one like theirs. The run stays partial and says which seed is left
     out."""
     results = outcome.results
+    if not results:  # stopped before any seed started
+        return
     whole = results[0].completed_steps
     if results[0].error:  # the first seed stopped too (seeds run at once): all kept
         return

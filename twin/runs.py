@@ -56,7 +56,7 @@ import numpy as np
 import pandas as pd
 
 from twin import __version__
-from twin.boundary import LOG_NAME, claim_run_folder, set_run_folder
+from twin.boundary import LOG_NAME, claim_run_folder, command_line, set_run_folder
 from twin.ceilings import ceiling_table
 from twin.errors import UserError
 from twin.files import NotARecord, atomic_write, not_a_file, read_record, write_json
@@ -538,7 +538,7 @@ def write_run(
     started = _read_json(run_dir / "run.json")  # the marker of prepare_run_dir, if any
     meta = {
         "created": datetime.now(UTC).isoformat(timespec="seconds"),
-        "command": " ".join(["twin", *sys.argv[1:]]),
+        "command": command_line(),
         "seeds": [r.seed for r in results],
         "swarms": list(first.swarms),
         "grid": {"nx": first.grid.nx, "ny": first.grid.ny, "n_free": first.grid.n_free},

@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 
 from twin import __version__
-from twin.boundary import run_command
+from twin.boundary import run_command, set_command_line
 from twin.errors import UserError
 
 COMMANDS = [
@@ -123,6 +123,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _dispatch(argv: list[str] | None) -> int:
+    set_command_line(argv)  # run.json records these arguments, not the process's
     parser = build_parser()
     args = parser.parse_args(argv)
     if not hasattr(args, "func"):

@@ -86,6 +86,9 @@ def run_and_record(
     except UserError:
         discard_run_dir(run_dir)
         raise
+    if not outcome.results:  # stopped (Ctrl-C, SIGTERM) before any seed started: nothing to keep
+        discard_run_dir(run_dir)
+        raise KeyboardInterrupt
     # a Ctrl-C while the finished run is written lets it finish (then stops the command): the
     # run's results are not thrown away for a folder half written
     with stop_on_interrupt(doing="finishing the run folder first") as stopped:

@@ -34,7 +34,7 @@ import torch
 from twin.belief import EXACT_SIGHTINGS, History, SightingModel
 from twin.coordinator import coordinate
 from twin.errors import UserError
-from twin.files import file_sha256
+from twin.files import file_sha256, not_a_file
 from twin.grid import Grid
 from twin.idleness_maps import OwnMaps, SwarmMaps, parse_outages
 from twin.learning.checkpoint import checkpoint_state, default_checkpoint, load_qnet
@@ -53,10 +53,9 @@ def _cached_qnet(path: str, mtime: float) -> tuple[QNetwork, dict]:
 def shared_qnet(checkpoint: str | Path | None) -> tuple[QNetwork, dict]:
     """Load (once per file version) the network of ``checkpoint``, the shipped one by default."""
     path = Path(checkpoint) if checkpoint is not None else default_checkpoint()
-    if not path.is_file():
-        raise UserError(
-            f"checkpoint {path} does not exist; run `twin pretrain` or pass checkpoint=<file>"
-        )
+    why = not_a_file(path)
+    if why is not None:
+        raise UserError(f"checkpoint {path} {why}; run `twin pretrain` or pass checkpoint=<file>")
     return _cached_qnet(str(path.resolve()), path.stat().st_mtime)
 
 

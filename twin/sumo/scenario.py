@@ -394,6 +394,8 @@ def _time_window(
     if files.own_window:
         w0 = files.window[0] if files.window[0] is not None else files.span[0]
         w1 = files.window[1] if files.window[1] is not None else files.span[1]
+        if files.state_time is not None:  # a state saved past the last departure: one step
+            w1 = max(w1, w0 + step_s)
         window = [w0, w1]
         if not begin_given:
             if w1 - w0 < warmup + step_s:  # too short for the warm-up: half of it warms up
@@ -409,13 +411,19 @@ def _time_window(
             begin = float(math.ceil(w0 + warmup - 1e-9))
         if not horizon_given:
             s.horizon = max(1, int((w1 - begin) / step_s + 1e-9))
-    if files.state_time is not None and begin - warmup < files.state_time - 1e-9:
+    if files.state_time is not None and begin < files.state_time - 1e-9:
         raise UserError(
             f"{begin_where} = {clock_label(begin)}: {files.name} loads a state saved at "
-            f"{clock_label(files.state_time)}, where SUMO starts; with the "
-            f"{warmup / 60:g} min warm-up give a begin of at least "
-            f"{clock_label(files.state_time + warmup)}"
+            f"{clock_label(files.state_time)}, where SUMO starts; give a begin of at least "
+            f"{clock_label(files.state_time)}"
         )
+    if files.state_time is not None and begin - warmup < files.state_time - 1e-9:
+        notice(  # as at midnight: the warm-up runs from the state on
+            f"{begin_where} = {clock_label(begin)}: {files.name} loads a state saved at "
+            f"{clock_label(files.state_time)}, where SUMO starts; warm-up cut to "
+            f"{(begin - files.state_time) / 60:.1f} min"
+        )
+        warmup = begin - files.state_time
     if begin < warmup:  # as for a window too short for it: SUMO starts at 00:00
         notice(
             f"{begin_where} = {clock_label(begin)}: the {warmup / 60:g} min warm-up "
@@ -498,12 +506,12 @@ def _grid_and_notices(
                 f"{clock_label(files.span[1])}, plus {clear / 60:.0f} min to clear the "
                 "network): every step would be empty; give a --begin (and --horizon) within it"
             )
-        if end > files.span[1] + clear and not outside:
+        empty = min(s.horizon, int((end - files.span[1] - clear) / step_s))
+        if empty >= 1 and not outside:
             notices.append(
                 f"{files.name}: the run ends at {clock_label(end)}, past the last departure "
                 f"({clock_label(files.span[1])}) plus {clear / 60:.0f} min to clear the network; "
-                f"the last {min(s.horizon, int((end - files.span[1] - clear) / step_s))} steps "
-                "may have no vehicle"
+                f"the last {empty} step{'s' * (empty != 1)} may have no vehicle"
             )
     for text in notices:
         notice(text)
@@ -614,10 +622,10 @@ def sumo_source(
     t0, warmup, window = _time_window(
         s, files, step_s, t0, warmup, begin_given, horizon_given, begin_where
     )
+    window_given = begin_given or horizon_given or s.end is not None
     geometry, obstacles, notices = _grid_and_notices(
-        s, config, inputs, files, lanes, t0, step_s, begin_given or horizon_given, begin_given,
-        own_config=own,
-    )  # fmt: skip
+        s, config, inputs, files, lanes, t0, step_s, window_given, begin_given, own_config=own
+    )
     route_files = list(files.route_files)
     if files.span is None and not s.network:  # no demand given: twin generates it
         route_files.append(_generated_demand(s, files, geometry, t0, warmup, step_s, seed))

@@ -32,6 +32,7 @@ from twin.config import (
     read_toml,
     validation_error,
 )
+from twin.files import not_a_file
 
 
 class SweepSection(StrictModel):
@@ -162,10 +163,11 @@ class SweepConfig(StrictModel):
                     raise ValueError(f"{where} = {table['checkpoint']!r} must be a file name")
                 path = Path(table["checkpoint"])
                 table["checkpoint"] = str(path if path.is_absolute() else (base / path).resolve())
-                if not Path(table["checkpoint"]).is_file():
+                why = not_a_file(table["checkpoint"])
+                if why is not None:
                     raise ValueError(
-                        f"{where} = {table['checkpoint']} does not exist; run `twin pretrain` "
-                        "or fix the path"
+                        f"{where} = {table['checkpoint']} {why}; run `twin pretrain` or fix the "
+                        "path"
                     )
         return self
 

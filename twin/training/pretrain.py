@@ -898,9 +898,8 @@ def write_provenance(cfg: PretrainConfig, out: Path, meta: dict[str, Any]) -> Pa
     """``provenance.json`` beside ``qnet.pt``: the command, the recipe, the seeds, the schedule,
     the wall time, the inputs' hashes and the learning curve (if measured)."""
     import json
-    import shlex
-    import sys
 
+    from twin.boundary import command_line
     from twin.files import atomic_write
 
     training = cfg.training_dict()
@@ -913,7 +912,7 @@ def write_provenance(cfg: PretrainConfig, out: Path, meta: dict[str, Any]) -> Pa
                 for row in csv.DictReader(f)
             ]
     record = {
-        "command": shlex.join([Path(sys.argv[0]).name, *sys.argv[1:]]),
+        "command": command_line(),
         "recipe": {
             "traffic": cfg.traffic,
             "tapes": {t: file_sha256(t) for t in cfg.tapes},

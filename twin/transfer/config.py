@@ -32,6 +32,7 @@ from twin.config import (
     validation_error,
 )
 from twin.errors import UserError
+from twin.files import not_a_file
 
 #: Seeds that evaluation uses; tapes and validation curves must stay off them.
 EVALUATION_SEEDS = range(0, 10)
@@ -119,8 +120,9 @@ class RowSpec(StrictModel):
     @field_validator("checkpoint")
     @classmethod
     def _checkpoint(cls, path: Path | None) -> Path | None:
-        if path is not None and not path.is_file():
-            raise ValueError(f"names {path}, which does not exist; run `twin pretrain` or fix it")
+        why = None if path is None else not_a_file(path)
+        if why is not None:
+            raise ValueError(f"names {path}, which {why}; run `twin pretrain` or fix it")
         return path
 
     @model_validator(mode="after")
