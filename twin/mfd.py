@@ -296,12 +296,15 @@ class MFDImportance:
             ('fit = "fixed": the given MFD' if fit == "fixed" else "no data yet"),
         )
         self._samples: list[dict[str, np.ndarray]] = []
+        #: snapshots observed so far (a run stopped early may keep fewer: :meth:`observe`)
+        self.observed = 0
 
     def observe(self, step: int, count: np.ndarray, speed: np.ndarray) -> np.ndarray:
         """``T`` of one snapshot (Def. 2), then learn from the snapshot's ground truth.
 
         ``count`` is the vehicle-instants of each cell over the step's ``reads`` instants and
         ``speed`` their mean (the count itself with one read)."""
+        self.observed += 1
         total = np.asarray(count)
         seen = detected_counts(total, self.detection_p, self.rng)
         r = self.reads

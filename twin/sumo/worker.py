@@ -132,7 +132,8 @@ def _stop(source: WorksAhead, here, child) -> bool:
         child.kill()
     del source.snapshots[used:]  # one vehicle count per snapshot
     del source.vehicles_seen[used:]
-    if got_end:  # the child's MFD saw snapshots the run never used (sent, or not yet)
+    ahead = source.model is not None and source.model.observed > len(source.snapshots)
+    if got_end and ahead:  # the child's MFD saw snapshots the run never used (sent, or not yet)
         source.model = source.model_after(source.snapshots)
     last = source.snapshots[-1][0] if source.snapshots else -1
     source.detector_readings[:] = [r for r in source.detector_readings if r[0] <= last]
