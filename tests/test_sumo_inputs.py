@@ -604,19 +604,26 @@ def test_a_small_network_at_the_configs_cells_points_to_the_cell_size(city, caps
     assert "give smaller cells with --cell-m" in lines[0] and "--drones" in lines[0]
 
 
-def test_a_users_config_horizon_holds_for_a_sumocfg_given_by_flag(city, tmp_path, capsys):
-    """``[traffic] horizon`` in the user's own config is given as --horizon would be, also when
-    the network comes from --sumocfg (a shipped config's horizon is its own network's)."""
+def _own_config_run(city, tmp_path, capsys, traffic: str, grid: str = "", report=False):
+    """``twin run --config mine.toml --sumocfg plain.sumocfg``: the user's own config with two
+    drones, 200 m cells, 60 s steps and ``traffic`` keys; (exit code, stderr, run folder)."""
     config = tmp_path / "mine.toml"
     config.write_text(
-        '[swarm]\nn_drones = 2\n[traffic]\nkind = "sumo"\ncell_m = 200.0\n'
-        'drone_speed_kmh = 12.0\nhorizon = 3\n[evaluate]\nswarms = ["random"]\n'
+        f'{grid}[swarm]\nn_drones = 2\n[traffic]\nkind = "sumo"\ncell_m = 200.0\n'
+        f'drone_speed_kmh = 12.0\n{traffic}[evaluate]\nswarms = ["random"]\n'
     )
     out = tmp_path / "run"
     code = twin_main(["run", "--config", str(config), "--sumocfg",
                       str(city / "scenario" / "plain.sumocfg"), "--no-ceiling", "--quiet",
-                      "--no-report", "--out", str(out)])  # fmt: skip
-    assert code == 0, capsys.readouterr().err
+                      "--out", str(out), *([] if report else ["--no-report"])])  # fmt: skip
+    return code, capsys.readouterr().err, out
+
+
+def test_a_users_config_horizon_holds_for_a_sumocfg_given_by_flag(city, tmp_path, capsys):
+    """``[traffic] horizon`` in the user's own config is given as --horizon would be, also when
+    the network comes from --sumocfg (a shipped config's horizon is its own network's)."""
+    code, err, out = _own_config_run(city, tmp_path, capsys, "horizon = 3\n")
+    assert code == 0, err
     assert json.loads((out / "run.json").read_text())["horizon"] == 3
 
 
@@ -625,17 +632,8 @@ def test_a_users_config_grid_holds_for_a_sumocfg_given_by_flag(city, tmp_path, c
     """``[grid] nx, ny`` of the user's own config fix the grid for a network given by
     --sumocfg too, as when the config names the sumocfg (a larger grid is kept, one that
     cannot cover the network refused); they were dropped without a word (probe 12's k01)."""
-    config = tmp_path / "mine.toml"
-    config.write_text(
-        f"[grid]\nnx = {shape[0]}\nny = {shape[1]}\n[swarm]\nn_drones = 2\n[traffic]\n"
-        'kind = "sumo"\ncell_m = 200.0\ndrone_speed_kmh = 12.0\nhorizon = 2\n'
-        '[evaluate]\nswarms = ["random"]\n'
-    )
-    out = tmp_path / "run"
-    got = twin_main(["run", "--config", str(config), "--sumocfg",
-                     str(city / "scenario" / "plain.sumocfg"), "--no-ceiling", "--quiet",
-                     "--no-report", "--out", str(out)])  # fmt: skip
-    err = capsys.readouterr().err
+    grid = f"[grid]\nnx = {shape[0]}\nny = {shape[1]}\n"
+    got, err, out = _own_config_run(city, tmp_path, capsys, "horizon = 2\n", grid)
     assert got == code, err
     if code == 0:
         assert json.loads((out / "network.json").read_text())["grid"]["nx"] == shape[0]
@@ -646,48 +644,23 @@ def test_a_users_config_grid_holds_for_a_sumocfg_given_by_flag(city, tmp_path, c
 def test_a_users_config_end_holds_for_a_sumocfg_given_by_flag(city, tmp_path, capsys):
     """``[traffic] end`` of the user's own config closes the window of a network given by
     --sumocfg, as its begin, horizon and grid do (it was dropped: probe 12's k01)."""
-    config = tmp_path / "mine.toml"
-    config.write_text(
-        '[swarm]\nn_drones = 2\n[traffic]\nkind = "sumo"\ncell_m = 200.0\n'
-        'drone_speed_kmh = 12.0\nwarmup_min = 1.0\nbegin = "00:08"\nend = "00:11"\n'
-        '[evaluate]\nswarms = ["random"]\n'
-    )
-    out = tmp_path / "run"
-    code = twin_main(["run", "--config", str(config), "--sumocfg",
-                      str(city / "scenario" / "plain.sumocfg"), "--no-ceiling", "--quiet",
-                      "--no-report", "--out", str(out)])  # fmt: skip
-    assert code == 0, capsys.readouterr().err
+    traffic = 'warmup_min = 1.0\nbegin = "00:08"\nend = "00:11"\n'
+    code, err, out = _own_config_run(city, tmp_path, capsys, traffic)
+    assert code == 0, err
     assert json.loads((out / "run.json").read_text())["horizon"] == 3  # 00:08 .. 00:11, 60 s
 
 
 def test_a_warm_up_off_whole_seconds_gives_a_folder_that_reads_back(city, tmp_path, capsys):
     """``warmup_min = 0.01`` (0.6 s): SUMO starts on a whole second, so the tape's times agree
     with its clock labels and the run's read-back accepts its folder (probe 12's t01)."""
-    config = tmp_path / "mine.toml"
-    config.write_text(
-        '[swarm]\nn_drones = 2\n[traffic]\nkind = "sumo"\ncell_m = 200.0\n'
-        'drone_speed_kmh = 12.0\nwarmup_min = 0.01\nhorizon = 2\n[evaluate]\nswarms = ["random"]\n'
-    )
-    out = tmp_path / "run"
-    code = twin_main(["run", "--config", str(config), "--sumocfg",
-                      str(city / "scenario" / "plain.sumocfg"), "--no-ceiling", "--quiet",
-                      "--out", str(out)])  # fmt: skip
-    assert code == 0, capsys.readouterr().err
+    traffic = "warmup_min = 0.01\nhorizon = 2\n"
+    code, err, _ = _own_config_run(city, tmp_path, capsys, traffic, report=True)
+    assert code == 0, err
 
 
 def test_a_users_config_end_past_the_demand_gets_the_notice(city, tmp_path, capsys):
     """An ``end`` far past the demand (with --sumocfg) gets the notice a begin or horizon
     there gets: its last steps hold no vehicle (probe 12's P2-end)."""
-    config = tmp_path / "mine.toml"
-    config.write_text(
-        '[swarm]\nn_drones = 2\n[traffic]\nkind = "sumo"\ncell_m = 200.0\n'
-        'drone_speed_kmh = 12.0\nwarmup_min = 1.0\nend = "01:30"\n'
-        '[evaluate]\nswarms = ["random"]\n'
-    )
-    out = tmp_path / "run"
-    code = twin_main(["run", "--config", str(config), "--sumocfg",
-                      str(city / "scenario" / "plain.sumocfg"), "--no-ceiling", "--quiet",
-                      "--no-report", "--out", str(out)])  # fmt: skip
-    err = capsys.readouterr().err
+    code, err, _ = _own_config_run(city, tmp_path, capsys, 'warmup_min = 1.0\nend = "01:30"\n')
     assert code == 0, err
     assert "the run ends at 01:30:00, past the last departure" in err, err
