@@ -217,7 +217,7 @@ class OutputPlan:
         bytes, or an included file's, hold ``param`` (an element's name is never a character
         reference), or always when its encoding is not ASCII-compatible (UTF-16, UTF-32)."""
         for file in (path, *included_files(path)):
-            if may_hold(file, b"param") or may_hold(file, ENTITY):
+            if may_hold(file, b"param", ENTITY):  # one pass over a large route file
                 return self.additional(path)
         return path
 

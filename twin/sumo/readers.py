@@ -440,11 +440,11 @@ def _flow_end(elem: ET.Element, begin: float) -> float:
     return max(begin, FLOW_DEFAULT_END)
 
 
-def may_hold(path: Path, word: bytes) -> bool:
-    """Whether an XML file's bytes may hold ``word`` (an element name: never a character
-    reference): they do, or its encoding is not ASCII-compatible (UTF-16, UTF-32); False for
-    a file that cannot be read."""
-    tail = b""
+def may_hold(path: Path, *words: bytes) -> bool:
+    """Whether an XML file's bytes may hold one of ``words`` (element names: never character
+    references), read once: they do, or its encoding is not ASCII-compatible (UTF-16, UTF-32);
+    False for a file that cannot be read."""
+    tail, keep = b"", max(len(w) for w in words)
     try:
         with open_xml(path) as fh:
             while chunk := fh.read(1 << 24):
@@ -452,9 +452,9 @@ def may_hold(path: Path, word: bytes) -> bool:
                     chunk.startswith((b"\xff\xfe", b"\xfe\xff")) or b"\x00" in chunk[:4]
                 ):
                     return True
-                if word in tail + chunk:
+                if any(word in tail + chunk for word in words):
                     return True
-                tail = chunk[-len(word) :]
+                tail = chunk[-keep:]
     except (OSError, EOFError):
         pass
     return False
