@@ -2,9 +2,19 @@
 
 from __future__ import annotations
 
+import os
+import shutil
+
 import numpy as np
+import pytest
 
 from twin.traffic.tape import Tape
+
+#: sumo-gui (``--gui``, ``twin replay``) needs a display: Xvfb or DISPLAY, else skipped
+needs_display = pytest.mark.skipif(
+    shutil.which("Xvfb") is None and not os.environ.get("DISPLAY"),
+    reason="sumo-gui needs a display: install Xvfb (apt-get install xvfb) or set DISPLAY",
+)
 
 
 def random_tape(seed=0, nx=3, ny=4, warmup=2, horizon=5, obstacle=(0, 0)) -> Tape:

@@ -1603,6 +1603,8 @@ def env():
         ([[3, 4]], "obstacle"),
         ([["a", 1]], "cells"),
         ([[0, 0], [0, 0]], "two drones"),
+        ([[True, False], [0, 2]], "not True/False"),  # it started a drone at (1, 0)
+        (np.array([[1, 0], [0, 1]], dtype=bool), "not True/False"),
     ],
 )
 def test_env_refuses_bad_starts(env, starts, words) -> None:

@@ -6,20 +6,15 @@ Needs Xvfb (``apt-get install xvfb``, as ``.ci/run`` does) or a display; skipped
 from __future__ import annotations
 
 import os
-import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from tests.helpers import small_sumo_scenario
+from tests.helpers import needs_display, small_sumo_scenario
 from twin.errors import UserError
 
 HORIZON = 3
-needs_display = pytest.mark.skipif(
-    shutil.which("Xvfb") is None and not os.environ.get("DISPLAY"),
-    reason="sumo-gui needs a display: install Xvfb (apt-get install xvfb) or set DISPLAY",
-)
 
 
 @pytest.fixture(scope="module")

@@ -14,7 +14,7 @@ import pytest
 
 pytest.importorskip("libsumo")
 
-from helpers import small_sumo_scenario
+from helpers import needs_display, small_sumo_scenario
 from test_boundary import one_line, refresh_manifest, tree_hash
 
 from twin.boundary import EXIT_REFUSED
@@ -165,6 +165,7 @@ def test_the_intact_sumo_run_reads_back(sumo_copy: Path, capsys) -> None:
     assert out.is_file()
 
 
+@needs_display
 @pytest.mark.parametrize("seed", [0, 1])
 def test_replay_checks_each_step_against_the_tape_as_read_back(
     seed, sumo_copy: Path, capsys, monkeypatch

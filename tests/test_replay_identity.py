@@ -17,6 +17,7 @@ import pytest
 
 pytest.importorskip("libsumo")
 
+from helpers import needs_display
 from test_bad_inputs import run_case, snapshot
 
 from twin.cli import main
@@ -435,6 +436,7 @@ def test_an_older_run_replayed_among_other_files_is_refused(
     assert str(elsewhere / "small.trips.xml") in err
 
 
+@needs_display
 def test_replay_reads_relative_paths_from_the_folder_the_run_was_made_in(
     recorded_relative, tmp_path, capsys, monkeypatch
 ):
@@ -535,6 +537,7 @@ def test_replay_refuses_a_changed_saved_state_the_sumocfg_loads(tmp_path, capsys
              "state.xml: the load-state changed since the run (sha256 ")  # fmt: skip
 
 
+@needs_display
 def test_replay_refuses_traffic_other_than_the_recorded_one(recorded, tmp_path, capsys):
     """run.json and the tape's record of the scenario edited alike to name another route
     file, with that file's sha256 (a determined forgery that every hash check and every

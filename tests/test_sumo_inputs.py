@@ -664,3 +664,32 @@ def test_a_users_config_end_past_the_demand_gets_the_notice(city, tmp_path, caps
     code, err, _ = _own_config_run(city, tmp_path, capsys, 'warmup_min = 1.0\nend = "01:30"\n')
     assert code == 0, err
     assert "the run ends at 01:30:00, past the last departure" in err, err
+
+
+@pytest.mark.parametrize(
+    ("content", "first", "held"),
+    [
+        (b'<net><tlLogic id="a"><param key="x"/></tlLogic></net>', False, {b"tlLogic", b"param"}),
+        (b'<net><tlLogic id="a"/></net>', False, {b"tlLogic"}),
+        (b"<net/>", False, set()),
+        (b'<net><tlLogic id="a"/>' + b" " * (1 << 24) + b"<param/></net>", True, {b"tlLogic"}),
+        (
+            b'<net><tlLogic id="a"/>' + b" " * (1 << 24) + b"<param/></net>",
+            False,
+            {b"tlLogic", b"param"},
+        ),
+        ('<net><tlLogic id="a"/></net>'.encode("utf-16"), False, {b"tlLogic", b"param"}),
+        (gzip.compress(b"<net><param/></net>"), False, {b"param"}),
+    ],
+)
+def test_words_held_reads_a_file_once_for_several_words(tmp_path, content, first, held):
+    """A network's copy is decided by one pass over its bytes: which element names it may
+    hold (all, for an encoding that is not ASCII-compatible); with ``first``, up to the first
+    16 MB piece that holds one."""
+    from twin.sumo.readers import may_hold, words_held
+
+    path = tmp_path / "n.net.xml"
+    path.write_bytes(content)
+    assert words_held(path, b"tlLogic", b"param", first=first) == held
+    assert may_hold(path, b"tlLogic", b"param") == bool(held)
+    assert words_held(tmp_path / "missing.xml", b"param") == set()

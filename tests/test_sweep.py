@@ -201,6 +201,47 @@ def test_restart_runs_only_missing_cells(tmp_path: Path) -> None:
     assert nothing.ran == [] and len(nothing.skipped) == 3
 
 
+def test_a_resumed_sweep_computes_again_cells_whose_files_changed(tmp_path: Path) -> None:
+    """A cell is its scenario file's content, not its name: an edited scenario, a replaced
+    tape give new cells (the old numbers were kept, exit 0), equal to a fresh sweep's."""
+    from helpers import random_tape
+
+    path = sweep_file(tmp_path, seeds=1)
+    random_tape(seed=0, nx=20, ny=30, horizon=30, obstacle=(0, 0)).write(tmp_path / "t.parquet")
+    text = path.read_text().replace('config = "scenario.toml"', 'config = "scenario.toml"\n'
+                                    '[[scenario]]\nname = "tape"\nconfig = "scenario.toml"\n'
+                                    'tape = "t.parquet"')  # fmt: skip
+    path.write_text(text)
+    first = run_sweep(load_sweep_config(path), tmp_path / "s", workers=1, report=False)
+    assert len(first.ran) == 2
+    scenario = tmp_path / "scenario.toml"
+    scenario.write_text(scenario.read_text().replace("amplitude = 1.0", "amplitude = 0.3", 1))
+    random_tape(seed=1, nx=20, ny=30, horizon=30, obstacle=(0, 0)).write(tmp_path / "t.parquet")
+    again = run_sweep(load_sweep_config(path), tmp_path / "s", workers=1, report=False)
+    assert len(again.ran) == 2 and not again.skipped
+    assert not set(again.ran) & set(first.ran)
+    run_sweep(load_sweep_config(path), tmp_path / "fresh", workers=1, report=False)
+    pd.testing.assert_frame_equal(numbers(tmp_path / "s"), numbers(tmp_path / "fresh"))
+
+
+def test_a_live_cell_whose_sumo_files_changed_is_not_done(tmp_path: Path) -> None:
+    """A finished live cell records the SUMO files it loaded and their hashes (its traffic
+    identity); a resumed sweep runs it again when one has changed or gone."""
+    from twin.files import file_sha256
+    from twin.sweep.store import inputs_changed
+
+    routes = tmp_path / "a.rou.xml"
+    routes.write_text("<routes/>")
+    entry = {"role": "route file", "path": str(routes), "sha256": file_sha256(routes)}
+    record = {"traffic": {"identity": {"files": [entry]}}}
+    assert inputs_changed(record) is None
+    assert inputs_changed({"traffic": None}) is None  # a synthetic cell: nothing to check
+    routes.write_text('<routes><vType id="x"/></routes>')
+    assert inputs_changed(record) == f"route file {routes}"
+    routes.unlink()
+    assert inputs_changed(record) == f"route file {routes}"
+
+
 def _record(change):
     """A cell JSON edited by ``change(record)``, still well-formed."""
 

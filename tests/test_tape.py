@@ -97,3 +97,35 @@ def test_a_short_tape_replays_partially(tmp_path):
     tape.write(path)
     source = TapeTraffic.from_file(path)
     assert source.horizon == 5 and len(list(source.importance_maps())) == 3
+
+
+@pytest.mark.parametrize(
+    ("config_text", "said"),
+    [
+        ('[traffic]\nkind = "sumo"\nhorizon = 5\n', []),
+        ('[traffic]\nkind = "sumo"\n', []),  # nothing set: nothing to replace
+        ('[traffic]\nkind = "sumo"\nhorizon = 144\n',
+         ["its T = 5 replaces c.toml's [traffic].horizon = 144"]),
+        ('[grid]\nnx = 20\nny = 30\n[traffic]\nkind = "synthetic"\nhorizon = 2000\n', []),
+        (
+            '[traffic]\nkind = "sumo"\n[[traffic.incidents]]\nkind = "edge_closed"\n'
+            'cell = [0, 1]\nstep = 1\nduration_min = 5\n',
+            ["c.toml's 1 [[traffic.incidents]] are not applied (a tape replays recorded "
+             "vehicles: run them live with `twin run`)"],
+        ),
+    ],
+)  # fmt: skip
+def test_a_replay_says_what_of_the_config_it_sets_aside(tmp_path, capsys, config_text, said):
+    """`twin evaluate --traffic`: the tape's horizon replaces a SUMO config's own, and its
+    incidents meet no recorded vehicle: said in one notice, nothing said when equal or for a
+    synthetic config (whose traffic the tape replaces whole, as --traffic says)."""
+    from twin.config import load_config
+
+    config = tmp_path / "c.toml"
+    config.write_text(config_text)
+    path = tmp_path / "tape.parquet"
+    _tape().write(path)
+    source = TapeTraffic.from_file(path, load_config(config))
+    assert source.horizon == 5 and source.grid.shape == (3, 4)
+    err = capsys.readouterr().err.strip()
+    assert err == (f"twin: notice: {path}: {'; '.join(said)}" if said else "")

@@ -283,3 +283,30 @@ def test_the_full_transfer_config_is_the_short_one_at_full_size() -> None:
     assert [r.name for r in full.row] == [r.name for r in short.row]
     assert [c.name for c in full.column] == [c.name for c in short.column]
     assert full.schedule["epochs"] > short.schedule["epochs"]
+
+
+@pytest.mark.parametrize(
+    ("seeds", "shown"),
+    [
+        ([0], "-0.500 (one seed: no interval)"),
+        ([0, 1], "-0.500 ± 0.000"),  # two seeds that agree: a real interval of width 0
+    ],
+)
+def test_one_seed_gives_no_interval(seeds, shown) -> None:
+    """A one-seed difference is no 95% interval: NaN in matrix.csv, said in the table and the
+    verdict (it read "-0.500 ± 0.000")."""
+    from twin.transfer.matrix import format_matrix, transfer_matrix, verdict
+
+    rows = [
+        {"scenario": "syn", "seed": s, "swarm": swarm, "R_hat_T": value, "role": "swarm"}
+        for s in seeds
+        for swarm, value in (("greedy", 1.0), ("rl@paper", 0.5))
+    ]
+    config = load_transfer_config(ROOT / "configs" / "transfer.toml")
+    config.column = [type(config.column[0]).model_construct(name="syn")]
+    config.transfer.classical = ["greedy"]
+    config.row = [type(config.row[0]).model_construct(name="paper")]
+    matrix = transfer_matrix(pd.DataFrame(rows), config)
+    assert list(matrix["n_seeds"]) == [len(seeds)]
+    assert np.isnan(matrix["difference_ci95"].iloc[0]) == (len(seeds) == 1)
+    assert shown in format_matrix(matrix) and shown in verdict(matrix)

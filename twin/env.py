@@ -355,6 +355,12 @@ class SwarmParallelEnv(ParallelEnv):
         }
 
     def _check_starts(self, starts) -> np.ndarray:
+        cells = np.asarray(starts, dtype=object).ravel()
+        if any(isinstance(v, (bool, np.bool_)) for v in cells):  # as n_drones = True is no count
+            raise EnvInputError(
+                "starts must be (N, 2) whole-number cells (i, j), not True/False; e.g. "
+                "[[0, 0], [1, 2]]"
+            )
         try:
             raw = np.asarray(starts, dtype=np.float64)
         except (TypeError, ValueError):

@@ -1273,12 +1273,16 @@ def check_detector_readings(primary: Primary, mfd_before: dict[int, Any]) -> Non
                 f"readings; {RERUN}"
             )
     mine = rows[rows["seed"] == primary.first_seed]
-    for k, occ, imp in mine[["step", "occupancy_pct", "importance"]].itertuples(index=False):
+    for k, at_k in mine.groupby("step", sort=True):  # one MFD call per step, not per reading
         mfd = mfd_before.get(int(k))
         if mfd is None:
             raise UserError(f"{path}: a reading at step {k}, which tape.parquet lacks; {RERUN}")
-        want = float(mfd.importance(density_from_occupancy(np.array([occ])))[0])
-        if abs(want - imp) > 1e-9 + 1e-6 * abs(want):
+        occupancy = at_k["occupancy_pct"].to_numpy(dtype=float)
+        got = at_k["importance"].to_numpy(dtype=float)
+        wanted = np.asarray(mfd.importance(density_from_occupancy(occupancy)), dtype=float)
+        off = np.flatnonzero(~(np.abs(wanted - got) <= 1e-9 + 1e-6 * np.abs(wanted)))
+        if off.size:
+            occ, imp, want = occupancy[off[0]], got[off[0]], wanted[off[0]]
             raise UserError(
                 f"{path}: seed {primary.first_seed}, step {k}: importance = {_show(imp, want)} "
                 f"for occupancy {occ:g} %, but the MFD in effect at that step (tape.parquet "

@@ -57,6 +57,7 @@ from twin.sumo.readers import (
     may_hold,
     open_xml,
     read_sumocfg,
+    words_held,
 )
 
 #: Options that add to every output's name (kept to their name part, :func:`name_part`).
@@ -204,10 +205,9 @@ class OutputPlan:
     def network(self, path: Path) -> Path:
         """``path``, or a rewritten copy in ``out_dir`` if a traffic light's program in it names
         an output file (:data:`PROGRAM_OUTPUTS`). A network is parsed only when its bytes hold
-        both ``tlLogic`` and ``param``."""
-        if may_hold(path, ENTITY) or (
-            may_hold(path, b"tlLogic") and may_hold(path, b"param") and _program_output(path)
-        ):
+        both ``tlLogic`` and ``param`` (one pass over its bytes decides)."""
+        held = words_held(path, ENTITY, b"tlLogic", b"param")
+        if ENTITY in held or ({b"tlLogic", b"param"} <= held and _program_output(path)):
             return self.additional(path)
         return path
 

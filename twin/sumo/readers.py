@@ -444,20 +444,28 @@ def may_hold(path: Path, *words: bytes) -> bool:
     """Whether an XML file's bytes may hold one of ``words`` (element names: never character
     references), read once: they do, or its encoding is not ASCII-compatible (UTF-16, UTF-32);
     False for a file that cannot be read."""
-    tail, keep = b"", max(len(w) for w in words)
+    return bool(words_held(path, *words, first=True))
+
+
+def words_held(path: Path, *words: bytes, first: bool = False) -> set[bytes]:
+    """Which of ``words`` an XML file's bytes may hold, read once in 16 MB pieces (up to the
+    ``first`` piece holding one, or until each is found): all of them when its encoding is not ASCII-compatible (UTF-16,
+    UTF-32); none for a file that cannot be read."""
+    tail, keep, found = b"", max(len(w) for w in words), set()
     try:
         with open_xml(path) as fh:
             while chunk := fh.read(1 << 24):
                 if not tail and (
                     chunk.startswith((b"\xff\xfe", b"\xfe\xff")) or b"\x00" in chunk[:4]
                 ):
-                    return True
-                if any(word in tail + chunk for word in words):
-                    return True
+                    return set(words)
+                found.update(word for word in words if word in tail + chunk)
+                if (first and found) or len(found) == len(words):
+                    break
                 tail = chunk[-keep:]
     except (OSError, EOFError):
         pass
-    return False
+    return found
 
 
 def include_cycle(path: Path) -> list[Path] | None:

@@ -9,6 +9,7 @@ either executor and in ``twin evaluate``.
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import functools
 import hashlib
@@ -36,12 +37,15 @@ def parameter_combinations(parameters: dict[str, list[Any]]) -> list[dict[str, A
 #: What defines a cell's numbers; the cell id hashes these.
 DEFINING_KEYS = (
     "scenario", "config", "overrides", "tape", "seed", "swarms", "swarm_options", "checkpoints",
+    "inputs",
 )  # fmt: skip
 
 
 def cell_id(cell: dict[str, Any]) -> str:
     """``<scenario>-s<seed>-<hash>``: the hash covers everything that defines the cell's numbers
-    (a retrained checkpoint, a changed scenario file's path or overrides give new cells)."""
+    (a retrained checkpoint, a changed scenario file, tape or option file, their paths or the
+    overrides give new cells; the SUMO files a live cell loaded are checked when it is resumed,
+    :func:`twin.sweep.store.inputs_changed`)."""
     defining = {k: cell.get(k) for k in DEFINING_KEYS}
     if cell.get("ceilings"):  # only when asked for, so earlier sweeps keep their ids
         defining["ceilings"] = True
@@ -61,17 +65,20 @@ def expand_cells(config: SweepConfig, out_dir: Path) -> list[dict[str, Any]]:
     cells = []
     for scenario in config.scenarios:
         for params in parameter_combinations(config.parameters):
+            overrides = {**scenario.overrides, **params}
+            inputs = cell_inputs(scenario.config, overrides, scenario.tape)
             for seed in config.seeds:
                 cell = {
                     "scenario": scenario.name,
                     "config": str(scenario.config),
-                    "overrides": {**scenario.overrides, **params},
+                    "overrides": overrides,
                     "parameters": params,
                     "tape": str(scenario.tape) if scenario.tape else None,
                     "seed": int(seed),
                     "swarms": list(config.swarms),
                     "swarm_options": copy.deepcopy(config.swarm_options),
                     "checkpoints": checkpoints,
+                    "inputs": inputs,
                     "cells_dir": str(out_dir / CELLS_DIR),
                 }
                 if config.sweep.ceilings:
@@ -79,6 +86,29 @@ def expand_cells(config: SweepConfig, out_dir: Path) -> list[dict[str, Any]]:
                 cell["id"] = cell_id(cell)
                 cells.append(cell)
     return cells
+
+
+def cell_inputs(config: Path, overrides: dict[str, Any], tape: Path | None) -> dict[str, str]:
+    """``{path: sha256}`` of the files that define a cell's numbers besides its settings: the
+    scenario config, the tape it replays and the checkpoints and histories its own
+    ``[swarm_options]`` name (after ``overrides``); a file that cannot be read is left to the
+    cell's checks, which say why."""
+    paths = [Path(config), *([Path(tape)] if tape else [])]
+    try:
+        scenario = scenario_config(Path(config), overrides)
+    except UserError:
+        scenario = None  # check_cells refuses it, naming the scenario
+    if scenario is not None:
+        for options in scenario.swarm_options.values():
+            for key in ("checkpoint", "history"):
+                if isinstance(options.get(key), str):
+                    paths.append(scenario.path.parent / options[key])
+    inputs = {}
+    for path in paths:
+        with contextlib.suppress(OSError):
+            if path.is_file():
+                inputs[os.path.abspath(path)] = file_sha256(path)
+    return inputs
 
 
 def scenario_config(path: Path, overrides: dict[str, Any]):

@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 
 from twin.errors import UserError
-from twin.files import atomic_write, read_record
+from twin.files import atomic_write, file_sha256, read_record
 from twin.readback import CELL_SERIES_COLUMNS
 
 if TYPE_CHECKING:
@@ -86,6 +86,13 @@ def done_cells(out_dir: Path, expected: dict[str, dict[str, Any]] | None = None)
                 f"twin: notice: sweep cell {path.stem} is damaged ({reason}); computing it again"
             )
             continue
+        changed = inputs_changed(record)
+        if changed:
+            notify(
+                f"twin: notice: sweep cell {path.stem}'s {changed} changed since it ran; "
+                "computing it again"
+            )
+            continue
         if record.get("error"):  # a partial run: failed, not done
             notify(
                 f"twin: notice: sweep cell {path.stem} did not finish last time "
@@ -94,6 +101,28 @@ def done_cells(out_dir: Path, expected: dict[str, dict[str, Any]] | None = None)
             continue
         done.add(path.stem)
     return done
+
+
+def inputs_changed(record: dict[str, Any]) -> str | None:
+    """The first SUMO file a finished live cell loaded (its traffic identity: network, route,
+    additional files, sumocfg and what they include) whose content is no longer what the cell
+    ran on, in words (``route file /path``), or None: a resumed sweep runs such a cell again."""
+    traffic = record.get("traffic")
+    identity = traffic.get("identity") if isinstance(traffic, dict) else None
+    files = identity.get("files") if isinstance(identity, dict) else None
+    for entry in files if isinstance(files, list) else []:
+        if not isinstance(entry, dict):
+            continue
+        role, path, sha = entry.get("role"), entry.get("path"), entry.get("sha256")
+        if not isinstance(path, str):
+            continue
+        try:
+            now = file_sha256(path)
+        except OSError:
+            now = None
+        if now != sha:
+            return f"{role} {path}"
+    return None
 
 
 def _write_manifest(

@@ -24,6 +24,7 @@ from twin.errors import UserError
 from twin.files import not_a_file
 from twin.grid import Grid
 from twin.mfd import MFD, SETTING_RANGES, MFDImportance
+from twin.notices import notify
 from twin.traffic.base import TrafficSource
 
 TAPE_VERSION = 1
@@ -505,13 +506,36 @@ class TapeTraffic(TrafficSource):
     def from_file(cls, path: str | Path, config=None) -> TapeTraffic:
         """Read ``path``; ``config`` (a scenario config) is accepted for the CLI's sake and
         only its ``[traffic.mfd].detection_p``, if set, overrides the tape's, and its explicit
-        ``[grid] nx, ny``, if set, must match the tape's grid."""
+        ``[grid] nx, ny``, if set, must match the tape's grid; what else of its traffic the
+        replay sets aside is said in a notice (:meth:`config_set_aside`)."""
         p, shape = None, None
         if config is not None and config.traffic.kind == "sumo":
             mfd = config.traffic.mfd
             p = mfd.detection_p if "detection_p" in mfd.model_fields_set else None
             shape = config.explicit_shape()
-        return cls(Tape.read(Path(path), shape), p, source_name=str(path))
+        source = cls(Tape.read(Path(path), shape), p, source_name=str(path))
+        if config is not None:
+            set_aside = source.config_set_aside(config)
+            if set_aside:
+                notify(f"twin: notice: {path}: {'; '.join(set_aside)}")
+        return source
+
+    def config_set_aside(self, config) -> list[str]:
+        """What of a SUMO ``config``'s own traffic the replay does not use, in words (empty
+        when nothing it sets differs): the tape's horizon replaces the config's, and its
+        recorded vehicles meet no incident. (A synthetic config's traffic is replaced whole,
+        as ``--traffic`` says; a SUMO config's grid must be the tape's, :meth:`from_file`.)"""
+        traffic, where, said = config.traffic, config.path.name, []
+        if traffic.kind != "sumo":
+            return said
+        if "horizon" in traffic.model_fields_set and traffic.horizon != self.horizon:
+            said.append(f"its T = {self.horizon} replaces {where}'s [traffic].horizon = "
+                        f"{traffic.horizon}")  # fmt: skip
+        if traffic.incidents:
+            said.append(f"{where}'s {len(traffic.incidents)} [[traffic.incidents]] are not "
+                        "applied (a tape replays recorded vehicles: run them live with `twin "
+                        "run`)")  # fmt: skip
+        return said
 
     def check_complete(self, what: str) -> None:
         """Refuse (one line) a tape that stopped before its horizon for ``what`` (pretraining,

@@ -66,7 +66,10 @@ def transfer_matrix(results: pd.DataFrame, config) -> pd.DataFrame:
                     "R_learned": r_learned,
                     "R_best_classical": r_best,
                     "difference": paired["difference"],
-                    "difference_ci95": paired["difference_ci95"],
+                    # no interval from one seed (ci95_halfwidth's 0 would read as certainty)
+                    "difference_ci95": paired["difference_ci95"]
+                    if paired["n_seeds"] >= 2
+                    else float("nan"),
                     "n_seeds": paired["n_seeds"],
                     "seeds": " ".join(map(str, seeds)),
                     "R_oracle": r_oracle,
@@ -93,11 +96,18 @@ def format_matrix(matrix: pd.DataFrame) -> str:
     for r in matrix.itertuples(index=False):
         lines.append(
             f"| {r.trained_on} | {r.swarm.split('@')[0]} | {r.evaluated_on} | {r.best_classical} "
-            f"| {r.difference:+.3f} ± {r.difference_ci95:.3f} | {_pct(r.gap_closed_oracle)} "
+            f"| {interval_text(r.difference, r.difference_ci95)} | {_pct(r.gap_closed_oracle)} "
             f"| {_num(r.pct_events_seen, 0)} ({_num(r.best_pct_events_seen, 0)}) "
             f"| {_num(r.latency_median_steps, 1)} ({_num(r.best_latency_median_steps, 1)}) |"
         )
     return head + "\n".join(lines)
+
+
+def interval_text(difference: float, ci95: float, digits: int = 3) -> str:
+    """``+0.123 ± 0.045``, or ``+0.123 (one seed: no interval)`` when there is no interval."""
+    if not np.isfinite(ci95):
+        return f"{difference:+.{digits}f} (one seed: no interval)"
+    return f"{difference:+.{digits}f} ± {ci95:.{digits}f}"
 
 
 def _num(value: float, digits: int) -> str:
@@ -120,8 +130,8 @@ def verdict(matrix: pd.DataFrame) -> str:
         return (
             "No learned swarm beats the best classical swarm in any cell (95% interval above "
             "zero); the closest is "
-            f"{best['swarm']} on {best['evaluated_on']}, {best['difference']:+.3f} ± "
-            f"{best['difference_ci95']:.3f}."
+            f"{best['swarm']} on {best['evaluated_on']}, "
+            f"{interval_text(best['difference'], best['difference_ci95'])}."
         )
     parts = [
         f"{w.swarm} on {w.evaluated_on} ({w.difference:+.3f} ± {w.difference_ci95:.3f}, "

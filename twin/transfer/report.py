@@ -30,7 +30,8 @@ def figure_heatmap(matrix: pd.DataFrame) -> Figure:
     for r in matrix.itertuples(index=False):
         i, j = rows.index(r.swarm), cols.index(r.evaluated_on)
         values[i, j] = r.difference
-        notes[i][j] = f"{r.difference:+.3f}\n± {r.difference_ci95:.3f}"
+        spread = f"± {r.difference_ci95:.3f}" if np.isfinite(r.difference_ci95) else "(one seed)"
+        notes[i][j] = f"{r.difference:+.3f}\n{spread}"
     fig = Figure(figsize=(2.2 + 1.8 * len(cols), 1.0 + 0.55 * len(rows)))
     ax = fig.add_subplot()
     span = float(np.nanmax(np.abs(values))) if np.isfinite(values).any() else 1.0
@@ -97,7 +98,9 @@ def write_transfer_report(
                 r.evaluated_on,
                 r.best_classical,
                 f"{r.difference:+.4f}",
-                f"± {r.difference_ci95:.4f}",
+                f"± {r.difference_ci95:.4f}"
+                if np.isfinite(r.difference_ci95)
+                else "one seed: none",
                 _pct(r.gap_closed_oracle),
                 _pct(r.gap_closed_bound),
                 _num(r.pct_events_seen, 1),
