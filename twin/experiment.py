@@ -101,9 +101,22 @@ class ExperimentResult:
             return None
         planned = self.results[0].completed_steps
         why = r.error or f"stopped after {r.completed_steps} of {planned} steps"
-        kept = ", ".join(str(k.seed) for k in self.results)
+        kept = seed_ranges([k.seed for k in self.results])
         seeds = f"seed{'s' if len(self.results) > 1 else ''} {kept}"
         return f"seed {r.seed}: {why}; left out, the tables hold {seeds} (every step)"
+
+
+def seed_ranges(seeds: list[int]) -> str:
+    """``0, 1``, ``0 .. 47565`` or ``0 .. 3, 7, 9 .. 11``: seeds in runs, readable for any
+    count (three or more in a row are a range)."""
+    runs: list[list[int]] = []
+    for seed in seeds:
+        if runs and seed == runs[-1][-1] + 1:
+            runs[-1].append(seed)
+        else:
+            runs.append([seed])
+    parts = [f"{run[0]} .. {run[-1]}" if len(run) > 2 else ", ".join(map(str, run)) for run in runs]
+    return ", ".join(parts)
 
 
 def leave_out_unfinished_seed(outcome: ExperimentResult) -> None:
