@@ -225,6 +225,10 @@ NET_AND_TRIPS = (
 # name -> (sumocfg text, files to write beside it {name: text | bytes}, expected begin, end)
 ACCEPTED = {
     "<sumoConfiguration> root": (_cfg(NET_AND_TRIPS, "sumoConfiguration"), {}, None, None),
+    # SUMO reads a config's options under any root (`sumo -c` runs both)
+    "a <foo> root": (_cfg(NET_AND_TRIPS, "foo"), {}, None, None),
+    "a <netconvertConfiguration> root of SUMO's options": (
+        _cfg(NET_AND_TRIPS, "netconvertConfiguration"), {}, None, None),
     "values as element text": (
         _cfg("<input><net-file>small.net.xml</net-file>"
              "<route-files>small.trips.xml</route-files></input>"
@@ -746,9 +750,11 @@ REFUSED = {
         _cfg(NET_AND_TRIPS + '<time><begin value="600"/><end value="60"/></time>'), {},
         "is not after <begin",
     ),
-    "a netconvert config": (_cfg(NET_AND_TRIPS, "netconvertConfiguration"), {},
-                            "not a SUMO simulation config (a netconvert config)"),
-    "another root": (_cfg(NET_AND_TRIPS, "routes"), {}, "not a SUMO simulation config"),
+    "a route file given as config": (_cfg('<vehicle id="v" depart="0"/>', "routes"), {},
+                                     "a <routes> file that names no network, not a SUMO"),
+    "a netconvert config": (_cfg('<input><osm-files value="a.osm"/></input>',
+                                 "netconvertConfiguration"), {},
+                            "a netconvert file that names no network, not a SUMO"),
     "no network": (_cfg('<input><route-files value="small.trips.xml"/></input>'), {},
                    "names no network; add <net-file value=...>"),
     "a network as route file": (

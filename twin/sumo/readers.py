@@ -227,17 +227,7 @@ def read_sumocfg(path: Path, own_net: bool = True) -> SumoConfigFile:
     ``<net-file>`` is not checked."""
     check_regular(path)
     path = resolved(path) if Path(path).exists() else Path(path)
-    tag = root_tag(path, "SUMO config")
-    if tag not in SUMOCFG_ROOTS:
-        what = (
-            f"a {tag[: -len('Configuration')]} config"
-            if tag.endswith("Configuration")
-            else (f"root <{tag}>")
-        )
-        raise UserError(
-            f"{path}: not a SUMO simulation config ({what}); give a .sumocfg with a "
-            "<configuration> or <sumoConfiguration> root (as `sumo -C` writes)"
-        )
+    tag = root_tag(path, "SUMO config")  # SUMO reads a config's options under any root
     with open(path, "rb") as fh:
         compressed = fh.read(2) == b"\x1f\x8b"
     if compressed:  # SUMO reads compressed network, route and additional files, not configs
@@ -259,6 +249,12 @@ def read_sumocfg(path: Path, own_net: bool = True) -> SumoConfigFile:
     if not own_net:
         net = net[:1] or [Path()]
     if not net:
+        if tag not in SUMOCFG_ROOTS:  # a data file given for a config, most likely
+            what = tag[: -len("Configuration")] if tag.endswith("Configuration") else f"<{tag}>"
+            raise UserError(
+                f"{path}: a {what} file that names no network, not a SUMO simulation config; "
+                "give a .sumocfg (as `sumo -C` writes) or the network with --net"
+            )
         raise UserError(
             f"{path}: names no network; add <net-file value=...> to its <input> (twin needs "
             "the network to lay its grid)"
