@@ -2134,3 +2134,22 @@ def test_run_json_records_the_command_line_that_was_run(tmp_path):
     assert main(argv) == 0
     command = json.loads((out / "run.json").read_text())["command"]
     assert shlex.split(command) == ["twin", *argv]
+
+
+def test_a_python_warning_is_one_notice_line_without_its_source(capfd) -> None:
+    """numpy's or a library's warning inside a command: one ``twin: notice:`` line, said once,
+    never the file and source line that raised it."""
+    import warnings
+
+    def warns(_args) -> int:
+        for _ in range(3):
+            np.float64(0.0) / np.float64(0.0)  # numpy: invalid value encountered in divide
+        warnings.warn("a library's\n  two-line advice", FutureWarning, stacklevel=1)
+        return 0
+
+    assert run_command(warns, None) == 0
+    err = capfd.readouterr().err.strip().splitlines()
+    assert err == [
+        "twin: notice: RuntimeWarning: invalid value encountered in scalar divide",
+        "twin: notice: FutureWarning: a library's two-line advice",
+    ], err

@@ -39,3 +39,17 @@ def test_learned_swarms_meet_the_strongest_classical_swarm():
     assert list(table["swarm"]) == ["rl", "rl-online"]
     assert set(table["against"]) == {"sweeping"}
     assert learned_against_best_classical(_per_seed({"random": [1.0]})).empty
+
+
+def test_a_yardstick_that_scored_nothing_gives_no_ratio(recwarn):
+    """The best classical swarm at 0 (every vehicle missed): the ratio is n/a, with no numpy
+    warning on the terminal (it printed twin's source line four times)."""
+    import math
+
+    from twin.metrics import format_comparison
+
+    per_seed = _per_seed({"rl": [0.0, 0.0], "greedy": [0.0, 0.0]})
+    table = learned_against_best_classical(per_seed)
+    assert math.isnan(table["ratio"].iloc[0])
+    assert "ratio n/a (best scored 0)" in format_comparison(table)
+    assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)]

@@ -155,3 +155,18 @@ def test_a_seed_stopped_midway_is_left_out_of_the_tables(synthetic, tmp_path, mo
     assert twin_main(["report", str(out), "--no-animation"]) == 0, capsys.readouterr().err
     head = (out / "report" / "report.md").read_text()
     assert "PARTIAL RUN (40 of 40 steps): seed 5: interrupted after" in head
+
+
+@pytest.mark.parametrize(
+    ("seeds", "text"),
+    [
+        ([4], "4"),
+        ([0, 1], "0, 1"),
+        (list(range(47566)), "0 .. 47565"),  # it was one line of 300 KB
+        ([0, 1, 2, 3, 7, 9, 10, 11], "0 .. 3, 7, 9 .. 11"),
+    ],
+)
+def test_a_partial_run_names_its_kept_seeds_in_ranges(seeds, text):
+    from twin.experiment import seed_ranges
+
+    assert seed_ranges(seeds) == text

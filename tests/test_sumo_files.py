@@ -225,6 +225,10 @@ NET_AND_TRIPS = (
 # name -> (sumocfg text, files to write beside it {name: text | bytes}, expected begin, end)
 ACCEPTED = {
     "<sumoConfiguration> root": (_cfg(NET_AND_TRIPS, "sumoConfiguration"), {}, None, None),
+    # SUMO reads a config's options under any root (`sumo -c` runs both)
+    "a <foo> root": (_cfg(NET_AND_TRIPS, "foo"), {}, None, None),
+    "a <netconvertConfiguration> root of SUMO's options": (
+        _cfg(NET_AND_TRIPS, "netconvertConfiguration"), {}, None, None),
     "values as element text": (
         _cfg("<input><net-file>small.net.xml</net-file>"
              "<route-files>small.trips.xml</route-files></input>"
@@ -746,9 +750,11 @@ REFUSED = {
         _cfg(NET_AND_TRIPS + '<time><begin value="600"/><end value="60"/></time>'), {},
         "is not after <begin",
     ),
-    "a netconvert config": (_cfg(NET_AND_TRIPS, "netconvertConfiguration"), {},
-                            "not a SUMO simulation config (a netconvert config)"),
-    "another root": (_cfg(NET_AND_TRIPS, "routes"), {}, "not a SUMO simulation config"),
+    "a route file given as config": (_cfg('<vehicle id="v" depart="0"/>', "routes"), {},
+                                     "a <routes> file that names no network, not a SUMO"),
+    "a netconvert config": (_cfg('<input><osm-files value="a.osm"/></input>',
+                                 "netconvertConfiguration"), {},
+                            "a netconvert file that names no network, not a SUMO"),
     "no network": (_cfg('<input><route-files value="small.trips.xml"/></input>'), {},
                    "names no network; add <net-file value=...>"),
     "a network as route file": (
@@ -1193,3 +1199,25 @@ def test_a_begin_whose_warm_up_would_start_before_midnight_cuts_it(scenario, tmp
     assert code == 0, err
     assert "would start SUMO before 00:00; warm-up cut to 0.5 min" in err
     assert json.loads((out / "run.json").read_text())["traffic"]["warmup_s"] == 30
+
+
+def test_a_sumocfg_named_through_a_link_reads_its_files_beside_the_link(scenario, tmp_path, capsys):
+    """As ``sumo -c other/public.sumocfg`` (a link to ``real/``): its relative names are read
+    from ``other/``, the link's folder, not the target's (twin ran ``real/``'s files, exit 0),
+    and without them there the run is refused, as SUMO refuses it."""
+    real, other = tmp_path / "real", tmp_path / "other"
+    shutil.copytree(scenario / "scenario", real)
+    other.mkdir()
+    (other / "public.sumocfg").symlink_to("../real/public.sumocfg")
+    argv = ("--sumocfg", str(other / "public.sumocfg"), "--horizon", "2")
+    assert _run(scenario, tmp_path / "refused", *argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(other / "small.net.xml") in err[0], err
+    for name in ("small.net.xml", "small.trips.xml", "detectors.add.xml"):
+        shutil.copy(real / name, other / name)
+    (other / "out").mkdir()
+    assert _run(scenario, tmp_path / "run", *argv) == 0, capsys.readouterr().err
+    identity = json.loads((tmp_path / "run" / "run.json").read_text())["traffic"]["identity"]
+    loaded = {Path(f["path"]).name: Path(f["path"]).parent for f in identity["files"]}
+    assert loaded["small.trips.xml"] == other and loaded["small.net.xml"] == other
+    assert loaded["public.sumocfg"] == other

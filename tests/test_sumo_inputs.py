@@ -693,3 +693,17 @@ def test_words_held_reads_a_file_once_for_several_words(tmp_path, content, first
     assert words_held(path, b"tlLogic", b"param", first=first) == held
     assert may_hold(path, b"tlLogic", b"param") == bool(held)
     assert words_held(tmp_path / "missing.xml", b"param") == set()
+
+
+def test_as_given_follows_no_link_but_lets_the_system_resolve_dots_after_one(tmp_path):
+    """A name as SUMO takes it: absolute, links not followed; ``..`` folded lexically except
+    after a link, where only the system knows the folder it leads to."""
+    from twin.sumo.readers import as_given
+
+    (tmp_path / "real" / "deep").mkdir(parents=True)
+    (tmp_path / "link").symlink_to(tmp_path / "real" / "deep")
+    assert as_given(tmp_path / "a" / ".." / "b.xml") == tmp_path / "b.xml"
+    assert as_given(tmp_path / "link" / "c.xml") == tmp_path / "link" / "c.xml"
+    after = tmp_path / "link" / ".." / "c.xml"  # the system reads real/c.xml
+    assert as_given(after) == after
+    assert as_given(after).resolve() == (tmp_path / "real" / "c.xml").resolve()

@@ -216,3 +216,32 @@ def test_osm_import_and_sumocfg(small, tmp_path, monkeypatch):  # writes only un
     config = load_config(small / "small.toml")
     source = sumo_source(config, sumocfg=cfg, horizon=3)
     assert _patrol(source).completed_steps == 3
+
+
+def test_an_osm_extract_without_streets_is_one_line_naming_it(tmp_path, monkeypatch, capsys):
+    """An extract whose ways twin's city options all drop (tracks, service roads): no empty
+    network with exit 0, no error naming the cache's file; and a cached empty conversion of
+    an earlier twin is rebuilt, then refused alike."""
+    from twin.cli import main
+    from twin.sumo.network import imported_dir
+
+    monkeypatch.setenv("TWIN_CACHE_DIR", str(tmp_path / "cache"))
+    tracks = tmp_path / "tracks.osm"  # every way dropped as netconvert reads it
+    tracks.write_text(OSM.replace('"primary"', '"track"').replace('"secondary"', '"service"'))
+    osm = tmp_path / "isolated.osm"  # one one-way road: removed as isolated (exit 0, no edge)
+    osm.write_text(OSM.replace('v="primary"/>', 'v="primary"/><tag k="oneway" v="yes"/>')
+                   .replace('v="secondary"', 'v="track"'))  # fmt: skip
+    for extract in (tracks, osm):
+        out = tmp_path / f"net-{extract.stem}"
+        assert main(["network", "import-osm", str(extract), "--out", str(out)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith(f"twin: error: {extract}: no road is"), err
+        assert not list(out.glob("*"))  # no half network left behind
+    stale = imported_dir(osm)  # an earlier twin cached an empty conversion
+    stale.mkdir(parents=True)
+    (stale / "isolated.net.xml").write_text('<?xml version="1.0"?>\n<net version="1.20"></net>\n')
+    argv = ["run", "--osm", str(osm), "--horizon", "2", "--out", str(tmp_path / "run")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith(f"twin: error: {osm}: no road is left"), err
+    assert not (tmp_path / "run").exists()

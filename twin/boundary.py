@@ -28,6 +28,7 @@ import signal
 import sys
 import threading
 import traceback
+import warnings
 from collections.abc import Callable
 from datetime import UTC, datetime
 from pathlib import Path
@@ -210,7 +211,9 @@ def run_command(func: Callable[[Any], int | None], args: Any) -> int:
     set_run_folder(None)
     terminate = _terminate_as_interrupt()
     try:
-        return int(_notices_held_on_failure(func, args) or 0)
+        with warnings.catch_warnings():
+            warnings.showwarning = _warning_as_notice
+            return int(_notices_held_on_failure(func, args) or 0)
     except UserError as exc:
         say(f"error: {exc}")
         return EXIT_REFUSED
@@ -248,6 +251,13 @@ def run_command(func: Callable[[Any], int | None], args: Any) -> int:
         set_run_folder(None)
         if terminate is not None:
             signal.signal(signal.SIGTERM, terminate)
+
+
+def _warning_as_notice(message, category, filename, lineno, file=None, line=None) -> None:
+    """A Python warning (numpy's, a library's) is one notice line, said once, not the source
+    line that raised it."""
+    text = " ".join(str(message).split())
+    notify(f"twin: notice: {category.__name__}: {text[:300]}")
 
 
 def _terminate_as_interrupt():

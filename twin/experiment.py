@@ -101,9 +101,22 @@ class ExperimentResult:
             return None
         planned = self.results[0].completed_steps
         why = r.error or f"stopped after {r.completed_steps} of {planned} steps"
-        kept = ", ".join(str(k.seed) for k in self.results)
+        kept = seed_ranges([k.seed for k in self.results])
         seeds = f"seed{'s' if len(self.results) > 1 else ''} {kept}"
         return f"seed {r.seed}: {why}; left out, the tables hold {seeds} (every step)"
+
+
+def seed_ranges(seeds: list[int]) -> str:
+    """``0, 1``, ``0 .. 47565`` or ``0 .. 3, 7, 9 .. 11``: seeds in runs, readable for any
+    count (three or more in a row are a range)."""
+    runs: list[list[int]] = []
+    for seed in seeds:
+        if runs and seed == runs[-1][-1] + 1:
+            runs[-1].append(seed)
+        else:
+            runs.append([seed])
+    parts = [f"{run[0]} .. {run[-1]}" if len(run) > 2 else ", ".join(map(str, run)) for run in runs]
+    return ", ".join(parts)
 
 
 def leave_out_unfinished_seed(outcome: ExperimentResult) -> None:
@@ -637,6 +650,11 @@ def planned_shape(experiment: Experiment) -> tuple[tuple[int, int] | None, int |
     return (config.grid.nx, config.grid.ny), int(config.traffic.horizon)
 
 
+#: Bytes per swarm and step of a seed's series and trajectory rows, and per seed of its
+#: result's objects (:func:`estimate_memory`).
+SERIES_BYTES, SEED_BYTES = 600, 60_000
+
+
 def estimate_memory(
     experiment: Experiment,
     shape: tuple[int, int],
@@ -651,8 +669,12 @@ def estimate_memory(
     scored; synthetic traffic precomputes its maps (float64, stacked: 16 B); live traffic keeps
     each seed's tape (int32 counts + float32 speeds, warm-up included: 8 B) and writes the first as
     a long table (~48 B). Per cell and swarm: its state, view and belief map (~64 B). Per
-    swarm, drone and step: positions (16 B per seed). With ``[faults]``, each swarm's
-    fault-free twin counts as one more swarm.
+    swarm, drone and step: positions (16 B per seed). Per swarm and step of each seed: its
+    series and trajectory rows as gathered into the run's tables (600 B); per seed: its
+    result's objects (60 KB); from peak memory (`/usr/bin/time`) on a 10 x 12 grid, T = 60,
+    1500 and 3000 seeds of 1 swarm and 3000 of 3 (122 to 133 and 179 KB per seed; the terms
+    above gave 67), with a margin of about a fifth. With
+    ``[faults]``, each swarm's fault-free twin counts as one more swarm.
 
     Seeds run at once on W workers (:func:`parallel`): each worker holds one simulation with its
     swarms (:data:`WORKER_BYTES`: an interpreter and the traffic simulator's process), its
@@ -676,7 +698,8 @@ def estimate_memory(
     need = (
         cells * steps * per_cell_step
         + cells * n_swarms * 64
-        + n_swarms * n_seeds * steps * n_drones * 16
+        + n_swarms * n_seeds * steps * (n_drones * 16 + SERIES_BYTES)
+        + n_seeds * SEED_BYTES
     )
     workers = n_workers(experiment)
     if workers > 1:

@@ -337,9 +337,17 @@ def paired_difference(per_seed: pd.DataFrame, a: str, b: str, column: str = "R_h
         "column": column,
         "difference": float(diff.mean()) if len(diff) else float("nan"),
         "difference_ci95": ci95_halfwidth(diff),
-        "ratio": float(both[a].mean() / both[b].mean()) if len(diff) else float("nan"),
+        "ratio": _ratio(float(both[a].mean()), float(both[b].mean())) if len(diff) else NAN,
         "n_seeds": len(diff),
     }
+
+
+NAN = float("nan")
+
+
+def _ratio(a: float, b: float) -> float:
+    """``a / b``, NaN when ``b`` is 0 (a yardstick that scored nothing gives no ratio)."""
+    return a / b if b != 0 else NAN
 
 
 def learned_against_best_classical(per_seed: pd.DataFrame, column: str = "R_hat_T"):
@@ -366,6 +374,7 @@ def format_comparison(comparison: pd.DataFrame) -> str:
         )
         lines.append(
             f"{row['swarm']} - {row['against']} (best classical): {row['column']} "
-            f"{row['difference']:+.3f}{ci}, ratio {row['ratio']:.3f}"
+            f"{row['difference']:+.3f}{ci}, ratio "
+            + (f"{row['ratio']:.3f}" if np.isfinite(row["ratio"]) else "n/a (best scored 0)")
         )
     return "\n".join(lines)

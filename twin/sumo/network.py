@@ -271,15 +271,32 @@ def import_osm(osm_file: Path, out_dir: Path | None = None) -> Path:
         raise missing(osm_file, "OSM file")
     name = osm_file.name.split(".")[0] + ".net.xml"
 
+    no_road = UserError(
+        f"{osm_file}: no road is left after conversion (twin keeps the roads passenger cars "
+        "may use, drops tracks, paths, service roads and isolated edges); give an extract with "
+        "streets, or convert it with your own netconvert options and pass the network with --net"
+    )
+
     def make(out: Path, file_name: str = name) -> None:
-        run_sumo_program(
-            [binary("netconvert"), "--osm-files", str(osm_file), "--output-file",
-             str(out / file_name), *OSM_OPTIONS, "--no-warnings", "true"],
-            what=f"netconvert on {osm_file}",
-        )  # fmt: skip
+        try:
+            run_sumo_program(
+                [binary("netconvert"), "--osm-files", str(osm_file), "--output-file",
+                 str(out / file_name), *OSM_OPTIONS, "--no-warnings", "true"],
+                what=f"netconvert on {osm_file}",
+            )  # fmt: skip
+        except UserError as exc:
+            if "No edges loaded" in str(exc):  # every way dropped as it was read
+                raise no_road from None
+            raise
+        if not has_roads(out / file_name):  # every edge removed after reading (isolated)
+            raise no_road
+
+    def verify(folder: Path) -> None:  # an empty conversion cached by an earlier twin
+        resources.check_xml_files(folder, {name: "net"})
+        if not has_roads(folder / name):
+            raise resources.BrokenEntry(f"{name} holds no road")
 
     if out_dir is None:
-        verify = lambda d: resources.check_xml_files(d, {name: "net"})  # noqa: E731
         return resources.build_once(imported_dir(osm_file), make, verify=verify) / name
     out_dir = Path(out_dir)
     target = out_dir / name
@@ -296,6 +313,15 @@ def import_osm(osm_file: Path, out_dir: Path | None = None) -> Path:
     finally:
         (out_dir / partial).unlink(missing_ok=True)
     return target
+
+
+def has_roads(net_file: Path) -> bool:
+    """Whether a network holds an edge that is not inside a junction (read up to the first)."""
+    with open(net_file, "rb") as fh:
+        for _, elem in ET.iterparse(fh, events=("start",)):
+            if elem.tag == "edge" and elem.get("function") != "internal":
+                return True
+    return False
 
 
 def check_net_file(net_file: Path) -> None:

@@ -51,6 +51,7 @@ from pathlib import Path
 from twin.errors import UserError
 from twin.sumo.options import output_options
 from twin.sumo.readers import (
+    as_given,
     file_list,
     included_files,
     local_name,
@@ -301,7 +302,7 @@ def redirect_outputs(
             value = cfg.options.get(name)
             if value and f"--{name}" not in out:
                 extra += [f"--{name}", name_part(value)]
-        base = Path(sumocfg).resolve().parent
+        base = as_given(sumocfg).parent  # as SUMO: a config named through a link writes beside it
         plan.ssm_devices = any(k.startswith("device.ssm.") for k in cfg.options)
         given = {k: v for k, v in cfg.options.items() if k in output_options()}
         state_times = any(cfg.options.get(k) for k in ("save-state.times", "save-state.period"))

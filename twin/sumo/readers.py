@@ -37,14 +37,32 @@ def link_loop(path: Path, named_in: Path | None = None) -> str:
 
 
 def resolved(path: Path, named_in: Path | None = None) -> Path:
-    """``path`` made absolute, its links followed; a symbolic link loop, a pipe or a device
-    is a one-line error (``named_in``: the config that names the file)."""
+    """``path`` made absolute as SUMO reads it (:func:`as_given`: a file named through a link
+    reads its own relative names from the link's folder); a symbolic link loop, a pipe or a
+    device is a one-line error (``named_in``: the config that names the file)."""
     if not Path(path).is_dir():
         check_regular(path)
     try:
-        return Path(path).resolve()
+        Path(path).resolve()  # a loop is refused here
     except (RuntimeError, OSError) as exc:  # Python 3.11 raises RuntimeError for a loop
         raise UserError(link_loop(path, named_in)) from exc
+    return as_given(path)
+
+
+def as_given(path: Path) -> Path:
+    """``path`` absolute without following its links, as SUMO takes a file name (it joins a
+    config's folder and a relative name as text): ``..`` is folded into its folder, except
+    after a link, where the system resolves it in the link's target."""
+    whole = Path.cwd() / path
+    out = Path(whole.anchor)
+    for part in whole.parts[1:]:
+        if part != "..":
+            out = out / part
+        elif out.is_symlink():
+            return whole  # only the system knows where it leads
+        else:
+            out = out.parent
+    return out
 
 
 def missing(path: Path, what: str) -> UserError:
@@ -209,17 +227,7 @@ def read_sumocfg(path: Path, own_net: bool = True) -> SumoConfigFile:
     ``<net-file>`` is not checked."""
     check_regular(path)
     path = resolved(path) if Path(path).exists() else Path(path)
-    tag = root_tag(path, "SUMO config")
-    if tag not in SUMOCFG_ROOTS:
-        what = (
-            f"a {tag[: -len('Configuration')]} config"
-            if tag.endswith("Configuration")
-            else (f"root <{tag}>")
-        )
-        raise UserError(
-            f"{path}: not a SUMO simulation config ({what}); give a .sumocfg with a "
-            "<configuration> or <sumoConfiguration> root (as `sumo -C` writes)"
-        )
+    tag = root_tag(path, "SUMO config")  # SUMO reads a config's options under any root
     with open(path, "rb") as fh:
         compressed = fh.read(2) == b"\x1f\x8b"
     if compressed:  # SUMO reads compressed network, route and additional files, not configs
@@ -241,6 +249,12 @@ def read_sumocfg(path: Path, own_net: bool = True) -> SumoConfigFile:
     if not own_net:
         net = net[:1] or [Path()]
     if not net:
+        if tag not in SUMOCFG_ROOTS:  # a data file given for a config, most likely
+            what = tag[: -len("Configuration")] if tag.endswith("Configuration") else f"<{tag}>"
+            raise UserError(
+                f"{path}: a {what} file that names no network, not a SUMO simulation config; "
+                "give a .sumocfg (as `sumo -C` writes) or the network with --net"
+            )
         raise UserError(
             f"{path}: names no network; add <net-file value=...> to its <input> (twin needs "
             "the network to lay its grid)"
