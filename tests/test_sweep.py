@@ -602,3 +602,23 @@ def test_a_damaged_sweep_record_is_kept_aside_not_overwritten(tmp_path: Path, ca
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and f"kept as {kept}" in err
         assert len(json.loads((out / "sweep.json").read_text())["invocations"]) == 1
+
+
+def test_a_history_option_is_a_file_of_the_cell(tmp_path: Path) -> None:
+    """``[swarm_options.nowcast-gain] history`` is read from the sweep config's folder, like a
+    checkpoint, and its content defines the cell: a replaced history gives a new cell (its
+    old numbers were kept; probe 13's P2-f01a), a missing one is refused naming the key."""
+    path = sweep_file(tmp_path, seeds=1)
+    text = path.read_text().replace('"sweeping"]', '"sweeping", "nowcast-gain"]')
+    path.write_text(text + '\n[swarm_options.nowcast-gain]\nhistory = "h.npz"\n')
+    with pytest.raises(UserError, match=r"\[swarm_options.nowcast-gain\].history = .*h\.npz "
+                                        r".*run `twin history` or fix the path"):  # fmt: skip
+        load_sweep_config(path)
+    history = tmp_path / "h.npz"
+    history.write_bytes(b"one history")
+    config = load_sweep_config(path)
+    assert config.swarm_options["nowcast-gain"]["history"] == str(history.resolve())
+    first = [c["id"] for c in expand_cells(config, tmp_path / "s")]
+    assert [c["id"] for c in expand_cells(config, tmp_path / "s")] == first
+    history.write_bytes(b"another history")
+    assert not set(c["id"] for c in expand_cells(config, tmp_path / "s")) & set(first)

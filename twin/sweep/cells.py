@@ -22,7 +22,7 @@ from typing import Any
 
 from twin.errors import UserError
 from twin.files import atomic_write, file_sha256
-from twin.sweep.config import SweepConfig
+from twin.sweep.config import OPTION_FILES, SweepConfig
 from twin.sweep.store import CELLS_DIR, write_cell_record
 
 
@@ -57,10 +57,11 @@ def cell_id(cell: dict[str, Any]) -> str:
 
 def expand_cells(config: SweepConfig, out_dir: Path) -> list[dict[str, Any]]:
     """The sweep's cells, scenario-major, then parameters, then seeds."""
-    checkpoints = {
-        swarm: file_sha256(options["checkpoint"])
+    checkpoints = {  # every option file's content: a checkpoint, a history
+        swarm if key == "checkpoint" else f"{swarm}.{key}": file_sha256(options[key])
         for swarm, options in config.swarm_options.items()
-        if Path(options.get("checkpoint", "")).is_file()
+        for key in OPTION_FILES
+        if isinstance(options.get(key), str) and Path(options[key]).is_file()
     }
     cells = []
     for scenario in config.scenarios:

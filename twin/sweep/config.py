@@ -34,6 +34,10 @@ from twin.config import (
 )
 from twin.files import not_a_file
 
+#: Swarm options that name a file, and how such a file is made: a sweep resolves them against
+#: its own folder, and each cell's id hashes their content (:func:`twin.sweep.cells.cell_id`).
+OPTION_FILES = {"checkpoint": "run `twin pretrain`", "history": "run `twin history`"}
+
 
 class SweepSection(StrictModel):
     name: str | None = None  # default: the config file's stem
@@ -157,18 +161,17 @@ class SweepConfig(StrictModel):
                     f"[swarm_options.{swarm}] names a swarm not in [sweep].swarms "
                     f"{self.sweep.swarms}; add it there or drop the table"
                 )
-            if "checkpoint" in table:
-                where = f"[swarm_options.{swarm}].checkpoint"
-                if not isinstance(table["checkpoint"], str):
-                    raise ValueError(f"{where} = {table['checkpoint']!r} must be a file name")
-                path = Path(table["checkpoint"])
-                table["checkpoint"] = str(path if path.is_absolute() else (base / path).resolve())
-                why = not_a_file(table["checkpoint"])
+            for key, make in OPTION_FILES.items():  # relative to the sweep config
+                if key not in table:
+                    continue
+                where = f"[swarm_options.{swarm}].{key}"
+                if not isinstance(table[key], str):
+                    raise ValueError(f"{where} = {table[key]!r} must be a file name")
+                path = Path(table[key])
+                table[key] = str(path if path.is_absolute() else (base / path).resolve())
+                why = not_a_file(table[key])
                 if why is not None:
-                    raise ValueError(
-                        f"{where} = {table['checkpoint']} {why}; run `twin pretrain` or fix the "
-                        "path"
-                    )
+                    raise ValueError(f"{where} = {table[key]} {why}; {make} or fix the path")
         return self
 
     @property
