@@ -192,6 +192,8 @@ def test_headroom_line():
     line = headroom(summary)
     assert "best swarm b reaches 50.0% of the bound; oracle 62.5%" in line
     assert headroom(summary.iloc[:2]) is None
+    nothing = summary.assign(R_hat_T=0.0)  # no vehicle on any step: 0/0 printed "nan%"
+    assert headroom(nothing) == "Headroom (R_hat_T): none (the bound is 0.000: nothing to see)"
 
 
 SMALL = """

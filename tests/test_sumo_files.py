@@ -282,6 +282,10 @@ def _write_case(scenario: Path, d: Path, text: str, files: dict[str, str]) -> Pa
             (d / name).write_text(
                 routes.replace("<routes", "<additional").replace("</routes>", "</additional>")
             )
+        elif body.startswith("LATE:"):  # a route file's demand 2000 s later
+            routes = (d / body[5:]).read_text()
+            shift = lambda m: f'depart="{float(m.group(1)) + 2000:.2f}"'  # noqa: E731
+            (d / name).write_text(re.sub(r'depart="([0-9.]+)"', shift, routes))
         elif body.startswith("LINK:"):
             (d / name).symlink_to(d / body[5:])
         else:
@@ -746,6 +750,12 @@ REFUSED = {
                        "<begin value='inf'> is not a finite time"),
     "NaN clock": (_cfg(NET_AND_TRIPS + "<time><end>1:nan:00</end></time>"), {},
                   "is not a finite time"),
+    "its window ends before the first departure": (  # every step was empty, exit 0
+        _cfg('<input><net-file value="small.net.xml"/><route-files value="late.trips.xml"/>'
+             '</input><time><begin value="0"/><end value="600"/></time>'),
+        {"late.trips.xml": "LATE:small.trips.xml"},
+        "its window (00:01:00 - 00:10:00) ends before the first departure (00:33:20)",
+    ),
     "end before begin": (
         _cfg(NET_AND_TRIPS + '<time><begin value="600"/><end value="60"/></time>'), {},
         "is not after <begin",

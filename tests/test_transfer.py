@@ -117,6 +117,24 @@ def test_tiny_matrix_end_to_end_and_pool_equals_sequential(tmp_path: Path) -> No
     manifest = json.loads((sequential / "sweep" / "sweep.json").read_text())
     assert manifest["invocations"][-1]["ran"] == 0
 
+    # the tapes' route file edited: the tapes are recorded again, the row fine-tuned on them
+    # trained again, the SUMO column's cells run again; the paper row stays (probe 13's P2-f01b:
+    # tapes, row and matrix were kept, exit 0)
+    from twin.files import file_sha256
+
+    trips = tmp_path / "small.trips.xml"  # its first trip dropped
+    lines = trips.read_text().splitlines()
+    trips.write_text("\n".join(line for line in lines if 'id="0"' not in line) + "\n")
+    tuned_model = sequential / "rows" / "paper+tapes" / "qnet.pt"
+    before = file_sha256(tuned_model)
+    run_transfer(config, sequential, workers=1)
+    assert model.stat().st_mtime_ns == stamp
+    tuned = json.loads((sequential / "rows" / "paper+tapes" / "provenance.json").read_text())
+    assert tuned["recipe"]["tapes"] == {t: file_sha256(t) for t in tuned["recipe"]["tapes"]}
+    assert tuned["qnet_sha256"] == file_sha256(tuned_model) != before
+    manifest = json.loads((sequential / "sweep" / "sweep.json").read_text())
+    assert manifest["invocations"][-1]["ran"] >= 2  # the small column's cells (and the row's)
+
 
 def test_ray_gives_the_local_numbers(tmp_path: Path) -> None:
     pytest.importorskip("ray")

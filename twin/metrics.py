@@ -297,6 +297,8 @@ def headroom(summary: pd.DataFrame, column: str = "R_hat_T") -> str | None:
     swarms = swarm_rows(summary).set_index("swarm")[column].dropna()
     if swarms.empty or BOUND not in ceilings or not np.isfinite(ceilings[BOUND]):
         return None
+    if ceilings[BOUND] <= 0:  # nothing to see on any step: no share of it
+        return f"Headroom ({column}): none (the bound is {ceilings[BOUND]:.3f}: nothing to see)"
     best = str(swarms.idxmax())
     text = f"best swarm {best} reaches {swarms[best] / ceilings[BOUND]:.1%} of the bound"
     if ORACLE in ceilings and np.isfinite(ceilings[ORACLE]):

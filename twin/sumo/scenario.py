@@ -487,6 +487,14 @@ def _grid_and_notices(
             f"for {n_drones} drones (fewer than {MIN_FREE_CELLS_PER_DRONE} per drone: every "
             f"swarm covers nearly all, the comparison says little); {fix}"
         )
+    end = begin + s.horizon * step_s
+    own_window = not window_given and files.span is not None and files.state_time is None
+    if own_window and end <= files.span[0]:  # the sumocfg's <time> (a given one: see below)
+        raise UserError(
+            f"{files.name}: its window ({clock_label(begin)} - {clock_label(end)}) ends before "
+            f"the first departure ({clock_label(files.span[0])}): every step would be empty; "
+            "give a --begin and --horizon within the demand, or fix its <time>"
+        )
     if files.span is not None and window_given:
         clear = clearing_time(geometry)
         end = begin + s.horizon * step_s

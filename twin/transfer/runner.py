@@ -19,6 +19,7 @@ Every stage skips what is done: a rerun resumes.
 from __future__ import annotations
 
 import json
+import shutil
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -95,6 +96,29 @@ def record_tape(task: dict[str, Any]) -> str:
     finally:
         source.close()
     return task["path"]
+
+
+def tape_still_holds(path: Path) -> bool:
+    """Whether a tape recorded before is there and its scenario's SUMO files (its traffic
+    identity: network, routes, additional files, sumocfg) are still what it was recorded on;
+    a changed one is said, and the tape recorded again."""
+    import pyarrow.parquet as pq
+
+    from twin.notices import notify
+    from twin.sweep.store import inputs_changed
+
+    if not path.is_file():
+        return False
+    try:
+        settings = json.loads(pq.read_schema(path).metadata[b"twin_tape"])["settings"]
+    except Exception:  # a damaged tape: the reader of the rows says why, record it again
+        settings = None
+    changed = inputs_changed({"traffic": settings}) if isinstance(settings, dict) else "file"
+    if changed is None:
+        return True
+    notify(f"twin: notice: tape {path.name}: its {changed} changed since it was recorded; "
+           "recording it again")  # fmt: skip
+    return False
 
 
 def tape_tasks(config: TransferConfig, out: Path) -> list[dict[str, Any]]:
@@ -188,6 +212,12 @@ def train_row(task: dict[str, Any]) -> dict[str, Any]:
     cfg = PretrainConfig.from_data(task["where"], task["pretrain"])
     out = Path(cfg.out)
     if not provenance_matches(out, cfg):
+        if (out / "provenance.json").is_file():  # finished on other settings or files
+            from twin.notices import notify
+
+            notify(f"twin: notice: row {out.name}: its settings, tapes, start or scenario "
+                   "changed since it was trained; training it again")  # fmt: skip
+            shutil.rmtree(out)  # the transfer's own row folder: its checkpoint resumes nothing
         pretrain(cfg, progress=False)
     return json.loads(read_record(out / "provenance.json"))
 
@@ -203,11 +233,23 @@ def provenance_matches(out: Path, cfg) -> bool:
         record = json.loads(read_record(path))
     except (OSError, ValueError):
         return False
-    return (
+    if not (
         isinstance(record, dict)
         and record.get("config") == json.loads(json.dumps(cfg.training_dict(), default=str))
         and record.get("qnet_sha256") == file_sha256(model)
-    )
+    ):
+        return False
+    recipe = record.get("recipe") if isinstance(record.get("recipe"), dict) else {}
+    try:  # the files it learnt from are still those: tapes, its start, its scenario
+        init = recipe.get("init") or {}
+        return (
+            recipe.get("tapes") == {t: file_sha256(t) for t in cfg.tapes}
+            and (init.get("sha256") if cfg.init else None)
+            == (file_sha256(cfg.init) if cfg.init else None)
+            and (recipe.get("scenario") or {}).get("sha256") == file_sha256(cfg.scenario)
+        )
+    except (OSError, AttributeError):
+        return False
 
 
 def loaded_provenance(row, out: Path) -> dict[str, Any]:
@@ -341,7 +383,7 @@ def run_transfer(
     timings: dict[str, float] = {}
 
     t0 = time.perf_counter()
-    tasks = [t for t in tape_tasks(config, out) if not Path(t["path"]).is_file()]
+    tasks = [t for t in tape_tasks(config, out) if not tape_still_holds(Path(t["path"]))]
     if tasks:
         say(f"recording {len(tasks)} tapes ({config.tapes.config.name}, seeds "
             f"{[t['seed'] for t in tasks]})")  # fmt: skip
