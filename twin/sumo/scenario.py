@@ -497,7 +497,6 @@ def _grid_and_notices(
         )
     if files.span is not None and window_given:
         clear = clearing_time(geometry)
-        end = begin + s.horizon * step_s
         outside = begin >= files.span[1] + clear or end <= files.span[0]
         # in the sumocfg's own window (given or derived), its vehicles may still circulate
         in_window = files.window[1] is not None and files.span[0] <= begin < files.window[1]

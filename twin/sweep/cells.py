@@ -101,7 +101,7 @@ def cell_inputs(config: Path, overrides: dict[str, Any], tape: Path | None) -> d
         scenario = None  # check_cells refuses it, naming the scenario
     if scenario is not None:
         for options in scenario.swarm_options.values():
-            for key in ("checkpoint", "history"):
+            for key in OPTION_FILES:
                 if isinstance(options.get(key), str):
                     paths.append(scenario.path.parent / options[key])
     inputs = {}
