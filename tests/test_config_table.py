@@ -478,3 +478,16 @@ def test_sweep_grid_override_reaches_the_sumo_grid():
     config = scenario_config(root / "configs" / "shenzhen.toml", {"grid.nx": 25})
     assert config.explicit_shape() == (25, 30)
     assert load_config(root / "configs" / "shenzhen.toml").explicit_shape() == (20, 30)
+
+
+def test_overrides_that_break_a_check_across_tables_are_named(tmp_path, capsys, monkeypatch):
+    """A pretraining's ``scenario_overrides`` that shrink the map below the shipped training
+    map's disturbances: the error names the user's file and keys, not only the shipped file
+    (which the user does not edit; probe 14's f03)."""
+    monkeypatch.setattr(twin.training.pretrain, "pretrain", None)
+    path = tmp_path / "small.toml"
+    path.write_text(
+        toml_text(PRETRAIN, "", "scenario_overrides", '{ "grid.nx" = 6, "grid.ny" = 6 }')
+    )
+    code = main(["pretrain", "--config", str(path), "--quiet"])
+    _one_line(capsys, code, path, "cells off the 6 x 6 map")

@@ -333,3 +333,25 @@ def test_a_damaged_network_build_is_rebuilt(tmp_path, monkeypatch, capsys):
     stamp.write_text('{"spec_hash": "another"}')
     network.build_named_network("shenzhen_like")
     assert len(builds) == 3 and "build.json does not match the spec" in capsys.readouterr().err
+
+
+def test_an_unsealed_entry_with_two_generator_comments_is_kept(tmp_path, capsys):
+    """randomTrips' route file holds two "generated on" comments (its own and duarouter's,
+    each with the time and the temporary folder): both are dropped, so an entry without its
+    seal equals a fresh build and is kept, not "replaced" at every run (probe 14's f02)."""
+
+    def make(d: Path) -> None:
+        head = '<?xml version="1.0"?>\n\n'
+        for tool in ("randomTrips", "duarouter"):
+            head += f"<!-- generated on {d.name} by {tool}\n<c/>\n-->\n\n"
+        (d / "a.net.xml").write_text('<net version="1">\n</net>\n')
+        (d / "a.trips.xml").write_text(head + "<routes>\n  <trip id='0'/>\n</routes>\n")
+
+    target = tmp_path / "entry"
+    resources.build_once(target, make, verify=_verify)
+    assert b"generated on" not in (target / "a.trips.xml").read_bytes()
+    (target / resources.SEAL).unlink()
+    capsys.readouterr()
+    resources.build_once(target, make, verify=_verify)
+    assert "differs" not in capsys.readouterr().err
+    resources.check_seal(target)

@@ -245,3 +245,18 @@ def test_an_osm_extract_without_streets_is_one_line_naming_it(tmp_path, monkeypa
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1].startswith(f"twin: error: {osm}: no road is left"), err
     assert not (tmp_path / "run").exists()
+
+
+def test_import_osm_out_on_a_file_is_the_out_line(tmp_path, capsys):
+    """``--out`` naming a file is refused as every command's ``--out`` is, before netconvert
+    runs (it was the system's bare "File exists"; probe 14's f07)."""
+    from twin.cli import main
+
+    osm, taken = tmp_path / "a.osm", tmp_path / "taken.toml"
+    osm.write_text(OSM)
+    taken.write_text("keep")
+    assert main(["network", "import-osm", str(osm), "--out", str(taken)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == (f"twin: error: --out {taken}: is a file, not a folder (a file is in the "
+                   "way); move it or pass another folder"), err  # fmt: skip
+    assert taken.read_text() == "keep"

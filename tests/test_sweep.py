@@ -622,3 +622,59 @@ def test_a_history_option_is_a_file_of_the_cell(tmp_path: Path) -> None:
     assert [c["id"] for c in expand_cells(config, tmp_path / "s")] == first
     history.write_bytes(b"another history")
     assert not set(c["id"] for c in expand_cells(config, tmp_path / "s")) & set(first)
+
+
+def test_a_sumocfg_variable_naming_another_file_gives_a_new_cell(tmp_path: Path, monkeypatch):
+    """A cell is its sumocfg as SUMO reads it: a ``${VAR}`` that now names another route file
+    gives another cell (the old cell's numbers were kept as current; probe 14's f04)."""
+    from twin.sweep.cells import cell_inputs
+
+    for name in ("n.net.xml", "a.rou.xml", "b.rou.xml"):
+        (tmp_path / name).write_text("<x/>")
+    (tmp_path / "c.sumocfg").write_text(
+        '<configuration><input><net-file value="n.net.xml"/>'
+        '<route-files value="${TWIN_TEST_ROUTES}"/></input></configuration>'
+    )
+    scenario = tmp_path / "sc.toml"
+    scenario.write_text('[traffic]\nkind = "sumo"\nsumocfg = "c.sumocfg"\ncell_m = 200\n')
+    monkeypatch.setenv("TWIN_TEST_ROUTES", "a.rou.xml")
+    first = cell_inputs(scenario, {}, None)
+    assert cell_inputs(scenario, {}, None) == first
+    monkeypatch.setenv("TWIN_TEST_ROUTES", "b.rou.xml")
+    assert cell_inputs(scenario, {}, None) != first
+
+
+def test_a_link_out_of_the_sweep_folder_is_refused(tmp_path: Path, capsys) -> None:
+    """A ``cells`` link planted in a sweep folder would take the cells' files outside it: one
+    line naming the link, nothing written through it (probe 14's f05)."""
+    path = sweep_file(tmp_path, seeds=1, horizon=4)
+    outside, out = tmp_path / "outside", tmp_path / "s"
+    outside.mkdir()
+    out.mkdir()
+    (out / "cells").symlink_to(outside)
+    assert cli(["sweep", "--config", str(path), "--out", str(out), "--quiet", "--no-report"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{out / 'cells'} is a symbolic link out of the folder" in err
+    assert not any(outside.iterdir())
+
+
+def test_the_memory_limit_of_a_sweep_bounds_its_cells(tmp_path: Path, capsys) -> None:
+    """``--max-memory-gb`` of a sweep is each cell's limit too (cells used 8 GB whatever it
+    said, while a refused cell said to raise it; probe 14's f01); a limit no worker fits in
+    says to raise it, not to use at most the one worker given."""
+    path = sweep_file(tmp_path, seeds=1, horizon=4)
+    args = ["sweep", "--config", str(path), "--quiet", "--no-report", "--workers", "1"]
+    assert cli([*args, "--out", str(tmp_path / "a"), "--max-memory-gb", "0.00001"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "raise --max-memory-gb" in err and "at most" not in err, err
+    big = tmp_path / "big.toml"  # about 1 GB of maps by twin's estimate
+    big.write_text(
+        '[grid]\nnx = 6\nny = 3000\n[swarm]\nn_drones = 2\n[traffic]\nkind = "synthetic"\n'
+        'horizon = 1600\ndisturbances = [{ kind = "big", i = 2, j = 2, amplitude = 1.0, '
+        "sigma = 1.0 }]\n"
+    )
+    path.write_text(path.read_text().replace('"scenario.toml"', '"big.toml"'))
+    assert cli([*args, "--out", str(tmp_path / "b"), "--max-memory-gb", "0.9"]) == 2
+    err = capsys.readouterr().err
+    assert "over the 0.9 GB limit" in err, err
+    assert not list((tmp_path / "b" / "cells").glob("*.parquet"))

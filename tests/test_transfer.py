@@ -328,3 +328,20 @@ def test_one_seed_gives_no_interval(seeds, shown) -> None:
     assert list(matrix["n_seeds"]) == [len(seeds)]
     assert np.isnan(matrix["difference_ci95"].iloc[0]) == (len(seeds) == 1)
     assert shown in format_matrix(matrix) and shown in verdict(matrix)
+
+
+@pytest.mark.parametrize("link", ["rows", "sweep", "rows/paper"])
+def test_a_link_out_of_the_transfer_folder_is_refused(tmp_path: Path, capsys, link) -> None:
+    """``rows`` or ``sweep`` links planted in a transfer folder would take checkpoints and
+    cells outside it: one line naming the link, nothing written through it (probe 14's
+    f06)."""
+    path = tmp_path / "t.toml"
+    path.write_text(GOOD.format(synthetic=ROOT / "configs" / "synthetic.toml"))
+    out, outside = tmp_path / "o", tmp_path / "outside"
+    outside.mkdir()
+    (out / link).parent.mkdir(parents=True)
+    (out / link).symlink_to(outside)
+    assert cli(["transfer", "--config", str(path), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{out / link} is a symbolic link out of the folder" in err
+    assert not any(outside.iterdir())

@@ -90,7 +90,13 @@ class SourcedConfig(StrictModel):
         config._path = Path(path)
         config._tables = copy.deepcopy(data)
         config._flags = dict(flags or {})
-        config.check()
+        try:
+            config.check()
+        except UserError as exc:  # a check across tables: name what changed the file too
+            shown = sorted(set((labels or {}).values()))
+            if not shown or any(label in str(exc) for label in shown):
+                raise
+            raise type(exc)(f"{exc} (the config as changed by {', '.join(shown)})") from None
         return config
 
     @classmethod

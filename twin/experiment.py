@@ -599,6 +599,12 @@ def check_workers_fit(
 ) -> None:
     """``workers`` processes at once (``--workers given``) fit the memory ``limit`` (GB) at
     :data:`WORKER_BYTES` each, at least (an interpreter and a simulator); else one line."""
+    if limit * 1e9 < WORKER_BYTES:  # not even one fits: fewer workers is no fix
+        raise UserError(
+            f"--workers {given}: one of the {what} needs at least {_gb(WORKER_BYTES)} GB (an "
+            f"interpreter and its simulator), over the {limit:g} GB limit; raise "
+            f"--max-memory-gb (or ${MEMORY_ENV}) to at least {_gb(WORKER_BYTES)}"
+        )
     if workers * WORKER_BYTES > limit * 1e9:
         raise UserError(
             f"--workers {given}: {workers} {what} at once need at least "

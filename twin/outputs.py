@@ -32,10 +32,13 @@ def _existing_ancestor(path: Path) -> Path:
     return probe
 
 
-def check_output_dir(path: str | Path, flag: str = "--out", need_mb: float = MIN_FREE_MB) -> Path:
+def check_output_dir(
+    path: str | Path, flag: str = "--out", need_mb: float = MIN_FREE_MB, links_out: bool = False
+) -> Path:
     """Refuse an output folder ``path`` twin cannot create or write into (one line naming
-    ``flag``); it need not exist yet (nothing is created here but, on a file system that
-    reports no size, a probe folder removed at once)."""
+    ``flag``), or one holding a symbolic link out of it unless ``links_out`` (the cache's
+    entries may live on another disk); it need not exist yet (nothing is created here but, on
+    a file system that reports no size, a probe folder removed at once)."""
     path = Path(path)
     _check_name(path, flag)
     if path.exists() and not path.is_dir():
@@ -50,7 +53,25 @@ def check_output_dir(path: str | Path, flag: str = "--out", need_mb: float = MIN
         )
     _check_writable(base, path, flag)
     _check_free(base, path, flag, need_mb)
+    if path.is_dir() and not links_out:
+        _check_no_link_out(path, flag)
     return path
+
+
+def _check_no_link_out(path: Path, flag: str) -> None:
+    """Refuse an existing output folder holding a symbolic link that leads out of it (a
+    ``cells`` or ``rows`` link to elsewhere): twin would write through it, outside the folder.
+    twin makes no links; one that stays inside the folder is harmless."""
+    root = path.resolve()
+    for folder, dirs, files in os.walk(path):  # links to folders are listed, never entered
+        for name in (*dirs, *files):
+            entry = Path(folder, name)
+            if entry.is_symlink() and not entry.resolve().is_relative_to(root):
+                raise UserError(
+                    f"{flag} {path}: {entry} is a symbolic link out of the folder (to "
+                    f"{os.readlink(entry)}); twin writes only inside its output folder: remove "
+                    "the link or pass another folder"
+                )
 
 
 def check_output_file(path: str | Path, flag: str, need_mb: float = 1) -> Path:

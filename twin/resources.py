@@ -116,7 +116,7 @@ def check_cache(why: str) -> Path:
     disk) before work that needs it starts; ``why`` says what needs it."""
     from twin.outputs import check_output_dir
 
-    return check_output_dir(cache_dir(), f"twin's cache (${CACHE_ENV}; {why})")
+    return check_output_dir(cache_dir(), f"twin's cache (${CACHE_ENV}; {why})", links_out=True)
 
 
 #: The most cells a grid may have: 25 million (a 5000 x 5000 grid), whose maps alone need GBs
@@ -162,9 +162,12 @@ def _entry_files(folder: Path) -> list[Path]:
     return sorted(p for p in folder.rglob("*") if p.is_file() and p.name != SEAL)
 
 
-#: The comment SUMO's tools put at the head of what they write: the time and the command
-#: line, with the temporary folder of the build in it.
-_GENERATOR_COMMENT = re.compile(rb"\A(<\?xml[^>]*\?>\s*)?<!-- generated on .*?-->\s*", re.DOTALL)
+#: The comments SUMO's tools put at the head of what they write: the time and the command
+#: line, with the temporary folder of the build in it (randomTrips' route file holds two:
+#: its own and duarouter's).
+_GENERATOR_COMMENT = re.compile(
+    rb"\A(<\?xml[^>]*\?>\s*)?(?:<!-- generated on .*?-->\s*)+", re.DOTALL
+)
 
 
 def strip_generator_comments(folder: Path) -> None:
@@ -255,7 +258,7 @@ def build_once(
 
         notify(f"twin: notice: cache entry {target} is a file, not a folder; rebuilding it")
         target.unlink()
-    check_output_dir(target.parent, f"the cache (${CACHE_ENV} moves it)")
+    check_output_dir(target.parent, f"the cache (${CACHE_ENV} moves it)", links_out=True)
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=target.parent))
     try:

@@ -68,7 +68,7 @@ def main(args: argparse.Namespace) -> int:
     set_run_folder(Path(config.out))  # an unexpected error's traceback goes to its error.log
     progress = not args.quiet and sys.stderr.isatty()
     release_notices()  # every check passed: training starts
-    path = pretrain(config, progress=progress)
+    path = pretrain(config, progress=progress, max_memory_gb=args.max_memory_gb)
     print(f"model: {path}")
     print(f"log: {Path(config.out) / 'train_log.csv'}")
     return 0

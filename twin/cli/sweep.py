@@ -46,7 +46,8 @@ def add_parser(subparsers) -> None:
         "--max-memory-gb",
         type=float,
         default=None,
-        help="refuse more --workers than this memory holds (default $TWIN_MAX_MEMORY_GB or 8)",
+        help="memory limit in GB: refuse more --workers than it holds, and a cell whose estimate "
+        "passes it (default $TWIN_MAX_MEMORY_GB or 8)",
     )
     p.add_argument("--no-report", action="store_true", help="skip the HTML/Markdown report")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -66,9 +67,9 @@ def main(args: argparse.Namespace) -> int:
 
     hold_notices()  # printed once the cells start; a refusal is one line
     check_count("--workers", args.workers)
+    limit = memory_limit_gb(args.max_memory_gb)  # a bad limit is refused first
     if args.workers is not None:  # each worker runs a cell: an interpreter and its simulator
-        check_workers_fit(args.workers, args.workers, memory_limit_gb(args.max_memory_gb),
-                          "sweep cells")  # fmt: skip
+        check_workers_fit(args.workers, args.workers, limit, "sweep cells")
     if args.address and args.executor != "ray":
         raise UserError("--address is for --executor ray")
     config = load_sweep_config(shipped_config(args.config))
@@ -87,6 +88,7 @@ def main(args: argparse.Namespace) -> int:
         address=args.address,
         progress=progress,
         report=not args.no_report,
+        max_memory_gb=args.max_memory_gb,
     )
     print(
         f"sweep {config.name!r} on {args.executor}: ran {len(outcome.ran)} cells, "

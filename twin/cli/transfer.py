@@ -33,8 +33,8 @@ def add_parser(subparsers) -> None:
                    f"{os.cpu_count()}); 1 runs them one after another in this process")  # fmt: skip
     p.add_argument("--address", default=None, help="Ray cluster address (default: a local Ray)")
     p.add_argument("--max-memory-gb", type=float, default=None,
-                   help="refuse more --workers than this memory holds (default "
-                   "$TWIN_MAX_MEMORY_GB or 8)")  # fmt: skip
+                   help="memory limit in GB: refuse more --workers than it holds, and a "
+                   "row or cell whose estimate passes it (default $TWIN_MAX_MEMORY_GB or 8)")  # fmt: skip
     p.add_argument("--quiet", action="store_true", help="no progress")
     p.set_defaults(func=main)
 
@@ -50,9 +50,9 @@ def main(args: argparse.Namespace) -> int:
     from twin.transfer.runner import check_transfer_folder, run_transfer
 
     check_count("--workers", args.workers)
+    limit = memory_limit_gb(args.max_memory_gb)  # a bad limit is refused first
     if args.workers is not None:  # each worker runs a task: an interpreter and its simulator
-        check_workers_fit(args.workers, args.workers, memory_limit_gb(args.max_memory_gb),
-                          "tasks")  # fmt: skip
+        check_workers_fit(args.workers, args.workers, limit, "tasks")
     if args.address and args.executor != "ray":
         raise UserError("--address is for --executor ray")
     config = load_transfer_config(shipped_config(args.config or DEFAULT_CONFIG))
@@ -74,6 +74,7 @@ def main(args: argparse.Namespace) -> int:
         address=args.address,
         progress=not args.quiet and sys.stderr.isatty(),
         say=say,
+        max_memory_gb=args.max_memory_gb,
     )
     import pandas as pd
 

@@ -298,7 +298,9 @@ def import_osm(osm_file: Path, out_dir: Path | None = None) -> Path:
 
     if out_dir is None:
         return resources.build_once(imported_dir(osm_file), make, verify=verify) / name
-    out_dir = Path(out_dir)
+    from twin.outputs import check_output_dir
+
+    out_dir = check_output_dir(out_dir, "--out")
     target = out_dir / name
     if target.exists() or target.is_symlink():
         raise UserError(

@@ -92,8 +92,9 @@ def expand_cells(config: SweepConfig, out_dir: Path) -> list[dict[str, Any]]:
 def cell_inputs(config: Path, overrides: dict[str, Any], tape: Path | None) -> dict[str, str]:
     """``{path: sha256}`` of the files that define a cell's numbers besides its settings: the
     scenario config, the tape it replays and the checkpoints and histories its own
-    ``[swarm_options]`` name (after ``overrides``); a file that cannot be read is left to the
-    cell's checks, which say why."""
+    ``[swarm_options]`` name (after ``overrides``), and a sumocfg's options as SUMO reads them
+    (``${VAR}`` substituted: a variable now naming another route file is another cell); a file
+    that cannot be read is left to the cell's checks, which say why."""
     paths = [Path(config), *([Path(tape)] if tape else [])]
     try:
         scenario = scenario_config(Path(config), overrides)
@@ -105,11 +106,30 @@ def cell_inputs(config: Path, overrides: dict[str, Any], tape: Path | None) -> d
                 if isinstance(options.get(key), str):
                     paths.append(scenario.path.parent / options[key])
     inputs = {}
+    if scenario is not None and scenario.traffic.kind == "sumo":
+        inputs.update(_sumocfg_options_digest(scenario))
     for path in paths:
         with contextlib.suppress(OSError):
             if path.is_file():
                 inputs[os.path.abspath(path)] = file_sha256(path)
     return inputs
+
+
+def _sumocfg_options_digest(scenario) -> dict[str, str]:
+    """``{"<sumocfg>#options": sha256}`` of the options a scenario's sumocfg sets, read with its
+    variables substituted, or nothing (no sumocfg, or one the cell's checks refuse)."""
+    from twin.sumo.readers import read_sumocfg
+    from twin.sumo.scenario import sumo_settings
+
+    settings = sumo_settings(scenario)
+    if settings.sumocfg is None:
+        return {}
+    try:
+        options = read_sumocfg(Path(settings.sumocfg), own_net=settings.net is None).options
+    except (UserError, OSError):
+        return {}
+    text = json.dumps(options, sort_keys=True).encode()
+    return {f"{os.path.abspath(settings.sumocfg)}#options": hashlib.sha256(text).hexdigest()}
 
 
 def scenario_config(path: Path, overrides: dict[str, Any]):
@@ -155,6 +175,7 @@ def _run_cell(cell: dict[str, Any]) -> dict[str, Any]:
         swarm_options=cell.get("swarm_options", {}),
         tape=Path(cell["tape"]) if cell.get("tape") else None,
         traffic_seed=seed,
+        max_memory_gb=cell.get("max_memory_gb"),
     )
     outcome = run_experiment(experiment)
     result = outcome.results[0]
@@ -172,7 +193,7 @@ def _run_cell(cell: dict[str, Any]) -> dict[str, Any]:
     rows = rows.drop(columns="seed").to_dict(orient="records")
     record = {
         "id": cell["id"],
-        "cell": {k: v for k, v in cell.items() if k != "cells_dir"},
+        "cell": {k: v for k, v in cell.items() if k not in ("cells_dir", "max_memory_gb")},
         "traffic": outcome.traffic[0],
         "policies": outcome.policies,
         "rows": [{k: (None if _isnan(v) else v) for k, v in r.items()} for r in rows],

@@ -46,11 +46,13 @@ def run_sweep(
     address: str | None = None,
     progress: bool = False,
     report: bool = True,
+    max_memory_gb: float | None = None,
 ) -> SweepOutcome:
     """Run every cell not yet done, then merge all cells and write the sweep report.
 
     A cell that fails does not stop the others; after merging what is done, the failures are
-    raised as one :class:`UserError` (and listed in ``failed.json``).
+    raised as one :class:`UserError` (and listed in ``failed.json``). ``max_memory_gb``
+    (``--max-memory-gb``) bounds each cell's memory estimate, as ``twin evaluate``'s.
     """
     if executor not in EXECUTORS:
         raise UserError(f"--executor {executor!r}: choose from {', '.join(EXECUTORS)}")
@@ -59,6 +61,8 @@ def run_sweep(
     cells = expand_cells(config, out_dir)
     done = done_cells(out_dir, {c["id"]: c for c in cells})
     todo = [c for c in cells if c["id"] not in done]
+    for cell in todo:  # not a defining key: the limit changes no number
+        cell["max_memory_gb"] = max_memory_gb
     skipped = [c["id"] for c in cells if c["id"] in done]
     _write_manifest(out_dir, config, cells)
     check_cells(todo)

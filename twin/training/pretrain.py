@@ -764,11 +764,14 @@ def buffer_digest(buffer: ReplayBuffer) -> str:
 LOG_COLUMNS = ("epoch", "updates", "loss", "mean_q", "wall_s", "updates_per_s")
 
 
-def pretrain(cfg: PretrainConfig, progress: bool = True) -> Path:
-    """Train (or resume) as configured; returns the path of the final model checkpoint."""
+def pretrain(
+    cfg: PretrainConfig, progress: bool = True, max_memory_gb: float | None = None
+) -> Path:
+    """Train (or resume) as configured; returns the path of the final model checkpoint.
+    ``max_memory_gb``: the memory limit (else ``$TWIN_MAX_MEMORY_GB``, else 8 GB)."""
     out = Path(cfg.out)
     state_path, model_path, log_path = out / "state.pt", out / "qnet.pt", out / "train_log.csv"
-    check_pretrain_memory(cfg)
+    check_pretrain_memory(cfg, limit_gb=max_memory_gb)
     check_out_folder(cfg, "out")
     flush_subnormals()  # before the threads start: they keep the flag they start with
     try:

@@ -218,7 +218,7 @@ def train_row(task: dict[str, Any]) -> dict[str, Any]:
             notify(f"twin: notice: row {out.name}: its settings, tapes, start or scenario "
                    "changed since it was trained; training it again")  # fmt: skip
             shutil.rmtree(out)  # the transfer's own row folder: its checkpoint resumes nothing
-        pretrain(cfg, progress=False)
+        pretrain(cfg, progress=False, max_memory_gb=task.get("max_memory_gb"))
     return json.loads(read_record(out / "provenance.json"))
 
 
@@ -283,7 +283,12 @@ def loaded_provenance(row, out: Path) -> dict[str, Any]:
 
 
 def train_rows(
-    config: TransferConfig, out: Path, executor: str, workers: int, address: str | None
+    config: TransferConfig,
+    out: Path,
+    executor: str,
+    workers: int,
+    address: str | None,
+    max_memory_gb: float | None = None,
 ) -> dict[str, dict[str, Any]]:
     """Every row's checkpoint and provenance: loaded rows first, then the trained rows in
     waves (a row fine-tuned from another waits for it), each wave on the executor."""
@@ -305,6 +310,7 @@ def train_rows(
                     config, r, out / "rows" / r.name, checkpoints
                 ).model_dump(mode="json"),
                 "where": str(config.path),
+                "max_memory_gb": max_memory_gb,
             }
             for r in ready
         ]
@@ -367,8 +373,10 @@ def run_transfer(
     address: str | None = None,
     progress: bool = False,
     say: Callable[[str], None] = lambda text: None,
+    max_memory_gb: float | None = None,
 ) -> Path:
-    """All the stages; returns the report's path."""
+    """All the stages; returns the report's path. ``max_memory_gb`` (``--max-memory-gb``)
+    bounds each row's pretraining and each cell's estimate."""
     from twin.learning.checkpoint import load_qnet
     from twin.sweep import run_sweep
     from twin.transfer.matrix import transfer_matrix
@@ -392,7 +400,7 @@ def run_transfer(
 
     t0 = time.perf_counter()
     say(f"training or loading {len(config.row)} rows: {', '.join(r.name for r in config.row)}")
-    rows = train_rows(config, out, executor, workers, address)
+    rows = train_rows(config, out, executor, workers, address, max_memory_gb)
     timings["rows_s"] = round(time.perf_counter() - t0, 2)
 
     t0 = time.perf_counter()
@@ -402,7 +410,7 @@ def run_transfer(
     failure = None
     try:
         run_sweep(sweep, out / "sweep", executor=executor, workers=workers, address=address,
-                  progress=progress, report=False)  # fmt: skip
+                  progress=progress, report=False, max_memory_gb=max_memory_gb)  # fmt: skip
     except UserError as exc:  # failed cells: the matrix of the others, then the error
         if not (out / "sweep" / "results.csv").exists():
             raise
