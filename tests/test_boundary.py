@@ -666,9 +666,10 @@ def _built_file(name, make):
     return apply
 
 
-def _degradation(run: Path, **changes) -> pd.DataFrame:
+def _degradation(run: Path, scored: bool = False, drop: int | None = None, **changes):
     """A degradation.csv (twin.faults.degradation_frame) of the run's seeds and swarms: a drone
-    lost at step 6 of 12, then the whole run; ``changes`` set columns of row 0."""
+    lost at step 6 of 12, then the whole run (``scored``: each R_hat its series' mean, as
+    twin writes it; ``drop``: that row removed); ``changes`` set columns of row 0."""
     rows = []
     for seed in (0, 1):
         for swarm in ("random", "greedy"):
@@ -683,6 +684,14 @@ def _degradation(run: Path, **changes) -> pd.DataFrame:
                      "pct_congested_observed": 20.0, "pct_congested_observed_fault_free": 30.0}
                 )  # fmt: skip
     frame = pd.DataFrame(rows)
+    if scored:
+        series = pd.read_parquet(run / "series.parquet")
+        for n, r in frame.iterrows():
+            mine = series[(series["seed"] == r["seed"]) & (series["swarm"] == r["swarm"])]
+            steps = mine["step"].between(r["start"], r["stop"] - 1)
+            frame.loc[n, "R_hat"] = mine.loc[steps, "reward"].mean()
+    if drop is not None:
+        frame = frame.drop(index=drop).reset_index(drop=True)
     for column, value in changes.items():
         frame[column] = frame[column].astype(object)
         frame.loc[0, column] = value
@@ -1039,6 +1048,15 @@ READ_BACK = {
     "degradation phase stops before it starts": (
         _built_file("degradation.csv", lambda run: _degradation(run, stop=-3)),
         "degradation.csv: phase 1 (row 0) runs from start = 0 to stop = -3",
+    ),
+    "degradation score off its series": (
+        _built_file("degradation.csv", lambda run: _degradation(run, scored=True, R_hat=99.0)),
+        "degradation.csv: R_hat = 99 for seed 0, swarm 'random', phase 1 (row 0), but its "
+        "rewards in series.parquet average",
+    ),
+    "degradation phase row removed": (
+        _built_file("degradation.csv", lambda run: _degradation(run, scored=True, drop=4)),
+        "degradation.csv: the swarms of seed 0 have different phases",
     ),
     "degradation phase past the horizon": (
         _built_file("degradation.csv", lambda run: _degradation(run, stop=99)),

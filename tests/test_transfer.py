@@ -330,7 +330,7 @@ def test_one_seed_gives_no_interval(seeds, shown) -> None:
     assert shown in format_matrix(matrix) and shown in verdict(matrix)
 
 
-@pytest.mark.parametrize("link", ["rows", "sweep", "rows/paper"])
+@pytest.mark.parametrize("link", ["rows", "sweep", "rows/paper", "tapes", "report"])
 def test_a_link_out_of_the_transfer_folder_is_refused(tmp_path: Path, capsys, link) -> None:
     """``rows`` or ``sweep`` links planted in a transfer folder would take checkpoints and
     cells outside it: one line naming the link, nothing written through it (probe 14's

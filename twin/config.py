@@ -174,14 +174,22 @@ Seed = Annotated[int, Field(ge=0)]
 Unit = Annotated[float, Field(gt=0, lt=1)]
 
 _NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.+=-]*")
+#: The longest name: file names built from it (a cell's id, a row's folder) stay well under
+#: the 255 bytes file systems allow.
+MAX_NAME = 100
 
 
 def check_name(value: str) -> str:
-    """A name that is safe as (part of) a file name inside a folder: no ``/``, ``..``, spaces."""
+    """A name that is safe as (part of) a file name inside a folder: no ``/``, ``..``, spaces,
+    at most :data:`MAX_NAME` characters."""
     if not _NAME.fullmatch(value) or ".." in value:
         raise ValueError(
             "must be a plain name of letters, digits, '-', '_', '.' (no '/', '..' or spaces); "
             'e.g. "rush-hour"'
+        )
+    if len(value) > MAX_NAME:
+        raise ValueError(
+            f"is {len(value)} characters long; give at most {MAX_NAME} (it names files)"
         )
     return value
 

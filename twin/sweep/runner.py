@@ -128,7 +128,9 @@ def run_sweep(
 
 
 def check_cells(cells: list[dict[str, Any]]) -> None:
-    """Validate every distinct scenario config and overrides before running anything."""
+    """Validate every distinct scenario config and overrides before running anything: a live
+    one is built as its cells build it (files, window, grid, incidents, detectors), without
+    starting SUMO."""
     seen = set()
     for cell in cells:
         key = (cell["config"], json.dumps(cell["overrides"], sort_keys=True, default=str))
@@ -139,10 +141,22 @@ def check_cells(cells: list[dict[str, Any]]) -> None:
             config = scenario_config(Path(cell["config"]), cell["overrides"])
             if config.traffic.kind == "sumo" and cell.get("tape") is None:
                 prepare_sumo(config)
+                check_live(config, int(cell["seed"]))
         except UserError as exc:
             raise UserError(
                 f"scenario {cell['scenario']!r} with {cell['overrides']}: {exc}"
             ) from None
+
+
+def check_live(config, seed: int) -> None:
+    """Build the live source of a cell (reading its files and laying its grid), as the cell
+    will, and close it unstarted: what it refuses is refused before any cell runs."""
+    from twin.traffic_kinds import build_traffic
+
+    source = build_traffic(config, 0, seed)
+    close = getattr(source, "close", None)
+    if close is not None:
+        close()
 
 
 def prepare_sumo(config) -> None:

@@ -383,6 +383,10 @@ class PretrainConfig(SourcedConfig):
         for n, tape in enumerate(tapes):
             if not tape.strip():
                 raise ValueError(f"has an empty name (entry {n + 1}); remove it")
+            if Path(tape).is_dir():
+                inside = Path(tape) / "tape.parquet"
+                hint = f" ({inside})" if inside.is_file() else ""
+                raise ValueError(f"names {tape}, a folder; give its tape.parquet files{hint}")
             if not Path(tape).is_file():
                 raise ValueError(f"names {tape}, which does not exist; give tape.parquet files")
         return tapes
