@@ -2171,3 +2171,18 @@ def test_a_python_warning_is_one_notice_line_without_its_source(capfd) -> None:
         "twin: notice: RuntimeWarning: invalid value encountered in scalar divide",
         "twin: notice: FutureWarning: a library's two-line advice",
     ], err
+
+
+@pytest.mark.parametrize("command", ["replay", "report"])
+def test_a_folder_no_run_wrote_is_said_to_be_none(tmp_path, capsys, command):
+    """A pretraining's, sweep's or transfer's folder given to replay or report: not a run
+    folder, not "an interrupted run" that rerunning its command would mend (probe 15's f25)."""
+    folder = tmp_path / "sweep"
+    folder.mkdir()
+    (folder / "sweep.json").write_text("{}")
+    assert main([command, str(folder)]) == EXIT_REFUSED
+    err = one_line(capsys)
+    assert (
+        "not a folder `twin run` or `twin evaluate` wrote" in err or "is this a run folder" in err
+    ), err
+    assert "interrupted" not in err

@@ -348,7 +348,7 @@ def test_killed_sweep_resumes(tmp_path: Path) -> None:
         (
             '[sweep]\nswarms = ["greedy"]\n[[scenario]]\nname = "a"\nconfig = "scenario.toml"\n'
             '[parameters]\n"n_drones" = [1]\n',
-            "must be a dotted key",
+            "overrides reach the grid, swarm, traffic, evaluate tables",
         ),
         (
             '[sweep]\nswarms = ["greedy"]\n[[scenario]]\nname = "a"\nconfig = "scenario.toml"\n'
@@ -768,3 +768,20 @@ def test_a_name_too_long_for_a_file_is_refused_with_the_config(tmp_path: Path) -
     path.write_text(path.read_text().replace('name = "syn"', f'name = "{"a" * 300}"'))
     with pytest.raises(UserError, match="is 300 characters long; give at most 100"):
         load_sweep_config(path)
+
+
+@pytest.mark.parametrize("kind", ["fifo", "folder"])
+def test_a_failures_record_that_is_no_file_is_refused_before_any_cell(
+    tmp_path: Path, capsys, kind
+) -> None:
+    """``failed.json`` of a sweep folder replaced by a FIFO (the sweep hung after its cells)
+    or a folder (an error after them): one line before any cell runs (probe 15's f03)."""
+    path = sweep_file(tmp_path, seeds=1, horizon=4)
+    out = tmp_path / "s"
+    run_sweep(load_sweep_config(path), out, workers=1, report=False)
+    (out / "failed.json").unlink(missing_ok=True)
+    os.mkfifo(out / "failed.json") if kind == "fifo" else (out / "failed.json").mkdir()
+    capsys.readouterr()
+    assert cli(["sweep", "--config", str(path), "--out", str(out), "--quiet", "--no-report"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "failed.json is a " in err and "remove it" in err, err

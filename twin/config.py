@@ -141,7 +141,8 @@ def check_dotted(key: str) -> str:
     parts = key.split(".")
     if len(parts) < 2 or parts[0] not in SECTIONS or "" in parts:
         raise ValueError(
-            f"key {key!r} must be a dotted key into a scenario config; e.g. 'swarm.n_drones'"
+            f"key {key!r}: overrides reach the {', '.join(SECTIONS)} tables of a scenario "
+            "config, by dotted keys; e.g. 'swarm.n_drones'"
         )
     return key
 

@@ -16,6 +16,7 @@ import pandas as pd
 from twin.boundary import notify, release_notices
 from twin.errors import UserError
 from twin.executors import EXECUTORS, _local_executor, _ray_executor
+from twin.files import atomic_write
 from twin.sweep.cells import expand_cells, run_cell, scenario_config
 from twin.sweep.config import SweepConfig
 from twin.sweep.store import (
@@ -111,7 +112,8 @@ def run_sweep(
     )
     failed_path = out_dir / "failed.json"
     if failed:
-        failed_path.write_text(json.dumps(failed, indent=2))
+        text = json.dumps(failed, indent=2)
+        atomic_write(failed_path, lambda p: p.write_text(text))
     else:
         failed_path.unlink(missing_ok=True)
     _, summary = merge(out_dir, [c["id"] for c in cells], config)

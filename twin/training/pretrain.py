@@ -487,6 +487,17 @@ def training_scenario(
     ``scenario_overrides``, named in errors as keys of ``where``), refused (one line) unless
     pretraining can collect on it: synthetic traffic, random starts, no scripted faults."""
     labels = {key: f"{where}: scenario_overrides {key!r}" for key in overrides}
+    kind = overrides.get("traffic.kind", "synthetic")
+    if kind != "synthetic":  # named before the synthetic keys it leaves unknown are blamed
+        raise ConfigError(
+            f"{labels['traffic.kind']} = {kind!r}: pretraining collects on a synthetic map; "
+            "remove it, or train on tapes of SUMO runs (--traffic TAPE)"
+        )
+    if overrides.get("swarm.starts", "random") != "random":
+        raise ConfigError(
+            f"{labels['swarm.starts']} gives start cells; the random swarm starts on random "
+            'cells in every episode: remove it (or set it to "random")'
+        )
     config = with_overrides(load_scenario(path), overrides, labels)
     fix = f"{where}: scenario = {path}"
     if config.traffic.kind != "synthetic":
