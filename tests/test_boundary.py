@@ -1297,7 +1297,7 @@ def test_the_files_the_cases_build_read_back_whole(run_copy: Path) -> None:
     # undamaged, the files the cases above add to the run are accepted: only the damage is not
     from twin.report.load import load_run
 
-    _built_file("degradation.csv", _degradation)(run_copy)
+    _built_file("degradation.csv", lambda run: _degradation(run, scored=True))(run_copy)
     _built_file("belief_models.csv", _beliefs)(run_copy)
     _built_file("events.parquet", _events)(run_copy)
     _built_file("mfd.json", lambda run: _mfd())(run_copy)
