@@ -81,3 +81,13 @@ def small_sumo_scenario(folder, horizon: int = 10):
     generate_grid_scenario(folder, blocks=5, block_m=300, end_s=900, period_s=1.5, seed=5)
     (folder / "small.toml").write_text(SMALL_SUMO_CONFIG.format(horizon=horizon))
     return folder
+
+
+def slow_marker(path: str, seconds: float) -> str:
+    """A pool task: wait ``seconds``, then leave the file ``path`` (it ran)."""
+    import time
+    from pathlib import Path
+
+    time.sleep(seconds)
+    Path(path).write_text("ran")
+    return path

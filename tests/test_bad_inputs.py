@@ -550,8 +550,8 @@ def _memory_cases(tmp_path: Path) -> dict[str, tuple[list[str], dict[str, str], 
         "limit NaN": (["--max-memory-gb", "nan"], {}, "--max-memory-gb = nan"),
         "limit negative": (["--max-memory-gb", "-1"], {}, "not a number > 0"),
         "env limit text": ([], {"TWIN_MAX_MEMORY_GB": "lots"}, "= 'lots' is not a number"),
-        "tiny limit": (["--max-memory-gb", "1e-6"], {}, "over the 1e-06 GB limit"),
-        "tiny env limit": ([], {"TWIN_MAX_MEMORY_GB": "1e-6"}, "over the 1e-06 GB limit"),
+        "tiny limit": (["--max-memory-gb", "1e-6"], {}, "= 1e-06 GB is below what this run takes"),
+        "tiny env limit": ([], {"TWIN_MAX_MEMORY_GB": "1e-6"}, "= 1e-06 GB is below what this"),
         "a huge grid": (["--config", str(huge)], {}, "3000 x 4000 cells x 2000 steps"),
     }
 

@@ -295,3 +295,119 @@ def test_a_history_of_generated_days_is_refused_for_a_sumo_run(small, tmp_path, 
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "a history of generated days" in err, err
     assert not out.exists()
+
+
+@pytest.fixture(scope="module")
+def believed(small, history, tmp_path_factory) -> Path:
+    """A finished run with the history: its belief_maps.npz and belief_models.csv."""
+    out = tmp_path_factory.mktemp("believed") / "run"
+    assert twin_main(run_args(small, out, "--history", str(history))) == 0
+    return out
+
+
+def _maps_edit(key: str, value):
+    def edit(maps: dict) -> None:
+        maps[key] = value(maps[key]) if callable(value) else value
+
+    return edit
+
+
+#: Forgeries of belief_maps.npz and belief_models.csv the report refuses, each a value twin
+#: can tell is wrong (probe 15's f13): name -> (file, edit, words of the one-line error).
+BELIEF_FORGERIES = {
+    "truth above 1": ("belief_maps.npz", _maps_edit("truth", lambda a: a * 0 + 2.0),
+                      "truth holds values outside 0 .. 1"),
+    "negative std": ("belief_maps.npz", _maps_edit("std", lambda a: a * 0 - 1.0),
+                     "std holds negative values"),
+    "steps past T": ("belief_maps.npz", _maps_edit("steps", lambda a: a + 99),
+                     "are not rising steps within 0 .. "),
+    "swarm not run": ("belief_maps.npz", _maps_edit("swarms", np.array('["a", "b"]')),
+                      "swarms: swarm 'a' has no row in summary.csv"),
+    "seed not run": ("belief_maps.npz", _maps_edit("seed", np.array(77)),
+                     "seed = 77 has no results"),
+    "threshold NaN": ("belief_maps.npz", _maps_edit("threshold", np.array(np.nan)),
+                      "threshold = nan, not in (0, 1]"),
+    "unknown model": ("belief_models.csv", lambda t: t.assign(model="psychic"),
+                      "model 'psychic' is none of twin's belief models"),
+    "more seeds than run": ("belief_models.csv", lambda t: t.assign(n_seeds=7),
+                            "n_seeds = 7 for swarm"),
+    "history row removed": ("belief_models.csv", lambda t: t[t["swarm"] != NO_DRONES],
+                            "model 'history' is missing"),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("name", list(BELIEF_FORGERIES))
+def test_forged_belief_files_are_refused(believed, tmp_path, capsys, name):
+    import shutil
+
+    from test_boundary import refresh_manifest
+
+    file, edit, words = BELIEF_FORGERIES[name]
+    run = tmp_path / "run"
+    shutil.copytree(believed, run)
+    if file.endswith(".npz"):
+        with np.load(run / file) as npz:
+            maps = {k: npz[k] for k in npz.files}
+        edit(maps)
+        np.savez(run / file, **maps)
+    else:
+        edit(pd.read_csv(run / file)).to_csv(run / file, index=False)
+    refresh_manifest(run)
+    capsys.readouterr()
+    assert twin_main(["report", str(run), "--no-animation"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and file in err and words in err, err
+
+
+def test_the_unforged_belief_files_read_back(believed, capsys):
+    assert twin_main(["report", str(believed), "--no-animation"]) == 0, capsys.readouterr().err
+
+
+def test_history_days_past_the_memory_limit_are_refused_before_any(tmp_path, capsys):
+    """``twin history --dynamics`` on a grid whose days do not fit the limit: one line with
+    the estimate before any day is computed (it allocated, then died or said "out of
+    memory"; probe 15's f10)."""
+    config = tmp_path / "big.toml"
+    config.write_text(
+        '[grid]\nnx = 2000\nny = 2000\n[traffic]\nkind = "synthetic"\nhorizon = 2000\n'
+        'disturbances = [{ kind = "big", i = 2, j = 2, amplitude = 1.0, sigma = 1.0 }]\n'
+    )
+    out = tmp_path / "h.npz"
+    argv = ["history", "--dynamics", str(config), "--days", "2", "--out", str(out)]
+    assert twin_main([*argv, "--max-memory-gb", "1"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "2 days of 2000 x 2000 cells x 2001 maps need about" in err
+    assert "over the 1 GB limit" in err and not out.exists()
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "words"),
+    [("step_s", "abc", "step_s = 'abc' is not a step in seconds > 0"),
+     ("step_s", [1, 2], "step_s = '[1, 2]' is not a step"),
+     ("begin", 25200.0, "begin = '25200.0' is not a clock time")],
+)  # fmt: skip
+def test_a_history_with_forged_info_is_refused(history, tmp_path, key, value, words):
+    """A history whose info names a step or a start of the wrong kind: one line (it was used
+    as if valid; probe 15's f12)."""
+    with np.load(history) as npz:
+        arrays = {k: npz[k] for k in npz.files}
+    info = json.loads(str(arrays["info"]))
+    info[key] = value
+    arrays["info"] = np.array(json.dumps(info))
+    forged = tmp_path / "forged.npz"
+    np.savez(forged, **arrays)
+    with pytest.raises(UserError, match=words.replace("[", r"\[").replace("(", r"\(")):
+        History.load(forged)
+
+
+def test_a_history_seed_clash_advises_seeds_past_both(small, history, tmp_path, capsys):
+    """The advised fix of a history built on a seed the run evaluates names seeds past both
+    (it named the clashing seed again; probe 15's f20)."""
+    code = twin_main(
+        run_args(small, tmp_path / "o", "--history", str(history), "--sumo-seed", "11")
+    )
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert (
+        code == 2
+        and "build it from seeds this run does not use (e.g. --sumo-seed 12 and on)" in err
+    ), err

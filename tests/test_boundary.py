@@ -666,9 +666,10 @@ def _built_file(name, make):
     return apply
 
 
-def _degradation(run: Path, **changes) -> pd.DataFrame:
+def _degradation(run: Path, scored: bool = False, drop: int | None = None, **changes):
     """A degradation.csv (twin.faults.degradation_frame) of the run's seeds and swarms: a drone
-    lost at step 6 of 12, then the whole run; ``changes`` set columns of row 0."""
+    lost at step 6 of 12, then the whole run (``scored``: each R_hat its series' mean, as
+    twin writes it; ``drop``: that row removed); ``changes`` set columns of row 0."""
     rows = []
     for seed in (0, 1):
         for swarm in ("random", "greedy"):
@@ -683,6 +684,14 @@ def _degradation(run: Path, **changes) -> pd.DataFrame:
                      "pct_congested_observed": 20.0, "pct_congested_observed_fault_free": 30.0}
                 )  # fmt: skip
     frame = pd.DataFrame(rows)
+    if scored:
+        series = pd.read_parquet(run / "series.parquet")
+        for n, r in frame.iterrows():
+            mine = series[(series["seed"] == r["seed"]) & (series["swarm"] == r["swarm"])]
+            steps = mine["step"].between(r["start"], r["stop"] - 1)
+            frame.loc[n, "R_hat"] = mine.loc[steps, "reward"].mean()
+    if drop is not None:
+        frame = frame.drop(index=drop).reset_index(drop=True)
     for column, value in changes.items():
         frame[column] = frame[column].astype(object)
         frame.loc[0, column] = value
@@ -1040,6 +1049,15 @@ READ_BACK = {
         _built_file("degradation.csv", lambda run: _degradation(run, stop=-3)),
         "degradation.csv: phase 1 (row 0) runs from start = 0 to stop = -3",
     ),
+    "degradation score off its series": (
+        _built_file("degradation.csv", lambda run: _degradation(run, scored=True, R_hat=99.0)),
+        "degradation.csv: R_hat = 99 for seed 0, swarm 'random', phase 1 (row 0), but its "
+        "rewards in series.parquet average",
+    ),
+    "degradation phase row removed": (
+        _built_file("degradation.csv", lambda run: _degradation(run, scored=True, drop=4)),
+        "degradation.csv: the swarms of seed 0 have different phases",
+    ),
     "degradation phase past the horizon": (
         _built_file("degradation.csv", lambda run: _degradation(run, stop=99)),
         "stop = 99, not phase >= 1 and 0 <= start <= stop <= 12",
@@ -1279,7 +1297,7 @@ def test_the_files_the_cases_build_read_back_whole(run_copy: Path) -> None:
     # undamaged, the files the cases above add to the run are accepted: only the damage is not
     from twin.report.load import load_run
 
-    _built_file("degradation.csv", _degradation)(run_copy)
+    _built_file("degradation.csv", lambda run: _degradation(run, scored=True))(run_copy)
     _built_file("belief_models.csv", _beliefs)(run_copy)
     _built_file("events.parquet", _events)(run_copy)
     _built_file("mfd.json", lambda run: _mfd())(run_copy)
@@ -2153,3 +2171,18 @@ def test_a_python_warning_is_one_notice_line_without_its_source(capfd) -> None:
         "twin: notice: RuntimeWarning: invalid value encountered in scalar divide",
         "twin: notice: FutureWarning: a library's two-line advice",
     ], err
+
+
+@pytest.mark.parametrize("command", ["replay", "report"])
+def test_a_folder_no_run_wrote_is_said_to_be_none(tmp_path, capsys, command):
+    """A pretraining's, sweep's or transfer's folder given to replay or report: not a run
+    folder, not "an interrupted run" that rerunning its command would mend (probe 15's f25)."""
+    folder = tmp_path / "sweep"
+    folder.mkdir()
+    (folder / "sweep.json").write_text("{}")
+    assert main([command, str(folder)]) == EXIT_REFUSED
+    err = one_line(capsys)
+    assert (
+        "not a folder `twin run` or `twin evaluate` wrote" in err or "is this a run folder" in err
+    ), err
+    assert "interrupted" not in err

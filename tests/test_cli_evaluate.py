@@ -169,3 +169,34 @@ def test_swarm_options_reach_the_swarm_and_bad_ones_get_one_line(tmp_path, capsy
         err = capsys.readouterr().err.strip()
         assert "\n" not in err and f"[swarm_options.{name}]:" in err and "swarm" in err
         assert not out.exists()
+
+
+def test_a_runs_tape_replays_with_the_runs_swarm(tmp_path, capsys):
+    """``twin evaluate --traffic RUN/tape.parquet`` without --config replays with the run's
+    swarm (its run.json: drones, starts, weights), said in a notice: the README's "same swarm
+    results" (it used synthetic.toml's 4 drones silently; probe 15's f28)."""
+    from helpers import small_sumo_scenario
+
+    (tmp_path / "s").mkdir()
+    folder = small_sumo_scenario(tmp_path / "s", horizon=4)
+    run = tmp_path / "run"
+    common = ["--swarms", "random,greedy", "--no-ceiling", "--no-report", "--quiet"]
+    assert main(["run", "--config", str(folder / "small.toml"), *common, "--out", str(run)]) == 0
+    capsys.readouterr()
+    assert (
+        main(
+            [
+                "evaluate",
+                "--traffic",
+                str(run / "tape.parquet"),
+                *common,
+                "--out",
+                str(tmp_path / "ev"),
+            ]
+        )
+        == 0
+    )
+    assert "the swarm of" in capsys.readouterr().err
+    live = pd.read_csv(run / "per_seed.csv").set_index("swarm")["R_hat_T"]
+    replayed = pd.read_csv(tmp_path / "ev" / "per_seed.csv").set_index("swarm")["R_hat_T"]
+    assert replayed.to_dict() == pytest.approx(live.to_dict(), rel=1e-12)

@@ -491,3 +491,18 @@ def test_overrides_that_break_a_check_across_tables_are_named(tmp_path, capsys, 
     )
     code = main(["pretrain", "--config", str(path), "--quiet"])
     _one_line(capsys, code, path, "cells off the 6 x 6 map")
+
+
+@pytest.mark.parametrize(
+    ("overrides", "words"),
+    [('{ "traffic.kind" = "sumo" }', "scenario_overrides 'traffic.kind' = 'sumo': pretraining collects on a synthetic map"),
+     ('{ "swarm.starts" = [[0, 0], [1, 1]] }', "scenario_overrides 'swarm.starts' gives start cells")],
+)  # fmt: skip
+def test_a_pretraining_override_is_blamed_not_the_shipped_map(tmp_path, capsys, overrides, words):
+    """The user's override named, not a valid key of the shipped training map it made
+    unknown, nor the map as giving what the override gave (probe 15's f26)."""
+    path = tmp_path / "o.toml"
+    path.write_text(toml_text(PRETRAIN, "", "scenario_overrides", overrides))
+    code = main(["pretrain", "--config", str(path), "--quiet"])
+    _one_line(capsys, code, path, words)
+    assert "training-map.toml" not in capsys.readouterr().err

@@ -390,9 +390,11 @@ def test_the_same_map_declared_two_ways_trains_the_same_network(tmp_path):
         (["--epochs", "0"], "--epochs = 0 must be >= 1"),
         (["--out", ""], "--out = '': "),
         (["--traffic", "nowhere.parquet"], "--traffic = ["),
+        (["--traffic", "/"], "--traffic = ['/'] names /, a folder; give its tape.parquet"),
     ],
 )
 def test_a_bad_flag_is_one_line_naming_it(tmp_path, capsys, argv, words):
+    """(A folder given as a tape was said not to exist; probe 15's f21.)"""
     code, err = _run_cli(["pretrain", "--config", str(_config(tmp_path)), *argv], capsys)
     assert code == 2 and err.count("\n") == 0 and err.startswith(f"twin: error: {words}"), err
 

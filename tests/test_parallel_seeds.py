@@ -215,7 +215,9 @@ def test_memory_estimate_counts_every_worker(small):
             check_memory(experiment, shape, horizon, source)
     limit = (max(2 * WORKER_BYTES, need(1)) + need(2)) / 2e9  # the workers fit, the run not
     experiment = Experiment(config, ["random"], range(4), workers=2, max_memory_gb=limit)
-    with pytest.raises(UserError, match=r"4 seeds on 2 workers need .* fewer --workers"):
+    with pytest.raises(
+        UserError, match=r"(4 seeds on 2 workers need|on 2 workers) .* fewer --workers"
+    ):
         check_memory(experiment, shape, horizon, source)
 
 
@@ -397,3 +399,15 @@ def test_the_memory_estimate_covers_what_many_seeds_take(tmp_path):
     growth = _peak_rss_bytes(argv(seeds), tmp_path) - _peak_rss_bytes(argv(1), tmp_path)
     need = estimate_memory(Experiment(load_config(config), ["random"], range(seeds)), (10, 12), 60)
     assert growth <= need, (growth / 1e6, need / 1e6)
+
+
+def test_a_limit_below_any_run_says_to_raise_it(tmp_path, capsys):
+    """A memory limit below what the run takes on a 1 x 1 grid: the fix is to raise it, not
+    a grid "2113...0 times coarser per side" (probe 15's f08)."""
+    argv = ["evaluate", "--config", "synthetic", "--seeds", "1", "--swarms", "random",
+            "--out", str(tmp_path / "o"), "--max-memory-gb"]  # fmt: skip
+    for limit in ("1e-300", "1e-6"):
+        assert twin_main([*argv, limit]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "is below what this run takes on any grid" in err, err
+        assert "coarser" not in err

@@ -181,3 +181,22 @@ def test_replay_checks_each_step_against_the_tape_as_read_back(
     captured = capsys.readouterr()
     assert f"replayed 6 steps of seed {seed}" in captured.out, captured.out + captured.err
     assert "Traceback" not in captured.err
+
+
+def test_a_run_whose_fit_quality_is_undefined_reads_back(tmp_path, monkeypatch, capsys):
+    """An R^2 that samples cannot give (one density bin, constant speed: SUMO's DRT demo) is
+    written as null, which JSON and the read-back take: the run's own folder was refused by
+    its report ("r2 = NaN must be ... a number"; probe 15's f11)."""
+    import twin.mfd
+
+    fit_quality = twin.mfd.fit_quality
+    monkeypatch.setattr(
+        twin.mfd, "fit_quality", lambda *a, **k: {**fit_quality(*a, **k), "r2": float("nan")}
+    )
+    folder = small_sumo_scenario(tmp_path, horizon=3)
+    out = tmp_path / "run"
+    argv = ["run", "--config", str(folder / "small.toml"), "--swarms", "random", "--no-ceiling",
+            "--quiet", "--out", str(out)]  # fmt: skip
+    assert main(argv) == 0, capsys.readouterr().err
+    assert json.loads((out / "mfd.json").read_text())["r2"] is None
+    assert main(["report", str(out), "--no-animation"]) == 0, capsys.readouterr().err

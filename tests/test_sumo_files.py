@@ -1231,3 +1231,50 @@ def test_a_sumocfg_named_through_a_link_reads_its_files_beside_the_link(scenario
     loaded = {Path(f["path"]).name: Path(f["path"]).parent for f in identity["files"]}
     assert loaded["small.trips.xml"] == other and loaded["small.net.xml"] == other
     assert loaded["public.sumocfg"] == other
+
+
+@pytest.mark.parametrize(
+    ("value", "kept"),
+    [("Nul", True), ("nUL", True), ("Stdout", True), ("nul", False), ("NUL", False),
+     ("/dev/null", False)],
+)  # fmt: skip
+def test_only_the_null_names_sumo_knows_are_not_outputs(tmp_path, value, kept):
+    """SUMO takes ``nul`` and ``NUL`` (exactly) for no file: ``Nul`` is a file it writes, so
+    twin sends it into the run folder (it was left beside the scenario; probe 15's f02)."""
+    from twin.sumo.outputs import redirect_outputs
+
+    cfg = tmp_path / "c.sumocfg"
+    cfg.write_text(
+        '<configuration><input><net-file value="n.net.xml"/></input><output>'
+        f'<tripinfo-output value="{value}"/></output></configuration>'
+    )
+    options, _ = redirect_outputs(cfg, (), tmp_path / "o")
+    if kept:
+        assert list(options) == ["--tripinfo-output", str(tmp_path / "o" / value)]
+    else:
+        assert list(options) == []
+
+
+def test_a_comma_in_a_scenario_path_is_one_line(tmp_path):
+    """SUMO splits file names at commas and twin gives it full paths: a folder named
+    ``my scen,v2`` is refused naming the comma (SUMO's error named a path the user never
+    gave; probe 15's f17)."""
+    from twin.sumo.session import SumoSession
+
+    folder = tmp_path / "my scen,v2"
+    session = SumoSession(net_file=folder / "a.net.xml", route_files=[], begin=0.0, end=10.0)
+    with pytest.raises(UserError, match=r"my scen,v2/a\.net\.xml: SUMO splits file names at "
+                                        r"commas.*rename the folder or file"):  # fmt: skip
+        session.command()
+
+
+def test_twins_loops_file_is_named_apart_from_a_scenario_output(tmp_path):
+    """A scenario output named ``twin-loops.add.xml``: twin's virtual loops take another name
+    (SUMO truncated twin's file to write the output, then read it back as an additional
+    file; probe 15's f22)."""
+    from twin.sumo.outputs import OutputPlan
+
+    plan = OutputPlan(tmp_path / "o")
+    taken = plan.target(tmp_path / "twin-loops.add.xml")
+    own = plan.own_file("twin-loops.add.xml")
+    assert taken.name == "twin-loops.add.xml" and own.name == "twin-loops-2.add.xml"

@@ -260,3 +260,30 @@ def test_import_osm_out_on_a_file_is_the_out_line(tmp_path, capsys):
     assert err == (f"twin: error: --out {taken}: is a file, not a folder (a file is in the "
                    "way); move it or pass another folder"), err  # fmt: skip
     assert taken.read_text() == "keep"
+
+
+def test_import_osm_refuses_a_bzip2_extract_and_an_unwritable_out(tmp_path, capsys):
+    """An extract as OSM downloads come (.osm.bz2), which netconvert does not read: one line
+    saying so and how to decompress it (netconvert's "invalid multi-byte sequence" before);
+    an --out on a file system that takes no files is the --out line, and a refused import
+    leaves no folder of its own behind (probe 15's f15, f16)."""
+    import bz2
+
+    from twin.cli import main
+
+    packed = tmp_path / "a.osm.bz2"
+    packed.write_bytes(bz2.compress(OSM.encode()))
+    assert main(["network", "import-osm", str(packed), "--out", str(tmp_path / "n")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == (f"twin: error: {packed}: a bzip2-compressed extract, which netconvert does "
+                   "not read; decompress it (bunzip2 -k a.osm.bz2) and give the .osm (gzip "
+                   "works too)"), err  # fmt: skip
+    osm = tmp_path / "a.osm"
+    osm.write_text(OSM)
+    assert main(["network", "import-osm", str(osm), "--out", "/proc/twin-x"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("twin: error: --out /proc/twin-x: ") and "\n" not in err, err
+    tracks = tmp_path / "tracks.osm"
+    tracks.write_text(OSM.replace('"primary"', '"track"').replace('"secondary"', '"service"'))
+    assert main(["network", "import-osm", str(tracks), "--out", str(tmp_path / "new")]) == 2
+    assert not (tmp_path / "new").exists()

@@ -348,7 +348,7 @@ def test_killed_sweep_resumes(tmp_path: Path) -> None:
         (
             '[sweep]\nswarms = ["greedy"]\n[[scenario]]\nname = "a"\nconfig = "scenario.toml"\n'
             '[parameters]\n"n_drones" = [1]\n',
-            "must be a dotted key",
+            "overrides reach the grid, swarm, traffic, evaluate tables",
         ),
         (
             '[sweep]\nswarms = ["greedy"]\n[[scenario]]\nname = "a"\nconfig = "scenario.toml"\n'
@@ -644,18 +644,21 @@ def test_a_sumocfg_variable_naming_another_file_gives_a_new_cell(tmp_path: Path,
     assert cell_inputs(scenario, {}, None) != first
 
 
-def test_a_link_out_of_the_sweep_folder_is_refused(tmp_path: Path, capsys) -> None:
-    """A ``cells`` link planted in a sweep folder would take the cells' files outside it: one
-    line naming the link, nothing written through it (probe 14's f05)."""
+@pytest.mark.parametrize("link", ["cells", "report", "failed.json"])
+def test_a_link_out_of_the_sweep_folder_is_refused(tmp_path: Path, capsys, link) -> None:
+    """A link planted in a sweep folder would take the cells' files, the report or the
+    failures' record outside it: one line naming the link before any cell runs, nothing
+    written through it (probe 14's f05, probe 15's f03 and f06)."""
     path = sweep_file(tmp_path, seeds=1, horizon=4)
     outside, out = tmp_path / "outside", tmp_path / "s"
     outside.mkdir()
     out.mkdir()
-    (out / "cells").symlink_to(outside)
-    assert cli(["sweep", "--config", str(path), "--out", str(out), "--quiet", "--no-report"]) == 2
+    (out / link).symlink_to(outside if "." not in link else outside / "victim.txt")
+    assert cli(["sweep", "--config", str(path), "--out", str(out), "--quiet"]) == 2
     err = capsys.readouterr().err
-    assert err.count("\n") == 1 and f"{out / 'cells'} is a symbolic link out of the folder" in err
+    assert err.count("\n") == 1 and f"{out / link} is a symbolic link out of the folder" in err
     assert not any(outside.iterdir())
+    assert sorted(p.name for p in out.iterdir()) == [link]
 
 
 def test_the_memory_limit_of_a_sweep_bounds_its_cells(tmp_path: Path, capsys) -> None:
@@ -678,3 +681,107 @@ def test_the_memory_limit_of_a_sweep_bounds_its_cells(tmp_path: Path, capsys) ->
     err = capsys.readouterr().err
     assert "over the 0.9 GB limit" in err, err
     assert not list((tmp_path / "b" / "cells").glob("*.parquet"))
+
+
+def test_a_record_naming_a_device_is_a_changed_file_not_a_hang(tmp_path: Path) -> None:
+    """A cell record whose traffic identity names ``/dev/zero`` (or a FIFO) is a file that
+    changed: hashing it read forever (probe 15's f07)."""
+    from twin.sweep.store import inputs_changed
+
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo)
+    for path in ("/dev/zero", str(fifo)):
+        entry = {"role": "route file", "path": path, "sha256": "0" * 64}
+        assert inputs_changed({"traffic": {"identity": {"files": [entry]}}}) == f"route file {path}"
+
+
+def test_a_bad_memory_variable_is_refused_before_any_cell(tmp_path: Path, capsys, monkeypatch):
+    """``$TWIN_MAX_MEMORY_GB`` that is no number: one line before the sweep folder is made
+    (every cell failed with it, after the sweep started; probe 15's f09)."""
+    monkeypatch.setenv("TWIN_MAX_MEMORY_GB", "abc")
+    path = sweep_file(tmp_path, seeds=1, horizon=4)
+    out = tmp_path / "s"
+    assert cli(["sweep", "--config", str(path), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert (
+        err
+        == "twin: error: TWIN_MAX_MEMORY_GB = 'abc' is not a number; give the limit in GB, e.g. 8\n"
+    ), err
+    assert not out.exists()
+
+
+def test_a_grid_off_an_incident_in_one_combination_is_refused_before_any_cell(
+    tmp_path: Path, capsys
+) -> None:
+    """A SUMO scenario swept over cell sizes whose incident cell is off the coarser grid: one
+    line before any cell runs (the finer cell ran first, then the sweep failed; probe 15's
+    f24); a sumocfg that is not there likewise."""
+    from helpers import small_sumo_scenario
+
+    folder = small_sumo_scenario(tmp_path, horizon=3)
+    text = (folder / "small.toml").read_text()
+    (folder / "small.toml").write_text(
+        text + '\n[[traffic.incidents]]\nkind = "edge_closed"\ncell = [5, 5]\nstep = 1\n'
+        "duration_min = 2.0\n"
+    )
+    path = folder / "sweep.toml"
+    path.write_text(
+        '[sweep]\nname = "i"\nswarms = ["random"]\nseeds = 1\n[[scenario]]\nname = "s"\n'
+        'config = "small.toml"\n[parameters]\n"traffic.cell_m" = [200.0, 600.0]\n'
+    )
+    out = folder / "out"
+    assert cli(["sweep", "--config", str(path), "--out", str(out), "--quiet", "--no-report"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "incidents[0].cell = [5, 5] is off the" in err, err
+    assert not list((out / "cells").glob("*.json"))
+
+
+def test_a_stopped_pool_starts_no_task_it_had_queued(tmp_path: Path) -> None:
+    """A stop (Ctrl-C, SIGTERM) while one worker runs its task: that task ends, no other
+    starts (the pool had queued one more than it ran, which kept running after the signal,
+    for minutes with SUMO cells; probe 15's f18)."""
+    from helpers import slow_marker
+
+    from twin.executors import local_tasks
+
+    tasks = [(str(tmp_path / f"t{n}"), 1.5) for n in range(3)]
+
+    def stop(signum, frame):
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGALRM, stop)
+    try:
+        signal.setitimer(signal.ITIMER_REAL, 0.8)  # while the first task runs
+        with pytest.raises(KeyboardInterrupt):
+            for _ in local_tasks(slow_marker, tasks, workers=1, ignore_sigint=True):
+                pass
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, previous)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["t0"]
+
+
+def test_a_name_too_long_for_a_file_is_refused_with_the_config(tmp_path: Path) -> None:
+    """A sweep or scenario name of 300 letters: refused as the config is read (it failed
+    mid-run, "File name too long"; probe 15's f23)."""
+    path = sweep_file(tmp_path, seeds=1)
+    path.write_text(path.read_text().replace('name = "syn"', f'name = "{"a" * 300}"'))
+    with pytest.raises(UserError, match="is 300 characters long; give at most 100"):
+        load_sweep_config(path)
+
+
+@pytest.mark.parametrize("kind", ["fifo", "folder"])
+def test_a_failures_record_that_is_no_file_is_refused_before_any_cell(
+    tmp_path: Path, capsys, kind
+) -> None:
+    """``failed.json`` of a sweep folder replaced by a FIFO (the sweep hung after its cells)
+    or a folder (an error after them): one line before any cell runs (probe 15's f03)."""
+    path = sweep_file(tmp_path, seeds=1, horizon=4)
+    out = tmp_path / "s"
+    run_sweep(load_sweep_config(path), out, workers=1, report=False)
+    (out / "failed.json").unlink(missing_ok=True)
+    os.mkfifo(out / "failed.json") if kind == "fifo" else (out / "failed.json").mkdir()
+    capsys.readouterr()
+    assert cli(["sweep", "--config", str(path), "--out", str(out), "--quiet", "--no-report"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "failed.json is a " in err and "remove it" in err, err

@@ -5,6 +5,7 @@ reuses every checkpoint and cell, and bad transfer configs as one-line errors.""
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -330,7 +331,7 @@ def test_one_seed_gives_no_interval(seeds, shown) -> None:
     assert shown in format_matrix(matrix) and shown in verdict(matrix)
 
 
-@pytest.mark.parametrize("link", ["rows", "sweep", "rows/paper"])
+@pytest.mark.parametrize("link", ["rows", "sweep", "rows/paper", "tapes", "report"])
 def test_a_link_out_of_the_transfer_folder_is_refused(tmp_path: Path, capsys, link) -> None:
     """``rows`` or ``sweep`` links planted in a transfer folder would take checkpoints and
     cells outside it: one line naming the link, nothing written through it (probe 14's
@@ -345,3 +346,24 @@ def test_a_link_out_of_the_transfer_folder_is_refused(tmp_path: Path, capsys, li
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and f"{out / link} is a symbolic link out of the folder" in err
     assert not any(outside.iterdir())
+
+
+def test_a_tape_of_another_seed_copied_over_a_tape_is_recorded_again(tmp_path, capsys):
+    """A transfer's tape replaced by another seed's tape of the same scenario is not its tape:
+    it is recorded again, with a notice (the row was trained on the foreign tape, exit 0;
+    probe 15's f27); the tape itself holds."""
+    from twin.transfer.runner import record_tape, tape_still_holds
+
+    small_sumo_scenario(tmp_path, horizon=3)
+    tasks = [
+        {"config": str(tmp_path / "small.toml"), "overrides": {}, "seed": seed,
+         "path": str(tmp_path / f"seed-{seed}.parquet")}
+        for seed in (100, 101)
+    ]  # fmt: skip
+    for task in tasks:
+        record_tape(task)
+    assert tape_still_holds(tasks[0]) and capsys.readouterr().err == ""
+    shutil.copy(tasks[1]["path"], tasks[0]["path"])
+    assert not tape_still_holds(tasks[0])
+    err = capsys.readouterr().err
+    assert "it was recorded with seed = 101, not its scenario's 100; recording it again" in err

@@ -30,6 +30,7 @@ false alarms (onsets of belief >= threshold where the truth is below it) per hou
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -280,7 +281,20 @@ class History:
                 f"{path}: sources = {str(sources)[:60]} do not name its n_runs = {n_runs} days "
                 f"(one each; none only in a history without traffic seeds); {fix}"
             )
-        step_s = info.get("step_s")
+        step_s, begin = info.get("step_s"), info.get("begin")
+        if step_s is not None and not (
+            isinstance(step_s, (int, float)) and not isinstance(step_s, bool) and step_s > 0
+            and math.isfinite(step_s)
+        ):  # fmt: skip
+            raise UserError(
+                f"{path}: step_s = {str(step_s)[:40]!r} is not a step in seconds > 0 (nor null, "
+                f"a synthetic history's); {fix}"
+            )
+        if begin is not None and not isinstance(begin, str):
+            raise UserError(
+                f"{path}: begin = {str(begin)[:40]!r} is not a clock time (text, e.g. "
+                f'"07:00:00"), nor null; {fix}'
+            )
         corr = info.get("neighbour_corr", 0.0)
         if not isinstance(corr, (int, float)) or not 0.0 <= corr <= 1.0:
             raise UserError(f"{path}: neighbour_corr = {corr!r} is not a number in [0, 1]; {fix}")
@@ -290,8 +304,8 @@ class History:
             rho,
             obstacles,
             n_runs,
-            float(step_s) if isinstance(step_s, (int, float)) else None,
-            info.get("begin") if isinstance(info.get("begin"), str) else None,
+            None if step_s is None else float(step_s),
+            begin,
             tuple(seeds),
             tuple(str(s) for s in info.get("sources") or ()),
             float(corr),
@@ -336,9 +350,11 @@ class History:
             raise UserError(f"{where}: history starts at {self.begin}, the run at {begin}; {fix}")
         shared = sorted(set(self.traffic_seeds) & set(traffic_seeds))
         if shared:
+            free = max([*self.traffic_seeds, *traffic_seeds]) + 1  # past both sets of seeds
             raise UserError(
                 f"{where}: history built from traffic seed {shared[0]}, which this run "
-                "evaluates on; build it from other seeds (e.g. --sumo-seed 100)"
+                f"evaluates on; build it from seeds this run does not use (e.g. --sumo-seed "
+                f"{free} and on)"
             )
 
 

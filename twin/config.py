@@ -141,7 +141,8 @@ def check_dotted(key: str) -> str:
     parts = key.split(".")
     if len(parts) < 2 or parts[0] not in SECTIONS or "" in parts:
         raise ValueError(
-            f"key {key!r} must be a dotted key into a scenario config; e.g. 'swarm.n_drones'"
+            f"key {key!r}: overrides reach the {', '.join(SECTIONS)} tables of a scenario "
+            "config, by dotted keys; e.g. 'swarm.n_drones'"
         )
     return key
 
@@ -174,14 +175,22 @@ Seed = Annotated[int, Field(ge=0)]
 Unit = Annotated[float, Field(gt=0, lt=1)]
 
 _NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.+=-]*")
+#: The longest name: file names built from it (a cell's id, a row's folder) stay well under
+#: the 255 bytes file systems allow.
+MAX_NAME = 100
 
 
 def check_name(value: str) -> str:
-    """A name that is safe as (part of) a file name inside a folder: no ``/``, ``..``, spaces."""
+    """A name that is safe as (part of) a file name inside a folder: no ``/``, ``..``, spaces,
+    at most :data:`MAX_NAME` characters."""
     if not _NAME.fullmatch(value) or ".." in value:
         raise ValueError(
             "must be a plain name of letters, digits, '-', '_', '.' (no '/', '..' or spaces); "
             'e.g. "rush-hour"'
+        )
+    if len(value) > MAX_NAME:
+        raise ValueError(
+            f"is {len(value)} characters long; give at most {MAX_NAME} (it names files)"
         )
     return value
 

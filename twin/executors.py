@@ -43,7 +43,8 @@ def local_tasks(
     finishes. Workers exit when the parent dies (:func:`exit_with_parent`); with
     ``ignore_sigint`` they leave Ctrl-C to the parent. With ``kill_on_close``, a caller that
     stops reading early (an error, a second Ctrl-C) kills the running workers instead of
-    waiting for them."""
+    waiting for them. At most ``workers`` tasks are handed to the pool at once: the pool
+    queues one more than it runs, which a stop (Ctrl-C, SIGTERM) would not cancel."""
     context = multiprocessing.get_context("spawn")
     pool = ProcessPoolExecutor(
         max_workers=workers,
@@ -52,12 +53,21 @@ def local_tasks(
         initargs=(os.getpid(), ignore_sigint),
     )
     pending: dict = {}
+    waiting = iter(enumerate(tasks))
+
+    def submit_next() -> None:
+        for n, args in waiting:
+            pending[pool.submit(fn, *args)] = n
+            return
+
     try:
-        pending = {pool.submit(fn, *args): n for n, args in enumerate(tasks)}
+        for _ in range(workers):
+            submit_next()
         while pending:
             done, _ = wait(pending, timeout=1.0, return_when=FIRST_COMPLETED)
             for future in done:
                 n = pending.pop(future)
+                submit_next()  # the freed worker takes the next task at once
                 try:
                     yield n, future.result(), None
                 except Exception as exc:

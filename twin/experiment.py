@@ -795,6 +795,15 @@ def check_memory(
     workers = n_workers(experiment)
     if workers > 1:  # the workers themselves past the limit: only fewer of them can help
         check_workers_fit(experiment.workers, workers, limit, "worker processes")
+    floor = estimate_memory(experiment, (1, 1), 1, 0, live=live)
+    if floor > limit * 1e9:  # no grid or horizon fits: only the limit (or workers) can change
+        on, fewer = (
+            (f" on {workers} workers", "use fewer --workers or ") if workers > 1 else ("", "")
+        )
+        raise UserError(
+            f"--max-memory-gb / ${MEMORY_ENV} = {limit:g} GB is below what this run takes on "
+            f"any grid{on} (about {_gb(floor)} GB on 1 x 1 cells and 1 step); {fewer}raise it"
+        )
     ratio = (need / (limit * 1e9)) ** 0.5
     hint = source.coarser_hint(ratio) if source is not None else None
     if hint is None:

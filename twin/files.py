@@ -11,6 +11,7 @@ import hashlib
 import json
 import os
 import shutil
+import stat
 import tempfile
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -132,6 +133,18 @@ def write_json(path: str | Path, data: Any) -> None:
     atomic_write(path, lambda p: p.write_text(text))
 
 
+def nan_as_null(data: Any) -> Any:
+    """``data`` with every float that is not finite (an R^2 of samples in one density bin)
+    as None: strict JSON (``null``), which every reader takes, not the ``NaN`` token."""
+    if isinstance(data, dict):
+        return {k: nan_as_null(v) for k, v in data.items()}
+    if isinstance(data, (list, tuple)):
+        return [nan_as_null(v) for v in data]
+    if isinstance(data, (float, np.floating)) and not np.isfinite(data):
+        return None
+    return data
+
+
 def jsonable(value: Any) -> Any:
     if isinstance(value, np.generic):
         return value.item()
@@ -147,8 +160,11 @@ _HASHES: dict[tuple[str, int, int], str] = {}
 
 def file_sha256(path: str | Path) -> str:
     """The sha256 of a file, read in blocks; remembered per path, size and modification time
-    (a run's seeds hash each input once)."""
+    (a run's seeds hash each input once). A pipe or device (``/dev/zero``, a FIFO named in a
+    forged record) is an OSError, never a read that does not end."""
     st = os.stat(path)
+    if not stat.S_ISREG(st.st_mode):
+        raise OSError(errno.EINVAL, "not a regular file (a pipe, device or folder)", str(path))
     key = (os.path.abspath(path), st.st_size, st.st_mtime_ns)
     if key not in _HASHES:
         h = hashlib.sha256()

@@ -326,6 +326,11 @@ def check_run_folder(run_dir: str | Path) -> dict[str, Any]:
     run_dir = Path(run_dir)
     rerun = "rerun the command that wrote it (same --out replaces it)"
     manifest_path = run_dir / MANIFEST
+    if not manifest_path.exists() and not (run_dir / "run.json").exists():
+        raise UserError(
+            f"{run_dir}: no run.json nor {MANIFEST}: not a folder `twin run` or `twin evaluate` "
+            "wrote (a sweep's, transfer's or pretraining's folder is not one); pass a run folder"
+        )
     if not manifest_path.exists():
         run = _read_json(run_dir / "run.json")
         why = run.get("partial_reason") if isinstance(run, dict) else None

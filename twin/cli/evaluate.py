@@ -92,6 +92,38 @@ def add_parser(subparsers) -> None:
     p.set_defaults(func=main)
 
 
+def with_swarm_of_run(config, tape):
+    """``config`` with the swarm of the run that recorded ``tape`` (its drones, start cells and
+    score weights, from the ``run.json`` of the tape's run folder), said in a notice: a
+    replay of a run's tape without ``--config`` gives the run's swarm results, not those of
+    the default config's swarm. A tape outside a run folder keeps the config's swarm."""
+    import json
+    from pathlib import Path
+
+    from twin.boundary import notify
+    from twin.config import with_overrides
+    from twin.files import read_record
+
+    tape = Path(tape)
+    folder = tape.parent.parent if tape.parent.name == "tapes" else tape.parent
+    try:
+        run = json.loads(read_record(folder / "run.json"))  # NotARecord is an OSError
+        params = run["params"]
+        overrides = {"swarm.n_drones": run["n_drones"], "swarm.starts": run["starts"],
+                     **{f"swarm.{k}": params[k] for k in ("eta", "delta", "alpha_T", "alpha_I")}}  # fmt: skip
+    except (OSError, ValueError, KeyError, TypeError):
+        return config
+    labels = {key: f"{folder / 'run.json'}: {key.split('.')[1]}" for key in overrides}
+    mine = with_overrides(config, overrides, labels)
+    if mine.swarm != config.swarm:
+        notify(
+            f"twin: notice: the swarm of {folder / 'run.json'} ({mine.swarm.n_drones} drones, "
+            f"its starts and score weights) replays its tape, not {config.path.name}'s; give "
+            "--config for a config's swarm"
+        )
+    return mine
+
+
 def main(args: argparse.Namespace) -> int:
     from twin.boundary import hold_notices
 
@@ -103,6 +135,8 @@ def main(args: argparse.Namespace) -> int:
     limit_threads()
     hold_notices()  # printed once the simulation has started; a refusal is one line
     config = load_config(shipped_config(args.config or DEFAULT_CONFIG))
+    if args.traffic is not None and args.config is None:
+        config = with_swarm_of_run(config, args.traffic)
     swarms = parse_swarm_names(args.swarms, []) if args.swarms is not None else None
     config = with_flags(
         config,

@@ -61,7 +61,33 @@ def add_parser(subparsers) -> None:
         "--disturbances", type=int, default=8, help="--dynamics: disturbances per day (default 8)"
     )
     p.add_argument("--out", type=path_arg, required=True, help="history file to write (.npz)")
+    p.add_argument(
+        "--max-memory-gb",
+        type=float,
+        default=None,
+        help="--dynamics: refuse days whose maps pass this memory (default $TWIN_MAX_MEMORY_GB "
+        "or 8)",
+    )
     p.set_defaults(func=main)
+
+
+def check_days_memory(config, days: int, limit_gb: float | None) -> None:
+    """Refuse (one line) ``days`` days of maps of ``config``'s grid and horizon past the memory
+    limit, before any is computed: every day's maps are held at once (float64), and about four
+    more days' worth while a day is stacked and the history fitted."""
+    from twin.experiment import MEMORY_ENV, memory_limit_gb
+    from twin.resources import check_grid_size
+
+    g, horizon = config.grid, config.traffic.horizon
+    check_grid_size(g.nx, g.ny, f"--dynamics {config.path}", "use a smaller grid")
+    limit = memory_limit_gb(limit_gb)
+    need = (days + 4) * (horizon + 1) * g.nx * g.ny * 8
+    if need > limit * 1e9:
+        raise UserError(
+            f"--dynamics {config.path}: {days} days of {g.nx} x {g.ny} cells x {horizon + 1} "
+            f"maps need about {need / 1e9:,.1f} GB, over the {limit:g} GB limit; use fewer "
+            f"--days, a smaller grid or horizon, or raise --max-memory-gb / ${MEMORY_ENV}"
+        )
 
 
 def dynamics_days(args):
@@ -79,6 +105,7 @@ def dynamics_days(args):
                              ("--disturbances", args.disturbances, 1)):  # fmt: skip
         if value < low:
             raise UserError(f"{flag} {value}: give a whole number >= {low}")
+    check_days_memory(config, args.days, args.max_memory_gb)
     seeds = range(args.seed, args.seed + args.days)
     return dynamics_history(make_grid(config), config.traffic.horizon, seeds, args.disturbances)
 

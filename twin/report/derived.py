@@ -49,6 +49,7 @@ import numpy as np
 import pandas as pd
 
 from twin.errors import UserError
+from twin.files import nan_as_null
 from twin.grid import ACTION_DELTAS, Grid
 from twin.metrics import aggregate, is_ceiling_row, learned_against_best_classical, series_columns
 from twin.monitoring import (
@@ -1197,7 +1198,7 @@ def check_mfd_files(run_dir: Path, model) -> None:
                 )
     fit = read_json(run_dir / "mfd.json")
     if isinstance(fit, dict):
-        report = json.loads(json.dumps(model.report(), default=float))
+        report = json.loads(json.dumps(nan_as_null(model.report()), default=float))
         for name, want in report.items():
             if name in fit and not isinstance(want, (dict, list)) and not _same(fit[name], want):
                 raise UserError(

@@ -378,7 +378,9 @@ def load_run(run_dir: str | Path) -> RunFiles:
     if degradation is not None:
         check_degradation(run_dir / "degradation.csv", degradation, swarms, series)
     if beliefs is not None:
-        check_beliefs(run_dir / "belief_models.csv", beliefs, swarms)
+        check_beliefs(run_dir / "belief_models.csv", beliefs, swarms, series)
+    if belief_maps is not None:
+        check_belief_maps(run_dir / "belief_maps.npz", belief_maps, swarms, series)
     if events is not None:
         check_events(run_dir / "events.parquet", events, obstacles.shape, series)
     if monitoring is not None:
@@ -698,6 +700,43 @@ def check_degradation(
                 f"not phase >= 1 and 0 <= start <= stop <= {int(steps[seed])} (the steps seed "
                 f"{seed} ran); {RERUN}"
             )
+    check_degradation_scores(path, frame, series)
+
+
+def check_degradation_scores(path: Path, frame: pd.DataFrame, series: pd.DataFrame) -> None:
+    """Each row's ``R_hat`` is the mean of its seed's and swarm's rewards over its phase's
+    steps in ``series.parquet``, and every swarm of a seed has the same phases (none missing)."""
+    rewards = {
+        key: group.set_index("step")["reward"].sort_index()
+        for key, group in series.groupby(["seed", "swarm"])
+    }
+    phases: dict[int, dict[str, set]] = {}
+    for n, r in enumerate(frame.itertuples(index=False)):
+        seed, swarm, start, stop = int(r.seed), str(r.swarm), int(r.start), int(r.stop)
+        phases.setdefault(seed, {}).setdefault(swarm, set()).add((int(r.phase), start, stop))
+        got = rewards.get((seed, swarm))
+        if got is None:
+            raise UserError(
+                f"{path}: seed {seed}, swarm {swarm!r} (row {n}) has no rewards in "
+                f"series.parquet; {RERUN}"
+            )
+        want = float(got.loc[start : stop - 1].mean()) if stop > start else float("nan")
+        have = float(r.R_hat)
+        same = (np.isnan(want) and np.isnan(have)) or abs(have - want) <= 1e-6 * max(1.0, abs(want))
+        if not same:
+            raise UserError(
+                f"{path}: R_hat = {have:.6g} for seed {seed}, swarm {swarm!r}, phase {r.phase} "
+                f"(row {n}), but its rewards in series.parquet average {want:.6g} over steps "
+                f"{start} .. {stop - 1}; {RERUN}"
+            )
+    for seed, by_swarm in phases.items():
+        sets = list(by_swarm.values())
+        if any(s != sets[0] for s in sets):
+            counts = {swarm: len(s) for swarm, s in by_swarm.items()}
+            raise UserError(
+                f"{path}: the swarms of seed {seed} have different phases (rows per swarm: "
+                f"{counts}); a row is missing or added; {RERUN}"
+            )
 
 
 #: The reference rows of ``belief_models.csv`` besides the swarms (:mod:`twin.belief`).
@@ -707,9 +746,38 @@ def _belief_references() -> tuple[str, ...]:
     return (NO_DRONES, DETECTORS_ONLY)
 
 
-def check_beliefs(path: Path, frame: pd.DataFrame, swarms: set[str]) -> None:
-    """``belief_models.csv``: rows of the swarms of ``summary.csv`` and of twin's reference rows,
-    each (swarm, model) once."""
+#: The belief models of ``belief_models.csv`` (:func:`twin.belief.belief_table`).
+BELIEF_MODELS = ("history", "nowcast", "nowcast-spatial", "last-seen", "nowcast+detectors")
+
+
+def check_beliefs(
+    path: Path, frame: pd.DataFrame, swarms: set[str], series: pd.DataFrame | None = None
+) -> None:
+    """``belief_models.csv``: rows of the swarms of ``summary.csv`` and of twin's reference rows
+    (the history's row among them), each (swarm, model) once, of twin's models, over at most
+    the seeds the run has results of."""
+    from twin.belief import NO_DRONES
+
+    models = [str(m) for m in frame["model"].unique() if str(m) not in BELIEF_MODELS]
+    if models:
+        raise UserError(
+            f"{path}: model {models[0]!r} is none of twin's belief models "
+            f"({', '.join(BELIEF_MODELS)}); {RERUN}"
+        )
+    if not ((frame["swarm"] == NO_DRONES) & (frame["model"] == "history")).any():
+        raise UserError(
+            f"{path}: the row of swarm {NO_DRONES!r}, model 'history' is missing; {RERUN}"
+        )
+    if series is not None and "n_seeds" in frame.columns:
+        seeds = int(series["seed"].nunique())
+        n = pd.to_numeric(frame["n_seeds"], errors="coerce")
+        bad = ~((n >= 1) & (n <= seeds) & (n == n.round()))
+        if bad.any():
+            r = frame[bad].iloc[0]
+            raise UserError(
+                f"{path}: n_seeds = {r['n_seeds']} for swarm {r['swarm']!r}, model "
+                f"{r['model']!r}, not a count of 1 .. {seeds} (the seeds with results); {RERUN}"
+            )
     known = swarms | set(_belief_references())
     extra = [str(s) for s in frame["swarm"].unique() if str(s) not in known]
     if extra:
@@ -723,6 +791,55 @@ def check_beliefs(path: Path, frame: pd.DataFrame, swarms: set[str]) -> None:
         raise UserError(
             f"{path}: the row of swarm {r['swarm']!r}, model {r['model']!r} appears twice; {RERUN}"
         )
+
+
+def check_belief_maps(
+    path: Path, maps: dict[str, Any], swarms: set[str], series: pd.DataFrame
+) -> None:
+    """``belief_maps.npz``: a seed with results, swarms of the run, snapshot steps rising
+    within the steps it ran, importances in [0, 1], standard deviations >= 0, a threshold in
+    (0, 1], and each event on the grid, within those steps, known (if ever) while it lasts."""
+    steps = _steps_per_seed(series)
+    seed = maps["seed"]
+    if seed not in steps.index:
+        raise UserError(f"{path}: seed = {seed} has no results in series.parquet; {RERUN}")
+    horizon = int(steps[seed])
+    extra = [s for s in maps["swarms"] if s not in swarms]
+    if extra or len(set(maps["swarms"])) < len(maps["swarms"]):
+        what = f"swarm {extra[0]!r} has no row in summary.csv" if extra else "a swarm is twice"
+        raise UserError(f"{path}: swarms: {what}; {RERUN}")
+    at = np.asarray(maps["steps"])
+    if at.size and (at.min() < 0 or at.max() > horizon or (np.diff(at) <= 0).any()):
+        raise UserError(
+            f"{path}: steps = {at.tolist()[:6]} are not rising steps within 0 .. {horizon} (the "
+            f"steps seed {seed} ran); {RERUN}"
+        )
+    for key in ("truth", "mean"):
+        values = np.asarray(maps[key])
+        if values.size and (values.min() < 0 or values.max() > 1):
+            raise UserError(f"{path}: {key} holds values outside 0 .. 1 (importances); {RERUN}")
+    if np.asarray(maps["std"]).size and np.asarray(maps["std"]).min() < 0:
+        raise UserError(f"{path}: std holds negative values (standard deviations); {RERUN}")
+    if not 0 < maps["threshold"] <= 1:
+        raise UserError(f"{path}: threshold = {maps['threshold']}, not in (0, 1]; {RERUN}")
+    nx, ny = (int(n) for n in np.asarray(maps["truth"]).shape[1:])
+    i, j = np.asarray(maps["event_i"]), np.asarray(maps["event_j"])
+    onset, duration = np.asarray(maps["event_onset"]), np.asarray(maps["event_duration"])
+    bad = (i < 0) | (i >= nx) | (j < 0) | (j >= ny) | (onset < 0) | (duration < 1)
+    bad |= onset + duration - 1 > horizon
+    if bad.any():
+        e = int(np.flatnonzero(bad)[0])
+        raise UserError(
+            f"{path}: event {e} on cell ({i[e]}, {j[e]}), onset {onset[e]}, duration "
+            f"{duration[e]}: not on the {nx} x {ny} grid within steps 0 .. {horizon}; {RERUN}"
+        )
+    for key in ("known_at", "history_known_at"):
+        known = np.asarray(maps[key])
+        inside = (known >= onset) & (known < onset + duration)
+        if (~((known == -1) | inside)).any():
+            raise UserError(
+                f"{path}: {key} names a step outside its event's span (and not -1: never); {RERUN}"
+            )
 
 
 def check_events(

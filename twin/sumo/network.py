@@ -9,6 +9,7 @@ is reused while that hash is unchanged.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import tomllib
@@ -269,6 +270,12 @@ def import_osm(osm_file: Path, out_dir: Path | None = None) -> Path:
     osm_file = Path(osm_file)
     if not osm_file.exists():
         raise missing(osm_file, "OSM file")
+    with contextlib.suppress(OSError), open(osm_file, "rb") as fh:
+        if fh.read(3) == b"BZh":  # how OSM extracts are downloaded (.osm.bz2)
+            raise UserError(
+                f"{osm_file}: a bzip2-compressed extract, which netconvert does not read; "
+                f"decompress it (bunzip2 -k {osm_file.name}) and give the .osm (gzip works too)"
+            )
     name = osm_file.name.split(".")[0] + ".net.xml"
 
     no_road = UserError(
@@ -307,6 +314,7 @@ def import_osm(osm_file: Path, out_dir: Path | None = None) -> Path:
             f"--out {out_dir}: {name} exists there; twin never overwrites a file: give "
             "another folder, or move that file away"
         )
+    created = not out_dir.exists()
     out_dir.mkdir(parents=True, exist_ok=True)
     partial = f".{name}.tmp"  # a failed conversion leaves no half network under the name
     try:
@@ -314,6 +322,9 @@ def import_osm(osm_file: Path, out_dir: Path | None = None) -> Path:
         (out_dir / partial).replace(target)
     finally:
         (out_dir / partial).unlink(missing_ok=True)
+        if created and not target.exists():  # nor the folder it made for it
+            with contextlib.suppress(OSError):
+                out_dir.rmdir()
     return target
 
 

@@ -67,8 +67,8 @@ NAMING_OPTIONS = ("output-prefix", "output-suffix")
 _FILE_LISTS = {"save-state.files"}
 #: Output names SUMO writes to its process's streams (twin's own: sent to a file instead).
 _STREAMS = {"stdout", "stderr", "-"}
-#: Output names SUMO does not take as files.
-_NOT_FILES = {"", "nul", "/dev/null", "stdout", "stderr", "-"}
+#: Output names SUMO does not take as files, as it spells them (``Nul`` is a file).
+_NOT_FILES = {"", "nul", "NUL", "/dev/null", "stdout", "stderr", "-"}
 
 #: Elements of additional files that write files, and the attribute naming the file.
 OUTPUT_ELEMENTS = {
@@ -105,7 +105,7 @@ ET.register_namespace("xsi", "http://www.w3.org/2001/XMLSchema-instance")
 
 def _is_file(value: str) -> bool:
     v = value.strip()
-    if v.lower() in _NOT_FILES:
+    if v in _NOT_FILES:
         return False
     host, _, port = v.rpartition(":")  # a socket host:port
     return not (host and port.isdigit() and "/" not in v)
@@ -133,6 +133,11 @@ class OutputPlan:
                 self.out_dir.mkdir(parents=True, exist_ok=True)
                 return self.out_dir / candidate
         raise AssertionError  # pragma: no cover
+
+    def own_file(self, name: str) -> Path:
+        """A file of twin's own in ``out_dir`` (its virtual loops), named apart from the
+        scenario's outputs (one named ``twin-loops.add.xml`` keeps its name)."""
+        return self._fresh(name)
 
     def target(self, original: Path) -> Path:
         """The file in ``out_dir`` that replaces the output ``original`` (same base name)."""
@@ -309,7 +314,7 @@ def redirect_outputs(
         if state_times and not given.get("save-state.files") and "save-state.prefix" not in given:
             given["save-state.prefix"] = "state"  # SUMO's default prefix, in its working folder
         for name, value in given.items():
-            if value.strip().lower() in _STREAMS:  # twin's tables and errors are there
+            if value.strip() in _STREAMS:  # twin's tables and errors are there
                 extra += [f"--{name}", str(plan.target(base / f"{name}.xml"))]
             elif name in _FILE_LISTS:
                 files = file_list(value, base)

@@ -100,7 +100,14 @@ class SumoSession:
     _active: ClassVar[SumoSession | None] = None
 
     def command(self) -> list[str]:
-        """The SUMO command line this session starts."""
+        """The SUMO command line this session starts (its files by absolute paths: one holding
+        a comma, which SUMO splits file lists at, is refused in one line)."""
+        for path in (self.config_file, self.net_file, *self.route_files, *self.additional_files):
+            if path is not None and "," in str(path):
+                raise UserError(
+                    f"{path}: SUMO splits file names at commas, and twin gives it this one by "
+                    "its full path; rename the folder or file without the comma"
+                )
         cmd = ["sumo"]
         if self.config_file is not None:
             cmd += ["--configuration-file", str(self.config_file)]

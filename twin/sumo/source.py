@@ -178,8 +178,7 @@ class SumoTraffic(TrafficSource):
             if s.detectors.loops:
                 from twin.sumo.detectors import with_additional, write_loops
 
-                Path(output_dir).mkdir(parents=True, exist_ok=True)
-                loops = write_loops(s.detectors.loops, Path(output_dir) / "twin-loops.add.xml",
+                loops = write_loops(s.detectors.loops, plan.own_file("twin-loops.add.xml"),
                                     s.step_s)  # fmt: skip
                 options = with_additional(options, loops)
                 self.outputs.append(loops)
@@ -510,10 +509,10 @@ class SumoTraffic(TrafficSource):
         of this seed (``tape.parquet``); with several seeds every seed's tape in ``tapes/``."""
         import pandas as pd
 
-        from twin.files import atomic_write, write_json
+        from twin.files import atomic_write, nan_as_null, write_json
 
         write_json(run_dir / "network.json", self.network_info())
-        write_json(run_dir / "mfd.json", self.model.report())
+        write_json(run_dir / "mfd.json", nan_as_null(self.model.report()))
         if self.incidents_info():
             write_json(run_dir / "incidents.json", self.incidents_info())
         samples = pd.DataFrame(self.model.samples())

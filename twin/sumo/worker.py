@@ -141,7 +141,11 @@ def _stop(source: WorksAhead, here, child) -> bool:
 
 
 def _take_end(source: WorksAhead, message) -> None:
-    _, _, snapshots, seen, model, timer, read_seconds, error, incidents, det = message
+    _, _, snapshots, seen, model, timer, read_seconds, error, incidents, det, notices = message
+    from twin.notices import notify
+
+    for line in notices:  # said in the child (its stderr is SUMO's messages file)
+        notify(line)
     source.snapshots.extend(snapshots)
     source.vehicles_seen.extend(seen)
     source.detectors = det[0]
@@ -195,6 +199,10 @@ def _produce(source: WorksAhead, conn, parent: int, messages: Path) -> None:
     source.defer_close = True  # SUMO is closed after the end state is sent (below)
     sent_snapshots = sent_seen = sent_readings = 0
     failure: BaseException | None = None
+    from twin.notices import drop_notices, hold_notices
+
+    drop_notices()  # the parent's held lines stay the parent's; this process's go with its end
+    hold_notices()
     maps = source.maps_here()
     try:
         for importance in maps:
@@ -226,6 +234,7 @@ def _produce(source: WorksAhead, conn, parent: int, messages: Path) -> None:
                 source.error,
                 source.incidents_info(),
                 (source.detectors, source.detector_readings[sent_readings:]),
+                drop_notices(),
             )
         )
     except (BrokenPipeError, OSError):

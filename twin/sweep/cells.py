@@ -117,7 +117,8 @@ def cell_inputs(config: Path, overrides: dict[str, Any], tape: Path | None) -> d
 
 def _sumocfg_options_digest(scenario) -> dict[str, str]:
     """``{"<sumocfg>#options": sha256}`` of the options a scenario's sumocfg sets, read with its
-    variables substituted, or nothing (no sumocfg, or one the cell's checks refuse)."""
+    variables substituted, and of the files they name (``~`` expanded), or nothing (no
+    sumocfg, or one the cell's checks refuse)."""
     from twin.sumo.readers import read_sumocfg
     from twin.sumo.scenario import sumo_settings
 
@@ -125,10 +126,11 @@ def _sumocfg_options_digest(scenario) -> dict[str, str]:
     if settings.sumocfg is None:
         return {}
     try:
-        options = read_sumocfg(Path(settings.sumocfg), own_net=settings.net is None).options
+        sumocfg = read_sumocfg(Path(settings.sumocfg), own_net=settings.net is None)
     except (UserError, OSError):
         return {}
-    text = json.dumps(options, sort_keys=True).encode()
+    files = [os.path.abspath(p) for p in sumocfg.files()]
+    text = json.dumps([sumocfg.options, files], sort_keys=True).encode()
     return {f"{os.path.abspath(settings.sumocfg)}#options": hashlib.sha256(text).hexdigest()}
 
 

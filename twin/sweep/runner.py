@@ -16,6 +16,7 @@ import pandas as pd
 from twin.boundary import notify, release_notices
 from twin.errors import UserError
 from twin.executors import EXECUTORS, _local_executor, _ray_executor
+from twin.files import atomic_write
 from twin.sweep.cells import expand_cells, run_cell, scenario_config
 from twin.sweep.config import SweepConfig
 from twin.sweep.store import (
@@ -111,7 +112,8 @@ def run_sweep(
     )
     failed_path = out_dir / "failed.json"
     if failed:
-        failed_path.write_text(json.dumps(failed, indent=2))
+        text = json.dumps(failed, indent=2)
+        atomic_write(failed_path, lambda p: p.write_text(text))
     else:
         failed_path.unlink(missing_ok=True)
     _, summary = merge(out_dir, [c["id"] for c in cells], config)
@@ -128,7 +130,9 @@ def run_sweep(
 
 
 def check_cells(cells: list[dict[str, Any]]) -> None:
-    """Validate every distinct scenario config and overrides before running anything."""
+    """Validate every distinct scenario config and overrides before running anything: a live
+    one is built as its cells build it (files, window, grid, incidents, detectors), without
+    starting SUMO."""
     seen = set()
     for cell in cells:
         key = (cell["config"], json.dumps(cell["overrides"], sort_keys=True, default=str))
@@ -139,10 +143,22 @@ def check_cells(cells: list[dict[str, Any]]) -> None:
             config = scenario_config(Path(cell["config"]), cell["overrides"])
             if config.traffic.kind == "sumo" and cell.get("tape") is None:
                 prepare_sumo(config)
+                check_live(config, int(cell["seed"]))
         except UserError as exc:
             raise UserError(
                 f"scenario {cell['scenario']!r} with {cell['overrides']}: {exc}"
             ) from None
+
+
+def check_live(config, seed: int) -> None:
+    """Build the live source of a cell (reading its files and laying its grid), as the cell
+    will, and close it unstarted: what it refuses is refused before any cell runs."""
+    from twin.traffic_kinds import build_traffic
+
+    source = build_traffic(config, 0, seed)
+    close = getattr(source, "close", None)
+    if close is not None:
+        close()
 
 
 def prepare_sumo(config) -> None:

@@ -44,6 +44,16 @@ def check_sweep_folder(out_dir: Path) -> None:
         and not p.name.startswith(DAMAGED_RECORD)
     )
     fix = "give an empty or new folder, or the folder of the sweep to resume"
+    for name in sorted(SWEEP_FILE_NAMES):
+        path = out_dir / name
+        folder = name in (CELLS_DIR, "report")
+        if path.exists() and not (path.is_dir() if folder else path.is_file()):
+            what = "a folder" if path.is_dir() else "a pipe or device"
+            want = "a folder" if folder else "a file"
+            raise UserError(
+                f"--out {out_dir}: {name} is {what if not folder else 'not a folder'}, where "
+                f"the sweep writes {want}; remove it, or {fix}"
+            )
     if foreign:
         raise UserError(f"--out {out_dir}: holds {foreign[0]!r}, which no twin sweep writes; {fix}")
     names = {p.name for p in out_dir.iterdir()}

@@ -383,6 +383,10 @@ class PretrainConfig(SourcedConfig):
         for n, tape in enumerate(tapes):
             if not tape.strip():
                 raise ValueError(f"has an empty name (entry {n + 1}); remove it")
+            if Path(tape).is_dir():
+                inside = Path(tape) / "tape.parquet"
+                hint = f" ({inside})" if inside.is_file() else ""
+                raise ValueError(f"names {tape}, a folder; give its tape.parquet files{hint}")
             if not Path(tape).is_file():
                 raise ValueError(f"names {tape}, which does not exist; give tape.parquet files")
         return tapes
@@ -483,6 +487,17 @@ def training_scenario(
     ``scenario_overrides``, named in errors as keys of ``where``), refused (one line) unless
     pretraining can collect on it: synthetic traffic, random starts, no scripted faults."""
     labels = {key: f"{where}: scenario_overrides {key!r}" for key in overrides}
+    kind = overrides.get("traffic.kind", "synthetic")
+    if kind != "synthetic":  # named before the synthetic keys it leaves unknown are blamed
+        raise ConfigError(
+            f"{labels['traffic.kind']} = {kind!r}: pretraining collects on a synthetic map; "
+            "remove it, or train on tapes of SUMO runs (--traffic TAPE)"
+        )
+    if overrides.get("swarm.starts", "random") != "random":
+        raise ConfigError(
+            f"{labels['swarm.starts']} gives start cells; the random swarm starts on random "
+            'cells in every episode: remove it (or set it to "random")'
+        )
     config = with_overrides(load_scenario(path), overrides, labels)
     fix = f"{where}: scenario = {path}"
     if config.traffic.kind != "synthetic":

@@ -98,15 +98,23 @@ def record_tape(task: dict[str, Any]) -> str:
     return task["path"]
 
 
-def tape_still_holds(path: Path) -> bool:
-    """Whether a tape recorded before is there and its scenario's SUMO files (its traffic
-    identity: network, routes, additional files, sumocfg) are still what it was recorded on;
-    a changed one is said, and the tape recorded again."""
+#: What a tape's recorded settings must share with its task's scenario to be its tape.
+TAPE_KEYS = ("seed", "horizon", "begin", "step_s", "warmup_s", "mesoscopic", "net_file",
+             "route_files", "sumocfg")  # fmt: skip
+
+
+def tape_still_holds(task: dict[str, Any]) -> bool:
+    """Whether the tape of ``task`` (:func:`tape_tasks`) recorded before is there, is the
+    tape of its scenario and seed (its settings those of the scenario built again: a tape of
+    another seed, window or network copied over it is not), and its scenario's SUMO files
+    (its traffic identity: network, routes, additional files, sumocfg) are still what it was
+    recorded on; otherwise that is said, and the tape recorded again."""
     import pyarrow.parquet as pq
 
     from twin.notices import notify
     from twin.sweep.store import inputs_changed
 
+    path = Path(task["path"])
     if not path.is_file():
         return False
     try:
@@ -114,11 +122,37 @@ def tape_still_holds(path: Path) -> bool:
     except Exception:  # a damaged tape: the reader of the rows says why, record it again
         settings = None
     changed = inputs_changed({"traffic": settings}) if isinstance(settings, dict) else "file"
-    if changed is None:
+    why = f"its {changed} changed since it was recorded" if changed else _other_tape(task, settings)
+    if why is None:
         return True
-    notify(f"twin: notice: tape {path.name}: its {changed} changed since it was recorded; "
-           "recording it again")  # fmt: skip
+    notify(f"twin: notice: tape {path.name}: {why}; recording it again")
     return False
+
+
+def _other_tape(task: dict[str, Any], settings: dict[str, Any]) -> str | None:
+    """The first of :data:`TAPE_KEYS` in which the tape's ``settings`` differ from those of
+    its task's scenario built again (unstarted), in words, or None."""
+    from twin.sweep.cells import scenario_config
+    from twin.traffic_kinds import build_traffic
+
+    try:
+        config = scenario_config(Path(task["config"]), task["overrides"])
+        source = build_traffic(config, 0, int(task["seed"]))
+    except UserError:  # recording it again says what is wrong with the scenario
+        return "its scenario cannot be built as it stands"
+    try:
+        expected = json.loads(json.dumps(source.metadata(), default=str))
+    finally:
+        close = getattr(source, "close", None)
+        if close is not None:
+            close()
+    for key in TAPE_KEYS:
+        if settings.get(key) != expected.get(key):
+            return (
+                f"it was recorded with {key} = {settings.get(key)!r}, not its scenario's "
+                f"{expected.get(key)!r}"
+            )
+    return None
 
 
 def tape_tasks(config: TransferConfig, out: Path) -> list[dict[str, Any]]:
@@ -391,7 +425,7 @@ def run_transfer(
     timings: dict[str, float] = {}
 
     t0 = time.perf_counter()
-    tasks = [t for t in tape_tasks(config, out) if not tape_still_holds(Path(t["path"]))]
+    tasks = [t for t in tape_tasks(config, out) if not tape_still_holds(t)]
     if tasks:
         say(f"recording {len(tasks)} tapes ({config.tapes.config.name}, seeds "
             f"{[t['seed'] for t in tasks]})")  # fmt: skip
