@@ -408,8 +408,7 @@ def test_a_history_seed_clash_advises_seeds_past_both(small, history, tmp_path, 
     )
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert (
-        code == 2
-        and "build it from seeds this run does not use (e.g. --sumo-seed 12 and on)" in err
+        code == 2 and "(for a run of --sumo-seed s and --seeds n, from --sumo-seed s+n on)" in err
     ), err
 
 

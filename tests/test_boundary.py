@@ -2202,3 +2202,13 @@ def test_an_output_folder_holding_a_hard_link_is_refused(tmp_path):
     (out / "train_log.csv").unlink()
     (out / "train_log.csv").write_text("mine")
     assert outputs.check_output_dir(out) == out
+
+
+@pytest.mark.parametrize("command", ["replay", "report"])
+def test_a_file_given_as_a_run_folder_is_said_to_be_a_file(tmp_path, capsys, command):
+    """An existing file given for the run folder: "a file, not a run folder" ("no such run
+    folder" said an existing path was not there; probe 15's P2-f10)."""
+    given = tmp_path / "some.npz"
+    given.write_bytes(b"x")
+    assert main([command, str(given)]) == EXIT_REFUSED
+    assert f"{given}: a file, not a run folder; pass the folder `twin run`" in one_line(capsys)

@@ -121,6 +121,12 @@ def with_swarm_of_run(config, tape):
             f"its starts and score weights) replays its tape, not {config.path.name}'s; give "
             "--config for a config's swarm"
         )
+    if run.get("faults"):
+        notify(
+            f"twin: notice: the [faults] of {folder / 'run.json'} are not replayed (a config's "
+            "[faults] are: give the run's config with --config); the results differ from the "
+            "run's"
+        )
     return mine
 
 
