@@ -269,6 +269,7 @@ _PACKED_OSM = (
     (b"BZh", "a bzip2", "bunzip2 -k"),
     (b"\xfd7zXZ\x00", "an xz", "unxz -k"),
     (b"PK\x03\x04", "a zip", "unzip"),
+    (b"\x28\xb5\x2f\xfd", "a zstd", "unzstd"),
 )
 
 
@@ -280,7 +281,12 @@ def import_osm(osm_file: Path, out_dir: Path | None = None) -> Path:
         raise missing(osm_file, "OSM file")
     head = b""
     with contextlib.suppress(OSError), open(osm_file, "rb") as fh:
-        head = fh.read(6)
+        head = fh.read(16)
+    if head[4:15] == b"\x0a\x09OSMHeader":  # a PBF file's first blob
+        raise UserError(
+            f"{osm_file}: an OSM PBF extract, which netconvert does not read; convert it to "
+            f"XML (osmium cat {osm_file.name} -o {osm_file.stem}.osm) and give the .osm"
+        )
     for magic, what, command in _PACKED_OSM:  # bzip2: how OSM extracts are downloaded
         if head.startswith(magic):
             raise UserError(
