@@ -408,6 +408,25 @@ def test_a_history_seed_clash_advises_seeds_past_both(small, history, tmp_path, 
     )
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert (
-        code == 2
-        and "build it from seeds this run does not use (e.g. --sumo-seed 12 and on)" in err
+        code == 2 and "(for a run of --sumo-seed s and --seeds n, from --sumo-seed s+n on)" in err
     ), err
+
+
+def test_a_history_from_tapes_past_the_memory_limit_is_refused(
+    history, tmp_path, capsys, monkeypatch
+):
+    """``twin history --from`` estimates its tapes' memory before replaying them, and refuses
+    a limit that is no number (both were ignored; probe 15's P2-f03)."""
+    days = history.parent / "days"
+    argv = ["history", "--from", str(days), "--out", str(tmp_path / "h.npz")]
+    assert twin_main([*argv, "--max-memory-gb", "0.00001"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--from: 2 tapes of " in err and "over the 1e-05 GB" in err
+    monkeypatch.setenv("TWIN_MAX_MEMORY_GB", "abc")
+    assert twin_main(argv) == 2
+    err = capsys.readouterr().err
+    assert (
+        err
+        == "twin: error: TWIN_MAX_MEMORY_GB = 'abc' is not a number; give the limit in GB, e.g. 8\n"
+    )
+    assert not (tmp_path / "h.npz").exists()

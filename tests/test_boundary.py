@@ -2186,3 +2186,29 @@ def test_a_folder_no_run_wrote_is_said_to_be_none(tmp_path, capsys, command):
         "not a folder `twin run` or `twin evaluate` wrote" in err or "is this a run folder" in err
     ), err
     assert "interrupted" not in err
+
+
+def test_an_output_folder_holding_a_hard_link_is_refused(tmp_path):
+    """A file of an output folder with another name (a hard link to a file outside): twin
+    would write through it (pretraining's log and curve were; probe 15's P2-f02)."""
+    from twin import outputs
+
+    victim, out = tmp_path / "victim.csv", tmp_path / "out"
+    victim.write_text("keep")
+    out.mkdir()
+    os.link(victim, out / "train_log.csv")
+    with pytest.raises(UserError, match=r"train_log.csv has another name \(a hard link"):
+        outputs.check_output_dir(out)
+    (out / "train_log.csv").unlink()
+    (out / "train_log.csv").write_text("mine")
+    assert outputs.check_output_dir(out) == out
+
+
+@pytest.mark.parametrize("command", ["replay", "report"])
+def test_a_file_given_as_a_run_folder_is_said_to_be_a_file(tmp_path, capsys, command):
+    """An existing file given for the run folder: "a file, not a run folder" ("no such run
+    folder" said an existing path was not there; probe 15's P2-f10)."""
+    given = tmp_path / "some.npz"
+    given.write_bytes(b"x")
+    assert main([command, str(given)]) == EXIT_REFUSED
+    assert f"{given}: a file, not a run folder; pass the folder `twin run`" in one_line(capsys)

@@ -200,3 +200,29 @@ def test_a_runs_tape_replays_with_the_runs_swarm(tmp_path, capsys):
     live = pd.read_csv(run / "per_seed.csv").set_index("swarm")["R_hat_T"]
     replayed = pd.read_csv(tmp_path / "ev" / "per_seed.csv").set_index("swarm")["R_hat_T"]
     assert replayed.to_dict() == pytest.approx(live.to_dict(), rel=1e-12)
+
+
+def test_a_runs_faults_are_said_not_replayed_with_its_tape(tmp_path, capsys):
+    """A run with [faults] replayed from its tape without its config: a notice that its faults
+    are not replayed (the numbers differed silently; probe 15's P2-f09)."""
+    from helpers import small_sumo_scenario
+
+    (tmp_path / "s").mkdir()
+    folder = small_sumo_scenario(tmp_path / "s", horizon=4)
+    config = folder / "small.toml"
+    config.write_text(config.read_text() + "\n[faults]\ndrone_loss = [{ drone = 1, step = 2 }]\n")
+    run = tmp_path / "run"
+    common = ["--swarms", "random", "--no-ceiling", "--no-report", "--quiet"]
+    assert main(["run", "--config", str(config), *common, "--out", str(run)]) == 0
+    capsys.readouterr()
+    argv = [
+        "evaluate",
+        "--traffic",
+        str(run / "tape.parquet"),
+        *common,
+        "--out",
+        str(tmp_path / "e"),
+    ]
+    assert main(argv) == 0
+    err = capsys.readouterr().err
+    assert "[swarm_options] and [faults] are not replayed (this run had [faults]" in err, err

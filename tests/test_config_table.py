@@ -506,3 +506,16 @@ def test_a_pretraining_override_is_blamed_not_the_shipped_map(tmp_path, capsys, 
     code = main(["pretrain", "--config", str(path), "--quiet"])
     _one_line(capsys, code, path, words)
     assert "training-map.toml" not in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "overrides", ['{ "traffic.disturbances" = [] }', '{ "traffic.z_lo" = 5.0 }']
+)
+def test_an_override_that_empties_the_training_map_is_named(tmp_path, capsys, overrides):
+    """A map made empty by an override (no disturbance, z_lo above every z): the error names
+    the user's key beside the shipped map (probe 15's P2-f11)."""
+    path = tmp_path / "o.toml"
+    path.write_text(toml_text(PRETRAIN, "", "scenario_overrides", overrides))
+    code = main(["pretrain", "--config", str(path), "--quiet"])
+    key = overrides.split('"')[1]
+    _one_line(capsys, code, path, f"(the config as changed by {path}: scenario_overrides '{key}')")

@@ -1278,3 +1278,40 @@ def test_twins_loops_file_is_named_apart_from_a_scenario_output(tmp_path):
     taken = plan.target(tmp_path / "twin-loops.add.xml")
     own = plan.own_file("twin-loops.add.xml")
     assert taken.name == "twin-loops.add.xml" and own.name == "twin-loops-2.add.xml"
+
+
+def test_a_comma_in_the_folder_of_a_rewritten_additional_is_one_line(tmp_path):
+    """An additional file whose outputs twin sends into the run folder is read by SUMO from
+    there: a run folder named with a comma is refused naming it (SUMO split the copy's path,
+    "my run: no such file"; probe 15's P2-f01)."""
+    from twin.sumo.outputs import redirect_outputs
+
+    add = tmp_path / "det.add.xml"
+    add.write_text(
+        '<additional><e1Detector id="a" lane="x_0" pos="1" freq="60" file="a.xml"/></additional>'
+    )
+    with pytest.raises(UserError, match=r"my run,2/sumo: SUMO splits file names at commas and "
+                                        r"reads twin's copy of det.add.xml"):  # fmt: skip
+        redirect_outputs(None, ("--additional-files", str(add)), tmp_path / "my run,2" / "sumo")
+
+
+def test_a_comma_in_an_additional_files_path_is_one_line(tmp_path, capsys):
+    """``--additional`` under a folder whose name holds a comma: refused naming it (SUMO split
+    the path: ".../my scen: no such file"; probe 15's P2-f05)."""
+    from helpers import small_sumo_scenario
+
+    from twin.cli import main
+
+    (tmp_path / "s").mkdir()
+    folder = small_sumo_scenario(tmp_path / "s", horizon=2)
+    odd = tmp_path / "my scen,v2"
+    odd.mkdir()
+    (odd / "a.add.xml").write_text("<additional/>")
+    argv = ["run", "--config", str(folder / "small.toml"), "--additional", str(odd / "a.add.xml"),
+            "--swarms", "random", "--no-ceiling", "--no-report", "--quiet",
+            "--out", str(tmp_path / "run")]  # fmt: skip
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err.startswith(f"twin: error: {odd / 'a.add.xml'}: SUMO splits file names at commas"), (
+        err
+    )

@@ -278,6 +278,27 @@ def test_import_osm_refuses_a_bzip2_extract_and_an_unwritable_out(tmp_path, caps
     assert err == (f"twin: error: {packed}: a bzip2-compressed extract, which netconvert does "
                    "not read; decompress it (bunzip2 -k a.osm.bz2) and give the .osm (gzip "
                    "works too)"), err  # fmt: skip
+    import lzma
+    import zipfile
+
+    xz, zipped = tmp_path / "a.osm.xz", tmp_path / "a.osm.zip"
+    xz.write_bytes(lzma.compress(OSM.encode()))
+    with zipfile.ZipFile(zipped, "w") as archive:
+        archive.writestr("a.osm", OSM)
+    zst, pbf = tmp_path / "a.osm.zst", tmp_path / "a.osm.pbf"
+    zst.write_bytes(b"\x28\xb5\x2f\xfd" + b"\0" * 12)
+    pbf.write_bytes(b"\0\0\0\x0d\x0a\x09OSMHeader\x18\x10")  # a PBF's first blob header
+    for path, what in ((xz, "an xz"), (zipped, "a zip"), (zst, "a zstd")):
+        assert main(["network", "import-osm", str(path), "--out", str(tmp_path / "n")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert f"{path}: {what}-compressed extract" in err, err
+    assert main(["network", "import-osm", str(pbf), "--out", str(tmp_path / "n")]) == 2
+    assert "an OSM PBF extract, which netconvert does not read" in capsys.readouterr().err
+    comma = tmp_path / "my osm,v2"
+    comma.mkdir()
+    (comma / "a.osm").write_text(OSM)
+    assert main(["network", "import-osm", str(comma / "a.osm"), "--out", str(tmp_path / "n")]) == 2
+    assert "netconvert splits file names at commas" in capsys.readouterr().err
     osm = tmp_path / "a.osm"
     osm.write_text(OSM)
     assert main(["network", "import-osm", str(osm), "--out", "/proc/twin-x"]) == 2

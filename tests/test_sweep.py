@@ -785,3 +785,15 @@ def test_a_failures_record_that_is_no_file_is_refused_before_any_cell(
     assert cli(["sweep", "--config", str(path), "--out", str(out), "--quiet", "--no-report"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "failed.json is a " in err and "remove it" in err, err
+
+
+def test_a_limit_no_cell_fits_is_refused_before_any_cell(tmp_path: Path, capsys) -> None:
+    """A sweep's memory limit below what its cells take: one line before any cell runs, as
+    `twin evaluate` says it (every cell failed with it; probe 15's P2-f07)."""
+    path = sweep_file(tmp_path, seeds=2, horizon=4)
+    out = tmp_path / "s"
+    argv = ["sweep", "--config", str(path), "--out", str(out), "--quiet", "--no-report"]
+    assert cli([*argv, "--max-memory-gb", "1e-9"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "1e-09 GB is below what this run takes on any grid" in err
+    assert "cells failed" not in err and not list((out / "cells").glob("*.json"))

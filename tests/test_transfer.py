@@ -367,3 +367,12 @@ def test_a_tape_of_another_seed_copied_over_a_tape_is_recorded_again(tmp_path, c
     assert not tape_still_holds(tasks[0])
     err = capsys.readouterr().err
     assert "it was recorded with seed = 101, not its scenario's 100; recording it again" in err
+    # the same seed on another grid (same step): not its tape either (probe 15's P2-f08)
+    coarse = {**tasks[0], "overrides": {"traffic.cell_m": 300.0, "traffic.drone_speed_kmh": 18.0},
+              "path": str(tmp_path / "coarse.parquet")}  # fmt: skip
+    record_tape(coarse)
+    shutil.copy(coarse["path"], tasks[0]["path"])
+    assert not tape_still_holds(tasks[0])
+    assert "it was recorded with identity.cell_m = 300.0, not its scenario's 200.0" in (
+        capsys.readouterr().err
+    )

@@ -349,12 +349,11 @@ class History:
         if begin is not None and self.begin is not None and begin != self.begin:
             raise UserError(f"{where}: history starts at {self.begin}, the run at {begin}; {fix}")
         shared = sorted(set(self.traffic_seeds) & set(traffic_seeds))
-        if shared:
-            free = max([*self.traffic_seeds, *traffic_seeds]) + 1  # past both sets of seeds
+        if shared:  # the run's other seeds are not known here: no number that may clash
             raise UserError(
                 f"{where}: history built from traffic seed {shared[0]}, which this run "
-                f"evaluates on; build it from seeds this run does not use (e.g. --sumo-seed "
-                f"{free} and on)"
+                "evaluates on; build it from SUMO seeds the run does not use (for a run of "
+                "--sumo-seed s and --seeds n, from --sumo-seed s+n on)"
             )
 
 

@@ -68,6 +68,8 @@ class SourcedConfig(StrictModel):
     _path: Path = PrivateAttr(default=Path("config.toml"))
     _tables: dict[str, Any] | None = PrivateAttr(default=None)  # as read, overrides applied
     _flags: dict[str, str] = PrivateAttr(default_factory=dict)  # dotted key -> its flag
+    #: dotted key -> the flag or other file's key that set it (named in later errors)
+    _labels: dict[str, str] = PrivateAttr(default_factory=dict)
 
     @classmethod
     def from_data(
@@ -84,19 +86,16 @@ class SourcedConfig(StrictModel):
         try:
             config = cls.model_validate(data, context={"path": Path(path)})
         except ValidationError as exc:
-            raise validation_error(
-                path, exc, data, cls, sections=cls.FILE_TABLES, labels=labels
-            ) from None
+            error = validation_error(path, exc, data, cls, sections=cls.FILE_TABLES, labels=labels)
+            raise _naming_changes(error, labels) from None
         config._path = Path(path)
         config._tables = copy.deepcopy(data)
         config._flags = dict(flags or {})
+        config._labels = dict(labels or {})
         try:
             config.check()
         except UserError as exc:  # a check across tables: name what changed the file too
-            shown = sorted(set((labels or {}).values()))
-            if not shown or any(label in str(exc) for label in shown):
-                raise
-            raise type(exc)(f"{exc} (the config as changed by {', '.join(shown)})") from None
+            raise _naming_changes(exc, labels) from None
         return config
 
     @classmethod
@@ -114,6 +113,16 @@ class SourcedConfig(StrictModel):
         """The command-line flag that set the dotted ``key`` (:func:`with_overrides`), or None
         when the file (or a sweep key, or the default) did."""
         return self._flags.get(key)
+
+
+def _naming_changes(exc: UserError, labels: Mapping[str, str] | None) -> UserError:
+    """``exc`` about a file that flags or another file's keys (``labels``) changed, with them
+    named when it names none (a check of a whole table blames the file, which the user may
+    not edit: a shipped training map)."""
+    shown = sorted(set((labels or {}).values()))
+    if not shown or any(label in str(exc) for label in shown):
+        return exc
+    return type(exc)(f"{exc} (the config as changed by {', '.join(shown)})")
 
 
 def _relative(value: Any, info: ValidationInfo) -> Any:
@@ -1094,18 +1103,18 @@ def synthetic_source(config: ScenarioConfig, grid: Grid | None = None):
     grid = grid or make_grid(config)
     disturbances = [Disturbance(**d.model_dump()) for d in t.disturbances]
     if not disturbances:
-        raise _fail(
+        raise _naming_changes(_fail(
             config.path,
             "[traffic].disturbances",
             "is empty: the map has no z^k (Sec. IV) and every importance would be 0; add a "
             '[[traffic.disturbances]] (kind = "big", i, j, amplitude, sigma)',
-        )
+        ), config._labels)  # fmt: skip
     source = SyntheticTraffic(grid, disturbances, t.horizon, t.beta1, t.beta2, t.z_lo, t.z_hi)
     if source.peak_z() <= t.z_lo:
-        raise _fail(
+        raise _naming_changes(_fail(
             config.path,
             "[traffic].z_lo",
             f"= {t.z_lo:g} is not below the largest z of the map over the horizon "
             f"({source.peak_z():.3g}): every importance would be 0; give a z_lo below it",
-        )
+        ), config._labels)  # fmt: skip
     return source

@@ -60,8 +60,9 @@ def check_output_dir(
 
 def _check_no_link_out(path: Path, flag: str) -> None:
     """Refuse an existing output folder holding a symbolic link that leads out of it (a
-    ``cells`` or ``rows`` link to elsewhere): twin would write through it, outside the folder.
-    twin makes no links; one that stays inside the folder is harmless."""
+    ``cells`` or ``rows`` link to elsewhere), or a file with another name (a hard link, which
+    may lie anywhere on the disk): twin would write through it, outside the folder. twin makes
+    no links; a symbolic link that stays inside the folder is harmless."""
     root = path.resolve()
     for folder, dirs, files in os.walk(path):  # links to folders are listed, never entered
         for name in (*dirs, *files):
@@ -71,6 +72,13 @@ def _check_no_link_out(path: Path, flag: str) -> None:
                     f"{flag} {path}: {entry} is a symbolic link out of the folder (to "
                     f"{os.readlink(entry)}); twin writes only inside its output folder: remove "
                     "the link or pass another folder"
+                )
+            if name in files and not entry.is_symlink() and entry.stat().st_nlink > 1:
+                raise UserError(
+                    f"{flag} {path}: {entry} has another name (a hard link, maybe outside the "
+                    "folder), which twin would write through; twin writes only inside its "
+                    "output folder: replace it by a copy (cp --remove-destination) or pass "
+                    "another folder"
                 )
 
 

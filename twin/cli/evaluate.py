@@ -115,12 +115,15 @@ def with_swarm_of_run(config, tape):
         return config
     labels = {key: f"{folder / 'run.json'}: {key.split('.')[1]}" for key in overrides}
     mine = with_overrides(config, overrides, labels)
-    if mine.swarm != config.swarm:
-        notify(
-            f"twin: notice: the swarm of {folder / 'run.json'} ({mine.swarm.n_drones} drones, "
-            f"its starts and score weights) replays its tape, not {config.path.name}'s; give "
-            "--config for a config's swarm"
-        )
+    faults = (
+        " (this run had [faults]: the results differ from its own)" if run.get("faults") else ""
+    )
+    notify(
+        f"twin: notice: the swarm of {folder / 'run.json'} ({mine.swarm.n_drones} drones, its "
+        f"starts and score weights) replays its tape, not {config.path.name}'s; its "
+        f"[swarm_options] and [faults] are not replayed{faults}: give the run's config with "
+        "--config for them"
+    )
     return mine
 
 

@@ -149,7 +149,8 @@ def main(args: argparse.Namespace) -> int:
     hold_notices()  # printed once the simulation has started; a refusal is one line
     run_dir = args.run_dir
     if not run_dir.is_dir():
-        raise UserError(f"{run_dir}: no such run folder")
+        what = "a file, not a run folder" if run_dir.exists() else "no such run folder"
+        raise UserError(f"{run_dir}: {what}; pass the folder `twin run` wrote")
     check_run_folder(run_dir)
     # every file read back and checked against the others, as for a report
     replayed_tapes = load_run(run_dir).tape_maps

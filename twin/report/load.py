@@ -287,9 +287,8 @@ def load_run(run_dir: str | Path) -> RunFiles:
 
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
-        raise UserError(
-            f"{run_dir}: no such run folder; pass the folder `twin run`/`evaluate` wrote"
-        )
+        what = "a file, not a run folder" if run_dir.exists() else "no such run folder"
+        raise UserError(f"{run_dir}: {what}; pass the folder `twin run`/`evaluate` wrote")
     if (run_dir / "run.json").exists():  # a run folder: interrupted ones say so first
         check_run_folder(run_dir)
     missing = [name for name in REQUIRED_FILES if not (run_dir / name).is_file()]

@@ -264,18 +264,40 @@ def imported_dir(osm_file: Path) -> Path:
     return resources.cache_dir() / "imported" / f"{Path(osm_file).stem}-{digest[:16]}"
 
 
+#: Compressions netconvert does not read, by their first bytes: (magic, name, command).
+_PACKED_OSM = (
+    (b"BZh", "a bzip2", "bunzip2 -k"),
+    (b"\xfd7zXZ\x00", "an xz", "unxz -k"),
+    (b"PK\x03\x04", "a zip", "unzip"),
+    (b"\x28\xb5\x2f\xfd", "a zstd", "unzstd"),
+)
+
+
 def import_osm(osm_file: Path, out_dir: Path | None = None) -> Path:
     """Convert an OpenStreetMap extract into a SUMO network with city-network options, into
     ``out_dir`` or (by default) the cache, reusing a cached conversion."""
     osm_file = Path(osm_file)
     if not osm_file.exists():
         raise missing(osm_file, "OSM file")
+    head = b""
     with contextlib.suppress(OSError), open(osm_file, "rb") as fh:
-        if fh.read(3) == b"BZh":  # how OSM extracts are downloaded (.osm.bz2)
+        head = fh.read(16)
+    if head[4:15] == b"\x0a\x09OSMHeader":  # a PBF file's first blob
+        raise UserError(
+            f"{osm_file}: an OSM PBF extract, which netconvert does not read; convert it to "
+            f"XML (osmium cat {osm_file.name} -o {osm_file.stem}.osm) and give the .osm"
+        )
+    for magic, what, command in _PACKED_OSM:  # bzip2: how OSM extracts are downloaded
+        if head.startswith(magic):
             raise UserError(
-                f"{osm_file}: a bzip2-compressed extract, which netconvert does not read; "
-                f"decompress it (bunzip2 -k {osm_file.name}) and give the .osm (gzip works too)"
+                f"{osm_file}: {what}-compressed extract, which netconvert does not read; "
+                f"decompress it ({command} {osm_file.name}) and give the .osm (gzip works too)"
             )
+    if "," in str(osm_file):
+        raise UserError(
+            f"{osm_file}: netconvert splits file names at commas, and twin gives it this one "
+            "by its full path; rename the folder or file without the comma"
+        )
     name = osm_file.name.split(".")[0] + ".net.xml"
 
     no_road = UserError(

@@ -326,6 +326,13 @@ def redirect_outputs(
         if out[i] in ("--additional-files", "-a"):
             files = [Path(v) for v in out[i + 1].split(",") if v]
             out[i + 1] = ",".join(str(plan.additional(f)) for f in files)
+            copied = [f for f in files if plan.additional(f) != _absolute(f)]
+            if copied and "," in str(plan.out_dir):
+                raise UserError(
+                    f"{plan.out_dir}: SUMO splits file names at commas and reads twin's copy of "
+                    f"{copied[0].name} (its outputs sent here) from this folder; give --out a "
+                    "folder without a comma"
+                )
         elif out[i] in {f"--{name}" for name in NAMING_OPTIONS}:
             out[i + 1] = name_part(out[i + 1])
     return (*out, *extra), plan

@@ -639,6 +639,12 @@ def sumo_source(
 
     options: tuple[str, ...] = ()
     if files.additional_files:
+        for path in files.additional_files:  # a list SUMO splits at commas
+            if "," in str(path):
+                raise UserError(
+                    f"{path}: SUMO splits file names at commas, and twin gives it this one by "
+                    "its full path; rename the folder or file without the comma"
+                )
         options = ("--additional-files", ",".join(str(a) for a in files.additional_files))
     scenario = SumoScenario(
         net_file=Path(files.net_file),

@@ -132,7 +132,8 @@ def run_sweep(
 def check_cells(cells: list[dict[str, Any]]) -> None:
     """Validate every distinct scenario config and overrides before running anything: a live
     one is built as its cells build it (files, window, grid, incidents, detectors), without
-    starting SUMO."""
+    starting SUMO; one whose grid is known (synthetic, a tape) has its memory estimated
+    against the sweep's limit, as its cells will."""
     seen = set()
     for cell in cells:
         key = (cell["config"], json.dumps(cell["overrides"], sort_keys=True, default=str))
@@ -144,10 +145,23 @@ def check_cells(cells: list[dict[str, Any]]) -> None:
             if config.traffic.kind == "sumo" and cell.get("tape") is None:
                 prepare_sumo(config)
                 check_live(config, int(cell["seed"]))
+            else:
+                check_cell_memory(config, cell)
         except UserError as exc:
             raise UserError(
                 f"scenario {cell['scenario']!r} with {cell['overrides']}: {exc}"
             ) from None
+
+
+def check_cell_memory(config, cell: dict[str, Any]) -> None:
+    """The memory estimate of a cell whose grid is known before it runs, against the limit its
+    run will have (the sweep's ``--max-memory-gb``)."""
+    from twin.experiment import Experiment, check_memory, planned_shape
+
+    tape = Path(cell["tape"]) if cell.get("tape") else None
+    experiment = Experiment(config, swarms=cell["swarms"], seeds=[int(cell["seed"])], tape=tape,
+                            max_memory_gb=cell.get("max_memory_gb"))  # fmt: skip
+    check_memory(experiment, *planned_shape(experiment))
 
 
 def check_live(config, seed: int) -> None:

@@ -19,6 +19,7 @@ Every stage skips what is done: a rerun resumes.
 from __future__ import annotations
 
 import json
+import math
 import shutil
 import time
 from collections.abc import Callable, Sequence
@@ -100,7 +101,8 @@ def record_tape(task: dict[str, Any]) -> str:
 
 #: What a tape's recorded settings must share with its task's scenario to be its tape.
 TAPE_KEYS = ("seed", "horizon", "begin", "step_s", "warmup_s", "mesoscopic", "net_file",
-             "route_files", "sumocfg")  # fmt: skip
+             "route_files", "sumocfg", "reads_per_step", "read_offsets_s", "mfd_fit",
+             "mfd_prior", "detection_p", "identity.cell_m", "identity.grid")  # fmt: skip
 
 
 def tape_still_holds(task: dict[str, Any]) -> bool:
@@ -146,11 +148,23 @@ def _other_tape(task: dict[str, Any], settings: dict[str, Any]) -> str | None:
         close = getattr(source, "close", None)
         if close is not None:
             close()
+
+    def value(record: dict[str, Any], key: str) -> Any:
+        for part in key.split("."):
+            record = record.get(part) if isinstance(record, dict) else None
+        return record
+
+    def same(a: Any, b: Any) -> bool:  # numbers as recorded, to their rounding
+        if isinstance(a, list) and isinstance(b, list):
+            return len(a) == len(b) and all(same(x, y) for x, y in zip(a, b, strict=True))
+        numbers = all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (a, b))
+        return math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-12) if numbers else a == b
+
     for key in TAPE_KEYS:
-        if settings.get(key) != expected.get(key):
+        if not same(value(settings, key), value(expected, key)):
             return (
-                f"it was recorded with {key} = {settings.get(key)!r}, not its scenario's "
-                f"{expected.get(key)!r}"
+                f"it was recorded with {key} = {value(settings, key)!r}, not its scenario's "
+                f"{value(expected, key)!r}"
             )
     return None
 
