@@ -21,7 +21,7 @@ from typing import Any
 from twin import resources
 from twin.errors import UserError
 from twin.files import read_record
-from twin.sumo.readers import missing, root_tag
+from twin.sumo.readers import check_no_comma, missing, root_tag
 from twin.sumo.tools import binary, run_sumo_program
 
 #: Bump when the generator's output changes for the same spec (forces a rebuild).
@@ -293,11 +293,7 @@ def import_osm(osm_file: Path, out_dir: Path | None = None) -> Path:
                 f"{osm_file}: {what}-compressed extract, which netconvert does not read; "
                 f"decompress it ({command} {osm_file.name}) and give the .osm (gzip works too)"
             )
-    if "," in str(osm_file):
-        raise UserError(
-            f"{osm_file}: netconvert splits file names at commas, and twin gives it this one "
-            "by its full path; rename the folder or file without the comma"
-        )
+    check_no_comma(osm_file, "netconvert")
     name = osm_file.name.split(".")[0] + ".net.xml"
 
     no_road = UserError(

@@ -75,6 +75,16 @@ def missing(path: Path, what: str) -> UserError:
     return UserError(f"{path}: no such {what}")
 
 
+def check_no_comma(path: Path | str, program: str = "SUMO") -> None:
+    """Refuse (one line) a file that twin hands ``program`` by its full path when the path
+    holds a comma: SUMO's programs split file lists at commas."""
+    if "," in str(path):
+        raise UserError(
+            f"{path}: {program} splits file names at commas, and twin gives it this one by its "
+            "full path; rename the folder or file without the comma"
+        )
+
+
 def local_name(elem: ET.Element) -> str:
     """An element's name without its namespace (``{uri}edgeData`` -> ``edgeData``), as SUMO
     matches names; ``""`` for a comment or processing instruction."""

@@ -39,6 +39,7 @@ from twin.grid import Grid
 from twin.sumo.readers import (
     SUMOCFG_ROOTS,
     VEHICLE_DEMAND,
+    check_no_comma,
     departure_span,
     include_cycle,
     naming_the_sumocfg,
@@ -640,11 +641,7 @@ def sumo_source(
     options: tuple[str, ...] = ()
     if files.additional_files:
         for path in files.additional_files:  # a list SUMO splits at commas
-            if "," in str(path):
-                raise UserError(
-                    f"{path}: SUMO splits file names at commas, and twin gives it this one by "
-                    "its full path; rename the folder or file without the comma"
-                )
+            check_no_comma(path)
         options = ("--additional-files", ",".join(str(a) for a in files.additional_files))
     scenario = SumoScenario(
         net_file=Path(files.net_file),

@@ -102,12 +102,11 @@ class SumoSession:
     def command(self) -> list[str]:
         """The SUMO command line this session starts (its files by absolute paths: one holding
         a comma, which SUMO splits file lists at, is refused in one line)."""
+        from twin.sumo.readers import check_no_comma
+
         for path in (self.config_file, self.net_file, *self.route_files, *self.additional_files):
-            if path is not None and "," in str(path):
-                raise UserError(
-                    f"{path}: SUMO splits file names at commas, and twin gives it this one by "
-                    "its full path; rename the folder or file without the comma"
-                )
+            if path is not None:
+                check_no_comma(path)
         cmd = ["sumo"]
         if self.config_file is not None:
             cmd += ["--configuration-file", str(self.config_file)]

@@ -144,7 +144,7 @@ def check_cells(cells: list[dict[str, Any]]) -> None:
             config = scenario_config(Path(cell["config"]), cell["overrides"])
             if config.traffic.kind == "sumo" and cell.get("tape") is None:
                 prepare_sumo(config)
-                check_live(config, int(cell["seed"]))
+                live_settings(config, int(cell["seed"]))
             else:
                 check_cell_memory(config, cell)
         except UserError as exc:
@@ -164,15 +164,19 @@ def check_cell_memory(config, cell: dict[str, Any]) -> None:
     check_memory(experiment, *planned_shape(experiment))
 
 
-def check_live(config, seed: int) -> None:
-    """Build the live source of a cell (reading its files and laying its grid), as the cell
-    will, and close it unstarted: what it refuses is refused before any cell runs."""
+def live_settings(config, seed: int) -> dict[str, Any]:
+    """The settings (``metadata()``, as JSON reads them) of a live scenario's source for SUMO
+    seed ``seed``, built as a cell or a tape builds it (reading its files, laying its grid) and
+    closed unstarted: what it refuses is refused here, before any cell or tape runs."""
     from twin.traffic_kinds import build_traffic
 
     source = build_traffic(config, 0, seed)
-    close = getattr(source, "close", None)
-    if close is not None:
-        close()
+    try:
+        return json.loads(json.dumps(source.metadata(), default=str))
+    finally:
+        close = getattr(source, "close", None)
+        if close is not None:
+            close()
 
 
 def prepare_sumo(config) -> None:

@@ -135,19 +135,13 @@ def _other_tape(task: dict[str, Any], settings: dict[str, Any]) -> str | None:
     """The first of :data:`TAPE_KEYS` in which the tape's ``settings`` differ from those of
     its task's scenario built again (unstarted), in words, or None."""
     from twin.sweep.cells import scenario_config
-    from twin.traffic_kinds import build_traffic
+    from twin.sweep.runner import live_settings
 
     try:
         config = scenario_config(Path(task["config"]), task["overrides"])
-        source = build_traffic(config, 0, int(task["seed"]))
+        expected = live_settings(config, int(task["seed"]))
     except UserError:  # recording it again says what is wrong with the scenario
         return "its scenario cannot be built as it stands"
-    try:
-        expected = json.loads(json.dumps(source.metadata(), default=str))
-    finally:
-        close = getattr(source, "close", None)
-        if close is not None:
-            close()
 
     def value(record: dict[str, Any], key: str) -> Any:
         for part in key.split("."):
