@@ -312,6 +312,17 @@ def _maps_edit(key: str, value):
     return edit
 
 
+def _row_edit(swarm: str, model: str, **values):
+    def edit(table: pd.DataFrame) -> pd.DataFrame:
+        at = (table["swarm"] == swarm) & (table["model"] == model)
+        for column, value in values.items():
+            table[column] = table[column].astype(object)
+            table.loc[at, column] = value
+        return table
+
+    return edit
+
+
 #: Forgeries of belief_maps.npz and belief_models.csv the report refuses, each a value twin
 #: can tell is wrong (probe 15's f13): name -> (file, edit, words of the one-line error).
 BELIEF_FORGERIES = {
@@ -333,6 +344,24 @@ BELIEF_FORGERIES = {
                             "n_seeds = 7 for swarm"),
     "history row removed": ("belief_models.csv", lambda t: t[t["swarm"] != NO_DRONES],
                             "model 'history' is missing"),
+    # the numbers the folder determines (probe 15's P2-f04)
+    "last-seen error": ("belief_models.csv", _row_edit("random", "last-seen", belief_error=0.9),
+                        "belief_error = 0.9, but summary.csv's belief_error"),
+    "one row's events": ("belief_models.csv", _row_edit("random", "nowcast", events=77),
+                         "the rows count different events"),
+    "every row's events": ("belief_models.csv", lambda t: t.assign(events=t["events"] + 5),
+                           "but events.parquet holds"),
+    "minutes": ("belief_models.csv", lambda t: t.assign(latency_median_min=999.0),
+                "latency_median_min = 999, but the row's steps and step_s"),
+    "alarm rate": ("belief_models.csv", lambda t: t.assign(false_alarms_per_hour=1e9),
+                   "false_alarms_per_hour = 1e+09, but the row's steps"),
+    "a swarm's nowcast removed": (
+        "belief_models.csv",
+        lambda t: t[~((t["swarm"] == "greedy") & (t["model"] == "nowcast"))],
+        "swarm 'greedy' has the models ['last-seen']"),
+    "events known": ("belief_models.csv",
+                     _row_edit("random", "nowcast", pct_events_known=33.25),
+                     "pct_events_known = 33.25, but belief_maps.npz's known_at gives"),
 }  # fmt: skip
 
 

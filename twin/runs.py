@@ -96,8 +96,9 @@ class RunFile:
 
 #: The run folder's format (run.json ``folder_format``; 1 when absent): 2 adds the bound's
 #: prices (``bound.npz``), the drones' starts and the configured incident schedule, which the
-#: read-back of a folder of format 1 cannot replay.
-FOLDER_FORMAT = 2
+#: read-back of a folder of format 1 cannot replay; 3 adds the fault-free twin's trajectories
+#: (``fault_free.parquet``), which the read-back of ``degradation.csv`` replays.
+FOLDER_FORMAT = 3
 
 
 #: The run folder's schema: every name twin writes into a run folder. It drives the manifest
@@ -123,6 +124,7 @@ RUN_FILES = (
     RunFile("incidents.json", "run (SUMO, incidents)", "report"),
     RunFile("detectors.parquet", "run (SUMO, [traffic.detectors])", "docs/measure_beliefs.py"),
     RunFile("degradation.csv", "run, evaluate ([faults])", "report"),
+    RunFile("fault_free.parquet", "run, evaluate ([faults])", "report"),
     RunFile("bound.npz", "run, evaluate (ceilings)", "report"),
     RunFile("sumo", "run (SUMO outputs of the scenario)", "the user", folder=True),
     RunFile("timing.csv", "run, evaluate", "report"),
@@ -496,6 +498,11 @@ def write_run(
         ["swarm", *[x for c in keep for x in (c, f"{c}_ci95")], "n_seeds"]
     ]
     degradation = _degradation(results, monitored)
+    fault_free = [
+        trajectories_frame(r.fault_free).assign(seed=np.int64(r.seed))
+        for r, m in zip(results, monitored, strict=True)
+        if r.fault_free is not None and m is not None
+    ]
     event_frames = [m.events_frame() for m in monitored if m is not None]
     event_frames = [f for f in event_frames if len(f)] or event_frames[:1]
     events = pd.concat(event_frames, ignore_index=True) if event_frames else None
@@ -513,6 +520,8 @@ def write_run(
         atomic_write(run_dir / "events.parquet", lambda p: events.to_parquet(p, index=False))
     if degradation is not None:
         atomic_write(run_dir / "degradation.csv", lambda p: degradation.to_csv(p, index=False))
+        free = pd.concat(fault_free, ignore_index=True)
+        atomic_write(run_dir / "fault_free.parquet", lambda p: free.to_parquet(p, index=False))
     if prices:
 
         def save_prices(p: Path) -> None:

@@ -105,21 +105,25 @@ class Primary:
 
     def positions(self, seed: int, swarm: str) -> np.ndarray:
         """``(T+1, N, 2)`` drone cells of one swarm and seed."""
-        t = self.trajectories
-        rows = t[(t["seed"] == seed) & (t["swarm"].astype(str) == swarm)]
-        if rows.empty:
-            raise UserError(
-                f"{self.run_dir / 'trajectories.parquet'}: no rows for swarm {swarm!r}, seed "
-                f"{seed}, which series.parquet holds; {RERUN}"
-            )
-        rows = rows.sort_values(["step", "drone"])
-        n_drones = int(rows["drone"].max()) + 1
-        return rows[["i", "j"]].to_numpy(np.int64).reshape(-1, n_drones, 2)
+        return positions_of(self.run_dir / "trajectories.parquet", self.trajectories, seed, swarm)
 
     def params(self) -> ScoreParams | None:
         from twin.runs import score_params_of
 
         return score_params_of(self.run)
+
+
+def positions_of(path: Path, frame: pd.DataFrame, seed: int, swarm: str) -> np.ndarray:
+    """``(T+1, N, 2)`` drone cells of one swarm and seed of a trajectories table (checked by
+    :func:`twin.readback.check_trajectories`) read from ``path``."""
+    rows = frame[(frame["seed"] == seed) & (frame["swarm"].astype(str) == swarm)]
+    if rows.empty:
+        raise UserError(
+            f"{path}: no rows for swarm {swarm!r}, seed {seed}, which series.parquet holds; {RERUN}"
+        )
+    rows = rows.sort_values(["step", "drone"])
+    n_drones = int(rows["drone"].max()) + 1
+    return rows[["i", "j"]].to_numpy(np.int64).reshape(-1, n_drones, 2)
 
 
 @dataclass(frozen=True)
@@ -1332,9 +1336,14 @@ def check_starts(primary: Primary) -> None:
 
 
 def folder_format(primary: Primary) -> int:
+    """run.json's ``folder_format`` (:func:`folder_format_of`)."""
+    return folder_format_of(primary.run)
+
+
+def folder_format_of(run: dict[str, Any]) -> int:
     """run.json's ``folder_format`` (:data:`twin.runs.FOLDER_FORMAT`; 1 when absent: a folder
     an earlier twin wrote, without the bound's prices and the incident schedule)."""
-    value = primary.run.get("folder_format", 1)
+    value = run.get("folder_format", 1)
     return value if isinstance(value, int) and not isinstance(value, bool) else 1
 
 
@@ -1454,6 +1463,89 @@ def check_derived(primary: Primary, tables: dict[str, pd.DataFrame | None]) -> N
         expected = d.recompute(primary, frame)
         compare(primary.run_dir, d.file, frame, expected, d.key, source, d.complete)
     check_shared_traffic_seeds(primary)  # after the first seed's, which are said first
+
+
+#: What ``degradation.csv`` is recomputed from (:func:`check_degradation_replay`).
+DEGRADATION_SOURCES = (
+    "run.json's faults, trajectories.parquet, series.parquet, events.parquet and fault_free.parquet"
+)
+
+
+def check_degradation_replay(
+    primary: Primary, frame: pd.DataFrame, fault_free: pd.DataFrame | None
+) -> None:
+    """``degradation.csv`` is :func:`twin.faults.degradation_table` of every seed with results:
+    its phases from run.json's faults, the swarms' cells (``trajectories.parquet``) and scores
+    (``series.parquet``), the seed's events (``events.parquet``) and the fault-free twin's cells
+    (``fault_free.parquet``: from the same starts, one action a step). The twin's scores are
+    replayed over the seed's maps wherever the folder holds them (:func:`_maps_by_seed`);
+    elsewhere ``R_hat_fault_free`` is as the run wrote it. ``fault_free`` None: a folder of an
+    earlier format (said by the load), whose twin is not replayed."""
+    from twin.faults import degradation_table
+
+    path = primary.run_dir / "degradation.csv"
+    plan = fault_plan(primary)
+    if plan is None:
+        raise UserError(
+            f"{path}: a degradation table, but run.json records no faults (it is written only "
+            f"for runs with [faults]); {RERUN}"
+        )
+    free_path = primary.run_dir / "fault_free.parquet"
+    grid, params, maps = Grid(primary.obstacles), primary.params(), _maps_by_seed(primary)
+    series = primary.series.assign(swarm=primary.series["swarm"].astype(str))
+    events = primary.events
+    no_events = pd.DataFrame({c: pd.Series(dtype=np.int64) for c in EVENT_COLUMNS})
+    tables, replayed = [], []
+    for seed in sorted(int(s) for s in series["seed"].unique()):
+        part = series[series["seed"] == seed].pivot(index="swarm", columns="step", values="reward")
+        swarms = [s for s in primary.swarms if s in part.index]
+        rewards = part.loc[swarms].to_numpy(np.float64)
+        positions = np.stack([primary.positions(seed, s) for s in swarms])
+        if fault_free is None:
+            free = positions  # its cells are not known: only the faulted columns are compared
+        else:
+            free = np.stack([positions_of(free_path, fault_free, seed, s) for s in swarms])
+            if free.shape != positions.shape or (free[:, 0] != positions[:, 0]).any():
+                raise UserError(
+                    f"{free_path}: the fault-free twin of seed {seed} does not start where its "
+                    f"swarms start, or has {free.shape[1] - 1} steps and {free.shape[2]} drones "
+                    f"where trajectories.parquet has {positions.shape[1] - 1} and "
+                    f"{positions.shape[2]}; {RERUN}"
+                )
+        free_rewards = np.full_like(rewards, np.nan)
+        slack = np.zeros_like(rewards)
+        if fault_free is not None and params is not None and seed in maps:
+            for k, swarm in enumerate(swarms):
+                try:
+                    r = replay_scores(grid, params, free[k], maps[seed][: free.shape[1]])
+                except InfeasibleActionError as exc:
+                    raise UserError(
+                        f"{free_path}: swarm {swarm!r}, seed {seed}: {exc}; {RERUN}"
+                    ) from None
+                free_rewards[k], slack[k] = r["reward"], MAP_ROUNDING * np.abs(r["importance"])
+        found = seed_events(primary, seed) if events is not None else no_events
+        table = degradation_table(
+            seed, swarms, grid, plan, found, positions, rewards, free, free_rewards
+        )
+        if fault_free is None:
+            table = table.drop(columns=[c for c in table.columns if c.endswith("_fault_free")])
+        of = {swarm: k for k, swarm in enumerate(swarms)}
+        table["R_hat_fault_free" + SLACK] = [
+            slack[of[r.swarm], r.start : r.stop].mean() if r.stop > r.start else 0.0
+            for r in table.itertuples(index=False)
+        ]
+        tables.append(table)
+        replayed += [not np.isnan(free_rewards).all()] * len(table)
+    expected = pd.concat(tables, ignore_index=True)
+    known = np.asarray(replayed, dtype=bool)
+    faulted = expected.drop(columns=["R_hat_fault_free", "R_hat_fault_free" + SLACK],
+                            errors="ignore")  # fmt: skip
+    key = ("seed", "swarm", "phase")
+    compare(primary.run_dir, path.name, frame, faulted, key, DEGRADATION_SOURCES, complete=True)
+    if known.any() and "R_hat_fault_free" in expected.columns:
+        twin = expected[known][[*key, "R_hat_fault_free", "R_hat_fault_free" + SLACK]]
+        source = "fault_free.parquet replayed over the seed's maps"
+        compare(primary.run_dir, path.name, frame, twin, key, source)
 
 
 def compare(
