@@ -439,6 +439,29 @@ CASES = {
         lambda t: ["run", "--gui-swarms", " , "],
         "--gui-swarms ' , ': names no swarm",
     ),
+    # a swarm drawn twice failed in SUMO's GUI, after the warm-up: an empty partial run (probe
+    # 16's f03); 'all' beside a swarm was refused naming 'all' as the fix (f04)
+    "gui swarm named twice": (
+        lambda t: ["run", "--gui-swarms", "random,random"],
+        "--gui-swarms 'random,random': 'random' is named twice",
+    ),
+    "gui swarms all and one": (
+        lambda t: ["run", "--gui-swarms", "all,random"],
+        "--gui-swarms 'all,random': 'all' stands alone",
+    ),
+    # a long path: the line was cut before its reason (probe 16's f02)
+    "out too long for the files written below it": (
+        lambda t: ["evaluate", "--out", str(t / "/".join(["d" * 200] * 20))],
+        "bytes below it, past the 4096 the file system takes; pass a shorter path",
+    ),
+    "out with a name past NAME_MAX": (
+        lambda t: ["evaluate", "--out", str(t / ("n" * 300))],
+        "a name in it is 300 bytes long, past the 255 the file system takes",
+    ),
+    "report of a missing folder under a long path": (
+        lambda t: ["report", str(t / "/".join(["x" * 200] * 3))],
+        "no such run folder; pass the folder `twin run`/`evaluate` wrote",
+    ),
 }
 #: output paths on a file system that reports no size and takes no files (Linux: /proc, /sys)
 SPECIAL_FS = {

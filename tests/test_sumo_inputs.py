@@ -601,7 +601,28 @@ def test_a_small_network_at_the_configs_cells_points_to_the_cell_size(city, caps
     lines = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(lines) == 1, lines
     assert "free cells of 50000 m for " in lines[0] and str(coarse) in lines[0], lines[0]
-    assert "give smaller cells with --cell-m" in lines[0] and "--drones" in lines[0]
+    # the fix names a cell size that gives the drones room (it was a quarter of the cell,
+    # unchecked, which no size helped on a network with one free cell; probe 16's f01)
+    assert re.search(r"give --cell-m [0-9.]+ \(\d+ free cells\), or at most \d+ drones? with "
+                     r"--drones \d+", lines[0]), lines[0]  # fmt: skip
+
+
+def test_a_network_no_cell_size_fits_says_fewer_drones(tmp_path, capsys):
+    """SUMO's racing game: its cars drive on vip-only lanes, so one cell has lanes of any size;
+    the line says how many drones fit (its --cell-m fix never worked; probe 16's f01)."""
+    import shutil
+
+    import sumo
+
+    game = Path(sumo.__file__).parent / "tools" / "game" / "racing"
+    if not (game / "racing.sumocfg").exists():
+        pytest.skip("SUMO's racing game is not installed")
+    shutil.copytree(game, tmp_path / "racing")
+    code = twin_main(["run", "--sumocfg", str(tmp_path / "racing" / "racing.sumocfg"), "--quiet",
+                      "--no-report", "--out", str(tmp_path / "r")])  # fmt: skip
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(lines) == 1, lines
+    assert "give at most 1 drone with --drones 1 (no cell size down to 25 m" in lines[0], lines[0]
 
 
 def _own_config_run(city, tmp_path, capsys, traffic: str, grid: str = "", report=False):

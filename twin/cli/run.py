@@ -157,6 +157,17 @@ def gui_drawer(args: argparse.Namespace, swarms):
             f"--gui-swarms {args.gui_swarms!r}: names no swarm; give comma-separated swarms of "
             "the run, or all"
         )
+    twice = [name for n, name in enumerate(shown or []) if name in shown[:n]]
+    if twice:
+        raise UserError(
+            f"--gui-swarms {args.gui_swarms!r}: {twice[0]!r} is named twice (its legend and "
+            "drones would be drawn twice); name each swarm once"
+        )
+    if shown and "all" in shown and len(shown) > 1:
+        raise UserError(
+            f"--gui-swarms {args.gui_swarms!r}: 'all' stands alone (it draws every swarm); "
+            "give all, or swarms of the run"
+        )
     if shown == ["all"]:
         shown = list(swarms)
     shown_later = args.gui or args.record
