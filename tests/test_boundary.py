@@ -873,6 +873,24 @@ READ_BACK = {
         "the oracle (ceiling) row of seed 0 has R_hat_T = ",
     ),
     "bound prices left out": (lambda run: (run / "bound.npz").unlink(), "no bound.npz"),
+    # the oracle row is its cells' scores replayed (it was only kept under the bound)
+    "oracle lowered alike in per_seed and summary": (
+        _ceiling_scaled("oracle (ceiling)", 0.9),
+        "swarm 'oracle (ceiling)', but oracle.parquet replayed over the seed's maps give",
+    ),
+    "oracle cells left out": (
+        lambda run: (run / "oracle.parquet").unlink(),
+        "holds oracle (ceiling) rows, but the folder has no oracle.parquet",
+    ),
+    "oracle cells teleport": (
+        _edit_table(
+            "oracle.parquet",
+            lambda f: f.assign(
+                i=np.where(f["step"] == 3, 0, f["i"]), j=np.where(f["step"] == 3, 0, f["j"])
+            ),
+        ),
+        "oracle.parquet: swarm oracle (ceiling) drone",
+    ),
     "run.json lists fewer swarms than the tables hold": (
         _json("run.json", ("swarms",), ["random"]),
         "holds swarm 'greedy', which run.json's swarms ['random'] does not list",

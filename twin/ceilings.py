@@ -498,7 +498,7 @@ def oracle(
 ) -> tuple[pd.Series, str, pd.DataFrame]:
     """Run the oracle swarms (:data:`ORACLE_SWARMS`) on the true ``maps`` from ``starts``;
     return the best one's Table 2 row (:func:`twin.metrics.table2`), its name, and every
-    oracle swarm's rows. Each is a real swarm (moves, distinct cells by the coordinator);
+    oracle swarm's rows (``attrs["best_positions"]``: the best one's ``(T+1, N, 2)`` cells). Each is a real swarm (moves, distinct cells by the coordinator);
     choosing the best in hindsight is what makes it an oracle rather than a competitor.
     ``faults`` (:class:`twin.faults.FaultPlan`): the oracle swarms fly under the same faults."""
     from twin.patrol import run_patrol
@@ -511,6 +511,7 @@ def oracle(
     )
     table = table2(result, params)
     best = table.loc[table["R_hat_T"].idxmax()]
+    table.attrs["best_positions"] = result.positions[list(table.index).index(best.name)]
     return best, str(best["swarm"]), table
 
 
@@ -551,7 +552,7 @@ def ceiling_table(
         bound = cache[key] = lagrangian_bound(maps, result.grid, len(starts), params)
     else:
         bound = cache[key]
-    row, name, _ = oracle(maps, result.grid, starts, params, result.seed, result.faults)
+    row, name, oracles = oracle(maps, result.grid, starts, params, result.seed, result.faults)
     oracle_row = row.to_dict()
     oracle_row.update(swarm=ORACLE, pct_time_max_C=np.nan, oracle_swarm=name)
     rows = [oracle_row]
@@ -561,6 +562,8 @@ def ceiling_table(
     table["role"] = CEILING_ROLE
     if bound is not None:
         table.attrs["bound_prices"] = bound.prices  # kept in bound.npz: the row is replayed
+    # kept in oracle.parquet: the row is replayed (twin.report.derived.check_ceilings)
+    table.attrs["oracle_positions"] = oracles.attrs["best_positions"]
     return table
 
 

@@ -1427,6 +1427,68 @@ def check_bound(primary: Primary, per_seed: pd.DataFrame | None) -> None:
             )
 
 
+def check_oracle(primary: Primary, per_seed: pd.DataFrame | None) -> None:
+    """Each ``oracle (ceiling)`` row of ``per_seed.csv`` is the scores of the oracle's cells
+    that ``oracle.parquet`` keeps for its seed (from the swarms' starts, one action a step,
+    under the run's faults), stepped again over the seed's maps wherever the folder holds them
+    (a folder of format 2 or earlier kept no cells: not replayed)."""
+    from twin.metrics import ORACLE
+
+    if per_seed is None or not {"swarm", "seed"} <= set(per_seed.columns):
+        return
+    rows = per_seed[per_seed["swarm"].astype(str) == ORACLE]
+    params, path = primary.params(), primary.run_dir / "oracle.parquet"
+    if rows.empty or params is None or (not path.exists() and folder_format(primary) < 3):
+        return
+    if not path.is_file():
+        raise UserError(
+            f"{primary.run_dir / 'per_seed.csv'}: holds {ORACLE} rows, but the folder has no "
+            f"oracle.parquet (their cells); {RERUN}"
+        )
+    from twin.readback import check_trajectories, read_table
+
+    cells = read_table(path)
+    check_trajectories(path, cells, primary.obstacles.shape, primary.obstacles)
+    grid, plan, maps = Grid(primary.obstacles), fault_plan(primary), _maps_by_seed(primary)
+    expected = []
+    for seed in sorted(int(s) for s in rows["seed"]):
+        if seed not in maps:
+            continue
+        pos = positions_of(path, cells, seed, ORACLE)
+        starts = primary.positions(seed, primary.swarms[0])
+        if pos.shape != starts.shape or (pos[0] != starts[0]).any():
+            raise UserError(
+                f"{path}: the oracle of seed {seed} does not start where the swarms start, or "
+                f"has {pos.shape[0] - 1} steps and {pos.shape[1]} drones where "
+                f"trajectories.parquet has {starts.shape[0] - 1} and {starts.shape[1]}; {RERUN}"
+            )
+        recorded = None if plan is None else plan.recorded(seed, len(pos), pos.shape[1])
+        try:
+            r = replay_scores(grid, params, pos, maps[seed][: len(pos)], recorded)
+        except InfeasibleActionError as exc:
+            raise UserError(f"{path}: seed {seed}: {exc}; {RERUN}") from None
+        slack = MAP_ROUNDING * np.abs(r["importance"]).mean()
+        expected.append(
+            {
+                "seed": seed,
+                "swarm": ORACLE,
+                "R_hat_T": r["reward"].mean(),
+                "R_hat_T" + SLACK: slack,
+                "R_hat_T_importance": r["importance"].mean(),
+                "R_hat_T_importance" + SLACK: slack,
+                "R_hat_T_idleness": r["idleness"].mean(),
+                "R_hat_T_paper": r["paper"].mean(),
+                "R_hat_T_paper" + SLACK: MAP_ROUNDING * np.abs(r["paper_weight"]).mean(),
+                "C_hat_T": r["coverage"].mean(),
+                "pct_map_covered": 100.0 * r["visited_share"][-1],
+            }
+        )
+    if expected:
+        source = "oracle.parquet replayed over the seed's maps"
+        compare(primary.run_dir, "per_seed.csv", per_seed, pd.DataFrame(expected),
+                ("seed", "swarm"), source)  # fmt: skip
+
+
 def check_derived(primary: Primary, tables: dict[str, pd.DataFrame | None]) -> None:
     """Every derived file of ``tables`` (name -> its table, None when absent) agrees with what
     its sources give (:data:`DERIVED`), after ``importance.npz`` with its tape
@@ -1449,6 +1511,7 @@ def check_derived(primary: Primary, tables: dict[str, pd.DataFrame | None]) -> N
         per_seed = per_seed[per_seed["swarm"].isin(primary.swarms)]
     primary.per_seed, primary.summary = per_seed, tables.get("summary.csv")
     check_bound(primary, tables.get("per_seed.csv"))
+    check_oracle(primary, tables.get("per_seed.csv"))
     for d in DERIVED:
         frame = tables.get(d.file)
         if frame is None:
