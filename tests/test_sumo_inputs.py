@@ -728,3 +728,23 @@ def test_as_given_follows_no_link_but_lets_the_system_resolve_dots_after_one(tmp
     after = tmp_path / "link" / ".." / "c.xml"  # the system reads real/c.xml
     assert as_given(after) == after
     assert as_given(after).resolve() == (tmp_path / "real" / "c.xml").resolve()
+
+
+def test_a_network_of_one_free_cell_runs_with_one_drone_and_says_its_map_is_empty(tmp_path, capsys):
+    """SUMO's racing game with --drones 1: the one free cell sees no car (they drive on vip-only
+    lanes), which a notice says; no advice to use the one drone it has (probe 16's f01)."""
+    import shutil
+
+    import sumo
+
+    game = Path(sumo.__file__).parent / "tools" / "game" / "racing"
+    if not (game / "racing.sumocfg").exists():
+        pytest.skip("SUMO's racing game is not installed")
+    shutil.copytree(game, tmp_path / "racing")
+    code = twin_main(["run", "--sumocfg", str(tmp_path / "racing" / "racing.sumocfg"), "--quiet",
+                      "--drones", "1", "--cell-m", "50", "--swarms", "random,visit-gain",
+                      "--no-ceiling", "--no-report", "--out", str(tmp_path / "r")])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert "the importance is 0 in every cell at every step" in err, err
+    assert "--drones 1)" not in err and "no smaller cell size down to 25 m" in err, err

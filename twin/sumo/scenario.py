@@ -487,10 +487,13 @@ def _grid_and_notices(
     notices = []
     if n_drones <= n_free < MIN_FREE_CELLS_PER_DRONE * n_drones:  # more drones: refused later
         better = suggest_cell_m(lanes, s.cell_m, n_drones, s.min_lane_km)
+        fewer = max(1, n_free // MIN_FREE_CELLS_PER_DRONE)
         fix = (
             f"try --cell-m {better[0]:g} ({better[1]} free cells)"
             if better
-            else f"use fewer drones (--drones {max(1, n_free // MIN_FREE_CELLS_PER_DRONE)})"
+            else f"use fewer drones (--drones {fewer})"
+            if fewer < n_drones
+            else "no smaller cell size down to 25 m gives more room"
         )
         notices.append(
             f"{files.name}: {geometry.nx} x {geometry.ny} cells of {s.cell_m:g} m, {n_free} free "
