@@ -1228,8 +1228,8 @@ def check_mfd_files(run_dir: Path, model) -> None:
 #: What a fixed detector's reading can be: its columns' ranges in ``detectors.parquet``.
 READING_RANGES = {
     "vehicles": (0.0, np.inf, "a count of vehicles, at least 0"),
-    # SUMO's own interval occupancy dips slightly below 0 at times: only its top is checked
-    "occupancy_pct": (-np.inf, 100.0, "a share of time in %, at most 100"),
+    # SUMO's own interval occupancy dips slightly below 0 at times (twin.sumo.detectors)
+    "occupancy_pct": (-1.0, 100.0, "a share of time in %, -1 .. 100 (SUMO's rounding below 0)"),
     "speed": (0.0, np.inf, "a speed in m/s, at least 0 (NaN: no vehicle)"),
 }
 #: A detector's fields, the same in each of its readings.
