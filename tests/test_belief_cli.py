@@ -459,3 +459,41 @@ def test_a_history_from_tapes_past_the_memory_limit_is_refused(
         == "twin: error: TWIN_MAX_MEMORY_GB = 'abc' is not a number; give the limit in GB, e.g. 8\n"
     )
     assert not (tmp_path / "h.npz").exists()
+
+
+def test_belief_rates_of_a_timed_run_read_back_and_forged_ones_do_not(tmp_path):
+    """Minutes and rates of belief_models.csv are its steps (k = 0 .. T) over step_s: a table
+    twin writes for a run of 60 s steps, with events and false alarms, agrees with the check,
+    and one alarm more per hour does not (the read-back of probe 15's P2-f04)."""
+    from twin.belief import belief_table, summarize
+    from twin.config import load_config
+    from twin.experiment import Experiment, run_experiment
+    from twin.report.derived import Primary
+    from twin.report.load import check_belief_scores, load_run
+
+    config = tmp_path / "s.toml"
+    config.write_text(
+        '[grid]\nnx = 8\nny = 8\n[swarm]\nn_drones = 3\n[traffic]\nkind = "synthetic"\n'
+        'horizon = 40\ndisturbances = [{ kind = "big", i = 3, j = 3, amplitude = 1.0, '
+        'sigma = 2.0 }, { kind = "small", i = 6, j = 6, amplitude = 0.5, sigma = 1.0 }]\n'
+    )
+    history = tmp_path / "h.npz"
+    assert twin_main(["history", "--dynamics", str(config), "--days", "3", "--out",
+                      str(history)]) == 0  # fmt: skip
+    run = tmp_path / "run"
+    assert twin_main(["evaluate", "--config", str(config), "--history", str(history), "--seeds",
+                      "2", "--swarms", "random,greedy", "--no-report", "--quiet", "--out",
+                      str(run)]) == 0  # fmt: skip
+    outcome = run_experiment(Experiment(load_config(config), swarms=["random", "greedy"],
+                                        seeds=[0, 1]))  # fmt: skip
+    frames = [belief_table(r, History.load(history), step_s=60.0) for r in outcome.results]
+    table = summarize(pd.concat(frames, ignore_index=True))
+    assert (table["false_alarms"] > 0).any() and (table["events"] > 0).all()
+    rf = load_run(run)
+    timed = {**rf.run, "traffic": {**rf.run["traffic"], "step_s": 60.0}}
+    primary = Primary(run, rf.series, rf.trajectories, rf.events, rf.obstacles, timed,
+                      ["random", "greedy"], summary=rf.summary)  # fmt: skip
+    check_belief_scores(run, table, primary, rf.belief_maps)
+    forged = table.assign(false_alarms_per_hour=table["false_alarms_per_hour"] + 1.0)
+    with pytest.raises(UserError, match="false_alarms_per_hour = "):
+        check_belief_scores(run, forged, primary, rf.belief_maps)

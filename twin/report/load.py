@@ -889,8 +889,8 @@ def check_belief_scores(
         pairs = []
         if step_s:
             pairs.append(("latency_median_min", number(r, "latency_median_steps") * step_s / 60))
-        if step_s and steps.nunique() == 1:
-            hours = float(steps.iloc[0]) * step_s / 3600.0
+        if step_s and steps.nunique() == 1:  # the beliefs' steps: k = 0 .. T
+            hours = (float(steps.iloc[0]) + 1) * step_s / 3600.0
             pairs.append(("false_alarms_per_hour", number(r, "false_alarms") / hours))
         for column, want in pairs:
             if column in rows.columns and not _close_or_nan(number(r, column), want):
