@@ -425,8 +425,10 @@ READING_EDITS = [
     (lambda f: f.__setitem__("i", f["i"].where(f.index != 3, 99)), "seed 0, step"),
     (
         _set_all("occupancy_pct", 500.0),
-        "occupancy_pct = 500, not a share of time in %, at most 100",
+        "occupancy_pct = 500, not a share of time in %, -1 .. 100",
     ),
+    # a broken reading SUMO gives (probe 16's f08) is left out when read; forged, refused
+    (_set_all("occupancy_pct", -11.57), "occupancy_pct = -11.57, not a share of time in %"),
     (_set_all("speed", -3.0), "speed = -3, not a speed in m/s"),
     (_set_all("importance", 0.99), "but the MFD in effect at that step"),
     (
