@@ -2254,3 +2254,13 @@ def test_a_file_given_as_a_run_folder_is_said_to_be_a_file(tmp_path, capsys, com
     given.write_bytes(b"x")
     assert main([command, str(given)]) == EXIT_REFUSED
     assert f"{given}: a file, not a run folder; pass the folder `twin run`" in one_line(capsys)
+
+
+def test_a_bound_row_past_the_dp_limit_is_refused_not_replayed(run_copy, monkeypatch, capsys):
+    """A bound row whose DP would be past what a run computes is refused, not replayed (a
+    forged row on a large grid made the read-back allocate the DP)."""
+    import twin.ceilings
+
+    monkeypatch.setattr(twin.ceilings, "MAX_DP_BYTES", 0)
+    assert main(["report", str(run_copy), "--no-animation"]) == EXIT_REFUSED
+    assert "holds a bound (ceiling) row for seed 0, but its DP would hold" in one_line(capsys)

@@ -281,6 +281,13 @@ def lagrangian_bound(
     return Bound(best / horizon, best_prices, history, time.perf_counter() - t0)
 
 
+def bound_dp_bytes(params: ScoreParams, horizon: int, n_free: int) -> int:
+    """The bytes of the bound's DP decisions (steps x free cells x cell states): past
+    :data:`MAX_DP_BYTES` the bound is left out, and not replayed."""
+    n_states = len(CellStates.build(params, horizon).factors)
+    return horizon * n_free * n_states
+
+
 def bound_at(
     maps: np.ndarray, grid: Grid, n_drones: int, params: ScoreParams, prices: np.ndarray
 ) -> float:
@@ -538,14 +545,14 @@ def ceiling_table(
     starts = result.positions[0, 0]
     key = (hashlib.sha1(maps.tobytes()).hexdigest(), len(starts), astuple_params(params))
     cache = {} if cache is None else cache
-    n_states = len(CellStates.build(params, len(maps) - 1).factors)
-    dp_bytes = (len(maps) - 1) * result.grid.n_free * n_states  # the DP's decisions
+    dp_bytes = bound_dp_bytes(params, len(maps) - 1, result.grid.n_free)
     if dp_bytes > MAX_DP_BYTES:
         from twin.boundary import notify
 
         notify(
             f"twin: notice: bound (ceiling) left out: its DP would hold {dp_bytes / 1e9:.1f} GB "
-            f"({len(maps) - 1} steps x {result.grid.n_free} cells x {n_states} states)"
+            f"({len(maps) - 1} steps x {result.grid.n_free} cells x "
+            f"{dp_bytes // ((len(maps) - 1) * result.grid.n_free)} states)"
         )
         bound = None
     elif key not in cache:

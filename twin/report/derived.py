@@ -1374,7 +1374,7 @@ def check_bound(primary: Primary, per_seed: pd.DataFrame | None) -> None:
     relaxation (:func:`twin.ceilings.bound_at`) at the prices ``bound.npz`` keeps for its seed,
     on that seed's maps, wherever the folder holds them (one DP pass per seed); and no
     ``oracle (ceiling)`` row lies above its seed's bound."""
-    from twin.ceilings import bound_at
+    from twin.ceilings import MAX_DP_BYTES, bound_at, bound_dp_bytes
     from twin.metrics import BOUND, ORACLE
     from twin.runs import score_params_of
 
@@ -1412,6 +1412,13 @@ def check_bound(primary: Primary, per_seed: pd.DataFrame | None) -> None:
             )
         if seed not in maps:
             continue
+        dp = bound_dp_bytes(params, len(maps[seed]) - 1, grid.n_free)
+        if dp > MAX_DP_BYTES:
+            raise UserError(
+                f"{table}: holds a {BOUND} row for seed {seed}, but its DP would hold "
+                f"{dp / 1e9:.1f} GB, past the {MAX_DP_BYTES / 1e9:g} GB for which a run computes "
+                f"it (it leaves the row out); {RERUN}"
+            )
         key = f"seed_{seed}"
         if key not in prices:
             raise UserError(f"{path}: no prices {key} for seed {seed}'s {BOUND} row; {RERUN}")
