@@ -400,6 +400,19 @@ def test_killed_sweep_resumes(tmp_path: Path) -> None:
             '[parameters]\n"grid.obstacles" = [[[1, 1]], [], [[1, 1]]]\n',
             "'grid.obstacles' lists [[1, 1]] twice",
         ),
+        # over a tape, a traffic key changes nothing: every value gave the same rows, labelled
+        # as if it did (probe 16's f11)
+        (
+            '[sweep]\nswarms = ["greedy"]\n[[scenario]]\nname = "t"\nconfig = "scenario.toml"\n'
+            'tape = "t.parquet"\n[parameters]\n"traffic.cell_m" = [100.0, 200.0]\n',
+            "[parameters].'traffic.cell_m' sets the traffic of [[scenario]] 't', which replays "
+            "the tape",
+        ),
+        (
+            '[sweep]\nswarms = ["greedy"]\n[[scenario]]\nname = "t"\nconfig = "scenario.toml"\n'
+            'tape = "t.parquet"\noverrides = { "traffic.horizon" = 10 }\n',
+            "[[scenario]] t.overrides.'traffic.horizon' sets the traffic of [[scenario]] 't'",
+        ),
     ],
 )
 def test_bad_sweep_configs_are_one_line_errors(tmp_path: Path, text: str, message: str, capsys):
