@@ -514,6 +514,16 @@ def check_incident_records(primary: Primary) -> None:
                 f"{_show(start)} to end_s = {_show(end)} is applied at {_show(first)}{retry}; "
                 f"{RERUN}"
             )
+        lifted = inc.get("lifted_s")
+        last = np.ceil(end / step - 1e-9) * step
+        if lifted is not None and (
+            isinstance(lifted, bool) or not isinstance(lifted, number) or lifted != last
+        ):
+            raise UserError(
+                f"{path}: [{n}].lifted_s = {_json_text(lifted)}, but an incident to end_s = "
+                f"{_show(end)} is lifted at {_show(last)} (or null: the run ended first); "
+                f"{RERUN}"
+            )
         applied.append((n, inc))
     traffic = primary.run.get("traffic")
     traffic = traffic if isinstance(traffic, dict) else {}
@@ -529,7 +539,7 @@ def check_incident_records(primary: Primary) -> None:
     except OSError:
         return
     from twin.sumo.cells import CellGeometry
-    from twin.sumo.incidents import edge_cells, edge_lanes
+    from twin.sumo.incidents import edge_cells, edge_lanes, middle_cell
 
     edges = edge_lanes(net_file, {str(inc.get("edge")) for _, inc in applied})
     network = read_json(primary.run_dir / "network.json")
@@ -552,6 +562,19 @@ def check_incident_records(primary: Primary) -> None:
             raise UserError(
                 f"{path}: [{n}].lane = {lane}, but edge {edge!r} of {net_file} has {lanes} "
                 f"lanes; {RERUN}"
+            )
+        configured = traffic.get("incidents")
+        by_edge = (
+            isinstance(configured, list)
+            and n < len(configured)
+            and isinstance(configured[n], dict)
+            and configured[n].get("edge") is not None
+        )
+        if geometry is not None and by_edge and cell != list(middle_cell(shape, geometry)):
+            raise UserError(
+                f"{path}: [{n}].cell = {_json_text(cell)}, but an incident given by its edge "
+                f"{edge!r} is recorded at the cell of the edge's middle, "
+                f"{list(middle_cell(shape, geometry))} (network.json's grid); {RERUN}"
             )
         if geometry is not None and isinstance(cell, list) and cell != [-1, -1]:
             through = edge_cells(shape, geometry)
