@@ -449,6 +449,15 @@ CASES = {
         lambda t: ["run", "--gui-swarms", "all,random"],
         "--gui-swarms 'all,random': 'all' stands alone",
     ),
+    # a video in the run folder was removed with its report (probe 16's f13, f14)
+    "record inside the run's report": (
+        lambda t: ["run", "--record", str(t / "R" / "report" / "x.gif"), "--out", str(t / "R")],
+        "/report/x.gif: lies in --out ",
+    ),
+    "record as the run folder": (
+        lambda t: ["run", "--record", str(t / "same.gif"), "--out", str(t / "same.gif")],
+        "same.gif: lies in --out ",
+    ),
     # a long path: the line was cut before its reason (probe 16's f02)
     "out too long for the files written below it": (
         lambda t: ["evaluate", "--out", str(t / "/".join(["d" * 200] * 20))],
