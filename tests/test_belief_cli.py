@@ -497,3 +497,20 @@ def test_belief_rates_of_a_timed_run_read_back_and_forged_ones_do_not(tmp_path):
     forged = table.assign(false_alarms_per_hour=table["false_alarms_per_hour"] + 1.0)
     with pytest.raises(UserError, match="false_alarms_per_hour = "):
         check_belief_scores(run, forged, primary, rf.belief_maps)
+
+
+def test_a_stray_tape_in_a_run_folder_is_no_day_of_its_history(history, tmp_path, capsys):
+    """A tape planted in a run folder's tapes/ under a seed the run does not have: one line,
+    no history (it became a day of it; probe 16's f15)."""
+    import shutil
+
+    days = tmp_path / "days"
+    shutil.copytree(history.parent / "days", days)
+    planted = days / "tapes" / "seed-7.parquet"
+    shutil.copy(sorted((days / "tapes").glob("seed-*.parquet"))[0], planted)
+    out = tmp_path / "h.npz"
+    capsys.readouterr()
+    assert twin_main(["history", "--from", str(days), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{planted}: no tape of the run's seeds" in err, err
+    assert not out.exists()
