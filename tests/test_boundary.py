@@ -245,6 +245,23 @@ CASES = {
         lambda t: ["evaluate", "--config", str(_write(t / "bad.toml", "[grid\nnx = 1"))],
         "bad.toml",
     ),
+    # a RecursionError was an internal error (probe 16's f16)
+    "config nested 5000 deep": (
+        lambda t: [
+            "evaluate",
+            "--config",
+            str(_write(t / "deep.toml", "a = " + "[" * 5000 + "]" * 5000)),
+        ],
+        "deep.toml: not valid TOML for twin (nested deeper than Python reads)",
+    ),
+    "sweep config nested 5000 deep": (
+        lambda t: [
+            "sweep",
+            "--config",
+            str(_write(t / "deep.toml", "a = " + "[" * 5000 + "]" * 5000)),
+        ],
+        "deep.toml: not valid TOML for twin",
+    ),
     "huge grid": (
         lambda t: ["evaluate", "--config", str(small_config(t, nx=100000, ny=100000))],
         "100000",

@@ -843,6 +843,11 @@ def read_toml(path: str | Path) -> dict[str, Any]:
         raise UserError(f"{path}: config file is not readable (permission denied)") from None
     except tomllib.TOMLDecodeError as exc:
         raise UserError(f"{path}: not valid TOML ({exc})") from None
+    except RecursionError:  # arrays or tables nested thousands deep: no config's shape
+        raise UserError(
+            f"{path}: not valid TOML for twin (nested deeper than Python reads); give the "
+            "scenario's TOML file"
+        ) from None
     except UnicodeDecodeError:
         raise UserError(f"{path}: not a text file; expected a TOML config") from None
 
