@@ -312,6 +312,17 @@ def _maps_edit(key: str, value):
     return edit
 
 
+def _row_edit(swarm: str, model: str, **values):
+    def edit(table: pd.DataFrame) -> pd.DataFrame:
+        at = (table["swarm"] == swarm) & (table["model"] == model)
+        for column, value in values.items():
+            table[column] = table[column].astype(object)
+            table.loc[at, column] = value
+        return table
+
+    return edit
+
+
 #: Forgeries of belief_maps.npz and belief_models.csv the report refuses, each a value twin
 #: can tell is wrong (probe 15's f13): name -> (file, edit, words of the one-line error).
 BELIEF_FORGERIES = {
@@ -333,6 +344,24 @@ BELIEF_FORGERIES = {
                             "n_seeds = 7 for swarm"),
     "history row removed": ("belief_models.csv", lambda t: t[t["swarm"] != NO_DRONES],
                             "model 'history' is missing"),
+    # the numbers the folder determines (probe 15's P2-f04)
+    "last-seen error": ("belief_models.csv", _row_edit("random", "last-seen", belief_error=0.9),
+                        "belief_error = 0.9, but summary.csv's belief_error"),
+    "one row's events": ("belief_models.csv", _row_edit("random", "nowcast", events=77),
+                         "the rows count different events"),
+    "every row's events": ("belief_models.csv", lambda t: t.assign(events=t["events"] + 5),
+                           "but events.parquet holds"),
+    "minutes": ("belief_models.csv", lambda t: t.assign(latency_median_min=999.0),
+                "latency_median_min = 999, but the row's steps and step_s"),
+    "alarm rate": ("belief_models.csv", lambda t: t.assign(false_alarms_per_hour=1e9),
+                   "false_alarms_per_hour = 1e+09, but the row's steps"),
+    "a swarm's nowcast removed": (
+        "belief_models.csv",
+        lambda t: t[~((t["swarm"] == "greedy") & (t["model"] == "nowcast"))],
+        "swarm 'greedy' has the models ['last-seen']"),
+    "events known": ("belief_models.csv",
+                     _row_edit("random", "nowcast", pct_events_known=33.25),
+                     "pct_events_known = 33.25, but belief_maps.npz's known_at gives"),
 }  # fmt: skip
 
 
@@ -430,3 +459,58 @@ def test_a_history_from_tapes_past_the_memory_limit_is_refused(
         == "twin: error: TWIN_MAX_MEMORY_GB = 'abc' is not a number; give the limit in GB, e.g. 8\n"
     )
     assert not (tmp_path / "h.npz").exists()
+
+
+def test_belief_rates_of_a_timed_run_read_back_and_forged_ones_do_not(tmp_path):
+    """Minutes and rates of belief_models.csv are its steps (k = 0 .. T) over step_s: a table
+    twin writes for a run of 60 s steps, with events and false alarms, agrees with the check,
+    and one alarm more per hour does not (the read-back of probe 15's P2-f04)."""
+    from twin.belief import belief_table, summarize
+    from twin.config import load_config
+    from twin.experiment import Experiment, run_experiment
+    from twin.report.derived import Primary
+    from twin.report.load import check_belief_scores, load_run
+
+    config = tmp_path / "s.toml"
+    config.write_text(
+        '[grid]\nnx = 8\nny = 8\n[swarm]\nn_drones = 3\n[traffic]\nkind = "synthetic"\n'
+        'horizon = 40\ndisturbances = [{ kind = "big", i = 3, j = 3, amplitude = 1.0, '
+        'sigma = 2.0 }, { kind = "small", i = 6, j = 6, amplitude = 0.5, sigma = 1.0 }]\n'
+    )
+    history = tmp_path / "h.npz"
+    assert twin_main(["history", "--dynamics", str(config), "--days", "3", "--out",
+                      str(history)]) == 0  # fmt: skip
+    run = tmp_path / "run"
+    assert twin_main(["evaluate", "--config", str(config), "--history", str(history), "--seeds",
+                      "2", "--swarms", "random,greedy", "--no-report", "--quiet", "--out",
+                      str(run)]) == 0  # fmt: skip
+    outcome = run_experiment(Experiment(load_config(config), swarms=["random", "greedy"],
+                                        seeds=[0, 1]))  # fmt: skip
+    frames = [belief_table(r, History.load(history), step_s=60.0) for r in outcome.results]
+    table = summarize(pd.concat(frames, ignore_index=True))
+    assert (table["false_alarms"] > 0).any() and (table["events"] > 0).all()
+    rf = load_run(run)
+    timed = {**rf.run, "traffic": {**rf.run["traffic"], "step_s": 60.0}}
+    primary = Primary(run, rf.series, rf.trajectories, rf.events, rf.obstacles, timed,
+                      ["random", "greedy"], summary=rf.summary)  # fmt: skip
+    check_belief_scores(run, table, primary, rf.belief_maps)
+    forged = table.assign(false_alarms_per_hour=table["false_alarms_per_hour"] + 1.0)
+    with pytest.raises(UserError, match="false_alarms_per_hour = "):
+        check_belief_scores(run, forged, primary, rf.belief_maps)
+
+
+def test_a_stray_tape_in_a_run_folder_is_no_day_of_its_history(history, tmp_path, capsys):
+    """A tape planted in a run folder's tapes/ under a seed the run does not have: one line,
+    no history (it became a day of it; probe 16's f15)."""
+    import shutil
+
+    days = tmp_path / "days"
+    shutil.copytree(history.parent / "days", days)
+    planted = days / "tapes" / "seed-7.parquet"
+    shutil.copy(sorted((days / "tapes").glob("seed-*.parquet"))[0], planted)
+    out = tmp_path / "h.npz"
+    capsys.readouterr()
+    assert twin_main(["history", "--from", str(days), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{planted}: no tape of the run's seeds" in err, err
+    assert not out.exists()

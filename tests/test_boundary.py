@@ -245,6 +245,23 @@ CASES = {
         lambda t: ["evaluate", "--config", str(_write(t / "bad.toml", "[grid\nnx = 1"))],
         "bad.toml",
     ),
+    # a RecursionError was an internal error (probe 16's f16)
+    "config nested 5000 deep": (
+        lambda t: [
+            "evaluate",
+            "--config",
+            str(_write(t / "deep.toml", "a = " + "[" * 5000 + "]" * 5000)),
+        ],
+        "deep.toml: not valid TOML for twin (nested deeper than Python reads)",
+    ),
+    "sweep config nested 5000 deep": (
+        lambda t: [
+            "sweep",
+            "--config",
+            str(_write(t / "deep.toml", "a = " + "[" * 5000 + "]" * 5000)),
+        ],
+        "deep.toml: not valid TOML for twin",
+    ),
     "huge grid": (
         lambda t: ["evaluate", "--config", str(small_config(t, nx=100000, ny=100000))],
         "100000",
@@ -438,6 +455,38 @@ CASES = {
     "gui swarms naming none": (
         lambda t: ["run", "--gui-swarms", " , "],
         "--gui-swarms ' , ': names no swarm",
+    ),
+    # a swarm drawn twice failed in SUMO's GUI, after the warm-up: an empty partial run (probe
+    # 16's f03); 'all' beside a swarm was refused naming 'all' as the fix (f04)
+    "gui swarm named twice": (
+        lambda t: ["run", "--gui-swarms", "random,random"],
+        "--gui-swarms 'random,random': 'random' is named twice",
+    ),
+    "gui swarms all and one": (
+        lambda t: ["run", "--gui-swarms", "all,random"],
+        "--gui-swarms 'all,random': 'all' stands alone",
+    ),
+    # a video in the run folder was removed with its report (probe 16's f13, f14)
+    "record inside the run's report": (
+        lambda t: ["run", "--record", str(t / "R" / "report" / "x.gif"), "--out", str(t / "R")],
+        "/report/x.gif: lies in --out ",
+    ),
+    "record as the run folder": (
+        lambda t: ["run", "--record", str(t / "same.gif"), "--out", str(t / "same.gif")],
+        "same.gif: lies in --out ",
+    ),
+    # a long path: the line was cut before its reason (probe 16's f02)
+    "out too long for the files written below it": (
+        lambda t: ["evaluate", "--out", str(t / "/".join(["d" * 200] * 20))],
+        "bytes below it, past the 4096 the file system takes; pass a shorter path",
+    ),
+    "out with a name past NAME_MAX": (
+        lambda t: ["evaluate", "--out", str(t / ("n" * 300))],
+        "a name in it is 300 bytes long, past the 255 the file system takes",
+    ),
+    "report of a missing folder under a long path": (
+        lambda t: ["report", str(t / "/".join(["x" * 200] * 3))],
+        "no such run folder; pass the folder `twin run`/`evaluate` wrote",
     ),
 }
 #: output paths on a file system that reports no size and takes no files (Linux: /proc, /sys)
@@ -850,6 +899,24 @@ READ_BACK = {
         "the oracle (ceiling) row of seed 0 has R_hat_T = ",
     ),
     "bound prices left out": (lambda run: (run / "bound.npz").unlink(), "no bound.npz"),
+    # the oracle row is its cells' scores replayed (it was only kept under the bound)
+    "oracle lowered alike in per_seed and summary": (
+        _ceiling_scaled("oracle (ceiling)", 0.9),
+        "swarm 'oracle (ceiling)', but oracle.parquet replayed over the seed's maps give",
+    ),
+    "oracle cells left out": (
+        lambda run: (run / "oracle.parquet").unlink(),
+        "holds oracle (ceiling) rows, but the folder has no oracle.parquet",
+    ),
+    "oracle cells teleport": (
+        _edit_table(
+            "oracle.parquet",
+            lambda f: f.assign(
+                i=np.where(f["step"] == 3, 0, f["i"]), j=np.where(f["step"] == 3, 0, f["j"])
+            ),
+        ),
+        "oracle.parquet: swarm oracle (ceiling) drone",
+    ),
     "run.json lists fewer swarms than the tables hold": (
         _json("run.json", ("swarms",), ["random"]),
         "holds swarm 'greedy', which run.json's swarms ['random'] does not list",
@@ -1295,16 +1362,17 @@ READ_BACK = {
 
 def test_the_files_the_cases_build_read_back_whole(run_copy: Path) -> None:
     # undamaged, the files the cases above add to the run are accepted: only the damage is not
+    # (degradation.csv and belief_models.csv are recomputed from a faulted or believed run's
+    # files on read-back: their undamaged forms are read back in test_drone_faults.py and
+    # test_belief_cli.py)
     from twin.report.load import load_run
 
-    _built_file("degradation.csv", lambda run: _degradation(run, scored=True))(run_copy)
-    _built_file("belief_models.csv", _beliefs)(run_copy)
     _built_file("events.parquet", _events)(run_copy)
     _built_file("mfd.json", lambda run: _mfd())(run_copy)
     _built_file("network.json", _network)(run_copy)
     refresh_manifest(run_copy)
     rf = load_run(run_copy)
-    assert len(rf.degradation) == 12 and len(rf.beliefs) == 5 and rf.network["row_0"] == "north"
+    assert rf.network["row_0"] == "north" and rf.events is not None
 
 
 @pytest.mark.parametrize("name", list(READ_BACK))
@@ -2066,7 +2134,7 @@ def test_a_folder_of_an_earlier_format_reads_back_with_a_notice(run_copy, capsys
     import json
 
     meta = json.loads((run_copy / "run.json").read_text())
-    assert meta["folder_format"] == 2
+    assert meta["folder_format"] == 3
     (run_copy / "bound.npz").unlink()
     del meta["folder_format"], meta["starts"]
     (run_copy / "run.json").write_text(json.dumps(meta))
@@ -2074,11 +2142,11 @@ def test_a_folder_of_an_earlier_format_reads_back_with_a_notice(run_copy, capsys
     assert main(["report", str(run_copy), "--no-animation"]) == 0
     err = capsys.readouterr().err
     assert "written by an earlier twin (folder format 1)" in err, err
-    meta["folder_format"] = 3
+    meta["folder_format"] = 4
     (run_copy / "run.json").write_text(json.dumps(meta))
     refresh_manifest(run_copy)
     assert main(["report", str(run_copy), "--no-animation"]) == EXIT_REFUSED
-    assert "a run folder of format 3, written by a later twin" in one_line(capsys)
+    assert "a run folder of format 4, written by a later twin" in one_line(capsys)
 
 
 # ----------------------------------------------------------------- records that are no files
@@ -2212,3 +2280,13 @@ def test_a_file_given_as_a_run_folder_is_said_to_be_a_file(tmp_path, capsys, com
     given.write_bytes(b"x")
     assert main([command, str(given)]) == EXIT_REFUSED
     assert f"{given}: a file, not a run folder; pass the folder `twin run`" in one_line(capsys)
+
+
+def test_a_bound_row_past_the_dp_limit_is_refused_not_replayed(run_copy, monkeypatch, capsys):
+    """A bound row whose DP would be past what a run computes is refused, not replayed (a
+    forged row on a large grid made the read-back allocate the DP)."""
+    import twin.ceilings
+
+    monkeypatch.setattr(twin.ceilings, "MAX_DP_BYTES", 0)
+    assert main(["report", str(run_copy), "--no-animation"]) == EXIT_REFUSED
+    assert "holds a bound (ceiling) row for seed 0, but its DP would hold" in one_line(capsys)

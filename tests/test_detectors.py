@@ -425,8 +425,10 @@ READING_EDITS = [
     (lambda f: f.__setitem__("i", f["i"].where(f.index != 3, 99)), "seed 0, step"),
     (
         _set_all("occupancy_pct", 500.0),
-        "occupancy_pct = 500, not a share of time in %, at most 100",
+        "occupancy_pct = 500, not a share of time in %, -1 .. 100",
     ),
+    # a broken reading SUMO gives (probe 16's f08) is left out when read; forged, refused
+    (_set_all("occupancy_pct", -11.57), "occupancy_pct = -11.57, not a share of time in %"),
     (_set_all("speed", -3.0), "speed = -3, not a speed in m/s"),
     (_set_all("importance", 0.99), "but the MFD in effect at that step"),
     (
@@ -514,3 +516,33 @@ def test_reader_without_plan_reads_nothing(small):
         assert DetectorReader(DetectorPlan(), source.geometry, _libsumo()).detectors == []
     finally:
         session.close()
+
+
+def test_a_broken_occupancy_reading_is_left_out_with_one_notice(capsys):
+    """SUMO reads an occupancy far below 0 for a loop whose period is shorter than its step:
+    such readings are left out, with one notice naming the detector (it was recorded and read
+    back as valid; probe 16's f08)."""
+    from types import SimpleNamespace
+
+    from twin.sumo.detectors import LOOP, Detector, DetectorReader
+
+    values = iter([(1, -11.57, 9.0), (2, 5.0, 8.0), (1, -3.0, 9.0)])
+
+    class Loops:
+        def getLastIntervalVehicleNumber(self, _):
+            self.now = next(values)
+            return self.now[0]
+
+        def getLastIntervalOccupancy(self, _):
+            return self.now[1]
+
+        def getLastIntervalMeanSpeed(self, _):
+            return self.now[2]
+
+    reader = DetectorReader.__new__(DetectorReader)
+    reader.api = SimpleNamespace(inductionloop=Loops())
+    reader.detectors = [Detector("L3", LOOP, "B0B1_0", (0, 0), False)]
+    reader._last, reader._broken = {}, set()
+    assert [reader.read(), reader.read(), reader.read()] == [[], [(0, 2, 5.0, 8.0)], []]
+    notices = [line for line in capsys.readouterr().err.splitlines() if "L3" in line]
+    assert len(notices) == 1 and "occupancy of -11.57 %" in notices[0], notices

@@ -368,3 +368,131 @@ def test_the_shipped_drone_loss_config_loses_two_of_four_drones_at_t_3_and_one_i
 def test_live_drones_wrapper_names_the_swarm():
     policy = LiveDrones(make_policy("greedy"), FaultPlan((DroneLoss(0, 1),)))
     assert policy.name == "greedy"
+
+
+# ------------------------------------------------------------------- forged degradation tables
+@pytest.fixture(scope="module")
+def faulted(tmp_path_factory) -> Path:
+    """A finished evaluation of two seeds under a drone loss, a coordinator outage and missed
+    sightings: its degradation.csv and fault_free.parquet."""
+    from twin.cli import main
+
+    base = tmp_path_factory.mktemp("faulted")
+    path = base / "faults.toml"
+    path.write_text(SMALL + "[faults]\ndrone_loss = [{ drone = 1, step = 10, back = 20 }]\n"
+                    "coordinator_down = [[25, 30]]\ndetection_p = 0.9\n")  # fmt: skip
+    out = base / "run"
+    code = main(["evaluate", "--config", str(path), "--out", str(out), "--seeds", "2",
+                 "--swarms", "random,greedy,visit-gain", "--no-ceiling", "--no-report",
+                 "--quiet"])  # fmt: skip
+    assert code == 0
+    return out
+
+
+def _table_edit(**row_0):
+    def edit(run: Path) -> None:
+        import pandas as pd
+
+        table = pd.read_csv(run / "degradation.csv")
+        for column, value in row_0.items():
+            table[column] = table[column].astype(object)
+            table.loc[0, column] = value
+        table.to_csv(run / "degradation.csv", index=False)
+
+    return edit
+
+
+def _twin_edit(change):
+    def edit(run: Path) -> None:
+        import pandas as pd
+
+        frame = pd.read_parquet(run / "fault_free.parquet")
+        change(frame)
+        frame.to_parquet(run / "fault_free.parquet", index=False)
+
+    return edit
+
+
+def _moved(frame, step: int, di: int) -> None:
+    """Drone 0 of the first swarm and seed moved by ``di`` cells at ``step``."""
+    at = (frame["seed"] == 0) & (frame["swarm"] == "random") & (frame["drone"] == 0)
+    at &= frame["step"] == step
+    frame.loc[at, "i"] = (frame.loc[at, "i"] + di) % 6
+
+
+#: Forgeries of a degradation table twin can tell from the folder (probe 15's P2-f04): each
+#: name -> (edit of the run folder, words of the one-line refusal).
+DEGRADATION_FORGERIES = {
+    "R_hat_fault_free": (_table_edit(R_hat_fault_free=50.0),
+                         "R_hat_fault_free = 50 for seed 0, swarm 'random', phase 1"),
+    "events": (_table_edit(events=3), "events = 3 for seed 0, swarm 'random', phase 1"),
+    "latency": (_table_edit(latency_median_steps=999.0), "latency_median_steps = 999"),
+    "congested observed": (_table_edit(pct_congested_observed=99.0),
+                           "pct_congested_observed = 99"),
+    "seen by the twin": (_table_edit(pct_events_seen_fault_free=0.0),
+                         "pct_events_seen_fault_free = 0"),
+    "label": (_table_edit(label="all drones lost"), "label = 'all drones lost'"),
+    "twin's cells missing": (lambda run: (run / "fault_free.parquet").unlink(),
+                             "fault_free.parquet) are missing"),
+    "twin teleports": (_twin_edit(lambda f: _moved(f, 5, 3)), "fault_free.parquet: swarm"),
+    "twin starts elsewhere": (_twin_edit(lambda f: _moved(f, 0, 1)), "does not start where"),
+}  # fmt: skip
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", list(DEGRADATION_FORGERIES))
+def test_forged_degradation_tables_are_refused(faulted, tmp_path, capsys, name):
+    """Every column of degradation.csv is recomputed on read-back: the faulted ones from the
+    trajectories, the fault-free twin's from fault_free.parquet replayed over the maps (they
+    were trusted; probe 15's P2-f04)."""
+    import shutil
+
+    from test_boundary import refresh_manifest
+
+    from twin.cli import main
+
+    edit, words = DEGRADATION_FORGERIES[name]
+    run = tmp_path / "run"
+    shutil.copytree(faulted, run)
+    edit(run)
+    refresh_manifest(run)
+    capsys.readouterr()
+    assert main(["report", str(run), "--no-animation"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and words in err, err
+
+
+@pytest.mark.slow
+def test_an_unforged_degradation_table_reads_back(faulted, capsys):
+    from twin.cli import main
+
+    assert main(["report", str(faulted), "--no-animation"]) == 0, capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_a_degradation_table_of_an_earlier_format_reads_back_with_a_notice(
+    faulted, tmp_path, capsys
+):
+    """A folder of format 2 kept no fault-free twin: its faulted columns are recomputed, the
+    twin's are not, and a notice says so."""
+    import json
+    import shutil
+
+    from test_boundary import refresh_manifest
+
+    from twin.cli import main
+
+    run = tmp_path / "run"
+    shutil.copytree(faulted, run)
+    (run / "fault_free.parquet").unlink()
+    meta = json.loads((run / "run.json").read_text())
+    meta["folder_format"] = 2
+    (run / "run.json").write_text(json.dumps(meta))
+    refresh_manifest(run)
+    capsys.readouterr()
+    assert main(["report", str(run), "--no-animation"]) == 0
+    assert "its fault-free twin are not replayed" in capsys.readouterr().err
+    _table_edit(events=3)(run)
+    refresh_manifest(run)
+    assert main(["report", str(run), "--no-animation"]) == 2
+    assert "events = 3 for seed 0" in capsys.readouterr().err

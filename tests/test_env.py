@@ -285,3 +285,43 @@ def test_a_scenario_notice_is_said_once_per_env_not_at_every_episode(capsys):
     assert capsys.readouterr().err.count("few cells per drone") == 1
     SwarmParallelEnv(factory, n_drones=2).reset(seed=0)  # another env says it again
     assert capsys.readouterr().err.count("few cells per drone") == 1
+
+
+def test_an_env_past_the_memory_limit_is_refused_before_its_maps(tmp_path):
+    """make_env of a grid whose maps do not fit: twin's one line with the estimate, before any
+    map is made (it was numpy's MemoryError, or the machine swapping; probe 16's f12)."""
+    from twin.env import EnvInputError, make_env
+
+    config = tmp_path / "big.toml"
+    config.write_text(
+        '[grid]\nnx = 4900\nny = 5000\n[traffic]\nkind = "synthetic"\nhorizon = 2000\n'
+        'disturbances = [{ kind = "big", i = 2, j = 2, amplitude = 1.0, sigma = 1.0 }]\n'
+    )
+    with pytest.raises(EnvInputError, match=r"4900 x 5000 cells x 2000 steps .* need about"):
+        make_env(config)
+
+
+def test_a_live_envs_scenario_notices_come_once_over_its_episodes(tmp_path: Path, capfd):
+    """A scenario whose sumocfg asks SUMO for outputs: its "not kept" notice once per env, not
+    at every reset (the forked simulation's notices came as it ended, outside the env's count;
+    probe 16's f10)."""
+    pytest.importorskip("libsumo")
+    from twin.env import make_env
+
+    small_sumo_scenario(tmp_path, horizon=2)
+    (tmp_path / "outs.sumocfg").write_text(
+        '<configuration><input><net-file value="small.net.xml"/><route-files '
+        'value="small.trips.xml"/></input><output><tripinfo-output value="trip.xml"/></output>'
+        "</configuration>"
+    )
+    text = (tmp_path / "small.toml").read_text()
+    text = text.replace('net = "small.net.xml"\nroutes = ["small.trips.xml"]\n',
+                        'sumocfg = "outs.sumocfg"\n')  # fmt: skip
+    (tmp_path / "outs.toml").write_text(text)
+    env = make_env(tmp_path / "outs.toml")
+    for seed in range(3):
+        env.reset(seed=seed)
+    env.close()
+    err = capfd.readouterr().err
+    assert err.count("are not kept by this command") == 1, err
+    assert not (tmp_path / "trip.xml").exists()

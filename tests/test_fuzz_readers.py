@@ -314,7 +314,7 @@ def sumo_run(sumo_scenario: Path) -> Path:
     return out
 
 
-def _no_gui(args, swarms):
+def _no_gui(args, swarms, owned=None):
     from twin.errors import UserError
 
     raise UserError("the GUI is not started in tests")

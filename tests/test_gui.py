@@ -265,3 +265,43 @@ def test_gui_swarms_all_shows_every_swarm_and_shown_swarms_take_the_first_colour
     drawer = gui_drawer(args, ["random", "lookahead", "rl"])
     assert drawer.shown == ["lookahead", "rl"]
     assert [drawer.colours[n] for n in drawer.shown] == SWARM_COLOURS[:2]
+
+
+def test_meso_roads_are_drawn_in_one_colour():
+    """sumo-gui's mesoscopic speed colouring changes the simulation it draws: a --meso view
+    colours its edges by no scheme that reads the simulation (probe 16's f17)."""
+    from twin.sumo.gui import view_settings
+
+    meso = view_settings(mesoscopic=True)
+    assert 'laneEdgeMode="0"' in meso and 'colorScheme name="uniform"' in meso
+    assert "meso:" not in meso and "threshold" not in meso.split("<vehicles")[0]
+    assert "by average relative speed" in view_settings(mesoscopic=False)
+
+
+@pytest.mark.slow
+@needs_display
+def test_a_meso_run_replays_again_and_again(tmp_path, capsys):
+    """A --meso run of two dense flows, replayed five times: every replay is the recorded run
+    (two of six replays drew another run, which the replay refused; probe 16's f17)."""
+    import subprocess
+    import sys
+
+    from twin.cli import main
+
+    subprocess.run([str(Path(sys.executable).parent / "netgenerate"), "--grid", "--grid.number",
+                    "5", "--grid.length", "200", "--default.lanenumber", "2", "-o",
+                    str(tmp_path / "grid.net.xml")], check=True, capture_output=True)  # fmt: skip
+    (tmp_path / "f.rou.xml").write_text(
+        '<routes><vType id="car" vClass="passenger"/>'
+        '<flow id="w" type="car" begin="0" end="3000" vehsPerHour="1200" from="A2B2" '
+        'to="D2E2" departLane="best"/><flow id="b" type="car" begin="0" end="3000" '
+        'vehsPerHour="300" from="A0A1" to="E4E3"/></routes>'
+    )
+    out = tmp_path / "R"
+    assert main(["run", "--net", str(tmp_path / "grid.net.xml"), "--routes",
+                 str(tmp_path / "f.rou.xml"), "--cell-m", "100", "--drones", "2", "--seeds", "1",
+                 "--swarms", "random", "--no-ceiling", "--quiet", "--no-report", "--meso",
+                 "--horizon", "40", "--begin", "00:15", "--out", str(out)]) == 0  # fmt: skip
+    for _ in range(5):
+        capsys.readouterr()
+        assert main(["replay", str(out)]) == 0, capsys.readouterr().err

@@ -199,7 +199,11 @@ FORGED_INCIDENTS = {
         "incidents.json: [1].cell = [0, 2], but run.json's traffic.incidents[1] schedules [1, 2]",
     ),
     "a longer duration with its end": (
-        _incidents_edited(lambda x: _update(x, 1, duration_min=3.0, end_s=x[1]["end_s"] + 60.0)),
+        _incidents_edited(
+            lambda x: _update(
+                x, 1, duration_min=3.0, end_s=x[1]["end_s"] + 60.0, lifted_s=x[1]["end_s"] + 60.0
+            )
+        ),
         "incidents.json: [1].end_s = ",
     ),
     "edge moved out of its cell": (
@@ -300,6 +304,15 @@ FORGED_SCHEDULE = {
     "a schedule that is no incident": (
         _run_json_edited(lambda traffic: traffic["incidents"][0].update(kind="flood")),
         'run.json: traffic.incidents[0].kind = "flood", but tape.parquet (seed 0\'s tape)',
+    ),
+    # probe 16's f09: an edge's incident moved to another cell, lifted after its end
+    "the cell moved off the edge's middle": (
+        _incidents_edited(lambda x: _update(x, 0, cell=[x[0]["cell"][0], x[0]["cell"][1] + 1])),
+        "but an incident given by its edge 'B1B2' is recorded at the cell of the edge's middle",
+    ),
+    "lifted long after its end": (
+        _incidents_edited(lambda x: _update(x, 0, lifted_s=99999.0)),
+        "incidents.json: [0].lifted_s = 99999.0, but an incident to end_s = ",
     ),
     "a second incident scheduled": (
         _run_json_edited(lambda traffic: traffic["incidents"].append(traffic["incidents"][0])),

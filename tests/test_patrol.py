@@ -122,3 +122,16 @@ def test_random_swarm_episode_follows_the_step():
         state, out = step(state, ep.actions[k], maps[k + 1], grid, PARAMS)
         np.testing.assert_allclose(ep.rewards[k], out.rewards, rtol=1e-6)
         np.testing.assert_array_equal(ep.next_feasible[k], out.feasible)
+
+
+def test_a_tiny_beta1_dissipates_at_once_without_a_warning():
+    """``beta1 = 1e-310``: ``-k / (beta1 T)`` overflows to -inf, so a big disturbance is gone
+    after step 0, silently (a bare "overflow encountered in divide" notice named no key;
+    probe 16's f07)."""
+    import warnings
+
+    big = Disturbance(kind="big", i=1, j=1, amplitude=1.0, sigma=1.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        a = big.amplitudes(np.arange(5), 20, 1e-310, 0.5)
+    assert a.tolist() == [1.0, 0.0, 0.0, 0.0, 0.0]

@@ -371,6 +371,9 @@ REPLAY_FLAGS = {
     "a video of another format": (["--record", "{tmp}/x.avi"], "give a .mp4 or .gif file name"),
     "a video that exists": (["--record", "{tmp}/existing.mp4"], "--record never overwrites"),
     "a swarm not in the run": (["--gui-swarms", "lookahead"], "'lookahead' is not among"),
+    # the report is drawn afresh: a video in it was lost (probe 16's f13)
+    "a video in the run's report": (["--record", "{run}/report/x.gif"], "the run's report"),
+    "a swarm twice": (["--gui-swarms", "random,random"], "'random' is named twice"),
 }
 
 
@@ -386,7 +389,7 @@ def test_replay_flags_are_checked_before_the_scenario_loads(
     monkeypatch.setattr(twin.experiment, "build_source", no_scenario)
     (tmp_path / "existing.mp4").write_bytes(b"")
     flags, needle = REPLAY_FLAGS[case]
-    argv = ["replay", str(recorded), *(f.format(tmp=tmp_path) for f in flags)]
+    argv = ["replay", str(recorded), *(f.format(tmp=tmp_path, run=recorded) for f in flags)]
     err = run_case(capsys, tmp_path, argv, None, 2, needle)
     assert "\n" not in err
 

@@ -253,6 +253,19 @@ def _record(change):
     return damage
 
 
+def _frame(change):
+    """A cell series edited by ``change(frame)``."""
+
+    def damage(data: bytes) -> bytes:
+        import io
+
+        out = io.BytesIO()
+        change(pd.read_parquet(io.BytesIO(data))).to_parquet(out, index=False)
+        return out.getvalue()
+
+    return damage
+
+
 def _series(data: bytes) -> bytes:
     import io
 
@@ -275,12 +288,25 @@ DAMAGED_CELLS = {
     "a score not a number": (
         ".json",
         _record(lambda r: r["rows"][0].update(R_hat_T="x")),
-        "an R_hat_T is not a finite number",
+        "rows' R_hat_T holds 'x', not a number",
     ),
     "another seed": (".json", _record(lambda r: r["cell"].update(seed=7)), "its id"),
     "a swarm's row gone": (".json", _record(lambda r: r["rows"].pop()), "rows of swarms"),
-    "rewards of the series changed": (".parquet", _series, "its series"),
-}
+    "rewards of the series changed": (".parquet", _series, "cumulative_reward is not its"),
+    # probe 16's f06: other columns were taken as they were
+    "coverage text": (".json", _record(lambda r: r["rows"][0].update(C_hat_T="x")),
+                      "rows' C_hat_T holds 'x', not a number"),
+    "coverage emptied": (".json", _record(lambda r: r["rows"][0].update(C_hat_T=None)),
+                         "has C_hat_T = nan, its series give"),
+    "coverage edited": (".json", _record(lambda r: r["rows"][0].update(pct_map_covered=1.5)),
+                        "has pct_map_covered = 1.5, its series give"),
+    "series coverage past 1": (".parquet", _frame(lambda f: f.assign(coverage=5.0)),
+                               "coverage holds values outside 0 .. 1"),
+    "series rows of another seed added": (
+        ".parquet", _frame(lambda f: pd.concat([f, f.assign(seed=7)])), "rows of seeds [0, 7]"),
+    "inputs emptied": (".json", _record(lambda r: r["cell"].update(inputs={})),
+                       "cell.inputs = {} is not the cell's"),
+}  # fmt: skip
 
 
 @pytest.mark.parametrize("case", list(DAMAGED_CELLS))
@@ -300,6 +326,20 @@ def test_a_damaged_cell_is_reported_and_computed_again(tmp_path: Path, capsys, c
     assert again.ran == [victim], notes
     assert len(notes) == 1 and f"sweep cell {victim} is damaged" in notes[0], notes
     assert words in notes[0] and notes[0].endswith("computing it again")
+    pd.testing.assert_frame_equal(numbers(tmp_path / "s"), before)
+
+
+def test_a_stray_cell_record_is_left_alone(tmp_path: Path, capsys) -> None:
+    """A record in cells/ that is no cell of the sweep is neither read nor merged (it was said
+    to be damaged and "computed again", which no cell was; probe 16's f06)."""
+    config = load_sweep_config(sweep_file(tmp_path, seeds=1))
+    first = run_sweep(config, tmp_path / "s", workers=1, report=False)
+    before = numbers(tmp_path / "s")
+    (tmp_path / "s" / "cells" / "zzz.json").write_text("{}")
+    capsys.readouterr()
+    again = run_sweep(config, tmp_path / "s", workers=1, report=False)
+    assert again.ran == [] and first.ran
+    assert "zzz" not in capsys.readouterr().err
     pd.testing.assert_frame_equal(numbers(tmp_path / "s"), before)
 
 
@@ -359,6 +399,19 @@ def test_killed_sweep_resumes(tmp_path: Path) -> None:
             '[sweep]\nswarms = ["greedy"]\n[[scenario]]\nname = "a"\nconfig = "scenario.toml"\n'
             '[parameters]\n"grid.obstacles" = [[[1, 1]], [], [[1, 1]]]\n',
             "'grid.obstacles' lists [[1, 1]] twice",
+        ),
+        # over a tape, a traffic key changes nothing: every value gave the same rows, labelled
+        # as if it did (probe 16's f11)
+        (
+            '[sweep]\nswarms = ["greedy"]\n[[scenario]]\nname = "t"\nconfig = "scenario.toml"\n'
+            'tape = "t.parquet"\n[parameters]\n"traffic.cell_m" = [100.0, 200.0]\n',
+            "[parameters].'traffic.cell_m' sets the traffic of [[scenario]] 't', which replays "
+            "the tape",
+        ),
+        (
+            '[sweep]\nswarms = ["greedy"]\n[[scenario]]\nname = "t"\nconfig = "scenario.toml"\n'
+            'tape = "t.parquet"\noverrides = { "traffic.horizon" = 10 }\n',
+            "[[scenario]] t.overrides.'traffic.horizon' sets the traffic of [[scenario]] 't'",
         ),
     ],
 )

@@ -376,3 +376,18 @@ def test_a_tape_of_another_seed_copied_over_a_tape_is_recorded_again(tmp_path, c
     assert "it was recorded with identity.cell_m = 300.0, not its scenario's 200.0" in (
         capsys.readouterr().err
     )
+
+
+def test_tapes_of_a_synthetic_scenario_are_refused_before_any_stage(tmp_path, capsys):
+    """``[tapes] config`` naming a synthetic scenario: one line before any stage (it was an
+    internal error while recording, a synthetic source has no tape; probe 16's f05)."""
+    config = tiny_config(tmp_path, sumo=False)
+    synthetic = ROOT / "configs" / "synthetic.toml"
+    config.write_text(
+        config.read_text().replace('config = "small.toml"', f'config = "{synthetic}"')
+    )
+    out = tmp_path / "o"
+    assert cli(["transfer", "--config", str(config), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "its traffic is 'synthetic', not a SUMO scenario" in err, err
+    assert not out.exists()

@@ -121,10 +121,14 @@ def run_folder() -> Path | None:
 
 def one_line(text: str) -> str:
     """``text`` on one line (newlines and runs of blanks collapsed), at most
-    :data:`MAX_MESSAGE` characters, and printable whatever the terminal's encoding."""
+    :data:`MAX_MESSAGE` characters (long paths, then the line, cut in the middle: the reason and
+    the fix stay), and printable whatever the terminal's encoding."""
     flat = " ".join(str(text).split())
-    if len(flat) > MAX_MESSAGE:
-        flat = flat[: MAX_MESSAGE - 3] + "..."
+    if len(flat) > MAX_MESSAGE:  # long words (paths) shortened in the middle first
+        flat = " ".join(w if len(w) <= 120 else f"{w[:40]}...{w[-60:]}" for w in flat.split(" "))
+    if len(flat) > MAX_MESSAGE:  # then the middle of the line: its end says the fix
+        half = (MAX_MESSAGE - 5) // 2
+        flat = f"{flat[:half]} ... {flat[-half:]}"
     encoding = getattr(sys.stderr, "encoding", None) or "utf-8"
     return flat.encode(encoding, "backslashreplace").decode(encoding, "replace")
 

@@ -281,6 +281,13 @@ def lagrangian_bound(
     return Bound(best / horizon, best_prices, history, time.perf_counter() - t0)
 
 
+def bound_dp_bytes(params: ScoreParams, horizon: int, n_free: int) -> int:
+    """The bytes of the bound's DP decisions (steps x free cells x cell states): past
+    :data:`MAX_DP_BYTES` the bound is left out, and not replayed."""
+    n_states = len(CellStates.build(params, horizon).factors)
+    return horizon * n_free * n_states
+
+
 def bound_at(
     maps: np.ndarray, grid: Grid, n_drones: int, params: ScoreParams, prices: np.ndarray
 ) -> float:
@@ -498,7 +505,7 @@ def oracle(
 ) -> tuple[pd.Series, str, pd.DataFrame]:
     """Run the oracle swarms (:data:`ORACLE_SWARMS`) on the true ``maps`` from ``starts``;
     return the best one's Table 2 row (:func:`twin.metrics.table2`), its name, and every
-    oracle swarm's rows. Each is a real swarm (moves, distinct cells by the coordinator);
+    oracle swarm's rows (``attrs["best_positions"]``: the best one's ``(T+1, N, 2)`` cells). Each is a real swarm (moves, distinct cells by the coordinator);
     choosing the best in hindsight is what makes it an oracle rather than a competitor.
     ``faults`` (:class:`twin.faults.FaultPlan`): the oracle swarms fly under the same faults."""
     from twin.patrol import run_patrol
@@ -511,6 +518,7 @@ def oracle(
     )
     table = table2(result, params)
     best = table.loc[table["R_hat_T"].idxmax()]
+    table.attrs["best_positions"] = result.positions[list(table.index).index(best.name)]
     return best, str(best["swarm"]), table
 
 
@@ -537,21 +545,21 @@ def ceiling_table(
     starts = result.positions[0, 0]
     key = (hashlib.sha1(maps.tobytes()).hexdigest(), len(starts), astuple_params(params))
     cache = {} if cache is None else cache
-    n_states = len(CellStates.build(params, len(maps) - 1).factors)
-    dp_bytes = (len(maps) - 1) * result.grid.n_free * n_states  # the DP's decisions
+    dp_bytes = bound_dp_bytes(params, len(maps) - 1, result.grid.n_free)
     if dp_bytes > MAX_DP_BYTES:
         from twin.boundary import notify
 
         notify(
             f"twin: notice: bound (ceiling) left out: its DP would hold {dp_bytes / 1e9:.1f} GB "
-            f"({len(maps) - 1} steps x {result.grid.n_free} cells x {n_states} states)"
+            f"({len(maps) - 1} steps x {result.grid.n_free} cells x "
+            f"{dp_bytes // ((len(maps) - 1) * result.grid.n_free)} states)"
         )
         bound = None
     elif key not in cache:
         bound = cache[key] = lagrangian_bound(maps, result.grid, len(starts), params)
     else:
         bound = cache[key]
-    row, name, _ = oracle(maps, result.grid, starts, params, result.seed, result.faults)
+    row, name, oracles = oracle(maps, result.grid, starts, params, result.seed, result.faults)
     oracle_row = row.to_dict()
     oracle_row.update(swarm=ORACLE, pct_time_max_C=np.nan, oracle_swarm=name)
     rows = [oracle_row]
@@ -561,6 +569,8 @@ def ceiling_table(
     table["role"] = CEILING_ROLE
     if bound is not None:
         table.attrs["bound_prices"] = bound.prices  # kept in bound.npz: the row is replayed
+    # kept in oracle.parquet: the row is replayed (twin.report.derived.check_ceilings)
+    table.attrs["oracle_positions"] = oracles.attrs["best_positions"]
     return table
 
 

@@ -843,6 +843,11 @@ def read_toml(path: str | Path) -> dict[str, Any]:
         raise UserError(f"{path}: config file is not readable (permission denied)") from None
     except tomllib.TOMLDecodeError as exc:
         raise UserError(f"{path}: not valid TOML ({exc})") from None
+    except RecursionError:  # arrays or tables nested thousands deep: no config's shape
+        raise UserError(
+            f"{path}: not valid TOML for twin (nested deeper than Python reads); give the "
+            "scenario's TOML file"
+        ) from None
     except UnicodeDecodeError:
         raise UserError(f"{path}: not a text file; expected a TOML config") from None
 
@@ -1022,10 +1027,13 @@ def check_faults(config: ScenarioConfig, n_drones: int, horizon: int) -> None:
                     "at least one drone live")  # fmt: skip
 
 
-def check_swarm_fits(config: ScenarioConfig, grid: Grid) -> None:
+def check_swarm_fits(
+    config: ScenarioConfig, grid: Grid, fits: tuple[float, int] | tuple[()] | None = None
+) -> None:
     """Enough free cells for the drones; explicit starts on distinct free cells of the map.
     The command-line flag that set the number of drones, if one did, is named instead of the
-    config file."""
+    config file. ``fits``: on a network, the cell size that gives the drones room and its free
+    cells (:func:`twin.sumo.scenario.suggest_cell_m`; ``()``: no size does), named as the fix."""
     path, s = config.path, config.swarm
     drones_flag = config.flag_of("swarm.n_drones")
     if s.n_drones > grid.n_free and drones_flag:
@@ -1033,12 +1041,20 @@ def check_swarm_fits(config: ScenarioConfig, grid: Grid) -> None:
             f"{drones_flag} {s.n_drones} exceeds the {grid.n_free} free cells of the "
             f"{grid.shape[0]} x {grid.shape[1]} grid; give at most {grid.n_free}"
         )
+    drones = "drone" if grid.n_free == 1 else "drones"
+    fewer = f"at most {grid.n_free} {drones} with --drones {grid.n_free}"
+    if fits:
+        smaller = f"--cell-m {fits[0]:g} ({fits[1]} free cells), or {fewer}"
+    elif fits is not None:
+        smaller = f"{fewer} (no cell size down to 25 m gives them room)"
+    else:
+        smaller = None
     cell_flag = config.flag_of("traffic.cell_m")
     if s.n_drones > grid.n_free and cell_flag:
         raise ConfigError(
             f"{cell_flag} {config.traffic.cell_m:g} leaves {grid.n_free} free cells of the "
             f"{grid.shape[0]} x {grid.shape[1]} grid for the {s.n_drones} drones of {path} "
-            "([swarm].n_drones); give smaller cells, or fewer drones with --drones"
+            f"([swarm].n_drones); give {smaller or 'smaller cells, or fewer drones with --drones'}"
         )
     if s.n_drones > grid.n_free and config.traffic.kind == "sumo":  # a network's cells
         from twin.resources import shipped
@@ -1048,7 +1064,7 @@ def check_swarm_fits(config: ScenarioConfig, grid: Grid) -> None:
         source = f"[traffic].cell_m and [swarm].n_drones of {path}" if own else "twin's defaults"
         raise ConfigError(
             f"{grid.n_free} free cells of {cell:g} m for {s.n_drones} drones ({source}); give "
-            f"smaller cells with --cell-m (e.g. {cell / 4:g}), or fewer drones with --drones"
+            f"{smaller or f'smaller cells with --cell-m (e.g. {cell / 4:g}), or {fewer}'}"
         )
     if s.n_drones > grid.n_free:
         raise _fail(

@@ -291,15 +291,16 @@ class SwarmParallelEnv(ParallelEnv):
         if self._closed:
             return
         self._closed = True
-        self._close_maps()
+        with once_among(self._said):  # a forked simulation's notices come as it ends
+            self._close_maps()
         self.source.close()
 
     # shared with SwarmGymEnv -------------------------------------------------------------
 
     def _restart(self, rng: np.random.Generator) -> None:
         """Start a new episode on a fresh pass of the source; the start cells from ``rng``."""
-        self._close_maps()
         with once_among(self._said):  # a scenario's notices once, not at every episode
+            self._close_maps()  # (a forked simulation's come as it ends)
             if self._used and self._factory is not None:
                 self.source.close()
                 self.source = _built_source(self._factory(), "source()")
@@ -500,7 +501,7 @@ def make_env(
     ``joint=True`` gives the Gymnasium joint-swarm env; ``options`` go to the env's constructor.
     """
     from twin.config import load_config, shipped_config
-    from twin.experiment import Experiment, build_source, is_live
+    from twin.experiment import Experiment, build_source, check_memory, is_live, planned_shape
 
     if not isinstance(config, (str, Path)):
         raise EnvInputError(
@@ -534,6 +535,10 @@ def make_env(
             return build_source(experiment)
 
     else:
+        try:  # the maps an env records, estimated before any is made (as `twin evaluate`)
+            check_memory(experiment, *planned_shape(experiment))
+        except UserError as exc:
+            raise EnvInputError(str(exc)) from None
         source = build_source(experiment)
         if tape is not None:
             try:  # an episode runs every step of the tape's horizon

@@ -310,7 +310,24 @@ def run_experiment(
         (r.error or "").startswith(INTERRUPTED) for r in outcome.results
     )
     leave_out_unfinished_seed(outcome)
+    say_empty_maps(outcome)
     return outcome
+
+
+def say_empty_maps(outcome: ExperimentResult) -> None:
+    """A notice for each seed whose maps are 0 in every cell at every step: no traffic was
+    seen, so every swarm scores alike (a window without demand, or vehicles only on lanes the
+    grid leaves out, such as SUMO's racing game on vip-only lanes)."""
+    from twin.boundary import notify
+
+    for r in outcome.results:
+        maps = r.importance
+        if maps is not None and len(maps) > 1 and not np.any(maps[1:]):
+            notify(
+                f"twin: notice: seed {r.seed}: the importance is 0 in every cell at every step: "
+                "no traffic was seen on the grid (a window without demand, or vehicles only on "
+                "lanes the grid leaves out), so every swarm scores alike"
+            )
 
 
 def parallel(experiment: Experiment) -> bool:

@@ -258,38 +258,51 @@ def phase_events(events, start: int, stop: int):
 
 
 def degradation_frame(result, events):
+    """``degradation.csv``'s rows of one seed's result and its fault-free twin
+    (``result.fault_free``: same traffic, same seed), :func:`degradation_table`."""
+    twin = result.fault_free
+    return degradation_table(
+        result.seed, result.swarms, result.grid, result.faults, events,
+        result.positions, result.rewards, twin.positions, twin.rewards,
+    )  # fmt: skip
+
+
+def degradation_table(
+    seed, swarms, grid, plan, events, positions, rewards, free_positions, free_rewards
+):
     """Per swarm and phase of the faults (:meth:`FaultPlan.phases`, then the whole run), under
-    the faults and in the fault-free twin (``result.fault_free``: same traffic, same seed):
+    the faults (``positions`` ``(S, T+1, N, 2)``, ``rewards`` ``(S, T)``) and in the fault-free
+    twin (``free_positions``, ``free_rewards``; a NaN reward: not known):
 
     - ``R_hat``: the mean score per step ``R^k`` over the phase's steps;
     - the congestion events (``events``, :func:`twin.monitoring.congestion_events`) that last
       into the phase, cut to it: the share seen in the phase, the median latency from the
       event's start in the phase to its first sighting that counts, and the share of their
-      cell-steps in view."""
+      cell-steps in view.
+
+    ``twin report`` recomputes the table with it from the run folder (:mod:`twin.report.load`)."""
     import pandas as pd
 
     from twin.monitoring import event_sightings, sightings
 
-    plan, twin = result.faults, result.fault_free
-    steps = result.rewards.shape[1]
-    n_drones = result.positions.shape[2]
+    steps = rewards.shape[1]
+    n_steps, n_drones = positions.shape[1], positions.shape[2]
     phases = plan.phases(steps, n_drones) if steps else []
     if len(phases) > 1:
         phases.append((0, steps, "whole run"))
-    grid, n_steps = result.grid, result.positions.shape[1]
-    recorded = plan.recorded(result.seed, n_steps, n_drones)
+    recorded = plan.recorded(seed, n_steps, n_drones)
     rows = []
-    for s, swarm in enumerate(result.swarms):
+    for s, swarm in enumerate(swarms):
         keys = {
-            "": sightings(grid, result.positions[s], recorded),
-            "_fault_free": sightings(grid, twin.positions[s]),
+            "": sightings(grid, positions[s], recorded),
+            "_fault_free": sightings(grid, free_positions[s]),
         }
         for p, (start, stop, label) in enumerate(phases):
             cut = phase_events(events, start, stop)
-            row = {"seed": result.seed, "swarm": swarm, "phase": p + 1, "label": label,
+            row = {"seed": seed, "swarm": swarm, "phase": p + 1, "label": label,
                    "start": start, "stop": stop,
-                   "R_hat": float(result.rewards[s, start:stop].mean()),
-                   "R_hat_fault_free": float(twin.rewards[s, start:stop].mean()),
+                   "R_hat": float(rewards[s, start:stop].mean()),
+                   "R_hat_fault_free": float(free_rewards[s, start:stop].mean()),
                    "events": len(cut)}  # fmt: skip
             for suffix, k in keys.items():
                 first, seen_steps = event_sightings(cut, k, n_steps, grid.ny)

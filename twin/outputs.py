@@ -86,7 +86,7 @@ def check_output_file(path: str | Path, flag: str, need_mb: float = 1) -> Path:
     """Refuse an output file ``path`` twin cannot write (one line naming ``flag``): a folder
     in its place, a parent that is a file or cannot be created, no write permission, no space."""
     path = Path(path)
-    _check_name(path, flag)
+    _check_name(path, flag, deeper=64)
     if path.is_dir():
         raise UserError(f"{flag} {path}: is a folder; give a file name")
     if path.exists() and not os.access(path, os.W_OK):
@@ -118,9 +118,18 @@ def make_parent(path: str | Path, flag: str) -> Path:
     return path
 
 
-def _check_name(path: Path, flag: str) -> None:
+#: The longest path the file system takes (bytes; Linux's PATH_MAX), and the longest name of
+#: one folder or file in it (NAME_MAX).
+PATH_MAX, NAME_MAX = 4096, 255
+#: How much deeper than its output folder twin writes (bytes): ``sumo/seed-<s>/`` and an
+#: output's own name, with the suffix of a file being written (:func:`twin.files.atomic_write`).
+DEPTH_WRITTEN = 300
+
+
+def _check_name(path: Path, flag: str, deeper: int = DEPTH_WRITTEN) -> None:
     """Refuse a path that is not valid UTF-8 text (bytes the file system took but twin could
-    not write into its JSON and reports, nor print)."""
+    not write into its JSON and reports, nor print), or too long for the files twin writes
+    ``deeper`` bytes below it (or one of its names past :data:`NAME_MAX`)."""
     try:
         str(path).encode("utf-8")
     except UnicodeEncodeError:
@@ -129,6 +138,19 @@ def _check_name(path: Path, flag: str) -> None:
             f"{flag} {shown}: the name is not valid UTF-8; use a name in UTF-8 (e.g. plain "
             "letters, digits, - and _)"
         ) from None
+    long_names = [p for p in path.parts if len(p.encode()) > NAME_MAX]
+    if long_names:
+        raise UserError(
+            f"{flag} {path}: a name in it is {len(long_names[0].encode())} bytes long, past the "
+            f"{NAME_MAX} the file system takes; pass a shorter path"
+        )
+    size = len(str(path.absolute()).encode())
+    if size + deeper > PATH_MAX:
+        raise UserError(
+            f"{flag} {path}: the path is {size} bytes long, and twin writes files up to "
+            f"{deeper} bytes below it, past the {PATH_MAX} the file system takes; pass a "
+            "shorter path"
+        )
 
 
 def _check_writable(base: Path, path: Path, flag: str) -> None:

@@ -62,6 +62,7 @@ from twin.errors import UserError
 from twin.files import NotARecord, atomic_write, not_a_file, read_record, write_json
 from twin.metrics import (
     MONITORING_COLUMNS,
+    ORACLE,
     SWARM_ROLE,
     aggregate,
     learned_against_best_classical,
@@ -96,8 +97,10 @@ class RunFile:
 
 #: The run folder's format (run.json ``folder_format``; 1 when absent): 2 adds the bound's
 #: prices (``bound.npz``), the drones' starts and the configured incident schedule, which the
-#: read-back of a folder of format 1 cannot replay.
-FOLDER_FORMAT = 2
+#: read-back of a folder of format 1 cannot replay; 3 adds the fault-free twin's trajectories
+#: (``fault_free.parquet``), which the read-back of ``degradation.csv`` replays, and the
+#: oracle's (``oracle.parquet``), which the read-back of the oracle row replays.
+FOLDER_FORMAT = 3
 
 
 #: The run folder's schema: every name twin writes into a run folder. It drives the manifest
@@ -123,7 +126,9 @@ RUN_FILES = (
     RunFile("incidents.json", "run (SUMO, incidents)", "report"),
     RunFile("detectors.parquet", "run (SUMO, [traffic.detectors])", "docs/measure_beliefs.py"),
     RunFile("degradation.csv", "run, evaluate ([faults])", "report"),
+    RunFile("fault_free.parquet", "run, evaluate ([faults])", "report"),
     RunFile("bound.npz", "run, evaluate (ceilings)", "report"),
+    RunFile("oracle.parquet", "run, evaluate (ceilings)", "report"),
     RunFile("sumo", "run (SUMO outputs of the scenario)", "the user", folder=True),
     RunFile("timing.csv", "run, evaluate", "report"),
     RunFile("run.json", "run, evaluate", "report, replay, the rerun check of --out"),
@@ -382,13 +387,19 @@ def series_frame(result: PatrolResult) -> pd.DataFrame:
 
 def trajectories_frame(result: PatrolResult) -> pd.DataFrame:
     """Every drone's cell at every step of one run, long format."""
-    n_swarms, steps, n_drones, _ = result.positions.shape
+    return cells_frame(result.positions, result.swarms, result.seed)
+
+
+def cells_frame(positions: np.ndarray, swarms, seed: int) -> pd.DataFrame:
+    """The ``(S, T+1, N, 2)`` cells of swarms ``swarms`` of one seed, long format (the columns
+    of ``trajectories.parquet``)."""
+    n_swarms, steps, n_drones, _ = positions.shape
     idx = np.indices((n_swarms, steps, n_drones)).reshape(3, -1)
-    flat = result.positions.reshape(-1, 2)
+    flat = positions.reshape(-1, 2)
     return pd.DataFrame(
         {
-            "seed": np.full(len(flat), result.seed, dtype=np.int64),
-            "swarm": np.asarray(result.swarms)[idx[0]],
+            "seed": np.full(len(flat), seed, dtype=np.int64),
+            "swarm": np.asarray(swarms)[idx[0]],
             "step": idx[1],
             "drone": idx[2],
             "i": flat[:, 0],
@@ -476,6 +487,7 @@ def write_run(
     )
     per_seed["role"] = SWARM_ROLE
     prices: dict[str, np.ndarray] = {}  # bound.npz: each seed's bound prices
+    oracles = []  # oracle.parquet: each seed's oracle cells
     if ceilings:
         cache: dict = {}
         tables = []
@@ -484,6 +496,9 @@ def write_run(
             if table is not None and len(table):
                 if "bound_prices" in table.attrs:
                     prices[f"seed_{r.seed}"] = np.asarray(table.attrs["bound_prices"])
+                if "oracle_positions" in table.attrs:
+                    cells = table.attrs["oracle_positions"]
+                    oracles.append(cells_frame(cells[None], [ORACLE], r.seed))
                 tables.append(table.assign(seed=r.seed))
         if tables:
             per_seed = pd.concat([per_seed, *tables], ignore_index=True)
@@ -496,6 +511,11 @@ def write_run(
         ["swarm", *[x for c in keep for x in (c, f"{c}_ci95")], "n_seeds"]
     ]
     degradation = _degradation(results, monitored)
+    fault_free = [
+        cells_frame(r.fault_free.positions, r.fault_free.swarms, r.seed)
+        for r, m in zip(results, monitored, strict=True)
+        if r.fault_free is not None and m is not None
+    ]
     event_frames = [m.events_frame() for m in monitored if m is not None]
     event_frames = [f for f in event_frames if len(f)] or event_frames[:1]
     events = pd.concat(event_frames, ignore_index=True) if event_frames else None
@@ -513,6 +533,8 @@ def write_run(
         atomic_write(run_dir / "events.parquet", lambda p: events.to_parquet(p, index=False))
     if degradation is not None:
         atomic_write(run_dir / "degradation.csv", lambda p: degradation.to_csv(p, index=False))
+        free = pd.concat(fault_free, ignore_index=True)
+        atomic_write(run_dir / "fault_free.parquet", lambda p: free.to_parquet(p, index=False))
     if prices:
 
         def save_prices(p: Path) -> None:
@@ -520,6 +542,9 @@ def write_run(
                 np.savez_compressed(fh, **prices)
 
         atomic_write(run_dir / "bound.npz", save_prices)
+    if oracles:
+        cells = pd.concat(oracles, ignore_index=True)
+        atomic_write(run_dir / "oracle.parquet", lambda p: cells.to_parquet(p, index=False))
     first = results[0]
     if first.importance is not None:
 

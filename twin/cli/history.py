@@ -153,11 +153,18 @@ def tapes_of(path: Path) -> list[Path]:
         return [path]
     if not path.is_dir():
         raise UserError(f"{path}: no such run folder or tape; pass `twin run` folders")
+    per_seed = sorted((path / "tapes").glob("seed-*.parquet"))
     if (path / "run.json").is_file():  # a run folder: its tapes agree with its results
         from twin.report.load import load_run
 
-        load_run(path)
-    per_seed = sorted((path / "tapes").glob("seed-*.parquet"))
+        seeds = load_run(path).run.get("seeds") or []
+        own = {f"seed-{s}.parquet" for s in seeds}
+        stray = [p for p in per_seed if p.name not in own]
+        if stray:
+            raise UserError(
+                f"{stray[0]}: no tape of the run's seeds {seeds} (its run.json), so not one of "
+                f"its days; remove it from {path / 'tapes'}, or pass it as a tape of its own"
+            )
     if per_seed:
         return per_seed
     if (path / "tape.parquet").is_file():

@@ -179,7 +179,9 @@ def main(args: argparse.Namespace) -> int:
         )
         raise UserError(f"{path}: seed {seed} has {what}; {RERUN}")
     args.gui = True
-    drawer = gui_drawer(args, swarms)  # its flags are checked before the scenario loads
+    # its flags are checked before the scenario loads; the run's report is drawn afresh
+    report = run_dir / "report"
+    drawer = gui_drawer(args, swarms, owned=(report, f"{report}, the run's report"))
     source = build_source(experiment, seeds.index(seed))
     check_identity(run_dir, source)
     check_cells(path, rows, source.grid.shape)

@@ -8,6 +8,7 @@ with the SUMO extras: ``network.json``, ``mfd.json``, ``mfd_samples.parquet``, `
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -145,9 +146,11 @@ def add_gui_arguments(p) -> None:
     )
 
 
-def gui_drawer(args: argparse.Namespace, swarms):
+def gui_drawer(args: argparse.Namespace, swarms, owned: tuple[Path, str] | None = None):
     """The per-step drawer of ``--gui`` (None without it), its settings checked (the
-    ``--gui-*`` flags are checked without ``--gui`` too: a typo is refused, not ignored)."""
+    ``--gui-*`` flags are checked without ``--gui`` too: a typo is refused, not ignored).
+    ``owned``: the folder twin writes afresh and its words (``--out``'s, a run's report), in
+    which ``--record`` is refused."""
     from twin.experiment import comma_names
     from twin.sumo.gui import GuiDrawer, GuiSettings, check_settings
 
@@ -157,8 +160,27 @@ def gui_drawer(args: argparse.Namespace, swarms):
             f"--gui-swarms {args.gui_swarms!r}: names no swarm; give comma-separated swarms of "
             "the run, or all"
         )
+    twice = [name for n, name in enumerate(shown or []) if name in shown[:n]]
+    if twice:
+        raise UserError(
+            f"--gui-swarms {args.gui_swarms!r}: {twice[0]!r} is named twice (its legend and "
+            "drones would be drawn twice); name each swarm once"
+        )
+    if shown and "all" in shown and len(shown) > 1:
+        raise UserError(
+            f"--gui-swarms {args.gui_swarms!r}: 'all' stands alone (it draws every swarm); "
+            "give all, or swarms of the run"
+        )
     if shown == ["all"]:
         shown = list(swarms)
+    record = args.record
+    if record is not None and owned is not None and owned[0] is not None:
+        folder, what = owned
+        if Path(os.path.abspath(record)).is_relative_to(os.path.abspath(folder)):
+            raise UserError(
+                f"--record {record}: lies in {what}, which twin writes afresh (the video would "
+                "be lost with it); give a file outside it"
+            )
     shown_later = args.gui or args.record
     settings = GuiSettings(swarms=shown, shade=args.gui_shade, record=args.record)
     check_settings(settings, list(swarms))
@@ -258,7 +280,7 @@ def main(args: argparse.Namespace) -> int:
         from twin.belief import History, check_source
 
         history = History.load(args.history)  # a bad file is refused before SUMO starts
-    drawer = gui_drawer(args, experiment.swarms)
+    drawer = gui_drawer(args, experiment.swarms, owned=(args.out, f"--out {args.out}"))
 
     def on_source(source) -> None:
         _announce(source)

@@ -105,21 +105,25 @@ class Primary:
 
     def positions(self, seed: int, swarm: str) -> np.ndarray:
         """``(T+1, N, 2)`` drone cells of one swarm and seed."""
-        t = self.trajectories
-        rows = t[(t["seed"] == seed) & (t["swarm"].astype(str) == swarm)]
-        if rows.empty:
-            raise UserError(
-                f"{self.run_dir / 'trajectories.parquet'}: no rows for swarm {swarm!r}, seed "
-                f"{seed}, which series.parquet holds; {RERUN}"
-            )
-        rows = rows.sort_values(["step", "drone"])
-        n_drones = int(rows["drone"].max()) + 1
-        return rows[["i", "j"]].to_numpy(np.int64).reshape(-1, n_drones, 2)
+        return positions_of(self.run_dir / "trajectories.parquet", self.trajectories, seed, swarm)
 
     def params(self) -> ScoreParams | None:
         from twin.runs import score_params_of
 
         return score_params_of(self.run)
+
+
+def positions_of(path: Path, frame: pd.DataFrame, seed: int, swarm: str) -> np.ndarray:
+    """``(T+1, N, 2)`` drone cells of one swarm and seed of a trajectories table (checked by
+    :func:`twin.readback.check_trajectories`) read from ``path``."""
+    rows = frame[(frame["seed"] == seed) & (frame["swarm"].astype(str) == swarm)]
+    if rows.empty:
+        raise UserError(
+            f"{path}: no rows for swarm {swarm!r}, seed {seed}, which series.parquet holds; {RERUN}"
+        )
+    rows = rows.sort_values(["step", "drone"])
+    n_drones = int(rows["drone"].max()) + 1
+    return rows[["i", "j"]].to_numpy(np.int64).reshape(-1, n_drones, 2)
 
 
 @dataclass(frozen=True)
@@ -510,6 +514,16 @@ def check_incident_records(primary: Primary) -> None:
                 f"{_show(start)} to end_s = {_show(end)} is applied at {_show(first)}{retry}; "
                 f"{RERUN}"
             )
+        lifted = inc.get("lifted_s")
+        last = np.ceil(end / step - 1e-9) * step
+        if lifted is not None and (
+            isinstance(lifted, bool) or not isinstance(lifted, number) or lifted != last
+        ):
+            raise UserError(
+                f"{path}: [{n}].lifted_s = {_json_text(lifted)}, but an incident to end_s = "
+                f"{_show(end)} is lifted at {_show(last)} (or null: the run ended first); "
+                f"{RERUN}"
+            )
         applied.append((n, inc))
     traffic = primary.run.get("traffic")
     traffic = traffic if isinstance(traffic, dict) else {}
@@ -525,7 +539,7 @@ def check_incident_records(primary: Primary) -> None:
     except OSError:
         return
     from twin.sumo.cells import CellGeometry
-    from twin.sumo.incidents import edge_cells, edge_lanes
+    from twin.sumo.incidents import edge_cells, edge_lanes, middle_cell
 
     edges = edge_lanes(net_file, {str(inc.get("edge")) for _, inc in applied})
     network = read_json(primary.run_dir / "network.json")
@@ -548,6 +562,19 @@ def check_incident_records(primary: Primary) -> None:
             raise UserError(
                 f"{path}: [{n}].lane = {lane}, but edge {edge!r} of {net_file} has {lanes} "
                 f"lanes; {RERUN}"
+            )
+        configured = traffic.get("incidents")
+        by_edge = (
+            isinstance(configured, list)
+            and n < len(configured)
+            and isinstance(configured[n], dict)
+            and configured[n].get("edge") is not None
+        )
+        if geometry is not None and by_edge and cell != list(middle_cell(shape, geometry)):
+            raise UserError(
+                f"{path}: [{n}].cell = {_json_text(cell)}, but an incident given by its edge "
+                f"{edge!r} is recorded at the cell of the edge's middle, "
+                f"{list(middle_cell(shape, geometry))} (network.json's grid); {RERUN}"
             )
         if geometry is not None and isinstance(cell, list) and cell != [-1, -1]:
             through = edge_cells(shape, geometry)
@@ -1224,8 +1251,8 @@ def check_mfd_files(run_dir: Path, model) -> None:
 #: What a fixed detector's reading can be: its columns' ranges in ``detectors.parquet``.
 READING_RANGES = {
     "vehicles": (0.0, np.inf, "a count of vehicles, at least 0"),
-    # SUMO's own interval occupancy dips slightly below 0 at times: only its top is checked
-    "occupancy_pct": (-np.inf, 100.0, "a share of time in %, at most 100"),
+    # SUMO's own interval occupancy dips slightly below 0 at times (twin.sumo.detectors)
+    "occupancy_pct": (-1.0, 100.0, "a share of time in %, -1 .. 100 (SUMO's rounding below 0)"),
     "speed": (0.0, np.inf, "a speed in m/s, at least 0 (NaN: no vehicle)"),
 }
 #: A detector's fields, the same in each of its readings.
@@ -1332,9 +1359,14 @@ def check_starts(primary: Primary) -> None:
 
 
 def folder_format(primary: Primary) -> int:
+    """run.json's ``folder_format`` (:func:`folder_format_of`)."""
+    return folder_format_of(primary.run)
+
+
+def folder_format_of(run: dict[str, Any]) -> int:
     """run.json's ``folder_format`` (:data:`twin.runs.FOLDER_FORMAT`; 1 when absent: a folder
     an earlier twin wrote, without the bound's prices and the incident schedule)."""
-    value = primary.run.get("folder_format", 1)
+    value = run.get("folder_format", 1)
     return value if isinstance(value, int) and not isinstance(value, bool) else 1
 
 
@@ -1365,7 +1397,7 @@ def check_bound(primary: Primary, per_seed: pd.DataFrame | None) -> None:
     relaxation (:func:`twin.ceilings.bound_at`) at the prices ``bound.npz`` keeps for its seed,
     on that seed's maps, wherever the folder holds them (one DP pass per seed); and no
     ``oracle (ceiling)`` row lies above its seed's bound."""
-    from twin.ceilings import bound_at
+    from twin.ceilings import MAX_DP_BYTES, bound_at, bound_dp_bytes
     from twin.metrics import BOUND, ORACLE
     from twin.runs import score_params_of
 
@@ -1403,6 +1435,13 @@ def check_bound(primary: Primary, per_seed: pd.DataFrame | None) -> None:
             )
         if seed not in maps:
             continue
+        dp = bound_dp_bytes(params, len(maps[seed]) - 1, grid.n_free)
+        if dp > MAX_DP_BYTES:
+            raise UserError(
+                f"{table}: holds a {BOUND} row for seed {seed}, but its DP would hold "
+                f"{dp / 1e9:.1f} GB, past the {MAX_DP_BYTES / 1e9:g} GB for which a run computes "
+                f"it (it leaves the row out); {RERUN}"
+            )
         key = f"seed_{seed}"
         if key not in prices:
             raise UserError(f"{path}: no prices {key} for seed {seed}'s {BOUND} row; {RERUN}")
@@ -1416,6 +1455,68 @@ def check_bound(primary: Primary, per_seed: pd.DataFrame | None) -> None:
                 f"but bound.npz's prices on the seed's maps give {_show(value, recorded)}; "
                 f"{RERUN}"
             )
+
+
+def check_oracle(primary: Primary, per_seed: pd.DataFrame | None) -> None:
+    """Each ``oracle (ceiling)`` row of ``per_seed.csv`` is the scores of the oracle's cells
+    that ``oracle.parquet`` keeps for its seed (from the swarms' starts, one action a step,
+    under the run's faults), stepped again over the seed's maps wherever the folder holds them
+    (a folder of format 2 or earlier kept no cells: not replayed)."""
+    from twin.metrics import ORACLE
+
+    if per_seed is None or not {"swarm", "seed"} <= set(per_seed.columns):
+        return
+    rows = per_seed[per_seed["swarm"].astype(str) == ORACLE]
+    params, path = primary.params(), primary.run_dir / "oracle.parquet"
+    if rows.empty or params is None or (not path.exists() and folder_format(primary) < 3):
+        return
+    if not path.is_file():
+        raise UserError(
+            f"{primary.run_dir / 'per_seed.csv'}: holds {ORACLE} rows, but the folder has no "
+            f"oracle.parquet (their cells); {RERUN}"
+        )
+    from twin.readback import check_trajectories, read_table
+
+    cells = read_table(path)
+    check_trajectories(path, cells, primary.obstacles.shape, primary.obstacles)
+    grid, plan, maps = Grid(primary.obstacles), fault_plan(primary), _maps_by_seed(primary)
+    expected = []
+    for seed in sorted(int(s) for s in rows["seed"]):
+        if seed not in maps:
+            continue
+        pos = positions_of(path, cells, seed, ORACLE)
+        starts = primary.positions(seed, primary.swarms[0])
+        if pos.shape != starts.shape or (pos[0] != starts[0]).any():
+            raise UserError(
+                f"{path}: the oracle of seed {seed} does not start where the swarms start, or "
+                f"has {pos.shape[0] - 1} steps and {pos.shape[1]} drones where "
+                f"trajectories.parquet has {starts.shape[0] - 1} and {starts.shape[1]}; {RERUN}"
+            )
+        recorded = None if plan is None else plan.recorded(seed, len(pos), pos.shape[1])
+        try:
+            r = replay_scores(grid, params, pos, maps[seed][: len(pos)], recorded)
+        except InfeasibleActionError as exc:
+            raise UserError(f"{path}: seed {seed}: {exc}; {RERUN}") from None
+        slack = MAP_ROUNDING * np.abs(r["importance"]).mean()
+        expected.append(
+            {
+                "seed": seed,
+                "swarm": ORACLE,
+                "R_hat_T": r["reward"].mean(),
+                "R_hat_T" + SLACK: slack,
+                "R_hat_T_importance": r["importance"].mean(),
+                "R_hat_T_importance" + SLACK: slack,
+                "R_hat_T_idleness": r["idleness"].mean(),
+                "R_hat_T_paper": r["paper"].mean(),
+                "R_hat_T_paper" + SLACK: MAP_ROUNDING * np.abs(r["paper_weight"]).mean(),
+                "C_hat_T": r["coverage"].mean(),
+                "pct_map_covered": 100.0 * r["visited_share"][-1],
+            }
+        )
+    if expected:
+        source = "oracle.parquet replayed over the seed's maps"
+        compare(primary.run_dir, "per_seed.csv", per_seed, pd.DataFrame(expected),
+                ("seed", "swarm"), source)  # fmt: skip
 
 
 def check_derived(primary: Primary, tables: dict[str, pd.DataFrame | None]) -> None:
@@ -1440,6 +1541,7 @@ def check_derived(primary: Primary, tables: dict[str, pd.DataFrame | None]) -> N
         per_seed = per_seed[per_seed["swarm"].isin(primary.swarms)]
     primary.per_seed, primary.summary = per_seed, tables.get("summary.csv")
     check_bound(primary, tables.get("per_seed.csv"))
+    check_oracle(primary, tables.get("per_seed.csv"))
     for d in DERIVED:
         frame = tables.get(d.file)
         if frame is None:
@@ -1454,6 +1556,89 @@ def check_derived(primary: Primary, tables: dict[str, pd.DataFrame | None]) -> N
         expected = d.recompute(primary, frame)
         compare(primary.run_dir, d.file, frame, expected, d.key, source, d.complete)
     check_shared_traffic_seeds(primary)  # after the first seed's, which are said first
+
+
+#: What ``degradation.csv`` is recomputed from (:func:`check_degradation_replay`).
+DEGRADATION_SOURCES = (
+    "run.json's faults, trajectories.parquet, series.parquet, events.parquet and fault_free.parquet"
+)
+
+
+def check_degradation_replay(
+    primary: Primary, frame: pd.DataFrame, fault_free: pd.DataFrame | None
+) -> None:
+    """``degradation.csv`` is :func:`twin.faults.degradation_table` of every seed with results:
+    its phases from run.json's faults, the swarms' cells (``trajectories.parquet``) and scores
+    (``series.parquet``), the seed's events (``events.parquet``) and the fault-free twin's cells
+    (``fault_free.parquet``: from the same starts, one action a step). The twin's scores are
+    replayed over the seed's maps wherever the folder holds them (:func:`_maps_by_seed`);
+    elsewhere ``R_hat_fault_free`` is as the run wrote it. ``fault_free`` None: a folder of an
+    earlier format (said by the load), whose twin is not replayed."""
+    from twin.faults import degradation_table
+
+    path = primary.run_dir / "degradation.csv"
+    plan = fault_plan(primary)
+    if plan is None:
+        raise UserError(
+            f"{path}: a degradation table, but run.json records no faults (it is written only "
+            f"for runs with [faults]); {RERUN}"
+        )
+    free_path = primary.run_dir / "fault_free.parquet"
+    grid, params, maps = Grid(primary.obstacles), primary.params(), _maps_by_seed(primary)
+    series = primary.series.assign(swarm=primary.series["swarm"].astype(str))
+    events = primary.events
+    no_events = pd.DataFrame({c: pd.Series(dtype=np.int64) for c in EVENT_COLUMNS})
+    tables, replayed = [], []
+    for seed in sorted(int(s) for s in series["seed"].unique()):
+        part = series[series["seed"] == seed].pivot(index="swarm", columns="step", values="reward")
+        swarms = [s for s in primary.swarms if s in part.index]
+        rewards = part.loc[swarms].to_numpy(np.float64)
+        positions = np.stack([primary.positions(seed, s) for s in swarms])
+        if fault_free is None:
+            free = positions  # its cells are not known: only the faulted columns are compared
+        else:
+            free = np.stack([positions_of(free_path, fault_free, seed, s) for s in swarms])
+            if free.shape != positions.shape or (free[:, 0] != positions[:, 0]).any():
+                raise UserError(
+                    f"{free_path}: the fault-free twin of seed {seed} does not start where its "
+                    f"swarms start, or has {free.shape[1] - 1} steps and {free.shape[2]} drones "
+                    f"where trajectories.parquet has {positions.shape[1] - 1} and "
+                    f"{positions.shape[2]}; {RERUN}"
+                )
+        free_rewards = np.full_like(rewards, np.nan)
+        slack = np.zeros_like(rewards)
+        if fault_free is not None and params is not None and seed in maps:
+            for k, swarm in enumerate(swarms):
+                try:
+                    r = replay_scores(grid, params, free[k], maps[seed][: free.shape[1]])
+                except InfeasibleActionError as exc:
+                    raise UserError(
+                        f"{free_path}: swarm {swarm!r}, seed {seed}: {exc}; {RERUN}"
+                    ) from None
+                free_rewards[k], slack[k] = r["reward"], MAP_ROUNDING * np.abs(r["importance"])
+        found = seed_events(primary, seed) if events is not None else no_events
+        table = degradation_table(
+            seed, swarms, grid, plan, found, positions, rewards, free, free_rewards
+        )
+        if fault_free is None:
+            table = table.drop(columns=[c for c in table.columns if c.endswith("_fault_free")])
+        of = {swarm: k for k, swarm in enumerate(swarms)}
+        table["R_hat_fault_free" + SLACK] = [
+            slack[of[r.swarm], r.start : r.stop].mean() if r.stop > r.start else 0.0
+            for r in table.itertuples(index=False)
+        ]
+        tables.append(table)
+        replayed += [not np.isnan(free_rewards).all()] * len(table)
+    expected = pd.concat(tables, ignore_index=True)
+    known = np.asarray(replayed, dtype=bool)
+    faulted = expected.drop(columns=["R_hat_fault_free", "R_hat_fault_free" + SLACK],
+                            errors="ignore")  # fmt: skip
+    key = ("seed", "swarm", "phase")
+    compare(primary.run_dir, path.name, frame, faulted, key, DEGRADATION_SOURCES, complete=True)
+    if known.any() and "R_hat_fault_free" in expected.columns:
+        twin = expected[known][[*key, "R_hat_fault_free", "R_hat_fault_free" + SLACK]]
+        source = "fault_free.parquet replayed over the seed's maps"
+        compare(primary.run_dir, path.name, frame, twin, key, source)
 
 
 def compare(

@@ -48,7 +48,12 @@ from twin.readback import (
     read_maps,
     read_table,
 )
-from twin.report.derived import Primary, check_derived
+from twin.report.derived import (
+    Primary,
+    check_degradation_replay,
+    check_derived,
+    folder_format_of,
+)
 from twin.runs import REQUIRED_FILES
 from twin.scores import ScoreParams, initial_idleness, update_idleness
 
@@ -256,6 +261,33 @@ def _read_json(path: Path) -> Any:
     return read_json(path)
 
 
+def read_fault_free(run_dir: Path, run: dict[str, Any], obstacles: np.ndarray):
+    """``fault_free.parquet``: the fault-free twin's cells beside ``degradation.csv``; None in
+    a folder of format 2 or earlier, which did not keep them."""
+    path = run_dir / "fault_free.parquet"
+    if not path.exists() and folder_format_of(run) < 3:
+        return None
+    if not path.is_file():
+        raise UserError(
+            f"{run_dir / 'degradation.csv'}: its fault-free twin's cells (fault_free.parquet) "
+            f"are missing; {RERUN}"
+        )
+    frame = read_table(path)
+    check_trajectories(path, frame, obstacles.shape, obstacles)
+    return frame
+
+
+def _has_oracle(run_dir: Path) -> bool:
+    """Whether ``per_seed.csv`` names the oracle row (read as text: it is checked later)."""
+    from twin.metrics import ORACLE
+
+    path = run_dir / "per_seed.csv"
+    try:
+        return path.is_file() and ORACLE in path.read_text(errors="replace")
+    except OSError:
+        return False
+
+
 def _say_folder_format(run_dir: Path, run: dict[str, Any]) -> None:
     """A folder of an earlier format (:data:`twin.runs.FOLDER_FORMAT`) reads back, with a
     notice of what its read-back cannot replay; a later format than this twin's is refused."""
@@ -270,10 +302,15 @@ def _say_folder_format(run_dir: Path, run: dict[str, Any]) -> None:
             f"{run_dir}: a run folder of format {found}, written by a later twin (this one reads "
             f"up to {FOLDER_FORMAT}); update twin"
         )
-    if found < FOLDER_FORMAT:
+    missing = [] if found >= 2 else ["bound row", "incident schedule"]
+    if found < 3 and (run_dir / "degradation.csv").exists():
+        missing.append("fault-free twin")
+    if found < 3 and not (run_dir / "oracle.parquet").exists() and _has_oracle(run_dir):
+        missing.append("oracle row")
+    if missing:
         notify(
             f"twin: notice: {run_dir}: written by an earlier twin (folder format {found}): its "
-            "bound row and incident schedule are not replayed; rerun it for every check"
+            f"{' and '.join(missing)} are not replayed; rerun it for every check"
         )
 
 
@@ -402,6 +439,11 @@ def load_run(run_dir: str | Path) -> RunFiles:
         {"series.parquet": series, "events.parquet": events, "per_seed.csv": per_seed,
          "summary.csv": summary, "monitoring.csv": monitoring, "comparison.csv": comparison},
     )  # fmt: skip
+    if degradation is not None:
+        fault_free = read_fault_free(run_dir, run, obstacles)
+        check_degradation_replay(primary, degradation, fault_free)
+    if beliefs is not None:
+        check_belief_scores(run_dir, beliefs, primary, belief_maps)
     return RunFiles(
         run_dir=run_dir,
         series=series,
@@ -790,6 +832,123 @@ def check_beliefs(
         raise UserError(
             f"{path}: the row of swarm {r['swarm']!r}, model {r['model']!r} appears twice; {RERUN}"
         )
+
+
+def check_belief_scores(
+    run_dir: Path, frame: pd.DataFrame, primary: Primary, maps: dict[str, Any] | None
+) -> None:
+    """What ``belief_models.csv`` must agree with in the folder (its models' maps need the
+    history, which the folder does not hold: they are not replayed). Every seed scored every
+    row (``n_seeds``); every swarm has the same models, last-seen and nowcast among them; all
+    rows count the same events; minutes and rates are steps and counts over ``step_s``; each
+    swarm's last-seen ``belief_error`` is its ``belief_error`` of ``summary.csv`` (the same
+    belief, :func:`twin.monitoring.belief_error_curve`); with the run's monitoring settings
+    the events are ``events.parquet``'s; a run of one seed counts the events, and the ones
+    known, of ``belief_maps.npz``."""
+    from twin.belief import NO_DRONES
+    from twin.monitoring import MonitorSettings
+    from twin.runs import step_seconds_of
+
+    path = run_dir / "belief_models.csv"
+    seeds = sorted(int(s) for s in primary.series["seed"].unique())
+    rows = frame.assign(swarm=frame["swarm"].astype(str), model=frame["model"].astype(str))
+
+    def number(row: Any, column: str) -> float:
+        return float(row[column]) if column in row and pd.notna(row[column]) else np.nan
+
+    def say(row: Any, what: str) -> UserError:
+        return UserError(f"{path}: swarm {row['swarm']!r}, model {row['model']!r}: {what}; {RERUN}")
+
+    for _, r in rows.iterrows():
+        if "n_seeds" in rows.columns and number(r, "n_seeds") != len(seeds):
+            raise say(r, f"n_seeds = {r['n_seeds']}, but every row is of all {len(seeds)} seeds")
+        for column, top in (("calibration_90", 1.0), ("pct_events_known", 100.0)):
+            v = number(r, column)
+            if not np.isnan(v) and not 0 <= v <= top:
+                raise say(r, f"{column} = {v:.6g} is not a share in 0 .. {top:g}")
+        for column in ("belief_error", "events", "latency_median_steps", "false_alarms"):
+            v = number(r, column)
+            if v < 0:
+                raise say(r, f"{column} = {v:.6g} is negative")
+    models = {swarm: set(part["model"]) for swarm, part in rows.groupby("swarm")}
+    for swarm in primary.swarms:
+        have = models.get(swarm, set())
+        if not {"last-seen", "nowcast"} <= have or have != models.get(primary.swarms[0]):
+            raise UserError(
+                f"{path}: swarm {swarm!r} has the models {sorted(have)}, not those of every "
+                f"swarm (last-seen and nowcast among them); {RERUN}"
+            )
+    if "events" in rows.columns and rows["events"].nunique(dropna=False) > 1:
+        raise UserError(
+            f"{path}: the rows count different events ({sorted(set(rows['events']))[:4]}); "
+            f"every model is scored on the same events of the truth; {RERUN}"
+        )
+    step_s = step_seconds_of(primary.run)
+    steps = primary.series.groupby(["seed", "swarm"]).size().groupby(level="seed").max()
+    for _, r in rows.iterrows():
+        pairs = []
+        if step_s:
+            pairs.append(("latency_median_min", number(r, "latency_median_steps") * step_s / 60))
+        if step_s and steps.nunique() == 1:  # the beliefs' steps: k = 0 .. T
+            hours = (float(steps.iloc[0]) + 1) * step_s / 3600.0
+            pairs.append(("false_alarms_per_hour", number(r, "false_alarms") / hours))
+        for column, want in pairs:
+            if column in rows.columns and not _close_or_nan(number(r, column), want):
+                raise say(r, f"{column} = {number(r, column):.6g}, but the row's steps and "
+                             f"step_s = {step_s:g} give {want:.6g}")  # fmt: skip
+    summary = primary.summary
+    if summary is not None and "belief_error" in summary.columns:
+        errors = summary.set_index(summary["swarm"].astype(str))["belief_error"]
+        for _, r in rows[rows["model"] == "last-seen"].iterrows():
+            want = float(errors.get(r["swarm"], np.nan))
+            if not _close_or_nan(number(r, "belief_error"), want):
+                raise say(r, f"belief_error = {number(r, 'belief_error'):.6g}, but summary.csv's "
+                             f"belief_error of the swarm (the same last-seen belief) is "
+                             f"{want:.6g}")  # fmt: skip
+    monitoring = primary.run.get("monitoring")
+    default = MonitorSettings()
+    same = isinstance(monitoring, dict) and all(
+        monitoring.get(k) == getattr(default, k) for k in ("threshold", "min_duration")
+    )
+    if not same or primary.events is None or "events" not in rows.columns or not len(rows):
+        return
+    found = primary.events.drop_duplicates(["seed", "event"]).groupby("seed").size()
+    want = float(np.mean([found.get(s, 0) for s in seeds]))
+    have = number(rows.iloc[0], "events")
+    if not _close_or_nan(have, want):
+        raise UserError(
+            f"{path}: events = {have:.6g}, but events.parquet holds {want:.6g} events per seed "
+            f"(found on the same truth with the same settings); {RERUN}"
+        )
+    if maps is None or len(seeds) != 1 or maps["seed"] != seeds[0]:
+        return
+    onset = np.asarray(maps["event_onset"])
+    if len(onset) != have:
+        raise UserError(
+            f"{run_dir / 'belief_maps.npz'}: {len(onset)} events, but belief_models.csv counts "
+            f"{have:.6g} of the run's one seed; {RERUN}"
+        )
+    known = {("nowcast", s): k for s, k in zip(maps["swarms"], maps["known_at"], strict=False)}
+    known[("history", NO_DRONES)] = maps["history_known_at"]
+    for _, r in rows.iterrows():
+        at = known.get((r["model"], r["swarm"]))
+        if at is None:
+            continue
+        at = np.asarray(at)
+        hit = at >= 0
+        pct = 100.0 * hit.mean() if len(at) else np.nan
+        latency = float(np.median((at - onset)[hit])) if hit.any() else np.nan
+        for column, want in (("pct_events_known", pct), ("latency_median_steps", latency)):
+            if column in rows.columns and not _close_or_nan(number(r, column), want):
+                raise say(r, f"{column} = {number(r, column):.6g}, but belief_maps.npz's "
+                             f"known_at gives {want:.6g}")  # fmt: skip
+
+
+def _close_or_nan(have: float, want: float) -> bool:
+    """``have`` is ``want`` within :data:`SCORE_TOLERANCE` (NaN only where NaN is wanted)."""
+    if np.isnan(have) or np.isnan(want):
+        return bool(np.isnan(have) and np.isnan(want))
+    return _close(have, want)
 
 
 def check_belief_maps(

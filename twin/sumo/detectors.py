@@ -194,6 +194,11 @@ def with_additional(options: tuple[str, ...], extra: Path) -> tuple[str, ...]:
     return (*out, "--additional-files", str(extra))
 
 
+#: The lowest occupancy (%) a reading keeps: SUMO's interval occupancy dips slightly below 0 at
+#: times (float rounding); far below, it is broken (a period shorter than SUMO's step).
+OCCUPANCY_FLOOR = -1.0
+
+
 class DetectorReader:
     """The detectors of an open SUMO session, their cells, and their readings per sample time."""
 
@@ -221,6 +226,7 @@ class DetectorReader:
                 found.append(Detector(det_id, AREA, lane, cell, False))
         self.detectors = found
         self._last: dict[str, tuple] = {}
+        self._broken: set[str] = set()
 
     def _cell(self, geometry, lane: str, pos: float) -> tuple[int, int] | None:
         edge = self.api.lane.getEdgeID(lane)
@@ -229,6 +235,19 @@ class DetectorReader:
         x, y = self.api.simulation.convert2D(edge, min(max(pos, 0.0), length), index)
         r, c, inside = geometry.cell_index(np.array([[x, y]]))
         return (int(r[0]), int(c[0])) if inside[0] else None
+
+    def _say_broken(self, detector: Detector, occupancy: float) -> None:
+        """One notice per detector whose reading SUMO gave broken (left out)."""
+        if detector.id in self._broken:
+            return
+        self._broken.add(detector.id)
+        from twin.boundary import notify
+
+        notify(
+            f"twin: notice: detector {detector.id!r} (lane {detector.lane}) read an occupancy "
+            f"of {occupancy:.4g} %, which SUMO gives for a period that is no multiple of its "
+            "1 s step: its readings below 0 % are left out; give it a period of whole seconds"
+        )
 
     def read(self) -> list[tuple[int, int, float, float]]:
         """``(index, vehicles, occupancy %, mean speed m/s)`` of each detector whose last
@@ -245,5 +264,8 @@ class DetectorReader:
                 continue
             self._last[d.id] = reading
             count, occupancy, speed = reading
+            if occupancy < OCCUPANCY_FLOOR:
+                self._say_broken(d, occupancy)
+                continue
             rows.append((n, count, occupancy, speed if speed >= 0 else float("nan")))
         return rows

@@ -68,11 +68,14 @@ ROAD_SPEED_COLOURS = [
     (0.6, "250,170,0"),
     (0.85, "170,170,170"),
 ]
-#: sumo-gui's road colouring by relative speed: its index (``laneEdgeMode``) and name, for lanes
-#: (microscopic) and for the edges of the mesoscopic model (``--meso``), as in SUMO 1.28
+#: sumo-gui's road colouring: by relative speed for lanes (microscopic; its index,
+#: ``laneEdgeMode``, and name as in SUMO 1.28), one grey for the edges of the mesoscopic model
+#: (``--meso``): sumo-gui's mesoscopic speed colouring changes the simulation it draws (the
+#: segments' mean speeds it reads are cached, so a replay drew another run than the recorded
+#: one every few times), and a drawing must not change what it draws
 ROAD_SPEED_SCHEMES = {
     False: (26, "by average relative speed "),
-    True: (7, "meso:by relative speed (streetwise)"),
+    True: (0, "uniform"),
 }
 #: sumo-gui's view settings: roads coloured by speed, lanes and vehicles (dark) widened to be seen
 #: at the view's scale, the types of POIs written (the header's clock, legend and key)
@@ -103,13 +106,16 @@ VEHICLE_PX = 5.0
 
 
 def view_settings(mesoscopic: bool = False, metres_per_px: float | None = None) -> str:
-    """:data:`GUI_SETTINGS` with the roads' speed colouring of the model (lanes or edges), and
+    """:data:`GUI_SETTINGS` with the roads' colouring of the model (lanes by speed, or edges), and
     lanes (3.2 m) and vehicles (5 m) widened to :data:`LANE_PX` and :data:`VEHICLE_PX` at a
     view of ``metres_per_px`` (None: 8 m a pixel)."""
     mode, scheme = ROAD_SPEED_SCHEMES[mesoscopic]
     entries = "".join(
         f'\n                <entry color="{c}" threshold="{t:g}"/>' for t, c in ROAD_SPEED_COLOURS
     )
+    if mesoscopic:  # one grey: its speed colouring changes the simulation (ROAD_SPEED_SCHEMES)
+        entries = f'\n                <entry color="{ROAD_SPEED_COLOURS[-1][1]}"/>'
+
     scale = 8.0 if metres_per_px is None else metres_per_px
     return GUI_SETTINGS.format(
         mode=mode,

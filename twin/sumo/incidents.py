@@ -107,6 +107,13 @@ def edge_cells(shape: np.ndarray, geometry) -> set[tuple[int, int]]:
     return {(int(r), int(c)) for r, c, ok in zip(row, col, inside, strict=True) if ok}
 
 
+def middle_cell(shape: np.ndarray, geometry) -> tuple[int, int]:
+    """The cell of a lane's middle (:meth:`IncidentSchedule._edge_cells`), where an incident
+    given by its edge is recorded; ``(-1, -1)`` off the grid."""
+    row, col, inside = geometry.cell_index(np.array([_midpoint(shape)]))
+    return (int(row[0]), int(col[0])) if inside[0] else (-1, -1)
+
+
 def check_incidents(incidents: list[Any], scenario, geometry, where: str = "") -> list[str]:
     """Refuse (one line) an incident outside the scenario's simulated window (warm-up
     included) or over before its first step ``T^0``, on a cell off the grid or without a road,

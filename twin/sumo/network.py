@@ -72,6 +72,8 @@ def load_spec(path: Path) -> dict[str, Any]:
         raise UserError(f"{path}: no such network spec") from exc
     except tomllib.TOMLDecodeError as exc:
         raise UserError(f"{path}: not valid TOML ({exc})") from exc
+    except RecursionError:
+        raise UserError(f"{path}: not valid TOML for twin (nested too deep)") from None
     for key in ("lattice", "secondary", "demand", "districts"):
         if key not in spec:
             raise UserError(f"{path}: missing section [{key}]")

@@ -136,12 +136,15 @@ def clearing_time(geometry) -> float:
     return float(min(1800.0, max(900.0, math.hypot(xmax - xmin, ymax - ymin) / 5.0)))
 
 
-def suggest_cell_m(lanes, cell_m: float, n_drones: int, min_lane_km: float = 0.0):
-    """Halve ``cell_m`` until the network's grid has ``MIN_FREE_CELLS_PER_DRONE`` free cells per
-    drone: ``(cell size, free cells)``, or None if no size down to ``MIN_SUGGESTED_CELL_M`` does."""
+def suggest_cell_m(
+    lanes, cell_m: float, n_drones: int, min_lane_km: float = 0.0, per_drone: int = 0
+):
+    """Halve ``cell_m`` until the network's grid has ``per_drone`` free cells per drone
+    (default :data:`MIN_FREE_CELLS_PER_DRONE`): ``(cell size, free cells)``, or None if no size
+    down to ``MIN_SUGGESTED_CELL_M`` does."""
     from twin.sumo.cells import grid_over
 
-    need = MIN_FREE_CELLS_PER_DRONE * n_drones
+    need = (per_drone or MIN_FREE_CELLS_PER_DRONE) * n_drones
     size = cell_m / 2
     while size >= MIN_SUGGESTED_CELL_M:
         free = int((~grid_over(lanes, size).obstacles(min_lane_km)).sum())
@@ -475,13 +478,22 @@ def _grid_and_notices(
             f"{files.net_file}: no cell of the {geometry.nx} x {geometry.ny} grid has a lane"
         )
     n_free, n_drones = int((~obstacles).sum()), config.swarm.n_drones
+    if n_drones > n_free:  # the fix names a cell size that fits them, or none does
+        from twin.config import check_swarm_fits
+
+        fits = suggest_cell_m(lanes, s.cell_m, n_drones, s.min_lane_km)
+        fits = fits or suggest_cell_m(lanes, s.cell_m, n_drones, s.min_lane_km, per_drone=1)
+        check_swarm_fits(config, Grid(obstacles), fits or ())
     notices = []
     if n_drones <= n_free < MIN_FREE_CELLS_PER_DRONE * n_drones:  # more drones: refused later
         better = suggest_cell_m(lanes, s.cell_m, n_drones, s.min_lane_km)
+        fewer = max(1, n_free // MIN_FREE_CELLS_PER_DRONE)
         fix = (
             f"try --cell-m {better[0]:g} ({better[1]} free cells)"
             if better
-            else f"use fewer drones (--drones {max(1, n_free // MIN_FREE_CELLS_PER_DRONE)})"
+            else f"use fewer drones (--drones {fewer})"
+            if fewer < n_drones
+            else "no smaller cell size down to 25 m gives more room"
         )
         notices.append(
             f"{files.name}: {geometry.nx} x {geometry.ny} cells of {s.cell_m:g} m, {n_free} free "

@@ -83,6 +83,11 @@ class SweepSection(StrictModel):
 MAX_SWEEP_CELLS = 100_000
 
 
+#: The traffic keys a tape's replay reads from its scenario config
+#: (:meth:`twin.traffic.tape.TapeTraffic.from_file`); it keeps its own for the others.
+TAPE_TRAFFIC_KEYS = ("traffic.mfd.detection_p",)
+
+
 class ScenarioSpec(StrictModel):
     """One scenario of a sweep: a scenario config file and overrides of its keys."""
 
@@ -154,6 +159,19 @@ class SweepConfig(StrictModel):
                 f"{combinations:,} parameter combinations x {seeds:,} seeds), over the "
                 f"{MAX_SWEEP_CELLS:,} one sweep folder holds; sweep fewer seeds or values"
             )
+        for spec in self.scenario:
+            if spec.tape is None:
+                continue
+            swept = [(f"[parameters].{k!r}", k) for k in self.parameters]
+            set_here = [(f"[[scenario]] {spec.name}.overrides.{k!r}", k) for k in spec.overrides]
+            for where, key in swept + set_here:
+                if key.startswith("traffic.") and key not in TAPE_TRAFFIC_KEYS:
+                    raise ValueError(
+                        f"{where} sets the traffic of [[scenario]] {spec.name!r}, which replays "
+                        f"the tape {spec.tape}: a tape keeps its own traffic (cells, window, "
+                        "demand), so it would change nothing; sweep it over a live scenario "
+                        "(no tape), or drop it"
+                    )
         base = Path((info.context or {}).get("path", "sweep.toml")).parent
         for swarm, table in self.swarm_options.items():
             if swarm not in self.sweep.swarms:

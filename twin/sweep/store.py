@@ -87,6 +87,8 @@ def done_cells(out_dir: Path, expected: dict[str, dict[str, Any]] | None = None)
     for path in sorted((out_dir / CELLS_DIR).glob("*.json")):
         if path.name.startswith("."):
             continue
+        if expected is not None and path.stem not in expected:
+            continue  # no cell of this sweep (an earlier definition's): not read, not merged
         try:
             record = read_cell(path)
             check_cell(path, record, (expected or {}).get(path.stem))
@@ -183,6 +185,7 @@ def check_cell(path: Path, record: dict[str, Any], expected: dict[str, Any] | No
     """A finished cell agrees with itself: its id, seed, scenario and parameters those of the
     cell it was run for, one row per swarm of the cell with a finite ``R_hat_T`` >= 0 equal to
     its series' mean reward (Def. 4) in ``cells/<id>.parquet``."""
+    from twin.metrics import series_columns
     from twin.readback import FINITE, check_bounds, read_table
 
     cell = record["cell"]
@@ -191,8 +194,8 @@ def check_cell(path: Path, record: dict[str, Any], expected: dict[str, Any] | No
     ):
         raise UserError(f"{path}: its id, scenario or seed is not the file's ({path.stem})")
     if expected is not None:
-        for key in ("scenario", "seed", "parameters"):
-            if cell.get(key) != expected.get(key):
+        for key in ("scenario", "seed", "parameters", "swarms", "inputs"):
+            if key in expected and cell.get(key) != expected.get(key):
                 raise UserError(f"{path}: cell.{key} = {cell.get(key)!r} is not the cell's")
     rows = pd.DataFrame(record["rows"])
     if "R_hat_T" not in rows.columns or "swarm" not in rows.columns:
@@ -201,6 +204,12 @@ def check_cell(path: Path, record: dict[str, Any], expected: dict[str, Any] | No
     swarms = [str(s) for s in swarm_rows["swarm"]]
     if sorted(swarms) != sorted(map(str, cell.get("swarms", swarms))):
         raise UserError(f"{path}: rows of swarms {swarms}, the cell runs {cell.get('swarms')}")
+    for column in rows.columns:  # numbers, or null where a figure is undefined (NaN)
+        if column in CELL_TEXT_COLUMNS:
+            continue
+        kinds = [v for v in rows[column] if v is not None and not _is_number(v)]
+        if kinds:
+            raise UserError(f"{path}: rows' {column} holds {kinds[0]!r}, not a number")
     values = pd.to_numeric(swarm_rows["R_hat_T"], errors="coerce").to_numpy(dtype=float)
     if not np.isfinite(values).all():
         raise UserError(f"{path}: an R_hat_T is not a finite number")
@@ -208,12 +217,65 @@ def check_cell(path: Path, record: dict[str, Any], expected: dict[str, Any] | No
     series_path = path.with_suffix(".parquet")
     if not series_path.is_file():
         raise UserError(f"{series_path}: missing")
-    series = read_table(series_path, {**CELL_SERIES_COLUMNS, "reward": FINITE})
-    means = series.groupby(series["swarm"].astype(str))["reward"].mean()
-    for swarm, value in zip(swarms, values, strict=True):
-        want = means.get(swarm)
-        if want is None or abs(value - want) > 1e-9 * max(1.0, abs(want)):
-            raise UserError(f"{path}: swarm {swarm!r} has R_hat_T = {value:.6g}, its series {want}")
+    columns = {**CELL_SERIES_COLUMNS, "reward": FINITE, "coverage": FINITE,
+               "visited_share": FINITE}  # fmt: skip
+    series = read_table(series_path, columns)
+    check_cell_series(series_path, series, int(cell["seed"]), swarms, record.get("horizon"))
+    wide = series.assign(swarm=series["swarm"].astype(str)).pivot(index="swarm", columns="step")
+    wide = wide.loc[swarms]
+    want = series_columns(
+        wide["reward"].to_numpy(np.float64),
+        wide["coverage"].to_numpy(np.float64),
+        wide["visited_share"].to_numpy(np.float64),
+    )
+    for column, expected_values in want.items():
+        if column not in swarm_rows.columns:
+            continue
+        have = pd.to_numeric(swarm_rows[column], errors="coerce").to_numpy(dtype=float)
+        for swarm, h, w in zip(swarms, have, expected_values, strict=True):
+            if not (abs(h - w) <= 1e-9 * max(1.0, abs(w))):
+                raise UserError(
+                    f"{path}: swarm {swarm!r} has {column} = {h:.6g}, its series give {w:.6g}"
+                )
+
+
+#: Columns of a cell's rows that hold text (the others hold numbers, or null).
+CELL_TEXT_COLUMNS = ("swarm", "role", "oracle_swarm")
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def check_cell_series(
+    path: Path, series: pd.DataFrame, seed: int, swarms: list[str], horizon: Any
+) -> None:
+    """A cell's series: of its seed, each swarm's steps ``0 .. T-1`` once (``T`` the record's
+    ``horizon``), coverage and visited shares within 0 .. 1 (Def. 5), the cumulative reward the
+    running sum of the rewards."""
+    if set(series["seed"].unique()) != {seed}:
+        raise UserError(
+            f"{path}: rows of seeds {sorted(set(series['seed']))}, the cell's is {seed}"
+        )
+    names = series["swarm"].astype(str)
+    if sorted(set(names)) != sorted(swarms):
+        raise UserError(f"{path}: series of swarms {sorted(set(names))}, the cell runs {swarms}")
+    steps = int(horizon) if isinstance(horizon, int) and not isinstance(horizon, bool) else None
+    for swarm, part in series.groupby(names):
+        got = np.sort(part["step"].to_numpy())
+        if steps is None or not np.array_equal(got, np.arange(steps)):
+            raise UserError(
+                f"{path}: swarm {swarm!r} has steps {got[:3].tolist()} .. ({len(got)} rows), not "
+                f"each of 0 .. {steps} - 1 once (the record's horizon)"
+            )
+        ordered = part.sort_values("step")
+        running = ordered["reward"].cumsum().to_numpy()
+        if not np.allclose(ordered["cumulative_reward"].to_numpy(), running, rtol=1e-9, atol=1e-9):
+            raise UserError(f"{path}: swarm {swarm!r}'s cumulative_reward is not its rewards' sum")
+    for column in ("coverage", "visited_share"):
+        values = series[column].to_numpy(dtype=float)
+        if ((values < 0) | (values > 1)).any():
+            raise UserError(f"{path}: {column} holds values outside 0 .. 1 (shares)")
 
 
 CELL_FIELDS: dict[str, Any] = {

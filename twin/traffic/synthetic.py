@@ -29,8 +29,9 @@ class Disturbance:
 
     def amplitudes(self, steps: np.ndarray, horizon: int, beta1: float, beta2: float) -> np.ndarray:
         """``A_s(k)`` for every ``k`` in ``steps``."""
-        if self.kind == "big":
-            return self.amplitude * np.exp(-steps / (beta1 * horizon))
+        if self.kind == "big":  # a tiny beta1 overflows -k / (beta1 T) to -inf: A is then 0
+            with np.errstate(over="ignore", divide="ignore"):
+                return self.amplitude * np.exp(-steps / (beta1 * horizon))
         return self.amplitude * np.maximum(0.0, np.sin(2.0 * np.pi * beta2 * steps / horizon))
 
 

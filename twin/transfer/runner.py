@@ -211,6 +211,21 @@ def row_pretrain_config(config: TransferConfig, row, out: Path, checkpoints: dic
     return with_overrides(PretrainConfig.from_data(config.path, {}), overrides, labels)
 
 
+def check_tapes_scenario(config: TransferConfig) -> None:
+    """The ``[tapes]`` scenario rows train on is a SUMO scenario: tapes are recorded from a
+    live simulation (a synthetic one has no tape to record)."""
+    from twin.sweep.cells import scenario_config
+
+    if not tape_tasks(config, Path(".")):
+        return
+    kind = scenario_config(Path(config.tapes.config), config.tapes.overrides).traffic.kind
+    if kind != "sumo":
+        raise UserError(
+            f"{config.path}: [tapes].config = {config.tapes.config}: its traffic is {kind!r}, "
+            'not a SUMO scenario; tapes are recorded from SUMO (e.g. config = "shenzhen.toml")'
+        )
+
+
 def check_row_starts(config: TransferConfig) -> None:
     """Each fine-tuned row's start fits it (state and layers) before any stage runs: a
     checkpoint file is loaded, a row trained before is compared by its schedule (its tapes
@@ -428,6 +443,7 @@ def run_transfer(
         if row.checkpoint is not None:
             load_qnet(row.checkpoint)
     check_row_starts(config)
+    check_tapes_scenario(config)
     out.mkdir(parents=True, exist_ok=True)
     out = out.resolve()  # the rows' provenance names files the same from any folder
     timings: dict[str, float] = {}
