@@ -1251,8 +1251,9 @@ def check_mfd_files(run_dir: Path, model) -> None:
 #: What a fixed detector's reading can be: its columns' ranges in ``detectors.parquet``.
 READING_RANGES = {
     "vehicles": (0.0, np.inf, "a count of vehicles, at least 0"),
-    # SUMO's own interval occupancy dips slightly below 0 at times (twin.sumo.detectors)
-    "occupancy_pct": (-1.0, 100.0, "a share of time in %, -1 .. 100 (SUMO's rounding below 0)"),
+    # SUMO's own interval occupancy dips below 0 at times: only its top is checked here, the
+    # floor of the scenario's detectors below (twin.sumo.detectors.OCCUPANCY_FLOOR)
+    "occupancy_pct": (-np.inf, 100.0, "a share of time in %, at most 100"),
     "speed": (0.0, np.inf, "a speed in m/s, at least 0 (NaN: no vehicle)"),
 }
 #: A detector's fields, the same in each of its readings.
@@ -1281,6 +1282,18 @@ def check_detector_readings(primary: Primary, mfd_before: dict[int, Any]) -> Non
             n = int(np.flatnonzero(bad)[0])
             raise UserError(
                 f"{path}: row {n} has {column} = {_show(value[n])}, not {what}; {RERUN}"
+            )
+    from twin.sumo.detectors import OCCUPANCY_FLOOR
+
+    own = rows["virtual"].eq(True).to_numpy() if "virtual" in rows.columns else None
+    if own is not None:
+        low = ~own & (rows["occupancy_pct"].to_numpy(dtype=float) < OCCUPANCY_FLOOR)
+        if low.any():
+            n = int(np.flatnonzero(low)[0])
+            raise UserError(
+                f"{path}: row {n} has occupancy_pct = {_show(rows['occupancy_pct'].iloc[n])} "
+                f"for the scenario's detector {rows['detector'].iloc[n]!r}, below the "
+                f"{OCCUPANCY_FLOOR:g} % a run keeps; {RERUN}"
             )
     nx, ny = primary.obstacles.shape
     i, j = rows["i"].to_numpy(), rows["j"].to_numpy()
@@ -1458,14 +1471,25 @@ def check_bound(primary: Primary, per_seed: pd.DataFrame | None) -> None:
 
 
 def check_oracle(primary: Primary, per_seed: pd.DataFrame | None) -> None:
-    """Each ``oracle (ceiling)`` row of ``per_seed.csv`` is the scores of the oracle's cells
+    """The ceiling rows of ``per_seed.csv`` leave the monitoring columns empty; each
+    ``oracle (ceiling)`` row of ``per_seed.csv`` is the scores of the oracle's cells
     that ``oracle.parquet`` keeps for its seed (from the swarms' starts, one action a step,
     under the run's faults), stepped again over the seed's maps wherever the folder holds them
     (a folder of format 2 or earlier kept no cells: not replayed)."""
-    from twin.metrics import ORACLE
+    from twin.metrics import MONITORING_COLUMNS, ORACLE, is_ceiling_row
 
     if per_seed is None or not {"swarm", "seed"} <= set(per_seed.columns):
         return
+    ceilings = per_seed[is_ceiling_row(per_seed)]
+    for column in (c for c in MONITORING_COLUMNS if c in ceilings.columns):
+        filled = ceilings[column].notna()
+        if filled.any():
+            r = ceilings[filled].iloc[0]
+            raise UserError(
+                f"{primary.run_dir / 'per_seed.csv'}: {column} = {_show(r[column])} for the "
+                f"{r['swarm']} row of seed {r['seed']}, which monitors nothing (empty as a run "
+                f"writes it); {RERUN}"
+            )
     rows = per_seed[per_seed["swarm"].astype(str) == ORACLE]
     params, path = primary.params(), primary.run_dir / "oracle.parquet"
     if rows.empty or params is None or (not path.exists() and folder_format(primary) < 3):
