@@ -1741,16 +1741,22 @@ def _differ(have: pd.Series, want: pd.Series, slack: pd.Series | None) -> np.nda
     return np.where(nan_h | nan_w, nan_h != nan_w, off)
 
 
+#: Keys of a compared table that hold names (the others hold numbers: seed, step, phase...).
+NAME_KEYS = ("swarm", "model")
+
+
 def _keyed(frame: pd.DataFrame, key: tuple[str, ...]) -> pd.DataFrame:
     frame = frame.copy()
     for k in key:
-        frame[k] = frame[k].astype(str) if k == "swarm" else frame[k].astype(np.int64)
+        frame[k] = frame[k].astype(str) if k in NAME_KEYS else frame[k].astype(np.int64)
     return frame.drop_duplicates(list(key)).set_index(list(key))
 
 
 def _who(key: tuple[str, ...], at: Any) -> str:
     values = at if isinstance(at, tuple) else (at,)
-    parts = [f"{k} {v!r}" if k == "swarm" else f"{k} {v}" for k, v in zip(key, values, strict=True)]
+    parts = [
+        f"{k} {v!r}" if k in NAME_KEYS else f"{k} {v}" for k, v in zip(key, values, strict=True)
+    ]
     return ", ".join(parts)
 
 

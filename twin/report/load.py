@@ -445,6 +445,16 @@ def load_run(run_dir: str | Path) -> RunFiles:
         check_degradation_replay(primary, degradation, fault_free)
     if beliefs is not None:
         check_belief_scores(run_dir, beliefs, primary, belief_maps)
+        from twin.report.beliefs import check_belief_replay
+
+        why = check_belief_replay(primary, beliefs, belief_maps)
+        if why is not None:
+            from twin.boundary import notify
+
+            notify(
+                f"twin: notice: {run_dir}: belief_models.csv and belief_maps.npz not replayed "
+                f"({why}); their ranges and relations are checked"
+            )
     return RunFiles(
         run_dir=run_dir,
         series=series,
