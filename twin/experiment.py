@@ -423,7 +423,9 @@ class StopFile:
     def __init__(self) -> None:
         import tempfile
 
-        self.folder = Path(tempfile.mkdtemp(prefix="twin-stop-"))
+        from twin.resources import scratch_dir
+
+        self.folder = Path(tempfile.mkdtemp(prefix="twin-stop-", dir=scratch_dir()))
         self.path = self.folder / "stop"
 
     def request(self, after: int) -> None:

@@ -161,7 +161,9 @@ MESSAGES_NAME = "sumo-messages.log"
 
 def _messages_file() -> Path:
     """A fresh temporary file for SUMO's messages (the child's stderr)."""
-    fd, name = tempfile.mkstemp(prefix="twin-sumo-", suffix=".log")
+    from twin.resources import scratch_dir
+
+    fd, name = tempfile.mkstemp(prefix="twin-sumo-", suffix=".log", dir=scratch_dir())
     os.close(fd)
     return Path(name)
 
