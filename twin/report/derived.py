@@ -1251,9 +1251,9 @@ def check_mfd_files(run_dir: Path, model) -> None:
 #: What a fixed detector's reading can be: its columns' ranges in ``detectors.parquet``.
 READING_RANGES = {
     "vehicles": (0.0, np.inf, "a count of vehicles, at least 0"),
-    # SUMO's own interval occupancy dips below 0 at times: only its top is checked here, the
-    # floor of the scenario's detectors below (twin.sumo.detectors.OCCUPANCY_FLOOR)
-    "occupancy_pct": (-np.inf, 100.0, "a share of time in %, at most 100"),
+    # SUMO's own interval occupancy dips below 0 at times: kept as 0 (folder format 3; an
+    # earlier format's readings hold SUMO's dips, of which only the top is checked)
+    "occupancy_pct": (0.0, 100.0, "a share of time in %, 0 .. 100"),
     "speed": (0.0, np.inf, "a speed in m/s, at least 0 (NaN: no vehicle)"),
 }
 #: A detector's fields, the same in each of its readings.
@@ -1276,24 +1276,14 @@ def check_detector_readings(primary: Primary, mfd_before: dict[int, Any]) -> Non
                              "importance": "finite", "occupancy_pct": "number",
                              "vehicles": "number", "speed": "number"})  # fmt: skip
     for column, (low, high, what) in READING_RANGES.items():
+        if column == "occupancy_pct" and folder_format(primary) < 3:
+            low = -np.inf  # SUMO's dips below 0, as an earlier twin kept them
         value = rows[column].to_numpy(dtype=float)
         bad = (value < low) | (value > high) | (np.isnan(value) & (column != "speed"))
         if bad.any():
             n = int(np.flatnonzero(bad)[0])
             raise UserError(
                 f"{path}: row {n} has {column} = {_show(value[n])}, not {what}; {RERUN}"
-            )
-    from twin.sumo.detectors import OCCUPANCY_FLOOR
-
-    own = rows["virtual"].eq(True).to_numpy() if "virtual" in rows.columns else None
-    if own is not None:
-        low = ~own & (rows["occupancy_pct"].to_numpy(dtype=float) < OCCUPANCY_FLOOR)
-        if low.any():
-            n = int(np.flatnonzero(low)[0])
-            raise UserError(
-                f"{path}: row {n} has occupancy_pct = {_show(rows['occupancy_pct'].iloc[n])} "
-                f"for the scenario's detector {rows['detector'].iloc[n]!r}, below the "
-                f"{OCCUPANCY_FLOOR:g} % a run keeps; {RERUN}"
             )
     nx, ny = primary.obstacles.shape
     i, j = rows["i"].to_numpy(), rows["j"].to_numpy()

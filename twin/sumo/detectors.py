@@ -195,9 +195,9 @@ def with_additional(options: tuple[str, ...], extra: Path) -> tuple[str, ...]:
 
 
 #: The lowest occupancy (%) a reading of the scenario's detectors keeps: SUMO's interval
-#: occupancy dips below 0 at times (twin's own loops, of a period of one step, to -2 % and so
-#: kept: their importance is then that of an empty lane); far below, for a period that is no
-#: multiple of SUMO's step, a reading is broken.
+#: occupancy dips below 0 at times (twin's own loops, of a period of one step, to -2 %), kept
+#: as 0 (the importance of a density at or below 0 is 0 alike); far below, for a period that is
+#: no multiple of SUMO's step, a reading is broken and left out.
 OCCUPANCY_FLOOR = -1.0
 
 
@@ -270,5 +270,6 @@ class DetectorReader:
             if occupancy < OCCUPANCY_FLOOR and not d.virtual:
                 self._say_broken(d, occupancy)
                 continue
+            occupancy = max(occupancy, 0.0)  # a dip below 0: no vehicle time (importance 0)
             rows.append((n, count, occupancy, speed if speed >= 0 else float("nan")))
         return rows
