@@ -362,6 +362,18 @@ BELIEF_FORGERIES = {
     "events known": ("belief_models.csv",
                      _row_edit("random", "nowcast", pct_events_known=33.25),
                      "pct_events_known = 33.25, but belief_maps.npz's known_at gives"),
+    # the models replayed with the run's history (probe 16's P2-b1, P2-b2)
+    "a nowcast's error": ("belief_models.csv", _row_edit("random", "nowcast", belief_error=0.3),
+                          "belief_error = 0.3 for swarm 'random', model 'nowcast', but the "
+                          "models replayed with the run's history give"),
+    "the history's calibration": ("belief_models.csv",
+                                  _row_edit(NO_DRONES, "history", calibration_90=0.123),
+                                  "calibration_90 = 0.123 for swarm '(no drones)', model "
+                                  "'history', but the models replayed"),
+    "truth halved": ("belief_maps.npz", _maps_edit("truth", lambda a: a * 0.5),
+                     "but the nowcast replayed with the run's history gives"),
+    "nowcast std zero": ("belief_maps.npz", _maps_edit("std", lambda a: a * 0),
+                         "std[0, 0, 0, 0] = 0, but the nowcast replayed"),
 }  # fmt: skip
 
 
@@ -514,3 +526,23 @@ def test_a_stray_tape_in_a_run_folder_is_no_day_of_its_history(history, tmp_path
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and f"{planted}: no tape of the run's seeds" in err, err
     assert not out.exists()
+
+
+def test_beliefs_whose_history_is_gone_are_not_replayed_and_say_so(believed, tmp_path, capsys):
+    """A run folder whose history file changed since: its belief models read back with a
+    notice that they are not replayed (ranges and relations checked), not refused."""
+    import shutil
+
+    from test_boundary import refresh_manifest
+
+    run = tmp_path / "run"
+    shutil.copytree(believed, run)
+    meta = json.loads((run / "run.json").read_text())
+    assert Path(meta["history"]["path"]).is_file() and len(meta["history"]["sha256"]) == 64
+    meta["history"]["sha256"] = "0" * 64
+    (run / "run.json").write_text(json.dumps(meta))
+    refresh_manifest(run)
+    capsys.readouterr()
+    assert twin_main(["report", str(run), "--no-animation"]) == 0
+    err = capsys.readouterr().err
+    assert "belief_models.csv and belief_maps.npz not replayed (the history " in err, err

@@ -230,6 +230,13 @@ def _write(path: Path, text: str) -> Path:
     return path
 
 
+def _linked(t: Path, name: str, target: str) -> Path:
+    """``t/name``, a symbolic link to the folder ``t/target`` (made)."""
+    (t / target).mkdir(exist_ok=True)
+    (t / name).symlink_to(t / target)
+    return t / name
+
+
 CASES = {
     # name: (argv builder(tmp) -> argv, words expected in the line)
     "missing config": (lambda t: ["evaluate", "--config", str(t / "nope.toml")], "nope.toml"),
@@ -469,6 +476,16 @@ CASES = {
     # a video in the run folder was removed with its report (probe 16's f13, f14)
     "record inside the run's report": (
         lambda t: ["run", "--record", str(t / "R" / "report" / "x.gif"), "--out", str(t / "R")],
+        "/report/x.gif: lies in --out ",
+    ),
+    "record into the run's report through a link": (
+        lambda t: [
+            "run",
+            "--record",
+            str(_linked(t, "L", "R") / "report" / "x.gif"),
+            "--out",
+            str(t / "R"),
+        ],
         "/report/x.gif: lies in --out ",
     ),
     "record as the run folder": (
@@ -877,6 +894,17 @@ def _relabel_seeds(run: Path) -> None:
     (run / "run.json").write_text(json.dumps(meta))
 
 
+def _ceiling_set(swarm: str, column: str, value):
+    """A ceiling row's ``column`` set to ``value``."""
+
+    def edit(frame: pd.DataFrame) -> pd.DataFrame:
+        frame = frame.copy()
+        frame.loc[frame["swarm"] == swarm, column] = value
+        return frame
+
+    return edit
+
+
 def _ceiling_scaled(swarm: str, factor: float):
     """A ceiling row's R_hat_T scaled alike in per_seed.csv and summary.csv."""
 
@@ -903,6 +931,13 @@ READ_BACK = {
     "oracle lowered alike in per_seed and summary": (
         _ceiling_scaled("oracle (ceiling)", 0.9),
         "swarm 'oracle (ceiling)', but oracle.parquet replayed over the seed's maps give",
+    ),
+    "oracle row given a monitoring figure alike in per_seed and summary": (
+        _all(
+            _edit_table("per_seed.csv", _ceiling_set("oracle (ceiling)", "belief_error", 0.5)),
+            _edit_table("summary.csv", _ceiling_set("oracle (ceiling)", "belief_error", 0.5)),
+        ),
+        "belief_error = 0.5 for the oracle (ceiling) row of seed 0, which monitors nothing",
     ),
     "oracle cells left out": (
         lambda run: (run / "oracle.parquet").unlink(),

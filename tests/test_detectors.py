@@ -412,6 +412,14 @@ def test_history_of_days_with_detectors_calibrates_their_stations(small, tmp_pat
         assert not (tmp_path / "h2.npz").exists()
 
 
+def _all(*edits):
+    def edit(frame):
+        for one in edits:
+            one(frame)
+
+    return edit
+
+
 def _set_all(column, value):
     def edit(frame):
         frame[column] = value
@@ -425,9 +433,10 @@ READING_EDITS = [
     (lambda f: f.__setitem__("i", f["i"].where(f.index != 3, 99)), "seed 0, step"),
     (
         _set_all("occupancy_pct", 500.0),
-        "occupancy_pct = 500, not a share of time in %, -1 .. 100",
+        "occupancy_pct = 500, not a share of time in %, 0 .. 100",
     ),
-    # a broken reading SUMO gives (probe 16's f08) is left out when read; forged, refused
+    # a broken reading of a scenario's detector (probe 16's f08) is left out when read;
+    # forged, refused
     (_set_all("occupancy_pct", -11.57), "occupancy_pct = -11.57, not a share of time in %"),
     (_set_all("speed", -3.0), "speed = -3, not a speed in m/s"),
     (_set_all("importance", 0.99), "but the MFD in effect at that step"),
@@ -546,3 +555,9 @@ def test_a_broken_occupancy_reading_is_left_out_with_one_notice(capsys):
     assert [reader.read(), reader.read(), reader.read()] == [[], [(0, 2, 5.0, 8.0)], []]
     notices = [line for line in capsys.readouterr().err.splitlines() if "L3" in line]
     assert len(notices) == 1 and "occupancy of -11.57 %" in notices[0], notices
+    # twin's own loops (a period of one step) dip below 0 too: kept as 0, without a word
+    # (probe 16's P2-f08)
+    values = iter([(1, -2.1, 9.0)])
+    reader.detectors = [Detector("twin-loop-0-0-0", LOOP, "B0B1_0", (0, 0), True)]
+    assert reader.read() == [(0, 1, 0.0, 9.0)]
+    assert "twin-loop" not in capsys.readouterr().err

@@ -325,3 +325,29 @@ def test_a_live_envs_scenario_notices_come_once_over_its_episodes(tmp_path: Path
     err = capfd.readouterr().err
     assert err.count("are not kept by this command") == 1, err
     assert not (tmp_path / "trip.xml").exists()
+
+
+def test_a_live_env_left_open_with_large_maps_lets_its_script_end(tmp_path: Path):
+    """A script that makes a live env of large maps and ends without closing it: it ends (its
+    SUMO child, blocked sending a map nobody read, ignored multiprocessing's SIGTERM and was
+    waited for forever; probe 16's P2-e1)."""
+    import subprocess
+    import sys
+
+    pytest.importorskip("libsumo")
+    small_sumo_scenario(tmp_path, horizon=3)
+    text = (tmp_path / "small.toml").read_text().replace("cell_m = 200.0", "cell_m = 2.0")
+    text = text.replace("drone_speed_kmh = 12.0", "drone_speed_kmh = 0.12")  # 60 s steps
+    (tmp_path / "fine.toml").write_text(text)
+    script = (
+        "from twin.env import make_env\n"
+        "e = make_env('fine.toml')\n"
+        "e.reset(seed=0)\n"
+        "e.step({a: 0 for a in e.agents})\n"
+        "print('stepped', flush=True)\n"
+    )
+    root = Path(__file__).resolve().parents[1]
+    env = {**__import__("os").environ, "PYTHONPATH": str(root)}
+    done = subprocess.run([sys.executable, "-c", script], cwd=tmp_path, env=env,
+                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert done.returncode == 0 and "stepped" in done.stdout, done.stderr

@@ -135,3 +135,20 @@ def test_a_tiny_beta1_dissipates_at_once_without_a_warning():
         warnings.simplefilter("error")
         a = big.amplitudes(np.arange(5), 20, 1e-310, 0.5)
     assert a.tolist() == [1.0, 0.0, 0.0, 0.0, 0.0]
+
+
+def test_a_map_that_fades_at_once_says_so_in_synthetic_words(tmp_path, capsys):
+    """A synthetic map whose one disturbance fades within a step: the notice that nothing is
+    left to see names the synthetic cause, and counts from step 1 (probe 16's P2-f07)."""
+    from twin.cli import main
+
+    config = tmp_path / "b.toml"
+    config.write_text(
+        '[grid]\nnx = 6\nny = 6\n[traffic]\nkind = "synthetic"\nhorizon = 20\nbeta1 = 1e-310\n'
+        'disturbances = [{ kind = "big", i = 2, j = 2, amplitude = 1.0, sigma = 1.0 }]\n'
+    )
+    code = main(["evaluate", "--config", str(config), "--seeds", "1", "--swarms", "random",
+                 "--no-ceiling", "--no-report", "--quiet", "--out", str(tmp_path / "r")])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 0 and "importance is 0 in every cell from step 1 on" in err, err
+    assert "synthetic disturbances that fade within a step" in err

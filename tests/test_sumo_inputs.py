@@ -746,5 +746,37 @@ def test_a_network_of_one_free_cell_runs_with_one_drone_and_says_its_map_is_empt
                       "--no-ceiling", "--no-report", "--out", str(tmp_path / "r")])  # fmt: skip
     err = capsys.readouterr().err
     assert code == 0, err
-    assert "the importance is 0 in every cell at every step" in err, err
+    assert "the importance is 0 in every cell from step 1 on" in err, err
     assert "--drones 1)" not in err and "no smaller cell size down to 25 m" in err, err
+
+
+def test_a_run_writes_nothing_in_the_systems_temporary_folder(tmp_path, monkeypatch, capsys):
+    """SUMO's messages and scratch files live in twin's cache, not in /tmp, where a killed
+    run left them behind (probe 16's P2-t1)."""
+    import tempfile
+
+    from helpers import small_sumo_scenario
+
+    system = tmp_path / "system-tmp"
+    system.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(system))
+    cache = tmp_path / "cache"
+    monkeypatch.setenv("TWIN_CACHE_DIR", str(cache))
+    for name in ("mkstemp", "mkdtemp"):  # a file in /tmp outlives a killed run: none is made
+        real = getattr(tempfile, name)
+
+        def made_in_place(*args, real=real, **kwargs):
+            where = Path(kwargs.get("dir") or tempfile.gettempdir()).resolve()
+            if where.is_relative_to(system.resolve()):
+                raise AssertionError(f"a temporary file in the system's folder {where}")
+            return real(*args, **kwargs)
+
+        monkeypatch.setattr(tempfile, name, made_in_place)
+    small_sumo_scenario(tmp_path, horizon=2)
+    for extra in ([], ["--workers", "2", "--seeds", "2"]):
+        out = tmp_path / f"run{len(extra)}"
+        code = twin_main(["run", "--config", str(tmp_path / "small.toml"), "--quiet",
+                          "--no-report", "--no-ceiling", "--swarms", "random", "--out", str(out),
+                          *extra])  # fmt: skip
+        assert code == 0, capsys.readouterr().err
+    assert sorted(p.name for p in system.iterdir()) == []

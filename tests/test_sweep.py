@@ -410,6 +410,11 @@ def test_killed_sweep_resumes(tmp_path: Path) -> None:
         ),
         (
             '[sweep]\nswarms = ["greedy"]\n[[scenario]]\nname = "t"\nconfig = "scenario.toml"\n'
+            'tape = "t.parquet"\n[parameters]\n"grid.obstacles" = [[], [[1, 1]]]\n',
+            "[parameters].'grid.obstacles' sets the traffic of [[scenario]] 't'",
+        ),
+        (
+            '[sweep]\nswarms = ["greedy"]\n[[scenario]]\nname = "t"\nconfig = "scenario.toml"\n'
             'tape = "t.parquet"\noverrides = { "traffic.horizon" = 10 }\n',
             "[[scenario]] t.overrides.'traffic.horizon' sets the traffic of [[scenario]] 't'",
         ),

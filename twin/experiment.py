@@ -315,18 +315,19 @@ def run_experiment(
 
 
 def say_empty_maps(outcome: ExperimentResult) -> None:
-    """A notice for each seed whose maps are 0 in every cell at every step: no traffic was
-    seen, so every swarm scores alike (a window without demand, or vehicles only on lanes the
-    grid leaves out, such as SUMO's racing game on vip-only lanes)."""
+    """A notice for each seed whose maps are 0 in every cell from step 1 on: nothing to see,
+    so every swarm scores alike (a window without demand, vehicles only on lanes the grid
+    leaves out such as SUMO's racing game on vip-only lanes, disturbances that fade at once)."""
     from twin.boundary import notify
 
     for r in outcome.results:
         maps = r.importance
         if maps is not None and len(maps) > 1 and not np.any(maps[1:]):
             notify(
-                f"twin: notice: seed {r.seed}: the importance is 0 in every cell at every step: "
-                "no traffic was seen on the grid (a window without demand, or vehicles only on "
-                "lanes the grid leaves out), so every swarm scores alike"
+                f"twin: notice: seed {r.seed}: the importance is 0 in every cell from step 1 on: "
+                "the swarms have nothing to see, so every swarm scores alike (a SUMO window "
+                "without demand, or with vehicles only on lanes the grid leaves out; synthetic "
+                "disturbances that fade within a step)"
             )
 
 
@@ -423,7 +424,9 @@ class StopFile:
     def __init__(self) -> None:
         import tempfile
 
-        self.folder = Path(tempfile.mkdtemp(prefix="twin-stop-"))
+        from twin.resources import scratch_dir
+
+        self.folder = Path(tempfile.mkdtemp(prefix="twin-stop-", dir=scratch_dir()))
         self.path = self.folder / "stop"
 
     def request(self, after: int) -> None:

@@ -111,6 +111,34 @@ def cache_dir() -> Path:
     return Path(platformdirs.user_cache_dir("twin", appauthor=False))
 
 
+#: How old (days) a scratch entry of a process that was killed (``kill -9``) may grow before a
+#: later twin removes it.
+SCRATCH_DAYS = 2
+
+
+def scratch_dir() -> Path:
+    """twin's scratch folder, ``<cache>/tmp``: the temporary files of a command (SUMO's
+    messages, a GUI's frames, the word to stop a parallel run) live there, never in the
+    system's temporary folder (twin writes only into its run folder and its cache). Entries a
+    killed process left behind are removed after :data:`SCRATCH_DAYS` days."""
+    import shutil
+    import time
+
+    folder = cache_dir() / "tmp"
+    folder.mkdir(parents=True, exist_ok=True)
+    old = time.time() - SCRATCH_DAYS * 86400
+    for entry in folder.iterdir():
+        try:
+            if entry.lstat().st_mtime < old:
+                if entry.is_dir() and not entry.is_symlink():
+                    shutil.rmtree(entry, ignore_errors=True)
+                else:
+                    entry.unlink()
+        except OSError:
+            continue
+    return folder
+
+
 def check_cache(why: str) -> Path:
     """Refuse (one line) a cache twin cannot write in (a file in its place, a read-only
     disk) before work that needs it starts; ``why`` says what needs it."""

@@ -93,6 +93,8 @@ def run_and_record(
     # run's results are not thrown away for a folder half written
     with stop_on_interrupt(doing="finishing the run folder first") as stopped:
         meta = run_metadata(outcome, command, **(extra_meta(outcome) if extra_meta else {}))
+        if history is not None and getattr(args, "history", None) is not None:
+            meta["history"] = history_record(Path(args.history))  # its beliefs are replayed
         beliefs = belief_models(outcome, history, meta)
         maps = None
         if beliefs is not None:
@@ -109,6 +111,14 @@ def run_and_record(
     if stopped():
         raise KeyboardInterrupt
     return Recorded(run_dir, outcome, summary, comparison, beliefs)
+
+
+def history_record(path: Path) -> dict[str, str]:
+    """run.json's ``history``: the file the belief models were scored with and its sha256, by
+    which ``twin report`` finds it again to replay them (:mod:`twin.report.beliefs`)."""
+    from twin.files import file_sha256
+
+    return {"path": str(path.resolve()), "sha256": file_sha256(path)}
 
 
 def hand_history(experiment: Experiment, history) -> None:

@@ -8,7 +8,6 @@ with the SUMO extras: ``network.json``, ``mfd.json``, ``mfd_samples.parquet``, `
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 
@@ -176,7 +175,7 @@ def gui_drawer(args: argparse.Namespace, swarms, owned: tuple[Path, str] | None 
     record = args.record
     if record is not None and owned is not None and owned[0] is not None:
         folder, what = owned
-        if Path(os.path.abspath(record)).is_relative_to(os.path.abspath(folder)):
+        if Path(record).resolve().is_relative_to(Path(folder).resolve()):  # links followed
             raise UserError(
                 f"--record {record}: lies in {what}, which twin writes afresh (the video would "
                 "be lost with it); give a file outside it"

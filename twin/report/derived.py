@@ -1251,8 +1251,9 @@ def check_mfd_files(run_dir: Path, model) -> None:
 #: What a fixed detector's reading can be: its columns' ranges in ``detectors.parquet``.
 READING_RANGES = {
     "vehicles": (0.0, np.inf, "a count of vehicles, at least 0"),
-    # SUMO's own interval occupancy dips slightly below 0 at times (twin.sumo.detectors)
-    "occupancy_pct": (-1.0, 100.0, "a share of time in %, -1 .. 100 (SUMO's rounding below 0)"),
+    # SUMO's own interval occupancy dips below 0 at times: kept as 0 (folder format 3; an
+    # earlier format's readings hold SUMO's dips, of which only the top is checked)
+    "occupancy_pct": (0.0, 100.0, "a share of time in %, 0 .. 100"),
     "speed": (0.0, np.inf, "a speed in m/s, at least 0 (NaN: no vehicle)"),
 }
 #: A detector's fields, the same in each of its readings.
@@ -1275,6 +1276,8 @@ def check_detector_readings(primary: Primary, mfd_before: dict[int, Any]) -> Non
                              "importance": "finite", "occupancy_pct": "number",
                              "vehicles": "number", "speed": "number"})  # fmt: skip
     for column, (low, high, what) in READING_RANGES.items():
+        if column == "occupancy_pct" and folder_format(primary) < 3:
+            low = -np.inf  # SUMO's dips below 0, as an earlier twin kept them
         value = rows[column].to_numpy(dtype=float)
         bad = (value < low) | (value > high) | (np.isnan(value) & (column != "speed"))
         if bad.any():
@@ -1458,14 +1461,25 @@ def check_bound(primary: Primary, per_seed: pd.DataFrame | None) -> None:
 
 
 def check_oracle(primary: Primary, per_seed: pd.DataFrame | None) -> None:
-    """Each ``oracle (ceiling)`` row of ``per_seed.csv`` is the scores of the oracle's cells
+    """The ceiling rows of ``per_seed.csv`` leave the monitoring columns empty; each
+    ``oracle (ceiling)`` row of ``per_seed.csv`` is the scores of the oracle's cells
     that ``oracle.parquet`` keeps for its seed (from the swarms' starts, one action a step,
     under the run's faults), stepped again over the seed's maps wherever the folder holds them
     (a folder of format 2 or earlier kept no cells: not replayed)."""
-    from twin.metrics import ORACLE
+    from twin.metrics import MONITORING_COLUMNS, ORACLE, is_ceiling_row
 
     if per_seed is None or not {"swarm", "seed"} <= set(per_seed.columns):
         return
+    ceilings = per_seed[is_ceiling_row(per_seed)]
+    for column in (c for c in MONITORING_COLUMNS if c in ceilings.columns):
+        filled = ceilings[column].notna()
+        if filled.any():
+            r = ceilings[filled].iloc[0]
+            raise UserError(
+                f"{primary.run_dir / 'per_seed.csv'}: {column} = {_show(r[column])} for the "
+                f"{r['swarm']} row of seed {r['seed']}, which monitors nothing (empty as a run "
+                f"writes it); {RERUN}"
+            )
     rows = per_seed[per_seed["swarm"].astype(str) == ORACLE]
     params, path = primary.params(), primary.run_dir / "oracle.parquet"
     if rows.empty or params is None or (not path.exists() and folder_format(primary) < 3):
@@ -1717,16 +1731,22 @@ def _differ(have: pd.Series, want: pd.Series, slack: pd.Series | None) -> np.nda
     return np.where(nan_h | nan_w, nan_h != nan_w, off)
 
 
+#: Keys of a compared table that hold names (the others hold numbers: seed, step, phase...).
+NAME_KEYS = ("swarm", "model")
+
+
 def _keyed(frame: pd.DataFrame, key: tuple[str, ...]) -> pd.DataFrame:
     frame = frame.copy()
     for k in key:
-        frame[k] = frame[k].astype(str) if k == "swarm" else frame[k].astype(np.int64)
+        frame[k] = frame[k].astype(str) if k in NAME_KEYS else frame[k].astype(np.int64)
     return frame.drop_duplicates(list(key)).set_index(list(key))
 
 
 def _who(key: tuple[str, ...], at: Any) -> str:
     values = at if isinstance(at, tuple) else (at,)
-    parts = [f"{k} {v!r}" if k == "swarm" else f"{k} {v}" for k, v in zip(key, values, strict=True)]
+    parts = [
+        f"{k} {v!r}" if k in NAME_KEYS else f"{k} {v}" for k, v in zip(key, values, strict=True)
+    ]
     return ", ".join(parts)
 
 

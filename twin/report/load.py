@@ -50,6 +50,7 @@ from twin.readback import (
 )
 from twin.report.derived import (
     Primary,
+    _show,
     check_degradation_replay,
     check_derived,
     folder_format_of,
@@ -444,6 +445,16 @@ def load_run(run_dir: str | Path) -> RunFiles:
         check_degradation_replay(primary, degradation, fault_free)
     if beliefs is not None:
         check_belief_scores(run_dir, beliefs, primary, belief_maps)
+        from twin.report.beliefs import check_belief_replay
+
+        why = check_belief_replay(primary, beliefs, belief_maps)
+        if why is not None:
+            from twin.boundary import notify
+
+            notify(
+                f"twin: notice: {run_dir}: belief_models.csv and belief_maps.npz not replayed "
+                f"({why}); their ranges and relations are checked"
+            )
     return RunFiles(
         run_dir=run_dir,
         series=series,
@@ -893,18 +904,20 @@ def check_belief_scores(
             hours = (float(steps.iloc[0]) + 1) * step_s / 3600.0
             pairs.append(("false_alarms_per_hour", number(r, "false_alarms") / hours))
         for column, want in pairs:
-            if column in rows.columns and not _close_or_nan(number(r, column), want):
-                raise say(r, f"{column} = {number(r, column):.6g}, but the row's steps and "
-                             f"step_s = {step_s:g} give {want:.6g}")  # fmt: skip
+            have = number(r, column)
+            if column in rows.columns and not _close_or_nan(have, want):
+                raise say(r, f"{column} = {_show(have, want)}, but the row's steps and "
+                             f"step_s = {step_s:g} give {_show(want, have)}")  # fmt: skip
     summary = primary.summary
     if summary is not None and "belief_error" in summary.columns:
         errors = summary.set_index(summary["swarm"].astype(str))["belief_error"]
         for _, r in rows[rows["model"] == "last-seen"].iterrows():
             want = float(errors.get(r["swarm"], np.nan))
-            if not _close_or_nan(number(r, "belief_error"), want):
-                raise say(r, f"belief_error = {number(r, 'belief_error'):.6g}, but summary.csv's "
+            have = number(r, "belief_error")
+            if not _close_or_nan(have, want):
+                raise say(r, f"belief_error = {_show(have, want)}, but summary.csv's "
                              f"belief_error of the swarm (the same last-seen belief) is "
-                             f"{want:.6g}")  # fmt: skip
+                             f"{_show(want, have)}")  # fmt: skip
     monitoring = primary.run.get("monitoring")
     default = MonitorSettings()
     same = isinstance(monitoring, dict) and all(
@@ -939,9 +952,10 @@ def check_belief_scores(
         pct = 100.0 * hit.mean() if len(at) else np.nan
         latency = float(np.median((at - onset)[hit])) if hit.any() else np.nan
         for column, want in (("pct_events_known", pct), ("latency_median_steps", latency)):
-            if column in rows.columns and not _close_or_nan(number(r, column), want):
-                raise say(r, f"{column} = {number(r, column):.6g}, but belief_maps.npz's "
-                             f"known_at gives {want:.6g}")  # fmt: skip
+            have = number(r, column)
+            if column in rows.columns and not _close_or_nan(have, want):
+                raise say(r, f"{column} = {_show(have, want)}, but belief_maps.npz's "
+                             f"known_at gives {_show(want, have)}")  # fmt: skip
 
 
 def _close_or_nan(have: float, want: float) -> bool:

@@ -194,8 +194,10 @@ def with_additional(options: tuple[str, ...], extra: Path) -> tuple[str, ...]:
     return (*out, "--additional-files", str(extra))
 
 
-#: The lowest occupancy (%) a reading keeps: SUMO's interval occupancy dips slightly below 0 at
-#: times (float rounding); far below, it is broken (a period shorter than SUMO's step).
+#: The lowest occupancy (%) a reading of the scenario's detectors keeps: SUMO's interval
+#: occupancy dips below 0 at times (twin's own loops, of a period of one step, to -2 %), kept
+#: as 0 (the importance of a density at or below 0 is 0 alike); far below, for a period that is
+#: no multiple of SUMO's step, a reading is broken and left out.
 OCCUPANCY_FLOOR = -1.0
 
 
@@ -237,16 +239,17 @@ class DetectorReader:
         return (int(r[0]), int(c[0])) if inside[0] else None
 
     def _say_broken(self, detector: Detector, occupancy: float) -> None:
-        """One notice per detector whose reading SUMO gave broken (left out)."""
+        """One notice per detector of the scenario whose reading SUMO gave broken (left out)."""
         if detector.id in self._broken:
             return
         self._broken.add(detector.id)
         from twin.boundary import notify
 
         notify(
-            f"twin: notice: detector {detector.id!r} (lane {detector.lane}) read an occupancy "
-            f"of {occupancy:.4g} %, which SUMO gives for a period that is no multiple of its "
-            "1 s step: its readings below 0 % are left out; give it a period of whole seconds"
+            f"twin: notice: the scenario's detector {detector.id!r} (lane {detector.lane}) read "
+            f"an occupancy of {occupancy:.4g} %, as SUMO's interval occupancy does for a "
+            f"period that is no multiple of its 1 s step (SUMO warns of it): its readings "
+            f"below {OCCUPANCY_FLOOR:g} % are left out; give it a period of whole seconds"
         )
 
     def read(self) -> list[tuple[int, int, float, float]]:
@@ -264,8 +267,9 @@ class DetectorReader:
                 continue
             self._last[d.id] = reading
             count, occupancy, speed = reading
-            if occupancy < OCCUPANCY_FLOOR:
+            if occupancy < OCCUPANCY_FLOOR and not d.virtual:
                 self._say_broken(d, occupancy)
                 continue
+            occupancy = max(occupancy, 0.0)  # a dip below 0: no vehicle time (importance 0)
             rows.append((n, count, occupancy, speed if speed >= 0 else float("nan")))
         return rows

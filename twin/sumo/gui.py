@@ -366,7 +366,9 @@ class GuiDrawer:
         self._tmp = None
         self._frames_dir = settings.frames_dir
         if settings.record is not None and self._frames_dir is None:
-            self._tmp = tempfile.TemporaryDirectory(prefix="twin-frames-")
+            from twin.resources import scratch_dir
+
+            self._tmp = tempfile.TemporaryDirectory(prefix="twin-frames-", dir=scratch_dir())
             self._frames_dir = Path(self._tmp.name)
         #: the view's ``((xmin, ymin), (xmax, ymax))`` in network metres (to place pixels)
         self.view_boundary = None

@@ -259,7 +259,9 @@ class SumoTraffic(TrafficSource):
         if self.output_dir is None:
             import tempfile
 
-            scratch = Path(tempfile.mkdtemp(prefix="twin-sumo-"))
+            from twin.resources import scratch_dir
+
+            scratch = Path(tempfile.mkdtemp(prefix="twin-sumo-", dir=scratch_dir()))
         try:
             session = self.session(self.output_dir or scratch).start()
         except UserError as exc:  # name the user's file, not twin's rewritten copy of it

@@ -63,8 +63,27 @@ class WorksAhead(Protocol):
     def model_after(self, snapshots: list) -> Any: ...
 
 
+#: The SUMO children alive now: killed at the interpreter's exit, before multiprocessing joins
+#: them (a child leaves stops to its parent, so multiprocessing's SIGTERM does not end it, and
+#: one blocked sending a large map to a parent that no longer reads would be waited for
+#: forever: an env left open when its script ends).
+_LIVE: set = set()
+
+
+def _kill_live_children() -> None:
+    for child in list(_LIVE):
+        with contextlib.suppress(Exception):
+            child.kill()
+            child.join(timeout=5)
+
+
 def maps_from_child(source: WorksAhead) -> Iterator[np.ndarray]:
     """The source's maps computed in a forked child process (see the module docstring)."""
+    if not getattr(_kill_live_children, "registered", False):
+        import atexit  # after multiprocessing's own exit function: run before it
+
+        atexit.register(_kill_live_children)
+        _kill_live_children.registered = True
     context = multiprocessing.get_context("fork")
     here, there = context.Pipe(duplex=True)
     messages = _messages_file()  # SUMO's stderr in the child: kept out of twin's lines
@@ -76,6 +95,7 @@ def maps_from_child(source: WorksAhead) -> Iterator[np.ndarray]:
     source.detector_readings = []
     source.timer, source._truth, source._incidents = StageTimer(), None, None
     child.start()
+    _LIVE.add(child)
     there.close()
     ended = False
     try:
@@ -110,6 +130,7 @@ def maps_from_child(source: WorksAhead) -> Iterator[np.ndarray]:
         if child.is_alive():
             child.kill()
             child.join()
+        _LIVE.discard(child)
         _keep_messages(source, messages)
 
 
@@ -161,7 +182,9 @@ MESSAGES_NAME = "sumo-messages.log"
 
 def _messages_file() -> Path:
     """A fresh temporary file for SUMO's messages (the child's stderr)."""
-    fd, name = tempfile.mkstemp(prefix="twin-sumo-", suffix=".log")
+    from twin.resources import scratch_dir
+
+    fd, name = tempfile.mkstemp(prefix="twin-sumo-", suffix=".log", dir=scratch_dir())
     os.close(fd)
     return Path(name)
 

@@ -165,12 +165,14 @@ class SweepConfig(StrictModel):
             swept = [(f"[parameters].{k!r}", k) for k in self.parameters]
             set_here = [(f"[[scenario]] {spec.name}.overrides.{k!r}", k) for k in spec.overrides]
             for where, key in swept + set_here:
-                if key.startswith("traffic.") and key not in TAPE_TRAFFIC_KEYS:
+                if (key.startswith("traffic.") and key not in TAPE_TRAFFIC_KEYS) or (
+                    key == "grid.obstacles"
+                ):
                     raise ValueError(
                         f"{where} sets the traffic of [[scenario]] {spec.name!r}, which replays "
-                        f"the tape {spec.tape}: a tape keeps its own traffic (cells, window, "
-                        "demand), so it would change nothing; sweep it over a live scenario "
-                        "(no tape), or drop it"
+                        f"the tape {spec.tape}: a tape keeps its own traffic (cells and their "
+                        "obstacles, window, demand), so it would change nothing; sweep it over "
+                        "a live scenario (no tape), or drop it"
                     )
         base = Path((info.context or {}).get("path", "sweep.toml")).parent
         for swarm, table in self.swarm_options.items():
