@@ -114,6 +114,8 @@ def cache_dir() -> Path:
 #: How old (days) a scratch entry of a process that was killed (``kill -9``) may grow before a
 #: later twin removes it.
 SCRATCH_DAYS = 2
+#: The scratch folders this process has swept of stale entries.
+_SWEPT: set[Path] = set()
 
 
 def scratch_dir() -> Path:
@@ -126,6 +128,9 @@ def scratch_dir() -> Path:
 
     folder = cache_dir() / "tmp"
     folder.mkdir(parents=True, exist_ok=True)
+    if folder in _SWEPT:  # once per process (an env makes a scratch file at every episode)
+        return folder
+    _SWEPT.add(folder)
     old = time.time() - SCRATCH_DAYS * 86400
     for entry in folder.iterdir():
         try:

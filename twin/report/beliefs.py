@@ -54,34 +54,25 @@ def replayable_history(primary: Primary):
 
 def _sighting(primary: Primary, seed: int):
     """The drones' sighting model of ``seed`` (:meth:`twin.traffic.base.TrafficSource.
-    sighting_model`): a SUMO run's from its tape, exact otherwise."""
+    sighting_model`): exact on synthetic maps, a live run's that of its tape as the read-back
+    replayed it (None: not replayed, or a replayed tape's, whose eyes run.json does not keep)."""
     from twin.belief import EXACT_SIGHTINGS
 
     traffic = primary.run.get("traffic")
     kind = traffic.get("kind") if isinstance(traffic, dict) else None
     if kind in ("synthetic", "dynamic"):
         return EXACT_SIGHTINGS
-    if kind != "sumo":  # a replayed tape's eyes (its detection probability) are not kept
-        return None
-    from twin.traffic.tape import Tape, TapeTraffic
-
-    first = primary.first_seed
-    path = primary.run_dir / ("tape.parquet" if seed == first else f"tapes/seed-{seed}.parquet")
-    if not path.is_file():
-        return None
-    return TapeTraffic(Tape.read(path)).sighting_model()  # the live run's, as recorded
+    return primary.tape_sightings.get(seed) if kind == "sumo" else None
 
 
-def _detectors(primary: Primary, seed: int, horizon: int, ny: int):
-    """The fixed detectors' observations of ``seed`` (``detectors.parquet``), None without."""
+def _detectors(readings: pd.DataFrame | None, seed: int, horizon: int, ny: int):
+    """The fixed detectors' observations of ``seed`` (``detectors.parquet``'s ``readings``),
+    None without."""
     from twin.belief import DetectorObservations
-    from twin.readback import read_table
 
-    path = primary.run_dir / "detectors.parquet"
-    if not path.is_file():
+    if readings is None:
         return None
-    rows = read_table(path)
-    rows = rows[rows["seed"] == seed]
+    rows = readings[readings["seed"] == seed]
     readings = zip(rows["step"], rows["i"] * ny + rows["j"], rows["importance"], strict=True)
     return DetectorObservations.from_readings(readings, horizon)
 
@@ -91,18 +82,22 @@ def _results(primary: Primary) -> tuple[list[Any] | None, str | None]:
     monitoring = primary.run.get("monitoring")
     if not isinstance(monitoring, dict) or monitoring.get("truth") != OBSERVED_TRUTH:
         return None, "the run scored them against a truth the folder does not keep"
+    from twin.readback import read_table
+
     maps, grid = _maps_by_seed(primary), Grid(primary.obstacles)
     plan = fault_plan(primary)
+    path = primary.run_dir / "detectors.parquet"
+    readings = read_table(path) if path.is_file() else None
     results = []
     for seed in sorted(int(s) for s in primary.series["seed"].unique()):
         if seed not in maps:
             return None, f"the folder does not hold seed {seed}'s maps"
         sighting = _sighting(primary, seed)
         if sighting is None:
-            return None, f"the folder does not hold how seed {seed}'s drones sighted (a tape)"
+            return None, f"seed {seed}'s sightings are not known (its tape was not replayed)"
         positions = np.stack([primary.positions(seed, s) for s in primary.swarms])
         extra: dict[str, Any] = {"sighting": sighting}
-        detectors = _detectors(primary, seed, positions.shape[1] - 1, grid.ny)
+        detectors = _detectors(readings, seed, positions.shape[1] - 1, grid.ny)
         if detectors is not None:
             extra["detectors"] = detectors
         results.append(

@@ -102,6 +102,9 @@ class Primary:
     #: ``(steps, nx, ny)`` maps of each seed's tape replayed through its MFD, by seed, once
     #: replayed (:func:`check_tape_maps`, :func:`check_seed_tapes`)
     tape_maps: dict[int, np.ndarray] = field(default_factory=dict, repr=False)
+    #: how each replayed tape's drones sighted (its source's :class:`twin.belief.SightingModel`),
+    #: by seed: the belief models' replay needs it (:mod:`twin.report.beliefs`)
+    tape_sightings: dict[int, Any] = field(default_factory=dict, repr=False)
 
     def positions(self, seed: int, swarm: str) -> np.ndarray:
         """``(T+1, N, 2)`` drone cells of one swarm and seed."""
@@ -983,6 +986,7 @@ def check_tape_maps(primary: Primary) -> None:
     check_detector_readings(primary, source.mfd_before)
     if primary.first_seed is not None and replays:
         primary.tape_maps[primary.first_seed] = np.stack(replays)
+        primary.tape_sightings[primary.first_seed] = source.sighting_model()
 
 
 def check_synthetic_maps(primary: Primary) -> None:
@@ -1159,6 +1163,7 @@ def check_seed_tapes(primary: Primary) -> None:
                 expected = recompute(of_seed, frame)
                 compare(primary.run_dir, file, frame, expected, key, name, complete)
         primary.tape_maps[seed] = of_seed.importance
+        primary.tape_sightings[seed] = source.sighting_model()
 
 
 def check_shared_traffic_seeds(primary: Primary) -> None:

@@ -278,17 +278,6 @@ def read_fault_free(run_dir: Path, run: dict[str, Any], obstacles: np.ndarray):
     return frame
 
 
-def _has_oracle(run_dir: Path) -> bool:
-    """Whether ``per_seed.csv`` names the oracle row (read as text: it is checked later)."""
-    from twin.metrics import ORACLE
-
-    path = run_dir / "per_seed.csv"
-    try:
-        return path.is_file() and ORACLE in path.read_text(errors="replace")
-    except OSError:
-        return False
-
-
 def _say_folder_format(run_dir: Path, run: dict[str, Any]) -> None:
     """A folder of an earlier format (:data:`twin.runs.FOLDER_FORMAT`) reads back, with a
     notice of what its read-back cannot replay; a later format than this twin's is refused."""
@@ -306,7 +295,7 @@ def _say_folder_format(run_dir: Path, run: dict[str, Any]) -> None:
     missing = [] if found >= 2 else ["bound row", "incident schedule"]
     if found < 3 and (run_dir / "degradation.csv").exists():
         missing.append("fault-free twin")
-    if found < 3 and not (run_dir / "oracle.parquet").exists() and _has_oracle(run_dir):
+    if found < 3 and (run_dir / "bound.npz").exists():  # its ceiling rows: an oracle row
         missing.append("oracle row")
     if missing:
         notify(

@@ -68,6 +68,7 @@ class WorksAhead(Protocol):
 #: one blocked sending a large map to a parent that no longer reads would be waited for
 #: forever: an env left open when its script ends).
 _LIVE: set = set()
+_KILL_AT_EXIT: list[bool] = []  # registered once, after multiprocessing's own exit function
 
 
 def _kill_live_children() -> None:
@@ -79,11 +80,11 @@ def _kill_live_children() -> None:
 
 def maps_from_child(source: WorksAhead) -> Iterator[np.ndarray]:
     """The source's maps computed in a forked child process (see the module docstring)."""
-    if not getattr(_kill_live_children, "registered", False):
-        import atexit  # after multiprocessing's own exit function: run before it
+    if not _KILL_AT_EXIT:
+        import atexit  # registered after multiprocessing's exit function: runs before it
 
         atexit.register(_kill_live_children)
-        _kill_live_children.registered = True
+        _KILL_AT_EXIT.append(True)
     context = multiprocessing.get_context("fork")
     here, there = context.Pipe(duplex=True)
     messages = _messages_file()  # SUMO's stderr in the child: kept out of twin's lines

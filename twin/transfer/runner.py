@@ -163,9 +163,16 @@ def _other_tape(task: dict[str, Any], settings: dict[str, Any]) -> str | None:
     return None
 
 
+def trains_on_tapes(config: TransferConfig) -> bool:
+    """Whether a row is trained on the ``[tapes]`` runs (which are then recorded)."""
+    return config.tapes is not None and any(
+        r.traffic == "tapes" and r.checkpoint is None for r in config.row
+    )
+
+
 def tape_tasks(config: TransferConfig, out: Path) -> list[dict[str, Any]]:
     t = config.tapes
-    if t is None or not any(r.traffic == "tapes" and r.checkpoint is None for r in config.row):
+    if not trains_on_tapes(config):
         return []
     return [
         {
@@ -216,7 +223,7 @@ def check_tapes_scenario(config: TransferConfig) -> None:
     live simulation (a synthetic one has no tape to record)."""
     from twin.sweep.cells import scenario_config
 
-    if not tape_tasks(config, Path(".")):
+    if not trains_on_tapes(config):
         return
     kind = scenario_config(Path(config.tapes.config), config.tapes.overrides).traffic.kind
     if kind != "sumo":
