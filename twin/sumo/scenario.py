@@ -508,6 +508,12 @@ def _grid_and_notices(
             f"the first departure ({clock_label(files.span[0])}): every step would be empty; "
             "give a --begin and --horizon within the demand, or fix its <time>"
         )
+    if window_given and files.window[1] is not None and begin >= files.window[1]:
+        notices.append(  # SUMO alone would stop at its <end>; twin's window replaces it
+            f"{files.name}: the run ({clock_label(begin)} - {clock_label(end)}) begins at or "
+            f"past the scenario's end ({clock_label(files.window[1])}), where SUMO alone would "
+            "stop; twin runs its own window (give a --begin before it to stay within it)"
+        )
     if files.span is not None and window_given:
         clear = clearing_time(geometry)
         outside = begin >= files.span[1] + clear or end <= files.span[0]
