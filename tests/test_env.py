@@ -195,6 +195,9 @@ def test_make_env_refuses_bad_options_in_one_line(joint):
         ({"params": ScoreParams(eta=True)}, r"params.eta = True must be a number"),
         ({"tape": ""}, r"make_env\(tape=''\): give a tape.parquet's path"),
         ({"tape": 3}, r"make_env\(tape=3\): give a tape.parquet's path"),
+        ({"state": ["paper"]}, r"state = \['paper'\] is not a state variant's name"),
+        ({"state": {}}, r"state = \{\} is not a state variant's name"),
+        ({"state": "bogus"}, r"state = 'bogus' is not a state variant; use one of"),
     ):
         with pytest.raises(EnvInputError, match=words) as info:
             make_env("synthetic", joint=joint, **options)

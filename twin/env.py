@@ -174,7 +174,10 @@ class SwarmParallelEnv(ParallelEnv):
         ``state`` names the observations' state variant (:mod:`twin.states`); ``nowcast`` is
         refused: the envs carry no history for its belief.
         """
-        self.variant = state_variant(state)
+        try:
+            self.variant = state_variant(state)
+        except UserError as exc:  # the env's own error type, a ValueError too
+            raise EnvInputError(str(exc)) from None
         if self.variant.needs_belief:
             raise EnvInputError(
                 f"state = {state!r} reads the nowcast of a history of earlier days, which the "
