@@ -2168,8 +2168,10 @@ def test_a_folder_of_an_earlier_format_reads_back_with_a_notice(run_copy, capsys
     saying what it cannot replay; a format later than this twin's is refused."""
     import json
 
+    from twin.runs import FOLDER_FORMAT
+
     meta = json.loads((run_copy / "run.json").read_text())
-    assert meta["folder_format"] == 3
+    assert meta["folder_format"] == FOLDER_FORMAT
     (run_copy / "bound.npz").unlink()
     del meta["folder_format"], meta["starts"]
     (run_copy / "run.json").write_text(json.dumps(meta))
@@ -2177,11 +2179,40 @@ def test_a_folder_of_an_earlier_format_reads_back_with_a_notice(run_copy, capsys
     assert main(["report", str(run_copy), "--no-animation"]) == 0
     err = capsys.readouterr().err
     assert "written by an earlier twin (folder format 1)" in err, err
-    meta["folder_format"] = 4
+    meta["folder_format"] = FOLDER_FORMAT + 1
     (run_copy / "run.json").write_text(json.dumps(meta))
     refresh_manifest(run_copy)
     assert main(["report", str(run_copy), "--no-animation"]) == EXIT_REFUSED
-    assert "a run folder of format 4, written by a later twin" in one_line(capsys)
+    line = one_line(capsys)
+    assert f"a run folder of format {FOLDER_FORMAT + 1}, written by a later twin" in line
+
+
+def test_a_figure_of_one_seed_has_no_interval(tmp_path, capsys):
+    """summary.csv leaves the _ci95 of one seed empty (a 0 would read as certainty), as the
+    transfer matrix does; a folder of format 3, which wrote 0 there, still reads back, and a
+    0 in a folder of this format is refused."""
+    import json
+
+    cfg = small_config(tmp_path, horizon=4)
+    out = tmp_path / "one"
+    argv = ["evaluate", "--config", str(cfg), "--seeds", "1", "--swarms", "random"]
+    assert main([*argv, "--out", str(out), "--no-report", "--quiet"]) == 0
+    summary = pd.read_csv(out / "summary.csv")
+    spans = [c for c in summary.columns if c.endswith("_ci95")]
+    assert spans and summary[spans].isna().all().all(), summary[spans]
+    summary[spans] = 0.0
+    summary.to_csv(out / "summary.csv", index=False)
+    monitoring = pd.read_csv(out / "monitoring.csv")
+    monitoring[[c for c in monitoring.columns if c.endswith("_ci95")]] = 0.0
+    monitoring.to_csv(out / "monitoring.csv", index=False)
+    refresh_manifest(out)
+    assert main(["report", str(out), "--no-animation"]) == EXIT_REFUSED
+    assert "summary.csv: R_hat_T_ci95 = 0" in one_line(capsys)
+    meta = json.loads((out / "run.json").read_text())
+    meta["folder_format"] = 3
+    (out / "run.json").write_text(json.dumps(meta))
+    refresh_manifest(out)
+    assert main(["report", str(out), "--no-animation"]) == 0, capsys.readouterr().err
 
 
 # ----------------------------------------------------------------- records that are no files

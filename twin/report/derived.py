@@ -755,8 +755,16 @@ def reward_split(primary: Primary, frame: pd.DataFrame) -> pd.DataFrame:
 
 
 def seed_aggregate(primary: Primary, frame: pd.DataFrame) -> pd.DataFrame:
-    """``summary.csv`` as :func:`twin.metrics.aggregate` makes it of ``per_seed.csv``."""
-    return aggregate(primary.per_seed)
+    """``summary.csv`` as :func:`twin.metrics.aggregate` makes it of ``per_seed.csv`` (a folder
+    of format 3 or earlier wrote 0 for the interval of one seed, where it is now empty)."""
+    summary = aggregate(primary.per_seed)
+    if folder_format(primary) < 4 and "swarm" in frame.columns:
+        written = frame.drop_duplicates("swarm").set_index("swarm")
+        for column in [c for c in summary.columns if c.endswith("_ci95") and c in frame]:
+            was = pd.to_numeric(written[column], errors="coerce").reindex(summary["swarm"])
+            zero = summary[column].isna().to_numpy() & (was == 0).to_numpy()
+            summary.loc[zero, column] = 0.0
+    return summary
 
 
 def summary_columns(primary: Primary, frame: pd.DataFrame) -> pd.DataFrame:
