@@ -1129,6 +1129,50 @@ READ_BACK = {
         "run.json: faults = {'drone_loss': [{'drone': 1, 'step': 'soon'}]} is not a fault record",
     ),
     "run.json folder not text": (_json("run.json", ("invocation", "cwd"), 5), "invocation.cwd"),
+    "run.json a swarm listed twice": (
+        _json("run.json", ("swarms",), ["random", "random", "greedy"]),
+        "run.json: swarms lists 'random' twice",
+    ),
+    "run.json a version not text": (
+        _json("run.json", ("versions", "python"), 3),
+        "run.json: versions.python = 3 must be text",
+    ),
+    "run.json identity grid other than its grid": (
+        _json("run.json", ("traffic", "identity", "grid"), [3, 27]),
+        "run.json: traffic.identity.grid = [3, 27], but grid is",
+    ),
+    "run.json an error in a complete run": (
+        _json("run.json", ("errors",), ["seed 0 failed badly"]),
+        "run.json: errors = 'seed 0 failed badly', but partial = false",
+    ),
+    "run.json an error record not text": (
+        _json("run.json", ("errors",), [{"x": 1}]),
+        "run.json: errors[0] = {'x': 1} must be text",
+    ),
+    "run.json a partial reason in a complete run": (
+        _json("run.json", ("partial_reason",), "it stopped"),
+        "run.json: partial_reason = 'it stopped', but partial = false",
+    ),
+    "run.json a traffic error in a complete run": (
+        _json("run.json", ("traffic", "error"), "SUMO crashed"),
+        "run.json: traffic.error = 'SUMO crashed', but partial = false",
+    ),
+    "run.json SUMO outputs not in the folder": (
+        _json("run.json", ("traffic", "sumo_outputs"), ["ghost.xml"]),
+        "traffic.sumo_outputs[0] = 'ghost.xml', but",
+    ),
+    "run.json SUMO outputs out of the folder": (
+        _json("run.json", ("traffic", "sumo_outputs"), ["../../x.xml"]),
+        "traffic.sumo_outputs[0] = '../../x.xml' is not a name inside sumo/",
+    ),
+    "run.json a policy of no swarm of the run": (
+        _json("run.json", ("policies",), {"rl": {"online": False}}),
+        "run.json: policies.rl: 'rl' is no swarm of the run",
+    ),
+    "run.json drones other than the invocation's": (
+        _json("run.json", ("invocation", "options", "drones"), 7),
+        "run.json: invocation.options.drones = 7, but n_drones = ",
+    ),
     "degradation infinite score": (
         _built_file("degradation.csv", lambda run: _degradation(run, R_hat=np.inf)),
         "degradation.csv: column 'R_hat' row 0 is inf, not a finite number",
@@ -2185,6 +2229,47 @@ def test_a_folder_of_an_earlier_format_reads_back_with_a_notice(run_copy, capsys
     assert main(["report", str(run_copy), "--no-animation"]) == EXIT_REFUSED
     line = one_line(capsys)
     assert f"a run folder of format {FOLDER_FORMAT + 1}, written by a later twin" in line
+
+
+GOOD_POLICY = {
+    "checkpoint": "qnet.pt",
+    "sha256": "ab" * 32,
+    "trained_epochs": 200,
+    "layers": [13, 64, 5],
+    "state": "paper",
+    "coordination": "central",
+    "eps": None,
+    "outages": [],
+    "online": False,
+}
+FORGED_POLICIES = {
+    "epochs below 0": ({"trained_epochs": -5}, "policies.rl.trained_epochs = -5 must be at"),
+    "sha256 not hex": ({"sha256": "zz"}, "policies.rl.sha256 = 'zz' is no sha256"),
+    "unknown state": ({"state": "bogus"}, "policies.rl.state = 'bogus' is no state variant"),
+    "unknown coordination": ({"coordination": "bogus"}, "policies.rl.coordination = 'bogus'"),
+    "eps above 1": ({"eps": 5.0}, "policies.rl.eps = 5.0 must be from 0 to 1"),
+    "layers of another state": ({"layers": [1, 2]}, "policies.rl.layers = [1, 2] must run from"),
+    "layers not ending in 5 actions": ({"layers": [13, 7]}, "to 5 Q-values"),
+    "online not true or false": ({"online": "yes"}, 'policies.rl.online = "yes" must be true'),
+}
+
+
+@pytest.mark.parametrize("name", FORGED_POLICIES)
+def test_a_forged_learned_policy_record_is_refused(name):
+    """run.json's record of a learned swarm has its checkpoint's sha256, epochs, layers that fit
+    its state, and a known state and coordination; every learned swarm of a complete run has
+    one."""
+    from twin.readback import check_run_json
+
+    base = {"swarms": ["random", "rl"], "partial": False}
+    check_run_json(Path("run.json"), {**base, "policies": {"rl": GOOD_POLICY}})
+    change, words = FORGED_POLICIES[name]
+    forged = {**base, "policies": {"rl": {**GOOD_POLICY, **change}}}
+    with pytest.raises(UserError, match=re.escape(words)):
+        check_run_json(Path("run.json"), forged)
+    with pytest.raises(UserError, match=re.escape("no policies.rl for the learned swarm")):
+        check_run_json(Path("run.json"), {**base, "policies": {}})
+    check_run_json(Path("run.json"), {**base, "partial": True, "policies": {}})
 
 
 def test_a_figure_of_one_seed_has_no_interval(tmp_path, capsys):

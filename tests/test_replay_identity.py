@@ -216,7 +216,7 @@ CASES = {
     "other grid": (
         _edit_run_json(lambda m: m["traffic"]["identity"].update(grid=[9, 9])),
         None,
-        "the grid (nx, ny) was [9, 9], now",
+        "traffic.identity.grid = [9, 9], but grid is",
     ),
     "cell off the grid": (_off_grid, None, "on cell (99, "),
     "swarm renamed in trajectories": (

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -369,14 +370,148 @@ def check_run_json(path: Path, run: Any) -> dict[str, Any]:
                 f"{path}: timings.patrol_seconds[{n}] = {str(seconds)[:40]} must be {_SECONDS[1]}"
                 f"; {RERUN}"
             )
+    if swarms := [s for s in run.get("swarms") or [] if isinstance(s, str)]:
+        twice = sorted({s for s in swarms if swarms.count(s) > 1})
+        if twice:
+            raise UserError(f"{path}: swarms lists {twice[0]!r} twice; {RERUN}")
+    for name, version in (run.get("versions") or {}).items():
+        if not isinstance(version, str):
+            raise UserError(f"{path}: versions.{name} = {str(version)[:40]} must be text; {RERUN}")
+    if grid is not None and isinstance(run.get("grid"), dict):
+        shape = [run["grid"].get("nx"), run["grid"].get("ny")]
+        if None not in shape and list(grid) != shape:
+            raise UserError(
+                f"{path}: traffic.identity.grid = {grid}, but grid is {shape[0]} x {shape[1]}; "
+                f"{RERUN}"
+            )
     check_same_fields(path, run)
     check_invocation(path, run)
+    check_partial(path, run)
+    check_policies(path, run)
+    check_sumo_outputs(path, run)
     return run
 
 
+def check_partial(path: Path, run: dict[str, Any]) -> None:
+    """A run that records an error, or a reason it is partial, says it is partial (twin marks
+    every run with an error partial)."""
+    if run.get("partial"):
+        return
+    errors = run.get("errors") or []
+    for n, error in enumerate(errors):
+        if not isinstance(error, str):
+            raise UserError(f"{path}: errors[{n}] = {str(error)[:40]} must be text; {RERUN}")
+    said = [
+        (name, value)
+        for name, value in (
+            ("errors", errors[0] if errors else None),
+            ("partial_reason", run.get("partial_reason")),
+            ("traffic.error", _dotted(run, "traffic.error")),
+        )
+        if value
+    ]
+    if said:
+        name, value = said[0]
+        raise UserError(
+            f"{path}: {name} = {str(value)[:40]!r}, but partial = false (a run with an error is "
+            f"partial); {RERUN}"
+        )
+
+
+#: What run.json records of a learned swarm (``policies.<swarm>``), with the types.
+POLICY_FIELDS: dict[str, Any] = {
+    "checkpoint": str,
+    "sha256": str,
+    "trained_epochs": int,
+    "layers": list,
+    "state": str,
+    "history_runs": int,
+    "history_seeds": list,
+    "coordination": str,
+    "eps": NUM,
+    "outages": list,
+    "online": bool,
+}
+
+
+def check_policies(path: Path, run: dict[str, Any]) -> None:
+    """``policies``: records of the run's swarms; a learned swarm's (a complete run has one for
+    each) gives its checkpoint's sha256, epochs, layers that fit its state (13 paper inputs -> 5
+    Q-values), a known state variant and coordination, and an epsilon in [0, 1]."""
+    from twin.grid import N_ACTIONS
+    from twin.states import STATE_VARIANTS
+    from twin.swarms import is_learned
+
+    policies = run.get("policies")
+    if policies is None:
+        return
+    if not isinstance(policies, dict):
+        raise UserError(f"{path}: policies must be an object (swarm -> policy); {RERUN}")
+    swarms = [s for s in run.get("swarms") or [] if isinstance(s, str)]
+    for swarm, policy in policies.items():
+        where = f"policies.{swarm}"
+        if swarm not in swarms:
+            raise UserError(f"{path}: {where}: {swarm!r} is no swarm of the run; {RERUN}")
+        check_fields(path, policy, POLICY_FIELDS, where)
+        if not is_learned(swarm):  # a planner records its own options
+            continue
+        sha = policy.get("sha256")
+        if sha is not None and not re.fullmatch(r"[0-9a-f]{64}", sha):
+            raise UserError(f"{path}: {where}.sha256 = {sha[:40]!r} is no sha256; {RERUN}")
+        epochs = policy.get("trained_epochs")
+        if epochs is not None and epochs < 0:
+            raise UserError(
+                f"{path}: {where}.trained_epochs = {epochs} must be at least 0; {RERUN}"
+            )
+        state = policy.get("state")
+        if state is not None and state not in STATE_VARIANTS:
+            raise UserError(f"{path}: {where}.state = {state[:40]!r} is no state variant; {RERUN}")
+        layers = policy.get("layers")
+        if layers is not None:
+            size = STATE_VARIANTS[state].size if state is not None else layers[:1]
+            ok = (
+                len(layers) >= 2
+                and all(isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in layers)
+                and layers[-1] == N_ACTIONS
+                and (state is None or layers[0] == size)
+            )
+            if not ok:
+                raise UserError(
+                    f"{path}: {where}.layers = {str(layers)[:40]} must run from the state's "
+                    f"{size} inputs to {N_ACTIONS} Q-values; {RERUN}"
+                )
+        coordination = policy.get("coordination")
+        if coordination is not None and coordination not in ("central", "decentralized"):
+            raise UserError(
+                f'{path}: {where}.coordination = {coordination[:40]!r} must be "central" or '
+                f'"decentralized"; {RERUN}'
+            )
+        eps = policy.get("eps")
+        if eps is not None and not 0 <= eps <= 1:
+            raise UserError(f"{path}: {where}.eps = {eps} must be from 0 to 1; {RERUN}")
+    if not run.get("partial"):
+        missing = [s for s in swarms if is_learned(s) and s not in policies]
+        if missing:
+            raise UserError(f"{path}: no policies.{missing[0]} for the learned swarm; {RERUN}")
+
+
+def check_sumo_outputs(path: Path, run: dict[str, Any]) -> None:
+    """``traffic.sumo_outputs``: files of the run folder's ``sumo/``, each there."""
+    outputs = _dotted(run, "traffic.sumo_outputs")
+    if not isinstance(outputs, list):
+        return
+    folder = path.parent / "sumo"
+    for n, name in enumerate(outputs):
+        where = f"traffic.sumo_outputs[{n}] = {str(name)[:60]!r}"
+        if not isinstance(name, str) or Path(name).is_absolute() or ".." in Path(name).parts:
+            raise UserError(f"{path}: {where} is not a name inside sumo/; {RERUN}")
+        if not (folder / name).is_file():
+            raise UserError(f"{path}: {where}, but {folder / name} is not there; {RERUN}")
+
+
 def check_invocation(path: Path, run: dict[str, Any]) -> None:
-    """run.json's command agrees with itself: ``kind`` is the invocation's command, and
-    ``created`` is a time."""
+    """run.json's command agrees with itself: ``kind`` is the invocation's command, its
+    ``--drones`` the run's ``n_drones``, and ``created`` is a time."""
     from datetime import datetime
 
     kind, command = run.get("kind"), _dotted(run, "invocation.command")
@@ -384,6 +519,11 @@ def check_invocation(path: Path, run: dict[str, Any]) -> None:
         raise UserError(
             f"{path}: kind = {str(kind)[:40]!r}, but invocation.command = {str(command)[:40]!r}; "
             f"{RERUN}"
+        )
+    drones, n_drones = _dotted(run, "invocation.options.drones"), run.get("n_drones")
+    if isinstance(drones, int) and isinstance(n_drones, int) and drones != n_drones:
+        raise UserError(
+            f"{path}: invocation.options.drones = {drones}, but n_drones = {n_drones}; {RERUN}"
         )
     created = run.get("created")
     if created is not None:
