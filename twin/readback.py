@@ -560,6 +560,23 @@ def check_same_fields(path: Path, run: dict[str, Any]) -> None:
         if isinstance(f, dict) and f.get("role") == "network"
     }
     net = identity.get("net_sha256")
+    if net is not None and not nets:
+        raise UserError(
+            f"{path}: traffic.identity.files records no network (role \"network\"), but "
+            f"traffic.identity.net_sha256 gives one; {RERUN}"
+        )
+    routes = _dotted(run, "traffic.route_files")
+    if isinstance(routes, list) and all(isinstance(r, str) for r in routes):
+        recorded = sorted(
+            Path(str(f.get("path"))).name
+            for f in identity["files"]
+            if isinstance(f, dict) and f.get("role") == "route file"
+        )
+        if recorded != sorted(Path(r).name for r in routes):
+            raise UserError(
+                f"{path}: traffic.identity.files records the route files {recorded}, but "
+                f"traffic.route_files are {sorted(Path(r).name for r in routes)}; {RERUN}"
+            )
     if nets and net is not None and net not in nets:
         raise UserError(
             f"{path}: traffic.identity.net_sha256 = {str(net)[:16]}..., but its files record "
