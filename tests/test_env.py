@@ -171,6 +171,8 @@ def test_make_env_refuses_bad_options_in_one_line(joint):
         ({"n_drones": "3"}, "n_drones = '3'"),
         ({"n_drones": 601}, "n_drones = 601"),
         ({"starts": [[0, 0], [1, 1]], "n_drones": 4}, "starts gives 2 cells"),
+        ({"starts": [["0", "0"]]}, r"starts must be \(N, 2\) whole-number cells .*not text"),
+        ({"starts": np.array([["1", "2"]])}, "not text"),
         ({"colour": "red"}, r"make_env\(colour=\.\.\.\) is not an option"),
         ({"params": {"eta": 2}}, r"params = \{'eta': 2\} is not a ScoreParams"),
         (

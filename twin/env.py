@@ -365,6 +365,10 @@ class SwarmParallelEnv(ParallelEnv):
                 "starts must be (N, 2) whole-number cells (i, j), not True/False; e.g. "
                 "[[0, 0], [1, 2]]"
             )
+        if any(isinstance(v, (str, bytes, np.str_)) for v in cells):  # as n_drones = "3" is none
+            raise EnvInputError(
+                "starts must be (N, 2) whole-number cells (i, j), not text; e.g. [[0, 0], [1, 2]]"
+            )
         try:
             raw = np.asarray(starts, dtype=np.float64)
         except (TypeError, ValueError):
