@@ -52,6 +52,12 @@ def test_incident_config_is_checked(tmp_path):
     )
     with pytest.raises(UserError, match="either edge"):
         load_config(path)
+    path.write_text(
+        '[traffic]\nkind = "sumo"\n[[traffic.incidents]]\nkind = "edge_closed"\n'
+        'edge = "e1"\nlane = 1\nbegin = "07:45"\nduration_min = 30\n'
+    )
+    with pytest.raises(UserError, match='gives lane = 1, which only kind = "lane_closed" reads'):
+        load_config(path)
 
 
 # ------------------------------------------------------------------------ on a small SUMO run
