@@ -562,7 +562,7 @@ def check_same_fields(path: Path, run: dict[str, Any]) -> None:
     net = identity.get("net_sha256")
     if net is not None and not nets:
         raise UserError(
-            f"{path}: traffic.identity.files records no network (role \"network\"), but "
+            f'{path}: traffic.identity.files records no network (role "network"), but '
             f"traffic.identity.net_sha256 gives one; {RERUN}"
         )
     routes = _dotted(run, "traffic.route_files")

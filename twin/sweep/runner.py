@@ -133,7 +133,10 @@ def check_cells(cells: list[dict[str, Any]]) -> None:
     """Validate every distinct scenario config and overrides before running anything: a live
     one is built as its cells build it (files, window, grid, incidents, detectors), without
     starting SUMO; one whose grid is known (synthetic, a tape) has its memory estimated
-    against the sweep's limit, as its cells will."""
+    against the sweep's limit, as its cells will; a swarm that plans on a history reads it.
+    """
+    from twin.swarms import needs_history
+
     seen = set()
     for cell in cells:
         key = (cell["config"], json.dumps(cell["overrides"], sort_keys=True, default=str))
@@ -147,6 +150,9 @@ def check_cells(cells: list[dict[str, Any]]) -> None:
                 live_settings(config, int(cell["seed"]))
             else:
                 check_cell_memory(config, cell)
+            for name in cell["swarms"]:  # its history read now, not after the cell's SUMO ran
+                if needs_history(name):
+                    config.make_swarm(name)
         except UserError as exc:
             raise UserError(
                 f"scenario {cell['scenario']!r} with {cell['overrides']}: {exc}"
