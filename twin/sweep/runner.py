@@ -58,15 +58,15 @@ def run_sweep(
     if executor not in EXECUTORS:
         raise UserError(f"--executor {executor!r}: choose from {', '.join(EXECUTORS)}")
     out_dir = Path(out_dir)
-    (out_dir / CELLS_DIR).mkdir(parents=True, exist_ok=True)
     cells = expand_cells(config, out_dir)
     done = done_cells(out_dir, {c["id"]: c for c in cells})
     todo = [c for c in cells if c["id"] not in done]
     for cell in todo:  # not a defining key: the limit changes no number
         cell["max_memory_gb"] = max_memory_gb
     skipped = [c["id"] for c in cells if c["id"] in done]
+    check_cells(todo)  # before anything is written: a refused sweep leaves no folder
+    (out_dir / CELLS_DIR).mkdir(parents=True, exist_ok=True)
     _write_manifest(out_dir, config, cells)
-    check_cells(todo)
     release_notices()  # every cell is valid: what the checks noticed is printed now
     workers = max(1, min(workers or os.cpu_count() or 1, len(todo) or 1))
     start = time.perf_counter()
