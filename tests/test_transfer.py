@@ -378,6 +378,26 @@ def test_a_tape_of_another_seed_copied_over_a_tape_is_recorded_again(tmp_path, c
     )
 
 
+def test_tapes_too_small_for_the_rows_drones_are_refused_before_any_stage(tmp_path, capsys):
+    """A ``[tapes]`` scenario whose grid has fewer free cells than the drones a tapes row
+    trains: one line naming the fix before any tape is recorded (it was an internal error
+    after recording them; probe 17's f04)."""
+    config = tiny_config(tmp_path, sumo=False)
+    config.write_text(
+        config.read_text().replace(
+            "seeds = [100, 101]",
+            'seeds = [100, 101]\noverrides = { "traffic.cell_m" = 1500, "swarm.n_drones" = 1 }',
+        )
+    )
+    out = tmp_path / "o"
+    assert cli(["transfer", "--config", str(config), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1, err
+    assert "[[row]] paper+tapes trains 4 drones on tapes of small.toml, whose grid has 1 " in err
+    assert 'give [schedule] scenario_overrides = { "swarm.n_drones" = 1 }' in err, err
+    assert not out.exists()
+
+
 def test_tapes_of_a_synthetic_scenario_are_refused_before_any_stage(tmp_path, capsys):
     """``[tapes] config`` naming a synthetic scenario: one line before any stage (it was an
     internal error while recording, a synthetic source has no tape; probe 16's f05)."""

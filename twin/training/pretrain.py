@@ -627,8 +627,16 @@ def episode_source(cfg: PretrainConfig):
         from twin.traffic.tape import TapeTraffic
 
         tapes = [TapeTraffic.from_file(t) for t in cfg.tapes]
-        for tape in tapes:
+        for path, tape in zip(cfg.tapes, tapes, strict=True):
             tape.check_complete("pretraining")
+            if cfg.n_drones > tape.grid.n_free:  # random starts need a free cell per drone
+                free = tape.grid.n_free
+                raise UserError(
+                    f"{path}: its {tape.grid.nx} x {tape.grid.ny} grid has {free} free "
+                    f"cell{'s' * (free != 1)} for the {cfg.n_drones} drones of the training "
+                    f'map; give scenario_overrides = {{ "swarm.n_drones" = {free} }} (or a '
+                    "tape of a larger grid)"
+                )
         return lambda e: tapes[e % len(tapes)]
     source = training_source(cfg)
     return lambda e: source

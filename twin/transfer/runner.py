@@ -225,12 +225,53 @@ def check_tapes_scenario(config: TransferConfig) -> None:
 
     if not trains_on_tapes(config):
         return
-    kind = scenario_config(Path(config.tapes.config), config.tapes.overrides).traffic.kind
+    scenario = scenario_config(Path(config.tapes.config), config.tapes.overrides)
+    kind = scenario.traffic.kind
     if kind != "sumo":
         raise UserError(
             f"{config.path}: [tapes].config = {config.tapes.config}: its traffic is {kind!r}, "
             'not a SUMO scenario; tapes are recorded from SUMO (e.g. config = "shenzhen.toml")'
         )
+    check_tape_rows_fit(config, scenario)
+
+
+def check_tape_rows_fit(config: TransferConfig, scenario) -> None:
+    """The drones a tapes row trains with (its training map's) fit on the free cells of the
+    ``[tapes]`` scenario's grid, found before a tape is recorded (its network read, its grid
+    laid, SUMO not started)."""
+    from twin.config import with_overrides
+    from twin.notices import drop_notices, hold_notices, release_notices
+    from twin.sweep.runner import prepare_sumo
+    from twin.traffic_kinds import build_traffic
+    from twin.training.pretrain import PretrainConfig
+    from twin.transfer.config import row_schedule
+
+    rows = [r for r in config.row if r.traffic == "tapes" and r.checkpoint is None]
+    drones = {}
+    for row in rows:
+        overrides, labels = row_schedule(config, row)
+        drones[row.name] = with_overrides(
+            PretrainConfig.from_data(config.path, {}), overrides, labels
+        ).n_drones
+    hold_notices()  # the scenario's notices follow a fit, and a refusal is one line
+    try:
+        prepare_sumo(scenario)
+        source = build_traffic(scenario, 0, config.tapes.seeds[0])
+        free = source.grid.n_free
+        getattr(source, "close", lambda: None)()
+    except BaseException:
+        drop_notices()
+        raise
+    for name, n in drones.items():
+        if n > free:
+            drop_notices()
+            raise UserError(
+                f"{config.path}: [[row]] {name} trains {n} drones on tapes of "
+                f"{config.tapes.config.name}, whose grid has {free} free "
+                f"cell{'s' * (free != 1)}; give [schedule] scenario_overrides = "
+                f'{{ "swarm.n_drones" = {free} }}, or a [tapes] scenario with more room'
+            )
+    release_notices()
 
 
 def check_row_starts(config: TransferConfig) -> None:
