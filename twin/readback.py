@@ -201,6 +201,7 @@ RUN_JSON_FIELDS: dict[str, Any] = {
         "horizon": int,
         "identity": {"net_sha256": str, "cell_m": NUM, "grid": list, "sumo": str, "twin": str},
         "recorded": {"step_s": NUM},
+        "tape_file": {"path": str, "sha256": str},
     },
     "timings": {"peak_memory_mb": NUM, "peak_memory_sumo_process_mb": NUM, "patrol_seconds": list},
     "wall_seconds": NUM,

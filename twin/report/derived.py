@@ -997,6 +997,52 @@ def check_tape_maps(primary: Primary) -> None:
         primary.tape_sightings[primary.first_seed] = source.sighting_model()
 
 
+def check_replayed_tape_maps(primary: Primary) -> None:
+    """A run on a tape (``twin evaluate --traffic TAPE``): while the tape run.json names
+    (``traffic.tape_file``) is there unchanged, ``importance.npz`` holds the maps it gives
+    through the run's MFD observation and detection probability, the maps of every seed;
+    its sightings are known for the belief models' replay. A tape gone or changed, or of more
+    than :data:`TAPE_REPLAY_ROWS` rows, is not replayed (the belief read-back says so)."""
+    import pyarrow.parquet as pq
+
+    from twin.files import file_sha256
+    from twin.traffic.tape import Tape, TapeTraffic
+
+    traffic = primary.run.get("traffic")
+    record = traffic.get("tape_file") if isinstance(traffic, dict) else None
+    maps = primary.importance
+    if traffic is None or traffic.get("kind") != "tape" or maps is None:
+        return
+    if not isinstance(record, dict) or not isinstance(record.get("path"), str):
+        return  # an earlier folder: the tape is not known
+    path = Path(record["path"])
+    try:
+        if not path.is_file() or file_sha256(path) != record.get("sha256"):
+            return
+        if pq.read_metadata(path).num_rows > TAPE_REPLAY_ROWS:
+            return
+        tape = Tape.read(path)
+    except (OSError, UserError, ValueError):
+        return
+    p = traffic.get("detection_p")
+    source = TapeTraffic(tape, float(p) if isinstance(p, (int, float)) else None, str(path))
+    npz, kept, replays = primary.run_dir / "importance.npz", maps.astype(np.float32), []
+    given, off = _first_differing_map(source.importance_maps(), kept, collect=replays)
+    if off is not None:
+        k, i, j, replayed = off
+        raise UserError(
+            f"{npz}: importance at step {k}, cell ({i}, {j}) is {_show(kept[k, i, j], replayed)},"
+            f" but {path} (the tape run.json names) replayed through its MFD gives "
+            f"{_show(replayed, kept[k, i, j])}; {RERUN}"
+        )
+    if given < len(kept):
+        raise UserError(f"{npz}: holds {len(kept)} maps, but {path} replays {given}; {RERUN}")
+    for seed in primary.run.get("seeds") or []:
+        if isinstance(seed, int) and replays:
+            primary.tape_maps[seed] = np.stack(replays)
+            primary.tape_sightings[seed] = source.sighting_model()
+
+
 def check_synthetic_maps(primary: Primary) -> None:
     """A synthetic run's ``importance.npz`` holds the maps that run.json's ``traffic`` (its
     disturbances, ``beta1``, ``beta2``, ``z_lo``, ``z_hi``: Sec. IV's ``z^k`` normalised by Def.
@@ -1554,6 +1600,7 @@ def check_derived(primary: Primary, tables: dict[str, pd.DataFrame | None]) -> N
     per-seed figures the primary files give."""
     check_starts(primary)
     check_tape_maps(primary)
+    check_replayed_tape_maps(primary)
     check_seed_tapes(primary)
     check_synthetic_maps(primary)
     check_incident_records(primary)
