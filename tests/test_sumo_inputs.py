@@ -780,3 +780,27 @@ def test_a_run_writes_nothing_in_the_systems_temporary_folder(tmp_path, monkeypa
                           *extra])  # fmt: skip
         assert code == 0, capsys.readouterr().err
     assert sorted(p.name for p in system.iterdir()) == []
+
+
+def test_a_file_where_the_scratch_folder_belongs_is_refused_before_the_run(
+    tmp_path, monkeypatch, capsys
+):
+    """A file in the cache where its tmp/ belongs: one line naming it before any folder is
+    made (SUMO's worker failed on it, a 0-step partial run was written; probe 17's f07)."""
+    from helpers import small_sumo_scenario
+
+    from twin import resources
+
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    (cache / "tmp").write_text("x")
+    monkeypatch.setenv("TWIN_CACHE_DIR", str(cache))
+    monkeypatch.setattr(resources, "_SWEPT", set())
+    small_sumo_scenario(tmp_path, horizon=2)
+    out = tmp_path / "run"
+    code = twin_main(["run", "--config", str(tmp_path / "small.toml"), "--quiet", "--no-report",
+                      "--no-ceiling", "--swarms", "random", "--out", str(out)])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1, err
+    assert f"{cache / 'tmp'}: twin's scratch folder" in err and "(a file)" in err, err
+    assert not out.exists()

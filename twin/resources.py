@@ -127,8 +127,18 @@ def scratch_dir() -> Path:
     import time
 
     folder = cache_dir() / "tmp"
-    folder.mkdir(parents=True, exist_ok=True)
-    if folder in _SWEPT:  # once per process (an env makes a scratch file at every episode)
+    if folder in _SWEPT and folder.is_dir():  # once per process (an env makes a scratch file
+        return folder  # at every episode)
+    check_cache("its scratch files live in its tmp/")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        what = "a file" if folder.exists() and not folder.is_dir() else (exc.strerror or exc)
+        raise UserError(
+            f"{folder}: twin's scratch folder (in its cache, ${CACHE_ENV}) cannot be made "
+            f"({what}); move that out of the way, or set ${CACHE_ENV} to another folder"
+        ) from None
+    if folder in _SWEPT:
         return folder
     _SWEPT.add(folder)
     old = time.time() - SCRATCH_DAYS * 86400
