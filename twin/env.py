@@ -327,7 +327,8 @@ class SwarmParallelEnv(ParallelEnv):
         actions = check_actions(self.swarm, actions)  # before the source moves on
         self.swarm, out = step(self.swarm, actions, self._next_map(), self.grid, self.params)
         if self.swarm.k >= self.horizon:
-            self._close_maps()
+            with once_among(self._said):  # the simulation's notices come as it ends
+                self._close_maps()
         return out
 
     def _next_map(self) -> np.ndarray:
