@@ -192,6 +192,20 @@ def test_sumo_refusal_names_the_file(city, tmp_path, capsys, element, words):
     assert str(bad) in lines[-1] and words in lines[-1], lines[-1]
 
 
+def test_a_clash_of_a_vehicles_own_route_is_blamed_on_a_route_file(tmp_path):
+    """SUMO names a vehicle's own route '!<vehicle>': a clash of two route files defining
+    vehicle "0" names the later route file, not the network (probe 17's f06)."""
+    from twin.sumo.session import sumo_refusal
+
+    net, trips, alt = tmp_path / "g.net.xml", tmp_path / "trips.xml", tmp_path / "alt.rou.xml"
+    net.write_text('<net><edge id="A0A1"/></net>')
+    trips.write_text('<routes><trip id="0" depart="0" from="A0A1" to="A0A1"/></routes>')
+    alt.write_text('<routes><vehicle id="0" depart="0"><route edges="A0A1"/></vehicle></routes>')
+    text = "Error: Another route (or distribution) with the id '!0' exists.\nQuitting."
+    where, reason = sumo_refusal(text, [net, trips, alt])
+    assert where == alt and reason.startswith("Another route (or distribution)"), where
+
+
 @pytest.mark.parametrize("kind", ["spider", "random"])
 def test_generated_networks_compressed_with_additionals(kind, city, capsys):
     files = _scenario(city / kind, kind)
