@@ -474,8 +474,19 @@ def _grid_and_notices(
             )
         obstacles[i, j] = True
     if obstacles.all():
+        most = float(geometry.lane_km.max(initial=0.0))
+        shape = f"{geometry.nx} x {geometry.ny} grid"
+        if most <= 0.0:
+            raise UserError(f"{files.net_file}: no cell of the {shape} has a lane")
+        if most < s.min_lane_km:
+            raise UserError(
+                f"{config.path}: [traffic].min_lane_km = {s.min_lane_km:g} leaves no cell of the "
+                f"{shape} over {files.name} (the most lane in a cell is {most:.3g} km); give a "
+                f"min_lane_km below {most:.3g}"
+            )
         raise UserError(
-            f"{files.net_file}: no cell of the {geometry.nx} x {geometry.ny} grid has a lane"
+            f"{config.path}: [grid].obstacles leave no cell of the {shape} over {files.name} "
+            "free; list fewer obstacles"
         )
     n_free, n_drones = int((~obstacles).sum()), config.swarm.n_drones
     if n_drones > n_free:  # the fix names a cell size that fits them, or none does
