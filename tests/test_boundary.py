@@ -2259,17 +2259,17 @@ def test_a_forged_learned_policy_record_is_refused(name):
     """run.json's record of a learned swarm has its checkpoint's sha256, epochs, layers that fit
     its state, and a known state and coordination; every learned swarm of a complete run has
     one."""
-    from twin.readback import check_run_json
+    from twin.swarms import check_policy_records
 
     base = {"swarms": ["random", "rl"], "partial": False}
-    check_run_json(Path("run.json"), {**base, "policies": {"rl": GOOD_POLICY}})
+    check_policy_records(Path("run.json"), {**base, "policies": {"rl": GOOD_POLICY}})
     change, words = FORGED_POLICIES[name]
     forged = {**base, "policies": {"rl": {**GOOD_POLICY, **change}}}
     with pytest.raises(UserError, match=re.escape(words)):
-        check_run_json(Path("run.json"), forged)
+        check_policy_records(Path("run.json"), forged)
     with pytest.raises(UserError, match=re.escape("no policies.rl for the learned swarm")):
-        check_run_json(Path("run.json"), {**base, "policies": {}})
-    check_run_json(Path("run.json"), {**base, "partial": True, "policies": {}})
+        check_policy_records(Path("run.json"), {**base, "policies": {}})
+    check_policy_records(Path("run.json"), {**base, "partial": True, "policies": {}})
 
 
 def test_a_figure_of_one_seed_has_no_interval(tmp_path, capsys):
