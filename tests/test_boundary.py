@@ -2280,16 +2280,16 @@ def test_a_figure_of_one_seed_has_no_interval(tmp_path, capsys):
 
     cfg = small_config(tmp_path, horizon=4)
     out = tmp_path / "one"
-    argv = ["evaluate", "--config", str(cfg), "--seeds", "1", "--swarms", "random"]
+    argv = ["evaluate", "--config", str(cfg), "--seeds", "1", "--swarms", "random,rl"]
     assert main([*argv, "--out", str(out), "--no-report", "--quiet"]) == 0
     summary = pd.read_csv(out / "summary.csv")
     spans = [c for c in summary.columns if c.endswith("_ci95")]
     assert spans and summary[spans].isna().all().all(), summary[spans]
-    summary[spans] = 0.0
-    summary.to_csv(out / "summary.csv", index=False)
-    monitoring = pd.read_csv(out / "monitoring.csv")
-    monitoring[[c for c in monitoring.columns if c.endswith("_ci95")]] = 0.0
-    monitoring.to_csv(out / "monitoring.csv", index=False)
+    assert pd.read_csv(out / "comparison.csv")["difference_ci95"].isna().all()
+    for name in ("summary.csv", "monitoring.csv", "comparison.csv"):  # as format 3 wrote them
+        table = pd.read_csv(out / name)
+        table[[c for c in table.columns if c.endswith("_ci95")]] = 0.0
+        table.to_csv(out / name, index=False)
     refresh_manifest(out)
     assert main(["report", str(out), "--no-animation"]) == EXIT_REFUSED
     assert "summary.csv: R_hat_T_ci95 = 0" in one_line(capsys)

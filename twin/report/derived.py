@@ -742,7 +742,9 @@ def comparison_rows(primary: Primary, frame: pd.DataFrame) -> pd.DataFrame:
     """``comparison.csv`` as :func:`twin.metrics.learned_against_best_classical` makes it of
     ``per_seed.csv``."""
     rows = learned_against_best_classical(primary.per_seed)
-    return rows if len(rows) else pd.DataFrame(columns=["swarm"])
+    return (
+        _earlier_intervals(primary, frame, rows) if len(rows) else pd.DataFrame(columns=["swarm"])
+    )
 
 
 def reward_split(primary: Primary, frame: pd.DataFrame) -> pd.DataFrame:
@@ -757,14 +759,20 @@ def reward_split(primary: Primary, frame: pd.DataFrame) -> pd.DataFrame:
 def seed_aggregate(primary: Primary, frame: pd.DataFrame) -> pd.DataFrame:
     """``summary.csv`` as :func:`twin.metrics.aggregate` makes it of ``per_seed.csv`` (a folder
     of format 3 or earlier wrote 0 for the interval of one seed, where it is now empty)."""
-    summary = aggregate(primary.per_seed)
-    if folder_format(primary) < 4 and "swarm" in frame.columns:
-        written = frame.drop_duplicates("swarm").set_index("swarm")
-        for column in [c for c in summary.columns if c.endswith("_ci95") and c in frame]:
-            was = pd.to_numeric(written[column], errors="coerce").reindex(summary["swarm"])
-            zero = summary[column].isna().to_numpy() & (was == 0).to_numpy()
-            summary.loc[zero, column] = 0.0
-    return summary
+    return _earlier_intervals(primary, frame, aggregate(primary.per_seed))
+
+
+def _earlier_intervals(primary: Primary, frame: pd.DataFrame, expected: pd.DataFrame):
+    """``expected`` with the 0 a folder of format 3 or earlier wrote (``frame``) where one seed
+    gives no interval (``_ci95`` columns, now empty), by swarm."""
+    if folder_format(primary) >= 4 or "swarm" not in frame.columns:
+        return expected
+    written = frame.drop_duplicates("swarm").set_index("swarm")
+    for column in [c for c in expected.columns if c.endswith("_ci95") and c in frame]:
+        was = pd.to_numeric(written[column], errors="coerce").reindex(expected["swarm"])
+        zero = expected[column].isna().to_numpy() & (was == 0).to_numpy()
+        expected.loc[zero, column] = 0.0
+    return expected
 
 
 def summary_columns(primary: Primary, frame: pd.DataFrame) -> pd.DataFrame:
