@@ -178,6 +178,10 @@ def test_a_vehicle_to_stop_never_found_on_its_edge_is_recorded_as_never_applied(
     (record,) = json.loads((out / "incidents.json").read_text())
     assert record["edge"] == edge and len(record["cell"]) == 2 and record["cell"] != [-1, -1]
     assert record["vehicle"] is None and record["applied_s"] is None
+    import pandas as pd
+
+    scores = pd.read_csv(out / "monitoring.csv")  # nothing on the road to see (probe 17's P2-01)
+    assert (scores["incidents"] == 0).all() and scores["pct_incidents_seen"].isna().all(), scores
     assert twin_main(["report", str(out), "--no-animation"]) == 0
 
 

@@ -313,10 +313,13 @@ def replayed_incidents(primary: Primary, frame: pd.DataFrame) -> pd.DataFrame:
     (:func:`twin.monitoring.incident_sightings`, :func:`twin.monitoring.incident_scores`); NaN
     when the folder has none (the run scheduled none, or none was applied). Their onset and
     last steps are checked against their times first (:func:`check_incident_steps`)."""
-    from twin.monitoring import incident_scores, incident_sightings
+    from twin.monitoring import applied_incidents, incident_scores, incident_sightings
     from twin.runs import step_seconds_of
 
     seed, incidents = primary.first_seed, primary.incidents or []
+    scheduled = bool(incidents)
+    if folder_format(primary) >= 4:  # earlier twins counted one never applied as an incident
+        incidents = applied_incidents(incidents)
     columns = [c for c in INCIDENT_COLUMNS if c in frame.columns]
     if seed is None or not columns:
         return pd.DataFrame()
@@ -336,7 +339,7 @@ def replayed_incidents(primary: Primary, frame: pd.DataFrame) -> pd.DataFrame:
     rows = []
     for swarm in primary.swarms:
         row = dict.fromkeys(columns, np.nan)
-        if incidents:
+        if scheduled:  # (none applied: 0 incidents)
             pos = primary.positions(seed, swarm)
             recorded = None if plan is None else plan.recorded(seed, len(pos), pos.shape[1])
             first, latency = incident_sightings(grid, pos, incidents, recorded)
