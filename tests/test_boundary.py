@@ -680,6 +680,14 @@ def _json(name, key, value):
     return apply
 
 
+def _both(*edits):
+    def apply(run: Path) -> None:
+        for edit in edits:
+            edit(run)
+
+    return apply
+
+
 def _synthetic_traffic(edit, seeds_only: bool = False):
     """run.json's synthetic traffic record (and each seed's copy of it) passed through ``edit``;
     with ``seeds_only``, the seeds' copies only."""
@@ -953,8 +961,19 @@ READ_BACK = {
         "oracle.parquet: swarm oracle (ceiling) drone",
     ),
     "run.json lists fewer swarms than the tables hold": (
-        _json("run.json", ("swarms",), ["random"]),
+        _both(
+            _json("run.json", ("swarms",), ["random"]),
+            _json("run.json", ("invocation", "options", "swarms"), "random"),
+        ),
         "holds swarm 'greedy', which run.json's swarms ['random'] does not list",
+    ),
+    "run.json swarms other than the command's": (
+        _json("run.json", ("swarms",), ["random"]),
+        "run.json: invocation.options.swarms = 'random,greedy', but swarms = ['random']",
+    ),
+    "run.json command of another kind": (
+        _json("run.json", ("command",), "twin run --config x.toml"),
+        "run.json: command = 'twin run --config x.toml' is no `twin evaluate`",
     ),
     "every file relabelled to other seeds": (_relabel_seeds, "random starts on this map are"),
     "starts other than the drones'": (
@@ -2270,6 +2289,27 @@ def test_a_forged_learned_policy_record_is_refused(name):
     with pytest.raises(UserError, match=re.escape("no policies.rl for the learned swarm")):
         check_policy_records(Path("run.json"), {**base, "policies": {}})
     check_policy_records(Path("run.json"), {**base, "partial": True, "policies": {}})
+
+
+def test_a_policy_record_its_swarm_cannot_have_is_refused():
+    """A record for a swarm that records none (random), and a learned swarm's record that
+    contradicts its name (rl-online not online, rl-decentralized central)."""
+    from twin.swarms import check_policy_records
+
+    run = {"swarms": ["random", "rl-online", "rl-decentralized"], "partial": True}
+    for policies, words in (
+        ({"random": {"online": False}}, "policies.random: swarm 'random' records no policy"),
+        ({"rl-online": {**GOOD_POLICY, "online": False}}, "policies.rl-online.online = False"),
+        (
+            {"rl-decentralized": GOOD_POLICY},
+            "policies.rl-decentralized.coordination = 'central', but swarm 'rl-decentralized' has",
+        ),
+    ):
+        with pytest.raises(UserError, match=re.escape(words)):
+            check_policy_records(Path("run.json"), {**run, "policies": policies})
+    good = {"rl-online": {**GOOD_POLICY, "online": True},
+            "rl-decentralized": {**GOOD_POLICY, "coordination": "decentralized", "eps": 0.1}}  # fmt: skip
+    check_policy_records(Path("run.json"), {**run, "policies": good})
 
 
 def test_a_figure_of_one_seed_has_no_interval(tmp_path, capsys):

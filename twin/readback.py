@@ -431,9 +431,35 @@ def check_sumo_outputs(path: Path, run: dict[str, Any]) -> None:
             raise UserError(f"{path}: {where}, but {folder / name} is not there; {RERUN}")
 
 
+#: The command-line options run.json's ``invocation`` records and the field of the run each
+#: sets: (option, dotted field, only for a live `twin run`).
+INVOCATION_FIELDS = (
+    ("drones", "n_drones", False),
+    ("swarms", "swarms", False),
+    ("horizon", "traffic.horizon", True),
+    ("cell_m", "traffic.identity.cell_m", True),
+    ("net", "traffic.net_file", True),
+)
+
+
+def _command_words(command: Any) -> list[str] | None:
+    """run.json's ``command`` split as a shell would (None when it is no text or no ``twin``
+    command line)."""
+    import shlex
+
+    if not isinstance(command, str):
+        return None
+    try:
+        words = shlex.split(command)
+    except ValueError:
+        return None
+    return words if words and words[0] == "twin" else None
+
+
 def check_invocation(path: Path, run: dict[str, Any]) -> None:
-    """run.json's command agrees with itself: ``kind`` is the invocation's command, its
-    ``--drones`` the run's ``n_drones``, and ``created`` is a time."""
+    """run.json's command agrees with itself: ``kind`` is the invocation's command and the
+    command line's, the options it gives are the run's (:data:`INVOCATION_FIELDS`), and
+    ``created`` is a time."""
     from datetime import datetime
 
     kind, command = run.get("kind"), _dotted(run, "invocation.command")
@@ -442,10 +468,28 @@ def check_invocation(path: Path, run: dict[str, Any]) -> None:
             f"{path}: kind = {str(kind)[:40]!r}, but invocation.command = {str(command)[:40]!r}; "
             f"{RERUN}"
         )
-    drones, n_drones = _dotted(run, "invocation.options.drones"), run.get("n_drones")
-    if isinstance(drones, int) and isinstance(n_drones, int) and drones != n_drones:
+    words = _command_words(run.get("command"))
+    if kind is not None and words is not None and (len(words) < 2 or words[1] != kind):
         raise UserError(
-            f"{path}: invocation.options.drones = {drones}, but n_drones = {n_drones}; {RERUN}"
+            f"{path}: command = {str(run.get('command'))[:60]!r} is no `twin {kind}`, but kind = "
+            f"{str(kind)[:40]!r}; {RERUN}"
+        )
+    for option, field, live in INVOCATION_FIELDS:
+        given, recorded = _dotted(run, f"invocation.options.{option}"), _dotted(run, field)
+        if given is None or recorded is None or (live and kind != "run"):
+            continue
+        if option == "swarms":
+            named = [s.strip() for s in str(given).split(",") if s.strip()]
+            if "all" in named or not isinstance(recorded, list) or set(named) == set(recorded):
+                continue
+        elif option == "net":
+            if Path(str(given)).name == Path(str(recorded)).name:
+                continue
+        elif given == recorded:
+            continue
+        raise UserError(
+            f"{path}: invocation.options.{option} = {repr(given)[:60]}, but {field} = "
+            f"{repr(recorded)[:60]}; {RERUN}"
         )
     created = run.get("created")
     if created is not None:

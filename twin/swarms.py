@@ -204,9 +204,19 @@ def check_policy_records(path, run: dict) -> None:
         where = f"policies.{swarm}"
         if swarm not in swarms:
             raise UserError(f"{path}: {where}: {swarm!r} is no swarm of the run; {RERUN}")
+        kind = SWARMS.get(base_name(swarm))
+        if kind is not None and not kind.learned and not hasattr(kind.build, "describe"):
+            raise UserError(f"{path}: {where}: swarm {swarm!r} records no policy; {RERUN}")
         check_fields(path, policy, POLICY_FIELDS, where)
         if not is_learned(swarm):  # a planner records its own options
             continue
+        fixed = {"rl-online": ("online", True), "rl-decentralized": ("coordination",
+                 "decentralized")}.get(base_name(swarm))  # fmt: skip
+        if fixed is not None and policy.get(fixed[0]) not in (None, fixed[1]):
+            raise UserError(
+                f"{path}: {where}.{fixed[0]} = {repr(policy.get(fixed[0]))[:40]}, but swarm "
+                f"{swarm!r} has {fixed[0]} = {fixed[1]!r} by its name; {RERUN}"
+            )
         sha = policy.get("sha256")
         if sha is not None and not re.fullmatch(r"[0-9a-f]{64}", sha):
             raise UserError(f"{path}: {where}.sha256 = {sha[:40]!r} is no sha256; {RERUN}")
