@@ -316,8 +316,12 @@ def test_too_small_grid_notice_and_its_suggestion_works(city, capsys):
     assert code == 0, err
     (line,) = [x for x in err.splitlines() if "per drone" in x]
     assert line.startswith("twin: notice:")
-    suggested = re.search(r"--cell-m (\S+) \((\d+) free cells\)", line)
-    assert suggested, line
+    suggested = re.search(
+        r"cells of (\S+) m \((\d+) free cells: --cell-m (\S+), or "
+        r"traffic.cell_m = (\S+)\)",
+        line,
+    )  # a command's flag, a sweep's key
+    assert suggested and suggested[1] == suggested[3] == suggested[4], line
     code, err = _run(city, "fine", "--sumocfg", cfg, "--cell-m", suggested[1], "--drones",
                      str(drones), capsys=capsys)  # fmt: skip
     assert code == 0, err

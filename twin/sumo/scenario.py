@@ -499,10 +499,11 @@ def _grid_and_notices(
     if n_drones <= n_free < MIN_FREE_CELLS_PER_DRONE * n_drones:  # more drones: refused later
         better = suggest_cell_m(lanes, s.cell_m, n_drones, s.min_lane_km)
         fewer = max(1, n_free // MIN_FREE_CELLS_PER_DRONE)
-        fix = (
-            f"try --cell-m {better[0]:g} ({better[1]} free cells)"
+        fix = (  # in words of both a command's flags and a sweep's or transfer's keys
+            f"try cells of {better[0]:g} m ({better[1]} free cells: --cell-m {better[0]:g}, or "
+            f"traffic.cell_m = {better[0]:g})"
             if better
-            else f"use fewer drones (--drones {fewer})"
+            else f"use fewer drones (--drones {fewer}, or swarm.n_drones = {fewer})"
             if fewer < n_drones
             else "no smaller cell size down to 25 m gives more room"
         )
