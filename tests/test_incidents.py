@@ -271,6 +271,10 @@ FORGED_INCIDENTS = {
         _incidents_edited(lambda x: _update(x, 0, kind="flood")),
         "incidents.json: [0].kind = 'flood' is none of",
     ),
+    "not lifted though lifted in the run": (
+        _incidents_edited(lambda x: _update(x, 0, lifted_s=None)),
+        "incidents.json: [0].lifted_s = null, but an incident to end_s = 660 is lifted at 660,",
+    ),
 }
 
 

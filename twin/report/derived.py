@@ -459,6 +459,25 @@ def check_incident_schedule(primary: Primary) -> None:
 INCIDENT_KINDS = ("lane_closed", "edge_closed", "vehicle_stopped")
 
 
+def _incidents_ran_to(primary: Primary) -> float | None:
+    """The time (s) up to which every incident's lift was surely applied: the run's step
+    before its last (its ``horizon`` steps of ``traffic.step_s`` from ``traffic.begin``), None
+    when run.json does not say."""
+    from twin.clock import parse_clock
+
+    traffic = primary.run.get("traffic")
+    horizon = primary.run.get("horizon")
+    if not isinstance(traffic, dict) or not isinstance(horizon, int) or horizon < 1:
+        return None
+    begin, step_s = traffic.get("begin"), traffic.get("step_s")
+    if not isinstance(begin, str) or not isinstance(step_s, (int, float)):
+        return None
+    try:
+        return parse_clock(begin, "traffic.begin") + (horizon - 1) * float(step_s)
+    except UserError:
+        return None
+
+
 def check_incident_records(primary: Primary) -> None:
     """Each incident of ``incidents.json`` is one :class:`twin.sumo.incidents.IncidentSchedule`
     records: a known kind; a lane for ``lane_closed`` only; a vehicle exactly when a stopped
@@ -477,6 +496,7 @@ def check_incident_records(primary: Primary) -> None:
     step = SumoSession.step_length  # every SUMO step of a run (time advances in whole steps)
     number = (int, float)
     applied = []
+    ran_to = _incidents_ran_to(primary)
     for n, inc in enumerate(primary.incidents or []):
         kind, lane, vehicle = inc.get("kind"), inc.get("lane"), inc.get("vehicle")
         start, end, when = inc.get("begin_s"), inc.get("end_s"), inc.get("applied_s")
@@ -522,6 +542,12 @@ def check_incident_records(primary: Primary) -> None:
             )
         lifted = inc.get("lifted_s")
         last = np.ceil(end / step - 1e-9) * step
+        if lifted is None and ran_to is not None and last < ran_to:
+            raise UserError(
+                f"{path}: [{n}].lifted_s = null, but an incident to end_s = {_show(end)} is "
+                f"lifted at {_show(last)}, before the run's last step ({clock_label(ran_to)}); "
+                f"{RERUN}"
+            )
         if lifted is not None and (
             isinstance(lifted, bool) or not isinstance(lifted, number) or lifted != last
         ):
