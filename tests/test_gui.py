@@ -267,6 +267,21 @@ def test_gui_swarms_all_shows_every_swarm_and_shown_swarms_take_the_first_colour
     assert [drawer.colours[n] for n in drawer.shown] == SWARM_COLOURS[:2]
 
 
+def test_gui_swarms_without_the_gui_says_it_draws_nothing(capsys):
+    """--gui-swarms without --gui or --record is checked and draws nothing: a notice says so
+    (it was silently ignored; probe 17's c57)."""
+    import argparse
+
+    from twin.cli.run import gui_drawer
+
+    args = argparse.Namespace(gui=False, record=None, gui_swarms="rl", gui_shade="belief")
+    assert gui_drawer(args, ["random", "rl"]) is None
+    assert "--gui-swarms rl: draws nothing without --gui or --record" in capsys.readouterr().err
+    args.gui = True
+    gui_drawer(args, ["random", "rl"])
+    assert "draws nothing" not in capsys.readouterr().err
+
+
 def test_meso_roads_are_drawn_in_one_colour():
     """sumo-gui's mesoscopic speed colouring changes the simulation it draws: a --meso view
     colours its edges by no scheme that reads the simulation (probe 16's f17)."""
