@@ -411,3 +411,27 @@ def test_tapes_of_a_synthetic_scenario_are_refused_before_any_stage(tmp_path, ca
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "its traffic is 'synthetic', not a SUMO scenario" in err, err
     assert not out.exists()
+
+
+def test_a_row_trained_again_keeps_the_users_files(tmp_path: Path) -> None:
+    """A row folder to train again is cleared of what pretraining wrote only; a file twin did
+    not write is refused in one line and nothing is removed (the folder was deleted whole;
+    probe 17's P2-06)."""
+    from twin.transfer.runner import clear_row_folder
+
+    row = tmp_path / "rows" / "dyn"
+    (row / "snapshots").mkdir(parents=True)
+    for name in ("qnet.pt", "state.pt", "train_log.csv", "provenance.json", ".qnet.pt.tmp"):
+        (row / name).write_text("twin's")
+    (row / "snapshots" / "epoch_10.pt").write_text("twin's")
+    (row / "plots").mkdir()
+    (row / "plots" / "a.png").write_text("mine")
+    with pytest.raises(UserError, match=r"row dyn: must be trained again .* holds 'plots', "
+                                        "which twin did not write; move it out") as info:  # fmt: skip
+        clear_row_folder(row)
+    assert "\n" not in str(info.value)
+    assert (row / "plots" / "a.png").read_text() == "mine" and (row / "qnet.pt").exists()
+    (row / "plots" / "a.png").unlink()
+    (row / "plots").rmdir()
+    clear_row_folder(row)
+    assert list(row.iterdir()) == []

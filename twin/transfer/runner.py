@@ -320,11 +320,36 @@ def train_row(task: dict[str, Any]) -> dict[str, Any]:
         if (out / "provenance.json").is_file():  # finished on other settings or files
             from twin.notices import notify
 
+            clear_row_folder(out)  # its checkpoint resumes nothing
             notify(f"twin: notice: row {out.name}: its settings, tapes, start or scenario "
                    "changed since it was trained; training it again")  # fmt: skip
-            shutil.rmtree(out)  # the transfer's own row folder: its checkpoint resumes nothing
         pretrain(cfg, progress=False, max_memory_gb=task.get("max_memory_gb"))
     return json.loads(read_record(out / "provenance.json"))
+
+
+def clear_row_folder(out: Path) -> None:
+    """Remove what pretraining wrote into a row's folder, to train it again; a file it did not
+    write (the user's) is refused in one line, and nothing is removed."""
+    from twin.training.pretrain import PRETRAIN_FILES
+
+    entries = sorted(out.iterdir())
+    foreign = [e.name for e in entries if e.name not in PRETRAIN_FILES and not _temp_file(e)]
+    if foreign:
+        raise UserError(
+            f"row {out.name}: must be trained again (its settings, tapes, start or scenario "
+            f"changed), but {out} holds {foreign[0]!r}, which twin did not write; move it out "
+            "of the folder and run again"
+        )
+    for entry in entries:
+        if entry.is_dir() and not entry.is_symlink():
+            shutil.rmtree(entry)
+        else:
+            entry.unlink()
+
+
+def _temp_file(entry: Path) -> bool:
+    """A file twin's atomic writes leave while writing (``.<name>.tmp``)."""
+    return entry.name.startswith(".") and entry.name.endswith(".tmp") and entry.is_file()
 
 
 def provenance_matches(out: Path, cfg) -> bool:
