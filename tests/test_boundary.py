@@ -2160,6 +2160,34 @@ def test_a_notice_said_again_by_the_next_seed_is_printed_once(capsys) -> None:
     assert len(capsys.readouterr().err.splitlines()) == 3
 
 
+def test_a_run_folder_being_written_is_read_as_such_not_as_interrupted(tmp_path, capsys):
+    """`twin report` (and every reader) of a folder another command is writing now says so,
+    instead of calling it interrupted and advising a rerun the lock would refuse (probe 17's
+    P2-08); once the writer has ended, the folder reads as interrupted."""
+    import subprocess
+
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "run.json").write_text('{"partial": true}')
+    holder = subprocess.Popen(
+        [sys.executable, "-c",
+         "import sys, time; from twin.boundary import claim_run_folder; "
+         "claim_run_folder(sys.argv[1]); print('held', flush=True); time.sleep(120)",
+         str(out)],
+        stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        assert main(["report", str(out), "--no-animation"]) == EXIT_REFUSED
+        line = one_line(capsys)
+        assert "another twin command is writing into this folder now; wait for it" in line
+    finally:
+        holder.kill()
+        holder.wait()
+    assert main(["report", str(out), "--no-animation"]) == EXIT_REFUSED
+    assert "incomplete run folder" in one_line(capsys)
+
+
 def test_a_run_folder_in_use_by_another_command_is_refused(tmp_path: Path, capsys) -> None:
     """Two commands writing into one --out at once would mix their files: while one holds
     the folder (another process), the second is refused in one line and writes nothing; once

@@ -338,6 +338,13 @@ def check_run_folder(run_dir: str | Path) -> dict[str, Any]:
             "wrote (a sweep's, transfer's or pretraining's folder is not one); pass a run folder"
         )
     if not manifest_path.exists():
+        from twin.boundary import written_by_another
+
+        if written_by_another(run_dir):
+            raise UserError(
+                f"{run_dir}: another twin command is writing into this folder now; wait for it "
+                "to end, then read it"
+            )
         run = _read_json(run_dir / "run.json")
         why = run.get("partial_reason") if isinstance(run, dict) else None
         raise UserError(
