@@ -601,3 +601,19 @@ def test_a_tape_that_stopped_early_is_refused_for_training(tmp_path):
     ) as info:
         episode_source(load_config(path, tapes=[str(tape)]))
     assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize("traffic", ["paper", "dynamics"])
+def test_tapes_given_to_a_recipe_that_trains_on_none_are_refused(tmp_path, traffic):
+    """tapes = [...] beside traffic = "paper" or "dynamics": one line naming both (the tapes
+    were silently left unused; probe 17's P2-07)."""
+    from helpers import random_tape
+
+    tape = tmp_path / "a.parquet"
+    random_tape(seed=1, nx=6, ny=6, horizon=30).write(tape)
+    path = _config(tmp_path)
+    path.write_text(path.read_text() + f'traffic = "{traffic}"\ntapes = ["{tape}"]\n')
+    with pytest.raises(UserError, match=f'are given, but traffic = "{traffic}" trains on no '
+                                        'tape; set traffic = "tapes"') as info:  # fmt: skip
+        load_config(path)
+    assert "\n" not in str(info.value)

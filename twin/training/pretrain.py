@@ -379,7 +379,13 @@ class PretrainConfig(SourcedConfig):
 
     @field_validator("tapes")
     @classmethod
-    def _tapes(cls, tapes: list[str]) -> list[str]:
+    def _tapes(cls, tapes: list[str], info: ValidationInfo) -> list[str]:
+        traffic = info.data.get("traffic")
+        if tapes and traffic is not None and traffic != "tapes":
+            raise ValueError(
+                f'are given, but traffic = "{traffic}" trains on no tape; set traffic = "tapes" '
+                "(or drop tapes)"
+            )
         for n, tape in enumerate(tapes):
             if not tape.strip():
                 raise ValueError(f"has an empty name (entry {n + 1}); remove it")
