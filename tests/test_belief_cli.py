@@ -546,3 +546,60 @@ def test_beliefs_whose_history_is_gone_are_not_replayed_and_say_so(believed, tmp
     assert twin_main(["report", str(run), "--no-animation"]) == 0
     err = capsys.readouterr().err
     assert "belief_models.csv and belief_maps.npz not replayed (the history " in err, err
+
+
+def test_beliefs_and_maps_of_a_run_on_a_tape_are_replayed_with_its_tape(
+    believed, history, small, tmp_path, capsys
+):
+    """`twin evaluate --traffic TAPE --history H`: run.json names the tape and its sha256, and
+    the read-back replays its maps and, with them, the belief models (probe 17's f05: forged
+    belief rows were accepted with a notice that the tape was not replayed). A tape changed
+    since: read back with that notice."""
+    import shutil
+
+    from test_boundary import refresh_manifest
+
+    tape = tmp_path / "tape.parquet"
+    shutil.copy(believed / "tape.parquet", tape)
+    out = tmp_path / "on-tape"
+    argv = ["evaluate", "--config", str(small / "small.toml"), "--traffic", str(tape),
+            "--swarms", "visit-gain", "--no-ceiling", "--no-report", "--quiet", "--history",
+            str(history), "--out", str(out)]  # fmt: skip
+    assert twin_main(argv) == 0
+    record = json.loads((out / "run.json").read_text())["traffic"]["tape_file"]
+    assert record["path"] == str(tape.resolve()) and len(record["sha256"]) == 64
+    capsys.readouterr()
+    assert twin_main(["report", str(out), "--no-animation"]) == 0
+    assert "not replayed" not in capsys.readouterr().err
+
+    def forged(edit) -> str:
+        run = tmp_path / "forged"
+        shutil.rmtree(run, ignore_errors=True)
+        shutil.copytree(out, run)
+        edit(run)
+        refresh_manifest(run)
+        capsys.readouterr()
+        code = twin_main(["report", str(run), "--no-animation"])
+        return f"{code} {capsys.readouterr().err}"
+
+    def belief_error(run):
+        table = pd.read_csv(run / "belief_models.csv")
+        table.loc[table["model"] == "nowcast", "belief_error"] *= 0.5
+        table.to_csv(run / "belief_models.csv", index=False)
+
+    def importance(run):
+        with np.load(run / "importance.npz") as npz:
+            maps = {k: npz[k] for k in npz.files}
+        maps["importance"][3, 1, 1] = 0.5 * maps["importance"][3, 1, 1] + 0.25
+        np.savez_compressed(run / "importance.npz", **maps)
+
+    said = forged(belief_error)
+    assert said.startswith("2 ") and "belief_error = " in said, said
+    assert "the models replayed with the run's history gives" in said, said
+    said = forged(importance)
+    assert said.startswith("2 ") and "importance.npz: importance at step 3, cell (1, 1)" in said
+    assert "(the tape run.json names) replayed through its MFD gives" in said, said
+    with open(tape, "ab") as fh:  # the tape changed since: the models are not replayed
+        fh.write(b" ")
+    said = forged(belief_error)
+    assert said.startswith("0 ") and "not replayed (seed " in said, said

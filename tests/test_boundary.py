@@ -680,6 +680,14 @@ def _json(name, key, value):
     return apply
 
 
+def _both(*edits):
+    def apply(run: Path) -> None:
+        for edit in edits:
+            edit(run)
+
+    return apply
+
+
 def _synthetic_traffic(edit, seeds_only: bool = False):
     """run.json's synthetic traffic record (and each seed's copy of it) passed through ``edit``;
     with ``seeds_only``, the seeds' copies only."""
@@ -953,8 +961,19 @@ READ_BACK = {
         "oracle.parquet: swarm oracle (ceiling) drone",
     ),
     "run.json lists fewer swarms than the tables hold": (
-        _json("run.json", ("swarms",), ["random"]),
+        _both(
+            _json("run.json", ("swarms",), ["random"]),
+            _json("run.json", ("invocation", "options", "swarms"), "random"),
+        ),
         "holds swarm 'greedy', which run.json's swarms ['random'] does not list",
+    ),
+    "run.json swarms other than the command's": (
+        _json("run.json", ("swarms",), ["random"]),
+        "run.json: invocation.options.swarms = 'random,greedy', but swarms = ['random']",
+    ),
+    "run.json command of another kind": (
+        _json("run.json", ("command",), "twin run --config x.toml"),
+        "run.json: command = 'twin run --config x.toml' is no `twin evaluate`",
     ),
     "every file relabelled to other seeds": (_relabel_seeds, "random starts on this map are"),
     "starts other than the drones'": (
@@ -1129,6 +1148,50 @@ READ_BACK = {
         "run.json: faults = {'drone_loss': [{'drone': 1, 'step': 'soon'}]} is not a fault record",
     ),
     "run.json folder not text": (_json("run.json", ("invocation", "cwd"), 5), "invocation.cwd"),
+    "run.json a swarm listed twice": (
+        _json("run.json", ("swarms",), ["random", "random", "greedy"]),
+        "run.json: swarms lists 'random' twice",
+    ),
+    "run.json a version not text": (
+        _json("run.json", ("versions", "python"), 3),
+        "run.json: versions.python = 3 must be text",
+    ),
+    "run.json identity grid other than its grid": (
+        _json("run.json", ("traffic", "identity", "grid"), [3, 27]),
+        "run.json: traffic.identity.grid = [3, 27], but grid is",
+    ),
+    "run.json an error in a complete run": (
+        _json("run.json", ("errors",), ["seed 0 failed badly"]),
+        "run.json: errors = 'seed 0 failed badly', but partial = false",
+    ),
+    "run.json an error record not text": (
+        _json("run.json", ("errors",), [{"x": 1}]),
+        "run.json: errors[0] = {'x': 1} must be text",
+    ),
+    "run.json a partial reason in a complete run": (
+        _json("run.json", ("partial_reason",), "it stopped"),
+        "run.json: partial_reason = 'it stopped', but partial = false",
+    ),
+    "run.json a traffic error in a complete run": (
+        _json("run.json", ("traffic", "error"), "SUMO crashed"),
+        "run.json: traffic.error = 'SUMO crashed', but partial = false",
+    ),
+    "run.json SUMO outputs not in the folder": (
+        _json("run.json", ("traffic", "sumo_outputs"), ["ghost.xml"]),
+        "traffic.sumo_outputs[0] = 'ghost.xml', but",
+    ),
+    "run.json SUMO outputs out of the folder": (
+        _json("run.json", ("traffic", "sumo_outputs"), ["../../x.xml"]),
+        "traffic.sumo_outputs[0] = '../../x.xml' is not a name inside sumo/",
+    ),
+    "run.json a policy of no swarm of the run": (
+        _json("run.json", ("policies",), {"rl": {"online": False}}),
+        "run.json: policies.rl: 'rl' is no swarm of the run",
+    ),
+    "run.json drones other than the invocation's": (
+        _json("run.json", ("invocation", "options", "drones"), 7),
+        "run.json: invocation.options.drones = 7, but n_drones = ",
+    ),
     "degradation infinite score": (
         _built_file("degradation.csv", lambda run: _degradation(run, R_hat=np.inf)),
         "degradation.csv: column 'R_hat' row 0 is inf, not a finite number",
@@ -2097,6 +2160,34 @@ def test_a_notice_said_again_by_the_next_seed_is_printed_once(capsys) -> None:
     assert len(capsys.readouterr().err.splitlines()) == 3
 
 
+def test_a_run_folder_being_written_is_read_as_such_not_as_interrupted(tmp_path, capsys):
+    """`twin report` (and every reader) of a folder another command is writing now says so,
+    instead of calling it interrupted and advising a rerun the lock would refuse (probe 17's
+    P2-08); once the writer has ended, the folder reads as interrupted."""
+    import subprocess
+
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "run.json").write_text('{"partial": true}')
+    holder = subprocess.Popen(
+        [sys.executable, "-c",
+         "import sys, time; from twin.boundary import claim_run_folder; "
+         "claim_run_folder(sys.argv[1]); print('held', flush=True); time.sleep(120)",
+         str(out)],
+        stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        assert main(["report", str(out), "--no-animation"]) == EXIT_REFUSED
+        line = one_line(capsys)
+        assert "another twin command is writing into this folder now; wait for it" in line
+    finally:
+        holder.kill()
+        holder.wait()
+    assert main(["report", str(out), "--no-animation"]) == EXIT_REFUSED
+    assert "incomplete run folder" in one_line(capsys)
+
+
 def test_a_run_folder_in_use_by_another_command_is_refused(tmp_path: Path, capsys) -> None:
     """Two commands writing into one --out at once would mix their files: while one holds
     the folder (another process), the second is refused in one line and writes nothing; once
@@ -2168,8 +2259,10 @@ def test_a_folder_of_an_earlier_format_reads_back_with_a_notice(run_copy, capsys
     saying what it cannot replay; a format later than this twin's is refused."""
     import json
 
+    from twin.runs import FOLDER_FORMAT
+
     meta = json.loads((run_copy / "run.json").read_text())
-    assert meta["folder_format"] == 3
+    assert meta["folder_format"] == FOLDER_FORMAT
     (run_copy / "bound.npz").unlink()
     del meta["folder_format"], meta["starts"]
     (run_copy / "run.json").write_text(json.dumps(meta))
@@ -2177,11 +2270,102 @@ def test_a_folder_of_an_earlier_format_reads_back_with_a_notice(run_copy, capsys
     assert main(["report", str(run_copy), "--no-animation"]) == 0
     err = capsys.readouterr().err
     assert "written by an earlier twin (folder format 1)" in err, err
-    meta["folder_format"] = 4
+    meta["folder_format"] = FOLDER_FORMAT + 1
     (run_copy / "run.json").write_text(json.dumps(meta))
     refresh_manifest(run_copy)
     assert main(["report", str(run_copy), "--no-animation"]) == EXIT_REFUSED
-    assert "a run folder of format 4, written by a later twin" in one_line(capsys)
+    line = one_line(capsys)
+    assert f"a run folder of format {FOLDER_FORMAT + 1}, written by a later twin" in line
+
+
+GOOD_POLICY = {
+    "checkpoint": "qnet.pt",
+    "sha256": "ab" * 32,
+    "trained_epochs": 200,
+    "layers": [13, 64, 5],
+    "state": "paper",
+    "coordination": "central",
+    "eps": None,
+    "outages": [],
+    "online": False,
+}
+FORGED_POLICIES = {
+    "epochs below 0": ({"trained_epochs": -5}, "policies.rl.trained_epochs = -5 must be at"),
+    "sha256 not hex": ({"sha256": "zz"}, "policies.rl.sha256 = 'zz' is no sha256"),
+    "unknown state": ({"state": "bogus"}, "policies.rl.state = 'bogus' is no state variant"),
+    "unknown coordination": ({"coordination": "bogus"}, "policies.rl.coordination = 'bogus'"),
+    "eps above 1": ({"eps": 5.0}, "policies.rl.eps = 5.0 must be from 0 to 1"),
+    "layers of another state": ({"layers": [1, 2]}, "policies.rl.layers = [1, 2] must run from"),
+    "layers not ending in 5 actions": ({"layers": [13, 7]}, "to 5 Q-values"),
+    "online not true or false": ({"online": "yes"}, 'policies.rl.online = "yes" must be true'),
+}
+
+
+@pytest.mark.parametrize("name", FORGED_POLICIES)
+def test_a_forged_learned_policy_record_is_refused(name):
+    """run.json's record of a learned swarm has its checkpoint's sha256, epochs, layers that fit
+    its state, and a known state and coordination; every learned swarm of a complete run has
+    one."""
+    from twin.swarms import check_policy_records
+
+    base = {"swarms": ["random", "rl"], "partial": False}
+    check_policy_records(Path("run.json"), {**base, "policies": {"rl": GOOD_POLICY}})
+    change, words = FORGED_POLICIES[name]
+    forged = {**base, "policies": {"rl": {**GOOD_POLICY, **change}}}
+    with pytest.raises(UserError, match=re.escape(words)):
+        check_policy_records(Path("run.json"), forged)
+    with pytest.raises(UserError, match=re.escape("no policies.rl for the learned swarm")):
+        check_policy_records(Path("run.json"), {**base, "policies": {}})
+    check_policy_records(Path("run.json"), {**base, "partial": True, "policies": {}})
+
+
+def test_a_policy_record_its_swarm_cannot_have_is_refused():
+    """A record for a swarm that records none (random), and a learned swarm's record that
+    contradicts its name (rl-online not online, rl-decentralized central)."""
+    from twin.swarms import check_policy_records
+
+    run = {"swarms": ["random", "rl-online", "rl-decentralized"], "partial": True}
+    for policies, words in (
+        ({"random": {"online": False}}, "policies.random: swarm 'random' records no policy"),
+        ({"rl-online": {**GOOD_POLICY, "online": False}}, "policies.rl-online.online = False"),
+        (
+            {"rl-decentralized": GOOD_POLICY},
+            "policies.rl-decentralized.coordination = 'central', but swarm 'rl-decentralized' has",
+        ),
+    ):
+        with pytest.raises(UserError, match=re.escape(words)):
+            check_policy_records(Path("run.json"), {**run, "policies": policies})
+    good = {"rl-online": {**GOOD_POLICY, "online": True},
+            "rl-decentralized": {**GOOD_POLICY, "coordination": "decentralized", "eps": 0.1}}  # fmt: skip
+    check_policy_records(Path("run.json"), {**run, "policies": good})
+
+
+def test_a_figure_of_one_seed_has_no_interval(tmp_path, capsys):
+    """summary.csv leaves the _ci95 of one seed empty (a 0 would read as certainty), as the
+    transfer matrix does; a folder of format 3, which wrote 0 there, still reads back, and a
+    0 in a folder of this format is refused."""
+    import json
+
+    cfg = small_config(tmp_path, horizon=4)
+    out = tmp_path / "one"
+    argv = ["evaluate", "--config", str(cfg), "--seeds", "1", "--swarms", "random,rl"]
+    assert main([*argv, "--out", str(out), "--no-report", "--quiet"]) == 0
+    summary = pd.read_csv(out / "summary.csv")
+    spans = [c for c in summary.columns if c.endswith("_ci95")]
+    assert spans and summary[spans].isna().all().all(), summary[spans]
+    assert pd.read_csv(out / "comparison.csv")["difference_ci95"].isna().all()
+    for name in ("summary.csv", "monitoring.csv", "comparison.csv"):  # as format 3 wrote them
+        table = pd.read_csv(out / name)
+        table[[c for c in table.columns if c.endswith("_ci95")]] = 0.0
+        table.to_csv(out / name, index=False)
+    refresh_manifest(out)
+    assert main(["report", str(out), "--no-animation"]) == EXIT_REFUSED
+    assert "summary.csv: R_hat_T_ci95 = 0" in one_line(capsys)
+    meta = json.loads((out / "run.json").read_text())
+    meta["folder_format"] = 3
+    (out / "run.json").write_text(json.dumps(meta))
+    refresh_manifest(out)
+    assert main(["report", str(out), "--no-animation"]) == 0, capsys.readouterr().err
 
 
 # ----------------------------------------------------------------- records that are no files

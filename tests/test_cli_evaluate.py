@@ -202,6 +202,32 @@ def test_a_runs_tape_replays_with_the_runs_swarm(tmp_path, capsys):
     assert replayed.to_dict() == pytest.approx(live.to_dict(), rel=1e-12)
 
 
+def test_a_later_seeds_tape_replays_with_that_seed(tmp_path, capsys):
+    """``--traffic RUN/tapes/seed-1.parquet`` without --seed replays with the run's seed 1
+    (its swarms' random choices), giving the run's seed-1 rows; --seed still chooses another
+    (it replayed with seed 0, another result; probe 17's p2-c30)."""
+    from helpers import small_sumo_scenario
+
+    (tmp_path / "s").mkdir()
+    folder = small_sumo_scenario(tmp_path / "s", horizon=4)
+    run = tmp_path / "run"
+    common = ["--swarms", "random", "--no-ceiling", "--no-report", "--quiet"]
+    argv = ["run", "--config", str(folder / "small.toml"), "--seeds", "2", *common]
+    assert main([*argv, "--out", str(run)]) == 0
+    capsys.readouterr()
+    tape = str(run / "tapes" / "seed-1.parquet")
+    assert main(["evaluate", "--traffic", tape, *common, "--out", str(tmp_path / "ev")]) == 0
+    assert "score weights, seed 1)" in capsys.readouterr().err
+    live = pd.read_csv(run / "per_seed.csv")
+    replayed = pd.read_csv(tmp_path / "ev" / "per_seed.csv")
+    assert replayed["seed"].tolist() == [1]
+    want = live[live["seed"] == 1].set_index("swarm")["R_hat_T"].to_dict()
+    assert replayed.set_index("swarm")["R_hat_T"].to_dict() == pytest.approx(want, rel=1e-12)
+    argv = ["evaluate", "--traffic", tape, "--seed", "0", *common, "--out", str(tmp_path / "e0")]
+    assert main(argv) == 0
+    assert pd.read_csv(tmp_path / "e0" / "per_seed.csv")["seed"].tolist() == [0]
+
+
 def test_a_runs_faults_are_said_not_replayed_with_its_tape(tmp_path, capsys):
     """A run with [faults] replayed from its tape without its config: a notice that its faults
     are not replayed (the numbers differed silently; probe 15's P2-f09)."""

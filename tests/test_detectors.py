@@ -561,3 +561,16 @@ def test_a_broken_occupancy_reading_is_left_out_with_one_notice(capsys):
     reader.detectors = [Detector("twin-loop-0-0-0", LOOP, "B0B1_0", (0, 0), True)]
     assert reader.read() == [(0, 1, 0.0, 9.0)]
     assert "twin-loop" not in capsys.readouterr().err
+
+
+def test_scenario_detectors_asked_of_a_scenario_without_any_say_so(small, tmp_path, capsys):
+    """[traffic.detectors] scenario = true over files that give no detector: the run goes on
+    with a notice that none is read (it ran silently, detectors.parquet empty; probe 17's
+    c54)."""
+    config = _with_detectors(small, "none.toml", "scenario = true\n")
+    out = tmp_path / "out"
+    code = twin_main(["run", "--config", str(config), "--swarms", "random", "--no-ceiling",
+                      "--quiet", "--no-report", "--out", str(out)])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert "scenario = true, but the scenario's files give no induction loop" in err, err

@@ -171,6 +171,8 @@ def test_make_env_refuses_bad_options_in_one_line(joint):
         ({"n_drones": "3"}, "n_drones = '3'"),
         ({"n_drones": 601}, "n_drones = 601"),
         ({"starts": [[0, 0], [1, 1]], "n_drones": 4}, "starts gives 2 cells"),
+        ({"starts": [["0", "0"]]}, r"starts must be \(N, 2\) whole-number cells .*not text"),
+        ({"starts": np.array([["1", "2"]])}, "not text"),
         ({"colour": "red"}, r"make_env\(colour=\.\.\.\) is not an option"),
         ({"params": {"eta": 2}}, r"params = \{'eta': 2\} is not a ScoreParams"),
         (
@@ -195,6 +197,9 @@ def test_make_env_refuses_bad_options_in_one_line(joint):
         ({"params": ScoreParams(eta=True)}, r"params.eta = True must be a number"),
         ({"tape": ""}, r"make_env\(tape=''\): give a tape.parquet's path"),
         ({"tape": 3}, r"make_env\(tape=3\): give a tape.parquet's path"),
+        ({"state": ["paper"]}, r"state = \['paper'\] is not a state variant's name"),
+        ({"state": {}}, r"state = \{\} is not a state variant's name"),
+        ({"state": "bogus"}, r"state = 'bogus' is not a state variant; use one of"),
     ):
         with pytest.raises(EnvInputError, match=words) as info:
             make_env("synthetic", joint=joint, **options)
@@ -351,3 +356,32 @@ def test_a_live_env_left_open_with_large_maps_lets_its_script_end(tmp_path: Path
     done = subprocess.run([sys.executable, "-c", script], cwd=tmp_path, env=env,
                           capture_output=True, text=True, timeout=120)  # fmt: skip
     assert done.returncode == 0 and "stepped" in done.stdout, done.stderr
+
+
+def test_an_additional_files_output_notice_comes_once_over_episodes_run_to_the_end(
+    tmp_path: Path, capfd
+):
+    """An additional file asking SUMO for edge data: its "not kept" notice comes as each
+    episode's simulation ends, once per env (it was said at every episode; probe 17's f08)."""
+    pytest.importorskip("libsumo")
+    from twin.env import make_env
+
+    small_sumo_scenario(tmp_path, horizon=2)
+    (tmp_path / "ed.add.xml").write_text(
+        '<additional><edgeData id="ed" period="60" file="ed.xml"/></additional>'
+    )
+    text = (tmp_path / "small.toml").read_text()
+    text = text.replace('routes = ["small.trips.xml"]\n',
+                        'routes = ["small.trips.xml"]\nadditional = ["ed.add.xml"]\n')  # fmt: skip
+    (tmp_path / "ed.toml").write_text(text)
+    env = make_env(tmp_path / "ed.toml")
+    for seed in range(2):
+        observations, _ = env.reset(seed=seed)
+        while env.agents:
+            observations, *_ = env.step(
+                {a: int(np.flatnonzero(o["action_mask"])[0]) for a, o in observations.items()}
+            )
+    env.close()
+    err = capfd.readouterr().err
+    assert err.count("are not kept by this command") == 1, err
+    assert not (tmp_path / "ed.xml").exists()

@@ -267,6 +267,21 @@ def test_gui_swarms_all_shows_every_swarm_and_shown_swarms_take_the_first_colour
     assert [drawer.colours[n] for n in drawer.shown] == SWARM_COLOURS[:2]
 
 
+def test_gui_swarms_without_the_gui_says_it_draws_nothing(capsys):
+    """--gui-swarms without --gui or --record is checked and draws nothing: a notice says so
+    (it was silently ignored; probe 17's c57)."""
+    import argparse
+
+    from twin.cli.run import gui_drawer
+
+    args = argparse.Namespace(gui=False, record=None, gui_swarms="rl", gui_shade="belief")
+    assert gui_drawer(args, ["random", "rl"]) is None
+    assert "--gui-swarms rl: draws nothing without --gui or --record" in capsys.readouterr().err
+    args.gui = True
+    gui_drawer(args, ["random", "rl"])
+    assert "draws nothing" not in capsys.readouterr().err
+
+
 def test_meso_roads_are_drawn_in_one_colour():
     """sumo-gui's mesoscopic speed colouring changes the simulation it draws: a --meso view
     colours its edges by no scheme that reads the simulation (probe 16's f17)."""
@@ -305,3 +320,25 @@ def test_a_meso_run_replays_again_and_again(tmp_path, capsys):
     for _ in range(5):
         capsys.readouterr()
         assert main(["replay", str(out)]) == 0, capsys.readouterr().err
+
+
+@pytest.mark.parametrize("encoder", ["/bin/false", "/bin/true"])
+def test_a_failing_video_encoder_is_named_with_a_fix(tmp_path, monkeypatch, encoder):
+    """An ffmpeg that fails (or writes nothing): one line naming the encoder and the fixes, no
+    video file (it said "[Errno None] None: 'x.mp4'; check the file and the folder"; probe
+    17's P2-09)."""
+    pytest.importorskip("imageio_ffmpeg")
+    from PIL import Image
+
+    from twin.sumo.gui import write_video
+
+    frames = []
+    for n in range(3):
+        frames.append(tmp_path / f"f{n}.png")
+        Image.new("RGB", (32, 24), (n * 40, 0, 0)).save(frames[-1])
+    monkeypatch.setenv("IMAGEIO_FFMPEG_EXE", encoder)
+    with pytest.raises(UserError, match=rf"--record .*x\.mp4: the video encoder \({encoder}\) "
+                                        r"(failed|wrote nothing).*--record FILE\.gif") as info:  # fmt: skip
+        write_video(tmp_path / "x.mp4", frames)
+    assert "\n" not in str(info.value) and "FFMPEG COMMAND" not in str(info.value)
+    assert not (tmp_path / "x.mp4").exists()

@@ -52,6 +52,12 @@ def test_incident_config_is_checked(tmp_path):
     )
     with pytest.raises(UserError, match="either edge"):
         load_config(path)
+    path.write_text(
+        '[traffic]\nkind = "sumo"\n[[traffic.incidents]]\nkind = "edge_closed"\n'
+        'edge = "e1"\nlane = 1\nbegin = "07:45"\nduration_min = 30\n'
+    )
+    with pytest.raises(UserError, match='gives lane = 1, which only kind = "lane_closed" reads'):
+        load_config(path)
 
 
 # ------------------------------------------------------------------------ on a small SUMO run
@@ -148,6 +154,37 @@ def test_run_writes_incidents_json_and_scores_them(tmp_path):
     assert "## Incidents" in markdown and "% incidents seen" in markdown
 
 
+def test_a_vehicle_to_stop_never_found_on_its_edge_is_recorded_as_never_applied(tmp_path):
+    """A stopped vehicle given by its edge, at a time no vehicle drives there (the demand has
+    cleared): the run ends with the incident at its edge's cell, never applied (it was an
+    internal error after the whole simulation, the results lost)."""
+    pytest.importorskip("libsumo")
+    from helpers import small_sumo_scenario
+
+    from twin.cli import main as twin_main
+    from twin.sumo.incidents import net_edges
+
+    small_sumo_scenario(tmp_path, horizon=40)  # departures end at 00:15, the run at 00:45
+    edge = sorted(net_edges(next(tmp_path.glob("*.net.xml"))))[0]
+    with open(tmp_path / "small.toml", "a") as fh:
+        fh.write(
+            f'[[traffic.incidents]]\nkind = "vehicle_stopped"\nedge = "{edge}"\n'
+            'begin = "00:40"\nduration_min = 2.0\n'
+        )
+    out = tmp_path / "run"
+    argv = ["run", "--config", str(tmp_path / "small.toml"), "--out", str(out), "--no-report",
+            "--quiet", "--swarms", "random", "--no-ceiling"]  # fmt: skip
+    assert twin_main(argv) == 0
+    (record,) = json.loads((out / "incidents.json").read_text())
+    assert record["edge"] == edge and len(record["cell"]) == 2 and record["cell"] != [-1, -1]
+    assert record["vehicle"] is None and record["applied_s"] is None
+    import pandas as pd
+
+    scores = pd.read_csv(out / "monitoring.csv")  # nothing on the road to see (probe 17's P2-01)
+    assert (scores["incidents"] == 0).all() and scores["pct_incidents_seen"].isna().all(), scores
+    assert twin_main(["report", str(out), "--no-animation"]) == 0
+
+
 @pytest.fixture(scope="module")
 def incident_run(tmp_path_factory):
     """A small `twin run` with the two incidents above, made once."""
@@ -233,6 +270,10 @@ FORGED_INCIDENTS = {
     "an unknown kind": (
         _incidents_edited(lambda x: _update(x, 0, kind="flood")),
         "incidents.json: [0].kind = 'flood' is none of",
+    ),
+    "not lifted though lifted in the run": (
+        _incidents_edited(lambda x: _update(x, 0, lifted_s=None)),
+        "incidents.json: [0].lifted_s = null, but an incident to end_s = 660 is lifted at 660,",
     ),
 }
 

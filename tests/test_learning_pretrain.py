@@ -564,6 +564,26 @@ def test_coordinated_collector_on_tapes_and_dynamic_maps(tmp_path):
     assert dyn.buffer.steps == 60
 
 
+def test_a_tape_without_room_for_the_training_drones_is_refused(tmp_path):
+    """A tape whose grid has fewer free cells than the training map's drones: one line naming
+    the tape and the override that fits (it was an internal error in the first episode)."""
+    from helpers import random_tape
+
+    from twin.training.pretrain import episode_source
+
+    tape = tmp_path / "small.parquet"
+    random_tape(seed=1, nx=2, ny=2, horizon=10).write(tape)
+    path = _config(tmp_path)
+    path.write_text(path.read_text() + 'traffic = "tapes"\n')
+    cfg = load_config(path, tapes=[str(tape)])
+    assert cfg.n_drones > 3  # the tape's grid has one obstacle
+    with pytest.raises(UserError, match=r"small\.parquet: its 2 x 2 grid has 3 free cells for "
+                       r"the \d+ drones of the training map; give scenario_overrides = "
+                       r'\{ "swarm.n_drones" = 3 \}') as info:  # fmt: skip
+        episode_source(cfg)
+    assert "\n" not in str(info.value)
+
+
 def test_a_tape_that_stopped_early_is_refused_for_training(tmp_path):
     """A tape whose run stopped before its horizon: an episode runs every step of T, so the
     tape is refused in one line naming it (it ended in an internal StopIteration)."""
@@ -580,4 +600,20 @@ def test_a_tape_that_stopped_early_is_refused_for_training(tmp_path):
         UserError, match=r"short\.parquet: holds steps to 29 of its horizon"
     ) as info:
         episode_source(load_config(path, tapes=[str(tape)]))
+    assert "\n" not in str(info.value)
+
+
+@pytest.mark.parametrize("traffic", ["paper", "dynamics"])
+def test_tapes_given_to_a_recipe_that_trains_on_none_are_refused(tmp_path, traffic):
+    """tapes = [...] beside traffic = "paper" or "dynamics": one line naming both (the tapes
+    were silently left unused; probe 17's P2-07)."""
+    from helpers import random_tape
+
+    tape = tmp_path / "a.parquet"
+    random_tape(seed=1, nx=6, ny=6, horizon=30).write(tape)
+    path = _config(tmp_path)
+    path.write_text(path.read_text() + f'traffic = "{traffic}"\ntapes = ["{tape}"]\n')
+    with pytest.raises(UserError, match=f'are given, but traffic = "{traffic}" trains on no '
+                                        'tape; set traffic = "tapes"') as info:  # fmt: skip
+        load_config(path)
     assert "\n" not in str(info.value)

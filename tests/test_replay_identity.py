@@ -216,7 +216,21 @@ CASES = {
     "other grid": (
         _edit_run_json(lambda m: m["traffic"]["identity"].update(grid=[9, 9])),
         None,
-        "the grid (nx, ny) was [9, 9], now",
+        "traffic.identity.grid = [9, 9], but grid is",
+    ),
+    "identity files emptied": (
+        _edit_run_json(lambda m: m["traffic"]["identity"].update(files=[])),
+        None,
+        "traffic.identity.files records no network",
+    ),
+    "identity files without the route file": (
+        _edit_run_json(
+            lambda m: m["traffic"]["identity"].update(
+                files=[f for f in m["traffic"]["identity"]["files"] if f["role"] != "route file"]
+            )
+        ),
+        None,
+        "traffic.identity.files records the route files [], but traffic.route_files are",
     ),
     "cell off the grid": (_off_grid, None, "on cell (99, "),
     "swarm renamed in trajectories": (

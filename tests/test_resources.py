@@ -355,3 +355,35 @@ def test_an_unsealed_entry_with_two_generator_comments_is_kept(tmp_path, capsys)
     resources.build_once(target, make, verify=_verify)
     assert "differs" not in capsys.readouterr().err
     resources.check_seal(target)
+
+
+@pytest.mark.parametrize("linked", [False, True])
+def test_the_scratch_sweep_removes_only_twins_own_stale_entries(tmp_path, monkeypatch, linked):
+    """Old entries of the cache's tmp/ are removed only when twin made them (named twin-...):
+    a user's files lying there, or in the folder a tmp link leads to, are kept (probe 17's
+    P2-04: every entry older than two days was deleted)."""
+    import os
+    import time
+
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    scratch = tmp_path / "elsewhere" if linked else cache / "tmp"
+    (scratch / "project").mkdir(parents=True)
+    if linked:
+        (cache / "tmp").symlink_to(scratch)
+    (scratch / "notes.txt").write_text("precious")
+    (scratch / "project" / "thesis.tex").write_text("work")
+    (scratch / "twin-sumo-dead.log").write_text("a killed run's")
+    (scratch / "twin-frames-dead").mkdir()
+    (scratch / "twin-sumo-fresh.log").write_text("a running one's")
+    old = time.time() - (resources.SCRATCH_DAYS + 1) * 86400
+    for name in ("notes.txt", "project/thesis.tex", "project", "twin-sumo-dead.log",
+                 "twin-frames-dead"):  # fmt: skip
+        os.utime(scratch / name, (old, old))
+    monkeypatch.setenv("TWIN_CACHE_DIR", str(cache))
+    monkeypatch.setattr(resources, "_SWEPT", set())
+    resources.scratch_dir()
+    assert sorted(p.name for p in scratch.iterdir()) == [
+        "notes.txt", "project", "twin-sumo-fresh.log"
+    ]  # fmt: skip
+    assert (scratch / "project" / "thesis.tex").read_text() == "work"

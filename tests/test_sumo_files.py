@@ -1032,6 +1032,46 @@ def test_a_run_in_the_scenarios_own_window_past_its_departures_gets_a_notice(
     assert code == 0 and "begins past the last departure" in err, err  # a begin in its window
 
 
+def test_a_begin_past_the_sumocfgs_end_gets_a_notice(scenario, tmp_path, capsys):
+    """A --begin at or past the sumocfg's <end>, where SUMO alone would stop: twin runs its own
+    window and says so (before, silently)."""
+    d = scenario / "scenario"
+    cfg = tmp_path / "short.sumocfg"
+    cfg.write_text(
+        f'<configuration><input><net-file value="{d / "small.net.xml"}"/><route-files '
+        f'value="{d / "small.trips.xml"}"/></input><time><begin value="0"/><end '
+        'value="300"/></time></configuration>'
+    )
+    config = tmp_path / "twin.toml"
+    config.write_text(CONFIG)
+    argv = ["run", "--config", str(config), "--sumocfg", str(cfg), "--horizon",
+            "2", "--swarms", "random", "--no-ceiling", "--quiet", "--no-report"]  # fmt: skip
+    code = main([*argv, "--begin", "00:06", "--out", str(tmp_path / "late")])
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert "past the scenario's end (00:05:00)" in err, err
+    code = main([*argv, "--begin", "00:02", "--out", str(tmp_path / "within")])
+    err = capsys.readouterr().err
+    assert code == 0 and "past the scenario's end" not in err, err
+
+
+def test_a_min_lane_km_above_every_cell_names_the_key_not_the_network(scenario, tmp_path, capsys):
+    """[traffic].min_lane_km above every cell's lane-km: one line naming the key and the most
+    lane a cell has (it said the network had no lane; probe 17's f09)."""
+    d = scenario / "scenario"
+    config = tmp_path / "c.toml"
+    config.write_text(
+        CONFIG.replace("warmup_min = 1.0", f'warmup_min = 1.0\nmin_lane_km = 1e6\nnet = '
+                       f'"{d / "small.net.xml"}"\nroutes = ["{d / "small.trips.xml"}"]')
+    )  # fmt: skip
+    code = main(["run", "--config", str(config), "--horizon", "2", "--swarms", "random",
+                 "--no-ceiling", "--quiet", "--no-report", "--out", str(tmp_path / "o")])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1, err
+    assert "[traffic].min_lane_km = 1e+06 leaves no cell of the" in err, err
+    assert "give a min_lane_km below" in err and "has a lane" not in err, err
+
+
 @pytest.fixture(scope="module")
 def saved_state(scenario, tmp_path_factory) -> Path:
     """``state/``: the scenario's network and trips, a state SUMO saved at 300 s (with SUMO's

@@ -192,6 +192,20 @@ def test_sumo_refusal_names_the_file(city, tmp_path, capsys, element, words):
     assert str(bad) in lines[-1] and words in lines[-1], lines[-1]
 
 
+def test_a_clash_of_a_vehicles_own_route_is_blamed_on_a_route_file(tmp_path):
+    """SUMO names a vehicle's own route '!<vehicle>': a clash of two route files defining
+    vehicle "0" names the later route file, not the network (probe 17's f06)."""
+    from twin.sumo.session import sumo_refusal
+
+    net, trips, alt = tmp_path / "g.net.xml", tmp_path / "trips.xml", tmp_path / "alt.rou.xml"
+    net.write_text('<net><edge id="A0A1"/></net>')
+    trips.write_text('<routes><trip id="0" depart="0" from="A0A1" to="A0A1"/></routes>')
+    alt.write_text('<routes><vehicle id="0" depart="0"><route edges="A0A1"/></vehicle></routes>')
+    text = "Error: Another route (or distribution) with the id '!0' exists.\nQuitting."
+    where, reason = sumo_refusal(text, [net, trips, alt])
+    assert where == alt and reason.startswith("Another route (or distribution)"), where
+
+
 @pytest.mark.parametrize("kind", ["spider", "random"])
 def test_generated_networks_compressed_with_additionals(kind, city, capsys):
     files = _scenario(city / kind, kind)
@@ -302,8 +316,12 @@ def test_too_small_grid_notice_and_its_suggestion_works(city, capsys):
     assert code == 0, err
     (line,) = [x for x in err.splitlines() if "per drone" in x]
     assert line.startswith("twin: notice:")
-    suggested = re.search(r"--cell-m (\S+) \((\d+) free cells\)", line)
-    assert suggested, line
+    suggested = re.search(
+        r"cells of (\S+) m \((\d+) free cells: --cell-m (\S+), or "
+        r"traffic.cell_m = (\S+)\)",
+        line,
+    )  # a command's flag, a sweep's key
+    assert suggested and suggested[1] == suggested[3] == suggested[4], line
     code, err = _run(city, "fine", "--sumocfg", cfg, "--cell-m", suggested[1], "--drones",
                      str(drones), capsys=capsys)  # fmt: skip
     assert code == 0, err
@@ -780,3 +798,27 @@ def test_a_run_writes_nothing_in_the_systems_temporary_folder(tmp_path, monkeypa
                           *extra])  # fmt: skip
         assert code == 0, capsys.readouterr().err
     assert sorted(p.name for p in system.iterdir()) == []
+
+
+def test_a_file_where_the_scratch_folder_belongs_is_refused_before_the_run(
+    tmp_path, monkeypatch, capsys
+):
+    """A file in the cache where its tmp/ belongs: one line naming it before any folder is
+    made (SUMO's worker failed on it, a 0-step partial run was written; probe 17's f07)."""
+    from helpers import small_sumo_scenario
+
+    from twin import resources
+
+    cache = tmp_path / "cache"
+    cache.mkdir()
+    (cache / "tmp").write_text("x")
+    monkeypatch.setenv("TWIN_CACHE_DIR", str(cache))
+    monkeypatch.setattr(resources, "_SWEPT", set())
+    small_sumo_scenario(tmp_path, horizon=2)
+    out = tmp_path / "run"
+    code = twin_main(["run", "--config", str(tmp_path / "small.toml"), "--quiet", "--no-report",
+                      "--no-ceiling", "--swarms", "random", "--out", str(out)])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1, err
+    assert f"{cache / 'tmp'}: twin's scratch folder" in err and "(a file)" in err, err
+    assert not out.exists()

@@ -682,6 +682,25 @@ def test_a_history_option_is_a_file_of_the_cell(tmp_path: Path) -> None:
     assert not set(c["id"] for c in expand_cells(config, tmp_path / "s")) & set(first)
 
 
+@pytest.mark.parametrize("history", [None, b"no history"])
+def test_a_swarm_without_a_usable_history_is_refused_before_any_cell(tmp_path, capsys, history):
+    """nowcast-gain in a sweep without a history (or with a file that is none) is one line
+    before any cell runs; each cell used to run its traffic and then fail."""
+    path = sweep_file(tmp_path, seeds=2, horizon=4)
+    text = path.read_text().replace('"sweeping"]', '"sweeping", "nowcast-gain"]')
+    if history is not None:
+        (tmp_path / "h.npz").write_bytes(history)
+        text += '\n[swarm_options.nowcast-gain]\nhistory = "h.npz"\n'
+    path.write_text(text)
+    out = tmp_path / "s"
+    assert cli(["sweep", "--config", str(path), "--out", str(out), "--quiet", "--no-report"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+    assert "nowcast-gain" in err or "h.npz" in err, err
+    assert "cells failed" not in err and not (out / "failed.json").exists(), err  # none ran
+    assert not out.exists(), list(out.rglob("*"))  # nothing written for a refused sweep
+
+
 def test_a_sumocfg_variable_naming_another_file_gives_a_new_cell(tmp_path: Path, monkeypatch):
     """A cell is its sumocfg as SUMO reads it: a ``${VAR}`` that now names another route file
     gives another cell (the old cell's numbers were kept as current; probe 14's f04)."""

@@ -378,6 +378,26 @@ def test_a_tape_of_another_seed_copied_over_a_tape_is_recorded_again(tmp_path, c
     )
 
 
+def test_tapes_too_small_for_the_rows_drones_are_refused_before_any_stage(tmp_path, capsys):
+    """A ``[tapes]`` scenario whose grid has fewer free cells than the drones a tapes row
+    trains: one line naming the fix before any tape is recorded (it was an internal error
+    after recording them; probe 17's f04)."""
+    config = tiny_config(tmp_path, sumo=False)
+    config.write_text(
+        config.read_text().replace(
+            "seeds = [100, 101]",
+            'seeds = [100, 101]\noverrides = { "traffic.cell_m" = 1500, "swarm.n_drones" = 1 }',
+        )
+    )
+    out = tmp_path / "o"
+    assert cli(["transfer", "--config", str(config), "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1, err
+    assert "[[row]] paper+tapes trains 4 drones on tapes of small.toml, whose grid has 1 " in err
+    assert 'give [schedule] scenario_overrides = { "swarm.n_drones" = 1 }' in err, err
+    assert not out.exists()
+
+
 def test_tapes_of_a_synthetic_scenario_are_refused_before_any_stage(tmp_path, capsys):
     """``[tapes] config`` naming a synthetic scenario: one line before any stage (it was an
     internal error while recording, a synthetic source has no tape; probe 16's f05)."""
@@ -391,3 +411,27 @@ def test_tapes_of_a_synthetic_scenario_are_refused_before_any_stage(tmp_path, ca
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "its traffic is 'synthetic', not a SUMO scenario" in err, err
     assert not out.exists()
+
+
+def test_a_row_trained_again_keeps_the_users_files(tmp_path: Path) -> None:
+    """A row folder to train again is cleared of what pretraining wrote only; a file twin did
+    not write is refused in one line and nothing is removed (the folder was deleted whole;
+    probe 17's P2-06)."""
+    from twin.transfer.runner import clear_row_folder
+
+    row = tmp_path / "rows" / "dyn"
+    (row / "snapshots").mkdir(parents=True)
+    for name in ("qnet.pt", "state.pt", "train_log.csv", "provenance.json", ".qnet.pt.tmp"):
+        (row / name).write_text("twin's")
+    (row / "snapshots" / "epoch_10.pt").write_text("twin's")
+    (row / "plots").mkdir()
+    (row / "plots" / "a.png").write_text("mine")
+    with pytest.raises(UserError, match=r"row dyn: must be trained again .* holds 'plots', "
+                                        "which twin did not write; move it out") as info:  # fmt: skip
+        clear_row_folder(row)
+    assert "\n" not in str(info.value)
+    assert (row / "plots" / "a.png").read_text() == "mine" and (row / "qnet.pt").exists()
+    (row / "plots" / "a.png").unlink()
+    (row / "plots").rmdir()
+    clear_row_folder(row)
+    assert list(row.iterdir()) == []

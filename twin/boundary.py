@@ -108,6 +108,29 @@ def claim_run_folder(path: Path, flag: str = "--out") -> None:
     _state["lock"] = (path.resolve(), fd)
 
 
+def written_by_another(path: Path) -> bool:
+    """Whether another twin command holds ``path`` (:func:`claim_run_folder`) now: it is
+    writing into it."""
+    import fcntl
+
+    held = _state["lock"]
+    if held is not None and held[0] == Path(path).resolve():
+        return False  # this command's own
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
+    except OSError:
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return True
+    except OSError:
+        return False
+    finally:
+        os.close(fd)
+    return False
+
+
 def _release_lock() -> None:
     held, _state["lock"] = _state["lock"], None
     if held is not None:

@@ -324,6 +324,11 @@ class IncidentSettings(StrictModel):
             raise ValueError('needs either edge = "<edge id>" or cell = [i, j], not both')
         if (self.begin is None) == (self.step is None):
             raise ValueError('needs either begin = "HH:MM" or step = <k>, not both')
+        if self.lane != 0 and self.kind != "lane_closed":  # (a dumped config holds lane = 0)
+            raise ValueError(
+                f'gives lane = {self.lane}, which only kind = "lane_closed" reads (a {self.kind} '
+                'takes every lane); leave lane out, or use kind = "lane_closed"'
+            )
         return self
 
 

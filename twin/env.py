@@ -174,7 +174,10 @@ class SwarmParallelEnv(ParallelEnv):
         ``state`` names the observations' state variant (:mod:`twin.states`); ``nowcast`` is
         refused: the envs carry no history for its belief.
         """
-        self.variant = state_variant(state)
+        try:
+            self.variant = state_variant(state)
+        except UserError as exc:  # the env's own error type, a ValueError too
+            raise EnvInputError(str(exc)) from None
         if self.variant.needs_belief:
             raise EnvInputError(
                 f"state = {state!r} reads the nowcast of a history of earlier days, which the "
@@ -324,7 +327,8 @@ class SwarmParallelEnv(ParallelEnv):
         actions = check_actions(self.swarm, actions)  # before the source moves on
         self.swarm, out = step(self.swarm, actions, self._next_map(), self.grid, self.params)
         if self.swarm.k >= self.horizon:
-            self._close_maps()
+            with once_among(self._said):  # the simulation's notices come as it ends
+                self._close_maps()
         return out
 
     def _next_map(self) -> np.ndarray:
@@ -361,6 +365,10 @@ class SwarmParallelEnv(ParallelEnv):
             raise EnvInputError(
                 "starts must be (N, 2) whole-number cells (i, j), not True/False; e.g. "
                 "[[0, 0], [1, 2]]"
+            )
+        if any(isinstance(v, (str, bytes, np.str_)) for v in cells):  # as n_drones = "3" is none
+            raise EnvInputError(
+                "starts must be (N, 2) whole-number cells (i, j), not text; e.g. [[0, 0], [1, 2]]"
             )
         try:
             raw = np.asarray(starts, dtype=np.float64)

@@ -755,13 +755,18 @@ def n_workers(experiment: Experiment) -> int:
 
 def check_resources(experiment: Experiment, out: Path, flag: str = "--out") -> None:
     """Before any folder is made: the memory estimate of a run whose grid is known from its
-    config or tape (:func:`check_memory`), then the output folder (:func:`disk_estimate_mb`;
+    config or tape (:func:`check_memory`), or a live run's scratch folder in the cache
+    (:func:`twin.resources.scratch_dir`), then the output folder (:func:`disk_estimate_mb`;
     :func:`twin.outputs.check_output_dir`)."""
     from twin.outputs import check_output_dir
 
     max_memory_gb(experiment)  # a bad limit is refused first
     if not is_live(experiment):
         check_memory(experiment, *planned_shape(experiment))
+    else:  # a live simulation keeps its messages in the cache's scratch folder
+        from twin.resources import scratch_dir
+
+        scratch_dir()
     check_output_dir(out, flag, disk_estimate_mb(experiment))
 
 

@@ -180,14 +180,18 @@ def swarm_rows(frame: pd.DataFrame) -> pd.DataFrame:
     return frame[~is_ceiling_row(frame)]
 
 
+NAN = float("nan")
+
+
 def ci95_halfwidth(values: np.ndarray) -> float:
-    """Half-width of the Student-t 95% interval of the mean (0 for a single value; NaN values,
-    e.g. the latency of a seed in which no event was seen, are left out)."""
+    """Half-width of the Student-t 95% interval of the mean; NaN values (e.g. the latency of a
+    seed in which no event was seen) are left out. NaN from fewer than two values: one seed
+    gives no interval (a 0 would read as certainty)."""
     values = np.asarray(values, dtype=float)
     values = values[~np.isnan(values)]
     n = len(values)
     if n < 2:
-        return 0.0
+        return NAN
     return float(stats.t.ppf(0.975, n - 1) * values.std(ddof=1) / np.sqrt(n))
 
 
@@ -342,9 +346,6 @@ def paired_difference(per_seed: pd.DataFrame, a: str, b: str, column: str = "R_h
         "ratio": _ratio(float(both[a].mean()), float(both[b].mean())) if len(diff) else NAN,
         "n_seeds": len(diff),
     }
-
-
-NAN = float("nan")
 
 
 def _ratio(a: float, b: float) -> float:

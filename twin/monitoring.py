@@ -106,6 +106,12 @@ def incident_sightings(
     return first, np.where(first >= 0, first - onset, -1)
 
 
+def applied_incidents(incidents: list[dict]) -> list[dict]:
+    """The incidents that took place: a stopped vehicle never found (``applied_s`` null) left
+    nothing on the road for a drone to see, so it is no incident to be seen or missed."""
+    return [inc for inc in incidents if inc.get("applied_s", 0.0) is not None]
+
+
 def incident_scores(first_seen: np.ndarray, latency: np.ndarray, step_s: float | None) -> dict:
     """The incident columns of one swarm: count, % seen, mean latency (steps, minutes)."""
     seen = first_seen >= 0
@@ -238,7 +244,7 @@ class RunMonitoring:
     belief_error: np.ndarray  # (S, T+1)
     first_seen: np.ndarray  # (S, E) step, -1 when not seen while the event lasted
     steps_seen: np.ndarray  # (S, E) steps of the event with its cell in view
-    incidents: list[dict] | None = None  # scheduled incidents (ground truth), if any
+    incidents: list[dict] | None = None  # the scheduled incidents applied (ground truth)
     incident_first_seen: np.ndarray | None = None  # (S, I) step, -1 when not seen
     incident_latency: np.ndarray | None = None  # (S, I) steps, -1 when not seen
 
@@ -264,7 +270,7 @@ class RunMonitoring:
             if step_s:
                 row["latency_median_min"] = row["latency_median_steps"] * step_s / 60.0
                 row["latency_p90_min"] = row["latency_p90_steps"] * step_s / 60.0
-            if self.incidents:
+            if self.incidents is not None:  # (none applied: 0 incidents)
                 row |= incident_scores(
                     self.incident_first_seen[s], self.incident_latency[s], step_s
                 )
@@ -326,9 +332,10 @@ def monitor_run(result, settings: MonitorSettings | None = None) -> RunMonitorin
         )
         keys = sightings(grid, positions[s], recorded)
         first[s], seen_steps[s] = event_sightings(events, keys, steps, grid.ny)
-    incidents = (getattr(result, "extra", None) or {}).get("incidents") or None
+    scheduled = (getattr(result, "extra", None) or {}).get("incidents") or None
+    incidents = None if scheduled is None else applied_incidents(scheduled)
     inc_first = inc_latency = None
-    if incidents:
+    if incidents is not None:
         pairs = [
             incident_sightings(grid, positions[s], incidents, recorded) for s in range(n_swarms)
         ]

@@ -200,6 +200,7 @@ RUN_JSON_FIELDS: dict[str, Any] = {
         "horizon": int,
         "identity": {"net_sha256": str, "cell_m": NUM, "grid": list, "sumo": str, "twin": str},
         "recorded": {"step_s": NUM},
+        "tape_file": {"path": str, "sha256": str},
     },
     "timings": {"peak_memory_mb": NUM, "peak_memory_sumo_process_mb": NUM, "patrol_seconds": list},
     "wall_seconds": NUM,
@@ -369,13 +370,95 @@ def check_run_json(path: Path, run: Any) -> dict[str, Any]:
                 f"{path}: timings.patrol_seconds[{n}] = {str(seconds)[:40]} must be {_SECONDS[1]}"
                 f"; {RERUN}"
             )
+    if swarms := [s for s in run.get("swarms") or [] if isinstance(s, str)]:
+        twice = sorted({s for s in swarms if swarms.count(s) > 1})
+        if twice:
+            raise UserError(f"{path}: swarms lists {twice[0]!r} twice; {RERUN}")
+    for name, version in (run.get("versions") or {}).items():
+        if not isinstance(version, str):
+            raise UserError(f"{path}: versions.{name} = {str(version)[:40]} must be text; {RERUN}")
+    if grid is not None and isinstance(run.get("grid"), dict):
+        shape = [run["grid"].get("nx"), run["grid"].get("ny")]
+        if None not in shape and list(grid) != shape:
+            raise UserError(
+                f"{path}: traffic.identity.grid = {grid}, but grid is {shape[0]} x {shape[1]}; "
+                f"{RERUN}"
+            )
     check_same_fields(path, run)
     check_invocation(path, run)
+    check_partial(path, run)
+    check_sumo_outputs(path, run)
     return run
 
 
+def check_partial(path: Path, run: dict[str, Any]) -> None:
+    """A run that records an error, or a reason it is partial, says it is partial (twin marks
+    every run with an error partial)."""
+    if run.get("partial"):
+        return
+    errors = run.get("errors") or []
+    for n, error in enumerate(errors):
+        if not isinstance(error, str):
+            raise UserError(f"{path}: errors[{n}] = {str(error)[:40]} must be text; {RERUN}")
+    said = [
+        (name, value)
+        for name, value in (
+            ("errors", errors[0] if errors else None),
+            ("partial_reason", run.get("partial_reason")),
+            ("traffic.error", _dotted(run, "traffic.error")),
+        )
+        if value
+    ]
+    if said:
+        name, value = said[0]
+        raise UserError(
+            f"{path}: {name} = {str(value)[:40]!r}, but partial = false (a run with an error is "
+            f"partial); {RERUN}"
+        )
+
+
+def check_sumo_outputs(path: Path, run: dict[str, Any]) -> None:
+    """``traffic.sumo_outputs``: files of the run folder's ``sumo/``, each there."""
+    outputs = _dotted(run, "traffic.sumo_outputs")
+    if not isinstance(outputs, list):
+        return
+    folder = path.parent / "sumo"
+    for n, name in enumerate(outputs):
+        where = f"traffic.sumo_outputs[{n}] = {str(name)[:60]!r}"
+        if not isinstance(name, str) or Path(name).is_absolute() or ".." in Path(name).parts:
+            raise UserError(f"{path}: {where} is not a name inside sumo/; {RERUN}")
+        if not (folder / name).is_file():
+            raise UserError(f"{path}: {where}, but {folder / name} is not there; {RERUN}")
+
+
+#: The command-line options run.json's ``invocation`` records and the field of the run each
+#: sets: (option, dotted field, only for a live `twin run`).
+INVOCATION_FIELDS = (
+    ("drones", "n_drones", False),
+    ("swarms", "swarms", False),
+    ("horizon", "traffic.horizon", True),
+    ("cell_m", "traffic.identity.cell_m", True),
+    ("net", "traffic.net_file", True),
+)
+
+
+def _command_words(command: Any) -> list[str] | None:
+    """run.json's ``command`` split as a shell would (None when it is no text or no ``twin``
+    command line)."""
+    import shlex
+
+    if not isinstance(command, str):
+        return None
+    try:
+        words = shlex.split(command)
+    except ValueError:
+        return None
+    return words if words and words[0] == "twin" else None
+
+
 def check_invocation(path: Path, run: dict[str, Any]) -> None:
-    """run.json's command agrees with itself: ``kind`` is the invocation's command, and
+    """run.json's command agrees with itself: ``kind`` is the invocation's command and the
+    command line's, the options it gives are the run's (:data:`INVOCATION_FIELDS`), and
     ``created`` is a time."""
     from datetime import datetime
 
@@ -384,6 +467,29 @@ def check_invocation(path: Path, run: dict[str, Any]) -> None:
         raise UserError(
             f"{path}: kind = {str(kind)[:40]!r}, but invocation.command = {str(command)[:40]!r}; "
             f"{RERUN}"
+        )
+    words = _command_words(run.get("command"))
+    if kind is not None and words is not None and (len(words) < 2 or words[1] != kind):
+        raise UserError(
+            f"{path}: command = {str(run.get('command'))[:60]!r} is no `twin {kind}`, but kind = "
+            f"{str(kind)[:40]!r}; {RERUN}"
+        )
+    for option, field, live in INVOCATION_FIELDS:
+        given, recorded = _dotted(run, f"invocation.options.{option}"), _dotted(run, field)
+        if given is None or recorded is None or (live and kind != "run"):
+            continue
+        if option == "swarms":
+            named = [s.strip() for s in str(given).split(",") if s.strip()]
+            if "all" in named or not isinstance(recorded, list) or set(named) == set(recorded):
+                continue
+        elif option == "net":
+            if Path(str(given)).name == Path(str(recorded)).name:
+                continue
+        elif given == recorded:
+            continue
+        raise UserError(
+            f"{path}: invocation.options.{option} = {repr(given)[:60]}, but {field} = "
+            f"{repr(recorded)[:60]}; {RERUN}"
         )
     created = run.get("created")
     if created is not None:
@@ -420,6 +526,23 @@ def check_same_fields(path: Path, run: dict[str, Any]) -> None:
         if isinstance(f, dict) and f.get("role") == "network"
     }
     net = identity.get("net_sha256")
+    if net is not None and not nets:
+        raise UserError(
+            f'{path}: traffic.identity.files records no network (role "network"), but '
+            f"traffic.identity.net_sha256 gives one; {RERUN}"
+        )
+    routes = _dotted(run, "traffic.route_files")
+    if isinstance(routes, list) and all(isinstance(r, str) for r in routes):
+        recorded = sorted(
+            Path(str(f.get("path"))).name
+            for f in identity["files"]
+            if isinstance(f, dict) and f.get("role") == "route file"
+        )
+        if recorded != sorted(Path(r).name for r in routes):
+            raise UserError(
+                f"{path}: traffic.identity.files records the route files {recorded}, but "
+                f"traffic.route_files are {sorted(Path(r).name for r in routes)}; {RERUN}"
+            )
     if nets and net is not None and net not in nets:
         raise UserError(
             f"{path}: traffic.identity.net_sha256 = {str(net)[:16]}..., but its files record "

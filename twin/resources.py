@@ -116,23 +116,38 @@ def cache_dir() -> Path:
 SCRATCH_DAYS = 2
 #: The scratch folders this process has swept of stale entries.
 _SWEPT: set[Path] = set()
+#: The start of every scratch entry's name: only such entries are twin's to remove.
+SCRATCH_PREFIX = "twin-"
 
 
 def scratch_dir() -> Path:
     """twin's scratch folder, ``<cache>/tmp``: the temporary files of a command (SUMO's
     messages, a GUI's frames, the word to stop a parallel run) live there, never in the
     system's temporary folder (twin writes only into its run folder and its cache). Entries a
-    killed process left behind are removed after :data:`SCRATCH_DAYS` days."""
+    killed process left behind are removed after :data:`SCRATCH_DAYS` days: twin's own, named
+    :data:`SCRATCH_PREFIX`..., never another file that happens to lie there."""
     import shutil
     import time
 
     folder = cache_dir() / "tmp"
-    folder.mkdir(parents=True, exist_ok=True)
-    if folder in _SWEPT:  # once per process (an env makes a scratch file at every episode)
+    if folder in _SWEPT and folder.is_dir():  # once per process (an env makes a scratch file
+        return folder  # at every episode)
+    check_cache("its scratch files live in its tmp/")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        what = "a file" if folder.exists() and not folder.is_dir() else (exc.strerror or exc)
+        raise UserError(
+            f"{folder}: twin's scratch folder (in its cache, ${CACHE_ENV}) cannot be made "
+            f"({what}); move that out of the way, or set ${CACHE_ENV} to another folder"
+        ) from None
+    if folder in _SWEPT:
         return folder
     _SWEPT.add(folder)
     old = time.time() - SCRATCH_DAYS * 86400
     for entry in folder.iterdir():
+        if not entry.name.startswith(SCRATCH_PREFIX):
+            continue
         try:
             if entry.lstat().st_mtime < old:
                 if entry.is_dir() and not entry.is_symlink():

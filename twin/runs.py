@@ -99,8 +99,9 @@ class RunFile:
 #: prices (``bound.npz``), the drones' starts and the configured incident schedule, which the
 #: read-back of a folder of format 1 cannot replay; 3 adds the fault-free twin's trajectories
 #: (``fault_free.parquet``), which the read-back of ``degradation.csv`` replays, and the
-#: oracle's (``oracle.parquet``), which the read-back of the oracle row replays.
-FOLDER_FORMAT = 3
+#: oracle's (``oracle.parquet``), which the read-back of the oracle row replays; 4 leaves the
+#: ``_ci95`` of a figure from one seed empty (earlier formats wrote 0).
+FOLDER_FORMAT = 4
 
 
 #: The run folder's schema: every name twin writes into a run folder. It drives the manifest
@@ -337,6 +338,13 @@ def check_run_folder(run_dir: str | Path) -> dict[str, Any]:
             "wrote (a sweep's, transfer's or pretraining's folder is not one); pass a run folder"
         )
     if not manifest_path.exists():
+        from twin.boundary import written_by_another
+
+        if written_by_another(run_dir):
+            raise UserError(
+                f"{run_dir}: another twin command is writing into this folder now; wait for it "
+                "to end, then read it"
+            )
         run = _read_json(run_dir / "run.json")
         why = run.get("partial_reason") if isinstance(run, dict) else None
         raise UserError(

@@ -208,9 +208,11 @@ STATE_NAMES: tuple[str, ...] = (*STATE_VARIANTS, *UNAVAILABLE)
 def state_variant(name: str, where: str = "state") -> StateVariant:
     """The variant called ``name``; anything else is one :class:`UserError` line naming
     ``where``."""
+    known = ", ".join(repr(n) for n in STATE_VARIANTS)
+    if not isinstance(name, str):  # a list or a dict cannot even be looked up
+        raise UserError(f"{where} = {name!r} is not a state variant's name; use one of {known}")
     if name in STATE_VARIANTS:
         return STATE_VARIANTS[name]
-    known = ", ".join(repr(n) for n in STATE_VARIANTS)
     if name in UNAVAILABLE:
         raise UserError(f"{where} = {name!r} {UNAVAILABLE[name]}; use one of {known}")
     raise UserError(f"{where} = {name!r} is not a state variant; use one of {known}")

@@ -165,3 +165,93 @@ def make_policy(name: str, **options) -> Policy:
     if name != base_name(name):
         policy.name = name
     return policy
+
+
+#: What run.json records of a learned swarm (``policies.<swarm>``), with the types.
+POLICY_FIELDS: dict[str, object] = {
+    "checkpoint": str,
+    "sha256": str,
+    "trained_epochs": int,
+    "layers": list,
+    "state": str,
+    "history_runs": int,
+    "history_seeds": list,
+    "coordination": str,
+    "eps": (int, float),
+    "outages": list,
+    "online": bool,
+}
+
+
+def check_policy_records(path, run: dict) -> None:
+    """run.json's ``policies`` (``path``): records of the run's swarms; a learned swarm's (a
+    complete run has one for each) gives its checkpoint's sha256, epochs, layers that fit its
+    state (13 paper inputs -> 5 Q-values), a known state variant and coordination, and an
+    epsilon in [0, 1]."""
+    import re
+
+    from twin.grid import N_ACTIONS
+    from twin.readback import RERUN, check_fields
+    from twin.states import STATE_VARIANTS
+
+    policies = run.get("policies")
+    if policies is None:
+        return
+    if not isinstance(policies, dict):
+        raise UserError(f"{path}: policies must be an object (swarm -> policy); {RERUN}")
+    swarms = [s for s in run.get("swarms") or [] if isinstance(s, str)]
+    for swarm, policy in policies.items():
+        where = f"policies.{swarm}"
+        if swarm not in swarms:
+            raise UserError(f"{path}: {where}: {swarm!r} is no swarm of the run; {RERUN}")
+        kind = SWARMS.get(base_name(swarm))
+        if kind is not None and not kind.learned and not hasattr(kind.build, "describe"):
+            raise UserError(f"{path}: {where}: swarm {swarm!r} records no policy; {RERUN}")
+        check_fields(path, policy, POLICY_FIELDS, where)
+        if not is_learned(swarm):  # a planner records its own options
+            continue
+        fixed = {"rl-online": ("online", True), "rl-decentralized": ("coordination",
+                 "decentralized")}.get(base_name(swarm))  # fmt: skip
+        if fixed is not None and policy.get(fixed[0]) not in (None, fixed[1]):
+            raise UserError(
+                f"{path}: {where}.{fixed[0]} = {repr(policy.get(fixed[0]))[:40]}, but swarm "
+                f"{swarm!r} has {fixed[0]} = {fixed[1]!r} by its name; {RERUN}"
+            )
+        sha = policy.get("sha256")
+        if sha is not None and not re.fullmatch(r"[0-9a-f]{64}", sha):
+            raise UserError(f"{path}: {where}.sha256 = {sha[:40]!r} is no sha256; {RERUN}")
+        epochs = policy.get("trained_epochs")
+        if epochs is not None and epochs < 0:
+            raise UserError(
+                f"{path}: {where}.trained_epochs = {epochs} must be at least 0; {RERUN}"
+            )
+        state = policy.get("state")
+        if state is not None and state not in STATE_VARIANTS:
+            raise UserError(f"{path}: {where}.state = {state[:40]!r} is no state variant; {RERUN}")
+        layers = policy.get("layers")
+        if layers is not None:
+            size = STATE_VARIANTS[state].size if state is not None else layers[:1]
+            ok = (
+                len(layers) >= 2
+                and all(isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in layers)
+                and layers[-1] == N_ACTIONS
+                and (state is None or layers[0] == size)
+            )
+            if not ok:
+                raise UserError(
+                    f"{path}: {where}.layers = {str(layers)[:40]} must run from the state's "
+                    f"{size} inputs to {N_ACTIONS} Q-values; {RERUN}"
+                )
+        coordination = policy.get("coordination")
+        if coordination is not None and coordination not in ("central", "decentralized"):
+            raise UserError(
+                f'{path}: {where}.coordination = {coordination[:40]!r} must be "central" or '
+                f'"decentralized"; {RERUN}'
+            )
+        eps = policy.get("eps")
+        if eps is not None and not 0 <= eps <= 1:
+            raise UserError(f"{path}: {where}.eps = {eps} must be from 0 to 1; {RERUN}")
+    if not run.get("partial"):
+        missing = [s for s in swarms if is_learned(s) and s not in policies]
+        if missing:
+            raise UserError(f"{path}: no policies.{missing[0]} for the learned swarm; {RERUN}")

@@ -92,6 +92,22 @@ def add_parser(subparsers) -> None:
     p.set_defaults(func=main)
 
 
+def _seed_of_tape(tape, run: dict) -> int | None:
+    """The seed of the run ``run`` whose traffic ``tape`` recorded: ``tapes/seed-<s>.parquet``
+    is seed s's, ``tape.parquet`` the first seed's (None when the run has no such seed)."""
+    import re
+
+    seeds = [s for s in run.get("seeds") or [] if isinstance(s, int) and not isinstance(s, bool)]
+    match = re.fullmatch(r"seed-(\d+)\.parquet", tape.name)
+    if tape.parent.name == "tapes" and match:
+        seed = int(match[1])
+    elif tape.name == "tape.parquet" and seeds:
+        seed = seeds[0]
+    else:
+        return None
+    return seed if seed in seeds else None
+
+
 def with_swarm_of_run(config, tape):
     """``config`` with the swarm of the run that recorded ``tape`` (its drones, start cells and
     score weights, from the ``run.json`` of the tape's run folder), said in a notice: a
@@ -113,6 +129,9 @@ def with_swarm_of_run(config, tape):
                      **{f"swarm.{k}": params[k] for k in ("eta", "delta", "alpha_T", "alpha_I")}}  # fmt: skip
     except (OSError, ValueError, KeyError, TypeError):
         return config
+    seed = _seed_of_tape(tape, run)
+    if seed is not None:  # the run's seed of this tape (--seed still chooses another)
+        overrides["evaluate.seed"] = seed
     labels = {key: f"{folder / 'run.json'}: {key.split('.')[1]}" for key in overrides}
     mine = with_overrides(config, overrides, labels)
     faults = (
@@ -120,7 +139,8 @@ def with_swarm_of_run(config, tape):
     )
     notify(
         f"twin: notice: the swarm of {folder / 'run.json'} ({mine.swarm.n_drones} drones, its "
-        f"starts and score weights) replays its tape, not {config.path.name}'s; its "
+        f"starts and score weights{f', seed {seed}' if seed is not None else ''}) replays its "
+        f"tape, not {config.path.name}'s; its "
         f"[swarm_options] and [faults] are not replayed{faults}: give the run's config with "
         "--config for them"
     )

@@ -37,9 +37,11 @@ def run_arguments(run_dir: Path) -> argparse.Namespace:
     """``twin run``'s flags of a run folder, from the invocation its ``run.json`` records."""
     from twin.cli import build_parser
     from twin.readback import check_run_json, read_json
+    from twin.swarms import check_policy_records
 
     path = run_dir / "run.json"
     run = check_run_json(path, read_json(path, required=True))
+    check_policy_records(path, run)
     invocation = run.get("invocation") or {}
     if invocation.get("command") != "run":
         raise UserError(

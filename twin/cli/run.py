@@ -183,6 +183,11 @@ def gui_drawer(args: argparse.Namespace, swarms, owned: tuple[Path, str] | None 
     shown_later = args.gui or args.record
     settings = GuiSettings(swarms=shown, shade=args.gui_shade, record=args.record)
     check_settings(settings, list(swarms))
+    if args.gui_swarms is not None and not shown_later:
+        from twin.notices import notify
+
+        notify(f"twin: notice: --gui-swarms {args.gui_swarms}: draws nothing without --gui or "
+               "--record")  # fmt: skip
     return GuiDrawer(settings, list(swarms)) if shown_later else None
 
 

@@ -62,7 +62,7 @@ def _sighting(primary: Primary, seed: int):
     kind = traffic.get("kind") if isinstance(traffic, dict) else None
     if kind in ("synthetic", "dynamic"):
         return EXACT_SIGHTINGS
-    return primary.tape_sightings.get(seed) if kind == "sumo" else None
+    return primary.tape_sightings.get(seed) if kind in ("sumo", "tape") else None
 
 
 def _detectors(readings: pd.DataFrame | None, seed: int, horizon: int, ny: int):

@@ -313,10 +313,13 @@ def replayed_incidents(primary: Primary, frame: pd.DataFrame) -> pd.DataFrame:
     (:func:`twin.monitoring.incident_sightings`, :func:`twin.monitoring.incident_scores`); NaN
     when the folder has none (the run scheduled none, or none was applied). Their onset and
     last steps are checked against their times first (:func:`check_incident_steps`)."""
-    from twin.monitoring import incident_scores, incident_sightings
+    from twin.monitoring import applied_incidents, incident_scores, incident_sightings
     from twin.runs import step_seconds_of
 
     seed, incidents = primary.first_seed, primary.incidents or []
+    scheduled = bool(incidents)
+    if folder_format(primary) >= 4:  # earlier twins counted one never applied as an incident
+        incidents = applied_incidents(incidents)
     columns = [c for c in INCIDENT_COLUMNS if c in frame.columns]
     if seed is None or not columns:
         return pd.DataFrame()
@@ -336,7 +339,7 @@ def replayed_incidents(primary: Primary, frame: pd.DataFrame) -> pd.DataFrame:
     rows = []
     for swarm in primary.swarms:
         row = dict.fromkeys(columns, np.nan)
-        if incidents:
+        if scheduled:  # (none applied: 0 incidents)
             pos = primary.positions(seed, swarm)
             recorded = None if plan is None else plan.recorded(seed, len(pos), pos.shape[1])
             first, latency = incident_sightings(grid, pos, incidents, recorded)
@@ -456,6 +459,25 @@ def check_incident_schedule(primary: Primary) -> None:
 INCIDENT_KINDS = ("lane_closed", "edge_closed", "vehicle_stopped")
 
 
+def _incidents_ran_to(primary: Primary) -> float | None:
+    """The time (s) up to which every incident's lift was surely applied: the run's step
+    before its last (its ``horizon`` steps of ``traffic.step_s`` from ``traffic.begin``), None
+    when run.json does not say."""
+    from twin.clock import parse_clock
+
+    traffic = primary.run.get("traffic")
+    horizon = primary.run.get("horizon")
+    if not isinstance(traffic, dict) or not isinstance(horizon, int) or horizon < 1:
+        return None
+    begin, step_s = traffic.get("begin"), traffic.get("step_s")
+    if not isinstance(begin, str) or not isinstance(step_s, (int, float)):
+        return None
+    try:
+        return parse_clock(begin, "traffic.begin") + (horizon - 1) * float(step_s)
+    except UserError:
+        return None
+
+
 def check_incident_records(primary: Primary) -> None:
     """Each incident of ``incidents.json`` is one :class:`twin.sumo.incidents.IncidentSchedule`
     records: a known kind; a lane for ``lane_closed`` only; a vehicle exactly when a stopped
@@ -474,6 +496,7 @@ def check_incident_records(primary: Primary) -> None:
     step = SumoSession.step_length  # every SUMO step of a run (time advances in whole steps)
     number = (int, float)
     applied = []
+    ran_to = _incidents_ran_to(primary)
     for n, inc in enumerate(primary.incidents or []):
         kind, lane, vehicle = inc.get("kind"), inc.get("lane"), inc.get("vehicle")
         start, end, when = inc.get("begin_s"), inc.get("end_s"), inc.get("applied_s")
@@ -519,6 +542,12 @@ def check_incident_records(primary: Primary) -> None:
             )
         lifted = inc.get("lifted_s")
         last = np.ceil(end / step - 1e-9) * step
+        if lifted is None and ran_to is not None and last < ran_to:
+            raise UserError(
+                f"{path}: [{n}].lifted_s = null, but an incident to end_s = {_show(end)} is "
+                f"lifted at {_show(last)}, before the run's last step ({clock_label(ran_to)}); "
+                f"{RERUN}"
+            )
         if lifted is not None and (
             isinstance(lifted, bool) or not isinstance(lifted, number) or lifted != last
         ):
@@ -742,7 +771,9 @@ def comparison_rows(primary: Primary, frame: pd.DataFrame) -> pd.DataFrame:
     """``comparison.csv`` as :func:`twin.metrics.learned_against_best_classical` makes it of
     ``per_seed.csv``."""
     rows = learned_against_best_classical(primary.per_seed)
-    return rows if len(rows) else pd.DataFrame(columns=["swarm"])
+    return (
+        _earlier_intervals(primary, frame, rows) if len(rows) else pd.DataFrame(columns=["swarm"])
+    )
 
 
 def reward_split(primary: Primary, frame: pd.DataFrame) -> pd.DataFrame:
@@ -755,8 +786,22 @@ def reward_split(primary: Primary, frame: pd.DataFrame) -> pd.DataFrame:
 
 
 def seed_aggregate(primary: Primary, frame: pd.DataFrame) -> pd.DataFrame:
-    """``summary.csv`` as :func:`twin.metrics.aggregate` makes it of ``per_seed.csv``."""
-    return aggregate(primary.per_seed)
+    """``summary.csv`` as :func:`twin.metrics.aggregate` makes it of ``per_seed.csv`` (a folder
+    of format 3 or earlier wrote 0 for the interval of one seed, where it is now empty)."""
+    return _earlier_intervals(primary, frame, aggregate(primary.per_seed))
+
+
+def _earlier_intervals(primary: Primary, frame: pd.DataFrame, expected: pd.DataFrame):
+    """``expected`` with the 0 a folder of format 3 or earlier wrote (``frame``) where one seed
+    gives no interval (``_ci95`` columns, now empty), by swarm."""
+    if folder_format(primary) >= 4 or "swarm" not in frame.columns:
+        return expected
+    written = frame.drop_duplicates("swarm").set_index("swarm")
+    for column in [c for c in expected.columns if c.endswith("_ci95") and c in frame]:
+        was = pd.to_numeric(written[column], errors="coerce").reindex(expected["swarm"])
+        zero = expected[column].isna().to_numpy() & (was == 0).to_numpy()
+        expected.loc[zero, column] = 0.0
+    return expected
 
 
 def summary_columns(primary: Primary, frame: pd.DataFrame) -> pd.DataFrame:
@@ -987,6 +1032,52 @@ def check_tape_maps(primary: Primary) -> None:
     if primary.first_seed is not None and replays:
         primary.tape_maps[primary.first_seed] = np.stack(replays)
         primary.tape_sightings[primary.first_seed] = source.sighting_model()
+
+
+def check_replayed_tape_maps(primary: Primary) -> None:
+    """A run on a tape (``twin evaluate --traffic TAPE``): while the tape run.json names
+    (``traffic.tape_file``) is there unchanged, ``importance.npz`` holds the maps it gives
+    through the run's MFD observation and detection probability, the maps of every seed;
+    its sightings are known for the belief models' replay. A tape gone or changed, or of more
+    than :data:`TAPE_REPLAY_ROWS` rows, is not replayed (the belief read-back says so)."""
+    import pyarrow.parquet as pq
+
+    from twin.files import file_sha256
+    from twin.traffic.tape import Tape, TapeTraffic
+
+    traffic = primary.run.get("traffic")
+    record = traffic.get("tape_file") if isinstance(traffic, dict) else None
+    maps = primary.importance
+    if traffic is None or traffic.get("kind") != "tape" or maps is None:
+        return
+    if not isinstance(record, dict) or not isinstance(record.get("path"), str):
+        return  # an earlier folder: the tape is not known
+    path = Path(record["path"])
+    try:
+        if not path.is_file() or file_sha256(path) != record.get("sha256"):
+            return
+        if pq.read_metadata(path).num_rows > TAPE_REPLAY_ROWS:
+            return
+        tape = Tape.read(path)
+    except (OSError, UserError, ValueError):
+        return
+    p = traffic.get("detection_p")
+    source = TapeTraffic(tape, float(p) if isinstance(p, (int, float)) else None, str(path))
+    npz, kept, replays = primary.run_dir / "importance.npz", maps.astype(np.float32), []
+    given, off = _first_differing_map(source.importance_maps(), kept, collect=replays)
+    if off is not None:
+        k, i, j, replayed = off
+        raise UserError(
+            f"{npz}: importance at step {k}, cell ({i}, {j}) is {_show(kept[k, i, j], replayed)},"
+            f" but {path} (the tape run.json names) replayed through its MFD gives "
+            f"{_show(replayed, kept[k, i, j])}; {RERUN}"
+        )
+    if given < len(kept):
+        raise UserError(f"{npz}: holds {len(kept)} maps, but {path} replays {given}; {RERUN}")
+    for seed in primary.run.get("seeds") or []:
+        if isinstance(seed, int) and replays:
+            primary.tape_maps[seed] = np.stack(replays)
+            primary.tape_sightings[seed] = source.sighting_model()
 
 
 def check_synthetic_maps(primary: Primary) -> None:
@@ -1546,6 +1637,7 @@ def check_derived(primary: Primary, tables: dict[str, pd.DataFrame | None]) -> N
     per-seed figures the primary files give."""
     check_starts(primary)
     check_tape_maps(primary)
+    check_replayed_tape_maps(primary)
     check_seed_tapes(primary)
     check_synthetic_maps(primary)
     check_incident_records(primary)

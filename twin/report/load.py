@@ -57,6 +57,7 @@ from twin.report.derived import (
 )
 from twin.runs import REQUIRED_FILES
 from twin.scores import ScoreParams, initial_idleness, update_idleness
+from twin.swarms import check_policy_records
 
 
 @dataclass
@@ -327,6 +328,7 @@ def load_run(run_dir: str | Path) -> RunFiles:
     manifest = check_run_folder(run_dir)
     run_path = run_dir / "run.json"
     run = check_run_json(run_path, read_json(run_path) or {})
+    check_policy_records(run_path, run)
     _say_folder_format(run_dir, run)
     importance, obstacles = read_maps(run_dir / "importance.npz")
     if importance.shape[0] < 2:

@@ -226,6 +226,16 @@ class DetectorReader:
             cell = self._cell(geometry, lane, mid)
             if cell is not None:
                 found.append(Detector(det_id, AREA, lane, cell, False))
+        if plan.scenario and not any(not d.virtual for d in found):
+            from twin.boundary import notify
+
+            own = [d for d in loop_ids if d not in virtual] + area_ids
+            where = "on the grid " if own else ""
+            notify(
+                "twin: notice: [traffic.detectors] scenario = true, but the scenario's files "
+                f"give no induction loop or lane-area detector {where}(e1/e2 in its additional "
+                "files): no detector of the scenario is read"
+            )
         self.detectors = found
         self._last: dict[str, tuple] = {}
         self._broken: set[str] = set()

@@ -643,13 +643,30 @@ def write_video(path: Path, frames: Sequence[Path], fps: int = FPS) -> None:
             return
         import imageio_ffmpeg
 
-        writer = imageio_ffmpeg.write_frames(
-            str(tmp), (w, h), fps=fps, codec="libx264", macro_block_size=2,
-            output_params=["-f", "mp4"], ffmpeg_log_level="error",
-        )  # fmt: skip
-        writer.send(None)
-        for im in images:
-            writer.send(im)
-        writer.close()
+        try:
+            writer = imageio_ffmpeg.write_frames(
+                str(tmp), (w, h), fps=fps, codec="libx264", macro_block_size=2,
+                output_params=["-f", "mp4"], ffmpeg_log_level="error",
+            )  # fmt: skip
+            writer.send(None)
+            for im in images:
+                writer.send(im)
+            writer.close()
+        except OSError as exc:
+            if exc.errno is not None:  # the disk's, said as such by the caller
+                raise
+            said = str(exc.args[0] if exc.args else exc).split("FFMPEG COMMAND")[0]
+            text = " ".join(said.split())[:160]
+            raise UserError(
+                f"--record {path}: the video encoder ({imageio_ffmpeg.get_ffmpeg_exe()}) failed"
+                f" ({text}); record a GIF instead (--record FILE.gif), or fix the encoder "
+                "($IMAGEIO_FFMPEG_EXE names another)"
+            ) from None
+        if tmp.stat().st_size == 0:
+            raise UserError(
+                f"--record {path}: the video encoder ({imageio_ffmpeg.get_ffmpeg_exe()}) wrote "
+                "nothing; record a GIF instead (--record FILE.gif), or fix the encoder "
+                "($IMAGEIO_FFMPEG_EXE names another)"
+            )
 
     atomic_write(Path(path), write)

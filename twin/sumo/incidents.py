@@ -261,6 +261,8 @@ class IncidentSchedule:
                     "give an edge id of the net file, or a cell = [i, j]"
                 )
             candidates = [inc.edge]
+            if rec["cell"] is None:  # known before any vehicle is: the cell of its middle
+                rec["cell"] = list(cells[inc.edge][0]) if inc.edge in cells else [-1, -1]
         else:
             cell = tuple(inc.cell)
             candidates = sorted(e for e, (_, through) in cells.items() if cell in through)

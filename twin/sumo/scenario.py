@@ -474,8 +474,19 @@ def _grid_and_notices(
             )
         obstacles[i, j] = True
     if obstacles.all():
+        most = float(geometry.lane_km.max(initial=0.0))
+        shape = f"{geometry.nx} x {geometry.ny} grid"
+        if most <= 0.0:
+            raise UserError(f"{files.net_file}: no cell of the {shape} has a lane")
+        if most < s.min_lane_km:
+            raise UserError(
+                f"{config.path}: [traffic].min_lane_km = {s.min_lane_km:g} leaves no cell of the "
+                f"{shape} over {files.name} (the most lane in a cell is {most:.3g} km); give a "
+                f"min_lane_km below {most:.3g}"
+            )
         raise UserError(
-            f"{files.net_file}: no cell of the {geometry.nx} x {geometry.ny} grid has a lane"
+            f"{config.path}: [grid].obstacles leave no cell of the {shape} over {files.name} "
+            "free; list fewer obstacles"
         )
     n_free, n_drones = int((~obstacles).sum()), config.swarm.n_drones
     if n_drones > n_free:  # the fix names a cell size that fits them, or none does
@@ -488,10 +499,11 @@ def _grid_and_notices(
     if n_drones <= n_free < MIN_FREE_CELLS_PER_DRONE * n_drones:  # more drones: refused later
         better = suggest_cell_m(lanes, s.cell_m, n_drones, s.min_lane_km)
         fewer = max(1, n_free // MIN_FREE_CELLS_PER_DRONE)
-        fix = (
-            f"try --cell-m {better[0]:g} ({better[1]} free cells)"
+        fix = (  # in words of both a command's flags and a sweep's or transfer's keys
+            f"try cells of {better[0]:g} m ({better[1]} free cells: --cell-m {better[0]:g}, or "
+            f"traffic.cell_m = {better[0]:g})"
             if better
-            else f"use fewer drones (--drones {fewer})"
+            else f"use fewer drones (--drones {fewer}, or swarm.n_drones = {fewer})"
             if fewer < n_drones
             else "no smaller cell size down to 25 m gives more room"
         )
@@ -507,6 +519,12 @@ def _grid_and_notices(
             f"{files.name}: its window ({clock_label(begin)} - {clock_label(end)}) ends before "
             f"the first departure ({clock_label(files.span[0])}): every step would be empty; "
             "give a --begin and --horizon within the demand, or fix its <time>"
+        )
+    if window_given and files.window[1] is not None and begin >= files.window[1]:
+        notices.append(  # SUMO alone would stop at its <end>; twin's window replaces it
+            f"{files.name}: the run ({clock_label(begin)} - {clock_label(end)}) begins at or "
+            f"past the scenario's end ({clock_label(files.window[1])}), where SUMO alone would "
+            "stop; twin runs its own window (give a --begin before it to stay within it)"
         )
     if files.span is not None and window_given:
         clear = clearing_time(geometry)

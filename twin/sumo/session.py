@@ -248,6 +248,7 @@ def sumo_refusal(text: str, files: list[Path]) -> tuple[Path | str, str]:
         return where, reason
     # the object SUMO names: quoted ('nolane_0'), or in parentheses ("to save (B1)")
     quoted = re.findall(r"'([^']+)'", reason) + re.findall(r"\(([^()\s]+)\)", reason)
+    quoted += [t[1:] for t in quoted if t.startswith("!") and len(t) > 1]  # '!v': v's route
     for path in files:
         if any(Path(token).name == Path(path).name for token in quoted):
             return path, reason

@@ -58,15 +58,15 @@ def run_sweep(
     if executor not in EXECUTORS:
         raise UserError(f"--executor {executor!r}: choose from {', '.join(EXECUTORS)}")
     out_dir = Path(out_dir)
-    (out_dir / CELLS_DIR).mkdir(parents=True, exist_ok=True)
     cells = expand_cells(config, out_dir)
     done = done_cells(out_dir, {c["id"]: c for c in cells})
     todo = [c for c in cells if c["id"] not in done]
     for cell in todo:  # not a defining key: the limit changes no number
         cell["max_memory_gb"] = max_memory_gb
     skipped = [c["id"] for c in cells if c["id"] in done]
+    check_cells(todo)  # before anything is written: a refused sweep leaves no folder
+    (out_dir / CELLS_DIR).mkdir(parents=True, exist_ok=True)
     _write_manifest(out_dir, config, cells)
-    check_cells(todo)
     release_notices()  # every cell is valid: what the checks noticed is printed now
     workers = max(1, min(workers or os.cpu_count() or 1, len(todo) or 1))
     start = time.perf_counter()
@@ -133,7 +133,10 @@ def check_cells(cells: list[dict[str, Any]]) -> None:
     """Validate every distinct scenario config and overrides before running anything: a live
     one is built as its cells build it (files, window, grid, incidents, detectors), without
     starting SUMO; one whose grid is known (synthetic, a tape) has its memory estimated
-    against the sweep's limit, as its cells will."""
+    against the sweep's limit, as its cells will; a swarm that plans on a history reads it.
+    """
+    from twin.swarms import needs_history
+
     seen = set()
     for cell in cells:
         key = (cell["config"], json.dumps(cell["overrides"], sort_keys=True, default=str))
@@ -147,6 +150,9 @@ def check_cells(cells: list[dict[str, Any]]) -> None:
                 live_settings(config, int(cell["seed"]))
             else:
                 check_cell_memory(config, cell)
+            for name in cell["swarms"]:  # its history read now, not after the cell's SUMO ran
+                if needs_history(name):
+                    config.make_swarm(name)
         except UserError as exc:
             raise UserError(
                 f"scenario {cell['scenario']!r} with {cell['overrides']}: {exc}"

@@ -501,6 +501,8 @@ class TapeTraffic(TrafficSource):
             float(tape.settings.get("detection_p", 1.0)) if detection_p is None else detection_p
         )
         self.source_name = source_name
+        self.source_file: Path | None = None  # the tape.parquet read (from_file)
+        self._file_record: dict[str, str] | None = None
 
     @classmethod
     def from_file(cls, path: str | Path, config=None) -> TapeTraffic:
@@ -514,6 +516,7 @@ class TapeTraffic(TrafficSource):
             p = mfd.detection_p if "detection_p" in mfd.model_fields_set else None
             shape = config.explicit_shape()
         source = cls(Tape.read(Path(path), shape), p, source_name=str(path))
+        source.source_file = Path(path).resolve()
         if config is not None:
             set_aside = source.config_set_aside(config)
             if set_aside:
@@ -608,4 +611,15 @@ class TapeTraffic(TrafficSource):
             "horizon": self.horizon,
             "detection_p": self.detection_p,
             "recorded": {k: v for k, v in self.tape.settings.items() if k != "network"},
+            **({"tape_file": self.file_record()} if self.source_file is not None else {}),
         }
+
+    def file_record(self) -> dict[str, str]:
+        """run.json's ``traffic.tape_file``: the tape's path and sha256, by which ``twin
+        report`` finds it again to replay the run's maps and sightings."""
+        if self._file_record is None:
+            from twin.files import file_sha256
+
+            path = self.source_file
+            self._file_record = {"path": str(path), "sha256": file_sha256(path)}
+        return self._file_record

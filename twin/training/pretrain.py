@@ -379,7 +379,13 @@ class PretrainConfig(SourcedConfig):
 
     @field_validator("tapes")
     @classmethod
-    def _tapes(cls, tapes: list[str]) -> list[str]:
+    def _tapes(cls, tapes: list[str], info: ValidationInfo) -> list[str]:
+        traffic = info.data.get("traffic")
+        if tapes and traffic is not None and traffic != "tapes":
+            raise ValueError(
+                f'are given, but traffic = "{traffic}" trains on no tape; set traffic = "tapes" '
+                "(or drop tapes)"
+            )
         for n, tape in enumerate(tapes):
             if not tape.strip():
                 raise ValueError(f"has an empty name (entry {n + 1}); remove it")
@@ -627,8 +633,16 @@ def episode_source(cfg: PretrainConfig):
         from twin.traffic.tape import TapeTraffic
 
         tapes = [TapeTraffic.from_file(t) for t in cfg.tapes]
-        for tape in tapes:
+        for path, tape in zip(cfg.tapes, tapes, strict=True):
             tape.check_complete("pretraining")
+            if cfg.n_drones > tape.grid.n_free:  # random starts need a free cell per drone
+                free = tape.grid.n_free
+                raise UserError(
+                    f"{path}: its {tape.grid.nx} x {tape.grid.ny} grid has {free} free "
+                    f"cell{'s' * (free != 1)} for the {cfg.n_drones} drones of the training "
+                    f'map; give scenario_overrides = {{ "swarm.n_drones" = {free} }} (or a '
+                    "tape of a larger grid)"
+                )
         return lambda e: tapes[e % len(tapes)]
     source = training_source(cfg)
     return lambda e: source

@@ -225,12 +225,53 @@ def check_tapes_scenario(config: TransferConfig) -> None:
 
     if not trains_on_tapes(config):
         return
-    kind = scenario_config(Path(config.tapes.config), config.tapes.overrides).traffic.kind
+    scenario = scenario_config(Path(config.tapes.config), config.tapes.overrides)
+    kind = scenario.traffic.kind
     if kind != "sumo":
         raise UserError(
             f"{config.path}: [tapes].config = {config.tapes.config}: its traffic is {kind!r}, "
             'not a SUMO scenario; tapes are recorded from SUMO (e.g. config = "shenzhen.toml")'
         )
+    check_tape_rows_fit(config, scenario)
+
+
+def check_tape_rows_fit(config: TransferConfig, scenario) -> None:
+    """The drones a tapes row trains with (its training map's) fit on the free cells of the
+    ``[tapes]`` scenario's grid, found before a tape is recorded (its network read, its grid
+    laid, SUMO not started)."""
+    from twin.config import with_overrides
+    from twin.notices import drop_notices, hold_notices, release_notices
+    from twin.sweep.runner import prepare_sumo
+    from twin.traffic_kinds import build_traffic
+    from twin.training.pretrain import PretrainConfig
+    from twin.transfer.config import row_schedule
+
+    rows = [r for r in config.row if r.traffic == "tapes" and r.checkpoint is None]
+    drones = {}
+    for row in rows:
+        overrides, labels = row_schedule(config, row)
+        drones[row.name] = with_overrides(
+            PretrainConfig.from_data(config.path, {}), overrides, labels
+        ).n_drones
+    hold_notices()  # the scenario's notices follow a fit, and a refusal is one line
+    try:
+        prepare_sumo(scenario)
+        source = build_traffic(scenario, 0, config.tapes.seeds[0])
+        free = source.grid.n_free
+        getattr(source, "close", lambda: None)()
+    except BaseException:
+        drop_notices()
+        raise
+    for name, n in drones.items():
+        if n > free:
+            drop_notices()
+            raise UserError(
+                f"{config.path}: [[row]] {name} trains {n} drones on tapes of "
+                f"{config.tapes.config.name}, whose grid has {free} free "
+                f"cell{'s' * (free != 1)}; give [schedule] scenario_overrides = "
+                f'{{ "swarm.n_drones" = {free} }}, or a [tapes] scenario with more room'
+            )
+    release_notices()
 
 
 def check_row_starts(config: TransferConfig) -> None:
@@ -279,11 +320,36 @@ def train_row(task: dict[str, Any]) -> dict[str, Any]:
         if (out / "provenance.json").is_file():  # finished on other settings or files
             from twin.notices import notify
 
+            clear_row_folder(out)  # its checkpoint resumes nothing
             notify(f"twin: notice: row {out.name}: its settings, tapes, start or scenario "
                    "changed since it was trained; training it again")  # fmt: skip
-            shutil.rmtree(out)  # the transfer's own row folder: its checkpoint resumes nothing
         pretrain(cfg, progress=False, max_memory_gb=task.get("max_memory_gb"))
     return json.loads(read_record(out / "provenance.json"))
+
+
+def clear_row_folder(out: Path) -> None:
+    """Remove what pretraining wrote into a row's folder, to train it again; a file it did not
+    write (the user's) is refused in one line, and nothing is removed."""
+    from twin.training.pretrain import PRETRAIN_FILES
+
+    entries = sorted(out.iterdir())
+    foreign = [e.name for e in entries if e.name not in PRETRAIN_FILES and not _temp_file(e)]
+    if foreign:
+        raise UserError(
+            f"row {out.name}: must be trained again (its settings, tapes, start or scenario "
+            f"changed), but {out} holds {foreign[0]!r}, which twin did not write; move it out "
+            "of the folder and run again"
+        )
+    for entry in entries:
+        if entry.is_dir() and not entry.is_symlink():
+            shutil.rmtree(entry)
+        else:
+            entry.unlink()
+
+
+def _temp_file(entry: Path) -> bool:
+    """A file twin's atomic writes leave while writing (``.<name>.tmp``)."""
+    return entry.name.startswith(".") and entry.name.endswith(".tmp") and entry.is_file()
 
 
 def provenance_matches(out: Path, cfg) -> bool:
