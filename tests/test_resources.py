@@ -360,8 +360,8 @@ def test_an_unsealed_entry_with_two_generator_comments_is_kept(tmp_path, capsys)
 @pytest.mark.parametrize("linked", [False, True])
 def test_the_scratch_sweep_removes_only_twins_own_stale_entries(tmp_path, monkeypatch, linked):
     """Old entries of the cache's tmp/ are removed only when twin made them (named twin-...):
-    a user's files lying there, or in the folder a tmp link leads to, are kept (probe 17's
-    P2-04: every entry older than two days was deleted)."""
+    a user's files lying there are kept (probe 17's P2-04: every entry older than two days was
+    deleted); a tmp link is refused in one line, and nothing behind it is touched."""
     import os
     import time
 
@@ -382,6 +382,13 @@ def test_the_scratch_sweep_removes_only_twins_own_stale_entries(tmp_path, monkey
         os.utime(scratch / name, (old, old))
     monkeypatch.setenv("TWIN_CACHE_DIR", str(cache))
     monkeypatch.setattr(resources, "_SWEPT", set())
+    if linked:  # twin writes only into its cache: not through a link out of it
+        with pytest.raises(UserError, match=r"tmp: twin's scratch folder is a link \(to .*"
+                                            r"elsewhere\).*remove the link") as info:  # fmt: skip
+            resources.scratch_dir()
+        assert "\n" not in str(info.value)
+        assert len(list(scratch.iterdir())) == 5  # nothing removed
+        return
     resources.scratch_dir()
     assert sorted(p.name for p in scratch.iterdir()) == [
         "notes.txt", "project", "twin-sumo-fresh.log"

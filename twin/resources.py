@@ -133,6 +133,12 @@ def scratch_dir() -> Path:
     if folder in _SWEPT and folder.is_dir():  # once per process (an env makes a scratch file
         return folder  # at every episode)
     check_cache("its scratch files live in its tmp/")
+    if folder.is_symlink():  # twin writes only into its run folder and its cache
+        raise UserError(
+            f"{folder}: twin's scratch folder is a link (to {os.readlink(folder)}), and twin "
+            f"writes only into its cache (${CACHE_ENV}), not through a link; remove the link, "
+            "twin makes its own tmp/"
+        )
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
