@@ -4,6 +4,7 @@ outside the run folder changes."""
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import hashlib
 import os
@@ -2160,30 +2161,38 @@ def test_a_notice_said_again_by_the_next_seed_is_printed_once(capsys) -> None:
     assert len(capsys.readouterr().err.splitlines()) == 3
 
 
-def test_a_run_folder_being_written_is_read_as_such_not_as_interrupted(tmp_path, capsys):
-    """`twin report` (and every reader) of a folder another command is writing now says so,
-    instead of calling it interrupted and advising a rerun the lock would refuse (probe 17's
-    P2-08); once the writer has ended, the folder reads as interrupted."""
+@contextlib.contextmanager
+def _held_by_another(folder: Path):
+    """``folder`` claimed by another process (:func:`twin.boundary.claim_run_folder`) while
+    the block runs."""
     import subprocess
 
-    out = tmp_path / "run"
-    out.mkdir()
-    (out / "run.json").write_text('{"partial": true}')
     holder = subprocess.Popen(
         [sys.executable, "-c",
          "import sys, time; from twin.boundary import claim_run_folder; "
          "claim_run_folder(sys.argv[1]); print('held', flush=True); time.sleep(120)",
-         str(out)],
+         str(folder)],
         stdout=subprocess.PIPE, text=True,
     )  # fmt: skip
     try:
         assert holder.stdout.readline().strip() == "held"
-        assert main(["report", str(out), "--no-animation"]) == EXIT_REFUSED
-        line = one_line(capsys)
-        assert "another twin command is writing into this folder now; wait for it" in line
+        yield
     finally:
         holder.kill()
         holder.wait()
+
+
+def test_a_run_folder_being_written_is_read_as_such_not_as_interrupted(tmp_path, capsys):
+    """`twin report` (and every reader) of a folder another command is writing now says so,
+    instead of calling it interrupted and advising a rerun the lock would refuse (probe 17's
+    P2-08); once the writer has ended, the folder reads as interrupted."""
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "run.json").write_text('{"partial": true}')
+    with _held_by_another(out):
+        assert main(["report", str(out), "--no-animation"]) == EXIT_REFUSED
+        line = one_line(capsys)
+        assert "another twin command is writing into this folder now; wait for it" in line
     assert main(["report", str(out), "--no-animation"]) == EXIT_REFUSED
     assert "incomplete run folder" in one_line(capsys)
 
@@ -2192,19 +2201,9 @@ def test_a_run_folder_in_use_by_another_command_is_refused(tmp_path: Path, capsy
     """Two commands writing into one --out at once would mix their files: while one holds
     the folder (another process), the second is refused in one line and writes nothing; once
     the first has ended, the folder is free again."""
-    import subprocess
-
     out = tmp_path / "run"
     out.mkdir()
-    holder = subprocess.Popen(
-        [sys.executable, "-c",
-         "import sys, time; from twin.boundary import claim_run_folder; "
-         "claim_run_folder(sys.argv[1]); print('held', flush=True); time.sleep(120)",
-         str(out)],
-        stdout=subprocess.PIPE, text=True,
-    )  # fmt: skip
-    try:
-        assert holder.stdout.readline().strip() == "held"
+    with _held_by_another(out):
         cfg = small_config(tmp_path, horizon=3)
         args = ["evaluate", "--config", str(cfg), "--seeds", "1", "--swarms", "random"]
         assert main([*args, "--out", str(out), "--no-report", "--quiet"]) == EXIT_REFUSED
@@ -2212,9 +2211,6 @@ def test_a_run_folder_in_use_by_another_command_is_refused(tmp_path: Path, capsy
         assert "\n" not in err and "Traceback" not in err
         assert "another twin command is writing into this folder now" in err
         assert list(out.iterdir()) == []
-    finally:
-        holder.kill()
-        holder.wait()
     assert main([*args, "--out", str(out), "--no-report", "--quiet"]) == 0
     assert (out / "manifest.json").is_file()
 

@@ -306,32 +306,6 @@ def test_an_env_past_the_memory_limit_is_refused_before_its_maps(tmp_path):
         make_env(config)
 
 
-def test_a_live_envs_scenario_notices_come_once_over_its_episodes(tmp_path: Path, capfd):
-    """A scenario whose sumocfg asks SUMO for outputs: its "not kept" notice once per env, not
-    at every reset (the forked simulation's notices came as it ended, outside the env's count;
-    probe 16's f10)."""
-    pytest.importorskip("libsumo")
-    from twin.env import make_env
-
-    small_sumo_scenario(tmp_path, horizon=2)
-    (tmp_path / "outs.sumocfg").write_text(
-        '<configuration><input><net-file value="small.net.xml"/><route-files '
-        'value="small.trips.xml"/></input><output><tripinfo-output value="trip.xml"/></output>'
-        "</configuration>"
-    )
-    text = (tmp_path / "small.toml").read_text()
-    text = text.replace('net = "small.net.xml"\nroutes = ["small.trips.xml"]\n',
-                        'sumocfg = "outs.sumocfg"\n')  # fmt: skip
-    (tmp_path / "outs.toml").write_text(text)
-    env = make_env(tmp_path / "outs.toml")
-    for seed in range(3):
-        env.reset(seed=seed)
-    env.close()
-    err = capfd.readouterr().err
-    assert err.count("are not kept by this command") == 1, err
-    assert not (tmp_path / "trip.xml").exists()
-
-
 def test_a_live_env_left_open_with_large_maps_lets_its_script_end(tmp_path: Path):
     """A script that makes a live env of large maps and ends without closing it: it ends (its
     SUMO child, blocked sending a map nobody read, ignored multiprocessing's SIGTERM and was
@@ -358,30 +332,51 @@ def test_a_live_env_left_open_with_large_maps_lets_its_script_end(tmp_path: Path
     assert done.returncode == 0 and "stepped" in done.stdout, done.stderr
 
 
-def test_an_additional_files_output_notice_comes_once_over_episodes_run_to_the_end(
-    tmp_path: Path, capfd
-):
-    """An additional file asking SUMO for edge data: its "not kept" notice comes as each
-    episode's simulation ends, once per env (it was said at every episode; probe 17's f08)."""
+#: How a scenario asks SUMO for outputs: name -> (file, its text, the scenario's key for it,
+#: the output it asks for).
+ASKED_OUTPUTS = {
+    "sumocfg": (
+        "outs.sumocfg",
+        '<configuration><input><net-file value="small.net.xml"/><route-files '
+        'value="small.trips.xml"/></input><output><tripinfo-output value="trip.xml"/></output>'
+        "</configuration>",
+        'sumocfg = "outs.sumocfg"\n',
+        "trip.xml",
+    ),
+    "additional": (
+        "ed.add.xml",
+        '<additional><edgeData id="ed" period="60" file="ed.xml"/></additional>',
+        'net = "small.net.xml"\nroutes = ["small.trips.xml"]\nadditional = ["ed.add.xml"]\n',
+        "ed.xml",
+    ),
+}
+
+
+@pytest.mark.parametrize("asked", list(ASKED_OUTPUTS))
+def test_a_live_envs_scenario_notices_come_once_over_its_episodes(tmp_path: Path, capfd, asked):
+    """A scenario whose sumocfg or additional file asks SUMO for outputs: its "not kept"
+    notice once per env, over resets and over episodes stepped to their end (the forked
+    simulation's notices came as it ended, outside the env's count; probe 16's f10, probe 17's
+    f08)."""
     pytest.importorskip("libsumo")
     from twin.env import make_env
 
     small_sumo_scenario(tmp_path, horizon=2)
-    (tmp_path / "ed.add.xml").write_text(
-        '<additional><edgeData id="ed" period="60" file="ed.xml"/></additional>'
-    )
-    text = (tmp_path / "small.toml").read_text()
-    text = text.replace('routes = ["small.trips.xml"]\n',
-                        'routes = ["small.trips.xml"]\nadditional = ["ed.add.xml"]\n')  # fmt: skip
-    (tmp_path / "ed.toml").write_text(text)
-    env = make_env(tmp_path / "ed.toml")
-    for seed in range(2):
+    name, text, key, output = ASKED_OUTPUTS[asked]
+    (tmp_path / name).write_text(text)
+    config = (tmp_path / "small.toml").read_text()
+    config = config.replace('net = "small.net.xml"\nroutes = ["small.trips.xml"]\n', key)
+    (tmp_path / "outs.toml").write_text(config)
+    env = make_env(tmp_path / "outs.toml")
+    for seed in range(2):  # episodes stepped to their end, then ones reset midway
         observations, _ = env.reset(seed=seed)
         while env.agents:
             observations, *_ = env.step(
                 {a: int(np.flatnonzero(o["action_mask"])[0]) for a, o in observations.items()}
             )
+    for seed in range(3):
+        env.reset(seed=seed)
     env.close()
     err = capfd.readouterr().err
     assert err.count("are not kept by this command") == 1, err
-    assert not (tmp_path / "ed.xml").exists()
+    assert not (tmp_path / output).exists()

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import math
+import operator
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -377,13 +378,6 @@ def check_run_json(path: Path, run: Any) -> dict[str, Any]:
     for name, version in (run.get("versions") or {}).items():
         if not isinstance(version, str):
             raise UserError(f"{path}: versions.{name} = {str(version)[:40]} must be text; {RERUN}")
-    if grid is not None and isinstance(run.get("grid"), dict):
-        shape = [run["grid"].get("nx"), run["grid"].get("ny")]
-        if None not in shape and list(grid) != shape:
-            raise UserError(
-                f"{path}: traffic.identity.grid = {grid}, but grid is {shape[0]} x {shape[1]}; "
-                f"{RERUN}"
-            )
     check_same_fields(path, run)
     check_invocation(path, run)
     check_partial(path, run)
@@ -431,14 +425,25 @@ def check_sumo_outputs(path: Path, run: dict[str, Any]) -> None:
             raise UserError(f"{path}: {where}, but {folder / name} is not there; {RERUN}")
 
 
+def _same_swarms(given: Any, recorded: Any) -> bool:
+    """``--swarms`` (comma-separated names, or all) names the run's swarms."""
+    named = {s.strip() for s in str(given).split(",") if s.strip()}
+    return "all" in named or not isinstance(recorded, list) or named == set(recorded)
+
+
+def _same_file(given: Any, recorded: Any) -> bool:
+    """A file given on the command line is the one recorded (as named from another folder)."""
+    return Path(str(given)).name == Path(str(recorded)).name
+
+
 #: The command-line options run.json's ``invocation`` records and the field of the run each
-#: sets: (option, dotted field, only for a live `twin run`).
+#: sets: (option, dotted field, only for a live `twin run`, how the two agree).
 INVOCATION_FIELDS = (
-    ("drones", "n_drones", False),
-    ("swarms", "swarms", False),
-    ("horizon", "traffic.horizon", True),
-    ("cell_m", "traffic.identity.cell_m", True),
-    ("net", "traffic.net_file", True),
+    ("drones", "n_drones", False, operator.eq),
+    ("swarms", "swarms", False, _same_swarms),
+    ("horizon", "traffic.horizon", True, operator.eq),
+    ("cell_m", "traffic.identity.cell_m", True, operator.eq),
+    ("net", "traffic.net_file", True, _same_file),
 )
 
 
@@ -474,18 +479,11 @@ def check_invocation(path: Path, run: dict[str, Any]) -> None:
             f"{path}: command = {str(run.get('command'))[:60]!r} is no `twin {kind}`, but kind = "
             f"{str(kind)[:40]!r}; {RERUN}"
         )
-    for option, field, live in INVOCATION_FIELDS:
+    for option, field, live, agree in INVOCATION_FIELDS:
         given, recorded = _dotted(run, f"invocation.options.{option}"), _dotted(run, field)
         if given is None or recorded is None or (live and kind != "run"):
             continue
-        if option == "swarms":
-            named = [s.strip() for s in str(given).split(",") if s.strip()]
-            if "all" in named or not isinstance(recorded, list) or set(named) == set(recorded):
-                continue
-        elif option == "net":
-            if Path(str(given)).name == Path(str(recorded)).name:
-                continue
-        elif given == recorded:
+        if agree(given, recorded):
             continue
         raise UserError(
             f"{path}: invocation.options.{option} = {repr(given)[:60]}, but {field} = "
@@ -517,6 +515,14 @@ def check_same_fields(path: Path, run: dict[str, Any]) -> None:
         x, y = _dotted(run, a), _dotted(run, b)
         if x is not None and y is not None and x != y:
             raise UserError(f"{path}: {a} = {str(x)[:40]}, but {b} = {str(y)[:40]}; {RERUN}")
+    grid, shape = (
+        _dotted(run, "traffic.identity.grid"),
+        [_dotted(run, "grid.nx"), _dotted(run, "grid.ny")],
+    )
+    if grid is not None and None not in shape and list(grid) != shape:
+        raise UserError(
+            f"{path}: traffic.identity.grid = {grid}, but grid is {shape[0]} x {shape[1]}; {RERUN}"
+        )
     identity = _dotted(run, "traffic.identity")
     if not isinstance(identity, dict) or not isinstance(identity.get("files"), list):
         return

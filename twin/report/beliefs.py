@@ -54,8 +54,8 @@ def replayable_history(primary: Primary):
 
 def _sighting(primary: Primary, seed: int):
     """The drones' sighting model of ``seed`` (:meth:`twin.traffic.base.TrafficSource.
-    sighting_model`): exact on synthetic maps, a live run's that of its tape as the read-back
-    replayed it (None: not replayed, or a replayed tape's, whose eyes run.json does not keep)."""
+    sighting_model`): exact on synthetic maps; a live run's, or a run's on a tape, that of its
+    tape as the read-back replayed it (None: the tape was not replayed)."""
     from twin.belief import EXACT_SIGHTINGS
 
     traffic = primary.run.get("traffic")

@@ -1011,27 +1011,35 @@ def check_tape_maps(primary: Primary) -> None:
     if rows > TAPE_REPLAY_ROWS:
         return
     source = TapeTraffic(Tape.read(path), source_name=str(path))
+    replays = _replayed_maps(primary, source, "tape.parquet", f" of seed {primary.first_seed}")
+    check_mfd_files(primary.run_dir, source.model_observed())
+    check_detector_readings(primary, source.mfd_before)
+    if primary.first_seed is not None and replays is not None:
+        primary.tape_maps[primary.first_seed] = replays
+        primary.tape_sightings[primary.first_seed] = source.sighting_model()
+
+
+def _replayed_maps(primary: Primary, source, tape: str, whose: str = "") -> np.ndarray | None:
+    """The maps ``source`` (a :class:`twin.traffic.tape.TapeTraffic`) gives through its MFD
+    observation, once ``importance.npz`` is found to hold them (a one-line error naming the
+    first differing cell, or the missing maps, of ``tape``, the maps ``whose``); None when the
+    folder keeps no map."""
     npz = primary.run_dir / "importance.npz"
-    kept = maps.astype(np.float32)  # as kept: float32
+    kept = primary.importance.astype(np.float32)  # as kept: float32
     replays: list[np.ndarray] = []  # the MFD observes every snapshot of the tape
     given, off = _first_differing_map(source.importance_maps(), kept, collect=replays)
     if off is not None:
         k, i, j, replayed = off
         raise UserError(
-            f"{npz}: importance at step {k}, cell ({i}, {j}) of seed {primary.first_seed} "
-            f"is {_show(kept[k, i, j], replayed)}, but tape.parquet replayed through its MFD "
-            f"gives {_show(replayed, kept[k, i, j])}; {RERUN}"
+            f"{npz}: importance at step {k}, cell ({i}, {j}){whose} is "
+            f"{_show(kept[k, i, j], replayed)}, but {tape} replayed through its MFD gives "
+            f"{_show(replayed, kept[k, i, j])}; {RERUN}"
         )
     if given < len(kept):
         raise UserError(
-            f"{npz}: holds {len(kept)} maps of seed {primary.first_seed}, but tape.parquet "
-            f"replays {given}; {RERUN}"
+            f"{npz}: holds {len(kept)} maps{whose}, but {tape} replays {given}; {RERUN}"
         )
-    check_mfd_files(primary.run_dir, source.model_observed())
-    check_detector_readings(primary, source.mfd_before)
-    if primary.first_seed is not None and replays:
-        primary.tape_maps[primary.first_seed] = np.stack(replays)
-        primary.tape_sightings[primary.first_seed] = source.sighting_model()
+    return np.stack(replays) if replays else None
 
 
 def check_replayed_tape_maps(primary: Primary) -> None:
@@ -1046,10 +1054,9 @@ def check_replayed_tape_maps(primary: Primary) -> None:
     from twin.traffic.tape import Tape, TapeTraffic
 
     traffic = primary.run.get("traffic")
-    record = traffic.get("tape_file") if isinstance(traffic, dict) else None
-    maps = primary.importance
-    if traffic is None or traffic.get("kind") != "tape" or maps is None:
+    if not isinstance(traffic, dict) or traffic.get("kind") != "tape" or primary.importance is None:
         return
+    record = traffic.get("tape_file")
     if not isinstance(record, dict) or not isinstance(record.get("path"), str):
         return  # an earlier folder: the tape is not known
     path = Path(record["path"])
@@ -1063,21 +1070,13 @@ def check_replayed_tape_maps(primary: Primary) -> None:
         return
     p = traffic.get("detection_p")
     source = TapeTraffic(tape, float(p) if isinstance(p, (int, float)) else None, str(path))
-    npz, kept, replays = primary.run_dir / "importance.npz", maps.astype(np.float32), []
-    given, off = _first_differing_map(source.importance_maps(), kept, collect=replays)
-    if off is not None:
-        k, i, j, replayed = off
-        raise UserError(
-            f"{npz}: importance at step {k}, cell ({i}, {j}) is {_show(kept[k, i, j], replayed)},"
-            f" but {path} (the tape run.json names) replayed through its MFD gives "
-            f"{_show(replayed, kept[k, i, j])}; {RERUN}"
-        )
-    if given < len(kept):
-        raise UserError(f"{npz}: holds {len(kept)} maps, but {path} replays {given}; {RERUN}")
-    for seed in primary.run.get("seeds") or []:
-        if isinstance(seed, int) and replays:
-            primary.tape_maps[seed] = np.stack(replays)
-            primary.tape_sightings[seed] = source.sighting_model()
+    replays = _replayed_maps(primary, source, f"{path} (the tape run.json names)")
+    if replays is None:
+        return
+    sighting = source.sighting_model()
+    for seed in primary.run.get("seeds") or []:  # every seed ran on the tape's maps
+        if isinstance(seed, int):
+            primary.tape_maps[seed], primary.tape_sightings[seed] = replays, sighting
 
 
 def check_synthetic_maps(primary: Primary) -> None:

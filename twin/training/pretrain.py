@@ -1131,7 +1131,7 @@ def check_out_folder(cfg: PretrainConfig, flag: str = "--out") -> None:
         return
     entries = list(out.iterdir())
     fix = "pass a new or empty folder (or delete this one to start afresh)"
-    foreign = sorted(e.name for e in entries if e.name not in PRETRAIN_FILES and not _temp(e))
+    foreign = sorted(e.name for e in entries if not written_by_pretraining(e))
     if foreign:
         raise UserError(
             f"{flag} {out}: holds {foreign[0]!r}, which `twin pretrain` did not write; {fix}"
@@ -1158,6 +1158,12 @@ def check_out_folder(cfg: PretrainConfig, flag: str = "--out") -> None:
             f"{flag} {out}: holds qnet.pt but no checkpoint state.pt of the run that wrote it, "
             f"so it would be overwritten; {fix}"
         )
+
+
+def written_by_pretraining(entry: Path) -> bool:
+    """Whether ``entry`` of a pretraining folder is one pretraining writes
+    (:data:`PRETRAIN_FILES`, or a temporary file of its atomic writes)."""
+    return entry.name in PRETRAIN_FILES or _temp(entry)
 
 
 def _temp(entry: Path) -> bool:

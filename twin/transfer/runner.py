@@ -218,6 +218,17 @@ def row_pretrain_config(config: TransferConfig, row, out: Path, checkpoints: dic
     return with_overrides(PretrainConfig.from_data(config.path, {}), overrides, labels)
 
 
+def row_schedule_config(config: TransferConfig, row, **more: Any):
+    """The :class:`PretrainConfig` of a row's schedule alone (``[schedule]`` and the row's own
+    keys, ``more`` on top): what is known of it before its tapes are recorded."""
+    from twin.config import with_overrides
+    from twin.training.pretrain import PretrainConfig
+    from twin.transfer.config import row_schedule
+
+    overrides, labels = row_schedule(config, row)
+    return with_overrides(PretrainConfig.from_data(config.path, {}), overrides | more, labels)
+
+
 def check_tapes_scenario(config: TransferConfig) -> None:
     """The ``[tapes]`` scenario rows train on is a SUMO scenario: tapes are recorded from a
     live simulation (a synthetic one has no tape to record)."""
@@ -239,20 +250,15 @@ def check_tape_rows_fit(config: TransferConfig, scenario) -> None:
     """The drones a tapes row trains with (its training map's) fit on the free cells of the
     ``[tapes]`` scenario's grid, found before a tape is recorded (its network read, its grid
     laid, SUMO not started)."""
-    from twin.config import with_overrides
     from twin.notices import drop_notices, hold_notices, release_notices
     from twin.sweep.runner import prepare_sumo
     from twin.traffic_kinds import build_traffic
-    from twin.training.pretrain import PretrainConfig
-    from twin.transfer.config import row_schedule
 
-    rows = [r for r in config.row if r.traffic == "tapes" and r.checkpoint is None]
-    drones = {}
-    for row in rows:
-        overrides, labels = row_schedule(config, row)
-        drones[row.name] = with_overrides(
-            PretrainConfig.from_data(config.path, {}), overrides, labels
-        ).n_drones
+    drones = {
+        row.name: row_schedule_config(config, row).n_drones
+        for row in config.row
+        if row.traffic == "tapes" and row.checkpoint is None
+    }
     hold_notices()  # the scenario's notices follow a fit, and a refusal is one line
     try:
         prepare_sumo(scenario)
@@ -278,14 +284,11 @@ def check_row_starts(config: TransferConfig) -> None:
     """Each fine-tuned row's start fits it (state and layers) before any stage runs: a
     checkpoint file is loaded, a row trained before is compared by its schedule (its tapes
     are not recorded yet: only the schedule's keys are read)."""
-    from twin.config import with_overrides
     from twin.learning.checkpoint import checkpoint_state, read_checkpoint
-    from twin.training.pretrain import PretrainConfig, check_initial_fit, initial_network
-    from twin.transfer.config import row_schedule
+    from twin.training.pretrain import check_initial_fit, initial_network
 
     def schedule(row, **more: Any):
-        overrides, labels = row_schedule(config, row)
-        return with_overrides(PretrainConfig.from_data(config.path, {}), overrides | more, labels)
+        return row_schedule_config(config, row, **more)
 
     names = {r.name: r for r in config.row}
     for row in config.row:
@@ -330,10 +333,10 @@ def train_row(task: dict[str, Any]) -> dict[str, Any]:
 def clear_row_folder(out: Path) -> None:
     """Remove what pretraining wrote into a row's folder, to train it again; a file it did not
     write (the user's) is refused in one line, and nothing is removed."""
-    from twin.training.pretrain import PRETRAIN_FILES
+    from twin.training.pretrain import written_by_pretraining
 
     entries = sorted(out.iterdir())
-    foreign = [e.name for e in entries if e.name not in PRETRAIN_FILES and not _temp_file(e)]
+    foreign = [e.name for e in entries if not written_by_pretraining(e)]
     if foreign:
         raise UserError(
             f"row {out.name}: must be trained again (its settings, tapes, start or scenario "
@@ -345,11 +348,6 @@ def clear_row_folder(out: Path) -> None:
             shutil.rmtree(entry)
         else:
             entry.unlink()
-
-
-def _temp_file(entry: Path) -> bool:
-    """A file twin's atomic writes leave while writing (``.<name>.tmp``)."""
-    return entry.name.startswith(".") and entry.name.endswith(".tmp") and entry.is_file()
 
 
 def provenance_matches(out: Path, cfg) -> bool:
