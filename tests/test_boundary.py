@@ -681,6 +681,15 @@ def _json(name, key, value):
     return apply
 
 
+def _json_edit(name, edit):
+    def apply(run: Path) -> None:
+        import json
+
+        (run / name).write_text(json.dumps(edit(json.loads((run / name).read_text()))))
+
+    return apply
+
+
 def _both(*edits):
     def apply(run: Path) -> None:
         for edit in edits:
@@ -975,6 +984,15 @@ READ_BACK = {
     "run.json command of another kind": (
         _json("run.json", ("command",), "twin run --config x.toml"),
         "run.json: command = 'twin run --config x.toml' is no `twin evaluate`",
+    ),
+    # the report shows run.json's command as the line that made the run
+    "run.json command giving other options": (
+        _json_edit("run.json", lambda run: {**run, "command": run["command"] + " --seeds 7"}),
+        "gives seeds = 7, but invocation.options.seeds = ",
+    ),
+    "run.json command with an option twin has not": (
+        _json("run.json", ("command",), "twin evaluate --faster"),
+        "run.json: command = 'twin evaluate --faster' is no twin command line",
     ),
     "every file relabelled to other seeds": (_relabel_seeds, "random starts on this map are"),
     "starts other than the drones'": (

@@ -816,13 +816,14 @@ def report_dir(run_dir: Path) -> Path:
     return out
 
 
-def write_report(run_dir: str | Path, animation: bool = True) -> Path:
-    """Write ``RUN_DIR/report/`` (report.html, report.md, PNGs, GIF); return the HTML's path.
+def write_report(run_dir: str | Path | RunFiles, animation: bool = True) -> Path:
+    """Write ``RUN_DIR/report/`` (report.html, report.md, PNGs, GIF) of a run folder or of one
+    already read; return the HTML's path.
 
     The report is drawn into a temporary folder inside the run folder and renamed into place
     at the end: a report that fails mid-way (a full disk ...) leaves the previous report, or
     none, never a partial one."""
-    rf = load_run(run_dir)
+    rf = run_dir if isinstance(run_dir, RunFiles) else load_run(run_dir)
     out = report_dir(rf.run_dir)
     with staged_folder(out) as stage:
         sections, drawing = build_sections(rf, stage, animation)
