@@ -994,6 +994,18 @@ READ_BACK = {
         _json("run.json", ("command",), "twin evaluate --faster"),
         "run.json: command = 'twin evaluate --faster' is no twin command line",
     ),
+    "run.json --seeds other than its seeds": (
+        _json("run.json", ("invocation", "options", "seeds"), 3),
+        "run.json: invocation.options.seeds = 3, but seeds lists 2",
+    ),
+    "run.json --seed other than its first seed": (
+        _json("run.json", ("invocation", "options", "seed"), 5),
+        "run.json: invocation.options.seed = 5, but seeds are [0, 1]",
+    ),
+    "run.json --seed as text": (
+        _json("run.json", ("invocation", "options", "seed"), "0"),
+        "run.json: invocation.options.seed = '0' must be a whole number",
+    ),
     "every file relabelled to other seeds": (_relabel_seeds, "random starts on this map are"),
     "starts other than the drones'": (
         _json("run.json", ("starts",), [[0, 0], [0, 1], [0, 2]]),
@@ -1110,7 +1122,10 @@ READ_BACK = {
         "network.json: grid = 3 x 30, but importance.npz holds 20 x 30 maps",
     ),
     "run.json seeds without results": (
-        _json("run.json", ("seeds",), [0, 1, 2]),
+        _both(
+            _json("run.json", ("seeds",), [0, 1, 2]),
+            _json("run.json", ("invocation", "options", "seeds"), 3),
+        ),
         "seeds = [0, 1, 2] differ from those with results in series.parquet, [0, 1]",
     ),
     "a swarm's stage in timing renamed to a swarm the run did not run": (
@@ -1271,7 +1286,10 @@ READ_BACK = {
         "per_seed.csv: R_hat_T = 77 for seed ",
     ),
     "run.json seed twice": (
-        _json("run.json", ("seeds",), [0, 1, 1]),
+        _both(
+            _json("run.json", ("seeds",), [0, 1, 1]),
+            _json("run.json", ("invocation", "options", "seeds"), 3),
+        ),
         "run.json: seeds = [0, 1, 1] lists seed 1 twice",
     ),
     "run.json partial, the manifest not": (

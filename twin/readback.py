@@ -489,6 +489,7 @@ def check_invocation(path: Path, run: dict[str, Any]) -> None:
             f"{path}: invocation.options.{option} = {repr(given)[:60]}, but {field} = "
             f"{repr(recorded)[:60]}; {RERUN}"
         )
+    check_seed_options(path, run)
     created = run.get("created")
     if created is not None:
         try:
@@ -497,6 +498,38 @@ def check_invocation(path: Path, run: dict[str, Any]) -> None:
             raise UserError(
                 f"{path}: created = {created[:40]!r} is not a time (ISO 8601); {RERUN}"
             ) from None
+
+
+def check_seed_options(path: Path, run: dict[str, Any]) -> None:
+    """``--seed``/``--seeds`` the invocation gives are the run's seeds: ``seeds`` seeds from
+    ``seed`` on (a partial run lists those it finished)."""
+    seeds = run.get("seeds")
+    if not isinstance(seeds, list) or not seeds:
+        return
+    given = {option: _dotted(run, f"invocation.options.{option}") for option in ("seed", "seeds")}
+    for option, value in given.items():
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int)):
+            raise UserError(
+                f"{path}: invocation.options.{option} = {repr(value)[:40]} must be a whole "
+                f"number; {RERUN}"
+            )
+    first, count = given["seed"], given["seeds"]
+    partial = bool(run.get("partial"))
+    if count is not None and (len(seeds) > count or (not partial and len(seeds) != count)):
+        raise UserError(
+            f"{path}: invocation.options.seeds = {count}, but seeds lists {len(seeds)}; {RERUN}"
+        )
+    if first is None:
+        return
+    last = first + (count if count is not None else len(seeds)) - 1
+    if partial and count is None:
+        last = max(seeds)  # how many the run was to have is not recorded
+    if not all(first <= s <= last for s in seeds) or (
+        not partial and seeds != list(range(first, first + len(seeds)))
+    ):
+        raise UserError(
+            f"{path}: invocation.options.seed = {first}, but seeds are {str(seeds)[:40]}; {RERUN}"
+        )
 
 
 #: Fields of run.json that record one thing twice: each pair must agree.
