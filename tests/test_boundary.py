@@ -1002,6 +1002,26 @@ READ_BACK = {
         _json("run.json", ("invocation", "options", "seed"), 5),
         "run.json: invocation.options.seed = 5, but seeds are [0, 1]",
     ),
+    "run.json --config other than its config": (
+        _json("run.json", ("invocation", "options", "config"), "other.toml"),
+        "run.json: invocation.options.config = 'other.toml', but config = ",
+    ),
+    "run.json invocation in a relative folder": (
+        _json("run.json", ("invocation", "cwd"), "relative/dir"),
+        "run.json: invocation.cwd = 'relative/dir' is no absolute folder",
+    ),
+    "run.json seconds of a step on synthetic traffic": (
+        _json("run.json", ("monitoring", "step_s"), 30.0),
+        "run.json: monitoring.step_s = 30.0, but the traffic records no step",
+    ),
+    "run.json timings of its own": (
+        _json("run.json", ("timings", "x"), -1),
+        "run.json: timings.x is no timing twin records",
+    ),
+    "run.json patrol seconds of fewer seeds": (
+        _json("run.json", ("timings", "patrol_seconds"), [1.0]),
+        "run.json: timings.patrol_seconds gives 1 seeds' seconds, but seeds lists 2",
+    ),
     "run.json --seed as text": (
         _json("run.json", ("invocation", "options", "seed"), "0"),
         "run.json: invocation.options.seed = '0' must be a whole number",
@@ -1125,6 +1145,7 @@ READ_BACK = {
         _both(
             _json("run.json", ("seeds",), [0, 1, 2]),
             _json("run.json", ("invocation", "options", "seeds"), 3),
+            _json("run.json", ("timings", "patrol_seconds"), [1.0, 1.0, 1.0]),
         ),
         "seeds = [0, 1, 2] differ from those with results in series.parquet, [0, 1]",
     ),
@@ -1289,6 +1310,7 @@ READ_BACK = {
         _both(
             _json("run.json", ("seeds",), [0, 1, 1]),
             _json("run.json", ("invocation", "options", "seeds"), 3),
+            _json("run.json", ("timings", "patrol_seconds"), [1.0, 1.0, 1.0]),
         ),
         "run.json: seeds = [0, 1, 1] lists seed 1 twice",
     ),
@@ -2346,7 +2368,7 @@ def test_a_forged_learned_policy_record_is_refused(name):
     forged = {**base, "policies": {"rl": {**GOOD_POLICY, **change}}}
     with pytest.raises(UserError, match=re.escape(words)):
         check_policy_records(Path("run.json"), forged)
-    with pytest.raises(UserError, match=re.escape("no policies.rl for the learned swarm")):
+    with pytest.raises(UserError, match=re.escape("no policies.rl for the swarm")):
         check_policy_records(Path("run.json"), {**base, "policies": {}})
     check_policy_records(Path("run.json"), {**base, "partial": True, "policies": {}})
 
@@ -2370,6 +2392,50 @@ def test_a_policy_record_its_swarm_cannot_have_is_refused():
     good = {"rl-online": {**GOOD_POLICY, "online": True},
             "rl-decentralized": {**GOOD_POLICY, "coordination": "decentralized", "eps": 0.1}}  # fmt: skip
     check_policy_records(Path("run.json"), {**run, "policies": good})
+
+
+def _tours_record() -> dict:
+    from twin.tours import ToursPolicy
+
+    return ToursPolicy().describe()
+
+
+def _nowcast_record() -> dict:
+    return {"weight": 1.0, "quantile_z": 1.64, "meas_var": None, "sighting_count_p": 1.0,
+            "history_runs": 3, "history_seeds": [0, 1, 2]}  # fmt: skip
+
+
+FORGED_PLANNER_RECORDS = {
+    "tours per_tour as text": ("tours", {"per_tour": "abc"}, "tours: per_tour = 'abc' must be"),
+    "tours per_tour below 1": ("tours", {"per_tour": -5}, "tours: per_tour = -5 must be at least"),
+    "tours unknown layout": ("tours", {"layout": "nonsense"}, "tours: layout = 'nonsense' must"),
+    "tours plans below 0": ("tours", {"plans": -1}, "plans = -1 must be a whole number"),
+    "tours option left out": ("tours", {"shift": ...}, "policies.tours: records no shift"),
+    "nowcast-gain weight below 0": ("nowcast-gain", {"weight": -1}, "weight = -1 must lie in"),
+    "nowcast-gain sighting above 1": (
+        "nowcast-gain",
+        {"sighting_count_p": 2},
+        "sighting_count_p = 2 must be a number in",
+    ),
+    "nowcast-gain no history runs": ("nowcast-gain", {"history_runs": 0}, "history_runs = 0"),
+}
+
+
+@pytest.mark.parametrize("name", FORGED_PLANNER_RECORDS)
+def test_a_forged_planner_record_is_refused(name):
+    """A planner's record (its options, as its constructor checks them, and its counts) is read
+    back like a learned swarm's; every such swarm of a complete run has one."""
+    from twin.swarms import check_policy_records
+
+    swarm, change, words = FORGED_PLANNER_RECORDS[name]
+    good = {"tours": _tours_record, "nowcast-gain": _nowcast_record}[swarm]()
+    base = {"swarms": ["random", swarm], "partial": False}
+    check_policy_records(Path("run.json"), {**base, "policies": {swarm: good}})
+    forged = {k: v for k, v in {**good, **change}.items() if v is not ...}
+    with pytest.raises(UserError, match=re.escape(words)):
+        check_policy_records(Path("run.json"), {**base, "policies": {swarm: forged}})
+    with pytest.raises(UserError, match=re.escape(f"no policies.{swarm} for the swarm")):
+        check_policy_records(Path("run.json"), {**base, "policies": {}})
 
 
 def test_a_figure_of_one_seed_has_no_interval(tmp_path, capsys):
