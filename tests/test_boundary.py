@@ -990,6 +990,10 @@ READ_BACK = {
         _json_edit("run.json", lambda run: {**run, "command": run["command"] + " --seeds 7"}),
         "gives seeds = 7, but invocation.options.seeds = ",
     ),
+    "run.json invocation with an option twin has not": (
+        _json("run.json", ("invocation", "options", "bogus"), 1),
+        "run.json: invocation.options.bogus is not an option of `twin evaluate`",
+    ),
     "run.json command with an option twin has not": (
         _json("run.json", ("command",), "twin evaluate --faster"),
         "run.json: command = 'twin evaluate --faster' is no twin command line",

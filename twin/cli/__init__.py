@@ -154,8 +154,8 @@ def _dispatch(argv: list[str] | None) -> int:
 
 def check_command_line(path: Path, run: dict) -> None:
     """run.json's ``command`` (``path``) is a command line twin takes, giving the options its
-    ``invocation`` records: the report shows that line as the command that made the run. An
-    option the recording twin did not have yet must be left at its default."""
+    ``invocation`` records, and no other: the report shows that line as the command that made
+    the run. An option the recording twin did not have yet must be left at its default."""
     import contextlib
     import io
     import json
@@ -187,6 +187,12 @@ def check_command_line(path: Path, run: dict) -> None:
         return
     sub = commands[kind]
     given = json.loads(json.dumps(invocation(kind, args)["options"], default=str))
+    unknown = sorted(set(recorded) - set(given))
+    if unknown:
+        raise UserError(
+            f"{path}: invocation.options.{unknown[0][:40]} is not an option of `twin {kind}`; "
+            f"{RERUN}"
+        )
     for option, value in given.items():
         want = recorded[option] if option in recorded else sub.get_default(option)
         want = json.loads(json.dumps(want, default=str))
