@@ -162,7 +162,7 @@ def write_fixture_run(
         "horizon": horizon,
         "params": {"eta": params.eta, "delta": params.delta, "alpha_T": 1.0, "alpha_I": 0.5},
         "checkpoint": {"path": "data/qnet.pt", "sha256": "ab12cd34"},
-        "timings": {"patrol_seconds": [1.234, 2.345]},
+        "timings": {"patrol_seconds": [round(1.234 + 1.111 * n, 3) for n in range(len(seeds))]},
         "versions": {"python": "3.11.7", "numpy": "2.4.6"},
         "monitoring": {"threshold": 0.5, "min_duration": 1, "weight_floor": 0.05},
     }
