@@ -418,6 +418,24 @@ def test_killed_sweep_resumes(tmp_path: Path) -> None:
             'tape = "t.parquet"\noverrides = { "traffic.horizon" = 10 }\n',
             "[[scenario]] t.overrides.'traffic.horizon' sets the traffic of [[scenario]] 't'",
         ),
+        # keys each cell sets itself: the cells of every value ran alike (probe 18's f10)
+        (
+            '[sweep]\nswarms = ["greedy"]\n[[scenario]]\nname = "a"\nconfig = "scenario.toml"\n'
+            '[parameters]\n"traffic.seed" = [0, 1]\n',
+            "[parameters].'traffic.seed' is set by the sweep itself, the seed of each cell's "
+            "traffic being its seed ([sweep].seeds); drop it",
+        ),
+        (
+            '[sweep]\nswarms = ["greedy"]\n[[scenario]]\nname = "a"\nconfig = "scenario.toml"\n'
+            'overrides = { "evaluate.swarms" = ["random"] }\n',
+            "[[scenario]] a.overrides.'evaluate.swarms' is set by the sweep itself, each cell "
+            "running [sweep].swarms",
+        ),
+        (
+            '[sweep]\nswarms = ["greedy"]\n[[scenario]]\nname = "a"\nconfig = "scenario.toml"\n'
+            '[parameters]\n"evaluate.seed" = [0, 5]\n',
+            "[parameters].'evaluate.seed' is set by the sweep itself",
+        ),
     ],
 )
 def test_bad_sweep_configs_are_one_line_errors(tmp_path: Path, text: str, message: str, capsys):
