@@ -2196,7 +2196,10 @@ def test_a_write_into_a_missing_folder_names_the_file_not_a_temporary_one(tmp_pa
     with pytest.raises(FileNotFoundError) as raised:
         atomic_write(target, lambda p: p.write_text("x"))
     assert raised.value.filename == str(target)
-    with pytest.raises(FileNotFoundError) as raised, staged_folder(tmp_path / "gone" / "report"):
+    with (
+        pytest.raises(FileNotFoundError) as raised,
+        staged_folder(tmp_path / "gone" / "report", lambda name: False),
+    ):
         pass
     assert raised.value.filename == str(tmp_path / "gone" / "report")
     assert not (tmp_path / "gone").exists()

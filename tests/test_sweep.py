@@ -155,6 +155,23 @@ def test_full_disk_during_the_sweep_report_leaves_no_partial_report(
     assert not [p for p in out.iterdir() if p.name.startswith(".report")]
 
 
+def test_a_users_file_in_the_sweep_report_is_refused_and_kept(swept, tmp_path, capsys):
+    """A rerun of the sweep draws its report again: a file of the user's in report/ is refused
+    in one line and kept (it was deleted with the old report)."""
+    import shutil
+
+    out = tmp_path / "s"
+    shutil.copytree(swept, out)
+    (out / "report" / "notes.txt").write_text("mine")
+    capsys.readouterr()
+    argv = ["sweep", "--config", str(swept.parent / "sweep.toml"), "--out", str(out), "--quiet"]
+    assert cli(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{out / 'report' / 'notes.txt'}: not written by twin" in err
+    assert (out / "report" / "notes.txt").read_text() == "mine"
+    assert (out / "report" / "sweep.html").is_file()
+
+
 def tiny_checkpoint(path: Path) -> Path:
     """A small Q-network checkpoint (13 -> 16 -> 5), so the learning swarm runs in seconds."""
     import torch
