@@ -134,11 +134,7 @@ class NowcastGainPolicy(CoordinatedPolicy):
     def reset(self, grid: Grid, n_drones: int, rng: np.random.Generator) -> None:
         super().reset(grid, n_drones, rng)
         h = self.history
-        if h.shape != grid.shape or not np.array_equal(h.obstacles, grid.obstacles):
-            raise UserError(
-                f"nowcast-gain: the history's grid {h.shape[0]} x {h.shape[1]} (or obstacles) "
-                f"differs from the run's {grid.nx} x {grid.ny}; build it from runs of this scenario"
-            )
+        h.check_grid(h.named(self.name), grid.obstacles)
         self.filter = NowcastFilter(h, self.meas_var, self.sighting)
         self.free = grid.free.ravel()
 
@@ -174,11 +170,7 @@ class NowcastGainPolicy(CoordinatedPolicy):
 
     def sight(self, view: SwarmView) -> None:
         """Advance the filter to step ``k`` and update it on the cells the drones see."""
-        if view.horizon != self.history.horizon:
-            raise UserError(
-                f"nowcast-gain: the history's horizon T = {self.history.horizon} differs from "
-                f"the run's T = {view.horizon}; build it from runs of this scenario"
-            )
+        self.history.check_horizon(self.history.named(self.name), view.horizon)
         grid = view.grid
         self.filter.advance(view.k)
         flat, valid = grid.view_index(view.positions)
