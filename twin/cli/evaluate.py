@@ -112,23 +112,54 @@ def with_swarm_of_run(config, tape):
     """``config`` with the swarm of the run that recorded ``tape`` (its drones, start cells and
     score weights, from the ``run.json`` of the tape's run folder), said in a notice: a
     replay of a run's tape without ``--config`` gives the run's swarm results, not those of
-    the default config's swarm. A tape outside a run folder keeps the config's swarm."""
-    import json
+    the default config's swarm. A tape outside a run folder keeps the config's swarm, and so
+    does one that its folder's manifest does not list or whose grid is not the run's (another
+    run's ``run.json``); a damaged ``run.json`` is refused in one line."""
     from pathlib import Path
 
     from twin.boundary import notify
     from twin.config import with_overrides
-    from twin.files import read_record
+    from twin.readback import RERUN, check_run_json, read_json
+    from twin.runs import MANIFEST, check_run_folder
+    from twin.traffic.tape import read_tape_meta
 
     tape = Path(tape)
     folder = tape.parent.parent if tape.parent.name == "tapes" else tape.parent
-    try:
-        run = json.loads(read_record(folder / "run.json"))  # NotARecord is an OSError
-        params = run["params"]
-        overrides = {"swarm.n_drones": run["n_drones"], "swarm.starts": run["starts"],
-                     **{f"swarm.{k}": params[k] for k in ("eta", "delta", "alpha_T", "alpha_I")}}  # fmt: skip
-    except (OSError, ValueError, KeyError, TypeError):
+    record = folder / "run.json"
+    if not record.exists() and not record.is_symlink():
         return config
+    if (folder / MANIFEST).exists():  # a finished run's folder: it must have written the tape
+        listed = check_run_folder(folder).get("files") or {}
+        if tape.relative_to(folder).as_posix() not in listed:
+            notify(
+                f"twin: notice: {folder / MANIFEST} does not list {tape.name}: not the tape of "
+                f"the run of {record}, so {config.path.name}'s swarm replays it"
+            )
+            return config
+    run = check_run_json(record, read_json(record, required=True))
+    shape = read_tape_meta(tape)
+    grid = run.get("grid") or {}
+    if (grid.get("nx"), grid.get("ny")) != (shape["nx"], shape["ny"]):
+        notify(
+            f"twin: notice: {record} gives a grid of {grid.get('nx')} x {grid.get('ny')}, the "
+            f"tape {shape['nx']} x {shape['ny']}: not the tape of its run, so "
+            f"{config.path.name}'s swarm replays it"
+        )
+        return config
+    params = run.get("params") or {}
+    fields = {  # override -> the field of run.json that gives it, and its value
+        "swarm.n_drones": ("n_drones", run.get("n_drones")),
+        "swarm.starts": ("starts", run.get("starts")),
+        **{f"swarm.{k}": (f"params.{k}", params.get(k)) for k in ("eta", "delta", "alpha_T",
+                                                                  "alpha_I")},
+    }  # fmt: skip
+    missing = [name for name, value in fields.values() if value is None]
+    if missing:
+        raise UserError(
+            f"{record}: no {missing[0]}: the swarm that recorded {tape.name} is unknown; "
+            f"{RERUN}, or give --config"
+        )
+    overrides = {key: value for key, (_, value) in fields.items()}
     seed = _seed_of_tape(tape, run)
     if seed is not None:  # the run's seed of this tape (--seed still chooses another)
         overrides["evaluate.seed"] = seed
