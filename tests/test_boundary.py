@@ -2325,12 +2325,28 @@ def test_a_folder_of_an_earlier_format_reads_back_with_a_notice(run_copy, capsys
     meta = json.loads((run_copy / "run.json").read_text())
     assert meta["folder_format"] == FOLDER_FORMAT
     (run_copy / "bound.npz").unlink()
+    (run_copy / "oracle.parquet").unlink()
     del meta["folder_format"], meta["starts"]
     (run_copy / "run.json").write_text(json.dumps(meta))
     refresh_manifest(run_copy)
     assert main(["report", str(run_copy), "--no-animation"]) == 0
     err = capsys.readouterr().err
     assert "written by an earlier twin (folder format 1)" in err, err
+    # a later folder relabelled: what its format did not have gives it away (probe 18's f13)
+    for relabel, words in (
+        ({"folder_format": 1}, "folder_format = 1, but the folder holds folder_format"),
+        ({"starts": "random"}, "folder_format = 1, but the folder holds starts"),
+    ):
+        (run_copy / "run.json").write_text(json.dumps({**meta, **relabel}))
+        refresh_manifest(run_copy)
+        assert main(["report", str(run_copy), "--no-animation"]) == EXIT_REFUSED
+        assert words in one_line(capsys)
+    (run_copy / "oracle.parquet").write_bytes(b"")
+    (run_copy / "run.json").write_text(json.dumps({**meta, "folder_format": 2}))
+    refresh_manifest(run_copy)
+    assert main(["report", str(run_copy), "--no-animation"]) == EXIT_REFUSED
+    assert "folder_format = 2, but the folder holds oracle.parquet" in one_line(capsys)
+    (run_copy / "oracle.parquet").unlink()
     meta["folder_format"] = FOLDER_FORMAT + 1
     (run_copy / "run.json").write_text(json.dumps(meta))
     refresh_manifest(run_copy)
