@@ -246,6 +246,14 @@ def test_a_damaged_or_foreign_run_json_beside_a_tape_is_not_taken_silently(tmp_p
     assert main([*argv, "--out", str(tmp_path / "ev3")]) == 0, capsys.readouterr().err
     err = capsys.readouterr().err
     assert "gives a grid of 2 x 2, the tape" in err and "not the tape of its run" in err, err
+    other = {**meta, "traffic": {**meta["traffic"], "seed": 9}}  # another day, same grid
+    (lone / "run.json").write_text(json.dumps(other))
+    assert main([*argv, "--out", str(tmp_path / "ev4")]) == 0, capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "records another traffic than the tape's" in err, err
+    (lone / "run.json").write_text(json.dumps(meta))  # its own run's: its swarm replays it
+    assert main([*argv, "--out", str(tmp_path / "ev5")]) == 0, capsys.readouterr().err
+    assert "the swarm of" in capsys.readouterr().err
 
 
 def test_a_later_seeds_tape_replays_with_that_seed(tmp_path, capsys):

@@ -200,6 +200,18 @@ def test_a_curve_config_naming_no_file_is_refused_before_training(
     assert not (tmp_path / "out").exists()
 
 
+def test_a_curve_config_that_is_no_scenario_is_refused_naming_the_key(tmp_path, capsys):
+    """curve_config naming a shipped config of another kind (a pretraining config) is refused
+    by a line naming the key and the pretraining config, not the shipped file's sections."""
+    path = tmp_path / "pt.toml"
+    path.write_text(f'out = "{tmp_path / "out"}"\nepochs = 2\ncurve_every = 1\n'
+                    'curve_config = "pretrain"\n')  # fmt: skip
+    code, err = _run_cli(["pretrain", "--config", str(path), "--quiet"], capsys)
+    assert code == 2 and err.count("\n") == 0, err
+    assert f"{path}: curve_config = " in err and "is no scenario config" in err, err
+    assert not (tmp_path / "out").exists()
+
+
 def test_pretraining_memory_limit_flag(tmp_path, capsys):
     config = _config(tmp_path)
     argv = ["pretrain", "--config", str(config), "--quiet", "--max-memory-gb", "1e-9"]

@@ -187,6 +187,18 @@ BAD = [
         '[[row]]\nname = "x"\ncheckpoint = "{qnet}"\ntraffic = "dynamics"\n',
         "loads its checkpoint as it is, so its traffic would train nothing",
     ),
+    # keys the transfer sets itself: the override changed nothing (probe 18's P2-03, P2-04)
+    (
+        '[[column]]\nname = "c"\nconfig = "{synthetic}"\noverrides = {{ "evaluate.seed" = 5 }}\n',
+        "bad.toml: [[column]] c.overrides.'evaluate.seed' is set by the transfer itself "
+        "([transfer].seeds); drop it",
+    ),
+    (
+        '[tapes]\nconfig = "{synthetic}"\noverrides = {{ "traffic.seed" = 3 }}\n',
+        "bad.toml: [tapes].overrides.'traffic.seed' is set by the transfer itself",
+    ),
+    # a swarm that plans on a history: the transfer builds none (probe 18's P2-07)
+    ('[transfer]\nclassical = ["nowcast-gain"]\n', "'nowcast-gain', which plans on a history"),
 ]
 
 

@@ -108,6 +108,21 @@ def _seed_of_tape(tape, run: dict) -> int | None:
     return seed if seed in seeds else None
 
 
+def _records_the_tape(record, settings: dict) -> bool:
+    """run.json's traffic record of a seed agrees with a tape's settings (the source's own
+    record, which a run's tape keeps, with the network's placement besides)."""
+    import json
+
+    if not isinstance(record, dict):
+        return False
+    same = [
+        json.dumps(record[key], sort_keys=True) == json.dumps(value, sort_keys=True)
+        for key, value in settings.items()
+        if key not in ("network", "error") and key in record  # the error: as the run ended
+    ]
+    return bool(same) and all(same)
+
+
 def with_swarm_of_run(config, tape):
     """``config`` with the swarm of the run that recorded ``tape`` (its drones, start cells and
     score weights, from the ``run.json`` of the tape's run folder), said in a notice: a
@@ -137,12 +152,20 @@ def with_swarm_of_run(config, tape):
             )
             return config
     run = check_run_json(record, read_json(record, required=True))
-    shape = read_tape_meta(tape)
+    meta = read_tape_meta(tape)
     grid = run.get("grid") or {}
-    if (grid.get("nx"), grid.get("ny")) != (shape["nx"], shape["ny"]):
+    why = None
+    if (grid.get("nx"), grid.get("ny")) != (meta["nx"], meta["ny"]):
+        why = (
+            f"gives a grid of {grid.get('nx')} x {grid.get('ny')}, the tape {meta['nx']} x "
+            f"{meta['ny']}"
+        )
+    elif not any(_records_the_tape(r, meta["settings"]) for r in
+                 run.get("traffic_by_seed") or [run.get("traffic")]):  # fmt: skip
+        why = "records another traffic than the tape's (its settings differ)"
+    if why is not None:
         notify(
-            f"twin: notice: {record} gives a grid of {grid.get('nx')} x {grid.get('ny')}, the "
-            f"tape {shape['nx']} x {shape['ny']}: not the tape of its run, so "
+            f"twin: notice: {record} {why}: not the tape of its run, so "
             f"{config.path.name}'s swarm replays it"
         )
         return config

@@ -378,7 +378,13 @@ class PretrainConfig(SourcedConfig):
     def _curve_can_be_measured(self) -> PretrainConfig:
         """The curve's scenario is read before training, not after it."""
         if self.curve_every:
-            curve_scenario(self)
+            try:
+                curve_scenario(self)
+            except UserError as exc:
+                raise ValueError(
+                    f"curve_config = {self.curve_config!r} is no scenario config to measure "
+                    f'the curve on ({exc}); give one, e.g. "synthetic"'
+                ) from None
         return self
 
     @model_validator(mode="after")

@@ -488,7 +488,9 @@ def sweep_config(config: TransferConfig, rows: dict[str, dict[str, Any]]):
     try:
         sweep = SweepConfig.model_validate(data, context={"path": config.path})
     except ValidationError as exc:  # a checkpoint gone between training and evaluation
-        raise UserError(f"{config.path}: {exc.errors(include_url=False)[0]['msg']}") from None
+        error = exc.errors(include_url=False)[0]
+        why = str(error.get("ctx", {}).get("error", error["msg"])).removeprefix("Value error, ")
+        raise UserError(f"{config.path}: {why}") from None
     sweep._path = config.path
     return sweep
 
