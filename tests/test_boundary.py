@@ -2341,6 +2341,13 @@ def test_a_folder_of_an_earlier_format_reads_back_with_a_notice(run_copy, capsys
         refresh_manifest(run_copy)
         assert main(["report", str(run_copy), "--no-animation"]) == EXIT_REFUSED
         assert words in one_line(capsys)
+    # the oracle row of a folder of format 1 is not replayed, but its parts still sum to it
+    (run_copy / "run.json").write_text(json.dumps(meta))
+    _ceiling_scaled("oracle (ceiling)", 1.5)(run_copy)
+    refresh_manifest(run_copy)
+    assert main(["report", str(run_copy), "--no-animation"]) == EXIT_REFUSED
+    assert "swarm 'oracle (ceiling)', but its reward split gives" in one_line(capsys)
+    _ceiling_scaled("oracle (ceiling)", 1 / 1.5)(run_copy)
     (run_copy / "oracle.parquet").write_bytes(b"")
     (run_copy / "run.json").write_text(json.dumps({**meta, "folder_format": 2}))
     refresh_manifest(run_copy)
