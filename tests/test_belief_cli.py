@@ -115,6 +115,22 @@ def test_mismatched_history_is_one_line_and_exit_2(small, history, tmp_path, cap
     assert code == 2 and str(broken) in err and "\n" not in err
 
 
+def test_a_mismatched_history_is_named_by_its_file_in_the_workers_too(
+    small, history, tmp_path, capsys
+):
+    """With --workers the sources are built in the workers, where the swarms find the history
+    of another horizon: their refusal names the file and the fix, as the check before SUMO
+    does (it named the swarm alone)."""
+    out = tmp_path / "w"
+    argv = run_args(small, out, "--history", str(history), "--horizon", "6")
+    code = twin_main([*argv, "--swarms", "nowcast-gain", "--seeds", "2", "--workers", "2"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "Traceback" not in err, err
+    err = err.splitlines()[-1]
+    assert f"{history}" in err and "horizon T = 8 differs from the run's T = 6" in err, err
+    assert "build the history from runs of the same scenario and options" in err
+
+
 def test_nowcast_gain_runs_on_the_history_and_is_scored_by_the_belief_table(
     small, history, tmp_path, capsys
 ):

@@ -681,6 +681,15 @@ def _json(name, key, value):
     return apply
 
 
+def _json_edit(name, edit):
+    def apply(run: Path) -> None:
+        import json
+
+        (run / name).write_text(json.dumps(edit(json.loads((run / name).read_text()))))
+
+    return apply
+
+
 def _both(*edits):
     def apply(run: Path) -> None:
         for edit in edits:
@@ -976,6 +985,51 @@ READ_BACK = {
         _json("run.json", ("command",), "twin run --config x.toml"),
         "run.json: command = 'twin run --config x.toml' is no `twin evaluate`",
     ),
+    # the report shows run.json's command as the line that made the run
+    "run.json command giving other options": (
+        _json_edit("run.json", lambda run: {**run, "command": run["command"] + " --seeds 7"}),
+        "gives seeds = 7, but invocation.options.seeds = ",
+    ),
+    "run.json invocation with an option twin has not": (
+        _json("run.json", ("invocation", "options", "bogus"), 1),
+        "run.json: invocation.options.bogus is not an option of `twin evaluate`",
+    ),
+    "run.json command with an option twin has not": (
+        _json("run.json", ("command",), "twin evaluate --faster"),
+        "run.json: command = 'twin evaluate --faster' is no twin command line",
+    ),
+    "run.json --seeds other than its seeds": (
+        _json("run.json", ("invocation", "options", "seeds"), 3),
+        "run.json: invocation.options.seeds = 3, but seeds lists 2",
+    ),
+    "run.json --seed other than its first seed": (
+        _json("run.json", ("invocation", "options", "seed"), 5),
+        "run.json: invocation.options.seed = 5, but seeds are [0, 1]",
+    ),
+    "run.json --config other than its config": (
+        _json("run.json", ("invocation", "options", "config"), "other.toml"),
+        "run.json: invocation.options.config = 'other.toml', but config = ",
+    ),
+    "run.json invocation in a relative folder": (
+        _json("run.json", ("invocation", "cwd"), "relative/dir"),
+        "run.json: invocation.cwd = 'relative/dir' is no absolute folder",
+    ),
+    "run.json seconds of a step on synthetic traffic": (
+        _json("run.json", ("monitoring", "step_s"), 30.0),
+        "run.json: monitoring.step_s = 30.0, but the traffic records no step",
+    ),
+    "run.json timings of its own": (
+        _json("run.json", ("timings", "x"), -1),
+        "run.json: timings.x is no timing twin records",
+    ),
+    "run.json patrol seconds of fewer seeds": (
+        _json("run.json", ("timings", "patrol_seconds"), [1.0]),
+        "run.json: timings.patrol_seconds gives 1 seeds' seconds, but seeds lists 2",
+    ),
+    "run.json --seed as text": (
+        _json("run.json", ("invocation", "options", "seed"), "0"),
+        "run.json: invocation.options.seed = '0' must be a whole number",
+    ),
     "every file relabelled to other seeds": (_relabel_seeds, "random starts on this map are"),
     "starts other than the drones'": (
         _json("run.json", ("starts",), [[0, 0], [0, 1], [0, 2]]),
@@ -1092,7 +1146,11 @@ READ_BACK = {
         "network.json: grid = 3 x 30, but importance.npz holds 20 x 30 maps",
     ),
     "run.json seeds without results": (
-        _json("run.json", ("seeds",), [0, 1, 2]),
+        _both(
+            _json("run.json", ("seeds",), [0, 1, 2]),
+            _json("run.json", ("invocation", "options", "seeds"), 3),
+            _json("run.json", ("timings", "patrol_seconds"), [1.0, 1.0, 1.0]),
+        ),
         "seeds = [0, 1, 2] differ from those with results in series.parquet, [0, 1]",
     ),
     "a swarm's stage in timing renamed to a swarm the run did not run": (
@@ -1253,7 +1311,11 @@ READ_BACK = {
         "per_seed.csv: R_hat_T = 77 for seed ",
     ),
     "run.json seed twice": (
-        _json("run.json", ("seeds",), [0, 1, 1]),
+        _both(
+            _json("run.json", ("seeds",), [0, 1, 1]),
+            _json("run.json", ("invocation", "options", "seeds"), 3),
+            _json("run.json", ("timings", "patrol_seconds"), [1.0, 1.0, 1.0]),
+        ),
         "run.json: seeds = [0, 1, 1] lists seed 1 twice",
     ),
     "run.json partial, the manifest not": (
@@ -2134,7 +2196,10 @@ def test_a_write_into_a_missing_folder_names_the_file_not_a_temporary_one(tmp_pa
     with pytest.raises(FileNotFoundError) as raised:
         atomic_write(target, lambda p: p.write_text("x"))
     assert raised.value.filename == str(target)
-    with pytest.raises(FileNotFoundError) as raised, staged_folder(tmp_path / "gone" / "report"):
+    with (
+        pytest.raises(FileNotFoundError) as raised,
+        staged_folder(tmp_path / "gone" / "report", lambda name: False),
+    ):
         pass
     assert raised.value.filename == str(tmp_path / "gone" / "report")
     assert not (tmp_path / "gone").exists()
@@ -2260,12 +2325,35 @@ def test_a_folder_of_an_earlier_format_reads_back_with_a_notice(run_copy, capsys
     meta = json.loads((run_copy / "run.json").read_text())
     assert meta["folder_format"] == FOLDER_FORMAT
     (run_copy / "bound.npz").unlink()
+    (run_copy / "oracle.parquet").unlink()
     del meta["folder_format"], meta["starts"]
     (run_copy / "run.json").write_text(json.dumps(meta))
     refresh_manifest(run_copy)
     assert main(["report", str(run_copy), "--no-animation"]) == 0
     err = capsys.readouterr().err
     assert "written by an earlier twin (folder format 1)" in err, err
+    # a later folder relabelled: what its format did not have gives it away (probe 18's f13)
+    for relabel, words in (
+        ({"folder_format": 1}, "folder_format = 1, but the folder holds folder_format"),
+        ({"starts": "random"}, "folder_format = 1, but the folder holds starts"),
+    ):
+        (run_copy / "run.json").write_text(json.dumps({**meta, **relabel}))
+        refresh_manifest(run_copy)
+        assert main(["report", str(run_copy), "--no-animation"]) == EXIT_REFUSED
+        assert words in one_line(capsys)
+    # the oracle row of a folder of format 1 is not replayed, but its parts still sum to it
+    (run_copy / "run.json").write_text(json.dumps(meta))
+    _ceiling_scaled("oracle (ceiling)", 1.5)(run_copy)
+    refresh_manifest(run_copy)
+    assert main(["report", str(run_copy), "--no-animation"]) == EXIT_REFUSED
+    assert "swarm 'oracle (ceiling)', but its reward split gives" in one_line(capsys)
+    _ceiling_scaled("oracle (ceiling)", 1 / 1.5)(run_copy)
+    (run_copy / "oracle.parquet").write_bytes(b"")
+    (run_copy / "run.json").write_text(json.dumps({**meta, "folder_format": 2}))
+    refresh_manifest(run_copy)
+    assert main(["report", str(run_copy), "--no-animation"]) == EXIT_REFUSED
+    assert "folder_format = 2, but the folder holds oracle.parquet" in one_line(capsys)
+    (run_copy / "oracle.parquet").unlink()
     meta["folder_format"] = FOLDER_FORMAT + 1
     (run_copy / "run.json").write_text(json.dumps(meta))
     refresh_manifest(run_copy)
@@ -2310,7 +2398,7 @@ def test_a_forged_learned_policy_record_is_refused(name):
     forged = {**base, "policies": {"rl": {**GOOD_POLICY, **change}}}
     with pytest.raises(UserError, match=re.escape(words)):
         check_policy_records(Path("run.json"), forged)
-    with pytest.raises(UserError, match=re.escape("no policies.rl for the learned swarm")):
+    with pytest.raises(UserError, match=re.escape("no policies.rl for the swarm")):
         check_policy_records(Path("run.json"), {**base, "policies": {}})
     check_policy_records(Path("run.json"), {**base, "partial": True, "policies": {}})
 
@@ -2334,6 +2422,50 @@ def test_a_policy_record_its_swarm_cannot_have_is_refused():
     good = {"rl-online": {**GOOD_POLICY, "online": True},
             "rl-decentralized": {**GOOD_POLICY, "coordination": "decentralized", "eps": 0.1}}  # fmt: skip
     check_policy_records(Path("run.json"), {**run, "policies": good})
+
+
+def _tours_record() -> dict:
+    from twin.tours import ToursPolicy
+
+    return ToursPolicy().describe()
+
+
+def _nowcast_record() -> dict:
+    return {"weight": 1.0, "quantile_z": 1.64, "meas_var": None, "sighting_count_p": 1.0,
+            "history_runs": 3, "history_seeds": [0, 1, 2]}  # fmt: skip
+
+
+FORGED_PLANNER_RECORDS = {
+    "tours per_tour as text": ("tours", {"per_tour": "abc"}, "tours: per_tour = 'abc' must be"),
+    "tours per_tour below 1": ("tours", {"per_tour": -5}, "tours: per_tour = -5 must be at least"),
+    "tours unknown layout": ("tours", {"layout": "nonsense"}, "tours: layout = 'nonsense' must"),
+    "tours plans below 0": ("tours", {"plans": -1}, "plans = -1 must be a whole number"),
+    "tours option left out": ("tours", {"shift": ...}, "policies.tours: records no shift"),
+    "nowcast-gain weight below 0": ("nowcast-gain", {"weight": -1}, "weight = -1 must lie in"),
+    "nowcast-gain sighting above 1": (
+        "nowcast-gain",
+        {"sighting_count_p": 2},
+        "sighting_count_p = 2 must be a number in",
+    ),
+    "nowcast-gain no history runs": ("nowcast-gain", {"history_runs": 0}, "history_runs = 0"),
+}
+
+
+@pytest.mark.parametrize("name", FORGED_PLANNER_RECORDS)
+def test_a_forged_planner_record_is_refused(name):
+    """A planner's record (its options, as its constructor checks them, and its counts) is read
+    back like a learned swarm's; every such swarm of a complete run has one."""
+    from twin.swarms import check_policy_records
+
+    swarm, change, words = FORGED_PLANNER_RECORDS[name]
+    good = {"tours": _tours_record, "nowcast-gain": _nowcast_record}[swarm]()
+    base = {"swarms": ["random", swarm], "partial": False}
+    check_policy_records(Path("run.json"), {**base, "policies": {swarm: good}})
+    forged = {k: v for k, v in {**good, **change}.items() if v is not ...}
+    with pytest.raises(UserError, match=re.escape(words)):
+        check_policy_records(Path("run.json"), {**base, "policies": {swarm: forged}})
+    with pytest.raises(UserError, match=re.escape(f"no policies.{swarm} for the swarm")):
+        check_policy_records(Path("run.json"), {**base, "policies": {}})
 
 
 def test_a_figure_of_one_seed_has_no_interval(tmp_path, capsys):

@@ -202,6 +202,60 @@ def test_a_runs_tape_replays_with_the_runs_swarm(tmp_path, capsys):
     assert replayed.to_dict() == pytest.approx(live.to_dict(), rel=1e-12)
 
 
+def test_a_damaged_or_foreign_run_json_beside_a_tape_is_not_taken_silently(tmp_path, capsys):
+    """The run.json of a tape's run folder is read back before its swarm replays the tape: a
+    damaged one is one line naming it (it was skipped silently, and the default config's
+    swarm replayed the tape); one whose folder does not list the tape is not its run's, and
+    the config's swarm replays it, said in a notice (probe 18's f11)."""
+    import json
+    import shutil
+
+    from helpers import small_sumo_scenario
+
+    from twin.runs import write_manifest
+
+    (tmp_path / "s").mkdir()
+    folder = small_sumo_scenario(tmp_path / "s", horizon=4)
+    run = tmp_path / "run"
+    common = ["--swarms", "random", "--no-ceiling", "--no-report", "--quiet"]
+    argv = ["run", "--config", str(folder / "small.toml"), "--drones", "2", *common]
+    assert main([*argv, "--out", str(run)]) == 0
+    capsys.readouterr()
+    meta = json.loads((run / "run.json").read_text())
+    (run / "run.json").write_text(json.dumps({**meta, "params": "eta=0.1"}))
+    write_manifest(run, False, None)
+    tape = str(run / "tape.parquet")
+    assert main(["evaluate", "--traffic", tape, *common, "--out", str(tmp_path / "ev")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and f"{run / 'run.json'}: params" in err, err
+    assert not (tmp_path / "ev").exists()
+    lone = tmp_path / "lone"
+    lone.mkdir()
+    shutil.copy(run / "tape.parquet", lone / "tape.parquet")
+    (lone / "run.json").write_text(json.dumps(meta))
+    (lone / "manifest.json").write_text(json.dumps({"partial": False, "files": {}}))
+    argv = ["evaluate", "--traffic", str(lone / "tape.parquet"), *common]
+    assert main([*argv, "--out", str(tmp_path / "ev2")]) == 0
+    err = capsys.readouterr().err
+    assert "does not list tape.parquet: not the tape of the run" in err, err
+    (lone / "manifest.json").unlink()  # as an interrupted run leaves its folder
+    other = {**meta, "grid": {**meta["grid"], "nx": 2, "ny": 2}}  # another run's, whole
+    other["traffic"] = {**meta["traffic"], "identity": {**meta["traffic"]["identity"],
+                                                        "grid": [2, 2]}}  # fmt: skip
+    (lone / "run.json").write_text(json.dumps(other))
+    assert main([*argv, "--out", str(tmp_path / "ev3")]) == 0, capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "gives a grid of 2 x 2, the tape" in err and "not the tape of its run" in err, err
+    other = {**meta, "traffic": {**meta["traffic"], "seed": 9}}  # another day, same grid
+    (lone / "run.json").write_text(json.dumps(other))
+    assert main([*argv, "--out", str(tmp_path / "ev4")]) == 0, capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "records another traffic than the tape's" in err, err
+    (lone / "run.json").write_text(json.dumps(meta))  # its own run's: its swarm replays it
+    assert main([*argv, "--out", str(tmp_path / "ev5")]) == 0, capsys.readouterr().err
+    assert "the swarm of" in capsys.readouterr().err
+
+
 def test_a_later_seeds_tape_replays_with_that_seed(tmp_path, capsys):
     """``--traffic RUN/tapes/seed-1.parquet`` without --seed replays with the run's seed 1
     (its swarms' random choices), giving the run's seed-1 rows; --seed still chooses another

@@ -1,5 +1,7 @@
 """The central coordinator: feasible, collision-free, and exactly optimal (eq. maxi:op2)."""
 
+import os
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -153,16 +155,19 @@ def test_dense_packs_reach_the_whole_swarm_optimum(case):
     assert q[np.arange(n), actions].sum() == pytest.approx(best_sum)
 
 
-def test_an_input_on_which_lapjvsp_looped_forever_is_solved_to_the_brute_force_optimum():
+@pytest.mark.parametrize("solver", ["_solve", "_solve_sparse"])
+def test_an_input_on_which_lapjvsp_looped_forever_is_solved_to_the_brute_force_optimum(solver):
     """8 drones whose float regrets made scipy's LAPJVsp loop forever (found by the hypothesis
-    test of the coordinated swarms); whole-number costs make it terminate, at the optimum."""
+    test of the coordinated swarms); whole-number costs make it terminate, at the optimum (and
+    the dense solver, which takes sets this small, reaches it too)."""
     from pathlib import Path
 
-    from twin.coordinator import _solve
+    import twin.coordinator
 
     d = np.load(Path(__file__).parent / "data" / "coordinator_lapjvsp_loop.npz")
     q, masked, flat, feasible = d["q"], d["masked"], d["flat"], d["feasible"]
-    actions = _solve(q, masked, flat, feasible, bool(d["stacked"]), int(d["n_cells"]))
+    solve = getattr(twin.coordinator, solver)
+    actions = solve(q, masked, flat, feasible, bool(d["stacked"]), int(d["n_cells"]))
     targets = flat[np.arange(len(q)), actions]
     assert feasible[np.arange(len(q)), actions].all()
     assert len(np.unique(targets)) == len(q)
@@ -175,3 +180,38 @@ def test_an_input_on_which_lapjvsp_looped_forever_is_solved_to_the_brute_force_o
         if len(np.unique(cells)) == len(q):
             best = max(best, q[np.arange(len(q)), joint].sum())
     assert q[np.arange(len(q)), actions].sum() == pytest.approx(best, abs=1e-6)
+
+
+def test_a_jam_filling_the_grid_on_which_lapjvsp_never_returned_is_solved(tmp_path):
+    """42 drones filling a 6 x 7 grid, each planned one move by the oracle (the Q values of
+    ``twin evaluate`` with n_drones = 42 there): LAPJVsp never returned on it, whole-number costs
+    or not. Solved in a child process, stopped after 60 s, at the whole swarm's optimum."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    data = Path(__file__).parent / "data" / "coordinator_lapjvsp_jam.npz"
+    out = tmp_path / "actions.npy"
+    code = (
+        "import sys, numpy as np; from twin.coordinator import _solve; "
+        "d = np.load(sys.argv[1]); "
+        "a = _solve(d['q'], d['masked'], d['flat'], d['feasible'], bool(d['stacked']), "
+        "int(d['n_cells'])); np.save(sys.argv[2], a)"
+    )
+    root = Path(__file__).resolve().parents[1]
+    try:
+        subprocess.run([sys.executable, "-c", code, str(data), str(out)], check=True,
+                       timeout=60, env={**os.environ, "PYTHONPATH": str(root)})  # fmt: skip
+    except subprocess.TimeoutExpired:
+        pytest.fail("the coordinator did not return within 60 s")
+    actions = np.load(out)
+    d = np.load(data)
+    q, flat, feasible = d["q"], d["flat"], d["feasible"]
+    n = len(q)
+    assert feasible[np.arange(n), actions].all()
+    assert len(np.unique(flat[np.arange(n), actions])) == n
+    grid = Grid.open(6, 7)
+    positions = np.stack(np.divmod(flat[:, 0], grid.ny), axis=1)
+    shared, best = _whole_swarm_optimum(q, positions, feasible, grid)
+    assert shared == 0
+    assert q[np.arange(n), actions].sum() == pytest.approx(best)

@@ -173,6 +173,45 @@ def test_pretraining_past_memory_or_map_is_refused(tmp_path, capsys, text, words
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize(
+    ("curve", "words"),
+    [
+        ('"no-such-map.toml"', "curve_config = 'no-such-map.toml' names "),
+        ('"map.toml"', "curve_config = 'map.toml' names "),  # beside the cwd, not the file
+    ],
+)
+def test_a_curve_config_naming_no_file_is_refused_before_training(
+    tmp_path, capsys, monkeypatch, curve, words
+):
+    """curve_config is found as scenario is, relative to the pretraining config (else a
+    shipped one), and read before training: it failed after the last epoch, naming no key."""
+    folder = tmp_path / "configs"
+    folder.mkdir()
+    path = folder / "pt.toml"
+    path.write_text(
+        f'out = "{tmp_path / "out"}"\nepochs = 2\ncurve_every = 1\ncurve_config = {curve}\n'
+    )
+    shipped = Path(__file__).resolve().parents[1] / "configs" / "synthetic.toml"
+    (tmp_path / "map.toml").write_text(shipped.read_text())
+    monkeypatch.chdir(tmp_path)  # map.toml is here, not beside pt.toml
+    code, err = _run_cli(["pretrain", "--config", str(path), "--quiet"], capsys)
+    assert code == 2 and err.count("\n") == 0 and words in err and str(path) in err, err
+    assert "(the default)" in err and '"synthetic"' in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_curve_config_that_is_no_scenario_is_refused_naming_the_key(tmp_path, capsys):
+    """curve_config naming a shipped config of another kind (a pretraining config) is refused
+    by a line naming the key and the pretraining config, not the shipped file's sections."""
+    path = tmp_path / "pt.toml"
+    path.write_text(f'out = "{tmp_path / "out"}"\nepochs = 2\ncurve_every = 1\n'
+                    'curve_config = "pretrain"\n')  # fmt: skip
+    code, err = _run_cli(["pretrain", "--config", str(path), "--quiet"], capsys)
+    assert code == 2 and err.count("\n") == 0, err
+    assert f"{path}: curve_config = " in err and "is no scenario config" in err, err
+    assert not (tmp_path / "out").exists()
+
+
 def test_pretraining_memory_limit_flag(tmp_path, capsys):
     config = _config(tmp_path)
     argv = ["pretrain", "--config", str(config), "--quiet", "--max-memory-gb", "1e-9"]

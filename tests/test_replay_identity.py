@@ -256,7 +256,7 @@ CASES = {
     "recorded folder not absolute": (
         _edit_run_json(lambda m: m["invocation"].update(cwd="somewhere")),
         None,
-        "invocation.cwd = 'somewhere' is not a folder",
+        "invocation.cwd = 'somewhere' is no absolute folder",
     ),
     "no drones recorded": (
         _edit_run_json(lambda m: m.update(n_drones=0)),

@@ -162,7 +162,7 @@ def write_fixture_run(
         "horizon": horizon,
         "params": {"eta": params.eta, "delta": params.delta, "alpha_T": 1.0, "alpha_I": 0.5},
         "checkpoint": {"path": "data/qnet.pt", "sha256": "ab12cd34"},
-        "timings": {"patrol_seconds": [1.234, 2.345]},
+        "timings": {"patrol_seconds": [round(1.234 + 1.111 * n, 3) for n in range(len(seeds))]},
         "versions": {"python": "3.11.7", "numpy": "2.4.6"},
         "monitoring": {"threshold": 0.5, "min_duration": 1, "weight_floor": 0.05},
     }
@@ -538,14 +538,32 @@ def test_full_disk_during_report_is_one_line_and_leaves_no_partial_report(
     assert not [p for p in run.iterdir() if p.name.startswith(".report")]
 
 
-def test_report_replaces_an_earlier_report(tmp_path: Path) -> None:
+def test_report_replaces_an_earlier_report_but_never_a_users_file(tmp_path: Path) -> None:
+    """report/ is replaced whole, with what an earlier report wrote there (it lists its files);
+    a file of the user's in it is refused in one line, and kept (it was deleted with the old
+    report). An earlier twin's report, which lists nothing, may hold report files alone."""
     run = write_fixture_run(tmp_path, seeds=(3,), sumo=False)
     write_report(run, animation=False)
-    (run / "report" / "stale.txt").write_text("from before")
+    folder = run / "report"
+    listing = folder / ".twin-files"
+    assert {"report.html", "report.md", "scores.png"} <= set(listing.read_text().split())
+    (folder / "stale.png").write_text("a figure an earlier report drew")
+    listing.write_text(listing.read_text() + "stale.png\n")
     out = write_report(run, animation=False)
-    assert out == run / "report" / "report.html" and out.is_file()
-    assert not (run / "report" / "stale.txt").exists()
+    assert out == folder / "report.html" and out.is_file()
+    assert not (folder / "stale.png").exists()
     assert sorted(p.name for p in run.iterdir() if p.name.startswith(".")) == []
+    (folder / "notes.txt").write_text("mine")
+    with pytest.raises(UserError, match=re.escape(f"{folder / 'notes.txt'}: not written by")):
+        write_report(run, animation=False)
+    assert (folder / "notes.txt").read_text() == "mine" and out.is_file()
+    listing.unlink()  # as an earlier twin left it
+    with pytest.raises(UserError, match=re.escape("notes.txt: not written by twin")):
+        write_report(run, animation=False)
+    (folder / "notes.txt").unlink()
+    (folder / "old.png").write_text("a figure an earlier twin drew")
+    write_report(run, animation=False)
+    assert not (folder / "old.png").exists() and listing.is_file()
 
 
 def test_matplotlib_keeps_its_cache_in_twins_cache_not_the_home(tmp_path):

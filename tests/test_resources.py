@@ -46,6 +46,24 @@ def test_network_specs_and_checkpoint_are_shipped():
         resources.network_spec("atlantis")
 
 
+ROOT_NAME = Path(__file__).resolve().parents[1].name
+
+
+@pytest.mark.parametrize(
+    "name",
+    [f"../../{ROOT_NAME}/networks/shenzhen_like", "shenzhen_like/../shenzhen_like", "/x/y"],
+)
+def test_a_network_name_is_no_path(tmp_path, monkeypatch, name):
+    """A built-in network is named, never reached by a path: `twin network build NAME` with
+    '..' in NAME made folders beside the cache, then failed with an internal error."""
+    from twin.cli import main
+
+    cache = tmp_path / "a" / "cache"
+    monkeypatch.setenv("TWIN_CACHE_DIR", str(cache))
+    assert main(["network", "build", name]) == 2
+    assert sorted(p.name for p in tmp_path.rglob("*")) <= ["a", "cache"], list(tmp_path.rglob("*"))
+
+
 def test_every_shipped_file_is_package_data_of_the_wheel():
     """What resources hands out lies under twin/ and matches pyproject's package-data globs,
     so a wheel (non-editable install) carries it."""

@@ -285,6 +285,7 @@ def test_a_bad_state_is_one_line_naming_the_key(tmp_path, capsys, text, words):
     path.write_text(text)
     code, err = _cli(["pretrain", "--config", str(path), "--quiet"], capsys)
     assert code == 2 and words in err and "\n" not in err, err
+    assert "the file =" not in err  # a check of the whole file names its keys, not the file
 
 
 def _checkpoint(tmp_path, name, layers, state="paper", drop_state=False, meta_state=None):

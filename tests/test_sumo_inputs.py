@@ -822,3 +822,18 @@ def test_a_file_where_the_scratch_folder_belongs_is_refused_before_the_run(
     assert code == 2 and err.count("\n") == 1, err
     assert f"{cache / 'tmp'}: twin's scratch folder" in err and "(a file)" in err, err
     assert not out.exists()
+
+
+def test_an_unset_variable_in_a_sumo_option_is_said(monkeypatch, capsys):
+    """SUMO reads ``${NAME}`` of an unset variable as empty; twin does too, and says so once
+    (a sumocfg's network then was "/grid.net.xml: no such network file", naming no variable)."""
+    from twin.sumo import readers
+
+    monkeypatch.delenv("TWIN_TEST_UNSET", raising=False)
+    monkeypatch.setattr(readers, "_UNSET_SAID", set())
+    assert readers.substitute_environment("${TWIN_TEST_UNSET}/grid.net.xml") == "/grid.net.xml"
+    assert readers.substitute_environment("${TWIN_TEST_UNSET}/b.xml") == "/b.xml"
+    err = capsys.readouterr().err
+    assert err.count("names ${TWIN_TEST_UNSET}, which is not set") == 1, err
+    monkeypatch.setenv("TWIN_TEST_UNSET", "here")
+    assert readers.substitute_environment("${TWIN_TEST_UNSET}/c.xml") == "here/c.xml"

@@ -155,6 +155,23 @@ def test_full_disk_during_the_sweep_report_leaves_no_partial_report(
     assert not [p for p in out.iterdir() if p.name.startswith(".report")]
 
 
+def test_a_users_file_in_the_sweep_report_is_refused_and_kept(swept, tmp_path, capsys):
+    """A rerun of the sweep draws its report again: a file of the user's in report/ is refused
+    in one line and kept (it was deleted with the old report)."""
+    import shutil
+
+    out = tmp_path / "s"
+    shutil.copytree(swept, out)
+    (out / "report" / "notes.txt").write_text("mine")
+    capsys.readouterr()
+    argv = ["sweep", "--config", str(swept.parent / "sweep.toml"), "--out", str(out), "--quiet"]
+    assert cli(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"{out / 'report' / 'notes.txt'}: not written by twin" in err
+    assert (out / "report" / "notes.txt").read_text() == "mine"
+    assert (out / "report" / "sweep.html").is_file()
+
+
 def tiny_checkpoint(path: Path) -> Path:
     """A small Q-network checkpoint (13 -> 16 -> 5), so the learning swarm runs in seconds."""
     import torch
@@ -417,6 +434,24 @@ def test_killed_sweep_resumes(tmp_path: Path) -> None:
             '[sweep]\nswarms = ["greedy"]\n[[scenario]]\nname = "t"\nconfig = "scenario.toml"\n'
             'tape = "t.parquet"\noverrides = { "traffic.horizon" = 10 }\n',
             "[[scenario]] t.overrides.'traffic.horizon' sets the traffic of [[scenario]] 't'",
+        ),
+        # keys each cell sets itself: the cells of every value ran alike (probe 18's f10)
+        (
+            '[sweep]\nswarms = ["greedy"]\n[[scenario]]\nname = "a"\nconfig = "scenario.toml"\n'
+            '[parameters]\n"traffic.seed" = [0, 1]\n',
+            "[parameters].'traffic.seed' is set by the sweep itself, the seed of each cell's "
+            "traffic being its seed ([sweep].seeds); drop it",
+        ),
+        (
+            '[sweep]\nswarms = ["greedy"]\n[[scenario]]\nname = "a"\nconfig = "scenario.toml"\n'
+            'overrides = { "evaluate.swarms" = ["random"] }\n',
+            "[[scenario]] a.overrides.'evaluate.swarms' is set by the sweep itself, each cell "
+            "running [sweep].swarms",
+        ),
+        (
+            '[sweep]\nswarms = ["greedy"]\n[[scenario]]\nname = "a"\nconfig = "scenario.toml"\n'
+            '[parameters]\n"evaluate.seed" = [0, 5]\n',
+            "[parameters].'evaluate.seed' is set by the sweep itself",
         ),
     ],
 )

@@ -187,6 +187,18 @@ BAD = [
         '[[row]]\nname = "x"\ncheckpoint = "{qnet}"\ntraffic = "dynamics"\n',
         "loads its checkpoint as it is, so its traffic would train nothing",
     ),
+    # keys the transfer sets itself: the override changed nothing (probe 18's P2-03, P2-04)
+    (
+        '[[column]]\nname = "c"\nconfig = "{synthetic}"\noverrides = {{ "evaluate.seed" = 5 }}\n',
+        "bad.toml: [[column]] c.overrides.'evaluate.seed' is set by the transfer itself "
+        "([transfer].seeds); drop it",
+    ),
+    (
+        '[tapes]\nconfig = "{synthetic}"\noverrides = {{ "traffic.seed" = 3 }}\n',
+        "bad.toml: [tapes].overrides.'traffic.seed' is set by the transfer itself",
+    ),
+    # a swarm that plans on a history: the transfer builds none (probe 18's P2-07)
+    ('[transfer]\nclassical = ["nowcast-gain"]\n', "'nowcast-gain', which plans on a history"),
 ]
 
 
@@ -260,6 +272,41 @@ def test_a_fine_tuning_start_that_does_not_fit_is_refused_before_any_stage(
     path = tmp_path / "t.toml"
     synthetic = ROOT / "configs" / "synthetic.toml"
     path.write_text(GOOD.format(synthetic=synthetic) + rows.format(small=small))
+    assert cli(["transfer", "--config", str(path), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and words in err and str(path) in err, err
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize(
+    ("rows", "words"),
+    [
+        (
+            '[schedule]\nstate = "nowcast"\nhistory_seed = 10000000\n'
+            '[[row]]\nname = "dyn"\ntraffic = "dynamics"\n',
+            "[[row]] paper trains state 'nowcast' ([schedule].state): a nowcast",
+        ),
+        (
+            '[[row]]\nname = "loaded"\ncheckpoint = "{nowcast}"\n',
+            "whose network reads state 'nowcast': a nowcast",
+        ),
+    ],
+)
+def test_a_row_of_a_nowcast_state_is_refused_before_any_stage(tmp_path, capsys, rows, words):
+    """A row whose network reads the nowcast (a trained row's schedule, a loaded checkpoint)
+    needs a history of each column's scenario, which a transfer does not build: the command's
+    one line before any row is trained (every cell failed after the training, with a fix the
+    command does not take)."""
+    pytest.importorskip("torch")
+    from twin.learning.checkpoint import model_metadata, save_model
+    from twin.learning.qnet import QNetwork
+
+    nowcast = tmp_path / "nowcast.pt"
+    meta = model_metadata([23, 8, 5], {}, 0, 1, state="nowcast")
+    save_model(nowcast, QNetwork([23, 8, 5]).state_dict(), meta)
+    path = tmp_path / "t.toml"
+    synthetic = ROOT / "configs" / "synthetic.toml"
+    path.write_text(GOOD.format(synthetic=synthetic) + rows.format(nowcast=nowcast))
     assert cli(["transfer", "--config", str(path), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and words in err and str(path) in err, err

@@ -32,7 +32,7 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -155,6 +155,10 @@ def _calibration(path: Path, arrays: dict, n_cells: int, fix: str) -> DetectorCa
     return DetectorCalibration(cells, bias, var, n.astype(np.int64))
 
 
+#: The fix of a history that does not fit the run.
+HISTORY_FIX = "build the history from runs of the same scenario and options"
+
+
 @dataclass(frozen=True)
 class History:
     """Per step and cell: mean and variance of earlier days' importance; per cell ``rho``."""
@@ -172,6 +176,8 @@ class History:
     neighbour_corr: float = 0.0
     #: the detector stations' calibration on these days (None: runs without detectors)
     detectors: DetectorCalibration | None = None
+    #: the file it was read from (None: built in memory)
+    path: str | None = field(default=None, compare=False)
 
     @property
     def horizon(self) -> int:
@@ -310,6 +316,38 @@ class History:
             tuple(str(s) for s in info.get("sources") or ()),
             float(corr),
             _calibration(path, stations, obstacles.size, fix),
+            str(path),
+        )
+
+    def check_grid(self, where: Path | str, obstacles: np.ndarray) -> None:
+        """Refuse (one line naming ``where``) a history of another grid or other obstacles."""
+        nx, ny = self.shape
+        if tuple(obstacles.shape) != (nx, ny):
+            raise UserError(
+                f"{where}: history grid {nx} x {ny} differs from the run's "
+                f"{obstacles.shape[0]} x {obstacles.shape[1]}; {HISTORY_FIX}"
+            )
+        if not np.array_equal(obstacles, self.obstacles):
+            i, j = (int(x) for x in np.argwhere(obstacles != self.obstacles)[0])
+            raise UserError(
+                f"{where}: history obstacles differ from the run's (first at cell ({i}, {j})); "
+                f"{HISTORY_FIX}"
+            )
+
+    def check_horizon(self, where: Path | str, horizon: int) -> None:
+        """Refuse (one line naming ``where``) a history of another horizon."""
+        if horizon != self.horizon:
+            raise UserError(
+                f"{where}: history horizon T = {self.horizon} differs from the run's T = "
+                f"{horizon}; {HISTORY_FIX}"
+            )
+
+    def named(self, swarm: str) -> str:
+        """How a swarm's refusal names this history: its file (or the swarm's history)."""
+        return (
+            f"{self.path} (the history of swarm {swarm})"
+            if self.path
+            else (f"the history of swarm {swarm}")
         )
 
     def check_matches(
@@ -323,24 +361,9 @@ class History:
     ) -> None:
         """Refuse (one line naming ``where``) a history whose grid, horizon, step length or
         start differs from the run's, or that was built from one of the run's traffic seeds."""
-        nx, ny = self.shape
-        fix = "build the history from runs of the same scenario and options"
-        if tuple(obstacles.shape) != (nx, ny):
-            raise UserError(
-                f"{where}: history grid {nx} x {ny} differs from the run's "
-                f"{obstacles.shape[0]} x {obstacles.shape[1]}; {fix}"
-            )
-        if not np.array_equal(obstacles, self.obstacles):
-            i, j = (int(x) for x in np.argwhere(obstacles != self.obstacles)[0])
-            raise UserError(
-                f"{where}: history obstacles differ from the run's (first at cell ({i}, {j})); "
-                f"{fix}"
-            )
-        if horizon != self.horizon:
-            raise UserError(
-                f"{where}: history horizon T = {self.horizon} differs from the run's T = "
-                f"{horizon}; {fix}"
-            )
+        self.check_grid(where, obstacles)
+        self.check_horizon(where, horizon)
+        fix = HISTORY_FIX
         if step_s is not None and self.step_s is not None and abs(step_s - self.step_s) > 1e-9:
             raise UserError(
                 f"{where}: history step {self.step_s:g} s differs from the run's {step_s:g} s; "

@@ -784,6 +784,9 @@ def validation_error(
     at = _labelled(labels, loc) or f"{source}: {where}"  # the flag or key, else the file's key
     if kind == "missing":
         return ConfigError(f"{at} is missing; add it")
+    if kind == "value_error" and not loc:  # a check of the whole file names its keys itself
+        error = err.get("ctx", {}).get("error", err["msg"])
+        return ConfigError(f"{source}: {str(error).removeprefix('Value error, ')}")
     problem = _problem(err)
     if problem.startswith("["):  # a check across keys names its keys itself
         return ConfigError(f"{source}: {problem}")

@@ -10,11 +10,14 @@ reached by its feasible action ``u`` is ``-Q_d(u)``. Polynomial, never an enumer
   (recursively: the ones they can push), are solved together. The others keep their best
   action: no solved drone can reach their cells, so each already holds its row optimum and the
   two parts are independent; the joint optimum is exact;
-- the solved drones go to one call of the sparse solver
-  :func:`scipy.sparse.csgraph.min_weight_full_bipartite_matching` (LAPJVsp), posed as a
-  *square* problem (one slack row per cell, one slack column per drone; see
-  :func:`_square_problem`): on square problems its initial reductions settle most rows before
-  any augmenting path is searched, on rectangular ones every row needs one.
+- up to :data:`DENSE_UP_TO` solved drones go to the dense solver
+  :func:`scipy.optimize.linear_sum_assignment` (drones x candidate cells); more go to one call
+  of the sparse solver :func:`scipy.sparse.csgraph.min_weight_full_bipartite_matching`
+  (LAPJVsp), posed as a *square* problem (one slack row per cell, one slack column per drone;
+  see :func:`_square_problem`): on square problems its initial reductions settle most rows
+  before any augmenting path is searched, on rectangular ones every row needs one. LAPJVsp
+  never returned on one jam of 42 drones filling a 6 x 7 grid (whole-number costs too), so
+  every set the dense solver takes in well under a millisecond goes there.
 
 Stay is always feasible, so when the drones stand on distinct cells a distinct assignment
 always exists. Drones that stand on one cell (after a communication outage) may have no
@@ -26,6 +29,7 @@ possible.
 from __future__ import annotations
 
 import numpy as np
+from scipy.optimize import linear_sum_assignment
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import breadth_first_order, min_weight_full_bipartite_matching
 
@@ -99,15 +103,50 @@ def _pushed(flat, feasible, chosen, collide, n_cells: int) -> np.ndarray:
     return np.sort(reached[1:])
 
 
+#: Solved sets of up to this many drones go to the dense solver (about 0.5 ms at 256 drones
+#: packed in a block; benchmarks/bench_coordinator.py).
+DENSE_UP_TO = 256
+
+
 def _solve(q, masked, flat, feasible, stacked: bool, n_cells: int) -> np.ndarray:
     """Exact assignment of the given drones to their candidate cells (with private "stay
     anyway" columns when some of them stand on one cell)."""
+    if len(q) <= DENSE_UP_TO:
+        return _solve_dense(q, masked, flat, feasible, stacked)
+    return _solve_sparse(q, masked, flat, feasible, stacked, n_cells)
+
+
+def _solve_sparse(q, masked, flat, feasible, stacked: bool, n_cells: int) -> np.ndarray:
+    """:func:`_solve` by LAPJVsp on the square problem (:func:`_square_problem`)."""
     graph, cells = _square_problem(q, masked, flat, feasible, stacked, n_cells)
     graph.data = _whole_costs(graph.data, graph.shape[0])
     column = min_weight_full_bipartite_matching(graph)[1][: len(q)]
     # the action reaching the matched cell; a private column (past the cells) means stay
     on_cell = column < len(cells)
     target = cells[np.minimum(column, len(cells) - 1)]
+    action = ((flat == target[:, None]) & feasible).argmax(axis=1)
+    return np.where(on_cell, action, 0)
+
+
+def _solve_dense(q, masked, flat, feasible, stacked: bool) -> np.ndarray:
+    """:func:`_solve` as a dense rectangular problem: rows the drones, columns their candidate
+    cells (then a private "stay anyway" column per drone when ``stacked``), costs the
+    regrets ``max_u Q - Q``, infeasible pairs infinite."""
+    m = len(q)
+    drone, action = np.nonzero(feasible)
+    cells, col = np.unique(flat[drone, action], return_inverse=True)
+    k = len(cells)
+    best = masked.max(axis=1)
+    cost = np.full((m, k + m * int(stacked)), np.inf)
+    cost[drone, col] = best[drone] - q[drone, action]
+    if stacked:
+        finite = q[feasible]
+        penalty = (finite.max() - finite.min() + 1.0) * m
+        cost[np.arange(m), k + np.arange(m)] = best - q[:, 0] + penalty
+    rows, column = linear_sum_assignment(cost)
+    column = column[np.argsort(rows)]
+    on_cell = column < k
+    target = cells[np.minimum(column, k - 1)]
     action = ((flat == target[:, None]) & feasible).argmax(axis=1)
     return np.where(on_cell, action, 0)
 

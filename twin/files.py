@@ -86,13 +86,19 @@ def atomic_write(path: str | Path, write: Callable[[Path], None]) -> None:
 
 
 @contextlib.contextmanager
-def staged_folder(path: str | Path) -> Iterator[Path]:
+def staged_folder(path: str | Path, written: Callable[[str], bool]) -> Iterator[Path]:
     """A fresh temporary folder beside ``path`` to draw a whole folder in (a report); when the
     block ends without error it replaces ``path`` (the old folder is moved aside, then
     deleted), else it is deleted: a failure mid-way (a full disk ...) leaves the previous
     folder, or none, never a partial one. A system error names the file under ``path``, not
-    under its temporary copy."""
+    under its temporary copy.
+
+    The folder lists what it holds (:data:`STAGED_LISTING`); an old folder holding anything
+    else (a user's notes) is refused before any work, in one line, rather than deleted with
+    it. An old folder without that listing (an earlier twin's) may hold the names
+    ``written`` accepts."""
     path = Path(path)
+    check_staged_folder(path, written)
     try:
         stage = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp"))
     except OSError as exc:  # name the folder being written, not a temporary name
@@ -102,6 +108,8 @@ def staged_folder(path: str | Path) -> Iterator[Path]:
     try:
         os.chmod(stage, 0o777 & ~_umask())
         yield stage
+        names = sorted(p.name for p in stage.iterdir())
+        (stage / STAGED_LISTING).write_text("".join(f"{name}\n" for name in names))
         if path.is_dir():
             old = Path(
                 tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".old.tmp")
@@ -119,6 +127,31 @@ def staged_folder(path: str | Path) -> Iterator[Path]:
     finally:
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
+
+
+#: The list of the names a staged folder holds, one per line, written into it.
+STAGED_LISTING = ".twin-files"
+
+
+def check_staged_folder(path: Path, written: Callable[[str], bool]) -> None:
+    """Refuse (:class:`UserError`, one line) a folder ``path`` that :func:`staged_folder` would
+    replace while it holds what twin did not write there."""
+    from twin.errors import UserError
+
+    if not path.is_dir() or path.is_symlink():
+        return
+    try:
+        listed = set((path / STAGED_LISTING).read_text(encoding="utf-8").splitlines())
+    except (OSError, UnicodeDecodeError):
+        listed = None
+    for entry in sorted(path.iterdir()):
+        name = entry.name
+        if name == STAGED_LISTING or (name in listed if listed is not None else written(name)):
+            continue
+        raise UserError(
+            f"{entry}: not written by twin; move it out of {path}, which this command "
+            "replaces whole"
+        )
 
 
 def _umask() -> int:

@@ -11,6 +11,7 @@ the uncertainty the sighting removes, and lets the exact coordinator choose the 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -63,6 +64,19 @@ def information_values(
     return quantile * removed * lasting
 
 
+def check_options(weight: Any, quantile_z: Any, meas_var: Any) -> None:
+    """The nowcast-gain swarm's options: numbers, each within its range."""
+    for key, value, lo, hi in (
+        ("weight", weight, 0.0, 1e6),
+        ("quantile_z", quantile_z, 0.0, 10.0),
+        *([("meas_var", meas_var, 1e-12, 1.0)] if meas_var is not None else []),
+    ):
+        if isinstance(value, bool) or not isinstance(value, int | float | np.floating):
+            raise UserError(f"nowcast-gain: {key} = {value!r} must be a number")
+        if not lo <= float(value) <= hi:
+            raise UserError(f"nowcast-gain: {key} = {value} must lie in [{lo:g}, {hi:g}]")
+
+
 class NowcastGainPolicy(CoordinatedPolicy):
     """Each drone's move to ``p'`` is scored by the expected value of visiting ``p'``:
 
@@ -105,15 +119,7 @@ class NowcastGainPolicy(CoordinatedPolicy):
             raise UserError(NEEDS_HISTORY)
         if not isinstance(history, History):
             history = History.load(Path(history))
-        for key, value, lo, hi in (
-            ("weight", weight, 0.0, 1e6),
-            ("quantile_z", quantile_z, 0.0, 10.0),
-            *([("meas_var", meas_var, 1e-12, 1.0)] if meas_var is not None else []),
-        ):
-            if isinstance(value, bool) or not isinstance(value, int | float | np.floating):
-                raise UserError(f"nowcast-gain: {key} = {value!r} must be a number")
-            if not lo <= float(value) <= hi:
-                raise UserError(f"nowcast-gain: {key} = {value} must lie in [{lo:g}, {hi:g}]")
+        check_options(weight, quantile_z, meas_var)
         self.history = history
         self.weight = float(weight)
         self.quantile_z = float(quantile_z)
@@ -128,13 +134,29 @@ class NowcastGainPolicy(CoordinatedPolicy):
     def reset(self, grid: Grid, n_drones: int, rng: np.random.Generator) -> None:
         super().reset(grid, n_drones, rng)
         h = self.history
-        if h.shape != grid.shape or not np.array_equal(h.obstacles, grid.obstacles):
-            raise UserError(
-                f"nowcast-gain: the history's grid {h.shape[0]} x {h.shape[1]} (or obstacles) "
-                f"differs from the run's {grid.nx} x {grid.ny}; build it from runs of this scenario"
-            )
+        h.check_grid(h.named(self.name), grid.obstacles)
         self.filter = NowcastFilter(h, self.meas_var, self.sighting)
         self.free = grid.free.ravel()
+
+    @staticmethod
+    def check_record(record: dict) -> None:
+        """run.json's record of a nowcast-gain swarm (:meth:`describe`): its options as the
+        constructor checks them, a sighting probability in [0, 1] and its history's runs (at
+        least 1) and traffic seeds."""
+        keys = ["weight", "quantile_z", "meas_var", "sighting_count_p", "history_runs"]
+        missing = [k for k in [*keys, "history_seeds"] if k not in record]
+        if missing:
+            raise UserError(f"records no {missing[0]}")
+        check_options(record["weight"], record["quantile_z"], record["meas_var"])
+        p, runs, seeds = record["sighting_count_p"], record["history_runs"], record["history_seeds"]
+        if isinstance(p, bool) or not isinstance(p, int | float) or not 0 <= p <= 1:
+            raise UserError(f"sighting_count_p = {str(p)[:40]} must be a number in [0, 1]")
+        if isinstance(runs, bool) or not isinstance(runs, int) or runs < 1:
+            raise UserError(f"history_runs = {str(runs)[:40]} must be a whole number of at least 1")
+        if not isinstance(seeds, list) or not all(
+            isinstance(s, int) and not isinstance(s, bool) for s in seeds
+        ):
+            raise UserError(f"history_seeds = {str(seeds)[:40]} must be a list of seeds")
 
     def describe(self) -> dict:
         return {
@@ -148,11 +170,7 @@ class NowcastGainPolicy(CoordinatedPolicy):
 
     def sight(self, view: SwarmView) -> None:
         """Advance the filter to step ``k`` and update it on the cells the drones see."""
-        if view.horizon != self.history.horizon:
-            raise UserError(
-                f"nowcast-gain: the history's horizon T = {self.history.horizon} differs from "
-                f"the run's T = {view.horizon}; build it from runs of this scenario"
-            )
+        self.history.check_horizon(self.history.named(self.name), view.horizon)
         grid = view.grid
         self.filter.advance(view.k)
         flat, valid = grid.view_index(view.positions)

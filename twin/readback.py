@@ -365,12 +365,7 @@ def check_run_json(path: Path, run: Any) -> dict[str, Any]:
             f"{path}: traffic.identity.grid = {str(grid)[:40]} must be [nx, ny], whole numbers "
             f"of at least 1; {RERUN}"
         )
-    for n, seconds in enumerate(_dotted(run, "timings.patrol_seconds") or []):
-        if not isinstance(seconds, NUM) or isinstance(seconds, bool) or not _SECONDS[0](seconds):
-            raise UserError(
-                f"{path}: timings.patrol_seconds[{n}] = {str(seconds)[:40]} must be {_SECONDS[1]}"
-                f"; {RERUN}"
-            )
+    check_timings(path, run)
     if swarms := [s for s in run.get("swarms") or [] if isinstance(s, str)]:
         twice = sorted({s for s in swarms if swarms.count(s) > 1})
         if twice:
@@ -383,6 +378,29 @@ def check_run_json(path: Path, run: Any) -> dict[str, Any]:
     check_partial(path, run)
     check_sumo_outputs(path, run)
     return run
+
+
+def check_timings(path: Path, run: dict[str, Any]) -> None:
+    """``timings``: the fields twin writes there alone, and a patrol's seconds for each seed."""
+    timings = run.get("timings")
+    if not isinstance(timings, dict):
+        return
+    unknown = sorted(set(timings) - set(RUN_JSON_FIELDS["timings"]))
+    if unknown:
+        raise UserError(f"{path}: timings.{unknown[0][:40]} is no timing twin records; {RERUN}")
+    patrols = timings.get("patrol_seconds") or []
+    for n, seconds in enumerate(patrols):
+        if not isinstance(seconds, NUM) or isinstance(seconds, bool) or not _SECONDS[0](seconds):
+            raise UserError(
+                f"{path}: timings.patrol_seconds[{n}] = {str(seconds)[:40]} must be {_SECONDS[1]}"
+                f"; {RERUN}"
+            )
+    seeds = run.get("seeds")
+    if patrols and isinstance(seeds, list) and len(patrols) != len(seeds):
+        raise UserError(
+            f"{path}: timings.patrol_seconds gives {len(patrols)} seeds' seconds, but seeds lists "
+            f"{len(seeds)}; {RERUN}"
+        )
 
 
 def check_partial(path: Path, run: dict[str, Any]) -> None:
@@ -436,9 +454,15 @@ def _same_file(given: Any, recorded: Any) -> bool:
     return Path(str(given)).name == Path(str(recorded)).name
 
 
+def _same_config(given: Any, recorded: Any) -> bool:
+    """``--config`` names the run's config: its path, or a shipped config by its name."""
+    return str(given) == str(recorded) or Path(str(given)).stem == Path(str(recorded)).stem
+
+
 #: The command-line options run.json's ``invocation`` records and the field of the run each
 #: sets: (option, dotted field, only for a live `twin run`, how the two agree).
 INVOCATION_FIELDS = (
+    ("config", "config", False, _same_config),
     ("drones", "n_drones", False, operator.eq),
     ("swarms", "swarms", False, _same_swarms),
     ("horizon", "traffic.horizon", True, operator.eq),
@@ -489,6 +513,13 @@ def check_invocation(path: Path, run: dict[str, Any]) -> None:
             f"{path}: invocation.options.{option} = {repr(given)[:60]}, but {field} = "
             f"{repr(recorded)[:60]}; {RERUN}"
         )
+    check_seed_options(path, run)
+    cwd = _dotted(run, "invocation.cwd")
+    if isinstance(cwd, str) and not Path(cwd).is_absolute():
+        raise UserError(
+            f"{path}: invocation.cwd = {cwd[:60]!r} is no absolute folder (the folder the "
+            f"command ran in); {RERUN}"
+        )
     created = run.get("created")
     if created is not None:
         try:
@@ -497,6 +528,38 @@ def check_invocation(path: Path, run: dict[str, Any]) -> None:
             raise UserError(
                 f"{path}: created = {created[:40]!r} is not a time (ISO 8601); {RERUN}"
             ) from None
+
+
+def check_seed_options(path: Path, run: dict[str, Any]) -> None:
+    """``--seed``/``--seeds`` the invocation gives are the run's seeds: ``seeds`` seeds from
+    ``seed`` on (a partial run lists those it finished)."""
+    seeds = run.get("seeds")
+    if not isinstance(seeds, list) or not seeds:
+        return
+    given = {option: _dotted(run, f"invocation.options.{option}") for option in ("seed", "seeds")}
+    for option, value in given.items():
+        if value is not None and (isinstance(value, bool) or not isinstance(value, int)):
+            raise UserError(
+                f"{path}: invocation.options.{option} = {repr(value)[:40]} must be a whole "
+                f"number; {RERUN}"
+            )
+    first, count = given["seed"], given["seeds"]
+    partial = bool(run.get("partial"))
+    if count is not None and (len(seeds) > count or (not partial and len(seeds) != count)):
+        raise UserError(
+            f"{path}: invocation.options.seeds = {count}, but seeds lists {len(seeds)}; {RERUN}"
+        )
+    if first is None:
+        return
+    last = first + (count if count is not None else len(seeds)) - 1
+    if partial and count is None:
+        last = max(seeds)  # how many the run was to have is not recorded
+    if not all(first <= s <= last for s in seeds) or (
+        not partial and seeds != list(range(first, first + len(seeds)))
+    ):
+        raise UserError(
+            f"{path}: invocation.options.seed = {first}, but seeds are {str(seeds)[:40]}; {RERUN}"
+        )
 
 
 #: Fields of run.json that record one thing twice: each pair must agree.
@@ -515,6 +578,19 @@ def check_same_fields(path: Path, run: dict[str, Any]) -> None:
         x, y = _dotted(run, a), _dotted(run, b)
         if x is not None and y is not None and x != y:
             raise UserError(f"{path}: {a} = {str(x)[:40]}, but {b} = {str(y)[:40]}; {RERUN}")
+    step_s = _dotted(run, "monitoring.step_s")
+    simulated = [_dotted(run, f"traffic.{k}step_s") for k in ("", "recorded.")]
+    if step_s is not None and simulated == [None, None]:
+        raise UserError(
+            f"{path}: monitoring.step_s = {str(step_s)[:40]}, but the traffic records no step "
+            f"(traffic.step_s): it was not simulated; {RERUN}"
+        )
+    recorded = simulated[1]
+    if step_s is not None and simulated[0] is None and recorded is not None and step_s != recorded:
+        raise UserError(
+            f"{path}: monitoring.step_s = {str(step_s)[:40]}, but traffic.recorded.step_s = "
+            f"{str(recorded)[:40]}; {RERUN}"
+        )
     grid, shape = (
         _dotted(run, "traffic.identity.grid"),
         [_dotted(run, "grid.nx"), _dotted(run, "grid.ny")],

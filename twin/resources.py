@@ -89,11 +89,12 @@ def network_names() -> list[str]:
 
 def network_spec(name: str) -> Path:
     """The shipped spec ``networks/<name>/spec.toml`` of a built-in network."""
-    path = shipped("networks", name, "spec.toml")
-    if not path.is_file():
-        known = ", ".join(network_names()) or "none"
-        raise UserError(f"unknown network {name!r} (no {path}); built-in networks: {known}")
-    return path
+    known = network_names()
+    if name not in known:  # a plain name: never a path out of the networks folder
+        raise UserError(
+            f"unknown network {name!r}; built-in networks: {', '.join(known) or 'none'}"
+        )
+    return shipped("networks", name, "spec.toml")
 
 
 def shipped_checkpoint() -> Path:

@@ -205,10 +205,16 @@ def check_policy_records(path, run: dict) -> None:
         if swarm not in swarms:
             raise UserError(f"{path}: {where}: {swarm!r} is no swarm of the run; {RERUN}")
         kind = SWARMS.get(base_name(swarm))
-        if kind is not None and not kind.learned and not hasattr(kind.build, "describe"):
+        if kind is not None and not _keeps_a_record(swarm):
             raise UserError(f"{path}: {where}: swarm {swarm!r} records no policy; {RERUN}")
         check_fields(path, policy, POLICY_FIELDS, where)
-        if not is_learned(swarm):  # a planner records its own options
+        if not is_learned(swarm):  # a planner records its own options, and checks them
+            check_record = getattr(kind.build, "check_record", None) if kind else None
+            if check_record is not None:
+                try:
+                    check_record(policy)
+                except UserError as exc:
+                    raise UserError(f"{path}: {where}: {exc}; {RERUN}") from None
             continue
         fixed = {"rl-online": ("online", True), "rl-decentralized": ("coordination",
                  "decentralized")}.get(base_name(swarm))  # fmt: skip
@@ -252,6 +258,13 @@ def check_policy_records(path, run: dict) -> None:
         if eps is not None and not 0 <= eps <= 1:
             raise UserError(f"{path}: {where}.eps = {eps} must be from 0 to 1; {RERUN}")
     if not run.get("partial"):
-        missing = [s for s in swarms if is_learned(s) and s not in policies]
+        missing = [s for s in swarms if s not in policies and _keeps_a_record(s)]
         if missing:
-            raise UserError(f"{path}: no policies.{missing[0]} for the learned swarm; {RERUN}")
+            raise UserError(f"{path}: no policies.{missing[0]} for the swarm; {RERUN}")
+
+
+def _keeps_a_record(swarm: str) -> bool:
+    """run.json records the policy of a learned swarm, and the options of a swarm that
+    describes them."""
+    kind = SWARMS.get(base_name(swarm))
+    return kind is not None and (kind.learned or hasattr(kind.build, "describe"))

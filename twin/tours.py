@@ -15,6 +15,7 @@ drones spaced evenly along them. See :class:`ToursPolicy` for the planner and it
 from __future__ import annotations
 
 import heapq
+import inspect
 import math
 
 import numpy as np
@@ -541,6 +542,20 @@ class ToursPolicy(CoordinatedPolicy):
             raise UserError(f"tours: layout = {layout!r} must be one of {', '.join(LAYOUTS)}")
         self.layout = layout
         self.plans = 0  # plans made; described even by a run that stopped before its first step
+
+    @classmethod
+    def check_record(cls, record: dict) -> None:
+        """run.json's record of a tours swarm (:meth:`describe`): every option, as the
+        constructor checks it, and its counts of plans and surveys (at least 0)."""
+        options = [k for k in inspect.signature(cls).parameters]
+        missing = [k for k in [*options, "plans", "surveys"] if k not in record]
+        if missing:
+            raise UserError(f"records no {missing[0]}")
+        cls(**{k: record[k] for k in options})
+        for key in ("plans", "surveys"):
+            value = record[key]
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise UserError(f"{key} = {str(value)[:40]} must be a whole number of at least 0")
 
     def describe(self) -> dict:
         return {

@@ -97,8 +97,27 @@ class Parser(argparse.ArgumentParser):
         self.exit(EXIT_REFUSED)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = Parser(
+class _Refused(Exception):
+    """A command line :func:`parse_command_line` cannot parse."""
+
+
+class _QuietParser(Parser):
+    """A parser whose errors are raised, not said: it reads back a recorded command line."""
+
+    def error(self, message: str):
+        raise _Refused(message)
+
+    def exit(self, status=0, message=None):
+        raise _Refused(message or "--help or --version")
+
+
+def build_parser(parser_class: type[argparse.ArgumentParser] = Parser) -> argparse.ArgumentParser:
+    return _build_parser(parser_class)[0]
+
+
+def _build_parser(parser_class):
+    """The ``twin`` parser of class ``parser_class`` and its subcommands' parsers by name."""
+    parser = parser_class(
         prog="twin",
         description="A SUMO digital twin patrolled by a learning drone swarm "
         "(Maljkovic & Geroliminis, 'On Learning-Based Traffic Monitoring With a Swarm of Drones').",
@@ -113,7 +132,7 @@ def build_parser() -> argparse.ArgumentParser:
                 continue
             raise
         module.add_parser(subparsers)
-    return parser
+    return parser, subparsers.choices
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -131,6 +150,57 @@ def _dispatch(argv: list[str] | None) -> int:
         return 2
     check_utf8_arguments(parser, args)
     return int(args.func(args) or 0)
+
+
+def check_command_line(path: Path, run: dict) -> None:
+    """run.json's ``command`` (``path``) is a command line twin takes, giving the options its
+    ``invocation`` records, and no other: the report shows that line as the command that made
+    the run. An option the recording twin did not have yet must be left at its default."""
+    import contextlib
+    import io
+    import json
+    import shlex
+
+    from twin.readback import RERUN
+    from twin.runs import invocation
+
+    command, recorded = run.get("command"), run.get("invocation")
+    if not isinstance(command, str) or not isinstance(recorded, dict):
+        return
+    recorded = recorded.get("options")
+    kind = run.get("kind")
+    if not isinstance(recorded, dict) or not isinstance(kind, str):
+        return
+    shown = repr(command)[:80]
+    try:
+        words = shlex.split(command)
+        if words[:1] != ["twin"]:
+            raise _Refused("it does not start with twin")
+        parser, commands = _build_parser(_QuietParser)
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+            args = parser.parse_args(words[1:])
+    except (ValueError, _Refused) as exc:
+        raise UserError(
+            f"{path}: command = {shown} is no twin command line ({exc}); {RERUN}"
+        ) from None
+    if kind not in commands:
+        return
+    sub = commands[kind]
+    given = json.loads(json.dumps(invocation(kind, args)["options"], default=str))
+    unknown = sorted(set(recorded) - set(given))
+    if unknown:
+        raise UserError(
+            f"{path}: invocation.options.{unknown[0][:40]} is not an option of `twin {kind}`; "
+            f"{RERUN}"
+        )
+    for option, value in given.items():
+        want = recorded[option] if option in recorded else sub.get_default(option)
+        want = json.loads(json.dumps(want, default=str))
+        if value != want:
+            raise UserError(
+                f"{path}: command = {shown} gives {option} = {repr(value)[:40]}, but "
+                f"invocation.options.{option} = {repr(want)[:40]}; {RERUN}"
+            )
 
 
 def check_utf8_arguments(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:

@@ -108,27 +108,81 @@ def _seed_of_tape(tape, run: dict) -> int | None:
     return seed if seed in seeds else None
 
 
+def _records_the_tape(record, settings: dict) -> bool:
+    """run.json's traffic record of a seed agrees with a tape's settings (the source's own
+    record, which a run's tape keeps, with the network's placement besides)."""
+    import json
+
+    if not isinstance(record, dict):
+        return False
+    same = [
+        json.dumps(record[key], sort_keys=True) == json.dumps(value, sort_keys=True)
+        for key, value in settings.items()
+        if key not in ("network", "error") and key in record  # the error: as the run ended
+    ]
+    return bool(same) and all(same)
+
+
 def with_swarm_of_run(config, tape):
     """``config`` with the swarm of the run that recorded ``tape`` (its drones, start cells and
     score weights, from the ``run.json`` of the tape's run folder), said in a notice: a
     replay of a run's tape without ``--config`` gives the run's swarm results, not those of
-    the default config's swarm. A tape outside a run folder keeps the config's swarm."""
-    import json
+    the default config's swarm. A tape outside a run folder keeps the config's swarm, and so
+    does one that its folder's manifest does not list or whose grid is not the run's (another
+    run's ``run.json``); a damaged ``run.json`` is refused in one line."""
     from pathlib import Path
 
     from twin.boundary import notify
     from twin.config import with_overrides
-    from twin.files import read_record
+    from twin.readback import RERUN, check_run_json, read_json
+    from twin.runs import MANIFEST, check_run_folder
+    from twin.traffic.tape import read_tape_meta
 
     tape = Path(tape)
     folder = tape.parent.parent if tape.parent.name == "tapes" else tape.parent
-    try:
-        run = json.loads(read_record(folder / "run.json"))  # NotARecord is an OSError
-        params = run["params"]
-        overrides = {"swarm.n_drones": run["n_drones"], "swarm.starts": run["starts"],
-                     **{f"swarm.{k}": params[k] for k in ("eta", "delta", "alpha_T", "alpha_I")}}  # fmt: skip
-    except (OSError, ValueError, KeyError, TypeError):
+    record = folder / "run.json"
+    if not record.exists() and not record.is_symlink():
         return config
+    if (folder / MANIFEST).exists():  # a finished run's folder: it must have written the tape
+        listed = check_run_folder(folder).get("files") or {}
+        if tape.relative_to(folder).as_posix() not in listed:
+            notify(
+                f"twin: notice: {folder / MANIFEST} does not list {tape.name}: not the tape of "
+                f"the run of {record}, so {config.path.name}'s swarm replays it"
+            )
+            return config
+    run = check_run_json(record, read_json(record, required=True))
+    meta = read_tape_meta(tape)
+    grid = run.get("grid") or {}
+    why = None
+    if (grid.get("nx"), grid.get("ny")) != (meta["nx"], meta["ny"]):
+        why = (
+            f"gives a grid of {grid.get('nx')} x {grid.get('ny')}, the tape {meta['nx']} x "
+            f"{meta['ny']}"
+        )
+    elif not any(_records_the_tape(r, meta["settings"]) for r in
+                 run.get("traffic_by_seed") or [run.get("traffic")]):  # fmt: skip
+        why = "records another traffic than the tape's (its settings differ)"
+    if why is not None:
+        notify(
+            f"twin: notice: {record} {why}: not the tape of its run, so "
+            f"{config.path.name}'s swarm replays it"
+        )
+        return config
+    params = run.get("params") or {}
+    fields = {  # override -> the field of run.json that gives it, and its value
+        "swarm.n_drones": ("n_drones", run.get("n_drones")),
+        "swarm.starts": ("starts", run.get("starts")),
+        **{f"swarm.{k}": (f"params.{k}", params.get(k)) for k in ("eta", "delta", "alpha_T",
+                                                                  "alpha_I")},
+    }  # fmt: skip
+    missing = [name for name, value in fields.values() if value is None]
+    if missing:
+        raise UserError(
+            f"{record}: no {missing[0]}: the swarm that recorded {tape.name} is unknown; "
+            f"{RERUN}, or give --config"
+        )
+    overrides = {key: value for key, (_, value) in fields.items()}
     seed = _seed_of_tape(tape, run)
     if seed is not None:  # the run's seed of this tape (--seed still chooses another)
         overrides["evaluate.seed"] = seed

@@ -52,7 +52,8 @@ def run_arguments(run_dir: Path) -> argparse.Namespace:
     args = parser.parse_args(["run"])
     args.quiet = True
     actions = _run_actions(parser)
-    started_in = _started_in(path, invocation.get("cwd"))
+    cwd = invocation.get("cwd")  # an absolute folder (read back above); None for an older run
+    started_in = None if cwd is None else Path(cwd)
     for key, value in (invocation.get("options") or {}).items():
         if key not in actions:
             raise UserError(
@@ -61,16 +62,6 @@ def run_arguments(run_dir: Path) -> argparse.Namespace:
         value = _option_value(path, key, value, actions[key])
         setattr(args, key, _from_folder(key, value, started_in))
     return args
-
-
-def _started_in(path: Path, cwd) -> Path | None:
-    """The folder the run was started in (``invocation.cwd``; None for an older run, whose
-    relative paths are read from the current folder)."""
-    if cwd is None:
-        return None
-    if not isinstance(cwd, str) or not Path(cwd).is_absolute():
-        raise UserError(f"{path}: invocation.cwd = {str(cwd)[:60]!r} is not a folder; {_RERUN}")
-    return Path(cwd)
 
 
 def _from_folder(key: str, value, started_in: Path | None):

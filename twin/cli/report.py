@@ -33,9 +33,12 @@ def main(args: argparse.Namespace) -> int:
     if args.run_dir.is_dir() and not args.run_dir.is_symlink():
         set_run_folder(args.run_dir)  # an unexpected error's traceback goes to its error.log
     check_cache("the report's figures keep their font cache there")
-    from twin.report import write_report  # after the check: it sets up matplotlib there
+    from twin.cli import check_command_line
+    from twin.report import load_run, write_report  # after the check: matplotlib is set up there
 
     start = time.perf_counter()
-    path = write_report(args.run_dir, animation=not args.no_animation)
+    run = load_run(args.run_dir)
+    check_command_line(run.run_dir / "run.json", run.run)  # the report shows that line
+    path = write_report(run, animation=not args.no_animation)
     print(f"report: {path} ({time.perf_counter() - start:.1f} s)")
     return 0

@@ -179,12 +179,7 @@ class RLPolicy(Policy):
         self.belief = self.seen = None
         if self.history is not None:
             h = self.history
-            if h.shape != grid.shape or not np.array_equal(h.obstacles, grid.obstacles):
-                raise UserError(
-                    f"swarm {self.name}: the history's grid {h.shape[0]} x {h.shape[1]} (or "
-                    f"obstacles) differs from the run's {grid.nx} x {grid.ny}; build it on "
-                    "this scenario's grid"
-                )
+            h.check_grid(h.named(self.name), grid.obstacles)
             self.belief = SightedBelief(h, grid, self.sighting)
         self.learner = None
         if self.online:
@@ -228,11 +223,7 @@ class RLPolicy(Policy):
         maps.advance(view.k, view.positions, view.idleness, view.grid, view.params,
                      view.recorded_visits())  # fmt: skip
         if self.belief is not None:
-            if view.horizon != self.history.horizon:
-                raise UserError(
-                    f"swarm {self.name}: the history's horizon T = {self.history.horizon} "
-                    f"differs from the run's T = {view.horizon}; build it over this horizon"
-                )
+            self.history.check_horizon(self.history.named(self.name), view.horizon)
             self.seen = self.belief.at(view.k, view.positions, view.importance)
         return self.local_states(view)
 

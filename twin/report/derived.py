@@ -777,10 +777,13 @@ def comparison_rows(primary: Primary, frame: pd.DataFrame) -> pd.DataFrame:
 
 
 def reward_split(primary: Primary, frame: pd.DataFrame) -> pd.DataFrame:
-    """``R_hat_T`` as the sum of its parts ``R_hat_T_importance + R_hat_T_idleness``."""
+    """``R_hat_T`` as the sum of its parts ``R_hat_T_importance + R_hat_T_idleness``, on every
+    row that gives them (the swarms' and the oracle's, of any folder format; the bound has
+    none)."""
     if not {"R_hat_T_importance", "R_hat_T_idleness"} <= set(frame.columns):
         return frame.iloc[:0][[c for c in frame.columns if c in ("seed", "swarm")]]
-    rows = frame[~is_ceiling_row(frame)]
+    parts = frame[["R_hat_T_importance", "R_hat_T_idleness"]].apply(pd.to_numeric, errors="coerce")
+    rows = frame[parts.notna().all(axis=1)]
     keys = [c for c in ("seed", "swarm") if c in frame.columns]
     return rows[keys].assign(R_hat_T=rows["R_hat_T_importance"] + rows["R_hat_T_idleness"])
 

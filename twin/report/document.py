@@ -816,15 +816,21 @@ def report_dir(run_dir: Path) -> Path:
     return out
 
 
-def write_report(run_dir: str | Path, animation: bool = True) -> Path:
-    """Write ``RUN_DIR/report/`` (report.html, report.md, PNGs, GIF); return the HTML's path.
+def _written_by_a_report(name: str) -> bool:
+    """A name an earlier twin's report wrote into ``report/``."""
+    return name in ("report.html", "report.md") or name.endswith((".png", ".gif"))
+
+
+def write_report(run_dir: str | Path | RunFiles, animation: bool = True) -> Path:
+    """Write ``RUN_DIR/report/`` (report.html, report.md, PNGs, GIF) of a run folder or of one
+    already read; return the HTML's path.
 
     The report is drawn into a temporary folder inside the run folder and renamed into place
     at the end: a report that fails mid-way (a full disk ...) leaves the previous report, or
     none, never a partial one."""
-    rf = load_run(run_dir)
+    rf = run_dir if isinstance(run_dir, RunFiles) else load_run(run_dir)
     out = report_dir(rf.run_dir)
-    with staged_folder(out) as stage:
+    with staged_folder(out, _written_by_a_report) as stage:
         sections, drawing = build_sections(rf, stage, animation)
         seconds = sum(drawing.values())
         page = render_html(rf, stage, sections, seconds)

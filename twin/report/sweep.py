@@ -13,7 +13,7 @@ import pandas as pd
 from matplotlib.figure import Figure
 
 from twin.errors import UserError
-from twin.files import atomic_write, staged_folder
+from twin.files import atomic_write, check_staged_folder, staged_folder
 from twin.readback import CELL_SERIES_COLUMNS, TEXT, read_json, read_table
 from twin.report.document import (
     CSS,
@@ -158,9 +158,20 @@ def write_sweep_report(out_dir: Path) -> Path:
     if not isinstance(manifest, dict):
         raise UserError(f"{out_dir / 'sweep.json'}: not an object; rerun the sweep")
     out = report_dir(out_dir)  # never a link out of the sweep folder
-    with staged_folder(out) as stage:
+    with staged_folder(out, _written_by_a_sweep_report) as stage:
         _draw_sweep_report(out_dir, stage, summary, results, manifest)
     return out / "sweep.html"
+
+
+def check_sweep_report_folder(out_dir: Path) -> None:
+    """The sweep's ``report/`` holds nothing of the user's, which drawing it again would
+    delete (checked before any cell runs)."""
+    check_staged_folder(out_dir / "report", _written_by_a_sweep_report)
+
+
+def _written_by_a_sweep_report(name: str) -> bool:
+    """A name an earlier twin's sweep report wrote into ``report/``."""
+    return name in ("sweep.html", "sweep.md") or name.endswith(".png")
 
 
 def _draw_sweep_report(

@@ -16,6 +16,7 @@ from typing import IO
 
 from twin.errors import UserError
 from twin.files import not_a_file
+from twin.notices import notify
 from twin.sumo.options import canonical
 
 
@@ -197,7 +198,18 @@ def substitute_environment(value: str) -> str:
     if s.startswith("~"):
         s = "${HOME}" + s[1:]
     s = s.replace(",~", ",${HOME}")
+    for name in _VARIABLE.findall(s):
+        if name not in os.environ and name not in _UNSET_SAID:
+            _UNSET_SAID.add(name)
+            notify(
+                f"twin: notice: the SUMO option value {value[:80]!r} names ${{{name}}}, which is "
+                f"not set: SUMO reads it as empty; set {name}, or write the value out"
+            )
     return _VARIABLE.sub(lambda m: os.environ.get(m.group(1), ""), s)
+
+
+#: Unset variables already said (once per process).
+_UNSET_SAID: set[str] = set()
 
 
 def sumocfg_options(root: ET.Element) -> tuple[dict[str, str], dict[str, str]]:

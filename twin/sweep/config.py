@@ -110,6 +110,16 @@ def _same_value(value: Any) -> Any:
     return value
 
 
+#: Scenario keys each cell sets itself (a value swept or overridden there would change
+#: nothing), and by what.
+SET_BY_THE_SWEEP = {
+    "traffic.seed": "the seed of each cell's traffic being its seed ([sweep].seeds)",
+    "evaluate.seed": "each cell running one of [sweep].seeds",
+    "evaluate.seeds": "each cell running one of [sweep].seeds",
+    "evaluate.swarms": "each cell running [sweep].swarms",
+}
+
+
 class SweepConfig(StrictModel):
     """A validated sweep config; ``path`` is the file it was read from."""
 
@@ -159,6 +169,15 @@ class SweepConfig(StrictModel):
                 f"{combinations:,} parameter combinations x {seeds:,} seeds), over the "
                 f"{MAX_SWEEP_CELLS:,} one sweep folder holds; sweep fewer seeds or values"
             )
+        for where, key in [(f"[parameters].{k!r}", k) for k in self.parameters] + [
+            (f"[[scenario]] {spec.name}.overrides.{k!r}", k)
+            for spec in self.scenario
+            for k in spec.overrides
+        ]:
+            if key in SET_BY_THE_SWEEP:
+                raise ValueError(
+                    f"{where} is set by the sweep itself, {SET_BY_THE_SWEEP[key]}; drop it"
+                )
         for spec in self.scenario:
             if spec.tape is None:
                 continue

@@ -65,6 +65,10 @@ def run_sweep(
         cell["max_memory_gb"] = max_memory_gb
     skipped = [c["id"] for c in cells if c["id"] in done]
     check_cells(todo)  # before anything is written: a refused sweep leaves no folder
+    if report:
+        from twin.report.sweep import check_sweep_report_folder
+
+        check_sweep_report_folder(out_dir)
     (out_dir / CELLS_DIR).mkdir(parents=True, exist_ok=True)
     _write_manifest(out_dir, config, cells)
     release_notices()  # every cell is valid: what the checks noticed is printed now

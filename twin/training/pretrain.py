@@ -97,8 +97,9 @@ def _help(text: str, **bounds: Any) -> Any:
     return Field(description=text, **bounds)
 
 
-def _scenario_file(value: Any, info: ValidationInfo) -> Path:
-    """A scenario config relative to the pretraining config's folder, else a shipped one."""
+def _scenario_file(value: Any, info: ValidationInfo, default: str = "training-map") -> Path:
+    """A scenario config relative to the pretraining config's folder, else a shipped one (the
+    field's ``default`` is named in the refusal)."""
     from twin.resources import shipped_config_named
 
     if not isinstance(value, (str, Path)) or not str(value):
@@ -112,8 +113,13 @@ def _scenario_file(value: Any, info: ValidationInfo) -> Path:
         return shipped
     raise ValueError(
         f"names {path}, which does not exist; give a scenario config (relative to this file) "
-        'or a shipped one, e.g. "training-map" (the default) or "synthetic"'
+        f'or a shipped one, e.g. "{default}" (the default)'
     )
+
+
+def _curve_config_file(value: Any, info: ValidationInfo) -> str:
+    """``curve_config``: found as ``scenario`` is (:func:`_scenario_file`)."""
+    return str(_scenario_file(value, info, default="synthetic"))
 
 
 # ----------------------------------------------------------------------------- 1. parameters
@@ -254,8 +260,9 @@ class PretrainConfig(SourcedConfig):
         "validation seeds of the curve (never the evaluation seeds 0-9)",
         default_factory=lambda: [100, 101],
     )
-    curve_config: str = _help(
-        "scenario config the curve is measured on (a synthetic or a SUMO tape's)",
+    curve_config: Annotated[str, BeforeValidator(_curve_config_file)] = _help(
+        "scenario config the curve is measured on (a synthetic or a SUMO tape's; relative to "
+        "this file, else a shipped one)",
         default="synthetic",
     )
     curve_horizon: PositiveInt = _help("steps of each curve evaluation", default=200)
@@ -366,6 +373,19 @@ class PretrainConfig(SourcedConfig):
         if isinstance(value, list):
             return [_relative_file(t, info) for t in value]
         return value
+
+    @model_validator(mode="after")
+    def _curve_can_be_measured(self) -> PretrainConfig:
+        """The curve's scenario is read before training, not after it."""
+        if self.curve_every:
+            try:
+                curve_scenario(self)
+            except UserError as exc:
+                raise ValueError(
+                    f"curve_config = {self.curve_config!r} is no scenario config to measure "
+                    f'the curve on ({exc}); give one, e.g. "synthetic"'
+                ) from None
+        return self
 
     @model_validator(mode="after")
     def _exploration_falls(self) -> PretrainConfig:

@@ -74,12 +74,17 @@ class TransferSection(StrictModel):
     @field_validator("classical")
     @classmethod
     def _classical(cls, swarms: list[str]) -> list[str]:
-        from twin.swarms import available_policies, check_swarm_list, is_learned
+        from twin.swarms import available_policies, check_swarm_list, is_learned, needs_history
 
         check_swarm_list(swarms, lambda: [s for s in available_policies() if not is_learned(s)])
         for swarm in swarms:
             if is_learned(swarm):
                 raise ValueError(f"has {swarm!r}, a learned swarm; list classical swarms only")
+            if needs_history(swarm):
+                raise ValueError(
+                    f"has {swarm!r}, which plans on a history of earlier days that a transfer "
+                    "does not build for its columns; drop it"
+                )
         return swarms
 
 
@@ -161,6 +166,16 @@ class ColumnSpec(StrictModel):
         return kind
 
 
+#: By what the transfer sets the keys each of its cells (and tapes) set themselves
+#: (:data:`twin.sweep.config.SET_BY_THE_SWEEP`).
+TRANSFER_SETS = {
+    "traffic.seed": "the traffic of each seed of [transfer].seeds and [tapes].seeds",
+    "evaluate.seed": "[transfer].seeds",
+    "evaluate.seeds": "[transfer].seeds",
+    "evaluate.swarms": "[transfer].classical and the rows' learned swarms",
+}
+
+
 class TransferConfig(StrictModel):
     """A validated transfer config; ``path`` is the file it was read from."""
 
@@ -185,6 +200,18 @@ class TransferConfig(StrictModel):
                 if name in names[:n]:
                     raise ValueError(
                         f"[[{what}]] #{n + 1}.name = {name!r} is taken; give distinct names"
+                    )
+        from twin.sweep.config import SET_BY_THE_SWEEP
+
+        set_here = [(f"[[column]] {c.name}.overrides", c.overrides) for c in self.column]
+        if self.tapes is not None:
+            set_here.append(("[tapes].overrides", self.tapes.overrides))
+        for where, overrides in set_here:
+            for key in overrides:
+                if key in SET_BY_THE_SWEEP:
+                    raise ValueError(
+                        f"{where}.{key!r} is set by the transfer itself ({TRANSFER_SETS[key]}); "
+                        "drop it"
                     )
         names = [r.name for r in self.row]
         base = Path((info.context or {}).get("path", "transfer.toml")).parent

@@ -488,9 +488,33 @@ def sweep_config(config: TransferConfig, rows: dict[str, dict[str, Any]]):
     try:
         sweep = SweepConfig.model_validate(data, context={"path": config.path})
     except ValidationError as exc:  # a checkpoint gone between training and evaluation
-        raise UserError(f"{config.path}: {exc.errors(include_url=False)[0]['msg']}") from None
+        error = exc.errors(include_url=False)[0]
+        why = str(error.get("ctx", {}).get("error", error["msg"])).removeprefix("Value error, ")
+        raise UserError(f"{config.path}: {why}") from None
     sweep._path = config.path
     return sweep
+
+
+def check_row_states(config: TransferConfig) -> None:
+    """Every row's network reads a state without a nowcast, before any stage runs: a nowcast
+    state's swarm needs a history of earlier days of each column's scenario, which a transfer
+    does not build."""
+    from twin.learning.checkpoint import checkpoint_state, read_checkpoint
+
+    for row in config.row:
+        if row.checkpoint is not None:
+            variant = checkpoint_state(row.checkpoint, read_checkpoint(row.checkpoint)["meta"])
+            what = f"loads {row.checkpoint}, whose network reads state {variant.name!r}"
+        else:
+            variant = row_schedule_config(config, row).variant
+            what = f"trains state {variant.name!r} ([schedule].state)"
+        if variant.needs_belief:
+            raise UserError(
+                f"{config.path}: [[row]] {row.name} {what}: a nowcast of a history of "
+                "earlier days, which a transfer does not build for its columns; give the row a "
+                'state without one (e.g. state = "paper"), or evaluate that network with '
+                "`twin evaluate --history`"
+            )
 
 
 def run_transfer(
@@ -514,6 +538,7 @@ def run_transfer(
         if row.checkpoint is not None:
             load_qnet(row.checkpoint)
     check_row_starts(config)
+    check_row_states(config)
     check_tapes_scenario(config)
     out.mkdir(parents=True, exist_ok=True)
     out = out.resolve()  # the rows' provenance names files the same from any folder
