@@ -988,7 +988,7 @@ READ_BACK = {
     # the report shows run.json's command as the line that made the run
     "run.json command giving other options": (
         _json_edit("run.json", lambda run: {**run, "command": run["command"] + " --seeds 7"}),
-        "gives seeds = 7, but invocation.options.seeds = ",
+        "gives --seeds 7, but invocation.options.seeds = ",
     ),
     "run.json invocation with an option twin has not": (
         _json("run.json", ("invocation", "options", "bogus"), 1),
@@ -2333,14 +2333,21 @@ def test_a_folder_of_an_earlier_format_reads_back_with_a_notice(run_copy, capsys
     err = capsys.readouterr().err
     assert "written by an earlier twin (folder format 1)" in err, err
     # a later folder relabelled: what its format did not have gives it away (probe 18's f13)
-    for relabel, words in (
-        ({"folder_format": 1}, "folder_format = 1, but the folder holds folder_format"),
-        ({"starts": "random"}, "folder_format = 1, but the folder holds starts"),
-    ):
-        (run_copy / "run.json").write_text(json.dumps({**meta, **relabel}))
-        refresh_manifest(run_copy)
-        assert main(["report", str(run_copy), "--no-animation"]) == EXIT_REFUSED
-        assert words in one_line(capsys)
+    (run_copy / "run.json").write_text(json.dumps({**meta, "folder_format": 1}))
+    refresh_manifest(run_copy)
+    assert main(["report", str(run_copy), "--no-animation"]) == EXIT_REFUSED
+    assert "folder_format = 1, but the folder holds folder_format" in one_line(capsys)
+    # folders written between recording starts and folder_format have starts and no format
+    (run_copy / "run.json").write_text(json.dumps({**meta, "starts": "random"}))
+    refresh_manifest(run_copy)
+    assert main(["report", str(run_copy), "--no-animation"]) == 0, capsys.readouterr().err
+    capsys.readouterr()
+    (run_copy / "oracle.parquet").write_bytes(b"")
+    (run_copy / "run.json").write_text(json.dumps(meta))
+    refresh_manifest(run_copy)
+    assert main(["report", str(run_copy), "--no-animation"]) == EXIT_REFUSED
+    assert "no folder_format (format 1), but the folder holds oracle.parquet" in one_line(capsys)
+    (run_copy / "oracle.parquet").unlink()
     # the oracle row of a folder of format 1 is not replayed, but its parts still sum to it
     (run_copy / "run.json").write_text(json.dumps(meta))
     _ceiling_scaled("oracle (ceiling)", 1.5)(run_copy)

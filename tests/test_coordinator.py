@@ -182,15 +182,26 @@ def test_an_input_on_which_lapjvsp_looped_forever_is_solved_to_the_brute_force_o
     assert q[np.arange(len(q)), actions].sum() == pytest.approx(best, abs=1e-6)
 
 
-def test_a_jam_filling_the_grid_on_which_lapjvsp_never_returned_is_solved(tmp_path):
+@pytest.mark.parametrize("copies", [1, 7])
+def test_a_jam_filling_the_grid_on_which_lapjvsp_never_returned_is_solved(tmp_path, copies):
     """42 drones filling a 6 x 7 grid, each planned one move by the oracle (the Q values of
-    ``twin evaluate`` with n_drones = 42 there): LAPJVsp never returned on it, whole-number costs
-    or not. Solved in a child process, stopped after 60 s, at the whole swarm's optimum."""
+    ``twin evaluate`` with n_drones = 42 there), and 7 such jams side by side (294 drones, a
+    set past any small-set threshold): LAPJVsp never returned on either, whole-number costs or
+    not. Solved in a child process, stopped after 60 s, at the whole swarm's optimum."""
     import subprocess
     import sys
     from pathlib import Path
 
-    data = Path(__file__).parent / "data" / "coordinator_lapjvsp_jam.npz"
+    jam = np.load(Path(__file__).parent / "data" / "coordinator_lapjvsp_jam.npz")
+    n_cells = int(jam["n_cells"])  # the copies side by side: cell ids shifted by a grid each
+    d = {
+        "q": np.concatenate([jam["q"]] * copies),
+        "masked": np.concatenate([jam["masked"]] * copies),
+        "flat": np.concatenate([jam["flat"] + c * n_cells for c in range(copies)]),
+        "feasible": np.concatenate([jam["feasible"]] * copies),
+    }
+    data = tmp_path / "jam.npz"
+    np.savez(data, stacked=bool(jam["stacked"]), n_cells=n_cells * copies, **d)
     out = tmp_path / "actions.npy"
     code = (
         "import sys, numpy as np; from twin.coordinator import _solve; "
@@ -205,13 +216,14 @@ def test_a_jam_filling_the_grid_on_which_lapjvsp_never_returned_is_solved(tmp_pa
     except subprocess.TimeoutExpired:
         pytest.fail("the coordinator did not return within 60 s")
     actions = np.load(out)
-    d = np.load(data)
     q, flat, feasible = d["q"], d["flat"], d["feasible"]
     n = len(q)
     assert feasible[np.arange(n), actions].all()
     assert len(np.unique(flat[np.arange(n), actions])) == n
     grid = Grid.open(6, 7)
-    positions = np.stack(np.divmod(flat[:, 0], grid.ny), axis=1)
-    shared, best = _whole_swarm_optimum(q, positions, feasible, grid)
+    one = len(jam["q"])
+    positions = np.stack(np.divmod(jam["flat"][:, 0], grid.ny), axis=1)
+    shared, best = _whole_swarm_optimum(jam["q"], positions, jam["feasible"], grid)
     assert shared == 0
-    assert q[np.arange(n), actions].sum() == pytest.approx(best)
+    assert q[np.arange(n), actions].sum() == pytest.approx(best * copies)
+    assert n == one * copies

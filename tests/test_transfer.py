@@ -313,6 +313,13 @@ def test_a_row_of_a_nowcast_state_is_refused_before_any_stage(tmp_path, capsys, 
     assert not (tmp_path / "o").exists()
 
 
+def test_the_transfer_sets_the_keys_a_sweep_sets_itself() -> None:
+    from twin.sweep.config import SET_BY_THE_SWEEP
+    from twin.transfer.config import TRANSFER_SETS
+
+    assert set(TRANSFER_SETS) == set(SET_BY_THE_SWEEP)
+
+
 def test_a_foreign_out_folder_is_refused(tmp_path: Path, capsys) -> None:
     path = tmp_path / "t.toml"
     path.write_text(GOOD.format(synthetic=ROOT / "configs" / "synthetic.toml"))

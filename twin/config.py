@@ -742,6 +742,11 @@ def _length(ctx: dict[str, Any]) -> str:
     return f"at least {lo}" if lo is not None else f"at most {hi}"
 
 
+def check_message(err: dict[str, Any]) -> str:
+    """The message a validator raised, without pydantic's "Value error, " before it."""
+    return str(err.get("ctx", {}).get("error", err["msg"])).removeprefix("Value error, ")
+
+
 def validation_error(
     source: Any,
     exc: ValidationError,
@@ -785,8 +790,7 @@ def validation_error(
     if kind == "missing":
         return ConfigError(f"{at} is missing; add it")
     if kind == "value_error" and not loc:  # a check of the whole file names its keys itself
-        error = err.get("ctx", {}).get("error", err["msg"])
-        return ConfigError(f"{source}: {str(error).removeprefix('Value error, ')}")
+        return ConfigError(f"{source}: {check_message(err)}")
     problem = _problem(err)
     if problem.startswith("["):  # a check across keys names its keys itself
         return ConfigError(f"{source}: {problem}")

@@ -10,14 +10,15 @@ reached by its feasible action ``u`` is ``-Q_d(u)``. Polynomial, never an enumer
   (recursively: the ones they can push), are solved together. The others keep their best
   action: no solved drone can reach their cells, so each already holds its row optimum and the
   two parts are independent; the joint optimum is exact;
-- up to :data:`DENSE_UP_TO` solved drones go to the dense solver
-  :func:`scipy.optimize.linear_sum_assignment` (drones x candidate cells); more go to one call
-  of the sparse solver :func:`scipy.sparse.csgraph.min_weight_full_bipartite_matching`
-  (LAPJVsp), posed as a *square* problem (one slack row per cell, one slack column per drone;
-  see :func:`_square_problem`): on square problems its initial reductions settle most rows
-  before any augmenting path is searched, on rectangular ones every row needs one. LAPJVsp
-  never returned on one jam of 42 drones filling a 6 x 7 grid (whole-number costs too), so
-  every set the dense solver takes in well under a millisecond goes there.
+- the solved drones go to the dense solver :func:`scipy.optimize.linear_sum_assignment`
+  (drones x candidate cells) whenever its matrix has at most :data:`DENSE_ENTRIES` entries
+  (about 3000 drones packed in a block); only larger sets go to the sparse solver
+  :func:`scipy.sparse.csgraph.min_weight_full_bipartite_matching` (LAPJVsp), posed as a
+  *square* problem (one slack row per cell, one slack column per drone; see
+  :func:`_square_problem`). LAPJVsp never returned on a jam of 42 drones filling a 6 x 7 grid
+  (whole-number costs too), and on 294 drones of seven such jams side by side; the dense
+  solver is several times slower on large packs (about 1 ms for 1000 drones) but always
+  returns.
 
 Stay is always feasible, so when the drones stand on distinct cells a distinct assignment
 always exists. Drones that stand on one cell (after a communication outage) may have no
@@ -103,15 +104,16 @@ def _pushed(flat, feasible, chosen, collide, n_cells: int) -> np.ndarray:
     return np.sort(reached[1:])
 
 
-#: Solved sets of up to this many drones go to the dense solver (about 0.5 ms at 256 drones
-#: packed in a block; benchmarks/bench_coordinator.py).
-DENSE_UP_TO = 256
+#: The largest dense matrix (solved drones x their candidate cells, plus private columns)
+#: given to the dense solver: 10^7 entries, 80 MB.
+DENSE_ENTRIES = 10**7
 
 
 def _solve(q, masked, flat, feasible, stacked: bool, n_cells: int) -> np.ndarray:
     """Exact assignment of the given drones to their candidate cells (with private "stay
     anyway" columns when some of them stand on one cell)."""
-    if len(q) <= DENSE_UP_TO:
+    m = len(q)
+    if m * (len(np.unique(flat[feasible])) + m * int(stacked)) <= DENSE_ENTRIES:
         return _solve_dense(q, masked, flat, feasible, stacked)
     return _solve_sparse(q, masked, flat, feasible, stacked, n_cells)
 

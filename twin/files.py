@@ -140,10 +140,10 @@ def check_staged_folder(path: Path, written: Callable[[str], bool]) -> None:
 
     if not path.is_dir() or path.is_symlink():
         return
-    try:
-        listed = set((path / STAGED_LISTING).read_text(encoding="utf-8").splitlines())
-    except (OSError, UnicodeDecodeError):
-        listed = None
+    listed = None  # none, or no file (a pipe would block): an earlier twin's folder
+    if not_a_file(path / STAGED_LISTING) is None:
+        with contextlib.suppress(OSError, UnicodeDecodeError):
+            listed = set((path / STAGED_LISTING).read_text(encoding="utf-8").splitlines())
     for entry in sorted(path.iterdir()):
         name = entry.name
         if name == STAGED_LISTING or (name in listed if listed is not None else written(name)):

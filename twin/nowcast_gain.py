@@ -143,12 +143,13 @@ class NowcastGainPolicy(CoordinatedPolicy):
         """run.json's record of a nowcast-gain swarm (:meth:`describe`): its options as the
         constructor checks them, a sighting probability in [0, 1] and its history's runs (at
         least 1) and traffic seeds."""
-        keys = ["weight", "quantile_z", "meas_var", "sighting_count_p", "history_runs"]
-        missing = [k for k in [*keys, "history_seeds"] if k not in record]
+        keys = ["weight", "quantile_z", "meas_var", "history_runs", "history_seeds"]
+        missing = [k for k in keys if k not in record]
         if missing:
             raise UserError(f"records no {missing[0]}")
         check_options(record["weight"], record["quantile_z"], record["meas_var"])
-        p, runs, seeds = record["sighting_count_p"], record["history_runs"], record["history_seeds"]
+        p = record.get("sighting_count_p", 1.0)  # recorded since sighting models
+        runs, seeds = record["history_runs"], record["history_seeds"]
         if isinstance(p, bool) or not isinstance(p, int | float) or not 0 <= p <= 1:
             raise UserError(f"sighting_count_p = {str(p)[:40]} must be a number in [0, 1]")
         if isinstance(runs, bool) or not isinstance(runs, int) or runs < 1:

@@ -204,6 +204,7 @@ RUN_JSON_FIELDS: dict[str, Any] = {
         "tape_file": {"path": str, "sha256": str},
     },
     "timings": {"peak_memory_mb": NUM, "peak_memory_sumo_process_mb": NUM, "patrol_seconds": list},
+    "traffic_by_seed": list,
     "wall_seconds": NUM,
     "sumo_read_seconds": NUM,
     "kind": str,
@@ -471,7 +472,7 @@ INVOCATION_FIELDS = (
 )
 
 
-def _command_words(command: Any) -> list[str] | None:
+def command_words(command: Any) -> list[str] | None:
     """run.json's ``command`` split as a shell would (None when it is no text or no ``twin``
     command line)."""
     import shlex
@@ -497,7 +498,7 @@ def check_invocation(path: Path, run: dict[str, Any]) -> None:
             f"{path}: kind = {str(kind)[:40]!r}, but invocation.command = {str(command)[:40]!r}; "
             f"{RERUN}"
         )
-    words = _command_words(run.get("command"))
+    words = command_words(run.get("command"))
     if kind is not None and words is not None and (len(words) < 2 or words[1] != kind):
         raise UserError(
             f"{path}: command = {str(run.get('command'))[:60]!r} is no `twin {kind}`, but kind = "

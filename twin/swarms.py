@@ -184,10 +184,11 @@ POLICY_FIELDS: dict[str, object] = {
 
 
 def check_policy_records(path, run: dict) -> None:
-    """run.json's ``policies`` (``path``): records of the run's swarms; a learned swarm's (a
-    complete run has one for each) gives its checkpoint's sha256, epochs, layers that fit its
-    state (13 paper inputs -> 5 Q-values), a known state variant and coordination, and an
-    epsilon in [0, 1]."""
+    """run.json's ``policies`` (``path``): records of the run's swarms (a complete run has one
+    for each learned swarm and each planner that describes its options). A learned swarm's
+    gives its checkpoint's sha256, epochs, layers that fit its state (13 paper inputs -> 5
+    Q-values), a known state variant and coordination, and an epsilon in [0, 1]; a planner's
+    passes its own ``check_record``."""
     import re
 
     from twin.grid import N_ACTIONS

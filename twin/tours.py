@@ -545,14 +545,18 @@ class ToursPolicy(CoordinatedPolicy):
 
     @classmethod
     def check_record(cls, record: dict) -> None:
-        """run.json's record of a tours swarm (:meth:`describe`): every option, as the
-        constructor checks it, and its counts of plans and surveys (at least 0)."""
-        options = [k for k in inspect.signature(cls).parameters]
-        missing = [k for k in [*options, "plans", "surveys"] if k not in record]
+        """run.json's record of a tours swarm (:meth:`describe`): its options, as the
+        constructor checks them, and its counts of plans and surveys (at least 0). Options a
+        later twin added (an earlier run records none of them) are checked where present."""
+        missing = [
+            k for k in ("per_tour", "explore", "replan", "shift", "plans") if k not in record
+        ]
         if missing:
             raise UserError(f"records no {missing[0]}")
-        cls(**{k: record[k] for k in options})
+        cls(**{k: record[k] for k in inspect.signature(cls).parameters if k in record})
         for key in ("plans", "surveys"):
+            if key not in record:
+                continue
             value = record[key]
             if isinstance(value, bool) or not isinstance(value, int) or value < 0:
                 raise UserError(f"{key} = {str(value)[:40]} must be a whole number of at least 0")

@@ -159,9 +159,8 @@ def check_command_line(path: Path, run: dict) -> None:
     import contextlib
     import io
     import json
-    import shlex
 
-    from twin.readback import RERUN
+    from twin.readback import RERUN, command_words
     from twin.runs import invocation
 
     command, recorded = run.get("command"), run.get("invocation")
@@ -173,19 +172,20 @@ def check_command_line(path: Path, run: dict) -> None:
         return
     shown = repr(command)[:80]
     try:
-        words = shlex.split(command)
-        if words[:1] != ["twin"]:
-            raise _Refused("it does not start with twin")
+        words = command_words(command)
+        if words is None:
+            raise _Refused("no twin command line as a shell reads it")
         parser, commands = _build_parser(_QuietParser)
         with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
             args = parser.parse_args(words[1:])
-    except (ValueError, _Refused) as exc:
+    except _Refused as exc:
         raise UserError(
             f"{path}: command = {shown} is no twin command line ({exc}); {RERUN}"
         ) from None
     if kind not in commands:
         return
     sub = commands[kind]
+    flags = _argument_names(sub)
     given = json.loads(json.dumps(invocation(kind, args)["options"], default=str))
     unknown = sorted(set(recorded) - set(given))
     if unknown:
@@ -198,8 +198,9 @@ def check_command_line(path: Path, run: dict) -> None:
         want = json.loads(json.dumps(want, default=str))
         if value != want:
             raise UserError(
-                f"{path}: command = {shown} gives {option} = {repr(value)[:40]}, but "
-                f"invocation.options.{option} = {repr(want)[:40]}; {RERUN}"
+                f"{path}: command = {shown} gives {flags.get(option, option)} "
+                f"{repr(value)[:40]}, but invocation.options.{option} = {repr(want)[:40]}; "
+                f"{RERUN}"
             )
 
 

@@ -108,19 +108,25 @@ def _seed_of_tape(tape, run: dict) -> int | None:
     return seed if seed in seeds else None
 
 
+#: What names a day of traffic in a source's record (run.json's ``traffic``, a tape's
+#: settings): its kind and scenario, seed, clock, step, incidents and network.
+TRAFFIC_IDENTITY = ("kind", "name", "seed", "begin", "step_s", "warmup_s", "incidents")
+
+
 def _records_the_tape(record, settings: dict) -> bool:
-    """run.json's traffic record of a seed agrees with a tape's settings (the source's own
-    record, which a run's tape keeps, with the network's placement besides)."""
+    """run.json's traffic record of a seed names the traffic a tape's settings name
+    (:data:`TRAFFIC_IDENTITY` and the network's sha256)."""
     import json
 
     if not isinstance(record, dict):
         return False
-    same = [
-        json.dumps(record[key], sort_keys=True) == json.dumps(value, sort_keys=True)
-        for key, value in settings.items()
-        if key not in ("network", "error") and key in record  # the error: as the run ended
-    ]
-    return bool(same) and all(same)
+
+    def identity(node: dict) -> str:
+        net = node.get("identity") if isinstance(node.get("identity"), dict) else {}
+        named = {k: node.get(k) for k in TRAFFIC_IDENTITY} | {"net": net.get("net_sha256")}
+        return json.dumps(named, sort_keys=True, default=str)
+
+    return identity(record) == identity(settings)
 
 
 def with_swarm_of_run(config, tape):
@@ -144,7 +150,10 @@ def with_swarm_of_run(config, tape):
     if not record.exists() and not record.is_symlink():
         return config
     if (folder / MANIFEST).exists():  # a finished run's folder: it must have written the tape
-        listed = check_run_folder(folder).get("files") or {}
+        try:
+            listed = check_run_folder(folder).get("files") or {}
+        except UserError as exc:
+            raise UserError(f"{exc}, or give --config to replay the tape with its swarm") from None
         if tape.relative_to(folder).as_posix() not in listed:
             notify(
                 f"twin: notice: {folder / MANIFEST} does not list {tape.name}: not the tape of "
@@ -155,7 +164,9 @@ def with_swarm_of_run(config, tape):
     meta = read_tape_meta(tape)
     grid = run.get("grid") or {}
     why = None
-    if (grid.get("nx"), grid.get("ny")) != (meta["nx"], meta["ny"]):
+    if not grid:
+        why = "records no grid (an unfinished run)"
+    elif (grid.get("nx"), grid.get("ny")) != (meta["nx"], meta["ny"]):
         why = (
             f"gives a grid of {grid.get('nx')} x {grid.get('ny')}, the tape {meta['nx']} x "
             f"{meta['ny']}"

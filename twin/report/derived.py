@@ -783,9 +783,9 @@ def reward_split(primary: Primary, frame: pd.DataFrame) -> pd.DataFrame:
     if not {"R_hat_T_importance", "R_hat_T_idleness"} <= set(frame.columns):
         return frame.iloc[:0][[c for c in frame.columns if c in ("seed", "swarm")]]
     parts = frame[["R_hat_T_importance", "R_hat_T_idleness"]].apply(pd.to_numeric, errors="coerce")
-    rows = frame[parts.notna().all(axis=1)]
+    given = parts.notna().all(axis=1)
     keys = [c for c in ("seed", "swarm") if c in frame.columns]
-    return rows[keys].assign(R_hat_T=rows["R_hat_T_importance"] + rows["R_hat_T_idleness"])
+    return frame.loc[given, keys].assign(R_hat_T=parts[given].sum(axis=1))
 
 
 def seed_aggregate(primary: Primary, frame: pd.DataFrame) -> pd.DataFrame:

@@ -297,16 +297,13 @@ def _say_folder_format(run_dir: Path, run: dict[str, Any]) -> None:
     # checks the earlier format's read-back would leave out
     later = [
         (1, "folder_format" in run, "folder_format (format 1 folders have none)"),
-        (1, "starts" in run, "starts (format 2 added them)"),
         (2, (run_dir / "oracle.parquet").exists(), "oracle.parquet (format 3 added it)"),
         (2, (run_dir / "fault_free.parquet").exists(), "fault_free.parquet (format 3 added it)"),
     ]
+    said = f"folder_format = {found}" if "folder_format" in run else "no folder_format (format 1)"
     for upto, held, what in later:
         if found <= upto and held:
-            raise UserError(
-                f"{run_dir / 'run.json'}: folder_format = {found}, but the folder holds {what}; "
-                f"{RERUN}"
-            )
+            raise UserError(f"{run_dir / 'run.json'}: {said}, but the folder holds {what}; {RERUN}")
     missing = [] if found >= 2 else ["bound row", "incident schedule"]
     if found < 3 and (run_dir / "degradation.csv").exists():
         missing.append("fault-free twin")

@@ -199,17 +199,12 @@ def substitute_environment(value: str) -> str:
         s = "${HOME}" + s[1:]
     s = s.replace(",~", ",${HOME}")
     for name in _VARIABLE.findall(s):
-        if name not in os.environ and name not in _UNSET_SAID:
-            _UNSET_SAID.add(name)
+        if name not in os.environ:  # said once per command (twin.notices)
             notify(
-                f"twin: notice: the SUMO option value {value[:80]!r} names ${{{name}}}, which is "
-                f"not set: SUMO reads it as empty; set {name}, or write the value out"
+                f"twin: notice: a SUMO option names ${{{name}}}, which is not set: SUMO reads it "
+                f"as empty; set {name}, or write the value out"
             )
     return _VARIABLE.sub(lambda m: os.environ.get(m.group(1), ""), s)
-
-
-#: Unset variables already said (once per process).
-_UNSET_SAID: set[str] = set()
 
 
 def sumocfg_options(root: ET.Element) -> tuple[dict[str, str], dict[str, str]]:

@@ -166,8 +166,8 @@ class ColumnSpec(StrictModel):
         return kind
 
 
-#: By what the transfer sets the keys each of its cells (and tapes) set themselves
-#: (:data:`twin.sweep.config.SET_BY_THE_SWEEP`).
+#: By what the transfer sets the keys each of its cells (and tapes) set themselves (the
+#: sweep's :data:`twin.sweep.config.SET_BY_THE_SWEEP`, whose keys these must be).
 TRANSFER_SETS = {
     "traffic.seed": "the traffic of each seed of [transfer].seeds and [tapes].seeds",
     "evaluate.seed": "[transfer].seeds",
@@ -201,14 +201,12 @@ class TransferConfig(StrictModel):
                     raise ValueError(
                         f"[[{what}]] #{n + 1}.name = {name!r} is taken; give distinct names"
                     )
-        from twin.sweep.config import SET_BY_THE_SWEEP
-
         set_here = [(f"[[column]] {c.name}.overrides", c.overrides) for c in self.column]
         if self.tapes is not None:
             set_here.append(("[tapes].overrides", self.tapes.overrides))
         for where, overrides in set_here:
             for key in overrides:
-                if key in SET_BY_THE_SWEEP:
+                if key in TRANSFER_SETS:
                     raise ValueError(
                         f"{where}.{key!r} is set by the transfer itself ({TRANSFER_SETS[key]}); "
                         "drop it"

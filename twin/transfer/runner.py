@@ -488,9 +488,11 @@ def sweep_config(config: TransferConfig, rows: dict[str, dict[str, Any]]):
     try:
         sweep = SweepConfig.model_validate(data, context={"path": config.path})
     except ValidationError as exc:  # a checkpoint gone between training and evaluation
-        error = exc.errors(include_url=False)[0]
-        why = str(error.get("ctx", {}).get("error", error["msg"])).removeprefix("Value error, ")
-        raise UserError(f"{config.path}: {why}") from None
+        from twin.config import check_message
+
+        raise UserError(
+            f"{config.path}: {check_message(exc.errors(include_url=False)[0])}"
+        ) from None
     sweep._path = config.path
     return sweep
 
@@ -505,15 +507,16 @@ def check_row_states(config: TransferConfig) -> None:
         if row.checkpoint is not None:
             variant = checkpoint_state(row.checkpoint, read_checkpoint(row.checkpoint)["meta"])
             what = f"loads {row.checkpoint}, whose network reads state {variant.name!r}"
+            fix = "give it a checkpoint trained on a state without one"
         else:
             variant = row_schedule_config(config, row).variant
             what = f"trains state {variant.name!r} ([schedule].state)"
+            fix = 'train it on a state without one (e.g. state = "paper")'
         if variant.needs_belief:
             raise UserError(
                 f"{config.path}: [[row]] {row.name} {what}: a nowcast of a history of "
-                "earlier days, which a transfer does not build for its columns; give the row a "
-                'state without one (e.g. state = "paper"), or evaluate that network with '
-                "`twin evaluate --history`"
+                f"earlier days, which a transfer does not build for its columns; {fix}, or "
+                "evaluate that network with `twin evaluate --history`"
             )
 
 
