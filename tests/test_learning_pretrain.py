@@ -212,6 +212,21 @@ def test_a_curve_config_that_is_no_scenario_is_refused_naming_the_key(tmp_path, 
     assert not (tmp_path / "out").exists()
 
 
+def test_a_curve_scenario_whose_incident_misses_the_curve_window_is_refused_before_training(
+    tmp_path, capsys
+):
+    """The shipped incident scenario at a curve of 5 steps: its incident falls outside the
+    curve's window. Refused before training, naming curve_config (it failed after the last
+    epoch, naming the shipped file)."""
+    path = tmp_path / "pt.toml"
+    path.write_text(f'out = "{tmp_path / "out"}"\nepochs = 2\ncurve_every = 1\n'
+                    'curve_config = "incident"\ncurve_horizon = 5\n')  # fmt: skip
+    code, err = _run_cli(["pretrain", "--config", str(path), "--quiet"], capsys)
+    assert code == 2 and err.count("\n") == 0, err
+    assert f"{path}: curve_config = " in err and "is outside the scenario's window" in err, err
+    assert not (tmp_path / "out").exists()
+
+
 def test_pretraining_memory_limit_flag(tmp_path, capsys):
     config = _config(tmp_path)
     argv = ["pretrain", "--config", str(config), "--quiet", "--max-memory-gb", "1e-9"]

@@ -376,10 +376,15 @@ class PretrainConfig(SourcedConfig):
 
     @model_validator(mode="after")
     def _curve_can_be_measured(self) -> PretrainConfig:
-        """The curve's scenario is read before training, not after it."""
+        """The curve's scenario is read before training, not after it: a SUMO scenario's
+        files, window, grid and incidents as a run checks them before SUMO starts."""
         if self.curve_every:
             try:
-                curve_scenario(self)
+                config = curve_scenario(self)
+                if config.traffic.kind == "sumo":
+                    from twin.sumo.scenario import sumo_source
+
+                    sumo_source(config)
             except UserError as exc:
                 raise ValueError(
                     f"curve_config = {self.curve_config!r} is no scenario config to measure "
