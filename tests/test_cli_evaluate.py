@@ -202,6 +202,21 @@ def test_a_runs_tape_replays_with_the_runs_swarm(tmp_path, capsys):
     assert replayed.to_dict() == pytest.approx(live.to_dict(), rel=1e-12)
 
 
+def _small_sumo_run(tmp_path, capsys, *extra):
+    """A `twin run` of a small SUMO scenario (4 steps) in ``tmp_path/run``, and the display
+    and swarm flags it took."""
+    from helpers import small_sumo_scenario
+
+    (tmp_path / "s").mkdir()
+    folder = small_sumo_scenario(tmp_path / "s", horizon=4)
+    run = tmp_path / "run"
+    common = ["--swarms", "random", "--no-ceiling", "--no-report", "--quiet"]
+    argv = ["run", "--config", str(folder / "small.toml"), *extra, *common]
+    assert main([*argv, "--out", str(run)]) == 0
+    capsys.readouterr()
+    return run, common
+
+
 def test_a_damaged_or_foreign_run_json_beside_a_tape_is_not_taken_silently(tmp_path, capsys):
     """The run.json of a tape's run folder is read back before its swarm replays the tape: a
     damaged one is one line naming it (it was skipped silently, and the default config's
@@ -210,17 +225,9 @@ def test_a_damaged_or_foreign_run_json_beside_a_tape_is_not_taken_silently(tmp_p
     import json
     import shutil
 
-    from helpers import small_sumo_scenario
-
     from twin.runs import write_manifest
 
-    (tmp_path / "s").mkdir()
-    folder = small_sumo_scenario(tmp_path / "s", horizon=4)
-    run = tmp_path / "run"
-    common = ["--swarms", "random", "--no-ceiling", "--no-report", "--quiet"]
-    argv = ["run", "--config", str(folder / "small.toml"), "--drones", "2", *common]
-    assert main([*argv, "--out", str(run)]) == 0
-    capsys.readouterr()
+    run, common = _small_sumo_run(tmp_path, capsys, "--drones", "2")
     meta = json.loads((run / "run.json").read_text())
     (run / "run.json").write_text(json.dumps({**meta, "params": "eta=0.1"}))
     write_manifest(run, False, None)
@@ -260,15 +267,7 @@ def test_a_later_seeds_tape_replays_with_that_seed(tmp_path, capsys):
     """``--traffic RUN/tapes/seed-1.parquet`` without --seed replays with the run's seed 1
     (its swarms' random choices), giving the run's seed-1 rows; --seed still chooses another
     (it replayed with seed 0, another result; probe 17's p2-c30)."""
-    from helpers import small_sumo_scenario
-
-    (tmp_path / "s").mkdir()
-    folder = small_sumo_scenario(tmp_path / "s", horizon=4)
-    run = tmp_path / "run"
-    common = ["--swarms", "random", "--no-ceiling", "--no-report", "--quiet"]
-    argv = ["run", "--config", str(folder / "small.toml"), "--seeds", "2", *common]
-    assert main([*argv, "--out", str(run)]) == 0
-    capsys.readouterr()
+    run, common = _small_sumo_run(tmp_path, capsys, "--seeds", "2")
     tape = str(run / "tapes" / "seed-1.parquet")
     assert main(["evaluate", "--traffic", tape, *common, "--out", str(tmp_path / "ev")]) == 0
     assert "score weights, seed 1)" in capsys.readouterr().err

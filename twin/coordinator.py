@@ -113,7 +113,7 @@ def _solve(q, masked, flat, feasible, stacked: bool, n_cells: int) -> np.ndarray
     """Exact assignment of the given drones to their candidate cells (with private "stay
     anyway" columns when some of them stand on one cell)."""
     m = len(q)
-    if m * (len(np.unique(flat[feasible])) + m * int(stacked)) <= DENSE_ENTRIES:
+    if m * (int(feasible.sum()) + m * int(stacked)) <= DENSE_ENTRIES:  # columns at most
         return _solve_dense(q, masked, flat, feasible, stacked)
     return _solve_sparse(q, masked, flat, feasible, stacked, n_cells)
 
