@@ -47,6 +47,7 @@ from twin.config import (
     SourcedConfig,
     make_grid,
     read_with_overrides,
+    shipped_config,
     synthetic_config,
     synthetic_source,
     with_overrides,
@@ -380,17 +381,24 @@ class PretrainConfig(SourcedConfig):
         files, window, grid and incidents as a run checks them before SUMO starts."""
         if self.curve_every:
             try:
-                config = curve_scenario(self)
-                if config.traffic.kind == "sumo":
-                    from twin.sumo.scenario import sumo_source
-
-                    sumo_source(config)
+                _check_curve_scenario(curve_scenario(self))
             except UserError as exc:
-                raise ValueError(
-                    f"curve_config = {self.curve_config!r} is no scenario config to measure "
-                    f'the curve on ({exc}); give one, e.g. "synthetic"'
-                ) from None
+                raise ValueError(self._curve_refusal(exc)) from None
         return self
+
+    def _curve_refusal(self, exc: UserError) -> str:
+        """Why the curve cannot be measured: the scenario itself, or only its window cut to
+        ``curve_horizon`` steps (then the fix is the horizon, not the file)."""
+        name = f"curve_config = {self.curve_config!r}"
+        try:
+            own = load_scenario(shipped_config(self.curve_config))
+            _check_curve_scenario(own)
+        except UserError:
+            return f'{name} cannot measure the curve: {exc} (or give another, e.g. "synthetic")'
+        return (
+            f"{name} cannot measure the curve over curve_horizon = {self.curve_horizon} "
+            f"steps: {exc} (or set curve_horizon = {own.traffic.horizon}, the scenario's own)"
+        )
 
     @model_validator(mode="after")
     def _exploration_falls(self) -> PretrainConfig:
@@ -1050,10 +1058,17 @@ CURVE_COLUMNS = ("epoch", "updates", "seed", "R_hat_T", "wall_s")
 
 def curve_scenario(cfg: PretrainConfig):
     """The scenario config the curve is measured on, at ``curve_horizon`` steps."""
-    from twin.config import shipped_config
-
     config = load_scenario(shipped_config(cfg.curve_config))
     return with_overrides(config, {"traffic.horizon": cfg.curve_horizon}, {})
+
+
+def _check_curve_scenario(config: ScenarioConfig) -> None:
+    """A SUMO scenario's files, window, grid and incidents, as a run checks them before SUMO
+    starts (synthetic scenarios are checked on load)."""
+    if config.traffic.kind == "sumo":
+        from twin.sumo.scenario import sumo_source
+
+        sumo_source(config)
 
 
 def write_curve(cfg: PretrainConfig, out: Path) -> Path:
