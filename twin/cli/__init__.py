@@ -86,6 +86,36 @@ def add_worker_arguments(p, live: bool = True) -> None:
     )
 
 
+def add_scoring_arguments(p) -> None:
+    """What ``twin run`` and ``twin evaluate`` share after their traffic: the memory limit, the
+    ceilings, the history of belief models, the report, progress bars and the config's keys."""
+    p.add_argument(
+        "--max-memory-gb",
+        type=float,
+        default=None,
+        help="refuse a run whose estimated memory exceeds this (default $TWIN_MAX_MEMORY_GB or 8)",
+    )
+    p.add_argument(
+        "--ceiling",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="add the rows oracle (ceiling) and bound (ceiling): a swarm planning on the true "
+        "future maps and an upper bound no swarm can exceed, computed after the swarms' run "
+        "(default on, left out of a run stopped by Ctrl-C; --no-ceiling skips them)",
+    )
+    p.add_argument(
+        "--history",
+        type=path_arg,
+        help="a history of earlier days (`twin history`): also score each swarm's belief "
+        "models (last-seen, history, nowcast) and write belief_models.csv",
+    )
+    p.add_argument("--no-report", action="store_true", help="do not render the HTML report")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--help-config", action="store_true",
+                   help="list every table and key of a scenario config with its default, "
+                   "then exit")  # fmt: skip
+
+
 class Parser(argparse.ArgumentParser):
     """An argument parser whose errors are one line (the flag, the problem, where the help is)
     and exit code 2, like every other refusal of twin."""
