@@ -195,6 +195,8 @@ def test_make_env_refuses_bad_options_in_one_line(joint):
         ({"params": ScoreParams(alpha_T=0.0, alpha_I=0.0)}, "are both 0"),
         ({"params": ScoreParams(alpha_T="1")}, r"params.alpha_T = '1' must be a number"),
         ({"params": ScoreParams(eta=True)}, r"params.eta = True must be a number"),
+        ({"params": ScoreParams(alpha_I=np.bool_(True))}, r"params.alpha_I = True must be a"),
+        ({"params": ScoreParams(alpha_T=np.bool_(False))}, r"params.alpha_T = False must be a"),
         ({"tape": ""}, r"make_env\(tape=''\): give a tape.parquet's path"),
         ({"tape": 3}, r"make_env\(tape=3\): give a tape.parquet's path"),
         ({"state": ["paper"]}, r"state = \['paper'\] is not a state variant's name"),

@@ -128,8 +128,8 @@ def _params(params: Any) -> ScoreParams:
         )
     names = ("eta", "delta", "alpha_T", "alpha_I")
     values = {name: getattr(params, name) for name in names}
-    values = {  # numpy's numbers as Python's (a numpy bool stays refused)
-        name: float(v) if isinstance(v, (np.integer, np.floating)) else v
+    values = {  # numpy's numbers and bools as Python's (a bool is then refused)
+        name: v.item() if isinstance(v, (np.integer, np.floating, np.bool_)) else v
         for name, v in values.items()
     }
     try:
