@@ -212,6 +212,7 @@ RUN_JSON_FIELDS: dict[str, Any] = {
     "created": str,
     "monitoring": {"threshold": NUM, "min_duration": NUM, "weight_floor": NUM, "truth": str},
     "invocation": {"command": str, "options": dict, "cwd": str},
+    "history": {"path": str, "sha256": str},
     "config": (str, dict),
 }
 
