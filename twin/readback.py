@@ -335,8 +335,6 @@ RUN_JSON_RANGES: dict[str, tuple[Any, str]] = {
     **{f"params.{k}": v for k, v in _SCORE_RANGES.items()},
     **{f"score_params.{k}": v for k, v in _SCORE_RANGES.items()},
 }
-#: The largest seed (SUMO's seeds are 32-bit signed integers).
-_MAX_SEED = 2**31 - 1
 
 
 def check_run_json(path: Path, run: Any) -> dict[str, Any]:
@@ -349,6 +347,8 @@ def check_run_json(path: Path, run: Any) -> dict[str, Any]:
         if params is not None:
             check_fields(path, params, RUN_JSON_FIELDS["params"], "config.params")
     check_ranges(path, run, RUN_JSON_RANGES)
+    from twin.config import MAX_SEED as _MAX_SEED
+
     for n, seed in enumerate(run.get("seeds") or []):
         if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= _MAX_SEED:
             raise UserError(

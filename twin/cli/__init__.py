@@ -23,9 +23,6 @@ COMMANDS = [
     "evaluate", "pretrain", "network", "run", "history", "report", "sweep", "replay", "transfer",
 ]  # fmt: skip
 
-#: The largest seed a command takes (SUMO's seeds are 32-bit signed integers).
-MAX_SEED = 2**31 - 1
-
 
 def path_arg(text: str) -> Path:
     """The value of a path argument; an empty one (``--out ''``) is refused rather than read
@@ -44,6 +41,8 @@ def check_count(flag: str, value: int | None) -> None:
 def check_seeds(flag: str, first: int | None, count: int = 1, count_flag: str = "") -> None:
     """Seeds ``first .. first + count - 1`` must lie in ``0 .. MAX_SEED``: a first seed out of
     range is ``flag``'s fault, too many seeds from a good one ``count_flag``'s."""
+    from twin.config import MAX_SEED
+
     if first is None:
         return
     if first < 0 or first > MAX_SEED or (first + count - 1 > MAX_SEED and not count_flag):

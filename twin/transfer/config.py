@@ -27,6 +27,7 @@ from twin.config import (
     ScenarioFile,
     StrictModel,
     check_name,
+    check_seed_list,
     load_config,
     read_toml,
     validation_error,
@@ -39,18 +40,15 @@ EVALUATION_SEEDS = range(0, 10)
 
 
 def _seed_list(seeds: Any, what: str) -> list[int]:
-    def whole(x: Any) -> bool:
-        return isinstance(x, int) and not isinstance(x, bool)
+    from twin.sweep.config import MAX_SWEEP_CELLS
 
-    if whole(seeds):
-        if seeds < 1:
-            raise ValueError("must be at least 1; give a count or a list of seeds")
-        return list(range(seeds))
-    if not isinstance(seeds, list) or not seeds or not all(whole(s) and s >= 0 for s in seeds):
-        raise ValueError(f"must be a count or a non-empty list of seeds >= 0; e.g. {what}")
-    if len(set(seeds)) != len(seeds):
-        raise ValueError("lists a seed twice; list each once")
-    return seeds
+    listed = check_seed_list(seeds, what)
+    if len(listed) > MAX_SWEEP_CELLS:  # before a list of them is made
+        raise ValueError(
+            f"gives {len(listed):,} seeds, more than the {MAX_SWEEP_CELLS:,} cells the "
+            "evaluation sweep holds; give fewer"
+        )
+    return list(listed)
 
 
 class TransferSection(StrictModel):
