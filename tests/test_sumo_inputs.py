@@ -439,6 +439,36 @@ def test_a_flow_without_end_departs_as_long_as_sumo_lets_it(tmp_path, flow, end)
     assert counts == {"flow": 1}
 
 
+@pytest.mark.parametrize(
+    ("flows", "span"),
+    [  # as SUMO 1.2x departs them (checked with its tripinfo output)
+        (
+            '<interval begin="3600" end="4500"><flow id="f" from="a" to="b" number="120"/>'
+            '<flow id="g" from="a" to="b" vehsPerHour="400"/></interval>',
+            (3600.0, 4500.0),
+        ),
+        (
+            '<interval begin="300" end="400"><flow id="f" from="a" to="b" begin="350" number="2" '
+            'period="5"/></interval>',
+            (350.0, 360.0),
+        ),
+        ('<flow id="f" from="a" to="b" number="3" period="10"/>', (0.0, 30.0)),  # begin 0
+        (
+            '<interval begin="60"><personFlow id="p" number="2" period="30"><walk from="a" '
+            'to="b"/></personFlow></interval>',
+            (60.0, 120.0),
+        ),
+    ],
+)
+def test_flows_without_begin_depart_at_their_intervals_begin_or_0(tmp_path, flows, span):
+    """A flow in an ``<interval>`` departs in it, one without begin from 0: they were not seen
+    as demand, and twin added its own rush hour in a window that missed them (probe 19's
+    f04)."""
+    routes = tmp_path / "iv.rou.xml"
+    routes.write_text(f"<routes>{flows}</routes>")
+    assert departure_span([routes]) == span
+
+
 def test_departures_in_included_route_files_are_the_demand(tmp_path):
     """A route file that only includes another (as SUMO reads it) holds that file's demand, so
     twin does not add its own rush hour beside it (SUMO would refuse the duplicate ids)."""
