@@ -469,6 +469,15 @@ def test_flows_without_begin_depart_at_their_intervals_begin_or_0(tmp_path, flow
     assert departure_span([routes]) == span
 
 
+def test_a_flow_without_begin_departs_at_the_simulations_begin(tmp_path):
+    """SUMO starts such a flow at its own begin (a sumocfg's <begin>): the run was refused
+    with an error blaming the file, after twin added its rush hour (probe 19's f05)."""
+    routes = tmp_path / "nb.rou.xml"
+    routes.write_text('<routes><flow id="f" from="a" to="b" end="5400" number="150"/></routes>')
+    assert departure_span([routes]) == (0.0, 5400.0)
+    assert departure_span([routes], start=3600.0) == (3600.0, 5400.0)
+
+
 def test_departures_in_included_route_files_are_the_demand(tmp_path):
     """A route file that only includes another (as SUMO reads it) holds that file's demand, so
     twin does not add its own rush hour beside it (SUMO would refuse the duplicate ids)."""

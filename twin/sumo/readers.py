@@ -411,12 +411,12 @@ VEHICLE_DEMAND = ("vehicle", "trip", "flow")
 
 
 def departure_span(
-    route_files: list[Path], counts: dict[str, int] | None = None
+    route_files: list[Path], counts: dict[str, int] | None = None, start: float = 0.0
 ) -> tuple[float, float] | None:
     """First and last numeric departure of the demand (``depart`` of vehicles, trips and persons,
     ``begin`` .. ``end`` of flows, person and container flows, those of their ``<interval>`` or
-    0 when a flow gives none, as SUMO reads them); None when the files hold no vehicle (e.g.
-    only vTypes).
+    ``start``, the simulation's begin, when a flow gives none, as SUMO reads them); None when
+    the files hold no vehicle (e.g. only vTypes).
     ``counts``, when given, gets the number of departing elements of each tag. Files pulled in
     with ``<include href>`` count, as SUMO loads them."""
     first = last = None
@@ -443,8 +443,8 @@ def departure_span(
                     key = _DEPARTING.get(tag)
                     t = _check_departure(path, elem, key) if key else None
                     flow = tag.endswith(("flow", "Flow"))  # flow, personFlow, ...
-                    if flow and elem.get("begin") is None:  # SUMO: the interval's, else 0
-                        t = intervals[-1][0] if intervals else 0.0
+                    if flow and elem.get("begin") is None:  # SUMO: the interval's, else its own
+                        t = intervals[-1][0] if intervals else start
                     if t is not None:
                         counts[tag] = counts.get(tag, 0) + 1
                         end = t

@@ -336,7 +336,9 @@ def _scenario_files(s: SumoSettings) -> _ScenarioFiles:
     with _named_in(files.sumocfg, [*as_.get("routes", []), *as_.get("additional", [])]):
         # SUMO loads vehicles, flows and persons of additional files as demand too
         departing: dict[str, int] = {}
-        files.span = departure_span([*files.route_files, *files.additional_files], departing)
+        files.span = departure_span(
+            [*files.route_files, *files.additional_files], departing, start=files.window[0] or 0.0
+        )
     if files.span is None and files.sumocfg is not None and not files.route_files:
         notice(
             f"{files.sumocfg}: names no <route-files>; twin generates a rush-hour demand "
