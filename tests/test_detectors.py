@@ -528,9 +528,10 @@ def test_reader_without_plan_reads_nothing(small):
 
 
 def test_a_broken_occupancy_reading_is_left_out_with_one_notice(capsys):
-    """SUMO reads an occupancy far below 0 for a loop whose period is shorter than its step:
-    such readings are left out, with one notice naming the detector (it was recorded and read
-    back as valid; probe 16's f08)."""
+    """SUMO's API reads an occupancy far below 0 for a loop with a vehicle on it as the
+    interval ends (period 1 s: to -60 %): such readings are left out, with one notice naming
+    the detector and the true cause (it was recorded and read back as valid, probe 16's f08; the
+    notice blamed a period of whole seconds, probe 19's f06)."""
     from types import SimpleNamespace
 
     from twin.sumo.detectors import LOOP, Detector, DetectorReader
@@ -554,7 +555,8 @@ def test_a_broken_occupancy_reading_is_left_out_with_one_notice(capsys):
     reader._last, reader._broken = {}, set()
     assert [reader.read(), reader.read(), reader.read()] == [[], [(0, 2, 5.0, 8.0)], []]
     notices = [line for line in capsys.readouterr().err.splitlines() if "L3" in line]
-    assert len(notices) == 1 and "occupancy of -11.57 %" in notices[0], notices
+    assert len(notices) == 1 and "occupancy of -11.57 % over its last interval" in notices[0]
+    assert "miscounting a vehicle on the loop" in notices[0] and "whole seconds" not in notices[0]
     # twin's own loops (a period of one step) dip below 0 too: kept as 0, without a word
     # (probe 16's P2-f08)
     values = iter([(1, -2.1, 9.0)])

@@ -194,10 +194,13 @@ def with_additional(options: tuple[str, ...], extra: Path) -> tuple[str, ...]:
     return (*out, "--additional-files", str(extra))
 
 
-#: The lowest occupancy (%) a reading of the scenario's detectors keeps: SUMO's interval
-#: occupancy dips below 0 at times (twin's own loops, of a period of one step, to -2 %), kept
-#: as 0 (the importance of a density at or below 0 is 0 alike); far below, for a period that is
-#: no multiple of SUMO's step, a reading is broken and left out.
+#: The lowest occupancy (%) a reading of the scenario's detectors keeps. SUMO's last-interval
+#: occupancy through its API (``getLastIntervalOccupancy``) miscounts a vehicle on the loop when
+#: an interval ends, where SUMO's own file output does not: at times it lags an interval or
+#: goes below 0, by about the vehicle's time on the loop over the period (twin's own loops, of
+#: a period of one step, to -2 %; a loop of period 1 s, to -60 %). A dip to this floor is kept
+#: as 0 (the importance of a density at or below 0 is 0 alike); a reading further below is
+#: broken and left out.
 OCCUPANCY_FLOOR = -1.0
 
 
@@ -257,9 +260,10 @@ class DetectorReader:
 
         notify(
             f"twin: notice: the scenario's detector {detector.id!r} (lane {detector.lane}) read "
-            f"an occupancy of {occupancy:.4g} %, as SUMO's interval occupancy does for a "
-            f"period that is no multiple of its 1 s step (SUMO warns of it): its readings "
-            f"below {OCCUPANCY_FLOOR:g} % are left out; give it a period of whole seconds"
+            f"an occupancy of {occupancy:.4g} % over its last interval, SUMO's value through its "
+            "API miscounting a vehicle on the loop as the interval ended (its file output does "
+            f"not): its readings below {OCCUPANCY_FLOOR:g} % are left out; a longer period, "
+            "e.g. twin's step, makes them rarer"
         )
 
     def read(self) -> list[tuple[int, int, float, float]]:
