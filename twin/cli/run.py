@@ -371,13 +371,16 @@ def finish_video(drawer, run_dir: Path | None = None) -> bool:
 
 
 def _announce(source) -> None:
+    """The ``SUMO: ...`` line: scenario, grid, drones, the warm-up's start (SUMO's begin, not
+    whole steps before T^0), the window and the step."""
     from twin.boundary import notify
+    from twin.clock import clock_label
 
     s = source.scenario
     notify(
         f"SUMO: {s.name} (seed {s.seed}), {source.grid.nx} x {source.grid.ny} cells of "
         f"{source.geometry.cell_m:g} m ({source.grid.n_free} free, "
         f"{s.extra.get('n_drones', '?')} drones), "
-        f"{source.clock(-s.warmup_steps())} warm-up, {source.clock(0)} - "
+        f"{clock_label(s.sim_begin)} warm-up, {source.clock(0)} - "
         f"{source.clock(s.horizon)}, step {s.step_s:g} s"
     )
