@@ -342,3 +342,25 @@ def test_a_failing_video_encoder_is_named_with_a_fix(tmp_path, monkeypatch, enco
         write_video(tmp_path / "x.mp4", frames)
     assert "\n" not in str(info.value) and "FFMPEG COMMAND" not in str(info.value)
     assert not (tmp_path / "x.mp4").exists()
+
+
+@needs_display
+def test_a_scenario_asking_for_more_traci_clients_runs_under_the_gui(scenario, tmp_path):
+    """A sumocfg's ``<num-clients value="2"/>`` kept sumo-gui waiting for a second client
+    forever (probe 19's f08): twin is its one client."""
+    import subprocess
+    import sys
+
+    cfg = tmp_path / "clients.sumocfg"
+    cfg.write_text(
+        f'<configuration><input><net-file value="{scenario / "small.net.xml"}"/>'
+        f'<route-files value="{scenario / "small.trips.xml"}"/></input>'
+        '<num-clients value="2"/></configuration>'
+    )
+    argv = ["run", "--sumocfg", str(cfg), "--cell-m", "200", "--horizon", "2", "--swarms",
+            "random", "--no-ceiling", "--no-report", "--quiet", "--gui", "--out",
+            str(tmp_path / "run")]  # fmt: skip
+    done = subprocess.run(
+        [sys.executable, "-m", "twin", *argv], capture_output=True, text=True, timeout=300
+    )
+    assert done.returncode == 0, done.stderr
