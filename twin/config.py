@@ -21,7 +21,7 @@ import re
 import tomllib
 import types
 import typing
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Annotated, Any, ClassVar, Literal, Self, TypeVar
 
@@ -45,6 +45,7 @@ from twin.grid import Grid
 from twin.mfd import SETTING_RANGES as MFD_SETTING_RANGES
 from twin.resources import shipped_config as shipped_config  # re-export (moved there)
 from twin.scores import ScoreParams
+from twin.seeds import MAX_SEED
 from twin.swarms import check_swarm_name, make_policy
 
 
@@ -180,38 +181,7 @@ Horizon = Annotated[int, Field(ge=1, le=MAX_HORIZON)]
 #: The largest reward weight (Def. 4): sums of a run's rewards stay finite.
 MAX_WEIGHT = 1e6
 Weight = Annotated[float, Field(ge=0, le=MAX_WEIGHT)]
-#: The largest seed (SUMO's seeds are 32-bit signed integers); every command and config keeps to
-#: 0 .. MAX_SEED.
-MAX_SEED = 2**31 - 1
 Seed = Annotated[int, Field(ge=0, le=MAX_SEED)]
-
-
-def check_seed_list(seeds: Any, example: str, first: int = 0) -> Sequence[int]:
-    """A config's ``seeds``: a count (``first``, ``first + 1``, ...: a range) or a list of
-    distinct seeds, all in ``0 .. MAX_SEED``; else a ValueError saying which and how to fix it."""
-
-    def whole(x: Any) -> bool:
-        return isinstance(x, int) and not isinstance(x, bool)
-
-    if whole(seeds):
-        if seeds < 1:
-            raise ValueError("must be at least 1; give a count or a list of seeds")
-        if first + seeds - 1 > MAX_SEED:
-            raise ValueError(
-                f"runs seeds {first} .. {first + seeds - 1}, past the largest seed "
-                f"{MAX_SEED}; give at most {MAX_SEED - first + 1}"
-            )
-        return range(first, first + seeds)
-    if not isinstance(seeds, list) or not seeds or not all(whole(s) for s in seeds):
-        raise ValueError(f"must be a count or a non-empty list of whole numbers; e.g. {example}")
-    wrong = [s for s in seeds if not 0 <= s <= MAX_SEED]
-    if wrong:
-        raise ValueError(
-            f"holds seed {wrong[0]}, out of range; seeds are whole numbers from 0 to {MAX_SEED}"
-        )
-    if len(set(seeds)) != len(seeds):
-        raise ValueError("lists a seed twice; list each once")
-    return seeds
 
 
 Unit = Annotated[float, Field(gt=0, lt=1)]

@@ -20,6 +20,7 @@ import pandas as pd
 
 from twin.errors import UserError
 from twin.files import NotARecord, read_record
+from twin.seeds import MAX_SEED
 
 RERUN = "rerun the command that wrote it"
 
@@ -347,13 +348,12 @@ def check_run_json(path: Path, run: Any) -> dict[str, Any]:
         if params is not None:
             check_fields(path, params, RUN_JSON_FIELDS["params"], "config.params")
     check_ranges(path, run, RUN_JSON_RANGES)
-    from twin.config import MAX_SEED as _MAX_SEED
 
     for n, seed in enumerate(run.get("seeds") or []):
-        if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= _MAX_SEED:
+        if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= MAX_SEED:
             raise UserError(
                 f"{path}: seeds[{n}] = {str(seed)[:40]} must be a whole number from 0 to "
-                f"{_MAX_SEED}; {RERUN}"
+                f"{MAX_SEED}; {RERUN}"
             )
     for n, swarm in enumerate(run.get("swarms") or []):
         if not isinstance(swarm, str):

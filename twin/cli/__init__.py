@@ -18,6 +18,7 @@ from pathlib import Path
 from twin import __version__
 from twin.boundary import run_command, set_command_line
 from twin.errors import UserError
+from twin.seeds import MAX_SEED
 
 COMMANDS = [
     "evaluate", "pretrain", "network", "run", "history", "report", "sweep", "replay", "transfer",
@@ -41,8 +42,6 @@ def check_count(flag: str, value: int | None) -> None:
 def check_seeds(flag: str, first: int | None, count: int = 1, count_flag: str = "") -> None:
     """Seeds ``first .. first + count - 1`` must lie in ``0 .. MAX_SEED``: a first seed out of
     range is ``flag``'s fault, too many seeds from a good one ``count_flag``'s."""
-    from twin.config import MAX_SEED
-
     if first is None:
         return
     if first < 0 or first > MAX_SEED or (first + count - 1 > MAX_SEED and not count_flag):

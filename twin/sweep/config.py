@@ -30,11 +30,11 @@ from twin.config import (
     StrictModel,
     check_dotted,
     check_name,
-    check_seed_list,
     read_toml,
     validation_error,
 )
 from twin.files import not_a_file
+from twin.seeds import check_seed_list
 
 #: Swarm options that name a file, and how such a file is made: a sweep resolves them against
 #: its own folder, and each cell's id hashes their content (:func:`twin.sweep.cells.cell_id`).

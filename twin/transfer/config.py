@@ -27,13 +27,13 @@ from twin.config import (
     ScenarioFile,
     StrictModel,
     check_name,
-    check_seed_list,
     load_config,
     read_toml,
     validation_error,
 )
 from twin.errors import UserError
 from twin.files import not_a_file
+from twin.seeds import check_seed_list
 
 #: Seeds that evaluation uses; tapes and validation curves must stay off them.
 EVALUATION_SEEDS = range(0, 10)
