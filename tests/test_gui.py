@@ -345,9 +345,10 @@ def test_a_failing_video_encoder_is_named_with_a_fix(tmp_path, monkeypatch, enco
 
 
 @needs_display
-def test_a_scenario_asking_for_more_traci_clients_runs_under_the_gui(scenario, tmp_path):
+def test_a_scenario_with_gui_options_that_stop_a_run_runs_under_the_gui(scenario, tmp_path):
     """A sumocfg's ``<num-clients value="2"/>`` kept sumo-gui waiting for a second client
-    forever (probe 19's f08): twin is its one client."""
+    forever (probe 19's f08); its ``<breakpoints>`` ended the run at the first, and ``<demo>``
+    kept sumo-gui from starting (f09): twin is its one client, and these are off."""
     import subprocess
     import sys
 
@@ -355,7 +356,8 @@ def test_a_scenario_asking_for_more_traci_clients_runs_under_the_gui(scenario, t
     cfg.write_text(
         f'<configuration><input><net-file value="{scenario / "small.net.xml"}"/>'
         f'<route-files value="{scenario / "small.trips.xml"}"/></input>'
-        '<num-clients value="2"/></configuration>'
+        '<num-clients value="2"/><gui_only><breakpoints value="400,500"/><demo value="true"/>'
+        '<game value="true"/></gui_only></configuration>'
     )
     argv = ["run", "--sumocfg", str(cfg), "--cell-m", "200", "--horizon", "2", "--swarms",
             "random", "--no-ceiling", "--no-report", "--quiet", "--gui", "--out",
