@@ -875,3 +875,32 @@ def test_an_unset_variable_in_a_sumo_option_is_said(monkeypatch, capsys):
     monkeypatch.setenv("TWIN_TEST_UNSET", "here")
     assert readers.substitute_environment("${TWIN_TEST_UNSET}/c.xml") == "here/c.xml"
     assert capsys.readouterr().err == ""
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["run", "--net", "{net}", "--cell-m", "200", "--horizon", "2", "--swarms", "random",
+         "--no-ceiling", "--no-report", "--quiet", "--out", "{out}"],  # demand made in the cache
+        ["network", "build", "shenzhen_like"],
+    ],
+)  # fmt: skip
+def test_a_cache_folder_with_a_comma_is_refused_before_anything_is_made_in_it(
+    city, tmp_path, monkeypatch, capsys, argv
+):
+    """SUMO splits file names at commas: a cache at such a path was found after the demand was
+    generated into it, by a line blaming the user's network (probe 19's f10)."""
+    from twin.resources import CACHE_ENV
+
+    cache = tmp_path / "ca,che"
+    monkeypatch.setenv(CACHE_ENV, str(cache))
+    net = city / "data" / "grid.net.xml"
+    argv = [a.format(net=net, out=tmp_path / "run") for a in argv]
+    capsys.readouterr()
+    assert twin_main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"twin's cache {cache} ($TWIN_CACHE_DIR) has a comma" in err
+    assert "set TWIN_CACHE_DIR to a folder without one" in err, err
+    made = [p for p in cache.rglob("*") if p.is_file()] if cache.exists() else []
+    assert not [p for p in made if p.parent.name != "tmp"], made
+    assert not (tmp_path / "run").exists()

@@ -86,6 +86,21 @@ def check_no_comma(path: Path | str, program: str = "SUMO") -> None:
         )
 
 
+def check_cache_without_comma() -> None:
+    """twin hands SUMO files of its cache (built networks, generated demand, its loops) by their
+    full paths, which SUMO splits at commas: a cache folder with a comma is refused before any
+    of them is made, naming the variable that sets it."""
+    from twin.resources import CACHE_ENV, cache_dir
+
+    folder = cache_dir()
+    if "," in str(folder):
+        raise UserError(
+            f"twin's cache {folder} (${CACHE_ENV}) has a comma in its path, and SUMO splits the "
+            f"names of the cache's files twin gives it at commas; set {CACHE_ENV} to a folder "
+            "without one"
+        )
+
+
 def local_name(elem: ET.Element) -> str:
     """An element's name without its namespace (``{uri}edgeData`` -> ``edgeData``), as SUMO
     matches names; ``""`` for a comment or processing instruction."""

@@ -39,6 +39,7 @@ from twin.grid import Grid
 from twin.sumo.readers import (
     SUMOCFG_ROOTS,
     VEHICLE_DEMAND,
+    check_cache_without_comma,
     check_no_comma,
     departure_span,
     include_cycle,
@@ -646,6 +647,7 @@ def sumo_source(
     )
     t0 = parse_clock(s.begin, begin_where)
 
+    check_cache_without_comma()
     files = _scenario_files(s)
     if s.end is not None and (not swapped or own):  # like its begin and horizon
         files.window[1] = parse_clock(s.end, f"{config.path}: [traffic].end")
