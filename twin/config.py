@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import codecs
 import copy
+import itertools
 import math
 import re
 import tomllib
@@ -481,6 +482,13 @@ class FaultsConfig(StrictModel):
                 raise ValueError(
                     f"[faults].coordinator_down has [{start}, {stop}]; give windows "
                     "[start, stop] with 0 <= start < stop"
+                )
+        ordered = sorted(value)
+        for (a, b), (c, d) in itertools.pairwise(ordered):
+            if c < b:  # one outage given twice would be split into phases of one state
+                raise ValueError(
+                    f"[faults].coordinator_down has [{a}, {b}] and [{c}, {d}], which overlap; "
+                    f"give one window [{a}, {max(b, d)}], or separate them"
                 )
         return value
 
