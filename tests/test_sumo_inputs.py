@@ -476,6 +476,12 @@ def test_a_flow_without_begin_departs_at_the_simulations_begin(tmp_path):
     routes.write_text('<routes><flow id="f" from="a" to="b" end="5400" number="150"/></routes>')
     assert departure_span([routes]) == (0.0, 5400.0)
     assert departure_span([routes], start=3600.0) == (3600.0, 5400.0)
+    # SUMO's word "begin" (a vehicle's depart, a flow's begin): the simulation's begin too
+    routes.write_text(
+        '<routes><vehicle id="v" depart="begin" route="r"/>'
+        '<flow id="f" begin="begin" end="5400" period="60" from="a" to="b"/></routes>'
+    )
+    assert departure_span([routes], start=3600.0) == (3600.0, 5400.0)
 
 
 def test_departures_in_included_route_files_are_the_demand(tmp_path):

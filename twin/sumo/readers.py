@@ -401,12 +401,15 @@ _DEPARTING = {
 }
 
 
-def _check_departure(path: Path, elem: ET.Element, key: str) -> float | None:
-    """The departure time of ``elem`` (None for SUMO's words such as "triggered" or "now"); a
-    negative, NaN or infinite time, which SUMO refuses, is a one-line error naming the file."""
+def _check_departure(path: Path, elem: ET.Element, key: str, start: float = 0.0) -> float | None:
+    """The departure time of ``elem``: ``start`` (the simulation's begin) for SUMO's word
+    "begin", None for its other words such as "triggered" or "now"; a negative, NaN or infinite
+    time, which SUMO refuses, is a one-line error naming the file."""
     text = elem.get(key)
     if text is None:
         return None
+    if text.strip() == "begin":
+        return start
     t = parse_time(text)
     try:
         number = float(text)
@@ -449,14 +452,14 @@ def departure_span(
                     tag = local_name(elem)
                     if tag == "interval":
                         if event == "start":
-                            intervals.append(_interval(path, elem))
+                            intervals.append(_interval(path, elem, start))
                         else:
                             intervals.pop()
                         continue
                     if event == "start":
                         continue
                     key = _DEPARTING.get(tag)
-                    t = _check_departure(path, elem, key) if key else None
+                    t = _check_departure(path, elem, key, start) if key else None
                     flow = tag.endswith(("flow", "Flow"))  # flow, personFlow, ...
                     if flow and elem.get("begin") is None:  # SUMO: the interval's, else its own
                         t = intervals[-1][0] if intervals else start
@@ -474,10 +477,10 @@ def departure_span(
     return None if first is None else (first, last)
 
 
-def _interval(path: Path, elem: ET.Element) -> tuple[float, float | None]:
+def _interval(path: Path, elem: ET.Element, start: float) -> tuple[float, float | None]:
     """A route file's ``<interval begin end>``: the begin and end of the flows inside it that
     give none (SUMO's defaults for them)."""
-    begin = _check_departure(path, elem, "begin")
+    begin = _check_departure(path, elem, "begin", start)
     return (0.0 if begin is None else begin), parse_time(elem.get("end"))
 
 
