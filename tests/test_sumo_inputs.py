@@ -206,6 +206,21 @@ def test_a_clash_of_a_vehicles_own_route_is_blamed_on_a_route_file(tmp_path):
     assert where == alt and reason.startswith("Another route (or distribution)"), where
 
 
+def test_a_missing_attribute_of_an_element_kind_is_blamed_on_the_file_holding_it(tmp_path):
+    """SUMO names an element by its kind alone ("in definition of a interval"): the file with
+    such an element is named, not the network (probe 19's P2-02)."""
+    from twin.sumo.session import sumo_refusal
+
+    net, trips, iv = tmp_path / "g.net.xml", tmp_path / "trips.xml", tmp_path / "c.rou.xml"
+    net.write_text('<net><edge id="A0A1"/></net>')
+    trips.write_text('<routes><trip id="0" depart="0" from="A0A1" to="A0A1"/></routes>')
+    iv.write_text('<routes><interval end="900"><flow id="f" from="A0A1" to="A0A1" '
+                  'vehsPerHour="600"/></interval></routes>')  # fmt: skip
+    text = "Error: Attribute 'begin' is missing in definition of a interval.\nQuitting."
+    assert sumo_refusal(text, [net, iv, trips])[0] == iv
+    assert sumo_refusal(text, [net, trips])[0] == net  # no file holds one: the first named
+
+
 @pytest.mark.parametrize("kind", ["spider", "random"])
 def test_generated_networks_compressed_with_additionals(kind, city, capsys):
     files = _scenario(city / kind, kind)

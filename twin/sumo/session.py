@@ -255,11 +255,17 @@ def sumo_refusal(text: str, files: list[Path]) -> tuple[Path | str, str]:
     for path in reversed(files):  # additionals and routes before the network
         if quoted and path.suffix != ".sumocfg" and _mentions(path, quoted):
             return path, reason
+    # an element SUMO names by its kind ("... in definition of a interval."): the file with one
+    element = re.search(r"definition of (?:an? )?([A-Za-z_][\w-]*)", reason)
+    for path in reversed(files):
+        if element and path.suffix != ".sumocfg" and _mentions(path, [element[1]], "<"):
+            return path, reason
     return (files[0] if files else "SUMO"), reason
 
 
-def _mentions(path: Path, tokens: list[str]) -> bool:
-    """Whether a (perhaps gzip-compressed) XML file gives one of ``tokens`` as a value."""
+def _mentions(path: Path, tokens: list[str], as_: str = "value") -> bool:
+    """Whether a (perhaps gzip-compressed) XML file gives one of ``tokens`` as a value (or, with
+    ``as_="<"``, holds an element of that name)."""
     import gzip
 
     try:
@@ -270,6 +276,8 @@ def _mentions(path: Path, tokens: list[str]) -> bool:
             data = fh.read(64 << 20).decode(errors="replace")
     except OSError:
         return False
+    if as_ == "<":
+        return any(re.search(rf"<{re.escape(t)}[\s/>]", data) for t in tokens)
     return any(f'"{t}"' in data for t in tokens)
 
 
