@@ -96,6 +96,8 @@ class SumoSession:
     #: The simulation is the same, so are the results.
     gui: Any = None
     started: bool = field(default=False, init=False)
+    #: sumo-gui's error log in twin's scratch folder, removed when the session closes
+    _scratch: Path | None = field(default=None, init=False, repr=False)
 
     _active: ClassVar[SumoSession | None] = None
 
@@ -155,7 +157,7 @@ class SumoSession:
             if not Path(path).exists():
                 raise missing(path, "file")
         if self.gui is not None:
-            self._start_gui()
+            self._start_gui(files)
             return self
         libsumo = _libsumo()
         stderr = _capture_fd2()
@@ -173,21 +175,45 @@ class SumoSession:
         self.started = True
         return self
 
-    def _start_gui(self) -> None:
-        """Start sumo-gui through traci with the same options (see :mod:`twin.sumo.gui`)."""
+    def _start_gui(self, files: list[Path]) -> None:
+        """Start sumo-gui through traci with the same options (see :mod:`twin.sumo.gui`); its
+        refusal to start is one line with its reason and file, as libsumo's is."""
         import traci
+        from sumolib.miscutils import getFreeSocketPort
 
         cmd = [self.gui.binary(), *self.command()[1:], *self.gui.sumo_options(self.mesoscopic)]
+        log = _error_log(cmd)  # sumo-gui says why it quits there (and in its window), not on
+        owned = None  # stderr
+        if log is None:
+            from twin.resources import scratch_dir
+
+            log = owned = scratch_dir() / f"twin-gui-errors-{os.getpid()}.txt"
+            cmd += ["--error-log", str(log)]
+        stderr = _ChildStderr()
         try:
             with (
                 self.gui.environment(),  # its saved settings in twin's cache, not in ~
                 contextlib.redirect_stdout(io.StringIO()),  # traci's "Retrying in 1 seconds"
             ):
-                traci.start(cmd, stdout=subprocess.DEVNULL)
-        except Exception as exc:  # traci raises FatalTraCIError or OSError
+                # a port of its own: traci then gives up when sumo-gui quits, instead of
+                # starting it again on other ports for a minute
+                traci.start(cmd, port=getFreeSocketPort(), stdout=subprocess.DEVNULL)
+        except Exception as exc:  # traci raises FatalTraCIError, TraCIException or OSError
+            stderr.child_started()
             with contextlib.suppress(Exception):
                 traci.close()
+            said = stderr.text(wait=True)
+            with contextlib.suppress(OSError):
+                said += log.read_text(errors="replace")
+            if owned is not None:
+                owned.unlink(missing_ok=True)
+            if "Error" in said:
+                where, reason = sumo_refusal(said, files)
+                raise UserError(f"{where}: sumo-gui refuses it: {reason}") from None
             raise UserError(f"--gui: sumo-gui did not start ({_first_line(str(exc))})") from None
+        stderr.child_started()
+        stderr.pass_on()  # its messages from here on go to twin's stderr, as libsumo's do
+        self._scratch = owned  # removed when the session closes
         SumoSession._active = self
         self.started = True
 
@@ -220,6 +246,9 @@ class SumoSession:
             with contextlib.suppress(Exception):
                 _libsumo().close()
             self.started = False
+        if self._scratch is not None:
+            self._scratch.unlink(missing_ok=True)
+            self._scratch = None
         if SumoSession._active is self:
             SumoSession._active = None
 
@@ -287,6 +316,64 @@ def _first_line(text: str) -> str:
         if "error" in line.lower():
             return line
     return lines[0] if lines else "unknown error"
+
+
+def _error_log(cmd: list[str]) -> Path | None:
+    """The file a SUMO command line writes its errors to (``--error-log``, else ``--log``)."""
+    for names in (("--error-log",), ("--log", "-l")):
+        for flag, value in itertools.pairwise(cmd):
+            if flag in names:
+                return Path(value)
+    return None
+
+
+class _ChildStderr:
+    """The stderr of a process started while it exists (sumo-gui), through a pipe: held while
+    the process starts, so that its refusal becomes twin's one line, then passed on to twin's
+    stderr as it comes."""
+
+    def __init__(self) -> None:
+        import threading
+
+        self._read, write = os.pipe()
+        self._saved = os.dup(2)
+        os.dup2(write, 2)  # a process started now writes into the pipe
+        os.close(write)
+        self._held: list[bytes] = []
+        self._passing = False
+        self._restored = False
+        self._lock = threading.Lock()
+        self._thread = threading.Thread(target=self._pump, daemon=True)
+        self._thread.start()
+
+    def _pump(self) -> None:
+        with os.fdopen(self._read, "rb", buffering=0) as fh:
+            while chunk := fh.read(4096):
+                with self._lock:
+                    if self._passing:
+                        os.write(self._saved, chunk)
+                    else:
+                        self._held.append(chunk)
+
+    def child_started(self) -> None:
+        """twin's own stderr back; the child keeps the pipe."""
+        if not self._restored:
+            os.dup2(self._saved, 2)
+            self._restored = True
+
+    def text(self, wait: bool = False) -> str:
+        """What was held; ``wait``: until the child closed its end (at most 5 s)."""
+        if wait:
+            self._thread.join(timeout=5.0)
+        with self._lock:
+            return b"".join(self._held).decode(errors="replace")
+
+    def pass_on(self) -> None:
+        with self._lock:
+            for chunk in self._held:
+                os.write(self._saved, chunk)
+            self._held.clear()
+            self._passing = True
 
 
 class _capture_fd2:
