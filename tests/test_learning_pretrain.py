@@ -332,6 +332,9 @@ def test_recipes_collect_on_their_traffic_and_record_curve_and_provenance(tmp_pa
     ("text", "match"),
     [
         ("curve_seeds = [3, 100]\n", "evaluation seed"),
+        ("curve_seeds = [9223372036854775808]\n", r"curve_seeds\[0\] = 9223372036854775808 must"),
+        ("seed = 2147483648\n", "seed = 2147483648 must be <= 2147483647"),
+        ("history_seed = 2147483648\n", "history_seed = 2147483648 must be <= 2147483647"),
         ('traffic = "tapes"\n', "needs tape files"),
         ('traffic = "tapes"\ntapes = ["nowhere.parquet"]\n', "does not exist"),
         ('traffic = "weather"\n', "traffic"),

@@ -73,6 +73,7 @@ from twin.learning.dqn import (  # noqa: F401  (double_dqn_target re-exported fo
 )
 from twin.learning.qnet import TABLE1_LAYERS, QNetwork
 from twin.learning.replay import ReplayBuffer, n_step_transitions
+from twin.seeds import MAX_SEED
 from twin.states import DEFAULT_STATE, STATE_NAMES, STATE_VARIANTS, UNAVAILABLE, StateVariant
 from twin.traffic.dynamic import dynamics_history
 from twin.traffic.synthetic import SyntheticTraffic
@@ -132,7 +133,10 @@ class PretrainConfig(SourcedConfig):
     FILE_TABLES: ClassVar[bool] = False
 
     seed: int = _help(
-        "seed of the data, the network initialisation and the batches", default=0, ge=0
+        "seed of the data, the network initialisation and the batches",
+        default=0,
+        ge=0,
+        le=MAX_SEED,
     )
     out: str = _help(
         "folder for state.pt, qnet.pt, train_log.csv, snapshots/",
@@ -222,6 +226,7 @@ class PretrainConfig(SourcedConfig):
         "must differ from the training episodes')",
         default=1_000_000,
         ge=0,
+        le=MAX_SEED,
     )
     layers: list[PositiveInt] = _help(
         "layer sizes, the state's size in and 5 out (Table 1: 13 -> 2048 -> 1024 -> 256 -> 64 "
@@ -257,7 +262,7 @@ class PretrainConfig(SourcedConfig):
     curve_every: int = _help(
         "epochs between points of the learning curve, curve.csv (0: no curve)", default=0, ge=0
     )
-    curve_seeds: list[Annotated[int, Field(ge=0)]] = _help(
+    curve_seeds: list[Annotated[int, Field(ge=0, le=MAX_SEED)]] = _help(
         "validation seeds of the curve (never the evaluation seeds 0-9)",
         default_factory=lambda: [100, 101],
     )
