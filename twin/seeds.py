@@ -6,8 +6,9 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
-#: The largest seed (SUMO's seeds are 32-bit signed integers); every command and config keeps to
-#: 0 .. MAX_SEED.
+#: The largest seed (SUMO's seeds are 32-bit signed integers); every seed a command or config
+#: takes keeps to 0 .. MAX_SEED (the synthetic generator's seeds derived from them, such as
+#: pretraining's episodes, may be larger: numpy takes any).
 MAX_SEED = 2**31 - 1
 
 
