@@ -571,6 +571,7 @@ def test_beliefs_whose_history_is_gone_are_not_replayed_and_say_so(believed, tmp
         ({"path": 3}, 4, "history.path = 3 must be text"),
         (None, 4, "history = null names no history file and its sha256"),
         ({"path": "h.npz"}, 4, 'history = {"path": "h.npz"} names no history file'),
+        ({"path": "h.npz", "sha256": "0" * 64}, 4, "history.path = 'h.npz' is not an absolute"),
         (None, 3, None),  # an earlier twin's folder: a notice, not a refusal
     ],
 )
@@ -581,12 +582,14 @@ def test_a_history_record_that_names_no_file_is_refused_in_a_current_folder(
     with a notice blaming an earlier twin (probe 19's f02): a folder of format 4 records it."""
     import shutil
 
-    from test_boundary import refresh_manifest
+    from test_boundary import as_format_3_wrote, refresh_manifest
 
     run = tmp_path / "run"
     shutil.copytree(believed, run)
     meta = json.loads((run / "run.json").read_text())
     meta["history"], meta["folder_format"] = record, folder_format
+    if folder_format < 4:
+        as_format_3_wrote(run)
     (run / "run.json").write_text(json.dumps(meta))
     refresh_manifest(run)
     capsys.readouterr()

@@ -52,6 +52,11 @@ def replayable_history(primary: Primary):
             )
         return None, "run.json records no history file (an earlier twin's run)"
     path = Path(record["path"])
+    if not path.is_absolute():  # twin records it resolved
+        raise UserError(
+            f"{primary.run_dir / 'run.json'}: history.path = {record['path'][:60]!r} is not an "
+            f"absolute path, as twin records it; {RERUN}"
+        )
     try:
         same = path.is_file() and file_sha256(path) == record.get("sha256")
     except OSError:

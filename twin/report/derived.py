@@ -795,15 +795,13 @@ def seed_aggregate(primary: Primary, frame: pd.DataFrame) -> pd.DataFrame:
 
 
 def _earlier_intervals(primary: Primary, frame: pd.DataFrame, expected: pd.DataFrame):
-    """``expected`` with the 0 a folder of format 3 or earlier wrote (``frame``) where one seed
-    gives no interval (``_ci95`` columns, now empty), by swarm."""
+    """``expected`` with the 0 a folder of format 3 or earlier wrote where one seed gives no
+    interval (``_ci95`` columns, now empty): such a folder holds 0 there, and an empty cell
+    in it is a later folder relabelled."""
     if folder_format(primary) >= 4 or "swarm" not in frame.columns:
         return expected
-    written = frame.drop_duplicates("swarm").set_index("swarm")
     for column in [c for c in expected.columns if c.endswith("_ci95") and c in frame]:
-        was = pd.to_numeric(written[column], errors="coerce").reindex(expected["swarm"])
-        zero = expected[column].isna().to_numpy() & (was == 0).to_numpy()
-        expected.loc[zero, column] = 0.0
+        expected.loc[expected[column].isna(), column] = 0.0
     return expected
 
 
