@@ -550,9 +550,11 @@ def test_a_broken_occupancy_reading_is_left_out_with_one_notice(capsys):
             return self.now[2]
 
     reader = DetectorReader.__new__(DetectorReader)
-    reader.api = SimpleNamespace(inductionloop=Loops())
+    reader.api = SimpleNamespace(
+        inductionloop=Loops(), simulation=SimpleNamespace(getTime=lambda: 600.0)
+    )
     reader.detectors = [Detector("L3", LOOP, "B0B1_0", (0, 0), False)]
-    reader._last, reader._broken = {}, set()
+    reader._last, reader._broken, reader._first_end, reader._begin = {}, set(), {}, 0.0
     assert [reader.read(), reader.read(), reader.read()] == [[], [(0, 2, 5.0, 8.0)], []]
     notices = [line for line in capsys.readouterr().err.splitlines() if "L3" in line]
     assert len(notices) == 1 and "occupancy of -11.57 % over its last interval" in notices[0]
@@ -576,3 +578,60 @@ def test_scenario_detectors_asked_of_a_scenario_without_any_say_so(small, tmp_pa
     err = capsys.readouterr().err
     assert code == 0, err
     assert "scenario = true, but the scenario's files give no induction loop" in err, err
+
+
+def test_no_reading_before_a_detectors_first_interval_ends(tmp_path):
+    """SUMO gives zeros for a detector whose first interval has not ended: a loop of period 900
+    s read 0 vehicles at step 0, recorded as an empty road and fed to the nowcast (probe 19's
+    P2-08). Its period comes from its file (``period``, ``freq``, else SUMO's one step)."""
+    from types import SimpleNamespace
+
+    from twin.sumo.detectors import (
+        LOOP,
+        Detector,
+        DetectorPlan,
+        DetectorReader,
+        LoopSpec,
+        detector_periods,
+    )
+
+    add = tmp_path / "det.add.xml"
+    add.write_text(
+        '<additional><inductionLoop id="L900" lane="a_0" pos="5" period="900" file="o.xml"/>'
+        '<e2Detector id="A60" lane="a_0" pos="0" length="50" freq="60" file="o.xml"/>'
+        '<inductionLoop id="L1" lane="a_0" pos="9" file="o.xml"/></additional>'
+    )
+    periods = detector_periods([add])
+    assert periods == {"L900": 900.0, "A60": 60.0, "L1": 1.0}
+    now = {"t": 300.0}
+
+    class Domain:
+        def getIDList(self):
+            return ["twin-loop-0-0-0"]
+
+        def getLastIntervalVehicleNumber(self, _):
+            return 0
+
+        def getLastIntervalOccupancy(self, _):
+            return 0.0
+
+        def getLastIntervalMeanSpeed(self, _):
+            return -1.0
+
+    api = SimpleNamespace(inductionloop=Domain(), lanearea=Domain(),
+                          simulation=SimpleNamespace(getTime=lambda: now["t"]))  # fmt: skip
+    plan = DetectorPlan(loops=(LoopSpec("twin-loop-0-0-0", "a_0", 3.0, (0, 0)),))
+    reader = DetectorReader(plan, None, api, begin=300.0, step_s=30.0, periods=periods)
+    reader.detectors += [  # the scenario's, as found on the grid
+        Detector("L900", LOOP, "a_0", (0, 0), False),
+        Detector("A60", "area", "a_0", (0, 0), False),
+        Detector("L1", LOOP, "a_0", (0, 0), False),
+    ]
+    seen = {}
+    for t in (300.0, 330.0, 360.0, 1200.0):
+        now["t"] = t
+        seen[t] = sorted(reader.detectors[n].id for n, *_ in reader.read())
+    assert seen[300.0] == []  # SUMO begins: no interval has ended
+    assert seen[330.0] == ["L1", "twin-loop-0-0-0"]
+    assert seen[360.0] == ["A60", "twin-loop-0-0-0"]  # L1's reading repeats: skipped
+    assert seen[1200.0] == ["L900", "twin-loop-0-0-0"]

@@ -194,6 +194,34 @@ def with_additional(options: tuple[str, ...], extra: Path) -> tuple[str, ...]:
     return (*out, "--additional-files", str(extra))
 
 
+#: The detectors of an additional file twin reads (old and new names), by SUMO's element name.
+DETECTOR_ELEMENTS = ("inductionLoop", "e1Detector", "laneAreaDetector", "e2Detector")
+#: SUMO's aggregation period of a detector that gives none: one step of its clock (s).
+DEFAULT_PERIOD_S = 1.0
+
+
+def detector_periods(files: list[Path]) -> dict[str, float]:
+    """The aggregation period (s) of each detector the scenario's additional files define
+    (``period``, or its old name ``freq``; SUMO's one step when absent), files they include
+    too: a detector's first interval ends one period after SUMO begins."""
+    import xml.etree.ElementTree as ET
+
+    from twin.sumo.readers import included_files, local_name, open_xml, parse_time
+
+    periods: dict[str, float] = {}
+    for path in [p for f in files for p in (Path(f), *included_files(Path(f)))]:
+        try:
+            with open_xml(path) as fh:
+                for _, elem in ET.iterparse(fh, events=("end",)):
+                    if local_name(elem) in DETECTOR_ELEMENTS and elem.get("id") is not None:
+                        given = parse_time(elem.get("period", elem.get("freq")))
+                        periods[elem.get("id")] = given if given and given > 0 else (
+                            DEFAULT_PERIOD_S)  # fmt: skip
+        except (ET.ParseError, OSError, EOFError):
+            continue  # read and refused before SUMO started; nothing more to learn here
+    return periods
+
+
 #: The lowest occupancy (%) a reading of the scenario's detectors keeps. SUMO's last-interval
 #: occupancy through its API (``getLastIntervalOccupancy``) miscounts a vehicle on the loop when
 #: an interval ends, where SUMO's own file output does not: at times it lags an interval or
@@ -205,10 +233,25 @@ OCCUPANCY_FLOOR = -1.0
 
 
 class DetectorReader:
-    """The detectors of an open SUMO session, their cells, and their readings per sample time."""
+    """The detectors of an open SUMO session, their cells, and their readings per sample time:
+    none of a detector before its first interval has ended (``begin``, SUMO's begin, plus its
+    period: ``periods`` of the scenario's, ``step_s`` of twin's loops), whose zeros measure
+    nothing."""
 
-    def __init__(self, plan: DetectorPlan, geometry, api):
+    def __init__(
+        self,
+        plan: DetectorPlan,
+        geometry,
+        api,
+        begin: float = 0.0,
+        step_s: float = DEFAULT_PERIOD_S,
+        periods: dict[str, float] | None = None,
+    ):
         self.api = api
+        self._first_end = {s.id: begin + step_s for s in plan.loops}
+        for det_id, period in (periods or {}).items():
+            self._first_end.setdefault(det_id, begin + period)
+        self._begin = begin
         virtual = {s.id: s for s in plan.loops}
         found: list[Detector] = []
         loop_ids = list(api.inductionloop.getIDList())
@@ -270,7 +313,10 @@ class DetectorReader:
         """``(index, vehicles, occupancy %, mean speed m/s)`` of each detector whose last
         completed interval is new (twin's loops: always; speed NaN when nothing passed)."""
         rows = []
+        now = float(self.api.simulation.getTime())
         for n, d in enumerate(self.detectors):
+            if now < self._first_end.get(d.id, self._begin + DEFAULT_PERIOD_S) - 1e-6:
+                continue  # its first interval has not ended: SUMO gives zeros, not a reading
             dom = self.api.inductionloop if d.kind == LOOP else self.api.lanearea
             reading = (
                 int(dom.getLastIntervalVehicleNumber(d.id)),

@@ -286,10 +286,12 @@ class SumoTraffic(TrafficSource):
         reader = None
         self.detector_readings = []
         if s.detectors.active:
-            from twin.sumo.detectors import DetectorReader
+            from twin.sumo.detectors import DetectorReader, detector_periods
             from twin.sumo.session import _libsumo
 
-            reader = DetectorReader(s.detectors, self.geometry, _libsumo())
+            periods = detector_periods(s.extra.get("additional_files", []))
+            reader = DetectorReader(s.detectors, self.geometry, _libsumo(), begin=s.sim_begin,
+                                    step_s=s.step_s, periods=periods)  # fmt: skip
             self.detectors = reader.detectors
         try:
             for k, t in self.sample_times():
