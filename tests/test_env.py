@@ -4,6 +4,7 @@ and the env scoring a policy exactly as the patrol loop does."""
 from __future__ import annotations
 
 import warnings
+from decimal import Decimal
 from pathlib import Path
 
 import numpy as np
@@ -197,6 +198,13 @@ def test_make_env_refuses_bad_options_in_one_line(joint):
         ({"params": ScoreParams(eta=True)}, r"params.eta = True must be a number"),
         ({"params": ScoreParams(alpha_I=np.bool_(True))}, r"params.alpha_I = True must be a"),
         ({"params": ScoreParams(alpha_T=np.bool_(False))}, r"params.alpha_T = False must be a"),
+        # a Decimal failed at step(), complex and 0-d arrays passed (probe 19's P2-07)
+        (
+            {"params": ScoreParams(alpha_I=Decimal("0.5"))},
+            r"params.alpha_I = Decimal\('0.5'\) must",
+        ),
+        ({"params": ScoreParams(alpha_I=np.complex128(0.5))}, r"params.alpha_I = .*must be a num"),
+        ({"params": ScoreParams(eta=np.array(0.2))}, r"params.eta = array\(0.2\) must be a num"),
         ({"tape": ""}, r"make_env\(tape=''\): give a tape.parquet's path"),
         ({"tape": 3}, r"make_env\(tape=3\): give a tape.parquet's path"),
         ({"state": ["paper"]}, r"state = \['paper'\] is not a state variant's name"),

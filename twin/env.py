@@ -132,6 +132,13 @@ def _params(params: Any) -> ScoreParams:
         name: v.item() if isinstance(v, (np.integer, np.floating, np.bool_)) else v
         for name, v in values.items()
     }
+    for name, v in values.items():  # a Decimal, complex or array would pass as a float
+        if (isinstance(v, (int, float, str)) and not isinstance(v, bool)) or v is None:
+            continue
+        raise EnvInputError(
+            f"params.{name} = {v!r} must be a number (a Python or numpy int or float); give "
+            f"e.g. {getattr(ScoreParams(), name)!r}"
+        )
     try:
         SwarmConfig.model_validate(values)
     except ValidationError as exc:
