@@ -904,6 +904,7 @@ def test_an_unset_variable_in_a_sumo_option_is_said(monkeypatch, capsys):
         ["run", "--net", "{net}", "--cell-m", "200", "--horizon", "2", "--swarms", "random",
          "--no-ceiling", "--no-report", "--quiet", "--out", "{out}"],  # demand made in the cache
         ["network", "build", "shenzhen_like"],
+        ["network", "import-osm", "{osm}"],  # into the cache by default (probe 19's P2-06)
     ],
 )  # fmt: skip
 def test_a_cache_folder_with_a_comma_is_refused_before_anything_is_made_in_it(
@@ -916,7 +917,9 @@ def test_a_cache_folder_with_a_comma_is_refused_before_anything_is_made_in_it(
     cache = tmp_path / "ca,che"
     monkeypatch.setenv(CACHE_ENV, str(cache))
     net = city / "data" / "grid.net.xml"
-    argv = [a.format(net=net, out=tmp_path / "run") for a in argv]
+    osm = tmp_path / "x.osm"
+    osm.write_text('<osm version="0.6"/>')
+    argv = [a.format(net=net, out=tmp_path / "run", osm=osm) for a in argv]
     capsys.readouterr()
     assert twin_main(argv) == 2
     err = capsys.readouterr().err

@@ -297,6 +297,10 @@ def import_osm(osm_file: Path, out_dir: Path | None = None) -> Path:
                 f"decompress it ({command} {osm_file.name}) and give the .osm (gzip works too)"
             )
     check_no_comma(osm_file, "netconvert")
+    if out_dir is None:  # the network is for SUMO, which splits its path at commas
+        check_cache_without_comma()
+    else:
+        check_no_comma(out_dir)
     name = osm_file.name.split(".")[0] + ".net.xml"
 
     no_road = UserError(
