@@ -219,6 +219,11 @@ def test_a_missing_attribute_of_an_element_kind_is_blamed_on_the_file_holding_it
     text = "Error: Attribute 'begin' is missing in definition of a interval.\nQuitting."
     assert sumo_refusal(text, [net, iv, trips])[0] == iv
     assert sumo_refusal(text, [net, trips])[0] == net  # no file holds one: the first named
+    # an attribute named without quotes, given in a route file (probe 19's P2-09)
+    types = tmp_path / "e1.rou.xml"
+    types.write_text('<routes><vType id="x" accel="-1"/></routes>')
+    text = "Error: Invalid Car-Following-Model Attribute accel. Must be greater than 0\nQuit"
+    assert sumo_refusal(text, [net, trips, types])[0] == types
 
 
 @pytest.mark.parametrize("kind", ["spider", "random"])
@@ -928,3 +933,31 @@ def test_a_cache_folder_with_a_comma_is_refused_before_anything_is_made_in_it(
     made = [p for p in cache.rglob("*") if p.is_file()] if cache.exists() else []
     assert not [p for p in made if p.parent.name != "tmp"], made
     assert not (tmp_path / "run").exists()
+
+
+def test_an_input_sumo_refuses_before_the_first_step_is_refused_not_a_partial_run(
+    city, tmp_path, capsys
+):
+    """A vehicle SUMO cannot insert (a lane its edge lacks) stops SUMO in the warm-up: it was a
+    partial run of 0 steps (exit 1, a folder written); it is SUMO's refusal of the route file,
+    in one line, and nothing is written (probe 19's P2-09)."""
+    import sumolib
+
+    net_file = city / "data" / "grid.net.xml"
+    net = sumolib.net.readNet(str(net_file))
+    edge = next(e for e in net.getEdges() if e.getFunction() == "" and e.getLaneNumber() < 9)
+    routes = tmp_path / "e4.rou.xml"
+    routes.write_text(
+        f'<routes><vehicle id="v" depart="0" departLane="9"><route edges="{edge.getID()}"/>'
+        "</vehicle></routes>"
+    )
+    out = tmp_path / "run"
+    argv = ["run", "--net", str(net_file), "--routes", str(routes), "--cell-m", "200",
+            "--horizon", "3", "--swarms", "random", "--no-ceiling", "--no-report", "--quiet",
+            "--out", str(out)]  # fmt: skip
+    capsys.readouterr()
+    assert twin_main(argv) == 2
+    lines = [x for x in capsys.readouterr().err.splitlines() if not x.startswith("twin: notice")]
+    assert len(lines) == 1 and f"{routes}: SUMO refuses it before the window's first" in lines[0]
+    assert "Invalid departLane definition for vehicle 'v'" in lines[0], lines
+    assert not out.exists()

@@ -58,7 +58,12 @@ def gridlock_defaults(sumocfg: Path | None) -> tuple[str, ...]:
 
 
 class SumoRunError(RuntimeError):
-    """SUMO failed while running (not on start): what was recorded so far is still valid."""
+    """SUMO failed while running (not on start): what was recorded so far is still valid.
+    ``reason``: SUMO's own words."""
+
+    def __init__(self, message: str, reason: str = "") -> None:
+        super().__init__(message)
+        self.reason = reason or message
 
 
 def _libsumo():
@@ -143,16 +148,23 @@ class SumoSession:
                 files += [Path(v) for v in value.split(",") if v]
         return files
 
+    def input_files(self) -> list[Path]:
+        """The files SUMO reads: sumocfg, network, routes, additionals."""
+        named = (self.config_file, self.net_file, *self.route_files, *self.additionals())
+        return [Path(p) for p in named if p is not None]
+
+    def refusal(self, message: str, when: str = "") -> UserError:
+        """SUMO's refusal (``message``) as one line naming the file it concerns
+        (:func:`sumo_refusal`); ``when`` says when SUMO gave it, if not on start."""
+        where, reason = sumo_refusal(message, self.input_files())
+        return UserError(f"{where}: SUMO refuses it{when}: {reason}")
+
     def start(self) -> SumoSession:
         if SumoSession._active is not None:
             raise RuntimeError(
                 "a SUMO session is already open in this process (libsumo allows one)"
             )
-        files = [
-            Path(p)
-            for p in (self.config_file, self.net_file, *self.route_files, *self.additionals())
-            if p is not None
-        ]
+        files = self.input_files()
         for path in files:
             if not Path(path).exists():
                 raise missing(path, "file")
@@ -167,8 +179,7 @@ class SumoSession:
             message = stderr.text() or str(exc)
             with contextlib.suppress(Exception):
                 libsumo.close()
-            where, reason = sumo_refusal(message, files)
-            raise UserError(f"{where}: SUMO refuses it: {reason}") from None
+            raise self.refusal(message) from None
         finally:
             stderr.restore()
         SumoSession._active = self
@@ -226,7 +237,8 @@ class SumoSession:
         try:
             _libsumo().simulationStep(t)
         except Exception as exc:
-            raise SumoRunError(f"SUMO failed before t = {t:g} s: {_first_line(str(exc))}") from exc
+            said = _first_line(str(exc))
+            raise SumoRunError(f"SUMO failed before t = {t:g} s: {said}", said) from exc
 
     def vehicles(self) -> tuple[np.ndarray, np.ndarray]:
         """Positions ``(n, 2)`` (m, network coordinates) and speeds ``(n,)`` (m/s) of the
@@ -289,12 +301,18 @@ def sumo_refusal(text: str, files: list[Path]) -> tuple[Path | str, str]:
     for path in reversed(files):
         if element and path.suffix != ".sumocfg" and _mentions(path, [element[1]], "<"):
             return path, reason
+    # an attribute SUMO finds wrong ("Invalid ... Attribute accel."): the file that gives it
+    attribute = re.search(r"[Aa]ttribute '?([A-Za-z_][\w:-]*(?:\.[\w:-]+)*)'?", reason)
+    wrong = attribute is not None and "missing" not in reason
+    for path in reversed(files):
+        if wrong and path.suffix != ".sumocfg" and _mentions(path, [attribute[1]], "="):
+            return path, reason
     return (files[0] if files else "SUMO"), reason
 
 
 def _mentions(path: Path, tokens: list[str], as_: str = "value") -> bool:
     """Whether a (perhaps gzip-compressed) XML file gives one of ``tokens`` as a value (or, with
-    ``as_="<"``, holds an element of that name)."""
+    ``as_="<"``, holds an element of that name; with ``as_="="``, an attribute)."""
     import gzip
 
     try:
@@ -307,6 +325,8 @@ def _mentions(path: Path, tokens: list[str], as_: str = "value") -> bool:
         return False
     if as_ == "<":
         return any(re.search(rf"<{re.escape(t)}[\s/>]", data) for t in tokens)
+    if as_ == "=":
+        return any(re.search(rf"\s{re.escape(t)}\s*=", data) for t in tokens)
     return any(f'"{t}"' in data for t in tokens)
 
 

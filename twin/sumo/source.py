@@ -305,6 +305,10 @@ class SumoTraffic(TrafficSource):
                     try:
                         self.incident_schedule.advance_to(session, instant)
                     except SumoRunError as exc:
+                        if not any(step >= 1 for step, *_ in self.snapshots):  # no step to keep:
+                            raise session.refusal(  # the input SUMO refused, as on start
+                                exc.reason, f" before the window's first step (t = {instant:g} s)"
+                            ) from None
                         self.error = str(exc)
                         raise
                     t1 = clock()
