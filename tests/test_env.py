@@ -219,6 +219,10 @@ def test_make_env_refuses_bad_options_in_one_line(joint):
     for config in (123, None, ["synthetic"]):
         with pytest.raises(EnvInputError, match="give a scenario config's path"):
             make_env(config, joint=joint)
+    for config in ("drone-loss", "coordinator-down"):  # faults were dropped (probe 19's P2-10)
+        with pytest.raises(EnvInputError, match=r"\[faults\] scripts lost drones") as info:
+            make_env(config, joint=joint)
+        assert "\n" not in str(info.value) and f"{config}.toml" in str(info.value)
     if not joint:
         with pytest.raises(EnvInputError, match=r"infeasible=\.\.\.\) is not an option of the"):
             make_env("synthetic", infeasible="stay")

@@ -543,6 +543,12 @@ def make_env(
     if not path.exists() and path.suffix != ".toml":
         path = shipped_config(f"configs/{config}.toml")
     cfg = load_config(path)
+    if cfg.faults.plan().active:  # an env drove every drone as if none were lost
+        raise EnvInputError(
+            f"{cfg.path}: [faults] scripts lost drones, a coordinator down or missed "
+            "sightings, which the environments do not apply (the agent drives every drone, "
+            "every step); remove [faults], or score faults with `twin evaluate`"
+        )
     experiment = Experiment(cfg, swarms=(), seeds=(0,), tape=None if tape is None else Path(tape))
     if is_live(experiment):
 
