@@ -224,6 +224,9 @@ def test_a_missing_attribute_of_an_element_kind_is_blamed_on_the_file_holding_it
     types.write_text('<routes><vType id="x" accel="-1"/></routes>')
     text = "Error: Invalid Car-Following-Model Attribute accel. Must be greater than 0\nQuit"
     assert sumo_refusal(text, [net, trips, types])[0] == types
+    types.write_text('<routes><vType id="x" length="-1"/></routes>')  # probe 19's P2-11
+    text = "Error: length must be greater than 0\nQuitting (on error)."
+    assert sumo_refusal(text, [net, trips, types])[0] == types
 
 
 @pytest.mark.parametrize("kind", ["spider", "random"])

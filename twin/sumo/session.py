@@ -301,8 +301,11 @@ def sumo_refusal(text: str, files: list[Path]) -> tuple[Path | str, str]:
     for path in reversed(files):
         if element and path.suffix != ".sumocfg" and _mentions(path, [element[1]], "<"):
             return path, reason
-    # an attribute SUMO finds wrong ("Invalid ... Attribute accel."): the file that gives it
-    attribute = re.search(r"[Aa]ttribute '?([A-Za-z_][\w:-]*(?:\.[\w:-]+)*)'?", reason)
+    # an attribute SUMO finds wrong ("Invalid ... Attribute accel.", "length must be ..."): the
+    # file that gives it
+    attribute = re.search(r"[Aa]ttribute '?([A-Za-z_][\w:-]*(?:\.[\w:-]+)*)'?", reason) or (
+        re.match(r"([A-Za-z_][\w:-]*) must be ", reason)  # "length must be greater than 0"
+    )
     wrong = attribute is not None and "missing" not in reason
     for path in reversed(files):
         if wrong and path.suffix != ".sumocfg" and _mentions(path, [attribute[1]], "="):
