@@ -969,3 +969,31 @@ def test_an_input_sumo_refuses_before_the_first_step_is_refused_not_a_partial_ru
     )
     assert "Invalid departLane definition for vehicle 'v'" in lines[0], lines
     assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    "demand",
+    [
+        '<flow id="f" from="{e}" to="{e}" number="100" period="10"/>',
+        '<vehicle id="v" depart="begin"><route edges="{e}"/></vehicle>'
+        '<flow id="f" begin="begin" from="{e}" to="{e}" number="100" period="10"/>',
+    ],
+)
+def test_demand_at_sumos_begin_follows_a_given_begin(city, tmp_path, capsys, demand):
+    """Departures at SUMO's begin (a flow without begin, depart="begin") depart at the begin
+    twin gives SUMO, the warm-up's start: a given --begin was refused as outside the demand
+    (the review of probe 19's f05 fix)."""
+    import sumolib
+
+    net_file = city / "data" / "grid.net.xml"
+    net = sumolib.net.readNet(str(net_file))
+    edge = next(e for e in net.getEdges() if e.getFunction() == "").getID()
+    routes = tmp_path / "b.rou.xml"
+    routes.write_text(f"<routes>{demand.format(e=edge)}</routes>")
+    argv = ["run", "--net", str(net_file), "--routes", str(routes), "--cell-m", "200",
+            "--begin", "08:00", "--horizon", "2", "--swarms", "random", "--no-ceiling",
+            "--no-report", "--quiet", "--out", str(tmp_path / "run")]  # fmt: skip
+    capsys.readouterr()
+    assert twin_main(argv) == 0, capsys.readouterr().err
+    run = json.loads((tmp_path / "run" / "run.json").read_text())
+    assert run["traffic"]["begin"] == "08:00:00", run["traffic"]

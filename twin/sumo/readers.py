@@ -424,6 +424,10 @@ def _check_departure(path: Path, elem: ET.Element, key: str, start: float = 0.0)
     return t
 
 
+#: The key of :func:`departure_span`'s ``counts`` that counts departures at the simulation's
+#: begin (``start``), wherever SUMO begins.
+AT_BEGIN = "at the simulation's begin"
+
 #: The departing elements that put vehicles on the roads (persons walk, containers wait).
 VEHICLE_DEMAND = ("vehicle", "trip", "flow")
 
@@ -435,7 +439,8 @@ def departure_span(
     ``begin`` .. ``end`` of flows, person and container flows, those of their ``<interval>`` or
     ``start``, the simulation's begin, when a flow gives none, as SUMO reads them); None when
     the files hold no vehicle (e.g. only vTypes).
-    ``counts``, when given, gets the number of departing elements of each tag. Files pulled in
+    ``counts``, when given, gets the number of departing elements of each tag, and of those
+    departing at ``start`` (:data:`AT_BEGIN`). Files pulled in
     with ``<include href>`` count, as SUMO loads them."""
     first = last = None
     counts = {} if counts is None else counts
@@ -463,7 +468,15 @@ def departure_span(
                     flow = tag.endswith(("flow", "Flow"))  # flow, personFlow, ...
                     if flow and elem.get("begin") is None:  # SUMO: the interval's, else its own
                         t = intervals[-1][0] if intervals else start
-                    if t is not None:
+                    if (
+                        key
+                        and t is not None
+                        and (
+                            (elem.get(key) or "").strip() == "begin"
+                            or (flow and elem.get("begin") is None and not intervals)
+                        )
+                    ):
+                        counts[AT_BEGIN] = counts.get(AT_BEGIN, 0) + 1
                         counts[tag] = counts.get(tag, 0) + 1
                         end = t
                         if flow:
