@@ -580,10 +580,11 @@ def test_scenario_detectors_asked_of_a_scenario_without_any_say_so(small, tmp_pa
     assert "scenario = true, but the scenario's files give no induction loop" in err, err
 
 
-def test_no_reading_before_a_detectors_first_interval_ends(tmp_path):
+def test_no_reading_before_a_detectors_first_interval_ends(tmp_path, monkeypatch, capsys):
     """SUMO gives zeros for a detector whose first interval has not ended: a loop of period 900
     s read 0 vehicles at step 0, recorded as an empty road and fed to the nowcast (probe 19's
-    P2-08). Its period comes from its file (``period``, ``freq``, else SUMO's one step)."""
+    P2-08). Its period comes from its file (``period``, ``freq``; without one SUMO aggregates
+    over the whole simulation: never read, with a notice)."""
     from types import SimpleNamespace
 
     from twin.sumo.detectors import (
@@ -602,12 +603,18 @@ def test_no_reading_before_a_detectors_first_interval_ends(tmp_path):
         '<inductionLoop id="L1" lane="a_0" pos="9" file="o.xml"/></additional>'
     )
     periods = detector_periods([add])
-    assert periods == {"L900": 900.0, "A60": 60.0, "L1": 1.0}
+    assert periods == {"L900": 900.0, "A60": 60.0, "L1": float("inf")}
     now = {"t": 300.0}
 
     class Domain:
         def getIDList(self):
-            return ["twin-loop-0-0-0"]
+            return ["twin-loop-0-0-0", "L1"]
+
+        def getLaneID(self, _):
+            return "a_0"
+
+        def getPosition(self, _):
+            return 9.0
 
         def getLastIntervalVehicleNumber(self, _):
             return 0
@@ -620,18 +627,22 @@ def test_no_reading_before_a_detectors_first_interval_ends(tmp_path):
 
     api = SimpleNamespace(inductionloop=Domain(), lanearea=Domain(),
                           simulation=SimpleNamespace(getTime=lambda: now["t"]))  # fmt: skip
-    plan = DetectorPlan(loops=(LoopSpec("twin-loop-0-0-0", "a_0", 3.0, (0, 0)),))
+    monkeypatch.setattr(DetectorReader, "_cell", lambda *_: (0, 0))
+    api.lanearea.getIDList = lambda: []
+    plan = DetectorPlan(scenario=True, loops=(LoopSpec("twin-loop-0-0-0", "a_0", 3.0, (0, 0)),))
+    capsys.readouterr()
     reader = DetectorReader(plan, None, api, begin=300.0, step_s=30.0, periods=periods)
-    reader.detectors += [  # the scenario's, as found on the grid
+    said = capsys.readouterr().err
+    assert "detector 'L1' gives no period: SUMO aggregates such a detector over the whole" in said
+    reader.detectors += [  # the scenario's others, as found on the grid
         Detector("L900", LOOP, "a_0", (0, 0), False),
         Detector("A60", "area", "a_0", (0, 0), False),
-        Detector("L1", LOOP, "a_0", (0, 0), False),
     ]
     seen = {}
     for t in (300.0, 330.0, 360.0, 1200.0):
         now["t"] = t
         seen[t] = sorted(reader.detectors[n].id for n, *_ in reader.read())
     assert seen[300.0] == []  # SUMO begins: no interval has ended
-    assert seen[330.0] == ["L1", "twin-loop-0-0-0"]
-    assert seen[360.0] == ["A60", "twin-loop-0-0-0"]  # L1's reading repeats: skipped
-    assert seen[1200.0] == ["L900", "twin-loop-0-0-0"]
+    assert seen[330.0] == ["twin-loop-0-0-0"]
+    assert seen[360.0] == ["A60", "twin-loop-0-0-0"]
+    assert seen[1200.0] == ["L900", "twin-loop-0-0-0"]  # L1: never (A60's repeats: skipped)

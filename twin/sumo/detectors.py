@@ -28,6 +28,7 @@ importance of :class:`twin.mfd.MFD` in effect at that step (the same mapping as 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
@@ -196,14 +197,16 @@ def with_additional(options: tuple[str, ...], extra: Path) -> tuple[str, ...]:
 
 #: The detectors of an additional file twin reads (old and new names), by SUMO's element name.
 DETECTOR_ELEMENTS = ("inductionLoop", "e1Detector", "laneAreaDetector", "e2Detector")
-#: SUMO's aggregation period of a detector that gives none: one step of its clock (s).
-DEFAULT_PERIOD_S = 1.0
+#: SUMO's aggregation period of a detector that gives none: the whole simulation (SUMO 1.2x),
+#: so no interval of it ends within a run.
+DEFAULT_PERIOD_S = math.inf
 
 
 def detector_periods(files: list[Path]) -> dict[str, float]:
     """The aggregation period (s) of each detector the scenario's additional files define
-    (``period``, or its old name ``freq``; SUMO's one step when absent), files they include
-    too: a detector's first interval ends one period after SUMO begins."""
+    (``period``, or its old name ``freq``; the whole simulation when absent, as SUMO
+    aggregates it), files they include too: a detector's first interval ends one period after
+    SUMO begins."""
     import xml.etree.ElementTree as ET
 
     from twin.sumo.readers import included_files, local_name, open_xml, parse_time
@@ -283,6 +286,17 @@ class DetectorReader:
                 "files): no detector of the scenario is read"
             )
         self.detectors = found
+        unread = [d.id for d in found if not d.virtual and self._first_end.get(d.id) == math.inf]
+        if unread:
+            from twin.boundary import notify
+
+            notify(
+                f"twin: notice: the scenario's detector{'s' * (len(unread) > 1)} "
+                f"{', '.join(repr(i) for i in unread[:3])}{' ...' * (len(unread) > 3)} "
+                f"give{'s' * (len(unread) == 1)} no period: SUMO aggregates such a detector over the whole simulation, so none of "
+                "its readings ends within the run and twin reads none; give it a period (e.g. "
+                "twin's step)"
+            )
         self._last: dict[str, tuple] = {}
         self._broken: set[str] = set()
 
