@@ -211,6 +211,7 @@ from twin.sumo.detectors import (  # noqa: E402
     DetectorReader,
     main_edges,
     place_loops,
+    scenario_reader,
     station_cells,
 )
 from twin.sumo.scenario import sumo_source  # noqa: E402
@@ -300,7 +301,7 @@ def test_readings_equal_what_libsumo_reports(small):
     session = source.session(small / "out-read").start()
     try:
         api = _libsumo()
-        reader = DetectorReader(source.scenario.detectors, source.geometry, api)
+        reader = scenario_reader(source.scenario, source.geometry, api)
         ids = [d.id for d in reader.detectors]
         assert "own-loop" in ids and "own-area" in ids
         assert len(ids) == 2 + len(source.scenario.detectors.loops)
@@ -522,7 +523,12 @@ def test_reader_without_plan_reads_nothing(small):
     source = sumo_source(load_config(small / "small.toml"))
     session = source.session().start()
     try:
-        assert DetectorReader(DetectorPlan(), source.geometry, _libsumo()).detectors == []
+        assert (
+            DetectorReader(
+                DetectorPlan(), source.geometry, _libsumo(), begin=0.0, step_s=60.0
+            ).detectors
+            == []
+        )
     finally:
         session.close()
 
@@ -554,7 +560,7 @@ def test_a_broken_occupancy_reading_is_left_out_with_one_notice(capsys):
         inductionloop=Loops(), simulation=SimpleNamespace(getTime=lambda: 600.0)
     )
     reader.detectors = [Detector("L3", LOOP, "B0B1_0", (0, 0), False)]
-    reader._last, reader._broken, reader._first_end, reader._begin = {}, set(), {}, 0.0
+    reader._last, reader._broken, reader._first_end, reader._begin = {}, set(), {"L3": 0}, 0.0
     assert [reader.read(), reader.read(), reader.read()] == [[], [(0, 2, 5.0, 8.0)], []]
     notices = [line for line in capsys.readouterr().err.splitlines() if "L3" in line]
     assert len(notices) == 1 and "occupancy of -11.57 % over its last interval" in notices[0]
@@ -563,6 +569,7 @@ def test_a_broken_occupancy_reading_is_left_out_with_one_notice(capsys):
     # (probe 16's P2-f08)
     values = iter([(1, -2.1, 9.0)])
     reader.detectors = [Detector("twin-loop-0-0-0", LOOP, "B0B1_0", (0, 0), True)]
+    reader._first_end["twin-loop-0-0-0"] = 0.0
     assert reader.read() == [(0, 1, 0.0, 9.0)]
     assert "twin-loop" not in capsys.readouterr().err
 

@@ -235,6 +235,14 @@ def detector_periods(files: list[Path]) -> dict[str, float]:
 OCCUPANCY_FLOOR = -1.0
 
 
+def scenario_reader(scenario, geometry, api) -> DetectorReader:
+    """The :class:`DetectorReader` of a live scenario (:class:`twin.sumo.source.SumoScenario`):
+    its detectors' periods from its additional files, its first interval from SUMO's begin."""
+    periods = detector_periods(scenario.extra.get("additional_files", []))
+    return DetectorReader(scenario.detectors, geometry, api, begin=scenario.sim_begin,
+                          step_s=scenario.step_s, periods=periods)  # fmt: skip
+
+
 class DetectorReader:
     """The detectors of an open SUMO session, their cells, and their readings per sample time:
     none of a detector before its first interval has ended (``begin``, SUMO's begin, plus its
@@ -246,8 +254,9 @@ class DetectorReader:
         plan: DetectorPlan,
         geometry,
         api,
-        begin: float = 0.0,
-        step_s: float = DEFAULT_PERIOD_S,
+        *,
+        begin: float,
+        step_s: float,
         periods: dict[str, float] | None = None,
     ):
         self.api = api

@@ -477,6 +477,7 @@ def departure_span(
                         )
                     ):
                         counts[AT_BEGIN] = counts.get(AT_BEGIN, 0) + 1
+                    if t is not None:
                         counts[tag] = counts.get(tag, 0) + 1
                         end = t
                         if flow:

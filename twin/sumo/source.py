@@ -286,12 +286,10 @@ class SumoTraffic(TrafficSource):
         reader = None
         self.detector_readings = []
         if s.detectors.active:
-            from twin.sumo.detectors import DetectorReader, detector_periods
+            from twin.sumo.detectors import scenario_reader
             from twin.sumo.session import _libsumo
 
-            periods = detector_periods(s.extra.get("additional_files", []))
-            reader = DetectorReader(s.detectors, self.geometry, _libsumo(), begin=s.sim_begin,
-                                    step_s=s.step_s, periods=periods)  # fmt: skip
+            reader = scenario_reader(s, self.geometry, _libsumo())
             self.detectors = reader.detectors
         try:
             for k, t in self.sample_times():
