@@ -938,8 +938,12 @@ def test_a_cache_folder_with_a_comma_is_refused_before_anything_is_made_in_it(
     assert not (tmp_path / "run").exists()
 
 
+@pytest.mark.parametrize(
+    "param",
+    ["", '<param key="device.ssm.file" value="ssm.xml"/>'],  # a file twin rewrites
+)
 def test_an_input_sumo_refuses_before_the_first_step_is_refused_not_a_partial_run(
-    city, tmp_path, capsys
+    city, tmp_path, capsys, param
 ):
     """A vehicle SUMO cannot insert (a lane its edge lacks) stops SUMO in the warm-up: it was a
     partial run of 0 steps (exit 1, a folder written); it is SUMO's refusal of the route file,
@@ -952,7 +956,7 @@ def test_an_input_sumo_refuses_before_the_first_step_is_refused_not_a_partial_ru
     routes = tmp_path / "e4.rou.xml"
     routes.write_text(
         f'<routes><vehicle id="v" depart="0" departLane="9"><route edges="{edge.getID()}"/>'
-        "</vehicle></routes>"
+        f"{param}</vehicle></routes>"
     )
     out = tmp_path / "run"
     argv = ["run", "--net", str(net_file), "--routes", str(routes), "--cell-m", "200",
