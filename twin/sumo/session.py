@@ -222,6 +222,11 @@ class SumoSession:
                 where, reason = sumo_refusal(said, files)
                 raise UserError(f"{where}: sumo-gui refuses it: {reason}") from None
             raise UserError(f"--gui: sumo-gui did not start ({_first_line(str(exc))})") from None
+        except BaseException:  # Ctrl-C while it starts: twin's stderr back, its log gone
+            stderr.child_started()
+            if owned is not None:
+                owned.unlink(missing_ok=True)
+            raise
         stderr.child_started()
         stderr.pass_on()  # its messages from here on go to twin's stderr, as libsumo's do
         self._scratch = owned  # removed when the session closes
