@@ -402,7 +402,7 @@ class PretrainConfig(SourcedConfig):
             return f'{name} cannot measure the curve: {exc} (or give another, e.g. "synthetic")'
         return (
             f"{name} cannot measure the curve over curve_horizon = {self.curve_horizon} "
-            f"steps: {exc} (or set curve_horizon = {own.traffic.horizon}, the scenario's own)"
+            f"steps: {exc} (or set curve_horizon = {own.traffic.horizon}, which fits it)"
         )
 
     @model_validator(mode="after")
