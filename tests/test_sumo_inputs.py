@@ -227,6 +227,15 @@ def test_a_missing_attribute_of_an_element_kind_is_blamed_on_the_file_holding_it
     types.write_text('<routes><vType id="x" length="-1"/></routes>')  # probe 19's P2-11
     text = "Error: length must be greater than 0\nQuitting (on error)."
     assert sumo_refusal(text, [net, trips, types])[0] == types
+    good = tmp_path / "good.add.xml"  # another file giving a length, a valid one (P2-13)
+    good.write_text('<additional><vType id="y" length="5"/></additional>')
+    assert sumo_refusal(text, [net, trips, types, good])[0] == types
+    good.write_text('<additional><vType id="y" length="0"/></additional>')
+    assert sumo_refusal(text, [net, trips, types, good])[0] == good  # 0 is not above 0
+    text = "Error: minGap must be equal or greater than 0\nQuitting (on error)."
+    types.write_text('<routes><vType id="x" minGap="0"/></routes>')
+    good.write_text('<additional><vType id="y" minGap="-2.5"/></additional>')
+    assert sumo_refusal(text, [net, trips, types, good])[0] == good
 
 
 @pytest.mark.parametrize("kind", ["spider", "random"])

@@ -312,10 +312,28 @@ def sumo_refusal(text: str, files: list[Path]) -> tuple[Path | str, str]:
         re.match(r"([A-Za-z_][\w:-]*) must be ", reason)  # "length must be greater than 0"
     )
     wrong = attribute is not None and "missing" not in reason
-    for path in reversed(files):
-        if wrong and path.suffix != ".sumocfg" and _mentions(path, [attribute[1]], "="):
-            return path, reason
+    givers = [
+        p for p in reversed(files)
+        if wrong and p.suffix != ".sumocfg" and _mentions(p, [attribute[1]], "=")
+    ]  # fmt: skip
+    if givers:  # the one whose value breaks the bound SUMO names, else the first to give it
+        bad = _value_below_bound(reason)
+        if bad is not None:
+            for path in givers:
+                if _mentions(path, [rf'{re.escape(attribute[1])}\s*=\s*"{bad}'], "re"):
+                    return path, reason
+        return givers[0], reason
     return (files[0] if files else "SUMO"), reason
+
+
+def _value_below_bound(reason: str) -> str | None:
+    """A pattern of the values a "... must be greater than 0" refusal names (negative or 0;
+    negative for "equal or greater than 0"), None for another refusal."""
+    if re.search(r"must be (equal or )?greater than 0", reason, re.IGNORECASE) is None:
+        return None
+    if re.search(r"equal or greater", reason, re.IGNORECASE):
+        return r"\s*-"
+    return r"\s*(-|0*\.?0*\s*\")"
 
 
 def _mentions(path: Path, tokens: list[str], as_: str = "value") -> bool:
@@ -335,6 +353,8 @@ def _mentions(path: Path, tokens: list[str], as_: str = "value") -> bool:
         return any(re.search(rf"<{re.escape(t)}[\s/>]", data) for t in tokens)
     if as_ == "=":
         return any(re.search(rf"\s{re.escape(t)}\s*=", data) for t in tokens)
+    if as_ == "re":  # tokens are patterns, matched after whitespace
+        return any(re.search(rf"\s{t}", data) for t in tokens)
     return any(f'"{t}"' in data for t in tokens)
 
 
