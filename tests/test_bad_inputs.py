@@ -501,6 +501,15 @@ def _out_cases(cfg: Path, out: Path) -> dict[str, tuple[Callable[[Path], None], 
             ],
             "'tapes/notes.txt', which twin did not write",
         ),
+        "a partial run with the user's notes in report/": (  # deleted (probe 19's P2-12)
+            lambda d: [
+                _partial_of(same)(d),
+                (d / "report").mkdir(),
+                (d / "report" / "report.html").write_text("<html/>"),  # an earlier twin's
+                (d / "report" / "mynotes.md").write_text("mine"),
+            ],
+            "report/mynotes.md: not written by twin; move it out of",
+        ),
         "a complete run": (
             lambda d: shutil.copytree(_FINISHED[0], d),
             "already holds a complete run",
@@ -515,6 +524,7 @@ OUT_CASES = [
     "a partial run of another command",
     "a partial run with a foreign file",
     "a partial run with a foreign file in tapes/",
+    "a partial run with the user's notes in report/",
     "a complete run",
 ]
 

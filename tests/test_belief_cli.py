@@ -564,6 +564,44 @@ def test_beliefs_whose_history_is_gone_are_not_replayed_and_say_so(believed, tmp
     assert "belief_models.csv and belief_maps.npz not replayed (the history " in err, err
 
 
+@pytest.mark.parametrize(
+    ("record", "folder_format", "words"),
+    [
+        ([1], 4, "history must be an object"),
+        ({"path": 3}, 4, "history.path = 3 must be text"),
+        (None, 4, "history = null names no history file and its sha256"),
+        ({"path": "h.npz"}, 4, 'history = {"path": "h.npz"} names no history file'),
+        ({"path": "h.npz", "sha256": "0" * 64}, 4, "history.path = 'h.npz' is not an absolute"),
+        (None, 3, None),  # an earlier twin's folder: a notice, not a refusal
+    ],
+)
+def test_a_history_record_that_names_no_file_is_refused_in_a_current_folder(
+    believed, tmp_path, capsys, record, folder_format, words
+):
+    """run.json's ``history`` edited alone (the file still there) turned the belief replay off
+    with a notice blaming an earlier twin (probe 19's f02): a folder of format 4 records it."""
+    import shutil
+
+    from test_boundary import as_format_3_wrote, refresh_manifest
+
+    run = tmp_path / "run"
+    shutil.copytree(believed, run)
+    meta = json.loads((run / "run.json").read_text())
+    meta["history"], meta["folder_format"] = record, folder_format
+    if folder_format < 4:
+        as_format_3_wrote(run)
+    (run / "run.json").write_text(json.dumps(meta))
+    refresh_manifest(run)
+    capsys.readouterr()
+    code = twin_main(["report", str(run), "--no-animation"])
+    err = capsys.readouterr().err
+    if words is None:
+        assert code == 0 and "not replayed (run.json records no history file" in err, err
+    else:
+        assert code == 2 and err.count("\n") == 1 and words in err, err
+        assert str(run / "run.json") in err, err
+
+
 def test_beliefs_and_maps_of_a_run_on_a_tape_are_replayed_with_its_tape(
     believed, history, small, tmp_path, capsys
 ):

@@ -83,6 +83,17 @@ def refresh_manifest(run: Path) -> None:
     write_manifest(run, False, None)
 
 
+def as_format_3_wrote(run: Path) -> None:
+    """The 0 twin wrote up to folder format 3 where one seed gives no interval (``_ci95``
+    cells now left empty): a folder relabelled to an earlier format holds what that wrote."""
+    for name in ("summary.csv", "monitoring.csv", "comparison.csv"):
+        if (run / name).is_file():
+            table = pd.read_csv(run / name)
+            spans = [c for c in table.columns if c.endswith("_ci95")]
+            table[spans] = table[spans].fillna(0.0)
+            table.to_csv(run / name, index=False)
+
+
 # --- the boundary itself ----------------------------------------------------------------------
 
 
@@ -2326,6 +2337,7 @@ def test_a_folder_of_an_earlier_format_reads_back_with_a_notice(run_copy, capsys
     assert meta["folder_format"] == FOLDER_FORMAT
     (run_copy / "bound.npz").unlink()
     (run_copy / "oracle.parquet").unlink()
+    as_format_3_wrote(run_copy)
     del meta["folder_format"], meta["starts"]
     (run_copy / "run.json").write_text(json.dumps(meta))
     refresh_manifest(run_copy)
@@ -2501,6 +2513,13 @@ def test_a_figure_of_one_seed_has_no_interval(tmp_path, capsys):
     (out / "run.json").write_text(json.dumps(meta))
     refresh_manifest(out)
     assert main(["report", str(out), "--no-animation"]) == 0, capsys.readouterr().err
+    # this format's empty intervals relabelled format 3, which wrote 0 there (probe 19's P2-05)
+    table = pd.read_csv(out / "summary.csv")
+    table[[c for c in table.columns if c.endswith("_ci95")]] = float("nan")
+    table.to_csv(out / "summary.csv", index=False)
+    refresh_manifest(out)
+    assert main(["report", str(out), "--no-animation"]) == EXIT_REFUSED
+    assert "summary.csv: R_hat_T_ci95 = nan" in one_line(capsys)
 
 
 # ----------------------------------------------------------------- records that are no files

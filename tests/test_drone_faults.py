@@ -274,6 +274,11 @@ disturbances = [{ kind = "big", i = 2, j = 2, amplitude = 1.0, sigma = 2.0 }]
         ("detection_p = 0.0", "[faults].detection_p = 0.0 must be > 0"),
         ("detection_p = 1.2", "[faults].detection_p = 1.2 must be <= 1"),
         ("coordinator_down = [[9, 3]]", "[faults].coordinator_down has [9, 3]; give windows"),
+        (  # one outage split into phases of one state (probe 19's f11)
+            "coordinator_down = [[7, 10], [5, 8]]",
+            "[faults].coordinator_down has [5, 8] and [7, 10], which overlap; give one window "
+            "[5, 10], or separate them",
+        ),
         ("coordinator_down = [[30, 50]]", "[faults].coordinator_down has [30, 50] past the horizon"),
         ("lost = 1", "[faults].lost is not a known key; use one of: drone_loss"),
     ],

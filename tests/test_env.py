@@ -4,6 +4,7 @@ and the env scoring a policy exactly as the patrol loop does."""
 from __future__ import annotations
 
 import warnings
+from decimal import Decimal
 from pathlib import Path
 
 import numpy as np
@@ -195,6 +196,15 @@ def test_make_env_refuses_bad_options_in_one_line(joint):
         ({"params": ScoreParams(alpha_T=0.0, alpha_I=0.0)}, "are both 0"),
         ({"params": ScoreParams(alpha_T="1")}, r"params.alpha_T = '1' must be a number"),
         ({"params": ScoreParams(eta=True)}, r"params.eta = True must be a number"),
+        ({"params": ScoreParams(alpha_I=np.bool_(True))}, r"params.alpha_I = True must be a"),
+        ({"params": ScoreParams(alpha_T=np.bool_(False))}, r"params.alpha_T = False must be a"),
+        # a Decimal failed at step(), complex and 0-d arrays passed (probe 19's P2-07)
+        (
+            {"params": ScoreParams(alpha_I=Decimal("0.5"))},
+            r"params.alpha_I = Decimal\('0.5'\) must",
+        ),
+        ({"params": ScoreParams(alpha_I=np.complex128(0.5))}, r"params.alpha_I = .*must be a num"),
+        ({"params": ScoreParams(eta=np.array(0.2))}, r"params.eta = array\(0.2\) must be a num"),
         ({"tape": ""}, r"make_env\(tape=''\): give a tape.parquet's path"),
         ({"tape": 3}, r"make_env\(tape=3\): give a tape.parquet's path"),
         ({"state": ["paper"]}, r"state = \['paper'\] is not a state variant's name"),
@@ -209,6 +219,10 @@ def test_make_env_refuses_bad_options_in_one_line(joint):
     for config in (123, None, ["synthetic"]):
         with pytest.raises(EnvInputError, match="give a scenario config's path"):
             make_env(config, joint=joint)
+    for config in ("drone-loss", "coordinator-down"):  # faults were dropped (probe 19's P2-10)
+        with pytest.raises(EnvInputError, match=r"\[faults\] scripts lost drones") as info:
+            make_env(config, joint=joint)
+        assert "\n" not in str(info.value) and f"{config}.toml" in str(info.value)
     if not joint:
         with pytest.raises(EnvInputError, match=r"infeasible=\.\.\.\) is not an option of the"):
             make_env("synthetic", infeasible="stay")

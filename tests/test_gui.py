@@ -342,3 +342,61 @@ def test_a_failing_video_encoder_is_named_with_a_fix(tmp_path, monkeypatch, enco
         write_video(tmp_path / "x.mp4", frames)
     assert "\n" not in str(info.value) and "FFMPEG COMMAND" not in str(info.value)
     assert not (tmp_path / "x.mp4").exists()
+
+
+@needs_display
+def test_a_scenario_with_gui_options_that_stop_a_run_runs_under_the_gui(scenario, tmp_path):
+    """A sumocfg's ``<num-clients value="2"/>`` kept sumo-gui waiting for a second client
+    forever (probe 19's f08); its ``<breakpoints>`` ended the run at the first, and ``<demo>``
+    kept sumo-gui from starting (f09): twin is its one client, and these are off."""
+    import subprocess
+    import sys
+
+    cfg = tmp_path / "clients.sumocfg"
+    cfg.write_text(
+        f'<configuration><input><net-file value="{scenario / "small.net.xml"}"/>'
+        f'<route-files value="{scenario / "small.trips.xml"}"/></input>'
+        '<num-clients value="2"/><gui_only><breakpoints value="400,500"/><demo value="true"/>'
+        '<game value="true"/></gui_only></configuration>'
+    )
+    argv = ["run", "--sumocfg", str(cfg), "--cell-m", "200", "--horizon", "2", "--swarms",
+            "random", "--no-ceiling", "--no-report", "--quiet", "--gui", "--out",
+            str(tmp_path / "run")]  # fmt: skip
+    done = subprocess.run(
+        [sys.executable, "-m", "twin", *argv], capture_output=True, text=True, timeout=300
+    )
+    assert done.returncode == 0, done.stderr
+
+
+@needs_display
+@pytest.mark.parametrize(
+    ("option", "words"),
+    [
+        ('<alternative-net-file value="nope.net.xml"/>', "Cannot read file '"),  # its log
+        ('<osg-view value="true"/>', "osg-view"),  # its stderr: an option this build lacks
+    ],
+)
+def test_sumo_gui_refusing_a_scenario_is_one_line_with_its_reason(scenario, tmp_path, option,
+                                                                  words):  # fmt: skip
+    """sumo-gui's own refusal was lost ("did not start (Connection closed by SUMO.)", or a
+    minute of restarts on other ports): its reason and the file, as libsumo's (probe 19's
+    P2-03)."""
+    import subprocess
+    import sys
+
+    cfg = tmp_path / "refused.sumocfg"
+    cfg.write_text(
+        f'<configuration><input><net-file value="{scenario / "small.net.xml"}"/>'
+        f'<route-files value="{scenario / "small.trips.xml"}"/></input>'
+        f"<gui_only>{option}</gui_only></configuration>"
+    )
+    argv = ["run", "--sumocfg", str(cfg), "--cell-m", "200", "--horizon", "2", "--swarms",
+            "random", "--no-ceiling", "--no-report", "--quiet", "--gui", "--out",
+            str(tmp_path / "run")]  # fmt: skip
+    done = subprocess.run(
+        [sys.executable, "-m", "twin", *argv], capture_output=True, text=True, timeout=50
+    )
+    said = [line for line in done.stderr.splitlines() if not line.startswith("twin: notice:")]
+    assert done.returncode == 2 and len(said) == 1, done.stderr  # sumo-gui's own lines held
+    assert "sumo-gui refuses it: " in said[0] and words in said[0], said
+    assert not (tmp_path / "run").exists()

@@ -111,6 +111,7 @@ LAYERS: list[tuple[str, list[str]]] = [
             "twin.processes",
             "twin.timing",
             "twin.clock",
+            "twin.seeds",
             "twin.outputs",
             "twin.resources",
             "twin.executors",

@@ -208,7 +208,8 @@ def test_a_curve_config_that_is_no_scenario_is_refused_naming_the_key(tmp_path, 
                     'curve_config = "pretrain"\n')  # fmt: skip
     code, err = _run_cli(["pretrain", "--config", str(path), "--quiet"], capsys)
     assert code == 2 and err.count("\n") == 0, err
-    assert f"{path}: curve_config = " in err and "is no scenario config" in err, err
+    assert f"{path}: curve_config = " in err and "cannot measure the curve:" in err, err
+    assert "curve_horizon" not in err, err  # the file is the cause, not the curve's window
     assert not (tmp_path / "out").exists()
 
 
@@ -224,6 +225,7 @@ def test_a_curve_scenario_whose_incident_misses_the_curve_window_is_refused_befo
     code, err = _run_cli(["pretrain", "--config", str(path), "--quiet"], capsys)
     assert code == 2 and err.count("\n") == 0, err
     assert f"{path}: curve_config = " in err and "is outside the scenario's window" in err, err
+    assert "over curve_horizon = 5 steps" in err and "set curve_horizon = " in err, err
     assert not (tmp_path / "out").exists()
 
 
@@ -330,6 +332,9 @@ def test_recipes_collect_on_their_traffic_and_record_curve_and_provenance(tmp_pa
     ("text", "match"),
     [
         ("curve_seeds = [3, 100]\n", "evaluation seed"),
+        ("curve_seeds = [9223372036854775808]\n", r"curve_seeds\[0\] = 9223372036854775808 must"),
+        ("seed = 2147483648\n", "seed = 2147483648 must be <= 2147483647"),
+        ("history_seed = 2147483648\n", "history_seed = 2147483648 must be <= 2147483647"),
         ('traffic = "tapes"\n', "needs tape files"),
         ('traffic = "tapes"\ntapes = ["nowhere.parquet"]\n', "does not exist"),
         ('traffic = "weather"\n', "traffic"),

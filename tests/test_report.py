@@ -21,7 +21,7 @@ from twin.mfd import MFD, fit_quality
 from twin.readback import BOUNDS
 from twin.report import load_run, write_report
 from twin.report.document import MONITORING_TABLE_COLUMNS, TABLE_COLUMNS
-from twin.runs import write_manifest
+from twin.runs import FOLDER_FORMAT, write_manifest
 from twin.scores import ScoreParams, coverage, initial_idleness, reward_parts, update_idleness
 
 SWARMS = ("random", "greedy", "sweeping", "rl")
@@ -165,6 +165,7 @@ def write_fixture_run(
         "timings": {"patrol_seconds": [round(1.234 + 1.111 * n, 3) for n in range(len(seeds))]},
         "versions": {"python": "3.11.7", "numpy": "2.4.6"},
         "monitoring": {"threshold": 0.5, "min_duration": 1, "weight_floor": 0.05},
+        "folder_format": FOLDER_FORMAT,  # the intervals of one seed left empty, as now
     }
     (run / "run.json").write_text(json.dumps(meta))
     if sumo:

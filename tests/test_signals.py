@@ -76,6 +76,23 @@ class Command:
                 self.proc.kill()
 
 
+@pytest.fixture(autouse=True)
+def _python_sigint():
+    """Python's own Ctrl-C handler, as a command starts with (a pytest-xdist worker ignores
+    SIGINT, so that only its controller stops on Ctrl-C)."""
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    before = signal.getsignal(signal.SIGINT)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, before)
+
+
 def test_stop_flag_is_set_by_sigint_and_the_handler_restored() -> None:
     before = signal.getsignal(signal.SIGINT)
     with stop_on_interrupt() as stop:

@@ -505,6 +505,14 @@ def test_nowcast_pretraining_on_tapes_is_refused_in_one_line(tmp_path, capsys):
     [
         (["--dynamics", "synthetic", "--days", "1"], "--days 1: give a whole number >= 2"),
         (["--dynamics", "shenzhen"], "[traffic].kind = 'sumo'; give a synthetic scenario"),
+        (  # seeds past the range every command keeps to (probe 19's P2-04)
+            ["--dynamics", "synthetic", "--seed", "9223372036854775808"],
+            "--seed = 9223372036854775808 is out of range",
+        ),
+        (
+            ["--dynamics", "synthetic", "--seed", "2147483647", "--days", "2"],
+            "--days = 2 runs seeds 2147483647 .. 2147483648, past the largest seed",
+        ),
     ],
 )
 def test_a_bad_dynamics_history_is_one_line(tmp_path, capsys, argv, words):

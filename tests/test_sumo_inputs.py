@@ -206,6 +206,38 @@ def test_a_clash_of_a_vehicles_own_route_is_blamed_on_a_route_file(tmp_path):
     assert where == alt and reason.startswith("Another route (or distribution)"), where
 
 
+def test_a_missing_attribute_of_an_element_kind_is_blamed_on_the_file_holding_it(tmp_path):
+    """SUMO names an element by its kind alone ("in definition of a interval"): the file with
+    such an element is named, not the network (probe 19's P2-02)."""
+    from twin.sumo.session import sumo_refusal
+
+    net, trips, iv = tmp_path / "g.net.xml", tmp_path / "trips.xml", tmp_path / "c.rou.xml"
+    net.write_text('<net><edge id="A0A1"/></net>')
+    trips.write_text('<routes><trip id="0" depart="0" from="A0A1" to="A0A1"/></routes>')
+    iv.write_text('<routes><interval end="900"><flow id="f" from="A0A1" to="A0A1" '
+                  'vehsPerHour="600"/></interval></routes>')  # fmt: skip
+    text = "Error: Attribute 'begin' is missing in definition of a interval.\nQuitting."
+    assert sumo_refusal(text, [net, iv, trips])[0] == iv
+    assert sumo_refusal(text, [net, trips])[0] == net  # no file holds one: the first named
+    # an attribute named without quotes, given in a route file (probe 19's P2-09)
+    types = tmp_path / "e1.rou.xml"
+    types.write_text('<routes><vType id="x" accel="-1"/></routes>')
+    text = "Error: Invalid Car-Following-Model Attribute accel. Must be greater than 0\nQuit"
+    assert sumo_refusal(text, [net, trips, types])[0] == types
+    types.write_text('<routes><vType id="x" length="-1"/></routes>')  # probe 19's P2-11
+    text = "Error: length must be greater than 0\nQuitting (on error)."
+    assert sumo_refusal(text, [net, trips, types])[0] == types
+    good = tmp_path / "good.add.xml"  # another file giving a length, a valid one (P2-13)
+    good.write_text('<additional><vType id="y" length="5"/></additional>')
+    assert sumo_refusal(text, [net, trips, types, good])[0] == types
+    good.write_text('<additional><vType id="y" length="0"/></additional>')
+    assert sumo_refusal(text, [net, trips, types, good])[0] == good  # 0 is not above 0
+    text = "Error: minGap must be equal or greater than 0\nQuitting (on error)."
+    types.write_text('<routes><vType id="x" minGap="0"/></routes>')
+    good.write_text('<additional><vType id="y" minGap="-2.5"/></additional>')
+    assert sumo_refusal(text, [net, trips, types, good])[0] == good
+
+
 @pytest.mark.parametrize("kind", ["spider", "random"])
 def test_generated_networks_compressed_with_additionals(kind, city, capsys):
     files = _scenario(city / kind, kind)
@@ -437,6 +469,51 @@ def test_a_flow_without_end_departs_as_long_as_sumo_lets_it(tmp_path, flow, end)
     counts: dict[str, int] = {}
     assert departure_span([routes], counts) == (float(flow.split('"')[1]), end)
     assert counts == {"flow": 1}
+
+
+@pytest.mark.parametrize(
+    ("flows", "span"),
+    [  # as SUMO 1.2x departs them (checked with its tripinfo output)
+        (
+            '<interval begin="3600" end="4500"><flow id="f" from="a" to="b" number="120"/>'
+            '<flow id="g" from="a" to="b" vehsPerHour="400"/></interval>',
+            (3600.0, 4500.0),
+        ),
+        (
+            '<interval begin="300" end="400"><flow id="f" from="a" to="b" begin="350" number="2" '
+            'period="5"/></interval>',
+            (350.0, 360.0),
+        ),
+        ('<flow id="f" from="a" to="b" number="3" period="10"/>', (0.0, 30.0)),  # begin 0
+        (
+            '<interval begin="60"><personFlow id="p" number="2" period="30"><walk from="a" '
+            'to="b"/></personFlow></interval>',
+            (60.0, 120.0),
+        ),
+    ],
+)
+def test_flows_without_begin_depart_at_their_intervals_begin_or_0(tmp_path, flows, span):
+    """A flow in an ``<interval>`` departs in it, one without begin from 0: they were not seen
+    as demand, and twin added its own rush hour in a window that missed them (probe 19's
+    f04)."""
+    routes = tmp_path / "iv.rou.xml"
+    routes.write_text(f"<routes>{flows}</routes>")
+    assert departure_span([routes]) == span
+
+
+def test_a_flow_without_begin_departs_at_the_simulations_begin(tmp_path):
+    """SUMO starts such a flow at its own begin (a sumocfg's <begin>): the run was refused
+    with an error blaming the file, after twin added its rush hour (probe 19's f05)."""
+    routes = tmp_path / "nb.rou.xml"
+    routes.write_text('<routes><flow id="f" from="a" to="b" end="5400" number="150"/></routes>')
+    assert departure_span([routes]) == (0.0, 5400.0)
+    assert departure_span([routes], start=3600.0) == (3600.0, 5400.0)
+    # SUMO's word "begin" (a vehicle's depart, a flow's begin): the simulation's begin too
+    routes.write_text(
+        '<routes><vehicle id="v" depart="begin" route="r"/>'
+        '<flow id="f" begin="begin" end="5400" period="60" from="a" to="b"/></routes>'
+    )
+    assert departure_span([routes], start=3600.0) == (3600.0, 5400.0)
 
 
 def test_departures_in_included_route_files_are_the_demand(tmp_path):
@@ -836,3 +913,100 @@ def test_an_unset_variable_in_a_sumo_option_is_said(monkeypatch, capsys):
     monkeypatch.setenv("TWIN_TEST_UNSET", "here")
     assert readers.substitute_environment("${TWIN_TEST_UNSET}/c.xml") == "here/c.xml"
     assert capsys.readouterr().err == ""
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["run", "--net", "{net}", "--cell-m", "200", "--horizon", "2", "--swarms", "random",
+         "--no-ceiling", "--no-report", "--quiet", "--out", "{out}"],  # demand made in the cache
+        ["network", "build", "shenzhen_like"],
+        ["network", "import-osm", "{osm}"],  # into the cache by default (probe 19's P2-06)
+    ],
+)  # fmt: skip
+def test_a_cache_folder_with_a_comma_is_refused_before_anything_is_made_in_it(
+    city, tmp_path, monkeypatch, capsys, argv
+):
+    """SUMO splits file names at commas: a cache at such a path was found after the demand was
+    generated into it, by a line blaming the user's network (probe 19's f10)."""
+    from twin.resources import CACHE_ENV
+
+    cache = tmp_path / "ca,che"
+    monkeypatch.setenv(CACHE_ENV, str(cache))
+    net = city / "data" / "grid.net.xml"
+    osm = tmp_path / "x.osm"
+    osm.write_text('<osm version="0.6"/>')
+    argv = [a.format(net=net, out=tmp_path / "run", osm=osm) for a in argv]
+    capsys.readouterr()
+    assert twin_main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and f"twin's cache {cache} ($TWIN_CACHE_DIR) has a comma" in err
+    assert "set TWIN_CACHE_DIR to a folder without one" in err, err
+    made = [p for p in cache.rglob("*") if p.is_file()] if cache.exists() else []
+    assert not [p for p in made if p.parent.name != "tmp"], made
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize(
+    "param",
+    ["", '<param key="device.ssm.file" value="ssm.xml"/>'],  # a file twin rewrites
+)
+def test_an_input_sumo_refuses_before_the_first_step_is_refused_not_a_partial_run(
+    city, tmp_path, capsys, param
+):
+    """A vehicle SUMO cannot insert (a lane its edge lacks) stops SUMO in the warm-up: it was a
+    partial run of 0 steps (exit 1, a folder written); it is SUMO's refusal of the route file,
+    in one line, and nothing is written (probe 19's P2-09)."""
+    import sumolib
+
+    net_file = city / "data" / "grid.net.xml"
+    net = sumolib.net.readNet(str(net_file))
+    edge = next(e for e in net.getEdges() if e.getFunction() == "" and e.getLaneNumber() < 9)
+    routes = tmp_path / "e4.rou.xml"
+    routes.write_text(
+        f'<routes><vehicle id="v" depart="0" departLane="9"><route edges="{edge.getID()}"/>'
+        f"{param}</vehicle></routes>"
+    )
+    out = tmp_path / "run"
+    argv = ["run", "--net", str(net_file), "--routes", str(routes), "--cell-m", "200",
+            "--horizon", "3", "--swarms", "random", "--no-ceiling", "--no-report", "--quiet",
+            "--out", str(out)]  # fmt: skip
+    capsys.readouterr()
+    assert twin_main(argv) == 2
+    err = capsys.readouterr().err
+    lines = [x for x in err.splitlines() if x.startswith("twin: ") and "notice" not in x[:13]]
+    assert (
+        "Traceback" not in err
+        and len(lines) == 1
+        and f"{routes}: SUMO refuses it before the window's first" in lines[0]
+    )
+    assert "Invalid departLane definition for vehicle 'v'" in lines[0], lines
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    "demand",
+    [
+        '<flow id="f" from="{e}" to="{e}" number="100" period="10"/>',
+        '<vehicle id="v" depart="begin"><route edges="{e}"/></vehicle>'
+        '<flow id="f" begin="begin" from="{e}" to="{e}" number="100" period="10"/>',
+    ],
+)
+def test_demand_at_sumos_begin_follows_a_given_begin(city, tmp_path, capsys, demand):
+    """Departures at SUMO's begin (a flow without begin, depart="begin") depart at the begin
+    twin gives SUMO, the warm-up's start: a given --begin was refused as outside the demand
+    (the review of probe 19's f05 fix)."""
+    import sumolib
+
+    net_file = city / "data" / "grid.net.xml"
+    net = sumolib.net.readNet(str(net_file))
+    edge = next(e for e in net.getEdges() if e.getFunction() == "").getID()
+    routes = tmp_path / "b.rou.xml"
+    routes.write_text(f"<routes>{demand.format(e=edge)}</routes>")
+    argv = ["run", "--net", str(net_file), "--routes", str(routes), "--cell-m", "200",
+            "--begin", "08:00", "--horizon", "2", "--swarms", "random", "--no-ceiling",
+            "--no-report", "--quiet", "--out", str(tmp_path / "run")]  # fmt: skip
+    capsys.readouterr()
+    assert twin_main(argv) == 0, capsys.readouterr().err
+    run = json.loads((tmp_path / "run" / "run.json").read_text())
+    assert run["traffic"]["begin"] == "08:00:00", run["traffic"]

@@ -308,3 +308,25 @@ def test_import_osm_refuses_a_bzip2_extract_and_an_unwritable_out(tmp_path, caps
     tracks.write_text(OSM.replace('"primary"', '"track"').replace('"secondary"', '"service"'))
     assert main(["network", "import-osm", str(tracks), "--out", str(tmp_path / "new")]) == 2
     assert not (tmp_path / "new").exists()
+
+
+def test_the_sumo_line_gives_the_warm_up_start_sumo_begins_at(capsys):
+    """A warm-up of 895 s at steps of 30 s: SUMO begins at 0 s, and the line says so (it gave
+    the start of 29 whole steps, 00:00:25; probe 19's f07)."""
+    from types import SimpleNamespace
+
+    from twin.cli.run import _announce
+    from twin.clock import clock_label
+    from twin.sumo.source import SumoScenario
+
+    s = SumoScenario(Path("g8.net.xml"), [], begin_s=895.0, warmup_s=895.0, step_s=30.0,
+                     horizon=10, name="g8.net.xml")  # fmt: skip
+    source = SimpleNamespace(
+        scenario=s,
+        grid=SimpleNamespace(nx=8, ny=8, n_free=64),
+        geometry=SimpleNamespace(cell_m=200.0),
+        clock=lambda k: clock_label(s.begin_s + k * s.step_s),
+    )
+    _announce(source)
+    err = capsys.readouterr().err
+    assert "00:00:00 warm-up, 00:14:55 - 00:19:55, step 30 s" in err, err

@@ -391,6 +391,17 @@ def test_killed_sweep_resumes(tmp_path: Path) -> None:
     [
         ('[sweep]\nname = "x"\nswarms = ["nope"]\n', "unknown swarm 'nope'"),
         ('[sweep]\nswarms = ["greedy"]\nseeds = 0\n', "[sweep].seeds = 0 must be at least 1"),
+        (  # past SUMO's seeds: it failed in every cell with an OverflowError (probe 19's f03)
+            '[sweep]\nswarms = ["greedy"]\nseeds = [9223372036854775808]\n',
+            "[sweep].seeds = [9223372036854775808] holds seed 9223372036854775808, out of range; "
+            "seeds are whole numbers from 0 to 2147483647",
+        ),
+        ('[sweep]\nswarms = ["greedy"]\nseeds = [-1]\n', "holds seed -1, out of range"),
+        (
+            '[sweep]\nswarms = ["greedy"]\nseed = 2147483647\nseeds = 2\n',
+            "runs seeds 2147483647 .. 2147483648, past the largest seed 2147483647; give at most 1",
+        ),
+        ('[sweep]\nswarms = ["greedy"]\nseed = 2147483648\n', "[sweep].seed = 2147483648 must be"),
         ('[sweep]\nswarms = ["greedy"]\n', "[[scenario]] is missing"),
         (
             '[sweep]\nswarms = ["greedy"]\nseeds = 100000000\n[[scenario]]\nname = "a"\n'

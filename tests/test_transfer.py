@@ -162,6 +162,13 @@ BAD = [
     ('[transfer]\nclassical = ["rl"]\n', "learned swarm"),
     ('[transfer]\nclassical = ["nope"]\n', "unknown swarm 'nope'"),
     ("[transfer]\nseeds = 0\n", "seeds"),
+    ("[transfer]\nseeds = [2147483648]\n", "[transfer].seeds = [2147483648] holds seed 2147483648"),
+    ("[transfer]\nseeds = 1000000\n", "more than the 100,000 cells"),
+    (
+        "[transfer]\nseeds = 10000000000\n",
+        "[transfer].seeds = 10000000000 runs seeds 0 .. 9999999999",
+    ),
+    ('[tapes]\nconfig = "{synthetic}"\nseeds = [-5]\n', "holds seed -5, out of range"),
     ("[schedule]\nepocs = 3\n", "epocs is not a pretraining key"),
     ('[schedule]\nout = "x"\n', "set per row"),
     ("[schedule]\nlr = -1.0\n", "[schedule].lr = -1.0 must be > 0"),

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import codecs
 import copy
+import itertools
 import math
 import re
 import tomllib
@@ -45,6 +46,7 @@ from twin.grid import Grid
 from twin.mfd import SETTING_RANGES as MFD_SETTING_RANGES
 from twin.resources import shipped_config as shipped_config  # re-export (moved there)
 from twin.scores import ScoreParams
+from twin.seeds import MAX_SEED
 from twin.swarms import check_swarm_name, make_policy
 
 
@@ -180,7 +182,9 @@ Horizon = Annotated[int, Field(ge=1, le=MAX_HORIZON)]
 #: The largest reward weight (Def. 4): sums of a run's rewards stay finite.
 MAX_WEIGHT = 1e6
 Weight = Annotated[float, Field(ge=0, le=MAX_WEIGHT)]
-Seed = Annotated[int, Field(ge=0)]
+Seed = Annotated[int, Field(ge=0, le=MAX_SEED)]
+
+
 Unit = Annotated[float, Field(gt=0, lt=1)]
 
 _NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.+=-]*")
@@ -478,6 +482,13 @@ class FaultsConfig(StrictModel):
                 raise ValueError(
                     f"[faults].coordinator_down has [{start}, {stop}]; give windows "
                     "[start, stop] with 0 <= start < stop"
+                )
+        ordered = sorted(value)
+        for (a, b), (c, d) in itertools.pairwise(ordered):
+            if c < b:  # one outage given twice would be split into phases of one state
+                raise ValueError(
+                    f"[faults].coordinator_down has [{a}, {b}] and [{c}, {d}], which overlap; "
+                    f"give one window [{a}, {max(b, d)}], or separate them"
                 )
         return value
 

@@ -128,10 +128,17 @@ def _params(params: Any) -> ScoreParams:
         )
     names = ("eta", "delta", "alpha_T", "alpha_I")
     values = {name: getattr(params, name) for name in names}
-    values = {  # numpy's numbers as Python's (a numpy bool stays refused)
-        name: float(v) if isinstance(v, (np.integer, np.floating)) else v
+    values = {  # numpy's numbers and bools as Python's (a bool is then refused)
+        name: v.item() if isinstance(v, (np.integer, np.floating, np.bool_)) else v
         for name, v in values.items()
     }
+    for name, v in values.items():  # a Decimal, complex or array would pass as a float
+        if (isinstance(v, (int, float, str)) and not isinstance(v, bool)) or v is None:
+            continue
+        raise EnvInputError(
+            f"params.{name} = {v!r} must be a number (a Python or numpy int or float); give "
+            f"e.g. {getattr(ScoreParams(), name)!r}"
+        )
     try:
         SwarmConfig.model_validate(values)
     except ValidationError as exc:
@@ -536,6 +543,12 @@ def make_env(
     if not path.exists() and path.suffix != ".toml":
         path = shipped_config(f"configs/{config}.toml")
     cfg = load_config(path)
+    if cfg.faults.plan().active:  # an env drove every drone as if none were lost
+        raise EnvInputError(
+            f"{cfg.path}: [faults] scripts lost drones, a coordinator down or missed "
+            "sightings, which the environments do not apply (the agent drives every drone, "
+            "every step); remove [faults], or score faults with `twin evaluate`"
+        )
     experiment = Experiment(cfg, swarms=(), seeds=(0,), tape=None if tape is None else Path(tape))
     if is_live(experiment):
 

@@ -20,6 +20,7 @@ import pandas as pd
 
 from twin.errors import UserError
 from twin.files import NotARecord, read_record
+from twin.seeds import MAX_SEED
 
 RERUN = "rerun the command that wrote it"
 
@@ -212,6 +213,7 @@ RUN_JSON_FIELDS: dict[str, Any] = {
     "created": str,
     "monitoring": {"threshold": NUM, "min_duration": NUM, "weight_floor": NUM, "truth": str},
     "invocation": {"command": str, "options": dict, "cwd": str},
+    "history": {"path": str, "sha256": str},
     "config": (str, dict),
 }
 
@@ -334,8 +336,6 @@ RUN_JSON_RANGES: dict[str, tuple[Any, str]] = {
     **{f"params.{k}": v for k, v in _SCORE_RANGES.items()},
     **{f"score_params.{k}": v for k, v in _SCORE_RANGES.items()},
 }
-#: The largest seed (SUMO's seeds are 32-bit signed integers).
-_MAX_SEED = 2**31 - 1
 
 
 def check_run_json(path: Path, run: Any) -> dict[str, Any]:
@@ -348,11 +348,12 @@ def check_run_json(path: Path, run: Any) -> dict[str, Any]:
         if params is not None:
             check_fields(path, params, RUN_JSON_FIELDS["params"], "config.params")
     check_ranges(path, run, RUN_JSON_RANGES)
+
     for n, seed in enumerate(run.get("seeds") or []):
-        if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= _MAX_SEED:
+        if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed <= MAX_SEED:
             raise UserError(
                 f"{path}: seeds[{n}] = {str(seed)[:40]} must be a whole number from 0 to "
-                f"{_MAX_SEED}; {RERUN}"
+                f"{MAX_SEED}; {RERUN}"
             )
     for n, swarm in enumerate(run.get("swarms") or []):
         if not isinstance(swarm, str):

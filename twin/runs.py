@@ -59,7 +59,14 @@ from twin import __version__
 from twin.boundary import LOG_NAME, claim_run_folder, command_line, set_run_folder
 from twin.ceilings import ceiling_table
 from twin.errors import UserError
-from twin.files import NotARecord, atomic_write, not_a_file, read_record, write_json
+from twin.files import (
+    NotARecord,
+    atomic_write,
+    check_staged_folder,
+    not_a_file,
+    read_record,
+    write_json,
+)
 from twin.metrics import (
     MONITORING_COLUMNS,
     ORACLE,
@@ -273,6 +280,13 @@ def _replaceable(path: Path, started: dict[str, Any] | None) -> None:
             f"--out {path}: holds {foreign[0]!r}, which twin did not write; {fix} "
             "(a partial run is replaced only when it holds twin's files alone)"
         )
+    check_staged_folder(path / "report", written_by_a_report)  # the user's notes in report/
+
+
+def written_by_a_report(name: str) -> bool:
+    """A name an earlier twin's report wrote into ``report/`` (one without its listing of
+    what it holds, :data:`twin.files.STAGED_LISTING`)."""
+    return name in ("report.html", "report.md") or name.endswith((".png", ".gif"))
 
 
 def _foreign_in_folders(path: Path, manifest: Any) -> list[str]:

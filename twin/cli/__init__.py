@@ -18,13 +18,11 @@ from pathlib import Path
 from twin import __version__
 from twin.boundary import run_command, set_command_line
 from twin.errors import UserError
+from twin.seeds import MAX_SEED
 
 COMMANDS = [
     "evaluate", "pretrain", "network", "run", "history", "report", "sweep", "replay", "transfer",
 ]  # fmt: skip
-
-#: The largest seed a command takes (SUMO's seeds are 32-bit signed integers).
-MAX_SEED = 2**31 - 1
 
 
 def path_arg(text: str) -> Path:
@@ -84,6 +82,36 @@ def add_worker_arguments(p, live: bool = True) -> None:
         help="where --workers run: a local process pool (default) or a local Ray (pip install "
         "'twin[ray]')",
     )
+
+
+def add_scoring_arguments(p) -> None:
+    """What ``twin run`` and ``twin evaluate`` share after their traffic: the memory limit, the
+    ceilings, the history of belief models, the report, progress bars and the config's keys."""
+    p.add_argument(
+        "--max-memory-gb",
+        type=float,
+        default=None,
+        help="refuse a run whose estimated memory exceeds this (default $TWIN_MAX_MEMORY_GB or 8)",
+    )
+    p.add_argument(
+        "--ceiling",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="add the rows oracle (ceiling) and bound (ceiling): a swarm planning on the true "
+        "future maps and an upper bound no swarm can exceed, computed after the swarms' run "
+        "(default on, left out of a run stopped by Ctrl-C; --no-ceiling skips them)",
+    )
+    p.add_argument(
+        "--history",
+        type=path_arg,
+        help="a history of earlier days (`twin history`): also score each swarm's belief "
+        "models (last-seen, history, nowcast) and write belief_models.csv",
+    )
+    p.add_argument("--no-report", action="store_true", help="do not render the HTML report")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--help-config", action="store_true",
+                   help="list every table and key of a scenario config with its default, "
+                   "then exit")  # fmt: skip
 
 
 class Parser(argparse.ArgumentParser):

@@ -5,7 +5,13 @@ from __future__ import annotations
 import argparse
 import sys
 
-from twin.cli import add_worker_arguments, check_count, check_seeds, path_arg
+from twin.cli import (
+    add_scoring_arguments,
+    add_worker_arguments,
+    check_count,
+    check_seeds,
+    path_arg,
+)
 from twin.cli.recording import (
     print_beliefs,
     print_degradation,
@@ -63,32 +69,8 @@ def add_parser(subparsers) -> None:
         default=None,
         help="run folder to write (default runs/evaluate-<time>)",
     )
-    p.add_argument(
-        "--max-memory-gb",
-        type=float,
-        default=None,
-        help="refuse a run whose estimated memory exceeds this (default $TWIN_MAX_MEMORY_GB or 8)",
-    )
-    p.add_argument(
-        "--ceiling",
-        action=argparse.BooleanOptionalAction,
-        default=True,
-        help="add the rows oracle (ceiling) and bound (ceiling): a swarm planning on the true "
-        "future maps and an upper bound no swarm can exceed, computed after the swarms' run "
-        "(default on, left out of a run stopped by Ctrl-C; --no-ceiling skips them)",
-    )
     add_worker_arguments(p, live=False)
-    p.add_argument(
-        "--history",
-        type=path_arg,
-        help="a history of earlier days (`twin history`): also score each swarm's belief "
-        "models (last-seen, history, nowcast) and write belief_models.csv",
-    )
-    p.add_argument("--no-report", action="store_true", help="do not render the HTML report")
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
-    p.add_argument("--help-config", action="store_true",
-                   help="list every table and key of a scenario config with its default, "
-                   "then exit")  # fmt: skip
+    add_scoring_arguments(p)
     p.set_defaults(func=main)
 
 

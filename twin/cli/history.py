@@ -15,7 +15,7 @@ import contextlib
 import os
 from pathlib import Path
 
-from twin.cli import path_arg
+from twin.cli import check_seeds, path_arg
 from twin.errors import UserError
 
 
@@ -140,6 +140,7 @@ def dynamics_days(args):
                              ("--disturbances", args.disturbances, 1)):  # fmt: skip
         if value < low:
             raise UserError(f"{flag} {value}: give a whole number >= {low}")
+    check_seeds("--seed", args.seed, args.days, "--days")
     check_days_memory(config, args.days, args.max_memory_gb)
     seeds = range(args.seed, args.seed + args.days)
     return dynamics_history(make_grid(config), config.traffic.horizon, seeds, args.disturbances)

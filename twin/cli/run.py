@@ -11,7 +11,13 @@ import argparse
 import sys
 from pathlib import Path
 
-from twin.cli import add_worker_arguments, check_count, check_seeds, path_arg
+from twin.cli import (
+    add_scoring_arguments,
+    add_worker_arguments,
+    check_count,
+    check_seeds,
+    path_arg,
+)
 from twin.errors import UserError
 
 DEFAULT_CONFIG = "configs/shenzhen.toml"
@@ -87,31 +93,7 @@ def add_parser(subparsers) -> None:
     add_worker_arguments(p)
     p.add_argument("--meso", action="store_true", help="SUMO's mesoscopic model (faster)")
     p.add_argument("--out", type=path_arg, help="run folder (default runs/run-<time>)")
-    p.add_argument(
-        "--max-memory-gb",
-        type=float,
-        default=None,
-        help="refuse a run whose estimated memory exceeds this (default $TWIN_MAX_MEMORY_GB or 8)",
-    )
-    p.add_argument(
-        "--ceiling",
-        action=argparse.BooleanOptionalAction,
-        default=True,
-        help="add the rows oracle (ceiling) and bound (ceiling): a swarm planning on the true "
-        "future maps and an upper bound no swarm can exceed, computed after the swarms' run "
-        "(default on, left out of a run stopped by Ctrl-C; --no-ceiling skips them)",
-    )
-    p.add_argument(
-        "--history",
-        type=path_arg,
-        help="a history of earlier days (`twin history`): also score each swarm's belief "
-        "models (last-seen, history, nowcast) and write belief_models.csv",
-    )
-    p.add_argument("--no-report", action="store_true", help="do not render the HTML report")
-    p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.add_argument("--help-config", action="store_true",
-                   help="list every table and key of a scenario config with its default, "
-                   "then exit")  # fmt: skip
+    add_scoring_arguments(p)
     add_gui_arguments(p)
     p.set_defaults(func=main)
 
@@ -389,13 +371,16 @@ def finish_video(drawer, run_dir: Path | None = None) -> bool:
 
 
 def _announce(source) -> None:
+    """The ``SUMO: ...`` line: scenario, grid, drones, the warm-up's start (SUMO's begin, not
+    whole steps before T^0), the window and the step."""
     from twin.boundary import notify
+    from twin.clock import clock_label
 
     s = source.scenario
     notify(
         f"SUMO: {s.name} (seed {s.seed}), {source.grid.nx} x {source.grid.ny} cells of "
         f"{source.geometry.cell_m:g} m ({source.grid.n_free} free, "
         f"{s.extra.get('n_drones', '?')} drones), "
-        f"{source.clock(-s.warmup_steps())} warm-up, {source.clock(0)} - "
+        f"{clock_label(s.sim_begin)} warm-up, {source.clock(0)} - "
         f"{source.clock(s.horizon)}, step {s.step_s:g} s"
     )

@@ -8,6 +8,7 @@ are not replayed, and a notice says why (their ranges and relations are checked 
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -26,6 +27,7 @@ from twin.report.derived import (
     _show,
     compare,
     fault_plan,
+    folder_format,
 )
 
 #: How far a replayed belief figure may lie from the run's (relative, at least absolute): the
@@ -40,9 +42,21 @@ def replayable_history(primary: Primary):
     from twin.files import file_sha256
 
     record = primary.run.get("history")
-    if not isinstance(record, dict) or not isinstance(record.get("path"), str):
+    if not isinstance(record, dict) or not all(
+        isinstance(record.get(k), str) for k in ("path", "sha256")
+    ):
+        if folder_format(primary) >= 4:  # every twin of format 4 records it
+            raise UserError(
+                f"{primary.run_dir / 'run.json'}: history = {json.dumps(record)[:60]} names no "
+                f"history file and its sha256, which a run with belief models records; {RERUN}"
+            )
         return None, "run.json records no history file (an earlier twin's run)"
     path = Path(record["path"])
+    if not path.is_absolute():  # twin records it resolved
+        raise UserError(
+            f"{primary.run_dir / 'run.json'}: history.path = {record['path'][:60]!r} is not an "
+            f"absolute path, as twin records it; {RERUN}"
+        )
     try:
         same = path.is_file() and file_sha256(path) == record.get("sha256")
     except OSError:

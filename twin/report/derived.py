@@ -795,15 +795,23 @@ def seed_aggregate(primary: Primary, frame: pd.DataFrame) -> pd.DataFrame:
 
 
 def _earlier_intervals(primary: Primary, frame: pd.DataFrame, expected: pd.DataFrame):
-    """``expected`` with the 0 a folder of format 3 or earlier wrote (``frame``) where one seed
-    gives no interval (``_ci95`` columns, now empty), by swarm."""
+    """``expected`` with the 0 a folder of format 3 or earlier wrote where one seed gives no
+    interval (``_ci95`` columns, now empty). Where ``per_seed.csv`` shows one seed's figure,
+    such a folder holds 0, and an empty cell is a later folder relabelled; elsewhere (a
+    paired difference) the 0 it holds is taken."""
     if folder_format(primary) >= 4 or "swarm" not in frame.columns:
         return expected
     written = frame.drop_duplicates("swarm").set_index("swarm")
+    per_seed = primary.per_seed
     for column in [c for c in expected.columns if c.endswith("_ci95") and c in frame]:
+        base = column.removesuffix("_ci95")
         was = pd.to_numeric(written[column], errors="coerce").reindex(expected["swarm"])
-        zero = expected[column].isna().to_numpy() & (was == 0).to_numpy()
-        expected.loc[zero, column] = 0.0
+        zero = (was == 0).to_numpy().copy()  # a 0 it wrote where no interval is
+        if per_seed is not None and base in per_seed.columns and "swarm" in per_seed.columns:
+            values = pd.to_numeric(per_seed[base], errors="coerce")
+            seeds = values.notna().groupby(per_seed["swarm"]).sum()
+            zero |= expected["swarm"].map(seeds).eq(1).to_numpy()  # one seed's: 0, always
+        expected.loc[expected[column].isna().to_numpy() & zero, column] = 0.0
     return expected
 
 

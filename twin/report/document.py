@@ -23,6 +23,7 @@ from twin.readback import INT, NUMBER, read_table
 from twin.report import figures
 from twin.report.animation import MAX_FRAMES, write_animation
 from twin.report.load import RunFiles, load_run
+from twin.runs import written_by_a_report
 from twin.scores import coverage
 
 #: Table 2 columns of summary.csv: (column, header, decimals); a column absent from the run's
@@ -816,11 +817,6 @@ def report_dir(run_dir: Path) -> Path:
     return out
 
 
-def _written_by_a_report(name: str) -> bool:
-    """A name an earlier twin's report wrote into ``report/``."""
-    return name in ("report.html", "report.md") or name.endswith((".png", ".gif"))
-
-
 def write_report(run_dir: str | Path | RunFiles, animation: bool = True) -> Path:
     """Write ``RUN_DIR/report/`` (report.html, report.md, PNGs, GIF) of a run folder or of one
     already read; return the HTML's path.
@@ -830,7 +826,7 @@ def write_report(run_dir: str | Path | RunFiles, animation: bool = True) -> Path
     none, never a partial one."""
     rf = run_dir if isinstance(run_dir, RunFiles) else load_run(run_dir)
     out = report_dir(rf.run_dir)
-    with staged_folder(out, _written_by_a_report) as stage:
+    with staged_folder(out, written_by_a_report) as stage:
         sections, drawing = build_sections(rf, stage, animation)
         seconds = sum(drawing.values())
         page = render_html(rf, stage, sections, seconds)

@@ -28,6 +28,7 @@ importance of :class:`twin.mfd.MFD` in effect at that step (the same mapping as 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from xml.sax.saxutils import quoteattr
@@ -194,18 +195,75 @@ def with_additional(options: tuple[str, ...], extra: Path) -> tuple[str, ...]:
     return (*out, "--additional-files", str(extra))
 
 
-#: The lowest occupancy (%) a reading of the scenario's detectors keeps: SUMO's interval
-#: occupancy dips below 0 at times (twin's own loops, of a period of one step, to -2 %), kept
-#: as 0 (the importance of a density at or below 0 is 0 alike); far below, for a period that is
-#: no multiple of SUMO's step, a reading is broken and left out.
+#: The detectors of an additional file twin reads (old and new names), by SUMO's element name.
+DETECTOR_ELEMENTS = ("inductionLoop", "e1Detector", "laneAreaDetector", "e2Detector")
+#: SUMO's aggregation period of a detector that gives none: the whole simulation (SUMO 1.2x),
+#: so no interval of it ends within a run.
+DEFAULT_PERIOD_S = math.inf
+
+
+def detector_periods(files: list[Path]) -> dict[str, float]:
+    """The aggregation period (s) of each detector the scenario's additional files define
+    (``period``, or its old name ``freq``; the whole simulation when absent, as SUMO
+    aggregates it), files they include too: a detector's first interval ends one period after
+    SUMO begins."""
+    import xml.etree.ElementTree as ET
+
+    from twin.sumo.readers import included_files, local_name, open_xml, parse_time
+
+    periods: dict[str, float] = {}
+    for path in [p for f in files for p in (Path(f), *included_files(Path(f)))]:
+        try:
+            with open_xml(path) as fh:
+                for _, elem in ET.iterparse(fh, events=("end",)):
+                    if local_name(elem) in DETECTOR_ELEMENTS and elem.get("id") is not None:
+                        given = parse_time(elem.get("period", elem.get("freq")))
+                        periods[elem.get("id")] = given if given and given > 0 else (
+                            DEFAULT_PERIOD_S)  # fmt: skip
+        except (ET.ParseError, OSError, EOFError):
+            continue  # read and refused before SUMO started; nothing more to learn here
+    return periods
+
+
+#: The lowest occupancy (%) a reading of the scenario's detectors keeps. SUMO's last-interval
+#: occupancy through its API (``getLastIntervalOccupancy``) miscounts a vehicle on the loop when
+#: an interval ends, where SUMO's own file output does not: at times it lags an interval or
+#: goes below 0, by about the vehicle's time on the loop over the period (twin's own loops, of
+#: a period of one step, to -2 %; a loop of period 1 s, to -60 %). A dip to this floor is kept
+#: as 0 (the importance of a density at or below 0 is 0 alike); a reading further below is
+#: broken and left out.
 OCCUPANCY_FLOOR = -1.0
 
 
-class DetectorReader:
-    """The detectors of an open SUMO session, their cells, and their readings per sample time."""
+def scenario_reader(scenario, geometry, api) -> DetectorReader:
+    """The :class:`DetectorReader` of a live scenario (:class:`twin.sumo.source.SumoScenario`):
+    its detectors' periods from its additional files, its first interval from SUMO's begin."""
+    periods = detector_periods(scenario.extra.get("additional_files", []))
+    return DetectorReader(scenario.detectors, geometry, api, begin=scenario.sim_begin,
+                          step_s=scenario.step_s, periods=periods)  # fmt: skip
 
-    def __init__(self, plan: DetectorPlan, geometry, api):
+
+class DetectorReader:
+    """The detectors of an open SUMO session, their cells, and their readings per sample time:
+    none of a detector before its first interval has ended (``begin``, SUMO's begin, plus its
+    period: ``periods`` of the scenario's, ``step_s`` of twin's loops), whose zeros measure
+    nothing."""
+
+    def __init__(
+        self,
+        plan: DetectorPlan,
+        geometry,
+        api,
+        *,
+        begin: float,
+        step_s: float,
+        periods: dict[str, float] | None = None,
+    ):
         self.api = api
+        self._first_end = {s.id: begin + step_s for s in plan.loops}
+        for det_id, period in (periods or {}).items():
+            self._first_end.setdefault(det_id, begin + period)
+        self._begin = begin
         virtual = {s.id: s for s in plan.loops}
         found: list[Detector] = []
         loop_ids = list(api.inductionloop.getIDList())
@@ -237,6 +295,17 @@ class DetectorReader:
                 "files): no detector of the scenario is read"
             )
         self.detectors = found
+        unread = [d.id for d in found if not d.virtual and self._first_end.get(d.id) == math.inf]
+        if unread:
+            from twin.boundary import notify
+
+            notify(
+                f"twin: notice: the scenario's detector{'s' * (len(unread) > 1)} "
+                f"{', '.join(repr(i) for i in unread[:3])}{' ...' * (len(unread) > 3)} "
+                f"give{'s' * (len(unread) == 1)} no period: SUMO aggregates such a detector over the whole simulation, so none of "
+                "its readings ends within the run and twin reads none; give it a period (e.g. "
+                "twin's step)"
+            )
         self._last: dict[str, tuple] = {}
         self._broken: set[str] = set()
 
@@ -257,16 +326,20 @@ class DetectorReader:
 
         notify(
             f"twin: notice: the scenario's detector {detector.id!r} (lane {detector.lane}) read "
-            f"an occupancy of {occupancy:.4g} %, as SUMO's interval occupancy does for a "
-            f"period that is no multiple of its 1 s step (SUMO warns of it): its readings "
-            f"below {OCCUPANCY_FLOOR:g} % are left out; give it a period of whole seconds"
+            f"an occupancy of {occupancy:.4g} % over its last interval, SUMO's value through its "
+            "API miscounting a vehicle on the loop as the interval ended (its file output does "
+            f"not): its readings below {OCCUPANCY_FLOOR:g} % are left out; a longer period, "
+            "e.g. twin's step, makes them rarer"
         )
 
     def read(self) -> list[tuple[int, int, float, float]]:
         """``(index, vehicles, occupancy %, mean speed m/s)`` of each detector whose last
         completed interval is new (twin's loops: always; speed NaN when nothing passed)."""
         rows = []
+        now = float(self.api.simulation.getTime())
         for n, d in enumerate(self.detectors):
+            if now < self._first_end.get(d.id, self._begin + DEFAULT_PERIOD_S) - 1e-6:
+                continue  # its first interval has not ended: SUMO gives zeros, not a reading
             dom = self.api.inductionloop if d.kind == LOOP else self.api.lanearea
             reading = (
                 int(dom.getLastIntervalVehicleNumber(d.id)),

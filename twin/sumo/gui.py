@@ -190,7 +190,10 @@ class GuiSettings:
 
     def sumo_options(self, mesoscopic: bool = False) -> list[str]:
         """sumo-gui's options: start at once, close at the end, a fixed window size, the view
-        settings of :func:`view_settings`; none of them changes the simulation."""
+        settings of :func:`view_settings`, twin its one TraCI client (a scenario's
+        ``num-clients`` would keep it waiting for others), and a scenario's GUI options that
+        would stop the run off: no breakpoints (pauses twin never lifts), no demo (a restart
+        at the end) and no game; none of them changes the simulation."""
         w, h = self.window
         text = view_settings(mesoscopic, self.metres_per_px)
         settings = self.home() / f"twin-gui-settings{'-meso' if mesoscopic else ''}.xml"
@@ -200,7 +203,8 @@ class GuiSettings:
             atomic_write(settings, lambda p: p.write_text(text))
         return [
             "--start", "--quit-on-end", "--window-size", f"{w},{h}", "--delay", "0",
-            "--gui-settings-file", str(settings),
+            "--gui-settings-file", str(settings), "--num-clients", "1", "--breakpoints", "",
+            "--demo", "false", "--game", "false",
         ]  # fmt: skip
 
 

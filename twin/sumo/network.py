@@ -21,7 +21,7 @@ from typing import Any
 from twin import resources
 from twin.errors import UserError
 from twin.files import read_record
-from twin.sumo.readers import check_no_comma, missing, root_tag
+from twin.sumo.readers import check_cache_without_comma, check_no_comma, missing, root_tag
 from twin.sumo.tools import binary, run_sumo_program
 
 #: Bump when the generator's output changes for the same spec (forces a rebuild).
@@ -113,6 +113,7 @@ def build_named_network(name: str, force: bool = False, progress: bool = False) 
     """
     from twin.sumo.demand import write_spec_demand
 
+    check_cache_without_comma()
     spec_path = resources.network_spec(name)
     spec = load_spec(spec_path)
     digest = _spec_hash(spec_path)
@@ -296,6 +297,10 @@ def import_osm(osm_file: Path, out_dir: Path | None = None) -> Path:
                 f"decompress it ({command} {osm_file.name}) and give the .osm (gzip works too)"
             )
     check_no_comma(osm_file, "netconvert")
+    if out_dir is None:  # the network is for SUMO, which splits its path at commas
+        check_cache_without_comma()
+    else:
+        check_no_comma(out_dir)
     name = osm_file.name.split(".")[0] + ".net.xml"
 
     no_road = UserError(

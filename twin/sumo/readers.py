@@ -86,6 +86,21 @@ def check_no_comma(path: Path | str, program: str = "SUMO") -> None:
         )
 
 
+def check_cache_without_comma() -> None:
+    """twin hands SUMO files of its cache (built networks, generated demand, its loops) by their
+    full paths, which SUMO splits at commas: a cache folder with a comma is refused before any
+    of them is made, naming the variable that sets it."""
+    from twin.resources import CACHE_ENV, cache_dir
+
+    folder = cache_dir()
+    if "," in str(folder):
+        raise UserError(
+            f"twin's cache {folder} (${CACHE_ENV}) has a comma in its path, and SUMO splits the "
+            f"names of the cache's files twin gives it at commas; set {CACHE_ENV} to a folder "
+            "without one"
+        )
+
+
 def local_name(elem: ET.Element) -> str:
     """An element's name without its namespace (``{uri}edgeData`` -> ``edgeData``), as SUMO
     matches names; ``""`` for a comment or processing instruction."""
@@ -386,12 +401,15 @@ _DEPARTING = {
 }
 
 
-def _check_departure(path: Path, elem: ET.Element, key: str) -> float | None:
-    """The departure time of ``elem`` (None for SUMO's words such as "triggered" or "now"); a
-    negative, NaN or infinite time, which SUMO refuses, is a one-line error naming the file."""
+def _check_departure(path: Path, elem: ET.Element, key: str, start: float = 0.0) -> float | None:
+    """The departure time of ``elem``: ``start`` (the simulation's begin) for SUMO's word
+    "begin", None for its other words such as "triggered" or "now"; a negative, NaN or infinite
+    time, which SUMO refuses, is a one-line error naming the file."""
     text = elem.get(key)
     if text is None:
         return None
+    if text.strip() == "begin":
+        return start
     t = parse_time(text)
     try:
         number = float(text)
@@ -406,16 +424,23 @@ def _check_departure(path: Path, elem: ET.Element, key: str) -> float | None:
     return t
 
 
+#: The key of :func:`departure_span`'s ``counts`` that counts departures at the simulation's
+#: begin (``start``), wherever SUMO begins.
+AT_BEGIN = "at the simulation's begin"
+
 #: The departing elements that put vehicles on the roads (persons walk, containers wait).
 VEHICLE_DEMAND = ("vehicle", "trip", "flow")
 
 
 def departure_span(
-    route_files: list[Path], counts: dict[str, int] | None = None
+    route_files: list[Path], counts: dict[str, int] | None = None, start: float = 0.0
 ) -> tuple[float, float] | None:
     """First and last numeric departure of the demand (``depart`` of vehicles, trips and persons,
-    ``begin`` .. ``end`` of flows, person and container flows); None when the files hold no vehicle (e.g. only vTypes).
-    ``counts``, when given, gets the number of departing elements of each tag. Files pulled in
+    ``begin`` .. ``end`` of flows, person and container flows, those of their ``<interval>`` or
+    ``start``, the simulation's begin, when a flow gives none, as SUMO reads them); None when
+    the files hold no vehicle (e.g. only vTypes).
+    ``counts``, when given, gets the number of departing elements of each tag, and of those
+    departing at ``start`` (:data:`AT_BEGIN`). Files pulled in
     with ``<include href>`` count, as SUMO loads them."""
     first = last = None
     counts = {} if counts is None else counts
@@ -425,17 +450,38 @@ def departure_span(
             if p not in read and (p == Path(path) or p.is_file()):
                 read.append(p)
     for path in read:
+        intervals: list[tuple[float, float | None]] = []  # the <interval>s a flow lies in
         try:
             with open_xml(path) as fh:
-                for _, elem in ET.iterparse(fh, events=("end",)):
+                for event, elem in ET.iterparse(fh, events=("start", "end")):
                     tag = local_name(elem)
+                    if tag == "interval":
+                        if event == "start":
+                            intervals.append(_interval(path, elem, start))
+                        else:
+                            intervals.pop()
+                        continue
+                    if event == "start":
+                        continue
                     key = _DEPARTING.get(tag)
-                    t = _check_departure(path, elem, key) if key else None
+                    t = _check_departure(path, elem, key, start) if key else None
+                    flow = tag.endswith(("flow", "Flow"))  # flow, personFlow, ...
+                    if flow and elem.get("begin") is None:  # SUMO: the interval's, else its own
+                        t = intervals[-1][0] if intervals else start
+                    if (
+                        key
+                        and t is not None
+                        and (
+                            (elem.get(key) or "").strip() == "begin"
+                            or (flow and elem.get("begin") is None and not intervals)
+                        )
+                    ):
+                        counts[AT_BEGIN] = counts.get(AT_BEGIN, 0) + 1
                     if t is not None:
                         counts[tag] = counts.get(tag, 0) + 1
                         end = t
-                        if tag.endswith(("flow", "Flow")):  # flow, personFlow, ...
-                            end = _flow_end(elem, t)
+                        if flow:
+                            end = _flow_end(elem, t, intervals[-1][1] if intervals else None)
                         first = t if first is None else min(first, t)
                         last = end if last is None else max(last, end)
                     if tag in _DEPARTING or tag in ("route", "vType"):
@@ -445,15 +491,23 @@ def departure_span(
     return None if first is None else (first, last)
 
 
+def _interval(path: Path, elem: ET.Element, start: float) -> tuple[float, float | None]:
+    """A route file's ``<interval begin end>``: the begin and end of the flows inside it that
+    give none (SUMO's defaults for them)."""
+    begin = _check_departure(path, elem, "begin", start)
+    return (0.0 if begin is None else begin), parse_time(elem.get("end"))
+
+
 #: The end of a flow that gives neither ``end`` nor a number it stops after: SUMO's default,
 #: 24 hours.
 FLOW_DEFAULT_END = 86400.0
 
 
-def _flow_end(elem: ET.Element, begin: float) -> float:
+def _flow_end(elem: ET.Element, begin: float, interval_end: float | None = None) -> float:
     """When a flow's departures end: its ``end``, else after ``number`` departures at its
     ``period``/``headway`` or ``vehsPerHour`` (``personsPerHour``, ``containersPerHour``,
-    ``perHour``), else SUMO's default end of 24 hours."""
+    ``perHour``) and no later than the end of its ``<interval>``, else that end or SUMO's
+    default end of 24 hours."""
     end = parse_time(elem.get("end"))
     if end is not None:
         return end
@@ -465,10 +519,12 @@ def _flow_end(elem: ET.Element, begin: float) -> float:
             step = 3600.0 / per_hour
     if number is not None and step is not None:
         try:
-            return begin + float(number) * step
+            last = begin + float(number) * step
         except ValueError:
             pass  # SUMO will say what is wrong with it
-    return max(begin, FLOW_DEFAULT_END)
+        else:
+            return last if interval_end is None else max(begin, min(last, interval_end))
+    return max(begin, FLOW_DEFAULT_END if interval_end is None else interval_end)
 
 
 def may_hold(path: Path, *words: bytes) -> bool:

@@ -37,8 +37,10 @@ from twin.config import MFDSettings, SumoSettings, with_overrides
 from twin.errors import UserError
 from twin.grid import Grid
 from twin.sumo.readers import (
+    AT_BEGIN,
     SUMOCFG_ROOTS,
     VEHICLE_DEMAND,
+    check_cache_without_comma,
     check_no_comma,
     departure_span,
     include_cycle,
@@ -232,6 +234,7 @@ class _ScenarioFiles:
     window: list[float | None] = field(default_factory=lambda: [None, None])  # <time> of it
     span: tuple[float, float] | None = None  # first and last departure of the given demand
     state_time: float | None = None  # the time of the state the sumocfg loads: SUMO starts there
+    at_begin: bool = False  # some of the demand departs at SUMO's begin, wherever that is
 
     @property
     def own_window(self) -> bool:
@@ -336,7 +339,10 @@ def _scenario_files(s: SumoSettings) -> _ScenarioFiles:
     with _named_in(files.sumocfg, [*as_.get("routes", []), *as_.get("additional", [])]):
         # SUMO loads vehicles, flows and persons of additional files as demand too
         departing: dict[str, int] = {}
-        files.span = departure_span([*files.route_files, *files.additional_files], departing)
+        files.span = departure_span(
+            [*files.route_files, *files.additional_files], departing, start=files.window[0] or 0.0
+        )
+        files.at_begin = departing.pop(AT_BEGIN, 0) > 0
     if files.span is None and files.sumocfg is not None and not files.route_files:
         notice(
             f"{files.sumocfg}: names no <route-files>; twin generates a rush-hour demand "
@@ -644,6 +650,7 @@ def sumo_source(
     )
     t0 = parse_clock(s.begin, begin_where)
 
+    check_cache_without_comma()
     files = _scenario_files(s)
     if s.end is not None and (not swapped or own):  # like its begin and horizon
         files.window[1] = parse_clock(s.end, f"{config.path}: [traffic].end")
@@ -661,6 +668,10 @@ def sumo_source(
         s, files, step_s, t0, warmup, begin_given, horizon_given, begin_where
     )
     window_given = begin_given or horizon_given or s.end is not None
+    if begin_given and files.at_begin:  # SUMO begins at twin's warm-up start: so do they
+        files.span = departure_span(
+            [*files.route_files, *files.additional_files], start=t0 - warmup
+        )
     geometry, obstacles, notices = _grid_and_notices(
         s, config, inputs, files, lanes, t0, step_s, window_given, begin_given, own_config=own
     )

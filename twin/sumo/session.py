@@ -58,7 +58,12 @@ def gridlock_defaults(sumocfg: Path | None) -> tuple[str, ...]:
 
 
 class SumoRunError(RuntimeError):
-    """SUMO failed while running (not on start): what was recorded so far is still valid."""
+    """SUMO failed while running (not on start): what was recorded so far is still valid.
+    ``reason``: SUMO's own words."""
+
+    def __init__(self, message: str, reason: str = "") -> None:
+        super().__init__(message)
+        self.reason = reason or message
 
 
 def _libsumo():
@@ -96,6 +101,8 @@ class SumoSession:
     #: The simulation is the same, so are the results.
     gui: Any = None
     started: bool = field(default=False, init=False)
+    #: sumo-gui's error log in twin's scratch folder, removed when the session closes
+    _scratch: Path | None = field(default=None, init=False, repr=False)
 
     _active: ClassVar[SumoSession | None] = None
 
@@ -141,21 +148,28 @@ class SumoSession:
                 files += [Path(v) for v in value.split(",") if v]
         return files
 
+    def input_files(self) -> list[Path]:
+        """The files SUMO reads: sumocfg, network, routes, additionals."""
+        named = (self.config_file, self.net_file, *self.route_files, *self.additionals())
+        return [Path(p) for p in named if p is not None]
+
+    def refusal(self, message: str, when: str = "") -> UserError:
+        """SUMO's refusal (``message``) as one line naming the file it concerns
+        (:func:`sumo_refusal`); ``when`` says when SUMO gave it, if not on start."""
+        where, reason = sumo_refusal(message, self.input_files())
+        return UserError(f"{where}: SUMO refuses it{when}: {reason}")
+
     def start(self) -> SumoSession:
         if SumoSession._active is not None:
             raise RuntimeError(
                 "a SUMO session is already open in this process (libsumo allows one)"
             )
-        files = [
-            Path(p)
-            for p in (self.config_file, self.net_file, *self.route_files, *self.additionals())
-            if p is not None
-        ]
+        files = self.input_files()
         for path in files:
             if not Path(path).exists():
                 raise missing(path, "file")
         if self.gui is not None:
-            self._start_gui()
+            self._start_gui(files)
             return self
         libsumo = _libsumo()
         stderr = _capture_fd2()
@@ -165,29 +179,57 @@ class SumoSession:
             message = stderr.text() or str(exc)
             with contextlib.suppress(Exception):
                 libsumo.close()
-            where, reason = sumo_refusal(message, files)
-            raise UserError(f"{where}: SUMO refuses it: {reason}") from None
+            raise self.refusal(message) from None
         finally:
             stderr.restore()
         SumoSession._active = self
         self.started = True
         return self
 
-    def _start_gui(self) -> None:
-        """Start sumo-gui through traci with the same options (see :mod:`twin.sumo.gui`)."""
+    def _start_gui(self, files: list[Path]) -> None:
+        """Start sumo-gui through traci with the same options (see :mod:`twin.sumo.gui`); its
+        refusal to start is one line with its reason and file, as libsumo's is."""
         import traci
+        from sumolib.miscutils import getFreeSocketPort
 
         cmd = [self.gui.binary(), *self.command()[1:], *self.gui.sumo_options(self.mesoscopic)]
+        log = _error_log(cmd)  # sumo-gui says why it quits there (and in its window), not on
+        owned = None  # stderr
+        if log is None:
+            from twin.resources import scratch_dir
+
+            log = owned = scratch_dir() / f"twin-gui-errors-{os.getpid()}.txt"
+            cmd += ["--error-log", str(log)]
+        stderr = _ChildStderr()
         try:
             with (
                 self.gui.environment(),  # its saved settings in twin's cache, not in ~
                 contextlib.redirect_stdout(io.StringIO()),  # traci's "Retrying in 1 seconds"
             ):
-                traci.start(cmd, stdout=subprocess.DEVNULL)
-        except Exception as exc:  # traci raises FatalTraCIError or OSError
+                # a port of its own: traci then gives up when sumo-gui quits, instead of
+                # starting it again on other ports for a minute
+                traci.start(cmd, port=getFreeSocketPort(), stdout=subprocess.DEVNULL)
+        except Exception as exc:  # traci raises FatalTraCIError, TraCIException or OSError
+            stderr.child_started()
             with contextlib.suppress(Exception):
                 traci.close()
+            said = stderr.text(wait=True)
+            with contextlib.suppress(OSError):
+                said += log.read_text(errors="replace")
+            if owned is not None:
+                owned.unlink(missing_ok=True)
+            if "Error" in said:
+                where, reason = sumo_refusal(said, files)
+                raise UserError(f"{where}: sumo-gui refuses it: {reason}") from None
             raise UserError(f"--gui: sumo-gui did not start ({_first_line(str(exc))})") from None
+        except BaseException:  # Ctrl-C while it starts: twin's stderr back, its log gone
+            stderr.child_started()
+            if owned is not None:
+                owned.unlink(missing_ok=True)
+            raise
+        stderr.child_started()
+        stderr.pass_on()  # its messages from here on go to twin's stderr, as libsumo's do
+        self._scratch = owned  # removed when the session closes
         SumoSession._active = self
         self.started = True
 
@@ -200,7 +242,8 @@ class SumoSession:
         try:
             _libsumo().simulationStep(t)
         except Exception as exc:
-            raise SumoRunError(f"SUMO failed before t = {t:g} s: {_first_line(str(exc))}") from exc
+            said = _first_line(str(exc))
+            raise SumoRunError(f"SUMO failed before t = {t:g} s: {said}", said) from exc
 
     def vehicles(self) -> tuple[np.ndarray, np.ndarray]:
         """Positions ``(n, 2)`` (m, network coordinates) and speeds ``(n,)`` (m/s) of the
@@ -220,6 +263,9 @@ class SumoSession:
             with contextlib.suppress(Exception):
                 _libsumo().close()
             self.started = False
+        if self._scratch is not None:
+            self._scratch.unlink(missing_ok=True)
+            self._scratch = None
         if SumoSession._active is self:
             SumoSession._active = None
 
@@ -255,11 +301,44 @@ def sumo_refusal(text: str, files: list[Path]) -> tuple[Path | str, str]:
     for path in reversed(files):  # additionals and routes before the network
         if quoted and path.suffix != ".sumocfg" and _mentions(path, quoted):
             return path, reason
+    # an element SUMO names by its kind ("... in definition of a interval."): the file with one
+    element = re.search(r"definition of (?:an? )?([A-Za-z_][\w-]*)", reason)
+    for path in reversed(files):
+        if element and path.suffix != ".sumocfg" and _mentions(path, [element[1]], "<"):
+            return path, reason
+    # an attribute SUMO finds wrong ("Invalid ... Attribute accel.", "length must be ..."): the
+    # file that gives it
+    attribute = re.search(r"[Aa]ttribute '?([A-Za-z_][\w:-]*(?:\.[\w:-]+)*)'?", reason) or (
+        re.match(r"([A-Za-z_][\w:-]*) must be ", reason)  # "length must be greater than 0"
+    )
+    wrong = attribute is not None and "missing" not in reason
+    givers = [
+        p for p in reversed(files)
+        if wrong and p.suffix != ".sumocfg" and _mentions(p, [attribute[1]], "=")
+    ]  # fmt: skip
+    if givers:  # the one whose value breaks the bound SUMO names, else the first to give it
+        bad = _value_below_bound(reason)
+        if bad is not None:
+            for path in givers:
+                if _mentions(path, [rf'{re.escape(attribute[1])}\s*=\s*"{bad}'], "re"):
+                    return path, reason
+        return givers[0], reason
     return (files[0] if files else "SUMO"), reason
 
 
-def _mentions(path: Path, tokens: list[str]) -> bool:
-    """Whether a (perhaps gzip-compressed) XML file gives one of ``tokens`` as a value."""
+def _value_below_bound(reason: str) -> str | None:
+    """A pattern of the values a "... must be greater than 0" refusal names (negative or 0;
+    negative for "equal or greater than 0"), None for another refusal."""
+    if re.search(r"must be (equal or )?greater than 0", reason, re.IGNORECASE) is None:
+        return None
+    if re.search(r"equal or greater", reason, re.IGNORECASE):
+        return r"\s*-"
+    return r"\s*(-|0*\.?0*\s*\")"
+
+
+def _mentions(path: Path, tokens: list[str], as_: str = "value") -> bool:
+    """Whether a (perhaps gzip-compressed) XML file gives one of ``tokens`` as a value (or, with
+    ``as_="<"``, holds an element of that name; with ``as_="="``, an attribute)."""
     import gzip
 
     try:
@@ -270,6 +349,12 @@ def _mentions(path: Path, tokens: list[str]) -> bool:
             data = fh.read(64 << 20).decode(errors="replace")
     except OSError:
         return False
+    if as_ == "<":
+        return any(re.search(rf"<{re.escape(t)}[\s/>]", data) for t in tokens)
+    if as_ == "=":
+        return any(re.search(rf"\s{re.escape(t)}\s*=", data) for t in tokens)
+    if as_ == "re":  # tokens are patterns, matched after whitespace
+        return any(re.search(rf"\s{t}", data) for t in tokens)
     return any(f'"{t}"' in data for t in tokens)
 
 
@@ -279,6 +364,64 @@ def _first_line(text: str) -> str:
         if "error" in line.lower():
             return line
     return lines[0] if lines else "unknown error"
+
+
+def _error_log(cmd: list[str]) -> Path | None:
+    """The file a SUMO command line writes its errors to (``--error-log``, else ``--log``)."""
+    for names in (("--error-log",), ("--log", "-l")):
+        for flag, value in itertools.pairwise(cmd):
+            if flag in names:
+                return Path(value)
+    return None
+
+
+class _ChildStderr:
+    """The stderr of a process started while it exists (sumo-gui), through a pipe: held while
+    the process starts, so that its refusal becomes twin's one line, then passed on to twin's
+    stderr as it comes."""
+
+    def __init__(self) -> None:
+        import threading
+
+        self._read, write = os.pipe()
+        self._saved = os.dup(2)
+        os.dup2(write, 2)  # a process started now writes into the pipe
+        os.close(write)
+        self._held: list[bytes] = []
+        self._passing = False
+        self._restored = False
+        self._lock = threading.Lock()
+        self._thread = threading.Thread(target=self._pump, daemon=True)
+        self._thread.start()
+
+    def _pump(self) -> None:
+        with os.fdopen(self._read, "rb", buffering=0) as fh:
+            while chunk := fh.read(4096):
+                with self._lock:
+                    if self._passing:
+                        os.write(self._saved, chunk)
+                    else:
+                        self._held.append(chunk)
+
+    def child_started(self) -> None:
+        """twin's own stderr back; the child keeps the pipe."""
+        if not self._restored:
+            os.dup2(self._saved, 2)
+            self._restored = True
+
+    def text(self, wait: bool = False) -> str:
+        """What was held; ``wait``: until the child closed its end (at most 5 s)."""
+        if wait:
+            self._thread.join(timeout=5.0)
+        with self._lock:
+            return b"".join(self._held).decode(errors="replace")
+
+    def pass_on(self) -> None:
+        with self._lock:
+            for chunk in self._held:
+                os.write(self._saved, chunk)
+            self._held.clear()
+            self._passing = True
 
 
 class _capture_fd2:

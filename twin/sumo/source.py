@@ -242,6 +242,16 @@ class SumoTraffic(TrafficSource):
         self.separate_process = False
         return self.maps_here()
 
+    def _users_refusal(self, exc: UserError) -> UserError:
+        """SUMO's refusal naming the user's file, not twin's rewritten copy of it, and the
+        sumocfg that names it."""
+        s = self.scenario
+        message = str(exc)
+        for copy, original in self._copies.items():
+            message = message.replace(str(copy), str(original))
+        listed = [Path(f) for f in s.extra.get("sumocfg_files", [])]
+        return UserError(naming_the_sumocfg(message, s.sumocfg, listed))
+
     def maps_here(self) -> Generator[np.ndarray, None, None]:
         """The maps, SUMO running in this process."""
         from twin.sumo.incidents import IncidentSchedule
@@ -264,13 +274,9 @@ class SumoTraffic(TrafficSource):
             scratch = Path(tempfile.mkdtemp(prefix="twin-sumo-", dir=scratch_dir()))
         try:
             session = self.session(self.output_dir or scratch).start()
-        except UserError as exc:  # name the user's file, not twin's rewritten copy of it
+        except UserError as exc:
             _remove(scratch)
-            message = str(exc)
-            for copy, original in self._copies.items():
-                message = message.replace(str(copy), str(original))
-            listed = [Path(f) for f in s.extra.get("sumocfg_files", [])]
-            raise UserError(naming_the_sumocfg(message, s.sumocfg, listed)) from None
+            raise self._users_refusal(exc) from None
         except BaseException:
             _remove(scratch)
             raise
@@ -286,10 +292,10 @@ class SumoTraffic(TrafficSource):
         reader = None
         self.detector_readings = []
         if s.detectors.active:
-            from twin.sumo.detectors import DetectorReader
+            from twin.sumo.detectors import scenario_reader
             from twin.sumo.session import _libsumo
 
-            reader = DetectorReader(s.detectors, self.geometry, _libsumo())
+            reader = scenario_reader(s, self.geometry, _libsumo())
             self.detectors = reader.detectors
         try:
             for k, t in self.sample_times():
@@ -303,6 +309,12 @@ class SumoTraffic(TrafficSource):
                     try:
                         self.incident_schedule.advance_to(session, instant)
                     except SumoRunError as exc:
+                        # no step to keep, and SUMO's own error (libsumo's; under sumo-gui it
+                        # may be its window closed): the input SUMO refused, as on start
+                        if self.gui is None and not any(k >= 1 for k, *_ in self.snapshots):
+                            when = f" before the window's first step (t = {instant:g} s)"
+                            refusal = session.refusal(exc.reason, when)
+                            raise self._users_refusal(refusal) from None
                         self.error = str(exc)
                         raise
                     t1 = clock()

@@ -26,6 +26,7 @@ from twin.config import (
     Overrides,
     RelPath,
     ScenarioFile,
+    Seed,
     StrictModel,
     check_dotted,
     check_name,
@@ -33,6 +34,7 @@ from twin.config import (
     validation_error,
 )
 from twin.files import not_a_file
+from twin.seeds import check_seed_list
 
 #: Swarm options that name a file, and how such a file is made: a sweep resolves them against
 #: its own folder, and each cell's id hashes their content (:func:`twin.sweep.cells.cell_id`).
@@ -42,8 +44,8 @@ OPTION_FILES = {"checkpoint": "run `twin pretrain`", "history": "run `twin histo
 class SweepSection(StrictModel):
     name: str | None = None  # default: the config file's stem
     swarms: Annotated[list[str], Field(min_length=1)]
+    seed: Seed = 0  # the first seed of a count (before seeds: its check reads it)
     seeds: Any = 1  # a count (seeds seed, seed + 1, ...) or a list of seeds
-    seed: Annotated[int, Field(ge=0)] = 0
     #: each cell also runs the ceilings (oracle, bound) on its true maps: rows with role ceiling
     ceilings: bool = False
 
@@ -62,21 +64,9 @@ class SweepSection(StrictModel):
 
     @field_validator("seeds", mode="plain")
     @classmethod
-    def _seeds(cls, seeds: Any) -> Any:
-        def whole(x: Any) -> bool:
-            return isinstance(x, int) and not isinstance(x, bool)
-
-        if whole(seeds):
-            if seeds < 1:
-                raise ValueError("must be at least 1; give a count or a list of seeds")
-            return seeds
-        if not isinstance(seeds, list) or not seeds or not all(whole(s) for s in seeds):
-            raise ValueError("must be a count or a non-empty list of whole numbers; e.g. 3")
-        if any(s < 0 for s in seeds):
-            raise ValueError("must not hold negative seeds; seeds are >= 0")
-        if len(set(seeds)) != len(seeds):
-            raise ValueError("lists a seed twice; list each once")
-        return seeds
+    def _seeds(cls, seeds: Any, info: ValidationInfo) -> Any:
+        listed = check_seed_list(seeds, "3", first=info.data.get("seed", 0))
+        return seeds if isinstance(seeds, int) else listed
 
 
 #: The most cells one sweep may expand to (each is a file in its folder and a run).

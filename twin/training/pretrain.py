@@ -47,6 +47,7 @@ from twin.config import (
     SourcedConfig,
     make_grid,
     read_with_overrides,
+    shipped_config,
     synthetic_config,
     synthetic_source,
     with_overrides,
@@ -72,6 +73,7 @@ from twin.learning.dqn import (  # noqa: F401  (double_dqn_target re-exported fo
 )
 from twin.learning.qnet import TABLE1_LAYERS, QNetwork
 from twin.learning.replay import ReplayBuffer, n_step_transitions
+from twin.seeds import MAX_SEED
 from twin.states import DEFAULT_STATE, STATE_NAMES, STATE_VARIANTS, UNAVAILABLE, StateVariant
 from twin.traffic.dynamic import dynamics_history
 from twin.traffic.synthetic import SyntheticTraffic
@@ -131,7 +133,10 @@ class PretrainConfig(SourcedConfig):
     FILE_TABLES: ClassVar[bool] = False
 
     seed: int = _help(
-        "seed of the data, the network initialisation and the batches", default=0, ge=0
+        "seed of the data, the network initialisation and the batches",
+        default=0,
+        ge=0,
+        le=MAX_SEED,
     )
     out: str = _help(
         "folder for state.pt, qnet.pt, train_log.csv, snapshots/",
@@ -221,6 +226,7 @@ class PretrainConfig(SourcedConfig):
         "must differ from the training episodes')",
         default=1_000_000,
         ge=0,
+        le=MAX_SEED,
     )
     layers: list[PositiveInt] = _help(
         "layer sizes, the state's size in and 5 out (Table 1: 13 -> 2048 -> 1024 -> 256 -> 64 "
@@ -256,7 +262,7 @@ class PretrainConfig(SourcedConfig):
     curve_every: int = _help(
         "epochs between points of the learning curve, curve.csv (0: no curve)", default=0, ge=0
     )
-    curve_seeds: list[Annotated[int, Field(ge=0)]] = _help(
+    curve_seeds: list[Annotated[int, Field(ge=0, le=MAX_SEED)]] = _help(
         "validation seeds of the curve (never the evaluation seeds 0-9)",
         default_factory=lambda: [100, 101],
     )
@@ -380,17 +386,24 @@ class PretrainConfig(SourcedConfig):
         files, window, grid and incidents as a run checks them before SUMO starts."""
         if self.curve_every:
             try:
-                config = curve_scenario(self)
-                if config.traffic.kind == "sumo":
-                    from twin.sumo.scenario import sumo_source
-
-                    sumo_source(config)
+                _check_curve_scenario(curve_scenario(self))
             except UserError as exc:
-                raise ValueError(
-                    f"curve_config = {self.curve_config!r} is no scenario config to measure "
-                    f'the curve on ({exc}); give one, e.g. "synthetic"'
-                ) from None
+                raise ValueError(self._curve_refusal(exc)) from None
         return self
+
+    def _curve_refusal(self, exc: UserError) -> str:
+        """Why the curve cannot be measured: the scenario itself, or only its window cut to
+        ``curve_horizon`` steps (then the fix is the horizon, not the file)."""
+        name = f"curve_config = {self.curve_config!r}"
+        try:
+            own = load_scenario(shipped_config(self.curve_config))
+            _check_curve_scenario(own)
+        except UserError:
+            return f'{name} cannot measure the curve: {exc} (or give another, e.g. "synthetic")'
+        return (
+            f"{name} cannot measure the curve over curve_horizon = {self.curve_horizon} "
+            f"steps: {exc} (or set curve_horizon = {own.traffic.horizon}, which fits it)"
+        )
 
     @model_validator(mode="after")
     def _exploration_falls(self) -> PretrainConfig:
@@ -1050,10 +1063,17 @@ CURVE_COLUMNS = ("epoch", "updates", "seed", "R_hat_T", "wall_s")
 
 def curve_scenario(cfg: PretrainConfig):
     """The scenario config the curve is measured on, at ``curve_horizon`` steps."""
-    from twin.config import shipped_config
-
     config = load_scenario(shipped_config(cfg.curve_config))
     return with_overrides(config, {"traffic.horizon": cfg.curve_horizon}, {})
+
+
+def _check_curve_scenario(config: ScenarioConfig) -> None:
+    """A SUMO scenario's files, window, grid and incidents, as a run checks them before SUMO
+    starts (synthetic scenarios are checked on load)."""
+    if config.traffic.kind == "sumo":
+        from twin.sumo.scenario import sumo_source
+
+        sumo_source(config)
 
 
 def write_curve(cfg: PretrainConfig, out: Path) -> Path:

@@ -33,24 +33,22 @@ from twin.config import (
 )
 from twin.errors import UserError
 from twin.files import not_a_file
+from twin.seeds import check_seed_list
 
 #: Seeds that evaluation uses; tapes and validation curves must stay off them.
 EVALUATION_SEEDS = range(0, 10)
 
 
 def _seed_list(seeds: Any, what: str) -> list[int]:
-    def whole(x: Any) -> bool:
-        return isinstance(x, int) and not isinstance(x, bool)
+    from twin.sweep.config import MAX_SWEEP_CELLS
 
-    if whole(seeds):
-        if seeds < 1:
-            raise ValueError("must be at least 1; give a count or a list of seeds")
-        return list(range(seeds))
-    if not isinstance(seeds, list) or not seeds or not all(whole(s) and s >= 0 for s in seeds):
-        raise ValueError(f"must be a count or a non-empty list of seeds >= 0; e.g. {what}")
-    if len(set(seeds)) != len(seeds):
-        raise ValueError("lists a seed twice; list each once")
-    return seeds
+    listed = check_seed_list(seeds, what)
+    if len(listed) > MAX_SWEEP_CELLS:  # before a list of them is made
+        raise ValueError(
+            f"gives {len(listed):,} seeds, more than the {MAX_SWEEP_CELLS:,} cells the "
+            "evaluation sweep holds; give fewer"
+        )
+    return list(listed)
 
 
 class TransferSection(StrictModel):
