@@ -97,9 +97,9 @@ def with_detectors(config, horizon: int, n: int):
     the CPU seconds of the reads alone and the number of loops."""
     from twin.sumo.detectors import (
         DetectorPlan,
-        DetectorReader,
         main_edges,
         place_loops,
+        scenario_reader,
         station_cells,
     )
     from twin.sumo.session import _libsumo
@@ -116,7 +116,7 @@ def with_detectors(config, horizon: int, n: int):
 
     def run():
         session = source.session(Path(folder.name)).start()
-        reader = DetectorReader(plan, source.geometry, _libsumo())
+        reader = scenario_reader(source.scenario, source.geometry, _libsumo())
         reading = 0.0
         try:
             for _, t in source.sample_times():
