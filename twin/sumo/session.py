@@ -153,6 +153,10 @@ class SumoSession:
         named = (self.config_file, self.net_file, *self.route_files, *self.additionals())
         return [Path(p) for p in named if p is not None]
 
+    def file_of(self, message: str) -> Path | str | None:
+        """The input file a message of SUMO's names or concerns, None when none is told."""
+        return sumo_refusal(message, self.input_files(), fallback=False)[0]
+
     def refusal(self, message: str, when: str = "") -> UserError:
         """SUMO's refusal (``message``) as one line naming the file it concerns
         (:func:`sumo_refusal`); ``when`` says when SUMO gave it, if not on start."""
@@ -276,12 +280,15 @@ class SumoSession:
         self.close()
 
 
-def sumo_refusal(text: str, files: list[Path]) -> tuple[Path | str, str]:
+def sumo_refusal(
+    text: str, files: list[Path], fallback: bool = True
+) -> tuple[Path | str | None, str]:
     """The file SUMO refused and its reason, from what SUMO wrote on failing to start.
 
     SUMO names the file of an XML error (``In file '...'``, ``At line/column``); for other
     errors (an unknown vehicle class, edge, type, traffic light ...) the file is the first one
-    that names the object SUMO quotes (or puts in parentheses), else the sumocfg or network.
+    that names the object SUMO quotes (or puts in parentheses), else the sumocfg or network
+    (None without ``fallback``: no file is named).
     """
     reason = re.sub(r"^Error:\s*", "", _first_line(text))
     lines = [line.strip() for line in text.splitlines()]
@@ -323,7 +330,7 @@ def sumo_refusal(text: str, files: list[Path]) -> tuple[Path | str, str]:
                 if _mentions(path, [rf'{re.escape(attribute[1])}\s*=\s*"{bad}'], "re"):
                     return path, reason
         return givers[0], reason
-    return (files[0] if files else "SUMO"), reason
+    return ((files[0] if files else "SUMO") if fallback else None), reason
 
 
 def _value_below_bound(reason: str) -> str | None:
