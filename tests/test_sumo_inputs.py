@@ -219,6 +219,10 @@ def test_a_missing_attribute_of_an_element_kind_is_blamed_on_the_file_holding_it
     text = "Error: Attribute 'begin' is missing in definition of a interval.\nQuitting."
     assert sumo_refusal(text, [net, iv, trips])[0] == iv
     assert sumo_refusal(text, [net, trips])[0] == net  # no file holds one: the first named
+    good = tmp_path / "ivgood.rou.xml"  # a valid <interval> in another file (P2-14)
+    good.write_text('<routes><interval begin="0" end="900"/></routes>')
+    assert sumo_refusal(text, [net, iv, good])[0] == iv
+    assert sumo_refusal(text, [net, good, iv])[0] == iv
     # an attribute named without quotes, given in a route file (probe 19's P2-09)
     types = tmp_path / "e1.rou.xml"
     types.write_text('<routes><vType id="x" accel="-1"/></routes>')

@@ -310,9 +310,16 @@ def sumo_refusal(
             return path, reason
     # an element SUMO names by its kind ("... in definition of a interval."): the file with one
     element = re.search(r"definition of (?:an? )?([A-Za-z_][\w-]*)", reason)
-    for path in reversed(files):
-        if element and path.suffix != ".sumocfg" and _mentions(path, [element[1]], "<"):
+    lacking = re.search(r"[Aa]ttribute '([A-Za-z_][\w:.-]*)' is missing", reason)
+    holders = [
+        p for p in reversed(files)
+        if element and p.suffix != ".sumocfg" and _mentions(p, [element[1]], "<")
+    ]  # fmt: skip
+    for path in holders:  # the one whose element lacks the attribute, else the first
+        if lacking is None or _lacks(path, element[1], lacking[1]):
             return path, reason
+    if holders:
+        return holders[0], reason
     # an attribute SUMO finds wrong ("Invalid ... Attribute accel.", "length must be ..."): the
     # file that gives it
     attribute = re.search(r"[Aa]ttribute '?([A-Za-z_][\w:-]*(?:\.[\w:-]+)*)'?", reason) or (
@@ -333,6 +340,13 @@ def sumo_refusal(
     return ((files[0] if files else "SUMO") if fallback else None), reason
 
 
+def _lacks(path: Path, element: str, attribute: str) -> bool:
+    """Whether an XML file holds an ``element`` start tag without ``attribute``."""
+    data = _text_of(path)
+    tags = re.finditer(rf"<{re.escape(element)}(?:\s[^>]*)?>", data)
+    return any(not re.search(rf"\s{re.escape(attribute)}\s*=", m[0]) for m in tags)
+
+
 def _value_below_bound(reason: str) -> str | None:
     """A pattern of the values a "... must be greater than 0" refusal names (negative or 0;
     negative for "equal or greater than 0"), None for another refusal."""
@@ -346,16 +360,7 @@ def _value_below_bound(reason: str) -> str | None:
 def _mentions(path: Path, tokens: list[str], as_: str = "value") -> bool:
     """Whether a (perhaps gzip-compressed) XML file gives one of ``tokens`` as a value (or, with
     ``as_="<"``, holds an element of that name; with ``as_="="``, an attribute)."""
-    import gzip
-
-    try:
-        with open(path, "rb") as fh:
-            gz = fh.read(2) == b"\x1f\x8b"
-        opener = gzip.open if gz else open
-        with opener(path, "rb") as fh:
-            data = fh.read(64 << 20).decode(errors="replace")
-    except OSError:
-        return False
+    data = _text_of(path)
     if as_ == "<":
         return any(re.search(rf"<{re.escape(t)}[\s/>]", data) for t in tokens)
     if as_ == "=":
@@ -363,6 +368,20 @@ def _mentions(path: Path, tokens: list[str], as_: str = "value") -> bool:
     if as_ == "re":  # tokens are patterns, matched after whitespace
         return any(re.search(rf"\s{t}", data) for t in tokens)
     return any(f'"{t}"' in data for t in tokens)
+
+
+def _text_of(path: Path) -> str:
+    """The first 64 MB of a (perhaps gzip-compressed) file as text; "" when unreadable."""
+    import gzip
+
+    try:
+        with open(path, "rb") as fh:
+            gz = fh.read(2) == b"\x1f\x8b"
+        opener = gzip.open if gz else open
+        with opener(path, "rb") as fh:
+            return fh.read(64 << 20).decode(errors="replace")
+    except (OSError, EOFError):
+        return ""
 
 
 def _first_line(text: str) -> str:
