@@ -219,6 +219,10 @@ def test_a_missing_attribute_of_an_element_kind_is_blamed_on_the_file_holding_it
     text = "Error: Attribute 'begin' is missing in definition of a interval.\nQuitting."
     assert sumo_refusal(text, [net, iv, trips])[0] == iv
     assert sumo_refusal(text, [net, trips])[0] == net  # no file holds one: the first named
+    good = tmp_path / "ivgood.rou.xml"  # a valid <interval> in another file (P2-14)
+    good.write_text('<routes><interval begin="0" end="900"/></routes>')
+    assert sumo_refusal(text, [net, iv, good])[0] == iv
+    assert sumo_refusal(text, [net, good, iv])[0] == iv
     # an attribute named without quotes, given in a route file (probe 19's P2-09)
     types = tmp_path / "e1.rou.xml"
     types.write_text('<routes><vType id="x" accel="-1"/></routes>')
@@ -1010,3 +1014,32 @@ def test_demand_at_sumos_begin_follows_a_given_begin(city, tmp_path, capsys, dem
     assert twin_main(argv) == 0, capsys.readouterr().err
     run = json.loads((tmp_path / "run" / "run.json").read_text())
     assert run["traffic"]["begin"] == "08:00:00", run["traffic"]
+
+
+def test_an_input_sumo_refuses_mid_run_is_named_in_the_partial_run(city, tmp_path, capsys):
+    """A vehicle SUMO cannot insert halfway through the window: a partial run (SUMO stops, as
+    it would alone), whose message and run.json name the route file (probe 19)."""
+    import sumolib
+
+    net_file = city / "data" / "grid.net.xml"
+    net = sumolib.net.readNet(str(net_file))
+    edge = next(e for e in net.getEdges() if e.getFunction() == "" and e.getLaneNumber() < 9)
+    bad = ' departLane="9"'
+    cars = "".join(
+        f'<vehicle id="g{i}" depart="{i * 10}"{bad * (i == 90)}>'
+        f'<route edges="{edge.getID()}"/></vehicle>'
+        for i in range(120)
+    )
+    routes = tmp_path / "e12.rou.xml"
+    routes.write_text(f"<routes>{cars}</routes>")
+    out = tmp_path / "run"
+    argv = ["run", "--net", str(net_file), "--routes", str(routes), "--cell-m", "200",
+            "--swarms", "random", "--no-ceiling", "--no-report", "--quiet", "--out",
+            str(out)]  # fmt: skip
+    capsys.readouterr()
+    assert twin_main(argv) == 1
+    err = capsys.readouterr().err
+    assert f"SUMO stopped early (SumoRunError: {routes}: SUMO failed before t = " in err, err
+    assert "Invalid departLane definition for vehicle 'g90'" in err
+    run = json.loads((out / "run.json").read_text())
+    assert run["partial"] and str(routes) in run["errors"][0]

@@ -129,3 +129,22 @@ def test_a_replay_says_what_of_the_config_it_sets_aside(tmp_path, capsys, config
     assert source.horizon == 5 and source.grid.shape == (3, 4)
     err = capsys.readouterr().err.strip()
     assert err == (f"twin: notice: {path}: {'; '.join(said)}" if said else "")
+
+
+def test_a_replay_says_its_runs_incidents_are_not_scored(tmp_path, capsys):
+    """A tape of a run with incidents: their effect is in the vehicles, but `twin evaluate
+    --traffic` scores no incident; said in the notice (it was silent: probe 19)."""
+    tape = _tape()
+    tape.settings["incidents"] = [{"kind": "edge_closed", "cell": [0, 1], "step": 1}] * 2
+    path = tmp_path / "tape.parquet"
+    tape.write(path)
+    from twin.config import load_config
+
+    config = tmp_path / "c.toml"
+    config.write_text('[grid]\nnx = 3\nny = 4\n[traffic]\nkind = "synthetic"\n')
+    TapeTraffic.from_file(path, load_config(config))
+    err = capsys.readouterr().err.strip()
+    assert err == (
+        f"twin: notice: {path}: the 2 incidents of its run are in its vehicles, but are not "
+        "scored as incidents here (their detection and incidents.json come with `twin run`)"
+    ), err

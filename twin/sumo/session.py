@@ -153,6 +153,10 @@ class SumoSession:
         named = (self.config_file, self.net_file, *self.route_files, *self.additionals())
         return [Path(p) for p in named if p is not None]
 
+    def file_of(self, message: str) -> Path | str | None:
+        """The input file a message of SUMO's names or concerns, None when none is told."""
+        return sumo_refusal(message, self.input_files(), fallback=False)[0]
+
     def refusal(self, message: str, when: str = "") -> UserError:
         """SUMO's refusal (``message``) as one line naming the file it concerns
         (:func:`sumo_refusal`); ``when`` says when SUMO gave it, if not on start."""
@@ -276,12 +280,15 @@ class SumoSession:
         self.close()
 
 
-def sumo_refusal(text: str, files: list[Path]) -> tuple[Path | str, str]:
+def sumo_refusal(
+    text: str, files: list[Path], fallback: bool = True
+) -> tuple[Path | str | None, str]:
     """The file SUMO refused and its reason, from what SUMO wrote on failing to start.
 
     SUMO names the file of an XML error (``In file '...'``, ``At line/column``); for other
     errors (an unknown vehicle class, edge, type, traffic light ...) the file is the first one
-    that names the object SUMO quotes (or puts in parentheses), else the sumocfg or network.
+    that names the object SUMO quotes (or puts in parentheses), else the sumocfg or network
+    (None without ``fallback``: no file is named).
     """
     reason = re.sub(r"^Error:\s*", "", _first_line(text))
     lines = [line.strip() for line in text.splitlines()]
@@ -303,9 +310,16 @@ def sumo_refusal(text: str, files: list[Path]) -> tuple[Path | str, str]:
             return path, reason
     # an element SUMO names by its kind ("... in definition of a interval."): the file with one
     element = re.search(r"definition of (?:an? )?([A-Za-z_][\w-]*)", reason)
-    for path in reversed(files):
-        if element and path.suffix != ".sumocfg" and _mentions(path, [element[1]], "<"):
+    lacking = re.search(r"[Aa]ttribute '([A-Za-z_][\w:.-]*)' is missing", reason)
+    holders = [
+        p for p in reversed(files)
+        if element and p.suffix != ".sumocfg" and _mentions(p, [element[1]], "<")
+    ]  # fmt: skip
+    for path in holders:  # the one whose element lacks the attribute, else the first
+        if lacking is None or _lacks(path, element[1], lacking[1]):
             return path, reason
+    if holders:
+        return holders[0], reason
     # an attribute SUMO finds wrong ("Invalid ... Attribute accel.", "length must be ..."): the
     # file that gives it
     attribute = re.search(r"[Aa]ttribute '?([A-Za-z_][\w:-]*(?:\.[\w:-]+)*)'?", reason) or (
@@ -323,7 +337,14 @@ def sumo_refusal(text: str, files: list[Path]) -> tuple[Path | str, str]:
                 if _mentions(path, [rf'{re.escape(attribute[1])}\s*=\s*"{bad}'], "re"):
                     return path, reason
         return givers[0], reason
-    return (files[0] if files else "SUMO"), reason
+    return ((files[0] if files else "SUMO") if fallback else None), reason
+
+
+def _lacks(path: Path, element: str, attribute: str) -> bool:
+    """Whether an XML file holds an ``element`` start tag without ``attribute``."""
+    data = _text_of(path)
+    tags = re.finditer(rf"<{re.escape(element)}(?:\s[^>]*)?>", data)
+    return any(not re.search(rf"\s{re.escape(attribute)}\s*=", m[0]) for m in tags)
 
 
 def _value_below_bound(reason: str) -> str | None:
@@ -339,16 +360,7 @@ def _value_below_bound(reason: str) -> str | None:
 def _mentions(path: Path, tokens: list[str], as_: str = "value") -> bool:
     """Whether a (perhaps gzip-compressed) XML file gives one of ``tokens`` as a value (or, with
     ``as_="<"``, holds an element of that name; with ``as_="="``, an attribute)."""
-    import gzip
-
-    try:
-        with open(path, "rb") as fh:
-            gz = fh.read(2) == b"\x1f\x8b"
-        opener = gzip.open if gz else open
-        with opener(path, "rb") as fh:
-            data = fh.read(64 << 20).decode(errors="replace")
-    except OSError:
-        return False
+    data = _text_of(path)
     if as_ == "<":
         return any(re.search(rf"<{re.escape(t)}[\s/>]", data) for t in tokens)
     if as_ == "=":
@@ -356,6 +368,20 @@ def _mentions(path: Path, tokens: list[str], as_: str = "value") -> bool:
     if as_ == "re":  # tokens are patterns, matched after whitespace
         return any(re.search(rf"\s{t}", data) for t in tokens)
     return any(f'"{t}"' in data for t in tokens)
+
+
+def _text_of(path: Path) -> str:
+    """The first 64 MB of a (perhaps gzip-compressed) file as text; "" when unreadable."""
+    import gzip
+
+    try:
+        with open(path, "rb") as fh:
+            gz = fh.read(2) == b"\x1f\x8b"
+        opener = gzip.open if gz else open
+        with opener(path, "rb") as fh:
+            return fh.read(64 << 20).decode(errors="replace")
+    except (OSError, EOFError):
+        return ""
 
 
 def _first_line(text: str) -> str:

@@ -315,8 +315,10 @@ class SumoTraffic(TrafficSource):
                             when = f" before the window's first step (t = {instant:g} s)"
                             refusal = session.refusal(exc.reason, when)
                             raise self._users_refusal(refusal) from None
-                        self.error = str(exc)
-                        raise
+                        where = session.file_of(exc.reason) if self.gui is None else None
+                        said = f"{where}: {exc}" if where is not None else str(exc)
+                        self.error = str(self._users_refusal(UserError(said)))
+                        raise SumoRunError(self.error, exc.reason) from exc
                     t1 = clock()
                     xy, speed = session.vehicles()
                     n, v = self.geometry.count_and_speed(xy, speed)
