@@ -145,6 +145,6 @@ def test_a_replay_says_its_runs_incidents_are_not_scored(tmp_path, capsys):
     TapeTraffic.from_file(path, load_config(config))
     err = capsys.readouterr().err.strip()
     assert err == (
-        f"twin: notice: {path}: the 2 incidents of its run are in its vehicles, but are not "
+        f"twin: notice: {path}: the 2 incidents of its run are in its vehicles, but not "
         "scored as incidents here (their detection and incidents.json come with `twin run`)"
     ), err

@@ -526,14 +526,16 @@ class TapeTraffic(TrafficSource):
     def config_set_aside(self, config) -> list[str]:
         """What of a SUMO ``config``'s own traffic the replay does not use, in words (empty
         when nothing it sets differs): the tape's horizon replaces the config's, and its
-        recorded vehicles meet no incident; the incidents its own run applied are not scored. (A synthetic config's traffic is replaced whole,
-        as ``--traffic`` says; a SUMO config's grid must be the tape's, :meth:`from_file`.)"""
+        recorded vehicles meet no incident; the incidents its own run applied are not scored.
+        (A synthetic config's traffic is replaced whole, as ``--traffic`` says; a SUMO
+        config's grid must be the tape's, :meth:`from_file`.)"""
         traffic, where, said = config.traffic, config.path.name, []
         recorded = self.tape.settings.get("incidents")
         if isinstance(recorded, list) and recorded:
-            said.append(f"the {len(recorded)} incident{'s' * (len(recorded) > 1)} of its run "
-                        "are in its vehicles, but are not scored as incidents here (their "
-                        "detection and incidents.json come with `twin run`)")  # fmt: skip
+            one = len(recorded) == 1
+            said.append(f"the {len(recorded)} incident{'' if one else 's'} of its run "
+                        f"{'is' if one else 'are'} in its vehicles, but not scored as incidents "
+                        "here (their detection and incidents.json come with `twin run`)")  # fmt: skip
         if traffic.kind != "sumo":
             return said
         if "horizon" in traffic.model_fields_set and traffic.horizon != self.horizon:
