@@ -28,6 +28,7 @@ from twin.config import (
     ScenarioFile,
     Seed,
     StrictModel,
+    check_config_kind,
     check_dotted,
     check_name,
     read_toml,
@@ -229,6 +230,7 @@ def load_sweep_config(path: str | Path) -> SweepConfig:
     """Read and validate a sweep config; every problem is one line naming the key."""
     path = Path(path)
     data = read_toml(path)
+    check_config_kind(path, data, "sweep")
     try:
         config = SweepConfig.model_validate(data, context={"path": path})
     except ValidationError as exc:

@@ -26,6 +26,7 @@ from twin.config import (
     RelPath,
     ScenarioFile,
     StrictModel,
+    check_config_kind,
     check_name,
     load_config,
     read_toml,
@@ -290,6 +291,7 @@ def load_transfer_config(path: str | Path) -> TransferConfig:
 
     path = Path(path)
     data = read_toml(path)
+    check_config_kind(path, data, "transfer")
     try:
         config = TransferConfig.model_validate(data, context={"path": path})
     except ValidationError as exc:
