@@ -401,6 +401,10 @@ def test_killed_sweep_resumes(tmp_path: Path) -> None:
             '[sweep]\nswarms = ["greedy"]\nseed = 2147483647\nseeds = 2\n',
             "runs seeds 2147483647 .. 2147483648, past the largest seed 2147483647; give at most 1",
         ),
+        (  # the count it suggests is one the sweep's cell limit then takes
+            '[sweep]\nswarms = ["greedy"]\nseeds = 4294967296\n',
+            "past the largest seed 2147483647; give at most 100000",
+        ),
         ('[sweep]\nswarms = ["greedy"]\nseed = 2147483648\n', "[sweep].seed = 2147483648 must be"),
         ('[sweep]\nswarms = ["greedy"]\n', "[[scenario]] is missing"),
         (

@@ -66,7 +66,8 @@ class SweepSection(StrictModel):
     @field_validator("seeds", mode="plain")
     @classmethod
     def _seeds(cls, seeds: Any, info: ValidationInfo) -> Any:
-        listed = check_seed_list(seeds, "3", first=info.data.get("seed", 0))
+        first = info.data.get("seed", 0)
+        listed = check_seed_list(seeds, "3", first=first, most=MAX_SWEEP_CELLS)
         return seeds if isinstance(seeds, int) else listed
 
 

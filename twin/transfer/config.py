@@ -43,7 +43,7 @@ EVALUATION_SEEDS = range(0, 10)
 def _seed_list(seeds: Any, what: str) -> list[int]:
     from twin.sweep.config import MAX_SWEEP_CELLS
 
-    listed = check_seed_list(seeds, what)
+    listed = check_seed_list(seeds, what, most=MAX_SWEEP_CELLS)
     if len(listed) > MAX_SWEEP_CELLS:  # before a list of them is made
         raise ValueError(
             f"gives {len(listed):,} seeds, more than the {MAX_SWEEP_CELLS:,} cells the "
