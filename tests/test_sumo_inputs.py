@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import gzip
 import json
+import math
 import re
 import shutil
 import xml.etree.ElementTree as ET
@@ -458,12 +459,12 @@ def test_departure_span_of_flows_and_clock_times(tmp_path):
 @pytest.mark.parametrize(
     "flow, end",
     [
-        ('begin="10" vehsPerHour="600"', 86400.0),  # SUMO's default end: 24 hours
-        ('begin="10" period="5"', 86400.0),
-        ('begin="10" probability="0.1"', 86400.0),
+        ('begin="10" vehsPerHour="600"', math.inf),  # SUMO 1.2x runs it on past 24 h
+        ('begin="10" period="5"', math.inf),
+        ('begin="10" probability="0.1"', math.inf),
         ('begin="10" number="30" vehsPerHour="600"', 190.0),
         ('begin="10" number="30" headway="2"', 70.0),
-        ('begin="90000" vehsPerHour="600"', 90000.0),
+        ('begin="90000" vehsPerHour="600"', math.inf),
     ],
 )
 def test_a_flow_without_end_departs_as_long_as_sumo_lets_it(tmp_path, flow, end):
@@ -518,6 +519,29 @@ def test_a_flow_without_begin_departs_at_the_simulations_begin(tmp_path):
         '<flow id="f" begin="begin" end="5400" period="60" from="a" to="b"/></routes>'
     )
     assert departure_span([routes], start=3600.0) == (3600.0, 5400.0)
+
+
+def test_a_flow_without_end_runs_past_midnight_and_its_window_is_said(city, capsys):
+    """SUMO 1.2x departs a flow without end or number for as long as it runs: twin cut it at
+    24:00, refused a run after midnight as "outside the demand" and said nothing of the end it
+    chose (probe 19's fl2)."""
+    data = city / "data"
+    trip = ET.parse(data / "grid.rou.xml").getroot().find("trip")
+    routes = data / "open.rou.xml"
+    routes.write_text(f'<routes><flow id="f" type="car" begin="23:45:00" period="20" '
+                      f'from="{trip.get("from")}" to="{trip.get("to")}"/></routes>')  # fmt: skip
+    given = ["--net", str(data / "grid.net.xml"), "--routes", str(routes),
+             "--additional", str(data / "vtypes.add.xml")]  # fmt: skip
+    code, err = _run(city, "open_late", *given, "--begin", "24:30", "--horizon", "2",
+                     capsys=capsys)  # fmt: skip
+    assert code == 0, err
+    assert _vehicles_per_step(city / "open_late").get(2, 0) > 0
+    code, err = _run(city, "open_own", *given, capsys=capsys)
+    assert code == 0, err
+    assert "a flow has no end or number" in err and "ends at 1d 00:45" in err, err
+    run = json.loads((city / "open_own" / "run.json").read_text())
+    assert run["horizon"] == 58  # 23:45 + 2 min warm-up .. 00:45, at 60 s
+    assert "Traceback" not in err
 
 
 def test_departures_in_included_route_files_are_the_demand(tmp_path):

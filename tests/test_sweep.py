@@ -401,6 +401,10 @@ def test_killed_sweep_resumes(tmp_path: Path) -> None:
             '[sweep]\nswarms = ["greedy"]\nseed = 2147483647\nseeds = 2\n',
             "runs seeds 2147483647 .. 2147483648, past the largest seed 2147483647; give at most 1",
         ),
+        (  # the count it suggests is one the sweep's cell limit then takes
+            '[sweep]\nswarms = ["greedy"]\nseeds = 4294967296\n',
+            "past the largest seed 2147483647; give at most 100000",
+        ),
         ('[sweep]\nswarms = ["greedy"]\nseed = 2147483648\n', "[sweep].seed = 2147483648 must be"),
         ('[sweep]\nswarms = ["greedy"]\n', "[[scenario]] is missing"),
         (
@@ -920,3 +924,36 @@ def test_a_limit_no_cell_fits_is_refused_before_any_cell(tmp_path: Path, capsys)
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "1e-09 GB is below what this run takes on any grid" in err
     assert "cells failed" not in err and not list((out / "cells").glob("*.json"))
+
+
+def test_the_sweep_figures_intervals_stop_where_coverage_and_percentages_do():
+    """Two seeds give a t-interval wide enough to reach below 0 % and past 100 %: the figure
+    drew it there (probe 19's p2_sweep_rep). The table keeps the interval as computed."""
+    import numpy as np
+
+    from twin.report.sweep import figure_table2
+
+    summary = pd.DataFrame(
+        {
+            "scenario": ["a"],
+            "swarm": ["greedy"],
+            "n_seeds": [2],
+            "R_hat_T": [1.5],
+            "R_hat_T_ci95": [4.0],  # no bound: drawn as computed
+            "C_hat_T": [0.9],
+            "C_hat_T_ci95": [0.5],
+            "pct_time_max_C": [20.0],
+            "pct_time_max_C_ci95": [127.0],
+            "pct_map_covered": [95.0],
+            "pct_map_covered_ci95": [3.0],
+        }
+    )
+    fig = figure_table2(summary)
+    drawn = {}
+    for ax in fig.axes[:4]:
+        (errorbar,) = [c for c in ax.containers if c.__class__.__name__ == "ErrorbarContainer"]
+        (segment,) = errorbar.lines[2][0].get_segments()
+        drawn[ax.get_title()] = tuple(np.round(segment[:, 1], 6))
+    assert sorted(drawn.values()) == sorted(
+        [(-2.5, 5.5), (0.4, 1.0), (0.0, 100.0), (92.0, 98.0)]
+    ), drawn

@@ -54,6 +54,44 @@ class ConfigError(UserError):
     pass
 
 
+#: Each kind of config file: what it is called, the command that reads it, and whether a
+#: file's top level holds what only that kind has (a file given to another command is named
+#: as what it is, not by its first unknown key).
+CONFIG_KINDS: dict[str, tuple[str, str, Any]] = {
+    "scenario": (
+        "a scenario config",
+        "twin run --config",
+        lambda d: any(isinstance(d.get(k), dict) for k in ("grid", "swarm", "traffic", "faults")),
+    ),
+    "sweep": ("a sweep config", "twin sweep --config", lambda d: isinstance(d.get("sweep"), dict)),
+    "transfer": (
+        "a transfer config",
+        "twin transfer --config",
+        lambda d: isinstance(d.get("transfer"), dict) or isinstance(d.get("row"), list),
+    ),
+    "pretraining": (
+        "a pretraining config",
+        "twin pretrain --config",
+        lambda d: any(k in d for k in ("epochs", "episodes", "batch_size", "lr", "gamma")),
+    ),
+}
+
+
+def check_config_kind(path: str | Path, data: Mapping[str, Any], kind: str) -> None:
+    """Refuse a file of another kind than ``kind`` (:data:`CONFIG_KINDS`) in one line naming
+    what it is and the command that reads it; a file that looks like none is left to the
+    model's own checks."""
+    name, _, looks = CONFIG_KINDS[kind]
+    if looks(data):
+        return
+    for other, (other_name, command, other_looks) in CONFIG_KINDS.items():
+        if other != kind and other_looks(data):
+            raise ConfigError(
+                f"{path}: is {other_name}, not {name} (`{command} {path}` reads it); give "
+                f"{name} here"
+            )
+
+
 class StrictModel(BaseModel):
     """Base of every config table: strict types, finite numbers, no unknown keys."""
 
@@ -66,6 +104,8 @@ class SourcedConfig(StrictModel):
 
     #: the file's top level holds tables (``[grid]``...) or plain keys (pretraining)
     FILE_TABLES: ClassVar[bool] = True
+    #: its kind of config file (:data:`CONFIG_KINDS`)
+    KIND: ClassVar[str] = "scenario"
 
     _path: Path = PrivateAttr(default=Path("config.toml"))
     _tables: dict[str, Any] | None = PrivateAttr(default=None)  # as read, overrides applied
@@ -84,6 +124,7 @@ class SourcedConfig(StrictModel):
         """Validate the tables read from ``path`` (paths in them are relative to it);
         ``labels`` names the flag or key that set a dotted key, named in an error instead of
         the file; ``flags`` the command-line flags among them (:func:`with_overrides`)."""
+        check_config_kind(path, data, cls.KIND)
         cls.check_data(path, data)
         try:
             config = cls.model_validate(data, context={"path": Path(path)})

@@ -12,9 +12,12 @@ from typing import Any
 MAX_SEED = 2**31 - 1
 
 
-def check_seed_list(seeds: Any, example: str, first: int = 0) -> Sequence[int]:
+def check_seed_list(
+    seeds: Any, example: str, first: int = 0, most: int | None = None
+) -> Sequence[int]:
     """A config's ``seeds``: a count (``first``, ``first + 1``, ...: a range) or a list of
-    distinct seeds, all in ``0 .. MAX_SEED``; else a ValueError saying which and how to fix it."""
+    distinct seeds, all in ``0 .. MAX_SEED``; else a ValueError saying which and how to fix it
+    (a count to give no larger than ``most``, the most seeds the caller takes)."""
 
     def whole(x: Any) -> bool:
         return isinstance(x, int) and not isinstance(x, bool)
@@ -25,7 +28,7 @@ def check_seed_list(seeds: Any, example: str, first: int = 0) -> Sequence[int]:
         if first + seeds - 1 > MAX_SEED:
             raise ValueError(
                 f"runs seeds {first} .. {first + seeds - 1}, past the largest seed "
-                f"{MAX_SEED}; give at most {MAX_SEED - first + 1}"
+                f"{MAX_SEED}; give at most {min(MAX_SEED - first + 1, most or MAX_SEED + 1)}"
             )
         return range(first, first + seeds)
     if not isinstance(seeds, list) or not seeds or not all(whole(s) for s in seeds):

@@ -437,8 +437,8 @@ def departure_span(
 ) -> tuple[float, float] | None:
     """First and last numeric departure of the demand (``depart`` of vehicles, trips and persons,
     ``begin`` .. ``end`` of flows, person and container flows, those of their ``<interval>`` or
-    ``start``, the simulation's begin, when a flow gives none, as SUMO reads them); None when
-    the files hold no vehicle (e.g. only vTypes).
+    ``start``, the simulation's begin, when a flow gives none, as SUMO reads them; the last is
+    ``math.inf`` when a flow has no end); None when the files hold no vehicle (e.g. only vTypes).
     ``counts``, when given, gets the number of departing elements of each tag, and of those
     departing at ``start`` (:data:`AT_BEGIN`). Files pulled in
     with ``<include href>`` count, as SUMO loads them."""
@@ -498,16 +498,11 @@ def _interval(path: Path, elem: ET.Element, start: float) -> tuple[float, float 
     return (0.0 if begin is None else begin), parse_time(elem.get("end"))
 
 
-#: The end of a flow that gives neither ``end`` nor a number it stops after: SUMO's default,
-#: 24 hours.
-FLOW_DEFAULT_END = 86400.0
-
-
 def _flow_end(elem: ET.Element, begin: float, interval_end: float | None = None) -> float:
     """When a flow's departures end: its ``end``, else after ``number`` departures at its
     ``period``/``headway`` or ``vehsPerHour`` (``personsPerHour``, ``containersPerHour``,
-    ``perHour``) and no later than the end of its ``<interval>``, else that end or SUMO's
-    default end of 24 hours."""
+    ``perHour``) and no later than the end of its ``<interval>``, else that end; never
+    (``math.inf``) for an open flow, which SUMO (1.2x) runs as long as it runs."""
     end = parse_time(elem.get("end"))
     if end is not None:
         return end
@@ -524,7 +519,7 @@ def _flow_end(elem: ET.Element, begin: float, interval_end: float | None = None)
             pass  # SUMO will say what is wrong with it
         else:
             return last if interval_end is None else max(begin, min(last, interval_end))
-    return max(begin, FLOW_DEFAULT_END if interval_end is None else interval_end)
+    return math.inf if interval_end is None else max(begin, interval_end)
 
 
 def may_hold(path: Path, *words: bytes) -> bool:

@@ -55,6 +55,10 @@ SUMO_STEP_S = 1.0
 #: The longest twin step (s): one drone move per simulated day at most.
 MAX_STEP_S = 86400.0
 
+#: Where the window of a demand with an open flow (no end, no number) ends when no end is
+#: given: midnight, or an hour after its begin when that is later.
+OPEN_DEMAND_END = 86400.0
+
 
 def sumo_settings(config) -> SumoSettings:
     """The SUMO settings of a scenario config (validated with it), file paths resolved against
@@ -404,6 +408,15 @@ def _time_window(
     if files.own_window:
         w0 = files.window[0] if files.window[0] is not None else files.span[0]
         w1 = files.window[1] if files.window[1] is not None else files.span[1]
+        if math.isinf(w1):  # a flow without end: SUMO alone would run on and on
+            w1 = max(OPEN_DEMAND_END, w0 + 3600.0)
+        open_flow = files.span is not None and math.isinf(files.span[1])
+        if open_flow and files.window[1] is None and not horizon_given:
+            notice(
+                f"{files.name}: a flow has no end or number, so SUMO would run it for ever; "
+                f"twin's window ends at {clock_label(w1)} (give the sumocfg an <end>, or a "
+                "--horizon)"
+            )
         if files.state_time is not None:  # a state saved past the last departure: one step
             w1 = max(w1, w0 + step_s)
         window = [w0, w1]
@@ -550,7 +563,7 @@ def _grid_and_notices(
                 f"{clock_label(files.span[1])}, plus {clear / 60:.0f} min to clear the "
                 "network): every step would be empty; give a --begin (and --horizon) within it"
             )
-        empty = min(s.horizon, int((end - files.span[1] - clear) / step_s))
+        empty = min(s.horizon, int(max(-1.0, end - files.span[1] - clear) / step_s))
         if empty >= 1 and not outside:
             notices.append(
                 f"{files.name}: the run ends at {clock_label(end)}, past the last departure "
@@ -705,7 +718,9 @@ def sumo_source(
             "additional_files": [str(a) for a in files.additional_files],
             "sumocfg_files": [str(f) for f in files.listed],
             "window": window,
-            "departures": list(files.span) if files.span else None,
+            "departures": (  # a flow without end: None for the last
+                [x if math.isfinite(x) else None for x in files.span] if files.span else None
+            ),
             "twin_demand": files.span is None,  # built-in or generated: route errors skipped
             "n_drones": config.swarm.n_drones,
             "n_free": int((~obstacles).sum()),

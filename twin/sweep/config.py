@@ -28,6 +28,7 @@ from twin.config import (
     ScenarioFile,
     Seed,
     StrictModel,
+    check_config_kind,
     check_dotted,
     check_name,
     read_toml,
@@ -65,7 +66,8 @@ class SweepSection(StrictModel):
     @field_validator("seeds", mode="plain")
     @classmethod
     def _seeds(cls, seeds: Any, info: ValidationInfo) -> Any:
-        listed = check_seed_list(seeds, "3", first=info.data.get("seed", 0))
+        first = info.data.get("seed", 0)
+        listed = check_seed_list(seeds, "3", first=first, most=MAX_SWEEP_CELLS)
         return seeds if isinstance(seeds, int) else listed
 
 
@@ -229,6 +231,7 @@ def load_sweep_config(path: str | Path) -> SweepConfig:
     """Read and validate a sweep config; every problem is one line naming the key."""
     path = Path(path)
     data = read_toml(path)
+    check_config_kind(path, data, "sweep")
     try:
         config = SweepConfig.model_validate(data, context={"path": path})
     except ValidationError as exc:

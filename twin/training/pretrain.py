@@ -131,6 +131,7 @@ class PretrainConfig(SourcedConfig):
     ``[grid]``, ``[swarm]`` and synthetic ``[traffic]``), with ``scenario_overrides`` on top."""
 
     FILE_TABLES: ClassVar[bool] = False
+    KIND: ClassVar[str] = "pretraining"
 
     seed: int = _help(
         "seed of the data, the network initialisation and the batches",

@@ -26,6 +26,7 @@ from twin.config import (
     RelPath,
     ScenarioFile,
     StrictModel,
+    check_config_kind,
     check_name,
     load_config,
     read_toml,
@@ -42,7 +43,7 @@ EVALUATION_SEEDS = range(0, 10)
 def _seed_list(seeds: Any, what: str) -> list[int]:
     from twin.sweep.config import MAX_SWEEP_CELLS
 
-    listed = check_seed_list(seeds, what)
+    listed = check_seed_list(seeds, what, most=MAX_SWEEP_CELLS)
     if len(listed) > MAX_SWEEP_CELLS:  # before a list of them is made
         raise ValueError(
             f"gives {len(listed):,} seeds, more than the {MAX_SWEEP_CELLS:,} cells the "
@@ -290,6 +291,7 @@ def load_transfer_config(path: str | Path) -> TransferConfig:
 
     path = Path(path)
     data = read_toml(path)
+    check_config_kind(path, data, "transfer")
     try:
         config = TransferConfig.model_validate(data, context={"path": path})
     except ValidationError as exc:
