@@ -238,6 +238,8 @@ def test_a_history_of_other_than_real_numbers_is_refused(history, tmp_path, dtyp
         ({"n_runs": 0}, r"n_runs = 0 is not a whole number >= 1"),
         ({"n_runs": "2"}, r"n_runs = '2' is not a whole number"),
         ({"traffic_seeds": [10, 10]}, r"traffic_seeds = \[10, 10\] are not distinct"),
+        ({"traffic_seeds": [-5, 11]}, r"traffic_seeds holds -5, not a SUMO seed"),
+        ({"traffic_seeds": [10, 2**70]}, r"traffic_seeds holds 1180591620717411303424, not a"),
         ({"sources": ["a"]}, r"sources = \['a'\] do not name its n_runs = 2 days"),
         ({"sources": []}, r"sources = \[\] do not name its n_runs = 2 days"),
     ],
@@ -257,6 +259,29 @@ def test_a_history_whose_info_contradicts_itself_is_refused(history, tmp_path, e
     with pytest.raises(UserError, match=words) as caught:
         History.load(bad)
     assert "\n" not in str(caught.value)
+
+
+def test_a_history_whose_days_seeds_are_unknown_says_what_it_cannot_check(
+    history, tmp_path, capsys
+):
+    """A history may hold days whose SUMO seed is unknown (a tape without one): nothing then
+    keeps an evaluated day out of it, and a run on it says so; one of known seeds says
+    nothing (probe 20's f01: an emptied list passed silently)."""
+    import json
+
+    with np.load(history) as data:
+        arrays = dict(data)
+    info = json.loads(str(arrays["info"]))
+    arrays["info"] = np.array(json.dumps({**info, "traffic_seeds": [11]}))
+    partly = tmp_path / "partly.npz"
+    np.savez(partly, **arrays)
+    for path, said in ((history, False), (partly, True)):
+        h = History.load(path)
+        h.check_matches(path, h.obstacles, h.horizon, traffic_seeds=[0])
+        err = capsys.readouterr().err
+        assert ("1 of the history's 2 days have no recorded SUMO seed" in err) == said, err
+    with pytest.raises(UserError, match="built from traffic seed 11, which this run evaluates"):
+        History.load(partly).check_matches(partly, h.obstacles, h.horizon, traffic_seeds=[11])
 
 
 def test_a_history_of_sumo_days_is_refused_for_synthetic_traffic(history, tmp_path, capsys):

@@ -155,6 +155,8 @@ SYNTHETIC_BAD = {
         "[{ sigma = nan }]",
         "[{ sigma = 1e-300 }]",
         "[{ amplitude = inf }]",
+        "[{ amplitude = 1e308 }, { amplitude = 1e308 }]",  # finite each, NaN maps together
+        "[{ amplitude = 1.7e308 }, { amplitude = 1.7e307 }]",
         '[{ i = "1" }]',
         "[{ j = nan }]",
         "[{ colour = 1 }]",

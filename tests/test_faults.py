@@ -269,7 +269,11 @@ BIG = str(2**63)
     [
         (["evaluate", "--seed", "-1"], "--seed = -1"),
         (["evaluate", "--seed", BIG], f"--seed = {BIG}"),
-        (["evaluate", "--seed", "2147483647", "--seeds", "2"], "--seeds = 2 runs seeds"),
+        (
+            ["evaluate", "--seed", "2147483646", "--seeds", "3"],
+            "--seeds = 3 runs seeds 2147483646 .. 2147483648, past the largest seed 2147483647; "
+            "give at most 2, or --seed at most 2147483645",
+        ),
         (["evaluate", "--seeds", "3000000000"], "--seeds = 3000000000 runs seeds 0 .. 2999999999"),
         (["run", "--net", "n.net.xml", "--seeds", "10" + "0" * 14], "--seeds = 1000000000000000"),
         (["run", "--sumo-seed", "2147483647", "--seeds", "2"], "--seeds = 2 runs seeds"),

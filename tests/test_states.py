@@ -511,7 +511,8 @@ def test_nowcast_pretraining_on_tapes_is_refused_in_one_line(tmp_path, capsys):
         ),
         (
             ["--dynamics", "synthetic", "--seed", "2147483647", "--days", "2"],
-            "--days = 2 runs seeds 2147483647 .. 2147483648, past the largest seed",
+            "--days = 2 runs seeds 2147483647 .. 2147483648, past the largest seed 2147483647; "
+            "give --seed at most 2147483646",  # not --days 1, which a history refuses (probe 20)
         ),
     ],
 )

@@ -43,6 +43,8 @@ from twin.files import not_a_file
 from twin.grid import Grid
 from twin.mfd import PRIOR_K_C
 from twin.monitoring import MonitorSettings, congestion_events
+from twin.notices import notify
+from twin.seeds import MAX_SEED
 
 MODELS = ("last-seen", "history", "nowcast", "nowcast+detectors")
 #: Row name of the history-only reference (no drones).
@@ -274,6 +276,12 @@ class History:
                 f"{path}: traffic_seeds = {seeds!r} is not a list of the SUMO seeds it was built "
                 f"from (needed to refuse a history that holds an evaluated day); {fix}"
             )
+        wrong = [x for x in seeds if not 0 <= x <= MAX_SEED]
+        if wrong:
+            raise UserError(
+                f"{path}: traffic_seeds holds {str(wrong[0])[:30]}, not a SUMO seed (0 .. "
+                f"{MAX_SEED}); {fix}"
+            )
         n_runs, sources = info.get("n_runs"), info.get("sources") or []
         if not isinstance(n_runs, int) or isinstance(n_runs, bool) or n_runs < 1:
             raise UserError(f"{path}: n_runs = {n_runs!r} is not a whole number >= 1; {fix}")
@@ -371,6 +379,13 @@ class History:
             )
         if begin is not None and self.begin is not None and begin != self.begin:
             raise UserError(f"{where}: history starts at {self.begin}, the run at {begin}; {fix}")
+        unknown = self.n_runs - len(self.traffic_seeds)
+        if traffic_seeds and unknown:
+            notify(
+                f"twin: notice: {where}: {unknown} of the history's {self.n_runs} days have no "
+                "recorded SUMO seed, so twin cannot check that none of them is a day this run "
+                "evaluates on"
+            )
         shared = sorted(set(self.traffic_seeds) & set(traffic_seeds))
         if shared:  # the run's other seeds are not known here: no number that may clash
             raise UserError(

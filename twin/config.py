@@ -19,6 +19,7 @@ import copy
 import itertools
 import math
 import re
+import sys
 import tomllib
 import types
 import typing
@@ -1188,6 +1189,16 @@ def synthetic_source(config: ScenarioConfig, grid: Grid | None = None):
             "[traffic].disturbances",
             "is empty: the map has no z^k (Sec. IV) and every importance would be 0; add a "
             '[[traffic.disturbances]] (kind = "big", i, j, amplitude, sigma)',
+        ), config._labels)  # fmt: skip
+    reach = sum(abs(d.amplitude) for d in disturbances) + abs(t.z_lo) + abs(t.z_hi or 0.0)
+    if not math.isfinite(reach):  # |z| <= the sum of amplitudes (Gaussian kernels <= 1): then
+        # every z, z - z_lo and z_hi - z_lo of Def. 2 is finite too
+        raise _naming_changes(_fail(
+            config.path,
+            "[traffic].disturbances",
+            "have amplitudes that, with z_lo and z_hi, add up past the largest number a map "
+            f"can hold ({sys.float_info.max:.3g}); give amplitudes, z_lo and z_hi whose sizes "
+            "add up to less",
         ), config._labels)  # fmt: skip
     source = SyntheticTraffic(grid, disturbances, t.horizon, t.beta1, t.beta2, t.z_lo, t.z_hi)
     if source.peak_z() <= t.z_lo:

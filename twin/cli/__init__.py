@@ -39,9 +39,12 @@ def check_count(flag: str, value: int | None) -> None:
         raise UserError(f"{flag} = {value} is below 1; give a whole number of at least 1")
 
 
-def check_seeds(flag: str, first: int | None, count: int = 1, count_flag: str = "") -> None:
+def check_seeds(
+    flag: str, first: int | None, count: int = 1, count_flag: str = "", least: int = 1
+) -> None:
     """Seeds ``first .. first + count - 1`` must lie in ``0 .. MAX_SEED``: a first seed out of
-    range is ``flag``'s fault, too many seeds from a good one ``count_flag``'s."""
+    range is ``flag``'s fault, too many seeds from a good one ``count_flag``'s (which takes at
+    least ``least``: the fix offered is one both flags take)."""
     if first is None:
         return
     if first < 0 or first > MAX_SEED or (first + count - 1 > MAX_SEED and not count_flag):
@@ -50,9 +53,11 @@ def check_seeds(flag: str, first: int | None, count: int = 1, count_flag: str = 
             f"{flag} = {first} is out of range{last}; seeds are whole numbers from 0 to {MAX_SEED}"
         )
     if first + count - 1 > MAX_SEED:
+        room, lower = MAX_SEED - first + 1, f"{flag} at most {MAX_SEED - count + 1}"
         raise UserError(
             f"{count_flag} = {count} runs seeds {first} .. {first + count - 1}, past the largest "
-            f"seed {MAX_SEED}; give at most {MAX_SEED - first + 1}"
+            f"seed {MAX_SEED}; "
+            + (f"give at most {room}, or {lower}" if room >= least else f"give {lower}")
         )
 
 

@@ -140,7 +140,7 @@ def dynamics_days(args):
                              ("--disturbances", args.disturbances, 1)):  # fmt: skip
         if value < low:
             raise UserError(f"{flag} {value}: give a whole number >= {low}")
-    check_seeds("--seed", args.seed, args.days, "--days")
+    check_seeds("--seed", args.seed, args.days, "--days", least=2)
     check_days_memory(config, args.days, args.max_memory_gb)
     seeds = range(args.seed, args.seed + args.days)
     return dynamics_history(make_grid(config), config.traffic.horizon, seeds, args.disturbances)
