@@ -58,6 +58,14 @@ def test_incident_config_is_checked(tmp_path):
     )
     with pytest.raises(UserError, match='gives lane = 1, which only kind = "lane_closed" reads'):
         load_config(path)
+    # shorter than SUMO's step: applied and lifted at one instant, its record then refused
+    # by the run's own report (probe 20's f06)
+    path.write_text(
+        '[traffic]\nkind = "sumo"\n[[traffic.incidents]]\nkind = "edge_closed"\n'
+        'edge = "e1"\nbegin = "07:45"\nduration_min = 1e-9\n'
+    )
+    with pytest.raises(UserError, match=r"duration_min = 1e-09 lasts 6e-08 s, shorter than SUMO"):
+        load_config(path)
 
 
 # ------------------------------------------------------------------------ on a small SUMO run
