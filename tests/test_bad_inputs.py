@@ -172,6 +172,20 @@ TAPE_CASES: dict[str, tuple[Callable[[Path], Path], str]] = {
         lambda p: write_tape(p, meta=lambda m: {**m, "lane_km": [[-1.0] * NY, *m["lane_km"][1:]]}),
         "lane_km = -1.0",
     ),
+    **{  # probe 20's f08: a forged limit changed the MFD samples, and the run went on
+        f"a speed limit of {value:g} m/s on a free cell": (
+            lambda p, value=value: write_tape(
+                p, meta=lambda m: {**m, "speed_limit": _zero_at(m["speed_limit"], 1, 2, value)}
+            ),
+            f"tape metadata speed_limit = {value:g} at cell (1, 2), which its obstacles leave "
+            "free, is not a lane speed",
+        )
+        for value in (0.0, 1e300)
+    },
+    "a speed faster than any vehicle": (
+        lambda p: write_tape(p, lambda f: _set(f, "speed", 3e38)),
+        "is faster than any road vehicle (over 1000 m/s)",
+    ),
     "NaN speed limit": (
         lambda p: write_tape(
             p, meta=lambda m: {**m, "speed_limit": [[float("nan")] * NY, *m["speed_limit"][1:]]}
@@ -212,9 +226,9 @@ def _step_time(f: pd.DataFrame, step: int, time_s: float) -> pd.DataFrame:
     return f.assign(time_s=np.where(f["step"] == step, time_s, f["time_s"]))
 
 
-def _zero_at(rows: list[list[float]], i: int, j: int) -> list[list[float]]:
+def _zero_at(rows: list[list[float]], i: int, j: int, value: float = 0.0) -> list[list[float]]:
     rows = [list(r) for r in rows]
-    rows[i][j] = 0.0
+    rows[i][j] = value
     return rows
 
 

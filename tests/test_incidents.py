@@ -58,6 +58,14 @@ def test_incident_config_is_checked(tmp_path):
     )
     with pytest.raises(UserError, match='gives lane = 1, which only kind = "lane_closed" reads'):
         load_config(path)
+    # shorter than SUMO's step: applied and lifted at one instant, its record then refused
+    # by the run's own report (probe 20's f06)
+    path.write_text(
+        '[traffic]\nkind = "sumo"\n[[traffic.incidents]]\nkind = "edge_closed"\n'
+        'edge = "e1"\nbegin = "07:45"\nduration_min = 1e-9\n'
+    )
+    with pytest.raises(UserError, match=r"duration_min = 1e-09 lasts 6e-08 s, shorter than SUMO"):
+        load_config(path)
 
 
 # ------------------------------------------------------------------------ on a small SUMO run
@@ -415,7 +423,7 @@ BAD_INCIDENTS = {
         _incident(where="cell = [0, 0]") + "[grid]\nnx = 12\nny = 12\n",
         "cell = [0, 0] has no road; pick a cell on a road",
     ),
-    "an unknown edge": (_incident(where='edge = "nowhere"'), "'nowhere' is not an edge of"),
+    "an unknown edge": (_incident(where='edge = "nowhere"'), "'nowhere' is not a road of"),
     "a lane the edge lacks": (
         _incident(kind="lane_closed", where='edge = "B1B2"\nlane = 5'),
         "edge 'B1B2' has 2 lanes",
@@ -440,6 +448,83 @@ def test_incidents_are_checked_before_the_run(tmp_path, capsys, case):
     err = run_case(capsys, tmp_path, argv, out, 2, needle)
     assert str(cfg) in err and "[traffic].incidents[0]" in err
     assert not out.exists()
+
+
+@pytest.fixture(scope="module")
+def walkable(tmp_path_factory):
+    """A 3 x 3 grid of 200 m blocks with sidewalks (lane 0 of each road, pedestrians only),
+    crossings and walking areas, as `netgenerate --sidewalks.guess --crossings.guess` writes
+    it, and a flow of cars over it."""
+    pytest.importorskip("libsumo")
+    from twin.sumo.tools import binary, run_sumo_program
+
+    d = tmp_path_factory.mktemp("walkable")
+    run_sumo_program(
+        [binary("netgenerate"), "--grid", "--grid.number", "3", "--grid.length", "200",
+         "--sidewalks.guess", "--crossings.guess", "--tls.guess", "true",
+         "-o", str(d / "sw.net.xml")],
+        what="netgenerate",
+    )  # fmt: skip
+    (d / "sw.rou.xml").write_text(
+        '<routes><flow id="f" begin="0" end="900" period="10" from="A0A1" to="C2C1"/></routes>'
+    )
+    return d
+
+
+#: incident on a network with sidewalks -> words of its one-line refusal (None: it runs)
+WALKABLE_INCIDENTS = {
+    "a walking area": (
+        _incident(where='edge = ":B1_w0"'),
+        "edge = ':B1_w0' is not a road of",
+    ),
+    "a crossing": (
+        _incident(kind="vehicle_stopped", where='edge = ":B1_c0"'),
+        "(a junction's inner lane, crossing or walking area: no road)",
+    ),
+    "a sidewalk": (
+        _incident(kind="lane_closed", where='edge = "A0A1"\nlane = 0'),
+        "lane = 0 of edge 'A0A1' is for pedestrians (a sidewalk): closing it holds up no "
+        "vehicle; give a lane vehicles use (1)",
+    ),
+    "the road beside it": (_incident(kind="lane_closed", where='edge = "A0A1"\nlane = 1'), None),
+    "a cell's sidewalks": (
+        _incident(kind="lane_closed", where="cell = [3, 0]\nlane = 0"),
+        "lane = 0: no road of cell = [3, 0] has a lane 0 that carries vehicles (where a road "
+        "has a sidewalk, it is lane 0); give lane = 1",
+    ),
+    "a cell's road": (_incident(kind="lane_closed", where="cell = [3, 0]\nlane = 1"), None),
+    "a cell's busiest road": (_incident(where="cell = [3, 0]"), None),
+}
+
+
+@pytest.mark.parametrize("case", list(WALKABLE_INCIDENTS))
+def test_an_incident_on_what_carries_no_vehicle_is_refused(walkable, tmp_path, capsys, case):
+    """A walking area or crossing was taken as an incident's edge, recorded at cell [-1, -1]
+    (a folder the run's own report then refused), and a sidewalk as the lane to close, which
+    holds up nothing (probe 20's f05, c39). A cell's incident picks among its roads' lanes
+    that carry vehicles."""
+    from test_bad_inputs import run_case
+
+    from twin.cli import main as twin_main
+
+    incidents, needle = WALKABLE_INCIDENTS[case]
+    cfg = tmp_path / "walk.toml"
+    cfg.write_text(
+        f'[swarm]\nn_drones = 2\n[traffic]\nkind = "sumo"\nnet = "{walkable / "sw.net.xml"}"\n'
+        f'routes = ["{walkable / "sw.rou.xml"}"]\ncell_m = 100.0\nbegin = "00:05"\n'
+        f"horizon = 6\nwarmup_min = 2.0\ndrone_speed_kmh = 6.0\n{incidents}"
+    )
+    out = tmp_path / "run"
+    argv = ["run", "--config", str(cfg), "--out", str(out), "--quiet", "--swarms", "greedy",
+            "--no-ceiling"]  # fmt: skip
+    if needle is not None:
+        run_case(capsys, tmp_path, [*argv, "--no-report"], out, 2, needle)
+        assert not out.exists()
+        return
+    assert twin_main(argv) == 0, capsys.readouterr().err
+    (record,) = json.loads((out / "incidents.json").read_text())
+    assert record["applied_s"] is not None and record["cell"] != [-1, -1], record
+    assert record["edge"] is not None and not record["edge"].startswith(":"), record
 
 
 def test_overlapping_closures_reopen_when_the_last_lifts(tmp_path, capsys):

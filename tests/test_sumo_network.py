@@ -56,3 +56,18 @@ def test_boulevard_has_eight_lanes_and_junctions_are_signalised(shenzhen):
 def test_unknown_network_name_is_a_user_error():
     with pytest.raises(UserError, match="unknown network 'atlantis'"):
         build_named_network("atlantis")
+
+
+def test_a_run_outside_the_built_in_networks_demand_is_refused(tmp_path, capsys):
+    """The built-in rush hour departs 06:30-10:00: a run at 23:00 was a folder of empty maps
+    with a notice after the fact, where a network brought with its own demand is refused
+    before SUMO starts (probe 20's f04)."""
+    from twin.cli import main
+
+    out = tmp_path / "run"
+    code = main(["run", "--begin", "23:00", "--horizon", "4", "--swarms", "random",
+                 "--no-ceiling", "--no-report", "--quiet", "--out", str(out)])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "Traceback" not in err, err
+    assert "shenzhen_like: the run (23:00:00 - 23:05:00) lies outside the demand" in err, err
+    assert not out.exists()

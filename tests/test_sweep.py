@@ -751,6 +751,22 @@ def test_a_swarm_without_a_usable_history_is_refused_before_any_cell(tmp_path, c
     assert not out.exists(), list(out.rglob("*"))  # nothing written for a refused sweep
 
 
+def test_a_history_of_the_sweeps_swarm_options_is_read_before_any_cell(tmp_path, capsys):
+    """The sweep's own ``[swarm_options.nowcast-gain] history``: the check before any cell
+    ignored it and refused the sweep, asking for exactly that key (probe 20's f07)."""
+    path = sweep_file(tmp_path, seeds=1, horizon=4)
+    history = tmp_path / "h.npz"
+    assert cli(["history", "--dynamics", str(tmp_path / "scenario.toml"), "--days", "2",
+                "--out", str(history)]) == 0  # fmt: skip
+    text = path.read_text().replace('"sweeping"]', '"nowcast-gain"]')
+    path.write_text(text + '\n[swarm_options.nowcast-gain]\nhistory = "h.npz"\n')
+    out = tmp_path / "s"
+    capsys.readouterr()
+    code = cli(["sweep", "--config", str(path), "--out", str(out), "--quiet", "--no-report"])
+    assert code == 0, capsys.readouterr().err
+    assert set(pd.read_csv(out / "results.csv")["swarm"]) == {"random", "greedy", "nowcast-gain"}
+
+
 def test_a_sumocfg_variable_naming_another_file_gives_a_new_cell(tmp_path: Path, monkeypatch):
     """A cell is its sumocfg as SUMO reads it: a ``${VAR}`` that now names another route file
     gives another cell (the old cell's numbers were kept as current; probe 14's f04)."""

@@ -364,6 +364,16 @@ class IncidentSettings(StrictModel):
     def _begin(cls, value: str | None) -> str | None:
         return None if value is None else check_clock(value)
 
+    @field_validator("duration_min")
+    @classmethod
+    def _a_sumo_step_at_least(cls, value: float) -> float:
+        if value * 60.0 < 1.0:  # applied and lifted on SUMO's steps: nothing shorter is seen
+            raise ValueError(
+                f"lasts {value * 60.0:.3g} s, shorter than SUMO's 1 s step, on which incidents "
+                "are applied and lifted; give at least 1/60 (1 s)"
+            )
+        return value
+
     @model_validator(mode="after")
     def _one_place_one_time(self) -> IncidentSettings:
         if (self.edge is None) == (self.cell is None):

@@ -62,16 +62,32 @@ def configured_schedule(incidents: list[Any]) -> list[dict[str, Any]]:
     return [inc.model_dump(mode="json") for inc in incidents]
 
 
-def net_edges(net_file) -> dict[str, int]:
-    """Non-internal edges of a network and their number of lanes."""
+#: Edge functions that are no road: a junction's inner lanes, its crossings and walking areas.
+NOT_ROADS = ("internal", "crossing", "walkingarea")
+
+
+def for_vehicles(allow: str | None, disallow: str | None = None) -> bool:
+    """Whether a lane of these SUMO permissions carries vehicles: not one for pedestrians
+    alone (``allow="pedestrian"``, a sidewalk) nor closed to all."""
+    if allow is not None:
+        return bool(set(allow.split()) - {"pedestrian"})
+    return (disallow or "").strip() != "all"
+
+
+def net_edges(net_file) -> dict[str, list[bool]]:
+    """The roads of a network (edges but a junction's internal ones, crossings and walking
+    areas): per lane, by index, whether it carries vehicles (:func:`for_vehicles`)."""
     import xml.etree.ElementTree as ET
 
-    edges: dict[str, int] = {}
+    edges: dict[str, list[bool]] = {}
     with open_xml(net_file) as fh:
         for _, elem in ET.iterparse(fh, events=("end",)):
             if elem.tag == "edge":
-                if elem.get("function") != "internal" and elem.get("id"):
-                    edges[elem.get("id")] = len(elem.findall("lane"))
+                if elem.get("function") not in NOT_ROADS and elem.get("id"):
+                    lanes = sorted(elem.findall("lane"), key=lambda la: int(la.get("index", 0)))
+                    edges[elem.get("id")] = [
+                        for_vehicles(la.get("allow"), la.get("disallow")) for la in lanes
+                    ]
                 elem.clear()
     return edges
 
@@ -114,6 +130,43 @@ def middle_cell(shape: np.ndarray, geometry) -> tuple[int, int]:
     return (int(row[0]), int(col[0])) if inside[0] else (-1, -1)
 
 
+def cell_roads(net_file, geometry) -> dict[tuple[int, int], list[tuple[str, list[bool]]]]:
+    """Per cell: the roads whose lane 0 passes through it (as :meth:`IncidentSchedule.
+    _edge_cells` finds them in the running simulation), each with its lanes' vehicle flags
+    (:func:`net_edges`): the candidates of an incident given by its cell."""
+    roads = net_edges(net_file)
+    out: dict[tuple[int, int], list[tuple[str, list[bool]]]] = {}
+    for edge, (_, shape) in edge_lanes(net_file, set(roads)).items():
+        if edge.startswith(":"):
+            continue
+        for cell in edge_cells(shape, geometry):
+            out.setdefault(cell, []).append((edge, roads[edge]))
+    return out
+
+
+def _check_cell_roads(field: str, inc, cell: tuple[int, int], roads) -> None:
+    """Refuse an incident given by its cell whose roads there carry no vehicle on what it
+    would act on: the lane it closes (a sidewalk, lane 0 where a road has one), else any."""
+    usable = sorted({k for _, lanes in roads for k, ok in enumerate(lanes) if ok})
+    place = f"cell = [{cell[0]}, {cell[1]}]"
+    if not roads:
+        raise UserError(
+            f"{field}.{place}: no road runs through it (lanes only touch it); pick a cell on "
+            "a road (see the report's map) or give an edge"
+        )
+    if not usable:
+        raise UserError(
+            f"{field}.{place}: its roads carry no vehicle (footpaths), so the incident would "
+            "hold up nothing; pick a cell on a road (see the report's map)"
+        )
+    if inc.kind == "lane_closed" and inc.lane not in usable:
+        raise UserError(
+            f"{field}.lane = {inc.lane}: no road of {place} has a lane {inc.lane} that carries "
+            f"vehicles (where a road has a sidewalk, it is lane 0); give lane = "
+            f"{', '.join(map(str, usable))}"
+        )
+
+
 def check_incidents(incidents: list[Any], scenario, geometry, where: str = "") -> list[str]:
     """Refuse (one line) an incident outside the scenario's simulated window (warm-up
     included) or over before its first step ``T^0``, on a cell off the grid or without a road,
@@ -122,6 +175,7 @@ def check_incidents(incidents: list[Any], scenario, geometry, where: str = "") -
     together: a lane reopens when the last incident closing it lifts)."""
     prefix = f"{where}: " if where else ""
     edges = net_edges(scenario.net_file) if any(i.edge is not None for i in incidents) else {}
+    by_cell = cell_roads(scenario.net_file, geometry) if any(i.cell for i in incidents) else {}
     lo, hi = scenario.sim_begin, scenario.sim_end
     places = []
     for n, inc in enumerate(incidents):
@@ -157,17 +211,33 @@ def check_incidents(incidents: list[Any], scenario, geometry, where: str = "") -
                     f"{field}.cell = [{i}, {j}] has no road; pick a cell on a road (see the "
                     "report's map) or give an edge"
                 )
+            _check_cell_roads(field, inc, (i, j), by_cell.get((i, j), []))
             place = f"cell [{i}, {j}]"
         else:
             if inc.edge not in edges:
+                junction = " (a junction's inner lane, crossing or walking area: no road)"
                 raise UserError(
-                    f"{field}.edge = {inc.edge!r} is not an edge of {scenario.net_file}; give an "
-                    "edge id of the net file, or a cell = [i, j]"
+                    f"{field}.edge = {inc.edge!r} is not a road of {scenario.net_file}"
+                    f"{junction if inc.edge.startswith(':') else ''}; give an edge id of the "
+                    "net file, or a cell = [i, j]"
                 )
-            if inc.kind == "lane_closed" and inc.lane >= edges[inc.edge]:
+            lanes = edges[inc.edge]
+            if inc.kind == "lane_closed" and inc.lane >= len(lanes):
                 raise UserError(
-                    f"{field}.lane = {inc.lane}: edge {inc.edge!r} has {edges[inc.edge]} lanes "
-                    f"(0 is the rightmost); give a lane below {edges[inc.edge]}"
+                    f"{field}.lane = {inc.lane}: edge {inc.edge!r} has {len(lanes)} lanes "
+                    f"(0 is the rightmost); give a lane below {len(lanes)}"
+                )
+            usable = [k for k, ok in enumerate(lanes) if ok]
+            if not usable:
+                raise UserError(
+                    f"{field}.edge = {inc.edge!r} carries no vehicle (its lanes are for "
+                    "pedestrians), so the incident would hold up nothing; give a road's edge"
+                )
+            if inc.kind == "lane_closed" and not lanes[inc.lane]:
+                raise UserError(
+                    f"{field}.lane = {inc.lane} of edge {inc.edge!r} is for pedestrians (a "
+                    "sidewalk): closing it holds up no vehicle; give a lane vehicles use "
+                    f"({', '.join(map(str, usable))})"
                 )
             place = f"edge {inc.edge!r}"
         places.append((place, begin, end))
@@ -180,6 +250,15 @@ def check_incidents(incidents: list[Any], scenario, geometry, where: str = "") -
                 "closed lane reopens only when the last incident on it lifts"
             )
     return notices
+
+
+def _holds_up_vehicles(ls, edge: str, inc) -> bool:
+    """Whether incident ``inc`` on ``edge`` of the running simulation acts on a lane that
+    carries vehicles (:func:`for_vehicles`; SUMO lists no class for a lane open to all): its
+    lane, for a closed lane, else any of the edge's."""
+    n = ls.edge.getLaneNumber(edge)
+    lanes = ([inc.lane] if inc.lane < n else []) if inc.kind == "lane_closed" else range(n)
+    return any(for_vehicles(" ".join(ls.lane.getAllowed(f"{edge}_{k}")) or None) for k in lanes)
 
 
 class IncidentSchedule:
@@ -266,13 +345,14 @@ class IncidentSchedule:
         else:
             cell = tuple(inc.cell)
             candidates = sorted(e for e, (_, through) in cells.items() if cell in through)
-            if inc.kind == "lane_closed":
-                candidates = [e for e in candidates if ls.edge.getLaneNumber(e) > inc.lane]
+            # a cell's footpaths and sidewalks are no candidates
+            candidates = [e for e in candidates if _holds_up_vehicles(ls, e, inc)]
             if not candidates:
+                lane = f" whose lane {inc.lane}" if inc.kind == "lane_closed" else " that"
                 raise UserError(
-                    f"{where}.cell = {list(cell)} has no edge"
-                    + (f" with a lane {inc.lane}" if inc.kind == "lane_closed" else "")
-                    + "; pick a cell on a road (see the report's map)"
+                    f"{where}.cell = {list(cell)} has no road{lane} carries vehicles (where a "
+                    "road has a sidewalk, it is lane 0); pick a cell on a road (see the "
+                    "report's map)" + (" or another lane" if inc.kind == "lane_closed" else "")
                 )
         if inc.kind == "lane_closed" and ls.edge.getLaneNumber(candidates[0]) <= inc.lane:
             raise UserError(

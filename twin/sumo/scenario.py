@@ -237,6 +237,8 @@ class _ScenarioFiles:
     listed_as: dict[str, list[Path]] = field(default_factory=dict)
     window: list[float | None] = field(default_factory=lambda: [None, None])  # <time> of it
     span: tuple[float, float] | None = None  # first and last departure of the given demand
+    #: those of a built-in network's demand, which sets no window (the config gives it)
+    built_span: tuple[float, float] | None = None
     state_time: float | None = None  # the time of the state the sumocfg loads: SUMO starts there
     at_begin: bool = False  # some of the demand departs at SUMO's begin, wherever that is
 
@@ -275,9 +277,9 @@ def _scenario_files(s: SumoSettings) -> _ScenarioFiles:
         if s.routes:
             files.route_files = [Path(r) for r in s.routes]
             _check_routes(files.route_files)
-            departure_span(files.route_files)  # departures SUMO refuses are named here
         _check_additional(additional_files)
-        files.span = None  # the built network's demand: the config's window, not its own
+        # (departures SUMO refuses are named here); the config gives the window, not these
+        files.built_span = departure_span(files.route_files)
         return files
     if sumocfg_path is not None:
         cfg = read_sumocfg(sumocfg_path, own_net=not s.net)
@@ -545,29 +547,30 @@ def _grid_and_notices(
             f"past the scenario's end ({clock_label(files.window[1])}), where SUMO alone would "
             "stop; twin runs its own window (give a --begin before it to stay within it)"
         )
-    if files.span is not None and window_given:
+    span = files.span or files.built_span
+    if span is not None and window_given:
         clear = clearing_time(geometry)
-        outside = begin >= files.span[1] + clear or end <= files.span[0]
+        outside = begin >= span[1] + clear or end <= span[0]
         # in the sumocfg's own window (given or derived), its vehicles may still circulate
-        in_window = files.window[1] is not None and files.span[0] <= begin < files.window[1]
+        in_window = files.window[1] is not None and span[0] <= begin < files.window[1]
         if outside and (not begin_given or in_window):
             notices.append(  # (rerouters keep a loop scenario's vehicles on the road)
                 f"{files.name}: the run ({clock_label(begin)} - {clock_label(end)}) begins past "
-                f"the last departure ({clock_label(files.span[1])}) plus {clear / 60:.0f} min to "
+                f"the last departure ({clock_label(span[1])}) plus {clear / 60:.0f} min to "
                 "clear the network: its steps hold only vehicles that are still driving"
             )
         elif outside:
             raise UserError(
                 f"{files.name}: the run ({clock_label(begin)} - {clock_label(end)}) lies outside "
-                f"the demand (departures {clock_label(files.span[0])} - "
-                f"{clock_label(files.span[1])}, plus {clear / 60:.0f} min to clear the "
+                f"the demand (departures {clock_label(span[0])} - "
+                f"{clock_label(span[1])}, plus {clear / 60:.0f} min to clear the "
                 "network): every step would be empty; give a --begin (and --horizon) within it"
             )
-        empty = min(s.horizon, int(max(-1.0, end - files.span[1] - clear) / step_s))
+        empty = min(s.horizon, int(max(-1.0, end - span[1] - clear) / step_s))
         if empty >= 1 and not outside:
             notices.append(
                 f"{files.name}: the run ends at {clock_label(end)}, past the last departure "
-                f"({clock_label(files.span[1])}) plus {clear / 60:.0f} min to clear the network; "
+                f"({clock_label(span[1])}) plus {clear / 60:.0f} min to clear the network; "
                 f"the last {empty} step{'s' * (empty != 1)} may have no vehicle"
             )
     for text in notices:

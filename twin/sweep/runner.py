@@ -155,8 +155,8 @@ def check_cells(cells: list[dict[str, Any]]) -> None:
             else:
                 check_cell_memory(config, cell)
             for name in cell["swarms"]:  # its history read now, not after the cell's SUMO ran
-                if needs_history(name):
-                    config.make_swarm(name)
+                if needs_history(name):  # (the sweep's options on the scenario's, as it runs)
+                    config.make_swarm(name, **cell.get("swarm_options", {}).get(name, {}))
         except UserError as exc:
             raise UserError(
                 f"scenario {cell['scenario']!r} with {cell['overrides']}: {exc}"

@@ -250,10 +250,20 @@ def _check_values(path: Path, steps, times, counts, speeds) -> None:
         fail("count", idx, int(counts[idx]), "is negative")
     occupied = counts > 0
     bad = (occupied & ~np.isfinite(speeds)) | np.isinf(speeds) | (speeds < 0)
+    bad |= speeds > MAX_SPEED
     if bad.any():
         idx = tuple(int(x) for x in np.argwhere(bad)[0])
-        problem = "is negative" if speeds[idx] < 0 else "is not finite where vehicles are"
+        problem = (
+            "is negative" if speeds[idx] < 0
+            else f"is faster than any road vehicle (over {MAX_SPEED:g} m/s)"
+            if speeds[idx] > MAX_SPEED else "is not finite where vehicles are"
+        )  # fmt: skip
         fail("speed", idx, speeds[idx], problem)
+
+
+#: The fastest a tape's speeds and speed limits may be (m/s, 3600 km/h): faster than any
+#: vehicle SUMO drives on a road or rail; more is a corrupt value.
+MAX_SPEED = 1000.0
 
 
 #: The most vehicles per lane-km a tape's cell may hold at one instant: a car every metre,
@@ -420,6 +430,15 @@ def _tape_meta(path: Path, schema_meta: dict) -> dict[str, Any]:
         raise UserError(
             f"{path}: tape metadata lane_km = 0 at cell ({i}, {j}), which its obstacles leave "
             "free (a cell without lanes is an obstacle); the tape is corrupt, record it again"
+        )
+    limits = out["speed_limit"]
+    wrong = ~out["obstacles"] & ((limits <= 0) | (limits > MAX_SPEED))
+    if wrong.any():  # every lane has a speed > 0, and a free cell has lanes
+        i, j = (int(x) for x in np.argwhere(wrong)[0])
+        raise UserError(
+            f"{path}: tape metadata speed_limit = {limits[i, j]:g} at cell ({i}, {j}), which its "
+            f"obstacles leave free, is not a lane speed (above 0, at most {MAX_SPEED:g} m/s); "
+            "the tape is corrupt, record it again"
         )
     settings = meta.get("settings", {})
     out["settings"] = settings if isinstance(settings, dict) else {}
