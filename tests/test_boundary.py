@@ -1744,6 +1744,15 @@ def test_ray_address_that_does_not_answer_fails_fast() -> None:
     assert time.monotonic() - start < 60
 
 
+@pytest.mark.parametrize("port", ["0", "65536", "99999999999999999999"])
+def test_a_ray_address_with_no_tcp_port_is_said_so(port) -> None:
+    """Port 65536 was reported as "connection refused" (probe 20's c48)."""
+    from twin.executors import _probe_address
+
+    with pytest.raises(UserError, match=rf"Ray address 127\.0\.0\.1:{port}: port {port} is no TCP"):
+        _probe_address(f"127.0.0.1:{port}", timeout=1)
+
+
 def _listen(answer: bytes | None) -> tuple[int, Callable[[], None]]:
     """A TCP listener on a free local port that sends ``answer`` to each connection (None:
     says nothing); its port and a function that stops it."""
