@@ -1078,6 +1078,26 @@ READ_BACK = {
         _edit_table("per_seed.csv", _set("R_hat_T", np.nan, 1)),
         "per_seed.csv",
     ),
+    # a column renamed (so one missing) or one added: accepted (probe 20's f09)
+    **{
+        f"a column renamed in {name}": (
+            _edit_table(name, lambda f: f.rename(columns={"belief_error_ci95": "belief_ci55"})),
+            f"{name}: holds a column 'belief_ci55', which twin does not write",
+        )
+        for name in ("summary.csv", "monitoring.csv")
+    },
+    "a column dropped from summary": (
+        _edit_table("summary.csv", lambda f: f.drop(columns="pct_map_covered_ci95")),
+        "summary.csv: lacks the column 'pct_map_covered_ci95', which twin writes",
+    ),
+    "a column dropped from monitoring": (
+        _edit_table("monitoring.csv", lambda f: f.drop(columns="events")),
+        "monitoring.csv: lacks the column 'events', which twin writes",
+    ),
+    "a column added to per_seed": (
+        _edit_table("per_seed.csv", lambda f: f.assign(bogus=1.0)),
+        "per_seed.csv: holds a column 'bogus', which twin does not write",
+    ),
     "summary swarm row missing": (
         _edit_table("summary.csv", lambda f: f[f["swarm"] != "greedy"]),
         "'greedy'",
@@ -1742,6 +1762,15 @@ def test_ray_address_that_does_not_answer_fails_fast() -> None:
     with pytest.raises(UserError, match="Ray address"):
         _probe_address("ray://127.0.0.1:1", timeout=1)
     assert time.monotonic() - start < 60
+
+
+@pytest.mark.parametrize("port", ["0", "65536", "99999999999999999999"])
+def test_a_ray_address_with_no_tcp_port_is_said_so(port) -> None:
+    """Port 65536 was reported as "connection refused" (probe 20's c48)."""
+    from twin.executors import _probe_address
+
+    with pytest.raises(UserError, match=rf"Ray address 127\.0\.0\.1:{port}: port {port} is no TCP"):
+        _probe_address(f"127.0.0.1:{port}", timeout=1)
 
 
 def _listen(answer: bytes | None) -> tuple[int, Callable[[], None]]:

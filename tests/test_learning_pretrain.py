@@ -335,6 +335,10 @@ def test_recipes_collect_on_their_traffic_and_record_curve_and_provenance(tmp_pa
     [
         ("curve_seeds = [3, 100]\n", "evaluation seed"),
         ("curve_seeds = [9223372036854775808]\n", r"curve_seeds\[0\] = 9223372036854775808 must"),
+        (  # an empty curve, silently (probe 20's f12)
+            "curve_every = 10\ncurve_seeds = []\n",
+            r"curve_every = 10 asks for a learning curve, but curve_seeds = \[\] gives it no seed",
+        ),
         ("seed = 2147483648\n", "seed = 2147483648 must be <= 2147483647"),
         ("history_seed = 2147483648\n", "history_seed = 2147483648 must be <= 2147483647"),
         ('traffic = "tapes"\n', "needs tape files"),

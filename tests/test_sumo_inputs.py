@@ -1067,3 +1067,48 @@ def test_an_input_sumo_refuses_mid_run_is_named_in_the_partial_run(city, tmp_pat
     assert "Invalid departLane definition for vehicle 'g90'" in err
     run = json.loads((out / "run.json").read_text())
     assert run["partial"] and str(routes) in run["errors"][0]
+
+
+def _declared(text: str, encoding: str) -> str:
+    return re.sub(r'encoding="[^"]*"', f'encoding="{encoding}"', text, count=1)
+
+
+#: how a file is written -> (its role, the file's bytes from the grid's own file's text, words
+#: of the one-line refusal or None: it runs, as SUMO runs it)
+ENCODED = {
+    "an encoding no one knows": ("routes", lambda t: _declared(t, "bogus-enc").encode(),
+                                 "its XML declaration names the encoding 'bogus-enc', which SUMO"),
+    "UTF-8 declared UTF-16": ("routes", lambda t: _declared(t, "UTF-16").encode(), None),
+    "UTF-8 declared UTF-32": ("routes", lambda t: _declared(t, "UTF-32").encode(), None),
+    "UTF-8 declared UTF-7": ("routes", lambda t: _declared(t, "UTF-7").encode(), None),
+    "ASCII declared Shift_JIS": ("routes", lambda t: _declared(t, "Shift_JIS").encode(), None),
+    "UTF-32 with a byte-order mark": ("routes", lambda t: _declared(t, "UTF-32").encode("utf-32"),
+                                      None),
+    "a network declared UTF-16": ("net", lambda t: _declared(t, "UTF-16").encode(),
+                                  "which SUMO reads but twin's network reader (sumolib) does not"),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("case", list(ENCODED))
+def test_files_in_the_encodings_sumo_reads(city, tmp_path, capsys, case):
+    """SUMO ignores a declared encoding its bytes contradict, reads UTF-32 and multi-byte
+    encodings, and refuses an encoding it does not know: twin crashed (LookupError, "multi-byte
+    encodings are not supported") or refused what SUMO runs (probe 20's f10, f11). A network
+    sumolib cannot read is refused in one line, with the fix."""
+    role, write, words = ENCODED[case]
+    data = city / "data"
+    files = {"net": data / "grid.net.xml", "routes": data / "grid.rou.xml"}
+    changed = tmp_path / files[role].name
+    changed.write_bytes(write(files[role].read_text()))
+    files[role] = changed
+    out = f"enc-{abs(hash(case))}"
+    code, err = _run(city, out, "--net", str(files["net"]), "--routes", str(files["routes"]),
+                     "--additional", str(data / "vtypes.add.xml"), "--horizon", "2",
+                     capsys=capsys)  # fmt: skip
+    assert "Traceback" not in err and "internal error" not in err, err
+    if words is None:
+        assert code == 0, err
+        assert _vehicles_per_step(city / out).sum() > 0
+    else:
+        assert code == 2 and err.count("\n") == 1 and words in err and str(changed) in err, err
+        assert not (city / out).exists()

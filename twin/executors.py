@@ -114,6 +114,8 @@ def _probe_address(address: str, timeout: float | None = None) -> None:
     if not sep or not host or not port.isdigit():
         return
     fix = "start the cluster (ray start --head) or give its address: --address HOST:PORT"
+    if not 0 < int(port) < 65536:
+        raise UserError(f"Ray address {address}: port {port} is no TCP port (1 .. 65535); {fix}")
     try:
         with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout) as sock:
             if os.environ.get("RAY_USE_TLS", "0").lower() in ("1", "true"):

@@ -51,7 +51,13 @@ import pandas as pd
 from twin.errors import UserError
 from twin.files import nan_as_null
 from twin.grid import ACTION_DELTAS, Grid
-from twin.metrics import aggregate, is_ceiling_row, learned_against_best_classical, series_columns
+from twin.metrics import (
+    MONITORING_COLUMNS,
+    aggregate,
+    is_ceiling_row,
+    learned_against_best_classical,
+    series_columns,
+)
 from twin.monitoring import (
     EVENT_COLUMNS,
     RunMonitoring,
@@ -61,6 +67,7 @@ from twin.monitoring import (
     sightings,
 )
 from twin.readback import RERUN
+from twin.runs import FOLDER_FORMAT
 from twin.scores import ScoreParams, coverage, paper_rewards
 from twin.swarm import InfeasibleActionError, initial_state, step
 
@@ -1572,7 +1579,7 @@ def check_oracle(primary: Primary, per_seed: pd.DataFrame | None) -> None:
     that ``oracle.parquet`` keeps for its seed (from the swarms' starts, one action a step,
     under the run's faults), stepped again over the seed's maps wherever the folder holds them
     (a folder of format 2 or earlier kept no cells: not replayed)."""
-    from twin.metrics import MONITORING_COLUMNS, ORACLE, is_ceiling_row
+    from twin.metrics import ORACLE
 
     if per_seed is None or not {"swarm", "seed"} <= set(per_seed.columns):
         return
@@ -1661,6 +1668,7 @@ def check_derived(primary: Primary, tables: dict[str, pd.DataFrame | None]) -> N
                 per_seed = per_seed.merge(part, on=["seed", "swarm"], how="left")
         per_seed = per_seed[per_seed["swarm"].isin(primary.swarms)]
     primary.per_seed, primary.summary = per_seed, tables.get("summary.csv")
+    given: dict[str, set[str]] = {}  # columns each derived table's derivations give
     check_bound(primary, tables.get("per_seed.csv"))
     check_oracle(primary, tables.get("per_seed.csv"))
     for d in DERIVED:
@@ -1676,7 +1684,36 @@ def check_derived(primary: Primary, tables: dict[str, pd.DataFrame | None]) -> N
             source = "series.parquet, events.parquet and trajectories.parquet"
         expected = d.recompute(primary, frame)
         compare(primary.run_dir, d.file, frame, expected, d.key, source, d.complete)
+        if len(expected):
+            given.setdefault(d.file, set()).update(expected.columns)
+    for name in COLUMN_CHECKED:
+        if name in given:
+            check_columns(primary, name, tables[name], given[name])
     check_shared_traffic_seeds(primary)  # after the first seed's, which are said first
+
+
+#: The derived tables whose every column a derivation gives (:func:`check_columns`).
+COLUMN_CHECKED = ("per_seed.csv", "summary.csv", "monitoring.csv")
+#: Columns those tables may hold that no derivation gives.
+UNDERIVED_COLUMNS = {"seed", "swarm", "role", "n_seeds", "oracle_swarm"}
+
+
+def check_columns(primary: Primary, name: str, frame: pd.DataFrame, given: set[str]) -> None:
+    """``name``'s columns are those its derivations give (``given``; :data:`UNDERIVED_COLUMNS`
+    besides; of ``monitoring.csv``, ``summary.csv``'s monitoring columns): none other, and, in
+    a folder of the current format, none of them missing."""
+    path = primary.run_dir / name
+    given = {c for c in given if not c.endswith(SLACK)}
+    if name == "monitoring.csv":  # summary.csv's monitoring columns (twin.runs.write_run)
+        given = {c for c in given if c.removesuffix("_ci95") in MONITORING_COLUMNS}
+    other = [c for c in frame.columns if c not in given | UNDERIVED_COLUMNS]
+    if other:
+        raise UserError(f"{path}: holds a column {other[0]!r}, which twin does not write; {RERUN}")
+    if folder_format(primary) < FOLDER_FORMAT:
+        return
+    missing = sorted(given - set(frame.columns))
+    if missing:
+        raise UserError(f"{path}: lacks the column {missing[0]!r}, which twin writes; {RERUN}")
 
 
 #: What ``degradation.csv`` is recomputed from (:func:`check_degradation_replay`).

@@ -21,7 +21,14 @@ from typing import Any
 from twin import resources
 from twin.errors import UserError
 from twin.files import read_record
-from twin.sumo.readers import check_cache_without_comma, check_no_comma, missing, root_tag
+from twin.sumo.readers import (
+    check_cache_without_comma,
+    check_no_comma,
+    missing,
+    open_xml,
+    reencoded,
+    root_tag,
+)
 from twin.sumo.tools import binary, run_sumo_program
 
 #: Bump when the generator's output changes for the same spec (forces a rebuild).
@@ -368,6 +375,13 @@ def check_net_file(net_file: Path) -> None:
     tag = root_tag(net_file, "network file")
     if tag != "net":
         raise UserError(f"{net_file}: not a SUMO network (root element <{tag}>, want <net>)")
+    with open_xml(net_file) as fh:
+        if reencoded(fh):  # SUMO reads it; sumolib, which twin reads networks with, not
+            raise UserError(
+                f"{net_file}: a network in an encoding other than it declares, or in UTF-32 "
+                "or a multi-byte one, which SUMO reads but twin's network reader (sumolib) "
+                f"does not; write it as UTF-8 (netconvert -s {net_file.name} -o FILE)"
+            )
 
 
 def generate_grid_scenario(

@@ -3,8 +3,11 @@ options and time window, the span of a demand's departures."""
 
 from __future__ import annotations
 
+import codecs
 import errno
+import functools
 import gzip
+import io
 import math
 import os
 import re
@@ -21,14 +24,115 @@ from twin.sumo.options import canonical
 
 
 def open_xml(path: Path) -> IO[bytes]:
-    """A SUMO XML file for reading, gzip-compressed or not (SUMO reads both; told by content)."""
+    """A SUMO XML file for reading, gzip-compressed or not (SUMO reads both; told by content),
+    in an encoding Python's XML parser reads as SUMO's does (:func:`_as_sumo_reads`)."""
     path = Path(path)
     fh = open(path, "rb")  # noqa: SIM115 (the caller closes it)
     if fh.read(2) == b"\x1f\x8b":
         fh.close()
-        return gzip.open(path, "rb")
+        fh = gzip.open(path, "rb")  # noqa: SIM115 (the caller closes it)
+    fh.seek(0)
+    try:
+        return _as_sumo_reads(path, fh)
+    except BaseException:
+        fh.close()
+        raise
+
+
+#: The starts of UTF-32 text (with and without a byte-order mark), which SUMO's parser
+#: (Xerces) senses and Python's (expat) does not read.
+_UTF32_STARTS = {
+    b"\xff\xfe\x00\x00": "utf-32",
+    b"\x00\x00\xfe\xff": "utf-32",
+    b"<\x00\x00\x00": "utf-32-le",
+    b"\x00\x00\x00<": "utf-32-be",
+}
+#: An XML declaration's encoding, in a file of ASCII-compatible bytes.
+_DECLARED = re.compile(rb"""\A(\xef\xbb\xbf)?(<\?xml\s[^>]*?encoding\s*=\s*["'])([^"']*)(["'])""")
+
+
+def _as_sumo_reads(path: Path, fh: IO[bytes]) -> IO[bytes]:
+    """``fh`` as SUMO reads it: UTF-32 text given as UTF-8; a declared encoding that
+    contradicts ASCII-compatible bytes (UTF-16, UTF-32, UTF-7: SUMO warns and reads what it
+    senses) declared as UTF-8; an encoding no one knows refused in one line, as by SUMO."""
+    head = fh.read(1024)
+    utf32 = _UTF32_STARTS.get(head[:4])
+    if utf32 is not None:
+        return _transcoded(path, fh, head, utf32)
+    declared = _DECLARED.match(head)
+    if declared is not None:
+        name = declared[3].decode("ascii", "replace")
+        try:
+            codec = codecs.lookup(name).name
+        except LookupError:
+            raise UserError(
+                f"{path}: its XML declaration names the encoding {name!r}, which SUMO does not "
+                'know either; declare the file\'s encoding (e.g. encoding="UTF-8")'
+            ) from None
+        if codec.startswith(("utf-16", "utf-32", "utf-7")):  # bytes are ASCII-compatible
+            head = head[: declared.start(3)] + b"UTF-8" + head[declared.end(3) :]
+            return io.BufferedReader(_Joined(head, fh))
+        if not _expat_reads(name):  # a multi-byte encoding (Shift_JIS, GB2312 ...)
+            return _transcoded(path, fh, head, codec)
     fh.seek(0)
     return fh
+
+
+def _transcoded(path: Path, fh: IO[bytes], head: bytes, codec: str) -> IO[bytes]:
+    """The file ``head`` + the rest of ``fh``, in ``codec``, as UTF-8 declared so: read whole
+    (such files are rare)."""
+    try:
+        text = (head + fh.read()).decode(codec).removeprefix("\ufeff")
+    except UnicodeDecodeError as exc:
+        raise UserError(f"{path}: not valid XML (not {codec} text: {exc})") from None
+    finally:
+        fh.close()
+    text = re.sub(r"""\A(<\?xml\s[^>]*?encoding\s*=\s*["'])[^"']*""", r"\g<1>UTF-8", text)
+    return io.BytesIO(text.encode("utf-8"))
+
+
+@functools.lru_cache(maxsize=64)
+def _expat_reads(encoding: str) -> bool:
+    """Whether Python's XML parser reads a file declared in ``encoding`` (expat reads UTF-8,
+    UTF-16 and single-byte encodings, not multi-byte ones)."""
+    from xml.parsers import expat
+
+    try:
+        expat.ParserCreate().Parse(
+            f'<?xml version="1.0" encoding="{encoding}"?><a/>'.encode(), True
+        )
+    except (ValueError, LookupError, expat.ExpatError):
+        return False
+    return True
+
+
+def reencoded(stream: IO[bytes]) -> bool:
+    """Whether a stream of :func:`open_xml` gives other bytes than the file's (an encoding
+    rewritten or transcoded for Python's XML parser)."""
+    return isinstance(stream, io.BytesIO) or isinstance(getattr(stream, "raw", None), _Joined)
+
+
+class _Joined(io.RawIOBase):
+    """``head``, then the rest of ``rest``: a file whose first bytes were rewritten."""
+
+    def __init__(self, head: bytes, rest: IO[bytes]):
+        self._head, self._rest = head, rest
+
+    def readable(self) -> bool:
+        return True
+
+    def readinto(self, buffer) -> int:
+        if self._head:
+            n = min(len(buffer), len(self._head))
+            buffer[:n], self._head = self._head[:n], self._head[n:]
+            return n
+        data = self._rest.read(len(buffer))
+        buffer[: len(data)] = data
+        return len(data)
+
+    def close(self) -> None:
+        self._rest.close()
+        super().close()
 
 
 def link_loop(path: Path, named_in: Path | None = None) -> str:
@@ -268,7 +372,7 @@ def read_sumocfg(path: Path, own_net: bool = True) -> SumoConfigFile:
             f"(gunzip -k {path.name}), its files may stay compressed"
         )
     try:
-        with open(path, "rb") as fh:
+        with open_xml(path) as fh:
             root = ET.parse(fh).getroot()
     except (ET.ParseError, OSError, EOFError) as exc:
         raise UserError(f"{path}: not valid XML ({exc})") from exc

@@ -385,6 +385,12 @@ class PretrainConfig(SourcedConfig):
     def _curve_can_be_measured(self) -> PretrainConfig:
         """The curve's scenario is read before training, not after it: a SUMO scenario's
         files, window, grid and incidents as a run checks them before SUMO starts."""
+        if self.curve_every and not self.curve_seeds:
+            raise ValueError(
+                f"curve_every = {self.curve_every} asks for a learning curve, but curve_seeds "
+                "= [] gives it no seed; give validation seeds (e.g. curve_seeds = [100, 101]), "
+                "or curve_every = 0 for no curve"
+            )
         if self.curve_every:
             try:
                 _check_curve_scenario(curve_scenario(self))
