@@ -450,6 +450,33 @@ def test_incidents_are_checked_before_the_run(tmp_path, capsys, case):
     assert not out.exists()
 
 
+@pytest.mark.parametrize(
+    "incident",
+    [
+        _incident(minutes=1.00000001),  # its end falls 0.6 microseconds past a SUMO step
+        _incident(kind="vehicle_stopped", when="step = 2", minutes=3.0000001),
+    ],
+)
+def test_an_incident_whose_end_falls_within_a_millisecond_of_a_step_reads_back(
+    tmp_path, capsys, incident
+):
+    """SUMO advances to a time rounded to its milliseconds: an incident ending 0.6 us past a
+    step was lifted at that step, and the run's own record then refused as lifted a step too
+    early (probe 20's f06, P2-f06a)."""
+    pytest.importorskip("libsumo")
+    from twin.cli import main as twin_main
+
+    cfg = _small(tmp_path, incident)
+    out = tmp_path / "run"
+    argv = ["run", "--config", str(cfg), "--out", str(out), "--quiet", "--no-report",
+            "--swarms", "greedy", "--no-ceiling"]  # fmt: skip
+    assert twin_main(argv) == 0, capsys.readouterr().err
+    (record,) = json.loads((out / "incidents.json").read_text())
+    assert record["end_s"] == round(record["end_s"], 3) and record["lifted_s"] is not None
+    capsys.readouterr()
+    assert twin_main(["report", "--no-animation", str(out)]) == 0, capsys.readouterr().err
+
+
 @pytest.fixture(scope="module")
 def walkable(tmp_path_factory):
     """A 3 x 3 grid of 200 m blocks with sidewalks (lane 0 of each road, pedestrians only),

@@ -369,7 +369,7 @@ class IncidentSettings(StrictModel):
     def _a_sumo_step_at_least(cls, value: float) -> float:
         if value * 60.0 < 1.0:  # applied and lifted on SUMO's steps: nothing shorter is seen
             raise ValueError(
-                f"lasts {value * 60.0:.3g} s, shorter than SUMO's 1 s step, on which incidents "
+                f"lasts {value * 60.0:.12g} s, shorter than SUMO's 1 s step, on which incidents "
                 "are applied and lifted; give at least 1/60 (1 s)"
             )
         return value

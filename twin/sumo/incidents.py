@@ -47,12 +47,14 @@ def onset_and_end_steps(begin: float, end: float, t0: float, step_s: float) -> t
 
 
 def incident_window(inc, n: int, begin_s: float, step_s: float) -> tuple[float, float]:
-    """``[begin, end)`` (s) of incident ``n`` (its ``begin`` clock, or ``T^step``)."""
+    """``[begin, end)`` (s) of incident ``n`` (its ``begin`` clock, or ``T^step``), on SUMO's
+    clock of whole milliseconds, to which it rounds the times it is advanced to."""
     if inc.begin is not None:
         begin = parse_clock(inc.begin, f"[traffic].incidents[{n}].begin")
     else:
         begin = begin_s + inc.step * step_s
-    return begin, begin + 60.0 * inc.duration_min
+    end = begin + 60.0 * inc.duration_min
+    return round(begin, 3), round(end, 3)
 
 
 def configured_schedule(incidents: list[Any]) -> list[dict[str, Any]]:
