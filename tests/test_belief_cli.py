@@ -682,3 +682,26 @@ def test_beliefs_and_maps_of_a_run_on_a_tape_are_replayed_with_its_tape(
         fh.write(b" ")
     said = forged(belief_error)
     assert said.startswith("0 ") and "not replayed (seed " in said, said
+
+
+def test_a_swarms_own_history_holding_the_evaluated_day_is_refused(small, history, tmp_path,
+                                                                    capsys):  # fmt: skip
+    """nowcast-gain's ``[swarm_options.nowcast-gain].history`` built from the SUMO seed the run
+    evaluates on: it planned on a prior holding its own day; the same file as ``--history`` is
+    refused (probe 20's P2-f07a)."""
+    config = small / "own.toml"  # beside the scenario files it names
+    config.write_text(
+        (small / "small.toml")
+        .read_text()
+        .replace(
+            "[traffic]", f'[swarm_options.nowcast-gain]\nhistory = "{history}"\n\n[traffic]', 1
+        )
+    )
+    out = tmp_path / "own"
+    argv = ["run", "--config", str(config), "--swarms", "random,nowcast-gain", "--no-ceiling",
+            "--no-report", "--quiet", "--out", str(out)]  # fmt: skip
+    assert twin_main([*argv, "--sumo-seed", "10"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+    assert f"{history}: history built from traffic seed 10, which this run evaluates on" in err
+    assert twin_main([*argv, "--sumo-seed", "3"]) == 0, capsys.readouterr().err
