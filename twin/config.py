@@ -1186,6 +1186,11 @@ def synthetic_config(config: ScenarioConfig) -> SyntheticConfig:
     return config.traffic
 
 
+#: The least importance a synthetic map's largest z may be given by a ``z_hi`` (Def. 2): a
+#: map whose cells all lie below it is a flat one.
+MIN_PEAK_IMPORTANCE = 1e-6
+
+
 def synthetic_source(config: ScenarioConfig, grid: Grid | None = None):
     """The :class:`SyntheticTraffic` a synthetic config describes."""
     from twin.traffic.synthetic import Disturbance, SyntheticTraffic
@@ -1218,4 +1223,21 @@ def synthetic_source(config: ScenarioConfig, grid: Grid | None = None):
             f"= {t.z_lo:g} is not below the largest z of the map over the horizon "
             f"({source.peak_z():.3g}): every importance would be 0; give a z_lo below it",
         ), config._labels)  # fmt: skip
+    if t.z_hi is not None:  # Def. 2 divides by z_hi - z_lo
+        peak, span = source.peak_z(), t.z_hi - t.z_lo
+        why = (
+            "so close to z_lo that Def. 2's (z - z_lo) / (z_hi - z_lo) overflows"
+            if not math.isfinite(reach / span)
+            else f"so far above the map's largest z ({peak:.3g}) that every importance is "
+            f"below {MIN_PEAK_IMPORTANCE:g}"
+            if (peak - t.z_lo) / span < MIN_PEAK_IMPORTANCE
+            else None
+        )
+        if why is not None:
+            raise _naming_changes(_fail(
+                config.path,
+                "[traffic].z_hi",
+                f"= {t.z_hi:g} lies {why}; give a z_hi near the largest z, or leave it out (the "
+                "largest z of the map)",
+            ), config._labels)  # fmt: skip
     return source
