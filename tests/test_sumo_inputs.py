@@ -1077,7 +1077,8 @@ def _declared(text: str, encoding: str) -> str:
 #: of the one-line refusal or None: it runs, as SUMO runs it)
 ENCODED = {
     "an encoding no one knows": ("routes", lambda t: _declared(t, "bogus-enc").encode(),
-                                 "its XML declaration names the encoding 'bogus-enc', which SUMO"),
+                                 "its XML declaration names the encoding 'bogus-enc', which twin"),
+    "UTF-8 declared UCS-4": ("routes", lambda t: _declared(t, "ISO-10646-UCS-4").encode(), None),
     "UTF-8 declared UTF-16": ("routes", lambda t: _declared(t, "UTF-16").encode(), None),
     "UTF-8 declared UTF-32": ("routes", lambda t: _declared(t, "UTF-32").encode(), None),
     "UTF-8 declared UTF-7": ("routes", lambda t: _declared(t, "UTF-7").encode(), None),

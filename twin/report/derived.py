@@ -1695,7 +1695,7 @@ def check_derived(primary: Primary, tables: dict[str, pd.DataFrame | None]) -> N
 
 
 #: The derived tables whose every column a derivation gives (:func:`check_columns`).
-COLUMN_CHECKED = ("per_seed.csv", "summary.csv", "monitoring.csv")
+COLUMN_CHECKED = ("per_seed.csv", "summary.csv", "monitoring.csv", "comparison.csv")
 #: Columns those tables may hold that no derivation gives.
 UNDERIVED_COLUMNS = {"seed", "swarm", "role", "n_seeds", "oracle_swarm"}
 

@@ -47,6 +47,8 @@ _UTF32_STARTS = {
     b"<\x00\x00\x00": "utf-32-le",
     b"\x00\x00\x00<": "utf-32-be",
 }
+#: Multi-byte encodings SUMO's parser (Xerces) knows by names Python does not.
+_UCS = re.compile(r"(ISO-10646-)?UCS-?[24]", re.IGNORECASE)
 #: An XML declaration's encoding, in a file of ASCII-compatible bytes.
 _DECLARED = re.compile(rb"""\A(\xef\xbb\xbf)?(<\?xml\s[^>]*?encoding\s*=\s*["'])([^"']*)(["'])""")
 
@@ -54,7 +56,8 @@ _DECLARED = re.compile(rb"""\A(\xef\xbb\xbf)?(<\?xml\s[^>]*?encoding\s*=\s*["'])
 def _as_sumo_reads(path: Path, fh: IO[bytes]) -> IO[bytes]:
     """``fh`` as SUMO reads it: UTF-32 text given as UTF-8; a declared encoding that
     contradicts ASCII-compatible bytes (UTF-16, UTF-32, UTF-7: SUMO warns and reads what it
-    senses) declared as UTF-8; an encoding no one knows refused in one line, as by SUMO."""
+    senses, and for UCS-2/UCS-4) declared as UTF-8; an unknown encoding refused in one line,
+    as by SUMO."""
     head = fh.read(1024)
     utf32 = _UTF32_STARTS.get(head[:4])
     if utf32 is not None:
@@ -65,9 +68,12 @@ def _as_sumo_reads(path: Path, fh: IO[bytes]) -> IO[bytes]:
         try:
             codec = codecs.lookup(name).name
         except LookupError:
+            codec = "utf-32" if _UCS.fullmatch(name) else None  # Xerces' names Python lacks
+        if codec is None:
             raise UserError(
-                f"{path}: its XML declaration names the encoding {name!r}, which SUMO does not "
-                'know either; declare the file\'s encoding (e.g. encoding="UTF-8")'
+                f"{path}: its XML declaration names the encoding {name!r}, which twin does not "
+                "know (SUMO refuses an encoding it does not know too); declare the file's "
+                'encoding (e.g. encoding="UTF-8")'
             ) from None
         if codec.startswith(("utf-16", "utf-32", "utf-7")):  # bytes are ASCII-compatible
             head = head[: declared.start(3)] + b"UTF-8" + head[declared.end(3) :]
