@@ -556,6 +556,15 @@ def test_a_config_of_another_kind_is_named_as_what_it_is(tmp_path, capsys, given
     assert not any(p for p in tmp_path.iterdir() if p != path)
 
 
+def test_a_config_of_another_kind_is_named_so_whatever_the_flags_set(tmp_path, capsys):
+    """A flag setting a key of the command's kind (--epochs) made a scenario config look like
+    a pretraining one, and the message named its first wrong key (the review)."""
+    path = tmp_path / "synthetic.toml"
+    path.write_text(twin.resources.shipped_config("synthetic").read_text())
+    code = main(["pretrain", "--config", str(path), "--epochs", "3"])
+    _one_line(capsys, code, path, "is a scenario config, not a pretraining config")
+
+
 def test_make_env_names_a_pretraining_config_as_what_it_is():
     from twin.env import make_env
 

@@ -32,6 +32,20 @@ def test_incident_sightings_by_hand():
     assert row["incident_latency_steps"] == 1.5 and row["incident_latency_min"] == 1.875
 
 
+def test_incident_times_are_on_sumos_milliseconds_as_read_back():
+    """The end is the rounded begin plus the duration, rounded: as the read-back computes it
+    from the recorded begin (a begin of a fractional step and an odd duration differed by a
+    millisecond, and the run's own folder was refused; the review)."""
+    from types import SimpleNamespace
+
+    from twin.sumo.incidents import incident_window
+
+    for step_s, duration in ((12.4138, 0.68596), (53.333333, 1.00000001), (75.0, 2.5)):
+        inc = SimpleNamespace(begin=None, step=1, duration_min=duration)
+        begin, end = incident_window(inc, 0, 25200.0, step_s)
+        assert begin == round(begin, 3) and end == round(begin + 60.0 * duration, 3)
+
+
 def test_onset_and_end_steps():
     # step k observes (t0 + (k-1) 75, t0 + k 75]: 07:45 -> step 37, 08:15 -> step 60
     assert onset_and_end_steps(2700.0, 4500.0, 0.0, 75.0) == (37, 60)

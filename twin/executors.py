@@ -114,7 +114,7 @@ def _probe_address(address: str, timeout: float | None = None) -> None:
     if not sep or not host or rest.endswith("]"):  # no port ([::1] alone): Ray's default
         return
     fix = "start the cluster (ray start --head) or give its address: --address HOST:PORT"
-    if not port.isdigit() or not 0 < int(port) < 65536:
+    if not (port.isascii() and port.isdigit()) or not 0 < int(port) < 65536:
         raise UserError(f"Ray address {address}: port {port!r} is no TCP port (1 .. 65535); {fix}")
     try:
         with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout) as sock:
