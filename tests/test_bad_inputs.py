@@ -182,6 +182,20 @@ TAPE_CASES: dict[str, tuple[Callable[[Path], Path], str]] = {
         )
         for value in (0.0, 1e300)
     },
+    **{  # probe 20's P2-f08a: text read as a number, true as 1 m/s
+        f"{key} {value!r} in the metadata": (
+            lambda p, key=key, value=value: write_tape(
+                p, meta=lambda m: {**m, key: _zero_at(m[key], 1, 2, value)}
+            ),
+            f"tape metadata {key} holds {str(value)!r} where {want} belongs",
+        )
+        for key, value, want in (
+            ("speed_limit", "13.9", "a number"),
+            ("lane_km", "0.2", "a number"),
+            ("speed_limit", True, "a number"),
+            ("obstacles", 2, "true or false (1 or 0)"),
+        )
+    },
     "a speed faster than any vehicle": (
         lambda p: write_tape(p, lambda f: _set(f, "speed", 3e38)),
         "is faster than any road vehicle (over 1000 m/s)",

@@ -143,12 +143,12 @@ def test_fit_history_recovers_the_autocorrelation_and_variance():
 def test_history_file_roundtrip_and_mismatches(tmp_path):
     obstacles = np.zeros((4, 5), bool)
     obstacles[0, 0] = True
-    history = fit_history(days(3), obstacles, 75.0, "07:00:00", (100, 101), ["a", "b", "c"])
+    history = fit_history(days(3), obstacles, 75.0, "07:00:00", (100, 101, 102), ["a", "b", "c"])
     path = tmp_path / "history.npz"
     history.save(path)
     back = History.load(path)
     assert np.allclose(back.mean, history.mean, atol=1e-6)
-    assert back.traffic_seeds == (100, 101) and back.step_s == 75.0 and back.n_runs == 3
+    assert back.traffic_seeds == (100, 101, 102) and back.step_s == 75.0 and back.n_runs == 3
     back.check_matches(path, obstacles, 39, 75.0, "07:00:00", (0, 1))
     cases = [
         ((np.zeros((4, 6), bool), 39, 75.0, None, ()), "grid 4 x 5 differs"),

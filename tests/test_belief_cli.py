@@ -264,24 +264,26 @@ def test_a_history_whose_info_contradicts_itself_is_refused(history, tmp_path, e
 def test_a_history_whose_days_seeds_are_unknown_says_what_it_cannot_check(
     history, tmp_path, capsys
 ):
-    """A history may hold days whose SUMO seed is unknown (a tape without one): nothing then
-    keeps an evaluated day out of it, and a run on it says so; one of known seeds says
-    nothing (probe 20's f01: an emptied list passed silently)."""
+    """`twin history` records each day's SUMO seed: a file naming its days (sources) without
+    all their seeds is refused; one of unnamed days without seeds (built in memory) says, on
+    a run, that nothing keeps an evaluated day out of it (probe 20's f01: an emptied list
+    passed silently)."""
     import json
 
     with np.load(history) as data:
         arrays = dict(data)
     info = json.loads(str(arrays["info"]))
-    arrays["info"] = np.array(json.dumps({**info, "traffic_seeds": [11]}))
-    partly = tmp_path / "partly.npz"
-    np.savez(partly, **arrays)
-    for path, said in ((history, False), (partly, True)):
+    edits = {"partly": {"traffic_seeds": [11]}, "unnamed": {"traffic_seeds": [], "sources": []}}
+    for name, edit in edits.items():
+        arrays["info"] = np.array(json.dumps({**info, **edit}))
+        np.savez(tmp_path / f"{name}.npz", **arrays)
+    with pytest.raises(UserError, match=r"traffic_seeds = \[11\] do not give the seed of each"):
+        History.load(tmp_path / "partly.npz")
+    for path, said in ((history, False), (tmp_path / "unnamed.npz", True)):
         h = History.load(path)
         h.check_matches(path, h.obstacles, h.horizon, traffic_seeds=[0])
         err = capsys.readouterr().err
-        assert ("1 of the history's 2 days have no recorded SUMO seed" in err) == said, err
-    with pytest.raises(UserError, match="built from traffic seed 11, which this run evaluates"):
-        History.load(partly).check_matches(partly, h.obstacles, h.horizon, traffic_seeds=[11])
+        assert ("2 of the history's 2 days have no recorded SUMO seed" in err) == said, err
 
 
 def test_a_history_of_sumo_days_is_refused_for_synthetic_traffic(history, tmp_path, capsys):
@@ -682,3 +684,26 @@ def test_beliefs_and_maps_of_a_run_on_a_tape_are_replayed_with_its_tape(
         fh.write(b" ")
     said = forged(belief_error)
     assert said.startswith("0 ") and "not replayed (seed " in said, said
+
+
+def test_a_swarms_own_history_holding_the_evaluated_day_is_refused(small, history, tmp_path,
+                                                                    capsys):  # fmt: skip
+    """nowcast-gain's ``[swarm_options.nowcast-gain].history`` built from the SUMO seed the run
+    evaluates on: it planned on a prior holding its own day; the same file as ``--history`` is
+    refused (probe 20's P2-f07a)."""
+    config = small / "own.toml"  # beside the scenario files it names
+    config.write_text(
+        (small / "small.toml")
+        .read_text()
+        .replace(
+            "[traffic]", f'[swarm_options.nowcast-gain]\nhistory = "{history}"\n\n[traffic]', 1
+        )
+    )
+    out = tmp_path / "own"
+    argv = ["run", "--config", str(config), "--swarms", "random,nowcast-gain", "--no-ceiling",
+            "--no-report", "--quiet", "--out", str(out)]  # fmt: skip
+    assert twin_main([*argv, "--sumo-seed", "10"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+    assert f"{history}: history built from traffic seed 10, which this run evaluates on" in err
+    assert twin_main([*argv, "--sumo-seed", "3"]) == 0, capsys.readouterr().err

@@ -1764,12 +1764,13 @@ def test_ray_address_that_does_not_answer_fails_fast() -> None:
     assert time.monotonic() - start < 60
 
 
-@pytest.mark.parametrize("port", ["0", "65536", "99999999999999999999"])
+@pytest.mark.parametrize("port", ["0", "65536", "99999999999999999999", "-1", "", "x", "²"])
 def test_a_ray_address_with_no_tcp_port_is_said_so(port) -> None:
-    """Port 65536 was reported as "connection refused" (probe 20's c48)."""
+    """Port 65536 was reported as "connection refused", -1 waited 40 s for a cluster and an
+    empty one got Ray's own error (probe 20's c48, P2-c48a)."""
     from twin.executors import _probe_address
 
-    with pytest.raises(UserError, match=rf"Ray address 127\.0\.0\.1:{port}: port {port} is no TCP"):
+    with pytest.raises(UserError, match=rf"Ray address 127\.0\.0\.1:{port}: port '{port}' is no"):
         _probe_address(f"127.0.0.1:{port}", timeout=1)
 
 

@@ -146,7 +146,7 @@ SYNTHETIC_BAD = {
     ("traffic", "beta1"): [*NUMBER, "0", "-1.0"],
     ("traffic", "beta2"): [*NUMBER, "0"],
     ("traffic", "z_lo"): [*NUMBER, "3.0"],
-    ("traffic", "z_hi"): [*NUMBER, "-1.0", "0.0"],
+    ("traffic", "z_hi"): [*NUMBER, "-1.0", "0.0", "1e-320", "1e308"],  # overflow, flat maps
     ("traffic", "disturbances"): [
         "3",
         '["big"]',
@@ -554,6 +554,15 @@ def test_a_config_of_another_kind_is_named_as_what_it_is(tmp_path, capsys, given
     code = main([*COMMAND_OF_KIND[wanted], "--config", str(path)])
     _one_line(capsys, code, path, f"is a {given} config, not a {wanted} config")
     assert not any(p for p in tmp_path.iterdir() if p != path)
+
+
+def test_a_config_of_another_kind_is_named_so_whatever_the_flags_set(tmp_path, capsys):
+    """A flag setting a key of the command's kind (--epochs) made a scenario config look like
+    a pretraining one, and the message named its first wrong key (the review)."""
+    path = tmp_path / "synthetic.toml"
+    path.write_text(twin.resources.shipped_config("synthetic").read_text())
+    code = main(["pretrain", "--config", str(path), "--epochs", "3"])
+    _one_line(capsys, code, path, "is a scenario config, not a pretraining config")
 
 
 def test_make_env_names_a_pretraining_config_as_what_it_is():

@@ -32,6 +32,20 @@ def test_incident_sightings_by_hand():
     assert row["incident_latency_steps"] == 1.5 and row["incident_latency_min"] == 1.875
 
 
+def test_incident_times_are_on_sumos_milliseconds_as_read_back():
+    """The end is the rounded begin plus the duration, rounded: as the read-back computes it
+    from the recorded begin (a begin of a fractional step and an odd duration differed by a
+    millisecond, and the run's own folder was refused; the review)."""
+    from types import SimpleNamespace
+
+    from twin.sumo.incidents import incident_window
+
+    for step_s, duration in ((12.4138, 0.68596), (53.333333, 1.00000001), (75.0, 2.5)):
+        inc = SimpleNamespace(begin=None, step=1, duration_min=duration)
+        begin, end = incident_window(inc, 0, 25200.0, step_s)
+        assert begin == round(begin, 3) and end == round(begin + 60.0 * duration, 3)
+
+
 def test_onset_and_end_steps():
     # step k observes (t0 + (k-1) 75, t0 + k 75]: 07:45 -> step 37, 08:15 -> step 60
     assert onset_and_end_steps(2700.0, 4500.0, 0.0, 75.0) == (37, 60)
@@ -448,6 +462,33 @@ def test_incidents_are_checked_before_the_run(tmp_path, capsys, case):
     err = run_case(capsys, tmp_path, argv, out, 2, needle)
     assert str(cfg) in err and "[traffic].incidents[0]" in err
     assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    "incident",
+    [
+        _incident(minutes=1.00000001),  # its end falls 0.6 microseconds past a SUMO step
+        _incident(kind="vehicle_stopped", when="step = 2", minutes=3.0000001),
+    ],
+)
+def test_an_incident_whose_end_falls_within_a_millisecond_of_a_step_reads_back(
+    tmp_path, capsys, incident
+):
+    """SUMO advances to a time rounded to its milliseconds: an incident ending 0.6 us past a
+    step was lifted at that step, and the run's own record then refused as lifted a step too
+    early (probe 20's f06, P2-f06a)."""
+    pytest.importorskip("libsumo")
+    from twin.cli import main as twin_main
+
+    cfg = _small(tmp_path, incident)
+    out = tmp_path / "run"
+    argv = ["run", "--config", str(cfg), "--out", str(out), "--quiet", "--no-report",
+            "--swarms", "greedy", "--no-ceiling"]  # fmt: skip
+    assert twin_main(argv) == 0, capsys.readouterr().err
+    (record,) = json.loads((out / "incidents.json").read_text())
+    assert record["end_s"] == round(record["end_s"], 3) and record["lifted_s"] is not None
+    capsys.readouterr()
+    assert twin_main(["report", "--no-animation", str(out)]) == 0, capsys.readouterr().err
 
 
 @pytest.fixture(scope="module")

@@ -277,7 +277,8 @@ def test_a_run_hands_its_sighting_model_to_the_swarm_and_the_belief_table(tmp_pa
     history = flat_history(4, 5, horizon=6)
     obstacles = np.zeros((4, 5), bool)
     obstacles[1, 1] = True
-    history = History(history.mean, history.var, history.rho, obstacles, 3)
+    # a history of SUMO days (clocked), as a tape's swarm's own history must be
+    history = History(history.mean, history.var, history.rho, obstacles, 3, step_s=60.0)
     (tmp_path / "c.toml").write_text("[swarm]\nn_drones = 2\n")
     experiment = Experiment(
         load_config(tmp_path / "c.toml"),

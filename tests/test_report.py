@@ -412,6 +412,40 @@ def test_a_comparison_its_seeds_contradict_is_refused(tmp_path, column, value, w
         load_run(run)
 
 
+@pytest.mark.parametrize(
+    ("name", "edit", "words"),
+    [  # probe 20's P2-f09a: accepted
+        ("comparison.csv", lambda f: f.drop(columns="ratio"), "lacks the column 'ratio'"),
+        (
+            "comparison.csv",
+            lambda f: f.rename(columns={"difference_ci95": "difference_ci55"}),
+            "holds a column 'difference_ci55', which twin does not write",
+        ),
+        ("comparison.csv", lambda f: f.assign(bogus=1), "holds a column 'bogus'"),
+    ],
+)
+def test_a_comparison_of_other_columns_is_refused(tmp_path, name, edit, words) -> None:
+    run = write_fixture_run(tmp_path, sumo=False)
+    edit(pd.read_csv(run / name)).to_csv(run / name, index=False)
+    write_manifest(run)
+    with pytest.raises(UserError, match=re.escape(f"{name}: {words}")):
+        load_run(run)
+
+
+def test_a_column_named_twice_in_a_csv_header_is_named_as_written(tmp_path) -> None:
+    """pandas reads a repeated header as 'R_hat_T.1': the message named that, not the file's
+    column (probe 20's P2-f09a)."""
+    run = write_fixture_run(tmp_path, sumo=False)
+    text = (run / "per_seed.csv").read_text().splitlines()
+    header, *rows = text
+    (run / "per_seed.csv").write_text(
+        "\n".join([header + ",R_hat_T", *(r + ",1.0" for r in rows)]) + "\n"
+    )
+    write_manifest(run)
+    with pytest.raises(UserError, match=re.escape("per_seed.csv: column 'R_hat_T' appears twice")):
+        load_run(run)
+
+
 def test_report_of_a_real_patrol_run(tmp_path: Path) -> None:
     """The core's own run-folder writer, read back: the table equals its summary.csv."""
     from twin.patrol import random_starts, run_patrol

@@ -521,3 +521,19 @@ def test_a_bad_dynamics_history_is_one_line(tmp_path, capsys, argv, words):
     code, err = _cli(["history", *argv, "--out", str(out)], capsys)
     assert code == 2 and words in err and "\n" not in err, err
     assert not out.exists()
+
+
+def test_a_seed_range_past_the_largest_seed_is_offered_fixes_its_flags_take():
+    """Too many days from a good first seed: fewer days, or a smaller first seed when that
+    fits them all, never a negative one (the review), nor fewer days than a history takes."""
+    from twin.cli import check_seeds
+
+    cases = [
+        ((0, 3_000_000_000), "give at most 2147483648"),  # no first seed fits them all
+        ((2_147_483_647, 2), "give --seed at most 2147483646"),  # --days 1: no history
+        ((2_147_483_600, 100), "give at most 48, or --seed at most 2147483548"),
+    ]
+    for (first, days), fix in cases:
+        with pytest.raises(UserError) as caught:
+            check_seeds("--seed", first, days, "--days", least=2)
+        assert str(caught.value).endswith(fix), caught.value

@@ -542,6 +542,20 @@ def test_a_flow_without_end_runs_past_midnight_and_its_window_is_said(city, caps
     run = json.loads((city / "open_own" / "run.json").read_text())
     assert run["horizon"] == 58  # 23:45 + 2 min warm-up .. 00:45, at 60 s
     assert "Traceback" not in err
+    # a begin given past that end, no horizon: an hour from it (it was cut to one step)
+    code, err = _run(city, "open_begin", *given, "--begin", "25:30", capsys=capsys)
+    assert code == 0, err
+    assert json.loads((city / "open_begin" / "run.json").read_text())["horizon"] == 60, err
+
+
+def test_an_open_flows_window_keeps_the_demands_later_departures(tmp_path):
+    """The window of a demand with an open flow reaches its last other departure."""
+    routes = tmp_path / "mixed.rou.xml"
+    routes.write_text('<routes><flow id="f" from="a" to="b" begin="100" period="10"/>'
+                      '<trip id="t" from="a" to="b" depart="25:00:00"/></routes>')  # fmt: skip
+    closed: list[float] = []
+    assert departure_span([routes], closed=closed) == (100.0, math.inf)
+    assert closed == [90000.0]
 
 
 def test_departures_in_included_route_files_are_the_demand(tmp_path):
@@ -1077,7 +1091,10 @@ def _declared(text: str, encoding: str) -> str:
 #: of the one-line refusal or None: it runs, as SUMO runs it)
 ENCODED = {
     "an encoding no one knows": ("routes", lambda t: _declared(t, "bogus-enc").encode(),
-                                 "its XML declaration names the encoding 'bogus-enc', which SUMO"),
+                                 "its XML declaration names the encoding 'bogus-enc', which twin"),
+    "a codec that is no text encoding": ("routes", lambda t: _declared(t, "base64").encode(),
+                                         "names the encoding 'base64', which twin does not know"),
+    "UTF-8 declared UCS-4": ("routes", lambda t: _declared(t, "ISO-10646-UCS-4").encode(), None),
     "UTF-8 declared UTF-16": ("routes", lambda t: _declared(t, "UTF-16").encode(), None),
     "UTF-8 declared UTF-32": ("routes", lambda t: _declared(t, "UTF-32").encode(), None),
     "UTF-8 declared UTF-7": ("routes", lambda t: _declared(t, "UTF-7").encode(), None),

@@ -295,6 +295,12 @@ class History:
                 f"{path}: sources = {str(sources)[:60]} do not name its n_runs = {n_runs} days "
                 f"(one each; none only in a history without traffic seeds); {fix}"
             )
+        if sources and len(seeds) != n_runs:  # `twin history` records every day's seed
+            raise UserError(
+                f"{path}: traffic_seeds = {str(seeds)[:60]} do not give the seed of each of its "
+                f"n_runs = {n_runs} days (needed to refuse a history that holds an evaluated "
+                f"day); {fix}"
+            )
         step_s, begin = info.get("step_s"), info.get("begin")
         if step_s is not None and not (
             isinstance(step_s, (int, float)) and not isinstance(step_s, bool) and step_s > 0

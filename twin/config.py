@@ -366,10 +366,11 @@ class IncidentSettings(StrictModel):
 
     @field_validator("duration_min")
     @classmethod
-    def _a_sumo_step_at_least(cls, value: float) -> float:
-        if value * 60.0 < 1.0:  # applied and lifted on SUMO's steps: nothing shorter is seen
+    def _a_sumo_step_at_least(cls, value: float, info: ValidationInfo) -> float:
+        recorded = (info.context or {}).get("recorded")  # an earlier twin's run took one
+        if value * 60.0 < 1.0 and not recorded:  # applied and lifted on SUMO's steps
             raise ValueError(
-                f"lasts {value * 60.0:.3g} s, shorter than SUMO's 1 s step, on which incidents "
+                f"lasts {value * 60.0:.12g} s, shorter than SUMO's 1 s step, on which incidents "
                 "are applied and lifted; give at least 1/60 (1 s)"
             )
         return value
@@ -975,6 +976,7 @@ def read_with_overrides(
     file lacks may come from a flag (``traffic = "tapes"`` in the file, ``--traffic TAPE``)."""
     flags = dict(flags or {})
     data = read_toml(path)
+    check_config_kind(path, data, cls.KIND)  # the file's own kind, before flags set keys
     named = set_dotted(data, overrides, flags, Path(path))
     return cls.from_data(path, data, named, flags)
 
@@ -1186,6 +1188,11 @@ def synthetic_config(config: ScenarioConfig) -> SyntheticConfig:
     return config.traffic
 
 
+#: The least importance a synthetic map's largest z may be given by a ``z_hi`` (Def. 2): a
+#: map whose cells all lie below it is a flat one.
+MIN_PEAK_IMPORTANCE = 1e-6
+
+
 def synthetic_source(config: ScenarioConfig, grid: Grid | None = None):
     """The :class:`SyntheticTraffic` a synthetic config describes."""
     from twin.traffic.synthetic import Disturbance, SyntheticTraffic
@@ -1218,4 +1225,21 @@ def synthetic_source(config: ScenarioConfig, grid: Grid | None = None):
             f"= {t.z_lo:g} is not below the largest z of the map over the horizon "
             f"({source.peak_z():.3g}): every importance would be 0; give a z_lo below it",
         ), config._labels)  # fmt: skip
+    if t.z_hi is not None:  # Def. 2 divides by z_hi - z_lo
+        peak, span = source.peak_z(), t.z_hi - t.z_lo
+        why = (
+            "so close to z_lo that Def. 2's (z - z_lo) / (z_hi - z_lo) overflows"
+            if not math.isfinite(reach / span)
+            else f"so far above the map's largest z ({peak:.3g}) that every importance is "
+            f"below {MIN_PEAK_IMPORTANCE:g}"
+            if (peak - t.z_lo) / span < MIN_PEAK_IMPORTANCE
+            else None
+        )
+        if why is not None:
+            raise _naming_changes(_fail(
+                config.path,
+                "[traffic].z_hi",
+                f"= {t.z_hi:g} lies {why}; give a z_hi near the largest z, or leave it out (the "
+                "largest z of the map)",
+            ), config._labels)  # fmt: skip
     return source

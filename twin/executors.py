@@ -111,11 +111,11 @@ def _probe_address(address: str, timeout: float | None = None) -> None:
     timeout = RAY_PROBE_S if timeout is None else timeout
     rest = address.split("://", 1)[-1]
     host, sep, port = rest.rpartition(":")
-    if not sep or not host or not port.isdigit():
+    if not sep or not host or rest.endswith("]"):  # no port ([::1] alone): Ray's default
         return
     fix = "start the cluster (ray start --head) or give its address: --address HOST:PORT"
-    if not 0 < int(port) < 65536:
-        raise UserError(f"Ray address {address}: port {port} is no TCP port (1 .. 65535); {fix}")
+    if not (port.isascii() and port.isdigit()) or not 0 < int(port) < 65536:
+        raise UserError(f"Ray address {address}: port {port!r} is no TCP port (1 .. 65535); {fix}")
     try:
         with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout) as sock:
             if os.environ.get("RAY_USE_TLS", "0").lower() in ("1", "true"):

@@ -222,6 +222,18 @@ def build_swarms(experiment: Experiment) -> dict[str, Policy]:
     return swarms
 
 
+def check_swarm_histories(swarms: dict[str, Policy], source: TrafficSource) -> None:
+    """Each swarm's own history of earlier days (``[swarm_options.<swarm>].history``) is one
+    of this traffic's grid, horizon and clock, and holds none of its days, as ``--history``
+    is (:func:`twin.belief.check_source`)."""
+    from twin.belief import check_source
+
+    for name, policy in swarms.items():
+        history = getattr(policy, "history", None)
+        if history is not None:
+            check_source(history, history.path or f"[swarm_options.{name}].history", source)
+
+
 @contextlib.contextmanager
 def stop_on_interrupt(
     enabled: bool = True,
@@ -382,6 +394,7 @@ def _run_seed(experiment, n, seed, source, stop, progress=False, on_source=None,
     if on_source is not None:
         on_source(source)
     swarms = build_swarms(experiment)
+    check_swarm_histories(swarms, source)
     faults = config.fault_plan()
     twins = build_swarms(experiment) if faults is not None and config.faults.compare else None
     sighting = source.sighting_model()  # how the drones' sightings are made: a filter's noise

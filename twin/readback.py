@@ -11,6 +11,7 @@ from __future__ import annotations
 import json
 import math
 import operator
+import re
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -39,6 +40,12 @@ def read_table(path: Path, columns: Mapping[str, str] | None = None) -> pd.DataF
     except Exception as exc:  # the parsers' own errors on a damaged file
         kind = "parquet" if path.suffix == ".parquet" else "CSV"
         raise UserError(f"{path}: not a readable {kind} table ({_why(exc)}); {RERUN}") from None
+    if path.suffix != ".parquet":  # the header as written (pandas renames a repeated name)
+        repeated = [c for c in frame.columns if re.fullmatch(r".+\.\d+", str(c))
+                    and str(c).rsplit(".", 1)[0] in frame.columns]  # fmt: skip
+        if repeated:
+            name = str(repeated[0]).rsplit(".", 1)[0]
+            raise UserError(f"{path}: column {name!r} appears twice; {RERUN}")
     if columns:
         check_columns(path, frame, columns)
     return frame

@@ -53,11 +53,13 @@ def check_seeds(
             f"{flag} = {first} is out of range{last}; seeds are whole numbers from 0 to {MAX_SEED}"
         )
     if first + count - 1 > MAX_SEED:
-        room, lower = MAX_SEED - first + 1, f"{flag} at most {MAX_SEED - count + 1}"
+        room = MAX_SEED - first + 1
+        fixes = [f"at most {room}"] if room >= least else []
+        if count <= MAX_SEED + 1:  # a smaller first seed fits them all
+            fixes.append(f"{flag} at most {MAX_SEED - count + 1}")
         raise UserError(
             f"{count_flag} = {count} runs seeds {first} .. {first + count - 1}, past the largest "
-            f"seed {MAX_SEED}; "
-            + (f"give at most {room}, or {lower}" if room >= least else f"give {lower}")
+            f"seed {MAX_SEED}; give {', or '.join(fixes) or f'at most {MAX_SEED + 1} seeds'}"
         )
 
 

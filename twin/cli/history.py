@@ -326,13 +326,17 @@ def _write_history(args: argparse.Namespace) -> int:
                 f"{path}: horizon, step or start (T, step_s, begin) = {key} differs from "
                 f"{first[0]}'s {first[2]}; a history needs runs of one scenario"
             )
-        if isinstance(seed, int):
-            if seed in seeds:
-                raise UserError(
-                    f"{path}: SUMO seed {seed} again (also {seeds[seed]}); a history needs "
-                    "distinct simulations"
-                )
-            seeds[seed] = path
+        if not isinstance(seed, int) or isinstance(seed, bool):
+            raise UserError(
+                f"{path}: the tape records no SUMO seed; a history keeps each day's "
+                "seed, so that a run on one of them is refused (record the tape again)"
+            )
+        if seed in seeds:
+            raise UserError(
+                f"{path}: SUMO seed {seed} again (also {seeds[seed]}); a history needs "
+                "distinct simulations"
+            )
+        seeds[seed] = path
         maps.append(truth)
     _, obstacles, (_, step_s, begin) = first
     history = fit_history(
@@ -345,7 +349,7 @@ def _write_history(args: argparse.Namespace) -> int:
         fit_detector_calibration(stations),
     )
     atomic_write(make_parent(args.out, "--out"), history.save)
-    simulations = f"simulations (SUMO seeds {', '.join(map(str, seeds)) or 'unknown'})"
+    simulations = f"simulations (SUMO seeds {', '.join(map(str, seeds))})"
     _say_written(history, simulations, args.out, f", from {begin or '?'}", len(stations))
     return 0
 

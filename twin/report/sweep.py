@@ -14,7 +14,7 @@ from matplotlib.figure import Figure
 
 from twin.errors import UserError
 from twin.files import atomic_write, check_staged_folder, staged_folder
-from twin.readback import CELL_SERIES_COLUMNS, TEXT, read_json, read_table
+from twin.readback import BOUNDS, CELL_SERIES_COLUMNS, TEXT, read_json, read_table
 from twin.report.document import (
     CSS,
     PAPER_TABLE_COLUMNS,
@@ -57,18 +57,9 @@ def sweep_table(summary: pd.DataFrame) -> tuple[list[str], list[list[str]]]:
     return header, rows
 
 
-#: The values a Table 2 column can take (Def. 5's coverage, percentages): its drawn interval
-#: stops there, where a t-interval over few seeds may reach past them.
-COLUMN_RANGES = {
-    "C_hat_T": (0.0, 1.0),
-    "pct_time_max_C": (0.0, 100.0),
-    "pct_map_covered": (0.0, 100.0),
-}
-
-
 def figure_table2(summary: pd.DataFrame) -> Figure:
     """Each Table 2 column per group and swarm, with 95% error bars (cut to the values the
-    column can take, :data:`COLUMN_RANGES`)."""
+    column can take, :data:`twin.readback.BOUNDS`)."""
     groups = group_columns(summary)
     labels = list(dict.fromkeys(group_label(r, groups) for _, r in summary.iterrows()))
     swarms = list(dict.fromkeys(summary["swarm"]))
@@ -83,7 +74,7 @@ def figure_table2(summary: pd.DataFrame) -> Figure:
             lookup = {group_label(r, groups): r for _, r in rows.iterrows()}
             mean = np.array([lookup[lb][col] if lb in lookup else np.nan for lb in labels])
             half = np.array([lookup[lb][f"{col}_ci95"] if lb in lookup else 0 for lb in labels])
-            lo, hi = COLUMN_RANGES.get(col, (-np.inf, np.inf))
+            lo, hi = BOUNDS.get(col, (-np.inf, np.inf))
             yerr = np.clip(
                 np.stack([np.minimum(half, mean - lo), np.minimum(half, hi - mean)]), 0, None
             )
@@ -96,8 +87,8 @@ def figure_table2(summary: pd.DataFrame) -> Figure:
         ax.grid(axis="y", alpha=0.3)
     fig.legend(*axes[0].get_legend_handles_labels(), loc="outside lower center", ncols=len(swarms))
     fig.suptitle(
-        "Table 2 columns per scenario (mean and 95% interval over seeds, cut to the range of "
-        "coverage and percentages)",
+        "Table 2 columns per scenario (mean and 95% interval over seeds, cut to the values "
+        "each can take)",
         fontsize=11,
     )
     return fig

@@ -46,13 +46,20 @@ def onset_and_end_steps(begin: float, end: float, t0: float, step_s: float) -> t
     return max(first, 0), max(last, first)
 
 
-def incident_window(inc, n: int, begin_s: float, step_s: float) -> tuple[float, float]:
-    """``[begin, end)`` (s) of incident ``n`` (its ``begin`` clock, or ``T^step``)."""
+def incident_window(
+    inc, n: int, begin_s: float, step_s: float, ms: bool = True
+) -> tuple[float, float]:
+    """``[begin, end)`` (s) of incident ``n`` (its ``begin`` clock, or ``T^step``), on SUMO's
+    clock of whole milliseconds, to which it rounds the times it is advanced to (``ms``
+    False: unrounded, as twin recorded them before)."""
     if inc.begin is not None:
         begin = parse_clock(inc.begin, f"[traffic].incidents[{n}].begin")
     else:
         begin = begin_s + inc.step * step_s
-    return begin, begin + 60.0 * inc.duration_min
+    if not ms:
+        return begin, begin + 60.0 * inc.duration_min
+    begin = round(begin, 3)
+    return begin, round(begin + 60.0 * inc.duration_min, 3)
 
 
 def configured_schedule(incidents: list[Any]) -> list[dict[str, Any]]:
@@ -252,13 +259,12 @@ def check_incidents(incidents: list[Any], scenario, geometry, where: str = "") -
     return notices
 
 
-def _holds_up_vehicles(ls, edge: str, inc) -> bool:
-    """Whether incident ``inc`` on ``edge`` of the running simulation acts on a lane that
-    carries vehicles (:func:`for_vehicles`; SUMO lists no class for a lane open to all): its
-    lane, for a closed lane, else any of the edge's."""
-    n = ls.edge.getLaneNumber(edge)
-    lanes = ([inc.lane] if inc.lane < n else []) if inc.kind == "lane_closed" else range(n)
-    return any(for_vehicles(" ".join(ls.lane.getAllowed(f"{edge}_{k}")) or None) for k in lanes)
+def holds_up_vehicles(lanes: list[bool], inc) -> bool:
+    """Whether incident ``inc`` on an edge of these lanes (:func:`net_edges`' flags) acts on
+    one that carries vehicles: its lane, for a closed lane, else any of the edge's."""
+    if inc.kind == "lane_closed":
+        return inc.lane < len(lanes) and lanes[inc.lane]
+    return any(lanes)
 
 
 class IncidentSchedule:
@@ -271,6 +277,8 @@ class IncidentSchedule:
         self.events: list[tuple[float, int, str]] = []  # (time, incident, "on" | "off")
         self._settings = list(incidents)
         self._edges: dict[str, tuple[tuple[int, int], set[tuple[int, int]]]] | None = None
+        self._net_file = scenario.net_file
+        self._roads: dict[str, list[bool]] | None = None  # lanes that carry vehicles, by edge
         #: closed lanes: how many incidents close each, and its permissions before the first
         self._closed: dict[str, tuple[int, tuple[list[str], list[str]]]] = {}
         #: held vehicles: how many incidents hold each
@@ -346,7 +354,9 @@ class IncidentSchedule:
             cell = tuple(inc.cell)
             candidates = sorted(e for e, (_, through) in cells.items() if cell in through)
             # a cell's footpaths and sidewalks are no candidates
-            candidates = [e for e in candidates if _holds_up_vehicles(ls, e, inc)]
+            if self._roads is None:  # as the check before the run read them
+                self._roads = net_edges(self._net_file)
+            candidates = [e for e in candidates if holds_up_vehicles(self._roads.get(e, []), inc)]
             if not candidates:
                 lane = f" whose lane {inc.lane}" if inc.kind == "lane_closed" else " that"
                 raise UserError(

@@ -28,11 +28,11 @@ def open_xml(path: Path) -> IO[bytes]:
     in an encoding Python's XML parser reads as SUMO's does (:func:`_as_sumo_reads`)."""
     path = Path(path)
     fh = open(path, "rb")  # noqa: SIM115 (the caller closes it)
-    if fh.read(2) == b"\x1f\x8b":
-        fh.close()
-        fh = gzip.open(path, "rb")  # noqa: SIM115 (the caller closes it)
-    fh.seek(0)
     try:
+        if fh.read(2) == b"\x1f\x8b":
+            fh.close()
+            fh = gzip.open(path, "rb")  # noqa: SIM115 (the caller closes it)
+        fh.seek(0)
         return _as_sumo_reads(path, fh)
     except BaseException:
         fh.close()
@@ -47,6 +47,8 @@ _UTF32_STARTS = {
     b"<\x00\x00\x00": "utf-32-le",
     b"\x00\x00\x00<": "utf-32-be",
 }
+#: Multi-byte encodings SUMO's parser (Xerces) knows by names Python does not.
+_UCS = re.compile(r"(ISO-10646-)?UCS-?[24]", re.IGNORECASE)
 #: An XML declaration's encoding, in a file of ASCII-compatible bytes.
 _DECLARED = re.compile(rb"""\A(\xef\xbb\xbf)?(<\?xml\s[^>]*?encoding\s*=\s*["'])([^"']*)(["'])""")
 
@@ -54,7 +56,8 @@ _DECLARED = re.compile(rb"""\A(\xef\xbb\xbf)?(<\?xml\s[^>]*?encoding\s*=\s*["'])
 def _as_sumo_reads(path: Path, fh: IO[bytes]) -> IO[bytes]:
     """``fh`` as SUMO reads it: UTF-32 text given as UTF-8; a declared encoding that
     contradicts ASCII-compatible bytes (UTF-16, UTF-32, UTF-7: SUMO warns and reads what it
-    senses) declared as UTF-8; an encoding no one knows refused in one line, as by SUMO."""
+    senses, and for UCS-2/UCS-4) declared as UTF-8; an unknown encoding refused in one line,
+    as by SUMO."""
     head = fh.read(1024)
     utf32 = _UTF32_STARTS.get(head[:4])
     if utf32 is not None:
@@ -63,11 +66,15 @@ def _as_sumo_reads(path: Path, fh: IO[bytes]) -> IO[bytes]:
     if declared is not None:
         name = declared[3].decode("ascii", "replace")
         try:
-            codec = codecs.lookup(name).name
+            info = codecs.lookup(name)
+            codec = info.name if info._is_text_encoding else None  # not base64, rot13 ...
         except LookupError:
+            codec = "utf-32" if _UCS.fullmatch(name) else None  # Xerces' names Python lacks
+        if codec is None:
             raise UserError(
-                f"{path}: its XML declaration names the encoding {name!r}, which SUMO does not "
-                'know either; declare the file\'s encoding (e.g. encoding="UTF-8")'
+                f"{path}: its XML declaration names the encoding {name!r}, which twin does not "
+                "know (SUMO refuses an encoding it does not know too); declare the file's "
+                'encoding (e.g. encoding="UTF-8")'
             ) from None
         if codec.startswith(("utf-16", "utf-32", "utf-7")):  # bytes are ASCII-compatible
             head = head[: declared.start(3)] + b"UTF-8" + head[declared.end(3) :]
@@ -83,7 +90,7 @@ def _transcoded(path: Path, fh: IO[bytes], head: bytes, codec: str) -> IO[bytes]
     (such files are rare)."""
     try:
         text = (head + fh.read()).decode(codec).removeprefix("\ufeff")
-    except UnicodeDecodeError as exc:
+    except (UnicodeError, LookupError) as exc:
         raise UserError(f"{path}: not valid XML (not {codec} text: {exc})") from None
     finally:
         fh.close()
@@ -537,15 +544,19 @@ VEHICLE_DEMAND = ("vehicle", "trip", "flow")
 
 
 def departure_span(
-    route_files: list[Path], counts: dict[str, int] | None = None, start: float = 0.0
+    route_files: list[Path],
+    counts: dict[str, int] | None = None,
+    start: float = 0.0,
+    closed: list[float] | None = None,
 ) -> tuple[float, float] | None:
     """First and last numeric departure of the demand (``depart`` of vehicles, trips and persons,
     ``begin`` .. ``end`` of flows, person and container flows, those of their ``<interval>`` or
     ``start``, the simulation's begin, when a flow gives none, as SUMO reads them; the last is
     ``math.inf`` when a flow has no end); None when the files hold no vehicle (e.g. only vTypes).
     ``counts``, when given, gets the number of departing elements of each tag, and of those
-    departing at ``start`` (:data:`AT_BEGIN`). Files pulled in
-    with ``<include href>`` count, as SUMO loads them."""
+    departing at ``start`` (:data:`AT_BEGIN`); ``closed``, when given, the last departure
+    that is not an open flow's. Files pulled in with ``<include href>`` count, as SUMO loads
+    them."""
     first = last = None
     counts = {} if counts is None else counts
     read: list[Path] = []
@@ -588,6 +599,8 @@ def departure_span(
                             end = _flow_end(elem, t, intervals[-1][1] if intervals else None)
                         first = t if first is None else min(first, t)
                         last = end if last is None else max(last, end)
+                        if closed is not None and math.isfinite(end):
+                            closed[:] = [max([*closed, end])]
                     if tag in _DEPARTING or tag in ("route", "vType"):
                         elem.clear()
         except (ET.ParseError, OSError, EOFError) as exc:

@@ -56,7 +56,8 @@ SUMO_STEP_S = 1.0
 MAX_STEP_S = 86400.0
 
 #: Where the window of a demand with an open flow (no end, no number) ends when no end is
-#: given: midnight, or an hour after its begin when that is later.
+#: given: midnight, or its last other departure, or an hour after its (given) begin, whichever
+#: is latest.
 OPEN_DEMAND_END = 86400.0
 
 
@@ -237,6 +238,7 @@ class _ScenarioFiles:
     listed_as: dict[str, list[Path]] = field(default_factory=dict)
     window: list[float | None] = field(default_factory=lambda: [None, None])  # <time> of it
     span: tuple[float, float] | None = None  # first and last departure of the given demand
+    last_closed: float | None = None  # its last departure but an open flow's (one without end)
     #: those of a built-in network's demand, which sets no window (the config gives it)
     built_span: tuple[float, float] | None = None
     state_time: float | None = None  # the time of the state the sumocfg loads: SUMO starts there
@@ -345,9 +347,14 @@ def _scenario_files(s: SumoSettings) -> _ScenarioFiles:
     with _named_in(files.sumocfg, [*as_.get("routes", []), *as_.get("additional", [])]):
         # SUMO loads vehicles, flows and persons of additional files as demand too
         departing: dict[str, int] = {}
+        closed: list[float] = []
         files.span = departure_span(
-            [*files.route_files, *files.additional_files], departing, start=files.window[0] or 0.0
+            [*files.route_files, *files.additional_files],
+            departing,
+            start=files.window[0] or 0.0,
+            closed=closed,
         )
+        files.last_closed = closed[0] if closed else None
         files.at_begin = departing.pop(AT_BEGIN, 0) > 0
     if files.span is None and files.sumocfg is not None and not files.route_files:
         notice(
@@ -411,13 +418,15 @@ def _time_window(
         w0 = files.window[0] if files.window[0] is not None else files.span[0]
         w1 = files.window[1] if files.window[1] is not None else files.span[1]
         if math.isinf(w1):  # a flow without end: SUMO alone would run on and on
-            w1 = max(OPEN_DEMAND_END, w0 + 3600.0)
+            w1 = max(
+                OPEN_DEMAND_END, files.last_closed or 0.0, (begin if begin_given else w0) + 3600.0
+            )
         open_flow = files.span is not None and math.isinf(files.span[1])
         if open_flow and files.window[1] is None and not horizon_given:
             notice(
                 f"{files.name}: a flow has no end or number, so SUMO would run it for ever; "
-                f"twin's window ends at {clock_label(w1)} (give the sumocfg an <end>, or a "
-                "--horizon)"
+                f"twin's window ends at {clock_label(w1)} (give the flow an end or a number, or "
+                "a --horizon)"
             )
         if files.state_time is not None:  # a state saved past the last departure: one step
             w1 = max(w1, w0 + step_s)

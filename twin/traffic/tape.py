@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Generator
+from collections.abc import Callable, Generator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -407,8 +407,16 @@ def _tape_meta(path: Path, schema_meta: dict) -> dict[str, Any]:
         out[key] = value
     shape = (out["nx"], out["ny"])
     for key, dtype in (("obstacles", bool), ("lane_km", float), ("speed_limit", float)):
+        value = meta.get(key)
+        wrong = _first_not(value, _flag if dtype is bool else _real)  # (finite: below)
+        if wrong is not None:
+            want = "true or false (1 or 0)" if dtype is bool else "a number"
+            raise UserError(
+                f"{path}: tape metadata {key} holds {str(wrong)[:30]!r} where {want} belongs; "
+                "the tape is corrupt, record it again"
+            )
         try:
-            arr = np.asarray(meta.get(key), dtype=float)
+            arr = np.asarray(value, dtype=float)
         except (TypeError, ValueError):
             arr = np.empty(0)
         if arr.shape != shape:
@@ -444,6 +452,25 @@ def _tape_meta(path: Path, schema_meta: dict) -> dict[str, Any]:
     out["settings"] = settings if isinstance(settings, dict) else {}
     _check_observation_settings(path, out["settings"])
     return out
+
+
+def _first_not(rows: Any, kind: type | Callable[[Any], bool]) -> Any:
+    """The first item of a list of lists that is not of ``kind`` (a type, or a test), else
+    None (the shape is checked apart)."""
+    test = (lambda x: isinstance(x, kind)) if isinstance(kind, type) else kind
+    for row in rows if isinstance(rows, list) else []:
+        for x in row if isinstance(row, list) else []:
+            if not test(x):
+                return x
+    return None
+
+
+def _flag(value: Any) -> bool:
+    return isinstance(value, bool) or (isinstance(value, int) and value in (0, 1))
+
+
+def _real(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
 def _number(value: Any) -> bool:
