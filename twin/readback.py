@@ -711,7 +711,12 @@ DEGRADATION_COLUMNS = {
     "R_hat": FINITE,
     "R_hat_fault_free": FINITE,
     "events": INT,
-}
+    **dict.fromkeys(  # (NaN: a phase without events)
+        [f"{c}{twin}" for c in ("pct_events_seen", "latency_median_steps",
+                                "pct_congested_observed") for twin in ("", "_fault_free")],
+        NUMBER,
+    ),
+}  # fmt: skip
 #: Columns of ``belief_models.csv`` (:func:`twin.belief.run_beliefs`): every row's belief error
 #: is a number (the run has steps), the other scores may be NaN (no events, no interval).
 BELIEF_MODEL_COLUMNS = {"swarm": TEXT, "model": TEXT, "belief_error": FINITE}
