@@ -719,7 +719,16 @@ DEGRADATION_COLUMNS = {
 }  # fmt: skip
 #: Columns of ``belief_models.csv`` (:func:`twin.belief.run_beliefs`): every row's belief error
 #: is a number (the run has steps), the other scores may be NaN (no events, no interval).
-BELIEF_MODEL_COLUMNS = {"swarm": TEXT, "model": TEXT, "belief_error": FINITE}
+BELIEF_MODEL_COLUMNS = {
+    "swarm": TEXT,
+    "model": TEXT,
+    "belief_error": FINITE,
+    **dict.fromkeys(  # (twin.belief.BELIEF_COLUMNS: every belief table has had them)
+        ("calibration_90", "events", "pct_events_known", "latency_median_steps",
+         "latency_median_min", "false_alarms", "false_alarms_per_hour", "n_seeds"),
+        NUMBER,
+    ),
+}  # fmt: skip
 
 
 #: The headline columns of a results table (``summary.csv``, ``per_seed.csv``): every swarm row
