@@ -12,7 +12,7 @@ import json
 import math
 import operator
 import re
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -60,6 +60,14 @@ def check_columns(path: Path, frame: pd.DataFrame, columns: Mapping[str, str]) -
         if name not in frame.columns:
             raise UserError(f"{path}: no column {name!r}; {RERUN}")
         check_column(path, frame, name, kind)
+
+
+def check_known_columns(path: Path, frame: pd.DataFrame, known: Iterable[str]) -> None:
+    """``frame`` holds no column but ``known`` (a table whose every column twin writes)."""
+    known = set(known)
+    other = [c for c in frame.columns if c not in known]
+    if other:
+        raise UserError(f"{path}: holds a column {other[0]!r}, which twin does not write; {RERUN}")
 
 
 def check_column(path: Path, frame: pd.DataFrame, name: str, kind: str) -> None:
