@@ -298,6 +298,9 @@ ABSURD_TAPES: dict[str, tuple[Callable[[Path], Path], str]] = {
             ("detection_p", float("nan")),
             ("step_s", -30.0),
             ("step_s", 0),
+            ("seed", "0"),  # probe 20's P2-f08b: accepted, run.json's seed then null
+            ("seed", -1),
+            ("begin", 600),
             ("warmup_s", -1.0),
             ("reads_per_step", 0),
             ("reads_per_step", 1.5),

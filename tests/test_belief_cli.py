@@ -413,6 +413,10 @@ BELIEF_FORGERIES = {
                                   _row_edit(NO_DRONES, "history", calibration_90=0.123),
                                   "calibration_90 = 0.123 for swarm '(no drones)', model "
                                   "'history', but the models replayed"),
+    # a column dropped: the report left it out (probe 20's P2-f09c)
+    **{f"{column} dropped": ("belief_models.csv", lambda t, c=column: t.drop(columns=c),
+                             f"belief_models.csv: no column {column!r}")
+       for column in ("calibration_90", "false_alarms_per_hour", "n_seeds")},
     "truth halved": ("belief_maps.npz", _maps_edit("truth", lambda a: a * 0.5),
                      "but the nowcast replayed with the run's history gives"),
     "nowcast std zero": ("belief_maps.npz", _maps_edit("std", lambda a: a * 0),

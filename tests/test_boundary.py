@@ -1094,6 +1094,17 @@ READ_BACK = {
         _edit_table("monitoring.csv", lambda f: f.drop(columns="events")),
         "monitoring.csv: lacks the column 'events', which twin writes",
     ),
+    **{  # probe 20's P2-f09d, P2-f09e
+        f"a column added to {name}": (
+            _edit_table(name, lambda f: f.assign(bogus=1.0)),
+            f"{name}: holds a column 'bogus', which twin does not write",
+        )
+        for name in ("series.parquet", "trajectories.parquet", "timing.csv")
+    },
+    "n_seeds dropped from monitoring": (
+        _edit_table("monitoring.csv", lambda f: f.drop(columns="n_seeds")),
+        "monitoring.csv: lacks the column 'n_seeds', which twin writes",
+    ),
     "a column added to per_seed": (
         _edit_table("per_seed.csv", lambda f: f.assign(bogus=1.0)),
         "per_seed.csv: holds a column 'bogus', which twin does not write",

@@ -146,7 +146,7 @@ SYNTHETIC_BAD = {
     ("traffic", "beta1"): [*NUMBER, "0", "-1.0"],
     ("traffic", "beta2"): [*NUMBER, "0"],
     ("traffic", "z_lo"): [*NUMBER, "3.0"],
-    ("traffic", "z_hi"): [*NUMBER, "-1.0", "0.0", "1e-320", "1e308"],  # overflow, flat maps
+    ("traffic", "z_hi"): [*NUMBER, "-1.0", "0.0", "1e-320", "1e308", "1e-15"],  # flat maps
     ("traffic", "disturbances"): [
         "3",
         '["big"]',

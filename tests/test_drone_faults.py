@@ -407,6 +407,20 @@ def _table_edit(**row_0):
     return edit
 
 
+def _drop_column(run: Path, column: str) -> None:
+    import pandas as pd
+
+    table = pd.read_csv(run / "degradation.csv")
+    table.drop(columns=column).to_csv(run / "degradation.csv", index=False)
+
+
+def _add_column(run: Path) -> None:
+    import pandas as pd
+
+    table = pd.read_csv(run / "degradation.csv")
+    table.assign(bogus=1.0).to_csv(run / "degradation.csv", index=False)
+
+
 def _twin_edit(change):
     def edit(run: Path) -> None:
         import pandas as pd
@@ -437,6 +451,18 @@ DEGRADATION_FORGERIES = {
     "seen by the twin": (_table_edit(pct_events_seen_fault_free=0.0),
                          "pct_events_seen_fault_free = 0"),
     "label": (_table_edit(label="all drones lost"), "label = 'all drones lost'"),
+    **{  # an internal error (KeyError) in the report (probe 20's P2-f09b)
+        f"{column} dropped": (
+            lambda run, column=column: _drop_column(run, column),
+            f"degradation.csv: no column {column!r}",
+        )
+        for column in ("pct_events_seen_fault_free", "latency_median_steps_fault_free",
+                       "pct_congested_observed")
+    },
+    "a column added": (  # probe 20's P2-f09e
+        lambda run: _table_edit()(run) or _add_column(run),
+        "degradation.csv: holds a column 'bogus', which twin does not write",
+    ),
     "twin's cells missing": (lambda run: (run / "fault_free.parquet").unlink(),
                              "fault_free.parquet) are missing"),
     "twin teleports": (_twin_edit(lambda f: _moved(f, 5, 3)), "fault_free.parquet: swarm"),

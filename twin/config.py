@@ -1233,6 +1233,9 @@ def synthetic_source(config: ScenarioConfig, grid: Grid | None = None):
             else f"so far above the map's largest z ({peak:.3g}) that every importance is "
             f"below {MIN_PEAK_IMPORTANCE:g}"
             if (peak - t.z_lo) / span < MIN_PEAK_IMPORTANCE
+            else f"at or below every z of the map (the smallest is {source.low_z():.3g}), so "
+            "every importance would be 1"
+            if t.z_hi <= source.low_z()
             else None
         )
         if why is not None:

@@ -12,7 +12,7 @@ import json
 import math
 import operator
 import re
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -60,6 +60,14 @@ def check_columns(path: Path, frame: pd.DataFrame, columns: Mapping[str, str]) -
         if name not in frame.columns:
             raise UserError(f"{path}: no column {name!r}; {RERUN}")
         check_column(path, frame, name, kind)
+
+
+def check_known_columns(path: Path, frame: pd.DataFrame, known: Iterable[str]) -> None:
+    """``frame`` holds no column but ``known`` (a table whose every column twin writes)."""
+    known = set(known)
+    other = [c for c in frame.columns if c not in known]
+    if other:
+        raise UserError(f"{path}: holds a column {other[0]!r}, which twin does not write; {RERUN}")
 
 
 def check_column(path: Path, frame: pd.DataFrame, name: str, kind: str) -> None:
@@ -711,10 +719,24 @@ DEGRADATION_COLUMNS = {
     "R_hat": FINITE,
     "R_hat_fault_free": FINITE,
     "events": INT,
-}
+    **dict.fromkeys(  # (NaN: a phase without events)
+        [f"{c}{twin}" for c in ("pct_events_seen", "latency_median_steps",
+                                "pct_congested_observed") for twin in ("", "_fault_free")],
+        NUMBER,
+    ),
+}  # fmt: skip
 #: Columns of ``belief_models.csv`` (:func:`twin.belief.run_beliefs`): every row's belief error
 #: is a number (the run has steps), the other scores may be NaN (no events, no interval).
-BELIEF_MODEL_COLUMNS = {"swarm": TEXT, "model": TEXT, "belief_error": FINITE}
+BELIEF_MODEL_COLUMNS = {
+    "swarm": TEXT,
+    "model": TEXT,
+    "belief_error": FINITE,
+    **dict.fromkeys(  # (twin.belief.BELIEF_COLUMNS: every belief table has had them)
+        ("calibration_90", "events", "pct_events_known", "latency_median_steps",
+         "latency_median_min", "false_alarms", "false_alarms_per_hour", "n_seeds"),
+        NUMBER,
+    ),
+}  # fmt: skip
 
 
 #: The headline columns of a results table (``summary.csv``, ``per_seed.csv``): every swarm row

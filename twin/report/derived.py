@@ -1719,6 +1719,8 @@ def check_columns(primary: Primary, name: str, frame: pd.DataFrame, given: set[s
         raise UserError(f"{path}: holds a column {other[0]!r}, which twin does not write; {RERUN}")
     if folder_format(primary) < FOLDER_FORMAT:
         return
+    if name in ("summary.csv", "monitoring.csv", "comparison.csv"):  # each with its seeds
+        given = given | {"n_seeds"}
     missing = sorted(given - set(frame.columns))
     if missing:
         raise UserError(f"{path}: lacks the column {missing[0]!r}, which twin writes; {RERUN}")

@@ -30,13 +30,16 @@ from twin.readback import (
     NETWORK_RANGES,
     NUMBER,
     RERUN,
+    SERIES_COLUMNS,
     TEXT,
     TIMING_COLUMNS,
+    TRAJECTORY_COLUMNS,
     check_bounds,
     check_column,
     check_fields,
     check_headline,
     check_incidents,
+    check_known_columns,
     check_ranges,
     check_run_json,
     check_series,
@@ -351,8 +354,10 @@ def load_run(run_dir: str | Path) -> RunFiles:
     series_path, traj_path = run_dir / "series.parquet", run_dir / "trajectories.parquet"
     series = read_table(series_path)
     check_series(series_path, series)
+    check_known_columns(series_path, series, [*SERIES_COLUMNS, "belief_error"])
     trajectories = read_table(traj_path)
     check_trajectories(traj_path, trajectories, obstacles.shape, obstacles)
+    check_known_columns(traj_path, trajectories, TRAJECTORY_COLUMNS)
     summary_path = run_dir / "summary.csv"
     summary = read_table(summary_path, {"swarm": TEXT})
     if "n_seeds" in summary.columns:
@@ -387,7 +392,10 @@ def load_run(run_dir: str | Path) -> RunFiles:
     belief_maps = read_belief_maps(run_dir / "belief_maps.npz", obstacles.shape)
     timing = optional("timing.csv", TIMING_COLUMNS)
     degradation = optional("degradation.csv", DEGRADATION_COLUMNS, ("swarm", "label"))
+    if degradation is not None:
+        check_known_columns(run_dir / "degradation.csv", degradation, DEGRADATION_COLUMNS)
     if timing is not None:
+        check_known_columns(run_dir / "timing.csv", timing, [*TIMING_COLUMNS, "process", "share"])
         for name, kind in (("process", TEXT), ("share", NUMBER)):
             if name in timing.columns:
                 check_column(run_dir / "timing.csv", timing, name, kind)

@@ -85,14 +85,22 @@ class SyntheticTraffic(TrafficSource):
 
     def peak_z(self) -> float:
         """The largest ``z`` on a free cell over the horizon (0 without disturbances)."""
-        if getattr(self, "_peak", None) is None:
-            peak = 0.0
+        return self._z_range()[1]
+
+    def low_z(self) -> float:
+        """The smallest ``z`` on a free cell over the horizon (0 without disturbances)."""
+        return self._z_range()[0]
+
+    def _z_range(self) -> tuple[float, float]:
+        if getattr(self, "_range", None) is None:
+            low, peak = np.inf, 0.0
             for start in range(0, self.horizon + 1, 256):
                 amplitudes = self._amplitudes[:, start : start + 256].T
                 block = np.tensordot(amplitudes, self._kernels, axes=1)
                 peak = max(peak, float(np.where(self.grid.free, block, 0.0).max(initial=0.0)))
-            self._peak = peak
-        return self._peak
+                low = min(low, float(np.where(self.grid.free, block, np.inf).min(initial=np.inf)))
+            self._range = (0.0 if np.isinf(low) else low, peak)
+        return self._range
 
     def z(self, k: int) -> np.ndarray:
         """The raw traffic variable ``z^k`` over the map."""
