@@ -44,7 +44,7 @@ from twin.grid import Grid
 from twin.mfd import PRIOR_K_C
 from twin.monitoring import MonitorSettings, congestion_events
 from twin.notices import notify
-from twin.seeds import MAX_SEED
+from twin.seeds import MAX_SEED, is_seed
 
 MODELS = ("last-seen", "history", "nowcast", "nowcast+detectors")
 #: Row name of the history-only reference (no drones).
@@ -276,7 +276,7 @@ class History:
                 f"{path}: traffic_seeds = {seeds!r} is not a list of the SUMO seeds it was built "
                 f"from (needed to refuse a history that holds an evaluated day); {fix}"
             )
-        wrong = [x for x in seeds if not 0 <= x <= MAX_SEED]
+        wrong = [x for x in seeds if not is_seed(x)]
         if wrong:
             raise UserError(
                 f"{path}: traffic_seeds holds {str(wrong[0])[:30]}, not a SUMO seed (0 .. "

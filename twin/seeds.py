@@ -12,6 +12,11 @@ from typing import Any
 MAX_SEED = 2**31 - 1
 
 
+def is_seed(value: Any) -> bool:
+    """Whether ``value`` is a seed: a whole number (not a bool) in ``0 .. MAX_SEED``."""
+    return isinstance(value, int) and not isinstance(value, bool) and 0 <= value <= MAX_SEED
+
+
 def check_seed_list(
     seeds: Any, example: str, first: int = 0, most: int | None = None
 ) -> Sequence[int]:
@@ -33,7 +38,7 @@ def check_seed_list(
         return range(first, first + seeds)
     if not isinstance(seeds, list) or not seeds or not all(whole(s) for s in seeds):
         raise ValueError(f"must be a count or a non-empty list of whole numbers; e.g. {example}")
-    wrong = [s for s in seeds if not 0 <= s <= MAX_SEED]
+    wrong = [s for s in seeds if not is_seed(s)]
     if wrong:
         raise ValueError(
             f"holds seed {wrong[0]}, out of range; seeds are whole numbers from 0 to {MAX_SEED}"

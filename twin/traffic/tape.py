@@ -25,7 +25,7 @@ from twin.files import not_a_file
 from twin.grid import Grid
 from twin.mfd import MFD, SETTING_RANGES, MFDImportance
 from twin.notices import notify
-from twin.seeds import MAX_SEED
+from twin.seeds import MAX_SEED, is_seed
 from twin.traffic.base import TrafficSource
 
 TAPE_VERSION = 1
@@ -530,9 +530,7 @@ def _check_observation_settings(path: Path, settings: dict[str, Any]) -> None:
             f">= 1; {fix}"
         )
     seed, begin = settings.get("seed"), settings.get("begin")
-    if seed is not None and not (
-        isinstance(seed, int) and not isinstance(seed, bool) and 0 <= seed <= MAX_SEED
-    ):
+    if seed is not None and not is_seed(seed):
         raise UserError(
             f"{path}: tape metadata seed = {str(seed)[:40]!r} is not a SUMO seed (a whole "
             f"number from 0 to {MAX_SEED}); {fix}"
