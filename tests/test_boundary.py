@@ -1101,6 +1101,13 @@ READ_BACK = {
         )
         for name in ("series.parquet", "trajectories.parquet", "timing.csv")
     },
+    **{  # probe 20's P2-f09e: written since before the current format
+        f"{column} dropped from timing": (
+            _edit_table("timing.csv", lambda f, c=column: f.drop(columns=c)),
+            f"timing.csv: lacks the column '{column}', which twin writes",
+        )
+        for column in ("process", "share")
+    },
     "n_seeds dropped from monitoring": (
         _edit_table("monitoring.csv", lambda f: f.drop(columns="n_seeds")),
         "monitoring.csv: lacks the column 'n_seeds', which twin writes",

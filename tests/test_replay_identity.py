@@ -288,6 +288,17 @@ CASES = {
         None,
         "mfd_samples.parquet: count = ",
     ),
+    # probe 20's P2-f09e
+    "MFD samples without their speed limits": (
+        _edit_table("mfd_samples.parquet", lambda f: f.drop(columns="speed_limit")),
+        None,
+        "mfd_samples.parquet: lacks the column 'speed_limit', which twin writes",
+    ),
+    "MFD samples with a column twin does not write": (
+        _edit_table("mfd_samples.parquet", lambda f: f.assign(bogus=1.0)),
+        None,
+        "mfd_samples.parquet: holds a column 'bogus', which twin does not write",
+    ),
     "MFD fit of more samples than the tape's": (
         _edit_json("mfd.json", lambda m: m.update(n_samples=m["n_samples"] + 5)),
         None,

@@ -62,12 +62,18 @@ def check_columns(path: Path, frame: pd.DataFrame, columns: Mapping[str, str]) -
         check_column(path, frame, name, kind)
 
 
-def check_known_columns(path: Path, frame: pd.DataFrame, known: Iterable[str]) -> None:
-    """``frame`` holds no column but ``known`` (a table whose every column twin writes)."""
+def check_known_columns(
+    path: Path, frame: pd.DataFrame, known: Iterable[str], required: Iterable[str] = ()
+) -> None:
+    """``frame`` holds no column but ``known`` (a table whose every column twin writes), and
+    each of ``required`` (those a folder of the current format always holds)."""
     known = set(known)
     other = [c for c in frame.columns if c not in known]
     if other:
         raise UserError(f"{path}: holds a column {other[0]!r}, which twin does not write; {RERUN}")
+    missing = [c for c in required if c not in frame.columns]
+    if missing:
+        raise UserError(f"{path}: lacks the column {missing[0]!r}, which twin writes; {RERUN}")
 
 
 def check_column(path: Path, frame: pd.DataFrame, name: str, kind: str) -> None:
@@ -308,6 +314,9 @@ INCIDENT_FIELDS: dict[str, Any] = {
 }
 #: ``mfd_samples.parquet``: the per-cell samples of the MFD fit.
 MFD_SAMPLE_COLUMNS = {"step": INT, "count": NUMBER, "speed": NUMBER, "density": NUMBER}
+#: Columns of ``detectors.parquet``: each fixed detector's reading at each sample time.
+DETECTOR_COLUMNS = ["seed", "step", "detector", "kind", "virtual", "lane", "i", "j", "vehicles",
+                    "occupancy_pct", "speed", "importance"]  # fmt: skip
 
 
 def check_incidents(path: Path, incidents: Any) -> None:

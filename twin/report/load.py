@@ -18,9 +18,11 @@ from twin.clock import clock_label, parse_clock
 from twin.errors import UserError
 from twin.grid import Grid
 from twin.metrics import BOUND, is_ceiling_row, swarm_rows
+from twin.mfd import EMPTY_SAMPLE_COLUMNS
 from twin.readback import (
     BELIEF_MODEL_COLUMNS,
     DEGRADATION_COLUMNS,
+    DETECTOR_COLUMNS,
     EVENT_COLUMNS,
     INT,
     MFD_FIELDS,
@@ -58,7 +60,7 @@ from twin.report.derived import (
     check_derived,
     folder_format_of,
 )
-from twin.runs import REQUIRED_FILES
+from twin.runs import FOLDER_FORMAT, REQUIRED_FILES
 from twin.scores import ScoreParams, initial_idleness, update_idleness
 from twin.swarms import check_policy_records
 
@@ -286,7 +288,6 @@ def _say_folder_format(run_dir: Path, run: dict[str, Any]) -> None:
     """A folder of an earlier format (:data:`twin.runs.FOLDER_FORMAT`) reads back, with a
     notice of what its read-back cannot replay; a later format than this twin's is refused."""
     from twin.boundary import notify
-    from twin.runs import FOLDER_FORMAT
 
     found = run.get("folder_format", 1)
     if not isinstance(found, int) or isinstance(found, bool) or found < 1:
@@ -394,16 +395,30 @@ def load_run(run_dir: str | Path) -> RunFiles:
     degradation = optional("degradation.csv", DEGRADATION_COLUMNS, ("swarm", "label"))
     if degradation is not None:
         check_known_columns(run_dir / "degradation.csv", degradation, DEGRADATION_COLUMNS)
+    # columns written since before the current format: required of a folder of that format
+    current = folder_format_of(run) >= FOLDER_FORMAT
     if timing is not None:
-        check_known_columns(run_dir / "timing.csv", timing, [*TIMING_COLUMNS, "process", "share"])
+        extra = ("process", "share")
+        check_known_columns(
+            run_dir / "timing.csv", timing, [*TIMING_COLUMNS, *extra], extra if current else ()
+        )
         for name, kind in (("process", TEXT), ("share", NUMBER)):
             if name in timing.columns:
                 check_column(run_dir / "timing.csv", timing, name, kind)
         check_bounds(run_dir / "timing.csv", timing)
         check_timing(run_dir / "timing.csv", timing, series)
     samples = optional("mfd_samples.parquet", MFD_SAMPLE_COLUMNS)
+    if samples is not None:
+        written = EMPTY_SAMPLE_COLUMNS.keys()
+        check_known_columns(
+            run_dir / "mfd_samples.parquet", samples, written, written if current else ()
+        )
     if samples is not None and "speed_limit" in samples.columns:
         check_column(run_dir / "mfd_samples.parquet", samples, "speed_limit", NUMBER)
+    detectors = optional("detectors.parquet", {})
+    if detectors is not None:
+        path = run_dir / "detectors.parquet"
+        check_known_columns(path, detectors, DETECTOR_COLUMNS, DETECTOR_COLUMNS if current else ())
     network, mfd = read_json(run_dir / "network.json"), read_json(run_dir / "mfd.json")
     incidents = read_json(run_dir / "incidents.json")
     if network is not None:

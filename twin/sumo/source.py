@@ -29,6 +29,7 @@ from twin.errors import UserError
 from twin.files import file_sha256
 from twin.grid import Grid
 from twin.mfd import MFD, MFDImportance, density_from_occupancy
+from twin.readback import DETECTOR_COLUMNS
 from twin.sumo.cells import CellGeometry
 from twin.sumo.detectors import DetectorPlan
 from twin.sumo.incidents import configured_schedule
@@ -544,11 +545,6 @@ class SumoTraffic(TrafficSource):
             (run_dir / "tapes").mkdir(exist_ok=True)
             for seed, source in by_seed:
                 atomic_write(run_dir / "tapes" / f"seed-{seed}.parquet", source.tape().write)
-
-
-#: Columns of ``detectors.parquet``.
-DETECTOR_COLUMNS = ["seed", "step", "detector", "kind", "virtual", "lane", "i", "j", "vehicles",
-                    "occupancy_pct", "speed", "importance"]  # fmt: skip
 
 
 def _remove(folder: Path | None) -> None:
