@@ -125,12 +125,19 @@ def hand_history(experiment: Experiment, history) -> None:
     """Give the run's history (``--history``) to every swarm that plans on one, over what its
     ``[swarm_options]`` say, and to every learned swarm (read when its checkpoint's state is
     the nowcast)."""
+    from twin.notices import notify
     from twin.swarms import SWARMS, base_name, needs_history
 
     options = dict(experiment.swarm_options)
     for name in experiment.swarms:
         kind = SWARMS.get(base_name(name))
         if needs_history(name) or (kind is not None and kind.learned):
+            own = options.get(name, {}).get("history")
+            if own is not None and own is not history:
+                notify(
+                    f"twin: notice: --history {getattr(history, 'path', None) or 'given'} replaces "
+                    f"[swarm_options.{name}].history = {str(own)!r} for the swarm {name}"
+                )
             options[name] = {**options.get(name, {}), "history": history}
     experiment.swarm_options = options
 
