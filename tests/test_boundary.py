@@ -1108,6 +1108,10 @@ READ_BACK = {
         )
         for column in ("process", "share")
     },
+    "timing.csv removed with its manifest entry": (
+        lambda run: (run / "timing.csv").unlink(),
+        "timing.csv is missing, which every run writes",
+    ),
     "n_seeds dropped from monitoring": (
         _edit_table("monitoring.csv", lambda f: f.drop(columns="n_seeds")),
         "monitoring.csv: lacks the column 'n_seeds', which twin writes",

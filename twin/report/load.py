@@ -284,6 +284,26 @@ def read_fault_free(run_dir: Path, run: dict[str, Any], obstacles: np.ndarray):
     return frame
 
 
+#: Files every run folder of the current format holds although ``twin report`` can draw
+#: without them (written by every run since before that format), and those of a live SUMO
+#: ``twin run`` (:meth:`twin.sumo.source.SumoTraffic.write_extras`).
+ALWAYS_WRITTEN = ("timing.csv",)
+LIVE_RUN_WRITTEN = ("network.json", "mfd.json", "mfd_samples.parquet", "tape.parquet")
+
+
+def check_written_files(run_dir: Path, run: dict[str, Any]) -> None:
+    """A folder of the current format holds the files its run always writes: one removed (with
+    its manifest entry) would leave its figures or checks out of the report unsaid."""
+    if folder_format_of(run) < FOLDER_FORMAT:
+        return
+    traffic = run.get("traffic")
+    live = run.get("kind") == "run" and isinstance(traffic, dict) and traffic.get("kind") == "sumo"
+    for name in (*ALWAYS_WRITTEN, *(LIVE_RUN_WRITTEN if live else ())):
+        if not (run_dir / name).is_file():
+            whose = "a live SUMO run" if name in LIVE_RUN_WRITTEN else "every run"
+            raise UserError(f"{run_dir}: {name} is missing, which {whose} writes; {RERUN}")
+
+
 def _say_folder_format(run_dir: Path, run: dict[str, Any]) -> None:
     """A folder of an earlier format (:data:`twin.runs.FOLDER_FORMAT`) reads back, with a
     notice of what its read-back cannot replay; a later format than this twin's is refused."""
@@ -345,6 +365,7 @@ def load_run(run_dir: str | Path) -> RunFiles:
     run = check_run_json(run_path, read_json(run_path) or {})
     check_policy_records(run_path, run)
     _say_folder_format(run_dir, run)
+    check_written_files(run_dir, run)
     importance, obstacles = read_maps(run_dir / "importance.npz")
     if importance.shape[0] < 2:
         raise UserError(
