@@ -902,8 +902,11 @@ def _all(*damages):
 
 def _samples(run: Path) -> pd.DataFrame:
     """An mfd_samples.parquet (twin.mfd) of three cell samples."""
-    return pd.DataFrame({"step": [0, 1, 2], "count": [1.0, 4.0, 9.0], "speed": [12.0, 9.0, 4.0],
-                         "density": [5.0, 20.0, 60.0], "speed_limit": [13.9] * 3})  # fmt: skip
+    return pd.DataFrame({"step": [0, 1, 2], "i": [1, 1, 2], "j": [2, 3, 3],
+                         "count": [1.0, 4.0, 9.0], "lane_km": [0.2] * 3,
+                         "density": [5.0, 20.0, 60.0], "speed": [12.0, 9.0, 4.0],
+                         "speed_limit": [13.9] * 3,
+                         "speed_mfd_online": [12.0, 9.0, 4.0]})  # fmt: skip
 
 
 def _relabel_seeds(run: Path) -> None:
