@@ -310,11 +310,16 @@ class DisturbanceConfig(StrictModel):
     sigma: Annotated[float, Field(ge=1e-3, le=1e6)] = 1.0  # cells (its square must not overflow)
 
 
+#: The largest beta2 (periods of a small disturbance over the horizon): the phase 2 pi beta2 k/T
+#: of A_small stays a finite number.
+MAX_BETA2 = float(f"{sys.float_info.max / (2.0 * math.pi):.2e}")
+
+
 class SyntheticConfig(StrictModel):
     kind: Literal["synthetic"] = "synthetic"
     horizon: Horizon = 2000
     beta1: Annotated[float, Field(gt=0)] = 0.7
-    beta2: Annotated[float, Field(gt=0)] = 5.0
+    beta2: Annotated[float, Field(gt=0, le=MAX_BETA2)] = 5.0
     z_lo: float = 0.0
     z_hi: float | None = None
     disturbances: list[DisturbanceConfig] = []
