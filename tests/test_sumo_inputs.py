@@ -808,6 +808,53 @@ def test_a_users_config_end_holds_for_a_sumocfg_given_by_flag(city, tmp_path, ca
     assert json.loads((out / "run.json").read_text())["horizon"] == 3  # 00:08 .. 00:11, 60 s
 
 
+@pytest.mark.parametrize(
+    ("traffic", "code", "words"),
+    [
+        ('begin = "00:08"\nend = "00:11"\nhorizon = 3\n', 0, None),  # fits: runs
+        (
+            'begin = "00:08"\nend = "00:11"\nhorizon = 5\n',
+            2,
+            "[traffic].horizon = 5: 5 steps of 60 s from 00:08:00 end at 00:13:00, past "
+            "[traffic].end = '00:11'; give a horizon of at most 3, or leave out one of them",
+        ),
+        ('end = "00:03"\nhorizon = 10\n', 2, "past [traffic].end = '00:03'"),  # begin derived
+    ],
+    ids=["fits", "past the end", "past the end, begin from the window"],
+)
+def test_a_users_config_horizon_past_its_own_end_is_refused(
+    city, tmp_path, capsys, traffic, code, words
+):
+    """``[traffic] end`` and ``horizon`` both in the user's config: a horizon that runs past
+    the end contradicts it, refused in one line naming both (it ran past the end silently:
+    probe 21's f02)."""
+    got, err, out = _own_config_run(city, tmp_path, capsys, "warmup_min = 1.0\n" + traffic)
+    assert got == code, err
+    if code == 0:
+        assert json.loads((out / "run.json").read_text())["horizon"] == 3
+    else:
+        assert err.count("\n") == 1 and words in err, err
+        assert not out.exists()
+
+
+def test_a_horizon_flag_past_the_configs_end_is_said(city, tmp_path, capsys):
+    """--horizon over a config's ``end``: the flag wins, as over any key, and a notice says the
+    run goes past that end."""
+    config = tmp_path / "mine.toml"
+    config.write_text(
+        '[swarm]\nn_drones = 2\n[traffic]\nkind = "sumo"\ncell_m = 200.0\nwarmup_min = 1.0\n'
+        'begin = "00:08"\nend = "00:11"\n[evaluate]\nswarms = ["random"]\n'
+    )
+    out = tmp_path / "run"
+    code = twin_main(["run", "--config", str(config), "--sumocfg",
+                      str(city / "scenario" / "plain.sumocfg"), "--horizon", "8", "--no-ceiling",
+                      "--no-report", "--out", str(out)])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert "--horizon 8: 8 steps of 30 s from 00:08:00 end at 00:12:00, past " in err, err
+    assert json.loads((out / "run.json").read_text())["horizon"] == 8
+
+
 def test_a_warm_up_off_whole_seconds_gives_a_folder_that_reads_back(city, tmp_path, capsys):
     """``warmup_min = 0.01`` (0.6 s): SUMO starts on a whole second, so the tape's times agree
     with its clock labels and the run's read-back accepts its folder (probe 12's t01)."""

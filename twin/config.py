@@ -311,8 +311,9 @@ class DisturbanceConfig(StrictModel):
 
 
 #: The largest beta2 (periods of a small disturbance over the horizon): the phase 2 pi beta2 k/T
-#: of A_small stays a finite number.
-MAX_BETA2 = float(f"{sys.float_info.max / (2.0 * math.pi):.2e}")
+#: of A_small is then computed to about 1e-7 rad (its rounding, ulp(2 pi beta2)); past it
+#: the floats' sines are no longer the formula's (at 1e307 the phase overflows).
+MAX_BETA2 = 1e8
 
 
 class SyntheticConfig(StrictModel):

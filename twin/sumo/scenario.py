@@ -401,6 +401,28 @@ def _step_seconds(s: SumoSettings, config) -> float:
     return step_s
 
 
+def _check_horizon_within_end(config, s: SumoSettings, begin: float, step_s: float, end: float):
+    """A horizon past the config's own ``[traffic].end``: refused in one line when the config
+    sets both, said in a notice when ``--horizon`` replaces the end (a flag over a key)."""
+    stop = begin + s.horizon * step_s
+    if stop <= end + 1e-6:
+        return
+    fits = int((end - begin) / step_s + 1e-9)
+    span = f"{s.horizon} steps of {step_s:g} s from {clock_label(begin)} end at {clock_label(stop)}"
+    flag = config.flag_of("traffic.horizon")
+    if flag is not None:
+        notice(
+            f"{flag} {s.horizon}: {span}, past {config.path}: [traffic].end = {s.end!r}; twin "
+            "runs its own window"
+        )
+        return
+    fix = f"give a horizon of at most {fits}" if fits >= 1 else "give a later end"
+    raise UserError(
+        f"{config.path}: [traffic].horizon = {s.horizon}: {span}, past [traffic].end = "
+        f"{s.end!r}; {fix}, or leave out one of them"
+    )
+
+
 def _time_window(
     s: SumoSettings,
     files: _ScenarioFiles,
@@ -692,6 +714,9 @@ def sumo_source(
     t0, warmup, window = _time_window(
         s, files, step_s, t0, warmup, begin_given, horizon_given, begin_where
     )
+    end_given = s.end is not None and (not swapped or own)
+    if end_given and horizon_given:  # both set: the config's end bounds its horizon
+        _check_horizon_within_end(config, s, t0, step_s, files.window[1])
     window_given = begin_given or horizon_given or s.end is not None
     if begin_given and files.at_begin:  # SUMO begins at twin's warm-up start: so do they
         files.span = departure_span(
