@@ -349,6 +349,10 @@ class MFDSettings(StrictModel):
     detection_p: _setting_range("detection_p") = 1.0
 
 
+#: The longest incident (minutes, about 1900 years): one past a run's end lasts to its end.
+MAX_INCIDENT_MIN = 1e9
+
+
 class IncidentSettings(StrictModel):
     """``[[traffic.incidents]]``: a lane or edge closed, or a vehicle stopped, for a while.
 
@@ -363,7 +367,8 @@ class IncidentSettings(StrictModel):
     cell: Cell | None = None
     begin: str | None = None
     step: Annotated[int, Field(ge=0)] | None = None
-    duration_min: Annotated[float, Field(gt=0)]
+    # at most MAX_INCIDENT_MIN: its end stays a time on SUMO's clock (1e308 min overflowed)
+    duration_min: Annotated[float, Field(gt=0, le=MAX_INCIDENT_MIN)]
 
     @field_validator("begin")
     @classmethod
