@@ -162,6 +162,9 @@ def _run_cli(argv, capsys):
         (_grid(100000, 100000), "scenario_overrides 'grid.nx': a 100000 x 100000 grid"),
         (_grid(3000, 3000), "lower grid.nx, grid.ny"),
         (_grid(10, 10, n_drones=1000), "'swarm.n_drones' 1000 exceeds the 100 free cells"),
+        # each thread's stack counted against memory: it failed as "out of memory; use a
+        # smaller grid" (probe 21's f04)
+        (f"threads = {100 * (os.cpu_count() or 1)}", "CPUs; give at most"),
     ],
 )
 def test_pretraining_past_memory_or_map_is_refused(tmp_path, capsys, text, words):

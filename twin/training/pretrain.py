@@ -24,6 +24,7 @@ import csv
 import hashlib
 import itertools
 import json
+import os
 import time
 from pathlib import Path
 from typing import Annotated, Any, ClassVar, Literal
@@ -631,10 +632,18 @@ def check_pretrain_memory(
     cfg: PretrainConfig, where: str = "pretraining config", limit_gb: float | None = None
 ) -> None:
     """Refuse (one line naming the key) a pretraining past the memory limit (``limit_gb``,
-    else ``$TWIN_MAX_MEMORY_GB``, else 8 GB) before anything is allocated."""
+    else ``$TWIN_MAX_MEMORY_GB``, else 8 GB), or on more ``threads`` than this machine has
+    CPUs (each thread's stack counts against memory, and more only slow training), before
+    anything is allocated."""
     from twin.experiment import MEMORY_ENV, memory_limit_gb
     from twin.resources import check_grid_size
 
+    cpus = os.cpu_count() or 1
+    if cfg.threads > cpus:
+        raise UserError(
+            f"{where}: threads = {cfg.threads}, but this machine has {cpus} CPUs; give at most "
+            f"{cpus} (more threads than CPUs only slow training)"
+        )
     check_grid_size(cfg.nx, cfg.ny, f"{where}: grid.nx, grid.ny", "use a smaller training map")
     limit = memory_limit_gb(limit_gb)
     parts = estimate_pretrain_memory(cfg)
