@@ -617,6 +617,32 @@ def test_an_output_sent_to_a_stream_goes_to_a_file_in_the_run_folder(
     assert "fcd-output.xml" in run["traffic"]["sumo_outputs"]
 
 
+def test_an_additional_files_outputs_sent_to_streams_go_to_files_in_the_run_folder(
+    scenario, tmp_path, capfd
+):
+    """``<edgeData file="stdout"/>`` (``stderr``, ``-``) in an additional file: SUMO would write
+    its XML into twin's tables or among its messages; each goes to RUN/sumo/<element>-<id>.xml
+    (they flooded stdout and sumo-messages.log: probe 21's f05)."""
+    cfg = _detector_case(scenario, tmp_path / "case")
+    streams = ('<edgeData id="ed1" file="stdout" period="120"/><edgeData id="ed2" file="stderr" '
+               'period="120"/><laneData id="l/d" file="-" period="120"/>')  # fmt: skip
+    add = cfg.parent / "det.add.xml"
+    add.write_text(add.read_text().replace("</additional>", streams + "</additional>"))
+    before = tree_hash(tmp_path / "case")
+    out = tmp_path / "run"
+    code = _run(scenario, out, "--sumocfg", str(cfg))
+    captured = capfd.readouterr()
+    assert code == 0, captured.err
+    assert "<edge " not in captured.out + captured.err and "<lane " not in captured.out
+    for name, row in [("edgeData-ed1.xml", "<edge "), ("edgeData-ed2.xml", "<edge "),
+                      ("laneData-l_d.xml", "<lane ")]:  # fmt: skip
+        assert row in (out / "sumo" / name).read_text(), name
+        assert name in json.loads((out / "run.json").read_text())["traffic"]["sumo_outputs"]
+    log = out / "sumo" / "sumo-messages.log"
+    assert not log.exists() or "<edge " not in log.read_text()
+    assert tree_hash(tmp_path / "case") == before
+
+
 @pytest.mark.parametrize("option", ["save-config", "C", "save-configuration"])
 def test_save_configuration_by_any_name_is_refused_before_sumo_starts(
     scenario, tmp_path, capsys, option

@@ -20,8 +20,9 @@ A file that declares entities in its own DTD is loaded as such a copy too, its e
 expanded: SUMO's program reads them, libsumo does not.
 
 An output the sumocfg sends to ``stdout`` or ``stderr`` (``-``) goes to ``RUN/sumo/<option>.xml``
-instead (listed in run.json's ``traffic.sumo_outputs``): twin's tables and its one-line
-errors are on those streams.
+instead, one of an additional file's elements to ``RUN/sumo/<element>-<id>.xml``
+(``edgeData-ed1.xml``; a parameter's to ``<key>.xml``), all listed in run.json's
+``traffic.sumo_outputs``: twin's tables and its one-line errors are on those streams.
 
 SSM devices equipped without a file (``device.ssm.probability``, a vehicle type's
 ``has.ssm.device``) would write one ``ssm_<vehicle>.xml`` per vehicle into SUMO's working
@@ -178,7 +179,10 @@ class OutputPlan:
             if tag == "param" and _names_ssm(elem.get("key")):
                 self.ssm_devices = True
             value = elem.get(attr) if attr else None
-            if value is not None and _is_file(value):
+            if value is not None and value.strip() in _STREAMS:  # twin's tables are there
+                elem.set(attr, str(self.target(base / _stream_file(elem, tag))))
+                changed = True
+            elif value is not None and _is_file(value):
                 elem.set(attr, str(self.target(base / value)))
                 changed = True
         for elem in root.iter():
@@ -237,6 +241,13 @@ class OutputPlan:
         if not ssm or "--device.ssm.file" in options:
             return options
         return (*options, "--device.ssm.file", str(self.target(self.out_dir / "ssm.xml")))
+
+
+def _stream_file(elem: ET.Element, tag: str) -> str:
+    """The file in the output folder of an element that sends its output to ``stdout`` or
+    ``stderr``: ``<tag>-<id>.xml`` (``edgeData-ed1.xml``), a parameter's ``<key>.xml``."""
+    name = elem.get("key") if tag == "param" else f"{tag}-{elem.get('id', '')}".rstrip("-")
+    return re.sub(r"[^\w.-]", "_", name or tag) + ".xml"
 
 
 def _program_output(path: Path) -> bool:
