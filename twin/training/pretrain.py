@@ -1272,6 +1272,12 @@ def _check_settings(path: Path, cfg: PretrainConfig) -> dict[str, Any]:
             f"{path} was written by a run with other settings ({', '.join(changed)}); "
             f"delete {path.parent} or set another `out` to start afresh"
         )
+    epoch = blob.get("epoch")
+    if isinstance(epoch, int) and epoch > cfg.epochs:  # its model would be labelled cfg.epochs
+        raise UserError(
+            f"{path}: its run trained {epoch} epochs, past epochs = {cfg.epochs}; give epochs of "
+            f"at least {epoch} to resume it, or set another `out` to train {cfg.epochs} afresh"
+        )
     return blob
 
 
