@@ -358,6 +358,20 @@ def test_gzip_additional_with_outputs_is_rewritten(scenario, tmp_path):
     assert untouched[1] == str(d / "types.xml") and not (tmp_path / "o2").exists()
 
 
+def test_an_output_named_like_sumos_messages_is_named_apart(tmp_path):
+    """A scenario output named ``sumo-messages.log`` (a sumocfg's ``<log>``, a detector's
+    file) goes to ``sumo-messages-2.log``: twin's file of SUMO's messages, moved in when SUMO
+    ends, would replace it (probe 21's c37)."""
+    from twin.sumo.outputs import MESSAGES_NAME, redirect_outputs
+
+    (tmp_path / "s").mkdir()
+    cfg = tmp_path / "s" / "a.sumocfg"
+    cfg.write_text(f'<configuration><report><log value="{MESSAGES_NAME}"/></report>'
+                   "</configuration>")  # fmt: skip
+    options, _ = redirect_outputs(cfg, (), tmp_path / "o")
+    assert options == ("--log", str(tmp_path / "o" / "sumo-messages-2.log"))
+
+
 def _detector_case(scenario: Path, d: Path, output: str = "") -> Path:
     """A sumocfg in ``d`` with an induction loop writing ``det.xml`` and ``output`` options."""
     with open(scenario / "scenario" / "detectors.add.xml", "rb") as fh:

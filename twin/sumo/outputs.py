@@ -62,6 +62,10 @@ from twin.sumo.readers import (
     words_held,
 )
 
+#: SUMO's own messages while it runs (its warnings are off; errors such as a vehicle that
+#: cannot depart), kept in this file of SUMO's output folder instead of twin's stderr
+#: (:mod:`twin.sumo.worker`); an output of the scenario's by that name is named apart.
+MESSAGES_NAME = "sumo-messages.log"
 #: Options that add to every output's name (kept to their name part, :func:`name_part`).
 NAMING_OPTIONS = ("output-prefix", "output-suffix")
 #: Options whose value is a list of files.
@@ -119,7 +123,7 @@ class OutputPlan:
         self.out_dir = Path(os.path.abspath(out_dir))
         self.targets: dict[Path, Path] = {}
         self.copies: dict[Path, Path] = {}
-        self._names: set[str] = set()
+        self._names: set[str] = {MESSAGES_NAME}
         #: SSM devices may be equipped (a ``device.ssm.*`` option or parameter): without a
         #: file, SUMO writes one ``ssm_<vehicle>.xml`` per vehicle into its working folder
         self.ssm_devices = False
