@@ -1149,6 +1149,12 @@ READ_BACK = {
     "run.json not JSON": (lambda run: (run / "run.json").write_text("{"), "run.json"),
     "run.json option of a wrong type": (_json("run.json", ("params", "eta"), "fast"), "params.eta"),
     "run.json traffic a list": (_json("run.json", ("traffic",), [1, 2]), "traffic"),
+    # the report is written after the run: a listed one made the next report refuse the
+    # folder as changed (probe 21's c25)
+    "manifest listing the report": (
+        _json("manifest.json", ("files", "report/report.html"), 10),
+        "lists report/report.html, which a run's manifest never lists",
+    ),
     "manifest size a string": (
         _json("manifest.json", ("files", "summary.csv"), "big"),
         "summary.csv",

@@ -376,6 +376,11 @@ def check_run_folder(run_dir: str | Path) -> dict[str, Any]:
         raise UserError(f"{manifest_path}: not a run manifest (unreadable JSON); {rerun}")
     check_manifest(manifest_path, manifest)
     for name, size in manifest["files"].items():
+        if Path(name).parts and Path(name).parts[0] in UNLISTED:  # written after the run
+            raise UserError(
+                f"{manifest_path}: lists {name}, which a run's manifest never lists (it is "
+                f"written after the run, or again later); {rerun}"
+            )
         p = run_dir / name
         if not p.exists():
             raise UserError(f"{run_dir}: {name} listed in {MANIFEST} is missing; {rerun}")
