@@ -372,6 +372,17 @@ def test_an_output_named_like_sumos_messages_is_named_apart(tmp_path):
     assert options == ("--log", str(tmp_path / "o" / "sumo-messages-2.log"))
 
 
+def test_an_output_named_like_a_later_seeds_folder_is_named_apart(tmp_path):
+    """An output named ``seed-1`` would take the folder of seed 1's outputs (``sumo/seed-1/``):
+    seed 1 failed on it (FileExistsError) and was left out (probe 21's f08); it is named
+    ``seed-1-2``, while ``seed-1.xml`` or ``seeds`` keep their names."""
+    from twin.sumo.outputs import OutputPlan
+
+    plan = OutputPlan(tmp_path / "o")
+    names = [plan.target(tmp_path / n).name for n in ("seed-1", "seed-1.xml", "seeds", "seed-x")]
+    assert names == ["seed-1-2", "seed-1.xml", "seeds", "seed-x"]
+
+
 def _detector_case(scenario: Path, d: Path, output: str = "") -> Path:
     """A sumocfg in ``d`` with an induction loop writing ``det.xml`` and ``output`` options."""
     with open(scenario / "scenario" / "detectors.add.xml", "rb") as fh:

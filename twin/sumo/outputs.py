@@ -66,6 +66,10 @@ from twin.sumo.readers import (
 #: cannot depart), kept in this file of SUMO's output folder instead of twin's stderr
 #: (:mod:`twin.sumo.worker`); an output of the scenario's by that name is named apart.
 MESSAGES_NAME = "sumo-messages.log"
+#: The later seeds' output folders beside the first seed's outputs (``sumo/seed-<s>/``,
+#: :func:`twin.experiment.build_source`): an output of the scenario's by such a name is named
+#: apart.
+SEED_FOLDER = re.compile(r"seed-\d+")
 #: Options that add to every output's name (kept to their name part, :func:`name_part`).
 NAMING_OPTIONS = ("output-prefix", "output-suffix")
 #: Options whose value is a list of files.
@@ -133,7 +137,7 @@ class OutputPlan:
         stem, dot, suffix = name.partition(".")
         for n in itertools.count(1):
             candidate = name if n == 1 else f"{stem}-{n}{dot}{suffix}"
-            if candidate not in self._names:
+            if candidate not in self._names and not SEED_FOLDER.fullmatch(candidate):
                 self._names.add(candidate)
                 self.out_dir.mkdir(parents=True, exist_ok=True)
                 return self.out_dir / candidate
