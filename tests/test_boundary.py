@@ -1111,10 +1111,13 @@ READ_BACK = {
         )
         for column in ("process", "share")
     },
-    "timing.csv removed with its manifest entry": (
-        lambda run: (run / "timing.csv").unlink(),
-        "timing.csv is missing, which every run writes",
-    ),
+    **{
+        f"{name} removed with its manifest entry": (
+            lambda run, name=name: (run / name).unlink(),
+            f"{name} is missing, which every run writes",
+        )
+        for name in ("timing.csv", "per_seed.csv")
+    },
     "n_seeds dropped from monitoring": (
         _edit_table("monitoring.csv", lambda f: f.drop(columns="n_seeds")),
         "monitoring.csv: lacks the column 'n_seeds', which twin writes",

@@ -22,7 +22,6 @@ from twin.mfd import EMPTY_SAMPLE_COLUMNS
 from twin.readback import (
     BELIEF_MODEL_COLUMNS,
     DEGRADATION_COLUMNS,
-    DETECTOR_COLUMNS,
     EVENT_COLUMNS,
     INT,
     MFD_FIELDS,
@@ -49,6 +48,7 @@ from twin.readback import (
     check_trajectories,
     numeric_columns,
     off_grid,
+    parquet_columns,
     read_json,
     read_maps,
     read_table,
@@ -60,8 +60,15 @@ from twin.report.derived import (
     check_derived,
     folder_format_of,
 )
-from twin.runs import FOLDER_FORMAT, REQUIRED_FILES
+from twin.runs import (
+    COMPLETE_SINCE_FORMAT,
+    FOLDER_FORMAT,
+    LIVE_RUN_WRITTEN,
+    REQUIRED_FILES,
+    RUN_WRITTEN,
+)
 from twin.scores import ScoreParams, initial_idleness, update_idleness
+from twin.sumo.detectors import DETECTOR_COLUMNS
 from twin.swarms import check_policy_records
 
 
@@ -284,23 +291,20 @@ def read_fault_free(run_dir: Path, run: dict[str, Any], obstacles: np.ndarray):
     return frame
 
 
-#: Files every run folder of the current format holds although ``twin report`` can draw
-#: without them (written by every run since before that format), and those of a live SUMO
-#: ``twin run`` (:meth:`twin.sumo.source.SumoTraffic.write_extras`).
-ALWAYS_WRITTEN = ("timing.csv",)
-LIVE_RUN_WRITTEN = ("network.json", "mfd.json", "mfd_samples.parquet", "tape.parquet")
-
-
 def check_written_files(run_dir: Path, run: dict[str, Any]) -> None:
-    """A folder of the current format holds the files its run always writes: one removed (with
-    its manifest entry) would leave its figures or checks out of the report unsaid."""
-    if folder_format_of(run) < FOLDER_FORMAT:
+    """A folder of :data:`twin.runs.COMPLETE_SINCE_FORMAT` or later holds the files its run
+    always writes (:data:`twin.runs.RUN_WRITTEN`, :data:`twin.runs.LIVE_RUN_WRITTEN` and a
+    live run's tape of each seed): one removed with its manifest entry would leave its figures
+    or its checks out of the report unsaid."""
+    if folder_format_of(run) < COMPLETE_SINCE_FORMAT:
         return
     traffic = run.get("traffic")
     live = run.get("kind") == "run" and isinstance(traffic, dict) and traffic.get("kind") == "sumo"
-    for name in (*ALWAYS_WRITTEN, *(LIVE_RUN_WRITTEN if live else ())):
+    seeds = run.get("seeds") if isinstance(run.get("seeds"), list) else []
+    tapes = [f"tapes/seed-{s}.parquet" for s in seeds] if live and len(seeds) > 1 else []
+    for name in (*RUN_WRITTEN, *(LIVE_RUN_WRITTEN if live else ()), *tapes):
         if not (run_dir / name).is_file():
-            whose = "a live SUMO run" if name in LIVE_RUN_WRITTEN else "every run"
+            whose = "every run" if name in RUN_WRITTEN else "a live SUMO run"
             raise UserError(f"{run_dir}: {name} is missing, which {whose} writes; {RERUN}")
 
 
@@ -416,8 +420,8 @@ def load_run(run_dir: str | Path) -> RunFiles:
     degradation = optional("degradation.csv", DEGRADATION_COLUMNS, ("swarm", "label"))
     if degradation is not None:
         check_known_columns(run_dir / "degradation.csv", degradation, DEGRADATION_COLUMNS)
-    # columns written since before the current format: required of a folder of that format
-    current = folder_format_of(run) >= FOLDER_FORMAT
+    # columns written since before COMPLETE_SINCE_FORMAT: required of a folder of it or later
+    current = folder_format_of(run) >= COMPLETE_SINCE_FORMAT
     if timing is not None:
         extra = ("process", "share")
         check_known_columns(
@@ -436,10 +440,10 @@ def load_run(run_dir: str | Path) -> RunFiles:
         )
     if samples is not None and "speed_limit" in samples.columns:
         check_column(run_dir / "mfd_samples.parquet", samples, "speed_limit", NUMBER)
-    detectors = optional("detectors.parquet", {})
-    if detectors is not None:
-        path = run_dir / "detectors.parquet"
-        check_known_columns(path, detectors, DETECTOR_COLUMNS, DETECTOR_COLUMNS if current else ())
+    path = run_dir / "detectors.parquet"
+    if path.exists():  # its columns (its readings: check_detector_readings)
+        written = parquet_columns(path)
+        check_known_columns(path, written, DETECTOR_COLUMNS, DETECTOR_COLUMNS if current else ())
     network, mfd = read_json(run_dir / "network.json"), read_json(run_dir / "mfd.json")
     incidents = read_json(run_dir / "incidents.json")
     if network is not None:

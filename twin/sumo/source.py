@@ -29,9 +29,8 @@ from twin.errors import UserError
 from twin.files import file_sha256
 from twin.grid import Grid
 from twin.mfd import MFD, MFDImportance, density_from_occupancy
-from twin.readback import DETECTOR_COLUMNS
 from twin.sumo.cells import CellGeometry
-from twin.sumo.detectors import DetectorPlan
+from twin.sumo.detectors import DETECTOR_COLUMNS, DetectorPlan
 from twin.sumo.incidents import configured_schedule
 from twin.sumo.readers import file_list, included_files, naming_the_sumocfg, read_sumocfg
 from twin.sumo.session import SumoRunError, SumoSession, gridlock_defaults
