@@ -132,7 +132,10 @@ def hand_history(experiment: Experiment, history) -> None:
     for name in experiment.swarms:
         kind = SWARMS.get(base_name(name))
         if needs_history(name) or (kind is not None and kind.learned):
-            own = options.get(name, {}).get("history")
+            own = {  # the swarm's own: the config's [swarm_options], the experiment's on top
+                **experiment.config.swarm_options.get(name, {}),
+                **options.get(name, {}),
+            }.get("history")
             if own is not None and own is not history:
                 notify(
                     f"twin: notice: --history {getattr(history, 'path', None) or 'given'} replaces "
