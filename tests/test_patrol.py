@@ -137,23 +137,6 @@ def test_a_tiny_beta1_dissipates_at_once_without_a_warning():
     assert a.tolist() == [1.0, 0.0, 0.0, 0.0, 0.0]
 
 
-def test_the_largest_beta2_keeps_every_amplitude_finite():
-    """``beta2`` up to :data:`twin.config.MAX_BETA2`: the phase ``2 pi beta2 k / T`` is the
-    formula's to 1e-6 rad at every step, so the amplitudes are A_small's (probe 21's f01:
-    1e307 overflowed the phase, NaN maps); at a whole number of periods per step it is 0."""
-    import warnings
-
-    from twin.config import MAX_BETA2
-
-    small = Disturbance(kind="small", i=1, j=1, amplitude=1.0, sigma=1.0)
-    with warnings.catch_warnings():
-        warnings.simplefilter("error")
-        beta2 = 9e7  # 3e6 whole periods a step, just below the largest
-        assert beta2 <= MAX_BETA2
-        a = small.amplitudes(np.arange(31), 30, 0.7, beta2)
-    assert np.isfinite(a).all() and np.abs(a).max() < 1e-6
-
-
 def test_a_map_that_fades_at_once_says_so_in_synthetic_words(tmp_path, capsys):
     """A synthetic map whose one disturbance fades within a step: the notice that nothing is
     left to see names the synthetic cause, and counts from step 1 (probe 16's P2-f07)."""

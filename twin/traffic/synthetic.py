@@ -32,8 +32,7 @@ class Disturbance:
         if self.kind == "big":  # a tiny beta1 overflows -k / (beta1 T) to -inf: A is then 0
             with np.errstate(over="ignore", divide="ignore"):
                 return self.amplitude * np.exp(-steps / (beta1 * horizon))
-        phase = 2.0 * np.pi * beta2 * (steps / horizon)  # k/T first: finite for beta2 <= MAX_BETA2
-        return self.amplitude * np.maximum(0.0, np.sin(phase))
+        return self.amplitude * np.maximum(0.0, np.sin(2.0 * np.pi * beta2 * steps / horizon))
 
 
 class SyntheticTraffic(TrafficSource):
