@@ -837,22 +837,33 @@ def test_a_users_config_horizon_past_its_own_end_is_refused(
         assert not out.exists()
 
 
-def test_a_horizon_flag_past_the_configs_end_is_said(city, tmp_path, capsys):
-    """--horizon over a config's ``end``: the flag wins, as over any key, and a notice says the
-    run goes past that end."""
+@pytest.mark.parametrize(
+    ("traffic", "flags", "words", "horizon"),
+    [
+        ("", ["--horizon", "8"], "--horizon: 8 steps of 30 s from 00:08:00 end at 00:12:00", 8),
+        # the config's horizon fits its end at 30 s steps; the flag makes them 60 s
+        ("horizon = 6\n", ["--drone-speed", "12"], "--drone-speed: 6 steps of 60 s from 00:08", 6),
+    ],
+    ids=["--horizon", "--drone-speed"],
+)
+def test_a_flag_taking_the_run_past_the_configs_end_is_said(
+    city, tmp_path, capsys, traffic, flags, words, horizon
+):
+    """A flag over a config's ``end`` (a horizon, or a step length that moves the last step
+    past it): the flag wins, as over any key, and a notice names it and the end."""
     config = tmp_path / "mine.toml"
     config.write_text(
         '[swarm]\nn_drones = 2\n[traffic]\nkind = "sumo"\ncell_m = 200.0\nwarmup_min = 1.0\n'
-        'begin = "00:08"\nend = "00:11"\n[evaluate]\nswarms = ["random"]\n'
+        f'begin = "00:08"\nend = "00:11"\n{traffic}[evaluate]\nswarms = ["random"]\n'
     )
     out = tmp_path / "run"
     code = twin_main(["run", "--config", str(config), "--sumocfg",
-                      str(city / "scenario" / "plain.sumocfg"), "--horizon", "8", "--no-ceiling",
+                      str(city / "scenario" / "plain.sumocfg"), *flags, "--no-ceiling",
                       "--no-report", "--out", str(out)])  # fmt: skip
     err = capsys.readouterr().err
     assert code == 0, err
-    assert "--horizon 8: 8 steps of 30 s from 00:08:00 end at 00:12:00, past " in err, err
-    assert json.loads((out / "run.json").read_text())["horizon"] == 8
+    assert words in err and "past " in err and "[traffic].end = '00:11'" in err, err
+    assert json.loads((out / "run.json").read_text())["horizon"] == horizon
 
 
 def test_a_warm_up_off_whole_seconds_gives_a_folder_that_reads_back(city, tmp_path, capsys):

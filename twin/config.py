@@ -23,7 +23,7 @@ import sys
 import tomllib
 import types
 import typing
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Annotated, Any, ClassVar, Literal, Self, TypeVar
 
@@ -157,6 +157,12 @@ class SourcedConfig(StrictModel):
         """The command-line flag that set the dotted ``key`` (:func:`with_overrides`), or None
         when the file (or a sweep key, or the default) did."""
         return self._flags.get(key)
+
+    def set_by(self, keys: Iterable[str]) -> list[str]:
+        """The flags or other files' keys (a sweep's) that set any of the dotted ``keys``
+        (sorted; empty when the file, or the defaults, set them all)."""
+        keys = set(keys)
+        return sorted({label for key, label in self._labels.items() if key in keys})
 
 
 def _naming_changes(exc: UserError, labels: Mapping[str, str] | None) -> UserError:

@@ -401,21 +401,27 @@ def _step_seconds(s: SumoSettings, config) -> float:
     return step_s
 
 
+#: The keys whose values place a run's last step: its begin, its steps and their length.
+WINDOW_KEYS = ("traffic.begin", "traffic.horizon", "traffic.end", "traffic.cell_m",
+               "traffic.drone_speed_kmh")  # fmt: skip
+
+
 def _check_horizon_within_end(config, s: SumoSettings, begin: float, step_s: float, end: float):
     """A horizon past the config's own ``[traffic].end``: refused in one line when the config
-    sets both, said in a notice when ``--horizon`` replaces the end (a flag over a key)."""
+    file sets them all; said in a notice when a flag or a sweep's key set one of
+    :data:`WINDOW_KEYS` (an override wins over a key of the file)."""
     stop = begin + s.horizon * step_s
     if stop <= end + 1e-6:
         return
-    fits = int((end - begin) / step_s + 1e-9)
     span = f"{s.horizon} steps of {step_s:g} s from {clock_label(begin)} end at {clock_label(stop)}"
-    flag = config.flag_of("traffic.horizon")
-    if flag is not None:
+    changed = config.set_by(WINDOW_KEYS)
+    if changed:
         notice(
-            f"{flag} {s.horizon}: {span}, past {config.path}: [traffic].end = {s.end!r}; twin "
-            "runs its own window"
+            f"{', '.join(changed)}: {span}, past {config.path}: [traffic].end = {s.end!r}; "
+            "twin runs its own window"
         )
         return
+    fits = int((end - begin) / step_s + 1e-9)
     fix = f"give a horizon of at most {fits}" if fits >= 1 else "give a later end"
     raise UserError(
         f"{config.path}: [traffic].horizon = {s.horizon}: {span}, past [traffic].end = "
