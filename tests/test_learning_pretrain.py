@@ -113,6 +113,25 @@ def test_rerunning_a_finished_run_with_fewer_epochs_is_refused(tmp_path, capsys)
     assert code == 0, err
 
 
+def test_threads_past_the_cpus_train_on_the_cpus_with_a_notice(tmp_path, capsys):
+    """``threads`` past the CPUs twin may use: training runs on those CPUs, with a notice (it
+    failed as "out of memory; use a smaller grid": probe 21's f04); the config keeps its
+    value, so its checkpoint resumes on a smaller machine."""
+    import torch
+
+    cpus = len(os.sched_getaffinity(0))
+    config = _config(tmp_path, epochs=10)
+    config.write_text(config.read_text() + f"threads = {100 * cpus}\n")
+    before = torch.get_num_threads()
+    try:
+        code, err = _run_cli(["pretrain", "--config", str(config), "--quiet"], capsys)
+        assert torch.get_num_threads() == cpus
+    finally:
+        torch.set_num_threads(before)  # this test process's own
+    assert code == 0, err
+    assert f"threads = {100 * cpus}, but this machine gives twin {cpus} CPUs" in err, err
+
+
 def _changed(config):
     text = config.read_text().replace("iters_per_epoch = 2", "iters_per_epoch = 3")
     config.write_text(text)
@@ -181,9 +200,6 @@ def _run_cli(argv, capsys):
         (_grid(100000, 100000), "scenario_overrides 'grid.nx': a 100000 x 100000 grid"),
         (_grid(3000, 3000), "lower grid.nx, grid.ny"),
         (_grid(10, 10, n_drones=1000), "'swarm.n_drones' 1000 exceeds the 100 free cells"),
-        # each thread's stack counted against memory: it failed as "out of memory; use a
-        # smaller grid" (probe 21's f04)
-        (f"threads = {100 * (os.cpu_count() or 1)}", "CPUs; give at most"),
     ],
 )
 def test_pretraining_past_memory_or_map_is_refused(tmp_path, capsys, text, words):

@@ -632,18 +632,10 @@ def check_pretrain_memory(
     cfg: PretrainConfig, where: str = "pretraining config", limit_gb: float | None = None
 ) -> None:
     """Refuse (one line naming the key) a pretraining past the memory limit (``limit_gb``,
-    else ``$TWIN_MAX_MEMORY_GB``, else 8 GB), or on more ``threads`` than this machine has
-    CPUs (each thread's stack counts against memory, and more only slow training), before
-    anything is allocated."""
+    else ``$TWIN_MAX_MEMORY_GB``, else 8 GB) before anything is allocated."""
     from twin.experiment import MEMORY_ENV, memory_limit_gb
     from twin.resources import check_grid_size
 
-    cpus = os.cpu_count() or 1
-    if cfg.threads > cpus:
-        raise UserError(
-            f"{where}: threads = {cfg.threads}, but this machine has {cpus} CPUs; give at most "
-            f"{cpus} (more threads than CPUs only slow training)"
-        )
     check_grid_size(cfg.nx, cfg.ny, f"{where}: grid.nx, grid.ny", "use a smaller training map")
     limit = memory_limit_gb(limit_gb)
     parts = estimate_pretrain_memory(cfg)
@@ -863,9 +855,28 @@ def pretrain(
         torch.set_flush_denormal(False)  # the process's default again
 
 
+def training_threads(cfg: PretrainConfig) -> int:
+    """torch's threads: ``threads``, at most the CPUs this process may use (more only slow
+    training, and each one's stack takes memory: 100000 ran out of it), said in a notice. The
+    config keeps its value, so a checkpoint of a larger machine resumes on a smaller one."""
+    from twin.notices import notify
+
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # not on Linux
+        cpus = os.cpu_count() or 1
+    if cfg.threads <= cpus:
+        return cfg.threads
+    notify(
+        f"twin: notice: threads = {cfg.threads}, but this machine gives twin {cpus} CPUs: "
+        f"training on {cpus} threads"
+    )
+    return cpus
+
+
 def _pretrain(cfg, progress, out, state_path, model_path, log_path) -> Path:
     """:func:`pretrain`'s work, with subnormals flushed: collect, train, checkpoint."""
-    torch.set_num_threads(cfg.threads)
+    torch.set_num_threads(training_threads(cfg))
     torch.manual_seed(cfg.seed)
 
     history = training_history(cfg)  # the nowcast's, built once per run (None: not read)
