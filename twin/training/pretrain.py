@@ -1285,9 +1285,11 @@ def _check_settings(path: Path, cfg: PretrainConfig) -> dict[str, Any]:
         )
     epoch = blob.get("epoch")
     if isinstance(epoch, int) and epoch > cfg.epochs:  # its model would be labelled cfg.epochs
+        given = cfg.flag_of("epochs") or "epochs ="
         raise UserError(
-            f"{path}: its run trained {epoch} epochs, past epochs = {cfg.epochs}; give epochs of "
-            f"at least {epoch} to resume it, or set another `out` to train {cfg.epochs} afresh"
+            f"{path}: its run trained {epoch} epochs, past {given} {cfg.epochs}; give at least "
+            f"{epoch} epochs to resume it, or delete {path.parent} (or set another `out`) to "
+            f"train {cfg.epochs} afresh"
         )
     return blob
 
