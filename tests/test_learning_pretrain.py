@@ -104,9 +104,7 @@ def test_rerunning_a_finished_run_with_fewer_epochs_is_refused(tmp_path, capsys)
     provenance = (tmp_path / "out" / "provenance.json").read_bytes()
     code, err = _run_cli(["pretrain", "--config", str(config), "--epochs", "10", "--quiet"], capsys)
     assert code == 2 and err.count("\n") == 0, err
-    assert (
-        "state.pt: its run trained 20 epochs, past --epochs 10; give at least 20 epochs" in err
-    )
+    assert "state.pt: its run trained 20 epochs, past --epochs 10; give at least 20 epochs" in err
     assert (tmp_path / "out" / "qnet.pt").read_bytes() == model
     assert (tmp_path / "out" / "provenance.json").read_bytes() == provenance
     code, err = _run_cli(["pretrain", "--config", str(config), "--quiet"], capsys)

@@ -650,7 +650,9 @@ def test_an_additional_files_outputs_sent_to_streams_go_to_files_in_the_run_fold
     (they flooded stdout and sumo-messages.log: probe 21's f05)."""
     cfg = _detector_case(scenario, tmp_path / "case")
     streams = ('<edgeData id="ed1" file="stdout" period="120"/><edgeData id="ed2" file="stderr" '
-               'period="120"/><laneData id="l/d" file="-" period="120"/>')  # fmt: skip
+               'period="120"/><laneData id="l/d" file="-" period="120"/>'
+               # a file of the name a stream's output takes: each keeps its own
+               '<laneData id="named" file="edgeData-ed1.xml" period="120"/>')  # fmt: skip
     add = cfg.parent / "det.add.xml"
     add.write_text(add.read_text().replace("</additional>", streams + "</additional>"))
     before = tree_hash(tmp_path / "case")
@@ -660,7 +662,7 @@ def test_an_additional_files_outputs_sent_to_streams_go_to_files_in_the_run_fold
     assert code == 0, captured.err
     assert "<edge " not in captured.out + captured.err and "<lane " not in captured.out
     for name, row in [("edgeData-ed1.xml", "<edge "), ("edgeData-ed2.xml", "<edge "),
-                      ("laneData-l_d.xml", "<lane ")]:  # fmt: skip
+                      ("laneData-l_d.xml", "<lane "), ("edgeData-ed1-2.xml", "<lane ")]:  # fmt: skip
         assert row in (out / "sumo" / name).read_text(), name
         assert name in json.loads((out / "run.json").read_text())["traffic"]["sumo_outputs"]
     log = out / "sumo" / "sumo-messages.log"

@@ -188,7 +188,7 @@ class OutputPlan:
                 self.ssm_devices = True
             value = elem.get(attr) if attr else None
             if value is not None and value.strip() in _STREAMS:  # twin's tables are there
-                elem.set(attr, str(self.target(base / _stream_file(elem, tag))))
+                elem.set(attr, str(self._fresh(_stream_file(elem, tag))))  # a file of its own
                 changed = True
             elif value is not None and _is_file(value):
                 elem.set(attr, str(self.target(base / value)))
