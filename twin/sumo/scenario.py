@@ -10,7 +10,8 @@ Keys of ``[traffic]`` (all optional except ``kind``; see configs/shenzhen.toml):
   vehicles, flows and persons are demand, as SUMO loads them;
 - ``begin`` ("07:00", time of ``T^0``), ``horizon`` (144), ``warmup_min`` (30), ``seed`` (0);
   ``end`` (a clock time): the end of the scenario's window. For a network given as files, the
-  window is its own (``<time>`` of the sumocfg, else the demand's departures) unless set;
+  window is its own (``<time>`` of the sumocfg, else the demand's departures) unless set; a
+  ``horizon`` the config gives must end by its ``end`` (a flag may take it past, with a notice);
 - ``mesoscopic`` (false), ``min_lane_km`` (0: a cell is an obstacle only without any lane),
   ``demand_scale`` (1.0, demand generated for networks without routes);
 - ``[traffic.mfd]``: ``fit`` ("online" | "fixed"), ``a``, ``k_c`` (the fixed or prior MFD),
