@@ -153,14 +153,27 @@ class SumoSession:
         named = (self.config_file, self.net_file, *self.route_files, *self.additionals())
         return [Path(p) for p in named if p is not None]
 
+    def read_files(self) -> list[Path]:
+        """:meth:`input_files` with, after each, the files it pulls in with ``<include
+        href>`` (a refused object may be defined there)."""
+        from twin.sumo.readers import included_files, may_hold
+
+        out = []
+        for path in self.input_files():
+            out.append(path)
+            if path.suffix != ".sumocfg" and may_hold(path, b"include"):
+                out += included_files(path)
+        return out
+
     def file_of(self, message: str) -> Path | str | None:
         """The input file a message of SUMO's names or concerns, None when none is told."""
-        return sumo_refusal(message, self.input_files(), fallback=False)[0]
+        return sumo_refusal(message, self.read_files(), fallback=False)[0]
 
     def refusal(self, message: str, when: str = "") -> UserError:
         """SUMO's refusal (``message``) as one line naming the file it concerns
-        (:func:`sumo_refusal`); ``when`` says when SUMO gave it, if not on start."""
-        where, reason = sumo_refusal(message, self.input_files())
+        (:func:`sumo_refusal`, an included file too); ``when`` says when SUMO gave it, if not
+        on start."""
+        where, reason = sumo_refusal(message, self.read_files())
         return UserError(f"{where}: SUMO refuses it{when}: {reason}")
 
     def start(self) -> SumoSession:
