@@ -193,6 +193,22 @@ def test_sumo_refusal_names_the_file(city, tmp_path, capsys, element, words):
     assert str(bad) in lines[-1] and words in lines[-1], lines[-1]
 
 
+def test_sumo_refusal_of_an_included_files_object_names_that_file(city, tmp_path, capsys):
+    """A detector on an unknown lane in a file that another additional file includes: SUMO's
+    refusal names the included file (it named only the sumocfg: probe 21's f09)."""
+    bad = tmp_path / "bad2.add.xml"
+    bad.write_text('<additional><inductionLoop id="l1" lane="NOPE_0" pos="5" period="60" '
+                   'file="l1.xml"/></additional>')  # fmt: skip
+    main = tmp_path / "main.add.xml"
+    main.write_text('<additional><include href="bad2.add.xml"/></additional>')
+    code, err = _run(city, "incl", "--sumocfg", str(city / "scenario" / "plain.sumocfg"),
+                     "--additional", str(main), capsys=capsys)  # fmt: skip
+    lines = err.strip().splitlines()
+    assert code == 2 and len([x for x in lines if x.startswith("twin: error:")]) == 1, err
+    assert lines[-1].startswith(f"twin: error: {bad}: SUMO refuses it"), lines[-1]
+    assert "NOPE_0" in lines[-1]
+
+
 def test_a_clash_of_a_vehicles_own_route_is_blamed_on_a_route_file(tmp_path):
     """SUMO names a vehicle's own route '!<vehicle>': a clash of two route files defining
     vehicle "0" names the later route file, not the network (probe 17's f06)."""
