@@ -372,6 +372,31 @@ def test_an_output_named_like_sumos_messages_is_named_apart(tmp_path):
     assert options == ("--log", str(tmp_path / "o" / "sumo-messages-2.log"))
 
 
+def test_a_streams_file_is_named_apart_from_the_scenarios_own_names(tmp_path):
+    """An output sent to stdout gets a file of its own, after the scenario's outputs keep their
+    names: ``<tripinfo-output value="stdout"/>`` beside ``<summary-output
+    value="tripinfo-output.xml"/>`` shared one file, interleaved (probe 21's P2-04); an
+    element's id too long for a file name is shortened with a digest (P2-01)."""
+    from twin.sumo.outputs import MAX_MADE_NAME, redirect_outputs
+
+    (tmp_path / "s").mkdir()
+    cfg = tmp_path / "s" / "a.sumocfg"
+    cfg.write_text('<configuration><output><tripinfo-output value="stdout"/>'
+                   '<summary-output value="tripinfo-output.xml"/></output></configuration>')  # fmt: skip
+    options, _ = redirect_outputs(cfg, (), tmp_path / "o")
+    given = dict(zip(options[::2], options[1::2], strict=True))
+    assert Path(given["--summary-output"]).name == "tripinfo-output.xml"
+    assert Path(given["--tripinfo-output"]).name == "tripinfo-output-2.xml"
+    add = tmp_path / "s" / "a.add.xml"
+    add.write_text(f'<additional><laneData id="{"x" * 300}" file="stdout" period="60"/>'
+                   '<edgeData id="e" file="edgeData-e.xml" period="60"/>'
+                   '<edgeData id="e" file="-" period="60"/></additional>')  # fmt: skip
+    options, _ = redirect_outputs(None, ("-a", str(add)), tmp_path / "o2")
+    files = {e.get("id")[:3]: Path(e.get("file")).name for e in ET.parse(options[1]).getroot()}
+    assert len(files["xxx"]) <= MAX_MADE_NAME + 4 and files["xxx"].startswith("laneData-xxx")
+    assert (files["e"], len(files)) == ("edgeData-e-2.xml", 2)  # the stream's, after the own
+
+
 def test_an_output_named_like_a_later_seeds_folder_is_named_apart(tmp_path):
     """An output named ``seed-1`` would take the folder of seed 1's outputs (``sumo/seed-1/``):
     seed 1 failed on it (FileExistsError) and was left out (probe 21's f08); it is named
@@ -661,8 +686,9 @@ def test_an_additional_files_outputs_sent_to_streams_go_to_files_in_the_run_fold
     captured = capfd.readouterr()
     assert code == 0, captured.err
     assert "<edge " not in captured.out + captured.err and "<lane " not in captured.out
-    for name, row in [("edgeData-ed1.xml", "<edge "), ("edgeData-ed2.xml", "<edge "),
-                      ("laneData-l_d.xml", "<lane "), ("edgeData-ed1-2.xml", "<lane ")]:  # fmt: skip
+    # the named file keeps its name, the stream's takes -2
+    for name, row in [("edgeData-ed1-2.xml", "<edge "), ("edgeData-ed2.xml", "<edge "),
+                      ("laneData-l_d.xml", "<lane "), ("edgeData-ed1.xml", "<lane ")]:  # fmt: skip
         assert row in (out / "sumo" / name).read_text(), name
         assert name in json.loads((out / "run.json").read_text())["traffic"]["sumo_outputs"]
     log = out / "sumo" / "sumo-messages.log"

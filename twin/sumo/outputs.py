@@ -43,6 +43,7 @@ placeholder kept), which names the files but keeps them in ``RUN/sumo/``.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import itertools
 import os
 import re
@@ -177,6 +178,7 @@ class OutputPlan:
             for param in program
             if local_name(param) == "param" and param.get("key") in PROGRAM_OUTPUTS
         }
+        streams: list[tuple[ET.Element, str, str]] = []  # outputs sent to stdout or stderr
         for elem in root.iter():
             tag = local_name(elem)
             attr = OUTPUT_ELEMENTS.get(tag)
@@ -188,11 +190,13 @@ class OutputPlan:
                 self.ssm_devices = True
             value = elem.get(attr) if attr else None
             if value is not None and value.strip() in _STREAMS:  # twin's tables are there
-                elem.set(attr, str(self._fresh(_stream_file(elem, tag))))  # a file of its own
-                changed = True
+                streams.append((elem, attr, tag))
             elif value is not None and _is_file(value):
                 elem.set(attr, str(self.target(base / value)))
                 changed = True
+        for elem, attr, tag in streams:  # after the file's own names: those keep theirs
+            elem.set(attr, str(self.own_file(_stream_file(elem, tag))))
+            changed = True
         for elem in root.iter():
             href = elem.get("href") if local_name(elem) == "include" else None
             if href and self.additional(base / href) != _absolute(base / href):
@@ -251,11 +255,20 @@ class OutputPlan:
         return (*options, "--device.ssm.file", str(self.target(self.out_dir / "ssm.xml")))
 
 
+#: The longest name twin makes up for an output (file systems take 255 bytes): a longer one
+#: keeps its start and a digest of the whole.
+MAX_MADE_NAME = 100
+
+
 def _stream_file(elem: ET.Element, tag: str) -> str:
     """The file in the output folder of an element that sends its output to ``stdout`` or
     ``stderr``: ``<tag>-<id>.xml`` (``edgeData-ed1.xml``), a parameter's ``<key>.xml``."""
     name = elem.get("key") if tag == "param" else f"{tag}-{elem.get('id', '')}".rstrip("-")
-    return re.sub(r"[^\w.-]", "_", name or tag) + ".xml"
+    name = re.sub(r"[^\w.-]", "_", name or tag)
+    if len(name.encode()) > MAX_MADE_NAME:  # a 300-character id (SUMO takes it)
+        digest = hashlib.sha256(name.encode()).hexdigest()[:12]
+        name = f"{name.encode()[:60].decode(errors='ignore')}-{digest}"
+    return name + ".xml"
 
 
 def _program_output(path: Path) -> bool:
@@ -332,15 +345,18 @@ def redirect_outputs(
         state_times = any(cfg.options.get(k) for k in ("save-state.times", "save-state.period"))
         if state_times and not given.get("save-state.files") and "save-state.prefix" not in given:
             given["save-state.prefix"] = "state"  # SUMO's default prefix, in its working folder
+        streams = [name for name, value in given.items() if value.strip() in _STREAMS]
         for name, value in given.items():
-            if value.strip() in _STREAMS:  # twin's tables and errors are there
-                extra += [f"--{name}", str(plan.target(base / f"{name}.xml"))]
-            elif name in _FILE_LISTS:
+            if name in streams:  # twin's tables and errors are there: after the others' names
+                continue
+            if name in _FILE_LISTS:
                 files = file_list(value, base)
                 if files:
                     extra += [f"--{name}", ",".join(str(plan.target(f)) for f in files)]
             elif _is_file(value):
                 extra += [f"--{name}", str(plan.target(base / value.strip()))]
+        for name in streams:  # a file of its own, named apart from the outputs' own names
+            extra += [f"--{name}", str(plan.own_file(f"{name}.xml"))]
     for i in range(len(out) - 1):
         if out[i] in ("--additional-files", "-a"):
             files = [Path(v) for v in out[i + 1].split(",") if v]
