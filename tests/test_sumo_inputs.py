@@ -835,8 +835,14 @@ def test_a_users_config_end_holds_for_a_sumocfg_given_by_flag(city, tmp_path, ca
             "[traffic].end = '00:11'; give a horizon of at most 3, or leave out one of them",
         ),
         ('end = "00:03"\nhorizon = 10\n', 2, "past [traffic].end = '00:03'"),  # begin derived
+        # no horizon, and no whole step before the end: it ran one step past it (P2-02)
+        (
+            'begin = "00:08"\nend = "00:08:30"\n',
+            2,
+            "[traffic].end = '00:08:30' is less than one step (60 s) after the begin 00:08:00",
+        ),
     ],
-    ids=["fits", "past the end", "past the end, begin from the window"],
+    ids=["fits", "past the end", "past the end, begin from the window", "no step before the end"],
 )
 def test_a_users_config_horizon_past_its_own_end_is_refused(
     city, tmp_path, capsys, traffic, code, words

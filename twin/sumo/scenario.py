@@ -407,10 +407,13 @@ WINDOW_KEYS = ("traffic.begin", "traffic.horizon", "traffic.end", "traffic.cell_
                "traffic.drone_speed_kmh")  # fmt: skip
 
 
-def _check_horizon_within_end(config, s: SumoSettings, begin: float, step_s: float, end: float):
-    """A horizon past the config's own ``[traffic].end``: refused in one line when the config
-    file sets them all; said in a notice when a flag or a sweep's key set one of
-    :data:`WINDOW_KEYS` (an override wins over a key of the file)."""
+def _check_horizon_within_end(
+    config, s: SumoSettings, begin: float, step_s: float, end: float, horizon_given: bool
+):
+    """A run past the config's own ``[traffic].end``: its horizon, or (none given) the one step
+    a window shorter than a step still runs. Refused in one line when the config file sets
+    them all; said in a notice when a flag or a sweep's key set one of :data:`WINDOW_KEYS`
+    (an override wins over a key of the file)."""
     stop = begin + s.horizon * step_s
     if stop <= end + 1e-6:
         return
@@ -422,6 +425,11 @@ def _check_horizon_within_end(config, s: SumoSettings, begin: float, step_s: flo
             "twin runs its own window"
         )
         return
+    if not horizon_given:  # the window holds no whole step
+        raise UserError(
+            f"{config.path}: [traffic].end = {s.end!r} is less than one step ({step_s:g} s) "
+            f"after the begin {clock_label(begin)}; give an end at least one step later"
+        )
     fits = int((end - begin) / step_s + 1e-9)
     fix = f"give a horizon of at most {fits}" if fits >= 1 else "give a later end"
     raise UserError(
@@ -722,8 +730,8 @@ def sumo_source(
         s, files, step_s, t0, warmup, begin_given, horizon_given, begin_where
     )
     end_given = s.end is not None and (not swapped or own)
-    if end_given and horizon_given:  # both set: the config's end bounds its horizon
-        _check_horizon_within_end(config, s, t0, step_s, files.window[1])
+    if end_given:  # the config's end bounds its horizon (one that fits, when not given)
+        _check_horizon_within_end(config, s, t0, step_s, files.window[1], horizon_given)
     window_given = begin_given or horizon_given or s.end is not None
     if begin_given and files.at_begin:  # SUMO begins at twin's warm-up start: so do they
         files.span = departure_span(
