@@ -209,6 +209,23 @@ def test_sumo_refusal_of_an_included_files_object_names_that_file(city, tmp_path
     assert "NOPE_0" in lines[-1]
 
 
+def test_a_refused_vehicle_is_blamed_on_the_file_defining_it(tmp_path):
+    """SUMO names the object by its kind ("Vehicle 'bad'"): the file that defines a vehicle of
+    that id is named, not an additional file whose bus stop has the same id (probe 21's
+    P2-03)."""
+    from twin.sumo.session import sumo_refusal
+
+    net, routes, add = tmp_path / "g.net.xml", tmp_path / "flat.rou.xml", tmp_path / "a.add.xml"
+    net.write_text('<net><edge id="A0A1"/></net>')
+    routes.write_text('<routes><vehicle id="bad" depart="10"><route edges="A0A1 C2C3"/>'
+                      "</vehicle></routes>")  # fmt: skip
+    add.write_text('<additional><busStop id="bad" lane="A0A1_0"/></additional>')
+    text = "Error: Vehicle 'bad' has no valid route. No connection between edge 'A0A1' and ..."
+    assert sumo_refusal(text, [net, routes, add])[0] == routes
+    routes.write_text('<routes><trip id="bad" depart="10" from="A0A1" to="C2C3"/></routes>')
+    assert sumo_refusal(text, [net, routes, add])[0] == routes  # a trip is a vehicle too
+
+
 def test_a_clash_of_a_vehicles_own_route_is_blamed_on_a_route_file(tmp_path):
     """SUMO names a vehicle's own route '!<vehicle>': a clash of two route files defining
     vehicle "0" names the later route file, not the network (probe 17's f06)."""

@@ -293,6 +293,15 @@ class SumoSession:
         self.close()
 
 
+#: The elements that define an object SUMO names by its kind in a refusal ("Vehicle 'v'"); a
+#: kind not listed is an element of its own name.
+OBJECT_ELEMENTS = {
+    "vehicle": ("vehicle", "trip", "flow"),
+    "person": ("person", "personFlow"),
+    "container": ("container", "containerFlow"),
+}
+
+
 def sumo_refusal(
     text: str, files: list[Path], fallback: bool = True
 ) -> tuple[Path | str | None, str]:
@@ -318,6 +327,13 @@ def sumo_refusal(
     for path in files:
         if any(Path(token).name == Path(path).name for token in quoted):
             return path, reason
+    # an object SUMO names by its kind ("Vehicle 'bad'"): the file defining one of that kind
+    for kind, name in re.findall(r"\b([A-Za-z]+) '([^']+)'", reason):
+        tags = OBJECT_ELEMENTS.get(kind.lower(), (kind,))
+        pattern = rf'<(?:{"|".join(tags)})\s[^>]*\bid\s*=\s*"{re.escape(name)}"'
+        for path in reversed(files):
+            if path.suffix != ".sumocfg" and re.search(pattern, _text_of(path), re.IGNORECASE):
+                return path, reason
     for path in reversed(files):  # additionals and routes before the network
         if quoted and path.suffix != ".sumocfg" and _mentions(path, quoted):
             return path, reason
