@@ -315,6 +315,10 @@ def test_history_flag_over_a_swarm_option_is_said(tmp_path, capsys):
     assert f"--history {tmp_path / 'b.npz'} replaces [swarm_options.nowcast-gain].history = " in err
     assert "'a.npz'" in err
     assert experiment.swarm_options["nowcast-gain"] == {"history": history}
+    (tmp_path / "e.toml").write_text('[swarm_options.nowcast-gain]\nhistory = "b.npz"\n')
+    experiment = Experiment(load_config(tmp_path / "e.toml"), ["nowcast-gain"], [0])
+    hand_history(experiment, history)  # the same file: nothing replaced
+    assert capsys.readouterr().err == ""
     (tmp_path / "d.toml").write_text("[swarm]\nn_drones = 2\n")
     experiment = Experiment(load_config(tmp_path / "d.toml"), ["nowcast-gain"], [0])
     hand_history(experiment, history)

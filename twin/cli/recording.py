@@ -136,13 +136,24 @@ def hand_history(experiment: Experiment, history) -> None:
                 **experiment.config.swarm_options.get(name, {}),
                 **options.get(name, {}),
             }.get("history")
-            if own is not None and own is not history:
+            if own is not None and not _same_history(own, history, experiment.config.path):
                 notify(
                     f"twin: notice: --history {getattr(history, 'path', None) or 'given'} replaces "
                     f"[swarm_options.{name}].history = {str(own)!r} for the swarm {name}"
                 )
             options[name] = {**options.get(name, {}), "history": history}
     experiment.swarm_options = options
+
+
+def _same_history(own, history, config_path: Path) -> bool:
+    """Whether a swarm's own history (a History, or its file relative to the config) is the
+    run's ``history``."""
+    if own is history:
+        return True
+    path = getattr(own, "path", None) if not isinstance(own, (str, Path)) else own
+    if path is None or getattr(history, "path", None) is None:
+        return False
+    return (Path(config_path).parent / path).resolve() == Path(history.path).resolve()
 
 
 def print_tables(recorded: Recorded, title: str) -> None:
