@@ -224,6 +224,12 @@ def test_a_refused_vehicle_is_blamed_on_the_file_defining_it(tmp_path):
     assert sumo_refusal(text, [net, routes, add])[0] == routes
     routes.write_text('<routes><trip id="bad" depart="10" from="A0A1" to="C2C3"/></routes>')
     assert sumo_refusal(text, [net, routes, add])[0] == routes  # a trip is a vehicle too
+    # a flow's vehicle 'f.0': the flow's file, not the network defining the edge also named
+    # (the fix above named the network: probe 21's P2-06)
+    routes.write_text('<routes><flow id="f" begin="0" end="99" period="20"><route '
+                      'edges="A0A1 C2C3"/></flow></routes>')  # fmt: skip
+    text = "Error: Vehicle 'f.0' has no valid route. No connection between edge 'A0A1' and ..."
+    assert sumo_refusal(text, [net, routes, add])[0] == routes
 
 
 def test_a_clash_of_a_vehicles_own_route_is_blamed_on_a_route_file(tmp_path):

@@ -293,8 +293,8 @@ class SumoSession:
         self.close()
 
 
-#: The elements that define an object SUMO names by its kind in a refusal ("Vehicle 'v'"); a
-#: kind not listed is an element of its own name.
+#: The elements that define an object SUMO names by its kind at the start of a refusal
+#: ("Vehicle 'v' has no valid route"): its own file is named, not another holding the id.
 OBJECT_ELEMENTS = {
     "vehicle": ("vehicle", "trip", "flow"),
     "person": ("person", "personFlow"),
@@ -327,12 +327,18 @@ def sumo_refusal(
     for path in files:
         if any(Path(token).name == Path(path).name for token in quoted):
             return path, reason
-    # an object SUMO names by its kind ("Vehicle 'bad'"): the file defining one of that kind
-    for kind, name in re.findall(r"\b([A-Za-z]+) '([^']+)'", reason):
-        tags = OBJECT_ELEMENTS.get(kind.lower(), (kind,))
-        pattern = rf'<(?:{"|".join(tags)})\s[^>]*\bid\s*=\s*"{re.escape(name)}"'
+    # the object a refusal is about, named by its kind first ("Vehicle 'bad' has no valid
+    # route ... edge 'A0A1'"): the file defining one of that kind (a flow's vehicle
+    # 'f.0' is the flow 'f''s)
+    subject = re.match(r"(?:The )?([A-Za-z]+) '([^']+)'", reason)
+    kind = subject[1].lower() if subject else ""
+    if kind in OBJECT_ELEMENTS:
+        name = subject[2]
+        ids = [name, *([name.rsplit(".", 1)[0]] if re.search(r"\.\d+$", name) else [])]
+        tags, names = "|".join(OBJECT_ELEMENTS[kind]), "|".join(re.escape(i) for i in ids)
+        pattern = rf'<(?:{tags})\s[^>]*\bid\s*=\s*"(?:{names})"'
         for path in reversed(files):
-            if path.suffix != ".sumocfg" and re.search(pattern, _text_of(path), re.IGNORECASE):
+            if path.suffix != ".sumocfg" and re.search(pattern, _text_of(path)):
                 return path, reason
     for path in reversed(files):  # additionals and routes before the network
         if quoted and path.suffix != ".sumocfg" and _mentions(path, quoted):
