@@ -397,6 +397,25 @@ def test_a_streams_file_is_named_apart_from_the_scenarios_own_names(tmp_path):
     assert (files["e"], len(files)) == ("edgeData-e-2.xml", 2)  # the stream's, after the own
 
 
+def test_a_long_output_prefix_is_shortened_for_a_streams_file(tmp_path, capsys):
+    """A 240-character ``output-prefix`` with an output sent to stdout: SUMO alone names no
+    file, twin's file for the stream would pass 255 bytes with the prefix (probe 21's P2-05):
+    the prefix is shortened with a digest, said in a notice; a short one is kept."""
+    from twin.sumo.outputs import MAX_FILE_NAME, redirect_outputs
+
+    (tmp_path / "s").mkdir()
+    cfg = tmp_path / "s" / "a.sumocfg"
+    for prefix, kept in (("p" * 240, False), ("run1_", True)):
+        cfg.write_text(f'<configuration><output><output-prefix value="{prefix}"/>'
+                       '<tripinfo-output value="stdout"/></output></configuration>')  # fmt: skip
+        options, _ = redirect_outputs(cfg, (), tmp_path / "o" / prefix[:5])
+        given = dict(zip(options[::2], options[1::2], strict=True))
+        name = given["--output-prefix"] + Path(given["--tripinfo-output"]).name
+        assert len(name.encode()) <= MAX_FILE_NAME
+        assert (given["--output-prefix"] == prefix) == kept
+        assert ("output-prefix is 240 characters" in capsys.readouterr().err) != kept
+
+
 def test_an_output_named_like_a_later_seeds_folder_is_named_apart(tmp_path):
     """An output named ``seed-1`` would take the folder of seed 1's outputs (``sumo/seed-1/``):
     seed 1 failed on it (FileExistsError) and was left out (probe 21's f08); it is named

@@ -51,6 +51,7 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 from twin.errors import UserError
+from twin.notices import notify
 from twin.sumo.options import output_options
 from twin.sumo.readers import (
     as_given,
@@ -132,6 +133,8 @@ class OutputPlan:
         #: SSM devices may be equipped (a ``device.ssm.*`` option or parameter): without a
         #: file, SUMO writes one ``ssm_<vehicle>.xml`` per vehicle into its working folder
         self.ssm_devices = False
+        #: the names twin made for outputs sent to a stream (SUMO adds a prefix to them)
+        self.made: list[str] = []
 
     def _fresh(self, name: str) -> Path:
         name = literal(name)
@@ -143,6 +146,13 @@ class OutputPlan:
                 self.out_dir.mkdir(parents=True, exist_ok=True)
                 return self.out_dir / candidate
         raise AssertionError  # pragma: no cover
+
+    def stream_file(self, name: str) -> Path:
+        """The file of an output the scenario sends to a stream, named apart from its other
+        outputs (:data:`MAX_MADE_NAME` at most, kept in :attr:`made`)."""
+        path = self._fresh(name)
+        self.made.append(path.name)
+        return path
 
     def own_file(self, name: str) -> Path:
         """A file of twin's own in ``out_dir`` (its virtual loops), named apart from the
@@ -195,7 +205,7 @@ class OutputPlan:
                 elem.set(attr, str(self.target(base / value)))
                 changed = True
         for elem, attr, tag in streams:  # after the file's own names: those keep theirs
-            elem.set(attr, str(self.own_file(_stream_file(elem, tag))))
+            elem.set(attr, str(self.stream_file(_stream_file(elem, tag))))
             changed = True
         for elem in root.iter():
             href = elem.get("href") if local_name(elem) == "include" else None
@@ -356,7 +366,7 @@ def redirect_outputs(
             elif _is_file(value):
                 extra += [f"--{name}", str(plan.target(base / value.strip()))]
         for name in streams:  # a file of its own, named apart from the outputs' own names
-            extra += [f"--{name}", str(plan.own_file(f"{name}.xml"))]
+            extra += [f"--{name}", str(plan.stream_file(f"{name}.xml"))]
     for i in range(len(out) - 1):
         if out[i] in ("--additional-files", "-a"):
             files = [Path(v) for v in out[i + 1].split(",") if v]
@@ -370,7 +380,41 @@ def redirect_outputs(
                 )
         elif out[i] in {f"--{name}" for name in NAMING_OPTIONS}:
             out[i + 1] = name_part(out[i + 1])
-    return (*out, *extra), plan
+    return _naming_that_fits((*out, *extra), plan), plan
+
+
+#: The longest file name file systems take (bytes).
+MAX_FILE_NAME = 255
+
+
+def _naming_that_fits(options: tuple[str, ...], plan: OutputPlan) -> tuple[str, ...]:
+    """``options`` with an ``output-prefix``/``output-suffix`` shortened (its start and a
+    digest) when, around a name twin made for a stream's output, it would make a file name
+    longer than file systems take: SUMO alone never names a file for a stream, so a scenario
+    with a long prefix runs there."""
+    if not plan.made:
+        return options
+    out = list(options)
+    at = {
+        out[i]: i + 1
+        for i in range(len(out) - 1)
+        if out[i] in ("--output-prefix", "--output-suffix")
+    }
+    parts = {flag: out[i] for flag, i in at.items()}
+    room = MAX_FILE_NAME - max(len(n.encode()) for n in plan.made)
+    if sum(len(v.encode()) for v in parts.values()) <= room:
+        return options
+    share = max(room // len(parts), 16)
+    for flag, i in at.items():
+        value = out[i]
+        if len(value.encode()) > share:
+            digest = hashlib.sha256(value.encode()).hexdigest()[:8]
+            out[i] = f"{value.encode()[: share - 9].decode(errors='ignore')}-{digest}"
+            notify(
+                f"twin: notice: {flag.removeprefix('--')} is {len(value)} characters, too long "
+                f"for the files of outputs sent to a stream; {out[i]!r} names the outputs"
+            )
+    return tuple(out)
 
 
 def check_output_dir(out_dir: Path) -> None:
