@@ -575,6 +575,25 @@ def test_a_stray_tape_in_a_run_folder_is_no_day_of_its_history(history, tmp_path
     assert not out.exists()
 
 
+def test_a_later_seeds_tape_removed_with_its_manifest_entry_is_refused(history, tmp_path, capsys):
+    """A live run of two seeds keeps each seed's tape in tapes/: one removed with its manifest
+    entry left the later seed's maps unreplayed, silently; it is refused in one line."""
+    import shutil
+
+    from test_boundary import refresh_manifest
+
+    days = tmp_path / "days"
+    shutil.copytree(history.parent / "days", days)
+    (days / "tapes" / "seed-1.parquet").unlink()
+    refresh_manifest(days)
+    capsys.readouterr()
+    assert twin_main(["report", str(days), "--no-animation"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1, err
+    assert "tapes/seed-1.parquet is missing, which a live SUMO run writes" in err, err
+    assert not (days / "report").exists()
+
+
 def test_beliefs_whose_history_is_gone_are_not_replayed_and_say_so(believed, tmp_path, capsys):
     """A run folder whose history file changed since: its belief models read back with a
     notice that they are not replayed (ranges and relations checked), not refused."""

@@ -902,8 +902,11 @@ def _all(*damages):
 
 def _samples(run: Path) -> pd.DataFrame:
     """An mfd_samples.parquet (twin.mfd) of three cell samples."""
-    return pd.DataFrame({"step": [0, 1, 2], "count": [1.0, 4.0, 9.0], "speed": [12.0, 9.0, 4.0],
-                         "density": [5.0, 20.0, 60.0], "speed_limit": [13.9] * 3})  # fmt: skip
+    return pd.DataFrame({"step": [0, 1, 2], "i": [1, 1, 2], "j": [2, 3, 3],
+                         "count": [1.0, 4.0, 9.0], "lane_km": [0.2] * 3,
+                         "density": [5.0, 20.0, 60.0], "speed": [12.0, 9.0, 4.0],
+                         "speed_limit": [13.9] * 3,
+                         "speed_mfd_online": [12.0, 9.0, 4.0]})  # fmt: skip
 
 
 def _relabel_seeds(run: Path) -> None:
@@ -1101,6 +1104,20 @@ READ_BACK = {
         )
         for name in ("series.parquet", "trajectories.parquet", "timing.csv")
     },
+    **{  # probe 20's P2-f09e: written since before the current format
+        f"{column} dropped from timing": (
+            _edit_table("timing.csv", lambda f, c=column: f.drop(columns=c)),
+            f"timing.csv: lacks the column '{column}', which twin writes",
+        )
+        for column in ("process", "share")
+    },
+    **{
+        f"{name} removed with its manifest entry": (
+            lambda run, name=name: (run / name).unlink(),
+            f"{name} is missing, which every run writes",
+        )
+        for name in ("timing.csv", "per_seed.csv")
+    },
     "n_seeds dropped from monitoring": (
         _edit_table("monitoring.csv", lambda f: f.drop(columns="n_seeds")),
         "monitoring.csv: lacks the column 'n_seeds', which twin writes",
@@ -1135,6 +1152,12 @@ READ_BACK = {
     "run.json not JSON": (lambda run: (run / "run.json").write_text("{"), "run.json"),
     "run.json option of a wrong type": (_json("run.json", ("params", "eta"), "fast"), "params.eta"),
     "run.json traffic a list": (_json("run.json", ("traffic",), [1, 2]), "traffic"),
+    # the report is written after the run: a listed one made the next report refuse the
+    # folder as changed (probe 21's c25)
+    "manifest listing the report": (
+        _json("manifest.json", ("files", "report/report.html"), 10),
+        "lists report/report.html, which a run's manifest never lists",
+    ),
     "manifest size a string": (
         _json("manifest.json", ("files", "summary.csv"), "big"),
         "summary.csv",

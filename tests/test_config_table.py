@@ -144,7 +144,7 @@ SYNTHETIC_BAD = {
     ("traffic", "kind"): ['"tape"', "3"],
     ("traffic", "horizon"): [*WHOLE, "0", "-5", "100000000000000000000", "9223372036854775807"],
     ("traffic", "beta1"): [*NUMBER, "0", "-1.0"],
-    ("traffic", "beta2"): [*NUMBER, "0"],
+    ("traffic", "beta2"): [*NUMBER, "0", "3e307", "1e308"],  # 2 pi beta2 past the floats
     ("traffic", "z_lo"): [*NUMBER, "3.0"],
     ("traffic", "z_hi"): [*NUMBER, "-1.0", "0.0", "1e-320", "1e308", "1e-15"],  # flat maps
     ("traffic", "disturbances"): [

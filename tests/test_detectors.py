@@ -445,6 +445,9 @@ READING_EDITS = [
         lambda f: f.__setitem__("lane", f["lane"].where(f.index != 0, "elsewhere_0")),
         "has more than one lane among its readings",
     ),
+    # a column dropped or added (probe 20's P2-f09e)
+    (lambda f: f.__delitem__("virtual"), "lacks the column 'virtual'"),
+    (_set_all("bogus", 1.0), "holds a column 'bogus', which twin does not write"),
 ]
 
 

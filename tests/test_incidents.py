@@ -80,6 +80,13 @@ def test_incident_config_is_checked(tmp_path):
     )
     with pytest.raises(UserError, match=r"duration_min = 1e-09 lasts 6e-08 s, shorter than SUMO"):
         load_config(path)
+    # so long that its end in seconds overflows: a partial run of 0 steps (probe 21's f03)
+    path.write_text(
+        '[traffic]\nkind = "sumo"\n[[traffic.incidents]]\nkind = "edge_closed"\n'
+        'edge = "e1"\nbegin = "07:45"\nduration_min = 1e308\n'
+    )
+    with pytest.raises(UserError, match=r"incidents\[0\]\.duration_min = 1e\+308 must be <= "):
+        load_config(path)
 
 
 # ------------------------------------------------------------------------ on a small SUMO run

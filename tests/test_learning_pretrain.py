@@ -94,6 +94,42 @@ def test_resuming_with_other_settings_is_refused(tmp_path):
         pretrain(_changed(config), progress=False)
 
 
+def test_rerunning_a_finished_run_with_fewer_epochs_is_refused(tmp_path, capsys):
+    """A folder trained 20 epochs, rerun with ``--epochs 10``: refused in one line, the model
+    and its record untouched (they were rewritten as 10 epochs' for weights of 20: probe 21's
+    f06); the same epochs again still writes its model."""
+    config = _config(tmp_path, epochs=20)
+    pretrain(load_config(config), progress=False)
+    model = (tmp_path / "out" / "qnet.pt").read_bytes()
+    provenance = (tmp_path / "out" / "provenance.json").read_bytes()
+    code, err = _run_cli(["pretrain", "--config", str(config), "--epochs", "10", "--quiet"], capsys)
+    assert code == 2 and err.count("\n") == 0, err
+    assert "state.pt: its run trained 20 epochs, past --epochs 10; give at least 20 epochs" in err
+    assert (tmp_path / "out" / "qnet.pt").read_bytes() == model
+    assert (tmp_path / "out" / "provenance.json").read_bytes() == provenance
+    code, err = _run_cli(["pretrain", "--config", str(config), "--quiet"], capsys)
+    assert code == 0, err
+
+
+def test_threads_past_the_cpus_train_on_the_cpus_with_a_notice(tmp_path, capsys):
+    """``threads`` past the CPUs twin may use: training runs on those CPUs, with a notice (it
+    failed as "out of memory; use a smaller grid": probe 21's f04); the config keeps its
+    value, so its checkpoint resumes on a smaller machine."""
+    import torch
+
+    cpus = len(os.sched_getaffinity(0))
+    config = _config(tmp_path, epochs=10)
+    config.write_text(config.read_text() + f"threads = {100 * cpus}\n")
+    before = torch.get_num_threads()
+    try:
+        code, err = _run_cli(["pretrain", "--config", str(config), "--quiet"], capsys)
+        assert torch.get_num_threads() == cpus
+    finally:
+        torch.set_num_threads(before)  # this test process's own
+    assert code == 0, err
+    assert f"threads = {100 * cpus}, but this machine gives twin {cpus} CPUs" in err, err
+
+
 def _changed(config):
     text = config.read_text().replace("iters_per_epoch = 2", "iters_per_epoch = 3")
     config.write_text(text)

@@ -292,3 +292,34 @@ def test_a_run_hands_its_sighting_model_to_the_swarm_and_the_belief_table(tmp_pa
     sighting, recorded = run_sensing(out.results[0])
     assert recorded is None and (sighting.count_p, sighting.reads) == (0.7, 1)
     np.testing.assert_array_equal(sighting.lane_km, model.lane_km)
+
+
+def test_history_flag_over_a_swarm_option_is_said(tmp_path, capsys):
+    """``--history`` replaces a swarm's own ``[swarm_options.<swarm>].history`` of the config:
+    said in a notice naming both (probe 20's c32), not silently; a swarm without one is not
+    named."""
+    import dataclasses
+
+    from twin.cli.recording import hand_history
+    from twin.config import load_config
+    from twin.experiment import Experiment
+
+    history = dataclasses.replace(flat_history(), path=str(tmp_path / "b.npz"))
+    (tmp_path / "c.toml").write_text(
+        '[swarm_options.nowcast-gain]\nhistory = "a.npz"\nweight = 0.5\n'
+    )
+    experiment = Experiment(load_config(tmp_path / "c.toml"), ["nowcast-gain", "random"], [0])
+    hand_history(experiment, history)
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1, err
+    assert f"--history {tmp_path / 'b.npz'} replaces [swarm_options.nowcast-gain].history = " in err
+    assert "'a.npz'" in err
+    assert experiment.swarm_options["nowcast-gain"] == {"history": history}
+    (tmp_path / "e.toml").write_text('[swarm_options.nowcast-gain]\nhistory = "b.npz"\n')
+    experiment = Experiment(load_config(tmp_path / "e.toml"), ["nowcast-gain"], [0])
+    hand_history(experiment, history)  # the same file: nothing replaced
+    assert capsys.readouterr().err == ""
+    (tmp_path / "d.toml").write_text("[swarm]\nn_drones = 2\n")
+    experiment = Experiment(load_config(tmp_path / "d.toml"), ["nowcast-gain"], [0])
+    hand_history(experiment, history)
+    assert capsys.readouterr().err == ""

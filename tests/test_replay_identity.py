@@ -175,6 +175,16 @@ def _edit_table(name: str, change: Callable[[pd.DataFrame], pd.DataFrame]) -> Ca
     return edit
 
 
+def _removed(name: str) -> Callable[[Path], None]:
+    """A file of the run removed (the manifest agrees)."""
+
+    def edit(run: Path) -> None:
+        (run / name).unlink()
+        write_manifest(run)
+
+    return edit
+
+
 def _edit_json(name: str, change: Callable[[dict], None]) -> Callable[[Path], None]:
     """A JSON file of the run changed in place (the manifest agrees)."""
 
@@ -287,6 +297,26 @@ CASES = {
         _edit_table("mfd_samples.parquet", lambda f: f.assign(count=f["count"] * 10)),
         None,
         "mfd_samples.parquet: count = ",
+    ),
+    # a live run's file removed with its manifest entry: its checks would go unsaid
+    **{
+        f"{name} removed": (
+            _removed(name),
+            None,
+            f"{name} is missing, which a live SUMO run writes",
+        )
+        for name in ("tape.parquet", "mfd_samples.parquet", "network.json", "mfd.json")
+    },
+    # probe 20's P2-f09e
+    "MFD samples without their speed limits": (
+        _edit_table("mfd_samples.parquet", lambda f: f.drop(columns="speed_limit")),
+        None,
+        "mfd_samples.parquet: lacks the column 'speed_limit', which twin writes",
+    ),
+    "MFD samples with a column twin does not write": (
+        _edit_table("mfd_samples.parquet", lambda f: f.assign(bogus=1.0)),
+        None,
+        "mfd_samples.parquet: holds a column 'bogus', which twin does not write",
     ),
     "MFD fit of more samples than the tape's": (
         _edit_json("mfd.json", lambda m: m.update(n_samples=m["n_samples"] + 5)),

@@ -40,6 +40,21 @@ NET_XML = """<?xml version="1.0" encoding="UTF-8"?>
 """
 
 
+def _write_timing(run: Path, series: pd.DataFrame, seeds) -> None:
+    """timing.csv, as every run writes it: each swarm's stage of each seed in the main process,
+    its ms per step over the seed's steps and its share of the seed's seconds."""
+    rows = []
+    for seed in seeds:
+        steps = int(series[series["seed"] == seed].groupby("swarm").size().max())
+        stages = [(f"swarm {name}", 0.5 + 0.25 * n) for n, name in enumerate(SWARMS)]
+        total = sum(seconds for _, seconds in stages)
+        for stage, seconds in stages:
+            rows.append({"seed": seed, "process": "main", "stage": stage, "seconds": seconds,
+                         "ms_per_step": round(1000.0 * seconds / steps, 4),
+                         "share": round(seconds / total, 4)})  # fmt: skip
+    pd.DataFrame(rows).to_csv(run / "timing.csv", index=False)
+
+
 def write_fixture_run(
     root: Path, seeds=(0, 1), horizon: int = 40, nx: int = 6, ny: int = 9, sumo: bool = True
 ) -> Path:
@@ -168,6 +183,7 @@ def write_fixture_run(
         "folder_format": FOLDER_FORMAT,  # the intervals of one seed left empty, as now
     }
     (run / "run.json").write_text(json.dumps(meta))
+    _write_timing(run, series, seeds)
     if sumo:
         (run / "net.net.xml").write_text(NET_XML)
         cell = 1500.0 / ny
@@ -187,7 +203,8 @@ def write_fixture_run(
         pd.DataFrame(
             {"step": np.arange(n) % (horizon + 1), "i": rng.integers(0, nx, n),
              "j": rng.integers(0, ny, n), "count": count, "lane_km": 0.5, "density": density,
-             "speed": speed, "speed_limit": limit}
+             "speed": speed, "speed_limit": limit,
+             "speed_mfd_online": MFD(0.7013, 39.87).speed(density, limit)}
         ).to_parquet(run / "mfd_samples.parquet", index=False)  # fmt: skip
         quality = fit_quality(MFD(0.7013, 39.87), density, speed, limit)
         mfd = {"form": "underwood: v(k) = a * v_lim * exp(-k / k_c)", "a": 0.7013, "k_c": 39.87,

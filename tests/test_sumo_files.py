@@ -358,6 +358,75 @@ def test_gzip_additional_with_outputs_is_rewritten(scenario, tmp_path):
     assert untouched[1] == str(d / "types.xml") and not (tmp_path / "o2").exists()
 
 
+def test_an_output_named_like_sumos_messages_is_named_apart(tmp_path):
+    """A scenario output named ``sumo-messages.log`` (a sumocfg's ``<log>``, a detector's
+    file) goes to ``sumo-messages-2.log``: twin's file of SUMO's messages, moved in when SUMO
+    ends, would replace it (probe 21's c37)."""
+    from twin.sumo.outputs import MESSAGES_NAME, redirect_outputs
+
+    (tmp_path / "s").mkdir()
+    cfg = tmp_path / "s" / "a.sumocfg"
+    cfg.write_text(f'<configuration><report><log value="{MESSAGES_NAME}"/></report>'
+                   "</configuration>")  # fmt: skip
+    options, _ = redirect_outputs(cfg, (), tmp_path / "o")
+    assert options == ("--log", str(tmp_path / "o" / "sumo-messages-2.log"))
+
+
+def test_a_streams_file_is_named_apart_from_the_scenarios_own_names(tmp_path):
+    """An output sent to stdout gets a file of its own, after the scenario's outputs keep their
+    names: ``<tripinfo-output value="stdout"/>`` beside ``<summary-output
+    value="tripinfo-output.xml"/>`` shared one file, interleaved (probe 21's P2-04); an
+    element's id too long for a file name is shortened with a digest (P2-01)."""
+    from twin.sumo.outputs import MAX_MADE_NAME, redirect_outputs
+
+    (tmp_path / "s").mkdir()
+    cfg = tmp_path / "s" / "a.sumocfg"
+    cfg.write_text('<configuration><output><tripinfo-output value="stdout"/>'
+                   '<summary-output value="tripinfo-output.xml"/></output></configuration>')  # fmt: skip
+    options, _ = redirect_outputs(cfg, (), tmp_path / "o")
+    given = dict(zip(options[::2], options[1::2], strict=True))
+    assert Path(given["--summary-output"]).name == "tripinfo-output.xml"
+    assert Path(given["--tripinfo-output"]).name == "tripinfo-output-2.xml"
+    add = tmp_path / "s" / "a.add.xml"
+    add.write_text(f'<additional><laneData id="{"x" * 300}" file="stdout" period="60"/>'
+                   '<edgeData id="e" file="edgeData-e.xml" period="60"/>'
+                   '<edgeData id="e" file="-" period="60"/></additional>')  # fmt: skip
+    options, _ = redirect_outputs(None, ("-a", str(add)), tmp_path / "o2")
+    files = {e.get("id")[:3]: Path(e.get("file")).name for e in ET.parse(options[1]).getroot()}
+    assert len(files["xxx"]) <= MAX_MADE_NAME + 4 and files["xxx"].startswith("laneData-xxx")
+    assert (files["e"], len(files)) == ("edgeData-e-2.xml", 2)  # the stream's, after the own
+
+
+def test_a_long_output_prefix_is_shortened_for_a_streams_file(tmp_path, capsys):
+    """A 240-character ``output-prefix`` with an output sent to stdout: SUMO alone names no
+    file, twin's file for the stream would pass 255 bytes with the prefix (probe 21's P2-05):
+    the prefix is shortened with a digest, said in a notice; a short one is kept."""
+    from twin.sumo.outputs import MAX_FILE_NAME, redirect_outputs
+
+    (tmp_path / "s").mkdir()
+    cfg = tmp_path / "s" / "a.sumocfg"
+    for prefix, kept in (("p" * 240, False), ("run1_", True)):
+        cfg.write_text(f'<configuration><output><output-prefix value="{prefix}"/>'
+                       '<tripinfo-output value="stdout"/></output></configuration>')  # fmt: skip
+        options, _ = redirect_outputs(cfg, (), tmp_path / "o" / prefix[:5])
+        given = dict(zip(options[::2], options[1::2], strict=True))
+        name = given["--output-prefix"] + Path(given["--tripinfo-output"]).name
+        assert len(name.encode()) <= MAX_FILE_NAME
+        assert (given["--output-prefix"] == prefix) == kept
+        assert ("output-prefix is 240 characters" in capsys.readouterr().err) != kept
+
+
+def test_an_output_named_like_a_later_seeds_folder_is_named_apart(tmp_path):
+    """An output named ``seed-1`` would take the folder of seed 1's outputs (``sumo/seed-1/``):
+    seed 1 failed on it (FileExistsError) and was left out (probe 21's f08); it is named
+    ``seed-1-2``, while ``seed-1.xml`` or ``seeds`` keep their names."""
+    from twin.sumo.outputs import OutputPlan
+
+    plan = OutputPlan(tmp_path / "o")
+    names = [plan.target(tmp_path / n).name for n in ("seed-1", "seed-1.xml", "seeds", "seed-x")]
+    assert names == ["seed-1-2", "seed-1.xml", "seeds", "seed-x"]
+
+
 def _detector_case(scenario: Path, d: Path, output: str = "") -> Path:
     """A sumocfg in ``d`` with an induction loop writing ``det.xml`` and ``output`` options."""
     with open(scenario / "scenario" / "detectors.add.xml", "rb") as fh:
@@ -615,6 +684,35 @@ def test_an_output_sent_to_a_stream_goes_to_a_file_in_the_run_folder(
     assert "<fcd-export" in (out / "sumo" / "fcd-output.xml").read_text()
     run = json.loads((out / "run.json").read_text())
     assert "fcd-output.xml" in run["traffic"]["sumo_outputs"]
+
+
+def test_an_additional_files_outputs_sent_to_streams_go_to_files_in_the_run_folder(
+    scenario, tmp_path, capfd
+):
+    """``<edgeData file="stdout"/>`` (``stderr``, ``-``) in an additional file: SUMO would write
+    its XML into twin's tables or among its messages; each goes to RUN/sumo/<element>-<id>.xml
+    (they flooded stdout and sumo-messages.log: probe 21's f05)."""
+    cfg = _detector_case(scenario, tmp_path / "case")
+    streams = ('<edgeData id="ed1" file="stdout" period="120"/><edgeData id="ed2" file="stderr" '
+               'period="120"/><laneData id="l/d" file="-" period="120"/>'
+               # a file of the name a stream's output takes: each keeps its own
+               '<laneData id="named" file="edgeData-ed1.xml" period="120"/>')  # fmt: skip
+    add = cfg.parent / "det.add.xml"
+    add.write_text(add.read_text().replace("</additional>", streams + "</additional>"))
+    before = tree_hash(tmp_path / "case")
+    out = tmp_path / "run"
+    code = _run(scenario, out, "--sumocfg", str(cfg))
+    captured = capfd.readouterr()
+    assert code == 0, captured.err
+    assert "<edge " not in captured.out + captured.err and "<lane " not in captured.out
+    # the named file keeps its name, the stream's takes -2
+    for name, row in [("edgeData-ed1-2.xml", "<edge "), ("edgeData-ed2.xml", "<edge "),
+                      ("laneData-l_d.xml", "<lane "), ("edgeData-ed1.xml", "<lane ")]:  # fmt: skip
+        assert row in (out / "sumo" / name).read_text(), name
+        assert name in json.loads((out / "run.json").read_text())["traffic"]["sumo_outputs"]
+    log = out / "sumo" / "sumo-messages.log"
+    assert not log.exists() or "<edge " not in log.read_text()
+    assert tree_hash(tmp_path / "case") == before
 
 
 @pytest.mark.parametrize("option", ["save-config", "C", "save-configuration"])

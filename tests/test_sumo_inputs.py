@@ -193,6 +193,45 @@ def test_sumo_refusal_names_the_file(city, tmp_path, capsys, element, words):
     assert str(bad) in lines[-1] and words in lines[-1], lines[-1]
 
 
+def test_sumo_refusal_of_an_included_files_object_names_that_file(city, tmp_path, capsys):
+    """A detector on an unknown lane in a file that another additional file includes: SUMO's
+    refusal names the included file (it named only the sumocfg: probe 21's f09)."""
+    bad = tmp_path / "bad2.add.xml"
+    bad.write_text('<additional><inductionLoop id="l1" lane="NOPE_0" pos="5" period="60" '
+                   'file="l1.xml"/></additional>')  # fmt: skip
+    main = tmp_path / "main.add.xml"
+    main.write_text('<additional><include href="bad2.add.xml"/></additional>')
+    code, err = _run(city, "incl", "--sumocfg", str(city / "scenario" / "plain.sumocfg"),
+                     "--additional", str(main), capsys=capsys)  # fmt: skip
+    lines = err.strip().splitlines()
+    assert code == 2 and len([x for x in lines if x.startswith("twin: error:")]) == 1, err
+    assert lines[-1].startswith(f"twin: error: {bad}: SUMO refuses it"), lines[-1]
+    assert "NOPE_0" in lines[-1]
+
+
+def test_a_refused_vehicle_is_blamed_on_the_file_defining_it(tmp_path):
+    """SUMO names the object by its kind ("Vehicle 'bad'"): the file that defines a vehicle of
+    that id is named, not an additional file whose bus stop has the same id (probe 21's
+    P2-03)."""
+    from twin.sumo.session import sumo_refusal
+
+    net, routes, add = tmp_path / "g.net.xml", tmp_path / "flat.rou.xml", tmp_path / "a.add.xml"
+    net.write_text('<net><edge id="A0A1"/></net>')
+    routes.write_text('<routes><vehicle id="bad" depart="10"><route edges="A0A1 C2C3"/>'
+                      "</vehicle></routes>")  # fmt: skip
+    add.write_text('<additional><busStop id="bad" lane="A0A1_0"/></additional>')
+    text = "Error: Vehicle 'bad' has no valid route. No connection between edge 'A0A1' and ..."
+    assert sumo_refusal(text, [net, routes, add])[0] == routes
+    routes.write_text('<routes><trip id="bad" depart="10" from="A0A1" to="C2C3"/></routes>')
+    assert sumo_refusal(text, [net, routes, add])[0] == routes  # a trip is a vehicle too
+    # a flow's vehicle 'f.0': the flow's file, not the network defining the edge also named
+    # (the fix above named the network: probe 21's P2-06)
+    routes.write_text('<routes><flow id="f" begin="0" end="99" period="20"><route '
+                      'edges="A0A1 C2C3"/></flow></routes>')  # fmt: skip
+    text = "Error: Vehicle 'f.0' has no valid route. No connection between edge 'A0A1' and ..."
+    assert sumo_refusal(text, [net, routes, add])[0] == routes
+
+
 def test_a_clash_of_a_vehicles_own_route_is_blamed_on_a_route_file(tmp_path):
     """SUMO names a vehicle's own route '!<vehicle>': a clash of two route files defining
     vehicle "0" names the later route file, not the network (probe 17's f06)."""
@@ -806,6 +845,70 @@ def test_a_users_config_end_holds_for_a_sumocfg_given_by_flag(city, tmp_path, ca
     code, err, out = _own_config_run(city, tmp_path, capsys, traffic)
     assert code == 0, err
     assert json.loads((out / "run.json").read_text())["horizon"] == 3  # 00:08 .. 00:11, 60 s
+
+
+@pytest.mark.parametrize(
+    ("traffic", "code", "words"),
+    [
+        ('begin = "00:08"\nend = "00:11"\nhorizon = 3\n', 0, None),  # fits: runs
+        (
+            'begin = "00:08"\nend = "00:11"\nhorizon = 5\n',
+            2,
+            "[traffic].horizon = 5: 5 steps of 60 s from 00:08:00 end at 00:13:00, past "
+            "[traffic].end = '00:11'; give a horizon of at most 3, or leave out one of them",
+        ),
+        ('end = "00:03"\nhorizon = 10\n', 2, "past [traffic].end = '00:03'"),  # begin derived
+        # no horizon, and no whole step before the end: it ran one step past it (P2-02)
+        (
+            'begin = "00:08"\nend = "00:08:30"\n',
+            2,
+            "[traffic].end = '00:08:30' is less than one step (60 s) after the begin 00:08:00",
+        ),
+    ],
+    ids=["fits", "past the end", "past the end, begin from the window", "no step before the end"],
+)
+def test_a_users_config_horizon_past_its_own_end_is_refused(
+    city, tmp_path, capsys, traffic, code, words
+):
+    """``[traffic] end`` and ``horizon`` both in the user's config: a horizon that runs past
+    the end contradicts it, refused in one line naming both (it ran past the end silently:
+    probe 21's f02)."""
+    got, err, out = _own_config_run(city, tmp_path, capsys, "warmup_min = 1.0\n" + traffic)
+    assert got == code, err
+    if code == 0:
+        assert json.loads((out / "run.json").read_text())["horizon"] == 3
+    else:
+        assert err.count("\n") == 1 and words in err, err
+        assert not out.exists()
+
+
+@pytest.mark.parametrize(
+    ("traffic", "flags", "words", "horizon"),
+    [
+        ("", ["--horizon", "8"], "--horizon: 8 steps of 30 s from 00:08:00 end at 00:12:00", 8),
+        # the config's horizon fits its end at 30 s steps; the flag makes them 60 s
+        ("horizon = 6\n", ["--drone-speed", "12"], "--drone-speed: 6 steps of 60 s from 00:08", 6),
+    ],
+    ids=["--horizon", "--drone-speed"],
+)
+def test_a_flag_taking_the_run_past_the_configs_end_is_said(
+    city, tmp_path, capsys, traffic, flags, words, horizon
+):
+    """A flag over a config's ``end`` (a horizon, or a step length that moves the last step
+    past it): the flag wins, as over any key, and a notice names it and the end."""
+    config = tmp_path / "mine.toml"
+    config.write_text(
+        '[swarm]\nn_drones = 2\n[traffic]\nkind = "sumo"\ncell_m = 200.0\nwarmup_min = 1.0\n'
+        f'begin = "00:08"\nend = "00:11"\n{traffic}[evaluate]\nswarms = ["random"]\n'
+    )
+    out = tmp_path / "run"
+    code = twin_main(["run", "--config", str(config), "--sumocfg",
+                      str(city / "scenario" / "plain.sumocfg"), *flags, "--no-ceiling",
+                      "--no-report", "--out", str(out)])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert words in err and "past " in err and "[traffic].end = '00:11'" in err, err
+    assert json.loads((out / "run.json").read_text())["horizon"] == horizon
 
 
 def test_a_warm_up_off_whole_seconds_gives_a_folder_that_reads_back(city, tmp_path, capsys):

@@ -23,7 +23,7 @@ import sys
 import tomllib
 import types
 import typing
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Annotated, Any, ClassVar, Literal, Self, TypeVar
 
@@ -157,6 +157,12 @@ class SourcedConfig(StrictModel):
         """The command-line flag that set the dotted ``key`` (:func:`with_overrides`), or None
         when the file (or a sweep key, or the default) did."""
         return self._flags.get(key)
+
+    def set_by(self, keys: Iterable[str]) -> list[str]:
+        """The flags or other files' keys (a sweep's) that set any of the dotted ``keys``
+        (sorted; empty when the file, or the defaults, set them all)."""
+        keys = set(keys)
+        return sorted({label for key, label in self._labels.items() if key in keys})
 
 
 def _naming_changes(exc: UserError, labels: Mapping[str, str] | None) -> UserError:
@@ -310,11 +316,17 @@ class DisturbanceConfig(StrictModel):
     sigma: Annotated[float, Field(ge=1e-3, le=1e6)] = 1.0  # cells (its square must not overflow)
 
 
+#: The largest beta2 (periods of a small disturbance over the horizon): the phase 2 pi beta2 k/T
+#: of A_small is then computed to about 1e-7 rad (its rounding, ulp(2 pi beta2)); past it
+#: the floats' sines are no longer the formula's (at 1e307 the phase overflows).
+MAX_BETA2 = 1e8
+
+
 class SyntheticConfig(StrictModel):
     kind: Literal["synthetic"] = "synthetic"
     horizon: Horizon = 2000
     beta1: Annotated[float, Field(gt=0)] = 0.7
-    beta2: Annotated[float, Field(gt=0)] = 5.0
+    beta2: Annotated[float, Field(gt=0, le=MAX_BETA2)] = 5.0
     z_lo: float = 0.0
     z_hi: float | None = None
     disturbances: list[DisturbanceConfig] = []
@@ -343,6 +355,10 @@ class MFDSettings(StrictModel):
     detection_p: _setting_range("detection_p") = 1.0
 
 
+#: The longest incident (minutes, about 1900 years): one past a run's end lasts to its end.
+MAX_INCIDENT_MIN = 1e9
+
+
 class IncidentSettings(StrictModel):
     """``[[traffic.incidents]]``: a lane or edge closed, or a vehicle stopped, for a while.
 
@@ -357,7 +373,8 @@ class IncidentSettings(StrictModel):
     cell: Cell | None = None
     begin: str | None = None
     step: Annotated[int, Field(ge=0)] | None = None
-    duration_min: Annotated[float, Field(gt=0)]
+    # at most MAX_INCIDENT_MIN: its end stays a time on SUMO's clock (1e308 min overflowed)
+    duration_min: Annotated[float, Field(gt=0, le=MAX_INCIDENT_MIN)]
 
     @field_validator("begin")
     @classmethod

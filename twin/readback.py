@@ -51,6 +51,17 @@ def read_table(path: Path, columns: Mapping[str, str] | None = None) -> pd.DataF
     return frame
 
 
+def parquet_columns(path: Path) -> list[str]:
+    """The column names of the parquet table at ``path``, from its footer (the table is not
+    read); a file that is no readable table is refused as :func:`read_table` refuses it."""
+    import pyarrow.parquet as pq
+
+    try:
+        return list(pq.read_schema(path).names)
+    except Exception:  # read_table says what is wrong with it
+        return list(read_table(path).columns)
+
+
 def check_columns(path: Path, frame: pd.DataFrame, columns: Mapping[str, str]) -> None:
     """Every column of ``columns`` is in ``frame`` and holds values of its kind."""
     if frame.columns.duplicated().any():
@@ -62,12 +73,22 @@ def check_columns(path: Path, frame: pd.DataFrame, columns: Mapping[str, str]) -
         check_column(path, frame, name, kind)
 
 
-def check_known_columns(path: Path, frame: pd.DataFrame, known: Iterable[str]) -> None:
-    """``frame`` holds no column but ``known`` (a table whose every column twin writes)."""
+def check_known_columns(
+    path: Path,
+    table: pd.DataFrame | list[str],
+    known: Iterable[str],
+    required: Iterable[str] = (),
+) -> None:
+    """``table`` (a frame, or its column names) holds no column but ``known`` (a table whose
+    every column twin writes), and each of ``required`` (those its folder's format holds)."""
     known = set(known)
-    other = [c for c in frame.columns if c not in known]
+    columns = list(table.columns) if isinstance(table, pd.DataFrame) else list(table)
+    other = [c for c in columns if c not in known]
     if other:
         raise UserError(f"{path}: holds a column {other[0]!r}, which twin does not write; {RERUN}")
+    missing = [c for c in required if c not in columns]
+    if missing:
+        raise UserError(f"{path}: lacks the column {missing[0]!r}, which twin writes; {RERUN}")
 
 
 def check_column(path: Path, frame: pd.DataFrame, name: str, kind: str) -> None:

@@ -92,7 +92,9 @@ MANIFEST = "manifest.json"
 class RunFile:
     """One entry of a run folder (docs/guide.md, "Run folders", describes each): which commands
     write it, which read it back, whether ``twin report`` needs it, whether the manifest lists
-    it (with its size) and whether it is a folder."""
+    it (with its size), whether it is a folder, and whose runs always write it (``"run"``:
+    every run, ``"live"``: every live SUMO ``twin run``; in folders since
+    :data:`COMPLETE_SINCE_FORMAT`)."""
 
     name: str
     written_by: str
@@ -100,6 +102,7 @@ class RunFile:
     required: bool = False
     listed: bool = True
     folder: bool = False
+    always: str = ""
 
 
 #: The run folder's format (run.json ``folder_format``; 1 when absent): 2 adds the bound's
@@ -119,17 +122,17 @@ RUN_FILES = (
     RunFile("series.parquet", "run, evaluate", "report", required=True),
     RunFile("trajectories.parquet", "run, evaluate", "report, replay", required=True),
     RunFile("summary.csv", "run, evaluate", "report, docs/make_results.py", required=True),
-    RunFile("per_seed.csv", "run, evaluate", "report, docs/make_results.py"),
+    RunFile("per_seed.csv", "run, evaluate", "report, docs/make_results.py", always="run"),
     RunFile("comparison.csv", "run, evaluate", "report"),
     RunFile("monitoring.csv", "run, evaluate", "report"),
     RunFile("events.parquet", "run, evaluate", "report"),
     RunFile("belief_models.csv", "run, evaluate (--history)", "report"),
     RunFile("belief_maps.npz", "run, evaluate (--history)", "report"),
     RunFile("importance.npz", "run, evaluate", "report", required=True),
-    RunFile("network.json", "run (SUMO)", "report, replay"),
-    RunFile("mfd.json", "run (SUMO)", "report"),
-    RunFile("mfd_samples.parquet", "run (SUMO)", "report"),
-    RunFile("tape.parquet", "run (SUMO)", "evaluate --traffic, history"),
+    RunFile("network.json", "run (SUMO)", "report, replay", always="live"),
+    RunFile("mfd.json", "run (SUMO)", "report", always="live"),
+    RunFile("mfd_samples.parquet", "run (SUMO)", "report", always="live"),
+    RunFile("tape.parquet", "run (SUMO)", "evaluate --traffic, history", always="live"),
     RunFile("tapes", "run (SUMO, several seeds)", "evaluate --traffic, history", folder=True),
     RunFile("incidents.json", "run (SUMO, incidents)", "report"),
     RunFile("detectors.parquet", "run (SUMO, [traffic.detectors])", "docs/measure_beliefs.py"),
@@ -138,7 +141,7 @@ RUN_FILES = (
     RunFile("bound.npz", "run, evaluate (ceilings)", "report"),
     RunFile("oracle.parquet", "run, evaluate (ceilings)", "report"),
     RunFile("sumo", "run (SUMO outputs of the scenario)", "the user", folder=True),
-    RunFile("timing.csv", "run, evaluate", "report"),
+    RunFile("timing.csv", "run, evaluate", "report", always="run"),
     RunFile("run.json", "run, evaluate", "report, replay, the rerun check of --out"),
     RunFile(MANIFEST, "run, evaluate (last)", "report, replay", listed=False),
     RunFile("report", "report (run, evaluate)", "a browser", listed=False, folder=True),
@@ -150,6 +153,13 @@ RUN_FILE_NAMES = frozenset(f.name for f in RUN_FILES)
 UNLISTED = tuple(f.name for f in RUN_FILES if not f.listed)
 #: Files ``twin report`` cannot draw without.
 REQUIRED_FILES = tuple(f.name for f in RUN_FILES if f.required)
+#: The first folder format whose folders hold every file and column their runs always write
+#: (:attr:`RunFile.always`; the columns of ``timing.csv``, ``mfd_samples.parquet`` and
+#: ``detectors.parquet``): a folder of it or later missing one was edited.
+COMPLETE_SINCE_FORMAT = 2
+#: Files every run writes, and every live SUMO ``twin run`` (besides :data:`REQUIRED_FILES`).
+RUN_WRITTEN = tuple(f.name for f in RUN_FILES if f.always == "run")
+LIVE_RUN_WRITTEN = tuple(f.name for f in RUN_FILES if f.always == "live")
 #: Options that change only what is printed: a rerun differing in these is the same command.
 #: (``--workers``/``--executor`` change where seeds run, not their results)
 DISPLAY_OPTIONS = frozenset(
@@ -376,6 +386,11 @@ def check_run_folder(run_dir: str | Path) -> dict[str, Any]:
         raise UserError(f"{manifest_path}: not a run manifest (unreadable JSON); {rerun}")
     check_manifest(manifest_path, manifest)
     for name, size in manifest["files"].items():
+        if Path(name).parts and Path(name).parts[0] in UNLISTED:  # written after the run
+            raise UserError(
+                f"{manifest_path}: lists {name}, which a run's manifest never lists (it is "
+                f"written after the run, or again later); {rerun}"
+            )
         p = run_dir / name
         if not p.exists():
             raise UserError(f"{run_dir}: {name} listed in {MANIFEST} is missing; {rerun}")

@@ -125,14 +125,35 @@ def hand_history(experiment: Experiment, history) -> None:
     """Give the run's history (``--history``) to every swarm that plans on one, over what its
     ``[swarm_options]`` say, and to every learned swarm (read when its checkpoint's state is
     the nowcast)."""
+    from twin.notices import notify
     from twin.swarms import SWARMS, base_name, needs_history
 
     options = dict(experiment.swarm_options)
     for name in experiment.swarms:
         kind = SWARMS.get(base_name(name))
         if needs_history(name) or (kind is not None and kind.learned):
+            own = {  # the swarm's own: the config's [swarm_options], the experiment's on top
+                **experiment.config.swarm_options.get(name, {}),
+                **options.get(name, {}),
+            }.get("history")
+            if own is not None and not _same_history(own, history, experiment.config.path):
+                notify(
+                    f"twin: notice: --history {getattr(history, 'path', None) or 'given'} replaces "
+                    f"[swarm_options.{name}].history = {str(own)!r} for the swarm {name}"
+                )
             options[name] = {**options.get(name, {}), "history": history}
     experiment.swarm_options = options
+
+
+def _same_history(own, history, config_path: Path) -> bool:
+    """Whether a swarm's own history (a History, or its file relative to the config) is the
+    run's ``history``."""
+    if own is history:
+        return True
+    path = getattr(own, "path", None) if not isinstance(own, (str, Path)) else own
+    if path is None or getattr(history, "path", None) is None:
+        return False
+    return (Path(config_path).parent / path).resolve() == Path(history.path).resolve()
 
 
 def print_tables(recorded: Recorded, title: str) -> None:

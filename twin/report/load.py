@@ -18,6 +18,7 @@ from twin.clock import clock_label, parse_clock
 from twin.errors import UserError
 from twin.grid import Grid
 from twin.metrics import BOUND, is_ceiling_row, swarm_rows
+from twin.mfd import EMPTY_SAMPLE_COLUMNS
 from twin.readback import (
     BELIEF_MODEL_COLUMNS,
     DEGRADATION_COLUMNS,
@@ -47,6 +48,7 @@ from twin.readback import (
     check_trajectories,
     numeric_columns,
     off_grid,
+    parquet_columns,
     read_json,
     read_maps,
     read_table,
@@ -58,8 +60,15 @@ from twin.report.derived import (
     check_derived,
     folder_format_of,
 )
-from twin.runs import REQUIRED_FILES
+from twin.runs import (
+    COMPLETE_SINCE_FORMAT,
+    FOLDER_FORMAT,
+    LIVE_RUN_WRITTEN,
+    REQUIRED_FILES,
+    RUN_WRITTEN,
+)
 from twin.scores import ScoreParams, initial_idleness, update_idleness
+from twin.sumo.detectors import DETECTOR_COLUMNS
 from twin.swarms import check_policy_records
 
 
@@ -282,11 +291,27 @@ def read_fault_free(run_dir: Path, run: dict[str, Any], obstacles: np.ndarray):
     return frame
 
 
+def check_written_files(run_dir: Path, run: dict[str, Any]) -> None:
+    """A folder of :data:`twin.runs.COMPLETE_SINCE_FORMAT` or later holds the files its run
+    always writes (:data:`twin.runs.RUN_WRITTEN`, :data:`twin.runs.LIVE_RUN_WRITTEN` and a
+    live run's tape of each seed): one removed with its manifest entry would leave its figures
+    or its checks out of the report unsaid."""
+    if folder_format_of(run) < COMPLETE_SINCE_FORMAT:
+        return
+    traffic = run.get("traffic")
+    live = run.get("kind") == "run" and isinstance(traffic, dict) and traffic.get("kind") == "sumo"
+    seeds = run.get("seeds") if isinstance(run.get("seeds"), list) else []
+    tapes = [f"tapes/seed-{s}.parquet" for s in seeds] if live and len(seeds) > 1 else []
+    for name in (*RUN_WRITTEN, *(LIVE_RUN_WRITTEN if live else ()), *tapes):
+        if not (run_dir / name).is_file():
+            whose = "every run" if name in RUN_WRITTEN else "a live SUMO run"
+            raise UserError(f"{run_dir}: {name} is missing, which {whose} writes; {RERUN}")
+
+
 def _say_folder_format(run_dir: Path, run: dict[str, Any]) -> None:
     """A folder of an earlier format (:data:`twin.runs.FOLDER_FORMAT`) reads back, with a
     notice of what its read-back cannot replay; a later format than this twin's is refused."""
     from twin.boundary import notify
-    from twin.runs import FOLDER_FORMAT
 
     found = run.get("folder_format", 1)
     if not isinstance(found, int) or isinstance(found, bool) or found < 1:
@@ -344,6 +369,7 @@ def load_run(run_dir: str | Path) -> RunFiles:
     run = check_run_json(run_path, read_json(run_path) or {})
     check_policy_records(run_path, run)
     _say_folder_format(run_dir, run)
+    check_written_files(run_dir, run)
     importance, obstacles = read_maps(run_dir / "importance.npz")
     if importance.shape[0] < 2:
         raise UserError(
@@ -394,16 +420,30 @@ def load_run(run_dir: str | Path) -> RunFiles:
     degradation = optional("degradation.csv", DEGRADATION_COLUMNS, ("swarm", "label"))
     if degradation is not None:
         check_known_columns(run_dir / "degradation.csv", degradation, DEGRADATION_COLUMNS)
+    # columns written since before COMPLETE_SINCE_FORMAT: required of a folder of it or later
+    current = folder_format_of(run) >= COMPLETE_SINCE_FORMAT
     if timing is not None:
-        check_known_columns(run_dir / "timing.csv", timing, [*TIMING_COLUMNS, "process", "share"])
+        extra = ("process", "share")
+        check_known_columns(
+            run_dir / "timing.csv", timing, [*TIMING_COLUMNS, *extra], extra if current else ()
+        )
         for name, kind in (("process", TEXT), ("share", NUMBER)):
             if name in timing.columns:
                 check_column(run_dir / "timing.csv", timing, name, kind)
         check_bounds(run_dir / "timing.csv", timing)
         check_timing(run_dir / "timing.csv", timing, series)
     samples = optional("mfd_samples.parquet", MFD_SAMPLE_COLUMNS)
+    if samples is not None:
+        written = EMPTY_SAMPLE_COLUMNS.keys()
+        check_known_columns(
+            run_dir / "mfd_samples.parquet", samples, written, written if current else ()
+        )
     if samples is not None and "speed_limit" in samples.columns:
         check_column(run_dir / "mfd_samples.parquet", samples, "speed_limit", NUMBER)
+    path = run_dir / "detectors.parquet"
+    if path.exists():  # its columns (its readings: check_detector_readings)
+        written = parquet_columns(path)
+        check_known_columns(path, written, DETECTOR_COLUMNS, DETECTOR_COLUMNS if current else ())
     network, mfd = read_json(run_dir / "network.json"), read_json(run_dir / "mfd.json")
     incidents = read_json(run_dir / "incidents.json")
     if network is not None:

@@ -37,6 +37,10 @@ import numpy as np
 
 from twin.errors import UserError
 
+#: Columns of ``detectors.parquet``: each fixed detector's reading at each sample time.
+DETECTOR_COLUMNS = ["seed", "step", "detector", "kind", "virtual", "lane", "i", "j", "vehicles",
+                    "occupancy_pct", "speed", "importance"]  # fmt: skip
+
 #: Prefix of the ids of the loops twin places (told apart from the scenario's own).
 VIRTUAL_PREFIX = "twin-loop-"
 LOOP = "loop"

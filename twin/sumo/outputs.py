@@ -20,8 +20,9 @@ A file that declares entities in its own DTD is loaded as such a copy too, its e
 expanded: SUMO's program reads them, libsumo does not.
 
 An output the sumocfg sends to ``stdout`` or ``stderr`` (``-``) goes to ``RUN/sumo/<option>.xml``
-instead (listed in run.json's ``traffic.sumo_outputs``): twin's tables and its one-line
-errors are on those streams.
+instead, one of an additional file's elements to ``RUN/sumo/<element>-<id>.xml``
+(``edgeData-ed1.xml``; a parameter's to ``<key>.xml``), all listed in run.json's
+``traffic.sumo_outputs``: twin's tables and its one-line errors are on those streams.
 
 SSM devices equipped without a file (``device.ssm.probability``, a vehicle type's
 ``has.ssm.device``) would write one ``ssm_<vehicle>.xml`` per vehicle into SUMO's working
@@ -42,6 +43,7 @@ placeholder kept), which names the files but keeps them in ``RUN/sumo/``.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import itertools
 import os
 import re
@@ -49,6 +51,7 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 from twin.errors import UserError
+from twin.notices import notify
 from twin.sumo.options import output_options
 from twin.sumo.readers import (
     as_given,
@@ -61,6 +64,14 @@ from twin.sumo.readers import (
     words_held,
 )
 
+#: SUMO's own messages while it runs (its warnings are off; errors such as a vehicle that
+#: cannot depart), kept in this file of SUMO's output folder instead of twin's stderr
+#: (:mod:`twin.sumo.worker`); an output of the scenario's by that name is named apart.
+MESSAGES_NAME = "sumo-messages.log"
+#: The later seeds' output folders beside the first seed's outputs (``sumo/seed-<s>/``,
+#: :func:`twin.experiment.build_source`): an output of the scenario's by such a name is named
+#: apart.
+SEED_FOLDER = re.compile(r"seed-\d+")
 #: Options that add to every output's name (kept to their name part, :func:`name_part`).
 NAMING_OPTIONS = ("output-prefix", "output-suffix")
 #: Options whose value is a list of files.
@@ -118,21 +129,30 @@ class OutputPlan:
         self.out_dir = Path(os.path.abspath(out_dir))
         self.targets: dict[Path, Path] = {}
         self.copies: dict[Path, Path] = {}
-        self._names: set[str] = set()
+        self._names: set[str] = {MESSAGES_NAME}
         #: SSM devices may be equipped (a ``device.ssm.*`` option or parameter): without a
         #: file, SUMO writes one ``ssm_<vehicle>.xml`` per vehicle into its working folder
         self.ssm_devices = False
+        #: the names twin made for outputs sent to a stream (SUMO adds a prefix to them)
+        self.made: list[str] = []
 
     def _fresh(self, name: str) -> Path:
         name = literal(name)
         stem, dot, suffix = name.partition(".")
         for n in itertools.count(1):
             candidate = name if n == 1 else f"{stem}-{n}{dot}{suffix}"
-            if candidate not in self._names:
+            if candidate not in self._names and not SEED_FOLDER.fullmatch(candidate):
                 self._names.add(candidate)
                 self.out_dir.mkdir(parents=True, exist_ok=True)
                 return self.out_dir / candidate
         raise AssertionError  # pragma: no cover
+
+    def stream_file(self, name: str) -> Path:
+        """The file of an output the scenario sends to a stream, named apart from its other
+        outputs (:data:`MAX_MADE_NAME` at most, kept in :attr:`made`)."""
+        path = self._fresh(name)
+        self.made.append(path.name)
+        return path
 
     def own_file(self, name: str) -> Path:
         """A file of twin's own in ``out_dir`` (its virtual loops), named apart from the
@@ -168,6 +188,7 @@ class OutputPlan:
             for param in program
             if local_name(param) == "param" and param.get("key") in PROGRAM_OUTPUTS
         }
+        streams: list[tuple[ET.Element, str, str]] = []  # outputs sent to stdout or stderr
         for elem in root.iter():
             tag = local_name(elem)
             attr = OUTPUT_ELEMENTS.get(tag)
@@ -178,9 +199,14 @@ class OutputPlan:
             if tag == "param" and _names_ssm(elem.get("key")):
                 self.ssm_devices = True
             value = elem.get(attr) if attr else None
-            if value is not None and _is_file(value):
+            if value is not None and value.strip() in _STREAMS:  # twin's tables are there
+                streams.append((elem, attr, tag))
+            elif value is not None and _is_file(value):
                 elem.set(attr, str(self.target(base / value)))
                 changed = True
+        for elem, attr, tag in streams:  # after the file's own names: those keep theirs
+            elem.set(attr, str(self.stream_file(_stream_file(elem, tag))))
+            changed = True
         for elem in root.iter():
             href = elem.get("href") if local_name(elem) == "include" else None
             if href and self.additional(base / href) != _absolute(base / href):
@@ -237,6 +263,22 @@ class OutputPlan:
         if not ssm or "--device.ssm.file" in options:
             return options
         return (*options, "--device.ssm.file", str(self.target(self.out_dir / "ssm.xml")))
+
+
+#: The longest name twin makes up for an output (file systems take 255 bytes): a longer one
+#: keeps its start and a digest of the whole.
+MAX_MADE_NAME = 100
+
+
+def _stream_file(elem: ET.Element, tag: str) -> str:
+    """The file in the output folder of an element that sends its output to ``stdout`` or
+    ``stderr``: ``<tag>-<id>.xml`` (``edgeData-ed1.xml``), a parameter's ``<key>.xml``."""
+    name = elem.get("key") if tag == "param" else f"{tag}-{elem.get('id', '')}".rstrip("-")
+    name = re.sub(r"[^\w.-]", "_", name or tag)
+    if len(name.encode()) > MAX_MADE_NAME:  # a 300-character id (SUMO takes it)
+        digest = hashlib.sha256(name.encode()).hexdigest()[:12]
+        name = f"{name.encode()[:60].decode(errors='ignore')}-{digest}"
+    return name + ".xml"
 
 
 def _program_output(path: Path) -> bool:
@@ -313,15 +355,18 @@ def redirect_outputs(
         state_times = any(cfg.options.get(k) for k in ("save-state.times", "save-state.period"))
         if state_times and not given.get("save-state.files") and "save-state.prefix" not in given:
             given["save-state.prefix"] = "state"  # SUMO's default prefix, in its working folder
+        streams = [name for name, value in given.items() if value.strip() in _STREAMS]
         for name, value in given.items():
-            if value.strip() in _STREAMS:  # twin's tables and errors are there
-                extra += [f"--{name}", str(plan.target(base / f"{name}.xml"))]
-            elif name in _FILE_LISTS:
+            if name in streams:  # twin's tables and errors are there: after the others' names
+                continue
+            if name in _FILE_LISTS:
                 files = file_list(value, base)
                 if files:
                     extra += [f"--{name}", ",".join(str(plan.target(f)) for f in files)]
             elif _is_file(value):
                 extra += [f"--{name}", str(plan.target(base / value.strip()))]
+        for name in streams:  # a file of its own, named apart from the outputs' own names
+            extra += [f"--{name}", str(plan.stream_file(f"{name}.xml"))]
     for i in range(len(out) - 1):
         if out[i] in ("--additional-files", "-a"):
             files = [Path(v) for v in out[i + 1].split(",") if v]
@@ -335,7 +380,41 @@ def redirect_outputs(
                 )
         elif out[i] in {f"--{name}" for name in NAMING_OPTIONS}:
             out[i + 1] = name_part(out[i + 1])
-    return (*out, *extra), plan
+    return _naming_that_fits((*out, *extra), plan), plan
+
+
+#: The longest file name file systems take (bytes).
+MAX_FILE_NAME = 255
+
+
+def _naming_that_fits(options: tuple[str, ...], plan: OutputPlan) -> tuple[str, ...]:
+    """``options`` with an ``output-prefix``/``output-suffix`` shortened (its start and a
+    digest) when, around a name twin made for a stream's output, it would make a file name
+    longer than file systems take: SUMO alone never names a file for a stream, so a scenario
+    with a long prefix runs there."""
+    if not plan.made:
+        return options
+    out = list(options)
+    at = {
+        out[i]: i + 1
+        for i in range(len(out) - 1)
+        if out[i] in ("--output-prefix", "--output-suffix")
+    }
+    parts = {flag: out[i] for flag, i in at.items()}
+    room = MAX_FILE_NAME - max(len(n.encode()) for n in plan.made)
+    if sum(len(v.encode()) for v in parts.values()) <= room:
+        return options
+    share = max(room // len(parts), 16)
+    for flag, i in at.items():
+        value = out[i]
+        if len(value.encode()) > share:
+            digest = hashlib.sha256(value.encode()).hexdigest()[:8]
+            out[i] = f"{value.encode()[: share - 9].decode(errors='ignore')}-{digest}"
+            notify(
+                f"twin: notice: {flag.removeprefix('--')} is {len(value)} characters, too long "
+                f"for the files of outputs sent to a stream; {out[i]!r} names the outputs"
+            )
+    return tuple(out)
 
 
 def check_output_dir(out_dir: Path) -> None:

@@ -10,7 +10,8 @@ Keys of ``[traffic]`` (all optional except ``kind``; see configs/shenzhen.toml):
   vehicles, flows and persons are demand, as SUMO loads them;
 - ``begin`` ("07:00", time of ``T^0``), ``horizon`` (144), ``warmup_min`` (30), ``seed`` (0);
   ``end`` (a clock time): the end of the scenario's window. For a network given as files, the
-  window is its own (``<time>`` of the sumocfg, else the demand's departures) unless set;
+  window is its own (``<time>`` of the sumocfg, else the demand's departures) unless set; a
+  ``horizon`` the config gives must end by its ``end`` (a flag may take it past, with a notice);
 - ``mesoscopic`` (false), ``min_lane_km`` (0: a cell is an obstacle only without any lane),
   ``demand_scale`` (1.0, demand generated for networks without routes);
 - ``[traffic.mfd]``: ``fit`` ("online" | "fixed"), ``a``, ``k_c`` (the fixed or prior MFD),
@@ -401,6 +402,42 @@ def _step_seconds(s: SumoSettings, config) -> float:
     return step_s
 
 
+#: The keys whose values place a run's last step: its begin, its steps and their length.
+WINDOW_KEYS = ("traffic.begin", "traffic.horizon", "traffic.end", "traffic.cell_m",
+               "traffic.drone_speed_kmh")  # fmt: skip
+
+
+def _check_horizon_within_end(
+    config, s: SumoSettings, begin: float, step_s: float, end: float, horizon_given: bool
+):
+    """A run past the config's own ``[traffic].end``: its horizon, or (none given) the one step
+    a window shorter than a step still runs. Refused in one line when the config file sets
+    them all; said in a notice when a flag or a sweep's key set one of :data:`WINDOW_KEYS`
+    (an override wins over a key of the file)."""
+    stop = begin + s.horizon * step_s
+    if stop <= end + 1e-6:
+        return
+    span = f"{s.horizon} steps of {step_s:g} s from {clock_label(begin)} end at {clock_label(stop)}"
+    changed = config.set_by(WINDOW_KEYS)
+    if changed:
+        notice(
+            f"{', '.join(changed)}: {span}, past {config.path}: [traffic].end = {s.end!r}; "
+            "twin runs its own window"
+        )
+        return
+    if not horizon_given:  # the window holds no whole step
+        raise UserError(
+            f"{config.path}: [traffic].end = {s.end!r} is less than one step ({step_s:g} s) "
+            f"after the begin {clock_label(begin)}; give an end at least one step later"
+        )
+    fits = int((end - begin) / step_s + 1e-9)
+    fix = f"give a horizon of at most {fits}" if fits >= 1 else "give a later end"
+    raise UserError(
+        f"{config.path}: [traffic].horizon = {s.horizon}: {span}, past [traffic].end = "
+        f"{s.end!r}; {fix}, or leave out one of them"
+    )
+
+
 def _time_window(
     s: SumoSettings,
     files: _ScenarioFiles,
@@ -692,6 +729,9 @@ def sumo_source(
     t0, warmup, window = _time_window(
         s, files, step_s, t0, warmup, begin_given, horizon_given, begin_where
     )
+    end_given = s.end is not None and (not swapped or own)
+    if end_given:  # the config's end bounds its horizon (one that fits, when not given)
+        _check_horizon_within_end(config, s, t0, step_s, files.window[1], horizon_given)
     window_given = begin_given or horizon_given or s.end is not None
     if begin_given and files.at_begin:  # SUMO begins at twin's warm-up start: so do they
         files.span = departure_span(

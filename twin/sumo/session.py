@@ -153,14 +153,27 @@ class SumoSession:
         named = (self.config_file, self.net_file, *self.route_files, *self.additionals())
         return [Path(p) for p in named if p is not None]
 
+    def read_files(self) -> list[Path]:
+        """:meth:`input_files` with, after each, the files it pulls in with ``<include
+        href>`` (a refused object may be defined there)."""
+        from twin.sumo.readers import included_files, may_hold
+
+        out = []
+        for path in self.input_files():
+            out.append(path)
+            if path.suffix != ".sumocfg" and may_hold(path, b"include"):
+                out += included_files(path)
+        return out
+
     def file_of(self, message: str) -> Path | str | None:
         """The input file a message of SUMO's names or concerns, None when none is told."""
-        return sumo_refusal(message, self.input_files(), fallback=False)[0]
+        return sumo_refusal(message, self.read_files(), fallback=False)[0]
 
     def refusal(self, message: str, when: str = "") -> UserError:
         """SUMO's refusal (``message``) as one line naming the file it concerns
-        (:func:`sumo_refusal`); ``when`` says when SUMO gave it, if not on start."""
-        where, reason = sumo_refusal(message, self.input_files())
+        (:func:`sumo_refusal`, an included file too); ``when`` says when SUMO gave it, if not
+        on start."""
+        where, reason = sumo_refusal(message, self.read_files())
         return UserError(f"{where}: SUMO refuses it{when}: {reason}")
 
     def start(self) -> SumoSession:
@@ -280,6 +293,15 @@ class SumoSession:
         self.close()
 
 
+#: The elements that define an object SUMO names by its kind at the start of a refusal
+#: ("Vehicle 'v' has no valid route"): its own file is named, not another holding the id.
+OBJECT_ELEMENTS = {
+    "vehicle": ("vehicle", "trip", "flow"),
+    "person": ("person", "personFlow"),
+    "container": ("container", "containerFlow"),
+}
+
+
 def sumo_refusal(
     text: str, files: list[Path], fallback: bool = True
 ) -> tuple[Path | str | None, str]:
@@ -305,6 +327,19 @@ def sumo_refusal(
     for path in files:
         if any(Path(token).name == Path(path).name for token in quoted):
             return path, reason
+    # the object a refusal is about, named by its kind first ("Vehicle 'bad' has no valid
+    # route ... edge 'A0A1'"): the file defining one of that kind (a flow's vehicle
+    # 'f.0' is the flow 'f''s)
+    subject = re.match(r"(?:The )?([A-Za-z]+) '([^']+)'", reason)
+    kind = subject[1].lower() if subject else ""
+    if kind in OBJECT_ELEMENTS:
+        name = subject[2]
+        ids = [name, *([name.rsplit(".", 1)[0]] if re.search(r"\.\d+$", name) else [])]
+        tags, names = "|".join(OBJECT_ELEMENTS[kind]), "|".join(re.escape(i) for i in ids)
+        pattern = rf'<(?:{tags})\s[^>]*\bid\s*=\s*"(?:{names})"'
+        for path in reversed(files):
+            if path.suffix != ".sumocfg" and re.search(pattern, _text_of(path)):
+                return path, reason
     for path in reversed(files):  # additionals and routes before the network
         if quoted and path.suffix != ".sumocfg" and _mentions(path, quoted):
             return path, reason

@@ -30,7 +30,7 @@ from twin.files import file_sha256
 from twin.grid import Grid
 from twin.mfd import MFD, MFDImportance, density_from_occupancy
 from twin.sumo.cells import CellGeometry
-from twin.sumo.detectors import DetectorPlan
+from twin.sumo.detectors import DETECTOR_COLUMNS, DetectorPlan
 from twin.sumo.incidents import configured_schedule
 from twin.sumo.readers import file_list, included_files, naming_the_sumocfg, read_sumocfg
 from twin.sumo.session import SumoRunError, SumoSession, gridlock_defaults
@@ -544,11 +544,6 @@ class SumoTraffic(TrafficSource):
             (run_dir / "tapes").mkdir(exist_ok=True)
             for seed, source in by_seed:
                 atomic_write(run_dir / "tapes" / f"seed-{seed}.parquet", source.tape().write)
-
-
-#: Columns of ``detectors.parquet``.
-DETECTOR_COLUMNS = ["seed", "step", "detector", "kind", "virtual", "lane", "i", "j", "vehicles",
-                    "occupancy_pct", "speed", "importance"]  # fmt: skip
 
 
 def _remove(folder: Path | None) -> None:

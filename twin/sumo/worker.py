@@ -31,6 +31,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from twin.processes import exit_with_parent
+from twin.sumo.outputs import MESSAGES_NAME
 from twin.timing import StageTimer
 
 
@@ -174,11 +175,6 @@ def _take_end(source: WorksAhead, message) -> None:
     source.detector_readings.extend(det[1])
     source.model, source.timer, source.read_seconds = model, timer, read_seconds
     source.error, source._incidents = error, incidents
-
-
-#: SUMO's own messages while it runs (its warnings are off; errors such as a vehicle that
-#: cannot depart), kept in this file of SUMO's output folder instead of twin's stderr.
-MESSAGES_NAME = "sumo-messages.log"
 
 
 def _messages_file() -> Path:

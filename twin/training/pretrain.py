@@ -24,6 +24,7 @@ import csv
 import hashlib
 import itertools
 import json
+import os
 import time
 from pathlib import Path
 from typing import Annotated, Any, ClassVar, Literal
@@ -854,9 +855,28 @@ def pretrain(
         torch.set_flush_denormal(False)  # the process's default again
 
 
+def training_threads(cfg: PretrainConfig) -> int:
+    """torch's threads: ``threads``, at most the CPUs this process may use (more only slow
+    training, and each one's stack takes memory: 100000 ran out of it), said in a notice. The
+    config keeps its value, so a checkpoint of a larger machine resumes on a smaller one."""
+    from twin.notices import notify
+
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # not on Linux
+        cpus = os.cpu_count() or 1
+    if cfg.threads <= cpus:
+        return cfg.threads
+    notify(
+        f"twin: notice: threads = {cfg.threads}, but this machine gives twin {cpus} CPUs: "
+        f"training on {cpus} threads"
+    )
+    return cpus
+
+
 def _pretrain(cfg, progress, out, state_path, model_path, log_path) -> Path:
     """:func:`pretrain`'s work, with subnormals flushed: collect, train, checkpoint."""
-    torch.set_num_threads(cfg.threads)
+    torch.set_num_threads(training_threads(cfg))
     torch.manual_seed(cfg.seed)
 
     history = training_history(cfg)  # the nowcast's, built once per run (None: not read)
@@ -1262,6 +1282,14 @@ def _check_settings(path: Path, cfg: PretrainConfig) -> dict[str, Any]:
         raise UserError(
             f"{path} was written by a run with other settings ({', '.join(changed)}); "
             f"delete {path.parent} or set another `out` to start afresh"
+        )
+    epoch = blob.get("epoch")
+    if isinstance(epoch, int) and epoch > cfg.epochs:  # its model would be labelled cfg.epochs
+        given = cfg.flag_of("epochs") or "epochs ="
+        raise UserError(
+            f"{path}: its run trained {epoch} epochs, past {given} {cfg.epochs}; give at least "
+            f"{epoch} epochs to resume it, or delete {path.parent} (or set another `out`) to "
+            f"train {cfg.epochs} afresh"
         )
     return blob
 
