@@ -209,6 +209,46 @@ def test_sumo_refusal_of_an_included_files_object_names_that_file(city, tmp_path
     assert "NOPE_0" in lines[-1]
 
 
+def _own_sumocfg(city: Path, tmp_path: Path, routes: str, additional: str = "") -> Path:
+    """A sumocfg of the grid network with the route file ``routes`` (and an additional file)
+    written beside it."""
+    data = city / "data"
+    (tmp_path / "r.rou.xml").write_text(routes)
+    adds = f"{data / 'vtypes.add.xml'}"
+    if additional:
+        (tmp_path / "a.add.xml").write_text(additional)
+        adds += f",{tmp_path / 'a.add.xml'}"
+    cfg = tmp_path / "s.sumocfg"
+    cfg.write_text(f'<configuration><input><net-file value="{data / "grid.net.xml"}"/>'
+                   f'<route-files value="{data / "grid.rou.xml"},{tmp_path / "r.rou.xml"}"/>'
+                   f'<additional-files value="{adds}"/></input></configuration>')  # fmt: skip
+    return cfg
+
+
+def test_sumos_reason_for_a_vehicle_it_cannot_create_is_told(city, tmp_path, capsys):
+    """A vehicle id SUMO refuses ("Invalid vehicle id 'q&r'. Contains invalid characters."),
+    which libsumo raises only as "vehicle cannot be created": the line names the route file
+    and SUMO's reason (it named the sumocfg and the last words alone: probe 21's P2-07)."""
+    first = _departures(city / "data" / "grid.rou.xml")[0]
+    cfg = _own_sumocfg(city, tmp_path, f'<routes><vehicle id="q&amp;r" depart="{first + 5}">'
+                       '<route edges="e0"/></vehicle></routes>')  # fmt: skip
+    code, err = _run(city, "qr", "--sumocfg", str(cfg), capsys=capsys)
+    line = err.strip().splitlines()[-1]
+    assert code == 2 and line.startswith(f"twin: error: {tmp_path / 'r.rou.xml'}"), err
+    assert "Invalid vehicle id 'q&r'" in line and "Traceback" not in err, line
+
+
+def test_an_error_sumo_goes_on_after_while_loading_is_kept(city, tmp_path, capsys):
+    """``<vType vClass="spaceship"/>`` in a route file: SUMO says so while loading and goes on
+    (in an additional file it stops: refused); the notice of
+    SUMO's errors tells it and sumo/sumo-messages.log keeps it (it was dropped: P2-08)."""
+    cfg = _own_sumocfg(city, tmp_path, '<routes><vType id="t" vClass="spaceship"/></routes>')
+    code, err = _run(city, "space", "--sumocfg", str(cfg), capsys=capsys)
+    assert code == 0, err
+    assert "SUMO reported 1 error" in err and "spaceship" in err, err
+    assert "spaceship" in (city / "space" / "sumo" / "sumo-messages.log").read_text()
+
+
 def test_a_refused_vehicle_is_blamed_on_the_file_defining_it(tmp_path):
     """SUMO names the object by its kind ("Vehicle 'bad'"): the file that defines a vehicle of
     that id is named, not an additional file whose bus stop has the same id (probe 21's

@@ -17,11 +17,13 @@ import io
 import itertools
 import os
 import re
+import stat
 import subprocess
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
+from xml.sax.saxutils import escape as xml_escape
 
 import numpy as np
 
@@ -197,8 +199,13 @@ class SumoSession:
             with contextlib.suppress(Exception):
                 libsumo.close()
             raise self.refusal(message) from None
+        else:
+            said = stderr.text()  # errors SUMO went on after while loading: kept as SUMO's
         finally:
             stderr.restore()
+        if said:  # messages, like those it writes while running (sumo/sumo-messages.log)
+            with contextlib.suppress(OSError):
+                os.write(2, said.encode())
         SumoSession._active = self
         self.started = True
         return self
@@ -260,6 +267,8 @@ class SumoSession:
             _libsumo().simulationStep(t)
         except Exception as exc:
             said = _first_line(str(exc))
+            cause = _last_error_written(said)  # "vehicle cannot be created": SUMO said why
+            said = f"{cause} ({said})" if cause else said
             raise SumoRunError(f"SUMO failed before t = {t:g} s: {said}", said) from exc
 
     def vehicles(self) -> tuple[np.ndarray, np.ndarray]:
@@ -324,6 +333,7 @@ def sumo_refusal(
     # the object SUMO names: quoted ('nolane_0'), or in parentheses ("to save (B1)")
     quoted = re.findall(r"'([^']+)'", reason) + re.findall(r"\(([^()\s]+)\)", reason)
     quoted += [t[1:] for t in quoted if t.startswith("!") and len(t) > 1]  # '!v': v's route
+    quoted += [e for t in quoted if (e := xml_escape(t, {'"': "&quot;"})) != t]  # as written
     for path in files:
         if any(Path(token).name == Path(path).name for token in quoted):
             return path, reason
@@ -417,6 +427,23 @@ def _text_of(path: Path) -> str:
             return fh.read(64 << 20).decode(errors="replace")
     except (OSError, EOFError):
         return ""
+
+
+def _last_error_written(said: str) -> str | None:
+    """SUMO's last ``Error:`` line on stderr before the error libsumo raised (``said``), when
+    stderr is a file (a worker's SUMO messages): the cause SUMO wrote first ("Invalid vehicle
+    id 'q&r'") of the error it then raised ("vehicle cannot be created")."""
+    try:
+        if not stat.S_ISREG(os.fstat(2).st_mode):
+            return None
+        with open("/proc/self/fd/2", "rb") as fh:  # the file behind stderr (Linux)
+            fh.seek(max(0, os.fstat(fh.fileno()).st_size - 65536))
+            lines = fh.read().decode(errors="replace").splitlines()
+    except OSError:
+        return None
+    errors = [x[len("Error:") :].strip() for x in lines if x.startswith("Error:")]
+    errors = [x for x in errors if x and x != said]
+    return errors[-1] if errors else None
 
 
 def _first_line(text: str) -> str:
