@@ -783,7 +783,10 @@ def sumo_source(
     if scenario.incidents:  # checked before SUMO starts, against the final window and grid
         from twin.sumo.incidents import check_incidents
 
-        for text in check_incidents(scenario.incidents, scenario, geometry, str(config.path)):
+        checked = check_incidents(
+            scenario.incidents, scenario, geometry, str(config.path), obstacles
+        )
+        for text in checked:
             notices.append(text)
             notice(text)
     return SumoTraffic(scenario, geometry, Grid(obstacles))
