@@ -434,7 +434,7 @@ def _detector_case(scenario: Path, d: Path, output: str = "") -> Path:
     detector = f'<e1Detector id="d" lane="{lane}" pos="20" freq="60" file="det.xml"/>'
     cfg = _cfg(
         '<input><net-file value="small.net.xml"/><route-files value="small.trips.xml"/>'
-        f'<additional-files value="det.add.xml"/></input><output>{output}</output>'
+        f'<additional-files value="det.add.xml"/></input>{f"<output>{output}</output>" if output else ""}'
     )
     return _write_case(scenario, d, cfg, {"det.add.xml": f"<additional>{detector}</additional>"})
 
@@ -561,7 +561,11 @@ def _environment_variables(d: Path) -> None:
     with ``${TWIN_TEST_PREFIX}`` = ``../../escape_`` (SUMO substitutes both)."""
     cfg = d / "case.sumocfg"
     text = cfg.read_text().replace('"small.net.xml"', '"${TWIN_TEST_NET}"')
-    cfg.write_text(text.replace("<output>", '<output><output-prefix value="${TWIN_TEST_PREFIX}"/>'))
+    cfg.write_text(
+        text.replace(
+            "</input>", '</input><output><output-prefix value="${TWIN_TEST_PREFIX}"/></output>'
+        )
+    )
 
 
 def _entity_in_routes(d: Path) -> None:
@@ -720,8 +724,8 @@ def test_save_configuration_by_any_name_is_refused_before_sumo_starts(
     scenario, tmp_path, capsys, option
 ):
     cfg = _detector_case(scenario, tmp_path / "case")
-    text = cfg.read_text().replace("<output>", f'<configuration><{option} value="saved.sumocfg"/>'
-                                   "</configuration><output>")  # fmt: skip
+    text = cfg.read_text().replace("</input>", f'</input><configuration><{option} '
+                                   'value="saved.sumocfg"/></configuration>')  # fmt: skip
     cfg.write_text(text)
     before = tree_hash(tmp_path / "case")
     code = _run(scenario, tmp_path / "run", "--sumocfg", str(cfg))
@@ -756,8 +760,8 @@ def test_a_config_seeding_sumo_from_the_clock_still_repeats(scenario, tmp_path, 
     """``<random value="true"/>`` (SUMO's seed from the clock) is overridden with a notice:
     two runs of one SUMO seed record the same traffic."""
     cfg = _detector_case(scenario, tmp_path / "case")
-    cfg.write_text(cfg.read_text().replace("<output>", '<random_number><random value="true"/>'
-                                           "</random_number><output>"))  # fmt: skip
+    cfg.write_text(cfg.read_text().replace("</input>", '</input><random_number><random '
+                                           'value="true"/></random_number>'))  # fmt: skip
     tapes = []
     for name in ("a", "b"):
         assert _run(scenario, tmp_path / name, "--sumocfg", str(cfg)) == 0
@@ -770,8 +774,8 @@ def test_a_config_seeding_sumo_from_the_clock_still_repeats(scenario, tmp_path, 
 def test_a_config_seed_replaced_by_twins_is_said(scenario, tmp_path, capsys):
     """``<seed value="42"/>``: twin seeds SUMO itself (one seed per run seed) and says so."""
     cfg = _detector_case(scenario, tmp_path / "case")
-    cfg.write_text(cfg.read_text().replace("<output>", '<random_number><seed value="42"/>'
-                                           "</random_number><output>"))  # fmt: skip
+    cfg.write_text(cfg.read_text().replace("</input>", '</input><random_number><seed '
+                                           'value="42"/></random_number>'))  # fmt: skip
     assert _run(scenario, tmp_path / "run", "--sumocfg", str(cfg)) == 0
     err = capsys.readouterr().err
     assert "<seed value='42'> is replaced by twin's SUMO seed" in err, err
