@@ -401,19 +401,47 @@ def test_a_long_output_prefix_is_shortened_for_a_streams_file(tmp_path, capsys):
     """A 240-character ``output-prefix`` with an output sent to stdout: SUMO alone names no
     file, twin's file for the stream would pass 255 bytes with the prefix (probe 21's P2-05):
     the prefix is shortened with a digest, said in a notice; a short one is kept."""
-    from twin.sumo.outputs import MAX_FILE_NAME, redirect_outputs
+    from twin.outputs import NAME_MAX
+    from twin.sumo.outputs import naming_that_fits, redirect_outputs
 
     (tmp_path / "s").mkdir()
     cfg = tmp_path / "s" / "a.sumocfg"
     for prefix, kept in (("p" * 240, False), ("run1_", True)):
         cfg.write_text(f'<configuration><output><output-prefix value="{prefix}"/>'
                        '<tripinfo-output value="stdout"/></output></configuration>')  # fmt: skip
-        options, _ = redirect_outputs(cfg, (), tmp_path / "o" / prefix[:5])
-        given = dict(zip(options[::2], options[1::2], strict=True))
+        options, plan = redirect_outputs(cfg, (), tmp_path / "o" / prefix[:5])
+        given = dict(zip(*[iter(naming_that_fits(options, plan))] * 2, strict=True))
         name = given["--output-prefix"] + Path(given["--tripinfo-output"]).name
-        assert len(name.encode()) <= MAX_FILE_NAME
+        assert len(name.encode()) <= NAME_MAX
         assert (given["--output-prefix"] == prefix) == kept
-        assert ("output-prefix is 240 characters" in capsys.readouterr().err) != kept
+        assert ("output-prefix 'pppp" in capsys.readouterr().err) != kept
+    # a route file's stream, planned after the sumocfg's options: counted too (the review)
+    routes = tmp_path / "s" / "r.rou.xml"
+    routes.write_text('<routes><vType id="t"><param key="device.ssm.file" value="stdout"/>'
+                      "</vType></routes>")  # fmt: skip
+    cfg.write_text(f'<configuration><output><output-prefix value="{"q" * 240}"/></output>'
+                   "</configuration>")  # fmt: skip
+    options, plan = redirect_outputs(cfg, (), tmp_path / "o3")
+    made = Path(ET.parse(plan.routes(routes)).getroot()[0][0].get("value")).name
+    given = dict(zip(*[iter(naming_that_fits(options, plan))] * 2, strict=True))
+    assert len((given["--output-prefix"] + made).encode()) <= NAME_MAX
+
+
+def test_a_parameter_every_vehicle_sends_to_a_stream_shares_one_file(tmp_path):
+    """``<param key="device.ssm.file" value="stdout"/>`` in each of many vehicles: one file for
+    them all, as they share the stream (each had a file of its own: thousands of open files;
+    the review)."""
+    from twin.sumo.outputs import redirect_outputs
+
+    routes = tmp_path / "r.rou.xml"
+    vehicle = (
+        '<vehicle id="v{n}" depart="0"><param key="device.ssm.file" value="stdout"/></vehicle>'
+    )
+    routes.write_text("<routes>" + "".join(vehicle.format(n=n) for n in range(50)) + "</routes>")
+    _, plan = redirect_outputs(None, (), tmp_path / "o")
+    copy = ET.parse(plan.routes(routes)).getroot()
+    files = {p.get("value") for p in copy.iter("param")}
+    assert len(files) == 1 and Path(files.pop()).name == "device.ssm.file.xml"
 
 
 def test_an_output_named_like_a_later_seeds_folder_is_named_apart(tmp_path):
