@@ -263,11 +263,12 @@ class SumoSession:
 
     def advance_to(self, t: float) -> None:
         """Run the simulation up to time ``t`` (s) in one call (no per-step Python work)."""
+        mark = _stderr_size() if self.gui is None else None
         try:
             _libsumo().simulationStep(t)
         except Exception as exc:
             said = _first_line(str(exc))
-            cause = _last_error_written(said)  # "vehicle cannot be created": SUMO said why
+            cause = _error_written_since(mark, said)  # "vehicle cannot be created": SUMO's why
             said = f"{cause} ({said})" if cause else said
             raise SumoRunError(f"SUMO failed before t = {t:g} s: {said}", said) from exc
 
@@ -429,21 +430,32 @@ def _text_of(path: Path) -> str:
         return ""
 
 
-def _last_error_written(said: str) -> str | None:
-    """SUMO's last ``Error:`` line on stderr before the error libsumo raised (``said``), when
-    stderr is a file (a worker's SUMO messages): the cause SUMO wrote first ("Invalid vehicle
-    id 'q&r'") of the error it then raised ("vehicle cannot be created")."""
+def _stderr_size() -> int | None:
+    """The size of the file behind stderr (a worker's SUMO messages), None when stderr is no
+    file (a terminal, a pipe)."""
     try:
-        if not stat.S_ISREG(os.fstat(2).st_mode):
-            return None
-        with open("/proc/self/fd/2", "rb") as fh:  # the file behind stderr (Linux)
-            fh.seek(max(0, os.fstat(fh.fileno()).st_size - 65536))
-            lines = fh.read().decode(errors="replace").splitlines()
+        info = os.fstat(2)
+    except OSError:
+        return None
+    return info.st_size if stat.S_ISREG(info.st_mode) else None
+
+
+def _error_written_since(mark: int | None, said: str) -> str | None:
+    """SUMO's first ``Error:`` line written to stderr since ``mark`` (:func:`_stderr_size`
+    before the call that failed) other than the error libsumo raised (``said``): the cause
+    SUMO wrote ("Invalid vehicle id 'q&r'") of the one it raised ("vehicle cannot be
+    created"). Read through ``/proc/self/fd/2`` (Linux); None elsewhere, or without a file."""
+    if mark is None:
+        return None
+    try:
+        with open("/proc/self/fd/2", "rb") as fh:
+            fh.seek(mark)
+            lines = fh.read(65536).decode(errors="replace").splitlines()
     except OSError:
         return None
     errors = [x[len("Error:") :].strip() for x in lines if x.startswith("Error:")]
     errors = [x for x in errors if x and x != said]
-    return errors[-1] if errors else None
+    return errors[0] if errors else None
 
 
 def _first_line(text: str) -> str:
