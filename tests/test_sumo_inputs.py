@@ -946,6 +946,21 @@ def test_a_users_config_horizon_past_its_own_end_is_refused(
         assert not out.exists()
 
 
+def test_an_end_without_a_horizon_bounds_the_run(tmp_path):
+    """``end`` without ``horizon``: the run takes the steps that fit before the end, also on a
+    network without a window of its own (it took the default horizon, past the end; the
+    review)."""
+    from twin.config import load_config
+    from twin.sumo.scenario import _check_horizon_within_end, sumo_settings
+
+    (tmp_path / "c.toml").write_text('[traffic]\nkind = "sumo"\nbegin = "00:08"\nend = "00:30"\n')
+    config = load_config(tmp_path / "c.toml")
+    s = sumo_settings(config)
+    assert s.horizon == 144  # the default, before
+    _check_horizon_within_end(config, s, 480.0, 60.0, 1800.0, horizon_given=False)
+    assert s.horizon == 22  # 00:08 .. 00:30 in 60 s steps
+
+
 @pytest.mark.parametrize(
     ("traffic", "flags", "words", "horizon"),
     [
