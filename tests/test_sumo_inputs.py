@@ -294,6 +294,11 @@ def test_a_refused_vehicle_is_blamed_on_the_file_defining_it(tmp_path):
                       'edges="A0A1 C2C3"/></flow></routes>')  # fmt: skip
     text = "Error: Vehicle 'f.0' has no valid route. No connection between edge 'A0A1' and ..."
     assert sumo_refusal(text, [net, routes, add])[0] == routes
+    # an id written escaped in both files: the vehicle's, not the bus stop's (the review)
+    routes.write_text('<routes><vehicle id="a&amp;b" depart="1"/></routes>')
+    add.write_text('<additional><busStop id="a&amp;b" lane="A0A1_0"/></additional>')
+    text = "Error: Vehicle 'a&b' has no valid route."
+    assert sumo_refusal(text, [net, routes, add])[0] == routes
 
 
 def test_a_clash_of_a_vehicles_own_route_is_blamed_on_a_route_file(tmp_path):

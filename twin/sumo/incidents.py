@@ -225,8 +225,9 @@ def check_incidents(
             place = f"cell [{i}, {j}]"
             if obstacles is not None and obstacles[i, j]:
                 unseen.append(
-                    f"{field}.cell = [{i}, {j}] is an obstacle of the grid ([grid].obstacles): "
-                    "the incident holds up traffic, but no drone can fly there to see it"
+                    f"{field}.cell = [{i}, {j}] is an obstacle of the grid ([grid].obstacles, or "
+                    "less road than [traffic].min_lane_km): the incident holds up traffic, but no "
+                    "drone can fly there to see it"
                 )
         else:
             if inc.edge not in edges:

@@ -243,7 +243,7 @@ class SumoSession:
             if owned is not None:
                 owned.unlink(missing_ok=True)
             if "Error" in said:
-                where, reason = sumo_refusal(said, files)
+                where, reason = sumo_refusal(said, self.read_files())
                 raise UserError(f"{where}: sumo-gui refuses it: {reason}") from None
             raise UserError(f"--gui: sumo-gui did not start ({_first_line(str(exc))})") from None
         except BaseException:  # Ctrl-C while it starts: twin's stderr back, its log gone
@@ -346,6 +346,7 @@ def sumo_refusal(
     if kind in OBJECT_ELEMENTS:
         name = subject[2]
         ids = [name, *([name.rsplit(".", 1)[0]] if re.search(r"\.\d+$", name) else [])]
+        ids += [e for i in ids if (e := xml_escape(i, {'"': "&quot;"})) != i]  # as written
         tags, names = "|".join(OBJECT_ELEMENTS[kind]), "|".join(re.escape(i) for i in ids)
         pattern = rf'<(?:{tags})\s[^>]*\bid\s*=\s*"(?:{names})"'
         for path in reversed(files):
