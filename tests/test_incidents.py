@@ -609,6 +609,22 @@ def test_overlapping_closures_reopen_when_the_last_lifts(tmp_path, capsys):
     assert "lanes" not in records[0]
 
 
+def test_an_incident_on_an_obstacle_cell_is_said(tmp_path, capsys):
+    """A cell-given incident on a cell the config makes an obstacle (a road no drone may fly
+    over): it holds up traffic, but no swarm can see it; said in a notice (probe 21's c91)."""
+    pytest.importorskip("libsumo")
+    from twin.sumo.scenario import sumo_source
+
+    cfg = _small(tmp_path, _incident(where="cell = [2, 2]"))
+    cfg.write_text(cfg.read_text().replace("[swarm]", "[grid]\nobstacles = [[2, 2]]\n[swarm]"))
+    sumo_source(load_config(cfg)).close()
+    err = capsys.readouterr().err
+    assert "[traffic].incidents[0].cell = [2, 2] is an obstacle of the grid" in err, err
+    (tmp_path / "free").mkdir()
+    sumo_source(load_config(_small(tmp_path / "free", _incident(where="cell = [2, 2]")))).close()
+    assert "is an obstacle" not in capsys.readouterr().err
+
+
 def test_route_errors_are_skipped_with_closures_and_twins_own_demand_only(tmp_path):
     """A scenario's own demand is run as SUMO runs it (a route it cannot follow stops it); with
     scheduled closures, which leave routes unfollowable, and in twin's own demand, such a

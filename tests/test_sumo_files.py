@@ -401,19 +401,47 @@ def test_a_long_output_prefix_is_shortened_for_a_streams_file(tmp_path, capsys):
     """A 240-character ``output-prefix`` with an output sent to stdout: SUMO alone names no
     file, twin's file for the stream would pass 255 bytes with the prefix (probe 21's P2-05):
     the prefix is shortened with a digest, said in a notice; a short one is kept."""
-    from twin.sumo.outputs import MAX_FILE_NAME, redirect_outputs
+    from twin.outputs import NAME_MAX
+    from twin.sumo.outputs import naming_that_fits, redirect_outputs
 
     (tmp_path / "s").mkdir()
     cfg = tmp_path / "s" / "a.sumocfg"
     for prefix, kept in (("p" * 240, False), ("run1_", True)):
         cfg.write_text(f'<configuration><output><output-prefix value="{prefix}"/>'
                        '<tripinfo-output value="stdout"/></output></configuration>')  # fmt: skip
-        options, _ = redirect_outputs(cfg, (), tmp_path / "o" / prefix[:5])
-        given = dict(zip(options[::2], options[1::2], strict=True))
+        options, plan = redirect_outputs(cfg, (), tmp_path / "o" / prefix[:5])
+        given = dict(zip(*[iter(naming_that_fits(options, plan))] * 2, strict=True))
         name = given["--output-prefix"] + Path(given["--tripinfo-output"]).name
-        assert len(name.encode()) <= MAX_FILE_NAME
+        assert len(name.encode()) <= NAME_MAX
         assert (given["--output-prefix"] == prefix) == kept
-        assert ("output-prefix is 240 characters" in capsys.readouterr().err) != kept
+        assert ("output-prefix 'pppp" in capsys.readouterr().err) != kept
+    # a route file's stream, planned after the sumocfg's options: counted too (the review)
+    routes = tmp_path / "s" / "r.rou.xml"
+    routes.write_text('<routes><vType id="t"><param key="device.ssm.file" value="stdout"/>'
+                      "</vType></routes>")  # fmt: skip
+    cfg.write_text(f'<configuration><output><output-prefix value="{"q" * 240}"/></output>'
+                   "</configuration>")  # fmt: skip
+    options, plan = redirect_outputs(cfg, (), tmp_path / "o3")
+    made = Path(ET.parse(plan.routes(routes)).getroot()[0][0].get("value")).name
+    given = dict(zip(*[iter(naming_that_fits(options, plan))] * 2, strict=True))
+    assert len((given["--output-prefix"] + made).encode()) <= NAME_MAX
+
+
+def test_a_parameter_every_vehicle_sends_to_a_stream_shares_one_file(tmp_path):
+    """``<param key="device.ssm.file" value="stdout"/>`` in each of many vehicles: one file for
+    them all, as they share the stream (each had a file of its own: thousands of open files;
+    the review)."""
+    from twin.sumo.outputs import redirect_outputs
+
+    routes = tmp_path / "r.rou.xml"
+    vehicle = (
+        '<vehicle id="v{n}" depart="0"><param key="device.ssm.file" value="stdout"/></vehicle>'
+    )
+    routes.write_text("<routes>" + "".join(vehicle.format(n=n) for n in range(50)) + "</routes>")
+    _, plan = redirect_outputs(None, (), tmp_path / "o")
+    copy = ET.parse(plan.routes(routes)).getroot()
+    files = {p.get("value") for p in copy.iter("param")}
+    assert len(files) == 1 and Path(files.pop()).name == "device.ssm.file.xml"
 
 
 def test_an_output_named_like_a_later_seeds_folder_is_named_apart(tmp_path):
@@ -434,7 +462,7 @@ def _detector_case(scenario: Path, d: Path, output: str = "") -> Path:
     detector = f'<e1Detector id="d" lane="{lane}" pos="20" freq="60" file="det.xml"/>'
     cfg = _cfg(
         '<input><net-file value="small.net.xml"/><route-files value="small.trips.xml"/>'
-        f'<additional-files value="det.add.xml"/></input><output>{output}</output>'
+        f'<additional-files value="det.add.xml"/></input>{f"<output>{output}</output>" if output else ""}'
     )
     return _write_case(scenario, d, cfg, {"det.add.xml": f"<additional>{detector}</additional>"})
 
@@ -561,7 +589,11 @@ def _environment_variables(d: Path) -> None:
     with ``${TWIN_TEST_PREFIX}`` = ``../../escape_`` (SUMO substitutes both)."""
     cfg = d / "case.sumocfg"
     text = cfg.read_text().replace('"small.net.xml"', '"${TWIN_TEST_NET}"')
-    cfg.write_text(text.replace("<output>", '<output><output-prefix value="${TWIN_TEST_PREFIX}"/>'))
+    cfg.write_text(
+        text.replace(
+            "</input>", '</input><output><output-prefix value="${TWIN_TEST_PREFIX}"/></output>'
+        )
+    )
 
 
 def _entity_in_routes(d: Path) -> None:
@@ -720,8 +752,8 @@ def test_save_configuration_by_any_name_is_refused_before_sumo_starts(
     scenario, tmp_path, capsys, option
 ):
     cfg = _detector_case(scenario, tmp_path / "case")
-    text = cfg.read_text().replace("<output>", f'<configuration><{option} value="saved.sumocfg"/>'
-                                   "</configuration><output>")  # fmt: skip
+    text = cfg.read_text().replace("</input>", f'</input><configuration><{option} '
+                                   'value="saved.sumocfg"/></configuration>')  # fmt: skip
     cfg.write_text(text)
     before = tree_hash(tmp_path / "case")
     code = _run(scenario, tmp_path / "run", "--sumocfg", str(cfg))
@@ -756,8 +788,8 @@ def test_a_config_seeding_sumo_from_the_clock_still_repeats(scenario, tmp_path, 
     """``<random value="true"/>`` (SUMO's seed from the clock) is overridden with a notice:
     two runs of one SUMO seed record the same traffic."""
     cfg = _detector_case(scenario, tmp_path / "case")
-    cfg.write_text(cfg.read_text().replace("<output>", '<random_number><random value="true"/>'
-                                           "</random_number><output>"))  # fmt: skip
+    cfg.write_text(cfg.read_text().replace("</input>", '</input><random_number><random '
+                                           'value="true"/></random_number>'))  # fmt: skip
     tapes = []
     for name in ("a", "b"):
         assert _run(scenario, tmp_path / name, "--sumocfg", str(cfg)) == 0
@@ -770,8 +802,8 @@ def test_a_config_seeding_sumo_from_the_clock_still_repeats(scenario, tmp_path, 
 def test_a_config_seed_replaced_by_twins_is_said(scenario, tmp_path, capsys):
     """``<seed value="42"/>``: twin seeds SUMO itself (one seed per run seed) and says so."""
     cfg = _detector_case(scenario, tmp_path / "case")
-    cfg.write_text(cfg.read_text().replace("<output>", '<random_number><seed value="42"/>'
-                                           "</random_number><output>"))  # fmt: skip
+    cfg.write_text(cfg.read_text().replace("</input>", '</input><random_number><seed '
+                                           'value="42"/></random_number>'))  # fmt: skip
     assert _run(scenario, tmp_path / "run", "--sumocfg", str(cfg)) == 0
     err = capsys.readouterr().err
     assert "<seed value='42'> is replaced by twin's SUMO seed" in err, err

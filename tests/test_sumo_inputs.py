@@ -209,6 +209,70 @@ def test_sumo_refusal_of_an_included_files_object_names_that_file(city, tmp_path
     assert "NOPE_0" in lines[-1]
 
 
+def _own_sumocfg(city: Path, tmp_path: Path, routes: str, additional: str = "") -> Path:
+    """A sumocfg of the grid network with the route file ``routes`` (and an additional file)
+    written beside it."""
+    data = city / "data"
+    (tmp_path / "r.rou.xml").write_text(routes)
+    adds = f"{data / 'vtypes.add.xml'}"
+    if additional:
+        (tmp_path / "a.add.xml").write_text(additional)
+        adds += f",{tmp_path / 'a.add.xml'}"
+    cfg = tmp_path / "s.sumocfg"
+    cfg.write_text(f'<configuration><input><net-file value="{data / "grid.net.xml"}"/>'
+                   f'<route-files value="{data / "grid.rou.xml"},{tmp_path / "r.rou.xml"}"/>'
+                   f'<additional-files value="{adds}"/></input></configuration>')  # fmt: skip
+    return cfg
+
+
+@pytest.mark.parametrize(
+    ("routes", "words", "not_said"),
+    [
+        # libsumo raises "vehicle cannot be created"; SUMO wrote why just before
+        (
+            '<vehicle id="q&amp;r" depart="{t}" from="A3B3" to="E0D0"/>',
+            "Invalid vehicle id 'q&r'",
+            None,
+        ),
+        # an error SUMO went on after while loading is no cause of a later failure
+        (
+            '<vType id="t" vClass="spaceship"/><vehicle id="b" depart="{t}"><route edges="A3B3 E0D0"/></vehicle>',
+            None,
+            "spaceship",
+        ),
+    ],
+    ids=["invalid id", "an earlier error"],
+)
+def test_sumos_reason_for_a_vehicle_it_cannot_create_is_told(
+    city, tmp_path, capsys, routes, words, not_said
+):
+    """A vehicle SUMO cannot create mid-run (read after its start, 600 s after the first
+    departure): the line names the route file and SUMO's own reason, written just before the
+    error libsumo raises (it named the sumocfg and "vehicle cannot be created" alone: probe
+    21's P2-07), and no error SUMO wrote before that call (the review)."""
+    first = _departures(city / "data" / "grid.rou.xml")[0]
+    cfg = _own_sumocfg(city, tmp_path, f"<routes>{routes.format(t=first + 600)}</routes>")
+    code, err = _run(city, "qr", "--sumocfg", str(cfg), capsys=capsys)
+    line = [x for x in err.splitlines() if x.startswith("twin: ")][-1]
+    assert code in (1, 2) and "Traceback" not in err, err
+    assert str(tmp_path / "r.rou.xml") in line, line
+    if words:
+        assert words in line, line
+    if not_said:
+        assert not_said not in line, line
+
+
+def test_an_error_sumo_goes_on_after_while_loading_is_kept(city, tmp_path, capsys):
+    """``<vType vClass="spaceship"/>`` in a route file: SUMO says so while loading and goes on
+    (in an additional file it stops: refused); the notice of
+    SUMO's errors tells it and sumo/sumo-messages.log keeps it (it was dropped: P2-08)."""
+    cfg = _own_sumocfg(city, tmp_path, '<routes><vType id="t" vClass="spaceship"/></routes>')
+    code, err = _run(city, "space", "--sumocfg", str(cfg), capsys=capsys)
+    assert code == 0, err
+    assert "SUMO reported 1 error" in err and "spaceship" in err, err
+    assert "spaceship" in (city / "space" / "sumo" / "sumo-messages.log").read_text()
+
+
 def test_a_refused_vehicle_is_blamed_on_the_file_defining_it(tmp_path):
     """SUMO names the object by its kind ("Vehicle 'bad'"): the file that defines a vehicle of
     that id is named, not an additional file whose bus stop has the same id (probe 21's
@@ -229,6 +293,11 @@ def test_a_refused_vehicle_is_blamed_on_the_file_defining_it(tmp_path):
     routes.write_text('<routes><flow id="f" begin="0" end="99" period="20"><route '
                       'edges="A0A1 C2C3"/></flow></routes>')  # fmt: skip
     text = "Error: Vehicle 'f.0' has no valid route. No connection between edge 'A0A1' and ..."
+    assert sumo_refusal(text, [net, routes, add])[0] == routes
+    # an id written escaped in both files: the vehicle's, not the bus stop's (the review)
+    routes.write_text('<routes><vehicle id="a&amp;b" depart="1"/></routes>')
+    add.write_text('<additional><busStop id="a&amp;b" lane="A0A1_0"/></additional>')
+    text = "Error: Vehicle 'a&b' has no valid route."
     assert sumo_refusal(text, [net, routes, add])[0] == routes
 
 
@@ -880,6 +949,21 @@ def test_a_users_config_horizon_past_its_own_end_is_refused(
     else:
         assert err.count("\n") == 1 and words in err, err
         assert not out.exists()
+
+
+def test_an_end_without_a_horizon_bounds_the_run(tmp_path):
+    """``end`` without ``horizon``: the run takes the steps that fit before the end, also on a
+    network without a window of its own (it took the default horizon, past the end; the
+    review)."""
+    from twin.config import load_config
+    from twin.sumo.scenario import _check_horizon_within_end, sumo_settings
+
+    (tmp_path / "c.toml").write_text('[traffic]\nkind = "sumo"\nbegin = "00:08"\nend = "00:30"\n')
+    config = load_config(tmp_path / "c.toml")
+    s = sumo_settings(config)
+    assert s.horizon == 144  # the default, before
+    _check_horizon_within_end(config, s, 480.0, 60.0, 1800.0, horizon_given=False)
+    assert s.horizon == 22  # 00:08 .. 00:30 in 60 s steps
 
 
 @pytest.mark.parametrize(

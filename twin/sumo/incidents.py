@@ -174,17 +174,20 @@ def _check_cell_roads(field: str, inc, cell: tuple[int, int], roads) -> None:
         )
 
 
-def check_incidents(incidents: list[Any], scenario, geometry, where: str = "") -> list[str]:
+def check_incidents(
+    incidents: list[Any], scenario, geometry, where: str = "", obstacles=None
+) -> list[str]:
     """Refuse (one line) an incident outside the scenario's simulated window (warm-up
     included) or over before its first step ``T^0``, on a cell off the grid or without a road,
     on an edge or lane the network lacks, a stopped vehicle in the mesoscopic model;
     return notices for incidents that overlap in time on one edge or cell (they are applied
-    together: a lane reopens when the last incident closing it lifts)."""
+    together: a lane reopens when the last incident closing it lifts), and for one on a cell
+    of the road that is an obstacle of the grid (``obstacles``: no drone may see it)."""
     prefix = f"{where}: " if where else ""
     edges = net_edges(scenario.net_file) if any(i.edge is not None for i in incidents) else {}
     by_cell = cell_roads(scenario.net_file, geometry) if any(i.cell for i in incidents) else {}
     lo, hi = scenario.sim_begin, scenario.sim_end
-    places = []
+    places, unseen = [], []
     for n, inc in enumerate(incidents):
         field = f"{prefix}[traffic].incidents[{n}]"
         if inc.kind == "vehicle_stopped" and scenario.mesoscopic:
@@ -220,6 +223,12 @@ def check_incidents(incidents: list[Any], scenario, geometry, where: str = "") -
                 )
             _check_cell_roads(field, inc, (i, j), by_cell.get((i, j), []))
             place = f"cell [{i}, {j}]"
+            if obstacles is not None and obstacles[i, j]:
+                unseen.append(
+                    f"{field}.cell = [{i}, {j}] is an obstacle of the grid ([grid].obstacles, or "
+                    "less road than [traffic].min_lane_km): the incident holds up traffic, but no "
+                    "drone can fly there to see it"
+                )
         else:
             if inc.edge not in edges:
                 junction = " (a junction's inner lane, crossing or walking area: no road)"
@@ -248,7 +257,7 @@ def check_incidents(incidents: list[Any], scenario, geometry, where: str = "") -
                 )
             place = f"edge {inc.edge!r}"
         places.append((place, begin, end))
-    notices = []
+    notices = unseen
     for (a, (pa, ba, ea)), (b, (pb, bb, eb)) in itertools.combinations(enumerate(places), 2):
         if pa == pb and ba < eb and bb < ea:
             notices.append(

@@ -74,6 +74,7 @@ MESSAGES_NAME = "sumo-messages.log"
 SEED_FOLDER = re.compile(r"seed-\d+")
 #: Options that add to every output's name (kept to their name part, :func:`name_part`).
 NAMING_OPTIONS = ("output-prefix", "output-suffix")
+NAMING_FLAGS = tuple(f"--{name}" for name in NAMING_OPTIONS)
 #: Options whose value is a list of files.
 _FILE_LISTS = {"save-state.files"}
 #: Output names SUMO writes to its process's streams (twin's own: sent to a file instead).
@@ -133,8 +134,8 @@ class OutputPlan:
         #: SSM devices may be equipped (a ``device.ssm.*`` option or parameter): without a
         #: file, SUMO writes one ``ssm_<vehicle>.xml`` per vehicle into its working folder
         self.ssm_devices = False
-        #: the names twin made for outputs sent to a stream (SUMO adds a prefix to them)
-        self.made: list[str] = []
+        #: the files twin made for outputs sent to a stream, by made name (SUMO prefixes them)
+        self.made: dict[str, Path] = {}
 
     def _fresh(self, name: str) -> Path:
         name = literal(name)
@@ -148,11 +149,12 @@ class OutputPlan:
         raise AssertionError  # pragma: no cover
 
     def stream_file(self, name: str) -> Path:
-        """The file of an output the scenario sends to a stream, named apart from its other
-        outputs (:data:`MAX_MADE_NAME` at most, kept in :attr:`made`)."""
-        path = self._fresh(name)
-        self.made.append(path.name)
-        return path
+        """The file of the outputs the scenario sends to a stream under one made ``name``
+        (:func:`_stream_file`: an element's, or a parameter's, which every vehicle giving it
+        shares, as they share the stream), named apart from the outputs named before."""
+        if name not in self.made:
+            self.made[name] = self._fresh(name)
+        return self.made[name]
 
     def own_file(self, name: str) -> Path:
         """A file of twin's own in ``out_dir`` (its virtual loops), named apart from the
@@ -275,10 +277,15 @@ def _stream_file(elem: ET.Element, tag: str) -> str:
     ``stderr``: ``<tag>-<id>.xml`` (``edgeData-ed1.xml``), a parameter's ``<key>.xml``."""
     name = elem.get("key") if tag == "param" else f"{tag}-{elem.get('id', '')}".rstrip("-")
     name = re.sub(r"[^\w.-]", "_", name or tag)
-    if len(name.encode()) > MAX_MADE_NAME:  # a 300-character id (SUMO takes it)
-        digest = hashlib.sha256(name.encode()).hexdigest()[:12]
-        name = f"{name.encode()[:60].decode(errors='ignore')}-{digest}"
-    return name + ".xml"
+    return _shortened(name, MAX_MADE_NAME) + ".xml"  # a 300-character id: SUMO takes it
+
+
+def _shortened(text: str, most: int) -> str:
+    """``text``, or, past ``most`` bytes, its start and a digest of the whole in ``most``."""
+    if len(text.encode()) <= most:
+        return text
+    digest = hashlib.sha256(text.encode()).hexdigest()[:8]
+    return f"{text.encode()[: most - 9].decode(errors='ignore')}-{digest}"
 
 
 def _program_output(path: Path) -> bool:
@@ -380,39 +387,38 @@ def redirect_outputs(
                 )
         elif out[i] in {f"--{name}" for name in NAMING_OPTIONS}:
             out[i + 1] = name_part(out[i + 1])
-    return _naming_that_fits((*out, *extra), plan), plan
+    return (*out, *extra), plan
 
 
-#: The longest file name file systems take (bytes).
-MAX_FILE_NAME = 255
+#: What SUMO's ``TIME`` placeholder in an output's name becomes, at most (bytes).
+TIME_PLACEHOLDER_BYTES = 24
 
 
-def _naming_that_fits(options: tuple[str, ...], plan: OutputPlan) -> tuple[str, ...]:
+def naming_that_fits(options: tuple[str, ...], plan: OutputPlan) -> tuple[str, ...]:
     """``options`` with an ``output-prefix``/``output-suffix`` shortened (its start and a
-    digest) when, around a name twin made for a stream's output, it would make a file name
-    longer than file systems take: SUMO alone never names a file for a stream, so a scenario
-    with a long prefix runs there."""
+    digest, said in a notice) when, around a name twin made for a stream's output, it would
+    make a file name longer than file systems take: SUMO alone names no file for a stream, so
+    a scenario with a long prefix runs there. Called once every file is planned."""
+    from twin.outputs import NAME_MAX
+
     if not plan.made:
         return options
     out = list(options)
-    at = {
-        out[i]: i + 1
-        for i in range(len(out) - 1)
-        if out[i] in ("--output-prefix", "--output-suffix")
-    }
-    parts = {flag: out[i] for flag, i in at.items()}
-    room = MAX_FILE_NAME - max(len(n.encode()) for n in plan.made)
-    if sum(len(v.encode()) for v in parts.values()) <= room:
+    at = {out[i]: i + 1 for i in range(len(out) - 1) if out[i] in NAMING_FLAGS}
+
+    def size(value: str) -> int:  # SUMO's TIME placeholder expands
+        return len(value.encode()) + value.count("TIME") * TIME_PLACEHOLDER_BYTES
+
+    room = NAME_MAX - max(len(p.name.encode()) for p in plan.made.values())
+    if not at or sum(size(out[i]) for i in at.values()) <= room:
         return options
-    share = max(room // len(parts), 16)
+    share = max(room // len(at), 16)
     for flag, i in at.items():
-        value = out[i]
-        if len(value.encode()) > share:
-            digest = hashlib.sha256(value.encode()).hexdigest()[:8]
-            out[i] = f"{value.encode()[: share - 9].decode(errors='ignore')}-{digest}"
+        if size(out[i]) > share:
+            value, out[i] = out[i], _shortened(out[i].replace("TIME", ""), share)
             notify(
-                f"twin: notice: {flag.removeprefix('--')} is {len(value)} characters, too long "
-                f"for the files of outputs sent to a stream; {out[i]!r} names the outputs"
+                f"twin: notice: {flag.removeprefix('--')} {value[:40]!r}... is too long for the "
+                f"files of outputs sent to a stream; {out[i]!r} names the outputs instead"
             )
     return tuple(out)
 

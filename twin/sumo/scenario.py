@@ -410,27 +410,32 @@ WINDOW_KEYS = ("traffic.begin", "traffic.horizon", "traffic.end", "traffic.cell_
 def _check_horizon_within_end(
     config, s: SumoSettings, begin: float, step_s: float, end: float, horizon_given: bool
 ):
-    """A run past the config's own ``[traffic].end``: its horizon, or (none given) the one step
-    a window shorter than a step still runs. Refused in one line when the config file sets
-    them all; said in a notice when a flag or a sweep's key set one of :data:`WINDOW_KEYS`
-    (an override wins over a key of the file)."""
+    """The config's own ``[traffic].end`` bounds the run. Without a horizon, the run takes the
+    steps that fit before it (a network without a window of its own took the default horizon,
+    past it); none fitting is refused. A given horizon past it is refused in one line when the
+    config file sets them all, said in a notice when a flag or a sweep's key set one of
+    :data:`WINDOW_KEYS` (an override wins over a key of the file)."""
+    fits = int((end - begin) / step_s + 1e-9)
+    if not horizon_given and fits >= 1:
+        s.horizon = fits
+        return
+    changed = config.set_by(WINDOW_KEYS)
+    if not horizon_given:
+        by = f" (as changed by {', '.join(changed)})" if changed else ""
+        raise UserError(
+            f"{config.path}: [traffic].end = {s.end!r} is less than one step ({step_s:g} s) "
+            f"after the begin {clock_label(begin)}{by}; give an end at least one step later"
+        )
     stop = begin + s.horizon * step_s
     if stop <= end + 1e-6:
         return
     span = f"{s.horizon} steps of {step_s:g} s from {clock_label(begin)} end at {clock_label(stop)}"
-    changed = config.set_by(WINDOW_KEYS)
     if changed:
         notice(
             f"{', '.join(changed)}: {span}, past {config.path}: [traffic].end = {s.end!r}; "
             "twin runs its own window"
         )
         return
-    if not horizon_given:  # the window holds no whole step
-        raise UserError(
-            f"{config.path}: [traffic].end = {s.end!r} is less than one step ({step_s:g} s) "
-            f"after the begin {clock_label(begin)}; give an end at least one step later"
-        )
-    fits = int((end - begin) / step_s + 1e-9)
     fix = f"give a horizon of at most {fits}" if fits >= 1 else "give a later end"
     raise UserError(
         f"{config.path}: [traffic].horizon = {s.horizon}: {span}, past [traffic].end = "
@@ -783,7 +788,10 @@ def sumo_source(
     if scenario.incidents:  # checked before SUMO starts, against the final window and grid
         from twin.sumo.incidents import check_incidents
 
-        for text in check_incidents(scenario.incidents, scenario, geometry, str(config.path)):
+        checked = check_incidents(
+            scenario.incidents, scenario, geometry, str(config.path), obstacles
+        )
+        for text in checked:
             notices.append(text)
             notice(text)
     return SumoTraffic(scenario, geometry, Grid(obstacles))

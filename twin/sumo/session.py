@@ -17,11 +17,13 @@ import io
 import itertools
 import os
 import re
+import stat
 import subprocess
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
+from xml.sax.saxutils import escape as xml_escape
 
 import numpy as np
 
@@ -197,8 +199,13 @@ class SumoSession:
             with contextlib.suppress(Exception):
                 libsumo.close()
             raise self.refusal(message) from None
+        else:
+            said = stderr.text()  # errors SUMO went on after while loading: kept as SUMO's
         finally:
             stderr.restore()
+        if said:  # messages, like those it writes while running (sumo/sumo-messages.log)
+            with contextlib.suppress(OSError):
+                os.write(2, said.encode())
         SumoSession._active = self
         self.started = True
         return self
@@ -236,7 +243,7 @@ class SumoSession:
             if owned is not None:
                 owned.unlink(missing_ok=True)
             if "Error" in said:
-                where, reason = sumo_refusal(said, files)
+                where, reason = sumo_refusal(said, self.read_files())
                 raise UserError(f"{where}: sumo-gui refuses it: {reason}") from None
             raise UserError(f"--gui: sumo-gui did not start ({_first_line(str(exc))})") from None
         except BaseException:  # Ctrl-C while it starts: twin's stderr back, its log gone
@@ -256,10 +263,13 @@ class SumoSession:
 
     def advance_to(self, t: float) -> None:
         """Run the simulation up to time ``t`` (s) in one call (no per-step Python work)."""
+        mark = _stderr_size() if self.gui is None else None
         try:
             _libsumo().simulationStep(t)
         except Exception as exc:
             said = _first_line(str(exc))
+            cause = _error_written_since(mark, said)  # "vehicle cannot be created": SUMO's why
+            said = f"{cause} ({said})" if cause else said
             raise SumoRunError(f"SUMO failed before t = {t:g} s: {said}", said) from exc
 
     def vehicles(self) -> tuple[np.ndarray, np.ndarray]:
@@ -324,6 +334,7 @@ def sumo_refusal(
     # the object SUMO names: quoted ('nolane_0'), or in parentheses ("to save (B1)")
     quoted = re.findall(r"'([^']+)'", reason) + re.findall(r"\(([^()\s]+)\)", reason)
     quoted += [t[1:] for t in quoted if t.startswith("!") and len(t) > 1]  # '!v': v's route
+    quoted += [e for t in quoted if (e := xml_escape(t, {'"': "&quot;"})) != t]  # as written
     for path in files:
         if any(Path(token).name == Path(path).name for token in quoted):
             return path, reason
@@ -335,6 +346,7 @@ def sumo_refusal(
     if kind in OBJECT_ELEMENTS:
         name = subject[2]
         ids = [name, *([name.rsplit(".", 1)[0]] if re.search(r"\.\d+$", name) else [])]
+        ids += [e for i in ids if (e := xml_escape(i, {'"': "&quot;"})) != i]  # as written
         tags, names = "|".join(OBJECT_ELEMENTS[kind]), "|".join(re.escape(i) for i in ids)
         pattern = rf'<(?:{tags})\s[^>]*\bid\s*=\s*"(?:{names})"'
         for path in reversed(files):
@@ -417,6 +429,34 @@ def _text_of(path: Path) -> str:
             return fh.read(64 << 20).decode(errors="replace")
     except (OSError, EOFError):
         return ""
+
+
+def _stderr_size() -> int | None:
+    """The size of the file behind stderr (a worker's SUMO messages), None when stderr is no
+    file (a terminal, a pipe)."""
+    try:
+        info = os.fstat(2)
+    except OSError:
+        return None
+    return info.st_size if stat.S_ISREG(info.st_mode) else None
+
+
+def _error_written_since(mark: int | None, said: str) -> str | None:
+    """SUMO's first ``Error:`` line written to stderr since ``mark`` (:func:`_stderr_size`
+    before the call that failed) other than the error libsumo raised (``said``): the cause
+    SUMO wrote ("Invalid vehicle id 'q&r'") of the one it raised ("vehicle cannot be
+    created"). Read through ``/proc/self/fd/2`` (Linux); None elsewhere, or without a file."""
+    if mark is None:
+        return None
+    try:
+        with open("/proc/self/fd/2", "rb") as fh:
+            fh.seek(mark)
+            lines = fh.read(65536).decode(errors="replace").splitlines()
+    except OSError:
+        return None
+    errors = [x[len("Error:") :].strip() for x in lines if x.startswith("Error:")]
+    errors = [x for x in errors if x and x != said]
+    return errors[0] if errors else None
 
 
 def _first_line(text: str) -> str:

@@ -166,15 +166,16 @@ class SumoTraffic(TrafficSource):
         options, route_files = tuple(s.sumo_options), list(s.route_files)
         net_file = s.net_file
         if output_dir is not None:
-            from twin.sumo.outputs import redirect_outputs
+            from twin.sumo.outputs import naming_that_fits, redirect_outputs
 
             options, plan = redirect_outputs(s.sumocfg, options, output_dir)
             route_files = [plan.routes(r) for r in route_files]
             net_file = plan.network(net_file)
-            options = plan.device_defaults(options)
+            options = naming_that_fits(plan.device_defaults(options), plan)  # every file known
             self._copies = {c: o for o, c in plan.copies.items() if c != o}
-            self.outputs = [*plan.targets.values(), *self._copies]
-            self.asked_outputs = sorted(p.name for p in plan.targets.values())
+            written = [*plan.targets.values(), *plan.made.values()]
+            self.outputs = [*written, *self._copies]
+            self.asked_outputs = sorted(p.name for p in written)
             if s.detectors.loops:
                 from twin.sumo.detectors import with_additional, write_loops
 

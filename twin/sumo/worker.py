@@ -278,7 +278,7 @@ def _say_sumo_errors(source: WorksAhead, errors: int, first: str, kept: str | No
     name = source.scenario.name
     notify(
         f"twin: notice: {name}: SUMO reported {errors} error{'s' * (errors != 1)} while "
-        f"running, which it did not stop for (first: {first[:160]}); {where}"
+        f"loading or running, which it did not stop for (first: {first[:160]}); {where}"
     )
 
 
