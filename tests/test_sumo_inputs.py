@@ -1340,3 +1340,18 @@ def test_files_in_the_encodings_sumo_reads(city, tmp_path, capsys, case):
     else:
         assert code == 2 and err.count("\n") == 1 and words in err and str(changed) in err, err
         assert not (city / out).exists()
+
+
+@pytest.mark.parametrize("value", ["x.add.xml,", "x.add.xml,,y.add.xml", ",x.add.xml"])
+def test_a_file_list_with_an_empty_name_is_refused_as_sumo_refuses_it(tmp_path, value):
+    """``<additional-files value="x.add.xml,"/>``: ``sumo -c`` stops ("Cannot read file ''");
+    twin ran it (probe 22's f05). Refused in one line naming the sumocfg and the list."""
+    from twin.errors import UserError
+    from twin.sumo.readers import read_sumocfg
+
+    (tmp_path / "g.net.xml").write_text("<net/>")
+    cfg = tmp_path / "s.sumocfg"
+    cfg.write_text(f'<configuration><input><net-file value="g.net.xml"/>'
+                   f'<additional-files value="{value}"/></input></configuration>')  # fmt: skip
+    with pytest.raises(UserError, match=rf"s\.sumocfg: the file list '{value}' names an empty"):
+        read_sumocfg(cfg)
