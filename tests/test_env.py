@@ -3,6 +3,7 @@ and the env scoring a policy exactly as the patrol loop does."""
 
 from __future__ import annotations
 
+import re
 import warnings
 from decimal import Decimal
 from pathlib import Path
@@ -161,6 +162,18 @@ def test_without_the_extra_the_import_names_the_fix():
     assert run.stderr.strip().splitlines()[-1] == (
         "ImportError: twin.env needs gymnasium and pettingzoo: pip install 'twin[env]'"
     )
+
+
+@pytest.mark.parametrize("joint", ["no", "false", 1, None, ""])
+def test_make_env_takes_joint_as_a_bool_only(joint):
+    """``joint="no"`` built the joint env (any truthy value did; probe 22's f02): a value that
+    is not True or False is refused naming it."""
+    from twin.env import EnvInputError, make_env
+
+    with pytest.raises(
+        EnvInputError, match=rf"make_env\(joint={re.escape(repr(joint))}\): give True"
+    ):
+        make_env("synthetic", joint=joint)
 
 
 @pytest.mark.parametrize("joint", [False, True])

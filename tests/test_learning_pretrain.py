@@ -130,6 +130,24 @@ def test_threads_past_the_cpus_train_on_the_cpus_with_a_notice(tmp_path, capsys)
     assert f"threads = {100 * cpus}, but this machine gives twin {cpus} CPUs" in err, err
 
 
+def test_a_damaged_resume_checkpoint_gives_a_fix_that_works(tmp_path, capsys):
+    """A truncated ``state.pt`` in ``out``: the line says to delete the folder (or set another
+    ``out``), which works; "re-create it with twin pretrain" failed the same way (probe 22's
+    f04)."""
+    import shutil
+
+    config = _config(tmp_path, epochs=10)
+    pretrain(load_config(config), progress=False)
+    state = tmp_path / "out" / "state.pt"
+    state.write_bytes(state.read_bytes()[:1000])
+    code, err = _run_cli(["pretrain", "--config", str(config), "--quiet"], capsys)
+    assert code == 2 and err.count("\n") == 0, err
+    assert "state.pt is corrupt" in err and f"delete {tmp_path / 'out'} or set another" in err
+    shutil.rmtree(tmp_path / "out")  # the fix
+    code, err = _run_cli(["pretrain", "--config", str(config), "--quiet"], capsys)
+    assert code == 0, err
+
+
 def _changed(config):
     text = config.read_text().replace("iters_per_epoch = 2", "iters_per_epoch = 3")
     config.write_text(text)

@@ -427,6 +427,26 @@ def test_a_long_output_prefix_is_shortened_for_a_streams_file(tmp_path, capsys):
     assert len((given["--output-prefix"] + made).encode()) <= NAME_MAX
 
 
+@pytest.mark.parametrize("stream", ["/dev/stdout", "/dev/stderr", "/proc/self/fd/1"])
+def test_an_output_sent_to_a_streams_device_is_named_as_a_stream(tmp_path, stream):
+    """``/dev/stdout`` (``/dev/stderr``, ``/proc/self/fd/1``) is SUMO's stream too: its file is
+    named as a stream's, not after where twin's own streams point (the file the user's shell
+    redirected twin to, twin's temporary log of SUMO's messages: probe 22's f01)."""
+    from twin.sumo.outputs import redirect_outputs
+
+    (tmp_path / "s").mkdir()
+    cfg = tmp_path / "s" / "a.sumocfg"
+    cfg.write_text(f'<configuration><output><tripinfo-output value="{stream}"/></output>'
+                   "</configuration>")  # fmt: skip
+    add = tmp_path / "s" / "a.add.xml"
+    add.write_text(f'<additional><edgeData id="e" file="{stream}" period="60"/></additional>')
+    options, _ = redirect_outputs(cfg, ("-a", str(add)), tmp_path / "o")
+    given = dict(zip(options[::2], options[1::2], strict=True))
+    assert Path(given["--tripinfo-output"]).name == "tripinfo-output.xml"
+    edge = ET.parse(given["-a"]).getroot()[0]
+    assert Path(edge.get("file")).name == "edgeData-e.xml"
+
+
 def test_a_parameter_every_vehicle_sends_to_a_stream_shares_one_file(tmp_path):
     """``<param key="device.ssm.file" value="stdout"/>`` in each of many vehicles: one file for
     them all, as they share the stream (each had a file of its own: thousands of open files;

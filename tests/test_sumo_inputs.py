@@ -966,6 +966,30 @@ def test_an_end_without_a_horizon_bounds_the_run(tmp_path):
     assert s.horizon == 22  # 00:08 .. 00:30 in 60 s steps
 
 
+def test_an_overriding_end_bounds_the_configs_horizon(tmp_path, capsys):
+    """A sweep's ``traffic.end`` over a config's horizon: the end the sweep varies bounds the
+    run, said in a notice naming the override (the run went past it, and the notice blamed the
+    config file, which sets no end: probe 22's f03); an overriding horizon past the file's end
+    runs, said too."""
+    from twin.config import load_config, with_overrides
+    from twin.sumo.scenario import _check_horizon_within_end, sumo_settings
+
+    (tmp_path / "c.toml").write_text('[traffic]\nkind = "sumo"\nbegin = "07:30"\nhorizon = 10\n')
+    config = with_overrides(load_config(tmp_path / "c.toml"), {"traffic.end": "07:33"})
+    s = sumo_settings(config)
+    _check_horizon_within_end(config, s, 27000.0, 30.0, 27180.0, horizon_given=True)
+    err = capsys.readouterr().err
+    assert s.horizon == 6, err
+    assert "override 'traffic.end' ([traffic].end = '07:33'): the run takes the 6 steps" in err
+    (tmp_path / "d.toml").write_text('[traffic]\nkind = "sumo"\nbegin = "07:30"\nend = "07:33"\n')
+    config = with_overrides(load_config(tmp_path / "d.toml"), {"traffic.horizon": 10})
+    s = sumo_settings(config)
+    _check_horizon_within_end(config, s, 27000.0, 30.0, 27180.0, horizon_given=True)
+    err = capsys.readouterr().err
+    assert s.horizon == 10 and "override 'traffic.horizon': 10 steps of 30 s" in err, err
+    assert f"past {tmp_path / 'd.toml'}: [traffic].end = '07:33'" in err, err
+
+
 @pytest.mark.parametrize(
     ("traffic", "flags", "words", "horizon"),
     [
@@ -1316,3 +1340,18 @@ def test_files_in_the_encodings_sumo_reads(city, tmp_path, capsys, case):
     else:
         assert code == 2 and err.count("\n") == 1 and words in err and str(changed) in err, err
         assert not (city / out).exists()
+
+
+@pytest.mark.parametrize("value", ["x.add.xml,", "x.add.xml,,y.add.xml", ",x.add.xml"])
+def test_a_file_list_with_an_empty_name_is_refused_as_sumo_refuses_it(tmp_path, value):
+    """``<additional-files value="x.add.xml,"/>``: ``sumo -c`` stops ("Cannot read file ''");
+    twin ran it (probe 22's f05). Refused in one line naming the sumocfg and the list."""
+    from twin.errors import UserError
+    from twin.sumo.readers import read_sumocfg
+
+    (tmp_path / "g.net.xml").write_text("<net/>")
+    cfg = tmp_path / "s.sumocfg"
+    cfg.write_text(f'<configuration><input><net-file value="g.net.xml"/>'
+                   f'<additional-files value="{value}"/></input></configuration>')  # fmt: skip
+    with pytest.raises(UserError, match=rf"s\.sumocfg: the file list '{value}' names an empty"):
+        read_sumocfg(cfg)

@@ -523,6 +523,11 @@ def make_env(
             f"make_env({config!r}): give a scenario config's path or a shipped config's name "
             'such as "synthetic"'
         )
+    if not isinstance(joint, (bool, np.bool_)):  # "no" would be read as True
+        raise EnvInputError(
+            f"make_env(joint={joint!r}): give True (the Gymnasium joint-swarm env) or False (the "
+            "PettingZoo parallel env)"
+        )
     allowed = (*ENV_OPTIONS, "infeasible") if joint else ENV_OPTIONS
     unknown = sorted(set(options) - set(allowed))
     if unknown:

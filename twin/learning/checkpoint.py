@@ -71,10 +71,11 @@ def save_model(path: str | Path, weights: dict[str, torch.Tensor], meta: dict[st
     atomic_save({"meta": meta, "weights": {k: v.detach().cpu() for k, v in weights.items()}}, path)
 
 
-def read_checkpoint(path: str | Path) -> dict[str, Any]:
-    """Load and check a checkpoint file; every failure is a one-line :class:`UserError`."""
+def read_checkpoint(path: str | Path, hint: str | None = None) -> dict[str, Any]:
+    """Load and check a checkpoint file; every failure is a one-line :class:`UserError` ending
+    in ``hint`` (the fix; by default, re-create it or point to another)."""
     path = Path(path)
-    hint = "re-create it with `twin pretrain` or point to another checkpoint"
+    hint = hint or "re-create it with `twin pretrain` or point to another checkpoint"
     why = not_a_file(path)
     if why is not None:
         raise UserError(f"checkpoint {path} {why}; {hint}")
@@ -83,7 +84,8 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
             warnings.simplefilter("ignore")
             blob = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises many types for truncated/corrupt/unsafe files
-        first = str(exc).strip().splitlines()[0][:120] if str(exc).strip() else ""
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+        first = first if len(first) <= 120 else first[:120].rsplit(" ", 1)[0] + " ..."
         raise UserError(
             f"checkpoint {path} is corrupt or not a torch file ({type(exc).__name__}: {first}); "
             f"{hint}"

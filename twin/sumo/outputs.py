@@ -77,10 +77,12 @@ NAMING_OPTIONS = ("output-prefix", "output-suffix")
 NAMING_FLAGS = tuple(f"--{name}" for name in NAMING_OPTIONS)
 #: Options whose value is a list of files.
 _FILE_LISTS = {"save-state.files"}
-#: Output names SUMO writes to its process's streams (twin's own: sent to a file instead).
-_STREAMS = {"stdout", "stderr", "-"}
+#: Output names SUMO writes to its process's streams (twin's own: sent to a file instead), by
+#: its names for them or the system's (a path resolved would name where twin's streams go).
+_STREAMS = {"stdout", "stderr", "-", "/dev/stdout", "/dev/stderr", "/dev/fd/1", "/dev/fd/2",
+            "/proc/self/fd/1", "/proc/self/fd/2"}  # fmt: skip
 #: Output names SUMO does not take as files, as it spells them (``Nul`` is a file).
-_NOT_FILES = {"", "nul", "NUL", "/dev/null", "stdout", "stderr", "-"}
+_NOT_FILES = {"", "nul", "NUL", "/dev/null", *_STREAMS}
 
 #: Elements of additional files that write files, and the attribute naming the file.
 OUTPUT_ELEMENTS = {

@@ -274,8 +274,15 @@ def naming_the_sumocfg(message: str, sumocfg: Path | None, files: list[Path]) ->
 
 def file_list(value: str | None, base: Path, named_in: Path | None = None) -> list[Path]:
     """The files of a comma-separated SUMO option, resolved against ``base`` (``named_in``: the
-    config that lists them, named in errors)."""
-    return [resolved(base / v.strip(), named_in) for v in (value or "").split(",") if v.strip()]
+    config that lists them, named in errors; an empty name among them, which SUMO cannot read
+    ("Cannot read file ''"), is refused there in one line)."""
+    items = (value or "").split(",")
+    if named_in is not None and len(items) > 1 and any(not v.strip() for v in items):
+        raise UserError(
+            f"{named_in}: the file list {value!r} names an empty file (a comma too many), which "
+            "SUMO cannot read; remove the extra comma"
+        )
+    return [resolved(base / v.strip(), named_in) for v in items if v.strip()]
 
 
 def parse_time(value: str | None) -> float | None:

@@ -410,37 +410,44 @@ WINDOW_KEYS = ("traffic.begin", "traffic.horizon", "traffic.end", "traffic.cell_
 def _check_horizon_within_end(
     config, s: SumoSettings, begin: float, step_s: float, end: float, horizon_given: bool
 ):
-    """The config's own ``[traffic].end`` bounds the run. Without a horizon, the run takes the
+    """The config's ``[traffic].end`` bounds the run. Without a horizon, the run takes the
     steps that fit before it (a network without a window of its own took the default horizon,
-    past it); none fitting is refused. A given horizon past it is refused in one line when the
-    config file sets them all, said in a notice when a flag or a sweep's key set one of
-    :data:`WINDOW_KEYS` (an override wins over a key of the file)."""
+    past it); none fitting is refused. A given horizon past it: refused in one line when both
+    come from the config file (or both from overrides); when an override (a flag, a sweep's
+    key) set one side of :data:`WINDOW_KEYS`, the override wins, said in a notice: an
+    overridden end bounds the file's horizon, an overridden begin, horizon or step runs past
+    the file's end."""
     fits = int((end - begin) / step_s + 1e-9)
+    end_by = config.set_by(["traffic.end"])
+    others = config.set_by([k for k in WINDOW_KEYS if k != "traffic.end"])
+    end_text = f"[traffic].end = {s.end!r}"
+    given_end = f"{', '.join(end_by)} ({end_text})" if end_by else f"{config.path}: {end_text}"
     if not horizon_given and fits >= 1:
         s.horizon = fits
         return
-    changed = config.set_by(WINDOW_KEYS)
     if not horizon_given:
-        by = f" (as changed by {', '.join(changed)})" if changed else ""
+        by = f" (as changed by {', '.join(others)})" if others else ""
         raise UserError(
-            f"{config.path}: [traffic].end = {s.end!r} is less than one step ({step_s:g} s) "
-            f"after the begin {clock_label(begin)}{by}; give an end at least one step later"
+            f"{given_end} is less than one step ({step_s:g} s) after the begin "
+            f"{clock_label(begin)}{by}; give an end at least one step later"
         )
     stop = begin + s.horizon * step_s
     if stop <= end + 1e-6:
         return
     span = f"{s.horizon} steps of {step_s:g} s from {clock_label(begin)} end at {clock_label(stop)}"
-    if changed:
-        notice(
-            f"{', '.join(changed)}: {span}, past {config.path}: [traffic].end = {s.end!r}; "
-            "twin runs its own window"
-        )
+    if end_by and not others and fits >= 1:  # the override's end bounds the file's horizon
+        notice(f"{given_end}: the run takes the {fits} steps before it ({span} otherwise)")
+        s.horizon = fits
+        return
+    if others and not end_by:  # the override's window runs past the file's end
+        notice(f"{', '.join(others)}: {span}, past {given_end}; twin runs the given window")
         return
     fix = f"give a horizon of at most {fits}" if fits >= 1 else "give a later end"
-    raise UserError(
-        f"{config.path}: [traffic].horizon = {s.horizon}: {span}, past [traffic].end = "
-        f"{s.end!r}; {fix}, or leave out one of them"
-    )
+    if not others and not end_by:  # both of the file
+        where, given_end = f"{config.path}: [traffic].horizon = {s.horizon}", end_text
+    else:  # both of overrides
+        where = ", ".join(others)
+    raise UserError(f"{where}: {span}, past {given_end}; {fix}, or leave out one of them")
 
 
 def _time_window(

@@ -1266,7 +1266,7 @@ def _own_log(path: Path) -> bool:
 
 def _check_settings(path: Path, cfg: PretrainConfig) -> dict[str, Any]:
     """The checkpoint at ``path``, refused unless it was written with ``cfg``'s settings."""
-    blob = read_checkpoint(path)
+    blob = read_checkpoint(path, f"delete {path.parent} or set another `out` to start afresh")
     saved = blob["meta"].get("config")
     if not isinstance(saved, dict) or not isinstance(blob.get("buffer"), dict):
         raise UserError(
