@@ -907,6 +907,27 @@ def test_a_users_config_grid_holds_for_a_sumocfg_given_by_flag(city, tmp_path, c
         assert "cannot cover the network" in err and err.count("\n") == 1, err
 
 
+def test_a_cell_size_flag_over_a_configs_grid_shape_says_it_refits_it(city, tmp_path, capsys):
+    """--cell-m fits the grid to the map, dropping the config's own [grid] nx, ny (made for
+    its cell_m): a notice says so, naming both (it was silent: probe 22's c29)."""
+    config = tmp_path / "mine.toml"
+    config.write_text(
+        '[grid]\nnx = 8\nny = 8\n[swarm]\nn_drones = 2\n[traffic]\nkind = "sumo"\n'
+        'cell_m = 200.0\nhorizon = 2\n[evaluate]\nswarms = ["random"]\n'
+    )
+    out = tmp_path / "run"
+    code = twin_main(["run", "--config", str(config), "--sumocfg",
+                      str(city / "scenario" / "plain.sumocfg"), "--cell-m", "300", "--no-ceiling",
+                      "--quiet", "--no-report", "--out", str(out)])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 0, err
+    grid = json.loads((out / "network.json").read_text())["grid"]
+    assert (grid["nx"], grid["ny"]) != (8, 8)
+    notice = [line for line in err.splitlines() if "[grid] nx, ny = 8 x 8" in line]
+    assert len(notice) == 1 and "--cell-m 300" in notice[0], err
+    assert f"({grid['nx']} x {grid['ny']})" in notice[0], notice
+
+
 def test_a_users_config_end_holds_for_a_sumocfg_given_by_flag(city, tmp_path, capsys):
     """``[traffic] end`` of the user's own config closes the window of a network given by
     --sumocfg, as its begin, horizon and grid do (it was dropped: probe 12's k01)."""

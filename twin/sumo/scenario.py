@@ -575,6 +575,14 @@ def _grid_and_notices(
         fits = fits or suggest_cell_m(lanes, s.cell_m, n_drones, s.min_lane_km, per_drone=1)
         check_swarm_fits(config, Grid(obstacles), fits or ())
     notices = []
+    dropped = config.explicit_shape() if cell_flag and (own_config or not swapped) else None
+    if dropped and dropped != (geometry.nx, geometry.ny):  # the flag re-fits the grid
+        notices.append(
+            f"{config.path}: [grid] nx, ny = {dropped[0]} x {dropped[1]} is for its own "
+            f"cell_m; {cell_flag} {s.cell_m:g} fits the grid to the map ({geometry.nx} x "
+            f"{geometry.ny}); give [grid] nx, ny for {s.cell_m:g} m cells in the config to "
+            "keep a shape of your own"
+        )
     if n_drones <= n_free < MIN_FREE_CELLS_PER_DRONE * n_drones:  # more drones: refused later
         better = suggest_cell_m(lanes, s.cell_m, n_drones, s.min_lane_km)
         fewer = max(1, n_free // MIN_FREE_CELLS_PER_DRONE)
