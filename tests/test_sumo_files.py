@@ -20,6 +20,7 @@ import hashlib
 import json
 import re
 import shutil
+import subprocess
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -1346,6 +1347,72 @@ def test_sumo_s_own_demo_runs_with_its_messages_kept_out_of_twin_s_lines(
     assert "will not be able to depart" in log.read_text()
     assert tree_hash(d) == before and list((tmp_path / "cwd").iterdir()) == []
     assert "sumo/sumo-messages.log" in check_run_folder(out)["files"]
+
+
+def test_what_a_verbose_sumo_prints_goes_to_its_messages_not_twin_s_stdout(
+    scenario, tmp_path, capfd
+):
+    """A sumocfg asking SUMO to be verbose and print its statistics: SUMO's lines go to
+    RUN/sumo/sumo-messages.log, not among twin's on stdout (they leaked: probe 23's f01)."""
+    cfg = _detector_case(scenario, tmp_path / "case")
+    cfg.write_text(cfg.read_text().replace("</configuration>", '<report><verbose value="true"/>'
+                   '<duration-log.statistics value="true"/></report></configuration>'))  # fmt: skip
+    out = tmp_path / "run"
+    code = _run(scenario, out, "--sumocfg", str(cfg))
+    captured = capfd.readouterr()
+    assert code == 0, captured.err
+    assert "Loading net-file" not in captured.out + captured.err, captured.out
+    assert "Statistics" not in captured.out + captured.err
+    said = (out / "sumo" / "sumo-messages.log").read_text()
+    assert "Loading net-file" in said and "Statistics" in said
+
+
+def test_demand_sumo_ignores_with_a_warning_is_told(scenario, tmp_path, capfd):
+    """A route file SUMO loads only in part (a flow after a later person: "Route file should
+    be sorted by departure time, ignoring 'f1'!"): a notice quotes SUMO's warning and names
+    RUN/sumo/sumo-messages.log, which keeps it (twin ran SUMO without warnings, so the flow
+    was dropped without a word: probe 23's f03)."""
+    cfg = _detector_case(scenario, tmp_path / "case")
+    with open(cfg.parent / "small.trips.xml", "rb") as fh:
+        trip = ET.parse(fh).getroot().find("trip")
+    edge, to = trip.get("from"), trip.get("to")
+    (cfg.parent / "late.rou.xml").write_text(
+        f'<routes><person id="p0" depart="300"><walk from="{edge}" to="{to}"/></person>'
+        f'<flow id="f1" from="{edge}" to="{to}" begin="100" end="500" period="10"/></routes>'
+    )
+    cfg.write_text(cfg.read_text().replace('value="small.trips.xml"',
+                                           'value="small.trips.xml,late.rou.xml"'))  # fmt: skip
+    out = tmp_path / "run"
+    code = _run(scenario, out, "--sumocfg", str(cfg))
+    err = capfd.readouterr().err
+    assert code == 0, err
+    log = out / "sumo" / "sumo-messages.log"
+    notice = [line for line in err.splitlines() if "SUMO ignored part of the scenario" in line]
+    assert len(notice) == 1 and "ignoring 'f1'" in notice[0] and str(log) in notice[0], err
+    assert "ignoring 'f1'" in log.read_text()
+
+
+def test_demand_is_generated_on_a_network_of_fringe_edges_only(tmp_path, capsys):
+    """A network whose only road enters and leaves it (one edge): randomTrips finds no inner
+    edge and advised its own --allow-fringe, which twin's user cannot give; twin gives it,
+    with a notice (probe 23's f04)."""
+    (tmp_path / "one.nod.xml").write_text(
+        '<nodes><node id="a" x="0" y="0"/><node id="b" x="1000" y="0"/></nodes>'
+    )
+    (tmp_path / "one.edg.xml").write_text(
+        '<edges><edge id="e" from="a" to="b" numLanes="2" speed="13.9"/></edges>'
+    )
+    net = tmp_path / "one.net.xml"
+    subprocess.run([binary("netconvert"), "-n", str(tmp_path / "one.nod.xml"), "-e",
+                    str(tmp_path / "one.edg.xml"), "-o", str(net)], check=True,
+                   capture_output=True)  # fmt: skip
+    code = main(["run", "--net", str(net), "--cell-m", "200", "--drones", "2", "--swarms",
+                 "random", "--horizon", "4", "--no-ceiling", "--no-report", "--quiet",
+                 "--out", str(tmp_path / "run")])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert "start and end on its fringe" in err and "one.net.xml" in err, err
+    assert pd.read_parquet(tmp_path / "run" / "tape.parquet")["count"].sum() > 0
 
 
 def test_a_command_that_keeps_no_sumo_outputs_says_so(scenario, tmp_path, capsys):

@@ -19,6 +19,8 @@ from typing import Any
 
 import numpy as np
 
+from twin.errors import UserError
+from twin.notices import notify
 from twin.sumo.tools import run_sumo_program, tool
 
 #: Vehicle classes of the rush-hour demand (SUMO vTypes).
@@ -153,8 +155,7 @@ def random_rush_hour_trips(
     begin, end = float(demand["begin_s"]), float(demand["end_s"])
     pieces = np.arange(begin, end, 900.0) + 450.0
     rates = np.maximum(departure_rate(pieces, demand) * 3600.0 * scale, 1.0)
-    run_sumo_program(
-        [tool("randomTrips.py"), "-n", str(net_file), "-o", str(out),
+    args = [tool("randomTrips.py"), "-n", str(net_file), "-o", str(out),
          # --validate routes the trips with duarouter; keep its route file beside `out`
          # instead of routes.rou.xml in the working directory
          "-r", str(out.with_name(out.stem.removesuffix(".trips") + ".validated.rou.xml")),
@@ -162,7 +163,18 @@ def random_rush_hour_trips(
          "--insertion-rate", *[f"{r:.1f}" for r in rates],
          "--fringe-factor", "5", "--min-distance", "500", "--validate",
          "--vehicle-class", "passenger", "--trip-attributes",
-         'departLane="best" departSpeed="max" departPos="random"'],
-        what=f"randomTrips.py on {net_file}",
-    )  # fmt: skip
+         'departLane="best" departSpeed="max" departPos="random"']  # fmt: skip
+    what = f"randomTrips.py on {net_file}"
+    try:
+        run_sumo_program(args, what=what)
+    except UserError as exc:
+        if "--allow-fringe" not in str(exc):
+            raise
+        # every edge enters or leaves the network (a single road): trips may start and end
+        # there, or there is no demand at all
+        run_sumo_program([*args, "--allow-fringe"], what=what)
+        notify(
+            f"twin: notice: {net_file}: every edge enters or leaves the network, so the "
+            "generated trips start and end on its fringe (randomTrips' --allow-fringe)"
+        )
     return out
