@@ -928,6 +928,32 @@ def test_a_cell_size_flag_over_a_configs_grid_shape_says_it_refits_it(city, tmp_
     assert f"({grid['nx']} x {grid['ny']})" in notice[0], notice
 
 
+def test_a_demand_scale_past_what_twin_generates_is_one_line(city, tmp_path, capsys):
+    """A network without routes and ``demand_scale = 1e9``: refused before randomTrips runs,
+    naming the key and the largest scale that fits (randomTrips ran the machine out of
+    memory: probe 23's f08)."""
+    config = tmp_path / "ds.toml"
+    config.write_text(
+        '[swarm]\nn_drones = 2\n[traffic]\nkind = "sumo"\ncell_m = 200.0\nhorizon = 5\n'
+        "demand_scale = 1e9\n"
+    )
+    code = twin_main(["run", "--config", str(config), "--net", str(city / "data" / "grid.net.xml"),
+                      "--no-ceiling", "--quiet", "--no-report", "--out", str(tmp_path / "run")])  # fmt: skip
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "\n" not in err, err
+    assert f"{config}: [traffic].demand_scale = 1e+09 asks randomTrips for about" in err
+    assert "give a demand_scale of at most" in err and not (tmp_path / "run").exists()
+
+
+def test_a_demand_scale_over_a_scenario_s_own_demand_says_it_does_not_apply(city, tmp_path, capsys):
+    """``demand_scale`` scales only the demand twin generates: over a sumocfg's own routes a
+    notice says so (the figures were those of scale 1, without a word: probe 23's f09)."""
+    code, err, _ = _own_config_run(city, tmp_path, capsys, "horizon = 2\ndemand_scale = 3.0\n")
+    assert code == 0, err
+    notice = [line for line in err.splitlines() if "demand_scale = 3 scales only" in line]
+    assert len(notice) == 1 and "plain.sumocfg brings its own" in notice[0], err
+
+
 def test_a_users_config_end_holds_for_a_sumocfg_given_by_flag(city, tmp_path, capsys):
     """``[traffic] end`` of the user's own config closes the window of a network given by
     --sumocfg, as its begin, horizon and grid do (it was dropped: probe 12's k01)."""

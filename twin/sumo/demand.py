@@ -144,6 +144,27 @@ def write_spec_demand(net_file: Path, spec: dict[str, Any], out: Path, seed: int
     return n
 
 
+#: The most trips twin asks randomTrips for (the built-in network's rush hour is about a tenth
+#: of this): randomTrips and duarouter hold every trip in memory.
+MAX_GENERATED_TRIPS = 1_000_000
+
+
+def insertion_rates(demand: dict[str, Any], scale: float) -> np.ndarray:
+    """Trips per hour in each 15-minute piece of the window (randomTrips' insertion rates):
+    :func:`departure_rate` at the piece's middle times ``scale``, at least one."""
+    begin, end = float(demand["begin_s"]), float(demand["end_s"])
+    pieces = np.arange(begin, end, 900.0) + 450.0
+    return np.maximum(departure_rate(pieces, demand) * 3600.0 * scale, 1.0)
+
+
+def expected_trips(demand: dict[str, Any], scale: float) -> float:
+    """About how many trips :func:`random_rush_hour_trips` generates (randomTrips divides the
+    window into equal parts, one per rate)."""
+    rates = insertion_rates(demand, scale)
+    begin, end = float(demand["begin_s"]), float(demand["end_s"])
+    return float(rates.sum() * (end - begin) / len(rates) / 3600.0) if len(rates) else 0.0
+
+
 def random_rush_hour_trips(
     net_file: Path, out: Path, demand: dict[str, Any], seed: int, scale: float = 1.0
 ) -> Path:
@@ -153,8 +174,7 @@ def random_rush_hour_trips(
     list of insertion rates); ``scale`` multiplies it, e.g. per lane-km of a small network.
     """
     begin, end = float(demand["begin_s"]), float(demand["end_s"])
-    pieces = np.arange(begin, end, 900.0) + 450.0
-    rates = np.maximum(departure_rate(pieces, demand) * 3600.0 * scale, 1.0)
+    rates = insertion_rates(demand, scale)
     args = [tool("randomTrips.py"), "-n", str(net_file), "-o", str(out),
          # --validate routes the trips with duarouter; keep its route file beside `out`
          # instead of routes.rou.xml in the working directory

@@ -652,12 +652,19 @@ def _generated_demand(
     warmup: float,
     step_s: float,
     seed: int,
+    where: str = "[traffic].demand_scale",
 ) -> Path:
     """Rush-hour trips for a network brought without demand (:data:`twin.sumo.demand.
     GENERIC_RUSH_HOUR` scaled to its lane-km), built once per network, window and seed in the
-    user cache."""  # fmt: skip
+    user cache; more than :data:`twin.sumo.demand.MAX_GENERATED_TRIPS` are refused before
+    randomTrips runs, naming ``where`` (the key or flag of ``demand_scale``)."""  # fmt: skip
     from twin import resources
-    from twin.sumo.demand import GENERIC_RUSH_HOUR, random_rush_hour_trips
+    from twin.sumo.demand import (
+        GENERIC_RUSH_HOUR,
+        MAX_GENERATED_TRIPS,
+        expected_trips,
+        random_rush_hour_trips,
+    )
     from twin.sumo.network import sumo_version
 
     profile = GENERIC_RUSH_HOUR
@@ -669,6 +676,15 @@ def _generated_demand(
         "peak_s": begin - warmup + profile["peak_after_s"],
     }
     net_file = Path(files.net_file)
+    trips = expected_trips(span, scale)
+    if trips > MAX_GENERATED_TRIPS:
+        most = s.demand_scale * MAX_GENERATED_TRIPS / trips
+        raise UserError(
+            f"{where} = {s.demand_scale:g} asks randomTrips for about {trips:,.0f} trips on "
+            f"{files.name} ({clock_label(span['begin_s'])} - {clock_label(span['end_s'])}), "
+            f"more than the {MAX_GENERATED_TRIPS:,} twin generates (its memory grows with "
+            f"them); give a demand_scale of at most {most:.3g}"
+        )
     key = f"{net_file.stem}-{_digest(net_file, span, scale, seed, sumo_version())}"
     out = resources.build_once(
         resources.cache_dir() / "imported" / key,
@@ -762,7 +778,14 @@ def sumo_source(
     )
     route_files = list(files.route_files)
     if files.span is None and not s.network:  # no demand given: twin generates it
-        route_files.append(_generated_demand(s, files, geometry, t0, warmup, step_s, seed))
+        where = config.flag_of("traffic.demand_scale") or f"{config.path}: [traffic].demand_scale"
+        route_files.append(_generated_demand(s, files, geometry, t0, warmup, step_s, seed, where))
+    elif s.demand_scale != 1.0:
+        notice(
+            f"{config.path}: [traffic].demand_scale = {s.demand_scale:g} scales only the demand "
+            f"twin generates for a network without routes; {files.name} brings its own, which "
+            "runs as it is (scale it with SUMO's <scale> in a sumocfg)"
+        )
 
     options: tuple[str, ...] = ()
     if files.additional_files:
