@@ -1395,20 +1395,39 @@ def test_demand_sumo_ignores_with_a_warning_is_told(scenario, tmp_path, capfd):
     assert "ignoring 'f1'" in log.read_text()
 
 
+def _one_edge_net(d: Path, length_m: float) -> Path:
+    """A network of one two-lane edge of ``length_m``, built by netconvert from plain XML."""
+    (d / "one.nod.xml").write_text(
+        f'<nodes><node id="a" x="0" y="0"/><node id="b" x="{length_m:g}" y="0"/></nodes>'
+    )
+    (d / "one.edg.xml").write_text(
+        '<edges><edge id="e" from="a" to="b" numLanes="2" speed="13.9"/></edges>'
+    )
+    subprocess.run([binary("netconvert"), "-n", str(d / "one.nod.xml"), "-e",
+                    str(d / "one.edg.xml"), "-o", str(d / "one.net.xml")], check=True,
+                   capture_output=True)  # fmt: skip
+    return d / "one.net.xml"
+
+
+def test_a_network_randomtrips_cannot_use_is_one_line_with_a_fix(tmp_path, capsys):
+    """One 3 m edge: randomTrips finds no edge for its trips; the line says twin cannot
+    generate demand there and to give routes (randomTrips' words alone named no fix: probe
+    23's P2-f01)."""
+    net = _one_edge_net(tmp_path, 3.0)
+    code = main(["run", "--net", str(net), "--cell-m", "200", "--drones", "1", "--swarms",
+                 "random", "--horizon", "4", "--no-ceiling", "--no-report", "--quiet",
+                 "--out", str(tmp_path / "run")])  # fmt: skip
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "\n" not in err, err
+    assert err.startswith("twin: error: randomTrips.py on") and "one.net.xml" in err, err
+    assert err.endswith("give your own (--routes, or a sumocfg's routes)"), err
+
+
 def test_demand_is_generated_on_a_network_of_fringe_edges_only(tmp_path, capsys):
     """A network whose only road enters and leaves it (one edge): randomTrips finds no inner
     edge and advised its own --allow-fringe, which twin's user cannot give; twin gives it,
     with a notice (probe 23's f04)."""
-    (tmp_path / "one.nod.xml").write_text(
-        '<nodes><node id="a" x="0" y="0"/><node id="b" x="1000" y="0"/></nodes>'
-    )
-    (tmp_path / "one.edg.xml").write_text(
-        '<edges><edge id="e" from="a" to="b" numLanes="2" speed="13.9"/></edges>'
-    )
-    net = tmp_path / "one.net.xml"
-    subprocess.run([binary("netconvert"), "-n", str(tmp_path / "one.nod.xml"), "-e",
-                    str(tmp_path / "one.edg.xml"), "-o", str(net)], check=True,
-                   capture_output=True)  # fmt: skip
+    net = _one_edge_net(tmp_path, 1000.0)
     code = main(["run", "--net", str(net), "--cell-m", "200", "--drones", "2", "--swarms",
                  "random", "--horizon", "4", "--no-ceiling", "--no-report", "--quiet",
                  "--out", str(tmp_path / "run")])  # fmt: skip

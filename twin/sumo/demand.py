@@ -185,16 +185,20 @@ def random_rush_hour_trips(
          "--vehicle-class", "passenger", "--trip-attributes",
          'departLane="best" departSpeed="max" departPos="random"']  # fmt: skip
     what = f"randomTrips.py on {net_file}"
+    fix = "; twin cannot generate demand on it: give your own (--routes, or a sumocfg's routes)"
     try:
-        run_sumo_program(args, what=what)
-    except UserError as exc:
-        if "--allow-fringe" not in str(exc):
-            raise
-        # every edge enters or leaves the network (a single road): trips may start and end
-        # there, or there is no demand at all
-        run_sumo_program([*args, "--allow-fringe"], what=what)
-        notify(
-            f"twin: notice: {net_file}: every edge enters or leaves the network, so the "
-            "generated trips start and end on its fringe (randomTrips' --allow-fringe)"
-        )
+        try:
+            run_sumo_program(args, what=what)
+        except UserError as exc:
+            if "--allow-fringe" not in str(exc):
+                raise
+            # every edge enters or leaves the network (a single road): trips may start and end
+            # there, or there is no demand at all
+            run_sumo_program([*args, "--allow-fringe"], what=what)
+            notify(
+                f"twin: notice: {net_file}: every edge enters or leaves the network, so the "
+                "generated trips start and end on its fringe (randomTrips' --allow-fringe)"
+            )
+    except UserError as exc:  # randomTrips' own words name no fix twin's user can take
+        raise UserError(f"{exc}{fix}") from None
     return out
