@@ -205,7 +205,7 @@ def test_local_pool_and_ray_give_identical_results(tmp_path: Path, capfd) -> Non
     pd.testing.assert_frame_equal(got, numbers(tmp_path / "ray"))
 
 
-@pytest.mark.parametrize("cache", ["short", "deep"])
+@pytest.mark.parametrize("cache", ["short", "deep", "relative"])
 def test_a_local_ray_leaves_nothing_outside_twin_s_cache(tmp_path: Path, monkeypatch, cache):
     """A local Ray keeps its session in twin's scratch folder and removes it after; when that
     folder is too deep for Ray's socket paths, in Ray's own (under $TMPDIR), removed after as
@@ -219,14 +219,16 @@ def test_a_local_ray_leaves_nothing_outside_twin_s_cache(tmp_path: Path, monkeyp
     try:
         system = short / "sys"
         system.mkdir()
-        twin_cache = short / "c" if cache == "short" else tmp_path / ("deep" * 12) / "cache"
+        twin_cache = {"short": short / "c", "deep": tmp_path / ("deep" * 12) / "cache",
+                      "relative": Path("c")}[cache]  # fmt: skip
+        monkeypatch.chdir(short)  # a relative cache: Ray takes no relative folder
         monkeypatch.setenv("TWIN_CACHE_DIR", str(twin_cache))
         monkeypatch.setenv("TMPDIR", str(system))
         monkeypatch.delenv("RAY_TMPDIR", raising=False)
         got = sorted(value for _, value, _ in ray_tasks(lambda x: -x, [(-1,), (-2,)], workers=1))
         assert got == [1, 2]
         assert list(system.iterdir()) == []
-        assert not (twin_cache / "tmp" / "twin-ray").exists()
+        assert not (short / twin_cache / "tmp" / "twin-ray").exists()
     finally:
         shutil.rmtree(short, ignore_errors=True)
 

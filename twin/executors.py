@@ -253,14 +253,23 @@ def ray_tasks(
             temp_dir, own = _local_ray_folder()
             made = not temp_dir.exists()
             if own:
-                temp_dir.mkdir(exist_ok=True)
-            ray.init(
-                num_cpus=workers,
-                include_dashboard=False,
-                log_to_driver=False,
-                configure_logging=False,
-                **({"_temp_dir": str(temp_dir)} if own else {}),
-            )
+                temp_dir.mkdir(mode=0o700, exist_ok=True)
+            try:
+                ray.init(
+                    num_cpus=workers,
+                    include_dashboard=False,
+                    log_to_driver=False,
+                    configure_logging=False,
+                    **({"_temp_dir": str(temp_dir)} if own else {}),
+                )
+            except BaseException:  # its half-made session goes with it
+                with contextlib.suppress(Exception):
+                    ray.shutdown()
+                _remove_ray_session(temp_dir, None, own or made)
+                raise
+            if own:  # Ray makes its folders writable by all
+                with contextlib.suppress(OSError):
+                    temp_dir.chmod(0o700)
             with contextlib.suppress(Exception):  # removed after the shutdown
                 session = Path(ray._private.worker.global_worker.node.get_session_dir_path())
         started = True
@@ -302,10 +311,10 @@ def _local_ray_folder() -> tuple[Path, bool]:
     when both are too deep, refused in one line."""
     from twin.resources import CACHE_ENV, scratch_dir
 
-    own = scratch_dir() / "twin-ray"
+    own = scratch_dir().absolute() / "twin-ray"  # Ray takes no relative folder
     if len(os.fsencode(own)) + RAY_SOCKET_TAIL <= SOCKET_PATH_MAX:
         return own, True
-    theirs = Path(os.environ.get("RAY_TMPDIR") or os.environ.get("TMPDIR") or "/tmp") / "ray"
+    theirs = _ray_default_folder()
     if len(os.fsencode(theirs)) + RAY_SOCKET_TAIL <= SOCKET_PATH_MAX:
         return theirs, False
     room = SOCKET_PATH_MAX - RAY_SOCKET_TAIL - len("/tmp/twin-ray")
@@ -316,19 +325,32 @@ def _local_ray_folder() -> tuple[Path, bool]:
     )
 
 
-def _remove_ray_session(folder: Path, session: Path, whole: bool) -> None:
-    """A local Ray's ``session`` in ``folder`` removed after its shutdown, with the
-    ``session_latest`` link when it points there; with ``whole`` (twin's folder, or Ray's
-    made by this Ray) the folder too, once nothing else is in it."""
+def _ray_default_folder() -> Path:
+    """The folder a local Ray keeps its sessions in when not told one (Ray's own choice)."""
+    try:
+        from ray._common.utils import get_default_ray_temp_dir
+    except ImportError:  # another Ray than the one twin is tested with
+        return (Path(os.environ.get("TMPDIR") or "/tmp") / "ray").absolute()
+    return Path(get_default_ray_temp_dir()).absolute()
+
+
+def _remove_ray_session(folder: Path, session: Path | None, whole: bool) -> None:
+    """A local Ray's ``session`` in ``folder`` removed after its shutdown (None: the one of
+    this process, if Ray made one before failing), with the ``session_latest`` link when it
+    points there; with ``whole`` (twin's folder, or Ray's made by this Ray) the folder too,
+    once nothing else is in it. Sessions of killed runs go with a later twin's scratch sweep
+    (:data:`twin.resources.SHARED_SCRATCH`)."""
     import shutil
 
-    if session.parent != folder:
-        return
-    shutil.rmtree(session, ignore_errors=True)
-    latest = folder / "session_latest"
-    with contextlib.suppress(OSError):
-        if latest.is_symlink() and Path(os.readlink(latest)).name == session.name:
-            latest.unlink()
+    if session is None:
+        mine = sorted(folder.glob(f"session_*_{os.getpid()}")) if folder.is_dir() else []
+        session = mine[-1] if mine else None
+    if session is not None and session.parent == folder:
+        shutil.rmtree(session, ignore_errors=True)
+        latest = folder / "session_latest"
+        with contextlib.suppress(OSError):
+            if latest.is_symlink() and Path(os.readlink(latest)).name == session.name:
+                latest.unlink()
     if whole:
         with contextlib.suppress(OSError):
             folder.rmdir()
