@@ -1370,6 +1370,24 @@ def test_what_a_verbose_sumo_prints_goes_to_its_messages_not_twin_s_stdout(
     assert "Loading net-file" in said and "Statistics" in said
 
 
+def test_a_run_with_its_stdout_closed_completes(tmp_path):
+    """``twin run ... >&-``: Python's stdout is None then; the SUMO child's start flushed it
+    and failed, a partial run of no step (the review of probe 23's f01 fix)."""
+    import os
+    import sys
+
+    from helpers import small_sumo_scenario
+
+    folder = small_sumo_scenario(tmp_path, horizon=3)
+    out = tmp_path / "run"
+    argv = [sys.executable, "-m", "twin", "run", "--config", str(folder / "small.toml"),
+            "--swarms", "random", "--no-ceiling", "--no-report", "--quiet", "--out", str(out)]  # fmt: skip
+    done = subprocess.run(argv, preexec_fn=lambda: os.close(1), stderr=subprocess.PIPE,
+                          text=True, check=False, timeout=300)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert (out / "manifest.json").is_file()
+
+
 def test_demand_sumo_ignores_with_a_warning_is_told(scenario, tmp_path, capfd):
     """A route file SUMO loads only in part (a flow after a later person: "Route file should
     be sorted by departure time, ignoring 'f1'!"): a notice quotes SUMO's warning and names
@@ -1390,7 +1408,7 @@ def test_demand_sumo_ignores_with_a_warning_is_told(scenario, tmp_path, capfd):
     err = capfd.readouterr().err
     assert code == 0, err
     log = out / "sumo" / "sumo-messages.log"
-    notice = [line for line in err.splitlines() if "SUMO ignored part of the scenario" in line]
+    notice = [line for line in err.splitlines() if "SUMO warned that it ignored something" in line]
     assert len(notice) == 1 and "ignoring 'f1'" in notice[0] and str(log) in notice[0], err
     assert "ignoring 'f1'" in log.read_text()
 

@@ -130,7 +130,8 @@ class SumoSession:
             "--random", "false",  # a config's clock seed would make runs unrepeatable
             "--step-length", f"{self.step_length:g}",
             "--no-step-log", "true",
-            *([] if self.warnings else ["--no-warnings", "true"]),
+            # a warning of a kind past 20 is counted, not written (a city's teleports)
+            *(["--aggregate-warnings", "20"] if self.warnings else ["--no-warnings", "true"]),
             "--duration-log.disable", "true",
             "--threads", "1",
         ]  # fmt: skip

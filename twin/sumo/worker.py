@@ -98,7 +98,9 @@ def maps_from_child(source: WorksAhead) -> Iterator[np.ndarray]:
     source.snapshots, source.vehicles_seen, source.error = [], [], None
     source.detector_readings = []
     source.timer, source._truth, source._incidents = StageTimer(), None, None
-    sys.stdout.flush()  # else the child writes what this process had not into its messages
+    if sys.stdout is not None:  # else the child writes what this process had not into its
+        with contextlib.suppress(Exception):  # messages (None: stdout closed)
+            sys.stdout.flush()
     child.start()
     _LIVE.add(child)
     there.close()
@@ -208,10 +210,8 @@ def _keep_messages(source: WorksAhead, path: Path) -> Path | None:
     if path.stat().st_size and source.output_dir is not None:
         with contextlib.suppress(OSError):
             Path(source.output_dir).mkdir(parents=True, exist_ok=True)
-            kept = shutil.move(path, Path(source.output_dir) / MESSAGES_NAME)
-            umask = os.umask(0o022)
-            os.umask(umask)
-            os.chmod(kept, 0o666 & ~umask)  # a run's file like its others (mkstemp's is 0600)
+            # copied, not moved: a run's file like its others (mkstemp's is private)
+            kept = shutil.copyfile(path, Path(source.output_dir) / MESSAGES_NAME)
     path.unlink(missing_ok=True)
     _say_sumo_errors(source, errors, first, None if kept is None else str(kept))
     _say_sumo_errors(source, ignored, first_ignored, None if kept is None else str(kept), True)
@@ -280,8 +280,9 @@ def _produce(source: WorksAhead, conn, parent: int, messages: Path) -> None:
         os._exit(0)  # no atexit handlers of the parent's modules in the child
 
 
-#: A warning of SUMO's that it dropped part of the scenario ("Route file should be sorted by
-#: departure time, ignoring 'f1'!", "Ignoring ..."): said in a notice, as its errors are.
+#: A warning of SUMO's that it ignored something of the scenario ("Route file should be sorted
+#: by departure time, ignoring 'f1'!", "Unknown vehicle class 'x' ignored."): said in a notice,
+#: as its errors are.
 IGNORED = re.compile(r"\bignor(ed|ing)\b", re.IGNORECASE)
 
 
@@ -297,7 +298,7 @@ def _say_sumo_errors(
     where = f"all in {kept}" if kept else "not kept: the run has no folder"
     plural = "s" * (count != 1)
     said = (
-        f"SUMO ignored part of the scenario ({count} warning{plural}; "
+        f"SUMO warned that it ignored something of the scenario ({count} warning{plural}; "
         if warnings
         else f"SUMO reported {count} error{plural} while loading or running, which it did not "
         "stop for ("
