@@ -20,7 +20,6 @@ from typing import Any
 import numpy as np
 
 from twin.errors import UserError
-from twin.notices import notify
 from twin.sumo.tools import run_sumo_program, tool
 
 #: Vehicle classes of the rush-hour demand (SUMO vTypes).
@@ -144,6 +143,9 @@ def write_spec_demand(net_file: Path, spec: dict[str, Any], out: Path, seed: int
     return n
 
 
+#: Beside generated trips: they start and end on the network's fringe (randomTrips'
+#: ``--allow-fringe``), said in a notice at every run on them.
+FRINGE_MARK = "allow-fringe.txt"
 #: The most trips twin asks randomTrips for (the built-in network's rush hour is about a tenth
 #: of this): randomTrips and duarouter hold every trip in memory.
 MAX_GENERATED_TRIPS = 1_000_000
@@ -195,10 +197,7 @@ def random_rush_hour_trips(
             # every edge enters or leaves the network (a single road): trips may start and end
             # there, or there is no demand at all
             run_sumo_program([*args, "--allow-fringe"], what=what)
-            notify(
-                f"twin: notice: {net_file}: every edge enters or leaves the network, so the "
-                "generated trips start and end on its fringe (randomTrips' --allow-fringe)"
-            )
+            out.with_name(FRINGE_MARK).write_text("randomTrips.py ran with --allow-fringe\n")
     except UserError as exc:  # randomTrips' own words name no fix twin's user can take
         raise UserError(f"{exc}{fix}") from None
     return out

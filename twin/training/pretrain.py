@@ -617,7 +617,7 @@ def estimate_pretrain_memory(cfg: PretrainConfig) -> dict[str, float]:
         "map": float(
             cells * 8 * (len(synthetic_config(cfg.training_map).disturbances) + 3 * 256 + 16)
         ),
-        "history": float(history if cfg.state == "nowcast" else 0),
+        "history": float(history if cfg.variant.needs_belief else 0),
     }
 
 
