@@ -928,7 +928,15 @@ def test_a_cell_size_flag_over_a_configs_grid_shape_says_it_refits_it(city, tmp_
     assert f"({grid['nx']} x {grid['ny']})" in notice[0], notice
 
 
-def test_a_demand_scale_past_what_twin_generates_is_one_line(city, tmp_path, capsys):
+class _RandomTripsCalled(Exception):
+    pass
+
+
+def _no_randomtrips(*_args, **_kwargs):
+    raise _RandomTripsCalled
+
+
+def test_a_demand_scale_past_what_twin_generates_is_one_line(city, tmp_path, capsys, monkeypatch):
     """A network without routes and ``demand_scale = 1e9``: refused before randomTrips runs,
     naming the key and the largest scale that fits (randomTrips ran the machine out of
     memory: probe 23's f08)."""
@@ -943,6 +951,13 @@ def test_a_demand_scale_past_what_twin_generates_is_one_line(city, tmp_path, cap
     assert code == 2 and "\n" not in err, err
     assert f"{config}: [traffic].demand_scale = 1e+09 asks randomTrips for about" in err
     assert "give a demand_scale of at most" in err and not (tmp_path / "run").exists()
+    # the largest scale it names runs (it was rounded up, and refused again: probe 23's P2-f02)
+    most = err.rsplit(" ", 1)[1]
+    config.write_text(config.read_text().replace("1e9", most))
+    monkeypatch.setattr("twin.sumo.demand.random_rush_hour_trips", _no_randomtrips)
+    code = twin_main(["run", "--config", str(config), "--net", str(city / "data" / "grid.net.xml"),
+                      "--no-ceiling", "--quiet", "--no-report", "--out", str(tmp_path / "run")])  # fmt: skip
+    assert "asks randomTrips for about" not in capsys.readouterr().err
 
 
 def test_a_demand_scale_over_a_scenario_s_own_demand_says_it_does_not_apply(city, tmp_path, capsys):

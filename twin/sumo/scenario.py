@@ -695,7 +695,7 @@ def _generated_demand(
             f"{where} = {s.demand_scale:g} asks randomTrips for about {trips:,.0f} trips on "
             f"{files.name} ({clock_label(span['begin_s'])} - {clock_label(span['end_s'])}), "
             f"more than the {MAX_GENERATED_TRIPS:,} twin generates (its memory grows with "
-            f"them); give a demand_scale of at most {most:.3g}"
+            f"them); give a demand_scale of at most {most:g}"
         )
     key = f"{net_file.stem}-{_digest(net_file, span, scale, seed, sumo_version())}"
     out = resources.build_once(
