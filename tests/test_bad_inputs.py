@@ -815,3 +815,37 @@ def test_a_sumo_file_given_as_a_pipe_is_named_as_a_pipe(grid_net, tmp_path, caps
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "is a pipe or device, not a regular file" in err[0], err
     assert str(fifo) in err[0]
+
+
+#: [swarm_options.<swarm>] text -> words of the one line (the config and the table named)
+SWARM_OPTION_CASES = {
+    "an unknown option": ("lookahead]\nfoo = 1", "[swarm_options.lookahead] has an option 'foo'"),
+    "options for a swarm that takes none": ("greedy]\nfoo = 2", "the greedy swarm takes none"),
+    "an exhaustive lookahead too long": (
+        "lookahead]\nbeam = 0",
+        "[swarm_options.lookahead]: lookahead: horizon = 8 with beam = 0",
+    ),
+    "an epsilon past 1": (
+        "rl-decentralized]\neps = 2",
+        "[swarm_options.rl-decentralized]: eps = 2",
+    ),
+    "an epsilon of text": ('rl-decentralized]\neps = "x"', "has an option of a type"),
+    "a discount of text": ('lookahead]\ndiscount = "a"', "has an option of a type"),
+}
+
+
+@pytest.mark.parametrize("case", list(SWARM_OPTION_CASES))
+def test_a_bad_swarm_option_is_one_line_naming_the_table(tmp_path, capsys, case):
+    """A swarm's options the swarm refuses: one line naming the config and its
+    [swarm_options.<swarm>] (they named neither, showed Python's TypeError text, or were an
+    internal error for a string where a number goes: probe 23's so-1)."""
+    text, words = SWARM_OPTION_CASES[case]
+    swarm = text.split("]")[0]
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(SMALL.format(horizon=6).replace('["random", "greedy"]', f'["{swarm}"]')
+                   + f"[swarm_options.{text}\n")  # fmt: skip
+    code = main(["evaluate", "--config", str(cfg), "--no-report", "--quiet",
+                 "--out", str(tmp_path / "run")])  # fmt: skip
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "\n" not in err and "Traceback" not in err, err
+    assert err.startswith(f"twin: error: {cfg}: ") and words in err, err

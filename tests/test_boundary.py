@@ -1671,6 +1671,51 @@ def test_a_later_seeds_rewards_are_replayed_on_the_shared_traffic(tmp_path, caps
     assert "series.parquet: reward = " in line and "for seed 1, swarm 'greedy'" in line, line
 
 
+def forge_per_seed(out: Path, seed: int, swarm: str, column: str, delta: float) -> None:
+    """Raise one seed's ``column`` of per_seed.csv by ``delta``, with summary.csv's mean and
+    95% interval recomputed to agree (a consistent forgery of the per-seed table)."""
+    from scipy import stats
+
+    per_seed = pd.read_csv(out / "per_seed.csv")
+    per_seed.loc[(per_seed["seed"] == seed) & (per_seed["swarm"] == swarm), column] += delta
+    per_seed.to_csv(out / "per_seed.csv", index=False)
+    summary = pd.read_csv(out / "summary.csv")
+    values = per_seed.loc[per_seed["swarm"] == swarm, column].to_numpy()
+    half = stats.t.ppf(0.975, len(values) - 1) * values.std(ddof=1) / np.sqrt(len(values))
+    summary.loc[summary["swarm"] == swarm, [column, column + "_ci95"]] = [values.mean(), half]
+    summary.to_csv(out / "summary.csv", index=False)
+
+
+@pytest.mark.parametrize("traffic", ["synthetic", "tape"])
+def test_a_later_seeds_paper_accounting_is_replayed(tmp_path, capsys, traffic):
+    """A later seed's R_hat_T_paper raised in per_seed.csv and summary.csv alike is refused:
+    it replays from the seed's trajectories as the first seed's does (only the first seed's
+    was replayed: probe 23's f02)."""
+    from helpers import random_tape
+
+    config = tmp_path / "c.toml"
+    config.write_text(
+        '[grid]\nnx = 8\nny = 10\n[swarm]\nn_drones = 3\n[traffic]\nkind = "synthetic"\n'
+        'horizon = 20\ndisturbances = [{ kind = "big", i = 3, j = 4, amplitude = 1.0, '
+        'sigma = 2.0 }]\n[evaluate]\nswarms = ["random", "greedy"]\n'
+    )
+    out = tmp_path / "run"
+    argv = ["evaluate", "--config", str(config), "--seeds", "2", "--out", str(out), "--quiet",
+            "--no-report"]  # fmt: skip
+    if traffic == "tape":
+        tape = random_tape(seed=1, nx=8, ny=10, warmup=2, horizon=20, obstacle=(1, 1))
+        tape.write(tmp_path / "tape.parquet")
+        argv += ["--traffic", str(tmp_path / "tape.parquet")]
+    assert main(argv) == 0, capsys.readouterr().err
+    forge_per_seed(out, 1, "random", "R_hat_T_paper", 0.05)
+    refresh_manifest(out)
+    capsys.readouterr()
+    assert main(["report", str(out), "--no-animation"]) == EXIT_REFUSED
+    line = one_line(capsys)
+    assert "per_seed.csv: R_hat_T_paper = " in line and "for seed 1, swarm 'random'" in line
+    assert "trajectories.parquet and importance.npz give" in line, line
+
+
 def test_report_refuses_a_report_link_out_of_the_run_folder(run_copy: Path, capsys) -> None:
     outside = run_copy.parent / "outside"
     outside.mkdir()

@@ -279,6 +279,11 @@ def test_a_later_seeds_tape_replays_with_that_seed(tmp_path, capsys):
     argv = ["evaluate", "--traffic", tape, "--seed", "0", *common, "--out", str(tmp_path / "e0")]
     assert main(argv) == 0
     assert pd.read_csv(tmp_path / "e0" / "per_seed.csv")["seed"].tolist() == [0]
+    # the notice names the seeds that ran, not the run's (probe 23's f11)
+    assert "score weights, seed 0 by --seed; the run had 1)" in capsys.readouterr().err
+    argv = ["evaluate", "--traffic", tape, "--seeds", "2", *common, "--out", str(tmp_path / "e2")]
+    assert main(argv) == 0
+    assert "score weights, seeds 1 to 2)" in capsys.readouterr().err
 
 
 def test_a_runs_faults_are_said_not_replayed_with_its_tape(tmp_path, capsys):

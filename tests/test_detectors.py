@@ -656,3 +656,39 @@ def test_no_reading_before_a_detectors_first_interval_ends(tmp_path, monkeypatch
     assert seen[330.0] == ["twin-loop-0-0-0"]
     assert seen[360.0] == ["A60", "twin-loop-0-0-0"]
     assert seen[1200.0] == ["L900", "twin-loop-0-0-0"]  # L1: never (A60's repeats: skipped)
+
+
+def test_a_detector_whose_first_period_outlasts_the_run_is_said_unread(
+    tmp_path, monkeypatch, capsys
+):
+    """A scenario loop of period 100000 s in a run that reads until 00:20: none of its
+    intervals ends within the run, so twin reads none of it; a notice says so, as for a loop
+    without a period (it was silent: probe 23's f12)."""
+    from types import SimpleNamespace
+
+    from twin.sumo.detectors import DetectorPlan, DetectorReader, detector_periods
+
+    add = tmp_path / "det.add.xml"
+    add.write_text(
+        '<additional><inductionLoop id="L9" lane="a_0" pos="5" period="100000" file="o.xml"/>'
+        '<inductionLoop id="L60" lane="a_0" pos="9" period="60" file="o.xml"/></additional>'
+    )
+
+    class Domain:
+        def getIDList(self):
+            return ["L9", "L60"]
+
+        def getLaneID(self, _):
+            return "a_0"
+
+        def getPosition(self, _):
+            return 5.0
+
+    api = SimpleNamespace(inductionloop=Domain(), lanearea=SimpleNamespace(getIDList=list))
+    monkeypatch.setattr(DetectorReader, "_cell", lambda *_: (0, 0))
+    capsys.readouterr()
+    DetectorReader(DetectorPlan(scenario=True), None, api, begin=0.0, step_s=60.0,
+                   periods=detector_periods([add]), end=1200.0)  # fmt: skip
+    said = capsys.readouterr().err
+    assert "detector 'L9' ends its first period after the run's last read (00:20:00)" in said
+    assert "L60" not in said

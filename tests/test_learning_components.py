@@ -202,3 +202,22 @@ def test_flat_adam_step_equals_fused_adam_bit_for_bit_and_survives_a_resume():
     for i in state0:
         for key in ("step", "exp_avg", "exp_avg_sq"):
             assert torch.equal(state0[i][key], state1[i][key])
+
+
+def test_building_an_optimizer_writes_nothing_in_the_system_temporary_folder(tmp_path):
+    """torch makes its compiler cache when an optimizer is first built (it imports its
+    compiler): in twin's cache, not $TMPDIR/torchinductor_<user> (probe 23's f07). A fresh
+    process: this one has imported torch's compiler already."""
+    import os
+    import subprocess
+    import sys
+
+    system, cache = tmp_path / "sys", tmp_path / "cache"
+    system.mkdir()
+    code = ("import torch, twin.learning.dqn as d; from twin.learning.qnet import QNetwork; "
+            "d.make_optimizer(QNetwork(), 1e-3, True)")  # fmt: skip
+    env = {**os.environ, "TMPDIR": str(system), "TWIN_CACHE_DIR": str(cache)}
+    env.pop("TORCHINDUCTOR_CACHE_DIR", None)
+    subprocess.run([sys.executable, "-c", code], env=env, check=True)
+    assert list(system.iterdir()) == []
+    assert (cache / "torch").is_dir()

@@ -216,6 +216,9 @@ def _run_cli(argv, capsys):
         (_grid(100000, 100000), "scenario_overrides 'grid.nx': a 100000 x 100000 grid"),
         (_grid(3000, 3000), "lower grid.nx, grid.ny"),
         (_grid(10, 10, n_drones=1000), "'swarm.n_drones' 1000 exceeds the 100 free cells"),
+        # the nowcast's history of days is counted (it ran out of memory: probe 23's f10)
+        ('state = "nowcast"\nhistory_days = 10000000', "lower history_days, traffic.horizon"),
+        ('traffic = "dynamics"\ndynamics_disturbances = 100000000', "dynamics_disturbances"),
     ],
 )
 def test_pretraining_past_memory_or_map_is_refused(tmp_path, capsys, text, words):

@@ -15,7 +15,7 @@ import pytest
 pytest.importorskip("libsumo")
 
 from helpers import needs_display, small_sumo_scenario
-from test_boundary import one_line, refresh_manifest, tree_hash
+from test_boundary import forge_per_seed, one_line, refresh_manifest, tree_hash
 
 from twin.boundary import EXIT_REFUSED
 from twin.cli import main
@@ -86,6 +86,11 @@ SUMO_READ_BACK: dict[str, tuple[Callable[[Path], None], str, tuple[str, ...]]] =
         _edit_tape("tapes/seed-1.parquet", _triple_counts),
         "but trajectories.parquet and tapes/seed-1.parquet give",
         ("report", "history"),
+    ),
+    "a later seed's paper accounting is forged consistently": (  # probe 23's f02
+        lambda run: forge_per_seed(run, 1, "random", "R_hat_T_paper", 0.05),
+        "per_seed.csv: R_hat_T_paper = ",
+        ("report",),
     ),
     "run.json begins at another time than the tape": (
         _run_json(lambda r: r["traffic"].update(begin="00:06:00")),

@@ -412,3 +412,25 @@ def test_the_scratch_sweep_removes_only_twins_own_stale_entries(tmp_path, monkey
         "notes.txt", "project", "twin-sumo-fresh.log"
     ]  # fmt: skip
     assert (scratch / "project" / "thesis.tex").read_text() == "work"
+
+
+def test_a_shared_ray_folder_loses_only_the_sessions_of_ended_processes(tmp_path, monkeypatch):
+    """``tmp/twin-ray`` is shared by every local Ray: never removed whole by age (a long
+    sweep's live session went with it), each ``session_..._<pid>`` removed once its process
+    has ended (those of killed runs stayed for good), and a link that leads nowhere."""
+    import os
+    import time
+
+    cache = tmp_path / "cache"
+    ray = cache / "tmp" / "twin-ray"
+    live, dead = ray / f"session_2026_{os.getpid()}", ray / "session_2026_999999999"
+    for session in (live, dead):
+        (session / "sockets").mkdir(parents=True)
+    (ray / "session_latest").symlink_to(dead)
+    old = time.time() - (resources.SCRATCH_DAYS + 1) * 86400
+    for path in (ray, live):
+        os.utime(path, (old, old))
+    monkeypatch.setenv("TWIN_CACHE_DIR", str(cache))
+    monkeypatch.setattr(resources, "_SWEPT", set())
+    resources.scratch_dir()
+    assert sorted(p.name for p in ray.iterdir()) == [live.name]

@@ -20,6 +20,7 @@ import hashlib
 import json
 import re
 import shutil
+import subprocess
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -31,6 +32,7 @@ pytest.importorskip("libsumo")
 from twin.cli import main
 from twin.errors import UserError
 from twin.runs import check_run_folder
+from twin.sumo.outputs import MESSAGES_NAME
 from twin.sumo.readers import departure_span, read_sumocfg
 from twin.sumo.tools import binary, run_sumo_program
 
@@ -539,7 +541,8 @@ def test_device_outputs_of_vehicle_types_go_into_the_run_folder(scenario, tmp_pa
     if where == "route file":  # the detector of _detector_case too
         want = ["det.add.xml", "det.xml", "small.trips.xml", "ssm.xml"]
     run = json.loads((out / "run.json").read_text())
-    assert sorted(run["traffic"]["sumo_outputs"]) == want
+    # SUMO's own messages (its warnings of SSM devices without measures) aside
+    assert sorted(o for o in run["traffic"]["sumo_outputs"] if o != MESSAGES_NAME) == want
 
 
 def _utf16_routes_with_ssm(d: Path) -> None:
@@ -718,7 +721,8 @@ def test_outputs_in_every_form_sumo_reads_go_into_the_run_folder(
     assert code == 0, err
     assert tree_hash(tmp_path / "case") == before
     assert list((tmp_path / "cwd").iterdir()) == []
-    assert sorted(p.name for p in (out / "sumo").iterdir()) == want
+    written = sorted(p.name for p in (out / "sumo").iterdir() if p.name != MESSAGES_NAME)
+    assert written == want  # SUMO's own messages (its warnings) aside
 
 
 @pytest.mark.parametrize("stream", ["stdout", "stderr", "-"])
@@ -1346,6 +1350,109 @@ def test_sumo_s_own_demo_runs_with_its_messages_kept_out_of_twin_s_lines(
     assert "will not be able to depart" in log.read_text()
     assert tree_hash(d) == before and list((tmp_path / "cwd").iterdir()) == []
     assert "sumo/sumo-messages.log" in check_run_folder(out)["files"]
+
+
+def test_what_a_verbose_sumo_prints_goes_to_its_messages_not_twin_s_stdout(
+    scenario, tmp_path, capfd
+):
+    """A sumocfg asking SUMO to be verbose and print its statistics: SUMO's lines go to
+    RUN/sumo/sumo-messages.log, not among twin's on stdout (they leaked: probe 23's f01)."""
+    cfg = _detector_case(scenario, tmp_path / "case")
+    cfg.write_text(cfg.read_text().replace("</configuration>", '<report><verbose value="true"/>'
+                   '<duration-log.statistics value="true"/></report></configuration>'))  # fmt: skip
+    out = tmp_path / "run"
+    code = _run(scenario, out, "--sumocfg", str(cfg))
+    captured = capfd.readouterr()
+    assert code == 0, captured.err
+    assert "Loading net-file" not in captured.out + captured.err, captured.out
+    assert "Statistics" not in captured.out + captured.err
+    said = (out / "sumo" / "sumo-messages.log").read_text()
+    assert "Loading net-file" in said and "Statistics" in said
+
+
+def test_a_run_with_its_stdout_closed_completes(tmp_path):
+    """``twin run ... >&-``: Python's stdout is None then; the SUMO child's start flushed it
+    and failed, a partial run of no step (the review of probe 23's f01 fix)."""
+    import os
+    import sys
+
+    from helpers import small_sumo_scenario
+
+    folder = small_sumo_scenario(tmp_path, horizon=3)
+    out = tmp_path / "run"
+    argv = [sys.executable, "-m", "twin", "run", "--config", str(folder / "small.toml"),
+            "--swarms", "random", "--no-ceiling", "--no-report", "--quiet", "--out", str(out)]  # fmt: skip
+    done = subprocess.run(argv, preexec_fn=lambda: os.close(1), stderr=subprocess.PIPE,
+                          text=True, check=False, timeout=300)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert (out / "manifest.json").is_file()
+
+
+def test_demand_sumo_ignores_with_a_warning_is_told(scenario, tmp_path, capfd):
+    """A route file SUMO loads only in part (a flow after a later person: "Route file should
+    be sorted by departure time, ignoring 'f1'!"): a notice quotes SUMO's warning and names
+    RUN/sumo/sumo-messages.log, which keeps it (twin ran SUMO without warnings, so the flow
+    was dropped without a word: probe 23's f03)."""
+    cfg = _detector_case(scenario, tmp_path / "case")
+    with open(cfg.parent / "small.trips.xml", "rb") as fh:
+        trip = ET.parse(fh).getroot().find("trip")
+    edge, to = trip.get("from"), trip.get("to")
+    (cfg.parent / "late.rou.xml").write_text(
+        f'<routes><person id="p0" depart="300"><walk from="{edge}" to="{to}"/></person>'
+        f'<flow id="f1" from="{edge}" to="{to}" begin="100" end="500" period="10"/></routes>'
+    )
+    cfg.write_text(cfg.read_text().replace('value="small.trips.xml"',
+                                           'value="small.trips.xml,late.rou.xml"'))  # fmt: skip
+    out = tmp_path / "run"
+    code = _run(scenario, out, "--sumocfg", str(cfg))
+    err = capfd.readouterr().err
+    assert code == 0, err
+    log = out / "sumo" / "sumo-messages.log"
+    notice = [line for line in err.splitlines() if "SUMO warned that it ignored something" in line]
+    assert len(notice) == 1 and "ignoring 'f1'" in notice[0] and str(log) in notice[0], err
+    assert "ignoring 'f1'" in log.read_text()
+
+
+def _one_edge_net(d: Path, length_m: float) -> Path:
+    """A network of one two-lane edge of ``length_m``, built by netconvert from plain XML."""
+    (d / "one.nod.xml").write_text(
+        f'<nodes><node id="a" x="0" y="0"/><node id="b" x="{length_m:g}" y="0"/></nodes>'
+    )
+    (d / "one.edg.xml").write_text(
+        '<edges><edge id="e" from="a" to="b" numLanes="2" speed="13.9"/></edges>'
+    )
+    subprocess.run([binary("netconvert"), "-n", str(d / "one.nod.xml"), "-e",
+                    str(d / "one.edg.xml"), "-o", str(d / "one.net.xml")], check=True,
+                   capture_output=True)  # fmt: skip
+    return d / "one.net.xml"
+
+
+def test_a_network_randomtrips_cannot_use_is_one_line_with_a_fix(tmp_path, capsys):
+    """One 3 m edge: randomTrips finds no edge for its trips; the line says twin cannot
+    generate demand there and to give routes (randomTrips' words alone named no fix: probe
+    23's P2-f01)."""
+    net = _one_edge_net(tmp_path, 3.0)
+    code = main(["run", "--net", str(net), "--cell-m", "200", "--drones", "1", "--swarms",
+                 "random", "--horizon", "4", "--no-ceiling", "--no-report", "--quiet",
+                 "--out", str(tmp_path / "run")])  # fmt: skip
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "\n" not in err, err
+    assert err.startswith("twin: error: randomTrips.py on") and "one.net.xml" in err, err
+    assert err.endswith("give your own (--routes, or a sumocfg's routes)"), err
+
+
+def test_demand_is_generated_on_a_network_of_fringe_edges_only(tmp_path, capsys):
+    """A network whose only road enters and leaves it (one edge): randomTrips finds no inner
+    edge and advised its own --allow-fringe, which twin's user cannot give; twin gives it,
+    with a notice (probe 23's f04)."""
+    net = _one_edge_net(tmp_path, 1000.0)
+    code = main(["run", "--net", str(net), "--cell-m", "200", "--drones", "2", "--swarms",
+                 "random", "--horizon", "4", "--no-ceiling", "--no-report", "--quiet",
+                 "--out", str(tmp_path / "run")])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert "start and end on its fringe" in err and "one.net.xml" in err, err
+    assert pd.read_parquet(tmp_path / "run" / "tape.parquet")["count"].sum() > 0
 
 
 def test_a_command_that_keeps_no_sumo_outputs_says_so(scenario, tmp_path, capsys):

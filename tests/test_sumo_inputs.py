@@ -907,6 +907,68 @@ def test_a_users_config_grid_holds_for_a_sumocfg_given_by_flag(city, tmp_path, c
         assert "cannot cover the network" in err and err.count("\n") == 1, err
 
 
+def test_a_cell_size_flag_over_a_configs_grid_shape_says_it_refits_it(city, tmp_path, capsys):
+    """--cell-m fits the grid to the map, dropping the config's own [grid] nx, ny (made for
+    its cell_m): a notice says so, naming both (it was silent: probe 22's c29)."""
+    config = tmp_path / "mine.toml"
+    config.write_text(
+        '[grid]\nnx = 8\nny = 8\n[swarm]\nn_drones = 2\n[traffic]\nkind = "sumo"\n'
+        'cell_m = 200.0\nhorizon = 2\n[evaluate]\nswarms = ["random"]\n'
+    )
+    out = tmp_path / "run"
+    code = twin_main(["run", "--config", str(config), "--sumocfg",
+                      str(city / "scenario" / "plain.sumocfg"), "--cell-m", "300", "--no-ceiling",
+                      "--quiet", "--no-report", "--out", str(out)])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 0, err
+    grid = json.loads((out / "network.json").read_text())["grid"]
+    assert (grid["nx"], grid["ny"]) != (8, 8)
+    notice = [line for line in err.splitlines() if "[grid] nx, ny = 8 x 8" in line]
+    assert len(notice) == 1 and "--cell-m 300" in notice[0], err
+    assert f"({grid['nx']} x {grid['ny']})" in notice[0], notice
+
+
+class _RandomTripsCalled(Exception):
+    pass
+
+
+def _no_randomtrips(*_args, **_kwargs):
+    raise _RandomTripsCalled
+
+
+def test_a_demand_scale_past_what_twin_generates_is_one_line(city, tmp_path, capsys, monkeypatch):
+    """A network without routes and ``demand_scale = 1e9``: refused before randomTrips runs,
+    naming the key and the largest scale that fits (randomTrips ran the machine out of
+    memory: probe 23's f08)."""
+    config = tmp_path / "ds.toml"
+    config.write_text(
+        '[swarm]\nn_drones = 2\n[traffic]\nkind = "sumo"\ncell_m = 200.0\nhorizon = 5\n'
+        "demand_scale = 1e9\n"
+    )
+    code = twin_main(["run", "--config", str(config), "--net", str(city / "data" / "grid.net.xml"),
+                      "--no-ceiling", "--quiet", "--no-report", "--out", str(tmp_path / "run")])  # fmt: skip
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "\n" not in err, err
+    assert f"{config}: [traffic].demand_scale = 1e+09 asks randomTrips for about" in err
+    assert "give a demand_scale of at most" in err and not (tmp_path / "run").exists()
+    # the largest scale it names runs (it was rounded up, and refused again: probe 23's P2-f02)
+    most = err.rsplit(" ", 1)[1]
+    config.write_text(config.read_text().replace("1e9", most))
+    monkeypatch.setattr("twin.sumo.demand.random_rush_hour_trips", _no_randomtrips)
+    code = twin_main(["run", "--config", str(config), "--net", str(city / "data" / "grid.net.xml"),
+                      "--no-ceiling", "--quiet", "--no-report", "--out", str(tmp_path / "run")])  # fmt: skip
+    assert "asks randomTrips for about" not in capsys.readouterr().err
+
+
+def test_a_demand_scale_over_a_scenario_s_own_demand_says_it_does_not_apply(city, tmp_path, capsys):
+    """``demand_scale`` scales only the demand twin generates: over a sumocfg's own routes a
+    notice says so (the figures were those of scale 1, without a word: probe 23's f09)."""
+    code, err, _ = _own_config_run(city, tmp_path, capsys, "horizon = 2\ndemand_scale = 3.0\n")
+    assert code == 0, err
+    notice = [line for line in err.splitlines() if "demand_scale = 3 scales only" in line]
+    assert len(notice) == 1 and "plain.sumocfg brings its own" in notice[0], err
+
+
 def test_a_users_config_end_holds_for_a_sumocfg_given_by_flag(city, tmp_path, capsys):
     """``[traffic] end`` of the user's own config closes the window of a network given by
     --sumocfg, as its begin, horizon and grid do (it was dropped: probe 12's k01)."""

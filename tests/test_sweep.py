@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -202,6 +203,47 @@ def test_local_pool_and_ray_give_identical_results(tmp_path: Path, capfd) -> Non
     got = numbers(tmp_path / "local")
     assert set(got["swarm"]) == {"random", "greedy", "sweeping", "rl-online"}
     pd.testing.assert_frame_equal(got, numbers(tmp_path / "ray"))
+
+
+@pytest.mark.parametrize("cache", ["short", "deep", "relative"])
+def test_a_local_ray_leaves_nothing_outside_twin_s_cache(tmp_path: Path, monkeypatch, cache):
+    """A local Ray keeps its session in twin's scratch folder and removes it after; when that
+    folder is too deep for Ray's socket paths, in Ray's own (under $TMPDIR), removed after as
+    well (it was left in /tmp/ray, one more per run: probe 23's f05)."""
+    import tempfile
+
+    pytest.importorskip("ray", reason="Ray not installed (pip install 'twin[ray]')")
+    from twin.executors import ray_tasks
+
+    short = Path(tempfile.mkdtemp(prefix="t", dir="/tmp"))  # Ray's sockets need short paths
+    try:
+        system = short / "sys"
+        system.mkdir()
+        twin_cache = {"short": short / "c", "deep": tmp_path / ("deep" * 12) / "cache",
+                      "relative": Path("c")}[cache]  # fmt: skip
+        monkeypatch.chdir(short)  # a relative cache: Ray takes no relative folder
+        monkeypatch.setenv("TWIN_CACHE_DIR", str(twin_cache))
+        monkeypatch.setenv("TMPDIR", str(system))
+        monkeypatch.delenv("RAY_TMPDIR", raising=False)
+        got = sorted(value for _, value, _ in ray_tasks(lambda x: -x, [(-1,), (-2,)], workers=1))
+        assert got == [1, 2]
+        assert list(system.iterdir()) == []
+        assert not (short / twin_cache / "tmp" / "twin-ray").exists()
+    finally:
+        shutil.rmtree(short, ignore_errors=True)
+
+
+def test_a_local_ray_under_folders_too_deep_for_its_sockets_is_one_line(tmp_path, monkeypatch):
+    """twin's cache and $TMPDIR both too deep for Ray's socket paths (107 bytes): one line
+    naming the cache and how short it must be, not Ray's traceback (probe 23's f06)."""
+    from twin.executors import _local_ray_folder
+
+    monkeypatch.setenv("TWIN_CACHE_DIR", str(tmp_path / ("deep" * 12) / "cache"))
+    monkeypatch.setenv("TMPDIR", str(tmp_path / ("deep" * 12)))
+    with pytest.raises(
+        UserError, match=r"set \$TWIN_CACHE_DIR to a folder of at most 30 characters"
+    ):
+        _local_ray_folder()
 
 
 def test_restart_runs_only_missing_cells(tmp_path: Path) -> None:

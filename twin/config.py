@@ -646,14 +646,27 @@ class ScenarioConfig(SourcedConfig):
         for key in ("checkpoint", "history"):  # relative to the config, as in sweeps
             if isinstance(options.get(key), str):
                 options[key] = self.path.parent / options[key]
+        where = f"{self.path}: " if not overrides else ""  # else the options are another file's
         try:
             return make_policy(name, **options)
-        except TypeError as exc:
-            raise _fail(
-                self.path,
-                f"[swarm_options.{name}]",
-                f"has an option the swarm does not take ({exc})",
+        except (TypeError, ValueError) as exc:  # an unknown option, or a value of a wrong type
+            word = re.search(r"unexpected keyword argument '([^']+)'", str(exc))
+            if "takes no arguments" in str(exc):
+                raise ConfigError(
+                    f"{where}[swarm_options.{name}] gives options, but the {name} swarm takes "
+                    "none; remove the table"
+                ) from None
+            raise ConfigError(
+                f"{where}[swarm_options.{name}] has an option {word[1]!r} the {name} swarm does "
+                "not take; remove it"
+                if word
+                else f"{where}[swarm_options.{name}] has an option of a type the {name} swarm "
+                f"cannot use ({exc}); give the type its guide names"
             ) from None
+        except UserError as exc:  # a value the swarm refuses: said with where it was given
+            if str(self.path) in str(exc) or str(exc).startswith("[swarm_options"):
+                raise
+            raise UserError(f"{where}[swarm_options.{name}]: {exc}") from None
 
     @property
     def params(self) -> ScoreParams:

@@ -245,17 +245,33 @@ def ray_tasks(
     # Ray's Python warnings (e.g. on token authentication) stay off the terminal; set after
     # the import, which configures Ray's logger
     logging.getLogger("ray").setLevel(logging.ERROR)
-    started = False
+    started, session, temp_dir, own, made = False, None, None, False, False
     if not ray.is_initialized():
         if address:
             _connect_ray(ray, address)
         else:
-            ray.init(
-                num_cpus=workers,
-                include_dashboard=False,
-                log_to_driver=False,
-                configure_logging=False,
-            )
+            temp_dir, own = _local_ray_folder()
+            made = not temp_dir.exists()
+            if own:
+                temp_dir.mkdir(mode=0o700, exist_ok=True)
+            try:
+                ray.init(
+                    num_cpus=workers,
+                    include_dashboard=False,
+                    log_to_driver=False,
+                    configure_logging=False,
+                    **({"_temp_dir": str(temp_dir)} if own else {}),
+                )
+            except BaseException:  # its half-made session goes with it
+                with contextlib.suppress(Exception):
+                    ray.shutdown()
+                _remove_ray_session(temp_dir, None, own or made)
+                raise
+            if own:  # Ray makes its folders writable by all
+                with contextlib.suppress(OSError):
+                    temp_dir.chmod(0o700)
+            with contextlib.suppress(Exception):  # removed after the shutdown
+                session = Path(ray._private.worker.global_worker.node.get_session_dir_path())
         started = True
     pending: dict = {}
     try:
@@ -274,6 +290,70 @@ def ray_tasks(
             ray.cancel(ref, force=True)
         if started:
             ray.shutdown()
+            if session is not None and temp_dir is not None:
+                _remove_ray_session(temp_dir, session, own or made)
+
+
+#: The longest path of a Unix socket (Linux's ``sun_path``, less its final NUL byte).
+SOCKET_PATH_MAX = 107
+#: What a local Ray adds to its folder for its longest socket path: its session (date, time,
+#: microseconds, a process id of up to 7 digits) and ``sockets/plasma_store``.
+RAY_SOCKET_TAIL = len("/session_2026-01-01_00-00-00_000000_4194304/sockets/plasma_store")
+
+
+def _local_ray_folder() -> tuple[Path, bool]:
+    """Where a local Ray keeps its sessions, and whether that is twin's own folder
+    (``twin-ray`` in twin's scratch folder, :func:`twin.resources.scratch_dir`).
+
+    A Unix socket's path holds at most :data:`SOCKET_PATH_MAX` bytes; when twin's folder is
+    too deep for Ray's sockets, Ray's own folder is taken (``$RAY_TMPDIR``, ``$TMPDIR`` or
+    ``/tmp``, then ``ray``), the session removed after it (:func:`_remove_ray_session`);
+    when both are too deep, refused in one line."""
+    from twin.resources import CACHE_ENV, scratch_dir
+
+    own = scratch_dir().absolute() / "twin-ray"  # Ray takes no relative folder
+    if len(os.fsencode(own)) + RAY_SOCKET_TAIL <= SOCKET_PATH_MAX:
+        return own, True
+    theirs = _ray_default_folder()
+    if len(os.fsencode(theirs)) + RAY_SOCKET_TAIL <= SOCKET_PATH_MAX:
+        return theirs, False
+    room = SOCKET_PATH_MAX - RAY_SOCKET_TAIL - len("/tmp/twin-ray")
+    raise UserError(
+        f"{own}: too deep a folder for a local Ray's sockets (a socket's path holds at most "
+        f"{SOCKET_PATH_MAX} bytes), and so is Ray's own {theirs}; set ${CACHE_ENV} to a folder "
+        f"of at most {room} characters (twin keeps Ray's sessions in its tmp/twin-ray)"
+    )
+
+
+def _ray_default_folder() -> Path:
+    """The folder a local Ray keeps its sessions in when not told one (Ray's own choice)."""
+    try:
+        from ray._common.utils import get_default_ray_temp_dir
+    except ImportError:  # another Ray than the one twin is tested with
+        return (Path(os.environ.get("TMPDIR") or "/tmp") / "ray").absolute()
+    return Path(get_default_ray_temp_dir()).absolute()
+
+
+def _remove_ray_session(folder: Path, session: Path | None, whole: bool) -> None:
+    """A local Ray's ``session`` in ``folder`` removed after its shutdown (None: the one of
+    this process, if Ray made one before failing), with the ``session_latest`` link when it
+    points there; with ``whole`` (twin's folder, or Ray's made by this Ray) the folder too,
+    once nothing else is in it. Sessions of killed runs go with a later twin's scratch sweep
+    (:data:`twin.resources.SHARED_SCRATCH`)."""
+    import shutil
+
+    if session is None:
+        mine = sorted(folder.glob(f"session_*_{os.getpid()}")) if folder.is_dir() else []
+        session = mine[-1] if mine else None
+    if session is not None and session.parent == folder:
+        shutil.rmtree(session, ignore_errors=True)
+        latest = folder / "session_latest"
+        with contextlib.suppress(OSError):
+            if latest.is_symlink() and Path(os.readlink(latest)).name == session.name:
+                latest.unlink()
+    if whole:
+        with contextlib.suppress(OSError):
+            folder.rmdir()
 
 
 def _ray_executor(

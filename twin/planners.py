@@ -214,8 +214,9 @@ class LookaheadPolicy(CoordinatedPolicy):
             raise UserError(f"lookahead: horizon = {horizon!r} must be an integer; e.g. 2")
         if beam == 0 and not 1 <= horizon <= MAX_HORIZON:
             raise UserError(
-                f"lookahead: horizon = {horizon} must lie in 1..{MAX_HORIZON} "
-                "(5^H paths per drone; longer with beam > 0); e.g. 4"
+                f"lookahead: horizon = {horizon} with beam = 0 (every path: 5^H per drone) must "
+                f"lie in 1..{MAX_HORIZON}; give a horizon of at most {MAX_HORIZON}, or a beam > 0 "
+                f"(a horizon up to {MAX_BEAM_HORIZON})"
             )
         if beam > 0 and not 1 <= horizon <= MAX_BEAM_HORIZON:
             raise UserError(

@@ -119,6 +119,39 @@ SCRATCH_DAYS = 2
 _SWEPT: set[Path] = set()
 #: The start of every scratch entry's name: only such entries are twin's to remove.
 SCRATCH_PREFIX = "twin-"
+#: Scratch folders that processes share (a local Ray's, :mod:`twin.executors`): never removed
+#: whole; each entry in them named ``..._<pid>`` goes once that process has ended.
+SHARED_SCRATCH = ("twin-ray",)
+
+
+def _sweep_shared(folder: Path) -> None:
+    """Remove the entries of the shared scratch ``folder`` whose process (the number ending
+    their name) has ended, and links that lead nowhere."""
+    import re
+    import shutil
+
+    for entry in sorted(folder.iterdir(), key=Path.is_symlink):  # links once their targets
+        try:
+            if entry.is_symlink():
+                if not entry.exists():
+                    entry.unlink()
+                continue
+            pid = re.search(r"_(\d+)$", entry.name)
+            if pid is None or _alive(int(pid[1])):
+                continue
+            shutil.rmtree(entry, ignore_errors=True) if entry.is_dir() else entry.unlink()
+        except OSError:
+            continue
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError, ValueError):
+        return True
+    return True
 
 
 def scratch_dir() -> Path:
@@ -156,7 +189,9 @@ def scratch_dir() -> Path:
         if not entry.name.startswith(SCRATCH_PREFIX):
             continue
         try:
-            if entry.lstat().st_mtime < old:
+            if entry.name in SHARED_SCRATCH and entry.is_dir() and not entry.is_symlink():
+                _sweep_shared(entry)
+            elif entry.lstat().st_mtime < old:
                 if entry.is_dir() and not entry.is_symlink():
                     shutil.rmtree(entry, ignore_errors=True)
                 else:

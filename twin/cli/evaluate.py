@@ -111,9 +111,11 @@ def _records_the_tape(record, settings: dict) -> bool:
     return identity(record) == identity(settings)
 
 
-def with_swarm_of_run(config, tape):
+def with_swarm_of_run(config, tape, seed_flag: int | None = None, seeds_flag: int | None = None):
     """``config`` with the swarm of the run that recorded ``tape`` (its drones, start cells and
-    score weights, from the ``run.json`` of the tape's run folder), said in a notice: a
+    score weights, from the ``run.json`` of the tape's run folder, and its seed, unless
+    ``--seed`` (``seed_flag``) gives another), said in a notice naming the seeds that run
+    (``--seeds``: ``seeds_flag``): a
     replay of a run's tape without ``--config`` gives the run's swarm results, not those of
     the default config's swarm. A tape outside a run folder keeps the config's swarm, and so
     does one that its folder's manifest does not list or whose grid is not the run's (another
@@ -184,10 +186,16 @@ def with_swarm_of_run(config, tape):
     faults = (
         " (this run had [faults]: the results differ from its own)" if run.get("faults") else ""
     )
+    first = seed_flag if seed_flag is not None else seed
+    count = seeds_flag or 1
+    seeds = "" if first is None else f", seed {first}" if count == 1 else (
+        f", seeds {first} to {first + count - 1}"
+    )  # fmt: skip
+    if seed is not None and seed_flag is not None and seed_flag != seed:
+        seeds += f" by --seed; the run had {seed}"
     notify(
         f"twin: notice: the swarm of {folder / 'run.json'} ({mine.swarm.n_drones} drones, its "
-        f"starts and score weights{f', seed {seed}' if seed is not None else ''}) replays its "
-        f"tape, not {config.path.name}'s; its "
+        f"starts and score weights{seeds}) replays its tape, not {config.path.name}'s; its "
         f"[swarm_options] and [faults] are not replayed{faults}: give the run's config with "
         "--config for them"
     )
@@ -206,7 +214,7 @@ def main(args: argparse.Namespace) -> int:
     hold_notices()  # printed once the simulation has started; a refusal is one line
     config = load_config(shipped_config(args.config or DEFAULT_CONFIG))
     if args.traffic is not None and args.config is None:
-        config = with_swarm_of_run(config, args.traffic)
+        config = with_swarm_of_run(config, args.traffic, args.seed, args.seeds)
     swarms = parse_swarm_names(args.swarms, []) if args.swarms is not None else None
     config = with_flags(
         config,

@@ -58,7 +58,10 @@ def add_parser(subparsers) -> None:
         "seeds a pretraining used, recorded in its checkpoint)",
     )
     p.add_argument(
-        "--disturbances", type=int, default=8, help="--dynamics: disturbances per day (default 8)"
+        "--disturbances",
+        type=int,
+        default=8,
+        help="--dynamics: disturbances per day (default 8, at most 10000)",
     )
     p.add_argument("--out", type=path_arg, required=True, help="history file to write (.npz)")
     p.add_argument(
@@ -71,17 +74,16 @@ def add_parser(subparsers) -> None:
     p.set_defaults(func=main)
 
 
-#: Peak memory of ``twin history``: the interpreter and its libraries, and per cell and step
-#: of each day of the dynamic generator (its components, its maps and the fit's copies), of
-#: each tape (its truth maps held, float64) and of the one tape being replayed. Measured on a
-#: 60 x 60 grid, T = 2000: 2.07 GB for 2 days, 5.63 GB for 6 (889 MB a day, 123 B per cell
-#: and step), rounded up.
-BASE_BYTES, DAY_BYTES, TAPE_BYTES, REPLAY_BYTES = 0.4e9, 130, 24, 130
+#: Peak memory of ``twin history``: the interpreter and its libraries, per cell and step of
+#: each day of the dynamic generator (:data:`twin.belief.DAY_BYTES`), of each tape (its truth
+#: maps held, float64) and of the one tape being replayed.
+BASE_BYTES, TAPE_BYTES, REPLAY_BYTES = 0.4e9, 24, 130
 
 
 def check_days_memory(config, days: int, limit_gb: float | None) -> None:
     """Refuse (one line) ``days`` days of maps of ``config``'s grid and horizon past the memory
     limit (:data:`DAY_BYTES`), before any is computed."""
+    from twin.belief import DAY_BYTES
     from twin.experiment import MEMORY_ENV, memory_limit_gb
     from twin.resources import check_grid_size
 
@@ -128,7 +130,7 @@ def check_tapes_memory(paths: list[Path], limit_gb: float | None) -> None:
 def dynamics_days(args):
     """The history of ``--days`` days of the dynamic generator on ``--dynamics``' grid."""
     from twin.config import load_config, make_grid, shipped_config
-    from twin.traffic.dynamic import dynamics_history
+    from twin.traffic.dynamic import MAX_DISTURBANCES, dynamics_history
 
     config = load_config(shipped_config(args.dynamics))
     if config.traffic.kind != "synthetic":
@@ -140,6 +142,11 @@ def dynamics_days(args):
                              ("--disturbances", args.disturbances, 1)):  # fmt: skip
         if value < low:
             raise UserError(f"{flag} {value}: give a whole number >= {low}")
+    if args.disturbances > MAX_DISTURBANCES:
+        raise UserError(
+            f"--disturbances {args.disturbances}: give at most {MAX_DISTURBANCES} a day (more "
+            "make one flat jam of the map)"
+        )
     check_seeds("--seed", args.seed, args.days, "--days", least=2)
     check_days_memory(config, args.days, args.max_memory_gb)
     seeds = range(args.seed, args.seed + args.days)

@@ -101,7 +101,7 @@ class RLPolicy(Policy):
         history: History | str | Path | None = None,
     ) -> None:
         if not 0.0 <= eps <= 1.0:
-            raise UserError(f"eps must lie in [0, 1], got {eps}")
+            raise UserError(f"eps = {eps} must lie in [0, 1]; e.g. 0.05")
         self.net, self.meta = shared_qnet(checkpoint)
         self.checkpoint = checkpoint
         path = Path(checkpoint) if checkpoint is not None else default_checkpoint()

@@ -112,6 +112,9 @@ class Primary:
     #: how each replayed tape's drones sighted (its source's :class:`twin.belief.SightingModel`),
     #: by seed: the belief models' replay needs it (:mod:`twin.report.beliefs`)
     tape_sightings: dict[int, Any] = field(default_factory=dict, repr=False)
+    #: the later seeds' reward splits replayed over their tapes (:func:`replayed_split`), to
+    #: check ``per_seed.csv`` with once the first seed's figures are (:func:`check_seed_tapes`)
+    later_splits: list[pd.DataFrame] = field(default_factory=list, repr=False)
 
     def positions(self, seed: int, swarm: str) -> np.ndarray:
         """``(T+1, N, 2)`` drone cells of one swarm and seed."""
@@ -1278,6 +1281,7 @@ def check_seed_tapes(primary: Primary) -> None:
                 complete = recompute is map_events
                 expected = recompute(of_seed, frame)
                 compare(primary.run_dir, file, frame, expected, key, name, complete)
+        primary.later_splits.append(replayed_split(of_seed, pd.DataFrame()).assign(source=name))
         primary.tape_maps[seed] = of_seed.importance
         primary.tape_sightings[seed] = source.sighting_model()
 
@@ -1285,9 +1289,16 @@ def check_seed_tapes(primary: Primary) -> None:
 def check_shared_traffic_seeds(primary: Primary) -> None:
     """A run whose seeds all run on one traffic (synthetic maps, or one tape replayed for every
     seed; run.json records one ``traffic``): each later seed's rows of ``series.parquet``
-    (rewards, coverage, visited shares, belief error) and ``events.parquet`` replay from its
-    trajectories over ``importance.npz``'s maps, as the first seed's do. Costs one score
-    replay per swarm and later seed."""
+    (rewards, coverage, visited shares, belief error), ``events.parquet`` and its reward split
+    in ``per_seed.csv`` (:func:`replayed_split`) replay from its trajectories over
+    ``importance.npz``'s maps, as the first seed's do; so does the split of a live run's later
+    seeds over their tapes (:func:`check_seed_tapes`). Costs one score replay per swarm and
+    later seed."""
+    for split in primary.later_splits:
+        if primary.per_seed is not None and len(split):
+            name = str(split["source"].iloc[0])
+            compare(primary.run_dir, "per_seed.csv", primary.per_seed,
+                    split.drop(columns="source"), ("seed", "swarm"), name)  # fmt: skip
     import dataclasses
 
     traffic, maps = primary.run.get("traffic"), primary.importance
@@ -1313,6 +1324,10 @@ def check_shared_traffic_seeds(primary: Primary) -> None:
             if frame is not None:
                 expected = recompute(of_seed, frame)
                 compare(primary.run_dir, file, frame, expected, key, name, recompute is map_events)
+        if primary.per_seed is not None:
+            expected = replayed_split(of_seed, primary.per_seed)
+            compare(primary.run_dir, "per_seed.csv", primary.per_seed, expected, ("seed", "swarm"),
+                    name)  # fmt: skip
 
 
 #: Traffic kinds whose every seed runs on the same maps.

@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from twin.errors import UserError
 from twin.sumo.tools import run_sumo_program, tool
 
 #: Vehicle classes of the rush-hour demand (SUMO vTypes).
@@ -142,6 +143,30 @@ def write_spec_demand(net_file: Path, spec: dict[str, Any], out: Path, seed: int
     return n
 
 
+#: Beside generated trips: they start and end on the network's fringe (randomTrips'
+#: ``--allow-fringe``), said in a notice at every run on them.
+FRINGE_MARK = "allow-fringe.txt"
+#: The most trips twin asks randomTrips for (the built-in network's rush hour is about a tenth
+#: of this): randomTrips and duarouter hold every trip in memory.
+MAX_GENERATED_TRIPS = 1_000_000
+
+
+def insertion_rates(demand: dict[str, Any], scale: float) -> np.ndarray:
+    """Trips per hour in each 15-minute piece of the window (randomTrips' insertion rates):
+    :func:`departure_rate` at the piece's middle times ``scale``, at least one."""
+    begin, end = float(demand["begin_s"]), float(demand["end_s"])
+    pieces = np.arange(begin, end, 900.0) + 450.0
+    return np.maximum(departure_rate(pieces, demand) * 3600.0 * scale, 1.0)
+
+
+def expected_trips(demand: dict[str, Any], scale: float) -> float:
+    """About how many trips :func:`random_rush_hour_trips` generates (randomTrips divides the
+    window into equal parts, one per rate)."""
+    rates = insertion_rates(demand, scale)
+    begin, end = float(demand["begin_s"]), float(demand["end_s"])
+    return float(rates.sum() * (end - begin) / len(rates) / 3600.0) if len(rates) else 0.0
+
+
 def random_rush_hour_trips(
     net_file: Path, out: Path, demand: dict[str, Any], seed: int, scale: float = 1.0
 ) -> Path:
@@ -151,10 +176,8 @@ def random_rush_hour_trips(
     list of insertion rates); ``scale`` multiplies it, e.g. per lane-km of a small network.
     """
     begin, end = float(demand["begin_s"]), float(demand["end_s"])
-    pieces = np.arange(begin, end, 900.0) + 450.0
-    rates = np.maximum(departure_rate(pieces, demand) * 3600.0 * scale, 1.0)
-    run_sumo_program(
-        [tool("randomTrips.py"), "-n", str(net_file), "-o", str(out),
+    rates = insertion_rates(demand, scale)
+    args = [tool("randomTrips.py"), "-n", str(net_file), "-o", str(out),
          # --validate routes the trips with duarouter; keep its route file beside `out`
          # instead of routes.rou.xml in the working directory
          "-r", str(out.with_name(out.stem.removesuffix(".trips") + ".validated.rou.xml")),
@@ -162,7 +185,19 @@ def random_rush_hour_trips(
          "--insertion-rate", *[f"{r:.1f}" for r in rates],
          "--fringe-factor", "5", "--min-distance", "500", "--validate",
          "--vehicle-class", "passenger", "--trip-attributes",
-         'departLane="best" departSpeed="max" departPos="random"'],
-        what=f"randomTrips.py on {net_file}",
-    )  # fmt: skip
+         'departLane="best" departSpeed="max" departPos="random"']  # fmt: skip
+    what = f"randomTrips.py on {net_file}"
+    fix = "; twin cannot generate demand on it: give your own (--routes, or a sumocfg's routes)"
+    try:
+        try:
+            run_sumo_program(args, what=what)
+        except UserError as exc:
+            if "--allow-fringe" not in str(exc):
+                raise
+            # every edge enters or leaves the network (a single road): trips may start and end
+            # there, or there is no demand at all
+            run_sumo_program([*args, "--allow-fringe"], what=what)
+            out.with_name(FRINGE_MARK).write_text("randomTrips.py ran with --allow-fringe\n")
+    except UserError as exc:  # randomTrips' own words name no fix twin's user can take
+        raise UserError(f"{exc}{fix}") from None
     return out

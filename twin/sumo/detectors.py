@@ -35,6 +35,7 @@ from xml.sax.saxutils import quoteattr
 
 import numpy as np
 
+from twin.clock import clock_label
 from twin.errors import UserError
 
 #: Columns of ``detectors.parquet``: each fixed detector's reading at each sample time.
@@ -243,8 +244,9 @@ def scenario_reader(scenario, geometry, api) -> DetectorReader:
     """The :class:`DetectorReader` of a live scenario (:class:`twin.sumo.source.SumoScenario`):
     its detectors' periods from its additional files, its first interval from SUMO's begin."""
     periods = detector_periods(scenario.extra.get("additional_files", []))
+    last = scenario.begin_s + scenario.horizon * scenario.step_s  # T^horizon's read
     return DetectorReader(scenario.detectors, geometry, api, begin=scenario.sim_begin,
-                          step_s=scenario.step_s, periods=periods)  # fmt: skip
+                          step_s=scenario.step_s, periods=periods, end=last)  # fmt: skip
 
 
 class DetectorReader:
@@ -262,6 +264,7 @@ class DetectorReader:
         begin: float,
         step_s: float,
         periods: dict[str, float] | None = None,
+        end: float = math.inf,
     ):
         self.api = api
         self._first_end = {s.id: begin + step_s for s in plan.loops}
@@ -299,7 +302,19 @@ class DetectorReader:
                 "files): no detector of the scenario is read"
             )
         self.detectors = found
-        unread = [d.id for d in found if not d.virtual and self._first_end.get(d.id) == math.inf]
+        first_end = {d.id: self._first_end.get(d.id, begin) for d in found if not d.virtual}
+        unread = [i for i, t in first_end.items() if t == math.inf]
+        late = [i for i, t in first_end.items() if end < t < math.inf]  # the run ends first
+        if late:
+            from twin.boundary import notify
+
+            notify(
+                f"twin: notice: the scenario's detector{'s' * (len(late) > 1)} "
+                f"{', '.join(repr(i) for i in late[:3])}{' ...' * (len(late) > 3)} end{'s' * (len(late) == 1)} "
+                f"{'their' if len(late) > 1 else 'its'} first period after the run's last read "
+                f"({clock_label(end)}): twin reads none of {'them' if len(late) > 1 else 'it'}; "
+                "give a shorter period (e.g. twin's step)"
+            )
         if unread:
             from twin.boundary import notify
 

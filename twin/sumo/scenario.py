@@ -575,6 +575,14 @@ def _grid_and_notices(
         fits = fits or suggest_cell_m(lanes, s.cell_m, n_drones, s.min_lane_km, per_drone=1)
         check_swarm_fits(config, Grid(obstacles), fits or ())
     notices = []
+    dropped = config.explicit_shape() if cell_flag and (own_config or not swapped) else None
+    if dropped and dropped != (geometry.nx, geometry.ny) and not _shipped(config.path):
+        notices.append(
+            f"{config.path}: [grid] nx, ny = {dropped[0]} x {dropped[1]} is for its own "
+            f"cell_m; {cell_flag} {s.cell_m:g} fits the grid to the map ({geometry.nx} x "
+            f"{geometry.ny}); give [grid] nx, ny for {s.cell_m:g} m cells in the config to "
+            "keep a shape of your own"
+        )
     if n_drones <= n_free < MIN_FREE_CELLS_PER_DRONE * n_drones:  # more drones: refused later
         better = suggest_cell_m(lanes, s.cell_m, n_drones, s.min_lane_km)
         fewer = max(1, n_free // MIN_FREE_CELLS_PER_DRONE)
@@ -636,6 +644,16 @@ def _grid_and_notices(
     return geometry, obstacles, notices
 
 
+def _shipped(path: Path) -> bool:
+    """Whether ``path`` is one of twin's shipped configs (its shapes are twin's to refit)."""
+    from twin.resources import shipped
+
+    try:
+        return Path(path).resolve().parent == shipped("configs").resolve()
+    except OSError:
+        return False
+
+
 def _generated_demand(
     s: SumoSettings,
     files: _ScenarioFiles,
@@ -644,12 +662,20 @@ def _generated_demand(
     warmup: float,
     step_s: float,
     seed: int,
+    where: str = "[traffic].demand_scale",
 ) -> Path:
     """Rush-hour trips for a network brought without demand (:data:`twin.sumo.demand.
     GENERIC_RUSH_HOUR` scaled to its lane-km), built once per network, window and seed in the
-    user cache."""  # fmt: skip
+    user cache; more than :data:`twin.sumo.demand.MAX_GENERATED_TRIPS` are refused before
+    randomTrips runs, naming ``where`` (the key or flag of ``demand_scale``)."""  # fmt: skip
     from twin import resources
-    from twin.sumo.demand import GENERIC_RUSH_HOUR, random_rush_hour_trips
+    from twin.sumo.demand import (
+        FRINGE_MARK,
+        GENERIC_RUSH_HOUR,
+        MAX_GENERATED_TRIPS,
+        expected_trips,
+        random_rush_hour_trips,
+    )
     from twin.sumo.network import sumo_version
 
     profile = GENERIC_RUSH_HOUR
@@ -661,6 +687,16 @@ def _generated_demand(
         "peak_s": begin - warmup + profile["peak_after_s"],
     }
     net_file = Path(files.net_file)
+    trips = expected_trips(span, scale)
+    if trips > MAX_GENERATED_TRIPS:
+        most = s.demand_scale * MAX_GENERATED_TRIPS / trips
+        most = math.floor(most / 10 ** (e := math.floor(math.log10(most)) - 2)) * 10**e
+        raise UserError(
+            f"{where} = {s.demand_scale:g} asks randomTrips for about {trips:,.0f} trips on "
+            f"{files.name} ({clock_label(span['begin_s'])} - {clock_label(span['end_s'])}), "
+            f"more than the {MAX_GENERATED_TRIPS:,} twin generates (its memory grows with "
+            f"them); give a demand_scale of at most {most:g}"
+        )
     key = f"{net_file.stem}-{_digest(net_file, span, scale, seed, sumo_version())}"
     out = resources.build_once(
         resources.cache_dir() / "imported" / key,
@@ -669,6 +705,11 @@ def _generated_demand(
         ),
         verify=lambda d: resources.check_xml_files(d, {"rush_hour.trips.xml": "routes"}),
     )
+    if (out / FRINGE_MARK).exists():
+        notice(
+            f"{files.name}: every edge enters or leaves the network, so the generated trips "
+            "start and end on its fringe (randomTrips' --allow-fringe)"
+        )
     return out / "rush_hour.trips.xml"
 
 
@@ -754,7 +795,21 @@ def sumo_source(
     )
     route_files = list(files.route_files)
     if files.span is None and not s.network:  # no demand given: twin generates it
-        route_files.append(_generated_demand(s, files, geometry, t0, warmup, step_s, seed))
+        where = ", ".join(config.set_by(["traffic.demand_scale"])) or (
+            f"{config.path}: [traffic].demand_scale"
+        )
+        route_files.append(_generated_demand(s, files, geometry, t0, warmup, step_s, seed, where))
+    elif s.demand_scale != 1.0:
+        own = (
+            "the built-in network's demand is its own (networks/README.md)"
+            if s.network
+            else f"{files.name} brings its own, which runs as it is (scale it with SUMO's "
+            "<scale> in a sumocfg)"
+        )
+        notice(
+            f"{config.path}: [traffic].demand_scale = {s.demand_scale:g} scales only the demand "
+            f"twin generates for a network without routes; {own}"
+        )
 
     options: tuple[str, ...] = ()
     if files.additional_files:

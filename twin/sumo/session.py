@@ -102,6 +102,9 @@ class SumoSession:
     #: run under sumo-gui through traci (a :class:`twin.sumo.gui.GuiSettings`); None: libsumo.
     #: The simulation is the same, so are the results.
     gui: Any = None
+    #: let SUMO write its warnings (a SUMO child whose messages go to ``sumo-messages.log``:
+    #: :mod:`twin.sumo.worker`); elsewhere they would crowd twin's stderr
+    warnings: bool = False
     started: bool = field(default=False, init=False)
     #: sumo-gui's error log in twin's scratch folder, removed when the session closes
     _scratch: Path | None = field(default=None, init=False, repr=False)
@@ -127,7 +130,8 @@ class SumoSession:
             "--random", "false",  # a config's clock seed would make runs unrepeatable
             "--step-length", f"{self.step_length:g}",
             "--no-step-log", "true",
-            "--no-warnings", "true",
+            # a warning of a kind past 20 is counted, not written (a city's teleports)
+            *(["--aggregate-warnings", "20"] if self.warnings else ["--no-warnings", "true"]),
             "--duration-log.disable", "true",
             "--threads", "1",
         ]  # fmt: skip

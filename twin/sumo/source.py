@@ -121,6 +121,8 @@ class SumoTraffic(TrafficSource):
         #: keep SUMO open when the maps end, for :meth:`close_deferred` (the SUMO child sends
         #: the run's end state first)
         self.defer_close = False
+        #: SUMO's messages go to ``sumo-messages.log`` (the SUMO child): its warnings with them
+        self.messages_kept = False
         self._closing: tuple[Any, Path | None] | None = None
         self._truth: np.ndarray | None = None
         self._incidents: list[dict[str, Any]] | None = None
@@ -195,6 +197,7 @@ class SumoTraffic(TrafficSource):
             ignore_route_errors=bool(s.extra.get("twin_demand", True) or s.incidents),
             extra_options=(*gridlock_defaults(s.sumocfg), *options),
             gui=self.gui,
+            warnings=self.messages_kept,
         )
 
     def sample_times(self) -> list[tuple[int, float]]:

@@ -22,7 +22,9 @@ import contextlib
 import multiprocessing
 import os
 import pickle
+import re
 import shutil
+import sys
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -96,6 +98,9 @@ def maps_from_child(source: WorksAhead) -> Iterator[np.ndarray]:
     source.snapshots, source.vehicles_seen, source.error = [], [], None
     source.detector_readings = []
     source.timer, source._truth, source._incidents = StageTimer(), None, None
+    if sys.stdout is not None:  # else the child writes what this process had not into its
+        with contextlib.suppress(Exception):  # messages (None: stdout closed)
+            sys.stdout.flush()
     child.start()
     _LIVE.add(child)
     there.close()
@@ -192,19 +197,24 @@ def _keep_messages(source: WorksAhead, path: Path) -> Path | None:
     the temporary file is removed. A second call does nothing."""
     if not path.exists():
         return None
-    errors, first = 0, ""
+    errors, first, ignored, first_ignored = 0, "", 0, ""
     with contextlib.suppress(OSError), open(path, errors="replace") as fh:
         for line in fh:
             if line.startswith("Error:"):
                 errors += 1
                 first = first or line[len("Error:") :].strip()
+            elif line.startswith("Warning:") and IGNORED.search(line):
+                ignored += 1
+                first_ignored = first_ignored or line[len("Warning:") :].strip()
     kept = None
     if path.stat().st_size and source.output_dir is not None:
         with contextlib.suppress(OSError):
             Path(source.output_dir).mkdir(parents=True, exist_ok=True)
-            kept = shutil.move(path, Path(source.output_dir) / MESSAGES_NAME)
+            # copied, not moved: a run's file like its others (mkstemp's is private)
+            kept = shutil.copyfile(path, Path(source.output_dir) / MESSAGES_NAME)
     path.unlink(missing_ok=True)
     _say_sumo_errors(source, errors, first, None if kept is None else str(kept))
+    _say_sumo_errors(source, ignored, first_ignored, None if kept is None else str(kept), True)
     return None if kept is None else Path(kept)
 
 
@@ -214,8 +224,10 @@ def _produce(source: WorksAhead, conn, parent: int, messages: Path) -> None:
     exit_with_parent(parent, ignore_sigint=True)
     fd = os.open(messages, os.O_WRONLY | os.O_APPEND)
     os.dup2(fd, 2)
+    os.dup2(fd, 1)  # what SUMO prints (a verbose sumocfg, its statistics) is its message too
     os.close(fd)
     source.separate_process = False
+    source.messages_kept = True
     source.defer_close = True  # SUMO is closed after the end state is sent (below)
     sent_snapshots = sent_seen = sent_readings = 0
     failure: BaseException | None = None
@@ -268,18 +280,30 @@ def _produce(source: WorksAhead, conn, parent: int, messages: Path) -> None:
         os._exit(0)  # no atexit handlers of the parent's modules in the child
 
 
-def _say_sumo_errors(source: WorksAhead, errors: int, first: str, kept: str | None) -> None:
-    """One notice for SUMO's errors while it ran (none: nothing said)."""
-    if not errors:
+#: A warning of SUMO's that it ignored something of the scenario ("Route file should be sorted
+#: by departure time, ignoring 'f1'!", "Unknown vehicle class 'x' ignored."): said in a notice,
+#: as its errors are.
+IGNORED = re.compile(r"\bignor(ed|ing)\b", re.IGNORECASE)
+
+
+def _say_sumo_errors(
+    source: WorksAhead, count: int, first: str, kept: str | None, warnings: bool = False
+) -> None:
+    """One notice for SUMO's errors while it ran, or (``warnings``) for its warnings that it
+    ignored part of the scenario (none: nothing said)."""
+    if not count:
         return
     from twin.boundary import notify
 
     where = f"all in {kept}" if kept else "not kept: the run has no folder"
-    name = source.scenario.name
-    notify(
-        f"twin: notice: {name}: SUMO reported {errors} error{'s' * (errors != 1)} while "
-        f"loading or running, which it did not stop for (first: {first[:160]}); {where}"
+    plural = "s" * (count != 1)
+    said = (
+        f"SUMO warned that it ignored something of the scenario ({count} warning{plural}; "
+        if warnings
+        else f"SUMO reported {count} error{plural} while loading or running, which it did not "
+        "stop for ("
     )
+    notify(f"twin: notice: {source.scenario.name}: {said}first: {first[:160]}); {where}")
 
 
 def _picklable(exc: BaseException) -> bool:

@@ -23,6 +23,10 @@ from twin.traffic.base import TrafficSource, normalise_importance
 
 #: The rush-hour wave: base level, peak (fraction of the horizon) and width (same unit).
 WAVE_BASE, WAVE_PEAK, WAVE_WIDTH = 0.3, 0.45, 0.18
+#: The most disturbances a day may hold (8 by default): past this the map is one flat jam.
+MAX_DISTURBANCES = 10_000
+#: Cell values one batch of disturbances' bumps may take while ``z^k`` is summed.
+BUMP_BATCH_VALUES = 1 << 22
 
 
 class DynamicTraffic(TrafficSource):
@@ -35,6 +39,8 @@ class DynamicTraffic(TrafficSource):
         rng = np.random.default_rng([self.seed, 7])
         nx, ny = grid.shape
         n = int(n_disturbances)
+        if not 1 <= n <= MAX_DISTURBANCES:
+            raise ValueError(f"n_disturbances = {n}: give 1 to {MAX_DISTURBANCES}")
         big = rng.random(n) < 0.4
         self.centres = rng.uniform([0, 0], [nx - 1, ny - 1], size=(n, 2))
         # a big jam drifts slowly, a small one may cross a quarter of the map over the run
@@ -70,9 +76,13 @@ class DynamicTraffic(TrafficSource):
         amp = np.where((phase >= 0) & (phase < 1), self.amplitudes * np.sin(np.pi * phase), 0.0)
         ii, jj = np.indices(self.grid.shape, dtype=np.float64)
         c = self.centres_at(k)
-        d2 = (ii[None] - c[:, 0, None, None]) ** 2 + (jj[None] - c[:, 1, None, None]) ** 2
-        bumps = np.exp(-d2 / (2 * self.sigmas[:, None, None] ** 2))
-        return self.wave(k) * np.tensordot(amp, bumps, axes=1)
+        z = np.zeros(self.grid.shape)
+        batch = max(1, BUMP_BATCH_VALUES // ii.size)  # the bumps of many take memory
+        for b in range(0, len(amp), batch):
+            cb, sb = c[b : b + batch], self.sigmas[b : b + batch]
+            d2 = (ii[None] - cb[:, 0, None, None]) ** 2 + (jj[None] - cb[:, 1, None, None]) ** 2
+            z += np.tensordot(amp[b : b + batch], np.exp(-d2 / (2 * sb[:, None, None] ** 2)), 1)
+        return self.wave(k) * z
 
     def importance(self, k: int) -> np.ndarray:
         """``T^k`` (Def. 2)."""

@@ -40,7 +40,7 @@ from pydantic import (
     model_validator,
 )
 
-from twin.belief import History, days_history
+from twin.belief import DAY_BYTES, History, days_history
 from twin.config import (
     ConfigError,
     Overrides,
@@ -76,7 +76,7 @@ from twin.learning.qnet import TABLE1_LAYERS, QNetwork
 from twin.learning.replay import ReplayBuffer, n_step_transitions
 from twin.seeds import MAX_SEED
 from twin.states import DEFAULT_STATE, STATE_NAMES, STATE_VARIANTS, UNAVAILABLE, StateVariant
-from twin.traffic.dynamic import dynamics_history
+from twin.traffic.dynamic import MAX_DISTURBANCES, dynamics_history
 from twin.traffic.synthetic import SyntheticTraffic
 
 PositiveInt = Annotated[int, Field(ge=1)]
@@ -168,8 +168,8 @@ class PretrainConfig(SourcedConfig):
         'tape.parquet files of SUMO runs for traffic = "tapes", one per episode in turn',
         default_factory=list,
     )
-    dynamics_disturbances: PositiveInt = _help(
-        'disturbances per map for traffic = "dynamics"', default=8
+    dynamics_disturbances: int = _help(
+        'disturbances per map for traffic = "dynamics"', default=8, ge=1, le=MAX_DISTURBANCES
     )
     init: str | None = _help(
         "a model checkpoint (qnet.pt) to start from: fine-tuning (default: a fresh network)",
@@ -607,6 +607,7 @@ def estimate_pretrain_memory(cfg: PretrainConfig) -> dict[str, float]:
     layers = [int(n) for n in cfg.layers]
     params = sum(a * b + b for a, b in itertools.pairwise(layers))
     cells = cfg.nx * cfg.ny
+    history = cfg.history_days * (cfg.horizon + 1) * cells * DAY_BYTES
     return {
         "buffer": float(
             (cfg.episodes + 1) * cfg.horizon * cfg.n_drones * transition_bytes(cfg.variant.size)
@@ -616,6 +617,7 @@ def estimate_pretrain_memory(cfg: PretrainConfig) -> dict[str, float]:
         "map": float(
             cells * 8 * (len(synthetic_config(cfg.training_map).disturbances) + 3 * 256 + 16)
         ),
+        "history": float(history if cfg.variant.needs_belief else 0),
     }
 
 
@@ -625,6 +627,7 @@ MEMORY_FIELDS = {
     "network": "layers",
     "batch": "batch_size or layers",
     "map": "grid.nx, grid.ny",
+    "history": "history_days, traffic.horizon or grid.nx, grid.ny",
 }
 
 
