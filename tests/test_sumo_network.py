@@ -111,3 +111,45 @@ def test_a_stop_asked_while_a_sumo_tool_runs_stops_it_and_its_children(tmp_path)
         time.sleep(0.1)
     else:
         pytest.fail(f"the tool's child {child} outlived the stop")
+
+
+def test_a_second_ctrl_c_stops_the_sumo_child_at_once(tmp_path):
+    """Ctrl-C again while SUMO's own process is deep in a long advance (a warm-up of a big
+    demand): the child is killed at once, not waited for to send its end state (30-40 s:
+    probe 23's P2-f04)."""
+    import signal
+    import threading
+    import time
+    from types import SimpleNamespace
+
+    from twin.sumo.worker import maps_from_child
+
+    class Slow:  # a source whose first map takes a minute
+        snapshots, vehicles_seen, detectors, detector_readings = [], [], [], []
+        error, model, output_dir, read_seconds = None, None, None, 0.0
+        separate_process, defer_close, _truth, _incidents = True, False, None, None
+        scenario = SimpleNamespace(name="slow")
+
+        def maps_here(self):
+            time.sleep(60)
+            yield np.zeros((2, 2))
+
+        def truth_map(self):
+            return None
+
+        def incidents_info(self):
+            return []
+
+        def close_deferred(self):
+            pass
+
+    main = threading.main_thread().ident  # Ctrl-C reaches the main thread, in its recv()
+    timer = threading.Timer(1.5, signal.pthread_kill, (main, signal.SIGINT))
+    timer.start()
+    start = time.monotonic()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            next(maps_from_child(Slow()))
+    finally:
+        timer.cancel()
+    assert time.monotonic() - start < 10

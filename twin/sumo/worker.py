@@ -129,6 +129,10 @@ def maps_from_child(source: WorksAhead) -> Iterator[np.ndarray]:
             f" (its last words are in {kept})" if kept else ""
         )
         raise RuntimeError(source.error) from None
+    except KeyboardInterrupt:  # stop at once: SUMO may be deep in a long advance (a warm-up)
+        child.kill()
+        ended = True
+        raise
     finally:
         if not ended:
             ended = _stop(source, here, child)
