@@ -77,7 +77,8 @@ def run_sumo_program(args: list[str], what: str, timeout: float = 600.0) -> str:
                     raise KeyboardInterrupt from None
                 if time.monotonic() > deadline:
                     raise UserError(
-                        f"{what}: {Path(args[0]).name} took longer than {timeout:.0f} s"
+                        f"{what}: {Path(args[0]).name} took longer than {timeout:.0f} s; give it "
+                        "less to do (a smaller network, window or demand_scale)"
                     ) from None
     finally:
         if proc.poll() is None:  # stopped, or out of time: the program and its children
