@@ -424,13 +424,20 @@ def test_a_shared_ray_folder_loses_only_the_sessions_of_ended_processes(tmp_path
     cache = tmp_path / "cache"
     ray = cache / "tmp" / "twin-ray"
     live, dead = ray / f"session_2026_{os.getpid()}", ray / "session_2026_999999999"
-    for session in (live, dead):
+    elsewhere = ray / "session_2025_999999998"  # another machine's (a shared cache), young
+    for session in (live, dead, elsewhere):
         (session / "sockets").mkdir(parents=True)
+        (session / resources.HOST_MARK).write_text(resources.host_mark())
+    (elsewhere / resources.HOST_MARK).write_text("another-host pid:[1]")
     (ray / "session_latest").symlink_to(dead)
     old = time.time() - (resources.SCRATCH_DAYS + 1) * 86400
     for path in (ray, live):
         os.utime(path, (old, old))
     monkeypatch.setenv("TWIN_CACHE_DIR", str(cache))
+    monkeypatch.setattr(resources, "_SWEPT", set())
+    resources.scratch_dir()
+    assert sorted(p.name for p in ray.iterdir()) == sorted([live.name, elsewhere.name])
+    os.utime(elsewhere, (old, old))  # another host's, once old
     monkeypatch.setattr(resources, "_SWEPT", set())
     resources.scratch_dir()
     assert sorted(p.name for p in ray.iterdir()) == [live.name]

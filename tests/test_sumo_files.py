@@ -1397,9 +1397,11 @@ def test_demand_sumo_ignores_with_a_warning_is_told(scenario, tmp_path, capfd):
     with open(cfg.parent / "small.trips.xml", "rb") as fh:
         trip = ET.parse(fh).getroot().find("trip")
     edge, to = trip.get("from"), trip.get("to")
+    flows = "".join(f'<flow id="f{n}" from="{edge}" to="{to}" begin="100" end="500" '
+                    'period="10"/>' for n in range(1, 26))  # fmt: skip
     (cfg.parent / "late.rou.xml").write_text(
         f'<routes><person id="p0" depart="300"><walk from="{edge}" to="{to}"/></person>'
-        f'<flow id="f1" from="{edge}" to="{to}" begin="100" end="500" period="10"/></routes>'
+        f"{flows}</routes>"
     )
     cfg.write_text(cfg.read_text().replace('value="small.trips.xml"',
                                            'value="small.trips.xml,late.rou.xml"'))  # fmt: skip
@@ -1410,6 +1412,7 @@ def test_demand_sumo_ignores_with_a_warning_is_told(scenario, tmp_path, capfd):
     log = out / "sumo" / "sumo-messages.log"
     notice = [line for line in err.splitlines() if "SUMO warned that it ignored something" in line]
     assert len(notice) == 1 and "ignoring 'f1'" in notice[0] and str(log) in notice[0], err
+    assert "(25 warnings;" in notice[0], notice  # past 20, SUMO counts them: all counted
     assert "ignoring 'f1'" in log.read_text()
 
 

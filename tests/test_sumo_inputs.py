@@ -957,7 +957,8 @@ def test_a_demand_scale_past_what_twin_generates_is_one_line(city, tmp_path, cap
     monkeypatch.setattr("twin.sumo.demand.random_rush_hour_trips", _no_randomtrips)
     code = twin_main(["run", "--config", str(config), "--net", str(city / "data" / "grid.net.xml"),
                       "--no-ceiling", "--quiet", "--no-report", "--out", str(tmp_path / "run")])  # fmt: skip
-    assert "asks randomTrips for about" not in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "asks randomTrips for about" not in err and "_RandomTripsCalled" in err, err
 
 
 def test_a_demand_scale_over_a_scenario_s_own_demand_says_it_does_not_apply(city, tmp_path, capsys):

@@ -71,3 +71,87 @@ def test_a_run_outside_the_built_in_networks_demand_is_refused(tmp_path, capsys)
     assert code == 2 and err.count("\n") == 1 and "Traceback" not in err, err
     assert "shenzhen_like: the run (23:00:00 - 23:05:00) lies outside the demand" in err, err
     assert not out.exists()
+
+
+def test_a_stop_asked_while_a_sumo_tool_runs_stops_it_and_its_children(tmp_path):
+    """A first Ctrl-C (or SIGTERM) while randomTrips builds the demand: the tool and what it
+    started (duarouter) are stopped at once and the command is interrupted (exit 130), not
+    run on for minutes nor blamed on the network (probe 23's P2-f03, P2-f04)."""
+    import os
+    import threading
+    import time
+
+    from twin.processes import STOP_ASKED
+    from twin.sumo.tools import run_sumo_program
+
+    pid_file = tmp_path / "child.pid"
+    tool = tmp_path / "slow.py"
+    tool.write_text(
+        "import subprocess, sys, time\n"
+        "child = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(60)'])\n"
+        f"open({str(pid_file)!r}, 'w').write(str(child.pid))\n"
+        "time.sleep(60)\n"
+    )
+    timer = threading.Timer(1.0, STOP_ASKED.set)
+    timer.start()
+    start = time.monotonic()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            run_sumo_program([str(tool)], what="slow.py")
+    finally:
+        timer.cancel()
+        STOP_ASKED.clear()
+    assert time.monotonic() - start < 10
+    child = int(pid_file.read_text())
+    for _ in range(50):  # killed with its group; reaped by init
+        try:
+            os.kill(child, 0)
+        except ProcessLookupError:
+            break
+        time.sleep(0.1)
+    else:
+        pytest.fail(f"the tool's child {child} outlived the stop")
+
+
+def test_a_second_ctrl_c_stops_the_sumo_child_at_once(tmp_path):
+    """Ctrl-C again while SUMO's own process is deep in a long advance (a warm-up of a big
+    demand): the child is killed at once, not waited for to send its end state (30-40 s:
+    probe 23's P2-f04)."""
+    import signal
+    import threading
+    import time
+    from types import SimpleNamespace
+
+    from twin.sumo.worker import maps_from_child
+
+    class Slow:  # a source whose first map takes a minute
+        snapshots, vehicles_seen, detectors, detector_readings = [], [], [], []
+        error, model, output_dir, read_seconds = None, None, None, 0.0
+        separate_process, defer_close, _truth, _incidents = True, False, None, None
+        scenario = SimpleNamespace(name="slow")
+
+        def maps_here(self):
+            time.sleep(60)
+            yield np.zeros((2, 2))
+
+        def truth_map(self):
+            return None
+
+        def incidents_info(self):
+            return []
+
+        def close_deferred(self):
+            pass
+
+    main = threading.main_thread().ident  # Ctrl-C reaches the main thread, in its recv()
+    timer = threading.Timer(1.5, signal.pthread_kill, (main, signal.SIGINT))
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)  # as in a terminal (a
+    timer.start()  # test worker may ignore it)
+    start = time.monotonic()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            next(maps_from_child(Slow()))
+    finally:
+        timer.cancel()
+        signal.signal(signal.SIGINT, before)
+    assert time.monotonic() - start < 10

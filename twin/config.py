@@ -48,7 +48,7 @@ from twin.mfd import SETTING_RANGES as MFD_SETTING_RANGES
 from twin.resources import shipped_config as shipped_config  # re-export (moved there)
 from twin.scores import ScoreParams
 from twin.seeds import MAX_SEED
-from twin.swarms import check_swarm_name, make_policy
+from twin.swarms import base_name, check_swarm_name, make_policy
 
 
 class ConfigError(UserError):
@@ -641,32 +641,47 @@ class ScenarioConfig(SourcedConfig):
         return None
 
     def make_swarm(self, name: str, **overrides: Any):
-        """The swarm ``name`` with this config's options for it, ``overrides`` on top."""
-        options = {**self.swarm_options.get(name, {}), **overrides}
+        """The swarm ``name`` with this config's options for it, ``overrides`` on top (a
+        sweep's, a flag's). Options the swarm refuses are one line naming the table, and this
+        config when it gives them (:meth:`_refused_option`)."""
+        own = self.swarm_options.get(name, {})
+        options = {**own, **overrides}
         for key in ("checkpoint", "history"):  # relative to the config, as in sweeps
             if isinstance(options.get(key), str):
                 options[key] = self.path.parent / options[key]
-        where = f"{self.path}: " if not overrides else ""  # else the options are another file's
         try:
             return make_policy(name, **options)
         except (TypeError, ValueError) as exc:  # an unknown option, or a value of a wrong type
-            word = re.search(r"unexpected keyword argument '([^']+)'", str(exc))
-            if "takes no arguments" in str(exc):
-                raise ConfigError(
-                    f"{where}[swarm_options.{name}] gives options, but the {name} swarm takes "
-                    "none; remove the table"
-                ) from None
-            raise ConfigError(
-                f"{where}[swarm_options.{name}] has an option {word[1]!r} the {name} swarm does "
-                "not take; remove it"
-                if word
-                else f"{where}[swarm_options.{name}] has an option of a type the {name} swarm "
-                f"cannot use ({exc}); give the type its guide names"
-            ) from None
-        except UserError as exc:  # a value the swarm refuses: said with where it was given
-            if str(self.path) in str(exc) or str(exc).startswith("[swarm_options"):
+            if not options:
                 raise
-            raise UserError(f"{where}[swarm_options.{name}]: {exc}") from None
+            raise self._refused_option(name, own, overrides, exc) from None
+        except UserError as exc:  # a value the swarm refuses, said where the config gives it
+            text = str(exc)
+            if not own or str(self.path) in text or text.startswith("[swarm_options"):
+                raise
+            for lead in (f"{base_name(name)}: ", "swarm option "):  # said by the table now
+                text = text.removeprefix(lead)
+            raise UserError(f"{self.path}: [swarm_options.{name}]: {text}") from None
+
+    def _refused_option(self, name: str, own: dict, overrides: dict, exc: Exception):
+        """The :class:`ConfigError` of options the swarm ``name`` does not take or cannot use:
+        naming this config for a key it gives (not one ``overrides`` gives)."""
+        text = str(exc)
+        word = re.search(r"unexpected keyword argument '([^']+)'", text)
+        keys = [word[1]] if word else list({**own, **overrides})
+        mine = any(k in own and k not in overrides for k in keys)
+        table = f"{self.path}: [swarm_options.{name}]" if mine else f"[swarm_options.{name}]"
+        if word:
+            return ConfigError(f"{table} has an option {word[1]!r} the {name} swarm does not "
+                               "take; remove it")  # fmt: skip
+        if "takes no arguments" in text:
+            return ConfigError(f"{table} gives options, but the {name} swarm takes none; "
+                               "remove them")  # fmt: skip
+        given = ", ".join(f"{k} = {v!r}" for k, v in {**own, **overrides}.items())
+        return ConfigError(
+            f"{table}: the {name} swarm cannot use a value of {given} ({text}); give each the "
+            "type of its default (a number, a whole number, true or false, a string)"
+        )
 
     @property
     def params(self) -> ScoreParams:

@@ -253,7 +253,7 @@ def ray_tasks(
             temp_dir, own = _local_ray_folder()
             made = not temp_dir.exists()
             if own:
-                temp_dir.mkdir(mode=0o700, exist_ok=True)
+                temp_dir.mkdir(exist_ok=True)
             try:
                 ray.init(
                     num_cpus=workers,
@@ -267,11 +267,13 @@ def ray_tasks(
                     ray.shutdown()
                 _remove_ray_session(temp_dir, None, own or made)
                 raise
-            if own:  # Ray makes its folders writable by all
-                with contextlib.suppress(OSError):
-                    temp_dir.chmod(0o700)
             with contextlib.suppress(Exception):  # removed after the shutdown
                 session = Path(ray._private.worker.global_worker.node.get_session_dir_path())
+            if session is not None:  # whose it is, for a later scratch sweep
+                from twin.resources import HOST_MARK, host_mark
+
+                with contextlib.suppress(OSError):
+                    (session / HOST_MARK).write_text(host_mark() + "\n")
         started = True
     pending: dict = {}
     try:
@@ -329,8 +331,11 @@ def _ray_default_folder() -> Path:
     """The folder a local Ray keeps its sessions in when not told one (Ray's own choice)."""
     try:
         from ray._common.utils import get_default_ray_temp_dir
-    except ImportError:  # another Ray than the one twin is tested with
-        return (Path(os.environ.get("TMPDIR") or "/tmp") / "ray").absolute()
+    except ImportError:  # an earlier Ray: its order (RAY_TMPDIR, then TMPDIR on Linux, /tmp)
+        for name in ("RAY_TMPDIR", "TMPDIR"):
+            if name in os.environ and (name == "RAY_TMPDIR" or sys.platform == "linux"):
+                return (Path(os.environ[name]) / "ray").absolute()
+        return Path("/tmp/ray")
     return Path(get_default_ray_temp_dir()).absolute()
 
 

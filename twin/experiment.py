@@ -34,7 +34,7 @@ from twin.config import ScenarioConfig, check_faults, check_swarm_fits, start_po
 from twin.errors import UserError
 from twin.patrol import INTERRUPTED, PatrolResult, run_patrol
 from twin.policies import Policy
-from twin.processes import interrupt_on_terminate
+from twin.processes import STOP_ASKED, interrupt_on_terminate
 from twin.swarms import check_swarm_name, is_learned
 from twin.traffic.base import TrafficSource
 from twin.traffic_kinds import build_traffic, is_live_kind
@@ -268,6 +268,7 @@ def stop_on_interrupt(
 
     def first(signum, frame) -> None:
         flag.set()
+        STOP_ASKED.set()
         for each in usable:  # the next one stops at once
             signal.signal(each, at_once[each])
         if on_stop is not None:
@@ -280,6 +281,7 @@ def stop_on_interrupt(
     try:
         yield flag.is_set
     finally:
+        STOP_ASKED.clear()
         for signum, handler in previous.items():
             signal.signal(signum, handler)
 

@@ -10,6 +10,10 @@ import time
 
 #: Seconds between two checks of a child process that its parent is alive.
 PARENT_POLL_S = 0.5
+#: Set while a run was asked to stop (a first Ctrl-C or SIGTERM, :func:`twin.experiment.
+#: stop_on_interrupt`): work that has no step to finish first (a SUMO tool building the
+#: scenario) stops at once.
+STOP_ASKED = threading.Event()
 
 
 def interrupt_on_terminate(signum, frame) -> None:

@@ -120,16 +120,33 @@ _SWEPT: set[Path] = set()
 #: The start of every scratch entry's name: only such entries are twin's to remove.
 SCRATCH_PREFIX = "twin-"
 #: Scratch folders that processes share (a local Ray's, :mod:`twin.executors`): never removed
-#: whole; each entry in them named ``..._<pid>`` goes once that process has ended.
+#: whole; each folder in them named ``..._<pid>`` goes once that process has ended, when it
+#: holds :data:`HOST_MARK` of this host (a cache may be shared by machines, whose processes
+#: this one cannot see), else once it is :data:`SCRATCH_DAYS` old.
 SHARED_SCRATCH = ("twin-ray",)
+#: The file in a shared scratch entry that says which host (and process namespace) made it.
+HOST_MARK = "twin-host"
 
 
-def _sweep_shared(folder: Path) -> None:
+def host_mark() -> str:
+    """This host and process namespace, as :data:`HOST_MARK` records them."""
+    import socket
+
+    try:
+        space = os.readlink("/proc/self/ns/pid")
+    except OSError:
+        space = ""
+    return f"{socket.gethostname()} {space}".strip()
+
+
+def _sweep_shared(folder: Path, old: float) -> None:
     """Remove the entries of the shared scratch ``folder`` whose process (the number ending
-    their name) has ended, and links that lead nowhere."""
+    their name) has ended (one of this host's) or that are older than ``old`` (another's),
+    and links that lead nowhere."""
     import re
     import shutil
 
+    here = host_mark()
     for entry in sorted(folder.iterdir(), key=Path.is_symlink):  # links once their targets
         try:
             if entry.is_symlink():
@@ -137,9 +154,12 @@ def _sweep_shared(folder: Path) -> None:
                     entry.unlink()
                 continue
             pid = re.search(r"_(\d+)$", entry.name)
-            if pid is None or _alive(int(pid[1])):
+            if pid is None or not entry.is_dir():
                 continue
-            shutil.rmtree(entry, ignore_errors=True) if entry.is_dir() else entry.unlink()
+            mark = entry / HOST_MARK
+            mine = mark.is_file() and mark.read_text().strip() == here
+            if (mine and not _alive(int(pid[1]))) or (not mine and entry.stat().st_mtime < old):
+                shutil.rmtree(entry, ignore_errors=True)
         except OSError:
             continue
 
@@ -190,7 +210,7 @@ def scratch_dir() -> Path:
             continue
         try:
             if entry.name in SHARED_SCRATCH and entry.is_dir() and not entry.is_symlink():
-                _sweep_shared(entry)
+                _sweep_shared(entry, old)
             elif entry.lstat().st_mtime < old:
                 if entry.is_dir() and not entry.is_symlink():
                     shutil.rmtree(entry, ignore_errors=True)

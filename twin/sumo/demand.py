@@ -13,6 +13,7 @@ share of them while driving. Same seed, same trips.
 
 from __future__ import annotations
 
+import re
 import xml.etree.ElementTree as ET
 from pathlib import Path
 from typing import Any
@@ -146,6 +147,9 @@ def write_spec_demand(net_file: Path, spec: dict[str, Any], out: Path, seed: int
 #: Beside generated trips: they start and end on the network's fringe (randomTrips'
 #: ``--allow-fringe``), said in a notice at every run on them.
 FRINGE_MARK = "allow-fringe.txt"
+#: randomTrips' words for a network it cannot make trips on (as against running out of time
+#: or memory, where a smaller demand_scale helps).
+NO_TRIPS = re.compile(r"no valid edges|couldn't be generated|could not be generated", re.I)
 #: The most trips twin asks randomTrips for (the built-in network's rush hour is about a tenth
 #: of this): randomTrips and duarouter hold every trip in memory.
 MAX_GENERATED_TRIPS = 1_000_000
@@ -199,5 +203,7 @@ def random_rush_hour_trips(
             run_sumo_program([*args, "--allow-fringe"], what=what)
             out.with_name(FRINGE_MARK).write_text("randomTrips.py ran with --allow-fringe\n")
     except UserError as exc:  # randomTrips' own words name no fix twin's user can take
+        if not NO_TRIPS.search(str(exc)):
+            raise
         raise UserError(f"{exc}{fix}") from None
     return out

@@ -794,10 +794,10 @@ def sumo_source(
         s, config, inputs, files, lanes, t0, step_s, window_given, begin_given, own_config=own
     )
     route_files = list(files.route_files)
+    where = ", ".join(config.set_by(["traffic.demand_scale"])) or (
+        f"{config.path}: [traffic].demand_scale"
+    )
     if files.span is None and not s.network:  # no demand given: twin generates it
-        where = ", ".join(config.set_by(["traffic.demand_scale"])) or (
-            f"{config.path}: [traffic].demand_scale"
-        )
         route_files.append(_generated_demand(s, files, geometry, t0, warmup, step_s, seed, where))
     elif s.demand_scale != 1.0:
         own = (
@@ -807,8 +807,8 @@ def sumo_source(
             "<scale> in a sumocfg)"
         )
         notice(
-            f"{config.path}: [traffic].demand_scale = {s.demand_scale:g} scales only the demand "
-            f"twin generates for a network without routes; {own}"
+            f"{where} = {s.demand_scale:g} scales only the demand twin generates for a network "
+            f"without routes; {own}"
         )
 
     options: tuple[str, ...] = ()

@@ -59,6 +59,10 @@ def gridlock_defaults(sumocfg: Path | None) -> tuple[str, ...]:
     return tuple(part for flag, value in pairs if flag[2:] not in own for part in (flag, value))
 
 
+#: Warnings of one kind SUMO writes before it only counts them (``--aggregate-warnings``).
+AGGREGATE_AFTER = 20
+
+
 class SumoRunError(RuntimeError):
     """SUMO failed while running (not on start): what was recorded so far is still valid.
     ``reason``: SUMO's own words."""
@@ -131,7 +135,8 @@ class SumoSession:
             "--step-length", f"{self.step_length:g}",
             "--no-step-log", "true",
             # a warning of a kind past 20 is counted, not written (a city's teleports)
-            *(["--aggregate-warnings", "20"] if self.warnings else ["--no-warnings", "true"]),
+            *(["--aggregate-warnings", str(AGGREGATE_AFTER)] if self.warnings
+              else ["--no-warnings", "true"]),
             "--duration-log.disable", "true",
             "--threads", "1",
         ]  # fmt: skip

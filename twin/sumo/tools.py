@@ -5,9 +5,12 @@ Users never set ``SUMO_HOME``: it is taken from the wheel and passed to subproce
 
 from __future__ import annotations
 
+import contextlib
 import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 from twin.errors import UserError
@@ -38,6 +41,10 @@ def tool(name: str) -> str:
     return str(path)
 
 
+#: Seconds between two looks at a running SUMO program (finished? asked to stop?).
+POLL_S = 0.2
+
+
 def _env() -> dict[str, str]:
     env = dict(os.environ)
     env.setdefault("SUMO_HOME", str(sumo_home()))
@@ -47,18 +54,40 @@ def _env() -> dict[str, str]:
 def run_sumo_program(args: list[str], what: str, timeout: float = 600.0) -> str:
     """Run a SUMO binary or tool (``args[0]`` a name from :func:`binary` or a ``.py`` tool).
 
-    Raises :class:`UserError` with SUMO's first error line when it fails; returns stdout.
+    Raises :class:`UserError` with SUMO's first error line when it fails; returns stdout. The
+    program runs in a session of its own: a terminal's Ctrl-C reaches twin alone, which stops
+    it (and what it started, duarouter under randomTrips) at once, as a stop asked before it
+    started does (:data:`twin.processes.STOP_ASKED`): :class:`KeyboardInterrupt`.
     """
+    from twin.processes import STOP_ASKED
+
     cmd = [sys.executable, *args] if args[0].endswith(".py") else args
+    if STOP_ASKED.is_set():
+        raise KeyboardInterrupt
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env=_env(), start_new_session=True)  # fmt: skip
+    deadline = time.monotonic() + timeout
     try:
-        proc = subprocess.run(
-            cmd, capture_output=True, text=True, env=_env(), timeout=timeout, check=False
-        )
-    except subprocess.TimeoutExpired as exc:
-        raise UserError(f"{what}: {Path(args[0]).name} took longer than {timeout:.0f} s") from exc
+        while True:
+            try:
+                out, err = proc.communicate(timeout=POLL_S)
+                break
+            except subprocess.TimeoutExpired:
+                if STOP_ASKED.is_set():
+                    raise KeyboardInterrupt from None
+                if time.monotonic() > deadline:
+                    raise UserError(
+                        f"{what}: {Path(args[0]).name} took longer than {timeout:.0f} s; give it "
+                        "less to do (a smaller network, window or demand_scale)"
+                    ) from None
+    finally:
+        if proc.poll() is None:  # stopped, or out of time: the program and its children
+            with contextlib.suppress(OSError):
+                os.killpg(proc.pid, signal.SIGKILL)
+            proc.communicate()
     if proc.returncode != 0:
-        raise UserError(f"{what}: {first_error(proc.stderr + proc.stdout)}")
-    return proc.stdout
+        raise UserError(f"{what}: {first_error(err + out)}")
+    return out
 
 
 def first_error(text: str) -> str:

@@ -34,6 +34,7 @@ import numpy as np
 
 from twin.processes import exit_with_parent
 from twin.sumo.outputs import MESSAGES_NAME
+from twin.sumo.session import AGGREGATE_AFTER
 from twin.timing import StageTimer
 
 
@@ -129,6 +130,10 @@ def maps_from_child(source: WorksAhead) -> Iterator[np.ndarray]:
             f" (its last words are in {kept})" if kept else ""
         )
         raise RuntimeError(source.error) from None
+    except KeyboardInterrupt:  # stop at once: SUMO may be deep in a long advance (a warm-up)
+        child.kill()
+        ended = True
+        raise
     finally:
         if not ended:
             ended = _stop(source, here, child)
@@ -204,7 +209,8 @@ def _keep_messages(source: WorksAhead, path: Path) -> Path | None:
                 errors += 1
                 first = first or line[len("Error:") :].strip()
             elif line.startswith("Warning:") and IGNORED.search(line):
-                ignored += 1
+                total = AGGREGATED.match(line)  # past 20 of a kind: "N total messages ..."
+                ignored += int(total[1]) - AGGREGATE_AFTER if total else 1
                 first_ignored = first_ignored or line[len("Warning:") :].strip()
     kept = None
     if path.stat().st_size and source.output_dir is not None:
@@ -225,7 +231,8 @@ def _produce(source: WorksAhead, conn, parent: int, messages: Path) -> None:
     fd = os.open(messages, os.O_WRONLY | os.O_APPEND)
     os.dup2(fd, 2)
     os.dup2(fd, 1)  # what SUMO prints (a verbose sumocfg, its statistics) is its message too
-    os.close(fd)
+    if fd > 2:  # (with stdout or stderr closed, the file took its number)
+        os.close(fd)
     source.separate_process = False
     source.messages_kept = True
     source.defer_close = True  # SUMO is closed after the end state is sent (below)
@@ -284,6 +291,8 @@ def _produce(source: WorksAhead, conn, parent: int, messages: Path) -> None:
 #: by departure time, ignoring 'f1'!", "Unknown vehicle class 'x' ignored."): said in a notice,
 #: as its errors are.
 IGNORED = re.compile(r"\bignor(ed|ing)\b", re.IGNORECASE)
+#: SUMO's count of the warnings of a kind it stopped writing (``--aggregate-warnings``).
+AGGREGATED = re.compile(r"Warning: (\d+) total messages of type")
 
 
 def _say_sumo_errors(
