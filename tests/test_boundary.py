@@ -1622,28 +1622,36 @@ def test_damaged_run_folder_is_one_line(name, command, run_copy: Path, capsys) -
     assert tree_hash(parent, skip=run_copy) == before
 
 
-@pytest.mark.parametrize("traffic", ["synthetic", "tape"])
-def test_a_later_seeds_rewards_are_replayed_on_the_shared_traffic(tmp_path, capsys, traffic):
-    """Seeds that share one traffic (synthetic maps, one tape): a later seed's rewards raised
-    alike in series.parquet, per_seed.csv and summary.csv, its trajectories untouched, are
-    refused (they replay over importance.npz as the first seed's do)."""
+def _two_seeds_on_one_traffic(tmp_path: Path, capsys, traffic: str, horizon: int) -> Path:
+    """``twin evaluate`` of 2 seeds of random and greedy on one traffic (``synthetic`` maps,
+    or one ``tape`` replayed for both): the run folder."""
     from helpers import random_tape
-    from scipy import stats
 
     config = tmp_path / "c.toml"
     config.write_text(
         '[grid]\nnx = 8\nny = 10\n[swarm]\nn_drones = 3\n[traffic]\nkind = "synthetic"\n'
-        'horizon = 30\ndisturbances = [{ kind = "big", i = 3, j = 4, amplitude = 1.0, '
+        f'horizon = {horizon}\ndisturbances = [{{ kind = "big", i = 3, j = 4, amplitude = 1.0, '
         'sigma = 2.0 }]\n[evaluate]\nswarms = ["random", "greedy"]\n'
     )
     out = tmp_path / "run"
     argv = ["evaluate", "--config", str(config), "--seeds", "2", "--out", str(out), "--quiet",
             "--no-report"]  # fmt: skip
     if traffic == "tape":
-        tape = random_tape(seed=1, nx=8, ny=10, warmup=2, horizon=30, obstacle=(1, 1))
+        tape = random_tape(seed=1, nx=8, ny=10, warmup=2, horizon=horizon, obstacle=(1, 1))
         tape.write(tmp_path / "tape.parquet")
         argv += ["--traffic", str(tmp_path / "tape.parquet")]
     assert main(argv) == 0, capsys.readouterr().err
+    return out
+
+
+@pytest.mark.parametrize("traffic", ["synthetic", "tape"])
+def test_a_later_seeds_rewards_are_replayed_on_the_shared_traffic(tmp_path, capsys, traffic):
+    """Seeds that share one traffic (synthetic maps, one tape): a later seed's rewards raised
+    alike in series.parquet, per_seed.csv and summary.csv, its trajectories untouched, are
+    refused (they replay over importance.npz as the first seed's do)."""
+    from scipy import stats
+
+    out = _two_seeds_on_one_traffic(tmp_path, capsys, traffic, horizon=30)
     assert main(["report", str(out), "--no-animation"]) == 0, capsys.readouterr().err
     shutil.rmtree(out / "report")
     series = pd.read_parquet(out / "series.parquet")
@@ -1691,22 +1699,7 @@ def test_a_later_seeds_paper_accounting_is_replayed(tmp_path, capsys, traffic):
     """A later seed's R_hat_T_paper raised in per_seed.csv and summary.csv alike is refused:
     it replays from the seed's trajectories as the first seed's does (only the first seed's
     was replayed: probe 23's f02)."""
-    from helpers import random_tape
-
-    config = tmp_path / "c.toml"
-    config.write_text(
-        '[grid]\nnx = 8\nny = 10\n[swarm]\nn_drones = 3\n[traffic]\nkind = "synthetic"\n'
-        'horizon = 20\ndisturbances = [{ kind = "big", i = 3, j = 4, amplitude = 1.0, '
-        'sigma = 2.0 }]\n[evaluate]\nswarms = ["random", "greedy"]\n'
-    )
-    out = tmp_path / "run"
-    argv = ["evaluate", "--config", str(config), "--seeds", "2", "--out", str(out), "--quiet",
-            "--no-report"]  # fmt: skip
-    if traffic == "tape":
-        tape = random_tape(seed=1, nx=8, ny=10, warmup=2, horizon=20, obstacle=(1, 1))
-        tape.write(tmp_path / "tape.parquet")
-        argv += ["--traffic", str(tmp_path / "tape.parquet")]
-    assert main(argv) == 0, capsys.readouterr().err
+    out = _two_seeds_on_one_traffic(tmp_path, capsys, traffic, horizon=20)
     forge_per_seed(out, 1, "random", "R_hat_T_paper", 0.05)
     refresh_manifest(out)
     capsys.readouterr()
