@@ -392,3 +392,15 @@ def test_a_sighting_lost_to_a_fault_updates_nothing():
         belief_table(result, history).set_index("model").loc["nowcast", "belief_error"]
         < (table.loc["nowcast", "belief_error"])
     )
+
+
+def test_a_history_file_missing_an_array_names_it(tmp_path):
+    """A history .npz without its ``rho`` array: one line naming the array (numpy's own
+    words were pasted inside quotes: probe 24's f07)."""
+    from twin.errors import UserError
+
+    path = tmp_path / "h.npz"
+    np.savez(path, mean=np.zeros((2, 2, 2)), var=np.zeros((2, 2, 2)),
+             obstacles=np.zeros((2, 2), bool), info=np.array("{}"))  # fmt: skip
+    with pytest.raises(UserError, match=r"h\.npz: not a twin history \(no array 'rho'\)"):
+        History.load(path)

@@ -310,3 +310,23 @@ def test_a_runs_faults_are_said_not_replayed_with_its_tape(tmp_path, capsys):
     assert main(argv) == 0
     err = capsys.readouterr().err
     assert "[swarm_options] and [faults] are not replayed (this run had [faults]" in err, err
+
+
+def test_a_runs_tapes_swapped_between_seeds_are_refused(tmp_path, capsys):
+    """``tapes/seed-0.parquet`` and ``tapes/seed-1.parquet`` swapped (the manifest made to
+    agree): replaying ``seed-1`` would run seed 1's swarm on seed 0's day and give other
+    figures than the run's, with exit 0; refused in one line (probe 24's f06)."""
+    from test_boundary import refresh_manifest
+
+    run, common = _small_sumo_run(tmp_path, capsys, "--seeds", "2")
+    tapes = run / "tapes"
+    (tapes / "seed-0.parquet").rename(tapes / "swap.parquet")
+    (tapes / "seed-1.parquet").rename(tapes / "seed-0.parquet")
+    (tapes / "swap.parquet").rename(tapes / "seed-1.parquet")
+    refresh_manifest(run)
+    tape = str(tapes / "seed-1.parquet")
+    code = main(["evaluate", "--traffic", tape, *common, "--out", str(tmp_path / "ev")])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "\n" not in err, err
+    assert "seed-1.parquet: records seed 0's traffic in" in err and "not that of seed 1" in err
+    assert not (tmp_path / "ev").exists()

@@ -226,11 +226,14 @@ class History:
             raise UserError(f"{path}: {why} (a history file of `twin history`)")
         try:
             with np.load(path, allow_pickle=False) as data:
-                arrays = {k: data[k] for k in ("mean", "var", "rho", "obstacles", "info")}
+                lacking = [k for k in HISTORY_ARRAYS if k not in data.files]
+                if lacking:  # (numpy's KeyError says it in words of its own)
+                    raise UserError(f"{path}: not a twin history (no array {lacking[0]!r}); {fix}")
+                arrays = {k: data[k] for k in HISTORY_ARRAYS}
                 stations = {k: data[f"detector_{k}"] for k in CALIBRATION_KEYS if
                             f"detector_{k}" in data.files}  # fmt: skip
-        except KeyError as exc:
-            raise UserError(f"{path}: not a twin history (no {exc.args[0]!r}); {fix}") from None
+        except UserError:
+            raise
         except Exception as exc:
             raise UserError(f"{path}: not a readable .npz ({type(exc).__name__}); {fix}") from None
         try:
@@ -531,6 +534,10 @@ def fit_history(
         corr,
         detectors,
     )
+
+
+#: The arrays every history file holds (:meth:`History.load`).
+HISTORY_ARRAYS = ("mean", "var", "rho", "obstacles", "info")
 
 
 #: Peak memory of a history of synthetic days (:func:`days_history`) per cell and step of each

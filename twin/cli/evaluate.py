@@ -90,6 +90,28 @@ def _seed_of_tape(tape, run: dict) -> int | None:
     return seed if seed in seeds else None
 
 
+def _check_seed_of_tape(tape, run: dict, seed: int | None, settings: dict, record) -> None:
+    """The tape of seed ``seed`` (by its name) records that seed's traffic in run.json
+    (``traffic_by_seed``), not another seed's: tapes swapped or renamed in a run folder would
+    replay one seed's swarm on another's day (refused in one line)."""
+    from twin.readback import RERUN
+
+    seeds = run.get("seeds")
+    records = run.get("traffic_by_seed")
+    if seed is None or not isinstance(records, list) or not isinstance(seeds, list):
+        return
+    if len(records) != len(seeds) or seed not in seeds:
+        return
+    if _records_the_tape(records[seeds.index(seed)], settings):
+        return
+    other = [s for s, r in zip(seeds, records, strict=True) if _records_the_tape(r, settings)]
+    whose = f"seed {other[0]}'s traffic" if other else "another traffic"
+    raise UserError(
+        f"{tape}: records {whose} in {record}, not that of seed {seed}, which its name gives "
+        f"(tapes swapped or renamed); {RERUN}, or replay it with --config and --seed"
+    )
+
+
 #: What names a day of traffic in a source's record (run.json's ``traffic``, a tape's
 #: settings): its kind and scenario, seed, clock, step, incidents and network.
 TRAFFIC_IDENTITY = ("kind", "name", "seed", "begin", "step_s", "warmup_s", "incidents")
@@ -179,6 +201,7 @@ def with_swarm_of_run(config, tape, seed_flag: int | None = None, seeds_flag: in
         )
     overrides = {key: value for key, (_, value) in fields.items()}
     seed = _seed_of_tape(tape, run)
+    _check_seed_of_tape(tape, run, seed, meta["settings"], record)
     if seed is not None:  # the run's seed of this tape (--seed still chooses another)
         overrides["evaluate.seed"] = seed
     labels = {key: f"{folder / 'run.json'}: {key.split('.')[1]}" for key in overrides}
