@@ -1388,6 +1388,22 @@ def test_a_run_with_its_stdout_closed_completes(tmp_path):
     assert (out / "manifest.json").is_file()
 
 
+def test_a_refusal_after_a_warning_quotes_the_error(scenario, tmp_path, capsys):
+    """SUMO warns (a deprecated vehicle shape), then refuses to start (a vehicle type defined
+    twice: the additional file again by --routes), its error in libsumo's exception: the line
+    quotes the error, not the warning
+    (SUMO's own process writes its warnings now: probe 24's f05)."""
+    cfg = _detector_case(scenario, tmp_path / "case")
+    add = cfg.parent / "det.add.xml"
+    add.write_text(add.read_text().replace(
+        "<additional>", '<additional><vType id="LKW" guiShape="transport"/><vType id="PKW"/>'))  # fmt: skip
+    code = _run(scenario, tmp_path / "run", "--sumocfg", str(cfg), "--routes", str(add))
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "\n" not in err, err
+    assert "Another vehicle type (or distribution) with the id 'LKW' exists" in err, err
+    assert "deprecated" not in err
+
+
 def test_demand_sumo_ignores_with_a_warning_is_told(scenario, tmp_path, capfd):
     """A route file SUMO loads only in part (a flow after a later person: "Route file should
     be sorted by departure time, ignoring 'f1'!"): a notice quotes SUMO's warning and names

@@ -204,7 +204,9 @@ class SumoSession:
         try:
             libsumo.start(self.command())
         except Exception as exc:  # libsumo raises its own TraCI exception types
-            message = stderr.text() or str(exc)
+            said = stderr.text()  # its warnings come first; its error may be the exception's
+            has_error = re.search(r"^Error:", said, re.MULTILINE)
+            message = said if has_error or not str(exc) else f"Error: {exc}\n{said}"
             with contextlib.suppress(Exception):
                 libsumo.close()
             raise self.refusal(message) from None
@@ -469,9 +471,14 @@ def _error_written_since(mark: int | None, said: str) -> str | None:
 
 
 def _first_line(text: str) -> str:
+    """SUMO's first ``Error:`` line (else the first naming an error, else the first line):
+    never a warning it wrote before its error."""
     lines = [line.strip() for line in text.splitlines() if line.strip()]
     for line in lines:
-        if "error" in line.lower():
+        if line.startswith("Error:"):
+            return line
+    for line in lines:
+        if "error" in line.lower() and not line.startswith("Warning:"):
             return line
     return lines[0] if lines else "unknown error"
 
