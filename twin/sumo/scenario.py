@@ -575,8 +575,8 @@ def _grid_and_notices(
         fits = fits or suggest_cell_m(lanes, s.cell_m, n_drones, s.min_lane_km, per_drone=1)
         check_swarm_fits(config, Grid(obstacles), fits or ())
     notices = []
-    dropped = config.explicit_shape() if cell_flag and (own_config or not swapped) else None
-    if dropped and dropped != (geometry.nx, geometry.ny) and not _shipped(config.path):
+    dropped = config.explicit_shape() if cell_flag and own_config else None  # a shipped one's
+    if dropped and dropped != (geometry.nx, geometry.ny):  # is twin's to refit, unsaid
         notices.append(
             f"{config.path}: [grid] nx, ny = {dropped[0]} x {dropped[1]} is for its own "
             f"cell_m; {cell_flag} {s.cell_m:g} fits the grid to the map ({geometry.nx} x "
@@ -642,16 +642,6 @@ def _grid_and_notices(
     for text in notices:
         notice(text)
     return geometry, obstacles, notices
-
-
-def _shipped(path: Path) -> bool:
-    """Whether ``path`` is one of twin's shipped configs (its shapes are twin's to refit)."""
-    from twin.resources import shipped
-
-    try:
-        return Path(path).resolve().parent == shipped("configs").resolve()
-    except OSError:
-        return False
 
 
 def _generated_demand(
