@@ -74,7 +74,9 @@ def expand_cells(config: SweepConfig, out_dir: Path) -> list[dict[str, Any]]:
                     "config": str(scenario.config),
                     "overrides": overrides,
                     "parameters": params,
-                    "labels": override_labels(config.path, scenario, params),
+                    "labels": override_labels(
+                        config.path, scenario, params, config._scenario_table
+                    ),
                     "tape": str(scenario.tape) if scenario.tape else None,
                     "seed": int(seed),
                     "swarms": list(config.swarms),
@@ -144,12 +146,13 @@ def scenario_config(path: Path, overrides: dict[str, Any], labels: dict[str, str
     return with_overrides(load_config(path), overrides, labels=labels)
 
 
-def override_labels(sweep: Path, scenario, params: dict[str, Any]) -> dict[str, str]:
+def override_labels(
+    sweep: Path, scenario, params: dict[str, Any], table: str = "[[scenario]]"
+) -> dict[str, str]:
     """Each override's key in the sweep file ``sweep`` that set it: a ``[parameters]`` key, or
-    the scenario's ``overrides`` (named in a refusal instead of the scenario's file)."""
-    labels = {
-        k: f"{sweep}: [[scenario]] {scenario.name}.overrides.{k!r}" for k in scenario.overrides
-    }
+    the ``overrides`` of the scenario (its ``table``: a transfer's ``[[column]]``), named in a
+    refusal instead of the scenario's file."""
+    labels = {k: f"{sweep}: {table} {scenario.name}.overrides.{k!r}" for k in scenario.overrides}
     return {**labels, **{k: f"{sweep}: [parameters].{k!r}" for k in params}}
 
 
