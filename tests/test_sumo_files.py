@@ -174,6 +174,30 @@ def test_sumo_refusing_a_rewritten_file_names_the_users_file(scenario, tmp_path,
     assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == [bad.name]
 
 
+def test_a_file_given_twice_is_named_with_the_repeat_to_drop(scenario, tmp_path, capsys):
+    """An additional file given twice (by --additional twice, or by the sumocfg and
+    --additional): SUMO refuses its ids as taken; the line says the file is loaded twice and to
+    drop the repeat (it quoted SUMO alone: probe 24)."""
+    types = tmp_path / "types.add.xml"
+    types.write_text('<additional><vType id="car2" maxSpeed="20"/></additional>')
+    cfg = scenario / "scenario" / "public.sumocfg"
+    for n, given in enumerate(
+        (["--additional", str(types), "--additional", str(types)], ["--additional", str(types)])
+    ):
+        text = _cfg(NET_AND_TRIPS + '<input><additional-files value="types.add.xml"/></input>')
+        case = _write_case(scenario, tmp_path / f"case{n}", text, {}) if n else cfg
+        if n:
+            (case.parent / "types.add.xml").symlink_to(types)
+        out = tmp_path / f"run{n}"
+        code = _run(scenario, out, "--sumocfg", str(case), *given)
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and "with the id 'car2' exists; types.add.xml is given twice" in err[-1]
+        assert err[-1].endswith("so SUMO loads it twice: drop the repeat"), err
+        assert not out.exists()
+    single = _run(scenario, tmp_path / "once", "--sumocfg", str(cfg), "--additional", str(types))
+    assert single == 0, capsys.readouterr().err  # once is fine
+
+
 def test_sumo_refusing_a_file_of_the_sumocfg_names_both(scenario, tmp_path, capsys):
     """SUMO refuses, when it starts, an additional file the sumocfg lists: the error line
     names that file and the sumocfg."""

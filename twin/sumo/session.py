@@ -185,6 +185,12 @@ class SumoSession:
         (:func:`sumo_refusal`, an included file too); ``when`` says when SUMO gave it, if not
         on start."""
         where, reason = sumo_refusal(message, self.read_files())
+        loaded = [os.path.realpath(p) for p in self.input_files() if p.suffix != ".sumocfg"]
+        if isinstance(where, Path) and loaded.count(os.path.realpath(where)) > 1:
+            reason = (  # its ids taken by itself: the sumocfg, flags or keys name it twice
+                f"{reason.rstrip('.')}; {where.name} is given twice (by the sumocfg, --routes, "
+                "--additional or [traffic] keys), so SUMO loads it twice: drop the repeat"
+            )
         return UserError(f"{where}: SUMO refuses it{when}: {reason}")
 
     def start(self) -> SumoSession:
