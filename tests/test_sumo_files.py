@@ -1655,3 +1655,44 @@ def test_a_comma_in_an_additional_files_path_is_one_line(tmp_path, capsys):
     assert err.startswith(f"twin: error: {odd / 'a.add.xml'}: SUMO splits file names at commas"), (
         err
     )
+
+
+@pytest.mark.parametrize(
+    "stop",
+    [
+        '<stop parkingArea="pa" duration="20000"/>',  # a parking area's roadside spaces
+        '<stop lane="B1C1_0" endPos="150" parking="true" duration="20000"/>',  # off the lane
+    ],
+)
+def test_parked_vehicles_are_not_traffic_but_stopped_ones_are(stop, tmp_path):
+    """A vehicle parked off its lane (a parking area, a ``parking="true"`` stop) is not on the
+    road: it was counted as a standing vehicle, so 25 parked cars made their cell the most
+    congested of the city (probe 25's f01). One stopped on its lane (a bus at its stop, a
+    jam) still is."""
+    from twin.sumo.session import SumoSession
+    from twin.sumo.tools import binary, run_sumo_program
+
+    run_sumo_program(
+        [binary("netgenerate"), "--grid", "--grid.number", "4", "--grid.length", "300",
+         "--default.lanenumber", "1", "-o", str(tmp_path / "g.net.xml")],
+        what="netgenerate",
+    )  # fmt: skip
+    (tmp_path / "p.add.xml").write_text(
+        '<additional><parkingArea id="pa" lane="B1C1_0" startPos="20" endPos="280" '
+        'roadsideCapacity="30"/></additional>'
+    )
+    on_lane = '<stop lane="B1C1_0" endPos="150" duration="20000"/>'
+    (tmp_path / "r.rou.xml").write_text(
+        f'<routes><flow id="parked" begin="0" end="100" number="5" from="A1B1" to="C1D1">{stop}'
+        f'</flow><flow id="held" begin="200" end="300" number="1" from="A1B1" to="C1D1">'
+        f"{on_lane}</flow></routes>"
+    )
+    session = SumoSession(
+        net_file=tmp_path / "g.net.xml", route_files=[tmp_path / "r.rou.xml"],
+        additional_files=[tmp_path / "p.add.xml"], begin=0.0, end=3600.0,
+    )  # fmt: skip
+    with session:
+        session.advance_to(900.0)
+        xy, speed = session.vehicles()
+        assert session.n_running() == 6  # all in the simulation, parked or not
+        assert len(xy) == 1 and speed[0] == 0.0  # only the one held on its lane is traffic

@@ -291,12 +291,17 @@ class SumoSession:
 
     def vehicles(self) -> tuple[np.ndarray, np.ndarray]:
         """Positions ``(n, 2)`` (m, network coordinates) and speeds ``(n,)`` (m/s) of the
-        vehicles on the road now; vehicles in a teleport (off the road) are left out."""
+        vehicles on the road now; vehicles off it are left out: in a teleport, or parked (in a
+        parking area or at a stop with ``parking="true"``: off the lane, as SUMO's own lane
+        densities count them)."""
         veh = _libsumo().vehicle
         ids = veh.getIDList()
         xy = np.array([veh.getPosition(v) for v in ids], dtype=float).reshape(-1, 2)
         speed = np.array([veh.getSpeed(v) for v in ids], dtype=float)
         on_road = xy[:, 0] > -1e9  # libsumo's INVALID_DOUBLE_VALUE for teleporting vehicles
+        for n in np.flatnonzero(speed == 0.0):  # a parked vehicle stands: only those asked
+            if veh.getStopState(ids[n]) & STOP_PARKING:
+                on_road[n] = False
         return xy[on_road], speed[on_road]
 
     def n_running(self) -> int:
@@ -319,6 +324,9 @@ class SumoSession:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
+
+#: The bit of libsumo's ``vehicle.getStopState`` of a vehicle parked off its lane.
+STOP_PARKING = 2
 
 #: The elements that define an object SUMO names by its kind at the start of a refusal
 #: ("Vehicle 'v' has no valid route"): its own file is named, not another holding the id.
