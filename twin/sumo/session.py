@@ -561,7 +561,10 @@ class _capture_fd2:
     def __init__(self) -> None:
         import tempfile
 
-        self._file = tempfile.TemporaryFile(mode="w+b")  # noqa: SIM115 (closed in restore)
+        from twin.resources import scratch_dir
+
+        # in the cache's scratch folder, as twin's every temporary file (never $TMPDIR)
+        self._file = tempfile.TemporaryFile(mode="w+b", dir=scratch_dir())  # noqa: SIM115
         self._saved = os.dup(2)
         os.dup2(self._file.fileno(), 2)
         self._restored = False
