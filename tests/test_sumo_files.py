@@ -174,6 +174,30 @@ def test_sumo_refusing_a_rewritten_file_names_the_users_file(scenario, tmp_path,
     assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == [bad.name]
 
 
+def test_a_file_given_twice_is_named_with_the_repeat_to_drop(scenario, tmp_path, capsys):
+    """An additional file given twice (by --additional twice, or by the sumocfg and
+    --additional): SUMO refuses its ids as taken; the line says the file is loaded twice and to
+    drop the repeat (it quoted SUMO alone: probe 24)."""
+    types = tmp_path / "types.add.xml"
+    types.write_text('<additional><vType id="car2" maxSpeed="20"/></additional>')
+    cfg = scenario / "scenario" / "public.sumocfg"
+    for n, given in enumerate(
+        (["--additional", str(types), "--additional", str(types)], ["--additional", str(types)])
+    ):
+        text = _cfg(NET_AND_TRIPS + '<input><additional-files value="types.add.xml"/></input>')
+        case = _write_case(scenario, tmp_path / f"case{n}", text, {}) if n else cfg
+        if n:
+            (case.parent / "types.add.xml").symlink_to(types)
+        out = tmp_path / f"run{n}"
+        code = _run(scenario, out, "--sumocfg", str(case), *given)
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 2 and "with the id 'car2' exists; types.add.xml is given twice" in err[-1]
+        assert err[-1].endswith("so SUMO loads it twice: drop the repeat"), err
+        assert not out.exists()
+    single = _run(scenario, tmp_path / "once", "--sumocfg", str(cfg), "--additional", str(types))
+    assert single == 0, capsys.readouterr().err  # once is fine
+
+
 def test_sumo_refusing_a_file_of_the_sumocfg_names_both(scenario, tmp_path, capsys):
     """SUMO refuses, when it starts, an additional file the sumocfg lists: the error line
     names that file and the sumocfg."""
@@ -1631,3 +1655,44 @@ def test_a_comma_in_an_additional_files_path_is_one_line(tmp_path, capsys):
     assert err.startswith(f"twin: error: {odd / 'a.add.xml'}: SUMO splits file names at commas"), (
         err
     )
+
+
+@pytest.mark.parametrize(
+    "stop",
+    [
+        '<stop parkingArea="pa" duration="20000"/>',  # a parking area's roadside spaces
+        '<stop lane="B1C1_0" endPos="150" parking="true" duration="20000"/>',  # off the lane
+    ],
+)
+def test_parked_vehicles_are_not_traffic_but_stopped_ones_are(stop, tmp_path):
+    """A vehicle parked off its lane (a parking area, a ``parking="true"`` stop) is not on the
+    road: it was counted as a standing vehicle, so 25 parked cars made their cell the most
+    congested of the city (probe 25's f01). One stopped on its lane (a bus at its stop, a
+    jam) still is."""
+    from twin.sumo.session import SumoSession
+    from twin.sumo.tools import binary, run_sumo_program
+
+    run_sumo_program(
+        [binary("netgenerate"), "--grid", "--grid.number", "4", "--grid.length", "300",
+         "--default.lanenumber", "1", "-o", str(tmp_path / "g.net.xml")],
+        what="netgenerate",
+    )  # fmt: skip
+    (tmp_path / "p.add.xml").write_text(
+        '<additional><parkingArea id="pa" lane="B1C1_0" startPos="20" endPos="280" '
+        'roadsideCapacity="30"/></additional>'
+    )
+    on_lane = '<stop lane="B1C1_0" endPos="150" duration="20000"/>'
+    (tmp_path / "r.rou.xml").write_text(
+        f'<routes><flow id="parked" begin="0" end="100" number="5" from="A1B1" to="C1D1">{stop}'
+        f'</flow><flow id="held" begin="200" end="300" number="1" from="A1B1" to="C1D1">'
+        f"{on_lane}</flow></routes>"
+    )
+    session = SumoSession(
+        net_file=tmp_path / "g.net.xml", route_files=[tmp_path / "r.rou.xml"],
+        additional_files=[tmp_path / "p.add.xml"], begin=0.0, end=3600.0,
+    )  # fmt: skip
+    with session:
+        session.advance_to(900.0)
+        xy, speed = session.vehicles()
+        assert session.n_running() == 6  # all in the simulation, parked or not
+        assert len(xy) == 1 and speed[0] == 0.0  # only the one held on its lane is traffic

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 
@@ -155,3 +157,75 @@ def test_a_second_ctrl_c_stops_the_sumo_child_at_once(tmp_path):
         timer.cancel()
         signal.signal(signal.SIGINT, before)
     assert time.monotonic() - start < 10
+
+
+class _Crashing:
+    """A source whose SUMO process crashes (SIGSEGV) after ``maps`` maps."""
+
+    detectors, detector_readings = [], []
+    error, model, output_dir, read_seconds = None, None, None, 0.0
+    separate_process, defer_close, _truth, _incidents = True, False, None, None
+
+    def __init__(self, maps: int):
+        from types import SimpleNamespace
+
+        self.maps, self.snapshots, self.vehicles_seen = maps, [], []
+        self.scenario = SimpleNamespace(name="crashing")
+
+    def maps_here(self):
+        import signal
+
+        for k in range(self.maps):
+            self.snapshots.append((k, k * 60.0, np.ones((2, 2)), np.ones((2, 2))))
+            self.vehicles_seen.append(4)
+            yield np.zeros((2, 2))
+        os.kill(os.getpid(), signal.SIGSEGV)
+
+    def truth_map(self):
+        return None
+
+    def incidents_info(self):
+        return []
+
+    def close_deferred(self):
+        pass
+
+    def model_after(self, snapshots):
+        return ("model after", len(snapshots))
+
+
+def test_sumo_crashing_before_the_first_step_is_an_error_naming_the_signal():
+    """SUMO's process dying by a signal before any step: one line naming the signal, not a
+    partial run of 0 steps (probe 24's f03)."""
+    from twin.errors import UserError
+    from twin.sumo.worker import maps_from_child
+
+    with pytest.raises(UserError, match=r"crashing: SUMO crashed \(SIGSEGV.*first step.*sumo -c"):
+        list(maps_from_child(_Crashing(0)))
+
+
+def test_sumo_crashing_mid_run_names_the_signal_and_keeps_the_mfd_of_its_maps():
+    """A crash after steps: a partial run whose error names the signal, and whose MFD model
+    holds the snapshots it got (it was the empty prior, and the saved samples disagreed with
+    the tape: the run ended on a refusal of its own folder)."""
+    from twin.sumo.worker import maps_from_child
+
+    source = _Crashing(3)
+    got = []
+    with pytest.raises(RuntimeError, match=r"SUMO crashed \(SIGSEGV, Segmentation fault\)"):
+        for importance in maps_from_child(source):
+            got.append(importance)
+    assert len(got) == 3
+    assert source.model == ("model after", 3)
+    assert source.error.startswith("SUMO crashed (SIGSEGV")
+
+
+def test_how_sumo_ended_is_said_for_each_kind_of_end():
+    import signal
+
+    from twin.sumo.worker import how_it_ended
+
+    assert "by the system when memory ran out" in how_it_ended(-signal.SIGKILL)
+    assert how_it_ended(-signal.SIGABRT).startswith("crashed (SIGABRT")
+    assert how_it_ended(3) == "ended unexpectedly (exit code 3)"
+    assert how_it_ended(-200) == "crashed (signal 200)"

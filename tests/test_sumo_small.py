@@ -247,6 +247,28 @@ def test_an_osm_extract_without_streets_is_one_line_naming_it(tmp_path, monkeypa
     assert not (tmp_path / "run").exists()
 
 
+@pytest.mark.parametrize(
+    ("node", "said"),
+    [
+        ('lat="95.0" lon="114.051"', "netconvert cannot project node 1 at lat = 95.0, lon = 114.051; a node's lat must lie in [-90, 90] and its lon in [-180, 180]: fix or remove the node"),
+        ('lat="22.541" lon="200"', "netconvert cannot project node 1 at lat = 22.541, lon = 200; "),
+        ('lat="x" lon="114.051"', "Attribute 'lat' in definition of node '1' Invalid Number Format (double) x; fix that node's attribute"),
+        ('lon="114.051"', "Attribute 'lat' is missing in definition of node '1'; fix that node's attribute"),
+    ],
+)  # fmt: skip
+def test_an_osm_node_netconvert_cannot_place_is_named_with_the_fix(node, said, tmp_path, capsys):
+    """A node at a latitude of 95 (or unreadable) is one line naming the extract, the node,
+    its coordinates and the range they must lie in, not netconvert's bare "Unable to project
+    coordinates for junction '1'" (probe 24's f04)."""
+    from twin.cli import main
+
+    osm = tmp_path / "bad.osm"
+    osm.write_text(OSM.replace('lat="22.541" lon="114.051"', node, 1))
+    assert main(["network", "import-osm", str(osm), "--out", str(tmp_path / "net")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"twin: error: {osm}: {said}"), err
+
+
 def test_import_osm_out_on_a_file_is_the_out_line(tmp_path, capsys):
     """``--out`` naming a file is refused as every command's ``--out`` is, before netconvert
     runs (it was the system's bare "File exists"; probe 14's f07)."""

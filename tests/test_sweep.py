@@ -561,6 +561,33 @@ def test_bad_parameter_value_fails_before_any_cell_runs(tmp_path: Path) -> None:
     assert not done_cells(tmp_path / "s")
 
 
+@pytest.mark.parametrize(
+    ("parameters", "overrides", "said"),
+    [
+        ('"swarm.n_drones" = [3, -3]', "", "[parameters].'swarm.n_drones' = -3 must be >= 1"),
+        ('"traffic.horizon" = ["x"]', "", "[parameters].'traffic.horizon' = 'x' must be a whole number"),
+        ('"swarm.n_drones" = [3]', '{ "swarm.eta" = 7 }', "[[scenario]] syn.overrides.'swarm.eta' = 7 must be"),
+    ],
+)  # fmt: skip
+def test_a_refused_sweep_key_is_named_in_the_sweep_file(
+    parameters, overrides, said, tmp_path: Path, capsys
+) -> None:
+    """A value of the sweep file's ``[parameters]`` or a scenario's ``overrides`` that the
+    scenario refuses is named as the sweep file's key, not as an override in the scenario's
+    file, which the user did not write it in (probe 24's f01)."""
+    path = sweep_file(tmp_path, parameters=parameters)
+    if overrides:
+        path.write_text(
+            path.read_text().replace('config = "', f'overrides = {overrides}\nconfig = "')
+        )
+    args = ["sweep", "--config", str(path), "--out", str(tmp_path / "s"), "--workers", "1"]
+    assert cli(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"twin: error: {path}: {said}"), err
+    assert f"(scenario 'syn', {tmp_path / 'scenario.toml'})" in err[0], err
+    assert not (tmp_path / "s").exists()
+
+
 def test_failing_cells_are_reported_and_rerun(tmp_path: Path, capsys) -> None:
     path = sweep_file(tmp_path, seeds=2)
     (tmp_path / "broken.pt").write_bytes(b"not a checkpoint")

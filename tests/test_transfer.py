@@ -459,6 +459,29 @@ def test_tapes_too_small_for_the_rows_drones_are_refused_before_any_stage(tmp_pa
     assert not out.exists()
 
 
+@pytest.mark.parametrize(
+    ("old", "new", "said"),
+    [
+        ('"swarm.n_drones" = 2 }', '"swarm.n_drones" = 0 }', "[[column]] synthetic.overrides.'swarm.n_drones' = 0 must be >= 1"),
+        ('"swarm.n_drones" = 2 }', '"swarm.n_drones" = 2, "grid.nx" = "x" }', "[[column]] synthetic.overrides.'grid.nx' = 'x' must be a whole number"),
+        ("seeds = [100, 101]", 'seeds = [100, 101]\noverrides = { "traffic.cell_m" = -5 }', "[tapes].overrides.'traffic.cell_m' = -5 must be > 0"),
+    ],
+)  # fmt: skip
+def test_a_refused_column_or_tapes_override_is_named_before_any_stage(
+    old, new, said, tmp_path, capsys
+):
+    """A value a column's (or the tapes') scenario refuses: one line naming the transfer
+    file's key before any tape is recorded or row trained (a column's was found after the rows
+    trained, and named as an override of the scenario's file: probe 24's f02)."""
+    config = tiny_config(tmp_path, sumo=False)
+    config.write_text(config.read_text().replace(old, new))
+    out = tmp_path / "o"
+    assert cli(["transfer", "--config", str(config), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"twin: error: {config}: {said}"), err
+    assert not out.exists()
+
+
 def test_tapes_of_a_synthetic_scenario_are_refused_before_any_stage(tmp_path, capsys):
     """``[tapes] config`` naming a synthetic scenario: one line before any stage (it was an
     internal error while recording, a synthetic source has no tape; probe 16's f05)."""

@@ -991,22 +991,26 @@ def config_from_data(
 
 
 def with_overrides(
-    config: C, overrides: Mapping[str, Any], flags: Mapping[str, str] | None = None
+    config: C,
+    overrides: Mapping[str, Any],
+    flags: Mapping[str, str] | None = None,
+    labels: Mapping[str, str] | None = None,
 ) -> C:
     """``config`` with dotted-key ``overrides`` (``{"swarm.n_drones": 2}``) set in its tables
     and validated again by the same models: the one path by which command-line flags, sweep
     keys and a transfer's schedule change a config (a scenario, a pretraining). ``flags``
     names the command-line flag (or the key of another file) that set a key
     (``{"swarm.n_drones": "--drones"}``): a one-line error names it instead of the file, and
-    :meth:`SourcedConfig.flag_of` tells it later; other keys are named as overrides. The
-    tables are those the config was validated from: change a config by this function, not by
-    ``model_copy``."""
+    :meth:`SourcedConfig.flag_of` tells it later; ``labels`` names keys that another file set
+    (a sweep's ``[parameters]``) in errors and :meth:`SourcedConfig.set_by`, without making them
+    flags; other keys are named as overrides. The tables are those the config was validated
+    from: change a config by this function, not by ``model_copy``."""
     flags = {**config._flags, **(flags or {})}
     if config._tables is None:  # built in code, not read from a file
         data = config.model_dump(exclude_unset=True)
     else:
         data = copy.deepcopy(config._tables)
-    named = set_dotted(data, overrides, flags, config.path)
+    named = set_dotted(data, overrides, {**(labels or {}), **flags}, config.path)
     return type(config).from_data(config.path, data, named, flags)
 
 

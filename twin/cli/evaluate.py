@@ -292,7 +292,8 @@ def main(args: argparse.Namespace) -> int:
         )
     horizon = outcome.results[0].completed_steps
     label = f"{seeds} seed{'s' if seeds > 1 else ''} from {first}"
-    title = f"Table 2 analog ({config.path.name}, {label}, T = {horizon})"
+    traffic = config.path.name if args.traffic is None else f"the tape {args.traffic}"
+    title = f"Table 2 analog ({traffic}, {label}, T = {horizon})"
     print_tables(recorded, title)
     print_degradation(run_dir)
     print_beliefs(recorded.beliefs, args.history, label)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import json
+import re
 import tomllib
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
@@ -283,6 +284,47 @@ _PACKED_OSM = (
 )
 
 
+#: The coordinates netconvert projects (WGS84 degrees).
+LAT_RANGE, LON_RANGE = (-90.0, 90.0), (-180.0, 180.0)
+
+
+def _osm_refusal(osm_file: Path, message: str) -> UserError:
+    """netconvert's refusal of an OSM extract as one line naming the node and the fix: a node
+    it cannot project (a latitude of 95), a node's attribute it cannot read, or none left."""
+    unprojected = re.search(r"Unable to project coordinates for junction '([^']*)'", message)
+    if unprojected:
+        node = unprojected[1]
+        lat, lon = _osm_node_position(osm_file, node)
+        where = f" at lat = {lat}, lon = {lon}" if lat is not None else ""
+        return UserError(
+            f"{osm_file}: netconvert cannot project node {node}{where}; a node's lat must lie "
+            f"in [{LAT_RANGE[0]:g}, {LAT_RANGE[1]:g}] and its lon in [{LON_RANGE[0]:g}, "
+            f"{LON_RANGE[1]:g}]: fix or remove the node"
+        )
+    attribute = re.search(r"Error: (Attribute '[^']*'[^\n]* node '[^']*'[^\n]*)", message)
+    if attribute:
+        return UserError(f"{osm_file}: {attribute[1].rstrip('.')}; fix that node's attribute")
+    if "No nodes loaded" in message:
+        return UserError(
+            f"{osm_file}: netconvert read no usable node (each node needs a numeric lat in "
+            f"[{LAT_RANGE[0]:g}, {LAT_RANGE[1]:g}] and lon in [{LON_RANGE[0]:g}, "
+            f"{LON_RANGE[1]:g}], and a way two nodes); give an OSM extract with streets"
+        )
+    return UserError(message)
+
+
+def _osm_node_position(osm_file: Path, node: str) -> tuple[str | None, str | None]:
+    """The lat and lon (as written) of the node ``node`` of an OSM extract, or Nones."""
+    from twin.sumo.readers import open_xml
+
+    with contextlib.suppress(ET.ParseError, OSError), open_xml(osm_file) as fh:
+        for _, element in ET.iterparse(fh):
+            if element.tag == "node" and element.get("id") == node:
+                return element.get("lat"), element.get("lon")
+            element.clear()
+    return None, None
+
+
 def import_osm(osm_file: Path, out_dir: Path | None = None) -> Path:
     """Convert an OpenStreetMap extract into a SUMO network with city-network options, into
     ``out_dir`` or (by default) the cache, reusing a cached conversion."""
@@ -326,7 +368,7 @@ def import_osm(osm_file: Path, out_dir: Path | None = None) -> Path:
         except UserError as exc:
             if "No edges loaded" in str(exc):  # every way dropped as it was read
                 raise no_road from None
-            raise
+            raise _osm_refusal(osm_file, str(exc)) from None
         if not has_roads(out / file_name):  # every edge removed after reading (isolated)
             raise no_road
 

@@ -185,6 +185,12 @@ class SumoSession:
         (:func:`sumo_refusal`, an included file too); ``when`` says when SUMO gave it, if not
         on start."""
         where, reason = sumo_refusal(message, self.read_files())
+        loaded = [os.path.realpath(p) for p in self.input_files() if p.suffix != ".sumocfg"]
+        if isinstance(where, Path) and loaded.count(os.path.realpath(where)) > 1:
+            reason = (  # its ids taken by itself: the sumocfg, flags or keys name it twice
+                f"{reason.rstrip('.')}; {where.name} is given twice (by the sumocfg, --routes, "
+                "--additional or [traffic] keys), so SUMO loads it twice: drop the repeat"
+            )
         return UserError(f"{where}: SUMO refuses it{when}: {reason}")
 
     def start(self) -> SumoSession:
@@ -285,12 +291,17 @@ class SumoSession:
 
     def vehicles(self) -> tuple[np.ndarray, np.ndarray]:
         """Positions ``(n, 2)`` (m, network coordinates) and speeds ``(n,)`` (m/s) of the
-        vehicles on the road now; vehicles in a teleport (off the road) are left out."""
+        vehicles on the road now; vehicles off it are left out: in a teleport, or parked (in a
+        parking area or at a stop with ``parking="true"``: off the lane, as SUMO's own lane
+        densities count them)."""
         veh = _libsumo().vehicle
         ids = veh.getIDList()
         xy = np.array([veh.getPosition(v) for v in ids], dtype=float).reshape(-1, 2)
         speed = np.array([veh.getSpeed(v) for v in ids], dtype=float)
         on_road = xy[:, 0] > -1e9  # libsumo's INVALID_DOUBLE_VALUE for teleporting vehicles
+        for n in np.flatnonzero(speed == 0.0):  # a parked vehicle stands: only those asked
+            if veh.getStopState(ids[n]) & STOP_PARKING:
+                on_road[n] = False
         return xy[on_road], speed[on_road]
 
     def n_running(self) -> int:
@@ -313,6 +324,9 @@ class SumoSession:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
+
+#: The bit of libsumo's ``vehicle.getStopState`` of a vehicle parked off its lane.
+STOP_PARKING = 2
 
 #: The elements that define an object SUMO names by its kind at the start of a refusal
 #: ("Vehicle 'v' has no valid route"): its own file is named, not another holding the id.
@@ -547,7 +561,10 @@ class _capture_fd2:
     def __init__(self) -> None:
         import tempfile
 
-        self._file = tempfile.TemporaryFile(mode="w+b")  # noqa: SIM115 (closed in restore)
+        from twin.resources import scratch_dir
+
+        # in the cache's scratch folder, as twin's every temporary file (never $TMPDIR)
+        self._file = tempfile.TemporaryFile(mode="w+b", dir=scratch_dir())  # noqa: SIM115
         self._saved = os.dup(2)
         os.dup2(self._file.fileno(), 2)
         self._restored = False

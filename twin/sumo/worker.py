@@ -14,6 +14,9 @@ incidents and the error that stopped it (a :class:`UserError` on bad input, a
 the parent stops early (Ctrl-C, a failed swarm), it asks the child to stop, keeps only the
 snapshots of the maps it used, and takes the model of the child's last snapshot. The child
 ignores Ctrl-C (the parent decides) and dies with the parent, even by ``kill -9``.
+A child that dies without its end state (SUMO crashed) is named by the signal that ended it:
+before the window's first step an error, later a partial run whose MFD model is that of the
+maps it sent.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ import os
 import pickle
 import re
 import shutil
+import signal
 import sys
 import tempfile
 from collections.abc import Iterator
@@ -32,6 +36,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from twin.errors import UserError
 from twin.processes import exit_with_parent
 from twin.sumo.outputs import MESSAGES_NAME
 from twin.sumo.session import AGGREGATE_AFTER
@@ -125,10 +130,18 @@ def maps_from_child(source: WorksAhead) -> Iterator[np.ndarray]:
                 return
     except EOFError:  # the child died without a word (killed, or SUMO crashed)
         child.join(timeout=30)
+        ended = True
         kept = _keep_messages(source, messages)
-        source.error = "the SUMO process ended unexpectedly" + (
-            f" (its last words are in {kept})" if kept else ""
-        )
+        source.model = source.model_after(source.snapshots)  # no end state: the MFD of the maps
+        death = how_it_ended(child.exitcode)
+        words = f"; its last words are in {kept}" if kept else ""
+        if not any(k >= 1 for k, *_ in source.snapshots):  # no step to keep: no partial run
+            raise UserError(
+                f"{source.scenario.name}: SUMO {death} before the window's first step{words}; "
+                "run the scenario in SUMO alone (`sumo -c` on its files) to see whether SUMO "
+                "fails on it, and change the file it fails on"
+            ) from None
+        source.error = f"SUMO {death}{words}"
         raise RuntimeError(source.error) from None
     except KeyboardInterrupt:  # stop at once: SUMO may be deep in a long advance (a warm-up)
         child.kill()
@@ -144,6 +157,22 @@ def maps_from_child(source: WorksAhead) -> Iterator[np.ndarray]:
             child.join()
         _LIVE.discard(child)
         _keep_messages(source, messages)
+
+
+def how_it_ended(exitcode: int | None) -> str:
+    """How SUMO's process ended, from its exit code (negative: the signal that ended it)."""
+    if exitcode is None:
+        return "stopped answering"
+    if exitcode >= 0:
+        return f"ended unexpectedly (exit code {exitcode})"
+    number = -exitcode
+    try:
+        name = f"{signal.Signals(number).name}, {signal.strsignal(number)}"
+    except ValueError:
+        name = f"signal {number}"
+    if number == signal.SIGKILL:
+        return f"was killed ({name}: by the system when memory ran out, or by a user)"
+    return f"crashed ({name})"
 
 
 def _stop(source: WorksAhead, here, child) -> bool:
@@ -166,8 +195,8 @@ def _stop(source: WorksAhead, here, child) -> bool:
     del source.snapshots[used:]  # one vehicle count per snapshot
     del source.vehicles_seen[used:]
     ahead = source.model is not None and source.model.observed > len(source.snapshots)
-    if got_end and ahead:  # the child's MFD saw snapshots the run never used (sent, or not yet)
-        source.model = source.model_after(source.snapshots)
+    if ahead or not got_end:  # the child's MFD saw snapshots the run never used (sent, or not
+        source.model = source.model_after(source.snapshots)  # yet), or it sent none
     last = source.snapshots[-1][0] if source.snapshots else -1
     source.detector_readings[:] = [r for r in source.detector_readings if r[0] <= last]
     return got_end

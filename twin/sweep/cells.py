@@ -74,6 +74,9 @@ def expand_cells(config: SweepConfig, out_dir: Path) -> list[dict[str, Any]]:
                     "config": str(scenario.config),
                     "overrides": overrides,
                     "parameters": params,
+                    "labels": override_labels(
+                        config.path, scenario, params, config._scenario_table
+                    ),
                     "tape": str(scenario.tape) if scenario.tape else None,
                     "seed": int(seed),
                     "swarms": list(config.swarms),
@@ -134,12 +137,23 @@ def _sumocfg_options_digest(scenario) -> dict[str, str]:
     return {f"{os.path.abspath(settings.sumocfg)}#options": hashlib.sha256(text).hexdigest()}
 
 
-def scenario_config(path: Path, overrides: dict[str, Any]):
+def scenario_config(path: Path, overrides: dict[str, Any], labels: dict[str, str] | None = None):
     """The scenario config at ``path`` with dotted-key ``overrides`` applied, validated
-    (:func:`twin.config.with_overrides`: an error names the key)."""
+    (:func:`twin.config.with_overrides`: an error names the key, by its label in ``labels``
+    when it has one: the sweep file's key that set it)."""
     from twin.config import load_config, with_overrides
 
-    return with_overrides(load_config(path), overrides)
+    return with_overrides(load_config(path), overrides, labels=labels)
+
+
+def override_labels(
+    sweep: Path, scenario, params: dict[str, Any], table: str = "[[scenario]]"
+) -> dict[str, str]:
+    """Each override's key in the sweep file ``sweep`` that set it: a ``[parameters]`` key, or
+    the ``overrides`` of the scenario (its ``table``: a transfer's ``[[column]]``), named in a
+    refusal instead of the scenario's file."""
+    labels = {k: f"{sweep}: {table} {scenario.name}.overrides.{k!r}" for k in scenario.overrides}
+    return {**labels, **{k: f"{sweep}: [parameters].{k!r}" for k in params}}
 
 
 def run_cell(cell: dict[str, Any]) -> dict[str, Any]:
@@ -169,7 +183,7 @@ def _run_cell(cell: dict[str, Any]) -> dict[str, Any]:
     code = code_fingerprint()
     start = time.perf_counter()
     seed = int(cell["seed"])
-    config = scenario_config(Path(cell["config"]), cell["overrides"])
+    config = scenario_config(Path(cell["config"]), cell["overrides"], cell.get("labels"))
     experiment = Experiment(
         config,
         swarms=cell["swarms"],

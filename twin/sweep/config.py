@@ -121,6 +121,8 @@ class SweepConfig(StrictModel):
     swarm_options: dict[str, dict[str, Any]] = Field(default_factory=dict)
 
     _path: Path = PrivateAttr(default=Path("sweep.toml"))
+    #: how the file that holds the scenarios names one (a transfer's are its ``[[column]]``)
+    _scenario_table: str = PrivateAttr(default="[[scenario]]")
 
     @field_validator("parameters")
     @classmethod

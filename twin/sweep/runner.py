@@ -148,7 +148,7 @@ def check_cells(cells: list[dict[str, Any]]) -> None:
             continue
         seen.add(key)
         try:
-            config = scenario_config(Path(cell["config"]), cell["overrides"])
+            config = scenario_config(Path(cell["config"]), cell["overrides"], cell.get("labels"))
             if config.traffic.kind == "sumo" and cell.get("tape") is None:
                 prepare_sumo(config)
                 live_settings(config, int(cell["seed"]))
@@ -158,6 +158,10 @@ def check_cells(cells: list[dict[str, Any]]) -> None:
                 if needs_history(name):  # (the sweep's options on the scenario's, as it runs)
                     config.make_swarm(name, **cell.get("swarm_options", {}).get(name, {}))
         except UserError as exc:
+            if any(str(exc).startswith(label) for label in cell.get("labels", {}).values()):
+                raise UserError(
+                    f"{exc} (scenario {cell['scenario']!r}, {cell['config']})"
+                ) from None
             raise UserError(
                 f"scenario {cell['scenario']!r} with {cell['overrides']}: {exc}"
             ) from None

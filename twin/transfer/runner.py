@@ -236,7 +236,8 @@ def check_tapes_scenario(config: TransferConfig) -> None:
 
     if not trains_on_tapes(config):
         return
-    scenario = scenario_config(Path(config.tapes.config), config.tapes.overrides)
+    labels = {k: f"{config.path}: [tapes].overrides.{k!r}" for k in config.tapes.overrides}
+    scenario = scenario_config(Path(config.tapes.config), config.tapes.overrides, labels)
     kind = scenario.traffic.kind
     if kind != "sumo":
         raise UserError(
@@ -493,8 +494,30 @@ def sweep_config(config: TransferConfig, rows: dict[str, dict[str, Any]]):
         raise UserError(
             f"{config.path}: {check_message(exc.errors(include_url=False)[0])}"
         ) from None
-    sweep._path = config.path
+    sweep._path, sweep._scenario_table = config.path, "[[column]]"
     return sweep
+
+
+def check_columns(config: TransferConfig) -> None:
+    """Every column's scenario with its overrides, checked as the evaluation's sweep checks its
+    cells (:func:`twin.sweep.check_cells`), before any tape is recorded or row trained: a value
+    a column's scenario refuses is one line naming the transfer file's key."""
+    from twin.sweep import check_cells
+    from twin.sweep.cells import override_labels
+
+    cells = [
+        {
+            "scenario": c.name,
+            "config": str(c.config),
+            "overrides": column_overrides(c),
+            "labels": override_labels(config.path, c, {}, "[[column]]"),
+            "tape": None,
+            "seed": config.seeds[0],
+            "swarms": list(config.transfer.classical),
+        }
+        for c in config.column
+    ]
+    check_cells(cells)
 
 
 def check_row_states(config: TransferConfig) -> None:
@@ -543,6 +566,7 @@ def run_transfer(
     check_row_starts(config)
     check_row_states(config)
     check_tapes_scenario(config)
+    check_columns(config)
     out.mkdir(parents=True, exist_ok=True)
     out = out.resolve()  # the rows' provenance names files the same from any folder
     timings: dict[str, float] = {}
