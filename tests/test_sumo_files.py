@@ -1657,18 +1657,29 @@ def test_a_comma_in_an_additional_files_path_is_one_line(tmp_path, capsys):
     )
 
 
-@pytest.mark.parametrize(
-    "stop",
-    [
-        '<stop parkingArea="pa" duration="20000"/>',  # a parking area's roadside spaces
-        '<stop lane="B1C1_0" endPos="150" parking="true" duration="20000"/>',  # off the lane
-    ],
+ROADSIDE = 'roadsideCapacity="30"/>'
+#: a parking lot: spaces of its own, away from the road (a cell of no lane may hold them)
+LOT = (
+    ">"
+    + "".join(f'<space x="{400 + 5 * n}" y="{100 + n % 3}"/>' for n in range(10))
+    + "</parkingArea>"
 )
-def test_parked_vehicles_are_not_traffic_but_stopped_ones_are(stop, tmp_path):
+
+
+@pytest.mark.parametrize(
+    ("stop", "spaces"),
+    [
+        ('<stop parkingArea="pa" duration="20000"/>', ROADSIDE),  # a parking area's roadside
+        ('<stop parkingArea="pa" duration="20000"/>', LOT),
+        ('<stop lane="B1C1_0" endPos="150" parking="true" duration="20000"/>', ROADSIDE),
+    ],
+)  # fmt: skip
+def test_parked_vehicles_are_not_traffic_but_stopped_ones_are(stop, spaces, tmp_path):
     """A vehicle parked off its lane (a parking area, a ``parking="true"`` stop) is not on the
     road: it was counted as a standing vehicle, so 25 parked cars made their cell the most
-    congested of the city (probe 25's f01). One stopped on its lane (a bus at its stop, a
-    jam) still is."""
+    congested of the city (probe 25's f01), and a lot's spaces off the roads put more vehicles
+    in a cell than its lanes hold, so that twin refused its own tape (f06). One stopped on its
+    lane (a bus at its stop, a jam) still is."""
     from twin.sumo.session import SumoSession
     from twin.sumo.tools import binary, run_sumo_program
 
@@ -1679,7 +1690,7 @@ def test_parked_vehicles_are_not_traffic_but_stopped_ones_are(stop, tmp_path):
     )  # fmt: skip
     (tmp_path / "p.add.xml").write_text(
         '<additional><parkingArea id="pa" lane="B1C1_0" startPos="20" endPos="280" '
-        'roadsideCapacity="30"/></additional>'
+        f"{spaces}</additional>"
     )
     on_lane = '<stop lane="B1C1_0" endPos="150" duration="20000"/>'
     (tmp_path / "r.rou.xml").write_text(
