@@ -1707,3 +1707,41 @@ def test_parked_vehicles_are_not_traffic_but_stopped_ones_are(stop, spaces, tmp_
         xy, speed = session.vehicles()
         assert session.n_running() == 6  # all in the simulation, parked or not
         assert len(xy) == 1 and speed[0] == 0.0  # only the one held on its lane is traffic
+
+
+def test_vehicles_on_lanes_cars_may_not_use_are_not_car_traffic(tmp_path):
+    """Bicycles on a bike-only lane were counted as cars of their cell, against the car lanes'
+    lane-km and speed limits: a bike street read as congested with no car on it (probe 25's
+    f09). A bicycle on a lane cars share is on the road, and counted."""
+    from twin.sumo.cells import read_lanes
+    from twin.sumo.session import SumoSession
+    from twin.sumo.tools import binary, run_sumo_program
+
+    net = tmp_path / "b.net.xml"
+    run_sumo_program(
+        [binary("netgenerate"), "--grid", "--grid.number", "4", "--grid.length", "300",
+         "--default.lanenumber", "1", "--bikelanes.guess", "true", "-o", str(net)],
+        what="netgenerate",
+    )  # fmt: skip
+    lanes = read_lanes(net)
+    assert "A0A1_0" in lanes.not_for_cars and "A0A1_1" not in lanes.not_for_cars
+    (tmp_path / "b.rou.xml").write_text(
+        '<routes><vType id="bike" vClass="bicycle"/><vType id="car" vClass="passenger"/>'
+        '<flow id="bk" type="bike" begin="0" end="600" period="3" from="A0A1" to="A2A3"/>'
+        '<flow id="cars" type="car" begin="0" end="600" period="30" from="A0A1" to="A2A3"/>'
+        "</routes>"
+    )
+    session = SumoSession(net_file=net, route_files=[tmp_path / "b.rou.xml"], end=3600.0)
+    with session:
+        session.advance_to(300.0)
+        everyone = len(session.vehicles()[0])
+        xy, _ = session.vehicles(lanes.not_for_cars)
+        cars = [v for v in _libsumo_vehicles() if v.startswith("cars")]
+        assert everyone > len(cars) > 0
+        assert len(xy) == len(cars)  # the bicycles on their own lane left out
+
+
+def _libsumo_vehicles() -> list[str]:
+    from twin.sumo.session import _libsumo
+
+    return list(_libsumo().vehicle.getIDList())

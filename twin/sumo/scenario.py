@@ -836,6 +836,7 @@ def sumo_source(
         mfd_prior=(s.mfd.a, s.mfd.k_c),
         reads_per_step=s.reads_per_step,
         incidents=list(s.incidents),
+        not_for_cars=lanes.not_for_cars,
         sumo_options=options,
         extra={
             "additional_files": [str(a) for a in files.additional_files],
