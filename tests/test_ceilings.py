@@ -191,6 +191,11 @@ def test_headroom_line():
     )
     line = headroom(summary)
     assert "best swarm b reaches 50.0% of the bound; oracle 62.5%" in line
+    assert "above the oracle" not in line
+    # a swarm above the oracle (a real swarm, not a bound) is said, not left to look like a
+    # ceiling broken (probe 25's f07)
+    above = headroom(summary.assign(R_hat_T=[1.0, 3.0, 2.5, 4.0]))
+    assert "best swarm b reaches 75.0% of the bound; oracle 62.5%; b is above the oracle" in above
     assert headroom(summary.iloc[:2]) is None
     nothing = summary.assign(R_hat_T=0.0)  # no vehicle on any step: 0/0 printed "nan%"
     assert headroom(nothing) == "Headroom (R_hat_T): none (the bound is 0.000: nothing to see)"

@@ -1657,18 +1657,29 @@ def test_a_comma_in_an_additional_files_path_is_one_line(tmp_path, capsys):
     )
 
 
-@pytest.mark.parametrize(
-    "stop",
-    [
-        '<stop parkingArea="pa" duration="20000"/>',  # a parking area's roadside spaces
-        '<stop lane="B1C1_0" endPos="150" parking="true" duration="20000"/>',  # off the lane
-    ],
+ROADSIDE = 'roadsideCapacity="30"/>'
+#: a parking lot: spaces of its own, away from the road (a cell of no lane may hold them)
+LOT = (
+    ">"
+    + "".join(f'<space x="{400 + 5 * n}" y="{100 + n % 3}"/>' for n in range(10))
+    + "</parkingArea>"
 )
-def test_parked_vehicles_are_not_traffic_but_stopped_ones_are(stop, tmp_path):
+
+
+@pytest.mark.parametrize(
+    ("stop", "spaces"),
+    [
+        ('<stop parkingArea="pa" duration="20000"/>', ROADSIDE),  # a parking area's roadside
+        ('<stop parkingArea="pa" duration="20000"/>', LOT),
+        ('<stop lane="B1C1_0" endPos="150" parking="true" duration="20000"/>', ROADSIDE),
+    ],
+)  # fmt: skip
+def test_parked_vehicles_are_not_traffic_but_stopped_ones_are(stop, spaces, tmp_path):
     """A vehicle parked off its lane (a parking area, a ``parking="true"`` stop) is not on the
     road: it was counted as a standing vehicle, so 25 parked cars made their cell the most
-    congested of the city (probe 25's f01). One stopped on its lane (a bus at its stop, a
-    jam) still is."""
+    congested of the city (probe 25's f01), and a lot's spaces off the roads put more vehicles
+    in a cell than its lanes hold, so that twin refused its own tape (f06). One stopped on its
+    lane (a bus at its stop, a jam) still is."""
     from twin.sumo.session import SumoSession
     from twin.sumo.tools import binary, run_sumo_program
 
@@ -1679,7 +1690,7 @@ def test_parked_vehicles_are_not_traffic_but_stopped_ones_are(stop, tmp_path):
     )  # fmt: skip
     (tmp_path / "p.add.xml").write_text(
         '<additional><parkingArea id="pa" lane="B1C1_0" startPos="20" endPos="280" '
-        'roadsideCapacity="30"/></additional>'
+        f"{spaces}</additional>"
     )
     on_lane = '<stop lane="B1C1_0" endPos="150" duration="20000"/>'
     (tmp_path / "r.rou.xml").write_text(
@@ -1696,3 +1707,41 @@ def test_parked_vehicles_are_not_traffic_but_stopped_ones_are(stop, tmp_path):
         xy, speed = session.vehicles()
         assert session.n_running() == 6  # all in the simulation, parked or not
         assert len(xy) == 1 and speed[0] == 0.0  # only the one held on its lane is traffic
+
+
+def test_vehicles_on_lanes_cars_may_not_use_are_not_car_traffic(tmp_path):
+    """Bicycles on a bike-only lane were counted as cars of their cell, against the car lanes'
+    lane-km and speed limits: a bike street read as congested with no car on it (probe 25's
+    f09). A bicycle on a lane cars share is on the road, and counted."""
+    from twin.sumo.cells import read_lanes
+    from twin.sumo.session import SumoSession
+    from twin.sumo.tools import binary, run_sumo_program
+
+    net = tmp_path / "b.net.xml"
+    run_sumo_program(
+        [binary("netgenerate"), "--grid", "--grid.number", "4", "--grid.length", "300",
+         "--default.lanenumber", "1", "--bikelanes.guess", "true", "-o", str(net)],
+        what="netgenerate",
+    )  # fmt: skip
+    lanes = read_lanes(net)
+    assert "A0A1_0" in lanes.not_for_cars and "A0A1_1" not in lanes.not_for_cars
+    (tmp_path / "b.rou.xml").write_text(
+        '<routes><vType id="bike" vClass="bicycle"/><vType id="car" vClass="passenger"/>'
+        '<flow id="bk" type="bike" begin="0" end="600" period="3" from="A0A1" to="A2A3"/>'
+        '<flow id="cars" type="car" begin="0" end="600" period="30" from="A0A1" to="A2A3"/>'
+        "</routes>"
+    )
+    session = SumoSession(net_file=net, route_files=[tmp_path / "b.rou.xml"], end=3600.0)
+    with session:
+        session.advance_to(300.0)
+        everyone = len(session.vehicles()[0])
+        xy, _ = session.vehicles(lanes.not_for_cars)
+        cars = [v for v in _libsumo_vehicles() if v.startswith("cars")]
+        assert everyone > len(cars) > 0
+        assert len(xy) == len(cars)  # the bicycles on their own lane left out
+
+
+def _libsumo_vehicles() -> list[str]:
+    from twin.sumo.session import _libsumo
+
+    return list(_libsumo().vehicle.getIDList())

@@ -1420,3 +1420,34 @@ def test_a_file_list_with_an_empty_name_is_refused_as_sumo_refuses_it(tmp_path, 
                    f'<additional-files value="{value}"/></input></configuration>')  # fmt: skip
     with pytest.raises(UserError, match=rf"s\.sumocfg: the file list '{value}' names an empty"):
         read_sumocfg(cfg)
+
+
+@pytest.mark.parametrize(
+    ("step_s", "reads", "distinct"), [(2.0, 3, 2), (1.0, 3, 1), (18.75, 30, 19), (75.0, 3, 3)]
+)
+def test_reads_of_a_step_fall_on_distinct_sumo_steps(step_s, reads, distinct):
+    from twin.traffic.tape import distinct_reads, read_offsets
+
+    assert distinct_reads(step_s, reads) == distinct
+    offsets = read_offsets(step_s, distinct)
+    assert len(set(offsets)) == distinct and offsets[-1] == 0.0
+
+
+def test_more_reads_than_a_step_holds_are_read_once_each_with_a_notice(tmp_path, capsys):
+    """``reads_per_step = 3`` in a step of 2 s read the same SUMO step twice and counted its
+    vehicles twice, silently (probe 25's f08): the step is read at its 2 distinct instants,
+    said in a notice naming the key."""
+    from helpers import small_sumo_scenario
+
+    from twin.config import load_config
+    from twin.sumo.scenario import sumo_source
+
+    folder = small_sumo_scenario(tmp_path, horizon=3)
+    config = folder / "small.toml"
+    text = config.read_text().replace("drone_speed_kmh = 12.0", "drone_speed_kmh = 360.0")
+    config.write_text(text.replace("[traffic]", "[traffic]\nreads_per_step = 3", 1))
+    source = sumo_source(load_config(config))
+    err = capsys.readouterr().err
+    assert source.scenario.step_s == 2.0
+    assert source.scenario.reads_per_step == 2 and source.scenario.read_offsets() == [1.0, 0.0]
+    assert f"{config}: [traffic].reads_per_step = 3: a step of 2 s holds 2 distinct instants" in err

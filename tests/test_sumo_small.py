@@ -269,6 +269,22 @@ def test_an_osm_node_netconvert_cannot_place_is_named_with_the_fix(node, said, t
     assert len(err) == 1 and err[0].startswith(f"twin: error: {osm}: {said}"), err
 
 
+def test_an_osm_extract_of_nodes_and_no_street_is_no_road(tmp_path, capsys):
+    """Nodes but no street way (buildings only): netconvert's "No nodes loaded" (the file
+    holds nodes) was passed on with no fix (probe 25's f05)."""
+    from twin.cli import main
+
+    osm = tmp_path / "nohw.osm"
+    osm.write_text(OSM.replace('k="highway" v="primary"', 'k="building" v="yes"')
+                   .replace('k="highway" v="secondary"', 'k="building" v="yes"'))  # fmt: skip
+    assert main(["network", "import-osm", str(osm), "--out", str(tmp_path / "net")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(
+        f"twin: error: {osm}: no road is left after conversion: no node lies on a street way"
+    ), err
+    assert err[0].endswith("give an extract with streets"), err
+
+
 def test_import_osm_out_on_a_file_is_the_out_line(tmp_path, capsys):
     """``--out`` naming a file is refused as every command's ``--out`` is, before netconvert
     runs (it was the system's bare "File exists"; probe 14's f07)."""

@@ -440,8 +440,9 @@ class TrueLookaheadPolicy(LookaheadPolicy):
 class KnownMapLookaheadPolicy(LookaheadPolicy):
     """The ``lookahead`` swarm, with its own defaults, told the whole true map ``T^{k+1}`` at
     every step instead of the last ``T`` seen in its fields of view: the yardstick with
-    perfect knowledge of the present, so the oracle never falls below it for want of the
-    information the yardstick lacks."""
+    perfect knowledge of the present. The oracle can still fall below the ``lookahead`` swarm
+    on a seed (a plan on the present map is not better on every day than one on stale
+    sightings); :func:`twin.metrics.headroom` says so when it does."""
 
     name = "lookahead-known-map"
 

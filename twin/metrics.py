@@ -307,6 +307,11 @@ def headroom(summary: pd.DataFrame, column: str = "R_hat_T") -> str | None:
     text = f"best swarm {best} reaches {swarms[best] / ceilings[BOUND]:.1%} of the bound"
     if ORACLE in ceilings and np.isfinite(ceilings[ORACLE]):
         text += f"; oracle {ceilings[ORACLE] / ceilings[BOUND]:.1%}"
+        if swarms[best] > ceilings[ORACLE]:  # the oracle is a real swarm, not a bound
+            text += (
+                f"; {best} is above the oracle (the best of the planners told the true maps, "
+                "a swarm that can be beaten; the bound cannot)"
+            )
     return (
         f"Headroom ({column}): {text} (bound {ceilings[BOUND]:.3f}, "
         f"oracle {ceilings.get(ORACLE, float('nan')):.3f}, {best} {swarms[best]:.3f})"

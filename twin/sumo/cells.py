@@ -83,6 +83,9 @@ class Lanes:
 
     shapes: list[np.ndarray]
     speeds: np.ndarray
+    #: lanes some vehicles use but cars may not (bike lanes, bus lanes, rails): a vehicle on
+    #: one is not car traffic, whose lanes give the cells' lane-km and speed limits
+    not_for_cars: frozenset[str] = frozenset()
 
 
 def read_lanes(net_file: Path) -> Lanes:
@@ -93,15 +96,17 @@ def read_lanes(net_file: Path) -> Lanes:
         net = sumolib.net.readNet(str(net_file), withInternal=True)
     except Exception as exc:  # sumolib raises SAX errors and others on a broken file
         raise UserError(f"{net_file}: cannot read the network ({exc})") from exc
-    shapes, speeds = [], []
+    shapes, speeds, others = [], [], []
     for edge in net.getEdges(withInternal=True):
         for lane in edge.getLanes():
             if lane.allows("passenger"):
                 shapes.append(np.asarray(lane.getShape(), dtype=float))
                 speeds.append(lane.getSpeed())
+            elif lane.getPermissions() - {"pedestrian"}:  # a sidewalk carries no vehicle
+                others.append(lane.getID())
     if not shapes:
         raise UserError(f"{net_file}: the network has no lane that passenger cars may use")
-    return Lanes(shapes, np.asarray(speeds, dtype=float))
+    return Lanes(shapes, np.asarray(speeds, dtype=float), frozenset(others))
 
 
 def grid_over(

@@ -304,11 +304,12 @@ def _osm_refusal(osm_file: Path, message: str) -> UserError:
     attribute = re.search(r"Error: (Attribute '[^']*'[^\n]* node '[^']*'[^\n]*)", message)
     if attribute:
         return UserError(f"{osm_file}: {attribute[1].rstrip('.')}; fix that node's attribute")
-    if "No nodes loaded" in message:
+    if "No nodes loaded" in message:  # nodes of no street way are dropped as they are read
         return UserError(
-            f"{osm_file}: netconvert read no usable node (each node needs a numeric lat in "
-            f"[{LAT_RANGE[0]:g}, {LAT_RANGE[1]:g}] and lon in [{LON_RANGE[0]:g}, "
-            f"{LON_RANGE[1]:g}], and a way two nodes); give an OSM extract with streets"
+            f"{osm_file}: no road is left after conversion: no node lies on a street way twin "
+            "imports (a way of two or more nodes, tagged highway=..., for cars), or none has a "
+            f"numeric lat in [{LAT_RANGE[0]:g}, {LAT_RANGE[1]:g}] and lon in "
+            f"[{LON_RANGE[0]:g}, {LON_RANGE[1]:g}]; give an extract with streets"
         )
     return UserError(message)
 

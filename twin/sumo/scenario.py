@@ -399,6 +399,20 @@ def _step_seconds(s: SumoSettings, config) -> float:
             f"s, shorter than SUMO's {SUMO_STEP_S:g} s step; give a lower drone speed or larger "
             "cells"
         )
+    from twin.traffic.tape import distinct_reads
+
+    reads = distinct_reads(step_s, s.reads_per_step)
+    if reads < s.reads_per_step:  # the same instant read twice would count it twice
+        key = ", ".join(config.set_by(["traffic.reads_per_step"])) or (
+            f"{config.path}: [traffic].reads_per_step"
+        )
+        notice(
+            f"{key} = {s.reads_per_step}: a step of {step_s:.3g} s holds {reads} distinct "
+            f"instants of SUMO's {SUMO_STEP_S:g} s steps to read; it is read {reads} time"
+            f"{'s' * (reads != 1)} (give fewer reads, or a longer step: larger cells or a "
+            "slower drone)"
+        )
+        s.reads_per_step = reads
     return step_s
 
 
@@ -822,6 +836,7 @@ def sumo_source(
         mfd_prior=(s.mfd.a, s.mfd.k_c),
         reads_per_step=s.reads_per_step,
         incidents=list(s.incidents),
+        not_for_cars=lanes.not_for_cars,
         sumo_options=options,
         extra={
             "additional_files": [str(a) for a in files.additional_files],

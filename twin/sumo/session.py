@@ -289,16 +289,19 @@ class SumoSession:
             said = f"{cause} ({said})" if cause else said
             raise SumoRunError(f"SUMO failed before t = {t:g} s: {said}", said) from exc
 
-    def vehicles(self) -> tuple[np.ndarray, np.ndarray]:
+    def vehicles(self, not_for_cars: frozenset[str] = frozenset()) -> tuple[np.ndarray, np.ndarray]:
         """Positions ``(n, 2)`` (m, network coordinates) and speeds ``(n,)`` (m/s) of the
         vehicles on the road now; vehicles off it are left out: in a teleport, or parked (in a
         parking area or at a stop with ``parking="true"``: off the lane, as SUMO's own lane
-        densities count them)."""
+        densities count them), or on a lane of ``not_for_cars`` (a bike or bus lane, a rail:
+        not the car lanes whose lane-km and speed limits the cells have)."""
         veh = _libsumo().vehicle
         ids = veh.getIDList()
         xy = np.array([veh.getPosition(v) for v in ids], dtype=float).reshape(-1, 2)
         speed = np.array([veh.getSpeed(v) for v in ids], dtype=float)
         on_road = xy[:, 0] > -1e9  # libsumo's INVALID_DOUBLE_VALUE for teleporting vehicles
+        if not_for_cars:  # (only networks with such lanes pay for the lanes asked)
+            on_road &= np.array([veh.getLaneID(v) not in not_for_cars for v in ids], dtype=bool)
         for n in np.flatnonzero(speed == 0.0):  # a parked vehicle stands: only those asked
             if veh.getStopState(ids[n]) & STOP_PARKING:
                 on_road[n] = False

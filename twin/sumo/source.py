@@ -67,6 +67,8 @@ class SumoScenario:
     reads_per_step: int = 1  # read instants per step, the last at the sample time
     incidents: list[Any] = field(default_factory=list)  # IncidentSettings (twin.config)
     detectors: DetectorPlan = field(default_factory=DetectorPlan)  # fixed detectors read
+    #: lanes cars may not use (bike, bus, rail lanes): their vehicles are not counted
+    not_for_cars: frozenset[str] = frozenset()
     extra: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -324,7 +326,7 @@ class SumoTraffic(TrafficSource):
                         self.error = str(self._users_refusal(UserError(said)))
                         raise SumoRunError(self.error, exc.reason) from exc
                     t1 = clock()
-                    xy, speed = session.vehicles()
+                    xy, speed = session.vehicles(s.not_for_cars)
                     n, v = self.geometry.count_and_speed(xy, speed)
                     count += n
                     distance += np.nan_to_num(v) * n

@@ -350,6 +350,15 @@ def _check_against_meta(path: Path, steps, times, counts, meta: dict[str, Any]) 
         )
 
 
+def distinct_reads(step_s: float, reads: int) -> int:
+    """The most reads, up to ``reads``, whose :func:`read_offsets` in a step of ``step_s``
+    fall on distinct SUMO steps (a step of 2 s holds two)."""
+    for n in range(reads, 1, -1):
+        if len(set(read_offsets(step_s, n))) == n:
+            return n
+    return 1
+
+
 def read_offsets(step_s: float, reads: int) -> list[float]:
     """Seconds before a step's sample time of its ``reads`` read instants, evenly spread over
     the step in whole SUMO steps, the last at the sample time."""
