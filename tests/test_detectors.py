@@ -564,6 +564,7 @@ def test_a_broken_occupancy_reading_is_left_out_with_one_notice(capsys):
     )
     reader.detectors = [Detector("L3", LOOP, "B0B1_0", (0, 0), False)]
     reader._last, reader._broken, reader._first_end, reader._begin = {}, set(), {"L3": 0}, 0.0
+    reader._periods, reader._intervals = {}, {}  # no period: read when its values change
     assert [reader.read(), reader.read(), reader.read()] == [[], [(0, 2, 5.0, 8.0)], []]
     notices = [line for line in capsys.readouterr().err.splitlines() if "L3" in line]
     assert len(notices) == 1 and "occupancy of -11.57 % over its last interval" in notices[0]
@@ -649,13 +650,16 @@ def test_no_reading_before_a_detectors_first_interval_ends(tmp_path, monkeypatch
         Detector("A60", "area", "a_0", (0, 0), False),
     ]
     seen = {}
-    for t in (300.0, 330.0, 360.0, 1200.0):
+    for t in (300.0, 330.0, 360.0, 390.0, 1200.0):
         now["t"] = t
         seen[t] = sorted(reader.detectors[n].id for n, *_ in reader.read())
     assert seen[300.0] == []  # SUMO begins: no interval has ended
     assert seen[330.0] == ["twin-loop-0-0-0"]
     assert seen[360.0] == ["A60", "twin-loop-0-0-0"]
-    assert seen[1200.0] == ["L900", "twin-loop-0-0-0"]  # L1: never (A60's repeats: skipped)
+    assert seen[390.0] == ["twin-loop-0-0-0"]  # A60's interval of 360 s again: not read twice
+    # A60's next interval, though it reads the same zeros: told by its period, not its value
+    # (an empty interval after another was dropped as the same one: probe 25's u01); L1: never
+    assert seen[1200.0] == ["A60", "L900", "twin-loop-0-0-0"]
 
 
 def test_a_detector_whose_first_period_outlasts_the_run_is_said_unread(

@@ -291,11 +291,44 @@ def test_ctrl_c_keeps_the_seeds_done_and_ends_every_worker(endless, tmp_path):
     assert _group_gone(proc.pid), "a worker outlived the run"
     meta = json.loads((out / "run.json").read_text())
     assert meta["partial"] is True
-    assert meta["seeds"] == [0, 1]  # both running seeds, stopped; the third never started
+    # both running seeds stopped (the third never started); those that ran the most steps are
+    # kept, so that no table compares seeds of unequal lengths (probe 25's f11)
     series = pd.read_parquet(out / "series.parquet")
-    assert set(series["seed"]) == {0, 1}
+    kept = set(series["seed"])
+    assert kept <= {0, 1} and meta["seeds"] == sorted(kept)
+    assert series.groupby("seed")["step"].max().nunique() == 1
     assert 1 <= series["step"].max() + 1 < 5000
-    assert (out / "manifest.json").exists() and (out / "tapes" / "seed-1.parquet").exists()
+    for seed in {0, 1} - kept:
+        assert f"seed {seed} stopped before step {series['step'].max() + 1}" in stderr, stderr
+        assert f"; seed {seed} stopped before step" in meta["partial_reason"], meta
+    assert (out / "manifest.json").exists() and (out / "tape.parquet").exists()
+
+
+@pytest.mark.parametrize(
+    ("steps", "kept", "left"),
+    [({0: 41, 1: 19}, [0], [1]), ({0: 1, 1: 34, 2: 34}, [1, 2], [0]), ({0: 5, 1: 5}, [0, 1], [])],
+)
+def test_seeds_stopped_at_once_keep_the_longest(steps, kept, left):
+    from twin.experiment import longest_seeds
+
+    assert longest_seeds(steps) == (kept, left)
+
+
+def test_the_reason_names_every_seed_left_out():
+    """Seeds run at once and stopped at different steps: the reason names each seed left out
+    and how long the kept ones ran (it said "every step" of seeds that stopped too)."""
+    from types import SimpleNamespace
+
+    from twin.experiment import ExperimentResult
+
+    def result(seed, steps):
+        return SimpleNamespace(seed=seed, completed_steps=steps, error="interrupted by Ctrl-C")
+
+    outcome = ExperimentResult(None, [result(1, 34)], [{}], {}, 1.0)
+    outcome.left_out, outcome.left_out_seeds = result(2, 3), [0, 2]
+    assert outcome.partial_reason() == (
+        "seeds 0, 2 stopped before step 34: left out, the tables hold seed 1 (34 steps)"
+    )
 
 
 def test_workers_die_with_a_killed_parent(endless, tmp_path):

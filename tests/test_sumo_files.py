@@ -1712,7 +1712,7 @@ def test_parked_vehicles_are_not_traffic_but_stopped_ones_are(stop, spaces, tmp_
 def test_vehicles_on_lanes_cars_may_not_use_are_not_car_traffic(tmp_path):
     """Bicycles on a bike-only lane were counted as cars of their cell, against the car lanes'
     lane-km and speed limits: a bike street read as congested with no car on it (probe 25's
-    f09). A bicycle on a lane cars share is on the road, and counted."""
+    f09). The cars beside them are counted."""
     from twin.sumo.cells import read_lanes
     from twin.sumo.session import SumoSession
     from twin.sumo.tools import binary, run_sumo_program
@@ -1745,3 +1745,23 @@ def _libsumo_vehicles() -> list[str]:
     from twin.sumo.session import _libsumo
 
     return list(_libsumo().vehicle.getIDList())
+
+
+def test_a_lane_allowing_all_is_a_car_lane(tmp_path):
+    """sumolib reads ``allow="all"`` as one class named "all": such a lane was taken for one
+    cars may not use, and its cars left out of the counts."""
+    from twin.sumo.cells import read_lanes
+    from twin.sumo.tools import binary, run_sumo_program
+
+    net = tmp_path / "g.net.xml"
+    run_sumo_program(
+        [binary("netgenerate"), "--grid", "--grid.number", "3", "--grid.length", "200",
+         "-o", str(net)],
+        what="netgenerate",
+    )  # fmt: skip
+    before = read_lanes(net)
+    text = net.read_text().replace('<lane id="A0A1_0"', '<lane id="A0A1_0" allow="all"')
+    assert 'allow="all"' in text
+    net.write_text(text)
+    after = read_lanes(net)
+    assert len(after.shapes) == len(before.shapes) and not after.not_for_cars

@@ -1451,3 +1451,7 @@ def test_more_reads_than_a_step_holds_are_read_once_each_with_a_notice(tmp_path,
     assert source.scenario.step_s == 2.0
     assert source.scenario.reads_per_step == 2 and source.scenario.read_offsets() == [1.0, 0.0]
     assert f"{config}: [traffic].reads_per_step = 3: a step of 2 s holds 2 distinct instants" in err
+    config.write_text(text)  # the default's 3 reads: named as the default, not as the file's
+    sumo_source(load_config(config))
+    err = capsys.readouterr().err
+    assert "twin: notice: [traffic].reads_per_step (the default) = 3: a step of 2 s" in err, err

@@ -1042,3 +1042,37 @@ def test_the_sweep_figures_intervals_stop_where_coverage_and_percentages_do():
     assert sorted(drawn.values()) == sorted([(0.0, 5.5), (0.4, 1.0), (0.0, 100.0), (92.0, 98.0)]), (
         drawn
     )
+
+
+@pytest.mark.parametrize("limited", [True, False])
+def test_a_local_ray_that_cannot_start_is_one_line_with_the_fix(
+    tmp_path: Path, monkeypatch, limited
+) -> None:
+    """Ray's node timing out at start (under ``ulimit -v``, as on a cluster's login node) was an
+    internal error asking for a bug report (probe 25's f10): one line, Ray's words, the limit
+    when one is set, and the fix."""
+    import resource
+
+    ray = pytest.importorskip("ray")
+    from twin.executors import ray_tasks
+
+    def no_start(**_):
+        raise Exception("The current node timed out during startup.\nmore of Ray's words")
+
+    monkeypatch.setenv("TWIN_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setattr(ray, "init", no_start)
+    limit = 6_000_000 * 1024 if limited else resource.RLIM_INFINITY
+    monkeypatch.setattr(resource, "getrlimit", lambda _: (limit, resource.RLIM_INFINITY))
+    with pytest.raises(UserError) as caught:
+        list(ray_tasks(abs, [(-1,)], 1))
+    said = str(caught.value)
+    assert said.startswith(
+        "--executor ray: Ray could not start its local node (The current node timed out during "
+        "startup.)"
+    ), said
+    if limited:
+        assert "at most 5.72 GB of virtual memory (ulimit -v)" in said
+        assert said.endswith("lift the limit (ulimit -v unlimited), or use --executor local")
+    else:
+        assert said.endswith("use --executor local, or start Ray yourself and give its --address")
+    assert not list((tmp_path / "cache" / "tmp" / "twin-ray").glob("session_*"))

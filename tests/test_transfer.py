@@ -519,3 +519,19 @@ def test_a_row_trained_again_keeps_the_users_files(tmp_path: Path) -> None:
     (row / "plots").rmdir()
     clear_row_folder(row)
     assert list(row.iterdir()) == []
+
+
+def test_the_columns_are_checked_against_the_memory_limit_given(tmp_path, capsys):
+    """The columns' check before any stage takes ``--max-memory-gb`` as the evaluation does (it
+    checked against the default 8 GB, refusing a transfer the limit allowed)."""
+    from twin.errors import UserError
+    from twin.transfer.config import load_transfer_config
+    from twin.transfer.runner import check_columns
+
+    config = tiny_config(tmp_path, sumo=False)
+    big = '"traffic.horizon" = 100000, "grid.nx" = 200, "grid.ny" = 300'  # maps of 24 GB
+    config.write_text(config.read_text().replace('"traffic.horizon" = 12', big))
+    transfer = load_transfer_config(config)
+    with pytest.raises(UserError, match="GB"):
+        check_columns(transfer)
+    check_columns(transfer, max_memory_gb=10000.0)

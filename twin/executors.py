@@ -262,10 +262,12 @@ def ray_tasks(
                     configure_logging=False,
                     **({"_temp_dir": str(temp_dir)} if own else {}),
                 )
-            except BaseException:  # its half-made session goes with it
+            except BaseException as exc:  # its half-made session goes with it
                 with contextlib.suppress(Exception):
                     ray.shutdown()
                 _remove_ray_session(temp_dir, None, own or made)
+                if isinstance(exc, Exception) and not isinstance(exc, UserError):
+                    raise UserError(ray_start_failure(exc)) from None
                 raise
             with contextlib.suppress(Exception):  # removed after the shutdown
                 session = Path(ray._private.worker.global_worker.node.get_session_dir_path())
@@ -294,6 +296,24 @@ def ray_tasks(
             ray.shutdown()
             if session is not None and temp_dir is not None:
                 _remove_ray_session(temp_dir, session, own or made)
+
+
+def ray_start_failure(exc: BaseException) -> str:
+    """One line for a local Ray that did not start: its own words, and a virtual-memory limit
+    (``ulimit -v``, which Ray's processes outgrow at start) when one is set."""
+    import resource
+
+    said = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:200]
+    text = f"--executor ray: Ray could not start its local node ({said})"
+    with contextlib.suppress(ValueError, OSError):
+        limit, _ = resource.getrlimit(resource.RLIMIT_AS)
+        if limit != resource.RLIM_INFINITY:
+            return (
+                f"{text}; this process may use at most {limit / 2**30:.3g} GB of virtual memory "
+                "(ulimit -v), less than Ray's processes reserve: lift the limit (ulimit -v "
+                "unlimited), or use --executor local"
+            )
+    return f"{text}; use --executor local, or start Ray yourself and give its --address"
 
 
 #: The longest path of a Unix socket (Linux's ``sun_path``, less its final NUL byte).

@@ -84,6 +84,9 @@ class ExperimentResult:
     #: a later seed that stopped before its last step (Ctrl-C, a simulation that failed): left
     #: out of ``results`` (:func:`leave_out_unfinished_seed`)
     left_out: PatrolResult | None = None
+    #: every seed left out, ``left_out``'s among them (seeds run at once and stopped by Ctrl-C
+    #: at different steps: those that ran fewer steps than the longest)
+    left_out_seeds: list[int] = field(default_factory=list)
 
     @property
     def partial(self) -> bool:
@@ -100,10 +103,19 @@ class ExperimentResult:
         if r is None:
             return None
         planned = self.results[0].completed_steps
-        why = r.error or f"stopped after {r.completed_steps} of {planned} steps"
         kept = seed_ranges([k.seed for k in self.results])
         seeds = f"seed{'s' if len(self.results) > 1 else ''} {kept}"
-        return f"seed {r.seed}: {why}; left out, the tables hold {seeds} (every step)"
+        left = sorted({*self.left_out_seeds, r.seed})
+        span = "every step"
+        if self.results[0].error:  # seeds run at once, stopped at different steps
+            span = f"{planned} step{'s' * (planned != 1)}" + " each" * (len(self.results) > 1)
+        if len(left) > 1 or self.results[0].error:
+            return (
+                f"seed{'s' * (len(left) > 1)} {seed_ranges(left)} stopped before step "
+                f"{planned}: left out, the tables hold {seeds} ({span})"
+            )
+        why = r.error or f"stopped after {r.completed_steps} of {planned} steps"
+        return f"seed {r.seed}: {why}; left out, the tables hold {seeds} ({span})"
 
 
 def seed_ranges(seeds: list[int]) -> str:
@@ -527,7 +539,8 @@ def _run_seeds_in_workers(
     A seed that fails mid-run (its result says why) stops the seeds after it, which are then
     left out: the same seeds and results as one after another. An error (bad input, a bug)
     stops every worker at once and is raised here. Ctrl-C stops every seed after its current
-    step and keeps every seed done or partly done.
+    step and keeps the seeds that ran the most steps (every step, or the longest partial run);
+    the others are left out (``left_out_seeds``): no table compares seeds of unequal lengths.
     """
     from twin.executors import EXECUTORS, local_tasks, ray_tasks
 
@@ -578,16 +591,22 @@ def _run_seeds_in_workers(
         if bar is not None:
             bar.close()
     kept = sorted(n for n, value in done.items() if value is not None)
+    left_out: list[int] = []
     if not stop():
         failed = [n for n in kept if done[n].result.error]
         if failed:
             kept = [n for n in kept if n <= failed[0]]
+    else:  # stopped at once, each seed after its current step
+        kept, left_out = longest_seeds({n: done[n].result.completed_steps for n in kept})
+        for n in left_out:
+            if done[n].source is not None:
+                done[n].source.close()
     kept_outcomes = [done[n] for n in kept]
     for n in kept:  # those after a seed that never started
         if n >= announced and on_source is not None and done[n].source is not None:
             release_notices()
             on_source(done[n].source)
-    return ExperimentResult(
+    outcome = ExperimentResult(
         experiment,
         [o.result for o in kept_outcomes],
         [o.traffic for o in kept_outcomes],
@@ -595,6 +614,19 @@ def _run_seeds_in_workers(
         time.perf_counter() - t0,
         [o.source for o in kept_outcomes if o.source is not None],
     )
+    if left_out:
+        outcome.left_out = done[left_out[-1]].result
+        outcome.left_out_seeds = [seeds[n] for n in left_out]
+    return outcome
+
+
+def longest_seeds(steps: dict[int, int]) -> tuple[list[int], list[int]]:
+    """The seeds (by index) that ran the most steps, and the others: seeds stopped at once by
+    Ctrl-C, each after its current step, are kept only as long as the longest, so that no
+    table averages or pairs an R_hat_T over fewer steps with longer ones."""
+    longest = max(steps.values(), default=0)
+    kept = sorted(n for n, done in steps.items() if done == longest)
+    return kept, sorted(n for n in steps if n not in kept)
 
 
 def _worker_error(error: BaseException, seed: int) -> BaseException:

@@ -601,7 +601,12 @@ def write_run(
     errors = [r.error for r in results if r.error]
     no_step = min(r.rewards.shape[1] for r in results) == 0
     partial = bool(metadata.get("partial")) or bool(errors) or no_step
-    reason = "; ".join(errors) or ("no step ran" if no_step else metadata.get("partial_reason"))
+    left_out = metadata.get("partial_reason")  # seeds left out: said beside the kept ones' errors
+    reason = (
+        "; ".join([*errors, *([left_out] if left_out else [])])
+        if errors
+        else ("no step ran" if no_step else left_out)
+    )
     started = _read_json(run_dir / "run.json")  # the marker of prepare_run_dir, if any
     meta = {
         "created": datetime.now(UTC).isoformat(timespec="seconds"),

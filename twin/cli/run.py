@@ -340,8 +340,7 @@ def main(args: argparse.Namespace) -> int:
     print(f"run folder: {run_dir}")
     if outcome.interrupted:
         what = (
-            f"seed {done.seed} stopped after {done.completed_steps} steps is left out, the "
-            f"seeds that finished are"
+            f"{outcome.partial_reason()};"
             if outcome.left_out is not None
             else f"partial run of {done.completed_steps} steps (seed {done.seed})"
         )

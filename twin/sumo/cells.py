@@ -99,10 +99,11 @@ def read_lanes(net_file: Path) -> Lanes:
     shapes, speeds, others = [], [], []
     for edge in net.getEdges(withInternal=True):
         for lane in edge.getLanes():
-            if lane.allows("passenger"):
+            allowed = lane.getPermissions()  # (sumolib reads allow="all" as a class "all")
+            if "passenger" in allowed or "all" in allowed:
                 shapes.append(np.asarray(lane.getShape(), dtype=float))
                 speeds.append(lane.getSpeed())
-            elif lane.getPermissions() - {"pedestrian"}:  # a sidewalk carries no vehicle
+            elif allowed - {"pedestrian"}:  # a sidewalk carries no vehicle
                 others.append(lane.getID())
     if not shapes:
         raise UserError(f"{net_file}: the network has no lane that passenger cars may use")

@@ -18,10 +18,11 @@ the cell.
 Reading: at every sample time each detector's last completed aggregation interval is read
 (vehicles counted, occupancy, mean speed: three calls, no subscriptions, no per-SUMO-step
 work). Twin's own loops aggregate over exactly one step. A scenario detector aggregates over
-its file's period; its reading is passed on only when the interval changed (the reading
-differs from the previous one), so a period longer than a step gives fewer readings, never the
-same one twice (an interval that repeats the previous one exactly is lost, which happens
-mostly when nothing passes). Density from occupancy, ``k = occ / L`` with ``L`` the effective
+its file's period; its reading is passed on once per interval, the interval told by that period
+from SUMO's begin, so a period longer than a step gives fewer readings, never the same one twice
+(a detector whose period twin cannot read, none in its files, is passed on when its reading
+differs from the previous one: an interval that repeats the previous one exactly, mostly when
+nothing passes, is lost). Density from occupancy, ``k = occ / L`` with ``L`` the effective
 vehicle length (:data:`twin.mfd.VEHICLE_LENGTH_M`), per lane-km as the cells' density, then the
 importance of :class:`twin.mfd.MFD` in effect at that step (the same mapping as the cells').
 """
@@ -326,6 +327,8 @@ class DetectorReader:
                 "twin's step)"
             )
         self._last: dict[str, tuple] = {}
+        self._periods = dict(periods or {})  # a scenario detector's, from its file
+        self._intervals: dict[str, int] = {}  # the completed intervals it was last read at
         self._broken: set[str] = set()
 
     def _cell(self, geometry, lane: str, pos: float) -> tuple[int, int] | None:
@@ -365,7 +368,13 @@ class DetectorReader:
                 float(dom.getLastIntervalOccupancy(d.id)),
                 float(dom.getLastIntervalMeanSpeed(d.id)),
             )
-            if not d.virtual and self._last.get(d.id) == reading:
+            period = self._periods.get(d.id)
+            if not d.virtual and period is not None:  # its interval is known by its period
+                done = math.floor((now - self._begin) / period + 1e-6)
+                if self._intervals.get(d.id) == done:
+                    continue
+                self._intervals[d.id] = done
+            elif not d.virtual and self._last.get(d.id) == reading:
                 continue
             self._last[d.id] = reading
             count, occupancy, speed = reading

@@ -405,6 +405,8 @@ def _step_seconds(s: SumoSettings, config) -> float:
     if reads < s.reads_per_step:  # the same instant read twice would count it twice
         key = ", ".join(config.set_by(["traffic.reads_per_step"])) or (
             f"{config.path}: [traffic].reads_per_step"
+            if "reads_per_step" in config.traffic.model_fields_set
+            else "[traffic].reads_per_step (the default)"
         )
         notice(
             f"{key} = {s.reads_per_step}: a step of {step_s:.3g} s holds {reads} distinct "

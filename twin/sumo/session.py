@@ -112,6 +112,7 @@ class SumoSession:
     started: bool = field(default=False, init=False)
     #: sumo-gui's error log in twin's scratch folder, removed when the session closes
     _scratch: Path | None = field(default=None, init=False, repr=False)
+    _classes: dict[str, str] = field(default_factory=dict, init=False, repr=False)  # vClass by id
 
     _active: ClassVar[SumoSession | None] = None
 
@@ -300,10 +301,19 @@ class SumoSession:
         xy = np.array([veh.getPosition(v) for v in ids], dtype=float).reshape(-1, 2)
         speed = np.array([veh.getSpeed(v) for v in ids], dtype=float)
         on_road = xy[:, 0] > -1e9  # libsumo's INVALID_DOUBLE_VALUE for teleporting vehicles
-        if not_for_cars:  # (only networks with such lanes pay for the lanes asked)
-            on_road &= np.array([veh.getLaneID(v) not in not_for_cars for v in ids], dtype=bool)
-        for n in np.flatnonzero(speed == 0.0):  # a parked vehicle stands: only those asked
-            if veh.getStopState(ids[n]) & STOP_PARKING:
+        if self.mesoscopic:  # SUMO's meso model tells neither lanes nor parking: all count
+            return xy[on_road], speed[on_road]
+        if not_for_cars:  # (only networks with such lanes ask, and only of vehicles not cars)
+            classes = self._classes
+            for n, v in enumerate(ids):
+                if (c := classes.get(v)) is None:
+                    c = classes[v] = veh.getVehicleClass(v)
+                if c != "passenger" and veh.getLaneID(v) in not_for_cars:
+                    on_road[n] = False
+            if len(classes) > 4 * len(ids) + 1000:  # those that left, forgotten now and then
+                self._classes = {v: classes[v] for v in ids if v in classes}
+        for n in np.flatnonzero(speed < HALTING_SPEED):  # a parked vehicle stands (slows to 0
+            if veh.getStopState(ids[n]) & STOP_PARKING:  # as it parks): only those asked
                 on_road[n] = False
         return xy[on_road], speed[on_road]
 
@@ -330,6 +340,8 @@ class SumoSession:
 
 #: The bit of libsumo's ``vehicle.getStopState`` of a vehicle parked off its lane.
 STOP_PARKING = 2
+#: SUMO's halting speed (m/s): a vehicle parking has slowed below it.
+HALTING_SPEED = 0.1
 
 #: The elements that define an object SUMO names by its kind at the start of a refusal
 #: ("Vehicle 'v' has no valid route"): its own file is named, not another holding the id.

@@ -15,8 +15,8 @@ the parent stops early (Ctrl-C, a failed swarm), it asks the child to stop, keep
 snapshots of the maps it used, and takes the model of the child's last snapshot. The child
 ignores Ctrl-C (the parent decides) and dies with the parent, even by ``kill -9``.
 A child that dies without its end state (SUMO crashed) is named by the signal that ended it:
-before the window's first step an error, later a partial run whose MFD model is that of the
-maps it sent.
+before the window's first step an error quoting SUMO's last error, later a partial run whose
+MFD model is that of the maps it sent.
 """
 
 from __future__ import annotations
@@ -129,19 +129,23 @@ def maps_from_child(source: WorksAhead) -> Iterator[np.ndarray]:
                     raise message[1]
                 return
     except EOFError:  # the child died without a word (killed, or SUMO crashed)
-        child.join(timeout=30)
-        ended = True
-        kept = _keep_messages(source, messages)
-        source.model = source.model_after(source.snapshots)  # no end state: the MFD of the maps
+        child.join(timeout=30)  # (the model of its maps is made by _stop, below)
+        last = _last_error(messages)
         death = how_it_ended(child.exitcode)
-        words = f"; its last words are in {kept}" if kept else ""
-        if not any(k >= 1 for k, *_ in source.snapshots):  # no step to keep: no partial run
+        if not any(k >= 1 for k, *_ in source.snapshots):  # no step to keep: no partial run,
+            said = f" (its last error: {last})" if last else ""  # and no folder to name
+            fix = (
+                "give it more memory, or less to simulate (a shorter warm-up, less demand)"
+                if child.exitcode == -signal.SIGKILL
+                else "run SUMO alone on the same files to see where it fails"
+            )
+            messages.unlink(missing_ok=True)  # a refused run keeps no folder to name it in
             raise UserError(
-                f"{source.scenario.name}: SUMO {death} before the window's first step{words}; "
-                "run the scenario in SUMO alone (`sumo -c` on its files) to see whether SUMO "
-                "fails on it, and change the file it fails on"
+                f"SUMO {death} before the first step of scenario {source.scenario.name}{said}; "
+                f"{fix}"
             ) from None
-        source.error = f"SUMO {death}{words}"
+        kept = _keep_messages(source, messages)
+        source.error = f"SUMO {death}" + (f"; its last words are in {kept}" if kept else "")
         raise RuntimeError(source.error) from None
     except KeyboardInterrupt:  # stop at once: SUMO may be deep in a long advance (a warm-up)
         child.kill()
@@ -223,6 +227,16 @@ def _messages_file() -> Path:
     fd, name = tempfile.mkstemp(prefix="twin-sumo-", suffix=".log", dir=scratch_dir())
     os.close(fd)
     return Path(name)
+
+
+def _last_error(path: Path) -> str:
+    """SUMO's last error line in its messages file ``path`` (without "Error: "), or ""."""
+    last = ""
+    with contextlib.suppress(OSError), open(path, errors="replace") as fh:
+        for line in fh:
+            if line.startswith("Error:"):
+                last = line[len("Error:") :].strip()[:200]
+    return last
 
 
 def _keep_messages(source: WorksAhead, path: Path) -> Path | None:

@@ -498,10 +498,12 @@ def sweep_config(config: TransferConfig, rows: dict[str, dict[str, Any]]):
     return sweep
 
 
-def check_columns(config: TransferConfig) -> None:
+def check_columns(config: TransferConfig, max_memory_gb: float | None = None) -> None:
     """Every column's scenario with its overrides, checked as the evaluation's sweep checks its
-    cells (:func:`twin.sweep.check_cells`), before any tape is recorded or row trained: a value
-    a column's scenario refuses is one line naming the transfer file's key."""
+    cells (:func:`twin.sweep.check_cells`, against the same memory limit), before any tape is
+    recorded or row trained: a value a column's scenario refuses is one line naming the
+    transfer file's key (the notices of the columns said before it are held back)."""
+    from twin.notices import drop_notices, hold_notices, release_notices
     from twin.sweep import check_cells
     from twin.sweep.cells import override_labels
 
@@ -514,10 +516,17 @@ def check_columns(config: TransferConfig) -> None:
             "tape": None,
             "seed": config.seeds[0],
             "swarms": list(config.transfer.classical),
+            "max_memory_gb": max_memory_gb,
         }
         for c in config.column
     ]
-    check_cells(cells)
+    hold_notices()
+    try:
+        check_cells(cells)
+    except BaseException:
+        drop_notices()
+        raise
+    release_notices()
 
 
 def check_row_states(config: TransferConfig) -> None:
@@ -566,7 +575,7 @@ def run_transfer(
     check_row_starts(config)
     check_row_states(config)
     check_tapes_scenario(config)
-    check_columns(config)
+    check_columns(config, max_memory_gb)
     out.mkdir(parents=True, exist_ok=True)
     out = out.resolve()  # the rows' provenance names files the same from any folder
     timings: dict[str, float] = {}
