@@ -2765,3 +2765,33 @@ def test_a_bound_row_past_the_dp_limit_is_refused_not_replayed(run_copy, monkeyp
     monkeypatch.setattr(twin.ceilings, "MAX_DP_BYTES", 0)
     assert main(["report", str(run_copy), "--no-animation"]) == EXIT_REFUSED
     assert "holds a bound (ceiling) row for seed 0, but its DP would hold" in one_line(capsys)
+
+
+def test_a_learned_policy_record_is_checked_against_its_checkpoint(tmp_path):
+    """A record's epochs or layers edited in run.json while its checkpoint is still at the
+    recorded path with the recorded sha256: refused, naming the checkpoint's own value (the
+    report showed the forged epochs: probe 25's f02). A checkpoint moved or changed since is
+    not read (the record is history)."""
+    import torch
+
+    from twin.files import file_sha256
+    from twin.learning.checkpoint import check_recorded_checkpoints, model_metadata, save_model
+    from twin.learning.qnet import QNetwork
+
+    path = tmp_path / "q.pt"
+    torch.manual_seed(0)
+    save_model(path, QNetwork((13, 16, 5)).state_dict(), model_metadata((13, 16, 5), {}, 0, 250))
+    record = {**GOOD_POLICY, "checkpoint": str(path), "sha256": file_sha256(path),
+              "trained_epochs": 250, "layers": [13, 16, 5]}  # fmt: skip
+    run = tmp_path / "run.json"
+    check_recorded_checkpoints(run, {"rl": record})
+    for key, forged in (("trained_epochs", 987654), ("layers", [13, 64, 5])):
+        with pytest.raises(UserError) as caught:
+            check_recorded_checkpoints(run, {"rl": {**record, key: forged}})
+        assert str(caught.value).startswith(
+            f"{run}: policies.rl.{key} = {forged}, but its checkpoint {path} (the recorded "
+            "sha256) has "
+        ), caught.value
+    other = {**record, "trained_epochs": 987654, "sha256": "ab" * 32}  # another file now
+    check_recorded_checkpoints(run, {"rl": other})
+    check_recorded_checkpoints(run, {"rl": {**other, "checkpoint": str(tmp_path / "gone.pt")}})

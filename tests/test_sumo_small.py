@@ -285,6 +285,23 @@ def test_an_osm_extract_of_nodes_and_no_street_is_no_road(tmp_path, capsys):
     assert err[0].endswith("give an extract with streets"), err
 
 
+@pytest.mark.parametrize("given", ["folder", "/dev/null"])
+def test_an_osm_flag_on_a_folder_or_device_is_one_line(given, tmp_path, capsys):
+    """``--osm`` on a folder or a device: one line, as the other file flags say it (a device
+    reached netconvert, "invalid document structure"; a folder was an error with a log: probe
+    25's f05)."""
+    from twin.cli import main
+
+    osm = tmp_path / "d.osm" if given == "folder" else Path(given)
+    if given == "folder":
+        osm.mkdir()
+    out = tmp_path / "run"
+    assert main(["run", "--osm", str(osm), "--horizon", "2", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"twin: error: {osm}: is a "), err
+    assert err[0].endswith("(an OSM extract: .osm, or .osm.gz)") and not out.exists()
+
+
 def test_import_osm_out_on_a_file_is_the_out_line(tmp_path, capsys):
     """``--out`` naming a file is refused as every command's ``--out`` is, before netconvert
     runs (it was the system's bare "File exists"; probe 14's f07)."""

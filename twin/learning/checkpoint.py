@@ -137,6 +137,35 @@ def read_checkpoint(path: str | Path, hint: str | None = None) -> dict[str, Any]
     return blob
 
 
+def check_recorded_checkpoints(path: Path, policies: dict[str, Any]) -> None:
+    """run.json's (``path``) records of learned swarms (``policies``) against their checkpoint,
+    where it is still at the recorded path with the recorded sha256: its epochs and layers
+    are the checkpoint's own, not edited since (a checkpoint gone or changed is not read)."""
+    from twin.files import file_sha256
+    from twin.readback import RERUN
+
+    for swarm, policy in policies.items():
+        if not isinstance(policy, dict) or not isinstance(policy.get("checkpoint"), str):
+            continue
+        checkpoint = Path(policy["checkpoint"])
+        try:
+            same = checkpoint.is_file() and file_sha256(checkpoint) == policy.get("sha256")
+        except OSError:
+            continue
+        if not same:
+            continue
+        try:
+            meta = read_checkpoint(checkpoint)["meta"]
+        except UserError:
+            continue
+        for key, own in (("trained_epochs", meta.get("epoch")), ("layers", meta.get("layers"))):
+            if key in policy and policy[key] != own:
+                raise UserError(
+                    f"{path}: policies.{swarm}.{key} = {str(policy[key])[:40]}, but its checkpoint "
+                    f"{checkpoint} (the recorded sha256) has {str(own)[:40]}; {RERUN}"
+                )
+
+
 def checkpoint_state(path: str | Path, meta: dict[str, Any]) -> StateVariant:
     """The state variant a checkpoint's network reads: ``meta["state"]``, ``"paper"`` for a
     checkpoint written before variants existed; an unknown one is refused in one line."""

@@ -69,7 +69,7 @@ from twin.runs import (
 )
 from twin.scores import ScoreParams, initial_idleness, update_idleness
 from twin.sumo.detectors import DETECTOR_COLUMNS
-from twin.swarms import check_policy_records
+from twin.swarms import check_policy_records, is_learned
 
 
 @dataclass
@@ -368,6 +368,10 @@ def load_run(run_dir: str | Path) -> RunFiles:
     run_path = run_dir / "run.json"
     run = check_run_json(run_path, read_json(run_path) or {})
     check_policy_records(run_path, run)
+    if any(is_learned(swarm) for swarm in run.get("policies") or {}):  # (torch, only then)
+        from twin.learning.checkpoint import check_recorded_checkpoints
+
+        check_recorded_checkpoints(run_path, run["policies"])
     _say_folder_format(run_dir, run)
     check_written_files(run_dir, run)
     importance, obstacles = read_maps(run_dir / "importance.npz")

@@ -21,7 +21,7 @@ from typing import Any
 
 from twin import resources
 from twin.errors import UserError
-from twin.files import read_record
+from twin.files import not_a_file, read_record
 from twin.sumo.readers import (
     check_cache_without_comma,
     check_no_comma,
@@ -332,6 +332,9 @@ def import_osm(osm_file: Path, out_dir: Path | None = None) -> Path:
     osm_file = Path(osm_file)
     if not osm_file.exists():
         raise missing(osm_file, "OSM file")
+    why = not_a_file(osm_file)  # a folder, a pipe or a device: netconvert reads a file by name
+    if why is not None:
+        raise UserError(f"{osm_file}: {why} (an OSM extract: .osm, or .osm.gz)")
     head = b""
     with contextlib.suppress(OSError), open(osm_file, "rb") as fh:
         head = fh.read(16)
