@@ -243,9 +243,9 @@ def endless(tmp_path_factory) -> Path:
     return small_sumo_scenario(tmp_path_factory.mktemp("endless"), horizon=5000)
 
 
-def _start(endless: Path, out: Path, cwd: Path) -> subprocess.Popen:
+def _start(endless: Path, out: Path, cwd: Path, *extra: str) -> subprocess.Popen:
     args = ["run", "--config", str(endless / "small.toml"), "--seeds", "3", "--workers", "2",
-            "--out", str(out), "--no-report", "--no-ceiling"]  # fmt: skip
+            "--out", str(out), "--no-report", "--no-ceiling", *extra]  # fmt: skip
     return subprocess.Popen(
         [sys.executable, "-m", "twin", *args],
         cwd=cwd,
@@ -329,6 +329,44 @@ def test_the_reason_names_every_seed_left_out():
     assert outcome.partial_reason() == (
         "seeds 0, 2 stopped before step 34: left out, the tables hold seed 1 (34 steps)"
     )
+
+
+def test_sigterm_stops_a_ray_run_as_it_stops_a_local_one(endless, tmp_path):
+    """SIGTERM (a batch scheduler's stop) to a run on Ray: Ray's driver had taken SIGTERM, so
+    it printed a C++ stack and died, leaving a folder of one marker file (probe 25b). twin's
+    own stop runs: a partial run, exit 130."""
+    pytest.importorskip("ray")
+    out = tmp_path / "run"
+    proc = _start(endless, out, tmp_path, "--executor", "ray")
+    try:
+        _wait_for_ray_workers(proc)
+        proc.send_signal(signal.SIGTERM)
+        code = proc.wait(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    stderr = (tmp_path / "stderr.txt").read_text()
+    assert code == 130, stderr
+    assert "SIGTERM received" not in stderr and "Traceback" not in stderr, stderr
+    meta = json.loads((out / "run.json").read_text())
+    assert meta["partial"] is True and meta["seeds"], meta
+    assert (out / "manifest.json").exists()
+
+
+def _wait_for_ray_workers(proc: subprocess.Popen, seconds: float = 120.0) -> None:
+    """Until a Ray worker of ``proc`` (in its session: Ray's processes are not its children)
+    runs a seed, and some steps are done (a SIGTERM while Ray starts meets Ray's handler)."""
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        assert proc.poll() is None, "ended early"
+        group = subprocess.run(["ps", "-o", "args=", "-s", str(proc.pid)],  # its own session
+                               capture_output=True, text=True).stdout  # fmt: skip
+        if "ray::run_seed_in_worker" in group:
+            time.sleep(8.0)  # SUMO started in the worker, some steps done
+            return
+        time.sleep(0.3)
+    proc.kill()
+    pytest.fail("the Ray workers did not start")
 
 
 def test_workers_die_with_a_killed_parent(endless, tmp_path):

@@ -1455,3 +1455,22 @@ def test_more_reads_than_a_step_holds_are_read_once_each_with_a_notice(tmp_path,
     sumo_source(load_config(config))
     err = capsys.readouterr().err
     assert "twin: notice: [traffic].reads_per_step (the default) = 3: a step of 2 s" in err, err
+
+
+def test_a_step_too_short_names_the_sweep_key_that_set_it(tmp_path):
+    """A drone speed from a sweep's (or transfer's) key that makes a step shorter than SUMO's:
+    the key is named with its value, not the scenario's [traffic] (probe 25b)."""
+    from helpers import small_sumo_scenario
+
+    from twin.config import load_config, with_overrides
+    from twin.errors import UserError
+    from twin.sumo.scenario import _step_seconds, sumo_settings
+
+    folder = small_sumo_scenario(tmp_path, horizon=3)
+    label = "sw.toml: [parameters].'traffic.drone_speed_kmh'"
+    config = with_overrides(load_config(folder / "small.toml"),
+                            {"traffic.drone_speed_kmh": 2000.0},
+                            labels={"traffic.drone_speed_kmh": label})  # fmt: skip
+    with pytest.raises(UserError) as caught:
+        _step_seconds(sumo_settings(config), config)
+    assert str(caught.value).startswith(f"{label} = 2000: a step (200 m at 2000 km/h) lasts 0.36 s")

@@ -7,6 +7,7 @@ import contextlib
 import logging
 import multiprocessing
 import os
+import signal
 import sys
 import threading
 from collections.abc import Callable, Iterable, Iterator, Sequence
@@ -247,6 +248,7 @@ def ray_tasks(
     logging.getLogger("ray").setLevel(logging.ERROR)
     started, session, temp_dir, own, made = False, None, None, False, False
     if not ray.is_initialized():
+        handlers = _signal_handlers()
         if address:
             _connect_ray(ray, address)
         else:
@@ -276,6 +278,7 @@ def ray_tasks(
 
                 with contextlib.suppress(OSError):
                     (session / HOST_MARK).write_text(host_mark() + "\n")
+        _restore_signal_handlers(handlers)  # Ray's core takes SIGTERM: twin's stop is its own
         started = True
     pending: dict = {}
     try:
@@ -296,6 +299,23 @@ def ray_tasks(
             ray.shutdown()
             if session is not None and temp_dir is not None:
                 _remove_ray_session(temp_dir, session, own or made)
+
+
+def _signal_handlers() -> dict[int, Any]:
+    """This process's Python handlers of SIGTERM and SIGINT (the main thread's to set)."""
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+    return {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGINT)}
+
+
+def _restore_signal_handlers(handlers: dict[int, Any]) -> None:
+    """Set ``handlers`` again: Ray's driver installs a C++ handler of SIGTERM that prints a
+    stack and kills the process, so that a run stopped by ``kill`` (a batch scheduler) wrote
+    no partial run."""
+    for sig, handler in handlers.items():
+        if handler is not None:
+            with contextlib.suppress(ValueError, OSError):
+                signal.signal(sig, handler)
 
 
 def ray_start_failure(exc: BaseException) -> str:

@@ -377,16 +377,25 @@ def _scenario_files(s: SumoSettings) -> _ScenarioFiles:
     return files
 
 
+def _given(config, key: str, value: float) -> str | None:
+    """How the dotted ``key`` was given other than by the config file, with its value: its flag
+    (``--cell-m 250``), or another file's key (a sweep's: ``sweep.toml: [parameters].'...' =
+    250``); None when the file (or the default) gave it."""
+    flag = config.flag_of(key)
+    if flag:
+        return f"{flag} {value:g}"
+    labels = config.set_by([key])
+    return f"{labels[0]} = {value:g}" if labels else None
+
+
 def _step_seconds(s: SumoSettings, config) -> float:
     """Simulated seconds per step, ``cell_m / speed``; not shorter than SUMO's own step and
     not longer than a day."""
     step_s = s.cell_m / (s.drone_speed_kmh / 3.6)
-    flags = [
-        f"{config.flag_of(f'traffic.{key}')} {getattr(s, key):g}"
-        for key in ("drone_speed_kmh", "cell_m")
-        if config.flag_of(f"traffic.{key}")
+    given = [
+        _given(config, f"traffic.{key}", getattr(s, key)) for key in ("drone_speed_kmh", "cell_m")
     ]
-    where = ", ".join(flags) or f"{config.path}: [traffic]"
+    where = ", ".join(g for g in given if g) or f"{config.path}: [traffic]"
     if step_s > MAX_STEP_S:
         raise UserError(
             f"{where}: a step ({s.cell_m:g} m at {s.drone_speed_kmh:g} km/h) lasts {step_s:.3g} "
@@ -558,7 +567,9 @@ def _grid_and_notices(
     swapped = bool(inputs.net or inputs.sumocfg or inputs.osm)
     if not cell_flag and (own_config or not swapped):
         shape = config.explicit_shape()  # set in the file or by an override
-    where = f"{cell_flag} {s.cell_m:g}" if cell_flag else f"{config.path}: [grid]"
+    where = _given(config, "traffic.cell_m", s.cell_m) or f"{config.path}: [grid]"
+    if shape is not None and not cell_flag and where != f"{config.path}: [grid]":
+        where += f" over {config.path}: [grid] nx, ny"  # another file's cells, this grid
     geometry = grid_over(lanes, s.cell_m, shape, where=where)
     obstacles = geometry.obstacles(s.min_lane_km)
     for i, j in getattr(config.grid, "obstacles", []) or []:
