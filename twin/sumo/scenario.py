@@ -374,7 +374,23 @@ def _scenario_files(s: SumoSettings) -> _ScenarioFiles:
             "vehicle, so every cell's traffic stays 0 (no MFD can be fitted); add vehicles, or "
             "leave the demand out and twin generates a rush-hour one"
         )
+    if s.mesoscopic:
+        _say_meso_parking([*files.route_files, *files.additional_files])
     return files
+
+
+def _say_meso_parking(paths: list[Path]) -> None:
+    """A notice when SUMO's mesoscopic model runs a demand that parks: it tells no vehicle's
+    lane or parking, so parked vehicles count as standing traffic."""
+    from twin.sumo.readers import may_hold
+
+    parking = [p for p in paths if may_hold(Path(p), b"parkingArea", b"parking=")]
+    if parking:
+        notice(
+            f"{parking[0]}: parks vehicles, but SUMO's mesoscopic model (--meso) tells twin no "
+            "vehicle's lane or parking, so parked vehicles count as standing traffic (run "
+            "without --meso to leave them out)"
+        )
 
 
 def _given(config, key: str, value: float) -> str | None:
