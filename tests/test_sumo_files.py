@@ -1786,4 +1786,10 @@ def test_parking_under_meso_is_said_to_count(tmp_path, capsys):
     assert "parks vehicles" not in capsys.readouterr().err
     _say_meso_parking([plain, routes])
     err = capsys.readouterr().err
-    assert f"{routes}: parks vehicles, but SUMO's mesoscopic model (--meso) tells twin" in err
+    assert f"{routes}: parks vehicles, but SUMO's mesoscopic model (--meso, or a sumocfg's " in err
+    areas = tmp_path / "a.add.xml"  # parking areas alone park nobody
+    areas.write_text(
+        '<additional><parkingArea id="pa" lane="a_0" startPos="0" endPos="9"/></additional>'
+    )
+    _say_meso_parking([plain, areas])
+    assert "parks vehicles" not in capsys.readouterr().err
