@@ -275,16 +275,22 @@ def _wait_for_workers(proc: subprocess.Popen, n: int = 2, seconds: float = 120.0
     pytest.fail("the workers did not start")
 
 
-def test_ctrl_c_keeps_the_seeds_done_and_ends_every_worker(endless, tmp_path):
-    out = tmp_path / "run"
-    proc = _start(endless, out, tmp_path)
+def _stop_when(proc: subprocess.Popen, ready, sig: int) -> int:
+    """Send ``sig`` to ``proc`` once ``ready(proc)`` returns; its exit code (killed if it
+    outlives two minutes)."""
     try:
-        _wait_for_workers(proc)
-        proc.send_signal(signal.SIGINT)
-        code = proc.wait(timeout=120)
+        ready(proc)
+        proc.send_signal(sig)
+        return proc.wait(timeout=120)
     finally:
         if proc.poll() is None:
             proc.kill()
+
+
+def test_ctrl_c_keeps_the_seeds_done_and_ends_every_worker(endless, tmp_path):
+    out = tmp_path / "run"
+    proc = _start(endless, out, tmp_path)
+    code = _stop_when(proc, _wait_for_workers, signal.SIGINT)
     stderr = (tmp_path / "stderr.txt").read_text()
     assert code == 130, stderr
     assert "Traceback" not in stderr
@@ -339,13 +345,7 @@ def test_sigterm_stops_a_ray_run_as_it_stops_a_local_one(endless, tmp_path):
     pytest.importorskip("ray")
     out = tmp_path / "run"
     proc = _start(endless, out, tmp_path, "--executor", "ray")
-    try:
-        _wait_for_ray_workers(proc)
-        proc.send_signal(signal.SIGTERM)
-        code = proc.wait(timeout=120)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
+    code = _stop_when(proc, _wait_for_ray_workers, signal.SIGTERM)
     stderr = (tmp_path / "stderr.txt").read_text()
     assert code == 130, stderr
     assert "SIGTERM received" not in stderr and "Traceback" not in stderr, stderr
