@@ -1667,14 +1667,16 @@ LOT = (
 
 
 @pytest.mark.parametrize(
-    ("stop", "spaces"),
+    ("stop", "spaces", "counted"),
     [
-        ('<stop parkingArea="pa" duration="20000"/>', ROADSIDE),  # a parking area's roadside
-        ('<stop parkingArea="pa" duration="20000"/>', LOT),
-        ('<stop lane="B1C1_0" endPos="150" parking="true" duration="20000"/>', ROADSIDE),
+        ('<stop parkingArea="pa" duration="20000"/>', ROADSIDE, 1),  # a parking area's roadside
+        ('<stop parkingArea="pa" duration="20000"/>', LOT, 1),
+        ('<stop lane="B1C1_0" endPos="150" parking="true" duration="20000"/>', ROADSIDE, 1),
+        # an area onRoad="true": its cars stand on the lane, and SUMO's lane counts hold them
+        ('<stop parkingArea="pa" duration="20000"/>', 'onRoad="true" ' + ROADSIDE, 6),
     ],
 )  # fmt: skip
-def test_parked_vehicles_are_not_traffic_but_stopped_ones_are(stop, spaces, tmp_path):
+def test_parked_vehicles_are_not_traffic_but_stopped_ones_are(stop, spaces, counted, tmp_path):
     """A vehicle parked off its lane (a parking area, a ``parking="true"`` stop) is not on the
     road: it was counted as a standing vehicle, so 25 parked cars made their cell the most
     congested of the city (probe 25's f01), and a lot's spaces off the roads put more vehicles
@@ -1706,7 +1708,7 @@ def test_parked_vehicles_are_not_traffic_but_stopped_ones_are(stop, spaces, tmp_
         session.advance_to(900.0)
         xy, speed = session.vehicles()
         assert session.n_running() == 6  # all in the simulation, parked or not
-        assert len(xy) == 1 and speed[0] == 0.0  # only the one held on its lane is traffic
+        assert len(xy) == counted and (speed == 0.0).all()  # those on their lanes are traffic
 
 
 def test_vehicles_on_lanes_cars_may_not_use_are_not_car_traffic(tmp_path):
@@ -1765,3 +1767,29 @@ def test_a_lane_allowing_all_is_a_car_lane(tmp_path):
     net.write_text(text)
     after = read_lanes(net)
     assert len(after.shapes) == len(before.shapes) and not after.not_for_cars
+
+
+def test_parking_under_meso_is_said_to_count(tmp_path, capsys):
+    """Under --meso SUMO tells no lane or parking, so parked vehicles count as traffic (a full
+    lot read as importance 0.999, silently: probe 25b's u02): a notice says so."""
+    from twin.sumo.scenario import _say_meso_parking
+
+    routes, plain = tmp_path / "p.rou.xml", tmp_path / "q.rou.xml"
+    routes.write_text(
+        '<routes><flow id="p" begin="0" end="100" number="3" from="a" to="b">'
+        '<stop parkingArea="pa" duration="20000"/></flow></routes>'
+    )
+    plain.write_text(
+        '<routes><flow id="q" begin="0" end="100" number="3" from="a" to="b"/></routes>'
+    )
+    _say_meso_parking([plain])
+    assert "parks vehicles" not in capsys.readouterr().err
+    _say_meso_parking([plain, routes])
+    err = capsys.readouterr().err
+    assert f"{routes}: parks vehicles, but SUMO's mesoscopic model (--meso, or a sumocfg's " in err
+    areas = tmp_path / "a.add.xml"  # parking areas alone park nobody
+    areas.write_text(
+        '<additional><parkingArea id="pa" lane="a_0" startPos="0" endPos="9"/></additional>'
+    )
+    _say_meso_parking([plain, areas])
+    assert "parks vehicles" not in capsys.readouterr().err

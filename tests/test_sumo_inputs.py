@@ -1474,3 +1474,24 @@ def test_a_step_too_short_names_the_sweep_key_that_set_it(tmp_path):
     with pytest.raises(UserError) as caught:
         _step_seconds(sumo_settings(config), config)
     assert str(caught.value).startswith(f"{label} = 2000: a step (200 m at 2000 km/h) lasts 0.36 s")
+
+
+def test_a_grid_too_small_names_the_sweep_keys_that_set_its_shape(tmp_path):
+    """``grid.nx``/``grid.ny`` from a sweep's keys that cannot cover the network: the keys are
+    named, not a ``[grid]`` table the scenario file does not have (review)."""
+    from helpers import small_sumo_scenario
+
+    from twin.config import load_config, with_overrides
+    from twin.errors import UserError
+    from twin.sumo.scenario import sumo_source
+
+    folder = small_sumo_scenario(tmp_path, horizon=3)
+    labels = {f"grid.{k}": f"sw.toml: [parameters].'grid.{k}'" for k in ("nx", "ny")}
+    config = with_overrides(load_config(folder / "small.toml"), {"grid.nx": 2, "grid.ny": 2},
+                            labels=labels)  # fmt: skip
+    with pytest.raises(UserError) as caught:
+        sumo_source(config)
+    assert str(caught.value).startswith(
+        "sw.toml: [parameters].'grid.nx', sw.toml: [parameters].'grid.ny': a 2 x 2 grid of 200 m "
+        "cells cannot cover the network"
+    ), caught.value

@@ -115,6 +115,23 @@ def test_a_stop_asked_while_a_sumo_tool_runs_stops_it_and_its_children(tmp_path)
         pytest.fail(f"the tool's child {child} outlived the stop")
 
 
+class _FakeSource:
+    """What :func:`twin.sumo.worker.maps_from_child` asks of a live source, doing nothing."""
+
+    detectors, detector_readings = [], []
+    error, model, output_dir, read_seconds = None, None, None, 0.0
+    separate_process, defer_close, _truth, _incidents = True, False, None, None
+
+    def truth_map(self):
+        return None
+
+    def incidents_info(self):
+        return []
+
+    def close_deferred(self):
+        pass
+
+
 def test_a_second_ctrl_c_stops_the_sumo_child_at_once(tmp_path):
     """Ctrl-C again while SUMO's own process is deep in a long advance (a warm-up of a big
     demand): the child is killed at once, not waited for to send its end state (30-40 s:
@@ -126,24 +143,13 @@ def test_a_second_ctrl_c_stops_the_sumo_child_at_once(tmp_path):
 
     from twin.sumo.worker import maps_from_child
 
-    class Slow:  # a source whose first map takes a minute
-        snapshots, vehicles_seen, detectors, detector_readings = [], [], [], []
-        error, model, output_dir, read_seconds = None, None, None, 0.0
-        separate_process, defer_close, _truth, _incidents = True, False, None, None
+    class Slow(_FakeSource):  # a source whose first map takes a minute
+        snapshots, vehicles_seen = [], []
         scenario = SimpleNamespace(name="slow")
 
         def maps_here(self):
             time.sleep(60)
             yield np.zeros((2, 2))
-
-        def truth_map(self):
-            return None
-
-        def incidents_info(self):
-            return []
-
-        def close_deferred(self):
-            pass
 
     main = threading.main_thread().ident  # Ctrl-C reaches the main thread, in its recv()
     timer = threading.Timer(1.5, signal.pthread_kill, (main, signal.SIGINT))
@@ -159,12 +165,8 @@ def test_a_second_ctrl_c_stops_the_sumo_child_at_once(tmp_path):
     assert time.monotonic() - start < 10
 
 
-class _Crashing:
+class _Crashing(_FakeSource):
     """A source whose SUMO process crashes (SIGSEGV) after ``maps`` maps."""
-
-    detectors, detector_readings = [], []
-    error, model, output_dir, read_seconds = None, None, None, 0.0
-    separate_process, defer_close, _truth, _incidents = True, False, None, None
 
     def __init__(self, maps: int):
         from types import SimpleNamespace
@@ -184,15 +186,6 @@ class _Crashing:
         faulthandler.disable()  # (pytest's dump of the crash is no news here)
         os.write(2, b"Error: no lane here\n")  # SUMO's last words, on its stderr
         os.kill(os.getpid(), signal.SIGSEGV)
-
-    def truth_map(self):
-        return None
-
-    def incidents_info(self):
-        return []
-
-    def close_deferred(self):
-        pass
 
     def model_after(self, snapshots):
         return ("model after", len(snapshots))

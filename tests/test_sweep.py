@@ -1067,12 +1067,28 @@ def test_a_local_ray_that_cannot_start_is_one_line_with_the_fix(
         list(ray_tasks(abs, [(-1,)], 1))
     said = str(caught.value)
     assert said.startswith(
-        "--executor ray: Ray could not start its local node (The current node timed out during "
-        "startup.)"
+        "--executor ray: Ray could not start (The current node timed out during startup.)"
     ), said
     if limited:
         assert "at most 5.72 GB of virtual memory (ulimit -v)" in said
         assert said.endswith("lift the limit (ulimit -v unlimited), or use --executor local")
     else:
-        assert said.endswith("use --executor local, or start Ray yourself and give its --address")
+        assert said.endswith("; use --executor local")
     assert not list((tmp_path / "cache" / "tmp" / "twin-ray").glob("session_*"))
+
+
+def test_a_sigterm_while_ray_starts_is_a_stop(tmp_path: Path, monkeypatch) -> None:
+    """Ray's handler turns a SIGTERM during ``ray.init`` into SystemExit(15): the run exited
+    with 15 and a folder of one marker (review); it is twin's stop, as Ctrl-C is."""
+    import signal
+
+    ray = pytest.importorskip("ray")
+    from twin.executors import ray_tasks
+
+    def terminated(**_):
+        raise SystemExit(signal.SIGTERM)
+
+    monkeypatch.setenv("TWIN_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setattr(ray, "init", terminated)
+    with pytest.raises(KeyboardInterrupt):
+        list(ray_tasks(abs, [(-1,)], 1))

@@ -268,6 +268,9 @@ def ray_tasks(
                 with contextlib.suppress(Exception):
                     ray.shutdown()
                 _remove_ray_session(temp_dir, None, own or made)
+                _restore_signal_handlers(handlers)
+                if isinstance(exc, SystemExit) and exc.code == signal.SIGTERM:
+                    raise KeyboardInterrupt from None  # Ray's handler took a SIGTERM: a stop
                 if isinstance(exc, Exception) and not isinstance(exc, UserError):
                     raise UserError(ray_start_failure(exc)) from None
                 raise
@@ -302,10 +305,11 @@ def ray_tasks(
 
 
 def _signal_handlers() -> dict[int, Any]:
-    """This process's Python handlers of SIGTERM and SIGINT (the main thread's to set)."""
+    """This process's Python handler of SIGTERM (the main thread's to set), which Ray's
+    driver takes (it leaves SIGINT's)."""
     if threading.current_thread() is not threading.main_thread():
         return {}
-    return {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGINT)}
+    return {signal.SIGTERM: signal.getsignal(signal.SIGTERM)}
 
 
 def _restore_signal_handlers(handlers: dict[int, Any]) -> None:
@@ -324,16 +328,16 @@ def ray_start_failure(exc: BaseException) -> str:
     import resource
 
     said = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:200]
-    text = f"--executor ray: Ray could not start its local node ({said})"
+    text = f"--executor ray: Ray could not start ({said})"
     with contextlib.suppress(ValueError, OSError):
         limit, _ = resource.getrlimit(resource.RLIMIT_AS)
         if limit != resource.RLIM_INFINITY:
             return (
                 f"{text}; this process may use at most {limit / 2**30:.3g} GB of virtual memory "
-                "(ulimit -v), less than Ray's processes reserve: lift the limit (ulimit -v "
-                "unlimited), or use --executor local"
+                "(ulimit -v), which Ray's processes outgrow as they start: lift the limit "
+                "(ulimit -v unlimited), or use --executor local"
             )
-    return f"{text}; use --executor local, or start Ray yourself and give its --address"
+    return f"{text}; use --executor local"
 
 
 #: The longest path of a Unix socket (Linux's ``sun_path``, less its final NUL byte).

@@ -84,9 +84,9 @@ class ExperimentResult:
     #: a later seed that stopped before its last step (Ctrl-C, a simulation that failed): left
     #: out of ``results`` (:func:`leave_out_unfinished_seed`)
     left_out: PatrolResult | None = None
-    #: every seed left out, ``left_out``'s among them (seeds run at once and stopped by Ctrl-C
-    #: at different steps: those that ran fewer steps than the longest)
-    left_out_seeds: list[int] = field(default_factory=list)
+    #: every seed left out, ``left_out``'s among them, with the steps it ran (seeds run at
+    #: once and stopped by Ctrl-C at different steps: those that ran fewer than the longest)
+    left_out_seeds: dict[int, int] = field(default_factory=dict)
 
     @property
     def partial(self) -> bool:
@@ -105,14 +105,15 @@ class ExperimentResult:
         planned = self.results[0].completed_steps
         kept = seed_ranges([k.seed for k in self.results])
         seeds = f"seed{'s' if len(self.results) > 1 else ''} {kept}"
-        left = sorted({*self.left_out_seeds, r.seed})
+        steps = {**self.left_out_seeds, r.seed: r.completed_steps}
         span = "every step"
         if self.results[0].error:  # seeds run at once, stopped at different steps
             span = f"{planned} step{'s' * (planned != 1)}" + " each" * (len(self.results) > 1)
-        if len(left) > 1 or self.results[0].error:
+        if len(steps) > 1 or self.results[0].error:
+            ran = ", ".join(f"{seed} after {steps[seed]}" for seed in sorted(steps))
             return (
-                f"seed{'s' * (len(left) > 1)} {seed_ranges(left)} stopped before step "
-                f"{planned}: left out, the tables hold {seeds} ({span})"
+                f"seed{'s' * (len(steps) > 1)} {ran} stopped before step {planned}: left out, "
+                f"the tables hold {seeds} ({span})"
             )
         why = r.error or f"stopped after {r.completed_steps} of {planned} steps"
         return f"seed {r.seed}: {why}; left out, the tables hold {seeds} ({span})"
@@ -616,7 +617,7 @@ def _run_seeds_in_workers(
     )
     if left_out:
         outcome.left_out = done[left_out[-1]].result
-        outcome.left_out_seeds = [seeds[n] for n in left_out]
+        outcome.left_out_seeds = {seeds[n]: done[n].result.completed_steps for n in left_out}
     return outcome
 
 

@@ -603,7 +603,7 @@ def write_run(
     partial = bool(metadata.get("partial")) or bool(errors) or no_step
     left_out = metadata.get("partial_reason")  # seeds left out: said beside the kept ones' errors
     reason = (
-        "; ".join([*errors, *([left_out] if left_out else [])])
+        "; ".join(dict.fromkeys([*errors, *([left_out] if left_out else [])]))  # once each
         if errors
         else ("no step ran" if no_step else left_out)
     )

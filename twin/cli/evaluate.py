@@ -292,6 +292,11 @@ def main(args: argparse.Namespace) -> int:
         )
     horizon = outcome.results[0].completed_steps
     label = f"{seeds} seed{'s' if seeds > 1 else ''} from {first}"
+    kept = [r.seed for r in outcome.results]
+    if len(kept) != seeds:  # some left out (stopped shorter): the tables hold these
+        from twin.experiment import seed_ranges
+
+        label = f"seed{'s' * (len(kept) > 1)} {seed_ranges(kept)}"
     traffic = config.path.name if args.traffic is None else f"the tape {args.traffic}"
     title = f"Table 2 analog ({traffic}, {label}, T = {horizon})"
     print_tables(recorded, title)

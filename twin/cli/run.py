@@ -313,7 +313,9 @@ def main(args: argparse.Namespace) -> int:
         )
     seeds = [r.seed for r in outcome.results]
     mfd = first_source.model.report()
-    label = f"seed {seeds[0]}" if len(seeds) == 1 else f"seeds {seeds[0]}-{seeds[-1]}"
+    from twin.experiment import seed_ranges
+
+    label = f"seed{'s' * (len(seeds) > 1)} {seed_ranges(seeds)}"  # those the tables hold
     title = (
         f"Table 2 analog ({first_source.scenario.name}, {label}, "
         f"T = {outcome.results[0].completed_steps})"

@@ -105,6 +105,8 @@ class RLPolicy(Policy):
         self.net, self.meta = shared_qnet(checkpoint)
         self.checkpoint = checkpoint
         path = Path(checkpoint) if checkpoint is not None else default_checkpoint()
+        # the file's sha256 as loaded: a file rewritten later is not the network that ran
+        self.sha256 = file_sha256(path.resolve())
         self.variant = checkpoint_state(path, self.meta)
         if state is not None and state_variant(state, "swarm option state").name != (
             self.variant.name
@@ -143,7 +145,7 @@ class RLPolicy(Policy):
         path = Path(self.checkpoint) if self.checkpoint is not None else default_checkpoint()
         return {
             "checkpoint": str(path),
-            "sha256": file_sha256(path.resolve()),
+            "sha256": self.sha256,
             "trained_epochs": self.meta.get("epoch"),
             "layers": self.meta.get("layers"),
             "state": self.variant.name,

@@ -374,7 +374,24 @@ def _scenario_files(s: SumoSettings) -> _ScenarioFiles:
             "vehicle, so every cell's traffic stays 0 (no MFD can be fitted); add vehicles, or "
             "leave the demand out and twin generates a rush-hour one"
         )
+    if s.mesoscopic:
+        _say_meso_parking([*files.route_files, *files.additional_files])
     return files
+
+
+def _say_meso_parking(paths: list[Path]) -> None:
+    """A notice when SUMO's mesoscopic model runs a demand that parks: it tells no vehicle's
+    lane or parking, so parked vehicles count as standing traffic."""
+    from twin.sumo.readers import may_hold
+
+    stops = (b'parkingArea="', b"parkingArea='", b'parking="true"', b"parking='true'")
+    parking = [p for p in paths if may_hold(Path(p), *stops)]  # a stop's, not an area's own
+    if parking:
+        notice(
+            f"{parking[0]}: parks vehicles, but SUMO's mesoscopic model (--meso, or a sumocfg's "
+            "mesosim) tells twin no vehicle's lane or parking, so parked vehicles count as "
+            "standing traffic (run it microscopic to leave them out)"
+        )
 
 
 def _given(config, key: str, value: float) -> str | None:
@@ -568,8 +585,10 @@ def _grid_and_notices(
     if not cell_flag and (own_config or not swapped):
         shape = config.explicit_shape()  # set in the file or by an override
     where = _given(config, "traffic.cell_m", s.cell_m) or f"{config.path}: [grid]"
-    if shape is not None and not cell_flag and where != f"{config.path}: [grid]":
-        where += f" over {config.path}: [grid] nx, ny"  # another file's cells, this grid
+    if shape is not None:  # the grid's shape: the file's [grid] nx, ny, or another file's keys
+        grid = ", ".join(config.set_by(["grid.nx", "grid.ny"])) or f"{config.path}: [grid] nx, ny"
+        cells = _given(config, "traffic.cell_m", s.cell_m)
+        where = f"{cells} over {grid}" if cells else grid
     geometry = grid_over(lanes, s.cell_m, shape, where=where)
     obstacles = geometry.obstacles(s.min_lane_km)
     for i, j in getattr(config.grid, "obstacles", []) or []:

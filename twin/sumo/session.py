@@ -292,9 +292,9 @@ class SumoSession:
 
     def vehicles(self, not_for_cars: frozenset[str] = frozenset()) -> tuple[np.ndarray, np.ndarray]:
         """Positions ``(n, 2)`` (m, network coordinates) and speeds ``(n,)`` (m/s) of the
-        vehicles on the road now; vehicles off it are left out: in a teleport, or parked (in a
-        parking area or at a stop with ``parking="true"``: off the lane, as SUMO's own lane
-        densities count them), or on a lane of ``not_for_cars`` (a bike or bus lane, a rail:
+        vehicles on the road now; vehicles off it are left out: in a teleport, or parked off
+        their lane (in a parking area, but one ``onRoad``, or at a stop with ``parking="true"``;
+        SUMO's own lane counts leave them out too), or on a lane of ``not_for_cars`` (a bike or bus lane, a rail:
         not the car lanes whose lane-km and speed limits the cells have)."""
         veh = _libsumo().vehicle
         ids = veh.getIDList()
@@ -313,8 +313,8 @@ class SumoSession:
             if len(classes) > 4 * len(ids) + 1000:  # those that left, forgotten now and then
                 self._classes = {v: classes[v] for v in ids if v in classes}
         for n in np.flatnonzero(speed < HALTING_SPEED):  # a parked vehicle stands (slows to 0
-            if veh.getStopState(ids[n]) & STOP_PARKING:  # as it parks): only those asked
-                on_road[n] = False
+            if veh.getLaneID(ids[n]) == "":  # as it parks): off its lane, as SUMO's lane counts
+                on_road[n] = False  # leave it (one of an onRoad="true" area stays on it)
         return xy[on_road], speed[on_road]
 
     def n_running(self) -> int:
@@ -338,8 +338,6 @@ class SumoSession:
         self.close()
 
 
-#: The bit of libsumo's ``vehicle.getStopState`` of a vehicle parked off its lane.
-STOP_PARKING = 2
 #: SUMO's halting speed (m/s): a vehicle parking has slowed below it.
 HALTING_SPEED = 0.1
 
