@@ -362,19 +362,20 @@ class DetectorReader:
         for n, d in enumerate(self.detectors):
             if now < self._first_end.get(d.id, self._begin + DEFAULT_PERIOD_S) - 1e-6:
                 continue  # its first interval has not ended: SUMO gives zeros, not a reading
+            period = self._periods.get(d.id)
+            known = not d.virtual and period is not None  # its interval is told by its period
+            if known:  # (asked before SUMO is: an interval read already costs no call)
+                done = math.floor((now - self._begin) / period + 1e-6)
+                if self._intervals.get(d.id) == done:
+                    continue
+                self._intervals[d.id] = done
             dom = self.api.inductionloop if d.kind == LOOP else self.api.lanearea
             reading = (
                 int(dom.getLastIntervalVehicleNumber(d.id)),
                 float(dom.getLastIntervalOccupancy(d.id)),
                 float(dom.getLastIntervalMeanSpeed(d.id)),
             )
-            period = self._periods.get(d.id)
-            if not d.virtual and period is not None:  # its interval is known by its period
-                done = math.floor((now - self._begin) / period + 1e-6)
-                if self._intervals.get(d.id) == done:
-                    continue
-                self._intervals[d.id] = done
-            elif not d.virtual and self._last.get(d.id) == reading:
+            if not d.virtual and not known and self._last.get(d.id) == reading:
                 continue
             self._last[d.id] = reading
             count, occupancy, speed = reading
