@@ -594,12 +594,14 @@ def _memory_cases(tmp_path: Path) -> dict[str, tuple[list[str], dict[str, str], 
         "tiny limit": (["--max-memory-gb", "1e-6"], {}, "= 1e-06 GB is below what this run takes"),
         "tiny env limit": ([], {"TWIN_MAX_MEMORY_GB": "1e-6"}, "= 1e-06 GB is below what this"),
         "a huge grid": (["--config", str(huge)], {}, "3000 x 4000 cells x 2000 steps"),
+        # probe 26's f02: the seeds, not the limit, are what to change
+        "too many seeds": (["--seeds", "1000000"], {}, "1000000 seeds need about"),
     }
 
 
 MEMORY_CASES = [
     "limit zero", "limit NaN", "limit negative", "env limit text", "tiny limit",
-    "tiny env limit", "a huge grid",
+    "tiny env limit", "a huge grid", "too many seeds",
 ]  # fmt: skip
 
 
@@ -612,6 +614,26 @@ def test_memory_refusal(tmp_path, capsys, monkeypatch, cfg, case):
     argv = ["evaluate", "--config", str(cfg), *extra, "--out", str(out), "--quiet", "--no-report"]
     run_case(capsys, tmp_path, argv, out, 2, needle)
     assert not out.exists()
+
+
+def test_too_many_seeds_are_refused_with_the_seeds_that_fit(tmp_path):
+    """Seeds past the limit on any grid name the seeds that fit this run, and that many do."""
+    import re
+    from dataclasses import replace
+
+    from twin.config import load_config
+    from twin.errors import UserError
+    from twin.experiment import Experiment, check_memory
+
+    cfg = tmp_path / "s.toml"
+    cfg.write_text(SMALL.format(horizon=50))
+    experiment = Experiment(load_config(cfg), ["random", "greedy"], range(10**6))
+    with pytest.raises(UserError, match=r"give at most about (\d+) --seeds \(6 x 8 cells") as info:
+        check_memory(experiment, (6, 8), 50)
+    fit = int(re.search(r"about (\d+) --seeds", str(info.value)).group(1))
+    check_memory(replace(experiment, seeds=range(fit)), (6, 8), 50)
+    with pytest.raises(UserError, match=f"{fit + 1} seeds"):
+        check_memory(replace(experiment, seeds=range(fit + 1)), (6, 8), 50)
 
 
 def test_a_huge_sumo_grid_is_refused_with_a_cell_size(tmp_path):

@@ -121,6 +121,11 @@ def test_infeasible_actions_raise_before_the_source_moves_on():
         env.step({"drone_0": 0})
     with pytest.raises(ValueError, match="two drones on one cell"):
         SwarmParallelEnv(_synthetic(), starts=[[0, 0], [0, 0]])
+    # the joint env's error says how to make it take any action of its space (probe 26's u02)
+    joint = SwarmGymEnv(_synthetic(), starts=[[0, 0], [5, 7]])
+    joint.reset(seed=0)
+    with pytest.raises(InfeasibleActionError, match=r"action 1 \(up\) .*infeasible=\"stay\""):
+        joint.step([1, 0])
 
 
 def test_make_env_from_the_shipped_synthetic_config():

@@ -1484,6 +1484,38 @@ def test_a_network_randomtrips_cannot_use_is_one_line_with_a_fix(tmp_path, capsy
     assert err.endswith("give your own (--routes, or a sumocfg's routes)"), err
 
 
+def test_a_network_whose_generated_trips_all_fail_to_route_is_one_line(tmp_path, capsys):
+    """Two 3 x 3 grids of 200 m blocks, 3 km apart: randomTrips' trips of 500 m or more all go
+    from one to the other, and its --validate drops every one; the run had no demand and only
+    said its importance was 0 (probe 26's f01)."""
+    nodes, edges = [], []
+    for part, x0 in (("L", 0), ("R", 3000)):
+        for a in range(3):
+            for b in range(3):
+                nodes.append(f'<node id="{part}{a}{b}" x="{x0 + 200 * a}" y="{200 * b}"/>')
+                for da, db, tag in ((1, 0, "x"), (0, 1, "y")):
+                    if a + da < 3 and b + db < 3:
+                        there = f"{part}{a + da}{b + db}"
+                        edges.append(f'<edge id="{part}{a}{b}{tag}" from="{part}{a}{b}" '
+                                     f'to="{there}" numLanes="1" speed="13"/>')  # fmt: skip
+                        edges.append(f'<edge id="{part}{a}{b}{tag}r" from="{there}" '
+                                     f'to="{part}{a}{b}" numLanes="1" speed="13"/>')  # fmt: skip
+    (tmp_path / "two.nod.xml").write_text("<nodes>" + "".join(nodes) + "</nodes>")
+    (tmp_path / "two.edg.xml").write_text("<edges>" + "".join(edges) + "</edges>")
+    net = tmp_path / "two.net.xml"
+    subprocess.run([binary("netconvert"), "-n", str(tmp_path / "two.nod.xml"), "-e",
+                    str(tmp_path / "two.edg.xml"), "-o", str(net)], check=True,
+                   capture_output=True)  # fmt: skip
+    code = main(["run", "--net", str(net), "--cell-m", "100", "--drones", "1", "--swarms",
+                 "random", "--horizon", "4", "--no-ceiling", "--no-report", "--quiet",
+                 "--out", str(tmp_path / "run")])  # fmt: skip
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "\n" not in err, err
+    assert "two.net.xml: none of its trips (500 m or longer" in err, err
+    assert err.endswith("give your own (--routes, or a sumocfg's routes)"), err
+    assert not (tmp_path / "run").exists()
+
+
 def test_demand_is_generated_on_a_network_of_fringe_edges_only(tmp_path, capsys):
     """A network whose only road enters and leaves it (one edge): randomTrips finds no inner
     edge and advised its own --allow-fringe, which twin's user cannot give; twin gives it,

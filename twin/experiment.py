@@ -23,7 +23,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -873,6 +873,19 @@ def check_memory(
         on, fewer = (
             (f" on {workers} workers", "use fewer --workers or ") if workers > 1 else ("", "")
         )
+        if len(experiment.seeds) > 1 and _seeds_that_fit(experiment, limit, (1, 1), 1, 0, live):
+            fit = _seeds_that_fit(experiment, limit, shape, horizon, warmup, live)
+            fewer_seeds = (
+                f"give at most about {fit} --seeds"
+                if fit
+                else "give fewer --seeds and a coarser grid or fewer steps"
+            )
+            raise UserError(
+                f"{len(experiment.seeds)} seeds need about {_gb(floor)} GB even on 1 x 1 cells "
+                f"and 1 step{on}, over the --max-memory-gb / ${MEMORY_ENV} = {limit:g} GB limit; "
+                f"{fewer_seeds} ({shape[0]} x {shape[1]} cells x {horizon} steps), or raise "
+                "the limit"
+            )
         raise UserError(
             f"--max-memory-gb / ${MEMORY_ENV} = {limit:g} GB is below what this run takes on "
             f"any grid{on} (about {_gb(floor)} GB on 1 x 1 cells and 1 step); {fewer}raise it"
@@ -888,6 +901,27 @@ def check_memory(
         f"{len(experiment.seeds)} seeds{on} need about {_gb(need)} GB, over the "
         f"{limit:g} GB limit; use {hint}{fewer}, or raise --max-memory-gb / ${MEMORY_ENV}"
     )
+
+
+def _seeds_that_fit(
+    experiment: Experiment,
+    limit: float,
+    shape: tuple[int, int],
+    horizon: int,
+    warmup: int,
+    live: bool,
+) -> int:
+    """About how many seeds of the experiment fit the limit on this grid and horizon (0: not
+    one): the estimate grows by the same amount per seed."""
+    seeds = list(experiment.seeds) * 2  # two seeds, also of a one-seed experiment
+    one, two = (
+        estimate_memory(replace(experiment, seeds=seeds[:n], workers=1), shape, horizon, warmup,
+                        live=live)
+        for n in (1, 2)
+    )  # fmt: skip
+    if one > limit * 1e9:
+        return 0
+    return 1 + int((limit * 1e9 - one) // max(two - one, 1.0))
 
 
 def _gb(n_bytes: float) -> str:
