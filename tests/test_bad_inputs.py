@@ -851,8 +851,22 @@ SWARM_OPTION_CASES = {
         "rl-decentralized]\neps = 2",
         "[swarm_options.rl-decentralized]: eps = 2",
     ),
-    "an epsilon of text": ('rl-decentralized]\neps = "x"', "cannot use a value of"),
-    "a discount of text": ('lookahead]\ndiscount = "a"', "cannot use a value of"),
+    "an epsilon of text": ('rl-decentralized]\neps = "x"', "eps = 'x' must be a number"),
+    "a discount of text": ('lookahead]\ndiscount = "a"', "discount = 'a' must be a number"),
+    # the learned swarms' options and lookahead's numbers were not checked: tracebacks once the
+    # run had begun, "false" read as true, a string read as a number (the review of probe 26)
+    "a batch of 0": ("rl-online]\nbatch_size = 0", "rl-online]: batch_size = 0 must be in 1.."),
+    "a negative batch": ("rl-online]\nbatch_size = -5", "batch_size = -5 must be in 1.."),
+    "a negative rate": ("rl-online]\nlr = -1.0", "lr = -1.0 must lie in (0, 1]"),
+    "negative iterations": ("rl-online]\nonline_iters = -3", "online_iters = -3 must be in"),
+    "an empty buffer": ("rl-online]\nbuffer_steps = 0", "buffer_steps = 0 must be at least 1"),
+    "a gamma of 50": ("rl-online]\ngamma = 50.0", "gamma = 50.0 must lie in [0, 1]"),
+    "a batch of text": ('rl-online]\nbatch_size = "32"', "batch_size = '32' must be an integer"),
+    "online as text": ('rl]\nonline = "false"', "online = 'false' must be true or false"),
+    "decentralized as text": ('rl]\ndecentralized = "no"', "decentralized = 'no' must be true"),
+    "an epsilon of true": ("rl-decentralized]\neps = true", "eps = True must be a number"),
+    "a discount as a string": ('lookahead]\ndiscount = "0.5"', "discount = '0.5' must be a"),
+    "an end weight of true": ("lookahead]\nend_weight = true", "end_weight = True must be a"),
 }
 
 
