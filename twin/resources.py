@@ -106,7 +106,13 @@ def cache_dir() -> Path:
     """The per-user cache: ``$TWIN_CACHE_DIR`` if set, else platformdirs' user cache for twin."""
     given = os.environ.get(CACHE_ENV, "").strip()
     if given:
-        return Path(given).expanduser()
+        try:
+            return Path(given).expanduser()
+        except RuntimeError:  # "~user/..." of no such user, or no home to expand
+            raise UserError(
+                f"${CACHE_ENV} = {given!r}: its '~' names no home folder on this machine; give "
+                "an absolute folder"
+            ) from None
     import platformdirs
 
     return Path(platformdirs.user_cache_dir("twin", appauthor=False))
