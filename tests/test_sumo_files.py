@@ -857,6 +857,22 @@ def test_a_config_seed_replaced_by_twins_is_said(scenario, tmp_path, capsys):
     assert "<seed value='42'> is replaced by twin's SUMO seed" in err, err
 
 
+def test_a_step_length_that_is_no_number_is_refused_as_sumo_does(scenario, tmp_path, capsys):
+    """``<step-length value="abc"/>``, which SUMO refuses, ran silently (the review of probe
+    26); a number other than twin's step is run at twin's with a notice."""
+    cfg = _detector_case(scenario, tmp_path / "case")
+    text = cfg.read_text()
+    cfg.write_text(text.replace("</input>", '</input><time><step-length value="abc"/></time>'))
+    out = tmp_path / "run"
+    assert _run(scenario, out, "--sumocfg", str(cfg)) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "<step-length value='abc'> is not a number" in err, err
+    assert str(cfg) in err and not out.exists()
+    cfg.write_text(text.replace("</input>", '</input><time><step-length value="0.5"/></time>'))
+    assert _run(scenario, out, "--sumocfg", str(cfg)) == 0
+    assert "<step-length value='0.5'> is run as SUMO steps of 1 s" in capsys.readouterr().err
+
+
 TIME = r"\d{4}(-\d\d){5}"  # SUMO replaces TIME in a prefix or suffix by the date and time
 # <option value> of the sumocfg ({root}: the folder holding the scenario's folder) -> the pattern
 # of the names SUMO writes in RUN/sumo/ for det.xml and trips.xml (NAME: det or trips)

@@ -305,8 +305,16 @@ def _scenario_files(s: SumoSettings) -> _ScenarioFiles:
                 "mesoscopic model, as --meso does"
             )
         step = cfg.options.get("step-length")
-        with contextlib.suppress(TypeError, ValueError):
-            if step is not None and float(step) != SUMO_STEP_S:
+        if step is not None:
+            try:
+                seconds = float(step)
+            except ValueError:  # SUMO refuses it too ("Invalid Number Format")
+                raise UserError(
+                    f"{sumocfg_path}: <step-length value={step!r}> is not a number of seconds; "
+                    f"give one such as {SUMO_STEP_S:g} (twin runs steps of {SUMO_STEP_S:g} s "
+                    "anyway), or remove it"
+                ) from None
+            if seconds != SUMO_STEP_S:
                 notice(
                     f"{sumocfg_path}: <step-length value={step!r}> is run as SUMO steps of "
                     f"{SUMO_STEP_S:g} s (twin's clock; its other options are kept)"
