@@ -462,7 +462,8 @@ def test_killed_sweep_resumes(tmp_path: Path) -> None:
         (
             '[sweep]\nswarms = ["greedy"]\n[[scenario]]\nname = "a"\nconfig = "scenario.toml"\n'
             '[parameters]\n"n_drones" = [1]\n',
-            "overrides reach the grid, swarm, traffic, evaluate tables",
+            # once, not twice (the review of probe 26)
+            "[parameters].'n_drones': overrides reach the grid, swarm, traffic, evaluate tables",
         ),
         (
             '[sweep]\nswarms = ["greedy"]\n[[scenario]]\nname = "a"\nconfig = "scenario.toml"\n'

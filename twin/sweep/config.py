@@ -132,7 +132,7 @@ class SweepConfig(StrictModel):
                 check_dotted(key)
             except ValueError as exc:
                 raise ValueError(
-                    f"[parameters].{key!r} {exc}".replace(f"key {key!r} ", "")
+                    f"[parameters].{key!r} {exc}".replace(f" key {key!r}:", ":")
                 ) from None
             seen: list[Any] = []
             for value in parameters[key]:
