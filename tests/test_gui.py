@@ -280,6 +280,12 @@ def test_gui_swarms_without_the_gui_says_it_draws_nothing(capsys):
     args.gui = True
     gui_drawer(args, ["random", "rl"])
     assert "draws nothing" not in capsys.readouterr().err
+    # --gui-shade alike (the review of probe 26); its default is belief
+    args = argparse.Namespace(gui=False, record=None, gui_swarms=None, gui_shade="truth")
+    assert gui_drawer(args, ["random", "rl"]) is None
+    assert "--gui-shade truth: draws nothing without --gui or --record" in capsys.readouterr().err
+    args = argparse.Namespace(gui=True, record=None, gui_swarms=None, gui_shade=None)
+    assert gui_drawer(args, ["random", "rl"]).settings.shade == "belief"
 
 
 def test_meso_roads_are_drawn_in_one_colour():

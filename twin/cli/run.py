@@ -117,8 +117,8 @@ def add_gui_arguments(p) -> None:
     p.add_argument(
         "--gui-shade",
         choices=["belief", "truth"],
-        default="belief",
-        help="shade cells by the importance the first shown swarm believes, or the true one",
+        help="shade cells by the importance the first shown swarm believes (the default), or "
+        "the true one",
     )
     p.add_argument(
         "--record",
@@ -163,13 +163,14 @@ def gui_drawer(args: argparse.Namespace, swarms, owned: tuple[Path, str] | None 
                 "be lost with it); give a file outside it"
             )
     shown_later = args.gui or args.record
-    settings = GuiSettings(swarms=shown, shade=args.gui_shade, record=args.record)
+    settings = GuiSettings(swarms=shown, shade=args.gui_shade or "belief", record=args.record)
     check_settings(settings, list(swarms))
-    if args.gui_swarms is not None and not shown_later:
+    if not shown_later:
         from twin.notices import notify
 
-        notify(f"twin: notice: --gui-swarms {args.gui_swarms}: draws nothing without --gui or "
-               "--record")  # fmt: skip
+        for flag, value in (("--gui-swarms", args.gui_swarms), ("--gui-shade", args.gui_shade)):
+            if value is not None:
+                notify(f"twin: notice: {flag} {value}: draws nothing without --gui or --record")
     return GuiDrawer(settings, list(swarms)) if shown_later else None
 
 
