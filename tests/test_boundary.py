@@ -2360,6 +2360,24 @@ def _held_by_another(folder: Path):
         holder.wait()
 
 
+@pytest.mark.parametrize(
+    "argv",
+    [["pretrain"], ["sweep", "--config", "sweep-demo", "--no-report"], ["transfer"]],
+    ids=["pretrain", "sweep", "transfer"],
+)
+def test_a_folder_another_command_writes_is_refused_by_every_command(tmp_path, capsys, argv):
+    """Two `twin pretrain`s into one folder at once both ran, each epoch logged twice and the
+    model of whichever wrote last (probe 26's f04); sweeps and transfers alike: the second is
+    refused in one line and writes nothing."""
+    out = tmp_path / "out"
+    out.mkdir()
+    with _held_by_another(out):
+        assert main([*argv, "--out", str(out), "--quiet"]) == EXIT_REFUSED
+        line = one_line(capsys)
+        assert f"--out {out}: another twin command is writing into this folder now" in line
+        assert list(out.iterdir()) == []
+
+
 def test_a_run_folder_being_written_is_read_as_such_not_as_interrupted(tmp_path, capsys):
     """`twin report` (and every reader) of a folder another command is writing now says so,
     instead of calling it interrupted and advising a rerun the lock would refuse (probe 17's

@@ -58,7 +58,7 @@ LOG_NAME = "error.log"
 #: the longest message printed (a huge value quoted in an exception stays on one screen line)
 MAX_MESSAGE = 600
 
-_state: dict[str, Any] = {"run_folder": None, "lock": None, "argv": None}
+_state: dict[str, Any] = {"run_folder": None, "locks": {}, "argv": None}
 
 
 def set_command_line(argv: list[str] | None) -> None:
@@ -88,14 +88,13 @@ def claim_run_folder(path: Path, flag: str = "--out") -> None:
     """Lock the existing folder ``path`` for the current command (an exclusive ``flock`` on
     the folder itself, held until the command ends or its process exits): a second command
     writing into the same folder at once is refused in one line instead of mixing its files
-    with the first's. Claiming the folder already held does nothing."""
+    with the first's. Claiming a folder already held does nothing; a command may hold several
+    (a transfer's folder and its sweep's)."""
     import fcntl
 
     path = Path(path)
-    held = _state["lock"]
-    if held is not None and held[0] == path.resolve():
+    if path.resolve() in _state["locks"]:
         return
-    _release_lock()
     fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -105,7 +104,7 @@ def claim_run_folder(path: Path, flag: str = "--out") -> None:
             f"{flag} {path}: another twin command is writing into this folder now; wait for it "
             f"to end or pass another {flag}"
         ) from None
-    _state["lock"] = (path.resolve(), fd)
+    _state["locks"][path.resolve()] = fd
 
 
 def written_by_another(path: Path) -> bool:
@@ -113,8 +112,7 @@ def written_by_another(path: Path) -> bool:
     writing into it."""
     import fcntl
 
-    held = _state["lock"]
-    if held is not None and held[0] == Path(path).resolve():
+    if Path(path).resolve() in _state["locks"]:
         return False  # this command's own
     try:
         fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
@@ -131,11 +129,26 @@ def written_by_another(path: Path) -> bool:
     return False
 
 
+def claim_new_folder(path: Path, flag: str = "--out") -> bool:
+    """Create the output folder ``path`` if need be and lock it (:func:`claim_run_folder`):
+    a command whose other checks passed, before it reads or writes anything there. Whether
+    this made the folder."""
+    path = Path(path)
+    made = not path.exists()
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"{flag} {path}: cannot create the folder ({exc.strerror})") from None
+    claim_run_folder(path, flag)
+    return made
+
+
 def _release_lock() -> None:
-    held, _state["lock"] = _state["lock"], None
-    if held is not None:
+    """Release every folder this command locked."""
+    held, _state["locks"] = _state["locks"], {}
+    for fd in held.values():
         with contextlib.suppress(OSError):
-            os.close(held[1])
+            os.close(fd)
 
 
 def run_folder() -> Path | None:

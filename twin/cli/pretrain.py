@@ -39,8 +39,9 @@ def add_parser(subparsers) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from twin.boundary import hold_notices, release_notices, set_run_folder
+    from twin.boundary import claim_new_folder, hold_notices, release_notices, set_run_folder
     from twin.config import shipped_config
+    from twin.errors import UserError
     from twin.outputs import check_output_dir
     from twin.training.pretrain import (
         check_out_folder,
@@ -65,10 +66,17 @@ def main(args: argparse.Namespace) -> int:
     flag = "--out" if args.out else f"{where}: out"
     check_output_dir(config.out, flag, need_mb=200)  # the model, its checkpoints and snapshots
     check_out_folder(config, flag)  # resumes its own checkpoint, refuses anything else
-    set_run_folder(Path(config.out))  # an unexpected error's traceback goes to its error.log
+    out = Path(config.out)
+    made = claim_new_folder(out, flag)  # one pretraining at a time writes into its folder
+    set_run_folder(out)  # an unexpected error's traceback goes to its error.log
     progress = not args.quiet and sys.stderr.isatty()
     release_notices()  # every check passed: training starts
-    path = pretrain(config, progress=progress, max_memory_gb=args.max_memory_gb)
+    try:
+        path = pretrain(config, progress=progress, max_memory_gb=args.max_memory_gb)
+    except UserError:
+        if made and not any(out.iterdir()):  # refused before it wrote: no folder left
+            out.rmdir()
+        raise
     print(f"model: {path}")
     print(f"log: {Path(config.out) / 'train_log.csv'}")
     return 0

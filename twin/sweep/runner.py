@@ -13,7 +13,7 @@ from typing import Any
 
 import pandas as pd
 
-from twin.boundary import notify, release_notices
+from twin.boundary import claim_run_folder, notify, release_notices
 from twin.errors import UserError
 from twin.executors import EXECUTORS, _local_executor, _ray_executor
 from twin.files import atomic_write
@@ -69,7 +69,9 @@ def run_sweep(
         from twin.report.sweep import check_sweep_report_folder
 
         check_sweep_report_folder(out_dir)
-    (out_dir / CELLS_DIR).mkdir(parents=True, exist_ok=True)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    claim_run_folder(out_dir)  # one sweep at a time writes into a sweep folder
+    (out_dir / CELLS_DIR).mkdir(exist_ok=True)
     _write_manifest(out_dir, config, cells)
     release_notices()  # every cell is valid: what the checks noticed is printed now
     workers = max(1, min(workers or os.cpu_count() or 1, len(todo) or 1))

@@ -26,6 +26,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+from twin.boundary import claim_run_folder
 from twin.errors import UserError
 from twin.files import atomic_write, read_record
 from twin.transfer.config import TransferConfig
@@ -577,6 +578,7 @@ def run_transfer(
     check_tapes_scenario(config)
     check_columns(config, max_memory_gb)
     out.mkdir(parents=True, exist_ok=True)
+    claim_run_folder(out)  # one transfer at a time writes into a transfer folder
     out = out.resolve()  # the rows' provenance names files the same from any folder
     timings: dict[str, float] = {}
 
