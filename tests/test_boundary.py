@@ -2378,6 +2378,21 @@ def test_a_folder_another_command_writes_is_refused_by_every_command(tmp_path, c
         assert list(out.iterdir()) == []
 
 
+@pytest.mark.parametrize("where", ["imported/entry/myrun", "."])
+def test_an_out_folder_in_the_cache_is_refused(tmp_path, capsys, where):
+    """An --out inside twin's cache was accepted, and deleted without a word with the entry it
+    lay in when a later run found that entry damaged (probe 26's f03)."""
+    from twin.resources import cache_dir
+
+    out = cache_dir() / where
+    cfg = small_config(tmp_path, horizon=3)
+    argv = ["evaluate", "--config", str(cfg), "--seeds", "1", "--swarms", "random"]
+    assert main([*argv, "--out", str(out), "--no-report", "--quiet"]) == EXIT_REFUSED
+    line = one_line(capsys)
+    assert f"--out {out}: lies in twin's cache" in line and "outside it" in line, line
+    assert not (cache_dir() / "imported" / "entry").exists()
+
+
 def test_a_run_folder_being_written_is_read_as_such_not_as_interrupted(tmp_path, capsys):
     """`twin report` (and every reader) of a folder another command is writing now says so,
     instead of calling it interrupted and advising a rerun the lock would refuse (probe 17's

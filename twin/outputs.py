@@ -53,9 +53,27 @@ def check_output_dir(
         )
     _check_writable(base, path, flag)
     _check_free(base, path, flag, need_mb)
+    if not links_out:  # not the cache's own folders
+        _check_not_in_cache(path, flag)
     if path.is_dir() and not links_out:
         _check_no_link_out(path, flag)
     return path
+
+
+def _check_not_in_cache(path: Path, flag: str) -> None:
+    """Refuse an output folder inside twin's cache: the cache rebuilds (deletes) an entry it
+    finds damaged, with whatever a user put in it."""
+    from twin.resources import cache_dir
+
+    try:
+        cache = cache_dir().resolve()
+    except UserError:  # a bad $TWIN_CACHE_DIR is refused by the commands that use it
+        return
+    if path.resolve().is_relative_to(cache):
+        raise UserError(
+            f"{flag} {path}: lies in twin's cache ({cache}), whose entries twin deletes and "
+            "rebuilds; pass a folder outside it"
+        )
 
 
 def _check_no_link_out(path: Path, flag: str) -> None:
