@@ -460,6 +460,8 @@ def check_xml_files(folder: Path, files: dict[str, str]) -> None:
             tail = fh.read()
         if start != root:
             raise BrokenEntry(f"{name} is not a SUMO <{root}> file")
-        closed = re.search(rb"(</%s>|<%s\b[^<>]*/>)\s*$" % (root.encode(), root.encode()), tail)
+        end = rb"(</%s>|<%s\b[^<>]*/>)" % (root.encode(), root.encode())
+        after = rb"(\s|<!--.*?-->|<\?.*?\?>)*$"  # comments and instructions may follow it
+        closed = re.search(end + after, tail, re.DOTALL)
         if closed is None:
             raise BrokenEntry(f"{name} is cut short (no closing </{root}>)")
