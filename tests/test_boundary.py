@@ -2378,6 +2378,39 @@ def test_a_folder_another_command_writes_is_refused_by_every_command(tmp_path, c
         assert list(out.iterdir()) == []
 
 
+@pytest.mark.parametrize(
+    "argv",
+    [["evaluate"], ["pretrain"], ["sweep", "--config", "sweep-demo"], ["transfer"]],
+    ids=["evaluate", "pretrain", "sweep", "transfer"],
+)
+def test_a_users_folder_is_refused_as_not_the_commands_before_its_links(
+    tmp_path, capsys, argv
+):
+    """A user's project folder (a venv's link to its python in it) given as --out was refused
+    for the link, advising to remove it, after walking its whole tree (probe 26's f05): it is
+    refused as a folder the command did not write, untouched."""
+    if argv == ["evaluate"]:
+        argv = ["evaluate", "--config", str(small_config(tmp_path, horizon=3))]
+    out = tmp_path / "project"
+    (out / "venv" / "bin").mkdir(parents=True)
+    (out / "venv" / "bin" / "python3").symlink_to(sys.executable)
+    (out / "notes.txt").write_text("mine")
+    before = tree_hash(out)
+    assert main([*argv, "--out", str(out), "--quiet"]) == EXIT_REFUSED
+    line = one_line(capsys)
+    assert line.startswith(f"twin: error: --out {out}: ") and "symbolic link" not in line, line
+    assert "notes.txt" in line or "holds no twin run" in line, line
+    assert tree_hash(out) == before
+
+
+def test_the_root_folder_as_out_is_refused_naming_out(capsys):
+    """``--out /`` walked the whole disk and ended on /proc's "Permission denied", naming
+    neither --out nor the cause (probe 26's f05)."""
+    assert main(["evaluate", "--config", "synthetic", "--out", "/", "--quiet"]) == EXIT_REFUSED
+    line = one_line(capsys)
+    assert line.startswith("twin: error: --out /: ") and "Permission" not in line, line
+
+
 @pytest.mark.parametrize("where", ["imported/entry/myrun", "."])
 def test_an_out_folder_in_the_cache_is_refused(tmp_path, capsys, where):
     """An --out inside twin's cache was accepted, and deleted without a word with the entry it

@@ -865,13 +865,15 @@ def test_a_link_out_of_the_sweep_folder_is_refused(tmp_path: Path, capsys, link)
     path = sweep_file(tmp_path, seeds=1, horizon=4)
     outside, out = tmp_path / "outside", tmp_path / "s"
     outside.mkdir()
-    out.mkdir()
+    (out / "cells").mkdir(parents=True)  # a sweep's folder, which the link was planted in
+    if link == "cells":
+        (out / "cells").rmdir()
     (out / link).symlink_to(outside if "." not in link else outside / "victim.txt")
     assert cli(["sweep", "--config", str(path), "--out", str(out), "--quiet"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and f"{out / link} is a symbolic link out of the folder" in err
     assert not any(outside.iterdir())
-    assert sorted(p.name for p in out.iterdir()) == [link]
+    assert sorted(p.name for p in out.iterdir()) == sorted({link, "cells"})
 
 
 def test_the_memory_limit_of_a_sweep_bounds_its_cells(tmp_path: Path, capsys) -> None:

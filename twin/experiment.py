@@ -801,7 +801,12 @@ def n_workers(experiment: Experiment) -> int:
     return min(experiment.workers, len(experiment.seeds))
 
 
-def check_resources(experiment: Experiment, out: Path, flag: str = "--out") -> None:
+def check_resources(
+    experiment: Experiment,
+    out: Path,
+    flag: str = "--out",
+    owner: Callable[[Path], None] | None = None,
+) -> None:
     """Before any folder is made: the memory estimate of a run whose grid is known from its
     config or tape (:func:`check_memory`), or a live run's scratch folder in the cache
     (:func:`twin.resources.scratch_dir`), then the output folder (:func:`disk_estimate_mb`;
@@ -815,7 +820,7 @@ def check_resources(experiment: Experiment, out: Path, flag: str = "--out") -> N
         from twin.resources import scratch_dir
 
         scratch_dir()
-    check_output_dir(out, flag, disk_estimate_mb(experiment))
+    check_output_dir(out, flag, disk_estimate_mb(experiment), owner=owner)
 
 
 def disk_estimate_mb(experiment: Experiment) -> float:

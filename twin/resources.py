@@ -232,7 +232,9 @@ def check_cache(why: str) -> Path:
     disk) before work that needs it starts; ``why`` says what needs it."""
     from twin.outputs import check_output_dir
 
-    return check_output_dir(cache_dir(), f"twin's cache (${CACHE_ENV}; {why})", links_out=True)
+    return check_output_dir(
+        cache_dir(), f"twin's cache (${CACHE_ENV}; {why})", links_out=True, in_cache=True
+    )
 
 
 #: The most cells a grid may have: 25 million (a 5000 x 5000 grid), whose maps alone need GBs
@@ -374,7 +376,9 @@ def build_once(
 
         notify(f"twin: notice: cache entry {target} is a file, not a folder; rebuilding it")
         target.unlink()
-    check_output_dir(target.parent, f"the cache (${CACHE_ENV} moves it)", links_out=True)
+    check_output_dir(
+        target.parent, f"the cache (${CACHE_ENV} moves it)", links_out=True, in_cache=True
+    )
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=target.parent))
     try:

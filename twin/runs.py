@@ -260,13 +260,27 @@ def discard_run_dir(path: Path) -> None:
         path.rmdir()  # only if empty
 
 
+def check_holds_a_run(path: Path) -> None:
+    """Refuse (UserError) an existing --out folder that is not empty and holds no twin run
+    (no ``run.json``): a user's folder, refused for that before its tree is walked."""
+    if (
+        path.is_dir()
+        and any(path.iterdir())
+        and not isinstance(_read_json(path / "run.json"), dict)
+    ):
+        raise UserError(f"--out {path}: not empty and holds no twin run; {REUSE_FIX}")
+
+
+#: What to do with an --out folder a run may not reuse.
+REUSE_FIX = "pass a new or empty --out folder"
+
+
 def _replaceable(path: Path, started: dict[str, Any] | None) -> None:
     """Refuse (UserError) to reuse the non-empty folder ``path`` unless it holds a partial run
     of the invocation ``started`` and nothing else."""
-    fix = "pass a new or empty --out folder"
+    fix = REUSE_FIX
+    check_holds_a_run(path)
     run = _read_json(path / "run.json")
-    if not isinstance(run, dict):
-        raise UserError(f"--out {path}: not empty and holds no twin run; {fix}")
     manifest = _read_json(path / MANIFEST)
     if isinstance(manifest, dict) and not manifest.get("partial"):
         raise UserError(f"--out {path}: already holds a complete run; {fix}")

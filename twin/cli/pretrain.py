@@ -64,8 +64,12 @@ def main(args: argparse.Namespace) -> int:
     where = str(args.config or DEFAULT_CONFIG)
     check_pretrain_memory(config, where, args.max_memory_gb)
     flag = "--out" if args.out else f"{where}: out"
-    check_output_dir(config.out, flag, need_mb=200)  # the model, its checkpoints and snapshots
-    check_out_folder(config, flag)  # resumes its own checkpoint, refuses anything else
+    check_output_dir(  # the model, its checkpoints and snapshots
+        config.out,
+        flag,
+        need_mb=200,
+        owner=lambda _: check_out_folder(config, flag),  # resumes its own, refuses the rest
+    )
     out = Path(config.out)
     made = claim_new_folder(out, flag)  # one pretraining at a time writes into its folder
     set_run_folder(out)  # an unexpected error's traceback goes to its error.log

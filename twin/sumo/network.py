@@ -385,7 +385,7 @@ def import_osm(osm_file: Path, out_dir: Path | None = None) -> Path:
         return resources.build_once(imported_dir(osm_file), make, verify=verify) / name
     from twin.outputs import check_output_dir
 
-    out_dir = check_output_dir(out_dir, "--out")
+    out_dir = check_output_dir(out_dir, "--out", links_out=True)  # writes one new file there
     target = out_dir / name
     if target.exists() or target.is_symlink():
         raise UserError(
