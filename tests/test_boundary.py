@@ -2383,9 +2383,7 @@ def test_a_folder_another_command_writes_is_refused_by_every_command(tmp_path, c
     [["evaluate"], ["pretrain"], ["sweep", "--config", "sweep-demo"], ["transfer"]],
     ids=["evaluate", "pretrain", "sweep", "transfer"],
 )
-def test_a_users_folder_is_refused_as_not_the_commands_before_its_links(
-    tmp_path, capsys, argv
-):
+def test_a_users_folder_is_refused_as_not_the_commands_before_its_links(tmp_path, capsys, argv):
     """A user's project folder (a venv's link to its python in it) given as --out was refused
     for the link, advising to remove it, after walking its whole tree (probe 26's f05): it is
     refused as a folder the command did not write, untouched."""
