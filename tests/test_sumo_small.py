@@ -132,6 +132,26 @@ def test_sumo_failure_mid_run_keeps_partial_results(small, tmp_path, monkeypatch
     assert series["step"].max() == 1
 
 
+def test_a_swarms_own_failure_is_no_partial_run_of_the_simulation(
+    small, tmp_path, monkeypatch, capsys
+):
+    """A swarm that fails (rl-online's optimizer on a torch cache it cannot make) is not the
+    simulation crashing: one line, not a partial run of no seed that ended in an internal
+    KeyError (probe 26's f06)."""
+    from twin.policies import RandomPolicy
+
+    def failing(self, grid, n_drones, rng):
+        raise NotADirectoryError(20, "Not a directory", "/a/file/t")
+
+    monkeypatch.setattr(RandomPolicy, "reset", failing)
+    out = tmp_path / "run"
+    code = twin_main(["run", "--config", str(small / "small.toml"), "--out", str(out),
+                      "--swarms", "greedy,random", "--no-report", "--quiet"])  # fmt: skip
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and "/a/file/t: Not a directory" in err[-1], err
+    assert "internal error" not in err[-1] and SumoSession._active is None
+
+
 def test_bad_files_give_one_line_errors(small, tmp_path, capsys):
     cfg = str(small / "small.toml")
     broken = tmp_path / "broken.net.xml"

@@ -144,6 +144,7 @@ def run_patrol(
     t0 = time.perf_counter()
     bar = None
     done, error = 0, None
+    in_swarm = False  # a swarm's own error (not the simulation's) is no partial result
     try:
         with timer.stage(TRAFFIC):
             t_now = next(maps)
@@ -154,7 +155,9 @@ def run_patrol(
             importance[0] = t_now
         for s, (name, _, _) in enumerate(runs):
             t_reset = time.perf_counter()
+            in_swarm = True
             acting[s].reset(grid, n_drones, swarm_rng(seed, name))
+            in_swarm = False
             timer.add(stages[s], time.perf_counter() - t_reset, calls=0)
             states.append(initial_state(grid, starts.copy(), t_now))
             views.append(swarm_view(states[s], horizon, grid, params))
@@ -173,6 +176,7 @@ def run_patrol(
                 policy, view = acting[s], views[s]
                 stage = stages[s]
                 recorded = recorded_arrivals(faulted, seed, k + 1, n_drones, horizon)
+                in_swarm = True
                 with timer.stage(stage):
                     actions = np.asarray(policy.act(view), dtype=np.int64)
                 t_score = time.perf_counter()
@@ -194,6 +198,7 @@ def run_patrol(
                 t1 = time.perf_counter()
                 timer.add(SCORING, t1 - t_score)
                 policy.learn(Transition(view, actions, out.rewards, views[s]))
+                in_swarm = False
                 timer.add(stage, time.perf_counter() - t1, calls=0)
             done = k + 1
             if on_step is not None:
@@ -212,7 +217,7 @@ def run_patrol(
         release_notices()
         error = f"traffic source ended after {done} of {horizon} steps"
     except Exception as exc:
-        if isinstance(exc, UserError) or not source.keeps_partial_results:
+        if isinstance(exc, UserError) or in_swarm or not source.keeps_partial_results:
             raise  # bad input (e.g. a file a simulator refuses to start on) is no partial result
         release_notices()  # a partial run: what it said of its scenario still holds
         error = f"{type(exc).__name__}: {exc}"
