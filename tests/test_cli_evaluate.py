@@ -205,6 +205,20 @@ def test_a_runs_tape_replays_with_the_runs_swarm(tmp_path, capsys):
     assert replayed.to_dict() == pytest.approx(live.to_dict(), rel=1e-12)
 
 
+def test_a_tape_out_of_its_run_folder_says_whose_swarm_replays_it(tmp_path, capsys):
+    """A tape copied away from its run.json replays with the config's swarm: said in a
+    notice, as when the run.json is another run's (it was silent: probe 26's u05)."""
+    import shutil
+
+    run, _ = _small_sumo_run(tmp_path, capsys, "--drones", "2")
+    tape = tmp_path / "copied.parquet"
+    shutil.copy(run / "tape.parquet", tape)
+    argv = ["evaluate", "--traffic", str(tape), "--swarms", "random", "--no-ceiling"]
+    assert main([*argv, "--no-report", "--out", str(tmp_path / "ev")]) == 0
+    err = capsys.readouterr().err
+    assert f"no run.json beside {tape} (not in its run folder), so synthetic.toml's swarm" in err
+
+
 def _small_sumo_run(tmp_path, capsys, *extra):
     """A `twin run` of a small SUMO scenario (4 steps) in ``tmp_path/run``, and the display
     and swarm flags it took."""

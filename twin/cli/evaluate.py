@@ -153,7 +153,12 @@ def with_swarm_of_run(config, tape, seed_flag: int | None = None, seeds_flag: in
     tape = Path(tape)
     folder = tape.parent.parent if tape.parent.name == "tapes" else tape.parent
     record = folder / "run.json"
-    if not record.exists() and not record.is_symlink():
+    if not record.exists() and not record.is_symlink():  # a tape copied out of its run folder
+        notify(
+            f"twin: notice: no run.json beside {tape} (not in its run folder), so "
+            f"{config.path.name}'s swarm ({config.swarm.n_drones} drones) replays it; give "
+            "the config of the run that recorded it with --config for that run's swarm"
+        )
         return config
     if (folder / MANIFEST).exists():  # a finished run's folder: it must have written the tape
         try:
