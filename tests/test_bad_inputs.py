@@ -616,8 +616,10 @@ def test_memory_refusal(tmp_path, capsys, monkeypatch, cfg, case):
     assert not out.exists()
 
 
-def test_too_many_seeds_are_refused_with_the_seeds_that_fit(tmp_path):
-    """Seeds past the limit on any grid name the seeds that fit this run, and that many do."""
+@pytest.mark.parametrize("workers", [1, 4])
+def test_too_many_seeds_are_refused_with_the_seeds_that_fit(tmp_path, workers):
+    """Seeds past the limit on any grid name the seeds that fit this run, on its workers, and
+    that many do (the count was the one-worker run's: the review of probe 26's fixes)."""
     import re
     from dataclasses import replace
 
@@ -627,10 +629,10 @@ def test_too_many_seeds_are_refused_with_the_seeds_that_fit(tmp_path):
 
     cfg = tmp_path / "s.toml"
     cfg.write_text(SMALL.format(horizon=50))
-    experiment = Experiment(load_config(cfg), ["random", "greedy"], range(10**6))
-    with pytest.raises(UserError, match=r"give at most about (\d+) --seeds \(6 x 8 cells") as info:
+    experiment = Experiment(load_config(cfg), ["random", "greedy"], range(10**6), workers=workers)
+    with pytest.raises(UserError, match=r"give at most (\d+) --seeds \(6 x 8 cells") as info:
         check_memory(experiment, (6, 8), 50)
-    fit = int(re.search(r"about (\d+) --seeds", str(info.value)).group(1))
+    fit = int(re.search(r"at most (\d+) --seeds", str(info.value)).group(1))
     check_memory(replace(experiment, seeds=range(fit)), (6, 8), 50)
     with pytest.raises(UserError, match=f"{fit + 1} seeds"):
         check_memory(replace(experiment, seeds=range(fit + 1)), (6, 8), 50)

@@ -2424,6 +2424,37 @@ def test_an_out_folder_in_the_cache_is_refused(tmp_path, capsys, where):
     assert not (cache_dir() / "imported" / "entry").exists()
 
 
+def test_a_work_folder_beside_the_caches_own_folders_is_the_users(tmp_path, capsys, monkeypatch):
+    """A cache that is a whole scratch disk (``$TWIN_CACHE_DIR=$SCRATCH``, the work in
+    ``$SCRATCH/project``) refuses no run there: only the cache itself and its own folders
+    are refused (the review of probe 26's fixes)."""
+    cfg = small_config(tmp_path, horizon=3)
+    monkeypatch.setenv("TWIN_CACHE_DIR", str(tmp_path))
+    (tmp_path / "project").mkdir()
+    monkeypatch.chdir(tmp_path / "project")
+    argv = ["evaluate", "--config", str(cfg), "--seeds", "1", "--swarms", "random"]
+    assert main([*argv, "--no-report", "--quiet"]) == 0, capsys.readouterr().err
+    assert len(list((tmp_path / "project" / "runs").iterdir())) == 1
+
+
+def test_a_pretraining_folder_of_the_config_in_use_says_where_to_give_another(
+    tmp_path, capsys, monkeypatch
+):
+    """The folder of the config's ``out`` held by another command: the fix names the key and
+    the file (it read "pass another configs/pretrain.toml: out": the review of probe 26's)."""
+    monkeypatch.chdir(tmp_path)
+    out = tmp_path / "runs" / "pretrain"
+    out.mkdir(parents=True)
+    with _held_by_another(out):
+        assert main(["pretrain", "--quiet"]) == EXIT_REFUSED
+        line = one_line(capsys)
+    assert "another twin command is writing into this folder now" in line, line
+    assert line.endswith(
+        "wait for it to end or give another out in configs/pretrain.toml, or --out"
+    )
+    assert list(out.iterdir()) == []
+
+
 def test_a_run_folder_being_written_is_read_as_such_not_as_interrupted(tmp_path, capsys):
     """`twin report` (and every reader) of a folder another command is writing now says so,
     instead of calling it interrupted and advising a rerun the lock would refuse (probe 17's

@@ -193,6 +193,7 @@ def test_make_env_refuses_bad_options_in_one_line(joint):
         ({"starts": [["0", "0"]]}, r"starts must be \(N, 2\) whole-number cells .*not text"),
         ({"starts": np.array([["1", "2"]])}, "not text"),
         ({"starts": [[1e300, 0.0]]}, r"starts\[0\] = \(1e\+300, 0\) is off the"),  # not 301 digits
+        ({"starts": [[1234567, 0]]}, r"starts\[0\] = \(1234567, 0\) is off the"),  # as given
         ({"colour": "red"}, r"make_env\(colour=\.\.\.\) is not an option"),
         ({"params": {"eta": 2}}, r"params = \{'eta': 2\} is not a ScoreParams"),
         (

@@ -186,6 +186,10 @@ def test_a_whole_xml_file_may_end_with_a_comment(tmp_path):
     with open(tmp_path / "a.net.xml", "a") as f:
         f.write("<!-- edited\n by hand -->\n<?stamp x?>\n")
     _verify(tmp_path)
+    with open(tmp_path / "a.net.xml", "a") as f:  # what follows the comments is no XML
+        f.write("<!---->" * 30 + "<edge")
+    with pytest.raises(resources.BrokenEntry, match=r"a\.net\.xml is cut short"):
+        _verify(tmp_path)
 
 
 @pytest.mark.parametrize("case", list(BROKEN_ENTRIES))

@@ -871,6 +871,10 @@ def test_a_step_length_that_is_no_number_is_refused_as_sumo_does(scenario, tmp_p
     cfg.write_text(text.replace("</input>", '</input><time><step-length value="0.5"/></time>'))
     assert _run(scenario, out, "--sumocfg", str(cfg)) == 0
     assert "<step-length value='0.5'> is run as SUMO steps of 1 s" in capsys.readouterr().err
+    # SUMO's clock form is a time SUMO takes (the review of probe 26's fixes)
+    cfg.write_text(text.replace("</input>", '</input><time><step-length value="0:00:01"/></time>'))
+    assert _run(scenario, tmp_path / "clock", "--sumocfg", str(cfg)) == 0
+    assert "step-length" not in capsys.readouterr().err
 
 
 TIME = r"\d{4}(-\d\d){5}"  # SUMO replaces TIME in a prefix or suffix by the date and time

@@ -563,6 +563,30 @@ def test_bad_parameter_value_fails_before_any_cell_runs(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize(
+    ("swarm", "table", "said"),
+    [
+        ("lookahead", "discount = 2.0", "[swarm_options.lookahead]: discount = 2.0 must lie in"),
+        ("lookahead", "wieght = 1", "[swarm_options.lookahead] has an option 'wieght'"),
+        ("rl-online", "batch_size = 0", "[swarm_options.rl-online]: batch_size = 0 must be in"),
+    ],
+)
+def test_a_bad_option_of_the_sweeps_own_swarm_options_is_refused_before_any_cell(
+    swarm, table, said, tmp_path: Path, capsys
+) -> None:
+    """A swarm option the sweep file's [swarm_options] gives and the swarm refuses failed every
+    cell as it ran, naming neither the file nor its table (the review of probe 26's fixes):
+    one line naming both, before any folder is made."""
+    path = sweep_file(tmp_path, seeds=1, horizon=4)
+    text = path.read_text().replace('"sweeping"]', f'"{swarm}"]')
+    path.write_text(text + f"\n[swarm_options.{swarm}]\n{table}\n")
+    out = tmp_path / "s"
+    assert cli(["sweep", "--config", str(path), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and err.startswith(f"twin: error: {path}: {said}"), err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
     ("parameters", "overrides", "said"),
     [
         ('"swarm.n_drones" = [3, -3]', "", "[parameters].'swarm.n_drones' = -3 must be >= 1"),

@@ -84,12 +84,13 @@ def set_run_folder(path: Path | None) -> None:
         _release_lock()
 
 
-def claim_run_folder(path: Path, flag: str = "--out") -> None:
+def claim_run_folder(path: Path, flag: str = "--out", another: str | None = None) -> None:
     """Lock the existing folder ``path`` for the current command (an exclusive ``flock`` on
     the folder itself, held until the command ends or its process exits): a second command
     writing into the same folder at once is refused in one line instead of mixing its files
     with the first's. Claiming a folder already held does nothing; a command may hold several
-    (a transfer's folder and its sweep's)."""
+    (a transfer's folder and its sweep's). ``another``: how to give another folder (default:
+    pass another ``flag``)."""
     import fcntl
 
     path = Path(path)
@@ -102,7 +103,7 @@ def claim_run_folder(path: Path, flag: str = "--out") -> None:
         os.close(fd)
         raise UserError(
             f"{flag} {path}: another twin command is writing into this folder now; wait for it "
-            f"to end or pass another {flag}"
+            f"to end or {another or f'pass another {flag}'}"
         ) from None
     _state["locks"][path.resolve()] = fd
 
@@ -129,7 +130,7 @@ def written_by_another(path: Path) -> bool:
     return False
 
 
-def claim_new_folder(path: Path, flag: str = "--out") -> bool:
+def claim_new_folder(path: Path, flag: str = "--out", another: str | None = None) -> bool:
     """Create the output folder ``path`` if need be and lock it (:func:`claim_run_folder`):
     a command whose other checks passed, before it reads or writes anything there. Whether
     this made the folder."""
@@ -139,7 +140,7 @@ def claim_new_folder(path: Path, flag: str = "--out") -> bool:
         path.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise UserError(f"{flag} {path}: cannot create the folder ({exc.strerror})") from None
-    claim_run_folder(path, flag)
+    claim_run_folder(path, flag, another)
     return made
 
 

@@ -659,8 +659,7 @@ class ScenarioConfig(SourcedConfig):
             text = str(exc)
             if not own or str(self.path) in text or text.startswith("[swarm_options"):
                 raise
-            base = base_name(name)  # rl-online's policy says "rl: "
-            for lead in (f"{base}: ", f"{base.split('-')[0]}: ", "swarm option "):
+            for lead in (f"{base_name(name)}: ", "swarm option "):  # said by the table now
                 text = text.removeprefix(lead)
             raise UserError(f"{self.path}: [swarm_options.{name}]: {text}") from None
 

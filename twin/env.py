@@ -403,7 +403,7 @@ class SwarmParallelEnv(ParallelEnv):
         inside = (raw[:, 0] >= 0) & (raw[:, 0] < nx) & (raw[:, 1] >= 0) & (raw[:, 1] < ny)
         if not inside.all():
             d = int(np.flatnonzero(~inside)[0])
-            i, j = (f"{v:g}" for v in raw[d])  # 1e300, not its 301 digits
+            i, j = (f"{v:.0f}" if abs(v) < 1e15 else f"{v:g}" for v in raw[d])  # not 301 digits
             raise EnvInputError(
                 f"starts[{d}] = ({i}, {j}) is off the {nx} x {ny} grid; every start must be a "
                 "free cell on the map"

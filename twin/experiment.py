@@ -881,7 +881,7 @@ def check_memory(
         if len(experiment.seeds) > 1 and _seeds_that_fit(experiment, limit, (1, 1), 1, 0, live):
             fit = _seeds_that_fit(experiment, limit, shape, horizon, warmup, live)
             fewer_seeds = (
-                f"give at most about {fit} --seeds"
+                f"give at most {fit} --seeds"
                 if fit
                 else "give fewer --seeds and a coarser grid or fewer steps"
             )
@@ -916,17 +916,20 @@ def _seeds_that_fit(
     warmup: int,
     live: bool,
 ) -> int:
-    """About how many seeds of the experiment fit the limit on this grid and horizon (0: not
-    one): the estimate grows by the same amount per seed."""
-    seeds = list(experiment.seeds) * 2  # two seeds, also of a one-seed experiment
-    one, two = (
-        estimate_memory(replace(experiment, seeds=seeds[:n], workers=1), shape, horizon, warmup,
-                        live=live)
-        for n in (1, 2)
-    )  # fmt: skip
-    if one > limit * 1e9:
-        return 0
-    return 1 + int((limit * 1e9 - one) // max(two - one, 1.0))
+    """The most of the experiment's seeds (its first ones) that fit the limit on this grid and
+    horizon, on its workers (0: not one): the estimate grows with the seeds."""
+    seeds = list(experiment.seeds)
+
+    def fits(n: int) -> bool:
+        need = estimate_memory(replace(experiment, seeds=seeds[:n]), shape, horizon, warmup,
+                               live=live)  # fmt: skip
+        return need <= limit * 1e9
+
+    low, high = 0, len(seeds)  # fits(low) holds (no seed), fits(high) is what is asked
+    while high - low > 1:
+        mid = (low + high) // 2
+        low, high = (mid, high) if fits(mid) else (low, mid)
+    return high if fits(high) else low
 
 
 def _gb(n_bytes: float) -> str:

@@ -72,15 +72,18 @@ def check_output_dir(
 
 
 def _check_not_in_cache(path: Path, flag: str) -> None:
-    """Refuse an output folder inside twin's cache: the cache rebuilds (deletes) an entry it
-    finds damaged, with whatever a user put in it."""
-    from twin.resources import cache_dir
+    """Refuse an output folder that is twin's cache or lies in one of the folders twin keeps
+    there (:data:`twin.resources.CACHE_FOLDERS`): the cache rebuilds (deletes) an entry it
+    finds damaged, with whatever a user put in it. A work folder beside them in a cache that
+    is a whole scratch disk (``$TWIN_CACHE_DIR=$SCRATCH``) is the user's."""
+    from twin.resources import CACHE_FOLDERS, cache_dir
 
     try:
         cache = cache_dir().resolve()
     except UserError:  # a bad $TWIN_CACHE_DIR is refused by the commands that use it
         return
-    if path.resolve().is_relative_to(cache):
+    target = path.resolve()
+    if target == cache or any(target.is_relative_to(cache / f) for f in CACHE_FOLDERS):
         raise UserError(
             f"{flag} {path}: lies in twin's cache ({cache}), whose entries twin deletes and "
             "rebuilds; pass a folder outside it"

@@ -102,6 +102,11 @@ def shipped_checkpoint() -> Path:
     return shipped("data", "qnet.pt")
 
 
+#: The folders twin keeps in its cache (built networks and demands, scratch files, the
+#: GUI's, matplotlib's and torch's own caches); no output folder may lie in them.
+CACHE_FOLDERS = ("networks", "imported", "generated", "tmp", "sumo-gui", "matplotlib", "torch")
+
+
 def cache_dir() -> Path:
     """The per-user cache: ``$TWIN_CACHE_DIR`` if set, else platformdirs' user cache for twin."""
     given = os.environ.get(CACHE_ENV, "").strip()
@@ -465,7 +470,8 @@ def check_xml_files(folder: Path, files: dict[str, str]) -> None:
         if start != root:
             raise BrokenEntry(f"{name} is not a SUMO <{root}> file")
         end = rb"(</%s>|<%s\b[^<>]*/>)" % (root.encode(), root.encode())
-        after = rb"(\s|<!--.*?-->|<\?.*?\?>)*$"  # comments and instructions may follow it
+        # comments and instructions may follow it (each matched one way: no backtracking)
+        after = rb"(?:\s|<!--(?:(?!-->).)*-->|<\?(?:(?!\?>).)*\?>)*$"
         closed = re.search(end + after, tail, re.DOTALL)
         if closed is None:
             raise BrokenEntry(f"{name} is cut short (no closing </{root}>)")

@@ -41,7 +41,6 @@ def add_parser(subparsers) -> None:
 def main(args: argparse.Namespace) -> int:
     from twin.boundary import claim_new_folder, hold_notices, release_notices, set_run_folder
     from twin.config import shipped_config
-    from twin.errors import UserError
     from twin.outputs import check_output_dir
     from twin.training.pretrain import (
         check_out_folder,
@@ -71,14 +70,15 @@ def main(args: argparse.Namespace) -> int:
         owner=lambda _: check_out_folder(config, flag),  # resumes its own, refuses the rest
     )
     out = Path(config.out)
-    made = claim_new_folder(out, flag)  # one pretraining at a time writes into its folder
+    another = None if args.out else f"give another out in {where}, or --out"
+    made = claim_new_folder(out, flag, another)  # one pretraining at a time writes into it
     set_run_folder(out)  # an unexpected error's traceback goes to its error.log
     progress = not args.quiet and sys.stderr.isatty()
     release_notices()  # every check passed: training starts
     try:
         path = pretrain(config, progress=progress, max_memory_gb=args.max_memory_gb)
-    except UserError:
-        if made and not any(out.iterdir()):  # refused before it wrote: no folder left
+    except BaseException:  # refused or stopped before it wrote: no empty folder left
+        if made and out.is_dir() and not any(out.iterdir()):
             out.rmdir()
         raise
     print(f"model: {path}")

@@ -298,6 +298,12 @@ def build_learned_swarm(name: str, **options) -> RLPolicy:
         "rl-decentralized": {"decentralized": True},
         "rl-online": {"online": True},
     }
-    policy = RLPolicy(**{**defaults[name], **options})
+    try:
+        policy = RLPolicy(**{**defaults[name], **options})
+    except UserError as exc:  # an option refused: said of the swarm asked for
+        text = str(exc)
+        if not text.startswith(f"{RLPolicy.name}: "):
+            raise
+        raise UserError(f"{name}: {text.removeprefix(f'{RLPolicy.name}: ')}") from None
     policy.name = name
     return policy
