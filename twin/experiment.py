@@ -878,18 +878,16 @@ def check_memory(
         on, fewer = (
             (f" on {workers} workers", "use fewer --workers or ") if workers > 1 else ("", "")
         )
-        if len(experiment.seeds) > 1 and _seeds_that_fit(experiment, limit, (1, 1), 1, 0, live):
+        at_once = max(workers, 1)  # fewer seeds than workers would only be fewer workers
+        fit = 0
+        if len(experiment.seeds) > at_once:
             fit = _seeds_that_fit(experiment, limit, shape, horizon, warmup, live)
-            fewer_seeds = (
-                f"give at most {fit} --seeds"
-                if fit
-                else "give fewer --seeds and a coarser grid or fewer steps"
-            )
+        if fit >= at_once:  # the seeds themselves are what is past the limit
             raise UserError(
                 f"{len(experiment.seeds)} seeds need about {_gb(floor)} GB even on 1 x 1 cells "
                 f"and 1 step{on}, over the --max-memory-gb / ${MEMORY_ENV} = {limit:g} GB limit; "
-                f"{fewer_seeds} ({shape[0]} x {shape[1]} cells x {horizon} steps), or raise "
-                "the limit"
+                f"give at most {fit} --seeds ({shape[0]} x {shape[1]} cells x {horizon} steps)"
+                f"{', fewer --workers' if workers > 1 else ''}, or raise the limit"
             )
         raise UserError(
             f"--max-memory-gb / ${MEMORY_ENV} = {limit:g} GB is below what this run takes on "
