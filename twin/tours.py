@@ -75,8 +75,14 @@ def saturation_period(params: ScoreParams) -> int:
 def best_period(weights_desc: np.ndarray, n_drones: int, params: ScoreParams) -> int:
     """The revisit period ``P`` maximising the swarm's gain per step ``n_drones * mean(top
     n_drones * P weights) * visit_gain_factor(P)``, with ``P`` up to the saturation period:
-    every drone visits one tour cell per step and each cell is revisited every ``P`` steps."""
-    top = saturation_period(params)
+    every drone visits one tour cell per step and each cell is revisited every ``P`` steps.
+
+    Past the period whose tours hold every cell, the gain per step stays flat until the
+    saturation period (each step of period adds ``delta`` to the factor and spreads the same
+    cells over one more step), so ``P`` goes up to that period at most: a tiny ``delta`` (a
+    saturation period of 10^9 steps) asks for no more periods than there are cells."""
+    covering = max(1, math.ceil(len(weights_desc) / max(n_drones, 1)))
+    top = min(saturation_period(params), covering)
     periods = np.arange(1, top + 1)
     counts = np.minimum(periods * n_drones, len(weights_desc))
     csum = np.concatenate([[0.0], np.cumsum(weights_desc)])
