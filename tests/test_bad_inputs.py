@@ -861,11 +861,16 @@ SWARM_OPTION_CASES = {
     "a negative batch": ("rl-online]\nbatch_size = -5", "batch_size = -5 must be in 1.."),
     "a negative rate": ("rl-online]\nlr = -1.0", "lr = -1.0 must lie in (0, 1]"),
     "negative iterations": ("rl-online]\nonline_iters = -3", "online_iters = -3 must be in"),
-    "an empty buffer": ("rl-online]\nbuffer_steps = 0", "buffer_steps = 0 must be at least 1"),
+    "an empty buffer": ("rl-online]\nbuffer_steps = 0", "buffer_steps = 0 must be in 1.."),
     "a gamma of 50": ("rl-online]\ngamma = 50.0", "gamma = 50.0 must lie in [0, 1]"),
     "a batch of text": ('rl-online]\nbatch_size = "32"', "batch_size = '32' must be an integer"),
     "online as text": ('rl]\nonline = "false"', "online = 'false' must be true or false"),
     "decentralized as text": ('rl]\ndecentralized = "no"', "decentralized = 'no' must be true"),
+    "a buffer past memory": (  # a 95 TiB buffer was "out of memory" (probe 26b's g03)
+        "rl-online]\nbuffer_steps = 1000000000000",
+        "buffer_steps = 1000000000000 must be in 1..1000000",
+    ),
+    "an outage of text": ('rl]\noutages = [["0", 3]]', "outage window ['0', 3] must be a pair"),
     "an epsilon of true": ("rl-decentralized]\neps = true", "eps = True must be a number"),
     "a discount as a string": ('lookahead]\ndiscount = "0.5"', "discount = '0.5' must be a"),
     "an end weight of true": ("lookahead]\nend_weight = true", "end_weight = True must be a"),
@@ -887,6 +892,19 @@ def test_a_bad_swarm_option_is_one_line_naming_the_table(tmp_path, capsys, case)
     err = capsys.readouterr().err.strip()
     assert code == 2 and "\n" not in err and "Traceback" not in err, err
     assert err.startswith(f"twin: error: {cfg}: ") and words in err, err
+
+
+def test_a_swarms_outages_past_the_horizon_are_refused(tmp_path, capsys):
+    """``outages`` of a learned swarm past T were taken silently, as [faults]'
+    coordinator_down is not (probe 26b's g04)."""
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(SMALL.format(horizon=6).replace('["random", "greedy"]', '["rl"]')
+                   + "[swarm_options.rl]\noutages = [[0, 7]]\n")  # fmt: skip
+    code = main(["evaluate", "--config", str(cfg), "--no-report", "--quiet", "--no-ceiling",
+                 "--out", str(tmp_path / "run")])  # fmt: skip
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "\n" not in err, err
+    assert "swarm 'rl': option outages has [0, 7] past the horizon T = 6; end it by 6" in err
 
 
 def test_a_bad_swarm_option_names_the_file_that_gives_it(tmp_path):

@@ -120,6 +120,13 @@ def run_patrol(
     runs = [(name, policies[name], plan) for name in names]
     if plan is not None and fault_free:
         runs += [(name, fault_free[name], None) for name in names]
+    for name, policy, _ in runs:  # a swarm's own outages (option outages) end by T
+        late = [w for w in getattr(policy, "outages", ()) if w[1] > horizon]
+        if late:
+            raise UserError(
+                f"swarm {name!r}: option outages has [{late[0][0]}, {late[0][1]}] past the horizon "
+                f"T = {horizon}; end it by {horizon}"
+            )
     acting: dict[int, Policy] = {}  # each run's policy, by its place in ``runs``
     for s, (_, policy, faulted) in enumerate(runs):
         if faulted is not None and faulted.coordinator_down:

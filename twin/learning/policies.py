@@ -75,6 +75,11 @@ def local_drone_states(
     return paper_states(grid, maps, importance, positions, others)
 
 
+#: The most steps online learning's replay buffer keeps (each holds every drone's transition,
+#: ~120 B per drone: 0.5 GB for 4 drones).
+MAX_BUFFER = 1_000_000
+
+
 class RLPolicy(Policy):
     """A swarm driven by the universal Q-function; see the module docstring for the modes.
 
@@ -117,7 +122,7 @@ class RLPolicy(Policy):
             "batch_size": whole_option(name, "batch_size", batch_size, 1, 1_000_000, 32),
             "gamma": number_option(name, "gamma", gamma, 0.0, 1.0, 0.9),
             "lr": number_option(name, "lr", lr, 0.0, 1.0, 1e-4, low_open=True),
-            "buffer_steps": whole_option(name, "buffer_steps", buffer_steps, 1, None, 5000),
+            "buffer_steps": whole_option(name, "buffer_steps", buffer_steps, 1, MAX_BUFFER, 5000),
         }
         self.net, self.meta = shared_qnet(checkpoint)
         self.checkpoint = checkpoint
