@@ -118,6 +118,17 @@ def test_tiny_matrix_end_to_end_and_pool_equals_sequential(tmp_path: Path) -> No
     manifest = json.loads((sequential / "sweep" / "sweep.json").read_text())
     assert manifest["invocations"][-1]["ran"] == 0
 
+    # a folder moved is still its own: nothing trained or run again (its rows' provenance
+    # named the old folder, and every row was trained again: probe 26b's g02)
+    moved = tmp_path / "moved"
+    pool.rename(moved)
+    pooled = moved / "rows" / "paper+tapes" / "qnet.pt"
+    stamp_pooled = pooled.stat().st_mtime_ns
+    run_transfer(config, moved, workers=1)
+    assert pooled.stat().st_mtime_ns == stamp_pooled
+    manifest = json.loads((moved / "sweep" / "sweep.json").read_text())
+    assert manifest["invocations"][-1]["ran"] == 0
+
     # the tapes' route file edited: the tapes are recorded again, the row fine-tuned on them
     # trained again, the SUMO column's cells run again; the paper row stays (probe 13's P2-f01b:
     # tapes, row and matrix were kept, exit 0)

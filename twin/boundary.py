@@ -29,7 +29,7 @@ import sys
 import threading
 import traceback
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -128,6 +128,24 @@ def written_by_another(path: Path) -> bool:
     finally:
         os.close(fd)
     return False
+
+
+@contextlib.contextmanager
+def folder_claimed(path: Path, flag: str = "--out") -> Iterator[None]:
+    """:func:`claim_run_folder` for the block, released after it unless it was held before
+    (a command's own folder stays held until the command ends): a function of the Python API
+    (a sweep, a transfer) holds its folder only while it writes there."""
+    key = Path(path).resolve()
+    before = key in _state["locks"]
+    claim_run_folder(path, flag)
+    try:
+        yield
+    finally:
+        if not before:
+            fd = _state["locks"].pop(key, None)
+            if fd is not None:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
 
 
 def claim_new_folder(path: Path, flag: str = "--out", another: str | None = None) -> bool:

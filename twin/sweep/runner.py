@@ -13,7 +13,7 @@ from typing import Any
 
 import pandas as pd
 
-from twin.boundary import claim_run_folder, notify, release_notices
+from twin.boundary import folder_claimed, notify, release_notices
 from twin.errors import UserError
 from twin.executors import EXECUTORS, _local_executor, _ray_executor
 from twin.files import atomic_write
@@ -70,7 +70,26 @@ def run_sweep(
 
         check_sweep_report_folder(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    claim_run_folder(out_dir)  # one sweep at a time writes into a sweep folder
+    with folder_claimed(out_dir):  # one sweep at a time writes into a sweep folder
+        return _run_cells(
+            config, out_dir, cells, todo, skipped, executor, workers, address, progress, report
+        )
+
+
+def _run_cells(
+    config: SweepConfig,
+    out_dir: Path,
+    cells: list[dict[str, Any]],
+    todo: list[dict[str, Any]],
+    skipped: list[str],
+    executor: str,
+    workers: int | None,
+    address: str | None,
+    progress: bool,
+    report: bool,
+) -> SweepOutcome:
+    """:func:`run_sweep`'s work once its cells are checked and its folder is held: run
+    ``todo``, merge every cell, write the report."""
     (out_dir / CELLS_DIR).mkdir(exist_ok=True)
     _write_manifest(out_dir, config, cells)
     release_notices()  # every cell is valid: what the checks noticed is printed now
