@@ -613,7 +613,16 @@ def test_a_refused_sweep_key_is_named_in_the_sweep_file(
     assert not (tmp_path / "s").exists()
 
 
-def test_failing_cells_are_reported_and_rerun(tmp_path: Path, capsys) -> None:
+def _cell_failing_as_it_runs(cell):
+    """A sweep cell's run that fails (in a worker process: a function it can import)."""
+    raise UserError(f"cell {cell['id']} failed as it ran")
+
+
+def test_failing_cells_are_reported_and_rerun(tmp_path: Path, capsys, monkeypatch) -> None:
+    """A checkpoint that cannot load is refused before any cell (each cell failed on it); cells
+    that fail as they run are listed, and a rerun runs them again."""
+    import twin.sweep.runner as runner
+
     path = sweep_file(tmp_path, seeds=2)
     (tmp_path / "broken.pt").write_bytes(b"not a checkpoint")
     text = path.read_text().replace('"sweeping"]', '"sweeping", "rl"]')
@@ -621,9 +630,14 @@ def test_failing_cells_are_reported_and_rerun(tmp_path: Path, capsys) -> None:
     args = ["sweep", "--config", str(path), "--out", str(tmp_path / "s"), "--workers", "1"]
     assert cli(args) == 2
     err = capsys.readouterr().err
-    assert "2 of 2 cells failed" in err and "broken.pt" in err and err.count("\n") == 1
+    assert "broken.pt" in err and err.count("\n") == 1 and not (tmp_path / "s").exists()
+    tiny_checkpoint(tmp_path / "broken.pt")  # fixed
+    monkeypatch.setattr(runner, "run_cell", _cell_failing_as_it_runs)
+    assert cli(args) == 2
+    err = capsys.readouterr().err
+    assert "2 of 2 cells failed" in err and "failed as it ran" in err and err.count("\n") == 1
     assert len(json.loads((tmp_path / "s" / "failed.json").read_text())) == 2
-    tiny_checkpoint(tmp_path / "broken.pt")  # fixed: a new file, so new cell ids
+    monkeypatch.undo()
     assert cli(args) == 0
     assert not (tmp_path / "s" / "failed.json").exists()
     assert set(pd.read_csv(tmp_path / "s" / "results.csv")["swarm"]) >= {"rl"}

@@ -76,7 +76,7 @@ def _check_not_in_cache(path: Path, flag: str) -> None:
     there (:data:`twin.resources.CACHE_FOLDERS`): the cache rebuilds (deletes) an entry it
     finds damaged, with whatever a user put in it. A work folder beside them in a cache that
     is a whole scratch disk (``$TWIN_CACHE_DIR=$SCRATCH``) is the user's."""
-    from twin.resources import CACHE_FOLDERS, cache_dir
+    from twin.cache_place import CACHE_FOLDERS, cache_dir
 
     try:
         cache = cache_dir().resolve()

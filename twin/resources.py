@@ -28,10 +28,8 @@ from collections.abc import Callable
 from importlib import resources
 from pathlib import Path
 
+from twin.cache_place import CACHE_ENV, CACHE_FOLDERS, cache_dir  # noqa: F401 (where it lies)
 from twin.errors import UserError
-
-#: Environment variable that moves the cache (tests point it at a temporary folder).
-CACHE_ENV = "TWIN_CACHE_DIR"
 
 
 def package_root() -> Path:
@@ -100,27 +98,6 @@ def network_spec(name: str) -> Path:
 def shipped_checkpoint() -> Path:
     """The shipped, pretrained Q-network ``data/qnet.pt``."""
     return shipped("data", "qnet.pt")
-
-
-#: The folders twin keeps in its cache (built networks and demands, scratch files, the
-#: GUI's, matplotlib's and torch's own caches); no output folder may lie in them.
-CACHE_FOLDERS = ("networks", "imported", "generated", "tmp", "sumo-gui", "matplotlib", "torch")
-
-
-def cache_dir() -> Path:
-    """The per-user cache: ``$TWIN_CACHE_DIR`` if set, else platformdirs' user cache for twin."""
-    given = os.environ.get(CACHE_ENV, "").strip()
-    if given:
-        try:
-            return Path(given).expanduser()
-        except RuntimeError:  # "~user/..." of no such user, or no home to expand
-            raise UserError(
-                f"${CACHE_ENV} = {given!r}: its '~' names no home folder on this machine; give "
-                "an absolute folder"
-            ) from None
-    import platformdirs
-
-    return Path(platformdirs.user_cache_dir("twin", appauthor=False))
 
 
 #: How old (days) a scratch entry of a process that was killed (``kill -9``) may grow before a
