@@ -406,3 +406,14 @@ def test_sumo_gui_refusing_a_scenario_is_one_line_with_its_reason(scenario, tmp_
     assert done.returncode == 2 and len(said) == 1, done.stderr  # sumo-gui's own lines held
     assert "sumo-gui refuses it: " in said[0] and words in said[0], said
     assert not (tmp_path / "run").exists()
+
+
+def test_replays_gui_flag_says_it_is_always_on(capsys):
+    """``twin replay --help`` listed --gui as a choice, which changed nothing: a replay is
+    always drawn (probe 26b's v03)."""
+    from twin.cli import main
+
+    with pytest.raises(SystemExit):
+        main(["replay", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "--gui (always on: a replay is drawn in sumo-gui" in text

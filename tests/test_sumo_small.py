@@ -209,6 +209,18 @@ OSM = """<?xml version="1.0" encoding="UTF-8"?>
 """
 
 
+def test_an_osm_extracts_network_is_named_after_all_its_name():
+    """``a.b.osm`` and ``a.c.osm`` both became ``a.net.xml``, ``.x.osm`` became ``.net.xml``
+    (probe 26b's v01)."""
+    from twin.sumo.network import osm_network_name
+
+    names = ["tiny.osm", "map.osm.gz", "map.osm.xml", "a.b.osm", "a.c.OSM", ".x.osm", "plain"]
+    assert [osm_network_name(Path(n)) for n in names] == [
+        "tiny.net.xml", "map.net.xml", "map.net.xml", "a.b.net.xml", "a.c.net.xml",
+        ".x.net.xml", "plain.net.xml",
+    ]  # fmt: skip
+
+
 def test_osm_import_and_sumocfg(small, tmp_path, monkeypatch):  # writes only under tmp_path
     from twin.sumo.network import import_osm
 

@@ -98,12 +98,15 @@ def add_parser(subparsers) -> None:
     p.set_defaults(func=main)
 
 
-def add_gui_arguments(p) -> None:
-    """``--gui``, ``--gui-swarms``, ``--gui-shade``, ``--record`` (``twin run``, ``twin replay``)."""
+def add_gui_arguments(p, always: bool = False) -> None:
+    """``--gui``, ``--gui-swarms``, ``--gui-shade``, ``--record`` (``twin run``, ``twin replay``);
+    ``always``: the command always draws in sumo-gui (``--gui`` is taken, and changes nothing)."""
     p.add_argument(
         "--gui",
         action="store_true",
-        help="watch it in sumo-gui (through traci; same simulation, same results); without a "
+        help="(always on: a replay is drawn in sumo-gui; without a display twin starts Xvfb)"
+        if always
+        else "watch it in sumo-gui (through traci; same simulation, same results); without a "
         "display twin starts Xvfb (apt-get install xvfb)",
     )
     p.add_argument(
