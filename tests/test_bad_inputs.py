@@ -383,6 +383,15 @@ def cfg(tmp_path: Path) -> Path:
     return path
 
 
+@pytest.fixture
+def tape_cfg(tmp_path: Path) -> Path:
+    """The small config on the grid of :func:`good_tape` (another grid is said in a notice)."""
+    path = tmp_path / "tape.toml"
+    path.write_text(SMALL.format(horizon=12).replace("nx = 6", f"nx = {NX}").replace(
+        "ny = 8", f"ny = {NY}"))  # fmt: skip
+    return path
+
+
 @pytest.mark.parametrize("case", list(TAPE_CASES))
 def test_bad_tape(tmp_path, capsys, cfg, case):
     make, needle = TAPE_CASES[case]
@@ -422,13 +431,13 @@ def test_tape_grid_against_the_config(tmp_path, capsys):
     run_case(capsys, tmp_path, [*argv, "--quiet", "--no-report"], out, 2, "differs from")
 
 
-def test_a_tape_short_of_its_horizon_is_a_partial_run(tmp_path, capsys, cfg):
+def test_a_tape_short_of_its_horizon_is_a_partial_run(tmp_path, capsys, tape_cfg):
     """A tape that stops at step 3 of 6 replays 3 steps, exits 1, and says it is partial: on
     stderr, in run.json and manifest.json, and in the first line of the report."""
     tape = tmp_path / "tape.parquet"
     good_tape(last=3).write(tape)
     out = tmp_path / "out"
-    argv = ["evaluate", "--config", str(cfg), "--traffic", str(tape), "--out", str(out)]
+    argv = ["evaluate", "--config", str(tape_cfg), "--traffic", str(tape), "--out", str(out)]
     run_case(capsys, tmp_path, [*argv, "--quiet", "--no-report"], out, 1, "partial run")
     manifest = check_run_folder(out)
     assert manifest["partial"] and "3 of 6" in manifest["partial_reason"]
@@ -762,11 +771,11 @@ def test_kill_9_never_leaves_a_folder_claiming_completeness(tmp_path, trigger):
     check_run_folder(out)
 
 
-def test_a_zero_step_run_is_partial_and_has_nothing_to_report(tmp_path, capsys, cfg):
+def test_a_zero_step_run_is_partial_and_has_nothing_to_report(tmp_path, capsys, tape_cfg):
     tape = tmp_path / "tape.parquet"
     good_tape(last=0).write(tape)  # T^0 only: not one step can run
     out = tmp_path / "out"
-    argv = ["evaluate", "--config", str(cfg), "--traffic", str(tape), "--out", str(out)]
+    argv = ["evaluate", "--config", str(tape_cfg), "--traffic", str(tape), "--out", str(out)]
     run_case(capsys, tmp_path, [*argv, "--quiet"], out, 1, "0 of 6 steps")
     assert check_run_folder(out)["partial"]
     run_case(capsys, tmp_path, ["report", str(out)], out, 2, "no step ran")

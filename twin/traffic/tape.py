@@ -594,8 +594,8 @@ class TapeTraffic(TrafficSource):
         """What of a SUMO ``config``'s own traffic the replay does not use, in words (empty
         when nothing it sets differs): the tape's horizon replaces the config's, and its
         recorded vehicles meet no incident; the incidents its own run applied are not scored.
-        (A synthetic config's traffic is replaced whole, as ``--traffic`` says, its explicit
-        grid too, which is said; a SUMO config's grid must be the tape's, :meth:`from_file`.)"""
+        (A synthetic config's traffic is replaced whole, as ``--traffic`` says; a SUMO
+        config's grid must be the tape's, :meth:`from_file`.)"""
         traffic, where, said = config.traffic, config.path.name, []
         recorded = self.tape.settings.get("incidents")
         if isinstance(recorded, list) and recorded:
@@ -604,11 +604,6 @@ class TapeTraffic(TrafficSource):
                         f"{'is' if one else 'are'} in its vehicles, but not scored as incidents "
                         "here (their detection and incidents.json come with `twin run`)")  # fmt: skip
         if traffic.kind != "sumo":
-            shape = config.explicit_shape()
-            if shape is not None and tuple(shape) != tuple(self.grid.shape):
-                said.append(f"its {self.grid.shape[0]} x {self.grid.shape[1]} grid replaces "
-                            f"{where}'s [grid] of {shape[0]} x {shape[1]} (a synthetic "
-                            "config's traffic and map give way to the tape's)")  # fmt: skip
             return said
         if "horizon" in traffic.model_fields_set and traffic.horizon != self.horizon:
             said.append(f"its T = {self.horizon} replaces {where}'s [traffic].horizon = "
