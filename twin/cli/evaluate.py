@@ -240,7 +240,10 @@ def say_grid_set_aside(config, tape) -> None:
     shape = config.explicit_shape()
     if config.traffic.kind != "synthetic" or shape is None:
         return
-    meta = read_tape_meta(tape)
+    try:
+        meta = read_tape_meta(tape)
+    except UserError:  # a tape that does not read: its replay refuses it in its own words
+        return
     if tuple(shape) != (meta["nx"], meta["ny"]):
         notify(
             f"twin: notice: {tape}: its {meta['nx']} x {meta['ny']} grid replaces "
