@@ -383,6 +383,15 @@ def cfg(tmp_path: Path) -> Path:
     return path
 
 
+@pytest.fixture
+def tape_cfg(tmp_path: Path) -> Path:
+    """The small config on the grid of :func:`good_tape` (another grid is said in a notice)."""
+    path = tmp_path / "tape.toml"
+    path.write_text(SMALL.format(horizon=12).replace("nx = 6", f"nx = {NX}").replace(
+        "ny = 8", f"ny = {NY}"))  # fmt: skip
+    return path
+
+
 @pytest.mark.parametrize("case", list(TAPE_CASES))
 def test_bad_tape(tmp_path, capsys, cfg, case):
     make, needle = TAPE_CASES[case]
@@ -422,13 +431,13 @@ def test_tape_grid_against_the_config(tmp_path, capsys):
     run_case(capsys, tmp_path, [*argv, "--quiet", "--no-report"], out, 2, "differs from")
 
 
-def test_a_tape_short_of_its_horizon_is_a_partial_run(tmp_path, capsys, cfg):
+def test_a_tape_short_of_its_horizon_is_a_partial_run(tmp_path, capsys, tape_cfg):
     """A tape that stops at step 3 of 6 replays 3 steps, exits 1, and says it is partial: on
     stderr, in run.json and manifest.json, and in the first line of the report."""
     tape = tmp_path / "tape.parquet"
     good_tape(last=3).write(tape)
     out = tmp_path / "out"
-    argv = ["evaluate", "--config", str(cfg), "--traffic", str(tape), "--out", str(out)]
+    argv = ["evaluate", "--config", str(tape_cfg), "--traffic", str(tape), "--out", str(out)]
     run_case(capsys, tmp_path, [*argv, "--quiet", "--no-report"], out, 1, "partial run")
     manifest = check_run_folder(out)
     assert manifest["partial"] and "3 of 6" in manifest["partial_reason"]
@@ -594,12 +603,14 @@ def _memory_cases(tmp_path: Path) -> dict[str, tuple[list[str], dict[str, str], 
         "tiny limit": (["--max-memory-gb", "1e-6"], {}, "= 1e-06 GB is below what this run takes"),
         "tiny env limit": ([], {"TWIN_MAX_MEMORY_GB": "1e-6"}, "= 1e-06 GB is below what this"),
         "a huge grid": (["--config", str(huge)], {}, "3000 x 4000 cells x 2000 steps"),
+        # probe 26's f02: the seeds, not the limit, are what to change
+        "too many seeds": (["--seeds", "1000000"], {}, "1000000 seeds need about"),
     }
 
 
 MEMORY_CASES = [
     "limit zero", "limit NaN", "limit negative", "env limit text", "tiny limit",
-    "tiny env limit", "a huge grid",
+    "tiny env limit", "a huge grid", "too many seeds",
 ]  # fmt: skip
 
 
@@ -612,6 +623,28 @@ def test_memory_refusal(tmp_path, capsys, monkeypatch, cfg, case):
     argv = ["evaluate", "--config", str(cfg), *extra, "--out", str(out), "--quiet", "--no-report"]
     run_case(capsys, tmp_path, argv, out, 2, needle)
     assert not out.exists()
+
+
+@pytest.mark.parametrize("workers", [1, 4])
+def test_too_many_seeds_are_refused_with_the_seeds_that_fit(tmp_path, workers):
+    """Seeds past the limit on any grid name the seeds that fit this run, on its workers, and
+    that many do (the count was the one-worker run's: the review of probe 26's fixes)."""
+    import re
+    from dataclasses import replace
+
+    from twin.config import load_config
+    from twin.errors import UserError
+    from twin.experiment import Experiment, check_memory
+
+    cfg = tmp_path / "s.toml"
+    cfg.write_text(SMALL.format(horizon=50))
+    experiment = Experiment(load_config(cfg), ["random", "greedy"], range(10**6), workers=workers)
+    with pytest.raises(UserError, match=r"give at most (\d+) --seeds \(6 x 8 cells") as info:
+        check_memory(experiment, (6, 8), 50)
+    fit = int(re.search(r"at most (\d+) --seeds", str(info.value)).group(1))
+    check_memory(replace(experiment, seeds=range(fit)), (6, 8), 50)
+    with pytest.raises(UserError, match=f"{fit + 1} seeds"):
+        check_memory(replace(experiment, seeds=range(fit + 1)), (6, 8), 50)
 
 
 def test_a_huge_sumo_grid_is_refused_with_a_cell_size(tmp_path):
@@ -738,11 +771,11 @@ def test_kill_9_never_leaves_a_folder_claiming_completeness(tmp_path, trigger):
     check_run_folder(out)
 
 
-def test_a_zero_step_run_is_partial_and_has_nothing_to_report(tmp_path, capsys, cfg):
+def test_a_zero_step_run_is_partial_and_has_nothing_to_report(tmp_path, capsys, tape_cfg):
     tape = tmp_path / "tape.parquet"
     good_tape(last=0).write(tape)  # T^0 only: not one step can run
     out = tmp_path / "out"
-    argv = ["evaluate", "--config", str(cfg), "--traffic", str(tape), "--out", str(out)]
+    argv = ["evaluate", "--config", str(tape_cfg), "--traffic", str(tape), "--out", str(out)]
     run_case(capsys, tmp_path, [*argv, "--quiet"], out, 1, "0 of 6 steps")
     assert check_run_folder(out)["partial"]
     run_case(capsys, tmp_path, ["report", str(out)], out, 2, "no step ran")
@@ -829,8 +862,27 @@ SWARM_OPTION_CASES = {
         "rl-decentralized]\neps = 2",
         "[swarm_options.rl-decentralized]: eps = 2",
     ),
-    "an epsilon of text": ('rl-decentralized]\neps = "x"', "cannot use a value of"),
-    "a discount of text": ('lookahead]\ndiscount = "a"', "cannot use a value of"),
+    "an epsilon of text": ('rl-decentralized]\neps = "x"', "eps = 'x' must be a number"),
+    "a discount of text": ('lookahead]\ndiscount = "a"', "discount = 'a' must be a number"),
+    # the learned swarms' options and lookahead's numbers were not checked: tracebacks once the
+    # run had begun, "false" read as true, a string read as a number (the review of probe 26)
+    "a batch of 0": ("rl-online]\nbatch_size = 0", "rl-online]: batch_size = 0 must be in 1.."),
+    "a negative batch": ("rl-online]\nbatch_size = -5", "batch_size = -5 must be in 1.."),
+    "a negative rate": ("rl-online]\nlr = -1.0", "lr = -1.0 must lie in (0, 1]"),
+    "negative iterations": ("rl-online]\nonline_iters = -3", "online_iters = -3 must be in"),
+    "an empty buffer": ("rl-online]\nbuffer_steps = 0", "buffer_steps = 0 must be in 1.."),
+    "a gamma of 50": ("rl-online]\ngamma = 50.0", "gamma = 50.0 must lie in [0, 1]"),
+    "a batch of text": ('rl-online]\nbatch_size = "32"', "batch_size = '32' must be an integer"),
+    "online as text": ('rl]\nonline = "false"', "online = 'false' must be true or false"),
+    "decentralized as text": ('rl]\ndecentralized = "no"', "decentralized = 'no' must be true"),
+    "a buffer past memory": (  # a 95 TiB buffer was "out of memory" (probe 26b's g03)
+        "rl-online]\nbuffer_steps = 1000000000000",
+        "buffer_steps = 1000000000000 must be in 1..1000000",
+    ),
+    "an outage of text": ('rl]\noutages = [["0", 3]]', "outage window ['0', 3] must be a pair"),
+    "an epsilon of true": ("rl-decentralized]\neps = true", "eps = True must be a number"),
+    "a discount as a string": ('lookahead]\ndiscount = "0.5"', "discount = '0.5' must be a"),
+    "an end weight of true": ("lookahead]\nend_weight = true", "end_weight = True must be a"),
 }
 
 
@@ -849,6 +901,19 @@ def test_a_bad_swarm_option_is_one_line_naming_the_table(tmp_path, capsys, case)
     err = capsys.readouterr().err.strip()
     assert code == 2 and "\n" not in err and "Traceback" not in err, err
     assert err.startswith(f"twin: error: {cfg}: ") and words in err, err
+
+
+def test_a_swarms_outages_past_the_horizon_are_refused(tmp_path, capsys):
+    """``outages`` of a learned swarm past T were taken silently, as [faults]'
+    coordinator_down is not (probe 26b's g04)."""
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(SMALL.format(horizon=6).replace('["random", "greedy"]', '["rl"]')
+                   + "[swarm_options.rl]\noutages = [[0, 7]]\n")  # fmt: skip
+    code = main(["evaluate", "--config", str(cfg), "--no-report", "--quiet", "--no-ceiling",
+                 "--out", str(tmp_path / "run")])  # fmt: skip
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "\n" not in err, err
+    assert "swarm 'rl': option outages has [0, 7] past the horizon T = 6; end it by 6" in err
 
 
 def test_a_bad_swarm_option_names_the_file_that_gives_it(tmp_path):

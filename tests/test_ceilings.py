@@ -196,6 +196,10 @@ def test_headroom_line():
     # ceiling broken (probe 25's f07)
     above = headroom(summary.assign(R_hat_T=[1.0, 3.0, 2.5, 4.0]))
     assert "best swarm b reaches 75.0% of the bound; oracle 62.5%; b is above the oracle" in above
+    # one trajectory summed in two orders (a 1 x 1 grid: every swarm is the oracle) is not
+    # "above" it (probe 26's u01)
+    rounding = headroom(summary.assign(R_hat_T=[0.01, 0.05425702510672, 0.05425702505136, 4.0]))
+    assert "above the oracle" not in rounding
     assert headroom(summary.iloc[:2]) is None
     nothing = summary.assign(R_hat_T=0.0)  # no vehicle on any step: 0/0 printed "nan%"
     assert headroom(nothing) == "Headroom (R_hat_T): none (the bound is 0.000: nothing to see)"

@@ -205,6 +205,36 @@ def test_a_runs_tape_replays_with_the_runs_swarm(tmp_path, capsys):
     assert replayed.to_dict() == pytest.approx(live.to_dict(), rel=1e-12)
 
 
+def test_a_tape_out_of_its_run_folder_says_whose_swarm_replays_it(tmp_path, capsys):
+    """A tape copied away from its run.json replays with the config's swarm: said in a
+    notice, as when the run.json is another run's (it was silent: probe 26's u05)."""
+    import shutil
+
+    run, _ = _small_sumo_run(tmp_path, capsys, "--drones", "2")
+    tape = tmp_path / "copied.parquet"
+    shutil.copy(run / "tape.parquet", tape)
+    argv = ["evaluate", "--traffic", str(tape), "--swarms", "random", "--no-ceiling"]
+    assert main([*argv, "--no-report", "--out", str(tmp_path / "ev")]) == 0
+    err = capsys.readouterr().err
+    assert f"no run.json beside {tape} (not in its run folder), so synthetic.toml's swarm" in err
+
+
+def test_a_synthetic_configs_grid_set_aside_by_a_tape_is_said(tmp_path, capsys):
+    """``--traffic TAPE --config C``: C's explicit [grid] gave way to the tape's silently, and
+    its starts were then refused as off "the 7 x 7 map" (probe 26b's g05)."""
+    run, _ = _small_sumo_run(tmp_path, capsys, "--drones", "2")  # a grid other than 6 x 8
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(
+        '[grid]\nnx = 6\nny = 8\n[swarm]\nn_drones = 2\n[traffic]\nkind = "synthetic"\n'
+        "horizon = 30\n"
+    )
+    argv = ["evaluate", "--traffic", str(run / "tape.parquet"), "--config", str(cfg)]
+    assert main([*argv, "--swarms", "random", "--no-ceiling", "--no-report", "--out",
+                 str(tmp_path / "ev")]) == 0  # fmt: skip
+    err = capsys.readouterr().err
+    assert "grid replaces c.toml's [grid] of 6 x 8" in err, err
+
+
 def _small_sumo_run(tmp_path, capsys, *extra):
     """A `twin run` of a small SUMO scenario (4 steps) in ``tmp_path/run``, and the display
     and swarm flags it took."""

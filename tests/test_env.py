@@ -121,6 +121,11 @@ def test_infeasible_actions_raise_before_the_source_moves_on():
         env.step({"drone_0": 0})
     with pytest.raises(ValueError, match="two drones on one cell"):
         SwarmParallelEnv(_synthetic(), starts=[[0, 0], [0, 0]])
+    # the joint env's error says how to make it take any action of its space (probe 26's u02)
+    joint = SwarmGymEnv(_synthetic(), starts=[[0, 0], [5, 7]])
+    joint.reset(seed=0)
+    with pytest.raises(InfeasibleActionError, match=r"action 1 \(up\) .*infeasible=\"stay\""):
+        joint.step([1, 0])
 
 
 def test_make_env_from_the_shipped_synthetic_config():
@@ -187,6 +192,8 @@ def test_make_env_refuses_bad_options_in_one_line(joint):
         ({"starts": [[0, 0], [1, 1]], "n_drones": 4}, "starts gives 2 cells"),
         ({"starts": [["0", "0"]]}, r"starts must be \(N, 2\) whole-number cells .*not text"),
         ({"starts": np.array([["1", "2"]])}, "not text"),
+        ({"starts": [[1e300, 0.0]]}, r"starts\[0\] = \(1e\+300, 0\) is off the"),  # not 301 digits
+        ({"starts": [[1234567, 0]]}, r"starts\[0\] = \(1234567, 0\) is off the"),  # as given
         ({"colour": "red"}, r"make_env\(colour=\.\.\.\) is not an option"),
         ({"params": {"eta": 2}}, r"params = \{'eta': 2\} is not a ScoreParams"),
         (

@@ -280,6 +280,12 @@ def test_gui_swarms_without_the_gui_says_it_draws_nothing(capsys):
     args.gui = True
     gui_drawer(args, ["random", "rl"])
     assert "draws nothing" not in capsys.readouterr().err
+    # --gui-shade alike (the review of probe 26); its default is belief
+    args = argparse.Namespace(gui=False, record=None, gui_swarms=None, gui_shade="truth")
+    assert gui_drawer(args, ["random", "rl"]) is None
+    assert "--gui-shade truth: draws nothing without --gui or --record" in capsys.readouterr().err
+    args = argparse.Namespace(gui=True, record=None, gui_swarms=None, gui_shade=None)
+    assert gui_drawer(args, ["random", "rl"]).settings.shade == "belief"
 
 
 def test_meso_roads_are_drawn_in_one_colour():
@@ -400,3 +406,14 @@ def test_sumo_gui_refusing_a_scenario_is_one_line_with_its_reason(scenario, tmp_
     assert done.returncode == 2 and len(said) == 1, done.stderr  # sumo-gui's own lines held
     assert "sumo-gui refuses it: " in said[0] and words in said[0], said
     assert not (tmp_path / "run").exists()
+
+
+def test_replays_gui_flag_says_it_is_always_on(capsys):
+    """``twin replay --help`` listed --gui as a choice, which changed nothing: a replay is
+    always drawn (probe 26b's v03)."""
+    from twin.cli import main
+
+    with pytest.raises(SystemExit):
+        main(["replay", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "--gui (always on: a replay is drawn in sumo-gui" in text

@@ -112,6 +112,7 @@ LAYERS: list[tuple[str, list[str]]] = [
             "twin.timing",
             "twin.clock",
             "twin.seeds",
+            "twin.cache_place",
             "twin.outputs",
             "twin.resources",
             "twin.executors",

@@ -179,6 +179,19 @@ BROKEN_ENTRIES = {
 }
 
 
+def test_a_whole_xml_file_may_end_with_a_comment(tmp_path):
+    """A comment or processing instruction after the closing tag is whole XML, as SUMO reads
+    it (it was called cut short: probe 26's u03)."""
+    _xml_entry(tmp_path)
+    with open(tmp_path / "a.net.xml", "a") as f:
+        f.write("<!-- edited\n by hand -->\n<?stamp x?>\n")
+    _verify(tmp_path)
+    with open(tmp_path / "a.net.xml", "a") as f:  # what follows the comments is no XML
+        f.write("<!---->" * 30 + "<edge")
+    with pytest.raises(resources.BrokenEntry, match=r"a\.net\.xml is cut short"):
+        _verify(tmp_path)
+
+
 @pytest.mark.parametrize("case", list(BROKEN_ENTRIES))
 def test_a_broken_cache_entry_is_rebuilt_and_reported(tmp_path, capsys, case):
     damage, needle = BROKEN_ENTRIES[case]

@@ -857,6 +857,26 @@ def test_a_config_seed_replaced_by_twins_is_said(scenario, tmp_path, capsys):
     assert "<seed value='42'> is replaced by twin's SUMO seed" in err, err
 
 
+def test_a_step_length_that_is_no_number_is_refused_as_sumo_does(scenario, tmp_path, capsys):
+    """``<step-length value="abc"/>``, which SUMO refuses, ran silently (the review of probe
+    26); a number other than twin's step is run at twin's with a notice."""
+    cfg = _detector_case(scenario, tmp_path / "case")
+    text = cfg.read_text()
+    cfg.write_text(text.replace("</input>", '</input><time><step-length value="abc"/></time>'))
+    out = tmp_path / "run"
+    assert _run(scenario, out, "--sumocfg", str(cfg)) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "<step-length value='abc'> is not a number" in err, err
+    assert str(cfg) in err and not out.exists()
+    cfg.write_text(text.replace("</input>", '</input><time><step-length value="0.5"/></time>'))
+    assert _run(scenario, out, "--sumocfg", str(cfg)) == 0
+    assert "<step-length value='0.5'> is run as SUMO steps of 1 s" in capsys.readouterr().err
+    # SUMO's clock form is a time SUMO takes (the review of probe 26's fixes)
+    cfg.write_text(text.replace("</input>", '</input><time><step-length value="0:00:01"/></time>'))
+    assert _run(scenario, tmp_path / "clock", "--sumocfg", str(cfg)) == 0
+    assert "step-length" not in capsys.readouterr().err
+
+
 TIME = r"\d{4}(-\d\d){5}"  # SUMO replaces TIME in a prefix or suffix by the date and time
 # <option value> of the sumocfg ({root}: the folder holding the scenario's folder) -> the pattern
 # of the names SUMO writes in RUN/sumo/ for det.xml and trips.xml (NAME: det or trips)
@@ -1482,6 +1502,38 @@ def test_a_network_randomtrips_cannot_use_is_one_line_with_a_fix(tmp_path, capsy
     assert code == 2 and "\n" not in err, err
     assert err.startswith("twin: error: randomTrips.py on") and "one.net.xml" in err, err
     assert err.endswith("give your own (--routes, or a sumocfg's routes)"), err
+
+
+def test_a_network_whose_generated_trips_all_fail_to_route_is_one_line(tmp_path, capsys):
+    """Two 3 x 3 grids of 200 m blocks, 3 km apart: randomTrips' trips of 500 m or more all go
+    from one to the other, and its --validate drops every one; the run had no demand and only
+    said its importance was 0 (probe 26's f01)."""
+    nodes, edges = [], []
+    for part, x0 in (("L", 0), ("R", 3000)):
+        for a in range(3):
+            for b in range(3):
+                nodes.append(f'<node id="{part}{a}{b}" x="{x0 + 200 * a}" y="{200 * b}"/>')
+                for da, db, tag in ((1, 0, "x"), (0, 1, "y")):
+                    if a + da < 3 and b + db < 3:
+                        there = f"{part}{a + da}{b + db}"
+                        edges.append(f'<edge id="{part}{a}{b}{tag}" from="{part}{a}{b}" '
+                                     f'to="{there}" numLanes="1" speed="13"/>')  # fmt: skip
+                        edges.append(f'<edge id="{part}{a}{b}{tag}r" from="{there}" '
+                                     f'to="{part}{a}{b}" numLanes="1" speed="13"/>')  # fmt: skip
+    (tmp_path / "two.nod.xml").write_text("<nodes>" + "".join(nodes) + "</nodes>")
+    (tmp_path / "two.edg.xml").write_text("<edges>" + "".join(edges) + "</edges>")
+    net = tmp_path / "two.net.xml"
+    subprocess.run([binary("netconvert"), "-n", str(tmp_path / "two.nod.xml"), "-e",
+                    str(tmp_path / "two.edg.xml"), "-o", str(net)], check=True,
+                   capture_output=True)  # fmt: skip
+    code = main(["run", "--net", str(net), "--cell-m", "100", "--drones", "1", "--swarms",
+                 "random", "--horizon", "4", "--no-ceiling", "--no-report", "--quiet",
+                 "--out", str(tmp_path / "run")])  # fmt: skip
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "\n" not in err, err
+    assert "two.net.xml: none of its trips (500 m or longer" in err, err
+    assert err.endswith("give your own (--routes, or a sumocfg's routes)"), err
+    assert not (tmp_path / "run").exists()
 
 
 def test_demand_is_generated_on_a_network_of_fringe_edges_only(tmp_path, capsys):

@@ -132,6 +132,26 @@ def test_sumo_failure_mid_run_keeps_partial_results(small, tmp_path, monkeypatch
     assert series["step"].max() == 1
 
 
+def test_a_swarms_own_failure_is_no_partial_run_of_the_simulation(
+    small, tmp_path, monkeypatch, capsys
+):
+    """A swarm that fails (rl-online's optimizer on a torch cache it cannot make) is not the
+    simulation crashing: one line, not a partial run of no seed that ended in an internal
+    KeyError (probe 26's f06)."""
+    from twin.policies import RandomPolicy
+
+    def failing(self, grid, n_drones, rng):
+        raise NotADirectoryError(20, "Not a directory", "/a/file/t")
+
+    monkeypatch.setattr(RandomPolicy, "reset", failing)
+    out = tmp_path / "run"
+    code = twin_main(["run", "--config", str(small / "small.toml"), "--out", str(out),
+                      "--swarms", "greedy,random", "--no-report", "--quiet"])  # fmt: skip
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and "/a/file/t: Not a directory" in err[-1], err
+    assert "internal error" not in err[-1] and SumoSession._active is None
+
+
 def test_bad_files_give_one_line_errors(small, tmp_path, capsys):
     cfg = str(small / "small.toml")
     broken = tmp_path / "broken.net.xml"
@@ -187,6 +207,18 @@ OSM = """<?xml version="1.0" encoding="UTF-8"?>
     <tag k="highway" v="secondary"/></way>
 </osm>
 """
+
+
+def test_an_osm_extracts_network_is_named_after_all_its_name():
+    """``a.b.osm`` and ``a.c.osm`` both became ``a.net.xml``, ``.x.osm`` became ``.net.xml``
+    (probe 26b's v01)."""
+    from twin.sumo.network import osm_network_name
+
+    names = ["tiny.osm", "map.osm.gz", "map.osm.xml", "a.b.osm", "a.c.OSM", ".x.osm", "plain"]
+    assert [osm_network_name(Path(n)) for n in names] == [
+        "tiny.net.xml", "map.net.xml", "map.net.xml", "a.b.net.xml", "a.c.net.xml",
+        ".x.net.xml", "plain.net.xml",
+    ]  # fmt: skip
 
 
 def test_osm_import_and_sumocfg(small, tmp_path, monkeypatch):  # writes only under tmp_path

@@ -462,7 +462,8 @@ def test_killed_sweep_resumes(tmp_path: Path) -> None:
         (
             '[sweep]\nswarms = ["greedy"]\n[[scenario]]\nname = "a"\nconfig = "scenario.toml"\n'
             '[parameters]\n"n_drones" = [1]\n',
-            "overrides reach the grid, swarm, traffic, evaluate tables",
+            # once, not twice (the review of probe 26)
+            "[parameters].'n_drones': overrides reach the grid, swarm, traffic, evaluate tables",
         ),
         (
             '[sweep]\nswarms = ["greedy"]\n[[scenario]]\nname = "a"\nconfig = "scenario.toml"\n'
@@ -562,6 +563,30 @@ def test_bad_parameter_value_fails_before_any_cell_runs(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize(
+    ("swarm", "table", "said"),
+    [
+        ("lookahead", "discount = 2.0", "[swarm_options.lookahead]: discount = 2.0 must lie in"),
+        ("lookahead", "wieght = 1", "[swarm_options.lookahead] has an option 'wieght'"),
+        ("rl-online", "batch_size = 0", "[swarm_options.rl-online]: batch_size = 0 must be in"),
+    ],
+)
+def test_a_bad_option_of_the_sweeps_own_swarm_options_is_refused_before_any_cell(
+    swarm, table, said, tmp_path: Path, capsys
+) -> None:
+    """A swarm option the sweep file's [swarm_options] gives and the swarm refuses failed every
+    cell as it ran, naming neither the file nor its table (the review of probe 26's fixes):
+    one line naming both, before any folder is made."""
+    path = sweep_file(tmp_path, seeds=1, horizon=4)
+    text = path.read_text().replace('"sweeping"]', f'"{swarm}"]')
+    path.write_text(text + f"\n[swarm_options.{swarm}]\n{table}\n")
+    out = tmp_path / "s"
+    assert cli(["sweep", "--config", str(path), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and err.startswith(f"twin: error: {path}: {said}"), err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize(
     ("parameters", "overrides", "said"),
     [
         ('"swarm.n_drones" = [3, -3]', "", "[parameters].'swarm.n_drones' = -3 must be >= 1"),
@@ -588,7 +613,16 @@ def test_a_refused_sweep_key_is_named_in_the_sweep_file(
     assert not (tmp_path / "s").exists()
 
 
-def test_failing_cells_are_reported_and_rerun(tmp_path: Path, capsys) -> None:
+def _cell_failing_as_it_runs(cell):
+    """A sweep cell's run that fails (in a worker process: a function it can import)."""
+    raise UserError(f"cell {cell['id']} failed as it ran")
+
+
+def test_failing_cells_are_reported_and_rerun(tmp_path: Path, capsys, monkeypatch) -> None:
+    """A checkpoint that cannot load is refused before any cell (each cell failed on it); cells
+    that fail as they run are listed, and a rerun runs them again."""
+    import twin.sweep.runner as runner
+
     path = sweep_file(tmp_path, seeds=2)
     (tmp_path / "broken.pt").write_bytes(b"not a checkpoint")
     text = path.read_text().replace('"sweeping"]', '"sweeping", "rl"]')
@@ -596,9 +630,14 @@ def test_failing_cells_are_reported_and_rerun(tmp_path: Path, capsys) -> None:
     args = ["sweep", "--config", str(path), "--out", str(tmp_path / "s"), "--workers", "1"]
     assert cli(args) == 2
     err = capsys.readouterr().err
-    assert "2 of 2 cells failed" in err and "broken.pt" in err and err.count("\n") == 1
+    assert "broken.pt" in err and err.count("\n") == 1 and not (tmp_path / "s").exists()
+    tiny_checkpoint(tmp_path / "broken.pt")  # fixed
+    monkeypatch.setattr(runner, "run_cell", _cell_failing_as_it_runs)
+    assert cli(args) == 2
+    err = capsys.readouterr().err
+    assert "2 of 2 cells failed" in err and "failed as it ran" in err and err.count("\n") == 1
     assert len(json.loads((tmp_path / "s" / "failed.json").read_text())) == 2
-    tiny_checkpoint(tmp_path / "broken.pt")  # fixed: a new file, so new cell ids
+    monkeypatch.undo()
     assert cli(args) == 0
     assert not (tmp_path / "s" / "failed.json").exists()
     assert set(pd.read_csv(tmp_path / "s" / "results.csv")["swarm"]) >= {"rl"}
@@ -864,13 +903,15 @@ def test_a_link_out_of_the_sweep_folder_is_refused(tmp_path: Path, capsys, link)
     path = sweep_file(tmp_path, seeds=1, horizon=4)
     outside, out = tmp_path / "outside", tmp_path / "s"
     outside.mkdir()
-    out.mkdir()
+    (out / "cells").mkdir(parents=True)  # a sweep's folder, which the link was planted in
+    if link == "cells":
+        (out / "cells").rmdir()
     (out / link).symlink_to(outside if "." not in link else outside / "victim.txt")
     assert cli(["sweep", "--config", str(path), "--out", str(out), "--quiet"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and f"{out / link} is a symbolic link out of the folder" in err
     assert not any(outside.iterdir())
-    assert sorted(p.name for p in out.iterdir()) == [link]
+    assert sorted(p.name for p in out.iterdir()) == sorted({link, "cells"})
 
 
 def test_the_memory_limit_of_a_sweep_bounds_its_cells(tmp_path: Path, capsys) -> None:

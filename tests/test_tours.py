@@ -73,6 +73,24 @@ def test_period_follows_eta_and_delta():
     assert best_period(flat, 4, slow) > 80
 
 
+def test_period_past_the_covering_one_gains_nothing_and_is_not_searched():
+    """The best period's gain per step is the best of every period up to saturation, also when
+    the tours hold every cell sooner; a tiny delta (saturation after 10^9 steps) is searched
+    only up to the covering period (it took 8 GB and minutes: probe 26b's g01)."""
+    rng = np.random.default_rng(0)
+    weights = np.sort(rng.random(48))[::-1]
+
+    def rate(p: int, params: ScoreParams) -> float:  # as best_period weighs a period
+        count = min(p * 4, len(weights))
+        return weights[:count].mean() * visit_gain_factor(p, params) * min(1.0, 48 / (p * 4))
+
+    best = best_period(weights, 4, PARAMS)
+    assert best <= 12 < saturation_period(PARAMS)
+    every = max(rate(p, PARAMS) for p in range(1, saturation_period(PARAMS) + 1))
+    assert rate(best, PARAMS) == pytest.approx(every, rel=1e-12)
+    assert best_period(weights, 4, ScoreParams(delta=1e-9)) <= 12
+
+
 def test_walks_are_closed_and_step_between_neighbours():
     grid = Grid(np.zeros((12, 12), dtype=bool))
     obstacles = np.zeros((12, 12), dtype=bool)

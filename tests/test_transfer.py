@@ -110,13 +110,22 @@ def test_tiny_matrix_end_to_end_and_pool_equals_sequential(tmp_path: Path) -> No
     html = report.read_text()
     assert "heatmap" in html and (sequential / "report" / "heatmap.png").stat().st_size > 0
 
-    # a rerun trains nothing and runs no cell again
+    def rerun_does_nothing(folder: Path, row: str) -> None:
+        """A rerun into ``folder`` trains no row (``row``'s model untouched) and runs no cell."""
+        model = folder / "rows" / row / "qnet.pt"
+        stamp = model.stat().st_mtime_ns
+        run_transfer(config, folder, workers=1)
+        assert model.stat().st_mtime_ns == stamp
+        manifest = json.loads((folder / "sweep" / "sweep.json").read_text())
+        assert manifest["invocations"][-1]["ran"] == 0
+
+    rerun_does_nothing(sequential, "paper")
+    # a folder moved is still its own (its rows' provenance named the old folder, and every
+    # row was trained again: probe 26b's g02)
+    pool.rename(tmp_path / "moved")
+    rerun_does_nothing(tmp_path / "moved", "paper+tapes")
     model = sequential / "rows" / "paper" / "qnet.pt"
     stamp = model.stat().st_mtime_ns
-    run_transfer(config, sequential, workers=1)
-    assert model.stat().st_mtime_ns == stamp
-    manifest = json.loads((sequential / "sweep" / "sweep.json").read_text())
-    assert manifest["invocations"][-1]["ran"] == 0
 
     # the tapes' route file edited: the tapes are recorded again, the row fine-tuned on them
     # trained again, the SUMO column's cells run again; the paper row stays (probe 13's P2-f01b:

@@ -29,7 +29,7 @@ import sys
 import threading
 import traceback
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -58,7 +58,7 @@ LOG_NAME = "error.log"
 #: the longest message printed (a huge value quoted in an exception stays on one screen line)
 MAX_MESSAGE = 600
 
-_state: dict[str, Any] = {"run_folder": None, "lock": None, "argv": None}
+_state: dict[str, Any] = {"run_folder": None, "locks": {}, "argv": None}
 
 
 def set_command_line(argv: list[str] | None) -> None:
@@ -84,18 +84,18 @@ def set_run_folder(path: Path | None) -> None:
         _release_lock()
 
 
-def claim_run_folder(path: Path, flag: str = "--out") -> None:
+def claim_run_folder(path: Path, flag: str = "--out", another: str | None = None) -> None:
     """Lock the existing folder ``path`` for the current command (an exclusive ``flock`` on
     the folder itself, held until the command ends or its process exits): a second command
     writing into the same folder at once is refused in one line instead of mixing its files
-    with the first's. Claiming the folder already held does nothing."""
+    with the first's. Claiming a folder already held does nothing; a command may hold several
+    (a transfer's folder and its sweep's). ``another``: how to give another folder (default:
+    pass another ``flag``)."""
     import fcntl
 
     path = Path(path)
-    held = _state["lock"]
-    if held is not None and held[0] == path.resolve():
+    if path.resolve() in _state["locks"]:
         return
-    _release_lock()
     fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -103,9 +103,9 @@ def claim_run_folder(path: Path, flag: str = "--out") -> None:
         os.close(fd)
         raise UserError(
             f"{flag} {path}: another twin command is writing into this folder now; wait for it "
-            f"to end or pass another {flag}"
+            f"to end or {another or f'pass another {flag}'}"
         ) from None
-    _state["lock"] = (path.resolve(), fd)
+    _state["locks"][path.resolve()] = fd
 
 
 def written_by_another(path: Path) -> bool:
@@ -113,8 +113,7 @@ def written_by_another(path: Path) -> bool:
     writing into it."""
     import fcntl
 
-    held = _state["lock"]
-    if held is not None and held[0] == Path(path).resolve():
+    if Path(path).resolve() in _state["locks"]:
         return False  # this command's own
     try:
         fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
@@ -131,11 +130,44 @@ def written_by_another(path: Path) -> bool:
     return False
 
 
+@contextlib.contextmanager
+def folder_claimed(path: Path, flag: str = "--out") -> Iterator[None]:
+    """:func:`claim_run_folder` for the block, released after it unless it was held before
+    (a command's own folder stays held until the command ends): a function of the Python API
+    (a sweep, a transfer) holds its folder only while it writes there."""
+    key = Path(path).resolve()
+    before = key in _state["locks"]
+    claim_run_folder(path, flag)
+    try:
+        yield
+    finally:
+        if not before:
+            fd = _state["locks"].pop(key, None)
+            if fd is not None:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+
+
+def claim_new_folder(path: Path, flag: str = "--out", another: str | None = None) -> bool:
+    """Create the output folder ``path`` if need be and lock it (:func:`claim_run_folder`):
+    a command whose other checks passed, before it reads or writes anything there. Whether
+    this made the folder."""
+    path = Path(path)
+    made = not path.exists()
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"{flag} {path}: cannot create the folder ({exc.strerror})") from None
+    claim_run_folder(path, flag, another)
+    return made
+
+
 def _release_lock() -> None:
-    held, _state["lock"] = _state["lock"], None
-    if held is not None:
+    """Release every folder this command locked."""
+    held, _state["locks"] = _state["locks"], {}
+    for fd in held.values():
         with contextlib.suppress(OSError):
-            os.close(held[1])
+            os.close(fd)
 
 
 def run_folder() -> Path | None:

@@ -20,7 +20,9 @@ results tables with ``role = "ceiling"``, never candidates for the best swarm.
 
       R_hat_T * T <= L(lambda) = sum_c V_c(lambda) + sum_k max(N lambda_k, lambda_k),
 
-  so the bound is the smallest ``L`` the subgradient steps find, divided by ``T``.
+  so the bound is the smallest ``L`` the subgradient steps find, divided by ``T``. The
+  relaxation has a gap of its own besides the moves: on a 1 x 2 grid with two drones (every
+  cell visited every step, moves irrelevant) it lies well above the only possible score.
 - :func:`oracle`, "oracle (ceiling)": real swarms (moves, the coordinator's distinct cells)
   planned on the true maps, the row being the best of them on each seed (:data:`ORACLE_SWARMS`):
   the look-ahead on the true future maps with an end value for the idleness a path leaves

@@ -51,7 +51,15 @@ from twin.grid import N_ACTIONS
 from twin.notices import once_among
 from twin.scores import ScoreParams
 from twin.states import DEFAULT_STATE, state_variant
-from twin.swarm import StepOutcome, SwarmState, check_actions, initial_state, random_starts, step
+from twin.swarm import (
+    InfeasibleActionError,
+    StepOutcome,
+    SwarmState,
+    check_actions,
+    initial_state,
+    random_starts,
+    step,
+)
 from twin.traffic.base import TrafficSource
 
 SourceLike = TrafficSource | Callable[[], TrafficSource]
@@ -395,7 +403,7 @@ class SwarmParallelEnv(ParallelEnv):
         inside = (raw[:, 0] >= 0) & (raw[:, 0] < nx) & (raw[:, 1] >= 0) & (raw[:, 1] < ny)
         if not inside.all():
             d = int(np.flatnonzero(~inside)[0])
-            i, j = (int(v) for v in raw[d])
+            i, j = (f"{v:.0f}" if abs(v) < 1e15 else f"{v:g}" for v in raw[d])  # not 301 digits
             raise EnvInputError(
                 f"starts[{d}] = ({i}, {j}) is off the {nx} x {ny} grid; every start must be a "
                 "free cell on the map"
@@ -458,7 +466,14 @@ class SwarmGymEnv(gymnasium.Env):
         if self.infeasible == "stay" and env.swarm is not None and action.shape == (env.n_drones,):
             ok = env.swarm.feasible[np.arange(env.n_drones), action]
             action = np.where(ok, action, 0)
-        out = env._advance(action)
+        try:
+            out = env._advance(action)
+        except InfeasibleActionError as error:  # a MultiDiscrete sample can be one
+            raise InfeasibleActionError(
+                f"{error}; choose among info['action_mask'], or make the env with "
+                'infeasible="stay" (for algorithms that cannot mask actions, and for '
+                "Gymnasium's check_env)"
+            ) from None
         info = self._info()
         info.update(
             rewards=out.rewards.copy(),

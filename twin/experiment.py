@@ -23,7 +23,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -801,7 +801,12 @@ def n_workers(experiment: Experiment) -> int:
     return min(experiment.workers, len(experiment.seeds))
 
 
-def check_resources(experiment: Experiment, out: Path, flag: str = "--out") -> None:
+def check_resources(
+    experiment: Experiment,
+    out: Path,
+    flag: str = "--out",
+    owner: Callable[[Path], None] | None = None,
+) -> None:
     """Before any folder is made: the memory estimate of a run whose grid is known from its
     config or tape (:func:`check_memory`), or a live run's scratch folder in the cache
     (:func:`twin.resources.scratch_dir`), then the output folder (:func:`disk_estimate_mb`;
@@ -815,7 +820,7 @@ def check_resources(experiment: Experiment, out: Path, flag: str = "--out") -> N
         from twin.resources import scratch_dir
 
         scratch_dir()
-    check_output_dir(out, flag, disk_estimate_mb(experiment))
+    check_output_dir(out, flag, disk_estimate_mb(experiment), owner=owner)
 
 
 def disk_estimate_mb(experiment: Experiment) -> float:
@@ -873,6 +878,17 @@ def check_memory(
         on, fewer = (
             (f" on {workers} workers", "use fewer --workers or ") if workers > 1 else ("", "")
         )
+        at_once = max(workers, 1)  # fewer seeds than workers would only be fewer workers
+        fit = 0
+        if len(experiment.seeds) > at_once:
+            fit = _seeds_that_fit(experiment, limit, shape, horizon, warmup, live)
+        if fit >= at_once:  # the seeds themselves are what is past the limit
+            raise UserError(
+                f"{len(experiment.seeds)} seeds need about {_gb(floor)} GB even on 1 x 1 cells "
+                f"and 1 step{on}, over the --max-memory-gb / ${MEMORY_ENV} = {limit:g} GB limit; "
+                f"give at most {fit} --seeds ({shape[0]} x {shape[1]} cells x {horizon} steps)"
+                f"{', fewer --workers' if workers > 1 else ''}, or raise the limit"
+            )
         raise UserError(
             f"--max-memory-gb / ${MEMORY_ENV} = {limit:g} GB is below what this run takes on "
             f"any grid{on} (about {_gb(floor)} GB on 1 x 1 cells and 1 step); {fewer}raise it"
@@ -888,6 +904,30 @@ def check_memory(
         f"{len(experiment.seeds)} seeds{on} need about {_gb(need)} GB, over the "
         f"{limit:g} GB limit; use {hint}{fewer}, or raise --max-memory-gb / ${MEMORY_ENV}"
     )
+
+
+def _seeds_that_fit(
+    experiment: Experiment,
+    limit: float,
+    shape: tuple[int, int],
+    horizon: int,
+    warmup: int,
+    live: bool,
+) -> int:
+    """The most of the experiment's seeds (its first ones) that fit the limit on this grid and
+    horizon, on its workers (0: not one): the estimate grows with the seeds."""
+    seeds = list(experiment.seeds)
+
+    def fits(n: int) -> bool:
+        need = estimate_memory(replace(experiment, seeds=seeds[:n]), shape, horizon, warmup,
+                               live=live)  # fmt: skip
+        return need <= limit * 1e9
+
+    low, high = 0, len(seeds)  # fits(low) holds (no seed), fits(high) is what is asked
+    while high - low > 1:
+        mid = (low + high) // 2
+        low, high = (mid, high) if fits(mid) else (low, mid)
+    return high if fits(high) else low
 
 
 def _gb(n_bytes: float) -> str:

@@ -191,6 +191,21 @@ def jsonable(value: Any) -> Any:
 _HASHES: dict[tuple[str, int, int], str] = {}
 
 
+def rebased(value: Any, old: str | Path, new: str | Path) -> Any:
+    """``value`` (JSON data) with every path in the folder ``old`` (a string, or a key) given
+    in ``new`` instead: a record of a folder that moved, read as of its new place."""
+    old, new = str(old), str(new)
+    if old == new:
+        return value
+    if isinstance(value, dict):
+        return {rebased(k, old, new): rebased(v, old, new) for k, v in value.items()}
+    if isinstance(value, list):
+        return [rebased(v, old, new) for v in value]
+    if isinstance(value, str) and value.startswith(f"{old}/"):
+        return f"{new}/{value.removeprefix(f'{old}/')}"
+    return value
+
+
 def file_sha256(path: str | Path) -> str:
     """The sha256 of a file, read in blocks; remembered per path, size and modification time
     (a run's seeds hash each input once). A pipe or device (``/dev/zero``, a FIFO named in a

@@ -22,12 +22,12 @@ def parse_outages(outages: Sequence[Sequence[int]] | None) -> list[tuple[int, in
     """Step windows ``[start, stop)`` without coordinator, checked."""
     windows = []
     for w in outages or ():
-        try:
-            start, stop = (int(x) for x in w)
-        except (TypeError, ValueError):
-            raise UserError(
-                f"outage window {w!r} must be a pair [start, stop] of step numbers"
-            ) from None
+        pair = list(w) if isinstance(w, list | tuple) else []
+        if len(pair) != 2 or not all(
+            isinstance(x, int | np.integer) and not isinstance(x, bool) for x in pair
+        ):  # "3" and 1.5 are no step numbers
+            raise UserError(f"outage window {w!r} must be a pair [start, stop] of step numbers")
+        start, stop = (int(x) for x in pair)
         if not 0 <= start < stop:
             raise UserError(f"outage window {w!r} needs 0 <= start < stop")
         windows.append((start, stop))

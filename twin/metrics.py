@@ -307,7 +307,8 @@ def headroom(summary: pd.DataFrame, column: str = "R_hat_T") -> str | None:
     text = f"best swarm {best} reaches {swarms[best] / ceilings[BOUND]:.1%} of the bound"
     if ORACLE in ceilings and np.isfinite(ceilings[ORACLE]):
         text += f"; oracle {ceilings[ORACLE] / ceilings[BOUND]:.1%}"
-        if swarms[best] > ceilings[ORACLE]:  # the oracle is a real swarm, not a bound
+        oracle = ceilings[ORACLE]  # a real swarm, not a bound; equal up to rounding is equal
+        if swarms[best] > oracle and not np.isclose(swarms[best], oracle, rtol=1e-6, atol=0):
             text += (
                 f"; {best} is above the oracle (the best of the planners told the true maps, "
                 "a swarm that can be beaten; the bound cannot)"

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 from twin.errors import UserError
@@ -33,12 +34,20 @@ def _existing_ancestor(path: Path) -> Path:
 
 
 def check_output_dir(
-    path: str | Path, flag: str = "--out", need_mb: float = MIN_FREE_MB, links_out: bool = False
+    path: str | Path,
+    flag: str = "--out",
+    need_mb: float = MIN_FREE_MB,
+    links_out: bool = False,
+    owner: Callable[[Path], None] | None = None,
+    in_cache: bool = False,
 ) -> Path:
     """Refuse an output folder ``path`` twin cannot create or write into (one line naming
-    ``flag``), or one holding a symbolic link out of it unless ``links_out`` (the cache's
-    entries may live on another disk); it need not exist yet (nothing is created here but, on
-    a file system that reports no size, a probe folder removed at once)."""
+    ``flag``), one inside twin's cache (unless ``in_cache``: the cache's own), or one holding a
+    symbolic link out of it unless ``links_out`` (the cache's entries may live on another disk;
+    a command that writes one new file). ``owner``, the command's own check of what an
+    existing folder holds, runs before its tree is walked (a user's project folder is refused
+    as not the command's, not for a link in it). It need not exist yet (nothing is created
+    here but, on a file system that reports no size, a probe folder removed at once)."""
     path = Path(path)
     _check_name(path, flag)
     if path.exists() and not path.is_dir():
@@ -53,9 +62,41 @@ def check_output_dir(
         )
     _check_writable(base, path, flag)
     _check_free(base, path, flag, need_mb)
+    if not in_cache:
+        _check_not_in_cache(path, flag)
+    if path.is_dir() and owner is not None:
+        owner(path)
     if path.is_dir() and not links_out:
         _check_no_link_out(path, flag)
     return path
+
+
+def _check_not_in_cache(path: Path, flag: str) -> None:
+    """Refuse an output folder that is twin's cache or lies in one of the folders twin keeps
+    there (:data:`twin.resources.CACHE_FOLDERS`): the cache rebuilds (deletes) an entry it
+    finds damaged, with whatever a user put in it. A work folder beside them in a cache that
+    is a whole scratch disk (``$TWIN_CACHE_DIR=$SCRATCH``) is the user's."""
+    from twin.cache_place import CACHE_FOLDERS, cache_dir
+
+    try:
+        cache = cache_dir().resolve()
+    except UserError:  # a bad $TWIN_CACHE_DIR is refused by the commands that use it
+        return
+    target = path.resolve()
+    if target == cache or any(target.is_relative_to(cache / f) for f in CACHE_FOLDERS):
+        raise UserError(
+            f"{flag} {path}: lies in twin's cache ({cache}), whose entries twin deletes and "
+            "rebuilds; pass a folder outside it"
+        )
+
+
+def _resolves_inside(link: Path, root: Path) -> bool:
+    """Whether the symbolic link ``link`` leads inside ``root`` (one that cannot be followed,
+    a loop or a target twin may not read, does not)."""
+    try:
+        return link.resolve().is_relative_to(root)
+    except (OSError, RuntimeError):
+        return False
 
 
 def _check_no_link_out(path: Path, flag: str) -> None:
@@ -67,7 +108,7 @@ def _check_no_link_out(path: Path, flag: str) -> None:
     for folder, dirs, files in os.walk(path):  # links to folders are listed, never entered
         for name in (*dirs, *files):
             entry = Path(folder, name)
-            if entry.is_symlink() and not entry.resolve().is_relative_to(root):
+            if entry.is_symlink() and not _resolves_inside(entry, root):
                 raise UserError(
                     f"{flag} {path}: {entry} is a symbolic link out of the folder (to "
                     f"{os.readlink(entry)}); twin writes only inside its output folder: remove "

@@ -120,6 +120,13 @@ def run_patrol(
     runs = [(name, policies[name], plan) for name in names]
     if plan is not None and fault_free:
         runs += [(name, fault_free[name], None) for name in names]
+    for name, policy, _ in runs:  # a swarm's own outages (option outages) end by T
+        late = [w for w in getattr(policy, "outages", ()) if w[1] > horizon]
+        if late:
+            raise UserError(
+                f"swarm {name!r}: option outages has [{late[0][0]}, {late[0][1]}] past the horizon "
+                f"T = {horizon}; end it by {horizon}"
+            )
     acting: dict[int, Policy] = {}  # each run's policy, by its place in ``runs``
     for s, (_, policy, faulted) in enumerate(runs):
         if faulted is not None and faulted.coordinator_down:
@@ -144,6 +151,7 @@ def run_patrol(
     t0 = time.perf_counter()
     bar = None
     done, error = 0, None
+    in_swarm = False  # a swarm's own error (not the simulation's) is no partial result
     try:
         with timer.stage(TRAFFIC):
             t_now = next(maps)
@@ -154,7 +162,9 @@ def run_patrol(
             importance[0] = t_now
         for s, (name, _, _) in enumerate(runs):
             t_reset = time.perf_counter()
+            in_swarm = True
             acting[s].reset(grid, n_drones, swarm_rng(seed, name))
+            in_swarm = False
             timer.add(stages[s], time.perf_counter() - t_reset, calls=0)
             states.append(initial_state(grid, starts.copy(), t_now))
             views.append(swarm_view(states[s], horizon, grid, params))
@@ -173,6 +183,7 @@ def run_patrol(
                 policy, view = acting[s], views[s]
                 stage = stages[s]
                 recorded = recorded_arrivals(faulted, seed, k + 1, n_drones, horizon)
+                in_swarm = True
                 with timer.stage(stage):
                     actions = np.asarray(policy.act(view), dtype=np.int64)
                 t_score = time.perf_counter()
@@ -194,6 +205,7 @@ def run_patrol(
                 t1 = time.perf_counter()
                 timer.add(SCORING, t1 - t_score)
                 policy.learn(Transition(view, actions, out.rewards, views[s]))
+                in_swarm = False
                 timer.add(stage, time.perf_counter() - t1, calls=0)
             done = k + 1
             if on_step is not None:
@@ -212,7 +224,7 @@ def run_patrol(
         release_notices()
         error = f"traffic source ended after {done} of {horizon} steps"
     except Exception as exc:
-        if isinstance(exc, UserError) or not source.keeps_partial_results:
+        if isinstance(exc, UserError) or in_swarm or not source.keeps_partial_results:
             raise  # bad input (e.g. a file a simulator refuses to start on) is no partial result
         release_notices()  # a partial run: what it said of its scenario still holds
         error = f"{type(exc).__name__}: {exc}"

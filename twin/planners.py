@@ -26,7 +26,7 @@ import numpy as np
 from twin.coordinator import coordinate
 from twin.errors import UserError
 from twin.grid import ACTION_DELTAS, Grid
-from twin.policies import Policy, SwarmView
+from twin.policies import Policy, SwarmView, number_option
 from twin.scores import visit_gain
 
 #: Relative size of the tie-breaking jitter: scores closer than this count as tied.
@@ -223,13 +223,8 @@ class LookaheadPolicy(CoordinatedPolicy):
                 f"lookahead: horizon = {horizon} must lie in 1..{MAX_BEAM_HORIZON} with a beam; "
                 f"e.g. {DEFAULT_HORIZON}"
             )
-        if not 0.0 < float(discount) <= 1.0:
-            raise UserError(f"lookahead: discount = {discount} must lie in (0, 1]; e.g. 1.0")
-        if not 0.0 <= float(end_weight) <= 10.0:
-            raise UserError(
-                f"lookahead: end_weight = {end_weight} must lie in [0, 10]; "
-                f"e.g. {DEFAULT_END_WEIGHT}"
-            )
+        discount = number_option("lookahead", "discount", discount, 0.0, 1.0, 1.0, low_open=True)
+        end_weight = number_option("lookahead", "end_weight", end_weight, 0, 10, DEFAULT_END_WEIGHT)
         if isinstance(end_wait, bool) or not isinstance(end_wait, int | np.integer):
             raise UserError(f"lookahead: end_wait = {end_wait!r} must be an integer; e.g. 5")
         if not 0 <= end_wait <= 1000:

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from twin.errors import UserError
 from twin.grid import ACTION_DELTAS, Grid
 from twin.paths import free_paths, largest_free_component
 from twin.scores import ScoreParams
@@ -82,6 +83,37 @@ class Policy:
     def coordinator_down(self, k: int) -> bool:
         """Whether step ``k`` falls in a window without the central coordinator."""
         return any(start <= k < stop for start, stop in self.outages)
+
+
+def whole_option(swarm: str, key: str, value, low: int, high: int | None, example) -> int:
+    """A swarm option that is a whole number in ``low..high`` (``high`` None: no top), or one
+    line naming the swarm, key and value (``true`` is not a number)."""
+    if isinstance(value, bool) or not isinstance(value, int | np.integer):
+        raise UserError(f"{swarm}: {key} = {value!r} must be an integer; e.g. {example}")
+    if value < low or (high is not None and value > high):
+        span = f"at least {low}" if high is None else f"in {low}..{high}"
+        raise UserError(f"{swarm}: {key} = {value} must be {span}; e.g. {example}")
+    return int(value)
+
+
+def number_option(
+    swarm: str, key: str, value, low: float, high: float, example, low_open: bool = False
+) -> float:
+    """A swarm option that is a number in ``[low, high]`` (``(low, high]`` if ``low_open``),
+    or one line naming the swarm, key and value (``true`` and ``"0.5"`` are not numbers)."""
+    if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
+        raise UserError(f"{swarm}: {key} = {value!r} must be a number; e.g. {example}")
+    if not (low < value <= high if low_open else low <= value <= high):
+        span = f"({low:g}, {high:g}]" if low_open else f"[{low:g}, {high:g}]"
+        raise UserError(f"{swarm}: {key} = {value} must lie in {span}; e.g. {example}")
+    return float(value)
+
+
+def flag_option(swarm: str, key: str, value) -> bool:
+    """A swarm option that is true or false (a string such as ``"false"`` is neither)."""
+    if not isinstance(value, bool | np.bool_):
+        raise UserError(f"{swarm}: {key} = {value!r} must be true or false")
+    return bool(value)
 
 
 def random_feasible(feasible: np.ndarray, rng: np.random.Generator) -> np.ndarray:

@@ -28,10 +28,8 @@ from collections.abc import Callable
 from importlib import resources
 from pathlib import Path
 
+from twin.cache_place import CACHE_ENV, CACHE_FOLDERS, cache_dir  # noqa: F401 (where it lies)
 from twin.errors import UserError
-
-#: Environment variable that moves the cache (tests point it at a temporary folder).
-CACHE_ENV = "TWIN_CACHE_DIR"
 
 
 def package_root() -> Path:
@@ -100,16 +98,6 @@ def network_spec(name: str) -> Path:
 def shipped_checkpoint() -> Path:
     """The shipped, pretrained Q-network ``data/qnet.pt``."""
     return shipped("data", "qnet.pt")
-
-
-def cache_dir() -> Path:
-    """The per-user cache: ``$TWIN_CACHE_DIR`` if set, else platformdirs' user cache for twin."""
-    given = os.environ.get(CACHE_ENV, "").strip()
-    if given:
-        return Path(given).expanduser()
-    import platformdirs
-
-    return Path(platformdirs.user_cache_dir("twin", appauthor=False))
 
 
 #: How old (days) a scratch entry of a process that was killed (``kill -9``) may grow before a
@@ -226,7 +214,9 @@ def check_cache(why: str) -> Path:
     disk) before work that needs it starts; ``why`` says what needs it."""
     from twin.outputs import check_output_dir
 
-    return check_output_dir(cache_dir(), f"twin's cache (${CACHE_ENV}; {why})", links_out=True)
+    return check_output_dir(
+        cache_dir(), f"twin's cache (${CACHE_ENV}; {why})", links_out=True, in_cache=True
+    )
 
 
 #: The most cells a grid may have: 25 million (a 5000 x 5000 grid), whose maps alone need GBs
@@ -368,7 +358,9 @@ def build_once(
 
         notify(f"twin: notice: cache entry {target} is a file, not a folder; rebuilding it")
         target.unlink()
-    check_output_dir(target.parent, f"the cache (${CACHE_ENV} moves it)", links_out=True)
+    check_output_dir(
+        target.parent, f"the cache (${CACHE_ENV} moves it)", links_out=True, in_cache=True
+    )
     target.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.tmp-", dir=target.parent))
     try:
@@ -454,6 +446,9 @@ def check_xml_files(folder: Path, files: dict[str, str]) -> None:
             tail = fh.read()
         if start != root:
             raise BrokenEntry(f"{name} is not a SUMO <{root}> file")
-        closed = re.search(rb"(</%s>|<%s\b[^<>]*/>)\s*$" % (root.encode(), root.encode()), tail)
+        end = rb"(</%s>|<%s\b[^<>]*/>)" % (root.encode(), root.encode())
+        # comments and instructions may follow it (each matched one way: no backtracking)
+        after = rb"(?:\s|<!--(?:(?!-->).)*-->|<\?(?:(?!\?>).)*\?>)*$"
+        closed = re.search(end + after, tail, re.DOTALL)
         if closed is None:
             raise BrokenEntry(f"{name} is cut short (no closing </{root}>)")

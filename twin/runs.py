@@ -260,16 +260,29 @@ def discard_run_dir(path: Path) -> None:
         path.rmdir()  # only if empty
 
 
+#: What to do with an --out folder a run may not reuse.
+REUSE_FIX = "pass a new or empty --out folder"
+
+
+def check_holds_a_run(path: Path) -> None:
+    """Refuse (UserError) an existing --out folder that is not empty and holds no twin run
+    (no ``run.json``): a user's folder, refused for that before its tree is walked."""
+    if (
+        path.is_dir()
+        and any(path.iterdir())
+        and not isinstance(_read_json(path / "run.json"), dict)
+    ):
+        raise UserError(f"--out {path}: not empty and holds no twin run; {REUSE_FIX}")
+
+
 def _replaceable(path: Path, started: dict[str, Any] | None) -> None:
     """Refuse (UserError) to reuse the non-empty folder ``path`` unless it holds a partial run
     of the invocation ``started`` and nothing else."""
-    fix = "pass a new or empty --out folder"
+    check_holds_a_run(path)
     run = _read_json(path / "run.json")
-    if not isinstance(run, dict):
-        raise UserError(f"--out {path}: not empty and holds no twin run; {fix}")
     manifest = _read_json(path / MANIFEST)
     if isinstance(manifest, dict) and not manifest.get("partial"):
-        raise UserError(f"--out {path}: already holds a complete run; {fix}")
+        raise UserError(f"--out {path}: already holds a complete run; {REUSE_FIX}")
     theirs = run.get("invocation")
     if started is None or theirs != json.loads(json.dumps(started)):
         what = (
@@ -278,7 +291,7 @@ def _replaceable(path: Path, started: dict[str, Any] | None) -> None:
             else "another command"
         )
         raise UserError(
-            f"--out {path}: holds a partial run of {what} with other options; {fix} "
+            f"--out {path}: holds a partial run of {what} with other options; {REUSE_FIX} "
             "(only a rerun of the same command replaces it)"
         )
     foreign = sorted(
@@ -287,7 +300,7 @@ def _replaceable(path: Path, started: dict[str, Any] | None) -> None:
     foreign += _foreign_in_folders(path, manifest)
     if foreign:
         raise UserError(
-            f"--out {path}: holds {foreign[0]!r}, which twin did not write; {fix} "
+            f"--out {path}: holds {foreign[0]!r}, which twin did not write; {REUSE_FIX} "
             "(a partial run is replaced only when it holds twin's files alone)"
         )
     check_staged_folder(path / "report", written_by_a_report)  # the user's notes in report/

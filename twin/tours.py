@@ -27,7 +27,7 @@ from twin.errors import UserError
 from twin.grid import Grid
 from twin.paths import free_cell_graph, free_paths
 from twin.planners import CoordinatedPolicy
-from twin.policies import SwarmView
+from twin.policies import SwarmView, whole_option
 from twin.scores import ScoreParams, visit_gain
 
 #: Score added to a drone's planned move: larger than any visit gain, so the coordinator keeps
@@ -75,8 +75,14 @@ def saturation_period(params: ScoreParams) -> int:
 def best_period(weights_desc: np.ndarray, n_drones: int, params: ScoreParams) -> int:
     """The revisit period ``P`` maximising the swarm's gain per step ``n_drones * mean(top
     n_drones * P weights) * visit_gain_factor(P)``, with ``P`` up to the saturation period:
-    every drone visits one tour cell per step and each cell is revisited every ``P`` steps."""
-    top = saturation_period(params)
+    every drone visits one tour cell per step and each cell is revisited every ``P`` steps.
+
+    Past the period whose tours hold every cell, the gain per step stays flat until the
+    saturation period (each step of period adds ``delta`` to the factor and spreads the same
+    cells over one more step), so ``P`` goes up to that period at most: a tiny ``delta`` (a
+    saturation period of 10^9 steps) asks for no more periods than there are cells."""
+    covering = max(1, math.ceil(len(weights_desc) / max(n_drones, 1)))
+    top = min(saturation_period(params), covering)
     periods = np.arange(1, top + 1)
     counts = np.minimum(periods * n_drones, len(weights_desc))
     csum = np.concatenate([[0.0], np.cumsum(weights_desc)])
@@ -509,17 +515,9 @@ class ToursPolicy(CoordinatedPolicy):
         layout: str = "cycles",
     ):
         def whole(value, key, low, example):
-            if isinstance(value, bool) or not isinstance(value, int | np.integer):
-                raise UserError(f"tours: {key} = {value!r} must be an integer; e.g. {example}")
-            if value < low:
-                raise UserError(f"tours: {key} = {value} must be at least {low}; e.g. {example}")
-            return int(value)
+            return whole_option("tours", key, value, low, None, example)
 
-        self.per_tour = whole(per_tour, "per_tour", 1, 2)
-        if self.per_tour > MAX_PER_TOUR:
-            raise UserError(
-                f"tours: per_tour = {per_tour} must be at most {MAX_PER_TOUR} drones; e.g. 2"
-            )
+        self.per_tour = whole_option("tours", "per_tour", per_tour, 1, MAX_PER_TOUR, 2)
         self.explore = None if explore is None else whole(explore, "explore", 0, 40)
         self.replan = None if replan is None else whole(replan, "replan", 1, 400)
         if isinstance(shift, bool) or not isinstance(shift, int | float) or not shift > 0:

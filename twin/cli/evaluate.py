@@ -153,7 +153,12 @@ def with_swarm_of_run(config, tape, seed_flag: int | None = None, seeds_flag: in
     tape = Path(tape)
     folder = tape.parent.parent if tape.parent.name == "tapes" else tape.parent
     record = folder / "run.json"
-    if not record.exists() and not record.is_symlink():
+    if not record.exists() and not record.is_symlink():  # a tape copied out of its run folder
+        notify(
+            f"twin: notice: no run.json beside {tape} (not in its run folder), so "
+            f"{config.path.name}'s swarm ({config.swarm.n_drones} drones) replays it; give "
+            "the config of the run that recorded it with --config for that run's swarm"
+        )
         return config
     if (folder / MANIFEST).exists():  # a finished run's folder: it must have written the tape
         try:
@@ -225,6 +230,28 @@ def with_swarm_of_run(config, tape, seed_flag: int | None = None, seeds_flag: in
     return mine
 
 
+def say_grid_set_aside(config, tape) -> None:
+    """A notice when the tape's grid replaces the explicit ``[grid]`` of a synthetic
+    ``--config`` (its traffic and map give way to the tape's; a SUMO config's grid must be the
+    tape's, :meth:`twin.traffic.tape.TapeTraffic.from_file`)."""
+    from twin.boundary import notify
+    from twin.traffic.tape import read_tape_meta
+
+    shape = config.explicit_shape()
+    if config.traffic.kind != "synthetic" or shape is None:
+        return
+    try:
+        meta = read_tape_meta(tape)
+    except UserError:  # a tape that does not read: its replay refuses it in its own words
+        return
+    if tuple(shape) != (meta["nx"], meta["ny"]):
+        notify(
+            f"twin: notice: {tape}: its {meta['nx']} x {meta['ny']} grid replaces "
+            f"{config.path.name}'s [grid] of {shape[0]} x {shape[1]} (a synthetic config's "
+            "traffic and map give way to the tape's)"
+        )
+
+
 def main(args: argparse.Namespace) -> int:
     from twin.boundary import hold_notices
 
@@ -238,6 +265,8 @@ def main(args: argparse.Namespace) -> int:
     config = load_config(shipped_config(args.config or DEFAULT_CONFIG))
     if args.traffic is not None and args.config is None:
         config = with_swarm_of_run(config, args.traffic, args.seed, args.seeds)
+    elif args.traffic is not None:
+        say_grid_set_aside(config, args.traffic)
     swarms = parse_swarm_names(args.swarms, []) if args.swarms is not None else None
     config = with_flags(
         config,

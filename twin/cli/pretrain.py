@@ -39,7 +39,7 @@ def add_parser(subparsers) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    from twin.boundary import hold_notices, release_notices, set_run_folder
+    from twin.boundary import claim_new_folder, hold_notices, release_notices, set_run_folder
     from twin.config import shipped_config
     from twin.outputs import check_output_dir
     from twin.training.pretrain import (
@@ -63,12 +63,24 @@ def main(args: argparse.Namespace) -> int:
     where = str(args.config or DEFAULT_CONFIG)
     check_pretrain_memory(config, where, args.max_memory_gb)
     flag = "--out" if args.out else f"{where}: out"
-    check_output_dir(config.out, flag, need_mb=200)  # the model, its checkpoints and snapshots
-    check_out_folder(config, flag)  # resumes its own checkpoint, refuses anything else
-    set_run_folder(Path(config.out))  # an unexpected error's traceback goes to its error.log
+    check_output_dir(  # the model, its checkpoints and snapshots
+        config.out,
+        flag,
+        need_mb=200,
+        owner=lambda _: check_out_folder(config, flag),  # resumes its own, refuses the rest
+    )
+    out = Path(config.out)
+    another = None if args.out else f"give another out in {where}, or --out"
+    made = claim_new_folder(out, flag, another)  # one pretraining at a time writes into it
+    set_run_folder(out)  # an unexpected error's traceback goes to its error.log
     progress = not args.quiet and sys.stderr.isatty()
     release_notices()  # every check passed: training starts
-    path = pretrain(config, progress=progress, max_memory_gb=args.max_memory_gb)
+    try:
+        path = pretrain(config, progress=progress, max_memory_gb=args.max_memory_gb)
+    except BaseException:  # refused or stopped before it wrote: no empty folder left
+        if made and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()
+        raise
     print(f"model: {path}")
     print(f"log: {Path(config.out) / 'train_log.csv'}")
     return 0

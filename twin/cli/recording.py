@@ -21,7 +21,14 @@ from twin.experiment import (
     run_metadata,
     stop_on_interrupt,
 )
-from twin.runs import discard_run_dir, invocation, new_run_dir, prepare_run_dir, record
+from twin.runs import (
+    check_holds_a_run,
+    discard_run_dir,
+    invocation,
+    new_run_dir,
+    prepare_run_dir,
+    record,
+)
 
 BELIEF_FILE = "belief_models.csv"
 BELIEF_MAPS_FILE = "belief_maps.npz"
@@ -66,7 +73,9 @@ def run_and_record(
     (a display); ``run_options`` go to :func:`twin.experiment.run_experiment`."""
     if history is not None:
         hand_history(experiment, history)
-    check_resources(experiment, args.out or Path("runs"))  # before any folder is made
+    check_resources(  # before any folder is made; a given --out holds no user's files
+        experiment, args.out or Path("runs"), owner=check_holds_a_run if args.out else None
+    )
     if not getattr(args, "no_report", True):
         from twin.resources import check_cache
 

@@ -29,7 +29,7 @@ def add_parser(subparsers) -> None:
     )
     p.add_argument("run_dir", type=path_arg, help="a run folder written by `twin run`")
     p.add_argument("--seed", type=int, help="which of the run's seeds to replay (default: first)")
-    add_gui_arguments(p)
+    add_gui_arguments(p, always=True)
     p.set_defaults(func=main)
 
 

@@ -98,12 +98,15 @@ def add_parser(subparsers) -> None:
     p.set_defaults(func=main)
 
 
-def add_gui_arguments(p) -> None:
-    """``--gui``, ``--gui-swarms``, ``--gui-shade``, ``--record`` (``twin run``, ``twin replay``)."""
+def add_gui_arguments(p, always: bool = False) -> None:
+    """``--gui``, ``--gui-swarms``, ``--gui-shade``, ``--record`` (``twin run``, ``twin replay``);
+    ``always``: the command always draws in sumo-gui (``--gui`` is taken, and changes nothing)."""
     p.add_argument(
         "--gui",
         action="store_true",
-        help="watch it in sumo-gui (through traci; same simulation, same results); without a "
+        help="(always on: a replay is drawn in sumo-gui; without a display twin starts Xvfb)"
+        if always
+        else "watch it in sumo-gui (through traci; same simulation, same results); without a "
         "display twin starts Xvfb (apt-get install xvfb)",
     )
     p.add_argument(
@@ -117,8 +120,8 @@ def add_gui_arguments(p) -> None:
     p.add_argument(
         "--gui-shade",
         choices=["belief", "truth"],
-        default="belief",
-        help="shade cells by the importance the first shown swarm believes, or the true one",
+        help="shade cells by the importance the first shown swarm believes (the default), or "
+        "the true one",
     )
     p.add_argument(
         "--record",
@@ -163,13 +166,14 @@ def gui_drawer(args: argparse.Namespace, swarms, owned: tuple[Path, str] | None 
                 "be lost with it); give a file outside it"
             )
     shown_later = args.gui or args.record
-    settings = GuiSettings(swarms=shown, shade=args.gui_shade, record=args.record)
+    settings = GuiSettings(swarms=shown, shade=args.gui_shade or "belief", record=args.record)
     check_settings(settings, list(swarms))
-    if args.gui_swarms is not None and not shown_later:
+    if not shown_later:
         from twin.notices import notify
 
-        notify(f"twin: notice: --gui-swarms {args.gui_swarms}: draws nothing without --gui or "
-               "--record")  # fmt: skip
+        for flag, value in (("--gui-swarms", args.gui_swarms), ("--gui-shade", args.gui_shade)):
+            if value is not None:
+                notify(f"twin: notice: {flag} {value}: draws nothing without --gui or --record")
     return GuiDrawer(settings, list(swarms)) if shown_later else None
 
 

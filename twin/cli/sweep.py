@@ -74,10 +74,9 @@ def main(args: argparse.Namespace) -> int:
         raise UserError("--address is for --executor ray")
     config = load_sweep_config(shipped_config(args.config))
     out = args.out or Path("runs") / f"sweep-{config.name}"
-    check_output_dir(out, "--out")
+    check_output_dir(out, "--out", owner=check_sweep_folder)
     if not args.no_report:
         check_cache("the report's figures keep their font cache there")
-    check_sweep_folder(out)
     set_run_folder(out)  # an unexpected error's traceback goes to its error.log
     progress = not args.quiet and sys.stderr.isatty()
     outcome = run_sweep(

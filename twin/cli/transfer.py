@@ -57,9 +57,8 @@ def main(args: argparse.Namespace) -> int:
         raise UserError("--address is for --executor ray")
     config = load_transfer_config(shipped_config(args.config or DEFAULT_CONFIG))
     out = args.out or Path("runs") / f"transfer-{config.name}"
-    check_output_dir(out, "--out")
+    check_output_dir(out, "--out", owner=check_transfer_folder)
     check_cache("the report's figures keep their font cache there")
-    check_transfer_folder(out)
     set_run_folder(out)  # an unexpected error's traceback goes to its error.log
 
     def say(text: str) -> None:

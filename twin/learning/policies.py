@@ -41,7 +41,15 @@ from twin.learning.checkpoint import checkpoint_state, default_checkpoint, load_
 from twin.learning.data import SightedBelief
 from twin.learning.online import OnlineLearner
 from twin.learning.qnet import QNetwork
-from twin.policies import Policy, SwarmView, Transition, random_feasible
+from twin.policies import (
+    Policy,
+    SwarmView,
+    Transition,
+    flag_option,
+    number_option,
+    random_feasible,
+    whole_option,
+)
 from twin.states import paper_states, state_variant
 
 
@@ -65,6 +73,11 @@ def local_drone_states(
     """:func:`twin.scores.drone_states` with one idleness map per drone: :class:`OwnMaps`
     (read at each drone's view, row and column only) or dense ``(N, nx, ny)``."""
     return paper_states(grid, maps, importance, positions, others)
+
+
+#: The most steps online learning's replay buffer keeps (each holds every drone's transition,
+#: ~120 B per drone: 0.5 GB for 4 drones).
+MAX_BUFFER = 1_000_000
 
 
 class RLPolicy(Policy):
@@ -100,8 +113,17 @@ class RLPolicy(Policy):
         buffer_steps: int = 5000,
         history: History | str | Path | None = None,
     ) -> None:
-        if not 0.0 <= eps <= 1.0:
-            raise UserError(f"eps = {eps} must lie in [0, 1]; e.g. 0.05")
+        name = "rl"
+        eps = number_option(name, "eps", eps, 0.0, 1.0, 0.05)
+        decentralized = flag_option(name, "decentralized", decentralized)
+        online = flag_option(name, "online", online)
+        learning = {
+            "iters": whole_option(name, "online_iters", online_iters, 1, 10_000, 1),
+            "batch_size": whole_option(name, "batch_size", batch_size, 1, 1_000_000, 32),
+            "gamma": number_option(name, "gamma", gamma, 0.0, 1.0, 0.9),
+            "lr": number_option(name, "lr", lr, 0.0, 1.0, 1e-4, low_open=True),
+            "buffer_steps": whole_option(name, "buffer_steps", buffer_steps, 1, MAX_BUFFER, 5000),
+        }
         self.net, self.meta = shared_qnet(checkpoint)
         self.checkpoint = checkpoint
         path = Path(checkpoint) if checkpoint is not None else default_checkpoint()
@@ -116,8 +138,8 @@ class RLPolicy(Policy):
                 f"option state); give a checkpoint pretrained with state = {state!r} or drop "
                 "the option"
             )
-        self.decentralized = bool(decentralized)
-        self.eps = float(eps)
+        self.decentralized = decentralized
+        self.eps = eps
         self.outages = parse_outages(outages)
         self.history = None
         self.sighting = EXACT_SIGHTINGS
@@ -135,10 +157,8 @@ class RLPolicy(Policy):
                     "runs with the coordinator only; drop decentralized and outages (or use rl)"
                 )
             self.history = history if isinstance(history, History) else History.load(history)
-        self.online = bool(online)
-        self.learning = {"iters": int(online_iters), "batch_size": int(batch_size),
-                         "gamma": float(gamma), "lr": float(lr),
-                         "buffer_steps": int(buffer_steps)}  # fmt: skip
+        self.online = online
+        self.learning = learning
 
     def describe(self) -> dict:
         """What a run folder records about this swarm (JSON)."""
@@ -283,6 +303,12 @@ def build_learned_swarm(name: str, **options) -> RLPolicy:
         "rl-decentralized": {"decentralized": True},
         "rl-online": {"online": True},
     }
-    policy = RLPolicy(**{**defaults[name], **options})
+    try:
+        policy = RLPolicy(**{**defaults[name], **options})
+    except UserError as exc:  # an option refused: said of the swarm asked for
+        text = str(exc)
+        if not text.startswith(f"{RLPolicy.name}: "):
+            raise
+        raise UserError(f"{name}: {text.removeprefix(f'{RLPolicy.name}: ')}") from None
     policy.name = name
     return policy

@@ -206,4 +206,9 @@ def random_rush_hour_trips(
         if not NO_TRIPS.search(str(exc)):
             raise
         raise UserError(f"{exc}{fix}") from None
+    if not any(e.tag == "trip" for _, e in ET.iterparse(out)):  # --validate dropped them all
+        raise UserError(
+            f"{what}: none of its trips (500 m or longer, between roads cars may use) can be "
+            f"driven, so the network's roads are not connected for such trips{fix}"
+        )
     return out

@@ -326,6 +326,17 @@ def _osm_node_position(osm_file: Path, node: str) -> tuple[str | None, str | Non
     return None, None
 
 
+def osm_network_name(osm_file: Path) -> str:
+    """The network file an OSM extract converts to: its name without the extract's suffixes
+    (``.gz``, ``.xml``, ``.osm``) and ``.net.xml`` after it (``a.b.osm`` -> ``a.b.net.xml``,
+    not ``a.net.xml``, which ``a.c.osm`` would give too)."""
+    name = osm_file.name
+    for suffix in (".gz", ".xml", ".osm"):
+        if name.lower().endswith(suffix) and len(name) > len(suffix):
+            name = name[: -len(suffix)]
+    return f"{name}.net.xml"
+
+
 def import_osm(osm_file: Path, out_dir: Path | None = None) -> Path:
     """Convert an OpenStreetMap extract into a SUMO network with city-network options, into
     ``out_dir`` or (by default) the cache, reusing a cached conversion."""
@@ -354,7 +365,7 @@ def import_osm(osm_file: Path, out_dir: Path | None = None) -> Path:
         check_cache_without_comma()
     else:
         check_no_comma(out_dir)
-    name = osm_file.name.split(".")[0] + ".net.xml"
+    name = osm_network_name(osm_file)
 
     no_road = UserError(
         f"{osm_file}: no road is left after conversion (twin keeps the roads passenger cars "
@@ -385,7 +396,7 @@ def import_osm(osm_file: Path, out_dir: Path | None = None) -> Path:
         return resources.build_once(imported_dir(osm_file), make, verify=verify) / name
     from twin.outputs import check_output_dir
 
-    out_dir = check_output_dir(out_dir, "--out")
+    out_dir = check_output_dir(out_dir, "--out", links_out=True)  # writes one new file there
     target = out_dir / name
     if target.exists() or target.is_symlink():
         raise UserError(

@@ -46,6 +46,7 @@ from twin.sumo.readers import (
     departure_span,
     include_cycle,
     naming_the_sumocfg,
+    parse_time,
     read_sumocfg,
     resolved,
     root_tag,
@@ -305,8 +306,15 @@ def _scenario_files(s: SumoSettings) -> _ScenarioFiles:
                 "mesoscopic model, as --meso does"
             )
         step = cfg.options.get("step-length")
-        with contextlib.suppress(TypeError, ValueError):
-            if step is not None and float(step) != SUMO_STEP_S:
+        if step is not None:
+            seconds = parse_time(step)  # seconds, or SUMO's [D:]HH:MM:SS
+            if seconds is None:  # SUMO refuses it too ("Invalid Number Format")
+                raise UserError(
+                    f"{sumocfg_path}: <step-length value={step!r}> is not a number of seconds; "
+                    f"give one such as {SUMO_STEP_S:g} (twin runs steps of {SUMO_STEP_S:g} s "
+                    "anyway), or remove it"
+                )
+            if seconds != SUMO_STEP_S:
                 notice(
                     f"{sumocfg_path}: <step-length value={step!r}> is run as SUMO steps of "
                     f"{SUMO_STEP_S:g} s (twin's clock; its other options are kept)"

@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from twin.errors import UserError
-from twin.files import atomic_write, file_sha256
+from twin.files import atomic_write, file_sha256, rebased
 from twin.sweep.config import OPTION_FILES, SweepConfig
 from twin.sweep.store import CELLS_DIR, write_cell_record
 
@@ -47,6 +47,8 @@ def cell_id(cell: dict[str, Any]) -> str:
     overrides give new cells; the SUMO files a live cell loaded are checked when it is resumed,
     :func:`twin.sweep.store.inputs_changed`)."""
     defining = {k: cell.get(k) for k in DEFINING_KEYS}
+    if cell.get("home"):  # the files of a folder that may move, named relative to it
+        defining = rebased(defining, cell["home"], ".")
     if cell.get("ceilings"):  # only when asked for, so earlier sweeps keep their ids
         defining["ceilings"] = True
     digest = hashlib.sha1(json.dumps(defining, sort_keys=True, default=str).encode()).hexdigest()[
@@ -87,6 +89,8 @@ def expand_cells(config: SweepConfig, out_dir: Path) -> list[dict[str, Any]]:
                 }
                 if config.sweep.ceilings:
                     cell["ceilings"] = True
+                if config._home is not None:
+                    cell["home"] = str(config._home)
                 cell["id"] = cell_id(cell)
                 cells.append(cell)
     return cells

@@ -123,6 +123,9 @@ class SweepConfig(StrictModel):
     _path: Path = PrivateAttr(default=Path("sweep.toml"))
     #: how the file that holds the scenarios names one (a transfer's are its ``[[column]]``)
     _scenario_table: str = PrivateAttr(default="[[scenario]]")
+    #: a folder whose files the cells name relative to it in their ids (a transfer's: its rows'
+    #: checkpoints), so that the folder moved keeps its cells; None: paths as given
+    _home: Path | None = PrivateAttr(default=None)
 
     @field_validator("parameters")
     @classmethod
@@ -132,7 +135,7 @@ class SweepConfig(StrictModel):
                 check_dotted(key)
             except ValueError as exc:
                 raise ValueError(
-                    f"[parameters].{key!r} {exc}".replace(f"key {key!r} ", "")
+                    f"[parameters].{key!r} {exc}".replace(f" key {key!r}:", ":")
                 ) from None
             seen: list[Any] = []
             for value in parameters[key]:

@@ -13,7 +13,7 @@ from typing import Any
 
 import pandas as pd
 
-from twin.boundary import notify, release_notices
+from twin.boundary import folder_claimed, notify, release_notices
 from twin.errors import UserError
 from twin.executors import EXECUTORS, _local_executor, _ray_executor
 from twin.files import atomic_write
@@ -64,12 +64,33 @@ def run_sweep(
     for cell in todo:  # not a defining key: the limit changes no number
         cell["max_memory_gb"] = max_memory_gb
     skipped = [c["id"] for c in cells if c["id"] in done]
-    check_cells(todo)  # before anything is written: a refused sweep leaves no folder
+    check_cells(todo, config.path)  # before anything is written: a refused sweep leaves no folder
     if report:
         from twin.report.sweep import check_sweep_report_folder
 
         check_sweep_report_folder(out_dir)
-    (out_dir / CELLS_DIR).mkdir(parents=True, exist_ok=True)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with folder_claimed(out_dir):  # one sweep at a time writes into a sweep folder
+        return _run_cells(
+            config, out_dir, cells, todo, skipped, executor, workers, address, progress, report
+        )
+
+
+def _run_cells(
+    config: SweepConfig,
+    out_dir: Path,
+    cells: list[dict[str, Any]],
+    todo: list[dict[str, Any]],
+    skipped: list[str],
+    executor: str,
+    workers: int | None,
+    address: str | None,
+    progress: bool,
+    report: bool,
+) -> SweepOutcome:
+    """:func:`run_sweep`'s work once its cells are checked and its folder is held: run
+    ``todo``, merge every cell, write the report."""
+    (out_dir / CELLS_DIR).mkdir(exist_ok=True)
     _write_manifest(out_dir, config, cells)
     release_notices()  # every cell is valid: what the checks noticed is printed now
     workers = max(1, min(workers or os.cpu_count() or 1, len(todo) or 1))
@@ -133,13 +154,15 @@ def run_sweep(
     return SweepOutcome(out_dir, ran, skipped, seconds, summary, failed)
 
 
-def check_cells(cells: list[dict[str, Any]]) -> None:
+def check_cells(cells: list[dict[str, Any]], sweep_file: Path | None = None) -> None:
     """Validate every distinct scenario config and overrides before running anything: a live
     one is built as its cells build it (files, window, grid, incidents, detectors), without
     starting SUMO; one whose grid is known (synthetic, a tape) has its memory estimated
-    against the sweep's limit, as its cells will; a swarm that plans on a history reads it.
+    against the sweep's limit, as its cells will; every swarm is built with its options (a
+    swarm that plans on a history reads it), an option the sweep file's own
+    ``[swarm_options]`` gives refused naming ``sweep_file``.
     """
-    from twin.swarms import needs_history
+    from twin.swarms import base_name
 
     seen = set()
     for cell in cells:
@@ -154,10 +177,22 @@ def check_cells(cells: list[dict[str, Any]]) -> None:
                 live_settings(config, int(cell["seed"]))
             else:
                 check_cell_memory(config, cell)
-            for name in cell["swarms"]:  # its history read now, not after the cell's SUMO ran
-                if needs_history(name):  # (the sweep's options on the scenario's, as it runs)
-                    config.make_swarm(name, **cell.get("swarm_options", {}).get(name, {}))
+            for name in cell["swarms"]:  # a history read now, not after the cell's SUMO ran
+                options = cell.get("swarm_options", {}).get(name, {})
+                try:  # the sweep's options on the scenario's, as the cell runs
+                    config.make_swarm(name, **options)
+                except UserError as exc:
+                    text = str(exc)
+                    if not options or sweep_file is None or text.startswith(str(config.path)):
+                        raise  # not an option of the sweep's own table
+                    if not text.startswith("[swarm_options."):
+                        text = f"[swarm_options.{name}]: " + text.removeprefix(
+                            f"{base_name(name)}: "
+                        )
+                    raise UserError(f"{sweep_file}: {text}") from None
         except UserError as exc:
+            if sweep_file is not None and str(exc).startswith(f"{sweep_file}: [swarm_"):
+                raise
             if any(str(exc).startswith(label) for label in cell.get("labels", {}).values()):
                 raise UserError(
                     f"{exc} (scenario {cell['scenario']!r}, {cell['config']})"

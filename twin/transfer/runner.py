@@ -26,8 +26,9 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
+from twin.boundary import folder_claimed
 from twin.errors import UserError
-from twin.files import atomic_write, read_record
+from twin.files import atomic_write, read_record, rebased
 from twin.transfer.config import TransferConfig
 
 #: What a transfer writes into its folder (and the boundary's error.log).
@@ -362,6 +363,10 @@ def provenance_matches(out: Path, cfg) -> bool:
         record = json.loads(read_record(path))
     except (OSError, ValueError):
         return False
+    if isinstance(record, dict) and isinstance(record.get("config"), dict):
+        recorded = record["config"].get("out")  # <transfer>/rows/<row> when it was trained
+        if isinstance(recorded, str):  # a transfer folder moved since: its own paths moved
+            record = rebased(record, Path(recorded).parent.parent, Path(out).parent.parent)
     if not (
         isinstance(record, dict)
         and record.get("config") == json.loads(json.dumps(cfg.training_dict(), default=str))
@@ -465,9 +470,10 @@ def column_overrides(column) -> dict[str, Any]:
     return overrides
 
 
-def sweep_config(config: TransferConfig, rows: dict[str, dict[str, Any]]):
+def sweep_config(config: TransferConfig, rows: dict[str, dict[str, Any]], out: Path):
     """The evaluation sweep: the columns as scenarios, the classical and learned swarms, the
-    rows' checkpoints, the evaluation seeds, the ceilings."""
+    rows' checkpoints, the evaluation seeds, the ceilings; its cells name the files of the
+    transfer folder ``out`` relative to it (a folder moved keeps its cells)."""
     from pydantic import ValidationError
 
     from twin.sweep.config import SweepConfig
@@ -494,7 +500,7 @@ def sweep_config(config: TransferConfig, rows: dict[str, dict[str, Any]]):
         raise UserError(
             f"{config.path}: {check_message(exc.errors(include_url=False)[0])}"
         ) from None
-    sweep._path, sweep._scenario_table = config.path, "[[column]]"
+    sweep._path, sweep._scenario_table, sweep._home = config.path, "[[column]]", out
     return sweep
 
 
@@ -565,9 +571,6 @@ def run_transfer(
     """All the stages; returns the report's path. ``max_memory_gb`` (``--max-memory-gb``)
     bounds each row's pretraining and each cell's estimate."""
     from twin.learning.checkpoint import load_qnet
-    from twin.sweep import run_sweep
-    from twin.transfer.matrix import transfer_matrix
-    from twin.transfer.report import write_transfer_report
 
     for row in config.row:  # a checkpoint the rows load is refused before any stage starts
         if row.checkpoint is not None:
@@ -577,7 +580,29 @@ def run_transfer(
     check_tapes_scenario(config)
     check_columns(config, max_memory_gb)
     out.mkdir(parents=True, exist_ok=True)
-    out = out.resolve()  # the rows' provenance names files the same from any folder
+    with folder_claimed(out):  # one transfer at a time writes into a transfer folder
+        # the rows' provenance names files the same from any folder
+        return _transfer_stages(
+            config, out.resolve(), executor, workers, address, progress, say, max_memory_gb
+        )
+
+
+def _transfer_stages(
+    config: TransferConfig,
+    out: Path,
+    executor: str,
+    workers: int,
+    address: str | None,
+    progress: bool,
+    say: Callable[[str], None],
+    max_memory_gb: float | None,
+) -> Path:
+    """:func:`run_transfer`'s stages once its config is checked and its folder is held: the
+    tapes, the rows, the evaluation sweep, the matrix and the report."""
+    from twin.sweep import run_sweep
+    from twin.transfer.matrix import transfer_matrix
+    from twin.transfer.report import write_transfer_report
+
     timings: dict[str, float] = {}
 
     t0 = time.perf_counter()
@@ -594,7 +619,7 @@ def run_transfer(
     timings["rows_s"] = round(time.perf_counter() - t0, 2)
 
     t0 = time.perf_counter()
-    sweep = sweep_config(config, rows)
+    sweep = sweep_config(config, rows, out)
     say(f"evaluating on {len(config.column)} columns x {len(config.seeds)} seeds "
         f"(seeds {config.seeds})")  # fmt: skip
     failure = None
