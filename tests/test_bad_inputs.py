@@ -903,6 +903,15 @@ def test_a_bad_swarm_option_is_one_line_naming_the_table(tmp_path, capsys, case)
     assert err.startswith(f"twin: error: {cfg}: ") and words in err, err
 
 
+def test_outages_given_as_an_array_are_step_pairs():
+    """A numpy array of windows (the Python API) is read as pairs, as before the check."""
+    import numpy as np
+
+    from twin.idleness_maps import parse_outages
+
+    assert parse_outages(np.array([[0, 3], [5, 7]])) == [(0, 3), (5, 7)]
+
+
 def test_a_swarms_outages_past_the_horizon_are_refused(tmp_path, capsys):
     """``outages`` of a learned swarm past T were taken silently, as [faults]'
     coordinator_down is not (probe 26b's g04)."""

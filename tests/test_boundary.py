@@ -2455,6 +2455,22 @@ def test_a_pretraining_folder_of_the_config_in_use_says_where_to_give_another(
     assert list(out.iterdir()) == []
 
 
+def test_a_file_system_without_flock_locks_nothing_and_runs(tmp_path, monkeypatch):
+    """Some network disks refuse ``flock`` (ENOLCK): the folder is not locked, the command
+    runs (it was an internal error; the final review of probe 26's fixes)."""
+    import errno
+    import fcntl
+
+    from twin.boundary import _state, claim_run_folder
+
+    def no_flock(fd, operation):
+        raise OSError(errno.ENOLCK, "No locks available")
+
+    monkeypatch.setattr(fcntl, "flock", no_flock)
+    claim_run_folder(tmp_path)
+    assert tmp_path.resolve() not in _state["locks"]
+
+
 def test_a_run_folder_being_written_is_read_as_such_not_as_interrupted(tmp_path, capsys):
     """`twin report` (and every reader) of a folder another command is writing now says so,
     instead of calling it interrupted and advising a rerun the lock would refuse (probe 17's

@@ -7,6 +7,7 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
 
 pytest.importorskip("libsumo")
@@ -150,6 +151,27 @@ def test_a_swarms_own_failure_is_no_partial_run_of_the_simulation(
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and "/a/file/t: Not a directory" in err[-1], err
     assert "internal error" not in err[-1] and SumoSession._active is None
+
+
+def test_a_swarm_failing_mid_run_keeps_the_steps_done(small, tmp_path, monkeypatch, capsys):
+    """A swarm that fails after some steps (memory, torch) keeps the run's steps as a partial
+    run, as a simulation crash does; only a failure before the first step is raised (the final
+    review of probe 26's fixes)."""
+    from twin.policies import RandomPolicy
+
+    act = RandomPolicy.act
+
+    def failing(self, view):
+        if view.k == 2:
+            raise MemoryError("simulated")
+        return act(self, view)
+
+    monkeypatch.setattr(RandomPolicy, "act", failing)
+    out = tmp_path / "run"
+    code = twin_main(["run", "--config", str(small / "small.toml"), "--out", str(out),
+                      "--swarms", "greedy,random", "--no-report", "--quiet"])  # fmt: skip
+    assert code == 1, capsys.readouterr().err
+    assert pd.read_parquet(out / "series.parquet")["step"].max() == 1
 
 
 def test_bad_files_give_one_line_errors(small, tmp_path, capsys):

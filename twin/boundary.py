@@ -76,7 +76,7 @@ def command_line() -> str:
 
 
 def set_run_folder(path: Path | None) -> None:
-    """The folder the current command owns and writes into (None: none yet, and the folder
+    """The folder the current command owns and writes into (None: none yet, and every folder
     :func:`claim_run_folder` locked is released); an unexpected error's traceback goes to its
     ``error.log``."""
     _state["run_folder"] = None if path is None else Path(path)
@@ -86,11 +86,12 @@ def set_run_folder(path: Path | None) -> None:
 
 def claim_run_folder(path: Path, flag: str = "--out", another: str | None = None) -> None:
     """Lock the existing folder ``path`` for the current command (an exclusive ``flock`` on
-    the folder itself, held until the command ends or its process exits): a second command
-    writing into the same folder at once is refused in one line instead of mixing its files
-    with the first's. Claiming a folder already held does nothing; a command may hold several
-    (a transfer's folder and its sweep's). ``another``: how to give another folder (default:
-    pass another ``flag``)."""
+    the folder itself, held until the command ends, its process exits, or the block of
+    :func:`folder_claimed` ends): a second command writing into the same folder at once is
+    refused in one line instead of mixing its files with the first's. Claiming a folder
+    already held does nothing; a command may hold several (a transfer's folder and its
+    sweep's). A file system without ``flock`` (some network disks) locks nothing. ``another``:
+    how to give another folder (default: pass another ``flag``)."""
     import fcntl
 
     path = Path(path)
@@ -105,6 +106,9 @@ def claim_run_folder(path: Path, flag: str = "--out", another: str | None = None
             f"{flag} {path}: another twin command is writing into this folder now; wait for it "
             f"to end or {another or f'pass another {flag}'}"
         ) from None
+    except OSError:  # no flock on this file system: nothing to hold
+        os.close(fd)
+        return
     _state["locks"][path.resolve()] = fd
 
 

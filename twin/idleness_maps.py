@@ -21,8 +21,8 @@ from twin.scores import ScoreParams, update_idleness
 def parse_outages(outages: Sequence[Sequence[int]] | None) -> list[tuple[int, int]]:
     """Step windows ``[start, stop)`` without coordinator, checked."""
     windows = []
-    for w in outages or ():
-        pair = list(w) if isinstance(w, list | tuple) else []
+    for w in () if outages is None else outages:
+        pair = list(w) if isinstance(w, list | tuple | np.ndarray) else []
         if len(pair) != 2 or not all(
             isinstance(x, int | np.integer) and not isinstance(x, bool) for x in pair
         ):  # "3" and 1.5 are no step numbers

@@ -82,7 +82,10 @@ def _check_not_in_cache(path: Path, flag: str) -> None:
         cache = cache_dir().resolve()
     except UserError:  # a bad $TWIN_CACHE_DIR is refused by the commands that use it
         return
-    target = path.resolve()
+    try:
+        target = path.resolve()
+    except (OSError, RuntimeError):  # a link loop: refused when the folder is made
+        return
     if target == cache or any(target.is_relative_to(cache / f) for f in CACHE_FOLDERS):
         raise UserError(
             f"{flag} {path}: lies in twin's cache ({cache}), whose entries twin deletes and "

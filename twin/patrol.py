@@ -151,7 +151,7 @@ def run_patrol(
     t0 = time.perf_counter()
     bar = None
     done, error = 0, None
-    in_swarm = False  # a swarm's own error (not the simulation's) is no partial result
+    in_swarm = False  # a swarm's own error before any step done is no partial result
     try:
         with timer.stage(TRAFFIC):
             t_now = next(maps)
@@ -224,8 +224,12 @@ def run_patrol(
         release_notices()
         error = f"traffic source ended after {done} of {horizon} steps"
     except Exception as exc:
-        if isinstance(exc, UserError) or in_swarm or not source.keeps_partial_results:
-            raise  # bad input (e.g. a file a simulator refuses to start on) is no partial result
+        if (
+            isinstance(exc, UserError)
+            or not source.keeps_partial_results
+            or (in_swarm and done == 0)
+        ):  # bad input (a file a simulator refuses to start on), or a swarm that failed before
+            raise  # its first step (no torch cache), is no partial result of the simulation
         release_notices()  # a partial run: what it said of its scenario still holds
         error = f"{type(exc).__name__}: {exc}"
     finally:

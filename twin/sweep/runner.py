@@ -64,7 +64,9 @@ def run_sweep(
     for cell in todo:  # not a defining key: the limit changes no number
         cell["max_memory_gb"] = max_memory_gb
     skipped = [c["id"] for c in cells if c["id"] in done]
-    check_cells(todo, config.path)  # before anything is written: a refused sweep leaves no folder
+    # before anything is written: a refused sweep leaves no folder (a transfer's sweep has no
+    # [swarm_options] of its own file to name)
+    check_cells(todo, config.path if config._home is None else None)
     if report:
         from twin.report.sweep import check_sweep_report_folder
 
@@ -183,7 +185,8 @@ def check_cells(cells: list[dict[str, Any]], sweep_file: Path | None = None) -> 
                     config.make_swarm(name, **options)
                 except UserError as exc:
                     text = str(exc)
-                    if not options or sweep_file is None or text.startswith(str(config.path)):
+                    lead = (f"{base_name(name)}: ", "[swarm_options.")
+                    if not options or sweep_file is None or not text.startswith(lead):
                         raise  # not an option of the sweep's own table
                     if not text.startswith("[swarm_options."):
                         text = f"[swarm_options.{name}]: " + text.removeprefix(
