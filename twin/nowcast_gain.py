@@ -19,7 +19,7 @@ from twin.belief import EXACT_SIGHTINGS, Z90, History, NowcastFilter, SightingMo
 from twin.errors import UserError
 from twin.grid import ACTION_DELTAS, Grid
 from twin.planners import CoordinatedPolicy
-from twin.policies import SwarmView
+from twin.policies import SwarmView, number_option
 from twin.scores import visit_gain
 
 #: Default weight of the information term against the visit gain (see
@@ -71,10 +71,7 @@ def check_options(weight: Any, quantile_z: Any, meas_var: Any) -> None:
         ("quantile_z", quantile_z, 0.0, 10.0),
         *([("meas_var", meas_var, 1e-12, 1.0)] if meas_var is not None else []),
     ):
-        if isinstance(value, bool) or not isinstance(value, int | float | np.floating):
-            raise UserError(f"nowcast-gain: {key} = {value!r} must be a number")
-        if not lo <= float(value) <= hi:
-            raise UserError(f"nowcast-gain: {key} = {value} must lie in [{lo:g}, {hi:g}]")
+        number_option("nowcast-gain", key, value, lo, hi)
 
 
 class NowcastGainPolicy(CoordinatedPolicy):

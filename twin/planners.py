@@ -26,7 +26,7 @@ import numpy as np
 from twin.coordinator import coordinate
 from twin.errors import UserError
 from twin.grid import ACTION_DELTAS, Grid
-from twin.policies import Policy, SwarmView, number_option
+from twin.policies import Policy, SwarmView, number_option, whole_option
 from twin.scores import visit_gain
 
 #: Relative size of the tie-breaking jitter: scores closer than this count as tied.
@@ -225,10 +225,7 @@ class LookaheadPolicy(CoordinatedPolicy):
             )
         discount = number_option("lookahead", "discount", discount, 0.0, 1.0, 1.0, low_open=True)
         end_weight = number_option("lookahead", "end_weight", end_weight, 0, 10, DEFAULT_END_WEIGHT)
-        if isinstance(end_wait, bool) or not isinstance(end_wait, int | np.integer):
-            raise UserError(f"lookahead: end_wait = {end_wait!r} must be an integer; e.g. 5")
-        if not 0 <= end_wait <= 1000:
-            raise UserError(f"lookahead: end_wait = {end_wait} must lie in 0..1000; e.g. 5")
+        end_wait = whole_option("lookahead", "end_wait", end_wait, 0, 1000, 5)
         if plan not in PLANS:
             raise UserError(f"lookahead: plan = {plan!r} must be one of {', '.join(PLANS)}")
         self.horizon = int(horizon)

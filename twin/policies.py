@@ -97,15 +97,26 @@ def whole_option(swarm: str, key: str, value, low: int, high: int | None, exampl
 
 
 def number_option(
-    swarm: str, key: str, value, low: float, high: float, example, low_open: bool = False
+    swarm: str,
+    key: str,
+    value,
+    low: float,
+    high: float = float("inf"),
+    example=None,
+    low_open: bool = False,
 ) -> float:
-    """A swarm option that is a number in ``[low, high]`` (``(low, high]`` if ``low_open``),
-    or one line naming the swarm, key and value (``true`` and ``"0.5"`` are not numbers)."""
+    """A swarm option that is a number in ``[low, high]`` (``(low, high]`` if ``low_open``;
+    no top when ``high`` is infinite), or one line naming the swarm, key and value (``true``
+    and ``"0.5"`` are not numbers; NaN lies nowhere)."""
+    hint = "" if example is None else f"; e.g. {example}"
     if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
-        raise UserError(f"{swarm}: {key} = {value!r} must be a number; e.g. {example}")
+        raise UserError(f"{swarm}: {key} = {value!r} must be a number{hint}")
     if not (low < value <= high if low_open else low <= value <= high):
-        span = f"({low:g}, {high:g}]" if low_open else f"[{low:g}, {high:g}]"
-        raise UserError(f"{swarm}: {key} = {value} must lie in {span}; e.g. {example}")
+        if high == float("inf"):
+            span = f"be {'>' if low_open else '>='} {low:g}"
+        else:
+            span = f"lie in {'(' if low_open else '['}{low:g}, {high:g}]"
+        raise UserError(f"{swarm}: {key} = {value} must {span}{hint}")
     return float(value)
 
 

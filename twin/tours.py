@@ -27,7 +27,7 @@ from twin.errors import UserError
 from twin.grid import Grid
 from twin.paths import free_cell_graph, free_paths
 from twin.planners import CoordinatedPolicy
-from twin.policies import SwarmView, whole_option
+from twin.policies import SwarmView, flag_option, number_option, whole_option
 from twin.scores import ScoreParams, visit_gain
 
 #: Score added to a drone's planned move: larger than any visit gain, so the coordinator keeps
@@ -520,22 +520,12 @@ class ToursPolicy(CoordinatedPolicy):
         self.per_tour = whole_option("tours", "per_tour", per_tour, 1, MAX_PER_TOUR, 2)
         self.explore = None if explore is None else whole(explore, "explore", 0, 40)
         self.replan = None if replan is None else whole(replan, "replan", 1, 400)
-        if isinstance(shift, bool) or not isinstance(shift, int | float) or not shift > 0:
-            raise UserError(f"tours: shift = {shift!r} must be a positive number; e.g. 0.2")
-        self.shift = float(shift)
-        if isinstance(stretch, bool) or not isinstance(stretch, int | float) or not stretch > 0:
-            raise UserError(f"tours: stretch = {stretch!r} must be a positive number; e.g. 1.0")
-        self.stretch = float(stretch)
-        if isinstance(bonus, bool) or not isinstance(bonus, int | float) or not bonus >= 0:
-            raise UserError(f"tours: bonus = {bonus!r} must be a number >= 0; e.g. {PLAN_BONUS}")
-        self.bonus = float(bonus)
-        if isinstance(prior, bool) or not isinstance(prior, int | float) or not 0 <= prior <= 1:
-            raise UserError(f"tours: prior = {prior!r} must be a number in 0..1; e.g. 0.25")
-        self.prior = float(prior)
+        self.shift = number_option("tours", "shift", shift, 0.0, example=0.2, low_open=True)
+        self.stretch = number_option("tours", "stretch", stretch, 0.0, example=1.0, low_open=True)
+        self.bonus = number_option("tours", "bonus", bonus, 0.0, example=PLAN_BONUS)
+        self.prior = number_option("tours", "prior", prior, 0.0, 1.0, 0.25)
         self.memory = None if memory is None else whole(memory, "memory", 1, 300)
-        if not isinstance(survey, bool):
-            raise UserError(f"tours: survey = {survey!r} must be true or false; e.g. true")
-        self.survey = survey
+        self.survey = flag_option("tours", "survey", survey)
         if layout not in LAYOUTS:
             raise UserError(f"tours: layout = {layout!r} must be one of {', '.join(LAYOUTS)}")
         self.layout = layout

@@ -294,8 +294,8 @@ class SumoSession:
         """Positions ``(n, 2)`` (m, network coordinates) and speeds ``(n,)`` (m/s) of the
         vehicles on the road now; vehicles off it are left out: in a teleport, or parked off
         their lane (in a parking area, but one ``onRoad``, or at a stop with ``parking="true"``;
-        SUMO's own lane counts leave them out too), or on a lane of ``not_for_cars`` (a bike or bus lane, a rail:
-        not the car lanes whose lane-km and speed limits the cells have)."""
+        SUMO's own lane counts leave them out too), or on a lane of ``not_for_cars`` (a bike or
+        bus lane, a rail: not the car lanes whose lane-km and speed limits the cells have)."""
         veh = _libsumo().vehicle
         ids = veh.getIDList()
         xy = np.array([veh.getPosition(v) for v in ids], dtype=float).reshape(-1, 2)
