@@ -657,7 +657,9 @@ class ScenarioConfig(SourcedConfig):
             raise self._refused_option(name, own, overrides, exc) from None
         except UserError as exc:  # a value the swarm refuses, said where the config gives it
             text = str(exc)
-            if not own or str(self.path) in text or text.startswith("[swarm_options"):
+            said = re.match(rf"{re.escape(base_name(name))}: (\w+) = ", text)
+            theirs = said is not None and said[1] in overrides  # the value the overrides give
+            if not own or theirs or str(self.path) in text or text.startswith("[swarm_options"):
                 raise
             for lead in (f"{base_name(name)}: ", "swarm option "):  # said by the table now
                 text = text.removeprefix(lead)
