@@ -568,8 +568,8 @@ def test_bad_parameter_value_fails_before_any_cell_runs(tmp_path: Path) -> None:
         ("lookahead", "discount = 2.0", "[swarm_options.lookahead]: discount = 2.0 must lie in"),
         ("lookahead", "wieght = 1", "[swarm_options.lookahead] has an option 'wieght'"),
         ("rl-online", "batch_size = 0", "[swarm_options.rl-online]: batch_size = 0 must be in"),
-        ("rl", "outages = [[0, 9]]", "[swarm_options.rl]: option outages has [0, 9] past the "
-         "horizon T = 4; end it by 4"),
+        ("rl", "outages = [[0, 9]]", "[swarm_options.rl].outages has [0, 9] past the horizon "
+         "T = 4; end it by 4"),
     ],
 )  # fmt: skip
 @pytest.mark.parametrize("scenario_too", [False, True])

@@ -235,6 +235,22 @@ def build_swarms(experiment: Experiment) -> dict[str, Policy]:
     return swarms
 
 
+def check_swarm_outages(experiment: Experiment, swarms: dict[str, Policy], horizon: int) -> None:
+    """Each swarm's own coordinator outages end by the horizon (:func:`check_outages`), named as
+    the config's ``[swarm_options.<swarm>].outages`` when the config gives them."""
+    from twin.patrol import check_outages
+
+    config = experiment.config
+    for name, policy in swarms.items():
+        try:
+            check_outages(name, policy, horizon)
+        except UserError as exc:
+            given = "outages" in config.swarm_options.get(name, {})
+            if not given or "outages" in experiment.swarm_options.get(name, {}):
+                raise
+            raise UserError(f"{config.path}: {exc}") from None
+
+
 def check_swarm_histories(swarms: dict[str, Policy], source: TrafficSource) -> None:
     """Each swarm's own history of earlier days (``[swarm_options.<swarm>].history``) is one
     of this traffic's grid, horizon and clock, and holds none of its days, as ``--history``
@@ -409,6 +425,7 @@ def _run_seed(experiment, n, seed, source, stop, progress=False, on_source=None,
     if on_source is not None:
         on_source(source)
     swarms = build_swarms(experiment)
+    check_swarm_outages(experiment, swarms, source.horizon)
     check_swarm_histories(swarms, source)
     faults = config.fault_plan()
     twins = build_swarms(experiment) if faults is not None and config.faults.compare else None

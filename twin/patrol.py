@@ -92,7 +92,7 @@ def check_outages(name: str, policy: Policy, horizon: int) -> None:
     late = [w for w in getattr(policy, "outages", ()) if w[1] > horizon]
     if late:
         raise UserError(
-            f"swarm {name!r}: option outages has [{late[0][0]}, {late[0][1]}] past the horizon "
+            f"[swarm_options.{name}].outages has [{late[0][0]}, {late[0][1]}] past the horizon "
             f"T = {horizon}; end it by {horizon}"
         )
 

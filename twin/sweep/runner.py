@@ -188,13 +188,13 @@ def check_cells(cells: list[dict[str, Any]], sweep_file: Path | None = None) -> 
                         check_outages(name, policy, horizon)
                 except UserError as exc:
                     text = str(exc)
-                    lead = (f"{base_name(name)}: ", "[swarm_options.", f"swarm {name!r}: ")
+                    lead = (f"{base_name(name)}: ", "[swarm_options.")
                     if not options or sweep_file is None or not text.startswith(lead):
                         raise  # not an option of the sweep's own table
                     if not text.startswith("[swarm_options."):
-                        for prefix in lead[::2]:
-                            text = text.removeprefix(prefix)
-                        text = f"[swarm_options.{name}]: {text}"
+                        text = f"[swarm_options.{name}]: " + text.removeprefix(
+                            f"{base_name(name)}: "
+                        )
                     raise UserError(f"{sweep_file}: {text}") from None
         except UserError as exc:
             if sweep_file is not None and str(exc).startswith(f"{sweep_file}: [swarm_"):
