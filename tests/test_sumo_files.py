@@ -293,6 +293,19 @@ ACCEPTED = {
         _cfg(NET_AND_TRIPS + '<traci_server><remote-port value="0"/></traci_server>'),
         {}, None, None,
     ),
+    # SUMO skips an empty value (then reads the element's text); each was taken as the value,
+    # which dropped the routes, the network or the end (a review against SUMO 1.28)
+    "empty values, which SUMO skips": (
+        _cfg('<input><net-file value="small.net.xml"/><net-file value=""/><route-files value="">'
+             'small.trips.xml</route-files><route-files value=""/></input>'
+             '<time><begin value="60"/><end value="480"/><end value=""/></time>'),
+        {}, 60.0, 480.0,
+    ),
+    "C's hexadecimal times, and SUMO's false words for help": (
+        _cfg(NET_AND_TRIPS + '<time><begin value="0x3c"/><end value="0x1E0"/></time>'
+             '<report><help value="f"/><version value="-"/></report>'),
+        {}, 60.0, 480.0,
+    ),
 }  # fmt: skip
 
 
@@ -987,6 +1000,15 @@ REFUSED = {
                       "<remote-port value='8813'> makes SUMO wait for a TraCI client"),
     "a help switch": (_cfg(NET_AND_TRIPS + '<report><help value="true"/></report>'), {},
                       "<help value='true'> makes SUMO print its help and quit"),
+    "a help switch in SUMO's short word": (_cfg(NET_AND_TRIPS + '<help value="T"/>'), {},
+                                           "<help value='T'> makes SUMO print its help"),
+    "an option set twice": (
+        _cfg(NET_AND_TRIPS + '<input><route-files value="small.trips.xml"/></input>'), {},
+        "<route-files> and <route-files> both set option route-files ('small.trips.xml', "
+        "'small.trips.xml'), which SUMO refuses ('probably defined twice'); keep one",
+    ),
+    "a mesosim that is no boolean": (_cfg(NET_AND_TRIPS + '<mesosim value="maybe"/>'), {},
+                                     "<mesosim value='maybe'> is no boolean SUMO reads"),
     "not XML": ("<configuration><input>", {}, "not valid XML"),
     "a negative begin": (_cfg(NET_AND_TRIPS + '<time><begin value="-60"/></time>'), {},
                          "<begin value='-60'> is negative, which SUMO refuses"),
@@ -1819,6 +1841,39 @@ def test_a_lane_allowing_all_is_a_car_lane(tmp_path):
     net.write_text(text)
     after = read_lanes(net)
     assert len(after.shapes) == len(before.shapes) and not after.not_for_cars
+
+
+def test_a_network_without_car_lanes_counts_its_other_vehicles(tmp_path, capsys):
+    """SUMO runs a freight network (lanes for trucks alone) with its trucks: twin refused it
+    for having no passenger lane (a review against SUMO 1.28). Its lanes are the grid's, its
+    trucks the traffic, with a notice; a network of sidewalks alone is refused in one line."""
+    from twin.sumo.cells import read_lanes
+    from twin.sumo.session import SumoSession
+    from twin.sumo.tools import binary, run_sumo_program
+
+    net = tmp_path / "t.net.xml"
+    run_sumo_program(
+        [binary("netgenerate"), "--grid", "--grid.number", "3", "--grid.length", "200",
+         "--default.allow", "truck", "-o", str(net)],
+        what="netgenerate",
+    )  # fmt: skip
+    lanes = read_lanes(net)
+    err = capsys.readouterr().err
+    assert "no lane lets passenger cars drive" in err and "(truck)" in err, err
+    assert lanes.shapes and not lanes.not_for_cars
+    (tmp_path / "t.rou.xml").write_text(
+        '<routes><vType id="lorry" vClass="truck"/><flow id="f" type="lorry" begin="0" '
+        'end="300" period="10" from="A0A1" to="C2C1"/></routes>'
+    )
+    session = SumoSession(net_file=net, route_files=[tmp_path / "t.rou.xml"], end=3600.0)
+    with session:
+        session.advance_to(200.0)
+        xy, _ = session.vehicles(lanes.not_for_cars)
+        assert len(xy) == len(_libsumo_vehicles()) > 0
+    walk = tmp_path / "w.net.xml"
+    walk.write_text(net.read_text().replace('allow="truck"', 'allow="pedestrian"'))
+    with pytest.raises(UserError, match="the network has no lane that vehicles may use"):
+        read_lanes(walk)
 
 
 def test_parking_under_meso_is_said_to_count(tmp_path, capsys):

@@ -572,6 +572,9 @@ def test_departure_span_of_flows_and_clock_times(tmp_path):
         ('begin="10" probability="0.1"', math.inf),
         ('begin="10" number="30" vehsPerHour="600"', 190.0),
         ('begin="10" number="30" headway="2"', 70.0),
+        # random departures: the mean time their number takes (was never, past 24 h)
+        ('begin="10" number="30" probability="0.1"', 310.0),
+        ('begin="10" number="30" period="exp(0.1)"', 310.0),
         ('begin="90000" vehsPerHour="600"', math.inf),
     ],
 )

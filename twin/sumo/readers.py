@@ -286,14 +286,20 @@ def file_list(value: str | None, base: Path, named_in: Path | None = None) -> li
 
 
 def parse_time(value: str | None) -> float | None:
-    """A SUMO time value: seconds ("3600", "3600.5") or a clock ("1:00:00"); None if neither
-    (also for NaN and infinite values, which SUMO refuses too)."""
+    """A SUMO time value: seconds ("3600", "3600.5", and C's hexadecimal form "0xe10", which
+    SUMO's number parser takes too) or a clock ("1:00:00"); None if neither (also for NaN and
+    infinite values, which SUMO refuses too)."""
     if value is None:
         return None
     try:
         t = float(value)
     except ValueError:
-        pass
+        try:
+            t = float.fromhex(value) if _HEX.fullmatch(str(value).strip()) else math.nan
+        except (ValueError, OverflowError):
+            t = math.nan
+        if math.isfinite(t):
+            return t
     else:
         return t if math.isfinite(t) else None
     parts = str(value).strip().split(":")
@@ -307,6 +313,22 @@ def parse_time(value: str | None) -> float | None:
     for x, unit in zip(reversed(numbers), (1, 60, 3600, 86400), strict=False):
         total += x * unit
     return total
+
+
+_EXP_PERIOD = re.compile(r"exp\((.+)\)")
+_HEX = re.compile(r"[+-]?0[xX][0-9a-fA-F]+(\.[0-9a-fA-F]*)?([pP][+-]?\d+)?")
+
+#: SUMO's words for true and false, in any case (``StringUtils::toBool``).
+_TRUE, _FALSE = ("1", "yes", "true", "on", "x", "t"), ("0", "no", "false", "off", "-", "f")
+
+
+def sumo_bool(value: str | None, default: bool = False) -> bool | None:
+    """A SUMO boolean option's value as SUMO reads it (``t``, ``x``, ``on``, ... are true;
+    ``f``, ``-``, ``off``, ... false); ``default`` when unset; None when SUMO refuses it."""
+    if value is None:
+        return default
+    word = value.strip().lower()
+    return True if word in _TRUE else False if word in _FALSE else None
 
 
 #: Roots of a SUMO simulation config: ``<configuration>``, and ``<sumoConfiguration>`` as
@@ -340,25 +362,33 @@ def substitute_environment(value: str) -> str:
     return _VARIABLE.sub(lambda m: os.environ.get(m.group(1), ""), s)
 
 
-def sumocfg_options(root: ET.Element) -> tuple[dict[str, str], dict[str, str]]:
-    """The options a SUMO config sets, as SUMO reads them: any element with a ``value``
-    attribute (or its short form ``v``) or, without children, a text, whether in a section
-    (``<input><net-file value="..."/></input>``) or right under the root, named by any of
-    SUMO's synonyms (:func:`twin.sumo.options.canonical`): canonical name -> value (the last
-    one wins, as in SUMO; environment variables substituted, :func:`substitute_environment`),
-    and canonical name -> the name the config wrote."""
+def sumocfg_options(root: ET.Element, path: Path) -> tuple[dict[str, str], dict[str, str]]:
+    """The options the SUMO config ``path`` sets, as SUMO reads them: any element with a
+    ``value`` attribute (or its short form ``v``) or, without children, a text, whether in a
+    section (``<input><net-file value="..."/></input>``) or right under the root, named by any
+    of SUMO's synonyms (:func:`twin.sumo.options.canonical`): canonical name -> value
+    (environment variables substituted, :func:`substitute_environment`), and canonical name ->
+    the name the config wrote. An empty value is skipped, as SUMO skips it; an option set twice
+    is refused, as SUMO refuses it."""
     options: dict[str, str] = {}
     written: dict[str, str] = {}
     for elem in root.iter():
         name = local_name(elem)
         if elem is root or not name:
             continue
-        value = elem.get("value", elem.get("v"))
+        value = elem.get("value") or elem.get("v") or None
         if value is None and len(elem) == 0 and elem.text is not None and elem.text.strip():
             value = elem.text.strip()
-        if value is not None:
-            options[canonical(name)] = substitute_environment(value)
-            written[canonical(name)] = name
+        if value is None:
+            continue
+        key = canonical(name)
+        if key in options:
+            raise UserError(
+                f"{path}: <{written[key]}> and <{name}> both set option {key} ({options[key]!r}, "
+                f"{value!r}), which SUMO refuses ('probably defined twice'); keep one"
+            )
+        options[key] = substitute_environment(value)
+        written[key] = name
     return options, written
 
 
@@ -390,7 +420,7 @@ def read_sumocfg(path: Path, own_net: bool = True) -> SumoConfigFile:
             root = ET.parse(fh).getroot()
     except (ET.ParseError, OSError, EOFError) as exc:
         raise UserError(f"{path}: not valid XML ({exc})") from exc
-    options, written = sumocfg_options(root)
+    options, written = sumocfg_options(root, path)
 
     def value(name: str) -> str | None:
         return options.get(name) or None
@@ -422,7 +452,7 @@ def read_sumocfg(path: Path, own_net: bool = True) -> SumoConfigFile:
                 "client instead of simulating; remove it (twin drives SUMO itself)"
             )
     for name in _PRINT_AND_QUIT:
-        if options.get(name, "false").strip().lower() not in ("false", "0", "no", "off", ""):
+        if sumo_bool(options.get(name)) is not False:
             raise UserError(
                 f"{path}: <{written[name]} value={options[name]!r}> makes SUMO print its {name} "
                 "and quit instead of simulating; remove it"
@@ -625,13 +655,19 @@ def _interval(path: Path, elem: ET.Element, start: float) -> tuple[float, float 
 def _flow_end(elem: ET.Element, begin: float, interval_end: float | None = None) -> float:
     """When a flow's departures end: its ``end``, else after ``number`` departures at its
     ``period``/``headway`` or ``vehsPerHour`` (``personsPerHour``, ``containersPerHour``,
-    ``perHour``) and no later than the end of its ``<interval>``, else that end; never
-    (``math.inf``) for an open flow, which SUMO (1.2x) runs as long as it runs."""
+    ``perHour``), or, when they are random (``probability`` per second, ``period="exp(rate)"``),
+    after the time ``number`` of them take on average; no later than the end of its
+    ``<interval>``, else that end; never (``math.inf``) for an open flow, which SUMO (1.2x) runs
+    as long as it runs."""
     end = parse_time(elem.get("end"))
     if end is not None:
         return end
     number = elem.get("number")
     step = parse_time(elem.get("period")) or parse_time(elem.get("headway"))
+    random_period = _EXP_PERIOD.fullmatch(elem.get("period", "").strip())
+    per_second = parse_time(random_period[1] if random_period else elem.get("probability"))
+    if step is None and per_second is not None and per_second > 0:
+        step = 1.0 / per_second  # the mean gap between random departures
     for rate in ("vehsPerHour", "personsPerHour", "containersPerHour", "perHour"):
         per_hour = parse_time(elem.get(rate))
         if step is None and per_hour:

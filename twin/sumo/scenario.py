@@ -50,6 +50,7 @@ from twin.sumo.readers import (
     read_sumocfg,
     resolved,
     root_tag,
+    sumo_bool,
 )
 
 #: SUMO's step (s, its default --step-length): a twin step may not be shorter.
@@ -287,7 +288,13 @@ def _scenario_files(s: SumoSettings) -> _ScenarioFiles:
         return files
     if sumocfg_path is not None:
         cfg = read_sumocfg(sumocfg_path, own_net=not s.net)
-        if cfg.options.get("random", "false").strip().lower() in ("true", "1", "yes", "on"):
+        for key in ("random", "mesosim"):  # SUMO refuses another word before it starts
+            if sumo_bool(cfg.options.get(key)) is None:
+                raise UserError(
+                    f"{sumocfg_path}: <{key} value={cfg.options[key]!r}> is no boolean SUMO "
+                    "reads; give true or false"
+                )
+        if sumo_bool(cfg.options.get("random")):
             notice(
                 f"{sumocfg_path}: <random value={cfg.options['random']!r}> (a seed from the "
                 "clock) is overridden: twin seeds SUMO with --sumo-seed so that runs repeat"
@@ -298,8 +305,7 @@ def _scenario_files(s: SumoSettings) -> _ScenarioFiles:
                 "SUMO seed (--sumo-seed, [traffic].seed: one per run seed), so that runs repeat "
                 "by it"
             )
-        mesosim = cfg.options.get("mesosim", "false").strip().lower()
-        if not s.mesoscopic and mesosim in ("true", "1", "yes", "on", "x"):
+        if not s.mesoscopic and sumo_bool(cfg.options.get("mesosim")):
             s.mesoscopic = True  # SUMO runs it so: recorded, and its detectors refused
             notice(
                 f"{sumocfg_path}: <mesosim value={cfg.options['mesosim']!r}> runs SUMO's "
