@@ -459,6 +459,10 @@ def test_killed_sweep_resumes(tmp_path: Path) -> None:
             '[sweep]\nswarms = ["greedy"]\n[[scenario]]\nname = "a"\nconfig = "missing.toml"\n',
             "does not exist",
         ),
+        (  # a folder was said not to exist (probe 27's f02)
+            '[sweep]\nswarms = ["greedy"]\n[[scenario]]\nname = "a"\nconfig = "."\n',
+            "which is a folder, not a file; fix the path",
+        ),
         (
             '[sweep]\nswarms = ["greedy"]\n[[scenario]]\nname = "a"\nconfig = "scenario.toml"\n'
             '[parameters]\n"n_drones" = [1]\n',

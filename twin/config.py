@@ -43,6 +43,7 @@ from pydantic import (
 
 from twin.clock import CLOCK_HINT, clock_seconds
 from twin.errors import UserError
+from twin.files import not_a_file
 from twin.grid import Grid
 from twin.mfd import SETTING_RANGES as MFD_SETTING_RANGES
 from twin.resources import shipped_config as shipped_config  # re-export (moved there)
@@ -185,8 +186,9 @@ def _relative(value: Any, info: ValidationInfo) -> Any:
 
 
 def _existing(path: Path) -> Path:
-    if not path.is_file():
-        raise ValueError(f"names {path}, which does not exist; fix the path")
+    why = not_a_file(path)
+    if why is not None:  # (a pipe's reason names its fix)
+        raise ValueError(f"names {path}, which {why}" + ("" if ";" in why else "; fix the path"))
     return path
 
 

@@ -14,6 +14,7 @@ Anything wrong with a file reaches the user as one :class:`~twin.errors.UserErro
 from __future__ import annotations
 
 import itertools
+import re
 import warnings
 from pathlib import Path
 from typing import Any
@@ -84,7 +85,13 @@ def read_checkpoint(path: str | Path, hint: str | None = None) -> dict[str, Any]
             warnings.simplefilter("ignore")
             blob = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises many types for truncated/corrupt/unsafe files
+        if "Weights only load failed" in str(exc):  # torch's text: its advice, in colour
+            raise UserError(
+                f"checkpoint {path} holds Python objects beyond tensors (a whole module saved "
+                f"with torch.save(model), say), which twin does not unpickle; {hint}"
+            ) from None
         first = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+        first = re.sub(r"\x1b\[[0-9;]*m", "", first)  # no terminal colours in the one line
         first = first if len(first) <= 120 else first[:120].rsplit(" ", 1)[0] + " ..."
         raise UserError(
             f"checkpoint {path} is corrupt or not a torch file ({type(exc).__name__}: {first}); "
