@@ -653,32 +653,35 @@ def _interval(path: Path, elem: ET.Element, start: float) -> tuple[float, float 
 
 
 def _flow_end(elem: ET.Element, begin: float, interval_end: float | None = None) -> float:
-    """When a flow's departures end: its ``end``, else after ``number`` departures at its
-    ``period``/``headway`` or ``vehsPerHour`` (``personsPerHour``, ``containersPerHour``,
-    ``perHour``), or, when they are random (``probability`` per second, ``period="exp(rate)"``),
-    after the time ``number`` of them take on average; no later than the end of its
-    ``<interval>``, else that end; never (``math.inf``) for an open flow, which SUMO (1.2x) runs
+    """When a flow's departures end: its ``end``, else its last of ``number`` departures: one
+    at ``begin`` and then one every ``period``/``headway`` or at ``vehsPerHour``
+    (``personsPerHour``, ``containersPerHour``, ``perHour``); when they are random
+    (``probability`` per second, ``period="exp(rate)"``), the mean time ``number`` of their gaps
+    take; spread over its ``<interval>`` without a period (as SUMO 1.28 departs them), no later
+    than its end, else that end; never (``math.inf``) for an open flow, which SUMO (1.2x) runs
     as long as it runs."""
     end = parse_time(elem.get("end"))
     if end is not None:
         return end
-    number = elem.get("number")
+    try:
+        number = None if elem.get("number") is None else float(elem.get("number"))
+    except ValueError:
+        number = None  # SUMO will say what is wrong with it
     step = parse_time(elem.get("period")) or parse_time(elem.get("headway"))
-    random_period = _EXP_PERIOD.fullmatch(elem.get("period", "").strip())
-    per_second = parse_time(random_period[1] if random_period else elem.get("probability"))
-    if step is None and per_second is not None and per_second > 0:
-        step = 1.0 / per_second  # the mean gap between random departures
     for rate in ("vehsPerHour", "personsPerHour", "containersPerHour", "perHour"):
         per_hour = parse_time(elem.get(rate))
         if step is None and per_hour:
             step = 3600.0 / per_hour
-    if number is not None and step is not None:
-        try:
-            last = begin + float(number) * step
-        except ValueError:
-            pass  # SUMO will say what is wrong with it
-        else:
-            return last if interval_end is None else max(begin, min(last, interval_end))
+    gaps = None if number is None else number - 1  # the first departs at begin
+    random_period = _EXP_PERIOD.fullmatch(elem.get("period", "").strip())
+    per_second = parse_time(random_period[1] if random_period else elem.get("probability"))
+    if step is None and per_second is not None and per_second > 0:
+        step, gaps = 1.0 / per_second, number  # the first departs after a gap too
+    if number is not None and step is None and interval_end is not None and number >= 1:
+        step = (interval_end - begin) / number  # spread over the interval
+    if gaps is not None and step is not None:
+        last = begin + max(gaps, 0.0) * step
+        return last if interval_end is None else max(begin, min(last, interval_end))
     return math.inf if interval_end is None else max(begin, interval_end)
 
 
