@@ -1243,6 +1243,23 @@ def test_an_unset_variable_in_a_sumo_option_is_said(monkeypatch, capsys):
     assert capsys.readouterr().err == ""
 
 
+def test_a_file_missing_for_an_unset_variable_names_it(tmp_path, monkeypatch, capsys):
+    """A refusal prints its one line alone: the notice of the unset variable was dropped, and
+    the line named a route file ".rou.xml" without saying why (probe 27's f04)."""
+    from helpers import small_sumo_scenario
+
+    small_sumo_scenario(tmp_path)
+    monkeypatch.delenv("TWIN_TEST_UNSET", raising=False)
+    cfg = tmp_path / "var.sumocfg"
+    cfg.write_text('<configuration><input><net-file value="small.net.xml"/><route-files '
+                   'value="${TWIN_TEST_UNSET}.rou.xml"/></input></configuration>')  # fmt: skip
+    code = twin_main(["run", "--sumocfg", str(cfg), "--quiet", "--no-report", "--no-ceiling",
+                      "--swarms", "random", "--out", str(tmp_path / "run")])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1, err
+    assert f"(named in {cfg}, where ${{TWIN_TEST_UNSET}} is not set and reads as empty)" in err
+
+
 @pytest.mark.parametrize(
     "argv",
     [

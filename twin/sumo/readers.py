@@ -268,8 +268,21 @@ def naming_the_sumocfg(message: str, sumocfg: Path | None, files: list[Path]) ->
         return message
     for path in files:
         if message.startswith(f"{path}:"):
-            return f"{path} (named in {sumocfg}){message[len(str(path)) :]}"
+            unset = _unset_variables(sumocfg)  # the likely cause of a file that is not there
+            where = f", where ${{{unset[0]}}} is not set and reads as empty" if unset else ""
+            return f"{path} (named in {sumocfg}{where}){message[len(str(path)) :]}"
     return message
+
+
+def _unset_variables(sumocfg: Path) -> list[str]:
+    """The environment variables (``${NAME}``) a SUMO config's text names and that are not set."""
+    try:
+        with open(sumocfg, "rb") as fh:
+            text = fh.read(1 << 20).decode("utf-8", errors="replace")
+    except OSError:
+        return []
+    special = ("PID", "LOCALTIME", "UTC")
+    return sorted({n for n in _VARIABLE.findall(text) if n not in os.environ and n not in special})
 
 
 def file_list(value: str | None, base: Path, named_in: Path | None = None) -> list[Path]:
