@@ -1647,6 +1647,35 @@ def test_a_sumocfg_named_through_a_link_reads_its_files_beside_the_link(scenario
     assert loaded["public.sumocfg"] == other
 
 
+def test_a_sumocfg_in_a_linked_folder_records_the_files_sumo_reads(scenario, tmp_path, capsys):
+    """``L/c`` a link to ``real/cfg``, whose sumocfg names ``../net/...``: SUMO reads
+    ``real/net/`` (the system resolves ``..`` in the link's target); run.json hashed
+    ``L/net/``'s files, so a sweep kept a stale cell when the real route file changed (probe
+    27's f07)."""
+    from twin.files import file_sha256
+
+    real, decoy = tmp_path / "real", tmp_path / "L"
+    for folder in (real / "net", real / "cfg", decoy / "net"):
+        folder.mkdir(parents=True)
+    for name in ("small.net.xml", "small.trips.xml"):
+        shutil.copy(scenario / "scenario" / name, real / "net" / name)
+        shutil.copy(scenario / "scenario" / name, decoy / "net" / name)
+    (decoy / "net" / "small.trips.xml").write_text(
+        (real / "net" / "small.trips.xml").read_text().replace("<routes", "<!-- other -->\n<routes")
+    )
+    (real / "cfg" / "x.sumocfg").write_text(
+        '<configuration><input><net-file value="../net/small.net.xml"/><route-files '
+        'value="../net/small.trips.xml"/></input></configuration>'
+    )
+    (decoy / "c").symlink_to(real / "cfg")
+    out = tmp_path / "run"
+    assert _run(scenario, out, "--sumocfg", str(decoy / "c" / "x.sumocfg"), "--horizon", "2") == 0
+    identity = json.loads((out / "run.json").read_text())["traffic"]["identity"]
+    hashes = {f["role"]: f["sha256"] for f in identity["files"]}
+    assert hashes["route file"] == file_sha256(real / "net" / "small.trips.xml")
+    assert hashes["route file"] != file_sha256(decoy / "net" / "small.trips.xml")
+
+
 @pytest.mark.parametrize(
     ("value", "kept"),
     [("Nul", True), ("nUL", True), ("Stdout", True), ("nul", False), ("NUL", False),

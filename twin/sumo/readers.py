@@ -739,7 +739,7 @@ def include_cycle(path: Path) -> list[Path] | None:
         except (ET.ParseError, OSError, EOFError, UserError):
             return []
         found = [e.get("href") for e in root.iter() if local_name(e) == "include"]
-        return [Path(os.path.normpath((current.parent / h).absolute())) for h in found if h]
+        return [as_given(current.parent / h) for h in found if h]
 
     done: set[Path] = set()  # files whose includes hold no cycle: each searched once
 
@@ -752,7 +752,7 @@ def include_cycle(path: Path) -> list[Path] | None:
         done.add(chain[-1])
         return None
 
-    return walk([Path(os.path.normpath(Path(path).absolute()))])
+    return walk([as_given(Path(path))])
 
 
 def included_files(path: Path) -> list[Path]:
@@ -760,7 +760,7 @@ def included_files(path: Path) -> list[Path]:
     including file, as SUMO reads them), and theirs in turn; a file SUMO could not read or a
     cycle ends the search there (SUMO says what is wrong with it)."""
     found: list[Path] = []
-    todo, seen = [Path(path)], {Path(os.path.normpath(Path(path).absolute()))}
+    todo, seen = [Path(path)], {as_given(Path(path))}
     while todo:
         current = todo.pop(0)
         try:
@@ -772,7 +772,7 @@ def included_files(path: Path) -> list[Path]:
         for href in hrefs:
             if not href:
                 continue
-            child = Path(os.path.normpath((current.parent / href).absolute()))
+            child = as_given(current.parent / href)
             if child not in seen:
                 seen.add(child)
                 found.append(child)
