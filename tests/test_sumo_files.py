@@ -1876,7 +1876,8 @@ def test_a_network_without_car_lanes_counts_its_other_vehicles(tmp_path, capsys)
     """SUMO runs a freight network (lanes for trucks alone) with its trucks: twin refused it
     for having no passenger lane (a review against SUMO 1.28). Its lanes are the grid's, its
     trucks the traffic, with a notice; a network of sidewalks alone is refused in one line."""
-    from twin.sumo.cells import read_lanes
+    from twin.sumo.cells import grid_over, read_lanes
+    from twin.sumo.detectors import main_edges
     from twin.sumo.session import SumoSession
     from twin.sumo.tools import binary, run_sumo_program
 
@@ -1890,6 +1891,8 @@ def test_a_network_without_car_lanes_counts_its_other_vehicles(tmp_path, capsys)
     err = capsys.readouterr().err
     assert "no lane lets passenger cars drive" in err and "(truck)" in err, err
     assert lanes.shapes and not lanes.not_for_cars
+    stations = main_edges(net, grid_over(lanes, 200.0))  # detectors on the trucks' lanes
+    assert stations and all(lane.allows("truck") for cell in stations.values() for lane in cell)
     (tmp_path / "t.rou.xml").write_text(
         '<routes><vType id="lorry" vClass="truck"/><flow id="f" type="lorry" begin="0" '
         'end="300" period="10" from="A0A1" to="C2C1"/></routes>'

@@ -599,6 +599,22 @@ def test_a_bad_option_of_the_sweeps_own_swarm_options_is_refused_before_any_cell
     assert not out.exists()
 
 
+def test_a_scenarios_outages_past_the_horizon_name_the_scenario(tmp_path: Path, capsys) -> None:
+    """Outages the scenario's [swarm_options] give were blamed on the sweep file when the sweep
+    gave any other option for the swarm (the review of probe 27's fixes)."""
+    path = sweep_file(tmp_path, seeds=1, horizon=4)
+    scenario = tmp_path / "scenario.toml"
+    scenario.write_text(scenario.read_text() + "\n[swarm_options.rl]\noutages = [[0, 9]]\n")
+    text = path.read_text().replace('"sweeping"]', '"rl"]')
+    path.write_text(text + "\n[swarm_options.rl]\neps = 0.2\n")
+    out = tmp_path / "s"
+    assert cli(["sweep", "--config", str(path), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and f"{path}:" not in err, err
+    assert f"{scenario}: [swarm_options.rl].outages has [0, 9] past the horizon T = 4" in err, err
+    assert not out.exists()
+
+
 @pytest.mark.parametrize(
     ("parameters", "overrides", "said"),
     [

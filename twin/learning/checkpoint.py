@@ -85,12 +85,15 @@ def read_checkpoint(path: str | Path, hint: str | None = None) -> dict[str, Any]
             warnings.simplefilter("ignore")
             blob = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises many types for truncated/corrupt/unsafe files
-        if "Weights only load failed" in str(exc):  # torch's text: its advice, in colour
+        text = str(exc)  # torch's weights-only refusal: its advice to load unsafely, in colour
+        if "Unsupported global" in text:
             raise UserError(
                 f"checkpoint {path} holds Python objects beyond tensors (a whole module saved "
                 f"with torch.save(model), say), which twin does not unpickle; {hint}"
             ) from None
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+        if "Weights only load failed" in text:
+            text = text.partition("WeightsUnpickler error:")[2].strip() or "no tensors"
+        first = text.strip().splitlines()[0] if text.strip() else ""
         first = re.sub(r"\x1b\[[0-9;]*m", "", first)  # no terminal colours in the one line
         first = first if len(first) <= 120 else first[:120].rsplit(" ", 1)[0] + " ..."
         raise UserError(

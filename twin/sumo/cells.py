@@ -10,6 +10,7 @@ binned into cells by their position, so one numpy pass gives all per-cell counts
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -88,6 +89,24 @@ class Lanes:
     not_for_cars: frozenset[str] = frozenset()
 
 
+def for_cars(lane) -> bool:
+    """Whether passenger cars may use a (sumolib) lane; sumolib reads allow="all" as a class."""
+    allowed = lane.getPermissions()
+    return "passenger" in allowed or "all" in allowed
+
+
+def for_vehicles(lane) -> bool:
+    """Whether some vehicle may use a (sumolib) lane: a sidewalk carries none."""
+    return bool(lane.getPermissions() - {"pedestrian"})
+
+
+def traffic_lanes(net) -> Callable[[Any], bool]:
+    """Which lanes of a (sumolib) network carry its counted traffic: those of passenger cars,
+    or, on a network without any, those of every other vehicle (:func:`read_lanes`)."""
+    has_cars = any(for_cars(lane) for edge in net.getEdges() for lane in edge.getLanes())
+    return for_cars if has_cars else for_vehicles
+
+
 def read_lanes(net_file: Path) -> Lanes:
     """Passenger-car lanes of a network, junction-internal lanes included (cars stand there);
     a network without any (a freight or bus network, which SUMO runs as well) gives its lanes
@@ -102,12 +121,11 @@ def read_lanes(net_file: Path) -> Lanes:
     classes: set[str] = set()
     for edge in net.getEdges(withInternal=True):
         for lane in edge.getLanes():
-            allowed = lane.getPermissions()  # (sumolib reads allow="all" as a class "all")
-            if "passenger" in allowed or "all" in allowed:
+            if for_cars(lane):
                 kept = cars
-            elif allowed - {"pedestrian"}:  # a sidewalk carries no vehicle
+            elif for_vehicles(lane):
                 kept = others
-                classes |= allowed - {"pedestrian"}
+                classes |= lane.getPermissions() - {"pedestrian"}
             else:
                 continue
             kept[0].append(np.asarray(lane.getShape(), dtype=float))

@@ -132,15 +132,19 @@ def _cell_box(geometry, cell: tuple[int, int]):
 
 def main_edges(net_file: Path, geometry) -> dict[tuple[int, int], list]:
     """Per cell, the passenger lanes (sumolib) of its main edge: the normal edge with the most
-    lane length inside the cell, ties by edge id. Cells with junction lanes only are absent."""
+    lane length inside the cell, ties by edge id. Cells with junction lanes only are absent. A
+    network without car lanes gives the lanes of its other vehicles, as its traffic."""
     import sumolib
     from shapely.geometry import LineString
 
+    from twin.sumo.cells import traffic_lanes
+
     net = sumolib.net.readNet(str(net_file))
+    counted = traffic_lanes(net)
     best: dict[tuple[int, int], tuple[float, str, list]] = {}
     quarter = geometry.cell_m / 4
     for edge in sorted(net.getEdges(), key=lambda e: e.getID()):
-        lanes = [lane for lane in edge.getLanes() if lane.allows("passenger")]
+        lanes = [lane for lane in edge.getLanes() if counted(lane)]
         if not lanes:
             continue
         line = LineString(lanes[0].getShape())

@@ -164,7 +164,7 @@ def check_cells(cells: list[dict[str, Any]], sweep_file: Path | None = None) -> 
     swarm that plans on a history reads it), an option the sweep file's own
     ``[swarm_options]`` gives refused naming ``sweep_file``.
     """
-    from twin.patrol import check_outages
+    from twin.experiment import check_swarm_outages
     from twin.swarms import base_name
 
     seen = set()
@@ -184,8 +184,6 @@ def check_cells(cells: list[dict[str, Any]], sweep_file: Path | None = None) -> 
                 options = cell.get("swarm_options", {}).get(name, {})
                 try:  # the sweep's options on the scenario's, as the cell runs
                     policy = config.make_swarm(name, **options)
-                    if horizon is not None:
-                        check_outages(name, policy, horizon)
                 except UserError as exc:
                     text = str(exc)
                     lead = (f"{base_name(name)}: ", "[swarm_options.")
@@ -196,6 +194,10 @@ def check_cells(cells: list[dict[str, Any]], sweep_file: Path | None = None) -> 
                             f"{base_name(name)}: "
                         )
                     raise UserError(f"{sweep_file}: {text}") from None
+                if horizon is not None:
+                    check_swarm_outages(
+                        config, {name: policy}, horizon, {name: options}, sweep_file
+                    )
         except UserError as exc:
             if sweep_file is not None and str(exc).startswith(f"{sweep_file}: [swarm_"):
                 raise
