@@ -1009,6 +1009,23 @@ REFUSED = {
     ),
     "a mesosim that is no boolean": (_cfg(NET_AND_TRIPS + '<mesosim value="maybe"/>'), {},
                                      "<mesosim value='maybe'> is no boolean SUMO reads"),
+    "a boolean with a space, which SUMO does not strip": (
+        _cfg(NET_AND_TRIPS + '<mesosim value=" true"/>'), {},
+        "<mesosim value=' true'> is no boolean SUMO reads",
+    ),
+    "a version switch that is no boolean": (_cfg(NET_AND_TRIPS + '<version value="no!"/>'), {},
+                                            "<version value='no!'> is no boolean SUMO reads"),
+    "an option's value and text both": (
+        _cfg('<input><net-file value="small.net.xml">small.net.xml</net-file><route-files '
+             'value="small.trips.xml"/></input>'), {},
+        "<net-file> sets option net-file twice ('small.net.xml', 'small.net.xml'), which SUMO "
+        "refuses",
+    ),
+    "an option's value and its short form both": (
+        _cfg('<input><net-file value="small.net.xml" v="small.net.xml"/><route-files '
+             'value="small.trips.xml"/></input>'), {},
+        "<net-file> sets option net-file twice",
+    ),
     "not XML": ("<configuration><input>", {}, "not valid XML"),
     "a negative begin": (_cfg(NET_AND_TRIPS + '<time><begin value="-60"/></time>'), {},
                          "<begin value='-60'> is negative, which SUMO refuses"),
@@ -1222,6 +1239,24 @@ def test_included_files_are_found_through_nested_includes_and_cycles(tmp_path):
     (tmp_path / "sub" / "c.add.xml").write_text("<additional/>")
     found = included_files(tmp_path / "a.add.xml")
     assert [p.name for p in found] == ["b.add.xml", "c.add.xml"]
+
+
+def test_an_include_cycle_through_a_linked_folder_is_one(tmp_path):
+    """``L/c`` a link to ``real/cfg``, whose ``a.xml`` includes ``../cfg/a.xml``: read as SUMO
+    reads it (``..`` in the link's target), the names grew round the cycle, which went unseen
+    and gave hundreds of "included files" (the review of probe 27's fixes)."""
+    from twin.sumo.readers import include_cycle, included_files
+
+    (tmp_path / "real" / "cfg").mkdir(parents=True)
+    (tmp_path / "L").mkdir()
+    (tmp_path / "real" / "cfg" / "a.xml").write_text(
+        '<additional><include href="../cfg/a.xml"/></additional>'
+    )
+    (tmp_path / "L" / "c").symlink_to(tmp_path / "real" / "cfg")
+    start = tmp_path / "L" / "c" / "a.xml"
+    assert len(included_files(start)) <= 1
+    cycle = include_cycle(start)
+    assert cycle is not None and len(cycle) == 2
 
 
 def test_a_run_in_the_scenarios_own_window_past_its_departures_gets_a_notice(

@@ -574,9 +574,10 @@ def test_departure_span_of_flows_and_clock_times(tmp_path):
         # were read one gap too long, probe 27's f05)
         ('begin="10" number="30" vehsPerHour="600"', 184.0),
         ('begin="10" number="30" headway="2"', 68.0),
-        # random departures: the mean time their number takes (was never, past 24 h)
-        ('begin="10" number="30" probability="0.1"', 310.0),
-        ('begin="10" number="30" period="exp(0.1)"', 310.0),
+        # random departures: 30 gaps of 10 s on average, plus 3 sd of sqrt(30) gaps (was never,
+        # past 24 h)
+        ('begin="10" number="30" probability="0.1"', 10 + (30 + 3 * math.sqrt(30)) * 10),
+        ('begin="10" number="30" period="exp(0.1)"', 10 + (30 + 3 * math.sqrt(30)) * 10),
         ('begin="90000" vehsPerHour="600"', math.inf),
     ],
 )
@@ -1251,13 +1252,16 @@ def test_a_file_missing_for_an_unset_variable_names_it(tmp_path, monkeypatch, ca
     small_sumo_scenario(tmp_path)
     monkeypatch.delenv("TWIN_TEST_UNSET", raising=False)
     cfg = tmp_path / "var.sumocfg"
-    cfg.write_text('<configuration><input><net-file value="small.net.xml"/><route-files '
-                   'value="${TWIN_TEST_UNSET}.rou.xml"/></input></configuration>')  # fmt: skip
+    monkeypatch.delenv("TWIN_TEST_COMMENT", raising=False)
+    cfg.write_text('<configuration><!-- ${TWIN_TEST_COMMENT} --><input><net-file '
+                   'value="small.net.xml"/><route-files value="${TWIN_TEST_UNSET}.rou.xml"/>'
+                   "</input></configuration>")  # fmt: skip
     code = twin_main(["run", "--sumocfg", str(cfg), "--quiet", "--no-report", "--no-ceiling",
                       "--swarms", "random", "--out", str(tmp_path / "run")])  # fmt: skip
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1, err
     assert f"(named in {cfg}, where ${{TWIN_TEST_UNSET}} is not set and reads as empty)" in err
+    assert "TWIN_TEST_COMMENT" not in err, err  # a comment is no option
 
 
 @pytest.mark.parametrize(

@@ -268,21 +268,24 @@ def naming_the_sumocfg(message: str, sumocfg: Path | None, files: list[Path]) ->
         return message
     for path in files:
         if message.startswith(f"{path}:"):
-            unset = _unset_variables(sumocfg)  # the likely cause of a file that is not there
+            rest = message[len(str(path)) :]
+            missing = any(w in rest for w in ("no such", "does not exist", "is a folder"))
+            unset = _unset_variables(sumocfg) if missing else []  # the likely cause
             where = f", where ${{{unset[0]}}} is not set and reads as empty" if unset else ""
-            return f"{path} (named in {sumocfg}{where}){message[len(str(path)) :]}"
+            return f"{path} (named in {sumocfg}{where}){rest}"
     return message
 
 
 def _unset_variables(sumocfg: Path) -> list[str]:
-    """The environment variables (``${NAME}``) a SUMO config's text names and that are not set."""
+    """The environment variables (``${NAME}``) a SUMO config's values name that are not set."""
     try:
-        with open(sumocfg, "rb") as fh:
-            text = fh.read(1 << 20).decode("utf-8", errors="replace")
-    except OSError:
+        with open_xml(sumocfg) as fh:
+            root = ET.parse(fh).getroot()
+    except (ET.ParseError, OSError, EOFError, UserError):
         return []
-    special = ("PID", "LOCALTIME", "UTC")
-    return sorted({n for n in _VARIABLE.findall(text) if n not in os.environ and n not in special})
+    values = [v for elem in root.iter() for v in (*elem.attrib.values(), elem.text or "")]
+    names = {n for v in values for n in _VARIABLE.findall(v)}
+    return sorted(n for n in names if n not in os.environ and n not in ("PID", "LOCALTIME", "UTC"))
 
 
 def file_list(value: str | None, base: Path, named_in: Path | None = None) -> list[Path]:
@@ -340,7 +343,7 @@ def sumo_bool(value: str | None, default: bool = False) -> bool | None:
     ``f``, ``-``, ``off``, ... false); ``default`` when unset; None when SUMO refuses it."""
     if value is None:
         return default
-    word = value.strip().lower()
+    word = value.lower()  # (SUMO does not strip spaces off it)
     return True if word in _TRUE else False if word in _FALSE else None
 
 
@@ -389,16 +392,19 @@ def sumocfg_options(root: ET.Element, path: Path) -> tuple[dict[str, str], dict[
         name = local_name(elem)
         if elem is root or not name:
             continue
-        value = elem.get("value") or elem.get("v") or None
-        if value is None and len(elem) == 0 and elem.text is not None and elem.text.strip():
-            value = elem.text.strip()
-        if value is None:
+        given = [v for v in (elem.get("value"), elem.get("v")) if v]
+        if len(elem) == 0 and elem.text is not None and elem.text.strip():
+            given.append(elem.text.strip())
+        if not given:
             continue
-        key = canonical(name)
-        if key in options:
+        key, value = canonical(name), given[0]
+        if key in options or len(given) > 1:
+            twice = (f"<{written[key]}> and <{name}> both set option {key}" if key in options
+                     else f"<{name}> sets option {key} twice")  # fmt: skip
+            first, second = (options[key], value) if key in options else given[:2]
             raise UserError(
-                f"{path}: <{written[key]}> and <{name}> both set option {key} ({options[key]!r}, "
-                f"{value!r}), which SUMO refuses ('probably defined twice'); keep one"
+                f"{path}: {twice} ({first!r}, {second!r}), which SUMO refuses ('probably "
+                "defined twice'); keep one"
             )
         options[key] = substitute_environment(value)
         written[key] = name
@@ -465,7 +471,12 @@ def read_sumocfg(path: Path, own_net: bool = True) -> SumoConfigFile:
                 "client instead of simulating; remove it (twin drives SUMO itself)"
             )
     for name in _PRINT_AND_QUIT:
-        if sumo_bool(options.get(name)) is not False:
+        if sumo_bool(options.get(name)) is None:
+            raise UserError(
+                f"{path}: <{written[name]} value={options[name]!r}> is no boolean SUMO reads; "
+                "give true or false"
+            )
+        if sumo_bool(options.get(name)):
             raise UserError(
                 f"{path}: <{written[name]} value={options[name]!r}> makes SUMO print its {name} "
                 "and quit instead of simulating; remove it"
@@ -669,10 +680,11 @@ def _flow_end(elem: ET.Element, begin: float, interval_end: float | None = None)
     """When a flow's departures end: its ``end``, else its last of ``number`` departures: one
     at ``begin`` and then one every ``period``/``headway`` or at ``vehsPerHour``
     (``personsPerHour``, ``containersPerHour``, ``perHour``); when they are random
-    (``probability`` per second, ``period="exp(rate)"``), the mean time ``number`` of their gaps
-    take; spread over its ``<interval>`` without a period (as SUMO 1.28 departs them), no later
-    than its end, else that end; never (``math.inf``) for an open flow, which SUMO (1.2x) runs
-    as long as it runs."""
+    (``probability`` per second, ``period="exp(rate)"``), the time ``number`` of their gaps take
+    but in about one seed of 300 (their mean plus three standard deviations); spread over its
+    ``<interval>`` without a period (as SUMO 1.28 departs them), no later than its end, else
+    that end; never (``math.inf``) for an open flow, which SUMO (1.2x) runs as long as it
+    runs."""
     end = parse_time(elem.get("end"))
     if end is not None:
         return end
@@ -680,6 +692,8 @@ def _flow_end(elem: ET.Element, begin: float, interval_end: float | None = None)
         number = None if elem.get("number") is None else float(elem.get("number"))
     except ValueError:
         number = None  # SUMO will say what is wrong with it
+    if number is not None and not math.isfinite(number):
+        number = None  # likewise
     step = parse_time(elem.get("period")) or parse_time(elem.get("headway"))
     for rate in ("vehsPerHour", "personsPerHour", "containersPerHour", "perHour"):
         per_hour = parse_time(elem.get(rate))
@@ -688,8 +702,9 @@ def _flow_end(elem: ET.Element, begin: float, interval_end: float | None = None)
     gaps = None if number is None else number - 1  # the first departs at begin
     random_period = _EXP_PERIOD.fullmatch(elem.get("period", "").strip())
     per_second = parse_time(random_period[1] if random_period else elem.get("probability"))
-    if step is None and per_second is not None and per_second > 0:
-        step, gaps = 1.0 / per_second, number  # the first departs after a gap too
+    if step is None and per_second is not None and per_second > 0 and number is not None:
+        # the first departs after a gap too; the n-th at a mean of n gaps, sd sqrt(n) gaps
+        step, gaps = 1.0 / per_second, number + 3.0 * math.sqrt(max(number, 0.0))
     if number is not None and step is None and interval_end is not None and number >= 1:
         step = (interval_end - begin) / number  # spread over the interval
     if gaps is not None and step is not None:
@@ -741,15 +756,17 @@ def include_cycle(path: Path) -> list[Path] | None:
         found = [e.get("href") for e in root.iter() if local_name(e) == "include"]
         return [as_given(current.parent / h) for h in found if h]
 
-    done: set[Path] = set()  # files whose includes hold no cycle: each searched once
+    done: set[str] = set()  # files whose includes hold no cycle: each searched once
+    real = os.path.realpath  # a file's identity (names through links grow around a cycle)
 
     def walk(chain: list[Path]) -> list[Path] | None:
+        on_chain = {real(p) for p in chain}
         for child in dict.fromkeys(hrefs(chain[-1])):
-            if child in chain:
+            if real(child) in on_chain:
                 return [*chain, child]
-            if child not in done and len(chain) < 50 and (cycle := walk([*chain, child])):
+            if real(child) not in done and len(chain) < 50 and (cycle := walk([*chain, child])):
                 return cycle
-        done.add(chain[-1])
+        done.add(real(chain[-1]))
         return None
 
     return walk([as_given(Path(path))])
@@ -760,7 +777,7 @@ def included_files(path: Path) -> list[Path]:
     including file, as SUMO reads them), and theirs in turn; a file SUMO could not read or a
     cycle ends the search there (SUMO says what is wrong with it)."""
     found: list[Path] = []
-    todo, seen = [Path(path)], {as_given(Path(path))}
+    todo, seen = [Path(path)], {os.path.realpath(path)}  # by identity: a link's names grow
     while todo:
         current = todo.pop(0)
         try:
@@ -773,8 +790,8 @@ def included_files(path: Path) -> list[Path]:
             if not href:
                 continue
             child = as_given(current.parent / href)
-            if child not in seen:
-                seen.add(child)
+            if os.path.realpath(child) not in seen:
+                seen.add(os.path.realpath(child))
                 found.append(child)
                 todo.append(child)
     return found

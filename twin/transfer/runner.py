@@ -326,24 +326,26 @@ def train_row(task: dict[str, Any]) -> dict[str, Any]:
         if (out / "provenance.json").is_file():  # finished, but not as this row asks now
             from twin.notices import notify
 
-            clear_row_folder(out)  # its checkpoint resumes nothing
+            clear_row_folder(out, why)  # its checkpoint resumes nothing
             notify(f"twin: notice: row {out.name}: {why}; training it again")
         pretrain(cfg, progress=False, max_memory_gb=task.get("max_memory_gb"))
     return json.loads(read_record(out / "provenance.json"))
 
 
-def clear_row_folder(out: Path) -> None:
-    """Remove what pretraining wrote into a row's folder, to train it again; a file it did not
-    write (the user's) is refused in one line, and nothing is removed."""
+def clear_row_folder(
+    out: Path, why: str = "its settings, tapes, start or scenario changed"
+) -> None:
+    """Remove what pretraining wrote into a row's folder, to train it again (``why``: its
+    :func:`provenance_mismatch`); a file it did not write (the user's) is refused in one line,
+    and nothing is removed."""
     from twin.training.pretrain import written_by_pretraining
 
     entries = sorted(out.iterdir())
     foreign = [e.name for e in entries if not written_by_pretraining(e)]
     if foreign:
         raise UserError(
-            f"row {out.name}: must be trained again (its settings, tapes, start or scenario "
-            f"changed), but {out} holds {foreign[0]!r}, which twin did not write; move it out "
-            "of the folder and run again"
+            f"row {out.name}: must be trained again ({why}), but {out} holds {foreign[0]!r}, "
+            "which twin did not write; move it out of the folder and run again"
         )
     for entry in entries:
         if entry.is_dir() and not entry.is_symlink():
