@@ -1021,6 +1021,18 @@ REFUSED = {
         "<net-file> sets option net-file twice ('small.net.xml', 'small.net.xml'), which SUMO "
         "refuses",
     ),
+    "a value made empty by an unset variable": (
+        _cfg('<input><net-file value="${TWIN_TEST_NEVER_SET}"/><route-files '
+             'value="small.trips.xml"/></input>'), {},
+        "<net-file value='${TWIN_TEST_NEVER_SET}'> is empty (${TWIN_TEST_NEVER_SET} unset or "
+        "empty), which SUMO refuses; set it",
+    ),
+    "an end that SUMO's number reader refuses": (
+        _cfg(NET_AND_TRIPS + '<time><end value="2_400"/></time>'), {},
+        "<end value='2_400'> is not a finite time",
+    ),
+    "an end with a space after it": (_cfg(NET_AND_TRIPS + '<time><end value="2400 "/></time>'),
+                                     {}, "<end value='2400 '> is not a finite time"),
     "an option's value and its short form both": (
         _cfg('<input><net-file value="small.net.xml" v="small.net.xml"/><route-files '
              'value="small.trips.xml"/></input>'), {},

@@ -604,6 +604,10 @@ def test_a_flow_without_end_departs_as_long_as_sumo_lets_it(tmp_path, flow, end)
             (350.0, 355.0),
         ),
         ('<flow id="f" from="a" to="b" number="3" period="10"/>', (0.0, 20.0)),  # begin 0
+        (  # no period: spread over its own begin..end (0, 300, 600, 900; probe 27b's g02)
+            '<flow id="f" from="a" to="b" begin="0" end="1200" number="4"/>',
+            (0.0, 900.0),
+        ),
         (  # no period: spread over the interval (3600, 3900, 4200)
             '<interval begin="3600" end="4500"><flow id="f" from="a" to="b" number="3"/>'
             "</interval>",
@@ -625,13 +629,32 @@ def test_flows_without_begin_depart_at_their_intervals_begin_or_0(tmp_path, flow
     assert departure_span([routes]) == span
 
 
+def test_what_sumo_ignores_in_an_unsorted_route_file_is_left_out(tmp_path):
+    """SUMO reads route files step by step and ignores an element departing before one listed
+    above it (checked with SUMO 1.28's tripinfo: only v and u depart); the window was built
+    from them, a run of empty maps (probe 27b's g06). Read all at once (route-steps 0, or an
+    additional file) they all depart."""
+    routes = tmp_path / "unsorted.rou.xml"
+    routes.write_text(
+        '<routes><vehicle id="v" depart="2400" route="r"/>'
+        '<flow id="f" begin="0" end="1800" period="300" from="a" to="b"/>'
+        '<trip id="t" depart="50" from="a" to="b"/><trip id="u" depart="2500" from="a" to="b"/>'
+        '<trip id="w" depart="2450" from="a" to="b"/></routes>'
+    )
+    ignored: list[str] = []
+    assert departure_span([routes], in_order=[routes], ignored=ignored) == (2400.0, 2500.0)
+    assert ignored == [f"{routes}: 'f'", f"{routes}: 't'", f"{routes}: 'w'"]
+    assert departure_span([routes]) == (0.0, 2500.0)
+
+
 def test_a_flow_without_begin_departs_at_the_simulations_begin(tmp_path):
     """SUMO starts such a flow at its own begin (a sumocfg's <begin>): the run was refused
     with an error blaming the file, after twin added its rush hour (probe 19's f05)."""
     routes = tmp_path / "nb.rou.xml"
     routes.write_text('<routes><flow id="f" from="a" to="b" end="5400" number="150"/></routes>')
-    assert departure_span([routes]) == (0.0, 5400.0)
-    assert departure_span([routes], start=3600.0) == (3600.0, 5400.0)
+    # spread over begin..end, the 150th one spacing before the end
+    assert departure_span([routes]) == (0.0, 5400.0 * 149 / 150)
+    assert departure_span([routes], start=3600.0) == (3600.0, 3600.0 + 1800.0 * 149 / 150)
     # SUMO's word "begin" (a vehicle's depart, a flow's begin): the simulation's begin too
     routes.write_text(
         '<routes><vehicle id="v" depart="begin" route="r"/>'

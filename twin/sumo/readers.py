@@ -12,6 +12,7 @@ import math
 import os
 import re
 import xml.etree.ElementTree as ET
+from collections.abc import Collection
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -307,6 +308,8 @@ def parse_time(value: str | None) -> float | None:
     infinite values, which SUMO refuses too)."""
     if value is None:
         return None
+    if "_" in str(value) or str(value) != str(value).rstrip():
+        return None  # Python reads "1_0" and "10 ", SUMO (strtod, then nothing after) does not
     try:
         t = float(value)
     except ValueError:
@@ -406,8 +409,13 @@ def sumocfg_options(root: ET.Element, path: Path) -> tuple[dict[str, str], dict[
                 f"{path}: {twice} ({first!r}, {second!r}), which SUMO refuses ('probably "
                 "defined twice'); keep one"
             )
-        options[key] = substitute_environment(value)
-        written[key] = name
+        options[key], written[key] = substitute_environment(value), name
+        if not options[key] and key != "route-files":  # SUMO refuses the empty value then
+            names = ", ".join(f"${{{n}}}" for n in sorted(set(_VARIABLE.findall(value))))
+            raise UserError(
+                f"{path}: <{name} value={value!r}> is empty ({names} unset or empty), which SUMO "
+                "refuses; set it, or write the value out"
+            )
     return options, written
 
 
@@ -609,6 +617,8 @@ def departure_span(
     counts: dict[str, int] | None = None,
     start: float = 0.0,
     closed: list[float] | None = None,
+    in_order: Collection[Path] = (),
+    ignored: list[str] | None = None,
 ) -> tuple[float, float] | None:
     """First and last numeric departure of the demand (``depart`` of vehicles, trips and persons,
     ``begin`` .. ``end`` of flows, person and container flows, those of their ``<interval>`` or
@@ -617,16 +627,23 @@ def departure_span(
     ``counts``, when given, gets the number of departing elements of each tag, and of those
     departing at ``start`` (:data:`AT_BEGIN`); ``closed``, when given, the last departure
     that is not an open flow's. Files pulled in with ``<include href>`` count, as SUMO loads
-    them."""
+    them. Of the files ``in_order`` (route files SUMO reads step by step, ``--route-steps``), an
+    element departing before one listed above it is left out, as SUMO ignores it ("Route file
+    should be sorted by departure time"); ``ignored``, when given, gets ``"<file>: '<id>'"`` of
+    each."""
     first = last = None
     counts = {} if counts is None else counts
     read: list[Path] = []
+    ordered: set[Path] = set()  # files read in departure order, their includes too
     for path in route_files:
         for p in (Path(path), *included_files(Path(path))):
             if p not in read and (p == Path(path) or p.is_file()):
                 read.append(p)
+            if Path(path) in in_order:
+                ordered.add(p)
     for path in read:
         intervals: list[tuple[float, float | None]] = []  # the <interval>s a flow lies in
+        latest = -math.inf  # the last departure SUMO took from this file
         try:
             with open_xml(path) as fh:
                 for event, elem in ET.iterparse(fh, events=("start", "end")):
@@ -644,6 +661,13 @@ def departure_span(
                     flow = tag.endswith(("flow", "Flow"))  # flow, personFlow, ...
                     if flow and elem.get("begin") is None:  # SUMO: the interval's, else its own
                         t = intervals[-1][0] if intervals else start
+                    if t is not None and path in ordered:
+                        if t < latest:  # SUMO ignores it, with a warning
+                            if ignored is not None:
+                                ignored.append(f"{path}: {elem.get('id')!r}")
+                            t = None
+                        else:
+                            latest = t
                     if (
                         key
                         and t is not None
@@ -677,8 +701,9 @@ def _interval(path: Path, elem: ET.Element, start: float) -> tuple[float, float 
 
 
 def _flow_end(elem: ET.Element, begin: float, interval_end: float | None = None) -> float:
-    """When a flow's departures end: its ``end``, else its last of ``number`` departures: one
-    at ``begin`` and then one every ``period``/``headway`` or at ``vehsPerHour``
+    """When a flow's departures end: its ``end`` (the last of ``number`` spread over
+    ``begin``..``end`` without a period or rate), else its last of ``number`` departures: one at
+    ``begin`` and then one every ``period``/``headway`` or at ``vehsPerHour``
     (``personsPerHour``, ``containersPerHour``, ``perHour``); when they are random
     (``probability`` per second, ``period="exp(rate)"``), the time ``number`` of their gaps take
     but in about one seed of 300 (their mean plus three standard deviations); spread over its
@@ -686,8 +711,6 @@ def _flow_end(elem: ET.Element, begin: float, interval_end: float | None = None)
     that end; never (``math.inf``) for an open flow, which SUMO (1.2x) runs as long as it
     runs."""
     end = parse_time(elem.get("end"))
-    if end is not None:
-        return end
     try:
         number = None if elem.get("number") is None else float(elem.get("number"))
     except ValueError:
@@ -699,14 +722,18 @@ def _flow_end(elem: ET.Element, begin: float, interval_end: float | None = None)
         per_hour = parse_time(elem.get(rate))
         if step is None and per_hour:
             step = 3600.0 / per_hour
-    gaps = None if number is None else number - 1  # the first departs at begin
     random_period = _EXP_PERIOD.fullmatch(elem.get("period", "").strip())
     per_second = parse_time(random_period[1] if random_period else elem.get("probability"))
+    spread_until = end if end is not None else interval_end  # without a period: spread there
+    spread = number is not None and number >= 1 and step is None and per_second is None
+    if spread and spread_until is not None:
+        return max(begin, begin + (number - 1) * (spread_until - begin) / number)
+    if end is not None:
+        return end
+    gaps = None if number is None else number - 1  # the first departs at begin
     if step is None and per_second is not None and per_second > 0 and number is not None:
         # the first departs after a gap too; the n-th at a mean of n gaps, sd sqrt(n) gaps
         step, gaps = 1.0 / per_second, number + 3.0 * math.sqrt(max(number, 0.0))
-    if number is not None and step is None and interval_end is not None and number >= 1:
-        step = (interval_end - begin) / number  # spread over the interval
     if gaps is not None and step is not None:
         last = begin + max(gaps, 0.0) * step
         return last if interval_end is None else max(begin, min(last, interval_end))

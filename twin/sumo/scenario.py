@@ -246,6 +246,9 @@ class _ScenarioFiles:
     built_span: tuple[float, float] | None = None
     state_time: float | None = None  # the time of the state the sumocfg loads: SUMO starts there
     at_begin: bool = False  # some of the demand departs at SUMO's begin, wherever that is
+    #: SUMO reads the route files step by step (``--route-steps`` > 0, its default 200 s),
+    #: ignoring what departs before a departure listed above it
+    in_order: bool = True
 
     @property
     def own_window(self) -> bool:
@@ -344,6 +347,7 @@ def _scenario_files(s: SumoSettings) -> _ScenarioFiles:
             },
             window=[cfg.begin, cfg.end],
             state_time=cfg.state_time,
+            in_order=(parse_time(cfg.options.get("route-steps", "200")) or 0.0) > 0,
         )
     elif s.osm:
         osm_path = Path(s.osm)
@@ -363,12 +367,22 @@ def _scenario_files(s: SumoSettings) -> _ScenarioFiles:
         # SUMO loads vehicles, flows and persons of additional files as demand too
         departing: dict[str, int] = {}
         closed: list[float] = []
+        ignored: list[str] = []
         files.span = departure_span(
             [*files.route_files, *files.additional_files],
             departing,
             start=files.window[0] or 0.0,
             closed=closed,
+            in_order=files.route_files if files.in_order else (),
+            ignored=ignored,
         )
+        if ignored:
+            more = f" and {len(ignored) - 1} more" if len(ignored) > 1 else ""
+            notice(
+                f"{ignored[0]}{more} depart before a departure listed above them, so SUMO "
+                "ignores them (route files are read in departure order) and so does the "
+                "window; sort the file (SUMO's tools/route/sort_routes.py)"
+            )
         files.last_closed = closed[0] if closed else None
         files.at_begin = departing.pop(AT_BEGIN, 0) > 0
     if files.span is None and files.sumocfg is not None and not files.route_files:
