@@ -301,6 +301,11 @@ ACCEPTED = {
              '<time><begin value="60"/><end value="480"/><end value=""/></time>'),
         {}, 60.0, 480.0,
     ),
+    "a plain option an unset variable empties, which SUMO takes": (
+        _cfg(NET_AND_TRIPS + '<output><output-prefix value="${TWIN_TEST_NEVER_SET}"/></output>'
+             '<time><begin value="60"/><end value="480"/></time>'),
+        {}, 60.0, 480.0,
+    ),
     "C's hexadecimal times, and SUMO's false words for help": (
         _cfg(NET_AND_TRIPS + '<time><begin value="0x3c"/><end value="0x1E0"/></time>'
              '<report><help value="f"/><version value="-"/></report>'),
@@ -1015,6 +1020,13 @@ REFUSED = {
     ),
     "a version switch that is no boolean": (_cfg(NET_AND_TRIPS + '<version value="no!"/>'), {},
                                             "<version value='no!'> is no boolean SUMO reads"),
+    "a help topic": (_cfg(NET_AND_TRIPS + '<help value="input"/>'), {},
+                     "<help value='input'> makes SUMO print its help and quit"),
+    "a departure with a space after it": (
+        _cfg('<input><net-file value="small.net.xml"/><route-files value="s.rou.xml"/></input>'),
+        {"s.rou.xml": '<routes><trip id="t" depart="0:00:10 " from="a" to="b"/></routes>'},
+        "<trip id='t' depart='0:00:10 '>: the time is not a time SUMO reads",
+    ),
     "an option's value and text both": (
         _cfg('<input><net-file value="small.net.xml">small.net.xml</net-file><route-files '
              'value="small.trips.xml"/></input>'), {},
@@ -1044,12 +1056,12 @@ REFUSED = {
     "a NaN departure": (
         _cfg('<input><net-file value="small.net.xml"/><route-files value="n.rou.xml"/></input>'),
         {"n.rou.xml": '<routes><trip id="t" depart="nan" from="a" to="b"/></routes>'},
-        "n.rou.xml (named in {case}/case.sumocfg): <trip id='t' depart='nan'>: the time is not a finite number",
+        "n.rou.xml (named in {case}/case.sumocfg): <trip id='t' depart='nan'>: the time is not a time SUMO reads",
     ),
     "an infinite departure": (
         _cfg('<input><net-file value="small.net.xml"/><route-files value="i.rou.xml"/></input>'),
         {"i.rou.xml": '<routes><vehicle id="v" depart="inf" route="r"/></routes>'},
-        "i.rou.xml (named in {case}/case.sumocfg): <vehicle id='v' depart='inf'>: the time is not a finite number",
+        "i.rou.xml (named in {case}/case.sumocfg): <vehicle id='v' depart='inf'>: the time is not a time SUMO reads",
     ),
     "a flow beginning before 0": (
         _cfg('<input><net-file value="small.net.xml"/><route-files value="f.rou.xml"/></input>'),

@@ -645,6 +645,22 @@ def test_what_sumo_ignores_in_an_unsorted_route_file_is_left_out(tmp_path):
     assert departure_span([routes], in_order=[routes], ignored=ignored) == (2400.0, 2500.0)
     assert ignored == [f"{routes}: 'f'", f"{routes}: 't'", f"{routes}: 'w'"]
     assert departure_span([routes]) == (0.0, 2500.0)
+    # what SUMO never ignores: a departure at "begin", a flow without begin, a bus of a line
+    # (which moves the order on for none); a file with includes is taken whole (the review)
+    routes.write_text(
+        '<routes><vehicle id="v" depart="2400" route="r"/><trip id="b" depart="begin" from="a" '
+        'to="b"/><flow id="g" end="3000" period="60" from="a" to="b"/><vehicle id="bus" '
+        'line="1" depart="2600" route="r"/><trip id="t" depart="2500" from="a" to="b"/></routes>'
+    )
+    ignored.clear()
+    assert departure_span([routes], in_order=[routes], ignored=ignored) == (0.0, 3000.0)
+    assert ignored == []
+    (tmp_path / "inc.rou.xml").write_text(
+        '<routes><trip id="x" depart="5" from="a" to="b"/></routes>'
+    )
+    routes.write_text('<routes><trip id="v" depart="50" from="a" to="b"/><include '
+                      'href="inc.rou.xml"/></routes>')  # fmt: skip
+    assert departure_span([routes], in_order=[routes], ignored=ignored) == (5.0, 50.0)
 
 
 def test_a_flow_without_begin_departs_at_the_simulations_begin(tmp_path):

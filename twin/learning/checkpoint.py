@@ -86,7 +86,7 @@ def read_checkpoint(path: str | Path, hint: str | None = None) -> dict[str, Any]
             blob = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises many types for truncated/corrupt/unsafe files
         text = str(exc)  # torch's weights-only refusal: its advice to load unsafely, in colour
-        if "Unsupported global" in text:
+        if re.search(r"Unsupported global: GLOBAL \w", text):  # a class or function, by name
             raise UserError(
                 f"checkpoint {path} holds Python objects beyond tensors (a whole module saved "
                 f"with torch.save(model), say), which twin does not unpickle; {hint}"

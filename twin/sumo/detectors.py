@@ -11,9 +11,9 @@ additional file of ``<inductionLoop>`` elements with an aggregation period of on
   taken unless it touches (8-neighbourhood) a cell taken before, until N are chosen; if fewer
   than N remain, the skipped ones follow in the same order.
 
-A station is one loop on every passenger lane of the cell's main edge (the normal edge with the
-longest lane length inside the cell; ties by edge id), at the middle of that lane's stretch in
-the cell.
+A station is one loop on every passenger lane (on a network without any, every vehicle lane)
+of the cell's main edge (the normal edge with the longest lane length inside the cell; ties by
+edge id), at the middle of that lane's stretch in the cell.
 
 Reading: at every sample time each detector's last completed aggregation interval is read
 (vehicles counted, occupancy, mean speed: three calls, no subscriptions, no per-SUMO-step
@@ -164,7 +164,7 @@ def main_edges(net_file: Path, geometry) -> dict[tuple[int, int], list]:
 
 def place_loops(edges: dict, geometry, cells: list[tuple[int, int]]) -> tuple[LoopSpec, ...]:
     """One station per cell (each a key of :func:`main_edges`' ``edges``): a loop on every
-    passenger lane of the cell's main edge, at the middle of the lane's stretch in the cell."""
+    lane :func:`main_edges` gives of the cell's main edge, at the middle of the lane's stretch in the cell."""
     from shapely.geometry import LineString
 
     specs = []

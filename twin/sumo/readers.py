@@ -278,15 +278,18 @@ def naming_the_sumocfg(message: str, sumocfg: Path | None, files: list[Path]) ->
 
 
 def _unset_variables(sumocfg: Path) -> list[str]:
-    """The environment variables (``${NAME}``) a SUMO config's values name that are not set."""
+    """The environment variables (``${NAME}``) a SUMO config's file options name that are not
+    set."""
     try:
         with open_xml(sumocfg) as fh:
             root = ET.parse(fh).getroot()
     except (ET.ParseError, OSError, EOFError, UserError):
         return []
-    values = [v for elem in root.iter() for v in (*elem.attrib.values(), elem.text or "")]
+    files = [elem for elem in root.iter() if canonical(local_name(elem)).endswith("-files")
+             or canonical(local_name(elem)) == "net-file"]  # fmt: skip
+    values = [v for elem in files for v in (*elem.attrib.values(), elem.text or "")]
     names = {n for v in values for n in _VARIABLE.findall(v)}
-    return sorted(n for n in names if n not in os.environ and n not in ("PID", "LOCALTIME", "UTC"))
+    return sorted(n for n in names if n not in os.environ)
 
 
 def file_list(value: str | None, base: Path, named_in: Path | None = None) -> list[Path]:
@@ -387,8 +390,8 @@ def sumocfg_options(root: ET.Element, path: Path) -> tuple[dict[str, str], dict[
     section (``<input><net-file value="..."/></input>``) or right under the root, named by any
     of SUMO's synonyms (:func:`twin.sumo.options.canonical`): canonical name -> value
     (environment variables substituted, :func:`substitute_environment`), and canonical name ->
-    the name the config wrote. An empty value is skipped, as SUMO skips it; an option set twice
-    is refused, as SUMO refuses it."""
+    the name the config wrote. An empty value is skipped, as SUMO skips it; an option set twice,
+    or emptied by an unset variable where SUMO needs a value, is refused, as SUMO refuses it."""
     options: dict[str, str] = {}
     written: dict[str, str] = {}
     for elem in root.iter():
@@ -410,13 +413,23 @@ def sumocfg_options(root: ET.Element, path: Path) -> tuple[dict[str, str], dict[
                 "defined twice'); keep one"
             )
         options[key], written[key] = substitute_environment(value), name
-        if not options[key] and key != "route-files":  # SUMO refuses the empty value then
+        if not options[key] and _refused_empty(key):
             names = ", ".join(f"${{{n}}}" for n in sorted(set(_VARIABLE.findall(value))))
             raise UserError(
                 f"{path}: <{name} value={value!r}> is empty ({names} unset or empty), which SUMO "
                 "refuses; set it, or write the value out"
             )
     return options, written
+
+
+#: Options SUMO refuses as empty (a ``${VAR}`` not set): its file lists but the route files,
+#: numbers, times and switches twin reads; outputs are matched by their name.
+_NOT_EMPTY = ("net-file", "additional-files", "weight-files", "begin", "end", "step-length",
+              "route-steps", "seed", "random", "mesosim", "version")  # fmt: skip
+
+
+def _refused_empty(key: str) -> bool:
+    return key in _NOT_EMPTY or key.endswith("-output")
 
 
 #: Options that make SUMO write a file (beside the user's files) and quit without simulating.
@@ -479,12 +492,13 @@ def read_sumocfg(path: Path, own_net: bool = True) -> SumoConfigFile:
                 "client instead of simulating; remove it (twin drives SUMO itself)"
             )
     for name in _PRINT_AND_QUIT:
-        if sumo_bool(options.get(name)) is None:
+        said = sumo_bool(options.get(name))
+        if said is None and name == "version":
             raise UserError(
                 f"{path}: <{written[name]} value={options[name]!r}> is no boolean SUMO reads; "
                 "give true or false"
             )
-        if sumo_bool(options.get(name)):
+        if said is not False:  # (help takes a topic too)
             raise UserError(
                 f"{path}: <{written[name]} value={options[name]!r}> makes SUMO print its {name} "
                 "and quit instead of simulating; remove it"
@@ -507,8 +521,8 @@ def read_sumocfg(path: Path, own_net: bool = True) -> SumoConfigFile:
         t = parse_time(text)
         if text is not None and t is None:
             raise UserError(
-                f"{path}: <{written[key]} value={text!r}> is not a finite time; give seconds "
-                "(e.g. 3600) or a clock (1:00:00)"
+                f"{path}: <{written[key]} value={text!r}> is not a finite time SUMO reads; give "
+                "seconds (e.g. 3600) or a clock (1:00:00), with no spaces or underscores"
             )
         if key == "end" and t is not None and t < 0:  # SUMO's default -1: no end
             t = None
@@ -590,18 +604,22 @@ def _check_departure(path: Path, elem: ET.Element, key: str, start: float = 0.0)
         return None
     if text.strip() == "begin":
         return start
+    if text.strip() in _DEPART_WORDS:
+        return None
     t = parse_time(text)
-    try:
-        number = float(text)
-    except ValueError:
-        number = t
-    if number is not None and (t is None or t < 0):
-        what = "negative" if number < 0 else "not a finite number"
+    if t is None or t < 0:
+        what = "negative" if t is not None else "not a time SUMO reads"
         raise UserError(
             f"{path}: <{local_name(elem)} id={elem.get('id')!r} {key}={text!r}>: the time is {what}, "
-            "which SUMO refuses; give seconds from 0 (e.g. 3600) or a clock (1:00:00)"
+            "which SUMO refuses; give seconds from 0 (e.g. 3600) or a clock (1:00:00), with no "
+            "spaces after it"
         )
     return t
+
+
+#: SUMO's departures that are no time: at a person's or container's boarding, at once, split
+#: off another vehicle ("begin", the simulation's begin, is read as that time).
+_DEPART_WORDS = ("triggered", "containerTriggered", "now", "split")
 
 
 #: The key of :func:`departure_span`'s ``counts`` that counts departures at the simulation's
@@ -629,21 +647,23 @@ def departure_span(
     that is not an open flow's. Files pulled in with ``<include href>`` count, as SUMO loads
     them. Of the files ``in_order`` (route files SUMO reads step by step, ``--route-steps``), an
     element departing before one listed above it is left out, as SUMO ignores it ("Route file
-    should be sorted by departure time"); ``ignored``, when given, gets ``"<file>: '<id>'"`` of
-    each."""
+    should be sorted by departure time"; not one departing at "begin" or a public transport
+    vehicle, with a ``line``; a file with ``<include>``s, which SUMO reads where they stand, is
+    taken whole); ``ignored``, when given, gets ``"<file>: '<id>'"`` of each."""
     first = last = None
     counts = {} if counts is None else counts
     read: list[Path] = []
-    ordered: set[Path] = set()  # files read in departure order, their includes too
+    ordered: set[Path] = set()  # files read in departure order
     for path in route_files:
-        for p in (Path(path), *included_files(Path(path))):
+        included = included_files(Path(path))
+        for p in (Path(path), *included):
             if p not in read and (p == Path(path) or p.is_file()):
                 read.append(p)
-            if Path(path) in in_order:
-                ordered.add(p)
+        if Path(path) in in_order and not included:
+            ordered.add(Path(path))
     for path in read:
         intervals: list[tuple[float, float | None]] = []  # the <interval>s a flow lies in
-        latest = -math.inf  # the last departure SUMO took from this file
+        latest = -math.inf if path in ordered else None  # the last departure SUMO took of it
         try:
             with open_xml(path) as fh:
                 for event, elem in ET.iterparse(fh, events=("start", "end")):
@@ -661,12 +681,13 @@ def departure_span(
                     flow = tag.endswith(("flow", "Flow"))  # flow, personFlow, ...
                     if flow and elem.get("begin") is None:  # SUMO: the interval's, else its own
                         t = intervals[-1][0] if intervals else start
-                    if t is not None and path in ordered:
-                        if t < latest:  # SUMO ignores it, with a warning
+                    word = (elem.get(key) or "begin").strip() if key else ""
+                    if latest is not None and t is not None and word != "begin":
+                        if t < latest and elem.get("line") is None:  # SUMO ignores it, warning
                             if ignored is not None:
-                                ignored.append(f"{path}: {elem.get('id')!r}")
+                                ignored.append(f"{path}: {elem.get('id') or tag!r}")
                             t = None
-                        else:
+                        elif elem.get("line") is None:
                             latest = t
                     if (
                         key
@@ -706,7 +727,7 @@ def _flow_end(elem: ET.Element, begin: float, interval_end: float | None = None)
     ``begin`` and then one every ``period``/``headway`` or at ``vehsPerHour``
     (``personsPerHour``, ``containersPerHour``, ``perHour``); when they are random
     (``probability`` per second, ``period="exp(rate)"``), the time ``number`` of their gaps take
-    but in about one seed of 300 (their mean plus three standard deviations); spread over its
+    plus three standard deviations (rarely exceeded); spread over its
     ``<interval>`` without a period (as SUMO 1.28 departs them), no later than its end, else
     that end; never (``math.inf``) for an open flow, which SUMO (1.2x) runs as long as it
     runs."""

@@ -377,11 +377,12 @@ def _scenario_files(s: SumoSettings) -> _ScenarioFiles:
             ignored=ignored,
         )
         if ignored:
-            more = f" and {len(ignored) - 1} more" if len(ignored) > 1 else ""
+            they = (f"{ignored[0]} and {len(ignored) - 1} more depart before a departure listed "
+                    "above them, so SUMO ignores them" if len(ignored) > 1 else f"{ignored[0]} "
+                    "departs before a departure listed above it, so SUMO ignores it")  # fmt: skip
             notice(
-                f"{ignored[0]}{more} depart before a departure listed above them, so SUMO "
-                "ignores them (route files are read in departure order) and so does the "
-                "window; sort the file (SUMO's tools/route/sort_routes.py)"
+                f"{they} (route files are read in departure order) and so does the window; "
+                "sort the file (SUMO's tools/route/sort_routes.py)"
             )
         files.last_closed = closed[0] if closed else None
         files.at_begin = departing.pop(AT_BEGIN, 0) > 0
