@@ -647,9 +647,10 @@ def departure_span(
     that is not an open flow's. Files pulled in with ``<include href>`` count, as SUMO loads
     them. Of the files ``in_order`` (route files SUMO reads step by step, ``--route-steps``), an
     element departing before one listed above it is left out, as SUMO ignores it ("Route file
-    should be sorted by departure time"; not one departing at "begin" or a public transport
-    vehicle, with a ``line``; a file with ``<include>``s, which SUMO reads where they stand, is
-    taken whole); ``ignored``, when given, gets ``"<file>: '<id>'"`` of each."""
+    should be sorted by departure time"; one departing at "begin" departs when SUMO reads it, a
+    public transport vehicle, with a ``line``, sets no order for the next; a file with
+    ``<include>``s, which SUMO reads where they stand, is taken whole); ``ignored``, when given,
+    gets ``"<file>: '<id>'"`` of each."""
     first = last = None
     counts = {} if counts is None else counts
     read: list[Path] = []
@@ -681,13 +682,14 @@ def departure_span(
                     flow = tag.endswith(("flow", "Flow"))  # flow, personFlow, ...
                     if flow and elem.get("begin") is None:  # SUMO: the interval's, else its own
                         t = intervals[-1][0] if intervals else start
-                    word = (elem.get(key) or "begin").strip() if key else ""
-                    if latest is not None and t is not None and word != "begin":
-                        if t < latest and elem.get("line") is None:  # SUMO ignores it, warning
+                    if latest is not None and t is not None:
+                        if (elem.get(key) or "").strip() == "begin":
+                            t = max(t, latest)  # departs as SUMO's reader reaches it
+                        elif t < latest:  # SUMO ignores it, with a warning
                             if ignored is not None:
                                 ignored.append(f"{path}: {elem.get('id') or tag!r}")
                             t = None
-                        elif elem.get("line") is None:
+                        elif elem.get("line") is None:  # (public transport sets no order)
                             latest = t
                     if (
                         key
