@@ -1020,6 +1020,10 @@ REFUSED = {
     ),
     "a version switch that is no boolean": (_cfg(NET_AND_TRIPS + '<version value="no!"/>'), {},
                                             "<version value='no!'> is no boolean SUMO reads"),
+    "a begin past every departure": (  # SUMO drops them all: it ran empty (probe 27c's h04)
+        _cfg(NET_AND_TRIPS + '<time><begin value="7200"/></time>'), {},
+        "every departure of its demand falls before its <begin> 02:00:00",
+    ),
     "a help topic": (_cfg(NET_AND_TRIPS + '<help value="input"/>'), {},
                      "<help value='input'> makes SUMO print its help and quit"),
     "a departure with a space after it": (
@@ -1704,6 +1708,20 @@ def test_a_sumocfg_named_through_a_link_reads_its_files_beside_the_link(scenario
     loaded = {Path(f["path"]).name: Path(f["path"]).parent for f in identity["files"]}
     assert loaded["small.trips.xml"] == other and loaded["small.net.xml"] == other
     assert loaded["public.sumocfg"] == other
+
+
+def test_a_flow_without_begin_refused_at_twins_begin_says_so(tmp_path):
+    """SUMO begins a flow without begin at its own begin, which twin sets before the window: a
+    flow ending before it is refused by SUMO, and the line says where twin starts SUMO and the
+    fix (probe 27c's h02)."""
+    from twin.sumo.session import SumoSession
+
+    routes = tmp_path / "r.rou.xml"
+    routes.write_text('<routes><flow id="fnb" end="1200" period="60" from="a" to="b"/></routes>')
+    session = SumoSession(net_file=tmp_path / "n.net.xml", route_files=[routes], begin=1500.0)
+    said = str(session.refusal("Error: Flow 'fnb' ends before its begin time."))
+    assert "\n" not in said and "twin starts SUMO at 00:25:00" in said, said
+    assert "give the flow a begin, or a --begin" in said, said
 
 
 def test_a_sumocfg_in_a_linked_folder_records_the_files_sumo_reads(scenario, tmp_path, capsys):
