@@ -537,12 +537,13 @@ def _time_window(
     if files.own_window:
         w0 = files.window[0] if files.window[0] is not None else files.span[0]
         w1 = files.window[1] if files.window[1] is not None else files.span[1]
-        if w1 < w0 and files.state_time is None and not begin_given:  # SUMO drops them all
+        demand_end = files.window[1] is None  # the window ends with the demand
+        if demand_end and w1 < w0 and files.state_time is None and not begin_given:
             raise UserError(
                 f"{files.sumocfg or files.name}: every departure of its demand falls before "
                 f"its <begin> {clock_label(w0)} (the last at {clock_label(w1)}), and SUMO drops "
                 "them: every step would be empty; give an earlier <begin> (or a --begin)"
-            )
+            )  # (SUMO drops what departs before its begin)
         if math.isinf(w1):  # a flow without end: SUMO alone would run on and on
             w1 = max(
                 OPEN_DEMAND_END, files.last_closed or 0.0, (begin if begin_given else w0) + 3600.0
