@@ -39,7 +39,7 @@ from twin.experiment import Experiment, run_experiment  # noqa: E402
 from twin.metrics import ci95_halfwidth, table2  # noqa: E402
 from twin.traffic.dynamic import dynamics_history  # noqa: E402
 from twin.training.pretrain import PretrainConfig, pretrain  # noqa: E402
-from twin.transfer.runner import provenance_matches  # noqa: E402
+from twin.transfer.runner import provenance_mismatch  # noqa: E402
 
 #: The pretraining keys shared by both variants (a small budget: 20000 updates of batch 32).
 SCHEDULE = {
@@ -79,7 +79,7 @@ def train(out: Path, seed: int) -> tuple[dict[str, Path], dict[str, float]]:
         layers = [STATE_VARIANTS[state].size, *HIDDEN, 5]
         cfg = PretrainConfig(**{**SCHEDULE, "seed": seed}, state=state, layers=layers,
                              out=str(folder))  # fmt: skip
-        if not provenance_matches(folder, cfg):
+        if provenance_mismatch(folder, cfg) is not None:
             pretrain(cfg, progress=False)
         record = json.loads((folder / "provenance.json").read_text())
         walls[state] = record["wall_s"] + (record.get("collect_s") or 0.0)

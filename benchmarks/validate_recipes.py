@@ -35,7 +35,7 @@ sys.path.insert(0, str(ROOT))
 
 from twin.metrics import ci95_halfwidth  # noqa: E402
 from twin.training.pretrain import PretrainConfig, pretrain  # noqa: E402
-from twin.transfer.runner import provenance_matches  # noqa: E402
+from twin.transfer.runner import provenance_mismatch  # noqa: E402
 
 #: The pretraining keys shared by every variant.
 SCHEDULE = {
@@ -109,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
     for name in names:
         out = args.out / name.replace(" ", "-")
         cfg = PretrainConfig(**schedule, **VARIANTS[name], out=str(out))
-        if not provenance_matches(out, cfg):
+        if provenance_mismatch(out, cfg) is not None:
             pretrain(cfg, progress=False)
         record = json.loads((out / "provenance.json").read_text())
         last, curve = final_values(out)

@@ -914,7 +914,7 @@ def test_outages_given_as_an_array_are_step_pairs():
 
 def test_a_swarms_outages_past_the_horizon_are_refused(tmp_path, capsys):
     """``outages`` of a learned swarm past T were taken silently, as [faults]'
-    coordinator_down is not (probe 26b's g04)."""
+    coordinator_down is not (probe 26b's g04); the config that gives them is named."""
     cfg = tmp_path / "c.toml"
     cfg.write_text(SMALL.format(horizon=6).replace('["random", "greedy"]', '["rl"]')
                    + "[swarm_options.rl]\noutages = [[0, 7]]\n")  # fmt: skip
@@ -922,7 +922,8 @@ def test_a_swarms_outages_past_the_horizon_are_refused(tmp_path, capsys):
                  "--out", str(tmp_path / "run")])  # fmt: skip
     err = capsys.readouterr().err.strip()
     assert code == 2 and "\n" not in err, err
-    assert "swarm 'rl': option outages has [0, 7] past the horizon T = 6; end it by 6" in err
+    said = f"{cfg}: [swarm_options.rl].outages has [0, 7] past the horizon T = 6; end it by 6"
+    assert err == f"twin: error: {said}", err
 
 
 def test_a_bad_swarm_option_names_the_file_that_gives_it(tmp_path):

@@ -471,12 +471,12 @@ def test_bad_detector_settings_are_one_line(small, tmp_path, capsys, text, needl
     assert not (out / "summary.csv").exists()
 
 
-def _meso_sumocfg(small: Path) -> Path:
+def _meso_sumocfg(small: Path, word: str = "true") -> Path:
     """A sumocfg of the small scenario that asks SUMO for its mesoscopic model."""
     path = small / "meso.sumocfg"
     path.write_text(
         '<configuration><input><net-file value="small.net.xml"/><route-files '
-        'value="small.trips.xml"/></input><mesoscopic><mesosim value="true"/></mesoscopic>'
+        f'value="small.trips.xml"/></input><mesoscopic><mesosim value="{word}"/></mesoscopic>'
         "</configuration>"
     )
     return path
@@ -498,11 +498,13 @@ def test_detectors_under_the_mesoscopic_model_are_refused(small, tmp_path, capsy
     assert not out.exists()
 
 
-def test_a_sumocfg_that_asks_for_the_mesoscopic_model_is_recorded_so(small, tmp_path, capsys):
-    """SUMO runs a sumocfg's ``mesosim`` as asked; run.json and the tape say mesoscopic."""
+@pytest.mark.parametrize("word", ["true", "t"])
+def test_a_sumocfg_that_asks_for_the_mesoscopic_model_is_recorded_so(small, tmp_path, capsys, word):
+    """SUMO runs a sumocfg's ``mesosim`` as asked; run.json and the tape say mesoscopic. SUMO
+    reads ``t`` as true: it ran mesoscopic, recorded as microscopic (a review against SUMO)."""
     out = tmp_path / "out"
     code = twin_main(["run", "--config", str(small / "small.toml"), "--sumocfg",
-                      str(_meso_sumocfg(small)), "--swarms", "random", "--no-ceiling", "--quiet",
+                      str(_meso_sumocfg(small, word)), "--swarms", "random", "--no-ceiling", "--quiet",
                       "--no-report", "--out", str(out)])  # fmt: skip
     err = capsys.readouterr().err
     assert code == 0, err

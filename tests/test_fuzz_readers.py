@@ -522,9 +522,24 @@ def test_a_hostile_checkpoint_is_refused_in_one_line_and_never_run(tmp_path) -> 
         code, err = run_twin(["evaluate", "--config", str(config), "--swarms", "rl", "--out",
                               str(tmp_path / "run"), "--no-report", "--quiet"])  # fmt: skip
     assert_clean(code, err, allowed=(2,))
-    assert "is corrupt or not a torch file" in err
+    assert "is corrupt or not a torch file (UnpicklingError: Unsupported operand" in err, err
     assert not marker.exists()
     assert [str(w.message)[:80] for w in caught] == []  # torch's own warning is not printed
+
+
+def test_a_checkpoint_of_a_whole_module_is_one_plain_line(tmp_path) -> None:
+    """``torch.save(model)`` pickles the module: refused, saying so, without torch's advice to
+    load it unsafely and its terminal colours (probe 27's f01)."""
+    import torch
+
+    torch.save(torch.nn.Linear(13, 5), tmp_path / "qnet.pt")
+    config = small_config(tmp_path, horizon=4)
+    config.write_text(config.read_text() + '\n[swarm_options.rl]\ncheckpoint = "qnet.pt"\n')
+    code, err = run_twin(["evaluate", "--config", str(config), "--swarms", "rl", "--out",
+                          str(tmp_path / "run"), "--no-report", "--quiet"])  # fmt: skip
+    assert_clean(code, err, allowed=(2,))
+    assert "holds Python objects beyond tensors" in err and "\x1b" not in err, err
+    assert "weights_only" not in err and "trust" not in err, err
 
 
 def test_layers_far_larger_than_the_weights_are_refused_before_allocation(

@@ -283,6 +283,30 @@ def test_every_figure_is_written_and_inlined(report: Path) -> None:
         assert f"]({name})" in md
 
 
+def test_the_reports_words_agree_with_its_files(report: Path) -> None:
+    """Fig. 2's step is the peak of mean importance from the step its trails need on, as the
+    caption now says (it said "the step with the highest mean importance", which the run's
+    importance.npz contradicted); the Ĉ_T ceiling is a reference, as the CLI says, not "an
+    upper bound" (probe 27d's k01, k02)."""
+    import numpy as np
+
+    from twin.report import figures
+
+    md = (report.parent / "report.md").read_text()
+    said = re.search(
+        r"at k = (\d+), the step with the highest mean importance from k = (\d+) on", md
+    )
+    assert said, md
+    peak, start = int(said[1]), int(said[2])
+    with np.load(report.parent.parent / "importance.npz") as data:
+        maps = data[data.files[0]]
+    run = json.loads((report.parent.parent / "run.json").read_text())
+    assert start == min(figures.TRAIL_STEPS, run["horizon"])
+    mean = maps.reshape(len(maps), -1).mean(axis=1)
+    assert peak == start + int(np.argmax(mean[start:]))  # (an obstacle, 0 throughout, alike)
+    assert "upper bound, so a" not in md and "a reference, not a bound" in md
+
+
 def _parse_cell(text: str) -> tuple[float, float | None]:
     parts = text.split("±")
     return float(parts[0]), float(parts[1]) if len(parts) > 1 else None

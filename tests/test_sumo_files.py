@@ -293,6 +293,24 @@ ACCEPTED = {
         _cfg(NET_AND_TRIPS + '<traci_server><remote-port value="0"/></traci_server>'),
         {}, None, None,
     ),
+    # SUMO skips an empty value (then reads the element's text); each was taken as the value,
+    # which dropped the routes, the network or the end (a review against SUMO 1.28)
+    "empty values, which SUMO skips": (
+        _cfg('<input><net-file value="small.net.xml"/><net-file value=""/><route-files value="">'
+             'small.trips.xml</route-files><route-files value=""/></input>'
+             '<time><begin value="60"/><end value="480"/><end value=""/></time>'),
+        {}, 60.0, 480.0,
+    ),
+    "a plain option an unset variable empties, which SUMO takes": (
+        _cfg(NET_AND_TRIPS + '<output><output-prefix value="${TWIN_TEST_NEVER_SET}"/></output>'
+             '<time><begin value="60"/><end value="480"/></time>'),
+        {}, 60.0, 480.0,
+    ),
+    "C's hexadecimal times, and SUMO's false words for help": (
+        _cfg(NET_AND_TRIPS + '<time><begin value="0x3c"/><end value="0x1E0"/></time>'
+             '<report><help value="f"/><version value="-"/></report>'),
+        {}, 60.0, 480.0,
+    ),
 }  # fmt: skip
 
 
@@ -987,18 +1005,67 @@ REFUSED = {
                       "<remote-port value='8813'> makes SUMO wait for a TraCI client"),
     "a help switch": (_cfg(NET_AND_TRIPS + '<report><help value="true"/></report>'), {},
                       "<help value='true'> makes SUMO print its help and quit"),
+    "a help switch in SUMO's short word": (_cfg(NET_AND_TRIPS + '<help value="T"/>'), {},
+                                           "<help value='T'> makes SUMO print its help"),
+    "an option set twice": (
+        _cfg(NET_AND_TRIPS + '<input><route-files value="small.trips.xml"/></input>'), {},
+        "<route-files> and <route-files> both set option route-files ('small.trips.xml', "
+        "'small.trips.xml'), which SUMO refuses ('probably defined twice'); keep one",
+    ),
+    "a mesosim that is no boolean": (_cfg(NET_AND_TRIPS + '<mesosim value="maybe"/>'), {},
+                                     "<mesosim value='maybe'> is no boolean SUMO reads"),
+    "a boolean with a space, which SUMO does not strip": (
+        _cfg(NET_AND_TRIPS + '<mesosim value=" true"/>'), {},
+        "<mesosim value=' true'> is no boolean SUMO reads",
+    ),
+    "a version switch that is no boolean": (_cfg(NET_AND_TRIPS + '<version value="no!"/>'), {},
+                                            "<version value='no!'> is no boolean SUMO reads"),
+    "a begin past every departure": (  # SUMO drops them all: it ran empty (probe 27c's h04)
+        _cfg(NET_AND_TRIPS + '<time><begin value="7200"/></time>'), {},
+        "every departure of its demand falls before its <begin> 02:00:00",
+    ),
+    "a help topic": (_cfg(NET_AND_TRIPS + '<help value="input"/>'), {},
+                     "<help value='input'> makes SUMO print its help and quit"),
+    "a departure with a space after it": (
+        _cfg('<input><net-file value="small.net.xml"/><route-files value="s.rou.xml"/></input>'),
+        {"s.rou.xml": '<routes><trip id="t" depart="0:00:10 " from="a" to="b"/></routes>'},
+        "<trip id='t' depart='0:00:10 '>: the time is not a time SUMO reads",
+    ),
+    "an option's value and text both": (
+        _cfg('<input><net-file value="small.net.xml">small.net.xml</net-file><route-files '
+             'value="small.trips.xml"/></input>'), {},
+        "<net-file> sets option net-file twice ('small.net.xml', 'small.net.xml'), which SUMO "
+        "refuses",
+    ),
+    "a value made empty by an unset variable": (
+        _cfg('<input><net-file value="${TWIN_TEST_NEVER_SET}"/><route-files '
+             'value="small.trips.xml"/></input>'), {},
+        "<net-file value='${TWIN_TEST_NEVER_SET}'> is empty (${TWIN_TEST_NEVER_SET} unset or "
+        "empty), which SUMO refuses; set it",
+    ),
+    "an end that SUMO's number reader refuses": (
+        _cfg(NET_AND_TRIPS + '<time><end value="2_400"/></time>'), {},
+        "<end value='2_400'> is not a finite time",
+    ),
+    "an end with a space after it": (_cfg(NET_AND_TRIPS + '<time><end value="2400 "/></time>'),
+                                     {}, "<end value='2400 '> is not a finite time"),
+    "an option's value and its short form both": (
+        _cfg('<input><net-file value="small.net.xml" v="small.net.xml"/><route-files '
+             'value="small.trips.xml"/></input>'), {},
+        "<net-file> sets option net-file twice",
+    ),
     "not XML": ("<configuration><input>", {}, "not valid XML"),
     "a negative begin": (_cfg(NET_AND_TRIPS + '<time><begin value="-60"/></time>'), {},
                          "<begin value='-60'> is negative, which SUMO refuses"),
     "a NaN departure": (
         _cfg('<input><net-file value="small.net.xml"/><route-files value="n.rou.xml"/></input>'),
         {"n.rou.xml": '<routes><trip id="t" depart="nan" from="a" to="b"/></routes>'},
-        "n.rou.xml (named in {case}/case.sumocfg): <trip id='t' depart='nan'>: the time is not a finite number",
+        "n.rou.xml (named in {case}/case.sumocfg): <trip id='t' depart='nan'>: the time is not a time SUMO reads",
     ),
     "an infinite departure": (
         _cfg('<input><net-file value="small.net.xml"/><route-files value="i.rou.xml"/></input>'),
         {"i.rou.xml": '<routes><vehicle id="v" depart="inf" route="r"/></routes>'},
-        "i.rou.xml (named in {case}/case.sumocfg): <vehicle id='v' depart='inf'>: the time is not a finite number",
+        "i.rou.xml (named in {case}/case.sumocfg): <vehicle id='v' depart='inf'>: the time is not a time SUMO reads",
     ),
     "a flow beginning before 0": (
         _cfg('<input><net-file value="small.net.xml"/><route-files value="f.rou.xml"/></input>'),
@@ -1200,6 +1267,24 @@ def test_included_files_are_found_through_nested_includes_and_cycles(tmp_path):
     (tmp_path / "sub" / "c.add.xml").write_text("<additional/>")
     found = included_files(tmp_path / "a.add.xml")
     assert [p.name for p in found] == ["b.add.xml", "c.add.xml"]
+
+
+def test_an_include_cycle_through_a_linked_folder_is_one(tmp_path):
+    """``L/c`` a link to ``real/cfg``, whose ``a.xml`` includes ``../cfg/a.xml``: read as SUMO
+    reads it (``..`` in the link's target), the names grew round the cycle, which went unseen
+    and gave hundreds of "included files" (the review of probe 27's fixes)."""
+    from twin.sumo.readers import include_cycle, included_files
+
+    (tmp_path / "real" / "cfg").mkdir(parents=True)
+    (tmp_path / "L").mkdir()
+    (tmp_path / "real" / "cfg" / "a.xml").write_text(
+        '<additional><include href="../cfg/a.xml"/></additional>'
+    )
+    (tmp_path / "L" / "c").symlink_to(tmp_path / "real" / "cfg")
+    start = tmp_path / "L" / "c" / "a.xml"
+    assert len(included_files(start)) <= 1
+    cycle = include_cycle(start)
+    assert cycle is not None and len(cycle) == 2
 
 
 def test_a_run_in_the_scenarios_own_window_past_its_departures_gets_a_notice(
@@ -1625,6 +1710,49 @@ def test_a_sumocfg_named_through_a_link_reads_its_files_beside_the_link(scenario
     assert loaded["public.sumocfg"] == other
 
 
+def test_a_flow_without_begin_refused_at_twins_begin_says_so(tmp_path):
+    """SUMO begins a flow without begin at its own begin, which twin sets before the window: a
+    flow ending before it is refused by SUMO, and the line says where twin starts SUMO and the
+    fix (probe 27c's h02)."""
+    from twin.sumo.session import SumoSession
+
+    routes = tmp_path / "r.rou.xml"
+    routes.write_text('<routes><flow id="fnb" end="1200" period="60" from="a" to="b"/></routes>')
+    session = SumoSession(net_file=tmp_path / "n.net.xml", route_files=[routes], begin=1500.0)
+    said = str(session.refusal("Error: Flow 'fnb' ends before its begin time."))
+    assert "\n" not in said and "twin starts SUMO at 00:25:00" in said, said
+    assert "give the flow a begin, or a --begin" in said, said
+
+
+def test_a_sumocfg_in_a_linked_folder_records_the_files_sumo_reads(scenario, tmp_path, capsys):
+    """``L/c`` a link to ``real/cfg``, whose sumocfg names ``../net/...``: SUMO reads
+    ``real/net/`` (the system resolves ``..`` in the link's target); run.json hashed
+    ``L/net/``'s files, so a sweep kept a stale cell when the real route file changed (probe
+    27's f07)."""
+    from twin.files import file_sha256
+
+    real, decoy = tmp_path / "real", tmp_path / "L"
+    for folder in (real / "net", real / "cfg", decoy / "net"):
+        folder.mkdir(parents=True)
+    for name in ("small.net.xml", "small.trips.xml"):
+        shutil.copy(scenario / "scenario" / name, real / "net" / name)
+        shutil.copy(scenario / "scenario" / name, decoy / "net" / name)
+    (decoy / "net" / "small.trips.xml").write_text(
+        (real / "net" / "small.trips.xml").read_text().replace("<routes", "<!-- other -->\n<routes")
+    )
+    (real / "cfg" / "x.sumocfg").write_text(
+        '<configuration><input><net-file value="../net/small.net.xml"/><route-files '
+        'value="../net/small.trips.xml"/></input></configuration>'
+    )
+    (decoy / "c").symlink_to(real / "cfg")
+    out = tmp_path / "run"
+    assert _run(scenario, out, "--sumocfg", str(decoy / "c" / "x.sumocfg"), "--horizon", "2") == 0
+    identity = json.loads((out / "run.json").read_text())["traffic"]["identity"]
+    hashes = {f["role"]: f["sha256"] for f in identity["files"]}
+    assert hashes["route file"] == file_sha256(real / "net" / "small.trips.xml")
+    assert hashes["route file"] != file_sha256(decoy / "net" / "small.trips.xml")
+
+
 @pytest.mark.parametrize(
     ("value", "kept"),
     [("Nul", True), ("nUL", True), ("Stdout", True), ("nul", False), ("NUL", False),
@@ -1819,6 +1947,42 @@ def test_a_lane_allowing_all_is_a_car_lane(tmp_path):
     net.write_text(text)
     after = read_lanes(net)
     assert len(after.shapes) == len(before.shapes) and not after.not_for_cars
+
+
+def test_a_network_without_car_lanes_counts_its_other_vehicles(tmp_path, capsys):
+    """SUMO runs a freight network (lanes for trucks alone) with its trucks: twin refused it
+    for having no passenger lane (a review against SUMO 1.28). Its lanes are the grid's, its
+    trucks the traffic, with a notice; a network of sidewalks alone is refused in one line."""
+    from twin.sumo.cells import grid_over, read_lanes
+    from twin.sumo.detectors import main_edges
+    from twin.sumo.session import SumoSession
+    from twin.sumo.tools import binary, run_sumo_program
+
+    net = tmp_path / "t.net.xml"
+    run_sumo_program(
+        [binary("netgenerate"), "--grid", "--grid.number", "3", "--grid.length", "200",
+         "--default.allow", "truck", "-o", str(net)],
+        what="netgenerate",
+    )  # fmt: skip
+    lanes = read_lanes(net)
+    err = capsys.readouterr().err
+    assert "no lane lets passenger cars drive" in err and "(truck)" in err, err
+    assert lanes.shapes and not lanes.not_for_cars
+    stations = main_edges(net, grid_over(lanes, 200.0))  # detectors on the trucks' lanes
+    assert stations and all(lane.allows("truck") for cell in stations.values() for lane in cell)
+    (tmp_path / "t.rou.xml").write_text(
+        '<routes><vType id="lorry" vClass="truck"/><flow id="f" type="lorry" begin="0" '
+        'end="300" period="10" from="A0A1" to="C2C1"/></routes>'
+    )
+    session = SumoSession(net_file=net, route_files=[tmp_path / "t.rou.xml"], end=3600.0)
+    with session:
+        session.advance_to(200.0)
+        xy, _ = session.vehicles(lanes.not_for_cars)
+        assert len(xy) == len(_libsumo_vehicles()) > 0
+    walk = tmp_path / "w.net.xml"
+    walk.write_text(net.read_text().replace('allow="truck"', 'allow="pedestrian"'))
+    with pytest.raises(UserError, match="the network has no lane that vehicles may use"):
+        read_lanes(walk)
 
 
 def test_parking_under_meso_is_said_to_count(tmp_path, capsys):

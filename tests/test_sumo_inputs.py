@@ -403,7 +403,7 @@ def test_a_demand_of_persons_alone_gets_a_notice(city, tmp_path, capsys):
         ('<personFlow id="f" begin="60" end="3600" period="10"><walk from="A0A1" to="C2C3"/>'
          "</personFlow>", (60.0, 3600.0)),
         ('<personFlow id="f" begin="60" number="10" period="30"><walk from="A0A1" to="C2C3"/>'
-         "</personFlow>", (60.0, 360.0)),
+         "</personFlow>", (60.0, 330.0)),  # the 10th at 60 + 9 x 30
         ('<containerFlow id="f" begin="0" end="1:00:00" period="10"><transport from="A0A1" '
          'to="C2C3"/></containerFlow>', (0.0, 3600.0)),
     ],
@@ -570,8 +570,14 @@ def test_departure_span_of_flows_and_clock_times(tmp_path):
         ('begin="10" vehsPerHour="600"', math.inf),  # SUMO 1.2x runs it on past 24 h
         ('begin="10" period="5"', math.inf),
         ('begin="10" probability="0.1"', math.inf),
-        ('begin="10" number="30" vehsPerHour="600"', 190.0),
-        ('begin="10" number="30" headway="2"', 70.0),
+        # the first at begin, the 30th 29 gaps later (SUMO 1.28's tripinfo: the numbered flows
+        # were read one gap too long, probe 27's f05)
+        ('begin="10" number="30" vehsPerHour="600"', 184.0),
+        ('begin="10" number="30" headway="2"', 68.0),
+        # random departures: 30 gaps of 10 s on average, plus 3 sd of sqrt(30) gaps (was never,
+        # past 24 h)
+        ('begin="10" number="30" probability="0.1"', 10 + (30 + 3 * math.sqrt(30)) * 10),
+        ('begin="10" number="30" period="exp(0.1)"', 10 + (30 + 3 * math.sqrt(30)) * 10),
         ('begin="90000" vehsPerHour="600"', math.inf),
     ],
 )
@@ -586,7 +592,7 @@ def test_a_flow_without_end_departs_as_long_as_sumo_lets_it(tmp_path, flow, end)
 
 @pytest.mark.parametrize(
     ("flows", "span"),
-    [  # as SUMO 1.2x departs them (checked with its tripinfo output)
+    [  # as SUMO 1.28 departs them (checked with its tripinfo output)
         (
             '<interval begin="3600" end="4500"><flow id="f" from="a" to="b" number="120"/>'
             '<flow id="g" from="a" to="b" vehsPerHour="400"/></interval>',
@@ -595,13 +601,22 @@ def test_a_flow_without_end_departs_as_long_as_sumo_lets_it(tmp_path, flow, end)
         (
             '<interval begin="300" end="400"><flow id="f" from="a" to="b" begin="350" number="2" '
             'period="5"/></interval>',
-            (350.0, 360.0),
+            (350.0, 355.0),
         ),
-        ('<flow id="f" from="a" to="b" number="3" period="10"/>', (0.0, 30.0)),  # begin 0
+        ('<flow id="f" from="a" to="b" number="3" period="10"/>', (0.0, 20.0)),  # begin 0
+        (  # no period: spread over its own begin..end (0, 300, 600, 900; probe 27b's g02)
+            '<flow id="f" from="a" to="b" begin="0" end="1200" number="4"/>',
+            (0.0, 900.0),
+        ),
+        (  # no period: spread over the interval (3600, 3900, 4200)
+            '<interval begin="3600" end="4500"><flow id="f" from="a" to="b" number="3"/>'
+            "</interval>",
+            (3600.0, 4200.0),
+        ),
         (
             '<interval begin="60"><personFlow id="p" number="2" period="30"><walk from="a" '
             'to="b"/></personFlow></interval>',
-            (60.0, 120.0),
+            (60.0, 90.0),
         ),
     ],
 )
@@ -614,13 +629,50 @@ def test_flows_without_begin_depart_at_their_intervals_begin_or_0(tmp_path, flow
     assert departure_span([routes]) == span
 
 
+def test_what_sumo_ignores_in_an_unsorted_route_file_is_left_out(tmp_path):
+    """SUMO reads route files step by step and ignores an element departing before one listed
+    above it (checked with SUMO 1.28's tripinfo: only v and u depart); the window was built
+    from them, a run of empty maps (probe 27b's g06). Read all at once (route-steps 0, or an
+    additional file) they all depart."""
+    routes = tmp_path / "unsorted.rou.xml"
+    routes.write_text(
+        '<routes><vehicle id="v" depart="2400" route="r"/>'
+        '<flow id="f" begin="0" end="1800" period="300" from="a" to="b"/>'
+        '<trip id="t" depart="50" from="a" to="b"/><trip id="u" depart="2500" from="a" to="b"/>'
+        '<trip id="w" depart="2450" from="a" to="b"/></routes>'
+    )
+    ignored: list[str] = []
+    assert departure_span([routes], in_order=[routes], ignored=ignored) == (2400.0, 2500.0)
+    assert ignored == [f"{routes}: 'f'", f"{routes}: 't'", f"{routes}: 'w'"]
+    assert departure_span([routes]) == (0.0, 2500.0)
+    # as SUMO 1.28 departs them (its tripinfo): a departure at "begin" when the reader reaches
+    # it, a flow without begin at the simulation's begin (ignored after a later one), a bus of a
+    # line checked but setting no order for the next; a file with includes is taken whole
+    routes.write_text(
+        '<routes><vehicle id="v" depart="2400" route="r"/><trip id="b" depart="begin" from="a" '
+        'to="b"/><flow id="g" end="3000" period="60" from="a" to="b"/><vehicle id="bus" '
+        'line="1" depart="2600" route="r"/><trip id="t" depart="2500" from="a" to="b"/>'
+        '<vehicle id="bus2" line="1" depart="100" route="r"/></routes>'
+    )
+    ignored.clear()
+    assert departure_span([routes], in_order=[routes], ignored=ignored) == (2400.0, 2600.0)
+    assert ignored == [f"{routes}: 'g'", f"{routes}: 'bus2'"]
+    (tmp_path / "inc.rou.xml").write_text(
+        '<routes><trip id="x" depart="5" from="a" to="b"/></routes>'
+    )
+    routes.write_text('<routes><trip id="v" depart="50" from="a" to="b"/><include '
+                      'href="inc.rou.xml"/></routes>')  # fmt: skip
+    assert departure_span([routes], in_order=[routes], ignored=ignored) == (5.0, 50.0)
+
+
 def test_a_flow_without_begin_departs_at_the_simulations_begin(tmp_path):
     """SUMO starts such a flow at its own begin (a sumocfg's <begin>): the run was refused
     with an error blaming the file, after twin added its rush hour (probe 19's f05)."""
     routes = tmp_path / "nb.rou.xml"
     routes.write_text('<routes><flow id="f" from="a" to="b" end="5400" number="150"/></routes>')
-    assert departure_span([routes]) == (0.0, 5400.0)
-    assert departure_span([routes], start=3600.0) == (3600.0, 5400.0)
+    # spread over begin..end, the 150th one spacing before the end
+    assert departure_span([routes]) == (0.0, 5400.0 * 149 / 150)
+    assert departure_span([routes], start=3600.0) == (3600.0, 3600.0 + 1800.0 * 149 / 150)
     # SUMO's word "begin" (a vehicle's depart, a flow's begin): the simulation's begin too
     routes.write_text(
         '<routes><vehicle id="v" depart="begin" route="r"/>'
@@ -1231,6 +1283,26 @@ def test_an_unset_variable_in_a_sumo_option_is_said(monkeypatch, capsys):
     monkeypatch.setenv("TWIN_TEST_UNSET", "here")
     assert readers.substitute_environment("${TWIN_TEST_UNSET}/c.xml") == "here/c.xml"
     assert capsys.readouterr().err == ""
+
+
+def test_a_file_missing_for_an_unset_variable_names_it(tmp_path, monkeypatch, capsys):
+    """A refusal prints its one line alone: the notice of the unset variable was dropped, and
+    the line named a route file ".rou.xml" without saying why (probe 27's f04)."""
+    from helpers import small_sumo_scenario
+
+    small_sumo_scenario(tmp_path)
+    monkeypatch.delenv("TWIN_TEST_UNSET", raising=False)
+    cfg = tmp_path / "var.sumocfg"
+    monkeypatch.delenv("TWIN_TEST_COMMENT", raising=False)
+    cfg.write_text('<configuration><!-- ${TWIN_TEST_COMMENT} --><input><net-file '
+                   'value="small.net.xml"/><route-files value="${TWIN_TEST_UNSET}.rou.xml"/>'
+                   "</input></configuration>")  # fmt: skip
+    code = twin_main(["run", "--sumocfg", str(cfg), "--quiet", "--no-report", "--no-ceiling",
+                      "--swarms", "random", "--out", str(tmp_path / "run")])  # fmt: skip
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1, err
+    assert f"(named in {cfg}, where ${{TWIN_TEST_UNSET}} is not set and reads as empty)" in err
+    assert "TWIN_TEST_COMMENT" not in err, err  # a comment is no option
 
 
 @pytest.mark.parametrize(

@@ -459,6 +459,10 @@ def test_killed_sweep_resumes(tmp_path: Path) -> None:
             '[sweep]\nswarms = ["greedy"]\n[[scenario]]\nname = "a"\nconfig = "missing.toml"\n',
             "does not exist",
         ),
+        (  # a folder was said not to exist (probe 27's f02)
+            '[sweep]\nswarms = ["greedy"]\n[[scenario]]\nname = "a"\nconfig = "."\n',
+            "which is a folder, not a file; fix the path",
+        ),
         (
             '[sweep]\nswarms = ["greedy"]\n[[scenario]]\nname = "a"\nconfig = "scenario.toml"\n'
             '[parameters]\n"n_drones" = [1]\n',
@@ -568,21 +572,46 @@ def test_bad_parameter_value_fails_before_any_cell_runs(tmp_path: Path) -> None:
         ("lookahead", "discount = 2.0", "[swarm_options.lookahead]: discount = 2.0 must lie in"),
         ("lookahead", "wieght = 1", "[swarm_options.lookahead] has an option 'wieght'"),
         ("rl-online", "batch_size = 0", "[swarm_options.rl-online]: batch_size = 0 must be in"),
+        ("rl", "outages = [[0, 9]]", "[swarm_options.rl].outages has [0, 9] past the horizon "
+         "T = 4; end it by 4"),
     ],
-)
+)  # fmt: skip
+@pytest.mark.parametrize("scenario_too", [False, True])
 def test_a_bad_option_of_the_sweeps_own_swarm_options_is_refused_before_any_cell(
-    swarm, table, said, tmp_path: Path, capsys
+    swarm, table, said, scenario_too, tmp_path: Path, capsys
 ) -> None:
     """A swarm option the sweep file's [swarm_options] gives and the swarm refuses failed every
     cell as it ran, naming neither the file nor its table (the review of probe 26's fixes):
-    one line naming both, before any folder is made."""
+    one line naming both, before any folder is made. Outages past the horizon were refused
+    only as a cell ran; with options of the scenario's own for the swarm, the scenario file
+    was named for the sweep's value."""
     path = sweep_file(tmp_path, seeds=1, horizon=4)
+    if scenario_too:  # a good option of the scenario's for the same swarm
+        scenario = tmp_path / "scenario.toml"
+        good = {"lookahead": "end_weight = 0.5", "rl-online": "eps = 0.1", "rl": "eps = 0.1"}
+        scenario.write_text(scenario.read_text() + f"\n[swarm_options.{swarm}]\n{good[swarm]}\n")
     text = path.read_text().replace('"sweeping"]', f'"{swarm}"]')
     path.write_text(text + f"\n[swarm_options.{swarm}]\n{table}\n")
     out = tmp_path / "s"
     assert cli(["sweep", "--config", str(path), "--out", str(out), "--quiet"]) == 2
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and err.startswith(f"twin: error: {path}: {said}"), err
+    assert not out.exists()
+
+
+def test_a_scenarios_outages_past_the_horizon_name_the_scenario(tmp_path: Path, capsys) -> None:
+    """Outages the scenario's [swarm_options] give were blamed on the sweep file when the sweep
+    gave any other option for the swarm (the review of probe 27's fixes)."""
+    path = sweep_file(tmp_path, seeds=1, horizon=4)
+    scenario = tmp_path / "scenario.toml"
+    scenario.write_text(scenario.read_text() + "\n[swarm_options.rl]\noutages = [[0, 9]]\n")
+    text = path.read_text().replace('"sweeping"]', '"rl"]')
+    path.write_text(text + "\n[swarm_options.rl]\neps = 0.2\n")
+    out = tmp_path / "s"
+    assert cli(["sweep", "--config", str(path), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and f"{path}:" not in err, err
+    assert f"{scenario}: [swarm_options.rl].outages has [0, 9] past the horizon T = 4" in err, err
     assert not out.exists()
 
 

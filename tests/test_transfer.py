@@ -70,7 +70,7 @@ overrides = {{ "traffic.horizon" = 12, "swarm.n_drones" = 2 }}
     return path
 
 
-def test_tiny_matrix_end_to_end_and_pool_equals_sequential(tmp_path: Path) -> None:
+def test_tiny_matrix_end_to_end_and_pool_equals_sequential(tmp_path: Path, capsys) -> None:
     config = load_transfer_config(tiny_config(tmp_path))
     sequential, pool = tmp_path / "seq", tmp_path / "pool"
     report = run_transfer(config, sequential, workers=1)
@@ -137,13 +137,21 @@ def test_tiny_matrix_end_to_end_and_pool_equals_sequential(tmp_path: Path) -> No
     trips.write_text("\n".join(line for line in lines if 'id="0"' not in line) + "\n")
     tuned_model = sequential / "rows" / "paper+tapes" / "qnet.pt"
     before = file_sha256(tuned_model)
+    capsys.readouterr()
     run_transfer(config, sequential, workers=1)
+    said = "row paper+tapes: its tapes, start or scenario changed since it was trained; training"
+    assert said in capsys.readouterr().err
     assert model.stat().st_mtime_ns == stamp
     tuned = json.loads((sequential / "rows" / "paper+tapes" / "provenance.json").read_text())
     assert tuned["recipe"]["tapes"] == {t: file_sha256(t) for t in tuned["recipe"]["tapes"]}
     assert tuned["qnet_sha256"] == file_sha256(tuned_model) != before
     manifest = json.loads((sequential / "sweep" / "sweep.json").read_text())
     assert manifest["invocations"][-1]["ran"] >= 2  # the small column's cells (and the row's)
+    # a row's model deleted: said so (the notice blamed changed settings: probe 27's f03)
+    (tmp_path / "moved" / "rows" / "paper" / "qnet.pt").unlink()
+    run_transfer(config, tmp_path / "moved", workers=1)
+    err = capsys.readouterr().err
+    assert "row paper: its model qnet.pt is missing; training it again" in err, err
 
 
 def test_ray_gives_the_local_numbers(tmp_path: Path) -> None:

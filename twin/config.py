@@ -43,6 +43,7 @@ from pydantic import (
 
 from twin.clock import CLOCK_HINT, clock_seconds
 from twin.errors import UserError
+from twin.files import not_a_file
 from twin.grid import Grid
 from twin.mfd import SETTING_RANGES as MFD_SETTING_RANGES
 from twin.resources import shipped_config as shipped_config  # re-export (moved there)
@@ -185,8 +186,9 @@ def _relative(value: Any, info: ValidationInfo) -> Any:
 
 
 def _existing(path: Path) -> Path:
-    if not path.is_file():
-        raise ValueError(f"names {path}, which does not exist; fix the path")
+    why = not_a_file(path)
+    if why is not None:  # (a pipe's reason names its fix)
+        raise ValueError(f"names {path}, which {why}" + ("" if ";" in why else "; fix the path"))
     return path
 
 
@@ -657,7 +659,9 @@ class ScenarioConfig(SourcedConfig):
             raise self._refused_option(name, own, overrides, exc) from None
         except UserError as exc:  # a value the swarm refuses, said where the config gives it
             text = str(exc)
-            if not own or str(self.path) in text or text.startswith("[swarm_options"):
+            said = re.match(rf"{re.escape(base_name(name))}: (\w+) = ", text)
+            theirs = said is not None and said[1] in overrides  # the value the overrides give
+            if not own or theirs or str(self.path) in text or text.startswith("[swarm_options"):
                 raise
             for lead in (f"{base_name(name)}: ", "swarm option "):  # said by the table now
                 text = text.removeprefix(lead)

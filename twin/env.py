@@ -26,7 +26,8 @@ of the patrol loop, so a policy scores the same here as in ``run_patrol``.
 
 ``reset(seed=s)`` draws the start cells as ``twin.patrol.random_starts(grid, N,
 np.random.default_rng(s))``, unless fixed ``starts`` were given. A source built by a factory is
-rebuilt on every reset after the first (a live SUMO run restarts cleanly); ``close`` closes it.
+rebuilt on every reset after the first (a live SUMO run restarts cleanly, on the same traffic
+day: its SUMO seed is the factory's); ``close`` closes it.
 """
 
 from __future__ import annotations

@@ -235,6 +235,31 @@ def build_swarms(experiment: Experiment) -> dict[str, Policy]:
     return swarms
 
 
+def check_swarm_outages(
+    config: ScenarioConfig,
+    swarms: dict[str, Policy],
+    horizon: int,
+    overrides: dict[str, dict] | None = None,
+    overrides_file: Path | None = None,
+) -> None:
+    """Each swarm's own coordinator outages end by the horizon (:func:`check_outages`), named
+    where they are given: ``overrides_file`` when ``overrides`` (a sweep's or a flag's options,
+    by swarm) give them, else the config when its ``[swarm_options]`` do."""
+    from twin.patrol import check_outages
+
+    for name, policy in swarms.items():
+        try:
+            check_outages(name, policy, horizon)
+        except UserError as exc:
+            if "outages" in (overrides or {}).get(name, {}):
+                if overrides_file is None:
+                    raise
+                raise UserError(f"{overrides_file}: {exc}") from None
+            if "outages" in config.swarm_options.get(name, {}):
+                raise UserError(f"{config.path}: {exc}") from None
+            raise
+
+
 def check_swarm_histories(swarms: dict[str, Policy], source: TrafficSource) -> None:
     """Each swarm's own history of earlier days (``[swarm_options.<swarm>].history``) is one
     of this traffic's grid, horizon and clock, and holds none of its days, as ``--history``
@@ -409,6 +434,7 @@ def _run_seed(experiment, n, seed, source, stop, progress=False, on_source=None,
     if on_source is not None:
         on_source(source)
     swarms = build_swarms(experiment)
+    check_swarm_outages(config, swarms, source.horizon, experiment.swarm_options)
     check_swarm_histories(swarms, source)
     faults = config.fault_plan()
     twins = build_swarms(experiment) if faults is not None and config.faults.compare else None

@@ -213,7 +213,7 @@ def file_sha256(path: str | Path) -> str:
     st = os.stat(path)
     if not stat.S_ISREG(st.st_mode):
         raise OSError(errno.EINVAL, "not a regular file (a pipe, device or folder)", str(path))
-    key = (os.path.abspath(path), st.st_size, st.st_mtime_ns)
+    key = (os.path.realpath(path), st.st_size, st.st_mtime_ns)  # the file itself, not its name
     if key not in _HASHES:
         h = hashlib.sha256()
         with open(path, "rb") as fh:

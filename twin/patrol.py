@@ -86,6 +86,17 @@ def swarm_rng(seed: int, name: str) -> np.random.Generator:
     return np.random.default_rng([seed, zlib.crc32(name.encode())])
 
 
+def check_outages(name: str, policy: Policy, horizon: int) -> None:
+    """A swarm's own coordinator outages (its option ``outages``) end by the horizon ``T``, as
+    ``[faults].coordinator_down``'s do."""
+    late = [w for w in getattr(policy, "outages", ()) if w[1] > horizon]
+    if late:
+        raise UserError(
+            f"[swarm_options.{name}].outages has [{late[0][0]}, {late[0][1]}] past the horizon "
+            f"T = {horizon}; end it by {horizon}"
+        )
+
+
 def run_patrol(
     source: TrafficSource,
     policies: Mapping[str, Policy],
@@ -120,13 +131,8 @@ def run_patrol(
     runs = [(name, policies[name], plan) for name in names]
     if plan is not None and fault_free:
         runs += [(name, fault_free[name], None) for name in names]
-    for name, policy, _ in runs:  # a swarm's own outages (option outages) end by T
-        late = [w for w in getattr(policy, "outages", ()) if w[1] > horizon]
-        if late:
-            raise UserError(
-                f"swarm {name!r}: option outages has [{late[0][0]}, {late[0][1]}] past the horizon "
-                f"T = {horizon}; end it by {horizon}"
-            )
+    for name, policy, _ in runs:
+        check_outages(name, policy, horizon)
     acting: dict[int, Policy] = {}  # each run's policy, by its place in ``runs``
     for s, (_, policy, faulted) in enumerate(runs):
         if faulted is not None and faulted.coordinator_down:

@@ -14,6 +14,7 @@ Anything wrong with a file reaches the user as one :class:`~twin.errors.UserErro
 from __future__ import annotations
 
 import itertools
+import re
 import warnings
 from pathlib import Path
 from typing import Any
@@ -84,7 +85,16 @@ def read_checkpoint(path: str | Path, hint: str | None = None) -> dict[str, Any]
             warnings.simplefilter("ignore")
             blob = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises many types for truncated/corrupt/unsafe files
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+        text = str(exc)  # torch's weights-only refusal: its advice to load unsafely, in colour
+        if re.search(r"Unsupported global: GLOBAL \w", text):  # a class or function, by name
+            raise UserError(
+                f"checkpoint {path} holds Python objects beyond tensors (a whole module saved "
+                f"with torch.save(model), say), which twin does not unpickle; {hint}"
+            ) from None
+        if "Weights only load failed" in text:
+            text = text.partition("WeightsUnpickler error:")[2].strip() or "no tensors"
+        first = text.strip().splitlines()[0] if text.strip() else ""
+        first = re.sub(r"\x1b\[[0-9;]*m", "", first)  # no terminal colours in the one line
         first = first if len(first) <= 120 else first[:120].rsplit(" ", 1)[0] + " ..."
         raise UserError(
             f"checkpoint {path} is corrupt or not a torch file ({type(exc).__name__}: {first}); "

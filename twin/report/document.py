@@ -305,8 +305,10 @@ def build_sections(
         Section(
             "Trajectories over unvisited importance (paper's Fig. 2)",
             _save(fig, out / "trajectories.png"),
-            f"Cell colour I^k·T^k at k = {peak}, the step with the highest mean importance: bright "
-            "cells are important and long unvisited. " + idleness_check(rf),
+            f"Cell colour I^k·T^k at k = {peak}, the step with the highest mean importance from "
+            f"k = {min(figures.TRAIL_STEPS, rf.horizon)} on (the lines show up to "
+            f"{figures.TRAIL_STEPS} steps before it): bright cells are important and long "
+            "unvisited. " + idleness_check(rf),
         )
     )
     if rf.live() is not None:
@@ -605,8 +607,8 @@ def _table_caption(rf: RunFiles) -> str:
     if "C_hat_T_ceiling" in columns:
         text += (
             " The Ĉ_T ceiling is the coverage of drones that jump, each step, to the freshest "
-            "distinct cells: an upper bound, so a Ĉ_T near it shows a swarm that neither "
-            "stacks nor hovers, not more."
+            "distinct cells: a reference, not a bound (pacing revisits can exceed it slightly), "
+            "so a Ĉ_T near it shows a swarm that neither stacks nor hovers, not more."
         )
     return text
 

@@ -205,7 +205,11 @@ def peak_step(rf: RunFiles, after: int) -> int:
     return start + int(np.argmax(mean[start:]))
 
 
-def figure_trajectories(rf: RunFiles, trail: int = 40) -> tuple[Figure, int]:
+#: Steps of each swarm's path drawn on Fig. 2 (its step is chosen from this one on).
+TRAIL_STEPS = 40
+
+
+def figure_trajectories(rf: RunFiles, trail: int = TRAIL_STEPS) -> tuple[Figure, int]:
     """Fig. 2 analog: each swarm's last ``trail`` steps over ``I^k T^k`` at the step of peak
     congestion (highest mean importance, at least ``trail`` steps in); returns that step."""
     swarms = rf.swarms

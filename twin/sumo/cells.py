@@ -10,6 +10,7 @@ binned into cells by their position, so one numpy pass gives all per-cell counts
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -88,26 +89,59 @@ class Lanes:
     not_for_cars: frozenset[str] = frozenset()
 
 
+def for_cars(lane) -> bool:
+    """Whether passenger cars may use a (sumolib) lane; sumolib reads allow="all" as a class."""
+    allowed = lane.getPermissions()
+    return "passenger" in allowed or "all" in allowed
+
+
+def for_vehicles(lane) -> bool:
+    """Whether some vehicle may use a (sumolib) lane: a sidewalk carries none."""
+    return bool(lane.getPermissions() - {"pedestrian"})
+
+
+def traffic_lanes(net) -> Callable[[Any], bool]:
+    """Which lanes of a (sumolib) network carry its counted traffic: those of passenger cars,
+    or, on a network without any, those of every other vehicle (:func:`read_lanes`)."""
+    has_cars = any(for_cars(lane) for edge in net.getEdges() for lane in edge.getLanes())
+    return for_cars if has_cars else for_vehicles
+
+
 def read_lanes(net_file: Path) -> Lanes:
-    """Passenger-car lanes of a network, junction-internal lanes included (cars stand there)."""
+    """Passenger-car lanes of a network, junction-internal lanes included (cars stand there);
+    a network without any (a freight or bus network, which SUMO runs as well) gives its lanes
+    of every other vehicle class, with a notice."""
     import sumolib
 
     try:
         net = sumolib.net.readNet(str(net_file), withInternal=True)
     except Exception as exc:  # sumolib raises SAX errors and others on a broken file
         raise UserError(f"{net_file}: cannot read the network ({exc})") from exc
-    shapes, speeds, others = [], [], []
+    cars, others = ([], [], []), ([], [], [])  # (shapes, speeds, ids)
+    classes: set[str] = set()
     for edge in net.getEdges(withInternal=True):
         for lane in edge.getLanes():
-            allowed = lane.getPermissions()  # (sumolib reads allow="all" as a class "all")
-            if "passenger" in allowed or "all" in allowed:
-                shapes.append(np.asarray(lane.getShape(), dtype=float))
-                speeds.append(lane.getSpeed())
-            elif allowed - {"pedestrian"}:  # a sidewalk carries no vehicle
-                others.append(lane.getID())
-    if not shapes:
-        raise UserError(f"{net_file}: the network has no lane that passenger cars may use")
-    return Lanes(shapes, np.asarray(speeds, dtype=float), frozenset(others))
+            if for_cars(lane):
+                kept = cars
+            elif for_vehicles(lane):
+                kept = others
+                classes |= lane.getPermissions() - {"pedestrian"}
+            else:
+                continue
+            kept[0].append(np.asarray(lane.getShape(), dtype=float))
+            kept[1].append(lane.getSpeed())
+            kept[2].append(lane.getID())
+    if cars[0]:
+        return Lanes(cars[0], np.asarray(cars[1], dtype=float), frozenset(others[2]))
+    if not others[0]:
+        raise UserError(f"{net_file}: the network has no lane that vehicles may use")
+    from twin.notices import notify
+
+    notify(
+        f"twin: notice: {net_file}: no lane lets passenger cars drive; twin counts the "
+        f"vehicles of its other lanes ({', '.join(sorted(classes))}) as its traffic"
+    )
+    return Lanes(others[0], np.asarray(others[1], dtype=float))
 
 
 def grid_over(

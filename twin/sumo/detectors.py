@@ -11,9 +11,9 @@ additional file of ``<inductionLoop>`` elements with an aggregation period of on
   taken unless it touches (8-neighbourhood) a cell taken before, until N are chosen; if fewer
   than N remain, the skipped ones follow in the same order.
 
-A station is one loop on every passenger lane of the cell's main edge (the normal edge with the
-longest lane length inside the cell; ties by edge id), at the middle of that lane's stretch in
-the cell.
+A station is one loop on every passenger lane (on a network without any, every vehicle lane)
+of the cell's main edge (the normal edge with the longest lane length inside the cell; ties by
+edge id), at the middle of that lane's stretch in the cell.
 
 Reading: at every sample time each detector's last completed aggregation interval is read
 (vehicles counted, occupancy, mean speed: three calls, no subscriptions, no per-SUMO-step
@@ -132,15 +132,19 @@ def _cell_box(geometry, cell: tuple[int, int]):
 
 def main_edges(net_file: Path, geometry) -> dict[tuple[int, int], list]:
     """Per cell, the passenger lanes (sumolib) of its main edge: the normal edge with the most
-    lane length inside the cell, ties by edge id. Cells with junction lanes only are absent."""
+    lane length inside the cell, ties by edge id. Cells with junction lanes only are absent. A
+    network without car lanes gives the lanes of its other vehicles, as its traffic."""
     import sumolib
     from shapely.geometry import LineString
 
+    from twin.sumo.cells import traffic_lanes
+
     net = sumolib.net.readNet(str(net_file))
+    counted = traffic_lanes(net)
     best: dict[tuple[int, int], tuple[float, str, list]] = {}
     quarter = geometry.cell_m / 4
     for edge in sorted(net.getEdges(), key=lambda e: e.getID()):
-        lanes = [lane for lane in edge.getLanes() if lane.allows("passenger")]
+        lanes = [lane for lane in edge.getLanes() if counted(lane)]
         if not lanes:
             continue
         line = LineString(lanes[0].getShape())
@@ -160,7 +164,7 @@ def main_edges(net_file: Path, geometry) -> dict[tuple[int, int], list]:
 
 def place_loops(edges: dict, geometry, cells: list[tuple[int, int]]) -> tuple[LoopSpec, ...]:
     """One station per cell (each a key of :func:`main_edges`' ``edges``): a loop on every
-    passenger lane of the cell's main edge, at the middle of the lane's stretch in the cell."""
+    lane :func:`main_edges` gives of the cell's main edge, at the middle of the lane's stretch in the cell."""
     from shapely.geometry import LineString
 
     specs = []

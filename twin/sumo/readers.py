@@ -12,6 +12,7 @@ import math
 import os
 import re
 import xml.etree.ElementTree as ET
+from collections.abc import Collection
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
@@ -268,8 +269,27 @@ def naming_the_sumocfg(message: str, sumocfg: Path | None, files: list[Path]) ->
         return message
     for path in files:
         if message.startswith(f"{path}:"):
-            return f"{path} (named in {sumocfg}){message[len(str(path)) :]}"
+            rest = message[len(str(path)) :]
+            missing = any(w in rest for w in ("no such", "does not exist", "is a folder"))
+            unset = _unset_variables(sumocfg) if missing else []  # the likely cause
+            where = f", where ${{{unset[0]}}} is not set and reads as empty" if unset else ""
+            return f"{path} (named in {sumocfg}{where}){rest}"
     return message
+
+
+def _unset_variables(sumocfg: Path) -> list[str]:
+    """The environment variables (``${NAME}``) a SUMO config's file options name that are not
+    set."""
+    try:
+        with open_xml(sumocfg) as fh:
+            root = ET.parse(fh).getroot()
+    except (ET.ParseError, OSError, EOFError, UserError):
+        return []
+    files = [elem for elem in root.iter() if canonical(local_name(elem)).endswith("-files")
+             or canonical(local_name(elem)) == "net-file"]  # fmt: skip
+    values = [v for elem in files for v in (*elem.attrib.values(), elem.text or "")]
+    names = {n for v in values for n in _VARIABLE.findall(v)}
+    return sorted(n for n in names if n not in os.environ)
 
 
 def file_list(value: str | None, base: Path, named_in: Path | None = None) -> list[Path]:
@@ -286,14 +306,22 @@ def file_list(value: str | None, base: Path, named_in: Path | None = None) -> li
 
 
 def parse_time(value: str | None) -> float | None:
-    """A SUMO time value: seconds ("3600", "3600.5") or a clock ("1:00:00"); None if neither
-    (also for NaN and infinite values, which SUMO refuses too)."""
+    """A SUMO time value: seconds ("3600", "3600.5", and C's hexadecimal form "0xe10", which
+    SUMO's number parser takes too) or a clock ("1:00:00"); None if neither (also for NaN and
+    infinite values, which SUMO refuses too)."""
     if value is None:
         return None
+    if "_" in str(value) or str(value) != str(value).rstrip():
+        return None  # Python reads "1_0" and "10 ", SUMO (strtod, then nothing after) does not
     try:
         t = float(value)
     except ValueError:
-        pass
+        try:
+            t = float.fromhex(value) if _HEX.fullmatch(str(value).strip()) else math.nan
+        except (ValueError, OverflowError):
+            t = math.nan
+        if math.isfinite(t):
+            return t
     else:
         return t if math.isfinite(t) else None
     parts = str(value).strip().split(":")
@@ -307,6 +335,22 @@ def parse_time(value: str | None) -> float | None:
     for x, unit in zip(reversed(numbers), (1, 60, 3600, 86400), strict=False):
         total += x * unit
     return total
+
+
+_EXP_PERIOD = re.compile(r"exp\((.+)\)")
+_HEX = re.compile(r"[+-]?0[xX][0-9a-fA-F]+(\.[0-9a-fA-F]*)?([pP][+-]?\d+)?")
+
+#: SUMO's words for true and false, in any case (``StringUtils::toBool``).
+_TRUE, _FALSE = ("1", "yes", "true", "on", "x", "t"), ("0", "no", "false", "off", "-", "f")
+
+
+def sumo_bool(value: str | None, default: bool = False) -> bool | None:
+    """A SUMO boolean option's value as SUMO reads it (``t``, ``x``, ``on``, ... are true;
+    ``f``, ``-``, ``off``, ... false); ``default`` when unset; None when SUMO refuses it."""
+    if value is None:
+        return default
+    word = value.lower()  # (SUMO does not strip spaces off it)
+    return True if word in _TRUE else False if word in _FALSE else None
 
 
 #: Roots of a SUMO simulation config: ``<configuration>``, and ``<sumoConfiguration>`` as
@@ -340,26 +384,52 @@ def substitute_environment(value: str) -> str:
     return _VARIABLE.sub(lambda m: os.environ.get(m.group(1), ""), s)
 
 
-def sumocfg_options(root: ET.Element) -> tuple[dict[str, str], dict[str, str]]:
-    """The options a SUMO config sets, as SUMO reads them: any element with a ``value``
-    attribute (or its short form ``v``) or, without children, a text, whether in a section
-    (``<input><net-file value="..."/></input>``) or right under the root, named by any of
-    SUMO's synonyms (:func:`twin.sumo.options.canonical`): canonical name -> value (the last
-    one wins, as in SUMO; environment variables substituted, :func:`substitute_environment`),
-    and canonical name -> the name the config wrote."""
+def sumocfg_options(root: ET.Element, path: Path) -> tuple[dict[str, str], dict[str, str]]:
+    """The options the SUMO config ``path`` sets, as SUMO reads them: any element with a
+    ``value`` attribute (or its short form ``v``) or, without children, a text, whether in a
+    section (``<input><net-file value="..."/></input>``) or right under the root, named by any
+    of SUMO's synonyms (:func:`twin.sumo.options.canonical`): canonical name -> value
+    (environment variables substituted, :func:`substitute_environment`), and canonical name ->
+    the name the config wrote. An empty value is skipped, as SUMO skips it; an option set twice,
+    or emptied by an unset variable where SUMO needs a value, is refused, as SUMO refuses it."""
     options: dict[str, str] = {}
     written: dict[str, str] = {}
     for elem in root.iter():
         name = local_name(elem)
         if elem is root or not name:
             continue
-        value = elem.get("value", elem.get("v"))
-        if value is None and len(elem) == 0 and elem.text is not None and elem.text.strip():
-            value = elem.text.strip()
-        if value is not None:
-            options[canonical(name)] = substitute_environment(value)
-            written[canonical(name)] = name
+        given = [v for v in (elem.get("value"), elem.get("v")) if v]
+        if len(elem) == 0 and elem.text is not None and elem.text.strip():
+            given.append(elem.text.strip())
+        if not given:
+            continue
+        key, value = canonical(name), given[0]
+        if key in options or len(given) > 1:
+            twice = (f"<{written[key]}> and <{name}> both set option {key}" if key in options
+                     else f"<{name}> sets option {key} twice")  # fmt: skip
+            first, second = (options[key], value) if key in options else given[:2]
+            raise UserError(
+                f"{path}: {twice} ({first!r}, {second!r}), which SUMO refuses ('probably "
+                "defined twice'); keep one"
+            )
+        options[key], written[key] = substitute_environment(value), name
+        if not options[key] and _refused_empty(key):
+            names = ", ".join(f"${{{n}}}" for n in sorted(set(_VARIABLE.findall(value))))
+            raise UserError(
+                f"{path}: <{name} value={value!r}> is empty ({names} unset or empty), which SUMO "
+                "refuses; set it, or write the value out"
+            )
     return options, written
+
+
+#: Options SUMO refuses as empty (a ``${VAR}`` not set): its file lists but the route files,
+#: numbers, times and switches twin reads; outputs are matched by their name.
+_NOT_EMPTY = ("net-file", "additional-files", "weight-files", "begin", "end", "step-length",
+              "route-steps", "seed", "random", "mesosim", "version")  # fmt: skip
+
+
+def _refused_empty(key: str) -> bool:
+    return key in _NOT_EMPTY or key.endswith("-output")
 
 
 #: Options that make SUMO write a file (beside the user's files) and quit without simulating.
@@ -390,7 +460,7 @@ def read_sumocfg(path: Path, own_net: bool = True) -> SumoConfigFile:
             root = ET.parse(fh).getroot()
     except (ET.ParseError, OSError, EOFError) as exc:
         raise UserError(f"{path}: not valid XML ({exc})") from exc
-    options, written = sumocfg_options(root)
+    options, written = sumocfg_options(root, path)
 
     def value(name: str) -> str | None:
         return options.get(name) or None
@@ -422,7 +492,13 @@ def read_sumocfg(path: Path, own_net: bool = True) -> SumoConfigFile:
                 "client instead of simulating; remove it (twin drives SUMO itself)"
             )
     for name in _PRINT_AND_QUIT:
-        if options.get(name, "false").strip().lower() not in ("false", "0", "no", "off", ""):
+        said = sumo_bool(options.get(name))
+        if said is None and name == "version":
+            raise UserError(
+                f"{path}: <{written[name]} value={options[name]!r}> is no boolean SUMO reads; "
+                "give true or false"
+            )
+        if said is not False:  # (help takes a topic too)
             raise UserError(
                 f"{path}: <{written[name]} value={options[name]!r}> makes SUMO print its {name} "
                 "and quit instead of simulating; remove it"
@@ -445,8 +521,8 @@ def read_sumocfg(path: Path, own_net: bool = True) -> SumoConfigFile:
         t = parse_time(text)
         if text is not None and t is None:
             raise UserError(
-                f"{path}: <{written[key]} value={text!r}> is not a finite time; give seconds "
-                "(e.g. 3600) or a clock (1:00:00)"
+                f"{path}: <{written[key]} value={text!r}> is not a finite time SUMO reads; give "
+                "seconds (e.g. 3600) or a clock (1:00:00), with no spaces or underscores"
             )
         if key == "end" and t is not None and t < 0:  # SUMO's default -1: no end
             t = None
@@ -528,18 +604,22 @@ def _check_departure(path: Path, elem: ET.Element, key: str, start: float = 0.0)
         return None
     if text.strip() == "begin":
         return start
+    if text.strip() in _DEPART_WORDS:
+        return None
     t = parse_time(text)
-    try:
-        number = float(text)
-    except ValueError:
-        number = t
-    if number is not None and (t is None or t < 0):
-        what = "negative" if number < 0 else "not a finite number"
+    if t is None or t < 0:
+        what = "negative" if t is not None else "not a time SUMO reads"
         raise UserError(
             f"{path}: <{local_name(elem)} id={elem.get('id')!r} {key}={text!r}>: the time is {what}, "
-            "which SUMO refuses; give seconds from 0 (e.g. 3600) or a clock (1:00:00)"
+            "which SUMO refuses; give seconds from 0 (e.g. 3600) or a clock (1:00:00), with no "
+            "spaces after it"
         )
     return t
+
+
+#: SUMO's departures that are no time: at a person's or container's boarding, at once, split
+#: off another vehicle ("begin", the simulation's begin, is read as that time).
+_DEPART_WORDS = ("triggered", "containerTriggered", "now", "split")
 
 
 #: The key of :func:`departure_span`'s ``counts`` that counts departures at the simulation's
@@ -555,6 +635,8 @@ def departure_span(
     counts: dict[str, int] | None = None,
     start: float = 0.0,
     closed: list[float] | None = None,
+    in_order: Collection[Path] = (),
+    ignored: list[str] | None = None,
 ) -> tuple[float, float] | None:
     """First and last numeric departure of the demand (``depart`` of vehicles, trips and persons,
     ``begin`` .. ``end`` of flows, person and container flows, those of their ``<interval>`` or
@@ -563,16 +645,26 @@ def departure_span(
     ``counts``, when given, gets the number of departing elements of each tag, and of those
     departing at ``start`` (:data:`AT_BEGIN`); ``closed``, when given, the last departure
     that is not an open flow's. Files pulled in with ``<include href>`` count, as SUMO loads
-    them."""
+    them. Of the files ``in_order`` (route files SUMO reads step by step, ``--route-steps``), an
+    element departing before one listed above it is left out, as SUMO ignores it ("Route file
+    should be sorted by departure time"; one departing at "begin" departs when SUMO reads it, a
+    public transport vehicle, with a ``line``, sets no order for the next; a file with
+    ``<include>``s, which SUMO reads where they stand, is taken whole); ``ignored``, when given,
+    gets ``"<file>: '<id>'"`` of each."""
     first = last = None
     counts = {} if counts is None else counts
     read: list[Path] = []
+    ordered: set[Path] = set()  # files read in departure order
     for path in route_files:
-        for p in (Path(path), *included_files(Path(path))):
+        included = included_files(Path(path))
+        for p in (Path(path), *included):
             if p not in read and (p == Path(path) or p.is_file()):
                 read.append(p)
+        if Path(path) in in_order and not included:
+            ordered.add(Path(path))
     for path in read:
         intervals: list[tuple[float, float | None]] = []  # the <interval>s a flow lies in
+        latest = -math.inf if path in ordered else None  # the last departure SUMO took of it
         try:
             with open_xml(path) as fh:
                 for event, elem in ET.iterparse(fh, events=("start", "end")):
@@ -590,6 +682,15 @@ def departure_span(
                     flow = tag.endswith(("flow", "Flow"))  # flow, personFlow, ...
                     if flow and elem.get("begin") is None:  # SUMO: the interval's, else its own
                         t = intervals[-1][0] if intervals else start
+                    if latest is not None and t is not None:
+                        if (elem.get(key) or "").strip() == "begin":
+                            t = max(t, latest)  # departs as SUMO's reader reaches it
+                        elif t < latest:  # SUMO ignores it, with a warning
+                            if ignored is not None:
+                                ignored.append(f"{path}: {elem.get('id') or tag!r}")
+                            t = None
+                        elif elem.get("line") is None:  # (public transport sets no order)
+                            latest = t
                     if (
                         key
                         and t is not None
@@ -623,26 +724,42 @@ def _interval(path: Path, elem: ET.Element, start: float) -> tuple[float, float 
 
 
 def _flow_end(elem: ET.Element, begin: float, interval_end: float | None = None) -> float:
-    """When a flow's departures end: its ``end``, else after ``number`` departures at its
-    ``period``/``headway`` or ``vehsPerHour`` (``personsPerHour``, ``containersPerHour``,
-    ``perHour``) and no later than the end of its ``<interval>``, else that end; never
-    (``math.inf``) for an open flow, which SUMO (1.2x) runs as long as it runs."""
+    """When a flow's departures end: its ``end`` (the last of ``number`` spread over
+    ``begin``..``end`` without a period or rate), else its last of ``number`` departures: one at
+    ``begin`` and then one every ``period``/``headway`` or at ``vehsPerHour``
+    (``personsPerHour``, ``containersPerHour``, ``perHour``); when they are random
+    (``probability`` per second, ``period="exp(rate)"``), the time ``number`` of their gaps take
+    plus three standard deviations (rarely exceeded); spread over its
+    ``<interval>`` without a period (as SUMO 1.28 departs them), no later than its end, else
+    that end; never (``math.inf``) for an open flow, which SUMO (1.2x) runs as long as it
+    runs."""
     end = parse_time(elem.get("end"))
-    if end is not None:
-        return end
-    number = elem.get("number")
+    try:
+        number = None if elem.get("number") is None else float(elem.get("number"))
+    except ValueError:
+        number = None  # SUMO will say what is wrong with it
+    if number is not None and not math.isfinite(number):
+        number = None  # likewise
     step = parse_time(elem.get("period")) or parse_time(elem.get("headway"))
     for rate in ("vehsPerHour", "personsPerHour", "containersPerHour", "perHour"):
         per_hour = parse_time(elem.get(rate))
         if step is None and per_hour:
             step = 3600.0 / per_hour
-    if number is not None and step is not None:
-        try:
-            last = begin + float(number) * step
-        except ValueError:
-            pass  # SUMO will say what is wrong with it
-        else:
-            return last if interval_end is None else max(begin, min(last, interval_end))
+    random_period = _EXP_PERIOD.fullmatch(elem.get("period", "").strip())
+    per_second = parse_time(random_period[1] if random_period else elem.get("probability"))
+    spread_until = end if end is not None else interval_end  # without a period: spread there
+    spread = number is not None and number >= 1 and step is None and per_second is None
+    if spread and spread_until is not None:
+        return max(begin, begin + (number - 1) * (spread_until - begin) / number)
+    if end is not None:
+        return end
+    gaps = None if number is None else number - 1  # the first departs at begin
+    if step is None and per_second is not None and per_second > 0 and number is not None:
+        # the first departs after a gap too; the n-th at a mean of n gaps, sd sqrt(n) gaps
+        step, gaps = 1.0 / per_second, number + 3.0 * math.sqrt(max(number, 0.0))
+    if gaps is not None and step is not None:
+        last = begin + max(gaps, 0.0) * step
+        return last if interval_end is None else max(begin, min(last, interval_end))
     return math.inf if interval_end is None else max(begin, interval_end)
 
 
@@ -687,20 +804,22 @@ def include_cycle(path: Path) -> list[Path] | None:
         except (ET.ParseError, OSError, EOFError, UserError):
             return []
         found = [e.get("href") for e in root.iter() if local_name(e) == "include"]
-        return [Path(os.path.normpath((current.parent / h).absolute())) for h in found if h]
+        return [as_given(current.parent / h) for h in found if h]
 
-    done: set[Path] = set()  # files whose includes hold no cycle: each searched once
+    done: set[str] = set()  # files whose includes hold no cycle: each searched once
+    real = os.path.realpath  # a file's identity (names through links grow around a cycle)
 
     def walk(chain: list[Path]) -> list[Path] | None:
+        on_chain = {real(p) for p in chain}
         for child in dict.fromkeys(hrefs(chain[-1])):
-            if child in chain:
+            if real(child) in on_chain:
                 return [*chain, child]
-            if child not in done and len(chain) < 50 and (cycle := walk([*chain, child])):
+            if real(child) not in done and len(chain) < 50 and (cycle := walk([*chain, child])):
                 return cycle
-        done.add(chain[-1])
+        done.add(real(chain[-1]))
         return None
 
-    return walk([Path(os.path.normpath(Path(path).absolute()))])
+    return walk([as_given(Path(path))])
 
 
 def included_files(path: Path) -> list[Path]:
@@ -708,7 +827,7 @@ def included_files(path: Path) -> list[Path]:
     including file, as SUMO reads them), and theirs in turn; a file SUMO could not read or a
     cycle ends the search there (SUMO says what is wrong with it)."""
     found: list[Path] = []
-    todo, seen = [Path(path)], {Path(os.path.normpath(Path(path).absolute()))}
+    todo, seen = [Path(path)], {os.path.realpath(path)}  # by identity: a link's names grow
     while todo:
         current = todo.pop(0)
         try:
@@ -720,9 +839,9 @@ def included_files(path: Path) -> list[Path]:
         for href in hrefs:
             if not href:
                 continue
-            child = Path(os.path.normpath((current.parent / href).absolute()))
-            if child not in seen:
-                seen.add(child)
+            child = as_given(current.parent / href)
+            if os.path.realpath(child) not in seen:
+                seen.add(os.path.realpath(child))
                 found.append(child)
                 todo.append(child)
     return found

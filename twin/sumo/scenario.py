@@ -50,6 +50,7 @@ from twin.sumo.readers import (
     read_sumocfg,
     resolved,
     root_tag,
+    sumo_bool,
 )
 
 #: SUMO's step (s, its default --step-length): a twin step may not be shorter.
@@ -245,6 +246,9 @@ class _ScenarioFiles:
     built_span: tuple[float, float] | None = None
     state_time: float | None = None  # the time of the state the sumocfg loads: SUMO starts there
     at_begin: bool = False  # some of the demand departs at SUMO's begin, wherever that is
+    #: SUMO reads the route files step by step (``--route-steps`` > 0, its default 200 s),
+    #: ignoring what departs before a departure listed above it
+    in_order: bool = True
 
     @property
     def own_window(self) -> bool:
@@ -287,7 +291,13 @@ def _scenario_files(s: SumoSettings) -> _ScenarioFiles:
         return files
     if sumocfg_path is not None:
         cfg = read_sumocfg(sumocfg_path, own_net=not s.net)
-        if cfg.options.get("random", "false").strip().lower() in ("true", "1", "yes", "on"):
+        for key in ("random", "mesosim"):  # SUMO refuses another word before it starts
+            if sumo_bool(cfg.options.get(key)) is None:
+                raise UserError(
+                    f"{sumocfg_path}: <{key} value={cfg.options[key]!r}> is no boolean SUMO "
+                    "reads; give true or false"
+                )
+        if sumo_bool(cfg.options.get("random")):
             notice(
                 f"{sumocfg_path}: <random value={cfg.options['random']!r}> (a seed from the "
                 "clock) is overridden: twin seeds SUMO with --sumo-seed so that runs repeat"
@@ -298,8 +308,7 @@ def _scenario_files(s: SumoSettings) -> _ScenarioFiles:
                 "SUMO seed (--sumo-seed, [traffic].seed: one per run seed), so that runs repeat "
                 "by it"
             )
-        mesosim = cfg.options.get("mesosim", "false").strip().lower()
-        if not s.mesoscopic and mesosim in ("true", "1", "yes", "on", "x"):
+        if not s.mesoscopic and sumo_bool(cfg.options.get("mesosim")):
             s.mesoscopic = True  # SUMO runs it so: recorded, and its detectors refused
             notice(
                 f"{sumocfg_path}: <mesosim value={cfg.options['mesosim']!r}> runs SUMO's "
@@ -338,6 +347,7 @@ def _scenario_files(s: SumoSettings) -> _ScenarioFiles:
             },
             window=[cfg.begin, cfg.end],
             state_time=cfg.state_time,
+            in_order=(parse_time(cfg.options.get("route-steps", "200")) or 0.0) > 0,
         )
     elif s.osm:
         osm_path = Path(s.osm)
@@ -357,12 +367,23 @@ def _scenario_files(s: SumoSettings) -> _ScenarioFiles:
         # SUMO loads vehicles, flows and persons of additional files as demand too
         departing: dict[str, int] = {}
         closed: list[float] = []
+        ignored: list[str] = []
         files.span = departure_span(
             [*files.route_files, *files.additional_files],
             departing,
             start=files.window[0] or 0.0,
             closed=closed,
+            in_order=files.route_files if files.in_order else (),
+            ignored=ignored,
         )
+        if ignored:
+            they = (f"{ignored[0]} and {len(ignored) - 1} more depart before a departure listed "
+                    "above them, so SUMO ignores them" if len(ignored) > 1 else f"{ignored[0]} "
+                    "departs before a departure listed above it, so SUMO ignores it")  # fmt: skip
+            notice(
+                f"{they} (route files are read in departure order) and so does the window; "
+                "sort the file (SUMO's tools/route/sort_routes.py)"
+            )
         files.last_closed = closed[0] if closed else None
         files.at_begin = departing.pop(AT_BEGIN, 0) > 0
     if files.span is None and files.sumocfg is not None and not files.route_files:
@@ -516,6 +537,13 @@ def _time_window(
     if files.own_window:
         w0 = files.window[0] if files.window[0] is not None else files.span[0]
         w1 = files.window[1] if files.window[1] is not None else files.span[1]
+        demand_end = files.window[1] is None  # the window ends with the demand
+        if demand_end and w1 < w0 and files.state_time is None and not begin_given:
+            raise UserError(
+                f"{files.sumocfg or files.name}: every departure of its demand falls before "
+                f"its <begin> {clock_label(w0)} (the last at {clock_label(w1)}), and SUMO drops "
+                "them: every step would be empty; give an earlier <begin> (or a --begin)"
+            )  # (SUMO drops what departs before its begin)
         if math.isinf(w1):  # a flow without end: SUMO alone would run on and on
             w1 = max(
                 OPEN_DEMAND_END, files.last_closed or 0.0, (begin if begin_given else w0) + 3600.0

@@ -192,6 +192,14 @@ class SumoSession:
                 f"{reason.rstrip('.')}; {where.name} is given twice (by the sumocfg, --routes, "
                 "--additional or [traffic] keys), so SUMO loads it twice: drop the repeat"
             )
+        if "ends before its begin time" in reason and self.begin > 0:  # a flow without begin
+            from twin.clock import clock_label
+
+            reason = (
+                f"{reason.rstrip('.')}: twin starts SUMO at {clock_label(self.begin)} (the "
+                "window's start less the warm-up), where a flow without begin begins; give "
+                "the flow a begin, or a --begin"
+            )
         return UserError(f"{where}: SUMO refuses it{when}: {reason}")
 
     def start(self) -> SumoSession:

@@ -15,7 +15,6 @@ of every cell at every sample time) and the MFD samples, also after a SUMO failu
 
 from __future__ import annotations
 
-import os
 import time
 from collections.abc import Generator, Sequence
 from dataclasses import dataclass, field
@@ -32,7 +31,13 @@ from twin.mfd import MFD, MFDImportance, density_from_occupancy
 from twin.sumo.cells import CellGeometry
 from twin.sumo.detectors import DETECTOR_COLUMNS, DetectorPlan
 from twin.sumo.incidents import configured_schedule
-from twin.sumo.readers import file_list, included_files, naming_the_sumocfg, read_sumocfg
+from twin.sumo.readers import (
+    as_given,
+    file_list,
+    included_files,
+    naming_the_sumocfg,
+    read_sumocfg,
+)
 from twin.sumo.session import SumoRunError, SumoSession, gridlock_defaults
 from twin.timing import (
     DETECTOR_READS,
@@ -490,7 +495,7 @@ class SumoTraffic(TrafficSource):
                 for p in file_list(options.get(name), Path(s.sumocfg).parent, Path(s.sumocfg)):
                     if p.is_file():
                         files.append((name, p))
-        return [(role, Path(os.path.abspath(path))) for role, path in files]
+        return [(role, as_given(path)) for role, path in files]  # `..` after a link: its target's
 
     def input_hashes(self) -> list[dict[str, str]]:
         """``{"role", "path", "sha256"}`` of every file SUMO loads (hashed once per file and

@@ -126,7 +126,7 @@ def _sumocfg_options_digest(scenario) -> dict[str, str]:
     """``{"<sumocfg>#options": sha256}`` of the options a scenario's sumocfg sets, read with its
     variables substituted, and of the files they name (``~`` expanded), or nothing (no
     sumocfg, or one the cell's checks refuse)."""
-    from twin.sumo.readers import read_sumocfg
+    from twin.sumo.readers import as_given, read_sumocfg
     from twin.sumo.scenario import sumo_settings
 
     settings = sumo_settings(scenario)
@@ -136,9 +136,9 @@ def _sumocfg_options_digest(scenario) -> dict[str, str]:
         sumocfg = read_sumocfg(Path(settings.sumocfg), own_net=settings.net is None)
     except (UserError, OSError):
         return {}
-    files = [os.path.abspath(p) for p in sumocfg.files()]
+    files = [str(as_given(p)) for p in sumocfg.files()]  # where SUMO finds them
     text = json.dumps([sumocfg.options, files], sort_keys=True).encode()
-    return {f"{os.path.abspath(settings.sumocfg)}#options": hashlib.sha256(text).hexdigest()}
+    return {f"{as_given(Path(settings.sumocfg))}#options": hashlib.sha256(text).hexdigest()}
 
 
 def scenario_config(path: Path, overrides: dict[str, Any], labels: dict[str, str] | None = None):

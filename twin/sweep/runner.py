@@ -164,6 +164,7 @@ def check_cells(cells: list[dict[str, Any]], sweep_file: Path | None = None) -> 
     swarm that plans on a history reads it), an option the sweep file's own
     ``[swarm_options]`` gives refused naming ``sweep_file``.
     """
+    from twin.experiment import check_swarm_outages
     from twin.swarms import base_name
 
     seen = set()
@@ -176,13 +177,13 @@ def check_cells(cells: list[dict[str, Any]], sweep_file: Path | None = None) -> 
             config = scenario_config(Path(cell["config"]), cell["overrides"], cell.get("labels"))
             if config.traffic.kind == "sumo" and cell.get("tape") is None:
                 prepare_sumo(config)
-                live_settings(config, int(cell["seed"]))
+                horizon = live_settings(config, int(cell["seed"]))["horizon"]
             else:
-                check_cell_memory(config, cell)
+                horizon = check_cell_memory(config, cell)
             for name in cell["swarms"]:  # a history read now, not after the cell's SUMO ran
                 options = cell.get("swarm_options", {}).get(name, {})
                 try:  # the sweep's options on the scenario's, as the cell runs
-                    config.make_swarm(name, **options)
+                    policy = config.make_swarm(name, **options)
                 except UserError as exc:
                     text = str(exc)
                     lead = (f"{base_name(name)}: ", "[swarm_options.")
@@ -193,6 +194,10 @@ def check_cells(cells: list[dict[str, Any]], sweep_file: Path | None = None) -> 
                             f"{base_name(name)}: "
                         )
                     raise UserError(f"{sweep_file}: {text}") from None
+                if horizon is not None:
+                    check_swarm_outages(
+                        config, {name: policy}, horizon, {name: options}, sweep_file
+                    )
         except UserError as exc:
             if sweep_file is not None and str(exc).startswith(f"{sweep_file}: [swarm_"):
                 raise
@@ -205,15 +210,18 @@ def check_cells(cells: list[dict[str, Any]], sweep_file: Path | None = None) -> 
             ) from None
 
 
-def check_cell_memory(config, cell: dict[str, Any]) -> None:
+def check_cell_memory(config, cell: dict[str, Any]) -> int | None:
     """The memory estimate of a cell whose grid is known before it runs, against the limit its
-    run will have (the sweep's ``--max-memory-gb``)."""
+    run will have (the sweep's ``--max-memory-gb``); the cell's horizon (``None`` for a broken
+    tape, whose reader says why)."""
     from twin.experiment import Experiment, check_memory, planned_shape
 
     tape = Path(cell["tape"]) if cell.get("tape") else None
     experiment = Experiment(config, swarms=cell["swarms"], seeds=[int(cell["seed"])], tape=tape,
                             max_memory_gb=cell.get("max_memory_gb"))  # fmt: skip
-    check_memory(experiment, *planned_shape(experiment))
+    shape, horizon = planned_shape(experiment)
+    check_memory(experiment, shape, horizon)
+    return horizon
 
 
 def live_settings(config, seed: int) -> dict[str, Any]:

@@ -141,7 +141,8 @@ class PretrainConfig(SourcedConfig):
         le=MAX_SEED,
     )
     out: str = _help(
-        "folder for state.pt, qnet.pt, train_log.csv, snapshots/",
+        "folder for state.pt, qnet.pt, train_log.csv, snapshots/; relative to the folder twin "
+        "runs in (as --out), not to this file",
         default="runs/pretrain",
         min_length=1,
     )

@@ -321,29 +321,31 @@ def train_row(task: dict[str, Any]) -> dict[str, Any]:
     limit_threads()
     cfg = PretrainConfig.from_data(task["where"], task["pretrain"])
     out = Path(cfg.out)
-    if not provenance_matches(out, cfg):
-        if (out / "provenance.json").is_file():  # finished on other settings or files
+    why = provenance_mismatch(out, cfg)
+    if why is not None:
+        if (out / "provenance.json").is_file():  # finished, but not as this row asks now
             from twin.notices import notify
 
-            clear_row_folder(out)  # its checkpoint resumes nothing
-            notify(f"twin: notice: row {out.name}: its settings, tapes, start or scenario "
-                   "changed since it was trained; training it again")  # fmt: skip
+            clear_row_folder(out, why)  # its checkpoint resumes nothing
+            notify(f"twin: notice: row {out.name}: {why}; training it again")
         pretrain(cfg, progress=False, max_memory_gb=task.get("max_memory_gb"))
     return json.loads(read_record(out / "provenance.json"))
 
 
-def clear_row_folder(out: Path) -> None:
-    """Remove what pretraining wrote into a row's folder, to train it again; a file it did not
-    write (the user's) is refused in one line, and nothing is removed."""
+def clear_row_folder(
+    out: Path, why: str = "its settings, tapes, start or scenario changed"
+) -> None:
+    """Remove what pretraining wrote into a row's folder, to train it again (``why``: its
+    :func:`provenance_mismatch`); a file it did not write (the user's) is refused in one line,
+    and nothing is removed."""
     from twin.training.pretrain import written_by_pretraining
 
     entries = sorted(out.iterdir())
     foreign = [e.name for e in entries if not written_by_pretraining(e)]
     if foreign:
         raise UserError(
-            f"row {out.name}: must be trained again (its settings, tapes, start or scenario "
-            f"changed), but {out} holds {foreign[0]!r}, which twin did not write; move it out "
-            "of the folder and run again"
+            f"row {out.name}: must be trained again ({why}), but {out} holds {foreign[0]!r}, "
+            "which twin did not write; move it out of the folder and run again"
         )
     for entry in entries:
         if entry.is_dir() and not entry.is_symlink():
@@ -352,38 +354,42 @@ def clear_row_folder(out: Path) -> None:
             entry.unlink()
 
 
-def provenance_matches(out: Path, cfg) -> bool:
-    """Whether ``out`` holds a finished model whose provenance records ``cfg``'s settings."""
+def provenance_mismatch(out: Path, cfg) -> str | None:
+    """None when ``out`` holds a finished model whose provenance records ``cfg``'s settings,
+    else why not (said when a finished row is trained again)."""
     from twin.files import file_sha256
 
     path, model = out / "provenance.json", out / "qnet.pt"
-    if not (path.is_file() and model.is_file()):
-        return False
+    if not path.is_file():
+        return "not trained"
+    if not model.is_file():
+        return "its model qnet.pt is missing"
     try:
         record = json.loads(read_record(path))
     except (OSError, ValueError):
-        return False
-    if isinstance(record, dict) and isinstance(record.get("config"), dict):
+        return "its provenance.json cannot be read"
+    if not isinstance(record, dict):
+        return "its provenance.json is not a record of its training"
+    if isinstance(record.get("config"), dict):
         recorded = record["config"].get("out")  # <transfer>/rows/<row> when it was trained
         if isinstance(recorded, str):  # a transfer folder moved since: its own paths moved
             record = rebased(record, Path(recorded).parent.parent, Path(out).parent.parent)
-    if not (
-        isinstance(record, dict)
-        and record.get("config") == json.loads(json.dumps(cfg.training_dict(), default=str))
-        and record.get("qnet_sha256") == file_sha256(model)
-    ):
-        return False
+    if record.get("config") != json.loads(json.dumps(cfg.training_dict(), default=str)):
+        return "its settings changed since it was trained"
+    if record.get("qnet_sha256") != file_sha256(model):
+        return "its model qnet.pt is not the one it trained (changed or damaged)"
     recipe = record.get("recipe") if isinstance(record.get("recipe"), dict) else {}
     try:  # the files it learnt from are still those: tapes, its start, its scenario
         init = recipe.get("init") or {}
-        return (
+        same = (
             recipe.get("tapes") == {t: file_sha256(t) for t in cfg.tapes}
             and (init.get("sha256") if cfg.init else None)
             == (file_sha256(cfg.init) if cfg.init else None)
             and (recipe.get("scenario") or {}).get("sha256") == file_sha256(cfg.scenario)
         )
     except (OSError, AttributeError):
-        return False
+        same = False
+    return None if same else "its tapes, start or scenario changed since it was trained"
 
 
 def loaded_provenance(row, out: Path) -> dict[str, Any]:
