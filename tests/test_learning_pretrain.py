@@ -383,6 +383,14 @@ def test_recipes_collect_on_their_traffic_and_record_curve_and_provenance(tmp_pa
     assert {int(r["seed"]) for r in rows} == {100, 101}
     record = json.loads((tmp_path / "tapes/provenance.json").read_text())
     assert record["recipe"]["traffic"] == "tapes" and len(record["recipe"]["tapes"]) == 2
+    # the episodes' grid and steps are the tapes', said (only the unused map's were: probe 27e)
+    episodes = record["recipe"]["episodes"]
+    assert episodes["from"] == "tapes" and episodes["tapes"] == {
+        str(tape_a): {"grid": [6, 6], "horizon": 30},
+        str(tape_b): {"grid": [6, 6], "horizon": 25},
+    }
+    paper_record = json.loads((tmp_path / "paper/provenance.json").read_text())
+    assert paper_record["recipe"]["episodes"]["from"] == "scenario"
     assert record["recipe"]["init"]["path"].endswith("paper/qnet.pt")
     assert record["updates"] == 40 * 2 and len(record["curve"]["points"]) == 6
 

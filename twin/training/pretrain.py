@@ -995,6 +995,19 @@ def checkpoint_meta(cfg: PretrainConfig, epoch: int) -> dict[str, Any]:
                           history=cfg.history_record())  # fmt: skip
 
 
+def _tape_shape(path: str | Path) -> dict[str, Any] | None:
+    """A tape's grid and steps, from its footer (None when it cannot be read)."""
+    import json
+
+    import pyarrow.parquet as pq
+
+    try:
+        meta = json.loads(pq.read_schema(path).metadata[b"twin_tape"])
+        return {"grid": [int(meta["nx"]), int(meta["ny"])], "horizon": int(meta["horizon"])}
+    except Exception:  # it trained: a footer read fails only if the file changed since
+        return None
+
+
 def write_provenance(cfg: PretrainConfig, out: Path, meta: dict[str, Any]) -> Path:
     """``provenance.json`` beside ``qnet.pt``: the command, the recipe, the seeds, the schedule,
     the wall time, the inputs' hashes and the learning curve (if measured)."""
@@ -1026,6 +1039,11 @@ def write_provenance(cfg: PretrainConfig, out: Path, meta: dict[str, Any]) -> Pa
                 "sha256": file_sha256(cfg.scenario),
                 "overrides": cfg.scenario_overrides,
             },
+            # what the episodes ran on: each tape's own grid and steps (the scenario's grid and
+            # schedule.horizon then apply to the curve's scenario only), else the scenario's
+            "episodes": {"from": "tapes", "tapes": {t: _tape_shape(t) for t in cfg.tapes}}
+            if cfg.traffic == "tapes"
+            else {"from": "scenario", "horizon": training.get("horizon")},
             "state": cfg.variant.summary,
             **({"history": cfg.history_record()} if cfg.variant.needs_belief else {}),
             "collector": cfg.collector,
