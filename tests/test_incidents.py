@@ -621,8 +621,20 @@ def test_an_incident_on_an_obstacle_cell_is_said(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "[traffic].incidents[0].cell = [2, 2] is an obstacle of the grid" in err, err
     (tmp_path / "free").mkdir()
-    sumo_source(load_config(_small(tmp_path / "free", _incident(where="cell = [2, 2]")))).close()
+    free = sumo_source(load_config(_small(tmp_path / "free", _incident(where="cell = [2, 2]"))))
+    geometry, net = free.geometry, free.scenario.net_file
+    free.close()
     assert "is an obstacle" not in capsys.readouterr().err
+    # one given by its edge, in that cell: said too (it was not: probe 27e's m04)
+    from twin.sumo.incidents import _edge_cell, net_edges
+
+    edge = next(e for e in sorted(net_edges(net)) if _edge_cell(net, e, geometry) == (2, 2))
+    (tmp_path / "by-edge").mkdir()
+    cfg = _small(tmp_path / "by-edge", _incident(where=f'edge = "{edge}"'))
+    cfg.write_text(cfg.read_text().replace("[swarm]", "[grid]\nobstacles = [[2, 2]]\n[swarm]"))
+    sumo_source(load_config(cfg)).close()
+    err = capsys.readouterr().err
+    assert f"[traffic].incidents[0].edge = {edge!r} lies in cell [2, 2], an obstacle" in err, err
 
 
 def test_route_errors_are_skipped_with_closures_and_twins_own_demand_only(tmp_path):

@@ -747,3 +747,20 @@ def test_tapes_given_to_a_recipe_that_trains_on_none_are_refused(tmp_path, traff
                                         'tape; set traffic = "tapes"') as info:  # fmt: skip
         load_config(path)
     assert "\n" not in str(info.value)
+
+
+def test_a_tape_changed_under_a_run_to_resume_is_named_with_a_fix_that_works(tmp_path):
+    """A tape replaced at its path, then the run resumed: the refusal named neither the tape
+    nor a fix that works ("delete it", the state.pt, led to a second refusal and lost the
+    checkpoint; probe 27e's m02)."""
+    from helpers import random_tape
+
+    tape = tmp_path / "t.parquet"
+    random_tape(seed=1, nx=6, ny=6, horizon=20).write(tape)
+    pretrain(load_config(_config(tmp_path, out="t"), epochs=20, tapes=[str(tape)]), progress=False)
+    random_tape(seed=2, nx=6, ny=6, horizon=20).write(tape)  # another day, same name
+    with pytest.raises(UserError) as info:
+        pretrain(load_config(_config(tmp_path, out="t"), tapes=[str(tape)]), progress=False)
+    said = str(info.value)
+    assert "\n" not in said and f"its traffic ({tape} or its scenario) changed" in said, said
+    assert f"delete {tmp_path / 't'} or set another `out`" in said, said

@@ -582,8 +582,10 @@ class GuiDrawer:
             key = f"incident_{n}"
             applied, lifted = rec.get("applied_s"), rec.get("lifted_s")
             active = applied is not None and applied <= now and (lifted is None or lifted > now)
-            if active and key not in self._incidents and "i" in rec and "j" in rec:
-                x, y = g.cell_center(rec["i"], rec["j"])
+            cell = rec.get("cell")  # [-1, -1]: an edge the grid leaves out
+            placed = isinstance(cell, (list, tuple)) and len(cell) == 2 and min(cell) >= 0
+            if active and key not in self._incidents and placed:
+                x, y = g.cell_center(cell[0], cell[1])
                 size = 0.25 * g.cell_m
                 traci.poi.add(key, float(x), float(y), INCIDENT_COLOUR, layer=120, width=size,
                               height=size)  # fmt: skip

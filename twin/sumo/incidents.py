@@ -256,6 +256,14 @@ def check_incidents(
                     f"({', '.join(map(str, usable))})"
                 )
             place = f"edge {inc.edge!r}"
+            seen_at = _edge_cell(scenario.net_file, inc.edge, geometry)  # as placed in the run
+            if obstacles is not None and seen_at is not None and obstacles[seen_at]:
+                unseen.append(
+                    f"{field}.edge = {inc.edge!r} lies in cell [{seen_at[0]}, {seen_at[1]}], an "
+                    "obstacle of the grid ([grid].obstacles, or less road than "
+                    "[traffic].min_lane_km): the incident holds up traffic, but no drone can "
+                    "fly there to see it"
+                )
         places.append((place, begin, end))
     notices = unseen
     for (a, (pa, ba, ea)), (b, (pb, bb, eb)) in itertools.combinations(enumerate(places), 2):
@@ -461,6 +469,16 @@ def _along(shape, every_m: float) -> np.ndarray:
             t = np.arange(1, n + 1)[:, None] / (n + 1)
             out.append(a + t * (b - a))
     return np.vstack(out)
+
+
+def _edge_cell(net_file, edge: str, geometry) -> tuple[int, int] | None:
+    """The cell of an edge's incident: that of its lane 0's middle (as
+    :meth:`IncidentSchedule._edge_cells` places it); None off the grid."""
+    found = edge_lanes(net_file, {edge}).get(edge)
+    if found is None or not len(found[1]):
+        return None
+    row, col, inside = geometry.cell_index(np.asarray([_midpoint(found[1])]))
+    return (int(row[0]), int(col[0])) if inside[0] else None
 
 
 def _midpoint(shape) -> tuple[float, float]:

@@ -1324,10 +1324,17 @@ def _resume(path, cfg, digest, net, target, optimizer, batch_rng, buffer=None):
         try:
             restore_buffer(buffer, blob["buffer"]["data"])
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
-            raise UserError(f"{path} is incomplete ({type(exc).__name__}); delete it") from None
+            raise UserError(
+                f"{path} is incomplete ({type(exc).__name__}); delete {path.parent} or set "
+                "another `out` to start afresh"
+            ) from None
         digest = buffer_digest(buffer)
     if blob["buffer"].get("digest") != digest:
-        raise UserError(f"{path}: the replay data differ from the saved run's; delete it")
+        tapes = f" ({', '.join(map(str, cfg.tapes))} or its scenario)" if cfg.tapes else ""
+        raise UserError(
+            f"{path}: the replay data differ from the saved run's: its traffic{tapes} changed "
+            f"since; delete {path.parent} or set another `out` to start afresh"
+        )
     try:
         net.load_state_dict(blob["weights"])
         target.load_state_dict(blob["target"])
