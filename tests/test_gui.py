@@ -421,27 +421,29 @@ def test_replays_gui_flag_says_it_is_always_on(capsys):
 
 def test_an_active_incident_is_drawn_at_its_cell(monkeypatch):
     """The incidents' records give their ``cell``: the drawer looked for ``i`` and ``j``, so no
-    incident was ever drawn (the guide promises them red; probe 27e's m03). Drawn while
-    active, at its cell's centre, removed when lifted; one off the grid is not drawn."""
+    incident was ever drawn (the guide promises them red; probe 27e's m03). Drawn at its
+    cell's centre on the steps monitoring counts it, removed after; one off the grid is not
+    drawn."""
     from types import SimpleNamespace
 
     from twin.sumo.gui import GuiDrawer, GuiSettings
 
-    added, removed, now = {}, [], [50.0]
+    added, removed = {}, []
     fake = SimpleNamespace(
-        simulation=SimpleNamespace(getTime=lambda: now[0]),
         poi=SimpleNamespace(add=lambda key, x, y, *a, **k: added.update({key: (x, y)}),
                             remove=removed.append),
     )  # fmt: skip
     drawer = GuiDrawer(GuiSettings(), ["random"])
     monkeypatch.setattr(drawer, "_traci", lambda: fake)
-    records = [{"cell": [1, 2], "applied_s": 10.0, "lifted_s": 100.0},
-               {"cell": [-1, -1], "applied_s": 10.0, "lifted_s": None}]  # fmt: skip
+    records = [{"cell": [1, 2], "applied_s": 10.0, "onset_step": 2, "end_step": 3},
+               {"cell": [-1, -1], "applied_s": 10.0, "onset_step": 2, "end_step": 9}]  # fmt: skip
     geometry = SimpleNamespace(cell_m=200.0, cell_center=lambda i, j: (j * 200.0, -i * 200.0))
     drawer.source = SimpleNamespace(incidents_info=lambda: records, geometry=geometry)
     drawer._incidents = set()  # (as its setup in sumo-gui leaves it)
-    drawer._mark_incidents()
-    assert added == {"incident_0": (400.0, -200.0)}
-    now[0] = 150.0
-    drawer._mark_incidents()
+    drawer._mark_incidents(1)
+    assert added == {}  # before the steps monitoring counts it
+    for k in (2, 3):
+        drawer._mark_incidents(k)
+        assert added == {"incident_0": (400.0, -200.0)} and removed == []
+    drawer._mark_incidents(4)
     assert removed == ["incident_0"]

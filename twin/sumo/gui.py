@@ -534,7 +534,7 @@ class GuiDrawer:
                 else:
                     traci.poi.setPosition(pid, float(x), float(y))
                     traci.polygon.setShape(f"fov_{pid}", fov)
-        self._mark_incidents()
+        self._mark_incidents(k)
         if self._frames_dir is not None:
             frame = Path(self._frames_dir) / f"frame-{len(self.frames):05d}.png"
             traci.gui.screenshot(traci.gui.DEFAULT_VIEW, str(frame))
@@ -572,16 +572,18 @@ class GuiDrawer:
                 traci.polygon.setColor(key, colour)
                 self._fills[key] = colour
 
-    def _mark_incidents(self) -> None:
+    def _mark_incidents(self, k: int) -> None:
+        """Each incident applied in the simulation, red at its cell on the steps monitoring
+        counts it (``onset_step`` .. ``end_step``, as incidents.json and the report say)."""
         info = getattr(self.source, "incidents_info", None)
         if info is None:
             return
         traci, g = self._traci(), self.source.geometry
-        now = float(traci.simulation.getTime())
         for n, rec in enumerate(info()):
             key = f"incident_{n}"
-            applied, lifted = rec.get("applied_s"), rec.get("lifted_s")
-            active = applied is not None and applied <= now and (lifted is None or lifted > now)
+            steps = rec.get("onset_step"), rec.get("end_step")
+            counted = None not in steps and steps[0] <= k <= steps[1]
+            active = rec.get("applied_s") is not None and counted
             cell = rec.get("cell")  # [-1, -1]: an edge the grid leaves out
             placed = isinstance(cell, (list, tuple)) and len(cell) == 2 and min(cell) >= 0
             if active and key not in self._incidents and placed:
