@@ -886,6 +886,17 @@ SWARM_OPTION_CASES = {
 }
 
 
+def test_an_open_topped_option_refuses_infinity_from_python():
+    """A config refuses inf before the swarm sees it; from Python an open top took it (tours'
+    ``bonus`` and ``shift``: the final reread of the option checks)."""
+    from twin.errors import UserError
+    from twin.swarms import make_policy
+
+    for key in ("bonus", "shift", "stretch"):
+        with pytest.raises(UserError, match=f"tours: {key} = inf must be a finite number"):
+            make_policy("tours", **{key: float("inf")})
+
+
 @pytest.mark.parametrize("case", list(SWARM_OPTION_CASES))
 def test_a_bad_swarm_option_is_one_line_naming_the_table(tmp_path, capsys, case):
     """A swarm's options the swarm refuses: one line naming the config and its
