@@ -886,6 +886,17 @@ SWARM_OPTION_CASES = {
 }
 
 
+def test_an_open_topped_option_refuses_infinity_from_python():
+    """A config refuses inf before the swarm sees it; from Python an open top took it (tours'
+    ``bonus`` and ``shift``: the final reread of the option checks)."""
+    from twin.errors import UserError
+    from twin.swarms import make_policy
+
+    for key in ("bonus", "shift", "stretch"):
+        with pytest.raises(UserError, match=f"tours: {key} = inf must be a finite number"):
+            make_policy("tours", **{key: float("inf")})
+
+
 @pytest.mark.parametrize("case", list(SWARM_OPTION_CASES))
 def test_a_bad_swarm_option_is_one_line_naming_the_table(tmp_path, capsys, case):
     """A swarm's options the swarm refuses: one line naming the config and its
@@ -947,3 +958,18 @@ def test_a_bad_swarm_option_names_the_file_that_gives_it(tmp_path):
     with pytest.raises(UserError) as info:
         load_config(cfg).make_swarm("nowcast-gain")
     assert not str(info.value).startswith(str(cfg)), info.value
+
+
+def test_bad_outages_given_beside_the_configs_options_are_not_blamed_on_it(tmp_path):
+    """``outages`` a sweep or flag gives, refused by the swarm, were named as the config's
+    whenever the config gave the swarm any other option: their message had no ``<swarm>: key
+    =`` for the blame to read (the final reread)."""
+    from twin.config import load_config
+    from twin.errors import UserError
+
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(SMALL.format(horizon=6) + "[swarm_options.rl-decentralized]\neps = 0.2\n")
+    with pytest.raises(UserError) as info:
+        load_config(cfg).make_swarm("rl-decentralized", outages=[[5, 3]])
+    said = str(info.value)
+    assert str(cfg) not in said and "outage window [5, 3] needs 0 <= start < stop" in said, said

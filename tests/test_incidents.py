@@ -626,9 +626,10 @@ def test_an_incident_on_an_obstacle_cell_is_said(tmp_path, capsys):
     free.close()
     assert "is an obstacle" not in capsys.readouterr().err
     # one given by its edge, in that cell: said too (it was not: probe 27e's m04)
-    from twin.sumo.incidents import _edge_cell, net_edges
+    from twin.sumo.incidents import edge_lanes, middle_cell, net_edges
 
-    edge = next(e for e in sorted(net_edges(net)) if _edge_cell(net, e, geometry) == (2, 2))
+    shapes = edge_lanes(net, set(net_edges(net)))
+    edge = next(e for e in sorted(shapes) if middle_cell(shapes[e][1], geometry) == (2, 2))
     (tmp_path / "by-edge").mkdir()
     cfg = _small(tmp_path / "by-edge", _incident(where=f'edge = "{edge}"'))
     cfg.write_text(cfg.read_text().replace("[swarm]", "[grid]\nobstacles = [[2, 2]]\n[swarm]"))

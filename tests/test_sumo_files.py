@@ -2009,3 +2009,24 @@ def test_parking_under_meso_is_said_to_count(tmp_path, capsys):
     )
     _say_meso_parking([plain, areas])
     assert "parks vehicles" not in capsys.readouterr().err
+
+
+def test_with_a_begin_given_what_sumo_ignores_stays_out_of_the_demand(scenario, tmp_path):
+    """A begin given and demand departing at "begin" make twin read the demand again from
+    twin's start: that second reading counted the flow SUMO ignores in an unsorted route file
+    (the final reread of the departure-order rule)."""
+    from twin.config import load_config
+    from twin.sumo.scenario import sumo_source
+
+    routes = tmp_path / "unsorted.rou.xml"
+    routes.write_text(
+        '<routes><trip id="b" depart="begin" from="A0A1" to="B1B2"/>'
+        '<trip id="v" depart="3600" from="A0A1" to="B1B2"/>'
+        '<flow id="f" begin="50" end="9000" period="60" from="A0A1" to="B1B2"/></routes>'
+    )
+    source = sumo_source(load_config(scenario / "config.toml"), routes=[routes], begin="00:50",
+                         net=scenario / "scenario" / "small.net.xml", horizon=2)  # fmt: skip
+    try:
+        assert source.scenario.extra["departures"][1] == 3600.0
+    finally:
+        source.close()

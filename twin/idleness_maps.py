@@ -18,18 +18,24 @@ from twin.grid import Grid
 from twin.scores import ScoreParams, update_idleness
 
 
-def parse_outages(outages: Sequence[Sequence[int]] | None) -> list[tuple[int, int]]:
-    """Step windows ``[start, stop)`` without coordinator, checked."""
+def parse_outages(
+    outages: Sequence[Sequence[int]] | None, swarm: str | None = None
+) -> list[tuple[int, int]]:
+    """Step windows ``[start, stop)`` without coordinator, checked; a swarm's option
+    (``swarm``) is refused as its options are (``<swarm>: outages = ...``)."""
+    lead = "" if swarm is None else f"{swarm}: outages = {outages!r}: "
     windows = []
     for w in () if outages is None else outages:
         pair = list(w) if isinstance(w, list | tuple | np.ndarray) else []
         if len(pair) != 2 or not all(
             isinstance(x, int | np.integer) and not isinstance(x, bool) for x in pair
         ):  # "3" and 1.5 are no step numbers
-            raise UserError(f"outage window {w!r} must be a pair [start, stop] of step numbers")
+            raise UserError(
+                f"{lead}outage window {w!r} must be a pair [start, stop] of step numbers"
+            )
         start, stop = (int(x) for x in pair)
         if not 0 <= start < stop:
-            raise UserError(f"outage window {w!r} needs 0 <= start < stop")
+            raise UserError(f"{lead}outage window {w!r} needs 0 <= start < stop")
         windows.append((start, stop))
     return windows
 

@@ -107,10 +107,12 @@ def number_option(
 ) -> float:
     """A swarm option that is a number in ``[low, high]`` (``(low, high]`` if ``low_open``;
     no top when ``high`` is infinite), or one line naming the swarm, key and value (``true``
-    and ``"0.5"`` are not numbers; NaN lies nowhere)."""
+    and ``"0.5"`` are not numbers; NaN lies nowhere, infinity neither)."""
     hint = "" if example is None else f"; e.g. {example}"
     if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
         raise UserError(f"{swarm}: {key} = {value!r} must be a number{hint}")
+    if np.isinf(value):  # (an open top takes any finite number, not infinity)
+        raise UserError(f"{swarm}: {key} = {value} must be a finite number{hint}")
     if not (low < value <= high if low_open else low <= value <= high):
         if high == float("inf"):
             span = f"be {'>' if low_open else '>='} {low:g}"

@@ -140,7 +140,7 @@ class RLPolicy(Policy):
             )
         self.decentralized = decentralized
         self.eps = eps
-        self.outages = parse_outages(outages)
+        self.outages = parse_outages(outages, self.name)
         self.history = None
         self.sighting = EXACT_SIGHTINGS
         if self.variant.needs_belief:

@@ -306,7 +306,7 @@ def build_sections(
             "Trajectories over unvisited importance (paper's Fig. 2)",
             _save(fig, out / "trajectories.png"),
             f"Cell colour I^k·T^k at k = {peak}, the step with the highest mean importance from "
-            f"k = {min(figures.TRAIL_STEPS, rf.horizon)} on (the lines show up to "
+            f"k = {figures.first_peak_step(rf, figures.TRAIL_STEPS)} on (the lines show up to "
             f"{figures.TRAIL_STEPS} steps before it): bright cells are important and long "
             "unvisited. " + idleness_check(rf),
         )

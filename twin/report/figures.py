@@ -198,10 +198,15 @@ def figure_snapshots(rf: RunFiles, trail: int = 10) -> Figure:
     return fig
 
 
+def first_peak_step(rf: RunFiles, after: int) -> int:
+    """The first step :func:`peak_step` looks at: ``after``, or the last of a shorter run."""
+    return min(after, rf.horizon)
+
+
 def peak_step(rf: RunFiles, after: int) -> int:
     """The step ``k >= after`` at which the mean importance over free cells is highest."""
     mean = rf.importance[:, ~rf.obstacles].mean(axis=1)
-    start = min(after, rf.horizon)
+    start = first_peak_step(rf, after)
     return start + int(np.argmax(mean[start:]))
 
 

@@ -185,6 +185,8 @@ def check_incidents(
     of the road that is an obstacle of the grid (``obstacles``: no drone may see it)."""
     prefix = f"{where}: " if where else ""
     edges = net_edges(scenario.net_file) if any(i.edge is not None for i in incidents) else {}
+    named = {i.edge for i in incidents if i.edge is not None}  # their lane 0, read once
+    shapes = edge_lanes(scenario.net_file, named) if named and obstacles is not None else {}
     by_cell = cell_roads(scenario.net_file, geometry) if any(i.cell for i in incidents) else {}
     lo, hi = scenario.sim_begin, scenario.sim_end
     places, unseen = [], []
@@ -256,8 +258,9 @@ def check_incidents(
                     f"({', '.join(map(str, usable))})"
                 )
             place = f"edge {inc.edge!r}"
-            seen_at = _edge_cell(scenario.net_file, inc.edge, geometry)  # as placed in the run
-            if obstacles is not None and seen_at is not None and obstacles[seen_at]:
+            shape = shapes.get(inc.edge, (0, ()))[1]
+            seen_at = middle_cell(shape, geometry) if len(shape) else (-1, -1)  # as the run does
+            if obstacles is not None and min(seen_at) >= 0 and obstacles[seen_at]:
                 unseen.append(
                     f"{field}.edge = {inc.edge!r} lies in cell [{seen_at[0]}, {seen_at[1]}], an "
                     "obstacle of the grid ([grid].obstacles, or less road than "
@@ -469,16 +472,6 @@ def _along(shape, every_m: float) -> np.ndarray:
             t = np.arange(1, n + 1)[:, None] / (n + 1)
             out.append(a + t * (b - a))
     return np.vstack(out)
-
-
-def _edge_cell(net_file, edge: str, geometry) -> tuple[int, int] | None:
-    """The cell of an edge's incident: that of its lane 0's middle (as
-    :meth:`IncidentSchedule._edge_cells` places it); None off the grid."""
-    found = edge_lanes(net_file, {edge}).get(edge)
-    if found is None or not len(found[1]):
-        return None
-    row, col, inside = geometry.cell_index(np.asarray([_midpoint(found[1])]))
-    return (int(row[0]), int(col[0])) if inside[0] else None
 
 
 def _midpoint(shape) -> tuple[float, float]:

@@ -830,6 +830,8 @@ def included_files(path: Path) -> list[Path]:
     todo, seen = [Path(path)], {os.path.realpath(path)}  # by identity: a link's names grow
     while todo:
         current = todo.pop(0)
+        if not may_hold(current, b"include"):  # a large route file is not parsed for nothing
+            continue
         try:
             with open_xml(current) as fh:
                 root = ET.parse(fh).getroot()

@@ -860,8 +860,10 @@ def sumo_source(
     window_given = begin_given or horizon_given or s.end is not None
     if begin_given and files.at_begin:  # SUMO begins at twin's warm-up start: so do they
         files.span = departure_span(
-            [*files.route_files, *files.additional_files], start=t0 - warmup
-        )
+            [*files.route_files, *files.additional_files],
+            start=t0 - warmup,
+            in_order=files.route_files if files.in_order else (),
+        )  # (what SUMO ignores in an unsorted route file left out again)
     geometry, obstacles, notices = _grid_and_notices(
         s, config, inputs, files, lanes, t0, step_s, window_given, begin_given, own_config=own
     )

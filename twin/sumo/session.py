@@ -195,10 +195,10 @@ class SumoSession:
         if "ends before its begin time" in reason and self.begin > 0:  # a flow without begin
             from twin.clock import clock_label
 
-            reason = (
-                f"{reason.rstrip('.')}: twin starts SUMO at {clock_label(self.begin)} (the "
-                "window's start less the warm-up), where a flow without begin begins; give "
-                "the flow a begin, or a --begin"
+            reason = (  # (SUMO says so too of a flow whose own begin is past its end)
+                f"{reason.rstrip('.')}: if it gives no begin, it begins where twin starts SUMO, "
+                f"and twin starts SUMO at {clock_label(self.begin)} (the window's start less the "
+                "warm-up); give the flow a begin, or a --begin"
             )
         return UserError(f"{where}: SUMO refuses it{when}: {reason}")
 
