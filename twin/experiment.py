@@ -732,19 +732,14 @@ def planned_shape(experiment: Experiment) -> tuple[tuple[int, int] | None, int |
     """Grid shape and horizon of a synthetic or replayed run, read cheaply (the config, or the
     tape's footer); ``(None, None)`` when unknown (a broken tape: its reader will say why)."""
     if experiment.tape is not None:
-        try:
-            import json
+        from twin.traffic.tape import tape_footer
 
-            import pyarrow.parquet as pq
-
-            meta = json.loads(pq.read_schema(experiment.tape).metadata[b"twin_tape"])
-            nx, ny, horizon = meta["nx"], meta["ny"], meta["horizon"]
-        except Exception:  # the tape reader gives the one-line error
-            return None, None
+        meta = tape_footer(experiment.tape) or {}
+        nx, ny, horizon = meta.get("nx"), meta.get("ny"), meta.get("horizon")
         if not all(
             isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in (nx, ny, horizon)
         ):
-            return None, None  # likewise
+            return None, None  # the tape reader gives the one-line error
         return (nx, ny), horizon
     config = experiment.config
     return (config.grid.nx, config.grid.ny), int(config.traffic.horizon)

@@ -103,20 +103,17 @@ def check_tapes_memory(paths: list[Path], limit_gb: float | None) -> None:
     """Refuse (one line) a history of the tapes ``paths`` past the memory limit, from their
     recorded grids and horizons (a tape whose metadata does not read is left to its replay,
     which says why): every tape's truth maps are held, one tape is replayed at a time."""
-    import json
-
-    import pyarrow.parquet as pq
-
     from twin.experiment import MEMORY_ENV, memory_limit_gb
+    from twin.traffic.tape import tape_footer
 
     limit = memory_limit_gb(limit_gb)
     sizes = []
     for path in paths:
         try:
-            settings = json.loads(pq.read_schema(path).metadata[b"twin_tape"])["settings"]
+            settings = (tape_footer(path) or {})["settings"]
             nx, ny = settings["identity"]["grid"]
             sizes.append((int(settings["horizon"]) + 1) * int(nx) * int(ny))
-        except Exception:  # any damage: the replay refuses it by name
+        except (TypeError, KeyError, ValueError):  # damage: the replay refuses it by name
             continue
     need = BASE_BYTES + sum(sizes) * TAPE_BYTES + max(sizes, default=0) * REPLAY_BYTES
     if need > limit * 1e9:

@@ -997,14 +997,12 @@ def checkpoint_meta(cfg: PretrainConfig, epoch: int) -> dict[str, Any]:
 
 def _tape_shape(path: str | Path) -> dict[str, Any] | None:
     """A tape's grid and steps, from its footer (None when it cannot be read)."""
-    import json
+    from twin.traffic.tape import tape_footer
 
-    import pyarrow.parquet as pq
-
-    try:
-        meta = json.loads(pq.read_schema(path).metadata[b"twin_tape"])
+    meta = tape_footer(path)
+    try:  # it trained: a footer fails to read only if the file changed since
         return {"grid": [int(meta["nx"]), int(meta["ny"])], "horizon": int(meta["horizon"])}
-    except Exception:  # it trained: a footer read fails only if the file changed since
+    except (TypeError, KeyError, ValueError):
         return None
 
 
