@@ -305,26 +305,33 @@ def file_list(value: str | None, base: Path, named_in: Path | None = None) -> li
     return [resolved(base / v.strip(), named_in) for v in items if v.strip()]
 
 
-def parse_time(value: str | None) -> float | None:
-    """A SUMO time value: seconds ("3600", "3600.5", and C's hexadecimal form "0xe10", which
-    SUMO's number parser takes too) or a clock ("1:00:00"); None if neither (also for NaN and
-    infinite values, which SUMO refuses too)."""
-    if value is None:
+def sumo_number(value: str | None) -> float | None:
+    """A number as SUMO's reader takes it (``strtod`` with nothing after it, or C's hexadecimal
+    form "0xe10"), finite; None otherwise: Python reads "1_0", "10 " and "１０", SUMO does
+    not."""
+    if value is None or "_" in value or value != value.rstrip() or not value.isascii():
         return None
-    if "_" in str(value) or str(value) != str(value).rstrip():
-        return None  # Python reads "1_0" and "10 ", SUMO (strtod, then nothing after) does not
     try:
         t = float(value)
     except ValueError:
         try:
-            t = float.fromhex(value) if _HEX.fullmatch(str(value).strip()) else math.nan
+            t = float.fromhex(value) if _HEX.fullmatch(value.strip()) else math.nan
         except (ValueError, OverflowError):
             t = math.nan
-        if math.isfinite(t):
-            return t
-    else:
-        return t if math.isfinite(t) else None
-    parts = str(value).strip().split(":")
+    return t if math.isfinite(t) else None
+
+
+def parse_time(value: str | None) -> float | None:
+    """A SUMO time value: seconds (:func:`sumo_number`: "3600", "3600.5", "0xe10") or a clock
+    ("1:00:00", "1:07:00:00"); None if neither (also for NaN and infinite values, which SUMO
+    refuses too)."""
+    if value is None:
+        return None
+    value = str(value)
+    t = sumo_number(value)
+    if t is not None or "_" in value or value != value.rstrip() or not value.isascii():
+        return t
+    parts = value.strip().split(":")
     try:
         numbers = [float(x) for x in parts]
     except ValueError:
@@ -734,12 +741,7 @@ def _flow_end(elem: ET.Element, begin: float, interval_end: float | None = None)
     that end; never (``math.inf``) for an open flow, which SUMO (1.2x) runs as long as it
     runs."""
     end = parse_time(elem.get("end"))
-    try:
-        number = None if elem.get("number") is None else float(elem.get("number"))
-    except ValueError:
-        number = None  # SUMO will say what is wrong with it
-    if number is not None and not math.isfinite(number):
-        number = None  # likewise
+    number = sumo_number(elem.get("number"))  # None: SUMO will say what is wrong with it
     step = parse_time(elem.get("period")) or parse_time(elem.get("headway"))
     for rate in ("vehsPerHour", "personsPerHour", "containersPerHour", "perHour"):
         per_hour = parse_time(elem.get(rate))
