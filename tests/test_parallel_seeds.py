@@ -483,3 +483,19 @@ def test_a_limit_below_any_run_says_to_raise_it(tmp_path, capsys):
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and "is below what this run takes on any grid" in err, err
         assert "coarser" not in err
+
+
+def test_a_live_runs_estimate_counts_its_warm_up_snapshots_and_their_tape():
+    """Each warm-up snapshot is held once (SUMO's process sends it on) and stacked once more
+    into the tape as it is written: 16 B per cell for one seed. The estimate counted 8, and a
+    run of 1 s steps peaked at 1.37 GB under a 0.6 GB limit (probe 28's n01)."""
+    from twin.config import load_config
+    from twin.experiment import Experiment, estimate_memory
+
+    experiment = Experiment(load_config(ROOT / "configs" / "shenzhen.toml"), ["random"], [0])
+    shape, cells = (251, 251), 251 * 251
+
+    def need(warmup: int) -> float:
+        return estimate_memory(experiment, shape, 1, warmup, live=True)
+
+    assert need(898) - need(0) >= 16 * cells * 898

@@ -263,13 +263,15 @@ class SumoTraffic(TrafficSource):
         listed = [Path(f) for f in s.extra.get("sumocfg_files", [])]
         return UserError(naming_the_sumocfg(message, s.sumocfg, listed))
 
-    def maps_here(self) -> Generator[np.ndarray, None, None]:
-        """The maps, SUMO running in this process."""
+    def maps_here(self, warmup_too: bool = False) -> Generator[np.ndarray | None, None, None]:
+        """The maps, SUMO running in this process; with ``warmup_too`` also a None after each
+        snapshot of the warm-up (SUMO's child sends every snapshot on as it is read)."""
         from twin.sumo.incidents import IncidentSchedule
 
         s = self.scenario
         self.model = self._model()
         self.snapshots, self.error = [], None
+        stepped = False  # a snapshot of a step k >= 1 was read: a partial run has one to keep
         self.timer = timer = StageTimer()
         self.incident_schedule = IncidentSchedule(s.incidents, self.geometry, s, self.grid)
         offsets = s.read_offsets()
@@ -322,7 +324,7 @@ class SumoTraffic(TrafficSource):
                     except SumoRunError as exc:
                         # no step to keep, and SUMO's own error (libsumo's; under sumo-gui it
                         # may be its window closed): the input SUMO refused, as on start
-                        if self.gui is None and not any(k >= 1 for k, *_ in self.snapshots):
+                        if self.gui is None and not stepped:
                             when = f" before the window's first step (t = {instant:g} s)"
                             refusal = session.refusal(exc.reason, when)
                             raise self._users_refusal(refusal) from None
@@ -348,6 +350,7 @@ class SumoTraffic(TrafficSource):
                 # The model sees exactly what the tape keeps (float32 speeds), so replays match.
                 count, mean_speed = count.astype(np.int32), mean_speed.astype(np.float32)
                 self.snapshots.append((k, t, count, mean_speed))
+                stepped = stepped or k >= 1
                 t_detectors = clock()
                 if reader is not None and k >= 0:
                     self._read_detectors(reader, k)
@@ -356,6 +359,8 @@ class SumoTraffic(TrafficSource):
                 importance = self.model.observe(k, count, mean_speed.astype(float))
                 if k < 0:
                     timer.add(SUMO_WARMUP, clock() - t_snapshot, calls=0)
+                    if warmup_too:
+                        yield None
                 else:
                     timer.add(SUMO_STEPPING, stepping)
                     timer.add(READS, reading + (t3 - t2))

@@ -4,8 +4,9 @@ libsumo holds Python's global interpreter lock while it steps, so SUMO and the s
 overlap in one process; and the swarms' work between two SUMO steps evicts SUMO's data from the
 CPU caches (at city scale SUMO stepped 20% slower beside eight swarms). Here a forked child runs
 :meth:`SumoTraffic.maps_here` (SUMO, reads, the observation model, incidents) and sends each map
-with the snapshots behind it through a pipe; while the swarms decide on ``T^k`` the child already
-simulates the next step. The maps are the very arrays the same source computes in one process,
+with the snapshots behind it through a pipe (and each snapshot of the warm-up as it is read: a long
+warm-up is never held twice, in the child and in one message); while the swarms decide on
+``T^k`` the child already simulates the next step. The maps are the very arrays the same source computes in one process,
 so results are identical.
 
 Ending: the child sends ``end`` with the observation model, the stage timer, the applied
@@ -61,7 +62,7 @@ class WorksAhead(Protocol):
     _truth: np.ndarray | None
     _incidents: list[dict[str, Any]] | None
 
-    def maps_here(self) -> Iterator[np.ndarray]: ...
+    def maps_here(self, warmup_too: bool = False) -> Iterator[np.ndarray | None]: ...
 
     def truth_map(self) -> np.ndarray | None: ...
 
@@ -114,7 +115,11 @@ def maps_from_child(source: WorksAhead) -> Iterator[np.ndarray]:
     try:
         while True:
             message = here.recv()
-            if message[0] == "map":
+            if message[0] == "warm-up":
+                _, snapshots, seen, _ = message
+                source.snapshots.extend(snapshots)
+                source.vehicles_seen.extend(seen)
+            elif message[0] == "map":
                 _, importance, truth, snapshots, seen, (detectors, readings) = message
                 source.snapshots.extend(snapshots)
                 source.vehicles_seen.extend(seen)
@@ -279,22 +284,18 @@ def _produce(source: WorksAhead, conn, parent: int, messages: Path) -> None:
     source.separate_process = False
     source.messages_kept = True
     source.defer_close = True  # SUMO is closed after the end state is sent (below)
-    sent_snapshots = sent_seen = sent_readings = 0
     failure: BaseException | None = None
     from twin.notices import drop_notices, hold_notices
 
     drop_notices()  # the parent's held lines stay the parent's; this process's go with its end
     hold_notices()
-    maps = source.maps_here()
+    maps = source.maps_here(warmup_too=True)
     try:
         for importance in maps:
-            snapshots = source.snapshots[sent_snapshots:]
-            seen = source.vehicles_seen[sent_seen:]
-            sent_snapshots, sent_seen = len(source.snapshots), len(source.vehicles_seen)
-            readings = source.detector_readings[sent_readings:]
-            sent_readings = len(source.detector_readings)
-            detectors = (source.detectors, readings)
-            conn.send(("map", importance, source.truth_map(), snapshots, seen, detectors))
+            if importance is None:  # a snapshot of the warm-up
+                conn.send(("warm-up", *_unsent(source)))
+            else:
+                conn.send(("map", importance, source.truth_map(), *_unsent(source)))
             if conn.poll() and conn.recv() == "stop":
                 break
     except BaseException as exc:  # sent to the parent, which raises it
@@ -303,19 +304,20 @@ def _produce(source: WorksAhead, conn, parent: int, messages: Path) -> None:
     # model, stage times, incidents, detector readings) never depends on SUMO's teardown, which
     # can crash in a process forked from one that ran libsumo before. The parent waits for this
     # process to end before it collects SUMO's configured outputs, written when SUMO closes.
+    snapshots, seen, detectors = _unsent(source)
     try:
         conn.send(
             (
                 "end",
                 failure,
-                source.snapshots[sent_snapshots:],
-                source.vehicles_seen[sent_seen:],
+                snapshots,
+                seen,
                 source.model,
                 source.timer,
                 source.read_seconds,
                 source.error,
                 source.incidents_info(),
-                (source.detectors, source.detector_readings[sent_readings:]),
+                detectors,
                 drop_notices(),
             )
         )
@@ -356,6 +358,17 @@ def _say_sumo_errors(
         "stop for ("
     )
     notify(f"twin: notice: {source.scenario.name}: {said}first: {first[:160]}); {where}")
+
+
+def _unsent(source: WorksAhead) -> tuple[list, list[int], tuple[list, list]]:
+    """The snapshots, vehicle counts and detector readings the child has not sent yet, taken
+    out of its lists (the parent keeps them: the child holds each only until it is sent)."""
+    snapshots, seen = source.snapshots[:], source.vehicles_seen[:]
+    readings = source.detector_readings[:]
+    source.snapshots.clear()
+    source.vehicles_seen.clear()
+    source.detector_readings.clear()
+    return snapshots, seen, (source.detectors, readings)
 
 
 def _picklable(exc: BaseException) -> bool:
