@@ -23,6 +23,7 @@ from twin.cli import main as twin_main
 from twin.sumo.readers import departure_span, read_sumocfg
 from twin.sumo.scenario import MIN_FREE_CELLS_PER_DRONE
 from twin.sumo.tools import binary, run_sumo_program, tool
+from twin.traffic.tape import Tape
 
 CONFIG = """
 [swarm]
@@ -395,6 +396,33 @@ def test_a_demand_of_persons_alone_gets_a_notice(city, tmp_path, capsys):
                      str(city / "data" / "vtypes.add.xml"), "--horizon", "3",
                      capsys=capsys)  # fmt: skip
     assert code == 0 and "no vehicle" not in err, err
+
+
+def test_persons_who_drive_their_own_cars_are_traffic_without_a_notice(city, tmp_path, capsys):
+    """Persons whose trips go by car (``randomTrips.py --persontrips``, ``modes="car"``) put
+    cars on the roads: they were said to leave every cell at 0 while twin counted their cars
+    (probe 28's n03)."""
+    drivers = tmp_path / "drivers.rou.xml"
+    persons = "".join(
+        f'<person id="p{n}" depart="{FIRST_DEPART + 30 * n}"><personTrip from="A0A1" '
+        f'to="C2C3" modes="{"car" if n % 2 else "public car"}"/></person>'
+        for n in range(20)
+    )
+    drivers.write_text(f"<routes>{persons}</routes>")
+    counts: dict[str, int] = {}
+    departure_span([drivers], counts)
+    assert counts == {"person": 20, "persons driving": 20}
+    walking = tmp_path / "walking.rou.xml"  # a trip by public transport alone walks here
+    walking.write_text(drivers.read_text().replace('"public car"', '"public"'))
+    counts = {}
+    departure_span([walking], counts)
+    assert counts == {"person": 20, "persons driving": 10}
+    net = str(city / "data" / "grid.net.xml")
+    code, err = _run(city, "drivers", "--net", net, "--routes", str(drivers), "--horizon", "3",
+                     capsys=capsys)  # fmt: skip
+    assert code == 0 and "no vehicle" not in err, err
+    tape = Tape.read(city / "drivers" / "tape.parquet")
+    assert tape.counts.sum() > 0  # SUMO drove them
 
 
 @pytest.mark.parametrize(

@@ -602,6 +602,16 @@ _DEPARTING = {
 }
 
 
+def _drives(person: ET.Element) -> bool:
+    """Whether a person (or person flow) may travel in a vehicle of its own: a ``<personTrip>``
+    whose ``modes`` hold ``car``, ``bicycle`` or ``taxi`` (``randomTrips.py --persontrips``
+    with ``modes="car"``)."""
+    return any(
+        local_name(step) == "personTrip" and _DRIVING_MODES & set(step.get("modes", "").split())
+        for step in person
+    )
+
+
 def _check_departure(path: Path, elem: ET.Element, key: str, start: float = 0.0) -> float | None:
     """The departure time of ``elem``: ``start`` (the simulation's begin) for SUMO's word
     "begin", None for its other words such as "triggered" or "now"; a negative, NaN or infinite
@@ -633,8 +643,17 @@ _DEPART_WORDS = ("triggered", "containerTriggered", "now", "split")
 #: begin (``start``), wherever SUMO begins.
 AT_BEGIN = "at the simulation's begin"
 
-#: The departing elements that put vehicles on the roads (persons walk, containers wait).
-VEHICLE_DEMAND = ("vehicle", "trip", "flow")
+#: :func:`departure_span`'s count of persons (and person flows) whose ``<personTrip>`` may
+#: drive (``modes`` with ``car``, ``bicycle`` or ``taxi``): SUMO puts their vehicles on roads.
+DRIVING_PERSONS = "persons driving"
+
+#: The departing elements that put vehicles on the roads (persons walk unless they drive,
+#: containers wait).
+VEHICLE_DEMAND = ("vehicle", "trip", "flow", DRIVING_PERSONS)
+
+#: A ``<personTrip modes>`` that SUMO may route by road in a vehicle: the person's own car or
+#: bicycle, or a taxi.
+_DRIVING_MODES = frozenset(("car", "bicycle", "taxi"))
 
 
 def departure_span(
@@ -649,8 +668,9 @@ def departure_span(
     ``begin`` .. ``end`` of flows, person and container flows, those of their ``<interval>`` or
     ``start``, the simulation's begin, when a flow gives none, as SUMO reads them; the last is
     ``math.inf`` when a flow has no end); None when the files hold no vehicle (e.g. only vTypes).
-    ``counts``, when given, gets the number of departing elements of each tag, and of those
-    departing at ``start`` (:data:`AT_BEGIN`); ``closed``, when given, the last departure
+    ``counts``, when given, gets the number of departing elements of each tag, of those
+    departing at ``start`` (:data:`AT_BEGIN`) and of persons who may drive
+    (:data:`DRIVING_PERSONS`); ``closed``, when given, the last departure
     that is not an open flow's. Files pulled in with ``<include href>`` count, as SUMO loads
     them. Of the files ``in_order`` (route files SUMO reads step by step, ``--route-steps``), an
     element departing before one listed above it is left out, as SUMO ignores it ("Route file
@@ -709,6 +729,8 @@ def departure_span(
                         counts[AT_BEGIN] = counts.get(AT_BEGIN, 0) + 1
                     if t is not None:
                         counts[tag] = counts.get(tag, 0) + 1
+                        if tag in ("person", "personFlow") and _drives(elem):
+                            counts[DRIVING_PERSONS] = counts.get(DRIVING_PERSONS, 0) + 1
                         end = t
                         if flow:
                             end = _flow_end(elem, t, intervals[-1][1] if intervals else None)
