@@ -311,6 +311,7 @@ def _write_history(args: argparse.Namespace) -> int:
         )
     check_tapes_memory(paths, args.max_memory_gb)
     maps, seeds, first, stations = [], {}, None, []
+    networks: dict[str | None, Path] = {}  # each network file's first tape
     for path in paths:
         truth, obstacles, settings = replay_truth(path)
         readings = detector_readings(path, obstacles, truth.shape[0] - 1)
@@ -342,7 +343,20 @@ def _write_history(args: argparse.Namespace) -> int:
             )
         seeds[seed] = path
         maps.append(truth)
+        identity = settings.get("identity")
+        network = identity.get("net_sha256") if isinstance(identity, dict) else None
+        networks.setdefault(network, path)
     _, obstacles, (_, step_s, begin) = first
+    if len(networks) > 1:  # days of other demand are a history; of another network, rarely
+        (a, pa), (b, pb) = list(networks.items())[:2]
+        from twin.notices import notify
+
+        notify(
+            f"twin: notice: {pb} ran on another network file than {pa} (sha256 "
+            f"{str(b)[:12]}... against {str(a)[:12]}...); their grids and obstacles match, so "
+            "the history pairs their cells by position: keep days of one network for a prior "
+            "of its traffic"
+        )
     history = fit_history(
         maps,
         obstacles,
