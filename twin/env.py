@@ -175,6 +175,7 @@ class SwarmParallelEnv(ParallelEnv):
         "render_modes": [],
         "is_parallelizable": True,
     }
+    render_mode = None  # none: watch a run with `twin run --gui` or `twin replay --gui`
 
     def __init__(
         self,
@@ -304,8 +305,6 @@ class SwarmParallelEnv(ParallelEnv):
             dict.fromkeys(agents, done),
             infos,
         )
-
-    render_mode = None  # no render mode: watch a run with `twin run --gui` or `twin replay`
 
     def render(self) -> None:
         """Nothing to render (``render_modes`` is empty): a warning and None, as Gymnasium's

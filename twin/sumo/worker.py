@@ -4,10 +4,10 @@ libsumo holds Python's global interpreter lock while it steps, so SUMO and the s
 overlap in one process; and the swarms' work between two SUMO steps evicts SUMO's data from the
 CPU caches (at city scale SUMO stepped 20% slower beside eight swarms). Here a forked child runs
 :meth:`SumoTraffic.maps_here` (SUMO, reads, the observation model, incidents) and sends each map
-with the snapshots behind it through a pipe (and each snapshot of the warm-up as it is read: a long
-warm-up is never held twice, in the child and in one message); while the swarms decide on
-``T^k`` the child already simulates the next step. The maps are the very arrays the same source computes in one process,
-so results are identical.
+with the snapshots behind it through a pipe (and each snapshot of the warm-up as it is read: a
+long warm-up is never held twice, in the child and in one message); while the swarms decide on
+``T^k`` the child already simulates the next step. The maps are the very arrays the same source
+computes in one process, so results are identical.
 
 Ending: the child sends ``end`` with the observation model, the stage timer, the applied
 incidents and the error that stopped it (a :class:`UserError` on bad input, a
