@@ -38,7 +38,7 @@ from twin.sumo.readers import (
     naming_the_sumocfg,
     read_sumocfg,
 )
-from twin.sumo.session import SumoRunError, SumoSession, gridlock_defaults
+from twin.sumo.session import SumoRunError, SumoSession, filled_in_options
 from twin.timing import (
     DETECTOR_READS,
     OBSERVATION,
@@ -202,7 +202,7 @@ class SumoTraffic(TrafficSource):
             config_file=s.sumocfg,
             # twin's own demand, or closures it schedules, which leave routes unfollowable
             ignore_route_errors=bool(s.extra.get("twin_demand", True) or s.incidents),
-            extra_options=(*gridlock_defaults(s.sumocfg), *options),
+            extra_options=(*filled_in_options(s.sumocfg), *options),
             gui=self.gui,
             warnings=self.messages_kept,
         )
