@@ -499,3 +499,22 @@ def test_a_live_runs_estimate_counts_its_warm_up_snapshots_and_their_tape():
         return estimate_memory(experiment, shape, 1, warmup, live=True)
 
     assert need(898) - need(0) >= 16 * cells * 898
+
+
+@pytest.mark.parametrize("live", [False, True])
+def test_a_limit_below_the_interpreter_and_simulator_is_refused(small, tmp_path, capsys, live):
+    """A limit of 1 MB let a one-process run through (its run.json: 0.21 GB for twin, 0.20
+    for SUMO) while two workers were refused at 0.8 GB: the interpreter and the simulator were
+    counted for workers only (probe 29's p02)."""
+    from twin.experiment import PROCESS_BYTES, SIMULATOR_BYTES
+
+    config = ["--config", str(small / "small.toml")] if live else ["--config", "synthetic"]
+    argv = ["evaluate", *config, "--seeds", "1", "--swarms", "random", "--no-ceiling",
+            "--no-report", "--quiet", "--out", str(tmp_path / "o"), "--max-memory-gb", "0.3"]  # fmt: skip
+    if live:
+        argv[0] = "run"
+    assert twin_main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "is below what this run takes on any grid" in err, err
+    floor = (PROCESS_BYTES + (SIMULATOR_BYTES if live else 0)) / 1e9
+    assert f"(about {floor:.1f} GB" in err or f"(about {floor + 0.1:.1f} GB" in err, err

@@ -770,10 +770,10 @@ def estimate_memory(
     series and trajectory rows as gathered into the run's tables (600 B); per seed: its
     result's objects (60 KB); from peak memory (`/usr/bin/time`) on a 10 x 12 grid, T = 60,
     1500 and 3000 seeds of 1 swarm and 3000 of 3 (122 to 133 and 179 KB per seed; the terms
-    above gave 67), with a margin of about a fifth. The interpreter and the simulator themselves
-    (a few hundred MB) are not counted (in this process: its peak exceeds the estimate by
-    about that much, e.g. 1.37 GB measured against 0.92 estimated for 4 m cells of 1 s steps
-    and a 15-minute warm-up of 898 snapshots, T = 1). With
+    above gave 67), with a margin of about a fifth. Beside them: this process's interpreter
+    and, for a live run, its simulator (:data:`PROCESS_BYTES`, :data:`SIMULATOR_BYTES`; 4 m
+    cells of 1 s steps with a 15-minute warm-up of 898 snapshots, T = 1: 1.37 GB peak in this
+    process, 0.22 in the simulator's, against 1.72 estimated). With
     ``[faults]``, each swarm's fault-free twin counts as one more swarm.
 
     Seeds run at once on W workers (:func:`parallel`): each worker holds one simulation with its
@@ -796,7 +796,9 @@ def estimate_memory(
         per_cell_step += 48
     n_drones = min(experiment.config.swarm.n_drones, cells)  # more cannot fit: refused later
     need = (
-        cells * steps * per_cell_step
+        PROCESS_BYTES
+        + (SIMULATOR_BYTES if live else 0.0)
+        + cells * steps * per_cell_step
         + cells * n_swarms * 64
         + n_swarms * n_seeds * steps * (n_drones * 16 + SERIES_BYTES)
         + n_seeds * SEED_BYTES
@@ -813,10 +815,15 @@ def estimate_memory(
     return float(need)
 
 
-#: A worker of a parallel run beside its parent: a Python interpreter with twin's modules and
-#: one live traffic simulation in its own process (peak resident memory on the default
-#: scenario: about 0.4 GB for the runner plus 0.4 GB for the simulator; docs/benchmarks.md).
-WORKER_BYTES = 0.8e9
+#: A Python interpreter with twin's modules and its libraries (0.22 GB peak for `twin
+#: evaluate --config synthetic --swarms random`, 0.42 GB with torch for `--swarms rl`), and a
+#: live traffic simulation in its own process (about 0.4 GB on the default scenario).
+PROCESS_BYTES = SIMULATOR_BYTES = 0.4e9
+
+#: A worker of a parallel run beside its parent: an interpreter and one live simulation
+#: (peak resident memory on the default scenario: about 0.4 GB for the runner plus 0.4 GB for
+#: the simulator; docs/benchmarks.md).
+WORKER_BYTES = PROCESS_BYTES + SIMULATOR_BYTES
 
 
 def n_workers(experiment: Experiment) -> int:
