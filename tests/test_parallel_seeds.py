@@ -518,3 +518,20 @@ def test_a_limit_below_the_interpreter_and_simulator_is_refused(small, tmp_path,
     assert err.count("\n") == 1 and "is below what this run takes on any grid" in err, err
     floor = (PROCESS_BYTES + (SIMULATOR_BYTES if live else 0)) / 1e9
     assert f"(about {floor:.1f} GB" in err or f"(about {floor + 0.1:.1f} GB" in err, err
+
+
+def test_a_refusal_past_the_limit_names_the_warm_up_when_its_snapshots_dominate(tmp_path):
+    """A run of 1 step after 7,200 warm-up snapshots was told to use fewer steps, which could
+    not help: the warm-up held nearly all of it (probe 30's r02)."""
+    from helpers import small_sumo_scenario
+
+    from twin.config import load_config
+    from twin.sumo.scenario import sumo_source
+
+    for horizon, words in ((2, "a shorter warm-up ([traffic].warmup_min: its 5 snapshots"),
+                           (10, "fewer steps (--horizon)")):  # fmt: skip
+        folder = tmp_path / f"h{horizon}"
+        folder.mkdir()
+        source = sumo_source(load_config(small_sumo_scenario(folder, horizon) / "small.toml"))
+        assert source.warmup_steps() == 5
+        assert words in source.coarser_hint(2.0), source.coarser_hint(2.0)

@@ -867,7 +867,8 @@ def test_a_sumocfgs_own_processing_options_are_kept(tmp_path):
     kept = filled_in_options(cfg)
     flags = kept[::2]
     assert "--time-to-teleport" not in flags and "--device.rerouting.probability" not in flags
-    assert "--xml-validation" not in flags and "--xml-validation.routes" in flags
+    assert "--xml-validation" not in flags  # its own; route files follow it, as in SUMO:
+    assert kept[kept.index("--xml-validation.routes") + 1] == "never"
     assert "--max-depart-delay" in flags
     assert len(kept) == len(ANTI_GRIDLOCK_OPTIONS) + len(XML_VALIDATION) - 6
     assert filled_in_options(None) == (*ANTI_GRIDLOCK_OPTIONS, *XML_VALIDATION)
@@ -905,6 +906,18 @@ def test_a_file_that_breaks_the_schema_it_declares_is_refused_as_sumo_refuses_it
     lines = [x for x in err.splitlines() if not x.startswith("twin: notice")]
     assert code == 2 and len(lines) == 1, err
     assert str(bad) in lines[0] and "is not declared" in lines[0], lines[0]
+    if where == "routes":  # a sumocfg's xml-validation "never" holds for its route files too
+        cfg = tmp_path / "never.sumocfg"
+        cfg.write_text(
+            f'<configuration><input><net-file value="{net}"/><route-files value="{bad}"/>'
+            '</input><report><xml-validation value="never"/></report></configuration>'
+        )
+        sumo = subprocess.run([binary("sumo"), "-c", str(cfg), "-e", "10", "--no-step-log"],
+                              capture_output=True, text=True)  # fmt: skip
+        assert sumo.returncode == 0, sumo.stderr
+        code, err = _run(city, "schema-never", "--sumocfg", str(cfg), "--horizon", "3",
+                         capsys=capsys)  # fmt: skip
+        assert code == 0, err
 
 
 def test_a_route_sumo_cannot_follow_stops_the_run_as_it_stops_sumo(city, tmp_path, capsys):

@@ -53,15 +53,21 @@ XML_VALIDATION = ("--xml-validation", "local", "--xml-validation.routes", "local
 def filled_in_options(sumocfg: Path | None) -> tuple[str, ...]:
     """:data:`ANTI_GRIDLOCK_OPTIONS` and :data:`XML_VALIDATION` but those a scenario's sumocfg
     sets itself: its own settings (no teleports, no rerouting, no validation ...) are kept,
-    twin's only fill in where it says nothing."""
+    twin's only fill in where it says nothing. Route files follow the sumocfg's
+    ``xml-validation`` when it sets no ``xml-validation.routes``, as the sumo binary reads them
+    (``never`` checks neither; libsumo kept checking routes)."""
     defaults = (*ANTI_GRIDLOCK_OPTIONS, *XML_VALIDATION)
     if sumocfg is None:
         return defaults
     from twin.sumo.readers import read_sumocfg
 
-    own = set(read_sumocfg(sumocfg, own_net=False).options)
+    options = read_sumocfg(sumocfg, own_net=False).options
+    own = set(options)
     if "load-state" in own:  # the state holds rerouting's speeds: another count crashes SUMO
         own.add("device.rerouting.adaptation-steps")
+    general = options.get("xml-validation")
+    if general and "xml-validation.routes" not in own:
+        defaults = (*ANTI_GRIDLOCK_OPTIONS, "--xml-validation.routes", general)
     pairs = zip(defaults[::2], defaults[1::2], strict=True)
     return tuple(part for flag, value in pairs if flag[2:] not in own for part in (flag, value))
 

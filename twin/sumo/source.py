@@ -434,9 +434,16 @@ class SumoTraffic(TrafficSource):
         return self.scenario.warmup_steps()
 
     def coarser_hint(self, ratio: float) -> str | None:
-        """A cell size (rounded up to 50 m) about ``ratio`` times larger, or fewer steps."""
+        """A cell size (rounded up to 50 m) about ``ratio`` times larger, or fewer steps (a
+        shorter warm-up when its snapshots outnumber the steps: they are kept too)."""
         cell = float(np.ceil(self.geometry.cell_m * ratio / 50.0) * 50.0)
-        return f"cells of {cell:g} m (--cell-m, [traffic].cell_m) or fewer steps (--horizon)"
+        warmup = self.warmup_steps()
+        fewer = (
+            f"a shorter warm-up ([traffic].warmup_min: its {warmup} snapshots are kept)"
+            if warmup > self.horizon
+            else "fewer steps (--horizon)"
+        )
+        return f"cells of {cell:g} m (--cell-m, [traffic].cell_m) or {fewer}"
 
     def metadata(self) -> dict[str, Any]:
         s = self.scenario
