@@ -224,6 +224,36 @@ def test_sumo_child_sends_each_snapshot_on_and_holds_none_it_sent():
     assert source.vehicles_seen == [4] * 8
 
 
+def test_a_stop_asked_during_the_warm_up_stops_at_once():
+    """SIGTERM (a batch scheduler's stop) during a long warm-up waited for the whole warm-up and
+    a step, past the scheduler's grace period (probe 30's r03): before the first step there is
+    nothing to keep."""
+    import time
+
+    from twin.processes import STOP_ASKED
+    from twin.sumo.worker import maps_from_child
+
+    class LongWarmUp(_WarmingUp):
+        def maps_here(self, warmup_too=False):
+            for k in range(-3000, 1):
+                time.sleep(0.01)  # 30 s of warm-up
+                self.snapshots.append((k, k * 1.0, np.ones((2, 2)), np.ones((2, 2))))
+                self.vehicles_seen.append(4)
+                if k >= 0:
+                    yield np.zeros((2, 2))
+                elif warmup_too:
+                    yield None
+
+    start = time.monotonic()
+    STOP_ASKED.set()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            next(maps_from_child(LongWarmUp()))
+    finally:
+        STOP_ASKED.clear()
+    assert time.monotonic() - start < 10
+
+
 def test_sumo_crashing_before_the_first_step_is_an_error_naming_the_signal():
     """SUMO's process dying by a signal before any step: one line naming the signal, not a
     partial run of 0 steps (probe 24's f03)."""

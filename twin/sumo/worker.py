@@ -38,7 +38,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from twin.errors import UserError
-from twin.processes import exit_with_parent
+from twin.processes import STOP_ASKED, exit_with_parent
 from twin.sumo.outputs import MESSAGES_NAME
 from twin.sumo.session import AGGREGATE_AFTER
 from twin.timing import StageTimer
@@ -119,6 +119,9 @@ def maps_from_child(source: WorksAhead) -> Iterator[np.ndarray]:
                 _, snapshots, seen, _ = message
                 source.snapshots.extend(snapshots)
                 source.vehicles_seen.extend(seen)
+                if STOP_ASKED.is_set():  # asked to stop after the current step before the
+                    raise KeyboardInterrupt  # first: nothing to keep, stop now (a scheduler's
+                    # grace period is shorter than a long warm-up)
             elif message[0] == "map":
                 _, importance, truth, snapshots, seen, (detectors, readings) = message
                 source.snapshots.extend(snapshots)
