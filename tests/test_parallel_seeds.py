@@ -71,6 +71,8 @@ def test_two_workers_give_the_sequential_run_folder(small, tmp_path, capsys):
     one, two = meta
     for key in ("seeds", "traffic_by_seed", "partial", "policies", "horizon"):
         assert one[key] == two[key], key
+    for meta in (one, two):  # SUMO's own peak, measured there, with workers too (not a worker's)
+        assert 0 < meta["timings"]["peak_memory_sumo_process_mb"] < 4000, meta["timings"]
 
 
 def test_ray_gives_the_sequential_run_folder(small, tmp_path, capsys):

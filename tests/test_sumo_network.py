@@ -222,6 +222,9 @@ def test_sumo_child_sends_each_snapshot_on_and_holds_none_it_sent():
     assert [int(m[0, 0]) for m in maps] == [0, 0, 0]  # the child held none it had sent
     assert [s[0] for s in source.snapshots] == list(range(-5, 3))  # the parent has them all
     assert source.vehicles_seen == [4] * 8
+    # SUMO's process measures its own peak: the largest child of a parallel run's parent is
+    # a worker (probe 31's w01)
+    assert source.process_peak_mb is not None and source.process_peak_mb > 0
 
 
 def test_a_stop_asked_during_the_warm_up_stops_at_once():

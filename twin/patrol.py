@@ -264,7 +264,10 @@ def run_patrol(
         completed_steps=done,
         error=error,
         stage_seconds=_stage_seconds(timer, source),
-        extra={"process_stages": source.process_stages()},
+        extra={
+            "process_stages": source.process_stages(),
+            "process_peak_mb": source.process_peak_mb,
+        },
         faults=plan,
     )
     if len(runs) > len(names):  # the fault-free twins: a result of their own

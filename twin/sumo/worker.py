@@ -38,7 +38,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from twin.errors import UserError
-from twin.processes import STOP_ASKED, exit_with_parent
+from twin.processes import STOP_ASKED, exit_with_parent, peak_memory_mb
 from twin.sumo.outputs import MESSAGES_NAME
 from twin.sumo.session import AGGREGATE_AFTER
 from twin.timing import StageTimer
@@ -61,6 +61,7 @@ class WorksAhead(Protocol):
     defer_close: bool
     _truth: np.ndarray | None
     _incidents: list[dict[str, Any]] | None
+    process_peak_mb: float | None
 
     def maps_here(self, warmup_too: bool = False) -> Iterator[np.ndarray | None]: ...
 
@@ -103,6 +104,7 @@ def maps_from_child(source: WorksAhead) -> Iterator[np.ndarray]:
         daemon=True,
     )  # fmt: skip
     source.snapshots, source.vehicles_seen, source.error = [], [], None
+    source.process_peak_mb = None  # told by the child as it ends
     source.detector_readings = []
     source.timer, source._truth, source._incidents = StageTimer(), None, None
     if sys.stdout is not None:  # else the child writes what this process had not into its
@@ -215,7 +217,9 @@ def _stop(source: WorksAhead, here, child) -> bool:
 
 
 def _take_end(source: WorksAhead, message) -> None:
-    _, _, snapshots, seen, model, timer, read_seconds, error, incidents, det, notices = message
+    _, _, snapshots, seen, model, timer, read_seconds, error, incidents, det, notices, peak = (
+        message
+    )
     from twin.notices import notify
 
     for line in notices:  # said in the child (its stderr is SUMO's messages file)
@@ -226,6 +230,7 @@ def _take_end(source: WorksAhead, message) -> None:
     source.detector_readings.extend(det[1])
     source.model, source.timer, source.read_seconds = model, timer, read_seconds
     source.error, source._incidents = error, incidents
+    source.process_peak_mb = peak  # SUMO's process, as it measured itself
 
 
 def _messages_file() -> Path:
@@ -322,6 +327,7 @@ def _produce(source: WorksAhead, conn, parent: int, messages: Path) -> None:
                 source.incidents_info(),
                 detectors,
                 drop_notices(),
+                peak_memory_mb(),
             )
         )
     except (BrokenPipeError, OSError):
