@@ -74,9 +74,10 @@ def add_parser(subparsers) -> None:
     p.set_defaults(func=main)
 
 
-#: Peak memory of ``twin history`` beside the interpreter
-#: (:data:`twin.experiment.PROCESS_BYTES`), per cell and step of each day of the dynamic generator (:data:`twin.belief.DAY_BYTES`), of
-#: each tape (its truth maps held, float64) and of the one tape being replayed.
+#: Peak memory of ``twin history`` beside the interpreter (:data:`twin.experiment.
+#: PROCESS_BYTES`), per cell and step of each day of the dynamic generator
+#: (:data:`twin.belief.DAY_BYTES`), of each tape (its truth maps held, float64) and of the one
+#: tape being replayed.
 TAPE_BYTES, REPLAY_BYTES = 24, 130
 
 
