@@ -512,7 +512,8 @@ def test_a_limit_below_the_interpreter_and_simulator_is_refused(small, tmp_path,
 
     config = ["--config", str(small / "small.toml")] if live else ["--config", "synthetic"]
     argv = ["evaluate", *config, "--seeds", "1", "--swarms", "random", "--no-ceiling",
-            "--no-report", "--quiet", "--out", str(tmp_path / "o"), "--max-memory-gb", "0.3"]  # fmt: skip
+            "--no-report", "--quiet", "--out", str(tmp_path / "o"),
+            "--max-memory-gb", "0.3"]  # fmt: skip
     if live:
         argv[0] = "run"
     assert twin_main(argv) == 2
