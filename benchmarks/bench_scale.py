@@ -48,7 +48,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from twin.config import load_config, with_overrides
 from twin.experiment import Experiment, build_source, limit_threads, run_experiment
-from twin.runs import peak_memory_mb, timing_frame
+from twin.processes import peak_memory_mb
+from twin.runs import timing_frame
 from twin.timing import (
     OBSERVATION,
     READS,

@@ -660,6 +660,7 @@ def test_a_huge_sumo_grid_is_refused_with_a_cell_size(tmp_path):
         def __init__(self):
             self.scenario = SumoScenario(Path("net.xml"), [], warmup_s=900.0, step_s=75.0)
             self.geometry = SimpleNamespace(cell_m=500.0)
+            self.horizon = 144
 
     cfg = tmp_path / "s.toml"
     cfg.write_text(SMALL.format(horizon=144))

@@ -730,3 +730,24 @@ def test_a_swarms_own_history_holding_the_evaluated_day_is_refused(small, histor
     assert err.count("\n") == 1 and "Traceback" not in err, err
     assert f"{history}: history built from traffic seed 10, which this run evaluates on" in err
     assert twin_main([*argv, "--sumo-seed", "3"]) == 0, capsys.readouterr().err
+
+
+def test_a_history_of_days_on_other_network_files_says_so(history, tmp_path, capsys):
+    """Days of other demand make a history; days whose network files differ were taken
+    without a word, their cells paired by position (probe 28's z02)."""
+    import json
+
+    import pyarrow.parquet as pq
+
+    tapes = history.parent / "days" / "tapes"
+    a, b = tapes / "seed-0.parquet", tmp_path / "other-network.parquet"
+    table = pq.read_table(tapes / "seed-1.parquet")
+    meta = json.loads(table.schema.metadata[b"twin_tape"])
+    meta["settings"]["identity"]["net_sha256"] = "f" * 64  # another network file
+    pq.write_table(table.replace_schema_metadata({b"twin_tape": json.dumps(meta).encode()}), b)
+    assert twin_main(["history", "--from", str(a), str(b), "--out", str(tmp_path / "h.npz")]) == 0
+    notices = [x for x in capsys.readouterr().err.splitlines() if "another network" in x]
+    assert len(notices) == 1 and notices[0].startswith(f"twin: notice: {b} ran on"), notices
+    assert twin_main(["history", "--from", str(a), str(tapes / "seed-1.parquet"), "--out",
+                      str(tmp_path / "h2.npz")]) == 0  # fmt: skip
+    assert "another network" not in capsys.readouterr().err

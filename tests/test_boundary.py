@@ -2424,6 +2424,28 @@ def test_an_out_folder_in_the_cache_is_refused(tmp_path, capsys, where):
     assert not (cache_dir() / "imported" / "entry").exists()
 
 
+@pytest.mark.parametrize("command", ["evaluate", "run"])
+def test_an_out_folder_holding_the_cache_is_refused_naming_it(
+    tmp_path, capsys, monkeypatch, command
+):
+    """$TWIN_CACHE_DIR inside a new --out: twin made its cache there, then refused the folder
+    "not empty and holds no twin run", which the user had passed new (probe 28's n02)."""
+    out = tmp_path / "newrun"
+    monkeypatch.setenv("TWIN_CACHE_DIR", str(out / "cache"))
+    cfg = small_config(tmp_path, horizon=3)
+    argv = [command, "--config", str(cfg), "--seeds", "1", "--swarms", "random"]
+    if command == "run":  # a live run makes its scratch folder in the cache first
+        from helpers import small_sumo_scenario
+
+        (tmp_path / "small").mkdir()
+        scenario = small_sumo_scenario(tmp_path / "small", horizon=3)
+        argv = [command, "--config", str(scenario / "small.toml"), "--swarms", "random"]
+    assert main([*argv, "--out", str(out), "--no-report", "--quiet"]) == EXIT_REFUSED
+    line = one_line(capsys)
+    assert f"--out {out}: holds twin's cache ({out / 'cache'})" in line, line
+    assert "$TWIN_CACHE_DIR" in line
+
+
 def test_a_work_folder_beside_the_caches_own_folders_is_the_users(tmp_path, capsys, monkeypatch):
     """A cache that is a whole scratch disk (``$TWIN_CACHE_DIR=$SCRATCH``, the work in
     ``$SCRATCH/project``) refuses no run there: only the cache itself and its own folders

@@ -414,3 +414,16 @@ def test_a_live_envs_scenario_notices_come_once_over_its_episodes(tmp_path: Path
     err = capfd.readouterr().err
     assert err.count("are not kept by this command") == 1, err
     assert not (tmp_path / output).exists()
+
+
+@pytest.mark.parametrize("kind", ["parallel", "gym"])
+def test_render_warns_that_there_is_no_render_mode_and_returns_none(kind):
+    """``render()`` raised a bare NotImplementedError (probe 28's z01); without a render mode
+    Gymnasium's environments warn and return None."""
+    env_type = SwarmParallelEnv if kind == "parallel" else SwarmGymEnv
+    env = env_type(_synthetic(), n_drones=2, params=PARAMS)
+    env.reset(seed=0)
+    assert env.render_mode is None and env.metadata["render_modes"] == []
+    with pytest.warns(UserWarning, match="no render mode .*twin run --gui"):
+        assert env.render() is None
+    env.close()

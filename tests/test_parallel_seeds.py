@@ -71,6 +71,8 @@ def test_two_workers_give_the_sequential_run_folder(small, tmp_path, capsys):
     one, two = meta
     for key in ("seeds", "traffic_by_seed", "partial", "policies", "horizon"):
         assert one[key] == two[key], key
+    for meta in (one, two):  # SUMO's own peak, measured there, with workers too (not a worker's)
+        assert 0 < meta["timings"]["peak_memory_sumo_process_mb"] < 4000, meta["timings"]
 
 
 def test_ray_gives_the_sequential_run_folder(small, tmp_path, capsys):
@@ -483,3 +485,56 @@ def test_a_limit_below_any_run_says_to_raise_it(tmp_path, capsys):
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and "is below what this run takes on any grid" in err, err
         assert "coarser" not in err
+
+
+def test_a_live_runs_estimate_counts_its_warm_up_snapshots_and_their_tape():
+    """Each warm-up snapshot is held once (SUMO's process sends it on) and stacked once more
+    into the tape as it is written: 16 B per cell for one seed. The estimate counted 8, and a
+    run of 1 s steps peaked at 1.37 GB under a 0.6 GB limit (probe 28's n01)."""
+    from twin.config import load_config
+    from twin.experiment import Experiment, estimate_memory
+
+    experiment = Experiment(load_config(ROOT / "configs" / "shenzhen.toml"), ["random"], [0])
+    shape, cells = (251, 251), 251 * 251
+
+    def need(warmup: int) -> float:
+        return estimate_memory(experiment, shape, 1, warmup, live=True)
+
+    assert need(898) - need(0) >= 16 * cells * 898
+
+
+@pytest.mark.parametrize("live", [False, True])
+def test_a_limit_below_the_interpreter_and_simulator_is_refused(small, tmp_path, capsys, live):
+    """A limit of 1 MB let a one-process run through (its run.json: 0.21 GB for twin, 0.20
+    for SUMO) while two workers were refused at 0.8 GB: the interpreter and the simulator were
+    counted for workers only (probe 29's p02)."""
+    from twin.experiment import PROCESS_BYTES, SIMULATOR_BYTES
+
+    config = ["--config", str(small / "small.toml")] if live else ["--config", "synthetic"]
+    argv = ["evaluate", *config, "--seeds", "1", "--swarms", "random", "--no-ceiling",
+            "--no-report", "--quiet", "--out", str(tmp_path / "o"),
+            "--max-memory-gb", "0.3"]  # fmt: skip
+    if live:
+        argv[0] = "run"
+    assert twin_main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "is below what this run takes on any grid" in err, err
+    floor = (PROCESS_BYTES + (SIMULATOR_BYTES if live else 0)) / 1e9
+    assert f"(about {floor:.1f} GB" in err or f"(about {floor + 0.1:.1f} GB" in err, err
+
+
+def test_a_refusal_past_the_limit_names_the_warm_up_when_its_snapshots_dominate(tmp_path):
+    """A run of 1 step after 7,200 warm-up snapshots was told to use fewer steps, which could
+    not help: the warm-up held nearly all of it (probe 30's r02)."""
+    from helpers import small_sumo_scenario
+
+    from twin.config import load_config
+    from twin.sumo.scenario import sumo_source
+
+    for horizon, words in ((2, "a shorter warm-up ([traffic].warmup_min: its 5 snapshots"),
+                           (10, "fewer steps (--horizon)")):  # fmt: skip
+        folder = tmp_path / f"h{horizon}"
+        folder.mkdir()
+        source = sumo_source(load_config(small_sumo_scenario(folder, horizon) / "small.toml"))
+        assert source.warmup_steps() == 5
+        assert words in source.coarser_hint(2.0), source.coarser_hint(2.0)

@@ -1049,6 +1049,15 @@ REFUSED = {
     ),
     "an end with a space after it": (_cfg(NET_AND_TRIPS + '<time><end value="2400 "/></time>'),
                                      {}, "<end value='2400 '> is not a finite time"),
+    "an end in full-width digits": (  # SUMO: "Cannot parse option 'end'"; Python reads them
+        _cfg(NET_AND_TRIPS + '<time><end value="２４００"/></time>'), {},
+        "<end value='２４００'> is not a finite time",
+    ),
+    "a departure in full-width digits": (
+        _cfg('<input><net-file value="small.net.xml"/><route-files value="w.rou.xml"/></input>'),
+        {"w.rou.xml": '<routes><trip id="t" depart="１０" from="a" to="b"/></routes>'},
+        "<trip id='t' depart='１０'>: the time is not a time SUMO reads",
+    ),
     "an option's value and its short form both": (
         _cfg('<input><net-file value="small.net.xml" v="small.net.xml"/><route-files '
              'value="small.trips.xml"/></input>'), {},

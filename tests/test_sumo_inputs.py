@@ -11,6 +11,7 @@ import json
 import math
 import re
 import shutil
+import subprocess
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -23,6 +24,7 @@ from twin.cli import main as twin_main
 from twin.sumo.readers import departure_span, read_sumocfg
 from twin.sumo.scenario import MIN_FREE_CELLS_PER_DRONE
 from twin.sumo.tools import binary, run_sumo_program, tool
+from twin.traffic.tape import Tape
 
 CONFIG = """
 [swarm]
@@ -395,6 +397,33 @@ def test_a_demand_of_persons_alone_gets_a_notice(city, tmp_path, capsys):
                      str(city / "data" / "vtypes.add.xml"), "--horizon", "3",
                      capsys=capsys)  # fmt: skip
     assert code == 0 and "no vehicle" not in err, err
+
+
+def test_persons_who_drive_their_own_cars_are_traffic_without_a_notice(city, tmp_path, capsys):
+    """Persons whose trips go by car (``randomTrips.py --persontrips``, ``modes="car"``) put
+    cars on the roads: they were said to leave every cell at 0 while twin counted their cars
+    (probe 28's n03)."""
+    drivers = tmp_path / "drivers.rou.xml"
+    persons = "".join(
+        f'<person id="p{n}" depart="{FIRST_DEPART + 30 * n}"><personTrip from="A0A1" '
+        f'to="C2C3" modes="{"car" if n % 2 else "public car"}"/></person>'
+        for n in range(20)
+    )
+    drivers.write_text(f"<routes>{persons}</routes>")
+    counts: dict[str, int] = {}
+    departure_span([drivers], counts)
+    assert counts == {"person": 20, "persons driving": 20}
+    walking = tmp_path / "walking.rou.xml"  # a trip by public transport alone walks here
+    walking.write_text(drivers.read_text().replace('"public car"', '"public"'))
+    counts = {}
+    departure_span([walking], counts)
+    assert counts == {"person": 20, "persons driving": 10}
+    net = str(city / "data" / "grid.net.xml")
+    code, err = _run(city, "drivers", "--net", net, "--routes", str(drivers), "--horizon", "3",
+                     capsys=capsys)  # fmt: skip
+    assert code == 0 and "no vehicle" not in err, err
+    tape = Tape.read(city / "drivers" / "tape.parquet")
+    assert tape.counts.sum() > 0  # SUMO drove them
 
 
 @pytest.mark.parametrize(
@@ -826,19 +855,69 @@ def test_cells_too_large_for_the_drones_name_the_cell_size_flag(city, capsys):
 def test_a_sumocfgs_own_processing_options_are_kept(tmp_path):
     """twin's anti-gridlock defaults fill in only where the scenario's sumocfg says nothing:
     its own teleport and rerouting settings (by any of SUMO's names) stay."""
-    from twin.sumo.session import ANTI_GRIDLOCK_OPTIONS, gridlock_defaults
+    from twin.sumo.session import ANTI_GRIDLOCK_OPTIONS, XML_VALIDATION, filled_in_options
 
     cfg = tmp_path / "own.sumocfg"
     cfg.write_text(
         '<configuration><input><net-file value="n.net.xml"/></input><processing>'
         '<time-to-teleport value="-1"/></processing><routing>'
-        '<device.rerouting.probability value="0"/></routing></configuration>'
+        '<device.rerouting.probability value="0"/></routing><report><xml-validation '
+        'value="never"/></report></configuration>'
     )
-    kept = gridlock_defaults(cfg)
+    kept = filled_in_options(cfg)
     flags = kept[::2]
     assert "--time-to-teleport" not in flags and "--device.rerouting.probability" not in flags
-    assert "--max-depart-delay" in flags and len(kept) == len(ANTI_GRIDLOCK_OPTIONS) - 4
-    assert gridlock_defaults(None) == ANTI_GRIDLOCK_OPTIONS
+    assert "--xml-validation" not in flags  # its own; route files follow it, as in SUMO:
+    assert kept[kept.index("--xml-validation.routes") + 1] == "never"
+    assert "--max-depart-delay" in flags
+    assert len(kept) == len(ANTI_GRIDLOCK_OPTIONS) + len(XML_VALIDATION) - 6
+    assert filled_in_options(None) == (*ANTI_GRIDLOCK_OPTIONS, *XML_VALIDATION)
+
+
+@pytest.mark.parametrize("where", ["routes", "additional"])
+def test_a_file_that_breaks_the_schema_it_declares_is_refused_as_sumo_refuses_it(
+    city, tmp_path, capsys, where
+):
+    """A route or additional file declaring SUMO's schema, with a misspelt attribute: the sumo
+    binary refuses it ("attribute 'departSped' is not declared"), libsumo ran it with the
+    attribute ignored unless told to check (probe 29's p01)."""
+    schema = "routes_file" if where == "routes" else "additional_file"
+    root = "routes" if where == "routes" else "additional"
+    bad = tmp_path / f"bad.{'rou' if where == 'routes' else 'add'}.xml"
+    element = ('<trip id="t0" departSped="max" depart="0" from="A0A1" to="C2C3"/>'
+               if where == "routes" else '<vType id="car2" accl="2.6"/>')  # fmt: skip
+    bad.write_text(
+        f'<?xml version="1.0" encoding="UTF-8"?>\n<{root} xmlns:xsi="http://www.w3.org/2001/'
+        f'XMLSchema-instance" xsi:noNamespaceSchemaLocation="http://sumo.dlr.de/xsd/'
+        f'{schema}.xsd">\n{element}\n</{root}>\n'
+    )
+    sumo = subprocess.run(
+        [binary("sumo"), "-n", str(city / "data" / "grid.net.xml"),
+         "-r" if where == "routes" else "-a", str(bad), "-e", "10", "--no-step-log"],
+        capture_output=True, text=True,
+    )  # fmt: skip
+    assert sumo.returncode != 0 and "is not declared" in sumo.stderr, sumo.stderr
+    net = str(city / "data" / "grid.net.xml")
+    flags = (["--routes", str(bad)] if where == "routes"
+             else ["--routes", str(city / "data" / "grid.rou.xml"), "--additional",
+                   str(city / "data" / "vtypes.add.xml"), "--additional", str(bad)])  # fmt: skip
+    code, err = _run(city, f"schema-{where}", "--net", net, *flags, "--horizon", "3",
+                     capsys=capsys)  # fmt: skip
+    lines = [x for x in err.splitlines() if not x.startswith("twin: notice")]
+    assert code == 2 and len(lines) == 1, err
+    assert str(bad) in lines[0] and "is not declared" in lines[0], lines[0]
+    if where == "routes":  # a sumocfg's xml-validation "never" holds for its route files too
+        cfg = tmp_path / "never.sumocfg"
+        cfg.write_text(
+            f'<configuration><input><net-file value="{net}"/><route-files value="{bad}"/>'
+            '</input><report><xml-validation value="never"/></report></configuration>'
+        )
+        sumo = subprocess.run([binary("sumo"), "-c", str(cfg), "-e", "10", "--no-step-log"],
+                              capture_output=True, text=True)  # fmt: skip
+        assert sumo.returncode == 0, sumo.stderr
+        code, err = _run(city, "schema-never", "--sumocfg", str(cfg), "--horizon", "3",
+                         capsys=capsys)  # fmt: skip
+        assert code == 0, err
 
 
 def test_a_route_sumo_cannot_follow_stops_the_run_as_it_stops_sumo(city, tmp_path, capsys):

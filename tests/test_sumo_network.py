@@ -147,7 +147,7 @@ def test_a_second_ctrl_c_stops_the_sumo_child_at_once(tmp_path):
         snapshots, vehicles_seen = [], []
         scenario = SimpleNamespace(name="slow")
 
-        def maps_here(self):
+        def maps_here(self, warmup_too=False):
             time.sleep(60)
             yield np.zeros((2, 2))
 
@@ -174,7 +174,7 @@ class _Crashing(_FakeSource):
         self.maps, self.snapshots, self.vehicles_seen = maps, [], []
         self.scenario = SimpleNamespace(name="crashing")
 
-    def maps_here(self):
+    def maps_here(self, warmup_too=False):
         import signal
 
         for k in range(self.maps):
@@ -189,6 +189,72 @@ class _Crashing(_FakeSource):
 
     def model_after(self, snapshots):
         return ("model after", len(snapshots))
+
+
+class _WarmingUp(_FakeSource):
+    """A source with a warm-up of 5 snapshots before 3 maps; each map holds the number of
+    snapshots its process held when it was read."""
+
+    def __init__(self):
+        from types import SimpleNamespace
+
+        self.snapshots, self.vehicles_seen = [], []
+        self.scenario = SimpleNamespace(name="warming up")
+
+    def maps_here(self, warmup_too=False):
+        for k in range(-5, 3):
+            held = len(self.snapshots)
+            self.snapshots.append((k, k * 60.0, np.ones((2, 2)), np.ones((2, 2))))
+            self.vehicles_seen.append(4)
+            if k >= 0:
+                yield np.full((2, 2), float(held))
+            elif warmup_too:
+                yield None
+
+
+def test_sumo_child_sends_each_snapshot_on_and_holds_none_it_sent():
+    """A long warm-up (1 s steps: 900 snapshots of the grid) was held in SUMO's process and sent
+    with the first map in one message: three copies of it at once (probe 28's n01)."""
+    from twin.sumo.worker import maps_from_child
+
+    source = _WarmingUp()
+    maps = list(maps_from_child(source))
+    assert [int(m[0, 0]) for m in maps] == [0, 0, 0]  # the child held none it had sent
+    assert [s[0] for s in source.snapshots] == list(range(-5, 3))  # the parent has them all
+    assert source.vehicles_seen == [4] * 8
+    # SUMO's process measures its own peak: the largest child of a parallel run's parent is
+    # a worker (probe 31's w01)
+    assert source.process_peak_mb is not None and source.process_peak_mb > 0
+
+
+def test_a_stop_asked_during_the_warm_up_stops_at_once():
+    """SIGTERM (a batch scheduler's stop) during a long warm-up waited for the whole warm-up and
+    a step, past the scheduler's grace period (probe 30's r03): before the first step there is
+    nothing to keep."""
+    import time
+
+    from twin.processes import STOP_ASKED
+    from twin.sumo.worker import maps_from_child
+
+    class LongWarmUp(_WarmingUp):
+        def maps_here(self, warmup_too=False):
+            for k in range(-3000, 1):
+                time.sleep(0.01)  # 30 s of warm-up
+                self.snapshots.append((k, k * 1.0, np.ones((2, 2)), np.ones((2, 2))))
+                self.vehicles_seen.append(4)
+                if k >= 0:
+                    yield np.zeros((2, 2))
+                elif warmup_too:
+                    yield None
+
+    start = time.monotonic()
+    STOP_ASKED.set()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            next(maps_from_child(LongWarmUp()))
+    finally:
+        STOP_ASKED.clear()
+    assert time.monotonic() - start < 10
 
 
 def test_sumo_crashing_before_the_first_step_is_an_error_naming_the_signal():

@@ -3,6 +3,7 @@ counts against an independent count, tape replay against the live run, bad files
 
 from __future__ import annotations
 
+import json
 import xml.etree.ElementTree as ET
 from pathlib import Path
 
@@ -131,6 +132,41 @@ def test_sumo_failure_mid_run_keeps_partial_results(small, tmp_path, monkeypatch
 
     series = pd.read_parquet(out / "series.parquet")
     assert series["step"].max() == 1
+
+
+@pytest.mark.parametrize("after_steps", [0, 2])
+def test_memory_running_out_is_one_line_or_a_partial_run_saying_so(
+    small, tmp_path, monkeypatch, capsys, after_steps
+):
+    """Out of memory in the warm-up (a city of 1 s steps) was a partial run of 0 steps whose
+    reason read "MemoryError: " (probe 28's n01); later it is a partial run saying it."""
+    from twin.config import SumoSettings
+
+    calls = {"n": 0}
+    original = SumoSession.advance_to
+    reads = SumoSettings().reads_per_step
+
+    def failing(self, t):
+        calls["n"] += 1
+        if calls["n"] > (5 + after_steps) * reads:  # 4 warm-up snapshots, T^0, then steps
+            raise MemoryError()
+        original(self, t)
+
+    monkeypatch.setattr(SumoSession, "advance_to", failing)
+    out = tmp_path / "run"
+    code = twin_main(["run", "--config", str(small / "small.toml"), "--out", str(out),
+                      "--no-report", "--quiet"])  # fmt: skip
+    assert SumoSession._active is None
+    err = capsys.readouterr().err
+    if after_steps == 0:
+        assert code == 2
+        lines = [line for line in err.splitlines() if "error" in line]
+        assert len(lines) == 1 and "out of memory; use a smaller grid" in lines[0]
+        assert not (out / "series.parquet").exists()  # no partial run of 0 steps
+    else:
+        assert code == 1
+        reason = json.loads((out / "run.json").read_text())["partial_reason"]
+        assert "out of memory (MemoryError)" in reason, reason
 
 
 def test_a_swarms_own_failure_is_no_partial_run_of_the_simulation(

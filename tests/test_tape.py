@@ -148,3 +148,15 @@ def test_a_replay_says_its_runs_incidents_are_not_scored(tmp_path, capsys):
         f"twin: notice: {path}: the 2 incidents of its run are in its vehicles, but not "
         "scored as incidents here (their detection and incidents.json come with `twin run`)"
     ), err
+
+
+def test_a_tapes_footer_reads_without_its_rows_and_none_when_damaged(tmp_path):
+    from twin.traffic.tape import tape_footer
+
+    path = tmp_path / "tape.parquet"
+    random_tape(seed=0, nx=4, ny=3, warmup=2, horizon=6).write(path)
+    meta = tape_footer(path)
+    assert (meta["nx"], meta["ny"], meta["horizon"]) == (4, 3, 6)
+    path.write_bytes(path.read_bytes()[:-20])  # truncated: its footer is gone
+    assert tape_footer(path) is None
+    assert tape_footer(tmp_path / "missing.parquet") is None

@@ -175,6 +175,7 @@ class SwarmParallelEnv(ParallelEnv):
         "render_modes": [],
         "is_parallelizable": True,
     }
+    render_mode = None  # none: watch a run with `twin run --gui` or `twin replay --gui`
 
     def __init__(
         self,
@@ -304,6 +305,11 @@ class SwarmParallelEnv(ParallelEnv):
             dict.fromkeys(agents, done),
             infos,
         )
+
+    def render(self) -> None:
+        """Nothing to render (``render_modes`` is empty): a warning and None, as Gymnasium's
+        environments do without a render mode."""
+        _no_render()
 
     def close(self) -> None:
         """Close the traffic source (a live simulation ends); a second call does nothing."""
@@ -488,8 +494,23 @@ class SwarmGymEnv(gymnasium.Env):
     def _info(self) -> dict[str, Any]:
         return {"action_mask": self.swarm_env.swarm.feasible.astype(np.int8)}
 
+    def render(self) -> None:
+        """Nothing to render (``render_modes`` is empty): a warning and None."""
+        _no_render()
+
     def close(self) -> None:
         self.swarm_env.close()
+
+
+def _no_render() -> None:
+    import warnings
+
+    warnings.warn(
+        "twin's environments have no render mode (metadata render_modes = []); to watch a "
+        "swarm, run `twin run --gui` or `twin replay --gui` on a run folder",
+        UserWarning,
+        stacklevel=3,
+    )
 
 
 def _joint_action(action: Any, n: int) -> np.ndarray:

@@ -17,6 +17,7 @@ synthetic and replayed traffic is the same for every seed.
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import signal
 import sys
@@ -732,19 +733,14 @@ def planned_shape(experiment: Experiment) -> tuple[tuple[int, int] | None, int |
     """Grid shape and horizon of a synthetic or replayed run, read cheaply (the config, or the
     tape's footer); ``(None, None)`` when unknown (a broken tape: its reader will say why)."""
     if experiment.tape is not None:
-        try:
-            import json
+        from twin.traffic.tape import tape_footer
 
-            import pyarrow.parquet as pq
-
-            meta = json.loads(pq.read_schema(experiment.tape).metadata[b"twin_tape"])
-            nx, ny, horizon = meta["nx"], meta["ny"], meta["horizon"]
-        except Exception:  # the tape reader gives the one-line error
-            return None, None
+        meta = tape_footer(experiment.tape) or {}
+        nx, ny, horizon = meta.get("nx"), meta.get("ny"), meta.get("horizon")
         if not all(
             isinstance(v, int) and not isinstance(v, bool) and v >= 1 for v in (nx, ny, horizon)
         ):
-            return None, None  # likewise
+            return None, None  # the tape reader gives the one-line error
         return (nx, ny), horizon
     config = experiment.config
     return (config.grid.nx, config.grid.ny), int(config.traffic.horizon)
@@ -767,13 +763,17 @@ def estimate_memory(
     Per cell and step: every seed's result keeps its importance maps and recorded truth
     (float32, ``(T+1) x nx x ny`` each: 8 B); monitoring's event search ~12 B while one seed is
     scored; synthetic traffic precomputes its maps (float64, stacked: 16 B); live traffic keeps
-    each seed's tape (int32 counts + float32 speeds, warm-up included: 8 B) and writes the first as
-    a long table (~48 B). Per cell and swarm: its state, view and belief map (~64 B). Per
+    each seed's snapshots (int32 counts + float32 speeds, warm-up included: 8 B), stacks them
+    into one seed's tape at a time as it is written (8 B more) and writes it as a long table
+    (~48 B). Per cell and swarm: its state, view and belief map (~64 B). Per
     swarm, drone and step: positions (16 B per seed). Per swarm and step of each seed: its
     series and trajectory rows as gathered into the run's tables (600 B); per seed: its
     result's objects (60 KB); from peak memory (`/usr/bin/time`) on a 10 x 12 grid, T = 60,
     1500 and 3000 seeds of 1 swarm and 3000 of 3 (122 to 133 and 179 KB per seed; the terms
-    above gave 67), with a margin of about a fifth. With
+    above gave 67), with a margin of about a fifth. Beside them: this process's interpreter
+    and, for a live run, its simulator (:data:`PROCESS_BYTES`, :data:`SIMULATOR_BYTES`; 4 m
+    cells of 1 s steps with a 15-minute warm-up of 898 snapshots, T = 1: 1.37 GB peak in this
+    process, 0.22 in the simulator's, against 1.72 estimated). With
     ``[faults]``, each swarm's fault-free twin counts as one more swarm.
 
     Seeds run at once on W workers (:func:`parallel`): each worker holds one simulation with its
@@ -789,14 +789,16 @@ def estimate_memory(
         n_swarms *= 2  # each swarm's fault-free twin runs beside it
     per_cell_step = 8 * n_seeds + 12
     if live:
-        per_cell_step += 8 * n_seeds * (steps + warmup_steps) / steps + 48
+        per_cell_step += (8 * n_seeds + 8) * (steps + warmup_steps) / steps + 48
     elif experiment.tape is None and experiment.config.traffic.kind == "synthetic":
         per_cell_step += 16
     else:  # a tape: its counts, speeds (and the table they are read from, ~40 B)
         per_cell_step += 48
     n_drones = min(experiment.config.swarm.n_drones, cells)  # more cannot fit: refused later
     need = (
-        cells * steps * per_cell_step
+        PROCESS_BYTES
+        + (SIMULATOR_BYTES if live else 0.0)
+        + cells * steps * per_cell_step
         + cells * n_swarms * 64
         + n_swarms * n_seeds * steps * (n_drones * 16 + SERIES_BYTES)
         + n_seeds * SEED_BYTES
@@ -813,10 +815,15 @@ def estimate_memory(
     return float(need)
 
 
-#: A worker of a parallel run beside its parent: a Python interpreter with twin's modules and
-#: one live traffic simulation in its own process (peak resident memory on the default
-#: scenario: about 0.4 GB for the runner plus 0.4 GB for the simulator; docs/benchmarks.md).
-WORKER_BYTES = 0.8e9
+#: A Python interpreter with twin's modules and its libraries (0.22 GB peak for `twin
+#: evaluate --config synthetic --swarms random`, 0.42 GB with torch for `--swarms rl`), and a
+#: live traffic simulation in its own process (about 0.4 GB on the default scenario).
+PROCESS_BYTES = SIMULATOR_BYTES = 0.4e9
+
+#: A worker of a parallel run beside its parent: an interpreter and one live simulation
+#: (peak resident memory on the default scenario: about 0.4 GB for the runner plus 0.4 GB for
+#: the simulator; docs/benchmarks.md).
+WORKER_BYTES = PROCESS_BYTES + SIMULATOR_BYTES
 
 
 def n_workers(experiment: Experiment) -> int:
@@ -957,9 +964,10 @@ def _seeds_that_fit(
 
 
 def _gb(n_bytes: float) -> str:
-    """Bytes as GB with one decimal, or two significant digits below 0.1 GB."""
+    """Bytes as GB with one decimal rounded up (an estimate over a limit never reads as at
+    or below it), or two significant digits below 0.1 GB."""
     gb = n_bytes / 1e9
-    return f"{gb:.1f}" if gb >= 0.1 else f"{gb:.2g}"
+    return f"{math.ceil(round(gb * 10, 6)) / 10:.1f}" if gb >= 0.1 else f"{gb:.2g}"
 
 
 def run_metadata(outcome: ExperimentResult, kind: str, **extra: Any) -> dict[str, Any]:

@@ -74,8 +74,10 @@ def check_output_dir(
 def _check_not_in_cache(path: Path, flag: str) -> None:
     """Refuse an output folder that is twin's cache or lies in one of the folders twin keeps
     there (:data:`twin.resources.CACHE_FOLDERS`): the cache rebuilds (deletes) an entry it
-    finds damaged, with whatever a user put in it. A work folder beside them in a cache that
-    is a whole scratch disk (``$TWIN_CACHE_DIR=$SCRATCH``) is the user's."""
+    finds damaged, with whatever a user put in it; or one that holds the cache (a
+    ``$TWIN_CACHE_DIR`` inside a new ``--out``: twin filled it, then refused it as not new).
+    A work folder beside them in a cache that is a whole scratch disk
+    (``$TWIN_CACHE_DIR=$SCRATCH``) is the user's."""
     from twin.cache_place import CACHE_FOLDERS, cache_dir
 
     try:
@@ -90,6 +92,11 @@ def _check_not_in_cache(path: Path, flag: str) -> None:
         raise UserError(
             f"{flag} {path}: lies in twin's cache ({cache}), whose entries twin deletes and "
             "rebuilds; pass a folder outside it"
+        )
+    if cache.is_relative_to(target):  # a run folder holding the cache is neither new nor a run
+        raise UserError(
+            f"{flag} {path}: holds twin's cache ({cache}); put the cache elsewhere "
+            "($TWIN_CACHE_DIR) or pass a folder outside it"
         )
 
 

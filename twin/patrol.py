@@ -233,11 +233,14 @@ def run_patrol(
         if (
             isinstance(exc, UserError)
             or not source.keeps_partial_results
-            or (in_swarm and done == 0)
-        ):  # bad input (a file a simulator refuses to start on), or a swarm that failed before
-            raise  # its first step (no torch cache), is no partial result of the simulation
+            or ((in_swarm or isinstance(exc, MemoryError)) and done == 0)
+        ):  # bad input (a file a simulator refuses to start on), a swarm that failed before its
+            raise  # first step (no torch cache) or memory that ran out before it (a warm-up of
+            # the city): no partial result of the simulation
         release_notices()  # a partial run: what it said of its scenario still holds
-        error = f"{type(exc).__name__}: {exc}"
+        error = f"{type(exc).__name__}: {exc}" if str(exc) else f"{type(exc).__name__}"
+        if isinstance(exc, MemoryError):
+            error = f"out of memory ({error}); use a smaller grid, horizon or fewer seeds"
     finally:
         if bar is not None:
             bar.close()
@@ -261,7 +264,10 @@ def run_patrol(
         completed_steps=done,
         error=error,
         stage_seconds=_stage_seconds(timer, source),
-        extra={"process_stages": source.process_stages()},
+        extra={
+            "process_stages": source.process_stages(),
+            "process_peak_mb": source.process_peak_mb,
+        },
         faults=plan,
     )
     if len(runs) > len(names):  # the fault-free twins: a result of their own

@@ -16,6 +16,16 @@ PARENT_POLL_S = 0.5
 STOP_ASKED = threading.Event()
 
 
+def peak_memory_mb() -> float | None:
+    """This process's peak resident memory so far (MB), where the OS tells it."""
+    try:
+        import resource
+    except ImportError:  # not on Windows
+        return None
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return round(peak / (1024.0 * 1024.0 if sys.platform == "darwin" else 1024.0), 1)
+
+
 def interrupt_on_terminate(signum, frame) -> None:
     """A SIGTERM handler (``kill``, a batch scheduler's stop, ``timeout``): stop as Ctrl-C
     does, so the files already written stay complete."""

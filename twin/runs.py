@@ -43,7 +43,6 @@ import os
 import platform
 import re
 import shutil
-import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -78,6 +77,7 @@ from twin.metrics import (
 )
 from twin.monitoring import MonitorSettings, RunMonitoring, monitor_run
 from twin.patrol import PatrolResult
+from twin.processes import peak_memory_mb
 from twin.readback import check_manifest
 from twin.scores import ScoreParams
 from twin.timing import WRITING
@@ -631,7 +631,12 @@ def write_run(
         "timings": {
             "patrol_seconds": [round(r.seconds, 3) for r in results],
             "peak_memory_mb": peak_memory_mb(),
-            "peak_memory_sumo_process_mb": peak_memory_mb(children=True),
+            # SUMO's own process, as it measured itself (the largest child process would be a
+            # worker of a parallel run)
+            "peak_memory_sumo_process_mb": max(
+                (r.extra.get("process_peak_mb") or 0.0 for r in results), default=0.0
+            )
+            or None,
         },
         "errors": [r.error for r in results if r.error],
         "monitoring": {
@@ -704,18 +709,6 @@ def _degradation(results, monitored) -> pd.DataFrame | None:
         if r.fault_free is not None and m is not None
     ]
     return pd.concat(frames, ignore_index=True) if frames else None
-
-
-def peak_memory_mb(children: bool = False) -> float | None:
-    """The process's peak resident memory so far (MB), where the OS tells it; with
-    ``children``: the largest of its ended child processes (SUMO's own process)."""
-    try:
-        import resource
-    except ImportError:  # not on Windows
-        return None
-    who = resource.RUSAGE_CHILDREN if children else resource.RUSAGE_SELF
-    peak = resource.getrusage(who).ru_maxrss
-    return round(peak / (1024.0 * 1024.0 if sys.platform == "darwin" else 1024.0), 1)
 
 
 def timing_frame(results: Sequence[PatrolResult], writing_seconds: float = 0.0) -> pd.DataFrame:

@@ -74,23 +74,24 @@ def add_parser(subparsers) -> None:
     p.set_defaults(func=main)
 
 
-#: Peak memory of ``twin history``: the interpreter and its libraries, per cell and step of
-#: each day of the dynamic generator (:data:`twin.belief.DAY_BYTES`), of each tape (its truth
-#: maps held, float64) and of the one tape being replayed.
-BASE_BYTES, TAPE_BYTES, REPLAY_BYTES = 0.4e9, 24, 130
+#: Peak memory of ``twin history`` beside the interpreter (:data:`twin.experiment.
+#: PROCESS_BYTES`), per cell and step of each day of the dynamic generator
+#: (:data:`twin.belief.DAY_BYTES`), of each tape (its truth maps held, float64) and of the one
+#: tape being replayed.
+TAPE_BYTES, REPLAY_BYTES = 24, 130
 
 
 def check_days_memory(config, days: int, limit_gb: float | None) -> None:
     """Refuse (one line) ``days`` days of maps of ``config``'s grid and horizon past the memory
     limit (:data:`DAY_BYTES`), before any is computed."""
     from twin.belief import DAY_BYTES
-    from twin.experiment import MEMORY_ENV, memory_limit_gb
+    from twin.experiment import MEMORY_ENV, PROCESS_BYTES, memory_limit_gb
     from twin.resources import check_grid_size
 
     g, horizon = config.grid, config.traffic.horizon
     check_grid_size(g.nx, g.ny, f"--dynamics {config.path}", "use a smaller grid")
     limit = memory_limit_gb(limit_gb)
-    need = BASE_BYTES + days * (horizon + 1) * g.nx * g.ny * DAY_BYTES
+    need = PROCESS_BYTES + days * (horizon + 1) * g.nx * g.ny * DAY_BYTES
     if need > limit * 1e9:
         raise UserError(
             f"--dynamics {config.path}: {days} days of {g.nx} x {g.ny} cells x {horizon + 1} "
@@ -103,22 +104,19 @@ def check_tapes_memory(paths: list[Path], limit_gb: float | None) -> None:
     """Refuse (one line) a history of the tapes ``paths`` past the memory limit, from their
     recorded grids and horizons (a tape whose metadata does not read is left to its replay,
     which says why): every tape's truth maps are held, one tape is replayed at a time."""
-    import json
-
-    import pyarrow.parquet as pq
-
-    from twin.experiment import MEMORY_ENV, memory_limit_gb
+    from twin.experiment import MEMORY_ENV, PROCESS_BYTES, memory_limit_gb
+    from twin.traffic.tape import tape_footer
 
     limit = memory_limit_gb(limit_gb)
     sizes = []
     for path in paths:
         try:
-            settings = json.loads(pq.read_schema(path).metadata[b"twin_tape"])["settings"]
+            settings = (tape_footer(path) or {})["settings"]
             nx, ny = settings["identity"]["grid"]
             sizes.append((int(settings["horizon"]) + 1) * int(nx) * int(ny))
-        except Exception:  # any damage: the replay refuses it by name
+        except (TypeError, KeyError, ValueError):  # damage: the replay refuses it by name
             continue
-    need = BASE_BYTES + sum(sizes) * TAPE_BYTES + max(sizes, default=0) * REPLAY_BYTES
+    need = PROCESS_BYTES + sum(sizes) * TAPE_BYTES + max(sizes, default=0) * REPLAY_BYTES
     if need > limit * 1e9:
         raise UserError(
             f"--from: {len(paths)} tapes of {sum(sizes):,} cell-steps in all need about "
@@ -314,6 +312,7 @@ def _write_history(args: argparse.Namespace) -> int:
         )
     check_tapes_memory(paths, args.max_memory_gb)
     maps, seeds, first, stations = [], {}, None, []
+    networks: dict[str | None, Path] = {}  # each network file's first tape
     for path in paths:
         truth, obstacles, settings = replay_truth(path)
         readings = detector_readings(path, obstacles, truth.shape[0] - 1)
@@ -345,7 +344,20 @@ def _write_history(args: argparse.Namespace) -> int:
             )
         seeds[seed] = path
         maps.append(truth)
+        identity = settings.get("identity")
+        network = identity.get("net_sha256") if isinstance(identity, dict) else None
+        networks.setdefault(network, path)
     _, obstacles, (_, step_s, begin) = first
+    if len(networks) > 1:  # days of other demand are a history; of another network, rarely
+        (a, pa), (b, pb) = list(networks.items())[:2]
+        from twin.notices import notify
+
+        notify(
+            f"twin: notice: {pb} ran on another network file than {pa} (sha256 "
+            f"{str(b)[:12]}... against {str(a)[:12]}...); their grids and obstacles match, so "
+            "the history pairs their cells by position: keep days of one network for a prior "
+            "of its traffic"
+        )
     history = fit_history(
         maps,
         obstacles,

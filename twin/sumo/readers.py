@@ -305,26 +305,33 @@ def file_list(value: str | None, base: Path, named_in: Path | None = None) -> li
     return [resolved(base / v.strip(), named_in) for v in items if v.strip()]
 
 
-def parse_time(value: str | None) -> float | None:
-    """A SUMO time value: seconds ("3600", "3600.5", and C's hexadecimal form "0xe10", which
-    SUMO's number parser takes too) or a clock ("1:00:00"); None if neither (also for NaN and
-    infinite values, which SUMO refuses too)."""
-    if value is None:
+def sumo_number(value: str | None) -> float | None:
+    """A number as SUMO's reader takes it (``strtod`` with nothing after it, or C's hexadecimal
+    form "0xe10"), finite; None otherwise: Python reads "1_0", "10 " and "１０", SUMO does
+    not."""
+    if value is None or "_" in value or value != value.rstrip() or not value.isascii():
         return None
-    if "_" in str(value) or str(value) != str(value).rstrip():
-        return None  # Python reads "1_0" and "10 ", SUMO (strtod, then nothing after) does not
     try:
         t = float(value)
     except ValueError:
         try:
-            t = float.fromhex(value) if _HEX.fullmatch(str(value).strip()) else math.nan
+            t = float.fromhex(value) if _HEX.fullmatch(value.strip()) else math.nan
         except (ValueError, OverflowError):
             t = math.nan
-        if math.isfinite(t):
-            return t
-    else:
-        return t if math.isfinite(t) else None
-    parts = str(value).strip().split(":")
+    return t if math.isfinite(t) else None
+
+
+def parse_time(value: str | None) -> float | None:
+    """A SUMO time value: seconds (:func:`sumo_number`: "3600", "3600.5", "0xe10") or a clock
+    ("1:00:00", "1:07:00:00"); None if neither (also for NaN and infinite values, which SUMO
+    refuses too)."""
+    if value is None:
+        return None
+    value = str(value)
+    t = sumo_number(value)
+    if t is not None or "_" in value or value != value.rstrip() or not value.isascii():
+        return t
+    parts = value.strip().split(":")
     try:
         numbers = [float(x) for x in parts]
     except ValueError:
@@ -595,6 +602,16 @@ _DEPARTING = {
 }
 
 
+def _drives(person: ET.Element) -> bool:
+    """Whether a person (or person flow) may travel in a vehicle of its own: a ``<personTrip>``
+    whose ``modes`` hold ``car``, ``bicycle`` or ``taxi`` (``randomTrips.py --persontrips``
+    with ``modes="car"``)."""
+    return any(
+        local_name(step) == "personTrip" and _DRIVING_MODES & set(step.get("modes", "").split())
+        for step in person
+    )
+
+
 def _check_departure(path: Path, elem: ET.Element, key: str, start: float = 0.0) -> float | None:
     """The departure time of ``elem``: ``start`` (the simulation's begin) for SUMO's word
     "begin", None for its other words such as "triggered" or "now"; a negative, NaN or infinite
@@ -626,8 +643,17 @@ _DEPART_WORDS = ("triggered", "containerTriggered", "now", "split")
 #: begin (``start``), wherever SUMO begins.
 AT_BEGIN = "at the simulation's begin"
 
-#: The departing elements that put vehicles on the roads (persons walk, containers wait).
-VEHICLE_DEMAND = ("vehicle", "trip", "flow")
+#: :func:`departure_span`'s count of persons (and person flows) whose ``<personTrip>`` may
+#: drive (``modes`` with ``car``, ``bicycle`` or ``taxi``): SUMO puts their vehicles on roads.
+DRIVING_PERSONS = "persons driving"
+
+#: The departing elements that put vehicles on the roads (persons walk unless they drive,
+#: containers wait).
+VEHICLE_DEMAND = ("vehicle", "trip", "flow", DRIVING_PERSONS)
+
+#: A ``<personTrip modes>`` that SUMO may route by road in a vehicle: the person's own car or
+#: bicycle, or a taxi.
+_DRIVING_MODES = frozenset(("car", "bicycle", "taxi"))
 
 
 def departure_span(
@@ -642,8 +668,9 @@ def departure_span(
     ``begin`` .. ``end`` of flows, person and container flows, those of their ``<interval>`` or
     ``start``, the simulation's begin, when a flow gives none, as SUMO reads them; the last is
     ``math.inf`` when a flow has no end); None when the files hold no vehicle (e.g. only vTypes).
-    ``counts``, when given, gets the number of departing elements of each tag, and of those
-    departing at ``start`` (:data:`AT_BEGIN`); ``closed``, when given, the last departure
+    ``counts``, when given, gets the number of departing elements of each tag, of those
+    departing at ``start`` (:data:`AT_BEGIN`) and of persons who may drive
+    (:data:`DRIVING_PERSONS`); ``closed``, when given, the last departure
     that is not an open flow's. Files pulled in with ``<include href>`` count, as SUMO loads
     them. Of the files ``in_order`` (route files SUMO reads step by step, ``--route-steps``), an
     element departing before one listed above it is left out, as SUMO ignores it ("Route file
@@ -702,6 +729,8 @@ def departure_span(
                         counts[AT_BEGIN] = counts.get(AT_BEGIN, 0) + 1
                     if t is not None:
                         counts[tag] = counts.get(tag, 0) + 1
+                        if tag in ("person", "personFlow") and _drives(elem):
+                            counts[DRIVING_PERSONS] = counts.get(DRIVING_PERSONS, 0) + 1
                         end = t
                         if flow:
                             end = _flow_end(elem, t, intervals[-1][1] if intervals else None)
@@ -734,12 +763,7 @@ def _flow_end(elem: ET.Element, begin: float, interval_end: float | None = None)
     that end; never (``math.inf``) for an open flow, which SUMO (1.2x) runs as long as it
     runs."""
     end = parse_time(elem.get("end"))
-    try:
-        number = None if elem.get("number") is None else float(elem.get("number"))
-    except ValueError:
-        number = None  # SUMO will say what is wrong with it
-    if number is not None and not math.isfinite(number):
-        number = None  # likewise
+    number = sumo_number(elem.get("number"))  # None: SUMO will say what is wrong with it
     step = parse_time(elem.get("period")) or parse_time(elem.get("headway"))
     for rate in ("vehsPerHour", "personsPerHour", "containersPerHour", "perHour"):
         per_hour = parse_time(elem.get(rate))

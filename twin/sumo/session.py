@@ -33,7 +33,7 @@ from twin.sumo.readers import missing
 #: SUMO options that keep a congested run moving in rush hour:
 #: a vehicle blocked for 300 s jumps ahead (teleport), a vehicle that cannot enter the network
 #: for 15 min is dropped, a share of vehicles reroute around congestion every 5 min (each one
-#: a scenario's sumocfg sets is its own, :func:`gridlock_defaults`).
+#: a scenario's sumocfg sets is its own, :func:`filled_in_options`).
 ANTI_GRIDLOCK_OPTIONS = (
     "--time-to-teleport", "300",
     "--max-depart-delay", "900",
@@ -44,18 +44,31 @@ ANTI_GRIDLOCK_OPTIONS = (
 )  # fmt: skip
 
 
-def gridlock_defaults(sumocfg: Path | None) -> tuple[str, ...]:
-    """:data:`ANTI_GRIDLOCK_OPTIONS` but those a scenario's sumocfg sets itself: its own
-    settings (no teleports, no rerouting ...) are kept, twin's only fill in where it says
-    nothing."""
+#: SUMO's own defaults for checking XML inputs against the schema they declare, given
+#: explicitly: the sumo binary checks route and additional files that declare one (a misspelt
+#: attribute is refused), libsumo only when told (such a file ran, the attribute ignored).
+XML_VALIDATION = ("--xml-validation", "local", "--xml-validation.routes", "local")
+
+
+def filled_in_options(sumocfg: Path | None) -> tuple[str, ...]:
+    """:data:`ANTI_GRIDLOCK_OPTIONS` and :data:`XML_VALIDATION` but those a scenario's sumocfg
+    sets itself: its own settings (no teleports, no rerouting, no validation ...) are kept,
+    twin's only fill in where it says nothing. Route files follow the sumocfg's
+    ``xml-validation`` when it sets no ``xml-validation.routes``, as the sumo binary reads them
+    (``never`` checks neither; libsumo kept checking routes)."""
+    defaults = (*ANTI_GRIDLOCK_OPTIONS, *XML_VALIDATION)
     if sumocfg is None:
-        return ANTI_GRIDLOCK_OPTIONS
+        return defaults
     from twin.sumo.readers import read_sumocfg
 
-    own = set(read_sumocfg(sumocfg, own_net=False).options)
+    options = read_sumocfg(sumocfg, own_net=False).options
+    own = set(options)
     if "load-state" in own:  # the state holds rerouting's speeds: another count crashes SUMO
         own.add("device.rerouting.adaptation-steps")
-    pairs = zip(ANTI_GRIDLOCK_OPTIONS[::2], ANTI_GRIDLOCK_OPTIONS[1::2], strict=True)
+    general = options.get("xml-validation")
+    if general and "xml-validation.routes" not in own:
+        defaults = (*ANTI_GRIDLOCK_OPTIONS, "--xml-validation.routes", general)
+    pairs = zip(defaults[::2], defaults[1::2], strict=True)
     return tuple(part for flag, value in pairs if flag[2:] not in own for part in (flag, value))
 
 
@@ -96,7 +109,7 @@ class SumoSession:
     seed: int = 0
     step_length: float = 1.0
     mesoscopic: bool = False
-    extra_options: Sequence[str] = ANTI_GRIDLOCK_OPTIONS
+    extra_options: Sequence[str] = (*ANTI_GRIDLOCK_OPTIONS, *XML_VALIDATION)
     additional_files: Sequence[Path] = ()
     config_file: Path | None = None
     #: skip a vehicle whose route cannot be followed (twin's own demand, which is its to keep

@@ -38,7 +38,7 @@ from twin.sumo.readers import (
     naming_the_sumocfg,
     read_sumocfg,
 )
-from twin.sumo.session import SumoRunError, SumoSession, gridlock_defaults
+from twin.sumo.session import SumoRunError, SumoSession, filled_in_options
 from twin.timing import (
     DETECTOR_READS,
     OBSERVATION,
@@ -202,7 +202,7 @@ class SumoTraffic(TrafficSource):
             config_file=s.sumocfg,
             # twin's own demand, or closures it schedules, which leave routes unfollowable
             ignore_route_errors=bool(s.extra.get("twin_demand", True) or s.incidents),
-            extra_options=(*gridlock_defaults(s.sumocfg), *options),
+            extra_options=(*filled_in_options(s.sumocfg), *options),
             gui=self.gui,
             warnings=self.messages_kept,
         )
@@ -263,13 +263,15 @@ class SumoTraffic(TrafficSource):
         listed = [Path(f) for f in s.extra.get("sumocfg_files", [])]
         return UserError(naming_the_sumocfg(message, s.sumocfg, listed))
 
-    def maps_here(self) -> Generator[np.ndarray, None, None]:
-        """The maps, SUMO running in this process."""
+    def maps_here(self, warmup_too: bool = False) -> Generator[np.ndarray | None, None, None]:
+        """The maps, SUMO running in this process; with ``warmup_too`` also a None after each
+        snapshot of the warm-up (SUMO's child sends every snapshot on as it is read)."""
         from twin.sumo.incidents import IncidentSchedule
 
         s = self.scenario
         self.model = self._model()
         self.snapshots, self.error = [], None
+        stepped = False  # a snapshot of a step k >= 1 was read: a partial run has one to keep
         self.timer = timer = StageTimer()
         self.incident_schedule = IncidentSchedule(s.incidents, self.geometry, s, self.grid)
         offsets = s.read_offsets()
@@ -322,7 +324,7 @@ class SumoTraffic(TrafficSource):
                     except SumoRunError as exc:
                         # no step to keep, and SUMO's own error (libsumo's; under sumo-gui it
                         # may be its window closed): the input SUMO refused, as on start
-                        if self.gui is None and not any(k >= 1 for k, *_ in self.snapshots):
+                        if self.gui is None and not stepped:
                             when = f" before the window's first step (t = {instant:g} s)"
                             refusal = session.refusal(exc.reason, when)
                             raise self._users_refusal(refusal) from None
@@ -348,6 +350,7 @@ class SumoTraffic(TrafficSource):
                 # The model sees exactly what the tape keeps (float32 speeds), so replays match.
                 count, mean_speed = count.astype(np.int32), mean_speed.astype(np.float32)
                 self.snapshots.append((k, t, count, mean_speed))
+                stepped = stepped or k >= 1
                 t_detectors = clock()
                 if reader is not None and k >= 0:
                     self._read_detectors(reader, k)
@@ -356,6 +359,8 @@ class SumoTraffic(TrafficSource):
                 importance = self.model.observe(k, count, mean_speed.astype(float))
                 if k < 0:
                     timer.add(SUMO_WARMUP, clock() - t_snapshot, calls=0)
+                    if warmup_too:
+                        yield None
                 else:
                     timer.add(SUMO_STEPPING, stepping)
                     timer.add(READS, reading + (t3 - t2))
@@ -429,9 +434,16 @@ class SumoTraffic(TrafficSource):
         return self.scenario.warmup_steps()
 
     def coarser_hint(self, ratio: float) -> str | None:
-        """A cell size (rounded up to 50 m) about ``ratio`` times larger, or fewer steps."""
+        """A cell size (rounded up to 50 m) about ``ratio`` times larger, or fewer steps (a
+        shorter warm-up when its snapshots outnumber the steps: they are kept too)."""
         cell = float(np.ceil(self.geometry.cell_m * ratio / 50.0) * 50.0)
-        return f"cells of {cell:g} m (--cell-m, [traffic].cell_m) or fewer steps (--horizon)"
+        warmup = self.warmup_steps()
+        fewer = (
+            f"a shorter warm-up ([traffic].warmup_min: its {warmup} snapshots are kept)"
+            if warmup > self.horizon
+            else "fewer steps (--horizon)"
+        )
+        return f"cells of {cell:g} m (--cell-m, [traffic].cell_m) or {fewer}"
 
     def metadata(self) -> dict[str, Any]:
         s = self.scenario

@@ -4,9 +4,10 @@ libsumo holds Python's global interpreter lock while it steps, so SUMO and the s
 overlap in one process; and the swarms' work between two SUMO steps evicts SUMO's data from the
 CPU caches (at city scale SUMO stepped 20% slower beside eight swarms). Here a forked child runs
 :meth:`SumoTraffic.maps_here` (SUMO, reads, the observation model, incidents) and sends each map
-with the snapshots behind it through a pipe; while the swarms decide on ``T^k`` the child already
-simulates the next step. The maps are the very arrays the same source computes in one process,
-so results are identical.
+with the snapshots behind it through a pipe (and each snapshot of the warm-up as it is read: a
+long warm-up is never held twice, in the child and in one message); while the swarms decide on
+``T^k`` the child already simulates the next step. The maps are the very arrays the same source
+computes in one process, so results are identical.
 
 Ending: the child sends ``end`` with the observation model, the stage timer, the applied
 incidents and the error that stopped it (a :class:`UserError` on bad input, a
@@ -37,7 +38,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from twin.errors import UserError
-from twin.processes import exit_with_parent
+from twin.processes import STOP_ASKED, exit_with_parent, peak_memory_mb
 from twin.sumo.outputs import MESSAGES_NAME
 from twin.sumo.session import AGGREGATE_AFTER
 from twin.timing import StageTimer
@@ -60,8 +61,9 @@ class WorksAhead(Protocol):
     defer_close: bool
     _truth: np.ndarray | None
     _incidents: list[dict[str, Any]] | None
+    process_peak_mb: float | None
 
-    def maps_here(self) -> Iterator[np.ndarray]: ...
+    def maps_here(self, warmup_too: bool = False) -> Iterator[np.ndarray | None]: ...
 
     def truth_map(self) -> np.ndarray | None: ...
 
@@ -102,6 +104,7 @@ def maps_from_child(source: WorksAhead) -> Iterator[np.ndarray]:
         daemon=True,
     )  # fmt: skip
     source.snapshots, source.vehicles_seen, source.error = [], [], None
+    source.process_peak_mb = None  # told by the child as it ends
     source.detector_readings = []
     source.timer, source._truth, source._incidents = StageTimer(), None, None
     if sys.stdout is not None:  # else the child writes what this process had not into its
@@ -114,7 +117,14 @@ def maps_from_child(source: WorksAhead) -> Iterator[np.ndarray]:
     try:
         while True:
             message = here.recv()
-            if message[0] == "map":
+            if message[0] == "warm-up":
+                _, snapshots, seen, _ = message
+                source.snapshots.extend(snapshots)
+                source.vehicles_seen.extend(seen)
+                if STOP_ASKED.is_set():  # asked to stop after the current step before the
+                    raise KeyboardInterrupt  # first: nothing to keep, stop now (a scheduler's
+                    # grace period is shorter than a long warm-up)
+            elif message[0] == "map":
                 _, importance, truth, snapshots, seen, (detectors, readings) = message
                 source.snapshots.extend(snapshots)
                 source.vehicles_seen.extend(seen)
@@ -207,7 +217,9 @@ def _stop(source: WorksAhead, here, child) -> bool:
 
 
 def _take_end(source: WorksAhead, message) -> None:
-    _, _, snapshots, seen, model, timer, read_seconds, error, incidents, det, notices = message
+    _, _, snapshots, seen, model, timer, read_seconds, error, incidents, det, notices, peak = (
+        message
+    )
     from twin.notices import notify
 
     for line in notices:  # said in the child (its stderr is SUMO's messages file)
@@ -218,6 +230,7 @@ def _take_end(source: WorksAhead, message) -> None:
     source.detector_readings.extend(det[1])
     source.model, source.timer, source.read_seconds = model, timer, read_seconds
     source.error, source._incidents = error, incidents
+    source.process_peak_mb = peak  # SUMO's process, as it measured itself
 
 
 def _messages_file() -> Path:
@@ -279,22 +292,18 @@ def _produce(source: WorksAhead, conn, parent: int, messages: Path) -> None:
     source.separate_process = False
     source.messages_kept = True
     source.defer_close = True  # SUMO is closed after the end state is sent (below)
-    sent_snapshots = sent_seen = sent_readings = 0
     failure: BaseException | None = None
     from twin.notices import drop_notices, hold_notices
 
     drop_notices()  # the parent's held lines stay the parent's; this process's go with its end
     hold_notices()
-    maps = source.maps_here()
+    maps = source.maps_here(warmup_too=True)
     try:
         for importance in maps:
-            snapshots = source.snapshots[sent_snapshots:]
-            seen = source.vehicles_seen[sent_seen:]
-            sent_snapshots, sent_seen = len(source.snapshots), len(source.vehicles_seen)
-            readings = source.detector_readings[sent_readings:]
-            sent_readings = len(source.detector_readings)
-            detectors = (source.detectors, readings)
-            conn.send(("map", importance, source.truth_map(), snapshots, seen, detectors))
+            if importance is None:  # a snapshot of the warm-up
+                conn.send(("warm-up", *_unsent(source)))
+            else:
+                conn.send(("map", importance, source.truth_map(), *_unsent(source)))
             if conn.poll() and conn.recv() == "stop":
                 break
     except BaseException as exc:  # sent to the parent, which raises it
@@ -303,20 +312,22 @@ def _produce(source: WorksAhead, conn, parent: int, messages: Path) -> None:
     # model, stage times, incidents, detector readings) never depends on SUMO's teardown, which
     # can crash in a process forked from one that ran libsumo before. The parent waits for this
     # process to end before it collects SUMO's configured outputs, written when SUMO closes.
+    snapshots, seen, detectors = _unsent(source)
     try:
         conn.send(
             (
                 "end",
                 failure,
-                source.snapshots[sent_snapshots:],
-                source.vehicles_seen[sent_seen:],
+                snapshots,
+                seen,
                 source.model,
                 source.timer,
                 source.read_seconds,
                 source.error,
                 source.incidents_info(),
-                (source.detectors, source.detector_readings[sent_readings:]),
+                detectors,
                 drop_notices(),
+                peak_memory_mb(),
             )
         )
     except (BrokenPipeError, OSError):
@@ -356,6 +367,17 @@ def _say_sumo_errors(
         "stop for ("
     )
     notify(f"twin: notice: {source.scenario.name}: {said}first: {first[:160]}); {where}")
+
+
+def _unsent(source: WorksAhead) -> tuple[list, list[int], tuple[list, list]]:
+    """The snapshots, vehicle counts and detector readings the child has not sent yet, taken
+    out of its lists (the parent keeps them: the child holds each only until it is sent)."""
+    snapshots, seen = source.snapshots[:], source.vehicles_seen[:]
+    readings = source.detector_readings[:]
+    source.snapshots.clear()
+    source.vehicles_seen.clear()
+    source.detector_readings.clear()
+    return snapshots, seen, (source.detectors, readings)
 
 
 def _picklable(exc: BaseException) -> bool:

@@ -44,6 +44,8 @@ class TrafficSource(ABC):
     waiting_stage: str = WAITING_FOR_SOURCE
     #: The name of that process in ``timing.csv``.
     process_name: str = "traffic source"
+    #: That process's peak resident memory (MB), as it measured itself when it ended.
+    process_peak_mb: float | None = None
 
     @abstractmethod
     def importance_maps(self) -> Generator[np.ndarray, None, None]:

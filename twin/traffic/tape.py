@@ -373,6 +373,19 @@ def _positive(value: Any) -> float | None:
     return value if np.isfinite(value) and value > 0 else None
 
 
+def tape_footer(path: str | Path) -> dict[str, Any] | None:
+    """The tape's metadata as written, unchecked, or None when it does not read: for a cheap
+    look (a memory estimate, a provenance record, a tape's settings) whose caller leaves the
+    refusal of a damaged tape to :func:`read_tape_meta` or the reader of its rows."""
+    import pyarrow.parquet as pq
+
+    try:
+        meta = json.loads((pq.read_schema(path).metadata or {})[_META_KEY])
+    except Exception:  # pyarrow, json and a missing key raise several types on a broken file
+        return None
+    return meta if isinstance(meta, dict) else None
+
+
 def read_tape_meta(path: Path) -> dict[str, Any]:
     """The metadata of the tape at ``path``, checked, without reading its rows."""
     import pyarrow.parquet as pq

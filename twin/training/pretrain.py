@@ -604,7 +604,9 @@ def estimate_pretrain_memory(cfg: PretrainConfig) -> dict[str, float]:
     """Bytes pretraining needs, roughly and from above, per part: the replay buffer (plus one
     episode being recorded), the network (:data:`PARAMETER_COPIES` copies of its parameters),
     a batch's activations and gradients, and the training map (its kernels and the blocks the
-    importance scale is searched in)."""
+    importance scale is searched in), besides the interpreter with torch itself."""
+    from twin.experiment import PROCESS_BYTES
+
     layers = [int(n) for n in cfg.layers]
     params = sum(a * b + b for a, b in itertools.pairwise(layers))
     cells = cfg.nx * cfg.ny
@@ -619,6 +621,7 @@ def estimate_pretrain_memory(cfg: PretrainConfig) -> dict[str, float]:
             cells * 8 * (len(synthetic_config(cfg.training_map).disturbances) + 3 * 256 + 16)
         ),
         "history": float(history if cfg.variant.needs_belief else 0),
+        "interpreter": PROCESS_BYTES,
     }
 
 
@@ -629,6 +632,7 @@ MEMORY_FIELDS = {
     "batch": "batch_size or layers",
     "map": "grid.nx, grid.ny",
     "history": "history_days, traffic.horizon or grid.nx, grid.ny",
+    "interpreter": None,  # only the limit can change
 }
 
 
@@ -647,10 +651,11 @@ def check_pretrain_memory(
     if need <= limit * 1e9:
         return
     part = max(parts, key=lambda k: parts[k])
+    lower = f"lower {MEMORY_FIELDS[part]}, or " if MEMORY_FIELDS[part] else ""
     raise UserError(
         f"{where}: pretraining needs about {need / 1e9:,.1f} GB ({part}: "
-        f"{parts[part] / 1e9:,.1f} GB), over the {limit:g} GB limit; lower "
-        f"{MEMORY_FIELDS[part]}, or raise --max-memory-gb / ${MEMORY_ENV}"
+        f"{parts[part] / 1e9:,.1f} GB), over the {limit:g} GB limit; {lower}raise "
+        f"--max-memory-gb / ${MEMORY_ENV}"
     )
 
 
@@ -997,14 +1002,12 @@ def checkpoint_meta(cfg: PretrainConfig, epoch: int) -> dict[str, Any]:
 
 def _tape_shape(path: str | Path) -> dict[str, Any] | None:
     """A tape's grid and steps, from its footer (None when it cannot be read)."""
-    import json
+    from twin.traffic.tape import tape_footer
 
-    import pyarrow.parquet as pq
-
-    try:
-        meta = json.loads(pq.read_schema(path).metadata[b"twin_tape"])
+    meta = tape_footer(path)
+    try:  # it trained: a footer fails to read only if the file changed since
         return {"grid": [int(meta["nx"]), int(meta["ny"])], "horizon": int(meta["horizon"])}
-    except Exception:  # it trained: a footer read fails only if the file changed since
+    except (TypeError, KeyError, ValueError):
         return None
 
 

@@ -112,18 +112,14 @@ def tape_still_holds(task: dict[str, Any]) -> bool:
     another seed, window or network copied over it is not), and its scenario's SUMO files
     (its traffic identity: network, routes, additional files, sumocfg) are still what it was
     recorded on; otherwise that is said, and the tape recorded again."""
-    import pyarrow.parquet as pq
-
     from twin.notices import notify
     from twin.sweep.store import inputs_changed
+    from twin.traffic.tape import tape_footer
 
     path = Path(task["path"])
     if not path.is_file():
         return False
-    try:
-        settings = json.loads(pq.read_schema(path).metadata[b"twin_tape"])["settings"]
-    except Exception:  # a damaged tape: the reader of the rows says why, record it again
-        settings = None
+    settings = (tape_footer(path) or {}).get("settings")  # damaged: its reader says why
     changed = inputs_changed({"traffic": settings}) if isinstance(settings, dict) else "file"
     why = f"its {changed} changed since it was recorded" if changed else _other_tape(task, settings)
     if why is None:
