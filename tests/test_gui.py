@@ -328,6 +328,41 @@ def test_a_meso_run_replays_again_and_again(tmp_path, capsys):
         assert main(["replay", str(out)]) == 0, capsys.readouterr().err
 
 
+@pytest.mark.slow
+@needs_display
+def test_a_meso_run_whose_vehicles_stand_on_cell_borders_replays_and_runs_alike_in_the_gui(
+    tmp_path, capsys
+):
+    """Mesoscopic vehicles stand at segment ends, on the cell borders of a 250 m grid with
+    250 m cells; sumo-gui places them 1e-14 m off libsumo: the replay was refused and `--gui`
+    wrote another tape (probe 32's a01)."""
+    import subprocess
+    import sys
+
+    from twin.cli import main
+
+    bin_dir = Path(sys.executable).parent
+    subprocess.run([str(bin_dir / "netgenerate"), "--grid", "--grid.number", "5",
+                    "--grid.length", "250", "--default.lanenumber", "1", "-o",
+                    str(tmp_path / "g.net.xml")], check=True, capture_output=True)  # fmt: skip
+    import sumo
+
+    tools = Path(sumo.__file__).parent / "tools"
+    # (randomTrips writes a routes.rou.xml where it runs: in tmp_path)
+    subprocess.run([sys.executable, str(tools / "randomTrips.py"), "-n",
+                    str(tmp_path / "g.net.xml"), "-e", "1800", "-p", "3", "--validate", "--seed",
+                    "1", "-o", str(tmp_path / "r.rou.xml")], check=True, capture_output=True,
+                   cwd=tmp_path)  # fmt: skip
+    argv = ["run", "--net", str(tmp_path / "g.net.xml"), "--routes", str(tmp_path / "r.rou.xml"),
+            "--meso", "--cell-m", "250", "--horizon", "6", "--swarms", "random", "--no-ceiling",
+            "--quiet", "--no-report"]  # fmt: skip
+    assert main([*argv, "--out", str(tmp_path / "m")]) == 0
+    assert main(["replay", str(tmp_path / "m")]) == 0, capsys.readouterr().err
+    assert main([*argv, "--gui", "--out", str(tmp_path / "g")]) == 0
+    tapes = [(tmp_path / f / "tape.parquet").read_bytes() for f in ("m", "g")]
+    assert tapes[0] == tapes[1]
+
+
 @pytest.mark.parametrize("encoder", ["/bin/false", "/bin/true"])
 def test_a_failing_video_encoder_is_named_with_a_fix(tmp_path, monkeypatch, encoder):
     """An ffmpeg that fails (or writes nothing): one line naming the encoder and the fixes, no

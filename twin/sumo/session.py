@@ -323,7 +323,10 @@ class SumoSession:
         speed = np.array([veh.getSpeed(v) for v in ids], dtype=float)
         on_road = xy[:, 0] > -1e9  # libsumo's INVALID_DOUBLE_VALUE for teleporting vehicles
         if self.mesoscopic:  # SUMO's meso model tells neither lanes nor parking: all count
-            return xy[on_road], speed[on_road]
+            # to the micrometre: its vehicles stand at segment ends, often on a cell border, and
+            # sumo-gui places them 1e-14 m off libsumo (a --gui run or replay counted another
+            # cell)
+            return np.round(xy[on_road], 6), speed[on_road]
         if not_for_cars:  # (only networks with such lanes ask, and only of vehicles not cars)
             classes = self._classes
             for n, v in enumerate(ids):
