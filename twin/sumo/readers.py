@@ -305,11 +305,17 @@ def file_list(value: str | None, base: Path, named_in: Path | None = None) -> li
     return [resolved(base / v.strip(), named_in) for v in items if v.strip()]
 
 
+def _strtod_reads_all(value: str) -> bool:
+    """Whether SUMO's number reader (``strtod``, then nothing after it) can read all of
+    ``value`` where Python's does: not past "_", a trailing space or a non-ASCII digit
+    ("1_0", "10 ", "１０")."""
+    return "_" not in value and value == value.rstrip() and value.isascii()
+
+
 def sumo_number(value: str | None) -> float | None:
     """A number as SUMO's reader takes it (``strtod`` with nothing after it, or C's hexadecimal
-    form "0xe10"), finite; None otherwise: Python reads "1_0", "10 " and "１０", SUMO does
-    not."""
-    if value is None or "_" in value or value != value.rstrip() or not value.isascii():
+    form "0xe10"), finite; None otherwise."""
+    if value is None or not _strtod_reads_all(value):
         return None
     try:
         t = float(value)
@@ -328,8 +334,10 @@ def parse_time(value: str | None) -> float | None:
     if value is None:
         return None
     value = str(value)
+    if not _strtod_reads_all(value):
+        return None
     t = sumo_number(value)
-    if t is not None or "_" in value or value != value.rstrip() or not value.isascii():
+    if t is not None:
         return t
     parts = value.strip().split(":")
     try:
